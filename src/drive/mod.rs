@@ -1,0 +1,16 @@
+//! The drive's RS-485 protocol (maker's manual, sections 1.2 to 1.12) as pure
+//! code: the register table, the config commands, status decoding, value
+//! ranges and unit conversions, and typed requests and replies. No I/O here.
+
+pub mod command;
+pub mod message;
+pub mod range;
+pub mod registers;
+pub mod status;
+pub mod units;
+
+pub use command::ConfigCommand;
+pub use message::{DriveReply, DriveRequest, ReplyError};
+pub use range::RangeError;
+pub use registers::Register;
+pub use status::{Fault, Mode, Status};

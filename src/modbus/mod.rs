@@ -1,0 +1,10 @@
+//! Generic Modbus pieces shared by the RTU master, the simulator and the TCP face:
+//! CRC, function and exception codes, RTU framing and RTU line timing. Pure code, no I/O.
+
+pub mod crc;
+pub mod exception;
+pub mod function;
+pub mod rtu_frame;
+pub mod timing;
+
+pub use exception::ExceptionCode;
