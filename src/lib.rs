@@ -3,5 +3,7 @@
 //! See `docs/architecture.md` for the picture of the modules and the path of
 //! a request through them.
 
+pub mod clock;
 pub mod drive;
 pub mod modbus;
+pub mod sim;
