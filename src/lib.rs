@@ -3,7 +3,16 @@
 //! See `docs/architecture.md` for the picture of the modules and the path of
 //! a request through them.
 
+pub mod api;
+pub mod bus;
 pub mod clock;
+pub mod config;
+pub mod daemon;
 pub mod drive;
+pub mod faces;
+pub mod logging;
 pub mod modbus;
+pub mod modbus_tcp;
+pub mod plant;
+pub mod safety;
 pub mod sim;

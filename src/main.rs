@@ -1,8 +1,10 @@
 //! The `drivegate` command: CLI parsing only; the work is in the library.
 
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use drivegate::config::Config;
 
 /// Puts a bus of RS-485 servo drives on the network.
 #[derive(Debug, Parser)]
@@ -14,12 +16,85 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Runs the daemon (without --config: one simulated bus of 4 drives).
+    Serve {
+        /// Configuration file (TOML).
+        #[arg(long, short)]
+        config: Option<PathBuf>,
+    },
+    /// Checks a configuration file and exits (0 when valid).
+    CheckConfig {
+        /// Configuration file (TOML).
+        file: PathBuf,
+    },
     /// Serves a simulated bus of drives on a pty, for third-party tools.
     Sim(drivegate::sim::cli::SimArgs),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    match cli.command {
+        Command::CheckConfig { file } => check_config(&file),
+        Command::Serve { config } => serve(config),
+        Command::Sim(args) => run(|| async move {
+            drivegate::sim::cli::run(args)
+                .await
+                .map_err(|e| e.to_string())
+        }),
+    }
+}
+
+fn check_config(file: &std::path::Path) -> ExitCode {
+    match Config::load(file) {
+        Ok(c) => {
+            println!(
+                "{}: valid ({} bus(es), {} drive(s))",
+                file.display(),
+                c.buses.len(),
+                c.drive_count()
+            );
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("{e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn serve(path: Option<PathBuf>) -> ExitCode {
+    let config = match &path {
+        Some(p) => Config::load(p),
+        None => Config::embedded_default(),
+    };
+    let config = match config {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("drivegate: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    if let Some(note) = drivegate::logging::init(&config.log) {
+        tracing::warn!("{note}");
+    }
+    if path.is_none() {
+        tracing::info!(
+            "no --config given: running the built-in configuration (one simulated bus of 4 drives)"
+        );
+    }
+    run(|| async move {
+        drivegate::daemon::serve(config)
+            .await
+            .map_err(|e| e.to_string())
+    })
+}
+
+/// Runs `f` on a multi-threaded runtime and maps its result to an exit code.
+fn run<F, Fut>(f: F) -> ExitCode
+where
+    F: FnOnce() -> Fut,
+    Fut: std::future::Future<Output = Result<(), String>>,
+{
     let runtime = match tokio::runtime::Runtime::new() {
         Ok(rt) => rt,
         Err(e) => {
@@ -27,12 +102,10 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let result = match cli.command {
-        Command::Sim(args) => runtime.block_on(drivegate::sim::cli::run(args)),
-    };
-    match result {
+    match runtime.block_on(f()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
+            tracing::error!("{e}");
             eprintln!("drivegate: {e}");
             ExitCode::FAILURE
         }

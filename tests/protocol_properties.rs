@@ -21,9 +21,12 @@ fn any_request() -> impl Strategy<Value = DriveRequest> {
                 save,
             }
         }),
-        (any::<u32>(), any::<bool>()).prop_map(|(alpha, save)| DriveRequest::SpeedRamp { alpha, save }),
-        (any::<u32>(), any::<bool>()).prop_map(|(alpha, save)| DriveRequest::PositionRamp { alpha, save }),
-        (1u16..=65535, any::<bool>()).prop_map(|(ratio, save)| DriveRequest::LoadInertia { ratio, save }),
+        (any::<u32>(), any::<bool>())
+            .prop_map(|(alpha, save)| DriveRequest::SpeedRamp { alpha, save }),
+        (any::<u32>(), any::<bool>())
+            .prop_map(|(alpha, save)| DriveRequest::PositionRamp { alpha, save }),
+        (1u16..=65535, any::<bool>())
+            .prop_map(|(ratio, save)| DriveRequest::LoadInertia { ratio, save }),
         any::<bool>().prop_map(|enabled| DriveRequest::Rs485Control { enabled }),
     ]
 }

@@ -1,9 +1,7 @@
 //! Every golden frame of `tests/vectors/frames.tsv` (the maker's frames with
 //! their CRCs), built and parsed byte for byte by the drive protocol.
 
-use drivegate::drive::{
-    ConfigCommand, DriveReply, DriveRequest, Fault, Mode, ReplyError, Status,
-};
+use drivegate::drive::{ConfigCommand, DriveReply, DriveRequest, Fault, Mode, ReplyError, Status};
 use drivegate::modbus::ExceptionCode;
 use drivegate::modbus::rtu_frame;
 
@@ -104,9 +102,15 @@ fn request_for(name: &str) -> Option<(u8, DriveRequest)> {
 fn the_project_copy_matches_the_shared_vectors() {
     // CI checks out the shared material beside the project; when it is there
     // the copy compiled into these tests must not have drifted from it.
-    let shared = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/vectors/frames.tsv");
+    let shared =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/vectors/frames.tsv");
     if let Ok(text) = std::fs::read_to_string(&shared) {
-        assert_eq!(text, VECTORS, "tests/vectors/frames.tsv differs from {}", shared.display());
+        assert_eq!(
+            text,
+            VECTORS,
+            "tests/vectors/frames.tsv differs from {}",
+            shared.display()
+        );
     }
 }
 
@@ -140,7 +144,12 @@ fn echoes_confirm_their_writes() {
         if let Some((_, request)) = request_for(&v.name) {
             if request.reply_len() == Some(8) && v.bytes[1] == 0x06 {
                 let (_, pdu) = rtu_frame::decode(&v.bytes).unwrap();
-                assert_eq!(request.parse_reply(pdu), Ok(DriveReply::Confirmed), "{}", v.name);
+                assert_eq!(
+                    request.parse_reply(pdu),
+                    Ok(DriveReply::Confirmed),
+                    "{}",
+                    v.name
+                );
             }
         }
     }
@@ -159,11 +168,18 @@ fn block_write_acknowledgements() {
         assert_eq!(request.reply_len(), Some(ack.len()), "{ack_name}");
         let (unit, pdu) = rtu_frame::decode(&ack).unwrap();
         assert_eq!(unit, 1);
-        assert_eq!(request.parse_reply(pdu), Ok(DriveReply::Confirmed), "{ack_name}");
+        assert_eq!(
+            request.parse_reply(pdu),
+            Ok(DriveReply::Confirmed),
+            "{ack_name}"
+        );
         // An ack for another block does not confirm this one.
         let (_, other) = request_for("inertia_10").unwrap();
         if request_name != "inertia_10" {
-            assert!(matches!(other.parse_reply(pdu), Err(ReplyError::Mismatch(_))));
+            assert!(matches!(
+                other.parse_reply(pdu),
+                Err(ReplyError::Mismatch(_))
+            ));
         }
     }
 }
@@ -178,7 +194,13 @@ fn status_replies_decode() {
         panic!("not a status")
     };
     assert_eq!(
-        (s.turns, s.angle_deg(), s.speed_rpm, s.current_counts, s.current_a()),
+        (
+            s.turns,
+            s.angle_deg(),
+            s.speed_rpm,
+            s.current_counts,
+            s.current_a()
+        ),
         (3, 45.0, -120, 256, 2.0)
     );
     assert_eq!((s.voltage_v, s.temperature_c, s.flags), (24, 41, 0x00C8));
@@ -192,9 +214,15 @@ fn status_replies_decode() {
         panic!("not a status")
     };
     assert_eq!((s.turns, s.angle_deg(), s.speed_rpm), (65535, -180.0, 0));
-    assert_eq!((s.current_counts, s.voltage_v, s.temperature_c), (-2048, 255, -128));
+    assert_eq!(
+        (s.current_counts, s.voltage_v, s.temperature_c),
+        (-2048, 255, -128)
+    );
     assert!(s.active() && s.calibrated() && s.stalled());
-    assert_eq!((s.mode(), s.fault()), (Mode::Position, Fault::OverTemperature));
+    assert_eq!(
+        (s.mode(), s.fault()),
+        (Mode::Position, Fault::OverTemperature)
+    );
     assert_eq!(s.fault().name(), "over_temperature");
 
     // Re-encoding the decoded status gives the same frame back.
@@ -222,12 +250,25 @@ fn exception_reply_decodes() {
 fn reply_lengths_frame_every_reply_vector() {
     for v in vectors() {
         let len = rtu_frame::response_length(&v.bytes[..3.min(v.bytes.len())]);
-        if v.name.ends_with("_ack") || v.name.starts_with("status_reply") || v.name.starts_with("exception") {
-            assert_eq!(len, rtu_frame::FrameLength::Known(v.bytes.len()), "{}", v.name);
+        if v.name.ends_with("_ack")
+            || v.name.starts_with("status_reply")
+            || v.name.starts_with("exception")
+        {
+            assert_eq!(
+                len,
+                rtu_frame::FrameLength::Known(v.bytes.len()),
+                "{}",
+                v.name
+            );
         }
         let req_len = rtu_frame::request_length(&v.bytes[..7.min(v.bytes.len())]);
         if request_for(&v.name).is_some() {
-            assert_eq!(req_len, rtu_frame::FrameLength::Known(v.bytes.len()), "{}", v.name);
+            assert_eq!(
+                req_len,
+                rtu_frame::FrameLength::Known(v.bytes.len()),
+                "{}",
+                v.name
+            );
         }
     }
 }

@@ -126,7 +126,13 @@ impl DriveRequest {
             }
             DriveRequest::Position { centideg } => {
                 let (min, max) = units::POSITION_CENTIDEG;
-                RangeError::check_int("position setpoint", i64::from(centideg), min, max, "x 0.01 deg")?;
+                RangeError::check_int(
+                    "position setpoint",
+                    i64::from(centideg),
+                    min,
+                    max,
+                    "x 0.01 deg",
+                )?;
             }
             DriveRequest::Speed { rpm } => {
                 let (min, max) = units::SPEED_RPM;
@@ -159,10 +165,14 @@ impl DriveRequest {
     pub fn pdu(&self) -> Result<Vec<u8>, RangeError> {
         self.validate()?;
         Ok(match *self {
-            DriveRequest::SetAddress { address } => write_single(Register::SlaveAddr, u16::from(address)),
+            DriveRequest::SetAddress { address } => {
+                write_single(Register::SlaveAddr, u16::from(address))
+            }
             DriveRequest::Config(command) => write_single(Register::Config, command.code()),
             DriveRequest::Speed { rpm } => write_single(Register::SpeedRef, rpm as u16),
-            DriveRequest::Position { centideg } => write_single(Register::PositionRef, centideg as u16),
+            DriveRequest::Position { centideg } => {
+                write_single(Register::PositionRef, centideg as u16)
+            }
             DriveRequest::Torque { counts } => write_single(Register::IqRef, counts as u16),
             DriveRequest::Rs485Control { enabled } => {
                 write_single(Register::Use485Control, u16::from(enabled))
@@ -177,7 +187,10 @@ impl DriveRequest {
                 limit_counts,
                 stall_ms,
                 save,
-            } => write_block(Register::StalledCurr, &[limit_counts, stall_ms, u16::from(save)]),
+            } => write_block(
+                Register::StalledCurr,
+                &[limit_counts, stall_ms, u16::from(save)],
+            ),
             DriveRequest::SpeedRamp { alpha, save } => write_block(
                 Register::SpeedTdRHigh,
                 &[(alpha >> 16) as u16, alpha as u16, u16::from(save)],
@@ -237,7 +250,9 @@ impl DriveRequest {
                 if reply.len() == 5 && reply[1..5] == request[1..5] {
                     Ok(DriveReply::Confirmed)
                 } else {
-                    Err(ReplyError::Mismatch("the acknowledgement names other registers"))
+                    Err(ReplyError::Mismatch(
+                        "the acknowledgement names other registers",
+                    ))
                 }
             }
             _ => {
@@ -369,12 +384,18 @@ mod tests {
         let pdu = req.pdu().unwrap();
         assert_eq!(req.parse_reply(&pdu), Ok(DriveReply::Confirmed));
         let other = DriveRequest::Speed { rpm: 101 }.pdu().unwrap();
-        assert!(matches!(req.parse_reply(&other), Err(ReplyError::Mismatch(_))));
+        assert!(matches!(
+            req.parse_reply(&other),
+            Err(ReplyError::Mismatch(_))
+        ));
         assert_eq!(
             req.parse_reply(&[0x86, 0x03]),
             Err(ReplyError::Exception(ExceptionCode::ILLEGAL_DATA_VALUE))
         );
-        assert!(matches!(req.parse_reply(&[0x03, 0x0E]), Err(ReplyError::Mismatch(_))));
+        assert!(matches!(
+            req.parse_reply(&[0x03, 0x0E]),
+            Err(ReplyError::Mismatch(_))
+        ));
         assert!(matches!(req.parse_reply(&[]), Err(ReplyError::Mismatch(_))));
     }
 
@@ -391,7 +412,14 @@ mod tests {
         .pdu()
         .unwrap_err();
         assert_eq!(err.quantity, "over-current limit");
-        assert!(DriveRequest::LoadInertia { ratio: 0, save: false }.pdu().is_err());
+        assert!(
+            DriveRequest::LoadInertia {
+                ratio: 0,
+                save: false
+            }
+            .pdu()
+            .is_err()
+        );
     }
 
     #[test]

@@ -110,7 +110,10 @@ mod tests {
             "speed setpoint 3000 rpm is out of range: valid -2048 to 2047 rpm"
         );
         let err = RangeError::check("torque", 20.0, -16.0, 15.9921875, "A").unwrap_err();
-        assert_eq!(err.to_string(), "torque 20 A is out of range: valid -16 to 15.9922 A");
+        assert_eq!(
+            err.to_string(),
+            "torque 20 A is out of range: valid -16 to 15.9922 A"
+        );
         let err = RangeError::check_int("save flag", 2, 0, 1, "").unwrap_err();
         assert_eq!(err.to_string(), "save flag 2 is out of range: valid 0 to 1");
     }

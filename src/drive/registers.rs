@@ -218,7 +218,10 @@ impl Register {
 
     /// The register at `address`, if the table has one there.
     pub fn at(address: u16) -> Option<Register> {
-        Register::ALL.iter().copied().find(|r| r.address() == address)
+        Register::ALL
+            .iter()
+            .copied()
+            .find(|r| r.address() == address)
     }
 
     /// The registers of a block of `count` registers starting at `start`

@@ -291,7 +291,10 @@ mod tests {
         for fault in Fault::ALL {
             for mode in [Mode::OpenLoop, Mode::Speed, Mode::Position, Mode::Torque] {
                 let flags = Status::flags_from(true, false, true, mode, fault);
-                let s = Status { flags, ..Status::default() };
+                let s = Status {
+                    flags,
+                    ..Status::default()
+                };
                 assert_eq!((s.mode(), s.fault()), (mode, fault));
                 assert!(s.active() && !s.calibrated() && s.stalled());
                 assert_eq!(Fault::from_name(fault.name()), Some(fault));

@@ -45,12 +45,18 @@ pub fn centideg_to_degrees(centideg: i16) -> f64 {
 /// Speed setpoint in rpm (rounded to the drive's 1 rpm) to SPEED_REF.
 pub fn speed_setpoint(rpm: f64) -> Result<i16, RangeError> {
     let (min, max) = SPEED_RPM;
-    RangeError::check("speed setpoint", rpm, min as f64 - 0.5, max as f64 + 0.5, "rpm")
-        .map_err(|e| RangeError {
-            min: min as f64,
-            max: max as f64,
-            ..e
-        })?;
+    RangeError::check(
+        "speed setpoint",
+        rpm,
+        min as f64 - 0.5,
+        max as f64 + 0.5,
+        "rpm",
+    )
+    .map_err(|e| RangeError {
+        min: min as f64,
+        max: max as f64,
+        ..e
+    })?;
     let raw = rpm.round() as i64;
     Ok(RangeError::check_int("speed setpoint", raw, min, max, "rpm")? as i16)
 }
@@ -101,7 +107,12 @@ pub fn inertia_ratio(ratio: i64) -> Result<u16, RangeError> {
 }
 
 /// Amps to counts within `min..=max` counts, the error naming the range in amps.
-fn checked_counts(quantity: &'static str, amps: f64, min: i64, max: i64) -> Result<i64, RangeError> {
+fn checked_counts(
+    quantity: &'static str,
+    amps: f64,
+    min: i64,
+    max: i64,
+) -> Result<i64, RangeError> {
     let (lo, hi) = (min as f64 / COUNTS_PER_AMP, max as f64 / COUNTS_PER_AMP);
     // Accept what rounds into range, refuse the rest naming the range in amps.
     let half = 0.5 / COUNTS_PER_AMP;
@@ -125,14 +136,21 @@ pub fn speed_ramp_time(alpha: u32, rpm: f64, gear_ratio: f64) -> Option<f64> {
 /// Formula (3): time in seconds for a position ramp from standstill over
 /// `degrees`; `None` when alpha is 0.
 pub fn position_ramp_time(alpha: u32, degrees: f64) -> Option<f64> {
-    (alpha > 0).then(|| 2.0 * (std::f64::consts::PI * degrees.abs() / (180.0 * f64::from(alpha))).sqrt())
+    (alpha > 0)
+        .then(|| 2.0 * (std::f64::consts::PI * degrees.abs() / (180.0 * f64::from(alpha))).sqrt())
 }
 
 /// Formula (2) solved for alpha: the speed ramp that takes `seconds` to reach
 /// `rpm` from standstill with `gear_ratio`.
 pub fn speed_ramp_alpha(seconds: f64, rpm: f64, gear_ratio: f64) -> Result<u32, RangeError> {
     RangeError::check("gear ratio", gear_ratio, GEAR_RATIO.0, GEAR_RATIO.1, "")?;
-    RangeError::check("ramp target speed", rpm.abs(), 1.0, SPEED_RPM.1 as f64, "rpm")?;
+    RangeError::check(
+        "ramp target speed",
+        rpm.abs(),
+        1.0,
+        SPEED_RPM.1 as f64,
+        "rpm",
+    )?;
     let k = gear_ratio * rpm.abs() / RPM_PER_RAD_S; // motor rad/s
     solve_alpha("speed ramp time", seconds, k)
 }
@@ -202,7 +220,10 @@ mod tests {
         assert_eq!(speed_setpoint(-2048.0), Ok(-2048));
         assert_eq!(speed_setpoint(2047.4), Ok(2047));
         let err = speed_setpoint(2048.0).unwrap_err();
-        assert_eq!(err.to_string(), "speed setpoint 2048 rpm is out of range: valid -2048 to 2047 rpm");
+        assert_eq!(
+            err.to_string(),
+            "speed setpoint 2048 rpm is out of range: valid -2048 to 2047 rpm"
+        );
         assert_eq!(position_setpoint(90.0), Ok(9000));
         assert_eq!(position_setpoint(-180.0), Ok(-18000));
         assert!(position_setpoint(180.01).is_err());
@@ -210,7 +231,10 @@ mod tests {
         assert_eq!(torque_setpoint(-0.5), Ok(-64));
         assert_eq!(torque_setpoint(-16.0), Ok(-2048));
         let err = torque_setpoint(16.0).unwrap_err();
-        assert_eq!(err.to_string(), "torque setpoint 16 A is out of range: valid -16 to 15.9922 A");
+        assert_eq!(
+            err.to_string(),
+            "torque setpoint 16 A is out of range: valid -16 to 15.9922 A"
+        );
         assert_eq!(current_limit(1.0), Ok(128));
         assert!(current_limit(-0.1).is_err());
         assert_eq!(stall_time_ms(60000), Ok(60000));

@@ -10,7 +10,11 @@ const fn build_table() -> [u16; 256] {
         let mut crc = i as u16;
         let mut bit = 0;
         while bit < 8 {
-            crc = if crc & 1 != 0 { (crc >> 1) ^ 0xA001 } else { crc >> 1 };
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xA001
+            } else {
+                crc >> 1
+            };
             bit += 1;
         }
         table[i] = crc;
@@ -52,9 +56,16 @@ mod tests {
     #[test]
     fn status_read_request() {
         // unit 1, read 7 registers from 0x00C0 -> CRC 04 34 on the wire.
-        assert_eq!(crc_bytes(&[0x01, 0x03, 0x00, 0xC0, 0x00, 0x07]), [0x04, 0x34]);
-        assert!(frame_crc_ok(&[0x01, 0x03, 0x00, 0xC0, 0x00, 0x07, 0x04, 0x34]));
-        assert!(!frame_crc_ok(&[0x01, 0x03, 0x00, 0xC0, 0x00, 0x07, 0x04, 0x35]));
+        assert_eq!(
+            crc_bytes(&[0x01, 0x03, 0x00, 0xC0, 0x00, 0x07]),
+            [0x04, 0x34]
+        );
+        assert!(frame_crc_ok(&[
+            0x01, 0x03, 0x00, 0xC0, 0x00, 0x07, 0x04, 0x34
+        ]));
+        assert!(!frame_crc_ok(&[
+            0x01, 0x03, 0x00, 0xC0, 0x00, 0x07, 0x04, 0x35
+        ]));
         assert!(!frame_crc_ok(&[0x04, 0x34]));
     }
 }

@@ -132,7 +132,10 @@ mod tests {
     fn decode_checks_crc_and_length() {
         let frame = [0x01, 0x83, 0x02, 0xC0, 0xF1]; // exception 02 from unit 1
         assert_eq!(decode(&frame), Ok((1, &frame[1..3])));
-        assert_eq!(decode(&[0x01, 0x83, 0x02, 0xC0, 0xF2]), Err(FrameError::Crc));
+        assert_eq!(
+            decode(&[0x01, 0x83, 0x02, 0xC0, 0xF2]),
+            Err(FrameError::Crc)
+        );
         assert_eq!(decode(&[0x01, 0x83]), Err(FrameError::TooShort(2)));
         assert_eq!(decode(&[0u8; 300]), Err(FrameError::TooLong(300)));
     }
@@ -157,7 +160,10 @@ mod tests {
             request_length(&[1, 0x10, 0, 0x0C, 0, 3, 6]),
             FrameLength::Known(15)
         );
-        assert_eq!(request_length(&[1, 0x10, 0, 0x0C, 0, 3]), FrameLength::NeedMore);
+        assert_eq!(
+            request_length(&[1, 0x10, 0, 0x0C, 0, 3]),
+            FrameLength::NeedMore
+        );
         assert_eq!(request_length(&[1, 0x2B]), FrameLength::BySilence);
     }
 }

@@ -10,5 +10,8 @@ pub struct SimArgs {
 
 /// Runs the simulator until SIGINT/SIGTERM.
 pub async fn run(_args: SimArgs) -> std::io::Result<()> {
-    Err(std::io::Error::new(std::io::ErrorKind::Unsupported, "simulator not built yet"))
+    Err(std::io::Error::new(
+        std::io::ErrorKind::Unsupported,
+        "simulator not built yet",
+    ))
 }

@@ -67,7 +67,10 @@ pub struct Simulator;
 impl Simulator {
     /// Starts a simulator on its own thread behind a new pty.
     pub fn start(_config: SimConfig) -> io::Result<SimHandle> {
-        Err(io::Error::new(io::ErrorKind::Unsupported, "simulator not built yet"))
+        Err(io::Error::new(
+            io::ErrorKind::Unsupported,
+            "simulator not built yet",
+        ))
     }
 }
 

@@ -1,0 +1,106 @@
+//! What can go wrong with a job on the bus, in words a plant engineer can act on.
+
+use std::time::Duration;
+
+use crate::drive::ReplyError;
+use crate::modbus::ExceptionCode;
+
+use super::job::Priority;
+
+/// Why a job submitted to a bus did not produce a confirmed reply.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BusError {
+    /// The queue for this priority is full; nothing was sent.
+    #[error(
+        "bus {bus} is busy: the {priority} queue is full ({capacity} waiting); try again shortly"
+    )]
+    Busy {
+        /// Bus name.
+        bus: String,
+        /// Priority class whose queue was full.
+        priority: Priority,
+        /// The queue's capacity.
+        capacity: usize,
+    },
+    /// The serial port is closed (adapter unplugged or failing); it is being reopened.
+    #[error("bus {bus} is down: {reason}")]
+    BusDown {
+        /// Bus name.
+        bus: String,
+        /// Why the port is closed.
+        reason: String,
+    },
+    /// The drive did not answer in time, on every attempt.
+    #[error("drive at unit {unit} did not answer ({attempts} attempt(s), {timeout_ms} ms each)")]
+    Timeout {
+        /// Unit address.
+        unit: u8,
+        /// Attempts made.
+        attempts: u8,
+        /// Response timeout of each attempt.
+        timeout_ms: u64,
+    },
+    /// Every attempt got a corrupted or unrelated reply.
+    #[error("drive at unit {unit} gave no valid reply in {attempts} attempt(s): {detail}")]
+    BadReply {
+        /// Unit address.
+        unit: u8,
+        /// Attempts made.
+        attempts: u8,
+        /// What was wrong with the last reply.
+        detail: String,
+    },
+    /// The drive refused the request with a Modbus exception.
+    #[error("drive at unit {unit} refused the request: {code}")]
+    Exception {
+        /// Unit address.
+        unit: u8,
+        /// The exception code the drive sent.
+        code: ExceptionCode,
+    },
+    /// The drive's reply was valid Modbus but did not confirm this request.
+    #[error("drive at unit {unit} answered something else: {detail}")]
+    Unconfirmed {
+        /// Unit address.
+        unit: u8,
+        /// What did not match.
+        detail: String,
+    },
+    /// The job's deadline passed while it waited; it never reached the wire.
+    #[error("gave up after waiting {waited:?} for the bus; the request was not sent")]
+    Expired {
+        /// Time spent in the queue.
+        waited: Duration,
+    },
+    /// The daemon is stopping and takes no new work.
+    #[error("the daemon is shutting down; the request was not sent")]
+    ShuttingDown,
+    /// The request cannot be put on the wire at all.
+    #[error("invalid request: {0}")]
+    Invalid(String),
+}
+
+impl BusError {
+    /// Maps a typed reply check failure for `unit`.
+    pub fn from_reply(unit: u8, err: ReplyError) -> Self {
+        match err {
+            ReplyError::Exception(code) => BusError::Exception { unit, code },
+            ReplyError::Mismatch(detail) => BusError::Unconfirmed {
+                unit,
+                detail: detail.to_string(),
+            },
+        }
+    }
+
+    /// True when the request surely never reached the wire.
+    pub fn not_sent(&self) -> bool {
+        matches!(
+            self,
+            BusError::Busy { .. }
+                | BusError::BusDown { .. }
+                | BusError::Expired { .. }
+                | BusError::ShuttingDown
+                | BusError::Invalid(_)
+        )
+    }
+}

@@ -1,0 +1,248 @@
+//! The handle the faces hold: submit jobs, read the cache, subscribe to
+//! events, read the counters. Cheap to clone; never touches the port.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime};
+
+use tokio::sync::{broadcast, oneshot};
+use tokio_util::sync::CancellationToken;
+
+use super::cache::{BusEvent, DriveSnapshot, StatusCache};
+use super::error::BusError;
+use super::job::{Exchange, Job, Priority, SourceId};
+use super::queue::{JobQueue, Refused};
+use super::stats::{BusStats, BusStatsSnapshot};
+use crate::drive::{ConfigCommand, DriveReply, DriveRequest};
+use crate::modbus::timing::LineTiming;
+
+/// State of a bus's serial port.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PortState {
+    /// Not opened yet.
+    Opening,
+    /// Open and working since then.
+    Up {
+        /// When it opened.
+        since: SystemTime,
+    },
+    /// Failed; being reopened with backoff.
+    Down {
+        /// When it failed.
+        since: SystemTime,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// Options of one submission.
+#[derive(Debug, Clone, Copy)]
+pub struct JobOptions {
+    /// Priority class.
+    pub priority: Priority,
+    /// Who submits, for fair queuing.
+    pub source: SourceId,
+    /// Give up unsent after this long in the queue (`None`: the bus default).
+    pub queue_timeout: Option<Duration>,
+    /// Attempts allowed (`None`: the bus's retries).
+    pub max_attempts: Option<u8>,
+}
+
+impl Default for JobOptions {
+    fn default() -> Self {
+        Self {
+            priority: Priority::Command,
+            source: SourceId::INTERNAL,
+            queue_timeout: None,
+            max_attempts: None,
+        }
+    }
+}
+
+impl JobOptions {
+    /// Default options at `priority`.
+    pub fn with_priority(priority: Priority) -> Self {
+        Self {
+            priority,
+            ..Self::default()
+        }
+    }
+
+    /// Default options for `source`.
+    pub fn from_source(source: SourceId) -> Self {
+        Self {
+            source,
+            ..Self::default()
+        }
+    }
+}
+
+/// What the handle and the scheduler share.
+pub(crate) struct Shared {
+    pub(crate) name: Arc<str>,
+    pub(crate) queue: JobQueue,
+    pub(crate) cache: StatusCache,
+    pub(crate) stats: BusStats,
+    pub(crate) state: Mutex<PortState>,
+    pub(crate) line: LineTiming,
+    pub(crate) response_timeout: Duration,
+    pub(crate) queue_timeout: Duration,
+    pub(crate) stop: CancellationToken,
+}
+
+impl Shared {
+    pub(crate) fn set_state(&self, state: PortState) {
+        *self.state.lock().unwrap_or_else(|p| p.into_inner()) = state;
+    }
+
+    pub(crate) fn state(&self) -> PortState {
+        self.state.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+}
+
+/// A cheap, cloneable way to one bus.
+#[derive(Clone)]
+pub struct BusHandle {
+    pub(crate) shared: Arc<Shared>,
+}
+
+impl BusHandle {
+    /// The bus's configured name.
+    pub fn name(&self) -> &str {
+        &self.shared.name
+    }
+
+    /// The bus's name, shared.
+    pub fn name_arc(&self) -> Arc<str> {
+        self.shared.name.clone()
+    }
+
+    /// The line's timing (baud, character time, silences).
+    pub fn line(&self) -> LineTiming {
+        self.shared.line
+    }
+
+    /// The bus's response timeout.
+    pub fn response_timeout(&self) -> Duration {
+        self.shared.response_timeout
+    }
+
+    /// Queues a raw request PDU for `unit`; the receiver yields the result.
+    pub fn submit(
+        &self,
+        unit: u8,
+        pdu: Vec<u8>,
+        options: JobOptions,
+    ) -> Result<oneshot::Receiver<super::job::JobResult>, BusError> {
+        if pdu.is_empty() || pdu.len() > 253 {
+            return Err(BusError::Invalid(format!(
+                "a Modbus request PDU is 1 to 253 bytes, this one is {}",
+                pdu.len()
+            )));
+        }
+        if let PortState::Down { reason, .. } = self.shared.state() {
+            return Err(BusError::BusDown {
+                bus: self.name().to_string(),
+                reason,
+            });
+        }
+        let now = Instant::now();
+        let (tx, rx) = oneshot::channel();
+        let job = Job {
+            unit,
+            pdu,
+            priority: options.priority,
+            source: options.source,
+            deadline: Some(now + options.queue_timeout.unwrap_or(self.shared.queue_timeout)),
+            max_attempts: options.max_attempts,
+            submitted: now,
+            reply: tx,
+        };
+        match self.shared.queue.push(job) {
+            Ok(()) => Ok(rx),
+            Err(Refused::Full(job, capacity)) => {
+                self.shared.stats.record_busy_rejection();
+                Err(BusError::Busy {
+                    bus: self.name().to_string(),
+                    priority: job.priority,
+                    capacity,
+                })
+            }
+            Err(Refused::Closed(_)) => Err(BusError::ShuttingDown),
+        }
+    }
+
+    /// Sends a raw request PDU and waits for the drive's reply PDU (an
+    /// exception reply is returned as a reply, not an error).
+    pub async fn transact(
+        &self,
+        unit: u8,
+        pdu: Vec<u8>,
+        options: JobOptions,
+    ) -> Result<Exchange, BusError> {
+        let rx = self.submit(unit, pdu, options)?;
+        rx.await.unwrap_or(Err(BusError::ShuttingDown))
+    }
+
+    /// Sends a typed drive request and checks that the drive confirmed it.
+    /// An emergency brake always goes as an emergency.
+    pub async fn execute(
+        &self,
+        unit: u8,
+        request: &DriveRequest,
+        mut options: JobOptions,
+    ) -> Result<DriveReply, BusError> {
+        if *request == DriveRequest::Config(ConfigCommand::EmergencyBrake) {
+            options.priority = Priority::Emergency;
+        }
+        let pdu = request
+            .pdu()
+            .map_err(|e| BusError::Invalid(e.to_string()))?;
+        let target = if request.is_broadcast() { 0 } else { unit };
+        let exchange = self.transact(target, pdu, options).await?;
+        request
+            .parse_reply(&exchange.reply)
+            .map_err(|e| BusError::from_reply(unit, e))
+    }
+
+    /// What is known of one drive.
+    pub fn drive(&self, unit: u8) -> Option<DriveSnapshot> {
+        self.shared.cache.get(unit)
+    }
+
+    /// What is known of every configured drive.
+    pub fn drives(&self) -> Vec<DriveSnapshot> {
+        self.shared.cache.all()
+    }
+
+    /// Every future status, online/offline and bus event of this bus.
+    pub fn subscribe(&self) -> broadcast::Receiver<BusEvent> {
+        self.shared.cache.subscribe()
+    }
+
+    /// The bus's counters.
+    pub fn stats(&self) -> BusStatsSnapshot {
+        self.shared.stats.snapshot()
+    }
+
+    /// Jobs waiting per priority class (emergency, command, poll).
+    pub fn queue_depths(&self) -> [usize; 3] {
+        self.shared.queue.depths()
+    }
+
+    /// The serial port's state.
+    pub fn port_state(&self) -> PortState {
+        self.shared.state()
+    }
+
+    /// Stops taking normal work (emergency jobs still pass): the first step
+    /// of a graceful stop.
+    pub fn close(&self) {
+        self.shared.queue.close();
+    }
+
+    /// Lets the scheduler exit once the queue is empty.
+    pub fn stop(&self) {
+        self.shared.queue.close();
+        self.shared.stop.cancel();
+    }
+}

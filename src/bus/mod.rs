@@ -1,0 +1,29 @@
+//! The bus engine: one task owns each serial port and serialises every
+//! transaction on it; everything else talks to it through a [`BusHandle`].
+//!
+//! - [`port`] opens the adapter (and sets RS-485 direction control),
+//! - [`master`] is the RTU master: one frame in flight, t3.5 silences, reply
+//!   framing and checks, retries, guard time and input flush after faults,
+//! - [`queue`] holds waiting jobs by priority, fair between submitters,
+//! - [`poller`] decides which drive's status is due next,
+//! - [`scheduler`] is the task's loop tying them together,
+//! - [`cache`] keeps each drive's latest status and publishes changes,
+//! - [`stats`] counts what happened on the wire, for health and metrics,
+//! - [`handle`] is what the faces (HTTP, Modbus TCP, metrics) hold.
+
+pub mod cache;
+pub mod error;
+pub mod handle;
+pub mod job;
+pub mod master;
+pub mod poller;
+pub mod port;
+pub mod queue;
+pub mod rs485;
+pub mod scheduler;
+pub mod stats;
+
+pub use cache::{BusEvent, DriveSnapshot};
+pub use error::BusError;
+pub use handle::BusHandle;
+pub use job::{Exchange, Priority, SourceId};

@@ -1,0 +1,263 @@
+//! The bounded job queue of one bus: strict priority between classes, round
+//! robin between sources inside a class.
+//!
+//! Fairness matters for the Modbus TCP face: a client that pipelines hundreds
+//! of requests gets one turn per round like every other connection, and a
+//! per-source bound keeps it from filling the class for everybody.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::Mutex;
+
+use tokio::sync::Notify;
+
+use super::job::{Job, Priority, SourceId};
+
+/// Capacities of a queue.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct QueueLimits {
+    /// Jobs a class may hold in all.
+    pub per_class: usize,
+    /// Jobs one source may hold in a class.
+    pub per_source: usize,
+}
+
+impl Default for QueueLimits {
+    fn default() -> Self {
+        Self {
+            per_class: 256,
+            per_source: 64,
+        }
+    }
+}
+
+/// Why a job was not queued; the job comes back to the caller.
+#[derive(Debug)]
+pub enum Refused {
+    /// The class (or the source's share of it) is full.
+    Full(Job, usize),
+    /// The queue is closed (shutting down or bus down).
+    Closed(Job),
+}
+
+#[derive(Default)]
+struct Class {
+    /// Sources with waiting jobs, in round-robin order.
+    turn: VecDeque<SourceId>,
+    jobs: HashMap<SourceId, VecDeque<Job>>,
+    len: usize,
+}
+
+impl Class {
+    fn push(&mut self, job: Job) {
+        let source = job.source;
+        let queue = self.jobs.entry(source).or_default();
+        if queue.is_empty() {
+            self.turn.push_back(source);
+        }
+        queue.push_back(job);
+        self.len += 1;
+    }
+
+    fn source_len(&self, source: SourceId) -> usize {
+        self.jobs.get(&source).map_or(0, VecDeque::len)
+    }
+
+    /// Takes the next job of the source whose turn it is.
+    fn pop(&mut self) -> Option<Job> {
+        let source = self.turn.pop_front()?;
+        let queue = self.jobs.get_mut(&source)?;
+        let job = queue.pop_front();
+        if queue.is_empty() {
+            self.jobs.remove(&source);
+        } else {
+            self.turn.push_back(source);
+        }
+        if job.is_some() {
+            self.len -= 1;
+        }
+        job
+    }
+
+    fn drain(&mut self) -> Vec<Job> {
+        self.turn.clear();
+        self.len = 0;
+        self.jobs.drain().flat_map(|(_, q)| q).collect()
+    }
+}
+
+struct Inner {
+    classes: [Class; 3],
+    /// Normal submissions refused (emergency still accepted while draining).
+    closed: bool,
+}
+
+/// The queue shared by the handles (producers) and the scheduler (consumer).
+pub struct JobQueue {
+    inner: Mutex<Inner>,
+    limits: QueueLimits,
+    notify: Notify,
+}
+
+impl JobQueue {
+    /// An empty, open queue.
+    pub fn new(limits: QueueLimits) -> Self {
+        Self {
+            inner: Mutex::new(Inner {
+                classes: Default::default(),
+                closed: false,
+            }),
+            limits,
+            notify: Notify::new(),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        // A panic while holding this lock cannot leave the queue inconsistent
+        // (every method restores its invariants before returning), so a
+        // poisoned lock is still usable.
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Queues a job, or gives it back with the reason.
+    pub fn push(&self, job: Job) -> Result<(), Refused> {
+        let mut inner = self.lock();
+        if inner.closed && job.priority != Priority::Emergency {
+            return Err(Refused::Closed(job));
+        }
+        let class = &mut inner.classes[job.priority.index()];
+        if class.len >= self.limits.per_class {
+            return Err(Refused::Full(job, self.limits.per_class));
+        }
+        if class.source_len(job.source) >= self.limits.per_source {
+            return Err(Refused::Full(job, self.limits.per_source));
+        }
+        class.push(job);
+        drop(inner);
+        self.notify.notify_one();
+        Ok(())
+    }
+
+    /// Takes the next job of `priority`, if any.
+    pub fn pop(&self, priority: Priority) -> Option<Job> {
+        self.lock().classes[priority.index()].pop()
+    }
+
+    /// Jobs waiting in each class, most urgent first.
+    pub fn depths(&self) -> [usize; 3] {
+        let inner = self.lock();
+        [
+            inner.classes[0].len,
+            inner.classes[1].len,
+            inner.classes[2].len,
+        ]
+    }
+
+    /// Refuses normal submissions from now on (emergency jobs still pass).
+    pub fn close(&self) {
+        self.lock().closed = true;
+        self.notify.notify_one();
+    }
+
+    /// Accepts submissions again (after the bus came back).
+    pub fn open(&self) {
+        self.lock().closed = false;
+    }
+
+    /// True once [`close`](Self::close) was called and not reopened.
+    pub fn is_closed(&self) -> bool {
+        self.lock().closed
+    }
+
+    /// Removes every waiting job (to fail them when the bus goes down).
+    pub fn drain(&self) -> Vec<Job> {
+        let mut inner = self.lock();
+        inner.classes.iter_mut().flat_map(Class::drain).collect()
+    }
+
+    /// Waits until something was pushed (or the queue was closed) since the
+    /// last wait; a push before the wait is not lost.
+    pub async fn notified(&self) {
+        self.notify.notified().await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Instant;
+    use tokio::sync::oneshot;
+
+    fn job(
+        priority: Priority,
+        source: u64,
+        tag: u8,
+    ) -> (Job, oneshot::Receiver<super::super::job::JobResult>) {
+        let (tx, rx) = oneshot::channel();
+        (
+            Job {
+                unit: tag,
+                pdu: vec![0x03],
+                priority,
+                source: SourceId(source),
+                deadline: None,
+                max_attempts: None,
+                submitted: Instant::now(),
+                reply: tx,
+            },
+            rx,
+        )
+    }
+
+    #[test]
+    fn round_robin_between_sources() {
+        let q = JobQueue::new(QueueLimits::default());
+        let mut keep = vec![];
+        // source 1 floods with 5 jobs, source 2 and 3 send one each.
+        for tag in 0..5 {
+            let (j, rx) = job(Priority::Command, 1, tag);
+            q.push(j).unwrap();
+            keep.push(rx);
+        }
+        for (source, tag) in [(2, 10), (3, 20)] {
+            let (j, rx) = job(Priority::Command, source, tag);
+            q.push(j).unwrap();
+            keep.push(rx);
+        }
+        let order: Vec<u8> =
+            std::iter::from_fn(|| q.pop(Priority::Command).map(|j| j.unit)).collect();
+        assert_eq!(order, vec![0, 10, 20, 1, 2, 3, 4]);
+        assert_eq!(q.depths(), [0, 0, 0]);
+    }
+
+    #[test]
+    fn bounds_per_class_and_per_source() {
+        let q = JobQueue::new(QueueLimits {
+            per_class: 3,
+            per_source: 2,
+        });
+        let mut keep = vec![];
+        for (source, expect_ok) in [(1, true), (1, true), (1, false), (2, true), (3, false)] {
+            let (j, rx) = job(Priority::Command, source, 0);
+            keep.push(rx);
+            assert_eq!(q.push(j).is_ok(), expect_ok, "source {source}");
+        }
+        assert_eq!(q.depths(), [0, 3, 0]);
+        // Other classes have their own room.
+        let (j, _rx) = job(Priority::Emergency, 1, 0);
+        assert!(q.push(j).is_ok());
+    }
+
+    #[test]
+    fn closed_queue_still_takes_emergencies() {
+        let q = JobQueue::new(QueueLimits::default());
+        q.close();
+        let (j, _rx1) = job(Priority::Command, 1, 0);
+        assert!(matches!(q.push(j), Err(Refused::Closed(_))));
+        let (j, _rx2) = job(Priority::Emergency, 1, 0);
+        assert!(q.push(j).is_ok());
+        assert_eq!(q.drain().len(), 1);
+        q.open();
+        let (j, _rx3) = job(Priority::Command, 1, 0);
+        assert!(q.push(j).is_ok());
+    }
+}

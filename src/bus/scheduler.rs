@@ -1,0 +1,407 @@
+//! The task that owns a serial port: it takes one job at a time (emergency
+//! first, then commands, then due status polls), runs it through the RTU
+//! master, and reports the result. It runs on its own thread with its own
+//! single-threaded runtime, so the wire's microsecond timing never competes
+//! with HTTP or Modbus TCP work.
+
+use std::io;
+use std::sync::{Arc, Mutex};
+use std::thread;
+use std::time::{Duration, Instant, SystemTime};
+
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+use super::cache::StatusCache;
+use super::error::BusError;
+use super::handle::{BusHandle, PortState, Shared};
+use super::job::{Exchange, Job, Priority};
+use super::master::{MasterSettings, Report, RtuMaster};
+use super::poller::PollPlan;
+use super::port;
+use super::queue::{JobQueue, QueueLimits};
+use super::stats::{BusStats, Outcome};
+use crate::clock;
+use crate::drive::{DriveReply, DriveRequest};
+
+/// Everything a bus needs to run.
+#[derive(Debug, Clone)]
+pub struct BusSettings {
+    /// Name used in logs, metrics and the API.
+    pub name: String,
+    /// Serial device path.
+    pub port: String,
+    /// Master timing, retries and RS-485 settings.
+    pub master: MasterSettings,
+    /// Polled drives: unit and poll interval (zero: as fast as the bus allows).
+    pub drives: Vec<(u8, Duration)>,
+    /// Failed polls in a row before a drive is marked offline.
+    pub offline_after: u32,
+    /// First and longest poll backoff for an offline drive.
+    pub offline_backoff: (Duration, Duration),
+    /// First and longest delay between attempts to reopen a failed port.
+    pub reopen_backoff: (Duration, Duration),
+    /// Queue capacities.
+    pub queue: QueueLimits,
+    /// How long a job may wait in the queue before it is dropped unsent.
+    pub queue_timeout: Duration,
+    /// After this many commands in a row while a poll is due, the poll goes
+    /// first, so a flood of commands cannot freeze the status of every drive.
+    pub poll_share: u32,
+}
+
+impl BusSettings {
+    /// Defaults for a bus on `port` at `baud` with the given drives.
+    pub fn new(name: &str, port: &str, baud: u32, drives: Vec<(u8, Duration)>) -> Self {
+        Self {
+            name: name.to_string(),
+            port: port.to_string(),
+            master: MasterSettings::new(baud, Duration::from_millis(50), 1),
+            drives,
+            offline_after: 3,
+            offline_backoff: (Duration::from_secs(1), Duration::from_secs(30)),
+            reopen_backoff: (Duration::from_millis(200), Duration::from_secs(5)),
+            queue: QueueLimits::default(),
+            queue_timeout: Duration::from_secs(5),
+            poll_share: 4,
+        }
+    }
+}
+
+/// Starts the bus's thread; returns its handle and the thread to join.
+pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle<()>)> {
+    let name: Arc<str> = settings.name.as_str().into();
+    let shared = Arc::new(Shared {
+        name: name.clone(),
+        queue: JobQueue::new(settings.queue),
+        cache: StatusCache::new(
+            name.clone(),
+            settings.drives.iter().map(|d| d.0),
+            settings.offline_after,
+        ),
+        stats: BusStats::new(),
+        state: Mutex::new(PortState::Opening),
+        line: settings.master.line,
+        response_timeout: settings.master.response_timeout,
+        queue_timeout: settings.queue_timeout,
+        stop: CancellationToken::new(),
+    });
+    let handle = BusHandle {
+        shared: shared.clone(),
+    };
+    let thread = thread::Builder::new()
+        .name(format!("bus-{name}"))
+        .spawn(move || {
+            let runtime = match tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+            {
+                Ok(rt) => rt,
+                Err(e) => {
+                    warn!(bus = %shared.name, "cannot start the bus runtime: {e}");
+                    shared.set_state(PortState::Down {
+                        since: SystemTime::now(),
+                        reason: format!("cannot start the bus runtime: {e}"),
+                    });
+                    return;
+                }
+            };
+            runtime.block_on(Scheduler::new(settings, shared).run());
+        })?;
+    Ok((handle, thread))
+}
+
+enum Work {
+    Job(Job),
+    Poll(u8),
+    Idle(Option<Instant>),
+}
+
+struct Scheduler {
+    settings: BusSettings,
+    shared: Arc<Shared>,
+    plan: PollPlan,
+    /// Commands run in a row while a poll was due.
+    commands_in_a_row: u32,
+}
+
+/// The status read's PDU, built once.
+fn status_pdu() -> Vec<u8> {
+    DriveRequest::ReadStatus.pdu().unwrap_or_default()
+}
+
+impl Scheduler {
+    fn new(settings: BusSettings, shared: Arc<Shared>) -> Self {
+        let plan = PollPlan::new(
+            settings.drives.iter().copied(),
+            settings.offline_backoff.0,
+            settings.offline_backoff.1,
+        );
+        Self {
+            settings,
+            shared,
+            plan,
+            commands_in_a_row: 0,
+        }
+    }
+
+    fn cache(&self) -> &StatusCache {
+        &self.shared.cache
+    }
+
+    fn stats(&self) -> &BusStats {
+        &self.shared.stats
+    }
+
+    async fn run(mut self) {
+        clock::tighten_timer_slack();
+        let name = self.shared.name.clone();
+        let mut master: Option<RtuMaster> = None;
+        let mut reopen_delay = self.settings.reopen_backoff.0;
+        let mut opened_before = false;
+        let mut last_open_error = String::new();
+        let status = status_pdu();
+
+        loop {
+            if self.shared.stop.is_cancelled() {
+                self.finish(master.as_mut()).await;
+                break;
+            }
+            let Some(m) = master.as_mut() else {
+                match port::open(
+                    &self.settings.port,
+                    self.settings.master.line.baud(),
+                    &self.settings.master.rs485,
+                )
+                .map_err(|e| e.to_string())
+                .and_then(|p| RtuMaster::new(p, self.settings.master).map_err(|e| e.to_string()))
+                {
+                    Ok(m) => {
+                        info!(bus = %name, port = %self.settings.port, "serial port open");
+                        master = Some(m);
+                        self.stats().set_port_open(true, opened_before);
+                        opened_before = true;
+                        reopen_delay = self.settings.reopen_backoff.0;
+                        last_open_error.clear();
+                        self.shared.set_state(PortState::Up {
+                            since: SystemTime::now(),
+                        });
+                        self.cache().record_port(true, "");
+                    }
+                    Err(reason) => {
+                        if reason != last_open_error {
+                            warn!(bus = %name, "{reason}; retrying every {:?} at most", self.settings.reopen_backoff.1);
+                            self.stats().record_port_error(&reason);
+                            last_open_error = reason.clone();
+                        }
+                        self.mark_down(reason);
+                        tokio::select! {
+                            () = tokio::time::sleep(reopen_delay) => {}
+                            () = self.shared.stop.cancelled() => {}
+                        }
+                        reopen_delay = (reopen_delay * 2).min(self.settings.reopen_backoff.1);
+                    }
+                }
+                continue;
+            };
+
+            let result = match self.next_work(Instant::now()) {
+                Work::Job(job) => self.run_job(m, job).await,
+                Work::Poll(unit) => self.run_poll(m, unit, &status).await,
+                Work::Idle(until) => {
+                    let sleep = async {
+                        match until {
+                            Some(t) => tokio::time::sleep_until(t.into()).await,
+                            None => std::future::pending().await,
+                        }
+                    };
+                    tokio::select! {
+                        () = self.shared.queue.notified() => {}
+                        () = sleep => {}
+                        () = self.shared.stop.cancelled() => {}
+                    }
+                    Ok(())
+                }
+            };
+            if let Err(e) = result {
+                let reason = format!("serial port {} failed: {e}", self.settings.port);
+                warn!(bus = %name, "{reason}; reopening");
+                self.stats().record_port_error(&reason);
+                master = None;
+                self.mark_down(reason);
+            }
+        }
+        info!(bus = %name, "bus stopped");
+    }
+
+    /// Marks the port down and fails every waiting job: nobody should wait
+    /// for a bus that may not come back soon.
+    fn mark_down(&self, reason: String) {
+        if !matches!(self.shared.state(), PortState::Down { .. }) {
+            self.stats().set_port_open(false, false);
+            self.cache().record_port(false, &reason);
+        }
+        self.shared.set_state(PortState::Down {
+            since: SystemTime::now(),
+            reason: reason.clone(),
+        });
+        for job in self.shared.queue.drain() {
+            self.stats()
+                .record_transaction(job.pdu[0], Outcome::PortError, 0);
+            job.finish(Err(BusError::BusDown {
+                bus: self.settings.name.clone(),
+                reason: reason.clone(),
+            }));
+        }
+    }
+
+    /// Runs what is left at a stop: emergency jobs (safe-stop actions) still
+    /// go out, everything else is refused.
+    async fn finish(&mut self, mut master: Option<&mut RtuMaster>) {
+        for job in self.shared.queue.drain() {
+            match (&mut master, job.priority) {
+                (Some(m), Priority::Emergency) => {
+                    if self.run_job(m, job).await.is_err() {
+                        master = None;
+                    }
+                }
+                _ => job.finish(Err(BusError::ShuttingDown)),
+            }
+        }
+    }
+
+    fn next_work(&mut self, now: Instant) -> Work {
+        let queue = &self.shared.queue;
+        if let Some(job) = queue.pop(Priority::Emergency) {
+            return Work::Job(job);
+        }
+        let poll_due = self.plan.due(now);
+        if let Some(unit) = poll_due
+            && self.commands_in_a_row >= self.settings.poll_share
+        {
+            self.commands_in_a_row = 0;
+            return Work::Poll(unit);
+        }
+        if let Some(job) = queue.pop(Priority::Command) {
+            if poll_due.is_some() {
+                self.commands_in_a_row += 1;
+            }
+            return Work::Job(job);
+        }
+        if let Some(unit) = poll_due {
+            self.commands_in_a_row = 0;
+            return Work::Poll(unit);
+        }
+        if let Some(job) = queue.pop(Priority::Poll) {
+            return Work::Job(job);
+        }
+        Work::Idle(self.plan.next_due())
+    }
+
+    fn account(&self, function: u8, report: &Report) {
+        let stats = self.stats();
+        stats.record_transaction(function, report.outcome, report.attempts);
+        stats.transaction_duration.observe(report.on_wire);
+        stats.add_busy(report.busy);
+        if report.stray_bytes > 0 {
+            stats.add_stray_bytes(report.stray_bytes);
+        }
+    }
+
+    async fn run_job(&mut self, master: &mut RtuMaster, job: Job) -> io::Result<()> {
+        let now = Instant::now();
+        let function = job.pdu[0];
+        if job.is_stale(now) {
+            self.stats()
+                .record_transaction(function, Outcome::Dropped, 0);
+            let waited = now - job.submitted;
+            debug!(bus = %self.shared.name, unit = job.unit, "dropped a job whose caller had gone or whose deadline passed");
+            job.finish(Err(BusError::Expired { waited }));
+            return Ok(());
+        }
+        // An offline drive gets one try: its retries would cost everybody.
+        let attempts = job
+            .max_attempts
+            .or_else(|| (job.unit != 0 && self.cache().is_offline(job.unit)).then_some(1));
+        let queued = now - job.submitted;
+        let report = match master.transact(job.unit, &job.pdu, attempts).await {
+            Ok(report) => report,
+            Err(e) => {
+                self.stats()
+                    .record_transaction(function, Outcome::PortError, 1);
+                job.finish(Err(BusError::BusDown {
+                    bus: self.settings.name.clone(),
+                    reason: e.to_string(),
+                }));
+                return Err(e);
+            }
+        };
+        self.account(function, &report);
+        let result = match (report.outcome, report.reply) {
+            (Outcome::Ok | Outcome::Exception, Some(reply)) => {
+                if job.pdu == status_pdu()
+                    && let Ok(DriveReply::Status(s)) = DriveRequest::ReadStatus.parse_reply(&reply)
+                {
+                    self.cache().record_status(job.unit, s);
+                }
+                Ok(Exchange {
+                    reply,
+                    attempts: report.attempts,
+                    queued,
+                    on_wire: report.on_wire,
+                })
+            }
+            (Outcome::Timeout, _) => Err(BusError::Timeout {
+                unit: job.unit,
+                attempts: report.attempts,
+                timeout_ms: self.settings.master.response_timeout.as_millis() as u64,
+            }),
+            (_, _) => Err(BusError::BadReply {
+                unit: job.unit,
+                attempts: report.attempts,
+                detail: report
+                    .fault
+                    .map_or_else(|| "invalid reply".to_string(), |f| f.describe()),
+            }),
+        };
+        self.stats().job_latency.observe(job.submitted.elapsed());
+        job.finish(result);
+        Ok(())
+    }
+
+    async fn run_poll(&mut self, master: &mut RtuMaster, unit: u8, pdu: &[u8]) -> io::Result<()> {
+        let offline = self.cache().is_offline(unit);
+        let report = master.transact(unit, pdu, offline.then_some(1)).await?;
+        self.account(pdu[0], &report);
+        let status =
+            report
+                .reply
+                .as_deref()
+                .and_then(|r| match DriveRequest::ReadStatus.parse_reply(r) {
+                    Ok(DriveReply::Status(s)) => Some(s),
+                    _ => None,
+                });
+        match status {
+            Some(s) => {
+                if offline {
+                    info!(bus = %self.shared.name, unit, "drive answers again");
+                }
+                self.cache().record_status(unit, s);
+            }
+            None => {
+                let reason = match (&report.fault, report.reply) {
+                    (Some(f), _) => f.describe(),
+                    (None, Some(r)) if r.len() == 2 => format!("exception 0x{:02X}", r[1]),
+                    _ => "invalid status reply".to_string(),
+                };
+                if self.cache().record_failure(unit, &reason) {
+                    warn!(bus = %self.shared.name, unit, "drive stopped answering ({reason}); polling it with backoff");
+                }
+            }
+        }
+        self.stats().record_poll(status.is_some());
+        self.plan
+            .polled(unit, Instant::now(), self.cache().is_offline(unit));
+        Ok(())
+    }
+}

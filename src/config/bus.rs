@@ -1,0 +1,271 @@
+//! `[[bus]]` and `[[bus.drive]]` sections.
+
+use std::time::Duration;
+
+use serde::Deserialize;
+use toml::Spanned;
+
+use super::values::{self, Name, UnitAddress};
+use crate::bus::master::MasterSettings;
+use crate::bus::port::Rs485Settings;
+use crate::bus::queue::QueueLimits;
+use crate::bus::scheduler::BusSettings;
+use crate::sim::{FaultRates, SimConfig, SimDriveConfig};
+
+/// One serial adapter and the drives on it.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BusConfig {
+    /// Name in logs, metrics and the API.
+    pub name: Spanned<Name>,
+    /// Serial device (prefer a stable `/dev/serial/by-id/...` path), or
+    /// `"sim"` for the built-in simulator.
+    pub port: Spanned<String>,
+    /// Baud rate (the drives speak 115200).
+    #[serde(
+        default = "default_baud",
+        deserialize_with = "values::int_in::<_, _, 1200, 4000000>"
+    )]
+    pub baud: u32,
+    /// How long to wait for a reply, after the request has left the wire.
+    #[serde(
+        default = "default_timeout",
+        deserialize_with = "values::int_in::<_, _, 1, 10000>"
+    )]
+    pub response_timeout_ms: u64,
+    /// Attempts after the first on a timeout or a corrupted reply.
+    #[serde(
+        default = "default_retries",
+        deserialize_with = "values::int_in::<_, _, 0, 10>"
+    )]
+    pub retries: u8,
+    /// Default poll interval of each drive; 0 = as fast as the bus allows.
+    #[serde(default, deserialize_with = "values::int_in::<_, _, 0, 3600000>")]
+    pub poll_interval_ms: u64,
+    /// Silence kept after a timeout or bad reply, discarding late bytes
+    /// (default: the response timeout).
+    #[serde(default, deserialize_with = "values::opt_int_in::<_, _, 0, 10000>")]
+    pub guard_ms: Option<u64>,
+    /// Time the drives get after a broadcast before the next request.
+    #[serde(
+        default = "default_broadcast_delay",
+        deserialize_with = "values::int_in::<_, _, 0, 10000>"
+    )]
+    pub broadcast_delay_ms: u64,
+    /// Failed polls in a row before a drive is reported offline.
+    #[serde(
+        default = "default_offline_after",
+        deserialize_with = "values::int_in::<_, _, 1, 1000>"
+    )]
+    pub offline_after: u32,
+    /// First retry delay of an offline drive (doubles up to the max).
+    #[serde(
+        default = "default_backoff",
+        deserialize_with = "values::int_in::<_, _, 10, 3600000>"
+    )]
+    pub offline_backoff_ms: u64,
+    /// Longest retry delay of an offline drive.
+    #[serde(
+        default = "default_backoff_max",
+        deserialize_with = "values::int_in::<_, _, 10, 3600000>"
+    )]
+    pub offline_backoff_max_ms: u64,
+    /// Jobs that may wait per priority class.
+    #[serde(
+        default = "default_queue",
+        deserialize_with = "values::int_in::<_, _, 1, 100000>"
+    )]
+    pub queue_capacity: usize,
+    /// Jobs one client (connection) may have waiting.
+    #[serde(
+        default = "default_queue_per_client",
+        deserialize_with = "values::int_in::<_, _, 1, 100000>"
+    )]
+    pub queue_per_client: usize,
+    /// How long a job may wait for the bus before it is dropped unsent.
+    #[serde(
+        default = "default_queue_timeout",
+        deserialize_with = "values::int_in::<_, _, 1, 600000>"
+    )]
+    pub queue_timeout_ms: u64,
+    /// While polls are due, at most this many commands run before one poll.
+    #[serde(
+        default = "default_poll_share",
+        deserialize_with = "values::int_in::<_, _, 1, 1000>"
+    )]
+    pub poll_share: u32,
+    /// RS-485 direction control.
+    #[serde(default)]
+    pub rs485: Rs485Settings,
+    /// Simulator options (only with `port = "sim"`).
+    #[serde(default)]
+    pub sim: Option<SimSection>,
+    /// The drives on this bus.
+    #[serde(rename = "drive", default)]
+    pub drives: Vec<DriveConfig>,
+}
+
+/// `[bus.sim]`: the built-in simulator's options.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SimSection {
+    /// Drive processing time before replying, ms.
+    #[serde(default = "default_turnaround")]
+    pub turnaround_ms: f64,
+    /// Seed of the fault injection.
+    #[serde(default = "default_seed")]
+    pub seed: u64,
+    /// Fault injection rates.
+    #[serde(default)]
+    pub faults: FaultRates,
+}
+
+impl Default for SimSection {
+    fn default() -> Self {
+        Self {
+            turnaround_ms: default_turnaround(),
+            seed: default_seed(),
+            faults: FaultRates::default(),
+        }
+    }
+}
+
+/// One drive on a bus.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriveConfig {
+    /// Its address on the bus, 1 to 255.
+    pub unit: Spanned<UnitAddress>,
+    /// Its name in the API and metrics, unique over all buses.
+    pub name: Spanned<Name>,
+    /// Gearbox ratio (motor turns per output turn), used by the ramp formulas.
+    #[serde(
+        default = "default_gear_ratio",
+        deserialize_with = "values::gear_ratio"
+    )]
+    pub gear_ratio: f64,
+    /// Poll interval of this drive, overriding the bus's.
+    #[serde(default, deserialize_with = "values::opt_int_in::<_, _, 0, 3600000>")]
+    pub poll_interval_ms: Option<u64>,
+}
+
+impl DriveConfig {
+    /// The unit address.
+    pub fn unit(&self) -> u8 {
+        self.unit.get_ref().0
+    }
+
+    /// The drive's name.
+    pub fn name(&self) -> &str {
+        self.name.get_ref().as_str()
+    }
+}
+
+impl BusConfig {
+    /// The bus's name.
+    pub fn name(&self) -> &str {
+        self.name.get_ref().as_str()
+    }
+
+    /// True for the built-in simulator.
+    pub fn is_simulated(&self) -> bool {
+        self.port.get_ref() == "sim"
+    }
+
+    /// The simulator for this bus: its drives, at this baud, with `[bus.sim]`.
+    pub fn sim_config(&self) -> SimConfig {
+        let section = self.sim.clone().unwrap_or_default();
+        SimConfig {
+            baud: self.baud,
+            turnaround_ms: section.turnaround_ms,
+            seed: section.seed,
+            drives: self
+                .drives
+                .iter()
+                .map(|d| SimDriveConfig {
+                    unit: d.unit(),
+                    gear_ratio: d.gear_ratio,
+                })
+                .collect(),
+            faults: section.faults,
+        }
+    }
+
+    /// The scheduler's settings, with the serial device at `port_path` (the
+    /// simulator's pty for a simulated bus).
+    pub fn settings(&self, port_path: &str) -> BusSettings {
+        let timeout = Duration::from_millis(self.response_timeout_ms);
+        let mut master = MasterSettings::new(self.baud, timeout, self.retries);
+        master.guard_time = self.guard_ms.map_or(timeout, Duration::from_millis);
+        master.broadcast_delay = Duration::from_millis(self.broadcast_delay_ms);
+        master.rs485 = self.rs485;
+        let mut settings = BusSettings::new(
+            self.name(),
+            port_path,
+            self.baud,
+            self.drives
+                .iter()
+                .map(|d| {
+                    let ms = d.poll_interval_ms.unwrap_or(self.poll_interval_ms);
+                    (d.unit(), Duration::from_millis(ms))
+                })
+                .collect(),
+        );
+        settings.master = master;
+        settings.offline_after = self.offline_after;
+        settings.offline_backoff = (
+            Duration::from_millis(self.offline_backoff_ms),
+            Duration::from_millis(self.offline_backoff_max_ms.max(self.offline_backoff_ms)),
+        );
+        settings.queue = QueueLimits {
+            per_class: self.queue_capacity,
+            per_source: self.queue_per_client.min(self.queue_capacity),
+        };
+        settings.queue_timeout = Duration::from_millis(self.queue_timeout_ms);
+        settings.poll_share = self.poll_share;
+        settings
+    }
+}
+
+fn default_baud() -> u32 {
+    115_200
+}
+fn default_timeout() -> u64 {
+    50
+}
+fn default_retries() -> u8 {
+    1
+}
+fn default_broadcast_delay() -> u64 {
+    20
+}
+fn default_offline_after() -> u32 {
+    3
+}
+fn default_backoff() -> u64 {
+    1000
+}
+fn default_backoff_max() -> u64 {
+    30_000
+}
+fn default_queue() -> usize {
+    256
+}
+fn default_queue_per_client() -> usize {
+    64
+}
+fn default_queue_timeout() -> u64 {
+    5000
+}
+fn default_poll_share() -> u32 {
+    4
+}
+fn default_turnaround() -> f64 {
+    0.5
+}
+fn default_seed() -> u64 {
+    1
+}
+fn default_gear_ratio() -> f64 {
+    1.0
+}

@@ -1,0 +1,178 @@
+//! Configuration parsing and validation, with the positions errors point at.
+
+use super::*;
+
+fn parse(text: &str) -> Result<Config, ConfigError> {
+    Config::parse(text, "test.toml")
+}
+
+fn err(text: &str) -> String {
+    parse(text).unwrap_err().to_string()
+}
+
+const MINIMAL: &str = r#"
+[[bus]]
+name = "line1"
+port = "/dev/ttyUSB0"
+
+[[bus.drive]]
+unit = 1
+name = "conveyor"
+gear_ratio = 3.75
+"#;
+
+#[test]
+fn embedded_default_is_valid() {
+    let c = Config::embedded_default().unwrap();
+    assert_eq!(c.buses.len(), 1);
+    assert!(c.buses[0].is_simulated());
+    assert_eq!(c.drive_count(), 4);
+    assert_eq!(c.http.listen.to_string(), "127.0.0.1:8080");
+    assert_eq!(c.modbus_tcp.listen.to_string(), "127.0.0.1:5020");
+}
+
+#[test]
+fn the_documented_reference_config_is_valid() {
+    let text = include_str!("../../config/drivegate.toml");
+    let c = parse(text).unwrap();
+    assert!(!c.buses.is_empty());
+}
+
+#[test]
+fn defaults_fill_in() {
+    let c = parse(MINIMAL).unwrap();
+    let bus = &c.buses[0];
+    assert_eq!(
+        (
+            bus.baud,
+            bus.response_timeout_ms,
+            bus.retries,
+            bus.poll_interval_ms
+        ),
+        (115200, 50, 1, 0)
+    );
+    let s = bus.settings("/dev/ttyUSB0");
+    assert_eq!(s.drives, vec![(1, std::time::Duration::ZERO)]);
+    assert_eq!(s.master.guard_time, std::time::Duration::from_millis(50));
+    assert_eq!(bus.drives[0].gear_ratio, 3.75);
+}
+
+#[test]
+fn the_interface_example_of_the_docs_parses() {
+    let c = parse(
+        r#"
+[http]
+listen = "127.0.0.1:8080"
+[modbus_tcp]
+listen = "127.0.0.1:5020"
+[[bus]]
+name = "line1"
+port = "/dev/ttyUSB0"      # or "sim" for the built-in simulator
+baud = 115200
+response_timeout_ms = 50
+retries = 1
+poll_interval_ms = 0       # per drive; 0 = as fast as the bus allows
+[[bus.drive]]
+unit = 1
+name = "conveyor"
+gear_ratio = 3.75
+"#,
+    )
+    .unwrap();
+    assert_eq!(c.buses[0].drives[0].name(), "conveyor");
+}
+
+#[test]
+fn unknown_keys_are_refused_with_their_position() {
+    let e = err(&MINIMAL
+        .replace("retries", "x")
+        .replace("gear_ratio = 3.75", "gear_ratio = 3.75\nspeed = 3"));
+    assert!(
+        e.starts_with("test.toml:10:1: unknown field `speed`"),
+        "{e}"
+    );
+}
+
+#[test]
+fn out_of_range_values_name_the_range_and_position() {
+    let e = err(&MINIMAL.replace("unit = 1", "unit = 0"));
+    assert!(e.starts_with("test.toml:7:8:"), "{e}");
+    assert!(e.contains("valid 1 to 255"), "{e}");
+    let e = err(&MINIMAL.replace("gear_ratio = 3.75", "gear_ratio = -1"));
+    assert!(
+        e.contains("test.toml:9:14") && e.contains("gear ratio -1 is out of range"),
+        "{e}"
+    );
+    let text = MINIMAL.replace(
+        "port = \"/dev/ttyUSB0\"",
+        "port = \"/dev/ttyUSB0\"\nresponse_timeout_ms = 0",
+    );
+    let e = err(&text);
+    assert!(
+        e.contains(":5:23:") && e.contains("valid 1 to 10000"),
+        "{e}"
+    );
+}
+
+#[test]
+fn duplicates_are_refused_where_they_are() {
+    let twice = format!("{MINIMAL}\n[[bus.drive]]\nunit = 1\nname = \"other\"\n");
+    let e = err(&twice);
+    assert!(
+        e.contains("test.toml:12:8: unit 1 is used twice on bus \"line1\""),
+        "{e}"
+    );
+
+    let same_name = format!("{MINIMAL}\n[[bus.drive]]\nunit = 2\nname = \"conveyor\"\n");
+    let e = err(&same_name);
+    assert!(
+        e.contains("test.toml:13:8: drive name \"conveyor\" is already used"),
+        "{e}"
+    );
+
+    let two_buses = format!(
+        "{MINIMAL}\n[[bus]]\nname = \"line1\"\nport = \"sim\"\n[[bus.drive]]\nunit = 1\nname = \"b\"\n"
+    );
+    let e = err(&two_buses);
+    assert!(e.contains("bus name \"line1\" is used twice"), "{e}");
+
+    let same_port = format!(
+        "{MINIMAL}\n[[bus]]\nname = \"line2\"\nport = \"/dev/ttyUSB0\"\n[[bus.drive]]\nunit = 1\nname = \"b\"\n"
+    );
+    let e = err(&same_port);
+    assert!(e.contains("port /dev/ttyUSB0 is used by two buses"), "{e}");
+}
+
+#[test]
+fn names_are_checked() {
+    let e = err(&MINIMAL.replace("name = \"conveyor\"", "name = \"42\""));
+    assert!(e.contains("must not be only digits"), "{e}");
+    let e = err(&MINIMAL.replace("name = \"conveyor\"", "name = \"a b\""));
+    assert!(e.contains("letters, digits"), "{e}");
+}
+
+#[test]
+fn a_config_needs_buses_and_drives() {
+    assert!(err("[http]\nlisten = \"127.0.0.1:1\"\n").contains("no bus configured"));
+    let e = err("[[bus]]\nname = \"a\"\nport = \"sim\"\n");
+    assert!(e.contains("has no drives"), "{e}");
+}
+
+#[test]
+fn not_toml_at_all() {
+    let e = err("[[bus]\nname=");
+    assert!(e.starts_with("test.toml:1:"), "{e}");
+}
+
+#[test]
+fn sim_section_only_for_sim() {
+    let e = err(&MINIMAL.replace("[[bus.drive]]", "[bus.sim]\nseed = 3\n\n[[bus.drive]]"));
+    assert!(e.contains("only applies to port = \"sim\""), "{e}");
+    let c = parse(&MINIMAL.replace("/dev/ttyUSB0", "sim").replace("[[bus.drive]]", "[bus.sim]\nseed = 3\nturnaround_ms = 0\n[bus.sim.faults]\ndrop_rate = 0.05\n\n[[bus.drive]]")).unwrap();
+    let sim = c.buses[0].sim_config();
+    assert_eq!(
+        (sim.seed, sim.turnaround_ms, sim.faults.drop_rate),
+        (3, 0.0, 0.05)
+    );
+    assert_eq!(sim.drives[0].gear_ratio, 3.75);
+}

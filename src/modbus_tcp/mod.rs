@@ -1,0 +1,3 @@
+//! The Modbus TCP passthrough face for SCADA and PLCs.
+
+pub mod config;
