@@ -1,6 +1,8 @@
 //! Property tests of the pure protocol code: encode/decode round trips and
 //! decoders that never panic on arbitrary bytes.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
 use drivegate::drive::units;
 use drivegate::drive::{ConfigCommand, DriveReply, DriveRequest, Register, Status};
 use drivegate::modbus::rtu_frame::{self, FrameLength};

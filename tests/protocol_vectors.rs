@@ -1,6 +1,8 @@
 //! Every golden frame of `tests/vectors/frames.tsv` (the maker's frames with
 //! their CRCs), built and parsed byte for byte by the drive protocol.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
 use drivegate::drive::{ConfigCommand, DriveReply, DriveRequest, Fault, Mode, ReplyError, Status};
 use drivegate::modbus::ExceptionCode;
 use drivegate::modbus::rtu_frame;
@@ -141,16 +143,17 @@ fn every_request_vector_is_built_byte_for_byte() {
 #[test]
 fn echoes_confirm_their_writes() {
     for v in vectors() {
-        if let Some((_, request)) = request_for(&v.name) {
-            if request.reply_len() == Some(8) && v.bytes[1] == 0x06 {
-                let (_, pdu) = rtu_frame::decode(&v.bytes).unwrap();
-                assert_eq!(
-                    request.parse_reply(pdu),
-                    Ok(DriveReply::Confirmed),
-                    "{}",
-                    v.name
-                );
-            }
+        if let Some((_, request)) = request_for(&v.name)
+            && request.reply_len() == Some(8)
+            && v.bytes[1] == 0x06
+        {
+            let (_, pdu) = rtu_frame::decode(&v.bytes).unwrap();
+            assert_eq!(
+                request.parse_reply(pdu),
+                Ok(DriveReply::Confirmed),
+                "{}",
+                v.name
+            );
         }
     }
 }
