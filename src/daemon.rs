@@ -37,7 +37,8 @@ pub async fn serve(config: Config) -> Result<(), DaemonError> {
         env!("CARGO_PKG_VERSION")
     );
     let shutdown = CancellationToken::new();
-    let faces = crate::faces::start(&config, plant.clone(), shutdown.clone())
+    let metrics = crate::metrics::Metrics::new(plant.clone());
+    let faces = crate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
         .await
         .map_err(DaemonError::Listen)?;
 

@@ -7,6 +7,7 @@ use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::Config;
+use crate::metrics::Metrics;
 use crate::plant::Plant;
 
 /// The running faces.
@@ -26,9 +27,10 @@ impl Faces {
 pub async fn start(
     config: &Config,
     plant: Arc<Plant>,
+    metrics: Arc<Metrics>,
     shutdown: CancellationToken,
 ) -> Result<Faces, String> {
     let tasks = JoinSet::new();
-    let _ = (config, plant, shutdown);
+    let _ = (config, plant, metrics, shutdown);
     Ok(Faces { tasks })
 }

@@ -4,6 +4,7 @@
 //! a request through them.
 
 pub mod api;
+pub mod audit;
 pub mod bus;
 pub mod clock;
 pub mod config;
@@ -11,6 +12,7 @@ pub mod daemon;
 pub mod drive;
 pub mod faces;
 pub mod logging;
+pub mod metrics;
 pub mod modbus;
 pub mod modbus_tcp;
 pub mod plant;
