@@ -1,24 +1,39 @@
 //! Starts the network faces (HTTP API with metrics, Modbus TCP) and waits
 //! for them to finish after shutdown.
 
+use std::net::SocketAddr;
 use std::sync::Arc;
 
-use tokio::task::JoinSet;
+use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::Config;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 
+/// A face that is listening: where, and the task serving it.
+pub struct Listening {
+    /// The bound address (the real port when the config said port 0).
+    pub addr: SocketAddr,
+    /// The task serving it; it ends after the shutdown token fired.
+    pub task: JoinHandle<()>,
+}
+
 /// The running faces.
 pub struct Faces {
-    tasks: JoinSet<()>,
+    /// Where the HTTP API (REST, WebSocket, metrics) listens.
+    pub http: SocketAddr,
+    /// Where Modbus TCP listens, if enabled.
+    pub modbus_tcp: Option<SocketAddr>,
+    tasks: Vec<JoinHandle<()>>,
 }
 
 impl Faces {
     /// Waits until every face has stopped (after the shutdown token fired).
-    pub async fn wait(mut self) {
-        while self.tasks.join_next().await.is_some() {}
+    pub async fn wait(self) {
+        for task in self.tasks {
+            let _ = task.await;
+        }
     }
 }
 
@@ -30,7 +45,20 @@ pub async fn start(
     metrics: Arc<Metrics>,
     shutdown: CancellationToken,
 ) -> Result<Faces, String> {
-    let tasks = JoinSet::new();
-    let _ = (config, plant, metrics, shutdown);
-    Ok(Faces { tasks })
+    let http = crate::api::start(config, plant.clone(), metrics.clone(), shutdown.clone()).await?;
+    tracing::info!(addr = %http.addr, "HTTP API listening");
+    let mut tasks = vec![http.task];
+    let modbus_tcp = if config.modbus_tcp.enabled {
+        let tcp = crate::modbus_tcp::start(config, plant, metrics, shutdown).await?;
+        tracing::info!(addr = %tcp.addr, "Modbus TCP listening");
+        tasks.push(tcp.task);
+        Some(tcp.addr)
+    } else {
+        None
+    };
+    Ok(Faces {
+        http: http.addr,
+        modbus_tcp,
+        tasks,
+    })
 }
