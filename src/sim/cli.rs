@@ -1,17 +1,263 @@
-//! `drivegate sim`: a simulated bus of drives on a pty for third-party tools.
+//! `drivegate sim`: a simulated bus of drives on a pty for third-party tools
+//! (mbpoll, pymodbus, the daemon on another machine's config).
+
+use std::fmt;
+use std::io::{self, Write};
+use std::path::PathBuf;
+use std::str::FromStr;
+
+use tokio::signal::unix::{SignalKind, signal};
+
+use super::Simulator;
+use super::config::{DEFAULT_GEAR_RATIO, SimConfig, SimDriveConfig};
+use super::faults::FaultRates;
 
 /// Arguments of `drivegate sim`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimArgs {
-    /// Where to link the pty (a symlink to /dev/pts/N).
+    /// Where to link the pty (a symlink to /dev/pts/N, removed on exit).
     #[arg(long)]
-    pub link: Option<std::path::PathBuf>,
+    pub link: Option<PathBuf>,
+    /// Addresses of the simulated drives: ranges and lists, e.g. "1-8" or "1,3,5-7".
+    #[arg(long, default_value = "1-8")]
+    pub units: UnitList,
+    /// Baud rate whose timing the wire models.
+    #[arg(long, default_value_t = 115_200)]
+    pub baud: u32,
+    /// Drive processing time before a reply, in ms.
+    #[arg(long, default_value_t = 0.5)]
+    pub turnaround_ms: f64,
+    /// Seed of the fault injection (same seed, same faults).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Gearbox ratio of every drive.
+    #[arg(long, default_value_t = DEFAULT_GEAR_RATIO)]
+    pub gear_ratio: f64,
+    /// Fraction of requests left unanswered.
+    #[arg(long, default_value_t = 0.0)]
+    pub drop_rate: f64,
+    /// Fraction of replies sent with a bad CRC.
+    #[arg(long, default_value_t = 0.0)]
+    pub crc_error_rate: f64,
+    /// Fraction of replies sent late.
+    #[arg(long, default_value_t = 0.0)]
+    pub late_rate: f64,
+    /// How late a late reply is, in ms.
+    #[arg(long, default_value_t = 50.0)]
+    pub late_ms: f64,
+    /// Fraction of replies followed by 1 to 4 noise bytes.
+    #[arg(long, default_value_t = 0.0)]
+    pub noise_rate: f64,
+    /// Units that never answer, e.g. "3,5".
+    #[arg(long)]
+    pub silent_units: Option<UnitList>,
 }
 
-/// Runs the simulator until SIGINT/SIGTERM.
-pub async fn run(_args: SimArgs) -> std::io::Result<()> {
-    Err(std::io::Error::new(
-        std::io::ErrorKind::Unsupported,
-        "simulator not built yet",
-    ))
+impl SimArgs {
+    /// The simulated bus these arguments describe.
+    pub fn config(&self) -> SimConfig {
+        SimConfig {
+            baud: self.baud,
+            turnaround_ms: self.turnaround_ms,
+            seed: self.seed,
+            drives: self
+                .units
+                .0
+                .iter()
+                .map(|&unit| SimDriveConfig {
+                    unit,
+                    gear_ratio: self.gear_ratio,
+                })
+                .collect(),
+            faults: FaultRates {
+                drop_rate: self.drop_rate,
+                crc_error_rate: self.crc_error_rate,
+                late_rate: self.late_rate,
+                late_ms: self.late_ms,
+                noise_rate: self.noise_rate,
+                silent_units: self.silent_units.clone().map(|u| u.0).unwrap_or_default(),
+            },
+            ..SimConfig::default()
+        }
+    }
+}
+
+/// Runs the simulator until SIGINT or SIGTERM: prints the pty path (and the
+/// link) on one line of stdout, and a line of counters on exit.
+pub async fn run(args: SimArgs) -> io::Result<()> {
+    let mut interrupt = signal(SignalKind::interrupt())?;
+    let mut terminate = signal(SignalKind::terminate())?;
+    let mut handle = Simulator::start(args.config())?;
+    if let Some(link) = &args.link {
+        handle.link_at(link)?;
+    }
+    {
+        let mut out = io::stdout().lock();
+        match handle.link_path() {
+            Some(link) => writeln!(out, "{} {}", handle.port_path().display(), link.display())?,
+            None => writeln!(out, "{}", handle.port_path().display())?,
+        }
+        out.flush()?;
+    }
+    tokio::select! {
+        _ = interrupt.recv() => {}
+        _ = terminate.recv() => {}
+    }
+    let stats = handle.stats();
+    handle.stop();
+    println!("{stats}");
+    Ok(())
+}
+
+/// A set of drive addresses written as ranges and lists ("1-8", "1,3,5-7").
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UnitList(pub Vec<u8>);
+
+/// A unit list that cannot be read.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum UnitListError {
+    /// Not a number or a range of numbers.
+    #[error("\"{0}\" is not a unit or a range of units like 3 or 1-8")]
+    Syntax(String),
+    /// Outside 1..=255.
+    #[error("unit {0} is out of range: valid 1 to 255 (0 is the broadcast address)")]
+    OutOfRange(u32),
+    /// A range written backwards.
+    #[error("the range {0}-{1} is backwards: write it low-high")]
+    Backwards(u8, u8),
+    /// Nothing given.
+    #[error("no units given")]
+    Empty,
+}
+
+impl FromStr for UnitList {
+    type Err = UnitListError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let unit = |text: &str| -> Result<u8, UnitListError> {
+            let n: u32 = text
+                .trim()
+                .parse()
+                .map_err(|_| UnitListError::Syntax(text.trim().to_string()))?;
+            match u8::try_from(n) {
+                Ok(u) if u != 0 => Ok(u),
+                _ => Err(UnitListError::OutOfRange(n)),
+            }
+        };
+        let mut units = Vec::new();
+        for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            match part.split_once('-') {
+                Some((low, high)) => {
+                    let (low, high) = (unit(low)?, unit(high)?);
+                    if low > high {
+                        return Err(UnitListError::Backwards(low, high));
+                    }
+                    units.extend(low..=high);
+                }
+                None => units.push(unit(part)?),
+            }
+        }
+        units.sort_unstable();
+        units.dedup();
+        if units.is_empty() {
+            return Err(UnitListError::Empty);
+        }
+        Ok(UnitList(units))
+    }
+}
+
+impl fmt::Display for UnitList {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mut first = true;
+        let mut i = 0;
+        while i < self.0.len() {
+            let mut j = i;
+            while j + 1 < self.0.len() && self.0[j + 1] == self.0[j].wrapping_add(1) {
+                j += 1;
+            }
+            if !first {
+                f.write_str(",")?;
+            }
+            first = false;
+            if j > i {
+                write!(f, "{}-{}", self.0[i], self.0[j])?;
+            } else {
+                write!(f, "{}", self.0[i])?;
+            }
+            i = j + 1;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: SimArgs,
+    }
+
+    #[test]
+    fn unit_lists_take_ranges_and_lists() {
+        assert_eq!(
+            "1-8".parse::<UnitList>().unwrap().0,
+            (1..=8).collect::<Vec<u8>>()
+        );
+        assert_eq!(
+            "1,3,5-7".parse::<UnitList>().unwrap().0,
+            vec![1, 3, 5, 6, 7]
+        );
+        assert_eq!(" 5 , 3,3 ".parse::<UnitList>().unwrap().0, vec![3, 5]);
+        assert_eq!("0".parse::<UnitList>(), Err(UnitListError::OutOfRange(0)));
+        assert_eq!(
+            "1-256".parse::<UnitList>(),
+            Err(UnitListError::OutOfRange(256))
+        );
+        assert_eq!(
+            "8-1".parse::<UnitList>(),
+            Err(UnitListError::Backwards(8, 1))
+        );
+        assert_eq!(
+            "x".parse::<UnitList>(),
+            Err(UnitListError::Syntax("x".into()))
+        );
+        assert_eq!("".parse::<UnitList>(), Err(UnitListError::Empty));
+        assert_eq!(
+            "1,3,5-7,9".parse::<UnitList>().unwrap().to_string(),
+            "1,3,5-7,9"
+        );
+    }
+
+    #[test]
+    fn arguments_make_a_valid_config() {
+        let cli = Cli::parse_from(["sim"]);
+        let config = cli.args.config();
+        assert_eq!(config.drives.len(), 8);
+        assert_eq!((config.baud, config.turnaround_ms), (115_200, 0.5));
+        assert_eq!(config.validate(), Ok(()));
+        let cli = Cli::parse_from([
+            "sim",
+            "--units",
+            "2,4-5",
+            "--silent-units",
+            "4",
+            "--drop-rate",
+            "0.1",
+            "--seed",
+            "9",
+            "--gear-ratio",
+            "10",
+        ]);
+        let config = cli.args.config();
+        let units: Vec<u8> = config.drives.iter().map(|d| d.unit).collect();
+        assert_eq!(units, vec![2, 4, 5]);
+        assert_eq!(config.faults.silent_units, vec![4]);
+        assert_eq!((config.faults.drop_rate, config.seed), (0.1, 9));
+        assert_eq!(config.drives[0].gear_ratio, 10.0);
+        assert!(Cli::try_parse_from(["sim", "--units", "0-3"]).is_err());
+    }
 }

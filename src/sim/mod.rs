@@ -1,92 +1,133 @@
-//! The drive simulator: a bus of drives behind real RTU bytes on a pty.
+//! The drive simulator: a timing-accurate bus of drives behind real RTU bytes
+//! on a pty.
 //!
-//! (Interface stub; the model lands with the simulator.)
+//! The daemon runs it in-process for a bus configured with `port = "sim"`;
+//! `drivegate sim` serves it to third-party tools. A master opens
+//! [`SimHandle::port_path`] as it would a serial port and cannot tell the
+//! difference from the wire: the bytes, their pacing, the silences and the
+//! drives' behaviour follow the manual.
+//!
+//! The parts, each pure except the last three:
+//! - [`ramp`]: the setpoint ramp (bang-bang, manual 1.9/1.10);
+//! - [`physics`]: the motor, its supply and its heat;
+//! - [`control`]: the drive's speed and position loops;
+//! - [`model`]: one drive: registers, flash, commands, protections, faults;
+//! - [`slave`]: the Modbus slave (PDU in, PDU out, exceptions);
+//! - [`faults`]: seeded fault injection on the wire;
+//! - [`bus`]: the drives on one line, who answers what;
+//! - [`wire`]: framing and the line's timing on the pty;
+//! - [`pty`]: the pseudo-terminal;
+//! - [`handle`]: control of a running simulator.
+//!
+//! The simulator runs on its own thread (`sim-bus`) with a current-thread
+//! runtime, so its timing does not depend on the load of the caller's
+//! runtime; the handle and the thread share the bus behind a mutex that is
+//! never held across an await.
 
+pub mod bus;
 pub mod cli;
+pub mod config;
+pub mod control;
+pub mod faults;
+pub mod handle;
+pub mod model;
+pub mod physics;
+pub mod pty;
+pub mod ramp;
+pub mod slave;
+pub mod stats;
+pub mod wire;
 
 use std::io;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::time::Instant;
 
-use serde::Deserialize;
+use tokio_util::sync::CancellationToken;
 
-/// Per-request fault injection rates (0.0 to 1.0), reproducible by seed.
-#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct FaultRates {
-    /// Fraction of requests that get no reply at all.
-    pub drop_rate: f64,
-    /// Fraction of replies sent with a corrupted CRC.
-    pub crc_error_rate: f64,
-    /// Fraction of replies sent `late_ms` late.
-    pub late_rate: f64,
-    /// How late a late reply is, in ms.
-    pub late_ms: f64,
-    /// Fraction of idle moments with noise bytes on the line.
-    pub noise_rate: f64,
-    /// Units that never answer.
-    pub silent_units: Vec<u8>,
-}
+pub use config::{ConfigError, SimConfig, SimDriveConfig};
+pub use faults::FaultRates;
+pub use handle::{SimError, SimHandle};
+pub use model::SimDriveView;
+pub use stats::SimStats;
 
-/// One simulated drive.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct SimDriveConfig {
-    /// Its bus address.
-    pub unit: u8,
-    /// Its gearbox ratio.
-    pub gear_ratio: f64,
-}
+use bus::Bus;
+use wire::Wire;
 
-/// A simulated bus.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SimConfig {
-    /// Baud rate the wire is modelled at.
-    pub baud: u32,
-    /// Drive processing time before a reply, in ms.
-    pub turnaround_ms: f64,
-    /// Seed of the fault injection.
-    pub seed: u64,
-    /// The drives on the bus.
-    pub drives: Vec<SimDriveConfig>,
-    /// Fault injection.
-    pub faults: FaultRates,
-}
-
-/// Counters of what the simulated wire saw.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct SimStats {
-    /// Requests framed (any unit).
-    pub requests: u64,
-    /// Requests that arrived inside the silent interval.
-    pub gap_violations: u64,
-}
-
-/// The running simulator.
+/// Starts simulated buses.
 pub struct Simulator;
 
 impl Simulator {
-    /// Starts a simulator on its own thread behind a new pty.
-    pub fn start(_config: SimConfig) -> io::Result<SimHandle> {
-        Err(io::Error::new(
-            io::ErrorKind::Unsupported,
-            "simulator not built yet",
-        ))
+    /// Starts a simulator on its own thread behind a new pty; returns once
+    /// the pty is ready to be opened.
+    pub fn start(config: SimConfig) -> io::Result<SimHandle> {
+        config
+            .validate()
+            .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
+        let bus = Arc::new(Mutex::new(Bus::new(&config, Instant::now())));
+        let cancel = CancellationToken::new();
+        let (ready_tx, ready_rx) = mpsc::sync_channel(1);
+        let thread = std::thread::Builder::new().name("sim-bus".into()).spawn({
+            let bus = Arc::clone(&bus);
+            let cancel = cancel.clone();
+            move || run(config, bus, cancel, ready_tx)
+        })?;
+        match ready_rx.recv() {
+            Ok(Ok(path)) => Ok(SimHandle::new(path, bus, cancel, thread)),
+            Ok(Err(e)) => {
+                let _ = thread.join();
+                Err(e)
+            }
+            Err(_) => {
+                let _ = thread.join();
+                Err(io::Error::other(
+                    "the simulator stopped before its pty was ready",
+                ))
+            }
+        }
     }
 }
 
-/// Control of a running simulator; dropping it stops the simulator.
-pub struct SimHandle {
-    path: PathBuf,
+/// The simulator thread: its own runtime, the pty, the wire until cancelled.
+fn run(
+    config: SimConfig,
+    bus: Arc<Mutex<Bus>>,
+    cancel: CancellationToken,
+    ready: mpsc::SyncSender<io::Result<PathBuf>>,
+) {
+    crate::clock::tighten_timer_slack();
+    let runtime = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            let _ = ready.send(Err(e));
+            return;
+        }
+    };
+    runtime.block_on(async move {
+        let wire = match Wire::new(&config, bus) {
+            Ok(wire) => wire,
+            Err(e) => {
+                let _ = ready.send(Err(e));
+                return;
+            }
+        };
+        let _ = ready.send(Ok(wire.path().to_path_buf()));
+        tokio::select! {
+            () = cancel.cancelled() => {}
+            result = wire.serve() => {
+                if let Err(e) = result {
+                    tracing::error!("the simulated bus stopped: {e}");
+                }
+            }
+        }
+    });
 }
 
-impl SimHandle {
-    /// The pty path a master opens.
-    pub fn port_path(&self) -> &Path {
-        &self.path
-    }
-
-    /// Counters of the wire.
-    pub fn stats(&self) -> SimStats {
-        SimStats::default()
-    }
+/// Locks the shared bus; a panic elsewhere does not make its state unusable.
+fn lock(bus: &Mutex<Bus>) -> MutexGuard<'_, Bus> {
+    bus.lock().unwrap_or_else(PoisonError::into_inner)
 }

@@ -1,0 +1,320 @@
+//! The drives on one simulated bus and what happens to a framed request:
+//! who hears it, who answers, what faults befall the answer. Pure code: the
+//! caller passes the time and does the I/O.
+//!
+//! Each drive's model is advanced lazily, from the time it was last looked
+//! at, whenever a request reaches it or the handle reads it.
+
+use std::time::{Duration, Instant};
+
+use super::config::SimConfig;
+use super::faults::{FaultInjector, FaultRates, Noise};
+use super::model::DriveModel;
+use super::slave;
+use super::stats::SimStats;
+use crate::modbus::crc::crc_bytes;
+use crate::modbus::rtu_frame;
+
+/// A drive and the time its model was last advanced to.
+#[derive(Debug)]
+struct Slot {
+    model: DriveModel,
+    clock: Instant,
+}
+
+impl Slot {
+    fn advance_to(&mut self, now: Instant) {
+        if now > self.clock {
+            self.model.advance((now - self.clock).as_secs_f64());
+            self.clock = now;
+        }
+    }
+}
+
+/// What the wire must do after a request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Outcome {
+    /// A reply frame is in the caller's buffer.
+    pub reply: bool,
+    /// Extra delay before it (injected lateness).
+    pub late: Duration,
+    /// Noise to write about t3.5 after it.
+    pub noise: Option<Noise>,
+}
+
+/// The simulated drives, the fault injection and the counters.
+#[derive(Debug)]
+pub struct Bus {
+    slots: Vec<Slot>,
+    faults: FaultInjector,
+    stats: SimStats,
+    pdu: Vec<u8>,
+    scratch: Vec<u8>,
+}
+
+impl Bus {
+    /// The drives of `config`, powered on at `now`.
+    pub fn new(config: &SimConfig, now: Instant) -> Self {
+        let reboot = config.reboot_ms / 1000.0;
+        Bus {
+            slots: config
+                .drives
+                .iter()
+                .map(|d| Slot {
+                    model: DriveModel::new(d.unit, d.gear_ratio, config.calibrated, reboot),
+                    clock: now,
+                })
+                .collect(),
+            faults: FaultInjector::new(config.faults.clone(), config.seed),
+            stats: SimStats::default(),
+            pdu: Vec::with_capacity(256),
+            scratch: Vec::with_capacity(256),
+        }
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> SimStats {
+        self.stats
+    }
+
+    /// The counters, for the wire to update.
+    pub fn stats_mut(&mut self) -> &mut SimStats {
+        &mut self.stats
+    }
+
+    /// The fault rates in force.
+    pub fn fault_rates(&self) -> &FaultRates {
+        self.faults.rates()
+    }
+
+    /// Changes the fault rates.
+    pub fn set_fault_rates(&mut self, rates: FaultRates) {
+        self.faults.set_rates(rates);
+    }
+
+    /// Makes `unit` silent or lets it answer again.
+    pub fn set_silent(&mut self, unit: u8, silent: bool) {
+        self.faults.set_silent(unit, silent);
+    }
+
+    /// The drive answering to `unit` (its address now), advanced to `now`.
+    pub fn drive(&mut self, unit: u8, now: Instant) -> Option<&mut DriveModel> {
+        let slot = self.slots.iter_mut().find(|s| s.model.address() == unit)?;
+        slot.advance_to(now);
+        Some(&mut slot.model)
+    }
+
+    /// Handles one framed request heard at `now`; a reply frame, if any, is
+    /// left in `reply`.
+    pub fn request(&mut self, frame: &[u8], now: Instant, reply: &mut Vec<u8>) -> Outcome {
+        reply.clear();
+        let Ok((unit, pdu)) = rtu_frame::decode(frame) else {
+            self.stats.bad_crc_requests += 1;
+            return Outcome::default();
+        };
+        self.stats.requests += 1;
+        if unit == 0 {
+            self.stats.broadcasts += 1;
+            for slot in &mut self.slots {
+                slot.advance_to(now);
+                if slot.model.online() && !self.faults.rates().is_silent(slot.model.address()) {
+                    slave::broadcast(&mut slot.model, pdu, &mut self.scratch);
+                }
+            }
+            return Outcome::default();
+        }
+        if self.faults.rates().is_silent(unit) {
+            self.stats.unanswered += 1;
+            return Outcome::default();
+        }
+        let mut answering = 0;
+        for slot in &mut self.slots {
+            if slot.model.address() != unit {
+                continue;
+            }
+            slot.advance_to(now);
+            if !slot.model.online() {
+                continue;
+            }
+            let exception = slave::answer(&mut slot.model, pdu, &mut self.pdu);
+            answering += 1;
+            if answering == 1 {
+                if exception.is_some() {
+                    self.stats.exceptions += 1;
+                }
+                reply.push(unit);
+                reply.extend_from_slice(&self.pdu);
+                let crc = crc_bytes(reply);
+                reply.extend_from_slice(&crc);
+            } else {
+                // Two drivers on the line at once: the bytes collide.
+                self.scratch.clear();
+                self.scratch.push(unit);
+                self.scratch.extend_from_slice(&self.pdu);
+                let crc = crc_bytes(&self.scratch);
+                self.scratch.extend_from_slice(&crc);
+                collide(reply, &self.scratch);
+            }
+        }
+        if answering == 0 {
+            self.stats.unanswered += 1;
+            return Outcome::default();
+        }
+        if answering > 1 {
+            self.stats.collisions += 1;
+        }
+        let fate = self.faults.decide();
+        if fate.drop {
+            self.stats.dropped += 1;
+            reply.clear();
+            return Outcome::default();
+        }
+        if let Some((byte, mask)) = fate.corrupt {
+            let at = reply.len() - 2 + byte;
+            reply[at] ^= mask;
+            self.stats.corrupted += 1;
+        }
+        if fate.late.is_some() {
+            self.stats.late += 1;
+        }
+        if fate.noise.is_some() {
+            self.stats.noise_bursts += 1;
+        }
+        self.stats.replies += 1;
+        Outcome {
+            reply: true,
+            late: fate.late.unwrap_or_default(),
+            noise: fate.noise,
+        }
+    }
+}
+
+/// Two replies driven at once: a 0 from either driver wins each bit, the
+/// longer frame's tail goes through.
+fn collide(line: &mut Vec<u8>, other: &[u8]) {
+    for (i, &b) in other.iter().enumerate() {
+        match line.get_mut(i) {
+            Some(x) => *x &= b,
+            None => line.push(b),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drive::{ConfigCommand, DriveRequest, Status};
+
+    fn bus(units: &[u8]) -> (Bus, Instant) {
+        let now = Instant::now();
+        (
+            Bus::new(&SimConfig::for_units(units.iter().copied()), now),
+            now,
+        )
+    }
+
+    fn send(bus: &mut Bus, unit: u8, req: DriveRequest, now: Instant) -> Option<Vec<u8>> {
+        let mut reply = Vec::new();
+        let frame = req.frame(unit).unwrap();
+        bus.request(&frame, now, &mut reply).reply.then_some(reply)
+    }
+
+    #[test]
+    fn only_the_addressed_drive_answers() {
+        let (mut bus, now) = bus(&[1, 2]);
+        let reply = send(&mut bus, 2, DriveRequest::ReadStatus, now).unwrap();
+        assert_eq!(reply[0], 2);
+        assert!(crate::modbus::crc::frame_crc_ok(&reply));
+        assert_eq!(
+            rtu_frame::decode(&reply).unwrap().1.len(),
+            2 + Status::BYTES
+        );
+        assert_eq!(send(&mut bus, 9, DriveRequest::ReadStatus, now), None);
+        let s = bus.stats();
+        assert_eq!((s.requests, s.replies, s.unanswered), (2, 1, 1));
+    }
+
+    #[test]
+    fn bad_crc_is_ignored_and_counted() {
+        let (mut bus, now) = bus(&[1]);
+        let mut frame = DriveRequest::ReadStatus.frame(1).unwrap();
+        frame[7] ^= 1;
+        let mut reply = Vec::new();
+        assert!(!bus.request(&frame, now, &mut reply).reply);
+        assert_eq!((bus.stats().bad_crc_requests, bus.stats().requests), (1, 0));
+    }
+
+    #[test]
+    fn broadcast_address_setting_readdresses_every_drive() {
+        let (mut bus, now) = bus(&[1, 2]);
+        assert_eq!(
+            send(&mut bus, 0, DriveRequest::SetAddress { address: 5 }, now),
+            None
+        );
+        assert_eq!(bus.stats().broadcasts, 1);
+        assert!(bus.drive(1, now).is_none() && bus.drive(2, now).is_none());
+        assert_eq!(bus.drive(5, now).map(|d| d.address()), Some(5));
+        // Both answer at address 5 now: their replies collide on the wire.
+        let reply = send(
+            &mut bus,
+            5,
+            DriveRequest::Config(ConfigCommand::Activate),
+            now,
+        )
+        .unwrap();
+        assert_eq!(
+            reply,
+            DriveRequest::Config(ConfigCommand::Activate)
+                .frame(5)
+                .unwrap()
+        );
+        assert_eq!(bus.stats().collisions, 1);
+    }
+
+    #[test]
+    fn silent_units_and_rebooting_drives_do_not_answer() {
+        let (mut bus, now) = bus(&[1, 2]);
+        bus.set_silent(2, true);
+        assert_eq!(send(&mut bus, 2, DriveRequest::ReadStatus, now), None);
+        bus.drive(1, now).unwrap().power_cycle();
+        assert_eq!(send(&mut bus, 1, DriveRequest::ReadStatus, now), None);
+        let later = now + Duration::from_millis(301);
+        assert!(send(&mut bus, 1, DriveRequest::ReadStatus, later).is_some());
+        assert_eq!(bus.stats().unanswered, 2);
+    }
+
+    #[test]
+    fn exceptions_are_counted_and_faults_applied() {
+        let (mut bus, now) = bus(&[1]);
+        let reply = send(&mut bus, 1, DriveRequest::Speed { rpm: 5 }, now).unwrap();
+        assert_eq!(reply[1], 0x86, "an exception: the drive is not active");
+        assert_eq!(bus.stats().exceptions, 1);
+        bus.set_fault_rates(FaultRates {
+            crc_error_rate: 1.0,
+            ..FaultRates::default()
+        });
+        let reply = send(&mut bus, 1, DriveRequest::ReadStatus, now).unwrap();
+        assert!(!crate::modbus::crc::frame_crc_ok(&reply));
+        bus.set_fault_rates(FaultRates {
+            drop_rate: 1.0,
+            ..FaultRates::default()
+        });
+        assert_eq!(send(&mut bus, 1, DriveRequest::ReadStatus, now), None);
+        let s = bus.stats();
+        assert_eq!((s.corrupted, s.dropped, s.replies), (1, 1, 2));
+    }
+
+    #[test]
+    fn models_advance_with_the_clock() {
+        let (mut bus, now) = bus(&[1]);
+        for req in [
+            DriveRequest::Config(ConfigCommand::Activate),
+            DriveRequest::Config(ConfigCommand::SpeedMode),
+            DriveRequest::Speed { rpm: 100 },
+        ] {
+            send(&mut bus, 1, req, now).unwrap();
+        }
+        let later = now + Duration::from_millis(500);
+        assert_eq!(bus.drive(1, later).unwrap().status().speed_rpm, 100);
+    }
+}

@@ -1,0 +1,154 @@
+//! What a simulated bus is made of: its line, its drives, its faults.
+
+use serde::Deserialize;
+
+use super::faults::FaultRates;
+use crate::drive::RangeError;
+use crate::drive::units::GEAR_RATIO;
+
+/// The gear ratio of the manual's examples, used when none is given.
+pub const DEFAULT_GEAR_RATIO: f64 = 3.75;
+
+/// One simulated drive.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SimDriveConfig {
+    /// Its bus address at power-on (1..=255).
+    pub unit: u8,
+    /// Its gearbox ratio (motor turns per output turn).
+    pub gear_ratio: f64,
+}
+
+/// A simulated bus. Start from [`SimConfig::default`] (or
+/// [`SimConfig::for_units`]) and change what matters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimConfig {
+    /// Baud rate the wire is modelled at (8N1).
+    pub baud: u32,
+    /// Drive processing time between the end of the request's t3.5 and the
+    /// first reply byte, in ms (0 allowed).
+    pub turnaround_ms: f64,
+    /// Seed of the fault injection.
+    pub seed: u64,
+    /// The drives on the bus.
+    pub drives: Vec<SimDriveConfig>,
+    /// Fault injection.
+    pub faults: FaultRates,
+    /// How long a drive stays silent after a power cycle or a software
+    /// reset, in ms.
+    pub reboot_ms: f64,
+    /// Whether the drives' flash says their encoders have been calibrated
+    /// (false models drives that never were: fine-tuning is then refused).
+    pub calibrated: bool,
+}
+
+impl Default for SimConfig {
+    /// Eight drives (units 1 to 8) at 115200 baud with 0.5 ms turnaround,
+    /// gear ratio 3.75, calibrated, no faults, seed 0, 300 ms reboot.
+    fn default() -> Self {
+        SimConfig::for_units(1..=8)
+    }
+}
+
+impl SimConfig {
+    /// The default bus with drives at `units`.
+    pub fn for_units(units: impl IntoIterator<Item = u8>) -> Self {
+        SimConfig {
+            baud: 115_200,
+            turnaround_ms: 0.5,
+            seed: 0,
+            drives: units
+                .into_iter()
+                .map(|unit| SimDriveConfig {
+                    unit,
+                    gear_ratio: DEFAULT_GEAR_RATIO,
+                })
+                .collect(),
+            faults: FaultRates::default(),
+            reboot_ms: 300.0,
+            calibrated: true,
+        }
+    }
+
+    /// Checks the configuration, naming what is wrong.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if !(300..=4_000_000).contains(&self.baud) {
+            return Err(ConfigError::Baud(self.baud));
+        }
+        RangeError::check("turnaround", self.turnaround_ms, 0.0, 1000.0, "ms")?;
+        RangeError::check("reboot time", self.reboot_ms, 0.0, 60_000.0, "ms")?;
+        if self.drives.is_empty() {
+            return Err(ConfigError::NoDrives);
+        }
+        for (i, drive) in self.drives.iter().enumerate() {
+            if drive.unit == 0 {
+                return Err(ConfigError::BroadcastUnit);
+            }
+            if self.drives[..i].iter().any(|d| d.unit == drive.unit) {
+                return Err(ConfigError::DuplicateUnit(drive.unit));
+            }
+            RangeError::check(
+                "gear ratio",
+                drive.gear_ratio,
+                GEAR_RATIO.0,
+                GEAR_RATIO.1,
+                "",
+            )?;
+        }
+        self.faults.validate()
+    }
+}
+
+/// A simulated bus that cannot be built.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ConfigError {
+    /// No drive on the bus.
+    #[error("the simulated bus has no drives: give at least one unit")]
+    NoDrives,
+    /// A drive at address 0.
+    #[error("unit 0 is the broadcast address, not a drive: use 1 to 255")]
+    BroadcastUnit,
+    /// Two drives at one address.
+    #[error("unit {0} is given twice: each simulated drive needs its own address")]
+    DuplicateUnit(u8),
+    /// Baud rate outside what serial lines use.
+    #[error("baud rate {0} is out of range: valid 300 to 4000000")]
+    Baud(u32),
+    /// A number outside its range.
+    #[error(transparent)]
+    Range(#[from] RangeError),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_mistakes_are_named() {
+        assert_eq!(SimConfig::default().validate(), Ok(()));
+        assert_eq!(SimConfig::default().drives.len(), 8);
+        let mut c = SimConfig::for_units([1, 2, 1]);
+        assert_eq!(c.validate(), Err(ConfigError::DuplicateUnit(1)));
+        c = SimConfig::for_units([0]);
+        assert_eq!(c.validate(), Err(ConfigError::BroadcastUnit));
+        c = SimConfig::for_units([]);
+        assert_eq!(c.validate(), Err(ConfigError::NoDrives));
+        c = SimConfig::for_units([1]);
+        c.turnaround_ms = -1.0;
+        assert_eq!(
+            c.validate().unwrap_err().to_string(),
+            "turnaround -1 ms is out of range: valid 0 to 1000 ms"
+        );
+        c = SimConfig::for_units([1]);
+        c.faults.drop_rate = 2.0;
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .starts_with("drop rate 2")
+        );
+        c = SimConfig::for_units([1]);
+        c.drives[0].gear_ratio = 0.0;
+        assert!(c.validate().is_err());
+    }
+}

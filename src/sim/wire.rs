@@ -1,0 +1,242 @@
+//! The simulated RS-485 wire: frames requests from the pty's bytes and puts
+//! replies back at the pace of the configured baud rate.
+//!
+//! A pty carries bytes in microseconds whatever the baud rate, so the wire's
+//! timing is modelled here, in one place:
+//! - A request occupies the wire from the moment its first byte is read (or
+//!   from the end of the previous activity, if the master sent it too early)
+//!   for `wire_time(len)`.
+//! - Requests are framed by [`request_length`] when the function code tells
+//!   the length, else by 3.5 characters of silence; a partial frame followed
+//!   by that silence is dropped.
+//! - The reply starts no earlier than the end of the request's wire time +
+//!   t3.5 + the drive's turnaround (+ injected lateness), and its byte `i` is
+//!   written at `reply_start + wire_time(i + 1)`, computed from that schedule,
+//!   writing together all bytes already due when a wakeup comes late.
+//! - A request whose first byte arrives less than t3.5 after the end of the
+//!   previous activity (the last reply byte's scheduled end, or the end of the
+//!   previous request when it had no reply) is a gap violation. The check is
+//!   strict: pty latency only makes bytes arrive later, so a master that
+//!   waits t3.5 after the last byte it received never trips it.
+//!
+//! The wire keeps reading while it waits, so arrival times stay exact even
+//! while a reply is being paced out or a late reply is pending; requests are
+//! still answered one after the other, as a drive does.
+
+use std::io;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+use super::bus::Bus;
+use super::config::SimConfig;
+use super::lock;
+use super::pty::Pty;
+use crate::clock::PreciseTimer;
+use crate::modbus::rtu_frame::{FrameLength, MAX_FRAME, MIN_FRAME, request_length};
+use crate::modbus::timing::LineTiming;
+
+/// Bytes kept waiting to be framed; beyond this the line is garbage.
+const RX_LIMIT: usize = 4 * MAX_FRAME;
+
+/// Received bytes not yet framed, with the time each was read.
+struct Rx {
+    bytes: Vec<u8>,
+    arrivals: Vec<Instant>,
+}
+
+impl Rx {
+    fn new() -> Self {
+        Rx {
+            bytes: Vec::with_capacity(RX_LIMIT),
+            arrivals: Vec::with_capacity(RX_LIMIT),
+        }
+    }
+
+    fn push(&mut self, data: &[u8], at: Instant) {
+        self.bytes.extend_from_slice(data);
+        self.arrivals.resize(self.bytes.len(), at);
+    }
+
+    fn consume(&mut self, n: usize) {
+        let n = n.min(self.bytes.len());
+        self.bytes.drain(..n);
+        self.arrivals.drain(..n);
+    }
+
+    fn clear(&mut self) {
+        self.bytes.clear();
+        self.arrivals.clear();
+    }
+}
+
+/// The wire task's state.
+pub struct Wire {
+    pty: Pty,
+    bus: Arc<Mutex<Bus>>,
+    line: LineTiming,
+    turnaround: Duration,
+    timer: PreciseTimer,
+    rx: Rx,
+    tx: Vec<u8>,
+    /// End of the last wire activity.
+    quiet_from: Option<Instant>,
+}
+
+impl Wire {
+    /// Opens the pty and prepares the timing for `config`; must run inside
+    /// the simulator's runtime.
+    pub fn new(config: &SimConfig, bus: Arc<Mutex<Bus>>) -> io::Result<Self> {
+        Ok(Wire {
+            pty: Pty::open()?,
+            bus,
+            line: LineTiming::new_8n1(config.baud),
+            turnaround: Duration::from_secs_f64(config.turnaround_ms.max(0.0) / 1000.0),
+            timer: PreciseTimer::new()?,
+            rx: Rx::new(),
+            tx: Vec::with_capacity(MAX_FRAME),
+            quiet_from: None,
+        })
+    }
+
+    /// The pty slave path masters open.
+    pub fn path(&self) -> &std::path::Path {
+        self.pty.path()
+    }
+
+    /// Serves requests until an I/O error (or until the caller drops it).
+    pub async fn serve(mut self) -> io::Result<()> {
+        loop {
+            let len = self.next_frame().await?;
+            self.answer(len).await?;
+        }
+    }
+
+    /// Waits until the received bytes hold a whole frame; returns its length.
+    async fn next_frame(&mut self) -> io::Result<usize> {
+        loop {
+            let Some(&first) = self.rx.arrivals.first() else {
+                self.read_until(None).await?;
+                continue;
+            };
+            let length = request_length(&self.rx.bytes);
+            if let FrameLength::Known(n) = length
+                && n <= MAX_FRAME
+                && self.rx.bytes.len() >= n
+            {
+                return Ok(n);
+            }
+            if self.rx.bytes.len() > MAX_FRAME {
+                // No frame is that long: the line carries garbage.
+                self.drop_partial();
+                continue;
+            }
+            // Wait for the rest, or for the silence that ends the frame.
+            let start = self.quiet_from.map_or(first, |q| first.max(q));
+            let wire_end = start + self.line.wire_time(self.rx.bytes.len());
+            let last = self.rx.arrivals.last().copied().unwrap_or(first);
+            let silence = wire_end.max(last) + self.line.t3_5();
+            if self.read_until(Some(silence)).await? {
+                continue;
+            }
+            match length {
+                FrameLength::BySilence if self.rx.bytes.len() >= MIN_FRAME => {
+                    return Ok(self.rx.bytes.len());
+                }
+                _ => self.drop_partial(),
+            }
+        }
+    }
+
+    fn drop_partial(&mut self) {
+        self.rx.clear();
+        lock(&self.bus).stats_mut().truncated_frames += 1;
+    }
+
+    /// Hands the first `len` received bytes to the drives and puts their
+    /// answer on the wire.
+    async fn answer(&mut self, len: usize) -> io::Result<()> {
+        let Some(&arrival) = self.rx.arrivals.first() else {
+            return Ok(());
+        };
+        let t3_5 = self.line.t3_5();
+        let violation = self.quiet_from.is_some_and(|q| arrival < q + t3_5);
+        let start = self.quiet_from.map_or(arrival, |q| arrival.max(q));
+        let wire_end = start + self.line.wire_time(len);
+        let outcome = {
+            let mut bus = lock(&self.bus);
+            if violation {
+                bus.stats_mut().gap_violations += 1;
+            }
+            bus.request(&self.rx.bytes[..len], Instant::now(), &mut self.tx)
+        };
+        self.rx.consume(len);
+        if !outcome.reply {
+            self.quiet_from = Some(wire_end);
+            return Ok(());
+        }
+        let reply_start = wire_end + t3_5 + self.turnaround + outcome.late;
+        let reply_end = self.send_paced(reply_start).await?;
+        self.quiet_from = Some(reply_end);
+        if let Some(noise) = outcome.noise {
+            // Noise is not a frame: it does not move the end of activity.
+            self.tx.clear();
+            self.tx.extend_from_slice(noise.bytes());
+            self.send_paced(reply_end + t3_5).await?;
+        }
+        Ok(())
+    }
+
+    /// Writes `tx` one character time per byte from `start`; returns the
+    /// scheduled end of the last byte.
+    async fn send_paced(&mut self, start: Instant) -> io::Result<Instant> {
+        let len = self.tx.len();
+        let mut sent = 0;
+        while sent < len {
+            let now = Instant::now();
+            let mut due = sent;
+            while due < len && start + self.line.wire_time(due + 1) <= now {
+                due += 1;
+            }
+            if due > sent {
+                self.pty.master().write_all(&self.tx[sent..due]).await?;
+                sent = due;
+            } else {
+                self.read_until(Some(start + self.line.wire_time(sent + 1)))
+                    .await?;
+            }
+        }
+        Ok(start + self.line.wire_time(len))
+    }
+
+    /// Reads what arrives until `deadline` (forever if `None`); true when
+    /// bytes came in before it.
+    async fn read_until(&mut self, deadline: Option<Instant>) -> io::Result<bool> {
+        let mut buf = [0u8; 256];
+        let master = self.pty.master();
+        let n = match deadline {
+            None => master.read(&mut buf).await?,
+            Some(deadline) => {
+                tokio::select! {
+                    read = master.read(&mut buf) => read?,
+                    slept = self.timer.sleep_until(deadline) => {
+                        slept?;
+                        return Ok(false);
+                    }
+                }
+            }
+        };
+        if n == 0 {
+            // The pty's slave side is held open, so this does not happen;
+            // if it does, do not spin.
+            tokio::time::sleep(Duration::from_millis(10)).await;
+            return Ok(false);
+        }
+        if self.rx.bytes.len() + n > RX_LIMIT {
+            self.drop_partial();
+        }
+        self.rx.push(&buf[..n], Instant::now());
+        Ok(true)
+    }
+}
