@@ -138,6 +138,8 @@ mod tests {
             plan.polled(2, now, false);
         }
         now = start + Duration::from_millis(1001);
+        // Drive 2 was just polled: drive 1's backoff is over and it is next.
+        plan.polled(2, now, false);
         assert_eq!(plan.due(now), Some(1));
         plan.polled(1, now, true);
         plan.polled(1, now, true); // 4 s

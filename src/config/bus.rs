@@ -115,6 +115,12 @@ pub struct SimSection {
     /// Seed of the fault injection.
     #[serde(default = "default_seed")]
     pub seed: u64,
+    /// How long a drive stays silent after a power cycle or soft reset, ms.
+    #[serde(default = "default_reboot")]
+    pub reboot_ms: f64,
+    /// Whether the simulated drives start calibrated.
+    #[serde(default = "default_calibrated")]
+    pub calibrated: bool,
     /// Fault injection rates.
     #[serde(default)]
     pub faults: FaultRates,
@@ -125,6 +131,8 @@ impl Default for SimSection {
         Self {
             turnaround_ms: default_turnaround(),
             seed: default_seed(),
+            reboot_ms: default_reboot(),
+            calibrated: default_calibrated(),
             faults: FaultRates::default(),
         }
     }
@@ -188,6 +196,8 @@ impl BusConfig {
                 })
                 .collect(),
             faults: section.faults,
+            reboot_ms: section.reboot_ms,
+            calibrated: section.calibrated,
         }
     }
 
@@ -265,6 +275,12 @@ fn default_turnaround() -> f64 {
 }
 fn default_seed() -> u64 {
     1
+}
+fn default_reboot() -> f64 {
+    300.0
+}
+fn default_calibrated() -> bool {
+    true
 }
 fn default_gear_ratio() -> f64 {
     1.0
