@@ -1,34 +1,65 @@
-//! Prometheus metrics: the faces' counters live here; drive and bus values
-//! are read from the poll cache and the bus counters at scrape time, so a
-//! scrape never touches the bus.
+//! Prometheus metrics (`GET /metrics`).
+//!
+//! - [`faces`]: counters the HTTP, WebSocket and Modbus TCP faces update,
+//! - `drives`: per-drive series read from the poll cache at scrape time,
+//! - `buses`: per-bus series read from the bus counters, queues and port
+//!   state (and the simulator's wire counters) at scrape time,
+//! - `utilisation`: the sampler behind `drivegate_bus_utilisation_ratio`,
+//! - `process`: build information and the process's own resources,
+//! - `family`: the plumbing that turns those values into families.
+//!
+//! Drive and bus values are copied from memory the bus threads already keep,
+//! so a scrape never puts a frame on the wire nor waits for one.
 
+mod buses;
+mod drives;
 mod faces;
+mod family;
+mod process;
+mod utilisation;
 
-use std::sync::Arc;
+use std::sync::{Arc, Weak};
 
 use prometheus::{Encoder, Registry, TextEncoder};
 
 pub use faces::{FaceMetrics, WsClientGuard};
+pub use utilisation::{SAMPLE_PERIOD, WINDOW as UTILISATION_WINDOW};
 
 use crate::plant::Plant;
+use utilisation::Utilisation;
 
 /// Every metric the daemon exports.
 pub struct Metrics {
     registry: Registry,
     faces: FaceMetrics,
     plant: Arc<Plant>,
+    utilisation: Arc<Utilisation>,
 }
 
 impl Metrics {
-    /// Metrics of `plant`, with the faces' counters registered.
+    /// Metrics of `plant`, with the faces' counters registered. Called
+    /// inside a tokio runtime, it also starts the utilisation sampler, which
+    /// ends when the metrics are dropped.
     pub fn new(plant: Arc<Plant>) -> Arc<Self> {
         let registry = Registry::new();
         let faces = FaceMetrics::register(&registry);
-        Arc::new(Self {
+        let utilisation = Arc::new(Utilisation::new(&plant));
+        let _ = registry.register(Box::new(drives::DriveCollector::new(plant.clone())));
+        let _ = registry.register(Box::new(buses::BusCollector::new(
+            plant.clone(),
+            utilisation.clone(),
+        )));
+        process::register(&registry);
+        let metrics = Arc::new(Self {
             registry,
             faces,
             plant,
-        })
+            utilisation,
+        });
+        if let Ok(runtime) = tokio::runtime::Handle::try_current() {
+            runtime.spawn(sample_utilisation(Arc::downgrade(&metrics)));
+        }
+        metrics
     }
 
     /// The faces' counters, for the HTTP and Modbus TCP code to update.
@@ -41,7 +72,8 @@ impl Metrics {
         &self.plant
     }
 
-    /// The text exposition format (`GET /metrics`).
+    /// The text exposition format (`GET /metrics`, content type
+    /// [`CONTENT_TYPE`]).
     pub fn render(&self) -> String {
         let families = self.registry.gather();
         let mut out = Vec::new();
@@ -49,5 +81,20 @@ impl Metrics {
             tracing::warn!("cannot encode metrics: {e}");
         }
         String::from_utf8(out).unwrap_or_default()
+    }
+}
+
+/// Content type of [`Metrics::render`]'s output.
+pub const CONTENT_TYPE: &str = prometheus::TEXT_FORMAT;
+
+/// Reads every bus's busy counter each [`SAMPLE_PERIOD`] until the metrics
+/// are dropped (or the runtime stops).
+async fn sample_utilisation(metrics: Weak<Metrics>) {
+    let mut tick = tokio::time::interval(SAMPLE_PERIOD);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        let Some(m) = metrics.upgrade() else { break };
+        m.utilisation.sample(&m.plant);
     }
 }
