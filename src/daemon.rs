@@ -29,6 +29,9 @@ pub enum DaemonError {
 
 /// Runs the daemon with `config` until SIGINT or SIGTERM.
 pub async fn serve(config: Config) -> Result<(), DaemonError> {
+    // Catch the signals from the start: a stop asked for while the buses open
+    // is then a graceful stop right after, not an abrupt kill.
+    let mut signals = StopSignals::new().map_err(DaemonError::Signals)?;
     let plant = Arc::new(Plant::start(&config)?);
     info!(
         buses = plant.buses().len(),
@@ -42,28 +45,53 @@ pub async fn serve(config: Config) -> Result<(), DaemonError> {
         .await
         .map_err(DaemonError::Listen)?;
 
-    notify_systemd(&[sd_notify::NotifyState::Ready]);
-    let watchdog = spawn_watchdog(shutdown.clone());
-
-    wait_for_signal().await.map_err(DaemonError::Signals)?;
-    info!(
-        "stopping: no new work; finishing the frame on the wire and applying the safe-stop action"
+    let summary = format!(
+        "serving {} drive(s) on {} bus(es); HTTP on {}",
+        plant.drives().len(),
+        plant.buses().len(),
+        faces.http
     );
-    notify_systemd(&[sd_notify::NotifyState::Stopping]);
+    notify_systemd(&[
+        sd_notify::NotifyState::Ready,
+        sd_notify::NotifyState::Status(&summary),
+    ]);
+    // The watchdog keeps pinging through the stop: a safe stop that takes a
+    // few seconds must not be mistaken for a hang.
+    let watchdog_stop = CancellationToken::new();
+    let watchdog = spawn_watchdog(watchdog_stop.clone());
+
+    signals.recv().await;
+    info!(
+        "stopping: no new work; finishing the frame on the wire and applying the safe-stop action ({})",
+        config.safety.on_shutdown.name()
+    );
+    notify_systemd(&[
+        sd_notify::NotifyState::Stopping,
+        sd_notify::NotifyState::Status("stopping: applying the safe-stop action"),
+    ]);
     shutdown.cancel();
-    if tokio::time::timeout(Duration::from_secs(5), faces.wait())
+    if tokio::time::timeout(FACES_STOP_LIMIT, faces.wait())
         .await
         .is_err()
     {
-        warn!("some connections did not close within 5 s");
+        warn!(
+            "some connections did not close within {} s",
+            FACES_STOP_LIMIT.as_secs()
+        );
     }
     plant.shutdown(config.safety.on_shutdown).await;
+    watchdog_stop.cancel();
     if let Some(w) = watchdog {
-        w.abort();
+        let _ = w.await;
     }
     info!("stopped");
     Ok(())
 }
+
+/// How long open connections get to finish after a stop signal; the unit
+/// file's `TimeoutStopSec` leaves room for this plus the safe stop (each bus
+/// step is bounded to 5 s in [`Plant::shutdown`]).
+const FACES_STOP_LIMIT: Duration = Duration::from_secs(5);
 
 fn notify_systemd(states: &[sd_notify::NotifyState<'_>]) {
     if let Err(e) = sd_notify::notify(states) {
@@ -71,27 +99,46 @@ fn notify_systemd(states: &[sd_notify::NotifyState<'_>]) {
     }
 }
 
-/// Pings systemd's watchdog at half its interval while the daemon runs.
-fn spawn_watchdog(shutdown: CancellationToken) -> Option<tokio::task::JoinHandle<()>> {
+/// Pings systemd's watchdog (`WatchdogSec=`) at half its interval until
+/// `stop` fires. The pings come from the runtime that serves the faces and
+/// drives the stop, so a wedged runtime gets the daemon restarted.
+fn spawn_watchdog(stop: CancellationToken) -> Option<tokio::task::JoinHandle<()>> {
     let interval = sd_notify::watchdog_enabled()?;
+    info!(
+        "systemd watchdog every {:?}; pinging at half that",
+        interval
+    );
+    let period = (interval / 2).max(Duration::from_millis(1));
     Some(tokio::spawn(async move {
-        let mut tick = tokio::time::interval(interval / 2);
+        let mut tick = tokio::time::interval(period);
         loop {
             tokio::select! {
                 _ = tick.tick() => notify_systemd(&[sd_notify::NotifyState::Watchdog]),
-                () = shutdown.cancelled() => break,
+                () = stop.cancelled() => break,
             }
         }
     }))
 }
 
-async fn wait_for_signal() -> std::io::Result<()> {
-    use tokio::signal::unix::{SignalKind, signal};
-    let mut term = signal(SignalKind::terminate())?;
-    let mut int = signal(SignalKind::interrupt())?;
-    tokio::select! {
-        _ = term.recv() => info!("SIGTERM received"),
-        _ = int.recv() => info!("SIGINT received"),
+/// SIGTERM (systemd's stop) and SIGINT (Ctrl-C).
+struct StopSignals {
+    term: tokio::signal::unix::Signal,
+    int: tokio::signal::unix::Signal,
+}
+
+impl StopSignals {
+    fn new() -> std::io::Result<Self> {
+        use tokio::signal::unix::{SignalKind, signal};
+        Ok(Self {
+            term: signal(SignalKind::terminate())?,
+            int: signal(SignalKind::interrupt())?,
+        })
     }
-    Ok(())
+
+    async fn recv(&mut self) {
+        tokio::select! {
+            _ = self.term.recv() => info!("SIGTERM received"),
+            _ = self.int.recv() => info!("SIGINT received"),
+        }
+    }
 }

@@ -1,6 +1,8 @@
 //! Logging through `tracing`: human-readable by default, JSON on request,
 //! journald when run by systemd.
 
+use std::io::IsTerminal;
+
 use serde::Deserialize;
 use tracing_subscriber::EnvFilter;
 use tracing_subscriber::layer::SubscriberExt;
@@ -41,49 +43,75 @@ impl Default for LogConfig {
     }
 }
 
-/// Installs the global subscriber; returns a note to log once it is up
-/// (e.g. journald was asked for but is not there).
+/// Installs the global subscriber; returns notes to log once it is up
+/// (journald asked for but not there, a filter that does not parse).
 pub fn init(config: &LogConfig) -> Option<String> {
-    let filter = EnvFilter::try_from_default_env()
-        .or_else(|_| EnvFilter::try_new(&config.level))
-        .unwrap_or_else(|_| EnvFilter::new("info"));
+    let mut notes = Vec::new();
+    let filter = match std::env::var("RUST_LOG") {
+        Ok(env) if !env.trim().is_empty() => EnvFilter::try_new(&env)
+            .map_err(|e| {
+                notes.push(format!(
+                    "RUST_LOG=\"{env}\" is not a valid filter ({e}); using [log] level"
+                ))
+            })
+            .ok(),
+        _ => None,
+    };
+    let filter = filter.unwrap_or_else(|| {
+        EnvFilter::try_new(&config.level).unwrap_or_else(|e| {
+            notes.push(format!(
+                "[log] level = \"{}\" is not a valid filter ({e}); using \"info\"",
+                config.level
+            ));
+            EnvFilter::new("info")
+        })
+    });
     let registry = tracing_subscriber::registry().with(filter);
     let want_journald = match config.format {
         LogFormat::Journald => true,
         LogFormat::Auto => std::env::var_os("JOURNAL_STREAM").is_some(),
         _ => false,
     };
-    let mut note = None;
     if want_journald {
         match tracing_journald::layer() {
             Ok(layer) => {
                 let _ = registry
                     .with(layer.with_syslog_identifier("drivegate".into()))
                     .try_init();
-                return None;
+                return join(notes);
             }
-            Err(e) => {
-                note = Some(format!(
-                    "journald is not available ({e}); logging to stderr"
-                ))
-            }
+            Err(e) => notes.push(format!(
+                "journald is not available ({e}); logging to stderr"
+            )),
         }
     }
     let result = if config.format == LogFormat::Json {
+        // Event fields at the top level next to timestamp, level, target and
+        // message, as log shippers index them.
         registry
             .with(
                 tracing_subscriber::fmt::layer()
                     .json()
+                    .flatten_event(true)
                     .with_writer(std::io::stderr),
             )
             .try_init()
     } else {
+        // Colours only for a person at a terminal, never into files or pipes.
         registry
-            .with(tracing_subscriber::fmt::layer().with_writer(std::io::stderr))
+            .with(
+                tracing_subscriber::fmt::layer()
+                    .with_ansi(std::io::stderr().is_terminal())
+                    .with_writer(std::io::stderr),
+            )
             .try_init()
     };
     if result.is_err() {
-        note = Some("a logger was already installed".to_string());
+        notes.push("a logger was already installed".to_string());
     }
-    note
+    join(notes)
+}
+
+fn join(notes: Vec<String>) -> Option<String> {
+    (!notes.is_empty()).then(|| notes.join("; "))
 }
