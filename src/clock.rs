@@ -22,6 +22,9 @@ impl AsRawFd for Fd {
     }
 }
 
+/// How much of each sleep is spun rather than slept (see [`PreciseTimer::sleep_until`]).
+pub const SPIN: std::time::Duration = std::time::Duration::from_micros(60);
+
 /// A reusable high-resolution timer for one task.
 pub struct PreciseTimer {
     fd: AsyncFd<Fd>,
@@ -42,12 +45,20 @@ impl PreciseTimer {
     }
 
     /// Sleeps until `deadline` (returns at once if it has passed).
+    ///
+    /// The kernel wakes a thread tens of microseconds after its timer fires;
+    /// so the timer is set [`SPIN`] early and the last stretch is spun, which
+    /// keeps the wire's silences within a few microseconds of their length.
     pub async fn sleep_until(&mut self, deadline: Instant) -> io::Result<()> {
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
+            if left <= SPIN {
+                while Instant::now() < deadline {
+                    std::hint::spin_loop();
+                }
                 return Ok(());
             }
+            let left = left - SPIN;
             // A zero expiration would disarm the timer; `left` is never zero here.
             self.fd.get_ref().0.set(
                 Expiration::OneShot(TimeSpec::from_duration(left)),

@@ -17,16 +17,28 @@ async fn drives_are_polled_and_commands_confirmed() {
     let (drive, bus) = d.plant.drive("conveyor").unwrap();
     let unit = drive.unit;
     let reply = bus
-        .execute(unit, &DriveRequest::Config(ConfigCommand::Activate), JobOptions::default())
+        .execute(
+            unit,
+            &DriveRequest::Config(ConfigCommand::Activate),
+            JobOptions::default(),
+        )
         .await
         .unwrap();
     assert_eq!(reply, DriveReply::Confirmed);
-    bus.execute(unit, &DriveRequest::Config(ConfigCommand::SpeedMode), JobOptions::default())
-        .await
-        .unwrap();
-    bus.execute(unit, &DriveRequest::Speed { rpm: 100 }, JobOptions::default())
-        .await
-        .unwrap();
+    bus.execute(
+        unit,
+        &DriveRequest::Config(ConfigCommand::SpeedMode),
+        JobOptions::default(),
+    )
+    .await
+    .unwrap();
+    bus.execute(
+        unit,
+        &DriveRequest::Speed { rpm: 100 },
+        JobOptions::default(),
+    )
+    .await
+    .unwrap();
     let status = common::eventually(Duration::from_secs(5), "speed near 100 rpm", || {
         bus.drive(unit)
             .and_then(|s| s.status)

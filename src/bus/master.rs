@@ -229,6 +229,16 @@ impl RtuMaster {
         })
     }
 
+    /// Waits until the line may carry the next request (t3.5 of silence).
+    /// The scheduler calls this *before* it picks the next job, so a command
+    /// that arrives during the silence goes next instead of waiting for one
+    /// more poll. Returns the stray bytes discarded meanwhile.
+    pub async fn settle(&mut self) -> io::Result<usize> {
+        self.stray = 0;
+        self.wait_for_silence().await?;
+        Ok(std::mem::take(&mut self.stray))
+    }
+
     /// Waits until the line has been silent for t3.5, discarding (and
     /// counting) whatever arrives meanwhile; every byte restarts the silence.
     async fn wait_for_silence(&mut self) -> io::Result<()> {

@@ -205,6 +205,20 @@ impl Scheduler {
                 continue;
             };
 
+            // Let the line go quiet first, then choose: whatever arrived in
+            // the meantime (an emergency brake) is considered.
+            match m.settle().await {
+                Ok(stray) if stray > 0 => self.stats().add_stray_bytes(stray),
+                Ok(_) => {}
+                Err(e) => {
+                    let reason = format!("serial port {} failed: {e}", self.settings.port);
+                    warn!(bus = %name, "{reason}; reopening");
+                    self.stats().record_port_error(&reason);
+                    master = None;
+                    self.mark_down(reason);
+                    continue;
+                }
+            }
             let result = match self.next_work(Instant::now()) {
                 Work::Job(job) => self.run_job(m, job).await,
                 Work::Poll(unit) => self.run_poll(m, unit, &status).await,
