@@ -1,7 +1,7 @@
 //! The daemon in-process on the built-in simulator, listening on loopback
 //! ports chosen by the system: what the end-to-end tests talk to.
 
-#![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
+#![allow(dead_code, unreachable_pub, clippy::unwrap_used, clippy::expect_used)]
 
 use std::net::SocketAddr;
 use std::sync::Arc;
