@@ -10,11 +10,11 @@
 use std::time::{Duration, Instant};
 
 use drivegate::clock::PreciseTimer;
-use drivegate::drive::{ConfigCommand, DriveReply, DriveRequest, Status};
+use drivegate::drive::{ConfigCommand, DriveReply, DriveRequest, Fault, Status};
 use drivegate::modbus::crc::frame_crc_ok;
 use drivegate::modbus::rtu_frame::{self, FrameLength, response_length};
 use drivegate::modbus::timing::LineTiming;
-use drivegate::sim::{FaultRates, SimConfig, SimHandle, SimStats, Simulator};
+use drivegate::sim::{FaultRates, SimConfig, SimError, SimHandle, SimStats, Simulator};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_serial::{SerialPortBuilderExt, SerialStream};
 
@@ -632,6 +632,80 @@ async fn dropping_the_handle_unplugs_the_bus() {
             Ok(Ok(0)) | Ok(Err(_)) => {}
             other => panic!("the master still reads from an unplugged bus: {other:?}"),
         }
+    })
+    .await;
+}
+
+#[tokio::test]
+async fn handle_controls_show_in_the_status_on_the_wire() {
+    bounded(10, async {
+        let handle = start(&[1, 2], 0.0);
+        let mut master = Master::open(&handle);
+        let status = |unit| frame(unit, DriveRequest::ReadStatus);
+        let fault_reset = frame(1, DriveRequest::Config(ConfigCommand::FaultReset));
+
+        handle.set_supply_voltage(1, 17.0).unwrap();
+        handle.set_ambient_temperature(2, 40.0).unwrap();
+        tokio::time::sleep(Duration::from_millis(5)).await;
+        let s = status_of(&master.transact(&status(1)).await.unwrap());
+        assert_eq!((s.voltage_v, s.fault()), (17, Fault::UnderVoltage));
+        // The drive warms towards a new ambient with a minute's time constant.
+        let s = status_of(&master.transact(&status(2)).await.unwrap());
+        assert_eq!((s.temperature_c, s.fault()), (25, Fault::None));
+        let view = handle.drive(2).unwrap();
+        assert!(view.environment.ambient == 40.0 && view.temperature_c > 25.0);
+        handle.set_supply_voltage(1, 24.0).unwrap();
+        master.transact(&fault_reset).await.unwrap();
+
+        handle.inject_fault(1, Fault::PowerStage).unwrap();
+        master.transact(&fault_reset).await.unwrap();
+        let s = status_of(&master.transact(&status(1)).await.unwrap());
+        assert_eq!(s.fault(), Fault::PowerStage, "still injected");
+        handle.clear_fault(1).unwrap();
+        master.transact(&fault_reset).await.unwrap();
+        let s = status_of(&master.transact(&status(1)).await.unwrap());
+        assert_eq!(s.fault(), Fault::None);
+
+        // A load on a free shaft turns it backwards.
+        handle.set_load_torque(2, 0.5).unwrap();
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let s = status_of(&master.transact(&status(2)).await.unwrap());
+        assert!(s.speed_rpm < 0, "{s:?}");
+
+        handle.set_silent(2, true);
+        assert!(master.transact(&status(2)).await.is_none());
+        handle.set_silent(2, false);
+        assert!(master.transact(&status(2)).await.is_some());
+
+        assert_eq!(
+            handle
+                .drives()
+                .iter()
+                .map(|d| d.address)
+                .collect::<Vec<_>>(),
+            [1, 2]
+        );
+        assert!(matches!(
+            handle.inject_fault(9, Fault::Encoder),
+            Err(SimError::UnknownUnit(9))
+        ));
+        assert!(handle.set_supply_voltage(1, f64::NAN).is_err());
+        assert!(
+            handle
+                .set_fault_rates(FaultRates {
+                    drop_rate: 1.5,
+                    ..FaultRates::default()
+                })
+                .is_err()
+        );
+        handle
+            .set_fault_rates(FaultRates {
+                drop_rate: 1.0,
+                ..FaultRates::default()
+            })
+            .unwrap();
+        assert!(master.transact(&status(1)).await.is_none());
+        assert_eq!(handle.fault_rates().drop_rate, 1.0);
     })
     .await;
 }

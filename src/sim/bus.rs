@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use super::config::SimConfig;
 use super::faults::{FaultInjector, FaultRates, Noise};
-use super::model::DriveModel;
+use super::model::{DriveModel, SimDriveView};
 use super::slave;
 use super::stats::SimStats;
 use crate::modbus::crc::crc_bytes;
@@ -102,6 +102,17 @@ impl Bus {
         let slot = self.slots.iter_mut().find(|s| s.model.address() == unit)?;
         slot.advance_to(now);
         Some(&mut slot.model)
+    }
+
+    /// Snapshots of every drive, advanced to `now`, in configuration order.
+    pub fn views(&mut self, now: Instant) -> Vec<SimDriveView> {
+        self.slots
+            .iter_mut()
+            .map(|slot| {
+                slot.advance_to(now);
+                slot.model.view()
+            })
+            .collect()
     }
 
     /// Handles one framed request heard at `now`; a reply frame, if any, is
