@@ -153,17 +153,10 @@ impl Bus {
                 if exception.is_some() {
                     self.stats.exceptions += 1;
                 }
-                reply.push(unit);
-                reply.extend_from_slice(&self.pdu);
-                let crc = crc_bytes(reply);
-                reply.extend_from_slice(&crc);
+                frame_into(reply, unit, &self.pdu);
             } else {
                 // Two drivers on the line at once: the bytes collide.
-                self.scratch.clear();
-                self.scratch.push(unit);
-                self.scratch.extend_from_slice(&self.pdu);
-                let crc = crc_bytes(&self.scratch);
-                self.scratch.extend_from_slice(&crc);
+                frame_into(&mut self.scratch, unit, &self.pdu);
                 collide(reply, &self.scratch);
             }
         }
@@ -198,6 +191,15 @@ impl Bus {
             noise: fate.noise,
         }
     }
+}
+
+/// `rtu_frame::encode` into a reusable buffer (no allocation per reply).
+fn frame_into(out: &mut Vec<u8>, unit: u8, pdu: &[u8]) {
+    out.clear();
+    out.push(unit);
+    out.extend_from_slice(pdu);
+    let crc = crc_bytes(out);
+    out.extend_from_slice(&crc);
 }
 
 /// Two replies driven at once: a 0 from either driver wins each bit, the
