@@ -62,13 +62,12 @@ async fn polling_is_round_robin() {
     let mut events = bus.subscribe();
     let mut order = Vec::new();
     while order.len() < 24 {
-        match tokio::time::timeout(LIMIT, events.recv())
+        let event = tokio::time::timeout(LIMIT, events.recv())
             .await
             .unwrap()
-            .unwrap()
-        {
-            BusEvent::Status { unit, .. } => order.push(unit),
-            _ => {}
+            .unwrap();
+        if let BusEvent::Status { unit, .. } = event {
+            order.push(unit);
         }
     }
     // Each window of four consecutive polls covers the four drives.
