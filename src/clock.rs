@@ -50,15 +50,25 @@ impl PreciseTimer {
     /// so the timer is set [`SPIN`] early and the last stretch is spun, which
     /// keeps the wire's silences within a few microseconds of their length.
     pub async fn sleep_until(&mut self, deadline: Instant) -> io::Result<()> {
+        self.sleep(deadline, SPIN).await
+    }
+
+    /// Sleeps until about `deadline` without spinning: for waits where tens
+    /// of microseconds late do not matter, to save the CPU.
+    pub async fn sleep_until_relaxed(&mut self, deadline: Instant) -> io::Result<()> {
+        self.sleep(deadline, std::time::Duration::ZERO).await
+    }
+
+    async fn sleep(&mut self, deadline: Instant, spin: std::time::Duration) -> io::Result<()> {
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
-            if left <= SPIN {
+            if left <= spin {
                 while Instant::now() < deadline {
                     std::hint::spin_loop();
                 }
                 return Ok(());
             }
-            let left = left - SPIN;
+            let left = left - spin;
             // A zero expiration would disarm the timer; `left` is never zero here.
             self.fd.get_ref().0.set(
                 Expiration::OneShot(TimeSpec::from_duration(left)),
