@@ -430,3 +430,38 @@ async fn address_setting_is_a_broadcast() {
     assert_eq!(sim.drive(9).unwrap().address, 9);
     d.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn several_buses_each_have_their_own_scheduler() {
+    let two = format!(
+        "{FOUR_DRIVES}\n[[bus]]\nname = \"second\"\nport = \"sim\"\n[[bus.drive]]\nunit = 1\nname = \"press\"\n[[bus.drive]]\nunit = 2\nname = \"saw\"\n"
+    );
+    let d = TestDaemon::start(&two).await;
+    assert_eq!(d.plant.buses().len(), 2);
+    // The same unit on two buses is two drives, found by name.
+    let (press, press_bus) = d.plant.drive("press").unwrap();
+    let (conveyor, conveyor_bus) = d.plant.drive("conveyor").unwrap();
+    assert_eq!((press.unit, conveyor.unit), (1, 1));
+    assert_ne!(press_bus.name(), conveyor_bus.name());
+    // With several buses a bare unit number is ambiguous.
+    assert!(d.plant.drive("1").is_err());
+    press_bus
+        .execute(
+            1,
+            &DriveRequest::Config(ConfigCommand::Activate),
+            JobOptions::default(),
+        )
+        .await
+        .unwrap();
+    let second_sim = d.plant.buses()[1].sim.as_ref().unwrap();
+    assert!(second_sim.drive(1).unwrap().active);
+    assert!(
+        !d.sim().drive(1).unwrap().active,
+        "the first bus's unit 1 was not touched"
+    );
+    // Both buses poll at the same time, each on its own thread.
+    for bus in d.plant.buses() {
+        assert!(bus.handle.drives().iter().all(|s| s.link == Link::Online));
+    }
+    d.stop().await;
+}
