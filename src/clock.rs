@@ -22,6 +22,9 @@ impl AsRawFd for Fd {
     }
 }
 
+/// How much of each sleep is spun rather than slept (see [`PreciseTimer::sleep_until`]).
+pub const SPIN: std::time::Duration = std::time::Duration::from_micros(60);
+
 /// A reusable high-resolution timer for one task.
 pub struct PreciseTimer {
     fd: AsyncFd<Fd>,
@@ -42,12 +45,30 @@ impl PreciseTimer {
     }
 
     /// Sleeps until `deadline` (returns at once if it has passed).
+    ///
+    /// The kernel wakes a thread tens of microseconds after its timer fires;
+    /// so the timer is set [`SPIN`] early and the last stretch is spun, which
+    /// keeps the wire's silences within a few microseconds of their length.
     pub async fn sleep_until(&mut self, deadline: Instant) -> io::Result<()> {
+        self.sleep(deadline, SPIN).await
+    }
+
+    /// Sleeps until about `deadline` without spinning: for waits where tens
+    /// of microseconds late do not matter, to save the CPU.
+    pub async fn sleep_until_relaxed(&mut self, deadline: Instant) -> io::Result<()> {
+        self.sleep(deadline, std::time::Duration::ZERO).await
+    }
+
+    async fn sleep(&mut self, deadline: Instant, spin: std::time::Duration) -> io::Result<()> {
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
+            if left <= spin {
+                while Instant::now() < deadline {
+                    std::hint::spin_loop();
+                }
                 return Ok(());
             }
+            let left = left - spin;
             // A zero expiration would disarm the timer; `left` is never zero here.
             self.fd.get_ref().0.set(
                 Expiration::OneShot(TimeSpec::from_duration(left)),

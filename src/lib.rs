@@ -5,6 +5,7 @@
 
 pub mod api;
 pub mod audit;
+pub mod bench;
 pub mod bus;
 pub mod clock;
 pub mod config;

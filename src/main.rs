@@ -29,6 +29,8 @@ enum Command {
     },
     /// Serves a simulated bus of drives on a pty, for third-party tools.
     Sim(drivegate::sim::cli::SimArgs),
+    /// Measures status polling and command latency against the wire's limit.
+    Bench(drivegate::bench::BenchArgs),
 }
 
 fn main() -> ExitCode {
@@ -36,6 +38,7 @@ fn main() -> ExitCode {
     match cli.command {
         Command::CheckConfig { file } => check_config(&file),
         Command::Serve { config } => serve(config),
+        Command::Bench(args) => run(|| drivegate::bench::run(args)),
         Command::Sim(args) => run(|| async move {
             drivegate::sim::cli::run(args)
                 .await

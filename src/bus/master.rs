@@ -25,8 +25,9 @@ use super::port::{Direction, Rs485Settings};
 use super::rs485;
 use super::stats::Outcome;
 use crate::clock::PreciseTimer;
-use crate::modbus::function::{EXCEPTION_BIT, be_u16};
-use crate::modbus::rtu_frame::{self, FrameError, FrameLength};
+use crate::modbus::function::EXCEPTION_BIT;
+use crate::modbus::reply::{self, Mismatch};
+use crate::modbus::rtu_frame::{self, FrameLength};
 use crate::modbus::timing::LineTiming;
 
 /// Timing and retry settings of a master.
@@ -192,7 +193,13 @@ impl RtuMaster {
                 .await?;
             let end = Instant::now();
             busy += (end - sent_at) + t35;
-            match received.and_then(|len| check_reply(unit, pdu, &self.buf[..len])) {
+            let checked = received.and_then(|len| {
+                reply::check(unit, pdu, &self.buf[..len]).map_err(|m| match m {
+                    Mismatch::Crc => Fault::Crc,
+                    other => Fault::Mismatch(other.describe()),
+                })
+            });
+            match checked {
                 Ok(reply) => {
                     let outcome = if reply.first().is_some_and(|f| f & EXCEPTION_BIT != 0) {
                         Outcome::Exception
@@ -227,6 +234,16 @@ impl RtuMaster {
             busy,
             stray_bytes: self.stray,
         })
+    }
+
+    /// Waits until the line may carry the next request (t3.5 of silence).
+    /// The scheduler calls this *before* it picks the next job, so a command
+    /// that arrives during the silence goes next instead of waiting for one
+    /// more poll. Returns the stray bytes discarded meanwhile.
+    pub async fn settle(&mut self) -> io::Result<usize> {
+        self.stray = 0;
+        self.wait_for_silence().await?;
+        Ok(std::mem::take(&mut self.stray))
     }
 
     /// Waits until the line has been silent for t3.5, discarding (and
@@ -389,90 +406,4 @@ fn unplugged() -> io::Error {
         io::ErrorKind::UnexpectedEof,
         "the serial port was closed (adapter unplugged?)",
     )
-}
-
-/// Checks a received frame against the request it should answer; returns
-/// the reply PDU.
-fn check_reply(unit: u8, request: &[u8], frame: &[u8]) -> Result<Vec<u8>, Fault> {
-    let (from, reply) = rtu_frame::decode(frame).map_err(|e| match e {
-        FrameError::Crc => Fault::Crc,
-        FrameError::TooShort(_) | FrameError::TooLong(_) => Fault::Mismatch("malformed frame"),
-    })?;
-    if from != unit {
-        return Err(Fault::Mismatch("reply from another unit"));
-    }
-    let function = request[0];
-    match reply.first() {
-        Some(&f) if f == function | EXCEPTION_BIT && reply.len() == 2 => return Ok(reply.to_vec()),
-        Some(&f) if f == function => {}
-        _ => return Err(Fault::Mismatch("reply to another function")),
-    }
-    let answers = match function {
-        // Echo of the request.
-        0x05 | 0x06 => reply == request,
-        // Address and quantity of the request.
-        0x0F | 0x10 => reply.len() == 5 && request.len() >= 5 && reply[1..5] == request[1..5],
-        // Byte count of the quantity asked for.
-        0x03 | 0x04 => be_u16(request, 3).is_some_and(|q| {
-            reply.len() == 2 + 2 * usize::from(q) && usize::from(reply[1]) == 2 * usize::from(q)
-        }),
-        0x01 | 0x02 => be_u16(request, 3).is_some_and(|q| {
-            let bytes = usize::from(q).div_ceil(8);
-            reply.len() == 2 + bytes && usize::from(reply[1]) == bytes
-        }),
-        _ => true,
-    };
-    if answers {
-        Ok(reply.to_vec())
-    } else {
-        Err(Fault::Mismatch("reply does not answer the request"))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn replies_must_answer_their_request() {
-        let read = [0x03, 0x00, 0xC0, 0x00, 0x07];
-        let mut reply = vec![0x03, 0x0E];
-        reply.extend_from_slice(&[0; 14]);
-        let frame = rtu_frame::encode(1, &reply);
-        assert_eq!(check_reply(1, &read, &frame), Ok(reply.clone()));
-        assert_eq!(
-            check_reply(2, &read, &frame),
-            Err(Fault::Mismatch("reply from another unit"))
-        );
-        // A one-register read answered with 14 bytes is not its answer.
-        let read_one = [0x03, 0x00, 0xC2, 0x00, 0x01];
-        assert!(check_reply(1, &read_one, &frame).is_err());
-
-        let write = [0x06, 0x00, 0x06, 0x00, 0x64];
-        assert_eq!(
-            check_reply(1, &write, &rtu_frame::encode(1, &write)),
-            Ok(write.to_vec())
-        );
-        let stale = [0x06, 0x00, 0x06, 0x00, 0x65];
-        assert!(check_reply(1, &write, &rtu_frame::encode(1, &stale)).is_err());
-        let exception = [0x86, 0x03];
-        assert_eq!(
-            check_reply(1, &write, &rtu_frame::encode(1, &exception)),
-            Ok(exception.to_vec())
-        );
-        let mut corrupted = rtu_frame::encode(1, &write);
-        corrupted[7] ^= 0xFF;
-        assert_eq!(check_reply(1, &write, &corrupted), Err(Fault::Crc));
-
-        let block = [
-            0x10, 0x00, 0x0C, 0x00, 0x03, 0x06, 0, 0x80, 0x0B, 0xB8, 0, 0,
-        ];
-        let ack = [0x10, 0x00, 0x0C, 0x00, 0x03];
-        assert_eq!(
-            check_reply(1, &block, &rtu_frame::encode(1, &ack)),
-            Ok(ack.to_vec())
-        );
-        let other_ack = [0x10, 0x00, 0x24, 0x00, 0x02];
-        assert!(check_reply(1, &block, &rtu_frame::encode(1, &other_ack)).is_err());
-    }
 }

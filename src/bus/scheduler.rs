@@ -5,7 +5,7 @@
 //! with HTTP or Modbus TCP work.
 
 use std::io;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, LazyLock, Mutex};
 use std::thread;
 use std::time::{Duration, Instant, SystemTime};
 
@@ -126,9 +126,8 @@ struct Scheduler {
 }
 
 /// The status read's PDU, built once.
-fn status_pdu() -> Vec<u8> {
-    DriveRequest::ReadStatus.pdu().unwrap_or_default()
-}
+static STATUS_PDU: LazyLock<Vec<u8>> =
+    LazyLock::new(|| DriveRequest::ReadStatus.pdu().unwrap_or_default());
 
 impl Scheduler {
     fn new(settings: BusSettings, shared: Arc<Shared>) -> Self {
@@ -160,7 +159,6 @@ impl Scheduler {
         let mut reopen_delay = self.settings.reopen_backoff.0;
         let mut opened_before = false;
         let mut last_open_error = String::new();
-        let status = status_pdu();
 
         loop {
             if self.shared.stop.is_cancelled() {
@@ -205,9 +203,23 @@ impl Scheduler {
                 continue;
             };
 
+            // Let the line go quiet first, then choose: whatever arrived in
+            // the meantime (an emergency brake) is considered.
+            match m.settle().await {
+                Ok(stray) if stray > 0 => self.stats().add_stray_bytes(stray),
+                Ok(_) => {}
+                Err(e) => {
+                    let reason = format!("serial port {} failed: {e}", self.settings.port);
+                    warn!(bus = %name, "{reason}; reopening");
+                    self.stats().record_port_error(&reason);
+                    master = None;
+                    self.mark_down(reason);
+                    continue;
+                }
+            }
             let result = match self.next_work(Instant::now()) {
                 Work::Job(job) => self.run_job(m, job).await,
-                Work::Poll(unit) => self.run_poll(m, unit, &status).await,
+                Work::Poll(unit) => self.run_poll(m, unit).await,
                 Work::Idle(until) => {
                     let sleep = async {
                         match until {
@@ -339,7 +351,7 @@ impl Scheduler {
         self.account(function, &report);
         let result = match (report.outcome, report.reply) {
             (Outcome::Ok | Outcome::Exception, Some(reply)) => {
-                if job.pdu == status_pdu()
+                if job.pdu == *STATUS_PDU
                     && let Ok(DriveReply::Status(s)) = DriveRequest::ReadStatus.parse_reply(&reply)
                 {
                     self.cache().record_status(job.unit, s);
@@ -369,7 +381,8 @@ impl Scheduler {
         Ok(())
     }
 
-    async fn run_poll(&mut self, master: &mut RtuMaster, unit: u8, pdu: &[u8]) -> io::Result<()> {
+    async fn run_poll(&mut self, master: &mut RtuMaster, unit: u8) -> io::Result<()> {
+        let pdu: &[u8] = &STATUS_PDU;
         let offline = self.cache().is_offline(unit);
         let report = master.transact(unit, pdu, offline.then_some(1)).await?;
         self.account(pdu[0], &report);

@@ -4,6 +4,7 @@
 pub mod crc;
 pub mod exception;
 pub mod function;
+pub mod reply;
 pub mod rtu_frame;
 pub mod timing;
 

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use super::config::SimConfig;
 use super::faults::{FaultInjector, FaultRates, Noise};
-use super::model::DriveModel;
+use super::model::{DriveModel, SimDriveView};
 use super::slave;
 use super::stats::SimStats;
 use crate::modbus::crc::crc_bytes;
@@ -104,6 +104,17 @@ impl Bus {
         Some(&mut slot.model)
     }
 
+    /// Snapshots of every drive, advanced to `now`, in configuration order.
+    pub fn views(&mut self, now: Instant) -> Vec<SimDriveView> {
+        self.slots
+            .iter_mut()
+            .map(|slot| {
+                slot.advance_to(now);
+                slot.model.view()
+            })
+            .collect()
+    }
+
     /// Handles one framed request heard at `now`; a reply frame, if any, is
     /// left in `reply`.
     pub fn request(&mut self, frame: &[u8], now: Instant, reply: &mut Vec<u8>) -> Outcome {
@@ -142,17 +153,10 @@ impl Bus {
                 if exception.is_some() {
                     self.stats.exceptions += 1;
                 }
-                reply.push(unit);
-                reply.extend_from_slice(&self.pdu);
-                let crc = crc_bytes(reply);
-                reply.extend_from_slice(&crc);
+                frame_into(reply, unit, &self.pdu);
             } else {
                 // Two drivers on the line at once: the bytes collide.
-                self.scratch.clear();
-                self.scratch.push(unit);
-                self.scratch.extend_from_slice(&self.pdu);
-                let crc = crc_bytes(&self.scratch);
-                self.scratch.extend_from_slice(&crc);
+                frame_into(&mut self.scratch, unit, &self.pdu);
                 collide(reply, &self.scratch);
             }
         }
@@ -187,6 +191,15 @@ impl Bus {
             noise: fate.noise,
         }
     }
+}
+
+/// `rtu_frame::encode` into a reusable buffer (no allocation per reply).
+fn frame_into(out: &mut Vec<u8>, unit: u8, pdu: &[u8]) {
+    out.clear();
+    out.push(unit);
+    out.extend_from_slice(pdu);
+    let crc = crc_bytes(out);
+    out.extend_from_slice(&crc);
 }
 
 /// Two replies driven at once: a 0 from either driver wins each bit, the

@@ -124,6 +124,11 @@ impl SimHandle {
         self.with_drive(unit, |d| d.view()).ok()
     }
 
+    /// Snapshots of every drive, in configuration order.
+    pub fn drives(&self) -> Vec<SimDriveView> {
+        lock(&self.bus).views(Instant::now())
+    }
+
     /// Injects a hardware fault into the drive at `unit`; it stays until
     /// [`clear_fault`](Self::clear_fault) and a fault reset.
     pub fn inject_fault(&self, unit: u8, fault: Fault) -> Result<(), SimError> {

@@ -31,6 +31,7 @@
 use super::control;
 use super::physics::{Drive, Environment, Motor, MotorParams};
 use super::ramp::Ramp;
+use crate::drive::registers::{STATUS_BLOCK_LEN, STATUS_BLOCK_START};
 use crate::drive::units::{COUNTS_PER_AMP, DEFAULT_RAMP_ALPHA, RPM_PER_RAD_S};
 use crate::drive::{ConfigCommand, Fault, Mode, Register, Status};
 use std::f64::consts::PI;
@@ -382,9 +383,8 @@ impl DriveModel {
             | Register::Volt
             | Register::Temp
             | Register::Status => {
-                let regs = self.status().to_registers();
-                let index = usize::from((register.address() - Register::CycleNum.address()) / 2);
-                regs.get(index).copied().unwrap_or(0)
+                let index = status_index(register).unwrap_or(0);
+                self.status().to_registers()[index]
             }
             Register::SlaveAddr
             | Register::Config
@@ -392,6 +392,19 @@ impl DriveModel {
             | Register::SpeedTdRSaveFlag
             | Register::PositionTdRSaveFlag
             | Register::InertiaRatioSaveFlag => 0,
+        }
+    }
+
+    /// Appends the values of `registers` (readable ones), big-endian, as a
+    /// read reply carries them; a status block costs one status computation.
+    pub fn read_into(&self, registers: &[Register], out: &mut Vec<u8>) {
+        let mut status = None;
+        for &register in registers {
+            let value = match status_index(register) {
+                Some(i) => status.get_or_insert_with(|| self.status().to_registers())[i],
+                None => self.read(register),
+            };
+            out.extend_from_slice(&value.to_be_bytes());
         }
     }
 
@@ -894,6 +907,13 @@ impl DriveModel {
             Fault::None
         };
     }
+}
+
+/// Position of a status register in the status block (manual 1.7).
+fn status_index(register: Register) -> Option<usize> {
+    let offset = register.address().checked_sub(STATUS_BLOCK_START)?;
+    let index = usize::from(offset / 2);
+    (index < usize::from(STATUS_BLOCK_LEN)).then_some(index)
 }
 
 #[cfg(test)]

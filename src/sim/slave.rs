@@ -92,9 +92,7 @@ fn read(drive: &DriveModel, pdu: &[u8], reply: &mut Vec<u8>) -> Result<(), Excep
     }
     reply.push(READ_HOLDING_REGISTERS);
     reply.push((count * 2) as u8);
-    for register in registers {
-        reply.extend_from_slice(&drive.read(register).to_be_bytes());
-    }
+    drive.read_into(&registers, reply);
     Ok(())
 }
 

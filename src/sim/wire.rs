@@ -117,7 +117,7 @@ impl Wire {
     async fn next_frame(&mut self) -> io::Result<usize> {
         loop {
             let Some(&first) = self.rx.arrivals.first() else {
-                self.read_until(None).await?;
+                self.read_until(None, false).await?;
                 continue;
             };
             let length = request_length(&self.rx.bytes);
@@ -137,7 +137,7 @@ impl Wire {
             let wire_end = start + self.line.wire_time(self.rx.bytes.len());
             let last = self.rx.arrivals.last().copied().unwrap_or(first);
             let silence = wire_end.max(last) + self.line.t3_5();
-            if self.read_until(Some(silence)).await? {
+            if self.read_until(Some(silence), false).await? {
                 continue;
             }
             match length {
@@ -203,7 +203,10 @@ impl Wire {
                 self.pty.master().write_all(&self.tx[sent..due]).await?;
                 sent = due;
             } else {
-                self.read_until(Some(start + self.line.wire_time(sent + 1)))
+                // Only the last byte's time decides when the master may go on:
+                // it is timed precisely, the others are allowed a little late.
+                let last = sent + 1 == len;
+                self.read_until(Some(start + self.line.wire_time(sent + 1)), last)
                     .await?;
             }
         }
@@ -211,8 +214,9 @@ impl Wire {
     }
 
     /// Reads what arrives until `deadline` (forever if `None`); true when
-    /// bytes came in before it.
-    async fn read_until(&mut self, deadline: Option<Instant>) -> io::Result<bool> {
+    /// bytes came in before it. A `precise` deadline is kept to microseconds
+    /// (spinning its last stretch), others may be a little late.
+    async fn read_until(&mut self, deadline: Option<Instant>, precise: bool) -> io::Result<bool> {
         let mut buf = [0u8; 256];
         let master = self.pty.master();
         let n = match deadline {
@@ -220,7 +224,13 @@ impl Wire {
             Some(deadline) => {
                 tokio::select! {
                     read = master.read(&mut buf) => read?,
-                    slept = self.timer.sleep_until(deadline) => {
+                    slept = async {
+                        if precise {
+                            self.timer.sleep_until(deadline).await
+                        } else {
+                            self.timer.sleep_until_relaxed(deadline).await
+                        }
+                    } => {
                         slept?;
                         return Ok(false);
                     }

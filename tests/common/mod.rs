@@ -1,7 +1,7 @@
 //! The daemon in-process on the built-in simulator, listening on loopback
 //! ports chosen by the system: what the end-to-end tests talk to.
 
-#![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
+#![allow(dead_code, unreachable_pub, clippy::unwrap_used, clippy::expect_used)]
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -104,16 +104,18 @@ impl TestDaemon {
     pub async fn wait_all_online(&self, limit: Duration) {
         let start = Instant::now();
         loop {
-            let all = self.plant.buses().iter().all(|b| {
-                b.handle
-                    .drives()
-                    .iter()
-                    .all(|d| d.status.is_some())
-            });
+            let all = self
+                .plant
+                .buses()
+                .iter()
+                .all(|b| b.handle.drives().iter().all(|d| d.status.is_some()));
             if all {
                 return;
             }
-            assert!(start.elapsed() < limit, "drives did not come online within {limit:?}");
+            assert!(
+                start.elapsed() < limit,
+                "drives did not come online within {limit:?}"
+            );
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
     }
@@ -135,7 +137,10 @@ pub async fn eventually<T>(limit: Duration, what: &str, mut f: impl FnMut() -> O
         if let Some(v) = f() {
             return v;
         }
-        assert!(start.elapsed() < limit, "timed out after {limit:?} waiting for {what}");
+        assert!(
+            start.elapsed() < limit,
+            "timed out after {limit:?} waiting for {what}"
+        );
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }
