@@ -143,17 +143,25 @@ async fn run_at_speed(d: &TestDaemon, drive: &str, rpm: i16) {
 async fn exposition_passes_promtool_lint() {
     bounded(async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
-        // Writes and a fault, so every kind of series exists.
+        // Writes, a fault and the faces' counters (as the HTTP and Modbus
+        // TCP faces count), so every kind of series exists.
         run_at_speed(&d, "conveyor", 50).await;
+        let faces = d.metrics.faces();
+        faces.http_request(
+            "/api/v1/drives/{drive}",
+            "GET",
+            200,
+            Duration::from_millis(3),
+        );
+        faces.tcp_request(0x03, "ok");
+        faces.tcp_rejected("not_allowed");
+        let _client = faces.ws_client();
         d.sim().inject_fault(2, Fault::Encoder).unwrap();
         eventually(Duration::from_secs(5), "the fault in the metrics", || {
             value(&scrape(&d), "drivegate_drive_fault_code", &[("unit", "2")]).filter(|v| *v == 2.0)
         })
         .await;
         let text = d.metrics.render();
-        if let Ok(path) = std::env::var("DRIVEGATE_DUMP_METRICS") {
-            std::fs::write(path, &text).unwrap();
-        }
         let (ok, printed) = promtool_check(&text).await;
         assert!(ok, "promtool check metrics failed:\n{printed}\n---\n{text}");
         assert!(printed.trim().is_empty(), "promtool printed:\n{printed}");
@@ -165,6 +173,18 @@ async fn exposition_passes_promtool_lint() {
         let types = text.lines().filter(|l| l.starts_with("# TYPE")).count();
         assert_eq!(helps, types);
         assert!(helps > 40, "only {helps} families");
+
+        // Every family is described in the operations guide.
+        let guide =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/operations.md"))
+                .unwrap();
+        for name in text.lines().filter_map(|l| l.strip_prefix("# TYPE ")) {
+            let name = name.split(' ').next().unwrap();
+            let listed = guide
+                .match_indices(&format!("`{name}"))
+                .any(|(i, m)| matches!(guide[i + m.len()..].chars().next(), Some('`' | '{' | ' ')));
+            assert!(listed, "{name} is not in docs/operations.md");
+        }
         d.stop().await;
     })
     .await;
