@@ -209,6 +209,6 @@ mod tests {
         let h = mf.get_metric()[0].get_histogram();
         assert_eq!(h.get_sample_count(), 5);
         assert_eq!(h.get_bucket().len(), 2);
-        assert_eq!(h.get_bucket()[1].get_cumulative_count(), 5);
+        assert_eq!(h.get_bucket()[1].cumulative_count(), 5);
     }
 }
