@@ -58,6 +58,13 @@ fn every_asset_exists_and_the_unit_and_config_are_in_place() {
         destinations.push(dest.to_string());
     }
     assert!(destinations.iter().any(|d| d == "usr/bin/"));
+    // The user comes from postinst (adduser): a file in sysusers.d would make
+    // cargo-deb add a systemd-sysusers call, which fails where that tool is
+    // not installed (containers, chroots).
+    assert!(
+        destinations.iter().all(|d| !d.contains("sysusers.d")),
+        "{destinations:?}"
+    );
     assert!(
         destinations
             .iter()

@@ -17,7 +17,7 @@ use tokio::process::Command;
 
 const LIMIT: Duration = Duration::from_secs(30);
 const UNIT: &str = include_str!("../deploy/systemd/drivegate.service");
-const SYSUSERS: &str = include_str!("../deploy/systemd/drivegate.sysusers");
+const SYSUSERS: &str = include_str!("../deploy/sysusers.d/drivegate.conf");
 
 /// The unit with ExecStart pointing at the binary under test: `verify`
 /// refuses a unit whose binary does not exist.
