@@ -44,11 +44,15 @@ impl Metrics {
         let registry = Registry::new();
         let faces = FaceMetrics::register(&registry);
         let utilisation = Arc::new(Utilisation::new(&plant));
-        let _ = registry.register(Box::new(drives::DriveCollector::new(plant.clone())));
-        let _ = registry.register(Box::new(buses::BusCollector::new(
-            plant.clone(),
-            utilisation.clone(),
-        )));
+        let collectors: [Box<dyn prometheus::core::Collector>; 2] = [
+            Box::new(drives::DriveCollector::new(plant.clone())),
+            Box::new(buses::BusCollector::new(plant.clone(), utilisation.clone())),
+        ];
+        for collector in collectors {
+            if let Err(e) = registry.register(collector) {
+                tracing::warn!("some metrics are not exported: {e}");
+            }
+        }
         process::register(&registry);
         let metrics = Arc::new(Self {
             registry,

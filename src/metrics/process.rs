@@ -16,7 +16,9 @@ pub(crate) fn register(registry: &Registry) {
     ) {
         Ok(info) => {
             info.with_label_values(&[env!("CARGO_PKG_VERSION")]).set(1);
-            let _ = registry.register(Box::new(info));
+            if let Err(e) = registry.register(Box::new(info)) {
+                tracing::warn!("cannot export the build information: {e}");
+            }
         }
         Err(e) => tracing::warn!("cannot export the build information: {e}"),
     }
@@ -24,7 +26,9 @@ pub(crate) fn register(registry: &Registry) {
     // possible it exports nothing rather than failing the scrape.
     match i32::try_from(std::process::id()) {
         Ok(pid) => {
-            let _ = registry.register(Box::new(ProcessCollector::new(pid, "drivegate")));
+            if let Err(e) = registry.register(Box::new(ProcessCollector::new(pid, "drivegate"))) {
+                tracing::warn!("cannot export the process metrics: {e}");
+            }
         }
         Err(_) => tracing::warn!("process id out of range: no process metrics"),
     }
