@@ -3,43 +3,12 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+mod common;
+
+use common::vectors::{VECTORS, vector, vectors};
 use drivegate::drive::{ConfigCommand, DriveReply, DriveRequest, Fault, Mode, ReplyError, Status};
 use drivegate::modbus::ExceptionCode;
 use drivegate::modbus::rtu_frame;
-
-const VECTORS: &str = include_str!("vectors/frames.tsv");
-
-struct Vector {
-    name: String,
-    bytes: Vec<u8>,
-}
-
-fn vectors() -> Vec<Vector> {
-    VECTORS
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|line| {
-            let cols: Vec<&str> = line.split('\t').collect();
-            assert!(cols.len() >= 3, "malformed vector line: {line}");
-            let bytes = cols[2]
-                .split_whitespace()
-                .map(|h| u8::from_str_radix(h, 16).unwrap())
-                .collect();
-            Vector {
-                name: cols[0].to_string(),
-                bytes,
-            }
-        })
-        .collect()
-}
-
-fn vector(name: &str) -> Vec<u8> {
-    vectors()
-        .into_iter()
-        .find(|v| v.name == name)
-        .unwrap_or_else(|| panic!("no vector {name}"))
-        .bytes
-}
 
 /// The request each request vector must encode from.
 fn request_for(name: &str) -> Option<(u8, DriveRequest)> {

@@ -7,6 +7,9 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly by design
 
+mod common;
+
+use common::vectors::vectors;
 use std::time::{Duration, Instant};
 
 use drivegate::clock::PreciseTimer;
@@ -18,7 +21,6 @@ use drivegate::sim::{FaultRates, SimConfig, SimError, SimHandle, SimStats, Simul
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_serial::{SerialPortBuilderExt, SerialStream};
 
-const VECTORS: &str = include_str!("vectors/frames.tsv");
 const BAUD: u32 = 115_200;
 
 /// A bus master on the simulator's pty, keeping bytes that arrive early.
@@ -188,30 +190,6 @@ async fn status_read_matches_the_drives_status() {
         assert_eq!((status.voltage_v, status.temperature_c), (24, 25));
     })
     .await;
-}
-
-struct Vector {
-    name: String,
-    direction: String,
-    bytes: Vec<u8>,
-}
-
-fn vectors() -> Vec<Vector> {
-    VECTORS
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|line| {
-            let cols: Vec<&str> = line.split('\t').collect();
-            Vector {
-                name: cols[0].to_string(),
-                direction: cols[1].to_string(),
-                bytes: cols[2]
-                    .split_whitespace()
-                    .map(|h| u8::from_str_radix(h, 16).unwrap())
-                    .collect(),
-            }
-        })
-        .collect()
 }
 
 #[tokio::test]

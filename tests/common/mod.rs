@@ -14,6 +14,8 @@ use drivegate::plant::Plant;
 use drivegate::sim::SimHandle;
 use tokio_util::sync::CancellationToken;
 
+pub mod vectors;
+
 /// A simulated bus of four drives, units 1-4, as fast as the bus allows.
 pub const FOUR_DRIVES: &str = r#"
 [http]
