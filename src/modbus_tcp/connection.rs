@@ -1,0 +1,195 @@
+//! One client connection: frames in, replies out, in request order.
+//!
+//! Requests are read and queued on the bus as soon as they arrive (up to
+//! `max_pipelined` at once), so a pipelining client's requests wait in the
+//! bus queue, where they take turns with every other client, rather than in
+//! the socket. Replies are written in the order the requests came, whatever
+//! order the buses finish them in: Modbus TCP clients may match replies by
+//! transaction id, but many PLCs expect them in order.
+//!
+//! The connection ends when:
+//! - the client closes it or it fails: requests still queued are cancelled,
+//!   so the bus drops them before they reach the wire;
+//! - a malformed frame arrives: nothing more is read (MBAP cannot be
+//!   resynchronised), the requests accepted before it are answered, then the
+//!   connection is closed and counted;
+//! - nothing is pending and no whole request came for the idle timeout (a
+//!   client that sends half a frame and stalls is idle too), or a reply could
+//!   not be written for that long (a client that does not read);
+//! - the daemon stops.
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::Duration;
+
+use bytes::{Buf, BytesMut};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, warn};
+
+use super::gateway::{Answer, Client, Gateway, Pending};
+use super::mbap::{self, MAX_FRAME};
+
+/// Limits of one connection.
+#[derive(Debug, Clone, Copy)]
+pub struct ConnectionSettings {
+    /// Close after this long with nothing pending and no whole request.
+    pub idle_timeout: Duration,
+    /// Requests waiting for the bus at once.
+    pub max_pipelined: usize,
+}
+
+/// A request whose reply has not been written yet.
+struct InFlight {
+    transaction: u16,
+    unit: u8,
+    reply: Reply,
+}
+
+enum Reply {
+    Ready(Vec<u8>),
+    Pending(Pending),
+}
+
+impl InFlight {
+    async fn ready(&mut self) {
+        if let Reply::Pending(p) = &mut self.reply {
+            p.wait().await;
+        }
+    }
+
+    fn try_ready(&mut self) -> bool {
+        match &mut self.reply {
+            Reply::Ready(_) => true,
+            Reply::Pending(p) => p.try_ready(),
+        }
+    }
+}
+
+/// Why a connection ended, for the log.
+#[derive(Debug)]
+enum End {
+    ClientClosed,
+    Failed(std::io::Error),
+    Malformed,
+    Idle,
+    NotReading,
+    Shutdown,
+}
+
+/// Serves one connection until it ends.
+pub async fn serve(
+    stream: TcpStream,
+    client: Client,
+    gateway: Arc<Gateway>,
+    settings: ConnectionSettings,
+    shutdown: CancellationToken,
+) {
+    let metrics = gateway.metrics().clone();
+    let (mut rd, mut wr) = stream.into_split();
+    let mut buf = BytesMut::with_capacity(2 * MAX_FRAME);
+    let mut queue: VecDeque<InFlight> = VecDeque::new();
+    let mut out = Vec::with_capacity(MAX_FRAME);
+    let mut malformed = false;
+    let idle = tokio::time::sleep(settings.idle_timeout);
+    tokio::pin!(idle);
+
+    let end = loop {
+        // Take every whole request in the buffer, up to the pipeline limit.
+        while !malformed && queue.len() < settings.max_pipelined {
+            match mbap::parse(&buf) {
+                Ok(Some((frame, used))) => {
+                    buf.advance(used);
+                    idle.as_mut().reset(Instant::now() + settings.idle_timeout);
+                    let reply = match gateway.handle(&client, frame.unit, frame.pdu) {
+                        Answer::Now(pdu) => Reply::Ready(pdu),
+                        Answer::Pending(p) => Reply::Pending(p),
+                        Answer::Silent => continue,
+                    };
+                    queue.push_back(InFlight {
+                        transaction: frame.transaction,
+                        unit: frame.unit,
+                        reply,
+                    });
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    metrics.faces().tcp_malformed();
+                    warn!(client = %client.peer, "malformed Modbus TCP frame: {e}; closing the connection after answering the {} request(s) before it", queue.len());
+                    malformed = true;
+                    buf.clear();
+                }
+            }
+        }
+        if malformed && queue.is_empty() {
+            break End::Malformed;
+        }
+        let reading = !malformed && queue.len() < settings.max_pipelined;
+        if reading {
+            buf.reserve(MAX_FRAME);
+        }
+        tokio::select! {
+            biased;
+            () = shutdown.cancelled() => break End::Shutdown,
+            () = head_ready(&mut queue), if !queue.is_empty() => {
+                out.clear();
+                while let Some(front) = queue.front_mut() {
+                    if !front.try_ready() {
+                        break;
+                    }
+                    let Some(done) = queue.pop_front() else { break };
+                    let pdu = match done.reply {
+                        Reply::Ready(pdu) => pdu,
+                        Reply::Pending(p) => p.finish(&metrics),
+                    };
+                    mbap::encode(done.transaction, done.unit, &pdu, &mut out);
+                }
+                let write = tokio::time::timeout(settings.idle_timeout, wr.write_all(&out));
+                tokio::select! {
+                    r = write => match r {
+                        Ok(Ok(())) => idle.as_mut().reset(Instant::now() + settings.idle_timeout),
+                        Ok(Err(e)) => break End::Failed(e),
+                        Err(_) => break End::NotReading,
+                    },
+                    () = shutdown.cancelled() => break End::Shutdown,
+                }
+            }
+            r = rd.read_buf(&mut buf), if reading => match r {
+                Ok(0) => break End::ClientClosed,
+                Ok(_) => {}
+                Err(e) => break End::Failed(e),
+            },
+            () = &mut idle, if queue.is_empty() => break End::Idle,
+        }
+    };
+    let cancelled = queue.len();
+    for left in queue {
+        match left.reply {
+            Reply::Pending(p) => p.cancel(&metrics),
+            Reply::Ready(_) => {}
+        }
+    }
+    let _ = wr.shutdown().await;
+    match end {
+        End::Malformed => {}
+        End::Idle => debug!(client = %client.peer, "closed after {:?} idle", settings.idle_timeout),
+        End::NotReading => {
+            warn!(client = %client.peer, "closed: the client did not take its replies for {:?}", settings.idle_timeout)
+        }
+        End::Failed(e) => debug!(client = %client.peer, cancelled, "connection failed: {e}"),
+        End::ClientClosed => {
+            debug!(client = %client.peer, cancelled, "client closed the connection")
+        }
+        End::Shutdown => debug!(client = %client.peer, cancelled, "closed: the daemon is stopping"),
+    }
+}
+
+/// Waits until the oldest request's reply is ready.
+async fn head_ready(queue: &mut VecDeque<InFlight>) {
+    match queue.front_mut() {
+        Some(front) => front.ready().await,
+        None => std::future::pending().await,
+    }
+}
