@@ -12,10 +12,10 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
 /// Longest any single client exchange may take in a test.
-pub const STEP: Duration = Duration::from_secs(10);
+pub(crate) const STEP: Duration = Duration::from_secs(10);
 
 /// `FOUR_DRIVES` with extra `[modbus_tcp]` keys.
-pub fn four_drives_with(modbus_tcp: &str) -> String {
+pub(crate) fn four_drives_with(modbus_tcp: &str) -> String {
     crate::common::FOUR_DRIVES.replace(
         "[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n",
         &format!("[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n{modbus_tcp}\n"),
@@ -24,7 +24,7 @@ pub fn four_drives_with(modbus_tcp: &str) -> String {
 
 /// One simulated bus of `n` drives (units 1..=n), with extra `[modbus_tcp]`
 /// and `[[bus]]` keys.
-pub fn drives(n: u8, modbus_tcp: &str, bus: &str) -> String {
+pub(crate) fn drives(n: u8, modbus_tcp: &str, bus: &str) -> String {
     let mut toml = format!(
         "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n{modbus_tcp}\n\
          [[bus]]\nname = \"sim\"\nport = \"sim\"\nresponse_timeout_ms = 50\nretries = 1\n{bus}\n\
@@ -40,16 +40,16 @@ pub fn drives(n: u8, modbus_tcp: &str, bus: &str) -> String {
 
 /// A Modbus TCP client that speaks raw MBAP, for checks no library allows
 /// (pipelining, malformed frames, transaction ids).
-pub struct Raw {
-    pub stream: TcpStream,
+pub(crate) struct Raw {
+    pub(crate) stream: TcpStream,
     buf: Vec<u8>,
 }
 
 /// A reply: transaction id, unit id, PDU.
-pub type Reply = (u16, u8, Vec<u8>);
+pub(crate) type Reply = (u16, u8, Vec<u8>);
 
 /// The MBAP frame of a request.
-pub fn frame(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+pub(crate) fn frame(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
     let mut out = transaction.to_be_bytes().to_vec();
     out.extend_from_slice(&[0, 0]);
     out.extend_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
@@ -60,7 +60,7 @@ pub fn frame(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
 
 impl Raw {
     /// Connects to `addr`.
-    pub async fn connect(addr: SocketAddr) -> Raw {
+    pub(crate) async fn connect(addr: SocketAddr) -> Raw {
         let stream = tokio::time::timeout(STEP, TcpStream::connect(addr))
             .await
             .expect("connect in time")
@@ -72,17 +72,17 @@ impl Raw {
     }
 
     /// Sends one request.
-    pub async fn send(&mut self, transaction: u16, unit: u8, pdu: &[u8]) {
+    pub(crate) async fn send(&mut self, transaction: u16, unit: u8, pdu: &[u8]) {
         self.send_bytes(&frame(transaction, unit, pdu)).await;
     }
 
     /// Sends raw bytes.
-    pub async fn send_bytes(&mut self, bytes: &[u8]) {
+    pub(crate) async fn send_bytes(&mut self, bytes: &[u8]) {
         self.stream.write_all(bytes).await.expect("send");
     }
 
     /// The next reply, or `None` when the server closed the connection.
-    pub async fn recv(&mut self) -> Option<Reply> {
+    pub(crate) async fn recv(&mut self) -> Option<Reply> {
         tokio::time::timeout(STEP, self.recv_inner())
             .await
             .expect("a reply or a close in time")
@@ -115,7 +115,7 @@ impl Raw {
 
     /// Sends one request and returns the reply PDU, checking that the reply
     /// carries the request's transaction and unit ids.
-    pub async fn ask(&mut self, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    pub(crate) async fn ask(&mut self, unit: u8, pdu: &[u8]) -> Vec<u8> {
         let transaction = rand_transaction();
         self.send(transaction, unit, pdu).await;
         let (t, u, reply) = self.recv().await.expect("a reply, not a close");
@@ -124,7 +124,7 @@ impl Raw {
     }
 
     /// True once the server has closed the connection (within `STEP`).
-    pub async fn closed_by_server(&mut self) -> bool {
+    pub(crate) async fn closed_by_server(&mut self) -> bool {
         self.recv().await.is_none()
     }
 }
@@ -136,7 +136,7 @@ fn rand_transaction() -> u16 {
 }
 
 /// A read of `count` registers at `address`.
-pub fn read(address: u16, count: u16) -> Vec<u8> {
+pub(crate) fn read(address: u16, count: u16) -> Vec<u8> {
     let mut pdu = vec![0x03];
     pdu.extend_from_slice(&address.to_be_bytes());
     pdu.extend_from_slice(&count.to_be_bytes());
@@ -144,7 +144,7 @@ pub fn read(address: u16, count: u16) -> Vec<u8> {
 }
 
 /// A write of `value` to the register at `address`.
-pub fn write(address: u16, value: u16) -> Vec<u8> {
+pub(crate) fn write(address: u16, value: u16) -> Vec<u8> {
     let mut pdu = vec![0x06];
     pdu.extend_from_slice(&address.to_be_bytes());
     pdu.extend_from_slice(&value.to_be_bytes());
@@ -152,7 +152,7 @@ pub fn write(address: u16, value: u16) -> Vec<u8> {
 }
 
 /// The registers of a 0x03 reply.
-pub fn registers(reply: &[u8]) -> Vec<u16> {
+pub(crate) fn registers(reply: &[u8]) -> Vec<u16> {
     assert_eq!(reply.first(), Some(&0x03), "not a read reply: {reply:02X?}");
     assert_eq!(usize::from(reply[1]), reply.len() - 2, "byte count of {reply:02X?}");
     reply[2..]
@@ -162,7 +162,7 @@ pub fn registers(reply: &[u8]) -> Vec<u16> {
 }
 
 /// The value of a metric line in the `/metrics` text, 0 if absent.
-pub fn metric(text: &str, series: &str) -> f64 {
+pub(crate) fn metric(text: &str, series: &str) -> f64 {
     text.lines()
         .find_map(|l| l.strip_prefix(series).and_then(|v| v.trim().parse().ok()))
         .unwrap_or(0.0)
@@ -170,7 +170,7 @@ pub fn metric(text: &str, series: &str) -> f64 {
 
 /// Runs the pymodbus client script with `args`; its JSON output. Fails the
 /// test, saying what to install, when python3 or pymodbus is missing.
-pub async fn pymodbus(addr: SocketAddr, args: &[&str]) -> serde_json::Value {
+pub(crate) async fn pymodbus(addr: SocketAddr, args: &[&str]) -> serde_json::Value {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/modbus_client.py");
     let mut cmd = tokio::process::Command::new("python3");
     cmd.arg(script)
@@ -199,7 +199,7 @@ pub async fn pymodbus(addr: SocketAddr, args: &[&str]) -> serde_json::Value {
 /// Runs mbpoll with `options` against `addr` (writing `values` if any); its
 /// exit success and stdout+stderr. Fails the test, saying what to install,
 /// when mbpoll is missing.
-pub async fn mbpoll(addr: SocketAddr, options: &[&str], values: &[&str]) -> (bool, String) {
+pub(crate) async fn mbpoll(addr: SocketAddr, options: &[&str], values: &[&str]) -> (bool, String) {
     let mut cmd = tokio::process::Command::new("mbpoll");
     cmd.args(["-m", "tcp", "-p", &addr.port().to_string(), "-1", "-o", "3"])
         .args(options)
