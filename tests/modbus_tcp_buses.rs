@@ -1,7 +1,8 @@
 //! One Modbus TCP listener over two simulated buses through a unit map, and
 //! status reads answered from the polled copy.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)]
+// `common` is shared by several test crates: its `pub` items are for them.
+#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
 mod common;
 mod modbus_tcp_support;
@@ -75,9 +76,18 @@ async fn a_unit_map_reaches_two_buses_through_one_listener() {
         let addr = d.modbus_tcp.unwrap();
         let sim = |bus: usize| d.plant.buses()[bus].sim.as_ref().unwrap();
         // Unit 1 is A's drive 1, unit 101 is B's drive 1, unit 102 B's drive 2.
-        assert_eq!(pymodbus(addr, &["write", "1", "0x000E", "1001"]).await, json!({"written": true}));
-        assert_eq!(pymodbus(addr, &["write", "101", "0x000E", "2001"]).await, json!({"written": true}));
-        assert_eq!(pymodbus(addr, &["write", "102", "0x000E", "2002"]).await, json!({"written": true}));
+        assert_eq!(
+            pymodbus(addr, &["write", "1", "0x000E", "1001"]).await,
+            json!({"written": true})
+        );
+        assert_eq!(
+            pymodbus(addr, &["write", "101", "0x000E", "2001"]).await,
+            json!({"written": true})
+        );
+        assert_eq!(
+            pymodbus(addr, &["write", "102", "0x000E", "2002"]).await,
+            json!({"written": true})
+        );
         assert_eq!(sim(0).drive(1).unwrap().settings.stall_duration_ms, 1001);
         assert_eq!(sim(1).drive(1).unwrap().settings.stall_duration_ms, 2001);
         assert_eq!(sim(1).drive(2).unwrap().settings.stall_duration_ms, 2002);
@@ -92,7 +102,11 @@ async fn a_unit_map_reaches_two_buses_through_one_listener() {
         assert_eq!(c.ask(100, &read(0xC0, 7)).await, [0x83, 0x0A]);
         assert_eq!(c.ask(133, &read(0xC0, 7)).await, [0x83, 0x0A]);
         assert_eq!(c.ask(105, &read(0xC0, 7)).await, [0x83, 0x0B]);
-        assert_eq!(sim(1).stats().unanswered, 1, "the read for unit 105 went to B's unit 5");
+        assert_eq!(
+            sim(1).stats().unanswered,
+            1,
+            "the read for unit 105 went to B's unit 5"
+        );
         assert_eq!(sim(0).stats().unanswered, 0);
         // A broadcast goes to both buses.
         let before = (sim(0).stats().broadcasts, sim(1).stats().broadcasts);
@@ -152,7 +166,10 @@ async fn status_reads_come_from_the_polled_copy_while_it_is_fresh() {
         let after = bus.stats();
         // No read went to the bus: every 0x03 transaction was a poll.
         let reads = |s: &drivegate::bus::stats::BusStatsSnapshot| {
-            s.transactions.get(&(0x03, Outcome::Ok)).copied().unwrap_or(0)
+            s.transactions
+                .get(&(0x03, Outcome::Ok))
+                .copied()
+                .unwrap_or(0)
         };
         let polls = after.polls - before.polls;
         let wire_reads = reads(&after) - reads(&before);
@@ -162,7 +179,10 @@ async fn status_reads_come_from_the_polled_copy_while_it_is_fresh() {
         );
         let text = d.metrics.render();
         assert_eq!(
-            metric(&text, "drivegate_modbus_tcp_requests_total{function=\"0x03\",outcome=\"cached\"}"),
+            metric(
+                &text,
+                "drivegate_modbus_tcp_requests_total{function=\"0x03\",outcome=\"cached\"}"
+            ),
             400.0
         );
         // Reads outside the block go to the drive: 0x00CC count 2 runs past it.
@@ -189,7 +209,10 @@ async fn without_polled_copy_every_read_uses_the_bus() {
         }
         let after = bus.stats();
         let reads = |s: &drivegate::bus::stats::BusStatsSnapshot| {
-            s.transactions.get(&(0x03, Outcome::Ok)).copied().unwrap_or(0)
+            s.transactions
+                .get(&(0x03, Outcome::Ok))
+                .copied()
+                .unwrap_or(0)
         };
         assert!(reads(&after) - reads(&before) >= 20 + (after.polls - before.polls));
         d.stop().await;

@@ -2,7 +2,8 @@
 //! third-party clients: pymodbus (PyPI) and mbpoll (Debian). What a SCADA
 //! system or a PLC would do, checked against the simulated drives' truth.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)]
+// `common` is shared by several test crates: its `pub` items are for them.
+#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
 mod common;
 mod modbus_tcp_support;
@@ -12,7 +13,7 @@ use std::time::Duration;
 
 use common::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::stats::Outcome;
-use modbus_tcp_support::{Raw, drives, metric, mbpoll, pymodbus, write};
+use modbus_tcp_support::{Raw, drives, mbpoll, metric, pymodbus, write};
 use serde_json::json;
 
 /// Every test is bounded in time.
@@ -42,7 +43,12 @@ async fn status_block_read_with_pymodbus_and_mbpoll() {
         assert_eq!(out["registers"].as_array().map(Vec::len), Some(1), "{out}");
 
         // mbpoll, 0-based references: 192 = 0x00C0.
-        let (ok, text) = mbpoll(addr, &["-a", "2", "-0", "-r", "192", "-c", "7", "-t", "4"], &[]).await;
+        let (ok, text) = mbpoll(
+            addr,
+            &["-a", "2", "-0", "-r", "192", "-c", "7", "-t", "4"],
+            &[],
+        )
+        .await;
         assert!(ok, "mbpoll failed: {text}");
         // mbpoll numbers the registers one by one: the fifth (VOLT) shows as 196.
         let volt_line = format!("[196]: \t{}", truth.voltage_v);
@@ -58,10 +64,19 @@ async fn setpoint_write_and_read_back() {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         // CONFIG (0x0002): activate (0x0), speed closed loop (0xA).
-        assert_eq!(pymodbus(addr, &["write", "1", "0x0002", "0x0"]).await, json!({"written": true}));
-        assert_eq!(pymodbus(addr, &["write", "1", "0x0002", "0xA"]).await, json!({"written": true}));
+        assert_eq!(
+            pymodbus(addr, &["write", "1", "0x0002", "0x0"]).await,
+            json!({"written": true})
+        );
+        assert_eq!(
+            pymodbus(addr, &["write", "1", "0x0002", "0xA"]).await,
+            json!({"written": true})
+        );
         // SPEED_REF (0x0006) = 120 rpm, read back from the drive.
-        assert_eq!(pymodbus(addr, &["write", "1", "0x0006", "120"]).await, json!({"written": true}));
+        assert_eq!(
+            pymodbus(addr, &["write", "1", "0x0006", "120"]).await,
+            json!({"written": true})
+        );
         assert_eq!(
             pymodbus(addr, &["read", "1", "0x0006", "1"]).await,
             json!({"registers": [120]})
@@ -97,17 +112,27 @@ async fn protection_block_write_with_function_16() {
         let out = pymodbus(addr, &["write-multiple", "3", "0x000C", "300,2000,0"]).await;
         assert_eq!(out, json!({"written": true}));
         let settings = d.sim().drive(3).unwrap().settings;
-        assert_eq!((settings.stall_current, settings.stall_duration_ms), (300, 2000));
+        assert_eq!(
+            (settings.stall_current, settings.stall_duration_ms),
+            (300, 2000)
+        );
         assert_eq!(
             pymodbus(addr, &["read", "3", "0x000C", "2"]).await,
             json!({"registers": [300, 2000]})
         );
         // mbpoll writes the block too (holding registers, 0-based 12 = 0x000C).
-        let (ok, text) =
-            mbpoll(addr, &["-a", "3", "-0", "-r", "12", "-t", "4"], &["400", "2500", "0"]).await;
+        let (ok, text) = mbpoll(
+            addr,
+            &["-a", "3", "-0", "-r", "12", "-t", "4"],
+            &["400", "2500", "0"],
+        )
+        .await;
         assert!(ok, "mbpoll failed: {text}");
         let settings = d.sim().drive(3).unwrap().settings;
-        assert_eq!((settings.stall_current, settings.stall_duration_ms), (400, 2500));
+        assert_eq!(
+            (settings.stall_current, settings.stall_duration_ms),
+            (400, 2500)
+        );
         d.stop().await;
     })
     .await;
@@ -118,7 +143,10 @@ async fn a_unit_on_no_bus_is_gateway_path_unavailable() {
     bounded(async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
-        assert_eq!(pymodbus(addr, &["read", "9", "0xC0", "7"]).await, json!({"exception": 10}));
+        assert_eq!(
+            pymodbus(addr, &["read", "9", "0xC0", "7"]).await,
+            json!({"exception": 10})
+        );
         let (ok, text) = mbpoll(addr, &["-a", "9", "-0", "-r", "192", "-c", "7"], &[]).await;
         assert!(!ok && text.contains("Gateway path unavailable"), "{text}");
         // Nothing was sent for it: a request to unit 9 would have been
@@ -139,9 +167,15 @@ async fn a_silent_unit_is_gateway_target_failed() {
         d.sim().set_silent(4, true);
         let (_, bus) = d.plant.drive("feeder").unwrap();
         let timeouts = bus.stats().count(Outcome::Timeout);
-        assert_eq!(pymodbus(addr, &["read", "4", "0xC0", "7"]).await, json!({"exception": 11}));
+        assert_eq!(
+            pymodbus(addr, &["read", "4", "0xC0", "7"]).await,
+            json!({"exception": 11})
+        );
         let (ok, text) = mbpoll(addr, &["-a", "4", "-0", "-r", "192", "-c", "7"], &[]).await;
-        assert!(!ok && text.contains("Target device failed to respond"), "{text}");
+        assert!(
+            !ok && text.contains("Target device failed to respond"),
+            "{text}"
+        );
         // The requests did go out, and timed out on the wire.
         assert!(bus.stats().count(Outcome::Timeout) >= timeouts + 2);
         // The other drives still answer.
@@ -159,7 +193,10 @@ async fn a_broadcast_reaches_every_drive_and_is_not_answered() {
         let addr = d.modbus_tcp.unwrap();
         let broadcasts = d.sim().stats().broadcasts;
         // CONFIG = activate, to unit 0.
-        assert_eq!(pymodbus(addr, &["broadcast", "0x0002", "0"]).await, json!({"sent": true}));
+        assert_eq!(
+            pymodbus(addr, &["broadcast", "0x0002", "0"]).await,
+            json!({"sent": true})
+        );
         eventually(Duration::from_secs(5), "every drive active", || {
             (1..=4)
                 .all(|u| d.sim().drive(u).is_some_and(|v| v.active))
@@ -196,8 +233,13 @@ async fn thirty_two_clients_at_once_each_get_their_own_replies() {
         assert_eq!(out["mismatches"], json!([]), "{out}");
         assert_eq!(out["checked"], json!(32 * 5 * 3), "{out}");
         let text = d.metrics.render();
-        let ok = metric(&text, "drivegate_modbus_tcp_requests_total{function=\"0x03\",outcome=\"ok\"}")
-            + metric(&text, "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"ok\"}");
+        let ok = metric(
+            &text,
+            "drivegate_modbus_tcp_requests_total{function=\"0x03\",outcome=\"ok\"}",
+        ) + metric(
+            &text,
+            "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"ok\"}",
+        );
         assert_eq!(ok, (32 * 5 * 3) as f64, "{text}");
         assert_eq!(
             metric(&text, "drivegate_modbus_tcp_connections_accepted_total"),

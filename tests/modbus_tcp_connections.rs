@@ -3,7 +3,8 @@
 //! connection limit, allowed networks, read-only listeners, passthrough of
 //! codes the drive lacks, fairness between connections.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)]
+// `common` is shared by several test crates: its `pub` items are for them.
+#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
 mod common;
 mod modbus_tcp_support;
@@ -109,7 +110,10 @@ async fn a_client_that_disconnects_has_its_queued_requests_dropped_unsent() {
         .await;
         let text = d.metrics.render();
         assert_eq!(
-            metric(&text, "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"cancelled\"}"),
+            metric(
+                &text,
+                "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"cancelled\"}"
+            ),
             10.0,
             "{text}"
         );
@@ -131,8 +135,10 @@ async fn a_malformed_frame_closes_only_its_connection() {
 
         // Protocol id 1: not Modbus.
         let mut bad = Raw::connect(addr).await;
-        bad.send_bytes(&[0x00, 0x01, 0x00, 0x01, 0x00, 0x06, 0x01, 0x03, 0x00, 0xC0, 0x00, 0x07])
-            .await;
+        bad.send_bytes(&[
+            0x00, 0x01, 0x00, 0x01, 0x00, 0x06, 0x01, 0x03, 0x00, 0xC0, 0x00, 0x07,
+        ])
+        .await;
         assert!(bad.closed_by_server().await);
 
         // A valid request, then a length field of 0, in one write: the valid
@@ -151,7 +157,10 @@ async fn a_malformed_frame_closes_only_its_connection() {
         assert!(http.closed_by_server().await);
 
         let text = d.metrics.render();
-        assert_eq!(metric(&text, "drivegate_modbus_tcp_malformed_frames_total"), 3.0);
+        assert_eq!(
+            metric(&text, "drivegate_modbus_tcp_malformed_frames_total"),
+            3.0
+        );
         // The first client never noticed.
         assert_eq!(registers(&good.ask(3, &read(0xC0, 7)).await).len(), 7);
         d.stop().await;
@@ -205,7 +214,10 @@ async fn connections_beyond_the_limit_are_refused() {
         assert!(three.closed_by_server().await);
         let text = d.metrics.render();
         assert_eq!(
-            metric(&text, "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}"),
+            metric(
+                &text,
+                "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}"
+            ),
             1.0
         );
         // A slot frees when a client leaves.
@@ -220,7 +232,10 @@ async fn connections_beyond_the_limit_are_refused() {
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
-        assert_eq!(registers(&again.expect("a connection after one closed")).len(), 7);
+        assert_eq!(
+            registers(&again.expect("a connection after one closed")).len(),
+            7
+        );
         assert_eq!(registers(&two.ask(1, &read(0xC0, 7)).await).len(), 7);
         d.stop().await;
     })
@@ -230,18 +245,25 @@ async fn connections_beyond_the_limit_are_refused() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn clients_outside_the_allowed_networks_are_refused() {
     bounded(async {
-        let d =
-            TestDaemon::start(&four_drives_with("allowed_networks = [\"10.0.0.0/8\", \"fd00::/8\"]"))
-                .await;
+        let d = TestDaemon::start(&four_drives_with(
+            "allowed_networks = [\"10.0.0.0/8\", \"fd00::/8\"]",
+        ))
+        .await;
         let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;
         c.send(1, 1, &read(0xC0, 7)).await;
         assert!(c.closed_by_server().await);
         let text = d.metrics.render();
         assert_eq!(
-            metric(&text, "drivegate_modbus_tcp_connections_rejected_total{reason=\"not_allowed\"}"),
+            metric(
+                &text,
+                "drivegate_modbus_tcp_connections_rejected_total{reason=\"not_allowed\"}"
+            ),
             1.0
         );
-        assert_eq!(metric(&text, "drivegate_modbus_tcp_connections_accepted_total"), 0.0);
+        assert_eq!(
+            metric(&text, "drivegate_modbus_tcp_connections_accepted_total"),
+            0.0
+        );
         d.stop().await;
 
         let d = TestDaemon::start(&four_drives_with("allowed_networks = [\"127.0.0.1/32\"]")).await;
@@ -263,10 +285,15 @@ async fn a_read_only_listener_refuses_writes_with_illegal_function() {
         assert_eq!(registers(&c.ask(1, &read(STALL_MS, 1)).await), [3000]);
         // Writes of every kind are refused with 0x01, and never reach the bus.
         assert_eq!(c.ask(1, &write(STALL_MS, 1111)).await, [0x86, 0x01]);
-        let block = [0x10, 0x00, 0x0C, 0x00, 0x03, 0x06, 0x01, 0x2C, 0x07, 0xD0, 0x00, 0x00];
+        let block = [
+            0x10, 0x00, 0x0C, 0x00, 0x03, 0x06, 0x01, 0x2C, 0x07, 0xD0, 0x00, 0x00,
+        ];
         assert_eq!(c.ask(1, &block).await, [0x90, 0x01]);
         assert_eq!(c.ask(1, &[0x41, 0x01, 0x02]).await, [0xC1, 0x01]);
-        assert_eq!(c.ask(1, &[0x05, 0x00, 0x01, 0xFF, 0x00]).await, [0x85, 0x01]);
+        assert_eq!(
+            c.ask(1, &[0x05, 0x00, 0x01, 0xFF, 0x00]).await,
+            [0x85, 0x01]
+        );
         // A broadcast is refused too (silently: broadcasts are not answered).
         c.send(9, 0, &write(0x0002, 0)).await;
         assert_eq!(registers(&c.ask(1, &read(STALL_MS, 1)).await), [3000]);
@@ -283,7 +310,10 @@ async fn a_read_only_listener_refuses_writes_with_illegal_function() {
         assert!(!view.active);
         let text = d.metrics.render();
         assert_eq!(
-            metric(&text, "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"read_only\"}"),
+            metric(
+                &text,
+                "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"read_only\"}"
+            ),
             2.0
         );
         d.stop().await;
@@ -298,8 +328,14 @@ async fn codes_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
         let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;
         let (_, bus) = d.plant.drive("conveyor").unwrap();
         // The drive answers 0x01 itself for codes it lacks: 0x04, 0x01, 0x41.
-        assert_eq!(c.ask(1, &[0x04, 0x00, 0xC0, 0x00, 0x07]).await, [0x84, 0x01]);
-        assert_eq!(c.ask(1, &[0x01, 0x00, 0x00, 0x00, 0x08]).await, [0x81, 0x01]);
+        assert_eq!(
+            c.ask(1, &[0x04, 0x00, 0xC0, 0x00, 0x07]).await,
+            [0x84, 0x01]
+        );
+        assert_eq!(
+            c.ask(1, &[0x01, 0x00, 0x00, 0x00, 0x08]).await,
+            [0x81, 0x01]
+        );
         assert_eq!(c.ask(1, &[0x41, 0x10, 0x20]).await, [0xC1, 0x01]);
         // An odd address is the drive's 0x02.
         assert_eq!(c.ask(1, &read(0xC1, 1)).await, [0x83, 0x02]);
@@ -319,7 +355,12 @@ async fn codes_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
         assert_eq!(c.ask(1, &[0x06, 0x00, 0x06]).await, [0x86, 0x03]);
         assert_eq!(c.ask(1, &read(0xC0, 126)).await, [0x83, 0x03]);
         let stats = bus.stats();
-        assert!(!stats.transactions.keys().any(|(f, _)| *f == 0x10 || *f == 0x06));
+        assert!(
+            !stats
+                .transactions
+                .keys()
+                .any(|(f, _)| *f == 0x10 || *f == 0x06)
+        );
         d.stop().await;
     })
     .await;
@@ -378,7 +419,10 @@ async fn a_flooding_connection_does_not_starve_another() {
             assert_eq!(tid, t);
             last = Instant::now();
         }
-        assert!(other_done < last, "the other connection waited for the whole flood");
+        assert!(
+            other_done < last,
+            "the other connection waited for the whole flood"
+        );
         d.stop().await;
     })
     .await;

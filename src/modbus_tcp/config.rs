@@ -340,6 +340,25 @@ name = "b1"
     }
 
     #[test]
+    fn the_reference_config_documents_working_examples() {
+        let text = include_str!("../../config/drivegate.toml")
+            .replace("# [[modbus_tcp.polled_copy]]", "[[modbus_tcp.polled_copy]]")
+            .replace(
+                "# bus = \"line1\"\n# max_age_ms",
+                "bus = \"line1\"\nmax_age_ms",
+            );
+        let c = Config::parse(&text, "drivegate.toml").unwrap();
+        let tcp = &c.modbus_tcp;
+        assert_eq!(tcp.allowed_networks, default_allowed_networks());
+        assert_eq!(tcp.unit_map[1].bus_unit(101), Some(1));
+        assert_eq!(tcp.polled_copy[0].max_age(), Duration::from_millis(250));
+        let mut defaults = tcp.clone();
+        defaults.unit_map.clear();
+        defaults.polled_copy.clear();
+        assert_eq!(defaults, ModbusTcpConfig::default());
+    }
+
+    #[test]
     fn defaults() {
         let c = ModbusTcpConfig::default();
         assert_eq!(c.max_connections, 64);

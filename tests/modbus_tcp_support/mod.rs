@@ -105,7 +105,11 @@ impl Raw {
             let mut chunk = [0u8; 512];
             match self.stream.read(&mut chunk).await {
                 Ok(0) | Err(_) => {
-                    assert!(self.buf.is_empty(), "connection closed mid-frame: {:?}", self.buf);
+                    assert!(
+                        self.buf.is_empty(),
+                        "connection closed mid-frame: {:?}",
+                        self.buf
+                    );
                     return None;
                 }
                 Ok(n) => self.buf.extend_from_slice(&chunk[..n]),
@@ -154,7 +158,11 @@ pub(crate) fn write(address: u16, value: u16) -> Vec<u8> {
 /// The registers of a 0x03 reply.
 pub(crate) fn registers(reply: &[u8]) -> Vec<u16> {
     assert_eq!(reply.first(), Some(&0x03), "not a read reply: {reply:02X?}");
-    assert_eq!(usize::from(reply[1]), reply.len() - 2, "byte count of {reply:02X?}");
+    assert_eq!(
+        usize::from(reply[1]),
+        reply.len() - 2,
+        "byte count of {reply:02X?}"
+    );
     reply[2..]
         .chunks(2)
         .map(|c| u16::from_be_bytes([c[0], c[1]]))
