@@ -117,6 +117,10 @@ impl Gateway {
     /// that go to the bus are queued before this returns, so pipelined
     /// requests wait in the bus queue, not in the socket.
     pub fn handle(&self, client: &Client, unit: u8, pdu: Vec<u8>) -> Answer {
+        if pdu.is_empty() {
+            // The MBAP codec never yields one; answer rather than panic.
+            return Answer::Now(exception_pdu(0, ExceptionCode::ILLEGAL_FUNCTION));
+        }
         if unit == 0 {
             return self.broadcast(client, pdu);
         }
@@ -130,6 +134,7 @@ impl Gateway {
                 format!("unit {unit} is not on any configured bus"),
             );
         };
+        let function = pdu[0];
         let bus = &self.plant.buses()[route.bus].handle;
         let target = (bus.name(), route.unit);
         if self.read_only && !request::reads_only(&pdu) {
@@ -149,17 +154,15 @@ impl Gateway {
                 &pdu,
                 code,
                 Outcome::Invalid,
-                format!(
-                    "refused: the request's length or quantity does not fit function 0x{:02X}",
-                    pdu[0]
-                ),
+                "refused: the request's length or quantity does not fit its function code"
+                    .to_string(),
             );
         }
         if let Some(max_age) = self.polled_copy[route.bus]
             && let Some(snapshot) = bus.drive(route.unit)
             && let Some(reply) = polled_copy::answer(&pdu, &snapshot, max_age)
         {
-            self.count(pdu[0], Outcome::Cached);
+            self.count(function, Outcome::Cached);
             return Answer::Now(reply);
         }
         let mut pending = Pending::new(client, &pdu, false);
@@ -253,7 +256,7 @@ impl Gateway {
         outcome: Outcome,
         why: String,
     ) -> Answer {
-        let function = pdu[0];
+        let function = pdu.first().copied().unwrap_or(0);
         self.count(function, outcome);
         if !request::reads_only(pdu) {
             crate::audit::write(
@@ -360,7 +363,7 @@ impl Pending {
     /// The reply PDU once every job is done (for a broadcast, the write's
     /// confirmation or the first failure); counts and audits it.
     pub fn finish(self, metrics: &Metrics) -> Vec<u8> {
-        let function = self.request[0];
+        let function = self.request.first().copied().unwrap_or(0);
         let is_write = !request::reads_only(&self.request);
         let what = if is_write {
             request::describe(&self.request)
@@ -425,7 +428,7 @@ impl Pending {
     /// reach the wire. A job already on the wire finishes there; its result
     /// is audited if it is in by now.
     pub fn cancel(mut self, metrics: &Metrics) {
-        let function = self.request[0];
+        let function = self.request.first().copied().unwrap_or(0);
         for job in &mut self.jobs {
             if let JobState::Waiting(rx) = &mut job.state {
                 rx.close();
