@@ -151,6 +151,19 @@ async fn a_malformed_frame_closes_only_its_connection() {
         assert_eq!((t, u, registers(&pdu).len()), (7, 2, 7));
         assert!(mixed.closed_by_server().await);
 
+        // Garbage after a bad frame does not reset the connection before
+        // the earlier reply is read.
+        let mut noisy = Raw::connect(addr).await;
+        let mut bytes = modbus_tcp_support::frame(8, 3, &read(0xC0, 7));
+        bytes.extend_from_slice(&[0xFF; 7]);
+        noisy.send_bytes(&bytes).await;
+        noisy.send_bytes(&[0xEE; 2000]).await;
+        // Read only after the server has answered and closed.
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let (t, _, pdu) = noisy.recv().await.expect("the valid request's reply");
+        assert_eq!((t, registers(&pdu).len()), (8, 7));
+        assert!(noisy.closed_by_server().await);
+
         // An HTTP request on the Modbus port.
         let mut http = Raw::connect(addr).await;
         http.send_bytes(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n").await;
@@ -159,7 +172,7 @@ async fn a_malformed_frame_closes_only_its_connection() {
         let text = d.metrics.render();
         assert_eq!(
             metric(&text, "drivegate_modbus_tcp_malformed_frames_total"),
-            3.0
+            4.0
         );
         // The first client never noticed.
         assert_eq!(registers(&good.ask(3, &read(0xC0, 7)).await).len(), 7);
@@ -195,6 +208,41 @@ async fn idle_connections_time_out() {
             assert_eq!(registers(&busy.ask(2, &read(0xC0, 1)).await).len(), 1);
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
+        d.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sixty_four_connections_are_served_at_once() {
+    bounded(async {
+        let d = TestDaemon::start(FOUR_DRIVES).await;
+        let addr = d.modbus_tcp.unwrap();
+        let mut clients = Vec::new();
+        for _ in 0..64 {
+            clients.push(Raw::connect(addr).await);
+        }
+        // Every connection has a request queued at the same time; each
+        // reads a different length so a crossed reply would show.
+        for (i, c) in clients.iter_mut().enumerate() {
+            let i = i as u16;
+            c.send(i, (i % 4) as u8 + 1, &read(0xC0, i % 7 + 1)).await;
+        }
+        for (i, c) in clients.iter_mut().enumerate() {
+            let i = i as u16;
+            let (t, u, pdu) = c.recv().await.expect("a reply");
+            assert_eq!((t, u), (i, (i % 4) as u8 + 1));
+            assert_eq!(registers(&pdu).len(), usize::from(i % 7 + 1));
+        }
+        let text = d.metrics.render();
+        assert_eq!(metric(&text, "drivegate_modbus_tcp_connections"), 64.0);
+        assert_eq!(
+            metric(
+                &text,
+                "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}"
+            ),
+            0.0
+        );
         d.stop().await;
     })
     .await;

@@ -172,6 +172,12 @@ pub async fn serve(
         }
     }
     let _ = wr.shutdown().await;
+    if matches!(
+        end,
+        End::Malformed | End::Idle | End::NotReading | End::Shutdown
+    ) {
+        drain(&mut rd).await;
+    }
     match end {
         End::Malformed => {}
         End::Idle => debug!(client = %client.peer, "closed after {:?} idle", settings.idle_timeout),
@@ -183,6 +189,21 @@ pub async fn serve(
             debug!(client = %client.peer, cancelled, "client closed the connection")
         }
         End::Shutdown => debug!(client = %client.peer, cancelled, "closed: the daemon is stopping"),
+    }
+}
+
+/// Reads and discards what the client still sends, briefly, after our side
+/// was shut down: closing a socket with unread input makes the kernel send
+/// a reset, which can destroy replies the client has not read yet.
+async fn drain(rd: &mut tokio::net::tcp::OwnedReadHalf) {
+    let mut sink = [0u8; 1024];
+    let mut left: usize = 64 * 1024;
+    let until = Instant::now() + Duration::from_millis(500);
+    while left > 0 {
+        match tokio::time::timeout_at(until, rd.read(&mut sink)).await {
+            Ok(Ok(n)) if n > 0 => left = left.saturating_sub(n),
+            _ => break,
+        }
     }
 }
 
