@@ -81,12 +81,15 @@ async fn pipelined_requests_are_answered_in_order() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_that_disconnects_has_its_queued_requests_dropped_unsent() {
     bounded(async {
-        let d = TestDaemon::start(FOUR_DRIVES).await;
+        // A long response timeout: whatever is on the wire when B sends stays
+        // there for half a second, far longer than B takes to disconnect.
+        let toml = FOUR_DRIVES.replace("response_timeout_ms = 50", "response_timeout_ms = 500");
+        let d = TestDaemon::start(&toml).await;
         let addr = d.modbus_tcp.unwrap();
         let (_, bus) = d.plant.drive("lift").unwrap();
         d.sim().set_silent(4, true);
         // A holds the wire: a request to a silent unit takes two response
-        // timeouts and a guard time.
+        // timeouts and a guard time (a poll of it, at least one timeout).
         let mut a = Raw::connect(addr).await;
         let unanswered = d.sim().stats().unanswered;
         a.send(1, 4, &read(0xC0, 7)).await;
@@ -422,7 +425,10 @@ async fn broadcasts_are_answered_when_configured() {
         let broadcasts = d.sim().stats().broadcasts;
         // CONFIG = activate to unit 0: answered with the write's echo once sent.
         assert_eq!(c.ask(0, &write(0x0002, 0)).await, write(0x0002, 0));
-        assert_eq!(d.sim().stats().broadcasts, broadcasts + 1);
+        eventually(Duration::from_secs(5), "the broadcast on the wire", || {
+            (d.sim().stats().broadcasts == broadcasts + 1).then_some(())
+        })
+        .await;
         eventually(Duration::from_secs(5), "every drive active", || {
             (1..=4)
                 .all(|u| d.sim().drive(u).is_some_and(|v| v.active))
