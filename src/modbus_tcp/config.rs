@@ -26,7 +26,8 @@ pub struct ModbusTcpConfig {
     #[serde(deserialize_with = "int_in::<_, _, 100, 86_400_000>")]
     pub idle_timeout_ms: u64,
     /// Requests one connection may have waiting for the bus at once; further
-    /// pipelined requests stay unread in the socket until one is answered.
+    /// pipelined requests wait in the connection's buffer until one is
+    /// answered.
     #[serde(deserialize_with = "int_in::<_, _, 1, 64>")]
     pub max_pipelined: usize,
     /// Client networks allowed to connect; others are closed at once.

@@ -9,8 +9,9 @@
 //!
 //! The connection ends when:
 //! - the client closes it or it fails: requests still queued are cancelled,
-//!   so the bus drops them before they reach the wire;
-//! - a malformed frame arrives: nothing more is read (MBAP cannot be
+//!   so the bus drops them before they reach the wire (the socket is read
+//!   even while the pipeline is full, so a close is noticed);
+//! - a malformed frame arrives: nothing after it is parsed (MBAP cannot be
 //!   resynchronised), the requests accepted before it are answered, then the
 //!   connection is closed and counted;
 //! - nothing is pending and no whole request came for the idle timeout (a
@@ -31,6 +32,10 @@ use tracing::{debug, warn};
 
 use super::gateway::{Answer, Client, Gateway, Pending};
 use super::mbap::{self, MAX_FRAME};
+
+/// Bytes of unparsed requests a connection may buffer (about 250 frames)
+/// beyond the ones queued on the bus.
+const READ_BUFFER: usize = 64 * 1024;
 
 /// Limits of one connection.
 #[derive(Debug, Clone, Copy)]
@@ -126,7 +131,10 @@ pub async fn serve(
         if malformed && queue.is_empty() {
             break End::Malformed;
         }
-        let reading = !malformed && queue.len() < settings.max_pipelined;
+        // Keep reading while the pipeline is full, into a bounded buffer, so
+        // a client that disconnects is noticed and its queued requests are
+        // cancelled; past the bound, TCP flow control holds the client back.
+        let reading = buf.len() < READ_BUFFER;
         if reading {
             buf.reserve(MAX_FRAME);
         }
@@ -158,6 +166,9 @@ pub async fn serve(
             }
             r = rd.read_buf(&mut buf), if reading => match r {
                 Ok(0) => break End::ClientClosed,
+                // After a malformed frame the bytes mean nothing: read only
+                // to notice the client leaving.
+                Ok(_) if malformed => buf.clear(),
                 Ok(_) => {}
                 Err(e) => break End::Failed(e),
             },
