@@ -189,14 +189,14 @@ pub(crate) async fn pymodbus(addr: SocketAddr, args: &[&str]) -> serde_json::Val
     let output = match cmd.output_within(Duration::from_secs(60)).await {
         Ok(o) => o,
         Err(e) => panic!(
-            "cannot run python3 ({e}): install Python 3 and pymodbus (`apt-get install python3 python3-pip && pip install pymodbus`)"
+            "cannot run python3 ({e}): install Python 3 and pymodbus (`apt-get install python3 python3-pip && pip install 'pymodbus>=3.10'`)"
         ),
     };
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert_ne!(
         output.status.code(),
         Some(3),
-        "pymodbus is missing: install it with `pip install pymodbus` ({stderr})"
+        "pymodbus is missing: install it with `pip install 'pymodbus>=3.10'` ({stderr})"
     );
     let stdout = String::from_utf8_lossy(&output.stdout);
     serde_json::from_str(stdout.trim()).unwrap_or_else(|e| {

@@ -13,9 +13,9 @@ Usage: modbus_client.py HOST PORT COMMAND ARGS...
                                    block; every reply is checked against its
                                    request
 
-Addresses are the drive's own (0xC0 = 192 is the status block). Numbers may
-be decimal or 0x-hex. Prints one JSON object; exit status 0 unless the client
-itself failed (a Modbus exception is a result, printed as {"exception": n}).
+Needs pymodbus 3.10 or later (`device_id=`). Addresses are the drive's own
+(0xC0 = 192 is the status block). Numbers may be decimal or 0x-hex. Prints
+one JSON object; exit status 0 unless the client itself failed (a Modbus exception is a result, printed as {"exception": n}).
 """
 
 import asyncio
@@ -27,8 +27,7 @@ try:
     from pymodbus.exceptions import ModbusException
 except ImportError:
     print(
-        "pymodbus is not installed: install it with `pip install pymodbus` "
-        "(python3 -m pip install pymodbus)",
+        "pymodbus is not installed: install it with `pip install 'pymodbus>=3.10'`",
         file=sys.stderr,
     )
     sys.exit(3)
