@@ -15,7 +15,8 @@ Usage: modbus_client.py HOST PORT COMMAND ARGS...
 
 Needs pymodbus 3.10 or later (`device_id=`). Addresses are the drive's own
 (0xC0 = 192 is the status block). Numbers may be decimal or 0x-hex. Prints
-one JSON object; exit status 0 unless the client itself failed (a Modbus exception is a result, printed as {"exception": n}).
+one JSON object; exit status 0 unless the client itself failed (a Modbus
+exception is a result, printed as {"exception": n}).
 """
 
 import asyncio
