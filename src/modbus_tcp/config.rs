@@ -1,8 +1,14 @@
-//! `[modbus_tcp]` section.
+//! `[modbus_tcp]` section: the listener, its access rules, the unit map and
+//! the polled-copy reads.
 
+use std::collections::BTreeSet;
+use std::fmt;
 use std::net::SocketAddr;
+use std::time::Duration;
 
+use ipnet::IpNet;
 use serde::Deserialize;
+use serde::de::{self, Deserializer, Visitor};
 
 /// The Modbus TCP listener.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
@@ -12,6 +18,198 @@ pub struct ModbusTcpConfig {
     pub enabled: bool,
     /// Address and port to listen on (502 in deployment).
     pub listen: SocketAddr,
+    /// Connections served at once; more are closed as they arrive.
+    #[serde(deserialize_with = "int_in::<_, _, 1, 4096>")]
+    pub max_connections: usize,
+    /// A connection with nothing pending that sends no complete request for
+    /// this long is closed, so dead peers do not hold connection slots.
+    #[serde(deserialize_with = "int_in::<_, _, 100, 86_400_000>")]
+    pub idle_timeout_ms: u64,
+    /// Requests one connection may have waiting for the bus at once; further
+    /// pipelined requests wait in the connection's buffer until one is
+    /// answered.
+    #[serde(deserialize_with = "int_in::<_, _, 1, 64>")]
+    pub max_pipelined: usize,
+    /// Client networks allowed to connect; others are closed at once.
+    pub allowed_networks: Vec<IpNet>,
+    /// Refuse every request that could change a drive (exception 0x01).
+    pub read_only: bool,
+    /// Answer a broadcast (unit 0) once it is on the wire; off, the client
+    /// gets no reply, as Modbus specifies for broadcasts.
+    pub broadcast_reply: bool,
+    /// Which Modbus TCP unit ids go to which bus and unit; empty: every
+    /// configured drive under its own unit number.
+    pub unit_map: Vec<UnitMapEntry>,
+    /// Buses whose status reads are answered from the latest poll.
+    pub polled_copy: Vec<PolledCopy>,
+}
+
+/// One range of the unit map.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct UnitMapEntry {
+    /// Modbus TCP unit ids ("101-132" or a single id).
+    pub units: UnitRange,
+    /// The bus they go to.
+    pub bus: String,
+    /// The units on that bus, in order (default: the same numbers).
+    #[serde(default)]
+    pub bus_units: Option<UnitRange>,
+}
+
+impl UnitMapEntry {
+    /// The bus unit a Modbus TCP unit of this entry goes to.
+    pub fn bus_unit(&self, tcp_unit: u8) -> Option<u8> {
+        if !self.units.contains(tcp_unit) {
+            return None;
+        }
+        let first = self.bus_units.unwrap_or(self.units).first;
+        first.checked_add(tcp_unit - self.units.first)
+    }
+}
+
+/// Polled-copy reads on one bus.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct PolledCopy {
+    /// The bus.
+    pub bus: String,
+    /// Oldest poll a read may be answered from; older goes to the bus.
+    #[serde(deserialize_with = "int_in::<_, _, 1, 60_000>")]
+    pub max_age_ms: u64,
+}
+
+impl PolledCopy {
+    /// The maximum age as a duration.
+    pub fn max_age(&self) -> Duration {
+        Duration::from_millis(self.max_age_ms)
+    }
+}
+
+/// A range of unit addresses, 1 to 255, written `"101-132"` or `7`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct UnitRange {
+    /// First unit.
+    pub first: u8,
+    /// Last unit (inclusive).
+    pub last: u8,
+}
+
+impl UnitRange {
+    /// Number of units in the range.
+    pub fn len(&self) -> usize {
+        usize::from(self.last - self.first) + 1
+    }
+
+    /// Never empty; here for clippy's `len_without_is_empty`.
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+
+    /// True when `unit` is in the range.
+    pub fn contains(&self, unit: u8) -> bool {
+        (self.first..=self.last).contains(&unit)
+    }
+
+    /// True when the two ranges share a unit.
+    pub fn overlaps(&self, other: &UnitRange) -> bool {
+        self.first <= other.last && other.first <= self.last
+    }
+
+    fn from_ints(first: i64, last: i64) -> Result<Self, String> {
+        let unit = |v: i64| match u8::try_from(v) {
+            Ok(u) if u >= 1 => Ok(u),
+            _ => Err(format!(
+                "unit {v} is out of range: valid 1 to 255 (0 is the broadcast address, never mapped)"
+            )),
+        };
+        let (first, last) = (unit(first)?, unit(last)?);
+        if first > last {
+            return Err(format!(
+                "unit range {first}-{last} runs backwards: write the lower unit first"
+            ));
+        }
+        Ok(UnitRange { first, last })
+    }
+}
+
+impl fmt::Display for UnitRange {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.first == self.last {
+            write!(f, "{}", self.first)
+        } else {
+            write!(f, "{}-{}", self.first, self.last)
+        }
+    }
+}
+
+impl std::str::FromStr for UnitRange {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let number = |part: &str| {
+            part.trim().parse::<i64>().map_err(|_| {
+                format!(
+                    "\"{s}\" is not a unit range: write \"first-last\" (e.g. \"1-32\") or one unit"
+                )
+            })
+        };
+        match s.split_once('-') {
+            Some((a, b)) => UnitRange::from_ints(number(a)?, number(b)?),
+            None => {
+                let v = number(s)?;
+                UnitRange::from_ints(v, v)
+            }
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for UnitRange {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct RangeVisitor;
+
+        impl Visitor<'_> for RangeVisitor {
+            type Value = UnitRange;
+
+            fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("a unit (7) or a unit range (\"1-32\")")
+            }
+
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<UnitRange, E> {
+                UnitRange::from_ints(v, v).map_err(E::custom)
+            }
+
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<UnitRange, E> {
+                let v = i64::try_from(v).unwrap_or(i64::MAX);
+                UnitRange::from_ints(v, v).map_err(E::custom)
+            }
+
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<UnitRange, E> {
+                v.parse().map_err(E::custom)
+            }
+        }
+
+        d.deserialize_any(RangeVisitor)
+    }
+}
+
+/// The networks allowed by default: loopback, the private ranges plants use
+/// (RFC 1918, IPv6 unique local) and link-local (a PLC cabled straight to
+/// the gateway). Never the open internet.
+pub fn default_allowed_networks() -> Vec<IpNet> {
+    [
+        "127.0.0.0/8",
+        "10.0.0.0/8",
+        "172.16.0.0/12",
+        "192.168.0.0/16",
+        "169.254.0.0/16",
+        "::1/128",
+        "fc00::/7",
+        "fe80::/10",
+    ]
+    .iter()
+    .filter_map(|n| n.parse().ok())
+    .collect()
 }
 
 impl Default for ModbusTcpConfig {
@@ -19,14 +217,231 @@ impl Default for ModbusTcpConfig {
         Self {
             enabled: true,
             listen: SocketAddr::from(([127, 0, 0, 1], 5020)),
+            max_connections: 64,
+            idle_timeout_ms: 60_000,
+            max_pipelined: 16,
+            allowed_networks: default_allowed_networks(),
+            read_only: false,
+            broadcast_reply: false,
+            unit_map: Vec::new(),
+            polled_copy: Vec::new(),
         }
     }
 }
 
 impl ModbusTcpConfig {
-    /// Checks against the rest of the configuration (e.g. the unit map
-    /// against the configured buses).
-    pub fn validate(&self, _config: &crate::config::Config) -> Result<(), String> {
+    /// The idle timeout as a duration.
+    pub fn idle_timeout(&self) -> Duration {
+        Duration::from_millis(self.idle_timeout_ms)
+    }
+
+    /// Checks against the rest of the configuration: the unit map and the
+    /// polled-copy entries must name configured buses, map ranges of equal
+    /// length and not overlap.
+    pub fn validate(&self, config: &crate::config::Config) -> Result<(), String> {
+        let bus_names: Vec<&str> = config.buses.iter().map(|b| b.name()).collect();
+        let known = |bus: &str, what: String| {
+            if bus_names.contains(&bus) {
+                Ok(())
+            } else {
+                Err(format!(
+                    "[modbus_tcp] {what} names bus \"{bus}\", which is not configured (buses: {})",
+                    quoted(&bus_names)
+                ))
+            }
+        };
+        for (i, entry) in self.unit_map.iter().enumerate() {
+            let what = format!("unit_map entry {} (units {})", i + 1, entry.units);
+            known(&entry.bus, what.clone())?;
+            if let Some(bus_units) = entry.bus_units
+                && bus_units.len() != entry.units.len()
+            {
+                return Err(format!(
+                    "[modbus_tcp] {what}: bus_units {bus_units} has {} units but units {} has {}: give ranges of the same length",
+                    bus_units.len(),
+                    entry.units,
+                    entry.units.len()
+                ));
+            }
+            if let Some((j, other)) = self.unit_map[..i]
+                .iter()
+                .enumerate()
+                .find(|(_, o)| o.units.overlaps(&entry.units))
+            {
+                return Err(format!(
+                    "[modbus_tcp] {what} overlaps unit_map entry {} (units {}): each Modbus TCP unit id may go to one place only",
+                    j + 1,
+                    other.units
+                ));
+            }
+        }
+        let mut seen = BTreeSet::new();
+        for (i, entry) in self.polled_copy.iter().enumerate() {
+            known(&entry.bus, format!("polled_copy entry {}", i + 1))?;
+            if !seen.insert(entry.bus.as_str()) {
+                return Err(format!(
+                    "[modbus_tcp] polled_copy lists bus \"{}\" twice: give one max_age_ms per bus",
+                    entry.bus
+                ));
+            }
+        }
         Ok(())
+    }
+}
+
+fn quoted(names: &[&str]) -> String {
+    names
+        .iter()
+        .map(|n| format!("\"{n}\""))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// An integer in `MIN..=MAX`, refused while parsing so the error carries the
+/// value's line and column.
+fn int_in<'de, D, T, const MIN: i64, const MAX: i64>(d: D) -> Result<T, D::Error>
+where
+    D: Deserializer<'de>,
+    T: TryFrom<i64>,
+{
+    let v = i64::deserialize(d)?;
+    let out_of_range = || de::Error::custom(format!("{v} is out of range: valid {MIN} to {MAX}"));
+    if !(MIN..=MAX).contains(&v) {
+        return Err(out_of_range());
+    }
+    T::try_from(v).map_err(|_| out_of_range())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Config;
+
+    const TWO_BUSES: &str = r#"
+[[bus]]
+name = "A"
+port = "sim"
+[[bus.drive]]
+unit = 1
+name = "a1"
+[[bus]]
+name = "B"
+port = "sim"
+[[bus.drive]]
+unit = 1
+name = "b1"
+"#;
+
+    fn parse(modbus_tcp: &str) -> Result<Config, String> {
+        Config::parse(
+            &format!("[modbus_tcp]\n{modbus_tcp}\n{TWO_BUSES}"),
+            "t.toml",
+        )
+        .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn the_reference_config_documents_working_examples() {
+        let text = include_str!("../../config/drivegate.toml")
+            .replace("# [[modbus_tcp.polled_copy]]", "[[modbus_tcp.polled_copy]]")
+            .replace(
+                "# bus = \"line1\"\n# max_age_ms",
+                "bus = \"line1\"\nmax_age_ms",
+            );
+        let c = Config::parse(&text, "drivegate.toml").unwrap();
+        let tcp = &c.modbus_tcp;
+        assert_eq!(tcp.allowed_networks, default_allowed_networks());
+        assert_eq!(tcp.unit_map[1].bus_unit(101), Some(1));
+        assert_eq!(tcp.polled_copy[0].max_age(), Duration::from_millis(250));
+        let mut defaults = tcp.clone();
+        defaults.unit_map.clear();
+        defaults.polled_copy.clear();
+        assert_eq!(defaults, ModbusTcpConfig::default());
+    }
+
+    #[test]
+    fn defaults() {
+        let c = ModbusTcpConfig::default();
+        assert_eq!(c.max_connections, 64);
+        assert_eq!(c.idle_timeout(), Duration::from_secs(60));
+        assert!(!c.read_only && !c.broadcast_reply);
+        assert!(c.unit_map.is_empty() && c.polled_copy.is_empty());
+        assert_eq!(c.allowed_networks.len(), 8);
+    }
+
+    #[test]
+    fn unit_map_ranges_and_offsets() {
+        let c = parse(
+            r#"
+[[modbus_tcp.unit_map]]
+units = "1-32"
+bus = "A"
+[[modbus_tcp.unit_map]]
+units = "101-132"
+bus = "B"
+bus_units = "1-32"
+[[modbus_tcp.unit_map]]
+units = 200
+bus = "B"
+bus_units = "40"
+"#,
+        )
+        .unwrap();
+        let map = &c.modbus_tcp.unit_map;
+        assert_eq!(map[0].bus_unit(1), Some(1));
+        assert_eq!(map[0].bus_unit(32), Some(32));
+        assert_eq!(map[0].bus_unit(33), None);
+        assert_eq!(map[1].bus_unit(101), Some(1));
+        assert_eq!(map[1].bus_unit(132), Some(32));
+        assert_eq!(map[2].bus_unit(200), Some(40));
+    }
+
+    #[test]
+    fn bad_ranges_name_the_valid_range_and_position() {
+        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"0-4\"\nbus = \"A\"").unwrap_err();
+        assert!(
+            e.contains("t.toml:3:9") && e.contains("valid 1 to 255"),
+            "{e}"
+        );
+        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"9-3\"\nbus = \"A\"").unwrap_err();
+        assert!(e.contains("runs backwards"), "{e}");
+        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"one\"\nbus = \"A\"").unwrap_err();
+        assert!(e.contains("is not a unit range"), "{e}");
+        let e = parse("max_connections = 0").unwrap_err();
+        assert!(
+            e.contains("t.toml:2:19") && e.contains("valid 1 to 4096"),
+            "{e}"
+        );
+        let e = parse("allowed_networks = [\"10.0.0.0/33\"]").unwrap_err();
+        assert!(e.contains("t.toml:2:"), "{e}");
+    }
+
+    #[test]
+    fn the_map_is_checked_against_the_buses() {
+        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"C\"").unwrap_err();
+        assert!(
+            e.contains("unit_map entry 1 (units 1-4) names bus \"C\", which is not configured (buses: \"A\", \"B\")"),
+            "{e}"
+        );
+        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"A\"\nbus_units = \"1-3\"")
+            .unwrap_err();
+        assert!(e.contains("has 3 units but units 1-4 has 4"), "{e}");
+        let e = parse(
+            "[[modbus_tcp.unit_map]]\nunits = \"1-10\"\nbus = \"A\"\n[[modbus_tcp.unit_map]]\nunits = \"10-20\"\nbus = \"B\"",
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("unit_map entry 2 (units 10-20) overlaps unit_map entry 1 (units 1-10)"),
+            "{e}"
+        );
+        let e = parse("[[modbus_tcp.polled_copy]]\nbus = \"X\"\nmax_age_ms = 100").unwrap_err();
+        assert!(e.contains("polled_copy entry 1 names bus \"X\""), "{e}");
+        let e = parse(
+            "[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 100\n[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 50",
+        )
+        .unwrap_err();
+        assert!(e.contains("lists bus \"A\" twice"), "{e}");
+        let e = parse("[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 0").unwrap_err();
+        assert!(e.contains("valid 1 to 60000"), "{e}");
     }
 }

@@ -1,6 +1,31 @@
 //! The Modbus TCP passthrough face for SCADA and PLCs.
+//!
+//! A request's unit id picks a bus and a drive ([`routing`]); the PDU goes to
+//! that bus's queue as a command from the connection's own source, and the
+//! drive's reply PDU, exception replies included, goes back unchanged with
+//! the client's transaction id. Register addresses are the drive's own.
+//!
+//! - [`mbap`] is the frame codec (pure),
+//! - [`request`] the Modbus rules the gateway applies before the bus,
+//! - [`routing`] the unit map, [`polled_copy`] status reads from the cache,
+//! - [`gateway`] turns a request into a bus job and the result into a reply,
+//! - [`outcome`] names outcomes and maps bus failures to gateway exceptions,
+//! - [`connection`] serves one client in order, [`server`] accepts them,
+//!   [`access`] checks where they come from.
+//!
+//! `docs/modbus-tcp.md` says why the MBAP framing is the daemon's own
+//! rather than tokio-modbus's server.
 
+pub mod access;
 pub mod config;
+pub mod connection;
+pub mod gateway;
+pub mod mbap;
+pub mod outcome;
+pub mod polled_copy;
+pub mod request;
+pub mod routing;
+pub mod server;
 
 use std::sync::Arc;
 
@@ -11,6 +36,11 @@ use crate::faces::Listening;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 
+use access::AllowList;
+use connection::ConnectionSettings;
+use gateway::Gateway;
+use server::ServerSettings;
+
 /// Binds the Modbus TCP listener and serves it until `shutdown` fires.
 pub async fn start(
     config: &Config,
@@ -18,19 +48,28 @@ pub async fn start(
     metrics: Arc<Metrics>,
     shutdown: CancellationToken,
 ) -> Result<Listening, String> {
-    let listener = tokio::net::TcpListener::bind(config.modbus_tcp.listen)
+    let tcp = &config.modbus_tcp;
+    let listener = tokio::net::TcpListener::bind(tcp.listen)
         .await
         .map_err(|e| {
-            format!(
-                "cannot listen for Modbus TCP on {}: {e}",
-                config.modbus_tcp.listen
-            )
+            let hint =
+                if tcp.listen.port() < 1024 && e.kind() == std::io::ErrorKind::PermissionDenied {
+                    " (ports below 1024 need CAP_NET_BIND_SERVICE: see docs/modbus-tcp.md)"
+                } else {
+                    ""
+                };
+            format!("cannot listen for Modbus TCP on {}: {e}{hint}", tcp.listen)
         })?;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
-    let _ = (plant, metrics);
-    let task = tokio::spawn(async move {
-        shutdown.cancelled().await;
-        drop(listener);
-    });
+    let gateway = Arc::new(Gateway::new(tcp, plant, metrics));
+    let settings = ServerSettings {
+        allow: AllowList::new(tcp.allowed_networks.clone()),
+        max_connections: tcp.max_connections,
+        connection: ConnectionSettings {
+            idle_timeout: tcp.idle_timeout(),
+            max_pipelined: tcp.max_pipelined,
+        },
+    };
+    let task = tokio::spawn(server::run(listener, gateway, settings, shutdown));
     Ok(Listening { addr, task })
 }

@@ -1,0 +1,227 @@
+//! One client connection: frames in, replies out, in request order.
+//!
+//! Requests are read and queued on the bus as soon as they arrive (up to
+//! `max_pipelined` at once), so a pipelining client's requests wait in the
+//! bus queue, where they take turns with every other client, rather than in
+//! the socket. Replies are written in the order the requests came, whatever
+//! order the buses finish them in: Modbus TCP clients may match replies by
+//! transaction id, but many PLCs expect them in order.
+//!
+//! The connection ends when:
+//! - the client closes it or it fails: requests still queued are cancelled,
+//!   so the bus drops them before they reach the wire (the socket is read
+//!   even while the pipeline is full, so a close is noticed);
+//! - a malformed frame arrives: nothing after it is parsed (MBAP cannot be
+//!   resynchronised), the requests accepted before it are answered, then the
+//!   connection is closed and counted;
+//! - nothing is pending and no whole request came for the idle timeout (a
+//!   client that sends half a frame and stalls is idle too), or a reply could
+//!   not be written for that long (a client that does not read);
+//! - the daemon stops.
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::Duration;
+
+use bytes::{Buf, BytesMut};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, warn};
+
+use super::gateway::{Answer, Client, Gateway, Pending};
+use super::mbap::{self, MAX_FRAME};
+
+/// Bytes of unparsed requests a connection may buffer (about 250 frames)
+/// beyond the ones queued on the bus.
+const READ_BUFFER: usize = 64 * 1024;
+
+/// Limits of one connection.
+#[derive(Debug, Clone, Copy)]
+pub struct ConnectionSettings {
+    /// Close after this long with nothing pending and no whole request.
+    pub idle_timeout: Duration,
+    /// Requests waiting for the bus at once.
+    pub max_pipelined: usize,
+}
+
+/// A request whose reply has not been written yet.
+struct InFlight {
+    transaction: u16,
+    unit: u8,
+    reply: Reply,
+}
+
+enum Reply {
+    Ready(Vec<u8>),
+    Pending(Pending),
+}
+
+impl InFlight {
+    async fn ready(&mut self) {
+        if let Reply::Pending(p) = &mut self.reply {
+            p.wait().await;
+        }
+    }
+
+    fn try_ready(&mut self) -> bool {
+        match &mut self.reply {
+            Reply::Ready(_) => true,
+            Reply::Pending(p) => p.try_ready(),
+        }
+    }
+}
+
+/// Why a connection ended, for the log.
+#[derive(Debug)]
+enum End {
+    ClientClosed,
+    Failed(std::io::Error),
+    Malformed,
+    Idle,
+    NotReading,
+    Shutdown,
+}
+
+/// Serves one connection until it ends.
+pub async fn serve(
+    stream: TcpStream,
+    client: Client,
+    gateway: Arc<Gateway>,
+    settings: ConnectionSettings,
+    shutdown: CancellationToken,
+) {
+    let metrics = gateway.metrics().clone();
+    let (mut rd, mut wr) = stream.into_split();
+    let mut buf = BytesMut::with_capacity(2 * MAX_FRAME);
+    let mut queue: VecDeque<InFlight> = VecDeque::new();
+    let mut out = Vec::with_capacity(MAX_FRAME);
+    let mut malformed = false;
+    let idle = tokio::time::sleep(settings.idle_timeout);
+    tokio::pin!(idle);
+
+    let end = loop {
+        // Take every whole request in the buffer, up to the pipeline limit.
+        while !malformed && queue.len() < settings.max_pipelined {
+            match mbap::parse(&buf) {
+                Ok(Some((frame, used))) => {
+                    buf.advance(used);
+                    idle.as_mut().reset(Instant::now() + settings.idle_timeout);
+                    let reply = match gateway.handle(&client, frame.unit, frame.pdu) {
+                        Answer::Now(pdu) => Reply::Ready(pdu),
+                        Answer::Pending(p) => Reply::Pending(p),
+                        Answer::Silent => continue,
+                    };
+                    queue.push_back(InFlight {
+                        transaction: frame.transaction,
+                        unit: frame.unit,
+                        reply,
+                    });
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    metrics.faces().tcp_malformed();
+                    warn!(client = %client.peer, "malformed Modbus TCP frame: {e}; closing the connection after answering the {} request(s) before it", queue.len());
+                    malformed = true;
+                    buf.clear();
+                }
+            }
+        }
+        if malformed && queue.is_empty() {
+            break End::Malformed;
+        }
+        // Keep reading while the pipeline is full, into a bounded buffer, so
+        // a client that disconnects is noticed and its queued requests are
+        // cancelled; past the bound, TCP flow control holds the client back.
+        let reading = buf.len() < READ_BUFFER;
+        if reading {
+            buf.reserve(MAX_FRAME);
+        }
+        tokio::select! {
+            biased;
+            () = shutdown.cancelled() => break End::Shutdown,
+            () = head_ready(&mut queue), if !queue.is_empty() => {
+                out.clear();
+                while let Some(front) = queue.front_mut() {
+                    if !front.try_ready() {
+                        break;
+                    }
+                    let Some(done) = queue.pop_front() else { break };
+                    let pdu = match done.reply {
+                        Reply::Ready(pdu) => pdu,
+                        Reply::Pending(p) => p.finish(&metrics),
+                    };
+                    mbap::encode(done.transaction, done.unit, &pdu, &mut out);
+                }
+                let write = tokio::time::timeout(settings.idle_timeout, wr.write_all(&out));
+                tokio::select! {
+                    r = write => match r {
+                        Ok(Ok(())) => idle.as_mut().reset(Instant::now() + settings.idle_timeout),
+                        Ok(Err(e)) => break End::Failed(e),
+                        Err(_) => break End::NotReading,
+                    },
+                    () = shutdown.cancelled() => break End::Shutdown,
+                }
+            }
+            r = rd.read_buf(&mut buf), if reading => match r {
+                Ok(0) => break End::ClientClosed,
+                // After a malformed frame the bytes mean nothing: read only
+                // to notice the client leaving.
+                Ok(_) if malformed => buf.clear(),
+                Ok(_) => {}
+                Err(e) => break End::Failed(e),
+            },
+            () = &mut idle, if queue.is_empty() => break End::Idle,
+        }
+    };
+    let cancelled = queue.len();
+    for left in queue {
+        match left.reply {
+            Reply::Pending(p) => p.cancel(&metrics),
+            Reply::Ready(_) => {}
+        }
+    }
+    let _ = wr.shutdown().await;
+    if matches!(
+        end,
+        End::Malformed | End::Idle | End::NotReading | End::Shutdown
+    ) {
+        drain(&mut rd).await;
+    }
+    match end {
+        End::Malformed => {}
+        End::Idle => debug!(client = %client.peer, "closed after {:?} idle", settings.idle_timeout),
+        End::NotReading => {
+            warn!(client = %client.peer, "closed: the client did not take its replies for {:?}", settings.idle_timeout)
+        }
+        End::Failed(e) => debug!(client = %client.peer, cancelled, "connection failed: {e}"),
+        End::ClientClosed => {
+            debug!(client = %client.peer, cancelled, "client closed the connection")
+        }
+        End::Shutdown => debug!(client = %client.peer, cancelled, "closed: the daemon is stopping"),
+    }
+}
+
+/// Reads and discards what the client still sends, briefly, after our side
+/// was shut down: closing a socket with unread input makes the kernel send
+/// a reset, which can destroy replies the client has not read yet.
+async fn drain(rd: &mut tokio::net::tcp::OwnedReadHalf) {
+    let mut sink = [0u8; 1024];
+    let mut left: usize = 64 * 1024;
+    let until = Instant::now() + Duration::from_millis(500);
+    while left > 0 {
+        match tokio::time::timeout_at(until, rd.read(&mut sink)).await {
+            Ok(Ok(n)) if n > 0 => left = left.saturating_sub(n),
+            _ => break,
+        }
+    }
+}
+
+/// Waits until the oldest request's reply is ready.
+async fn head_ready(queue: &mut VecDeque<InFlight>) {
+    match queue.front_mut() {
+        Some(front) => front.ready().await,
+        None => std::future::pending().await,
+    }
+}

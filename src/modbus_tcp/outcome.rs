@@ -1,0 +1,131 @@
+//! How a Modbus TCP request ended, for the metrics, and the gateway
+//! exception a bus failure is answered with (Modbus application protocol,
+//! section 7: 0x0A and 0x0B are the gateway codes).
+
+use crate::bus::BusError;
+use crate::modbus::ExceptionCode;
+
+/// The outcome label of one request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    /// The drive answered normally.
+    Ok,
+    /// The drive answered with its own exception (passed through).
+    Exception,
+    /// Answered from the polled copy, without the bus.
+    Cached,
+    /// Sent as a broadcast (nobody answers those).
+    Broadcast,
+    /// 0x0B: no valid reply after the retries.
+    GatewayTimeout,
+    /// 0x0A: no bus for this unit, or the bus is down or stopping.
+    PathUnavailable,
+    /// 0x06: the bus queue was full or the request waited too long.
+    Busy,
+    /// 0x01: a write on a read-only listener.
+    ReadOnly,
+    /// 0x01: a broadcast the gateway will not send (a read, or an address
+    /// setting on a bus of several drives).
+    Refused,
+    /// 0x03: the request's shape is not what its function code requires.
+    Invalid,
+    /// The client disconnected before the reply.
+    Cancelled,
+}
+
+impl Outcome {
+    /// Stable label for `drivegate_modbus_tcp_requests_total`.
+    pub fn label(self) -> &'static str {
+        match self {
+            Outcome::Ok => "ok",
+            Outcome::Exception => "exception",
+            Outcome::Cached => "cached",
+            Outcome::Broadcast => "broadcast",
+            Outcome::GatewayTimeout => "gateway_timeout",
+            Outcome::PathUnavailable => "path_unavailable",
+            Outcome::Busy => "busy",
+            Outcome::ReadOnly => "read_only",
+            Outcome::Refused => "refused",
+            Outcome::Invalid => "invalid",
+            Outcome::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// The exception a client gets for a request the bus could not carry out.
+pub fn gateway_exception(error: &BusError) -> (ExceptionCode, Outcome) {
+    match error {
+        // Sent, and every attempt went unanswered or garbled.
+        BusError::Timeout { .. } | BusError::BadReply { .. } => (
+            ExceptionCode::GATEWAY_TARGET_FAILED,
+            Outcome::GatewayTimeout,
+        ),
+        // No way to the drive now.
+        BusError::BusDown { .. } | BusError::ShuttingDown => (
+            ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
+            Outcome::PathUnavailable,
+        ),
+        // Never sent: the queue was full or the bus too busy to get to it.
+        BusError::Busy { .. } | BusError::Expired { .. } => {
+            (ExceptionCode::SERVER_DEVICE_BUSY, Outcome::Busy)
+        }
+        // Passthrough returns the drive's exception as a reply; these come
+        // only from typed requests, never from this face.
+        BusError::Exception { code, .. } => (*code, Outcome::Exception),
+        BusError::Unconfirmed { .. } => (
+            ExceptionCode::GATEWAY_TARGET_FAILED,
+            Outcome::GatewayTimeout,
+        ),
+        BusError::Invalid(_) => (ExceptionCode::ILLEGAL_DATA_VALUE, Outcome::Invalid),
+    }
+}
+
+/// An exception reply PDU for `function`.
+pub fn exception_pdu(function: u8, code: ExceptionCode) -> Vec<u8> {
+    vec![function | crate::modbus::function::EXCEPTION_BIT, code.0]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bus::Priority;
+    use std::time::Duration;
+
+    #[test]
+    fn bus_failures_map_to_the_gateway_codes() {
+        let timeout = BusError::Timeout {
+            unit: 3,
+            attempts: 2,
+            timeout_ms: 50,
+        };
+        assert_eq!(gateway_exception(&timeout).0, ExceptionCode(0x0B));
+        let garbled = BusError::BadReply {
+            unit: 3,
+            attempts: 2,
+            detail: "CRC error".into(),
+        };
+        assert_eq!(gateway_exception(&garbled).0, ExceptionCode(0x0B));
+        let down = BusError::BusDown {
+            bus: "line1".into(),
+            reason: "unplugged".into(),
+        };
+        assert_eq!(
+            gateway_exception(&down),
+            (ExceptionCode(0x0A), Outcome::PathUnavailable)
+        );
+        let full = BusError::Busy {
+            bus: "line1".into(),
+            priority: Priority::Command,
+            capacity: 256,
+        };
+        assert_eq!(
+            gateway_exception(&full),
+            (ExceptionCode(0x06), Outcome::Busy)
+        );
+        let waited = BusError::Expired {
+            waited: Duration::from_secs(5),
+        };
+        assert_eq!(gateway_exception(&waited).0, ExceptionCode(0x06));
+        assert_eq!(exception_pdu(0x03, ExceptionCode(0x0B)), [0x83, 0x0B]);
+    }
+}
