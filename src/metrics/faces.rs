@@ -132,8 +132,11 @@ impl FaceMetrics {
         self.tcp_rejected.with_label_values(&[reason]).inc();
     }
 
-    /// A Modbus TCP request was answered with `outcome` (`ok`, `exception`,
-    /// `gateway_timeout`, `path_unavailable`, `busy`, `read_only`, `cached`).
+    /// A Modbus TCP request was answered with `outcome`: `ok`, `exception`
+    /// (the drive's), `gateway_timeout` (0x0B), `path_unavailable` (0x0A),
+    /// `busy` (0x06), `read_only`, `cached` (from the polled copy),
+    /// `broadcast`, `invalid` (malformed request shape), `refused` or
+    /// `cancelled` (its client left before it reached the wire).
     pub fn tcp_request(&self, function: u8, outcome: &str) {
         self.tcp_requests
             .with_label_values(&[&format!("0x{function:02x}"), outcome])
