@@ -37,6 +37,7 @@ pub struct CommandReply {
 
 /// `?force=`.
 #[derive(Debug, Clone, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct CommandQuery {
     /// factory-reset writes flash, which the manual allows only at

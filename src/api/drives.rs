@@ -286,6 +286,7 @@ pub async fn get_drive(
 
 /// `?fresh=`.
 #[derive(Debug, Clone, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct StatusQuery {
     /// Read the drive now (one bus transaction, command priority) instead of

@@ -93,6 +93,7 @@ pub enum ClientMessage {
 
 /// Stream query parameters.
 #[derive(Debug, Clone, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct StreamQuery {
     /// Subscribe at once: `all`, or drive names separated by commas.
     pub drives: Option<String>,
