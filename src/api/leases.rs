@@ -32,7 +32,7 @@ use super::hub::{Hub, ServerMessage};
 use crate::audit;
 use crate::bus::handle::JobOptions;
 use crate::bus::{Priority, SourceId};
-use crate::drive::{DriveReply, DriveRequest};
+use crate::drive::{DriveReply, DriveRequest, Mode};
 use crate::plant::Plant;
 use crate::safety::StopAction;
 
@@ -53,6 +53,9 @@ pub struct LeaseInfo {
 
 struct Lease {
     id: u64,
+    /// The mode its setpoint drives the motor in: the last resort for
+    /// choosing the stop when the drive's mode cannot be read.
+    mode: Mode,
     owner: Arc<str>,
     connection: Option<u64>,
     duration: Duration,
@@ -137,12 +140,14 @@ impl LeaseBook {
     }
 
     /// Puts a lease of `duration` on drive `index` for `owner` (over the
-    /// WebSocket `connection`, if any), replacing any lease there. Until
-    /// [`confirm`](Self::confirm) it runs for `duration + pending`, the time
-    /// the setpoint may take to reach the drive.
+    /// WebSocket `connection`, if any), covering a setpoint for `mode`,
+    /// replacing any lease there. Until [`confirm`](Self::confirm) it runs
+    /// for `duration + pending`, the time the setpoint may take to reach
+    /// the drive.
     pub fn grant(
         self: &Arc<Self>,
         index: usize,
+        mode: Mode,
         owner: &Arc<str>,
         connection: Option<u64>,
         duration: Duration,
@@ -152,6 +157,7 @@ impl LeaseBook {
         let (deadline, rx) = watch::channel(Instant::now() + duration + pending);
         let lease = Lease {
             id,
+            mode,
             owner: owner.clone(),
             connection,
             duration,
@@ -314,19 +320,26 @@ impl LeaseBook {
         };
         // The stop depends on the mode: zero speed means a zero current
         // setpoint in torque mode, and nothing in position mode (it holds).
-        let mode = match bus.drive(unit).and_then(|s| s.status) {
-            Some(s) => Ok(s.mode()),
-            None => match bus.execute(unit, &DriveRequest::ReadStatus, options).await {
-                Ok(DriveReply::Status(s)) => Ok(s.mode()),
-                Ok(_) => Err("no status in the reply".to_string()),
-                Err(e) => Err(e.to_string()),
-            },
+        // The mode is read from the drive now: the cache may predate a mode
+        // command sent just before the setpoint. The brake needs no mode.
+        let mode = if self.action == StopAction::ZeroSpeed {
+            match bus.execute(unit, &DriveRequest::ReadStatus, options).await {
+                Ok(DriveReply::Status(s)) => s.mode(),
+                _ => bus
+                    .drive(unit)
+                    .and_then(|s| s.status)
+                    .map_or(lease.mode, |s| s.mode()),
+            }
+        } else {
+            lease.mode
         };
         let who = format!("lease-expiry ({})", lease.owner);
-        let (sent, result) = match (mode, self.action) {
-            (_, StopAction::None) => (None, Ok("on_lease_expiry = \"none\": nothing sent".to_string())),
-            (Err(e), _) => (None, Err(format!("cannot read the drive's mode: {e}"))),
-            (Ok(mode), action) => match action.request(mode) {
+        let (sent, result) = match self.action {
+            StopAction::None => (
+                None,
+                Ok("on_lease_expiry = \"none\": nothing sent".to_string()),
+            ),
+            action => match action.request(mode) {
                 None => (
                     None,
                     Ok(format!(
@@ -351,7 +364,7 @@ impl LeaseBook {
                 drive = %drive.name,
                 owner = %lease.owner,
                 action = self.action.name(),
-                "lease ended because {why}: motor stopped ({r})"
+                "lease ended because {why}: {r}"
             ),
             Err(e) => tracing::error!(
                 drive = %drive.name,

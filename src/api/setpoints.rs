@@ -137,6 +137,15 @@ fn pending_allowance(target: Target<'_>, state: &ApiState) -> Duration {
         })
 }
 
+/// The mode a setpoint drives the motor in.
+fn setpoint_mode(request: &DriveRequest) -> Mode {
+    match request {
+        DriveRequest::Position { .. } => Mode::Position,
+        DriveRequest::Torque { .. } => Mode::Torque,
+        _ => Mode::Speed,
+    }
+}
+
 fn mode_note(request: &DriveRequest, mode: Option<Mode>) -> Option<String> {
     let (wanted, setpoint) = match request {
         DriveRequest::Speed { .. } => (Mode::Speed, "speed"),
@@ -171,6 +180,7 @@ pub async fn apply(
     let grant = lease.map(|d| {
         state.leases.grant(
             target.index,
+            setpoint_mode(&request),
             &caller.who,
             connection,
             d,
