@@ -358,6 +358,20 @@ mod tests {
     }
 
     #[test]
+    fn the_documented_token_examples_are_valid() {
+        let reference = include_str!("../../config/drivegate.toml");
+        let examples: Vec<&str> = reference
+            .lines()
+            .skip_while(|l| *l != "# [[http.token]]")
+            .take_while(|l| l.starts_with('#'))
+            .map(|l| l.trim_start_matches('#').trim_start())
+            .collect();
+        let c = parse(&examples.join("\n")).unwrap();
+        let roles: Vec<Role> = c.tokens.iter().map(|t| t.role).collect();
+        assert_eq!(roles, [Role::Viewer, Role::Operator, Role::Admin]);
+    }
+
+    #[test]
     fn sha256_hex() {
         let d = parse_sha256("9F86D081884C7D659A2FEAA0C55AD015A3BF4F1B2B0B822CD15D6C15B0F00A08")
             .unwrap();
