@@ -109,13 +109,19 @@ async fn roles_decide_who_may_do_what() {
 
         // Viewer: reads only.
         viewer.get("/api/v1/drives").await.expect(200);
-        viewer.get("/api/v1/drives/conveyor/status").await.expect(200);
+        viewer
+            .get("/api/v1/drives/conveyor/status")
+            .await
+            .expect(200);
         viewer.get("/api/v1/buses").await.expect(200);
         let p = viewer
             .post_empty("/api/v1/drives/conveyor/commands/activate")
             .await
             .expect_problem(403, "forbidden");
-        assert!(p["detail"].as_str().unwrap().contains("operator role"), "{p:#}");
+        assert!(
+            p["detail"].as_str().unwrap().contains("operator role"),
+            "{p:#}"
+        );
         viewer
             .put("/api/v1/drives/conveyor/setpoint", json!({"speed_rpm": 10}))
             .await
@@ -130,12 +136,24 @@ async fn roles_decide_who_may_do_what() {
         operator.command("conveyor", "brake").await;
         operator.command("conveyor", "fault-reset").await;
         for (path, body) in [
-            ("/api/v1/drives/conveyor/protection", json!({"limit_a": 5.0, "stall_ms": 100})),
-            ("/api/v1/drives/conveyor/ramps/speed", json!({"alpha": 1000})),
+            (
+                "/api/v1/drives/conveyor/protection",
+                json!({"limit_a": 5.0, "stall_ms": 100}),
+            ),
+            (
+                "/api/v1/drives/conveyor/ramps/speed",
+                json!({"alpha": 1000}),
+            ),
             ("/api/v1/drives/conveyor/inertia", json!({"ratio": 2})),
-            ("/api/v1/drives/conveyor/rs485-control", json!({"enabled": true})),
+            (
+                "/api/v1/drives/conveyor/rs485-control",
+                json!({"enabled": true}),
+            ),
         ] {
-            operator.put(path, body).await.expect_problem(403, "forbidden");
+            operator
+                .put(path, body)
+                .await
+                .expect_problem(403, "forbidden");
         }
         for command in ["factory-reset", "calibrate", "fine-tune"] {
             operator
@@ -151,7 +169,10 @@ async fn roles_decide_who_may_do_what() {
 
         // Admin: everything.
         admin
-            .put("/api/v1/drives/lift/protection", json!({"limit_a": 5.0, "stall_ms": 100}))
+            .put(
+                "/api/v1/drives/lift/protection",
+                json!({"limit_a": 5.0, "stall_ms": 100}),
+            )
             .await
             .expect(200);
         admin.command("lift", "factory-reset").await;
@@ -162,11 +183,24 @@ async fn roles_decide_who_may_do_what() {
 
         // The stream: a token in the header or the query; none is refused.
         let mut ws = connect(d.http, "?drives=conveyor", Some(VIEWER_SECRET)).await;
-        assert_eq!(next_json(&mut ws, Duration::from_secs(5)).await["type"], "subscribed");
-        let mut ws2 = connect(d.http, &format!("?drives=all&access_token={VIEWER_SECRET}"), None).await;
-        assert_eq!(next_json(&mut ws2, Duration::from_secs(5)).await["type"], "subscribed");
+        assert_eq!(
+            next_json(&mut ws, Duration::from_secs(5)).await["type"],
+            "subscribed"
+        );
+        let mut ws2 = connect(
+            d.http,
+            &format!("?drives=all&access_token={VIEWER_SECRET}"),
+            None,
+        )
+        .await;
+        assert_eq!(
+            next_json(&mut ws2, Duration::from_secs(5)).await["type"],
+            "subscribed"
+        );
         let refused = tokio_tungstenite::connect_async(
-            format!("ws://{}/api/v1/stream", d.http).into_client_request().unwrap(),
+            format!("ws://{}/api/v1/stream", d.http)
+                .into_client_request()
+                .unwrap(),
         )
         .await;
         match refused {
@@ -181,7 +215,10 @@ async fn roles_decide_who_may_do_what() {
             json!({"type": "command", "id": 1, "op": "activate", "drive": "lift"}),
         )
         .await;
-        let reply = api_support::wait_for(&mut ws, Duration::from_secs(5), "the reply", |v| v["type"] == "reply").await;
+        let reply = api_support::wait_for(&mut ws, Duration::from_secs(5), "the reply", |v| {
+            v["type"] == "reply"
+        })
+        .await;
         assert_eq!(reply["ok"], false);
         assert_eq!(reply["problem"]["status"], 403);
         drop((ws, ws2));
@@ -189,14 +226,28 @@ async fn roles_decide_who_may_do_what() {
         // Writes are audited under the token's name; no secret is logged or
         // exported.
         let logs = log_text();
-        let audit: Vec<&str> = logs.lines().filter(|l| l.contains("drivegate::audit")).collect();
+        let audit: Vec<&str> = logs
+            .lines()
+            .filter(|l| l.contains("drivegate::audit"))
+            .collect();
         assert!(
-            audit.iter().any(|l| l.contains("scada") && l.contains("speed setpoint 30 rpm")),
+            audit
+                .iter()
+                .any(|l| l.contains("scada") && l.contains("speed setpoint 30 rpm")),
             "no audit line for the operator's setpoint in:\n{}",
             audit.join("\n")
         );
-        assert!(audit.iter().any(|l| l.contains("commissioning") && l.contains("over-current limit")));
-        let metrics = reqwest::get(anonymous.url("/metrics")).await.unwrap().text().await.unwrap();
+        assert!(
+            audit
+                .iter()
+                .any(|l| l.contains("commissioning") && l.contains("over-current limit"))
+        );
+        let metrics = reqwest::get(anonymous.url("/metrics"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
         for secret in [VIEWER_SECRET, OPERATOR_SECRET, admin_token.as_str()] {
             assert!(!logs.contains(secret), "a token was logged");
             assert!(!metrics.contains(secret), "a token is in the metrics");
@@ -227,7 +278,9 @@ async fn without_tokens_the_api_listens_on_loopback_only() {
         let logs = log_text();
         assert!(logs.contains("loopback only"), "the log does not say so");
         assert!(
-            logs.lines().any(|l| l.contains("drivegate::audit") && l.contains("127.0.0.1:") && l.contains("load inertia ratio 2")),
+            logs.lines().any(|l| l.contains("drivegate::audit")
+                && l.contains("127.0.0.1:")
+                && l.contains("load inertia ratio 2")),
             "no audit line naming the client address"
         );
         d.stop().await;
@@ -251,7 +304,11 @@ async fn limits_on_connections_bodies_and_messages() {
 
         // A stream message over the limit closes that stream only.
         let mut ws = connect(d.http, "", None).await;
-        send_json(&mut ws, json!({"type": "subscribe", "drives": ["x".repeat(2000)]})).await;
+        send_json(
+            &mut ws,
+            json!({"type": "subscribe", "drives": ["x".repeat(2000)]}),
+        )
+        .await;
         let closed = tokio::time::timeout(Duration::from_secs(5), async {
             loop {
                 match ws.next().await {
@@ -262,21 +319,28 @@ async fn limits_on_connections_bodies_and_messages() {
             }
         })
         .await;
-        assert!(closed.is_ok(), "the oversized message did not close the stream");
+        assert!(
+            closed.is_ok(),
+            "the oversized message did not close the stream"
+        );
         api.get("/api/v1/drives").await.expect(200);
 
         // Three idle connections hold every slot: the next one gets 503.
         let mut idle = Vec::new();
         for _ in 0..3 {
             let mut s = tokio::net::TcpStream::connect(d.http).await.unwrap();
-            s.write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n").await.unwrap();
+            s.write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n")
+                .await
+                .unwrap();
             idle.push(s);
         }
         // The server accepts them in the background: retry until refused.
         let refused = async {
             loop {
                 let mut s = tokio::net::TcpStream::connect(d.http).await.unwrap();
-                s.write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n").await.unwrap();
+                s.write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n")
+                    .await
+                    .unwrap();
                 let mut answer = Vec::new();
                 let read = tokio::time::timeout(
                     Duration::from_secs(2),
@@ -292,7 +356,10 @@ async fn limits_on_connections_bodies_and_messages() {
         let answer = tokio::time::timeout(Duration::from_secs(15), refused)
             .await
             .expect("a connection over the limit is refused");
-        assert!(answer.contains("urn:drivegate:problem:too-many-connections"), "{answer}");
+        assert!(
+            answer.contains("urn:drivegate:problem:too-many-connections"),
+            "{answer}"
+        );
         assert!(answer.contains("application/problem+json"), "{answer}");
         // Closing them frees the slots.
         drop(idle);

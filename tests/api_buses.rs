@@ -23,12 +23,25 @@ async fn bus_counters_and_a_scan() {
 
         let buses = api.get("/api/v1/buses").await.expect(200);
         let bus = &buses[0];
-        assert_eq!((bus["name"].as_str(), bus["port"].as_str(), bus["baud"].as_u64()), (Some("sim"), Some("sim"), Some(115_200)));
+        assert_eq!(
+            (
+                bus["name"].as_str(),
+                bus["port"].as_str(),
+                bus["baud"].as_u64()
+            ),
+            (Some("sim"), Some("sim"), Some(115_200))
+        );
         assert_eq!(bus["state"], "up");
-        assert_eq!((bus["drives"].as_u64(), bus["drives_online"].as_u64()), (Some(4), Some(4)));
+        assert_eq!(
+            (bus["drives"].as_u64(), bus["drives_online"].as_u64()),
+            (Some(4), Some(4))
+        );
         assert!(bus["counters"]["polls"].as_u64().unwrap() > 0);
         assert!(bus["queue"]["poll"].is_u64());
-        assert_eq!(api.get("/api/v1/buses/sim").await.expect(200)["name"], "sim");
+        assert_eq!(
+            api.get("/api/v1/buses/sim").await.expect(200)["name"],
+            "sim"
+        );
 
         // Units 1-4 answer; 5-8 are silent. The silent lift is "missing".
         d.sim().set_silent(2, true);
@@ -54,7 +67,10 @@ async fn bus_counters_and_a_scan() {
 
         // Without a body, the default range; a reversed range is refused.
         let scan = api.post_empty("/api/v1/buses/sim/scan").await.expect(200);
-        assert_eq!((scan["from"].as_u64(), scan["to"].as_u64()), (Some(1), Some(32)));
+        assert_eq!(
+            (scan["from"].as_u64(), scan["to"].as_u64()),
+            (Some(1), Some(32))
+        );
         api.post("/api/v1/buses/sim/scan", json!({"from": 9, "to": 3}))
             .await
             .expect_problem(400, "invalid-request");
@@ -87,7 +103,10 @@ async fn address_setting_is_verified_at_the_new_address() {
             )
             .await
             .expect(200);
-        assert_eq!((r["address"].as_u64(), r["verified"].as_bool()), (Some(12), Some(true)));
+        assert_eq!(
+            (r["address"].as_u64(), r["verified"].as_bool()),
+            (Some(12), Some(true))
+        );
         assert!(r["configured_as"].is_null());
         assert!(r["note"].as_str().unwrap().contains("unit = 12"), "{r:#}");
         assert!(r["status"]["voltage_v"].as_u64().unwrap() > 0);

@@ -42,11 +42,20 @@ async fn activate_mode_setpoint_and_the_motor_follows() {
         assert_eq!(r["written"][0]["raw"], 0xA);
         assert_eq!(sim.drive(1).unwrap().mode, Mode::Speed);
         let r = api
-            .put("/api/v1/drives/conveyor/setpoint", json!({"speed_rpm": 100}))
+            .put(
+                "/api/v1/drives/conveyor/setpoint",
+                json!({"speed_rpm": 100}),
+            )
             .await
             .expect(200);
         assert_eq!(r["written"][0]["register"], "SPEED_REF");
-        assert_eq!((r["written"][0]["value"].as_f64(), r["written"][0]["raw"].as_i64()), (Some(100.0), Some(100)));
+        assert_eq!(
+            (
+                r["written"][0]["value"].as_f64(),
+                r["written"][0]["raw"].as_i64()
+            ),
+            (Some(100.0), Some(100))
+        );
         assert_eq!(r["written"][0]["unit"], "rpm");
         assert!(r["lease"].is_null());
         assert_eq!(sim.drive(1).unwrap().setpoints.speed_rpm, 100);
@@ -58,7 +67,10 @@ async fn activate_mode_setpoint_and_the_motor_follows() {
                 assert_eq!(s["active"], true);
                 break;
             }
-            assert!(Instant::now() < deadline, "the motor did not reach 100 rpm: {s:#}");
+            assert!(
+                Instant::now() < deadline,
+                "the motor did not reach 100 rpm: {s:#}"
+            );
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
 
@@ -75,10 +87,19 @@ async fn activate_mode_setpoint_and_the_motor_follows() {
         // Position mode on the turntable: 90 degrees.
         api.activate_in("turntable", "position").await;
         let r = api
-            .put("/api/v1/drives/turntable/setpoint", json!({"position_deg": 90.0}))
+            .put(
+                "/api/v1/drives/turntable/setpoint",
+                json!({"position_deg": 90.0}),
+            )
             .await
             .expect(200);
-        assert_eq!((r["written"][0]["register"].as_str(), r["written"][0]["raw"].as_i64()), (Some("POSITION_REF"), Some(9000)));
+        assert_eq!(
+            (
+                r["written"][0]["register"].as_str(),
+                r["written"][0]["raw"].as_i64()
+            ),
+            (Some("POSITION_REF"), Some(9000))
+        );
         assert_eq!(r["mode"], "position");
         let deadline = Instant::now() + Duration::from_secs(5);
         loop {
@@ -86,15 +107,22 @@ async fn activate_mode_setpoint_and_the_motor_follows() {
             if (s["angle_deg"].as_f64().unwrap() - 90.0).abs() < 0.5 {
                 break;
             }
-            assert!(Instant::now() < deadline, "the turntable did not reach 90 deg: {s:#}");
+            assert!(
+                Instant::now() < deadline,
+                "the turntable did not reach 90 deg: {s:#}"
+            );
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
         // Set zero: here is the new 0.
         api.command("turntable", "set-zero").await;
-        let s = eventually(Duration::from_secs(3), "angle near 0 after set-zero", || {
-            let s = d.plant.buses()[0].handle.drive(3)?.status?;
-            (s.angle_deg().abs() < 0.5).then_some(s)
-        })
+        let s = eventually(
+            Duration::from_secs(3),
+            "angle near 0 after set-zero",
+            || {
+                let s = d.plant.buses()[0].handle.drive(3)?.status?;
+                (s.angle_deg().abs() < 0.5).then_some(s)
+            },
+        )
         .await;
         assert_eq!(s.mode(), Mode::Position);
 
@@ -104,22 +132,40 @@ async fn activate_mode_setpoint_and_the_motor_follows() {
             .put("/api/v1/drives/feeder/setpoint", json!({"torque_a": 0.5}))
             .await
             .expect(200);
-        assert_eq!((r["written"][0]["raw"].as_i64(), r["written"][0]["unit"].as_str()), (Some(64), Some("A")));
+        assert_eq!(
+            (
+                r["written"][0]["raw"].as_i64(),
+                r["written"][0]["unit"].as_str()
+            ),
+            (Some(64), Some("A"))
+        );
         assert_eq!(sim.drive(4).unwrap().setpoints.current_counts, 64);
-        api.put("/api/v1/drives/feeder/setpoint", json!({"torque_counts": -32}))
-            .await
-            .expect(200);
+        api.put(
+            "/api/v1/drives/feeder/setpoint",
+            json!({"torque_counts": -32}),
+        )
+        .await
+        .expect(200);
         assert_eq!(sim.drive(4).unwrap().setpoints.current_counts, -32);
-        api.put("/api/v1/drives/feeder/setpoint", json!({"torque_counts": 0}))
-            .await
-            .expect(200);
+        api.put(
+            "/api/v1/drives/feeder/setpoint",
+            json!({"torque_counts": 0}),
+        )
+        .await
+        .expect(200);
 
         // A speed setpoint in position mode is stored, with a note.
         let r = api
-            .put("/api/v1/drives/turntable/setpoint", json!({"speed_rpm": 10}))
+            .put(
+                "/api/v1/drives/turntable/setpoint",
+                json!({"speed_rpm": 10}),
+            )
             .await
             .expect(200);
-        assert!(r["note"].as_str().unwrap().contains("position mode"), "{r:#}");
+        assert!(
+            r["note"].as_str().unwrap().contains("position mode"),
+            "{r:#}"
+        );
 
         // Deactivate: no more setpoints.
         api.command("conveyor", "deactivate").await;
@@ -156,20 +202,29 @@ async fn a_ramp_set_by_time_shapes_the_move() {
         assert_eq!(w[0]["register"], "SPEED_TD_R_HIGH");
         assert_eq!(w[1]["raw"].as_u64(), Some(alpha & 0xFFFF));
         assert_eq!(sim.drive(1).unwrap().settings.speed_alpha, alpha as u32);
-        assert_ne!(sim.drive(1).unwrap().flash.settings.speed_alpha, alpha as u32);
+        assert_ne!(
+            sim.drive(1).unwrap().flash.settings.speed_alpha,
+            alpha as u32
+        );
 
         api.activate_in("conveyor", "speed").await;
         let start = Instant::now();
-        api.put("/api/v1/drives/conveyor/setpoint", json!({"speed_rpm": 200}))
-            .await
-            .expect(200);
+        api.put(
+            "/api/v1/drives/conveyor/setpoint",
+            json!({"speed_rpm": 200}),
+        )
+        .await
+        .expect(200);
         eventually(Duration::from_secs(6), "the conveyor at 195 rpm", || {
             (sim.drive(1)?.speed_rpm >= 195.0).then_some(())
         })
         .await;
         let took = start.elapsed();
         // The ramp cannot be faster than what was asked (lower bound only).
-        assert!(took >= Duration::from_millis(800), "reached 195 rpm after {took:?}");
+        assert!(
+            took >= Duration::from_millis(800),
+            "reached 195 rpm after {took:?}"
+        );
 
         // Position ramp by alpha, with the step to get its time.
         let r = api
@@ -180,7 +235,10 @@ async fn a_ramp_set_by_time_shapes_the_move() {
             .await
             .expect(200);
         assert_eq!(r["alpha"], 200);
-        assert!((r["time_s"].as_f64().unwrap() - 0.2507).abs() < 0.001, "{r:#}");
+        assert!(
+            (r["time_s"].as_f64().unwrap() - 0.2507).abs() < 0.001,
+            "{r:#}"
+        );
         assert_eq!(sim.drive(3).unwrap().settings.position_alpha, 200);
         d.stop().await;
     })
@@ -204,10 +262,18 @@ async fn settings_are_written_saved_and_factory_reset() {
             .await
             .expect(200);
         assert_eq!(r["saved"], true);
-        let raws: Vec<i64> = r["written"].as_array().unwrap().iter().map(|w| w["raw"].as_i64().unwrap()).collect();
+        let raws: Vec<i64> = r["written"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|w| w["raw"].as_i64().unwrap())
+            .collect();
         assert_eq!(raws, [1280, 2000, 1]);
         let lift = sim.drive(2).unwrap();
-        assert_eq!((lift.settings.stall_current, lift.settings.stall_duration_ms), (1280, 2000));
+        assert_eq!(
+            (lift.settings.stall_current, lift.settings.stall_duration_ms),
+            (1280, 2000)
+        );
         assert_eq!(lift.flash.settings.stall_current, 1280);
         // ... and in raw counts, not saved.
         api.put(
@@ -221,28 +287,52 @@ async fn settings_are_written_saved_and_factory_reset() {
         assert_eq!(lift.flash.settings.stall_current, 1280);
 
         // Speed ramp by alpha, saved; inertia, saved.
-        api.put("/api/v1/drives/lift/ramps/speed", json!({"alpha": 5000, "save": true}))
-            .await
-            .expect(200);
+        api.put(
+            "/api/v1/drives/lift/ramps/speed",
+            json!({"alpha": 5000, "save": true}),
+        )
+        .await
+        .expect(200);
         let r = api
-            .put("/api/v1/drives/lift/inertia", json!({"ratio": 5, "save": true}))
+            .put(
+                "/api/v1/drives/lift/inertia",
+                json!({"ratio": 5, "save": true}),
+            )
             .await
             .expect(200);
         assert_eq!(r["written"][0]["register"], "INERTIA_RATIO");
         let lift = sim.drive(2).unwrap();
-        assert_eq!((lift.flash.settings.speed_alpha, lift.flash.settings.inertia_ratio), (5000, 5));
+        assert_eq!(
+            (
+                lift.flash.settings.speed_alpha,
+                lift.flash.settings.inertia_ratio
+            ),
+            (5000, 5)
+        );
         assert_eq!(lift.saves_while_moving, 0);
 
         // RS-485 control off and on.
         let r = api
-            .put("/api/v1/drives/lift/rs485-control", json!({"enabled": false}))
+            .put(
+                "/api/v1/drives/lift/rs485-control",
+                json!({"enabled": false}),
+            )
             .await
             .expect(200);
-        assert_eq!((r["written"][0]["register"].as_str(), r["written"][0]["raw"].as_i64()), (Some("USE_485_CONTROL"), Some(0)));
+        assert_eq!(
+            (
+                r["written"][0]["register"].as_str(),
+                r["written"][0]["raw"].as_i64()
+            ),
+            (Some("USE_485_CONTROL"), Some(0))
+        );
         assert!(!sim.drive(2).unwrap().rs485_control);
-        api.put("/api/v1/drives/lift/rs485-control", json!({"enabled": true}))
-            .await
-            .expect(200);
+        api.put(
+            "/api/v1/drives/lift/rs485-control",
+            json!({"enabled": true}),
+        )
+        .await
+        .expect(200);
         assert!(sim.drive(2).unwrap().rs485_control);
 
         // Factory reset restores ramps, protection and inertia, in flash too.
@@ -250,7 +340,10 @@ async fn settings_are_written_saved_and_factory_reset() {
         assert_eq!(r["written"][0]["raw"], 6);
         let lift = sim.drive(2).unwrap();
         assert_eq!(lift.settings, drivegate::sim::model::Settings::FACTORY);
-        assert_eq!(lift.flash.settings, drivegate::sim::model::Settings::FACTORY);
+        assert_eq!(
+            lift.flash.settings,
+            drivegate::sim::model::Settings::FACTORY
+        );
         d.stop().await;
     })
     .await
@@ -269,7 +362,10 @@ async fn calibration_fine_tuning_and_the_resets() {
         assert_eq!(s["calibrated"], false);
         let r = api.command("lift", "calibrate").await;
         assert!(r["note"].as_str().unwrap().contains("4 s"));
-        assert_eq!(sim.drive(2).unwrap().procedure, Some(Procedure::Calibrating));
+        assert_eq!(
+            sim.drive(2).unwrap().procedure,
+            Some(Procedure::Calibrating)
+        );
         // The calibrated flag shows in the status when it is done (about 4 s).
         eventually(Duration::from_secs(10), "calibrated flag", || {
             let s = d.plant.buses()[0].handle.drive(2)?.status?;

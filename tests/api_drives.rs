@@ -29,9 +29,15 @@ async fn drives_list_and_status_show_the_simulated_truth() {
             .collect();
         assert_eq!(names, ["conveyor", "lift", "turntable", "feeder"]);
         let lift = &list[1];
-        assert_eq!((lift["bus"].as_str(), lift["unit"].as_u64()), (Some("sim"), Some(2)));
+        assert_eq!(
+            (lift["bus"].as_str(), lift["unit"].as_u64()),
+            (Some("sim"), Some(2))
+        );
         assert_eq!(lift["gear_ratio"], 10.0);
-        assert_eq!((lift["link"].as_str(), lift["online"].as_bool()), (Some("online"), Some(true)));
+        assert_eq!(
+            (lift["link"].as_str(), lift["online"].as_bool()),
+            (Some("online"), Some(true))
+        );
         assert!(lift["last_seen"].as_str().unwrap().ends_with('Z'));
         assert!(lift["status"]["voltage_v"].as_u64().unwrap() > 0);
         assert!(lift["lease"].is_null());
@@ -68,7 +74,10 @@ async fn drives_list_and_status_show_the_simulated_truth() {
         assert_eq!(status["active"], false);
         assert_eq!(status["calibrated"], true);
         let truth = d.sim().drive(1).unwrap();
-        assert_eq!(status["voltage_v"].as_u64(), Some(u64::from(truth.status.voltage_v)));
+        assert_eq!(
+            status["voltage_v"].as_u64(),
+            Some(u64::from(truth.status.voltage_v))
+        );
         assert!(status["age_ms"].as_u64().unwrap() < 5_000);
 
         // A fresh read goes to the bus now.
@@ -77,7 +86,10 @@ async fn drives_list_and_status_show_the_simulated_truth() {
             .get("/api/v1/drives/conveyor/status?fresh=true")
             .await
             .expect(200);
-        assert_eq!((fresh["source"].as_str(), fresh["age_ms"].as_u64()), (Some("bus"), Some(0)));
+        assert_eq!(
+            (fresh["source"].as_str(), fresh["age_ms"].as_u64()),
+            (Some("bus"), Some(0))
+        );
         assert!(d.plant.buses()[0].handle.stats().on_wire() > polls_before);
         api.get("/api/v1/drives/conveyor/status?fresh=maybe")
             .await
@@ -94,7 +106,10 @@ async fn drives_list_and_status_show_the_simulated_truth() {
         .await;
         assert_eq!(status.fault().code(), 4);
         let status = api.get("/api/v1/drives/feeder/status").await.expect(200);
-        assert_eq!((status["fault"].as_str(), status["fault_code"].as_u64()), (Some("over_temperature"), Some(4)));
+        assert_eq!(
+            (status["fault"].as_str(), status["fault_code"].as_u64()),
+            (Some("over_temperature"), Some(4))
+        );
         d.stop().await;
     })
     .await

@@ -37,9 +37,15 @@ async fn malformed_and_out_of_range_requests_change_nothing() {
             })
             .await;
         r.expect_problem(400, "invalid-request");
-        let p = api.put(setpoint, json!({"speed_rpm": "fast"})).await.expect_problem(400, "invalid-request");
+        let p = api
+            .put(setpoint, json!({"speed_rpm": "fast"}))
+            .await
+            .expect_problem(400, "invalid-request");
         assert!(p["detail"].as_str().unwrap().contains("speed_rpm"), "{p:#}");
-        let p = api.put(setpoint, json!({"speed": 100})).await.expect_problem(400, "invalid-request");
+        let p = api
+            .put(setpoint, json!({"speed": 100}))
+            .await
+            .expect_problem(400, "invalid-request");
         assert!(p["detail"].as_str().unwrap().contains("speed"), "{p:#}");
         api.put(setpoint, json!({"speed_rpm": 10, "torque_a": 1.0}))
             .await
@@ -52,7 +58,9 @@ async fn malformed_and_out_of_range_requests_change_nothing() {
             .await
             .expect_problem(415, "unsupported-media-type");
         let huge = json!({"speed_rpm": 1, "pad": "x".repeat(70_000)});
-        api.put(setpoint, huge).await.expect_problem(413, "payload-too-large");
+        api.put(setpoint, huge)
+            .await
+            .expect_problem(413, "payload-too-large");
 
         // Unknown things: 404 with what exists.
         api.put("/api/v1/drives/nosuch/setpoint", json!({"speed_rpm": 1}))
@@ -62,39 +70,105 @@ async fn malformed_and_out_of_range_requests_change_nothing() {
             .post_empty("/api/v1/drives/conveyor/commands/launch")
             .await
             .expect_problem(404, "unknown-command");
-        assert!(p["detail"].as_str().unwrap().contains("fault-reset"), "{p:#}");
-        api.get("/api/v1/buses/nosuch").await.expect_problem(404, "unknown-bus");
+        assert!(
+            p["detail"].as_str().unwrap().contains("fault-reset"),
+            "{p:#}"
+        );
+        api.get("/api/v1/buses/nosuch")
+            .await
+            .expect_problem(404, "unknown-bus");
 
         // Out of range: 422 naming the range in the request's unit.
         for (path, body, min, max, unit) in [
             (setpoint, json!({"speed_rpm": 3000}), -2048.0, 2047.0, "rpm"),
-            (setpoint, json!({"position_deg": -200.5}), -180.0, 180.0, "deg"),
+            (
+                setpoint,
+                json!({"position_deg": -200.5}),
+                -180.0,
+                180.0,
+                "deg",
+            ),
             (setpoint, json!({"torque_a": 20}), -16.0, 15.9921875, "A"),
-            (setpoint, json!({"torque_counts": 5000}), -2048.0, 2047.0, "counts"),
-            (setpoint, json!({"speed_rpm": 10, "lease_ms": 5}), 100.0, 60000.0, "ms"),
-            ("/api/v1/drives/conveyor/protection", json!({"limit_a": 1.0, "stall_ms": 70000}), 0.0, 60000.0, "ms"),
-            ("/api/v1/drives/conveyor/protection", json!({"limit_counts": -1, "stall_ms": 10}), 0.0, 2047.0, "counts"),
-            ("/api/v1/drives/conveyor/inertia", json!({"ratio": 0}), 1.0, 65535.0, ""),
-            ("/api/v1/drives/conveyor/ramps/speed", json!({"alpha": -1}), 0.0, 4294967295.0, ""),
-            ("/api/v1/drives/conveyor/ramps/position", json!({"time_s": 0.1, "step_deg": 400}), 0.01, 360.0, "deg"),
+            (
+                setpoint,
+                json!({"torque_counts": 5000}),
+                -2048.0,
+                2047.0,
+                "counts",
+            ),
+            (
+                setpoint,
+                json!({"speed_rpm": 10, "lease_ms": 5}),
+                100.0,
+                60000.0,
+                "ms",
+            ),
+            (
+                "/api/v1/drives/conveyor/protection",
+                json!({"limit_a": 1.0, "stall_ms": 70000}),
+                0.0,
+                60000.0,
+                "ms",
+            ),
+            (
+                "/api/v1/drives/conveyor/protection",
+                json!({"limit_counts": -1, "stall_ms": 10}),
+                0.0,
+                2047.0,
+                "counts",
+            ),
+            (
+                "/api/v1/drives/conveyor/inertia",
+                json!({"ratio": 0}),
+                1.0,
+                65535.0,
+                "",
+            ),
+            (
+                "/api/v1/drives/conveyor/ramps/speed",
+                json!({"alpha": -1}),
+                0.0,
+                4294967295.0,
+                "",
+            ),
+            (
+                "/api/v1/drives/conveyor/ramps/position",
+                json!({"time_s": 0.1, "step_deg": 400}),
+                0.01,
+                360.0,
+                "deg",
+            ),
         ] {
-            let p = api.put(path, body.clone()).await.expect_problem(422, "out-of-range");
+            let p = api
+                .put(path, body.clone())
+                .await
+                .expect_problem(422, "out-of-range");
             let range = &p["valid_range"];
             assert_eq!(
-                (range["min"].as_f64(), range["max"].as_f64(), range["unit"].as_str()),
+                (
+                    range["min"].as_f64(),
+                    range["max"].as_f64(),
+                    range["unit"].as_str()
+                ),
                 (Some(min), Some(max), Some(unit)),
                 "{body}: {p:#}"
             );
         }
         // A ramp time the alpha cannot reach names the time range.
         let p = api
-            .put("/api/v1/drives/conveyor/ramps/speed", json!({"time_s": 100, "step_rpm": 133}))
+            .put(
+                "/api/v1/drives/conveyor/ramps/speed",
+                json!({"time_s": 100, "step_rpm": 133}),
+            )
             .await
             .expect_problem(422, "out-of-range");
         assert_eq!(p["valid_range"]["unit"], "s");
-        api.post("/api/v1/buses/sim/address", json!({"address": 300, "only_drive_on_bus": true}))
-            .await
-            .expect_problem(422, "out-of-range");
+        api.post(
+            "/api/v1/buses/sim/address",
+            json!({"address": 300, "only_drive_on_bus": true}),
+        )
+        .await
+        .expect_problem(422, "out-of-range");
 
         // Nothing reached the drive.
         let conveyor = sim.drive(1).unwrap();
@@ -129,7 +203,10 @@ async fn drive_state_conflicts_are_409() {
         // Not active, though the cache still says active: the drive's own
         // refusal (exception 0x04) is the same 409.
         api.activate_in("feeder", "speed").await;
-        let fresh = api.get("/api/v1/drives/feeder/status?fresh=true").await.expect(200);
+        let fresh = api
+            .get("/api/v1/drives/feeder/status?fresh=true")
+            .await
+            .expect(200);
         assert_eq!(fresh["active"], true);
         let (_, bus) = d.plant.drive("feeder").unwrap();
         bus.execute(
@@ -139,7 +216,10 @@ async fn drive_state_conflicts_are_409() {
         )
         .await
         .unwrap();
-        assert!(bus.drive(4).unwrap().status.unwrap().active(), "the cache should be stale");
+        assert!(
+            bus.drive(4).unwrap().status.unwrap().active(),
+            "the cache should be stale"
+        );
         let p = api
             .put("/api/v1/drives/feeder/setpoint", json!({"speed_rpm": 50}))
             .await
@@ -156,7 +236,10 @@ async fn drive_state_conflicts_are_409() {
         })
         .await;
         let p = api
-            .put("/api/v1/drives/lift/inertia", json!({"ratio": 3, "save": true}))
+            .put(
+                "/api/v1/drives/lift/inertia",
+                json!({"ratio": 3, "save": true}),
+            )
             .await
             .expect_problem(409, "drive-moving");
         assert!(p["detail"].as_str().unwrap().contains("force"), "{p:#}");
@@ -169,18 +252,27 @@ async fn drive_state_conflicts_are_409() {
             .await
             .expect(200);
         let r = api
-            .put("/api/v1/drives/lift/inertia", json!({"ratio": 3, "save": true, "force": true}))
+            .put(
+                "/api/v1/drives/lift/inertia",
+                json!({"ratio": 3, "save": true, "force": true}),
+            )
             .await
             .expect(200);
         assert_eq!(r["saved"], true);
         let lift = sim.drive(2).unwrap();
-        assert_eq!((lift.flash.settings.inertia_ratio, lift.saves_while_moving), (3, 1));
+        assert_eq!(
+            (lift.flash.settings.inertia_ratio, lift.saves_while_moving),
+            (3, 1)
+        );
 
         // Calibrating: the drive is busy (0x06), 409 with Retry-After.
         api.activate_in("turntable", "speed").await;
         api.command("turntable", "calibrate").await;
         let r = api
-            .put("/api/v1/drives/turntable/setpoint", json!({"speed_rpm": 20}))
+            .put(
+                "/api/v1/drives/turntable/setpoint",
+                json!({"speed_rpm": 20}),
+            )
             .await;
         assert_eq!(r.headers.get("retry-after").unwrap(), "1");
         r.expect_problem(409, "drive-busy");
@@ -281,7 +373,10 @@ async fn bus_and_drive_failures_have_their_own_status() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_full_bus_queue_is_429_with_retry_after() {
     tokio::time::timeout(LIMIT, async {
-        let text = config("", "").replace("retries = 1", "retries = 1\nqueue_capacity = 4\nqueue_per_client = 2");
+        let text = config("", "").replace(
+            "retries = 1",
+            "retries = 1\nqueue_capacity = 4\nqueue_per_client = 2",
+        );
         let d = TestDaemon::start(&text).await;
         let api = Api::new(d.http, None);
         let reads = (0..24).map(|_| {

@@ -24,7 +24,10 @@ async fn an_unrenewed_lease_stops_the_motor() {
         let api = Api::new(d.http, None);
         let sim = d.sim();
         let mut ws = connect(d.http, "?drives=conveyor,feeder", None).await;
-        assert_eq!(next_json(&mut ws, Duration::from_secs(5)).await["type"], "subscribed");
+        assert_eq!(
+            next_json(&mut ws, Duration::from_secs(5)).await["type"],
+            "subscribed"
+        );
 
         api.activate_in("conveyor", "speed").await;
         let sent = Instant::now();
@@ -36,7 +39,10 @@ async fn an_unrenewed_lease_stops_the_motor() {
             .await
             .expect(200);
         let lease = &r["lease"];
-        assert_eq!((lease["lease_ms"].as_u64(), lease["websocket"].as_bool()), (Some(300), Some(false)));
+        assert_eq!(
+            (lease["lease_ms"].as_u64(), lease["websocket"].as_bool()),
+            (Some(300), Some(false))
+        );
         assert!(lease["owner"].as_str().unwrap().starts_with("127.0.0.1:"));
         assert!(lease["expires_in_ms"].as_u64().unwrap() <= 300);
         let shown = api.get("/api/v1/drives/conveyor").await.expect(200);
@@ -51,15 +57,27 @@ async fn an_unrenewed_lease_stops_the_motor() {
             (sim.drive(1)?.setpoints.speed_rpm == 0).then_some(())
         })
         .await;
-        assert!(sent.elapsed() >= Duration::from_millis(300), "stopped before the lease ran out");
-        let event = wait_for(&mut ws, Duration::from_secs(5), "the lease-expired event", |v| {
-            v["type"] == "lease-expired"
-        })
+        assert!(
+            sent.elapsed() >= Duration::from_millis(300),
+            "stopped before the lease ran out"
+        );
+        let event = wait_for(
+            &mut ws,
+            Duration::from_secs(5),
+            "the lease-expired event",
+            |v| v["type"] == "lease-expired",
+        )
         .await;
         assert_eq!(event["drive"], "conveyor");
         assert_eq!(event["action"], "zero-speed");
         assert_eq!(event["ok"], true);
-        assert!(event["sent"].as_str().unwrap().contains("speed setpoint 0 rpm"), "{event:#}");
+        assert!(
+            event["sent"]
+                .as_str()
+                .unwrap()
+                .contains("speed setpoint 0 rpm"),
+            "{event:#}"
+        );
         eventually(Duration::from_secs(5), "the conveyor standing", || {
             (sim.drive(1)?.speed_rpm.abs() < 1.0).then_some(())
         })
@@ -82,11 +100,20 @@ async fn an_unrenewed_lease_stops_the_motor() {
             (sim.drive(4)?.setpoints.current_counts == 0).then_some(())
         })
         .await;
-        let event = wait_for(&mut ws, Duration::from_secs(5), "the feeder's lease-expired event", |v| {
-            v["type"] == "lease-expired" && v["drive"] == "feeder"
-        })
+        let event = wait_for(
+            &mut ws,
+            Duration::from_secs(5),
+            "the feeder's lease-expired event",
+            |v| v["type"] == "lease-expired" && v["drive"] == "feeder",
+        )
         .await;
-        assert!(event["sent"].as_str().unwrap().contains("torque setpoint 0 A"), "{event:#}");
+        assert!(
+            event["sent"]
+                .as_str()
+                .unwrap()
+                .contains("torque setpoint 0 A"),
+            "{event:#}"
+        );
         d.stop().await;
     })
     .await
@@ -100,9 +127,12 @@ async fn renewing_keeps_the_motor_running_and_release_ends_the_lease() {
         let api = Api::new(d.http, None);
         let sim = d.sim();
         api.activate_in("lift", "speed").await;
-        api.put("/api/v1/drives/lift/setpoint", json!({"speed_rpm": 100, "lease_ms": 300}))
-            .await
-            .expect(200);
+        api.put(
+            "/api/v1/drives/lift/setpoint",
+            json!({"speed_rpm": 100, "lease_ms": 300}),
+        )
+        .await
+        .expect(200);
 
         // Renew every 100 ms for over a second, by the renew route and by
         // repeating the setpoint: the motor keeps its setpoint.
@@ -116,11 +146,18 @@ async fn renewing_keeps_the_motor_running_and_release_ends_the_lease() {
                     .expect(200);
                 assert_eq!(lease["lease_ms"], 300);
             } else {
-                api.put("/api/v1/drives/lift/setpoint", json!({"speed_rpm": 100, "lease_ms": 300}))
-                    .await
-                    .expect(200);
+                api.put(
+                    "/api/v1/drives/lift/setpoint",
+                    json!({"speed_rpm": 100, "lease_ms": 300}),
+                )
+                .await
+                .expect(200);
             }
-            assert_eq!(sim.drive(2).unwrap().setpoints.speed_rpm, 100, "stopped while renewed");
+            assert_eq!(
+                sim.drive(2).unwrap().setpoints.speed_rpm,
+                100,
+                "stopped while renewed"
+            );
             i += 1;
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
@@ -130,9 +167,12 @@ async fn renewing_keeps_the_motor_running_and_release_ends_the_lease() {
             .await
             .expect(200);
         assert_eq!(lease["lease_ms"], 400);
-        api.post("/api/v1/drives/lift/lease/renew", json!({"lease_ms": 10_000_000}))
-            .await
-            .expect_problem(422, "out-of-range");
+        api.post(
+            "/api/v1/drives/lift/lease/renew",
+            json!({"lease_ms": 10_000_000}),
+        )
+        .await
+        .expect_problem(422, "out-of-range");
         // Then it stops when the renewals stop.
         eventually(Duration::from_secs(5), "the stop", || {
             (sim.drive(2)?.setpoints.speed_rpm == 0).then_some(())
@@ -140,9 +180,12 @@ async fn renewing_keeps_the_motor_running_and_release_ends_the_lease() {
         .await;
 
         // Released, the lease ends without a stop.
-        api.put("/api/v1/drives/lift/setpoint", json!({"speed_rpm": 80, "lease_ms": 300}))
-            .await
-            .expect(200);
+        api.put(
+            "/api/v1/drives/lift/setpoint",
+            json!({"speed_rpm": 80, "lease_ms": 300}),
+        )
+        .await
+        .expect(200);
         let released = api.delete("/api/v1/drives/lift/lease").await.expect(200);
         assert_eq!(released["drive"], "lift");
         api.delete("/api/v1/drives/lift/lease")
@@ -152,9 +195,12 @@ async fn renewing_keeps_the_motor_running_and_release_ends_the_lease() {
         assert_eq!(sim.drive(2).unwrap().setpoints.speed_rpm, 80);
 
         // The brake ends a lease too: zero speed at expiry would release it.
-        api.put("/api/v1/drives/lift/setpoint", json!({"speed_rpm": 60, "lease_ms": 300}))
-            .await
-            .expect(200);
+        api.put(
+            "/api/v1/drives/lift/setpoint",
+            json!({"speed_rpm": 60, "lease_ms": 300}),
+        )
+        .await
+        .expect(200);
         api.command("lift", "brake").await;
         assert!(api.get("/api/v1/drives/lift").await.expect(200)["lease"].is_null());
         tokio::time::sleep(Duration::from_millis(700)).await;
@@ -193,9 +239,11 @@ async fn a_lease_taken_over_a_websocket_ends_with_the_socket() {
         // is stopped long before the 60 s lease would have run out.
         let gone = Instant::now();
         drop(ws);
-        eventually(Duration::from_secs(5), "the stop after the socket dropped", || {
-            (sim.drive(3)?.setpoints.speed_rpm == 0).then_some(())
-        })
+        eventually(
+            Duration::from_secs(5),
+            "the stop after the socket dropped",
+            || (sim.drive(3)?.setpoints.speed_rpm == 0).then_some(()),
+        )
         .await;
         assert!(gone.elapsed() < Duration::from_secs(30));
         assert!(api.get("/api/v1/drives/turntable").await.expect(200)["lease"].is_null());

@@ -110,7 +110,9 @@ async fn daemon_serves_the_document_and_an_offline_docs_page() {
             for link in html.split(attr).skip(1) {
                 let url = link.split('"').next().unwrap_or("");
                 assert!(
-                    !url.starts_with("http://") && !url.starts_with("https://") && !url.starts_with("//"),
+                    !url.starts_with("http://")
+                        && !url.starts_with("https://")
+                        && !url.starts_with("//"),
                     "/docs loads {url} from elsewhere"
                 );
             }

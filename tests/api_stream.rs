@@ -32,17 +32,37 @@ async fn subscriptions_statuses_and_link_events() {
         assert_eq!(ack, json!({"type": "subscribed", "drives": ["lift"]}));
         for _ in 0..20 {
             let m = next_json(&mut ws, Duration::from_secs(5)).await;
-            assert_eq!((m["type"].as_str(), m["drive"].as_str()), (Some("status"), Some("lift")), "{m:#}");
-            assert_eq!((m["bus"].as_str(), m["unit"].as_u64()), (Some("sim"), Some(2)));
+            assert_eq!(
+                (m["type"].as_str(), m["drive"].as_str()),
+                (Some("status"), Some("lift")),
+                "{m:#}"
+            );
+            assert_eq!(
+                (m["bus"].as_str(), m["unit"].as_u64()),
+                (Some("sim"), Some(2))
+            );
             assert!(m["seen_at"].as_str().unwrap().ends_with('Z'));
-            for field in ["turns", "angle_deg", "speed_rpm", "current_a", "voltage_v", "active", "mode", "fault", "fault_code"] {
+            for field in [
+                "turns",
+                "angle_deg",
+                "speed_rpm",
+                "current_a",
+                "voltage_v",
+                "active",
+                "mode",
+                "fault",
+                "fault_code",
+            ] {
                 assert!(!m["status"][field].is_null(), "{field} missing: {m:#}");
             }
         }
 
         // All drives: every one shows up.
         send_json(&mut ws, json!({"type": "subscribe", "drives": "all"})).await;
-        wait_for(&mut ws, Duration::from_secs(5), "the ack", |m| m["type"] == "subscribed").await;
+        wait_for(&mut ws, Duration::from_secs(5), "the ack", |m| {
+            m["type"] == "subscribed"
+        })
+        .await;
         let mut seen = HashSet::new();
         while seen.len() < 4 {
             let m = next_json(&mut ws, Duration::from_secs(5)).await;
@@ -53,25 +73,45 @@ async fn subscriptions_statuses_and_link_events() {
 
         // A drive that stops answering goes offline, then online again.
         d.sim().set_silent(3, true);
-        let off = wait_for(&mut ws, Duration::from_secs(10), "the offline event", |m| m["type"] == "offline").await;
+        let off = wait_for(&mut ws, Duration::from_secs(10), "the offline event", |m| {
+            m["type"] == "offline"
+        })
+        .await;
         assert_eq!(off["drive"], "turntable");
         assert!(off["reason"].is_string());
         d.sim().set_silent(3, false);
-        let on = wait_for(&mut ws, Duration::from_secs(10), "the online event", |m| m["type"] == "online").await;
+        let on = wait_for(&mut ws, Duration::from_secs(10), "the online event", |m| {
+            m["type"] == "online"
+        })
+        .await;
         assert_eq!(on["drive"], "turntable");
 
         // Unknown drives, garbage and binary frames get an error, and the
         // stream carries on.
         send_json(&mut ws, json!({"type": "subscribe", "drives": ["nosuch"]})).await;
-        let e = wait_for(&mut ws, Duration::from_secs(5), "an error", |m| m["type"] == "error").await;
+        let e = wait_for(&mut ws, Duration::from_secs(5), "an error", |m| {
+            m["type"] == "error"
+        })
+        .await;
         assert_eq!(e["problem"]["status"], 404);
         ws.send(Message::Text("{not json".into())).await.unwrap();
-        let e = wait_for(&mut ws, Duration::from_secs(5), "an error", |m| m["type"] == "error").await;
+        let e = wait_for(&mut ws, Duration::from_secs(5), "an error", |m| {
+            m["type"] == "error"
+        })
+        .await;
         assert_eq!(e["problem"]["status"], 400);
-        ws.send(Message::Binary(vec![1, 2, 3].into())).await.unwrap();
-        let e = wait_for(&mut ws, Duration::from_secs(5), "an error", |m| m["type"] == "error").await;
+        ws.send(Message::Binary(vec![1, 2, 3].into()))
+            .await
+            .unwrap();
+        let e = wait_for(&mut ws, Duration::from_secs(5), "an error", |m| {
+            m["type"] == "error"
+        })
+        .await;
         assert!(e["problem"]["detail"].as_str().unwrap().contains("text"));
-        wait_for(&mut ws, Duration::from_secs(5), "statuses again", |m| m["type"] == "status").await;
+        wait_for(&mut ws, Duration::from_secs(5), "statuses again", |m| {
+            m["type"] == "status"
+        })
+        .await;
         d.stop().await;
     })
     .await
@@ -140,12 +180,10 @@ async fn connect_small_buffer(addr: std::net::SocketAddr, query: &str) -> Ws {
     let request = format!("ws://{addr}/api/v1/stream{query}")
         .into_client_request()
         .unwrap();
-    let (ws, _) = tokio_tungstenite::client_async(
-        request,
-        tokio_tungstenite::MaybeTlsStream::Plain(stream),
-    )
-    .await
-    .unwrap();
+    let (ws, _) =
+        tokio_tungstenite::client_async(request, tokio_tungstenite::MaybeTlsStream::Plain(stream))
+            .await
+            .unwrap();
     ws
 }
 
@@ -169,7 +207,10 @@ async fn a_hundred_clients_keep_receiving_while_one_never_reads() {
             .text()
             .await
             .unwrap();
-        assert!(metrics.contains("drivegate_websocket_clients 100"), "{metrics}");
+        assert!(
+            metrics.contains("drivegate_websocket_clients 100"),
+            "{metrics}"
+        );
 
         let polls_before = d.plant.buses()[0].handle.stats().polls;
         let started = Instant::now();
@@ -195,16 +236,25 @@ async fn a_hundred_clients_keep_receiving_while_one_never_reads() {
         let took = started.elapsed();
         let polls = d.plant.buses()[0].handle.stats().polls - polls_before;
         // The bus kept polling all along (about 170 polls/s on this bus).
-        assert!(polls as f64 >= 40.0 * took.as_secs_f64(), "{polls} polls in {took:?}");
+        assert!(
+            polls as f64 >= 40.0 * took.as_secs_f64(),
+            "{polls} polls in {took:?}"
+        );
 
         // The slow client, reading at last, is told how much it missed.
-        let lagged = wait_for(&mut slow, Duration::from_secs(20), "the lagged notice", |m| {
-            m["type"] == "lagged"
-        })
+        let lagged = wait_for(
+            &mut slow,
+            Duration::from_secs(20),
+            "the lagged notice",
+            |m| m["type"] == "lagged",
+        )
         .await;
         assert!(lagged["missed"].as_u64().unwrap() > 0, "{lagged:#}");
         // ... and gets fresh statuses after it.
-        wait_for(&mut slow, Duration::from_secs(5), "a status", |m| m["type"] == "status").await;
+        wait_for(&mut slow, Duration::from_secs(5), "a status", |m| {
+            m["type"] == "status"
+        })
+        .await;
         drop(readers);
         d.stop().await;
     })
@@ -219,7 +269,10 @@ async fn streams_are_closed_when_the_daemon_stops() {
         let api = Api::new(d.http, None);
         api.get("/healthz").await.expect(200);
         let mut ws = connect(d.http, "?drives=all", None).await;
-        wait_for(&mut ws, Duration::from_secs(5), "a status", |m| m["type"] == "status").await;
+        wait_for(&mut ws, Duration::from_secs(5), "a status", |m| {
+            m["type"] == "status"
+        })
+        .await;
         let stopping = tokio::spawn(d.stop());
         let close = async {
             loop {

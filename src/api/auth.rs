@@ -238,7 +238,10 @@ impl Caller {
                     client = %peer.map_or_else(|| "unknown".to_string(), |a| a.to_string()),
                     "refused a request with an unknown API token"
                 );
-                Err(Problem::new(Kind::Unauthorized, "the API token is not valid"))
+                Err(Problem::new(
+                    Kind::Unauthorized,
+                    "the API token is not valid",
+                ))
             }
         }
     }
@@ -352,7 +355,11 @@ mod tests {
             TokenSource::File("/nonexistent/drivegate.token".into()),
         )])
         .unwrap_err();
-        assert!(missing.to_string().contains("cannot read /nonexistent/drivegate.token"));
+        assert!(
+            missing
+                .to_string()
+                .contains("cannot read /nonexistent/drivegate.token")
+        );
         let unset = Tokens::resolve(&[token(
             "x",
             Role::Viewer,
@@ -372,7 +379,10 @@ mod tests {
 
     #[test]
     fn query_tokens_are_decoded() {
-        assert_eq!(query_token("drives=all&access_token=a%2Bb+c").as_deref(), Some("a+b c"));
+        assert_eq!(
+            query_token("drives=all&access_token=a%2Bb+c").as_deref(),
+            Some("a+b c")
+        );
         assert_eq!(query_token("access_token="), None);
         assert_eq!(query_token("access_token=%zz"), None);
         assert_eq!(query_token("x=1"), None);

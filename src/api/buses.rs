@@ -148,7 +148,12 @@ fn bus_view(bus: &Bus) -> BusView {
 
 fn find_bus<'a>(state: &'a ApiState, name: &str) -> Result<&'a Bus, Problem> {
     state.plant.bus(name).ok_or_else(|| {
-        let names: Vec<&str> = state.plant.buses().iter().map(|b| b.handle.name()).collect();
+        let names: Vec<&str> = state
+            .plant
+            .buses()
+            .iter()
+            .map(|b| b.handle.name())
+            .collect();
         Problem::new(
             Kind::UnknownBus,
             format!(
@@ -443,7 +448,13 @@ pub async fn set_address(
     let outcome: Result<String, &BusError> = sent
         .as_ref()
         .map(|_| "sent as a broadcast (drives do not reply)".to_string());
-    audit::write(&caller.who, handle.name(), 0, &control::describe(&request), &outcome);
+    audit::write(
+        &caller.who,
+        handle.name(),
+        0,
+        &control::describe(&request),
+        &outcome,
+    );
     sent.map_err(|e| Problem::bus(&e, BusContext::default()))?;
     let verified = handle
         .execute(address, &DriveRequest::ReadStatus, options)
@@ -453,7 +464,9 @@ pub async fn set_address(
         Ok(_) => {
             return Err(Problem::new(
                 Kind::DriveUnconfirmed,
-                format!("the broadcast was sent, but the reply at unit {address} carried no status"),
+                format!(
+                    "the broadcast was sent, but the reply at unit {address} carried no status"
+                ),
             ));
         }
         Err(e) => {

@@ -60,7 +60,9 @@ fn note(command: ConfigCommand) -> Option<&'static str> {
         ConfigCommand::EmergencyBrake => {
             "the motor is held; any setpoint or mode command releases the brake; any lease on it ended"
         }
-        ConfigCommand::FactoryReset => "ramps, stall protection and load inertia are back to factory values, in flash too",
+        ConfigCommand::FactoryReset => {
+            "ramps, stall protection and load inertia are back to factory values, in flash too"
+        }
         ConfigCommand::SoftReset => "the drive restarts and does not answer for a moment",
         ConfigCommand::FaultReset => "a stall is cleared; a fault whose cause remains comes back",
         ConfigCommand::SpeedMode | ConfigCommand::PositionMode | ConfigCommand::TorqueMode => {

@@ -318,20 +318,24 @@ mod tests {
         .unwrap();
         assert_eq!(ok.tokens.len(), 3);
         assert_eq!(ok.tokens[0].role, Role::Operator);
-        assert!(matches!(ok.tokens[2].source, TokenSource::Env(ref v) if v == "DRIVEGATE_DASHBOARD_TOKEN"));
+        assert!(
+            matches!(ok.tokens[2].source, TokenSource::Env(ref v) if v == "DRIVEGATE_DASHBOARD_TOKEN")
+        );
 
-        let both = parse(
-            "[[http.token]]\nname = \"x\"\nrole = \"admin\"\nfile = \"/a\"\nenv = \"B\"\n",
-        )
-        .unwrap_err();
-        assert!(both.contains("exactly one of sha256, file or env (found file and env)"), "{both}");
+        let both =
+            parse("[[http.token]]\nname = \"x\"\nrole = \"admin\"\nfile = \"/a\"\nenv = \"B\"\n")
+                .unwrap_err();
+        assert!(
+            both.contains("exactly one of sha256, file or env (found file and env)"),
+            "{both}"
+        );
         let none = parse("[[http.token]]\nname = \"x\"\nrole = \"admin\"\n").unwrap_err();
         assert!(none.contains("(found none)"), "{none}");
         let bad = parse("[[http.token]]\nname = \"x\"\nrole = \"admin\"\nsha256 = \"abc\"\n")
             .unwrap_err();
         assert!(bad.contains("64 hexadecimal digits"), "{bad}");
-        let role = parse("[[http.token]]\nname = \"x\"\nrole = \"root\"\nenv = \"T\"\n")
-            .unwrap_err();
+        let role =
+            parse("[[http.token]]\nname = \"x\"\nrole = \"root\"\nenv = \"T\"\n").unwrap_err();
         assert!(role.contains("viewer") && role.contains("admin"), "{role}");
         let twice = parse(
             "[[http.token]]\nname = \"x\"\nrole = \"admin\"\nenv = \"A\"\n[[http.token]]\nname = \"x\"\nrole = \"viewer\"\nenv = \"B\"\n",
@@ -343,9 +347,15 @@ mod tests {
     #[test]
     fn limits_are_checked_with_their_range() {
         let e = parse("[http]\nmax_body_bytes = 10\n").unwrap_err();
-        assert!(e.contains("max_body_bytes = 10 is out of range: valid 256 to"), "{e}");
+        assert!(
+            e.contains("max_body_bytes = 10 is out of range: valid 256 to"),
+            "{e}"
+        );
         let e = parse("[http]\nlease_min_ms = 500\nlease_max_ms = 100\n").unwrap_err();
-        assert!(e.contains("lease_max_ms = 100 is out of range: valid 500 to"), "{e}");
+        assert!(
+            e.contains("lease_max_ms = 100 is out of range: valid 500 to"),
+            "{e}"
+        );
         let e = parse("[http]\nlease_default_ms = 5\n").unwrap_err();
         assert!(e.contains("or 0 for no default lease"), "{e}");
         let e = parse("[http]\nsend_buffer_bytes = 100\n").unwrap_err();
@@ -377,6 +387,9 @@ mod tests {
             .unwrap();
         assert_eq!(d[0], 0x9f);
         assert_eq!(d[31], 0x08);
-        assert!(parse_sha256("zz86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08").is_none());
+        assert!(
+            parse_sha256("zz86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08")
+                .is_none()
+        );
     }
 }

@@ -46,7 +46,13 @@ impl Written {
     }
 
     fn flag(register: Register, on: bool, quantity: &str) -> Self {
-        Written::new(register, quantity, f64::from(u8::from(on)), "", i64::from(on))
+        Written::new(
+            register,
+            quantity,
+            f64::from(u8::from(on)),
+            "",
+            i64::from(on),
+        )
     }
 }
 

@@ -236,7 +236,10 @@ fn view(state: &ApiState, target: Target<'_>) -> DriveView {
         last_seen: snap.as_ref().and_then(|s| s.seen_at).map(rfc3339),
         age_ms: snap.as_ref().and_then(DriveSnapshot::age).map(millis),
         consecutive_failures: snap.as_ref().map_or(0, |s| s.consecutive_failures),
-        status: snap.as_ref().and_then(|s| s.status.as_ref()).map(StatusView::from),
+        status: snap
+            .as_ref()
+            .and_then(|s| s.status.as_ref())
+            .map(StatusView::from),
         lease: state.leases.get(target.index),
     }
 }

@@ -199,7 +199,12 @@ async fn forward(
     mut rx: broadcast::Receiver<BusEvent>,
     shutdown: CancellationToken,
 ) {
-    let name = |i: usize| plant.drives().get(i).map_or_else(String::new, |d| d.name.clone());
+    let name = |i: usize| {
+        plant
+            .drives()
+            .get(i)
+            .map_or_else(String::new, |d| d.name.clone())
+    };
     loop {
         let event = tokio::select! {
             () = shutdown.cancelled() => return,

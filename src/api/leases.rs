@@ -166,7 +166,8 @@ impl LeaseBook {
         // Dropping a replaced lease drops its sender, which ends its watcher.
         let replaced = self.lock().insert(index, lease).is_some();
         let book = self.clone();
-        self.tasks.spawn(async move { book.watch(index, id, rx).await });
+        self.tasks
+            .spawn(async move { book.watch(index, id, rx).await });
         Grant { id, replaced }
     }
 
@@ -177,9 +178,7 @@ impl LeaseBook {
             let mut leases = self.lock();
             let closed = {
                 let lease = leases.get(&index).filter(|l| l.id == id)?;
-                lease
-                    .connection
-                    .is_some_and(|c| !self.live().contains(&c))
+                lease.connection.is_some_and(|c| !self.live().contains(&c))
             };
             if !closed {
                 let lease = leases.get(&index)?;

@@ -422,7 +422,9 @@ fn exception(err: &BusError, code: ExceptionCode, ctx: BusContext<'_>) -> Proble
     let mut p = if code == ExceptionCode::SERVER_DEVICE_FAILURE && ctx.setpoint {
         Problem::new(
             Kind::DriveNotActive,
-            format!("{err}: the drive takes setpoints only when active; send the activate command first"),
+            format!(
+                "{err}: the drive takes setpoints only when active; send the activate command first"
+            ),
         )
     } else if code == ExceptionCode::SERVER_DEVICE_BUSY {
         Problem::new(
@@ -528,7 +530,10 @@ mod tests {
             capacity: 4,
         };
         let p = Problem::bus(&busy, ctx);
-        assert_eq!((p.kind(), p.status, p.retry_after_s), (Kind::BusBusy, 429, Some(1)));
+        assert_eq!(
+            (p.kind(), p.status, p.retry_after_s),
+            (Kind::BusBusy, 429, Some(1))
+        );
         let timeout = BusError::Timeout {
             unit: 1,
             attempts: 2,

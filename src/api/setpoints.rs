@@ -112,7 +112,10 @@ fn lease_length(state: &ApiState, asked: Option<i64>) -> Result<Option<Duration>
     let Some(ms) = asked else {
         return Ok(state.config.lease_default);
     };
-    let (min, max) = (millis(state.config.lease_min), millis(state.config.lease_max));
+    let (min, max) = (
+        millis(state.config.lease_min),
+        millis(state.config.lease_max),
+    );
     let ms = RangeError::check_int("lease", ms, min, max, "ms")?;
     Ok(Some(Duration::from_millis(ms.unsigned_abs())))
 }
@@ -371,7 +374,11 @@ mod tests {
         };
         let p = both.request().unwrap_err();
         assert_eq!(p.kind(), Kind::InvalidRequest);
-        assert!(p.detail.contains("found speed_rpm and torque_a"), "{}", p.detail);
+        assert!(
+            p.detail.contains("found speed_rpm and torque_a"),
+            "{}",
+            p.detail
+        );
         let none = SetpointBody::default().request().unwrap_err();
         assert!(none.detail.contains("found none"));
         let far = SetpointBody {
@@ -385,7 +392,10 @@ mod tests {
             torque_counts: Some(-128),
             ..SetpointBody::default()
         };
-        assert_eq!(counts.request().unwrap(), DriveRequest::Torque { counts: -128 });
+        assert_eq!(
+            counts.request().unwrap(),
+            DriveRequest::Torque { counts: -128 }
+        );
     }
 
     #[test]

@@ -327,7 +327,11 @@ async fn read_loop(
             Ok(Message::Text(text)) => text,
             Ok(Message::Binary(_)) => {
                 let problem = Problem::invalid("send JSON text messages, not binary ones");
-                if replies.send(ServerMessage::Error { problem }.to_text()).await.is_err() {
+                if replies
+                    .send(ServerMessage::Error { problem }.to_text())
+                    .await
+                    .is_err()
+                {
                     return;
                 }
                 continue;
@@ -449,9 +453,7 @@ async fn dispatch(
             | "rs485-control"
     );
     if !known && parse_command(op).is_err() {
-        return Err(Problem::invalid(format!(
-            "unknown op \"{op}\": use {OPS}"
-        )));
+        return Err(Problem::invalid(format!("unknown op \"{op}\": use {OPS}")));
     }
     let key = drive.ok_or_else(|| Problem::invalid(format!("\"{op}\" needs \"drive\"")))?;
     let key = key.as_str();
@@ -509,7 +511,10 @@ mod tests {
         )
         .unwrap();
         assert!(matches!(m, ClientMessage::Command { ref op, .. } if op == "setpoint"));
-        assert!(serde_json::from_str::<ClientMessage>(r#"{"type":"subscribe","drives":"all","x":1}"#).is_err());
+        assert!(
+            serde_json::from_str::<ClientMessage>(r#"{"type":"subscribe","drives":"all","x":1}"#)
+                .is_err()
+        );
         assert!(serde_json::from_str::<ClientMessage>(r#"{"type":"dance"}"#).is_err());
     }
 

@@ -147,7 +147,10 @@ impl Api {
         self.send(self.http.delete(self.url(path))).await
     }
 
-    pub async fn raw(&self, builder: impl FnOnce(&reqwest::Client) -> reqwest::RequestBuilder) -> Reply {
+    pub async fn raw(
+        &self,
+        builder: impl FnOnce(&reqwest::Client) -> reqwest::RequestBuilder,
+    ) -> Reply {
         self.send(builder(&self.http)).await
     }
 
@@ -214,7 +217,12 @@ pub async fn next_json(ws: &mut Ws, limit: Duration) -> Value {
 }
 
 /// Reads messages until one satisfies `want`, within `limit`.
-pub async fn wait_for(ws: &mut Ws, limit: Duration, what: &str, want: impl Fn(&Value) -> bool) -> Value {
+pub async fn wait_for(
+    ws: &mut Ws,
+    limit: Duration,
+    what: &str,
+    want: impl Fn(&Value) -> bool,
+) -> Value {
     let deadline = Instant::now() + limit;
     loop {
         let left = deadline.saturating_duration_since(Instant::now());
