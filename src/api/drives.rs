@@ -1,6 +1,8 @@
 //! Reading drives: the list, one drive, and its decoded status, from the
 //! poll cache (free: no bus time) or, with `?fresh=true`, read now.
 
+use std::time::SystemTime;
+
 use axum::Json;
 use axum::extract::State;
 use serde::{Deserialize, Serialize};
@@ -306,47 +308,39 @@ pub async fn status(
     fresh: bool,
 ) -> Result<StatusReply, Problem> {
     let target = state.target(key)?;
+    let (status, source, seen_at, age_ms) = if fresh {
+        let status = control::read_status(caller, target).await?;
+        (status, StatusSource::Bus, SystemTime::now(), 0)
+    } else {
+        let snap = snapshot(target);
+        let cached = snap
+            .as_ref()
+            .and_then(|s| Some((s.status?, s.seen_at?, s.age()?)));
+        let Some((status, seen_at, age)) = cached else {
+            return Err(Problem::new(
+                Kind::DriveOffline,
+                format!(
+                    "drive \"{}\" has not answered a status poll yet; check its power, wiring and unit address ({})",
+                    target.drive.name, target.drive.unit
+                ),
+            )
+            .for_drive(&target.drive.name)
+            .retry_after(1));
+        };
+        (status, StatusSource::Cache, seen_at, millis(age))
+    };
+    // Read after the status: a fresh read may just have brought it online.
     let link = snapshot(target).map_or(Link::Unknown, |s| s.link);
-    let reply = |status: &Status, source, seen_at, age_ms| StatusReply {
+    Ok(StatusReply {
         drive: target.drive.name.clone(),
         bus: target.bus.name().to_string(),
         unit: target.drive.unit,
         link: link.into(),
         source,
-        seen_at,
+        seen_at: rfc3339(seen_at),
         age_ms,
-        status: StatusView::from(status),
-    };
-    if fresh {
-        let status = control::read_status(caller, target).await?;
-        let link = snapshot(target).map_or(Link::Unknown, |s| s.link);
-        let mut r = reply(
-            &status,
-            StatusSource::Bus,
-            rfc3339(std::time::SystemTime::now()),
-            0,
-        );
-        r.link = link.into();
-        return Ok(r);
-    }
-    let snap = snapshot(target);
-    match snap.as_ref().and_then(|s| Some((s.status?, s.seen_at?, s.age()?))) {
-        Some((status, seen_at, age)) => Ok(reply(
-            &status,
-            StatusSource::Cache,
-            rfc3339(seen_at),
-            millis(age),
-        )),
-        None => Err(Problem::new(
-            Kind::DriveOffline,
-            format!(
-                "drive \"{}\" has not answered a status poll yet; check its power, wiring and unit address ({})",
-                target.drive.name, target.drive.unit
-            ),
-        )
-        .for_drive(&target.drive.name)
-        .retry_after(1)),
-    }
+        status: StatusView::from(&status),
+    })
 }
 
 /// The drive's decoded status and its age; `?fresh=true` reads the drive now.

@@ -10,7 +10,6 @@ use utoipa::ToSchema;
 
 use super::auth::Caller;
 use super::control::{self, Written};
-use super::drives::ModeName;
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
 use super::leases::LeaseInfo;
 use super::openapi::{LeaseProblems, WriteProblems};
@@ -100,11 +99,6 @@ pub struct SetpointReply {
     pub written: Vec<Written>,
     /// The lease now covering the motor, if any.
     pub lease: Option<LeaseInfo>,
-    /// The drive's mode at its latest poll.
-    pub mode: Option<ModeName>,
-    /// A hint when the setpoint does not drive the motor in that mode.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub note: Option<String>,
 }
 
 /// The lease length asked for (or the configured default), checked.
@@ -149,23 +143,6 @@ fn setpoint_mode(request: &DriveRequest) -> Mode {
     }
 }
 
-fn mode_note(request: &DriveRequest, mode: Option<Mode>) -> Option<String> {
-    let (wanted, setpoint) = match request {
-        DriveRequest::Speed { .. } => (Mode::Speed, "speed"),
-        DriveRequest::Position { .. } => (Mode::Position, "position"),
-        DriveRequest::Torque { .. } => (Mode::Torque, "torque"),
-        _ => return None,
-    };
-    let mode = mode?;
-    (mode != wanted).then(|| {
-        format!(
-            "the drive is in {} mode: this {setpoint} setpoint is stored and drives the motor once the mode is {}",
-            mode.name(),
-            wanted.name()
-        )
-    })
-}
-
 /// Sends a setpoint to drive `key` for `caller`; `connection` ties its
 /// lease to a WebSocket.
 pub async fn apply(
@@ -200,19 +177,12 @@ pub async fn apply(
         (Some(g), _) => state.leases.confirm(target.index, g.id),
     };
     result?;
-    let mode = target
-        .bus
-        .drive(target.drive.unit)
-        .and_then(|s| s.status)
-        .map(|s| s.mode());
     Ok(SetpointReply {
         drive: target.drive.name.clone(),
         bus: target.bus.name().to_string(),
         unit: target.drive.unit,
         written: control::written(&request),
         lease,
-        mode: mode.map(ModeName::from),
-        note: mode_note(&request, mode),
     })
 }
 
@@ -396,13 +366,5 @@ mod tests {
             counts.request().unwrap(),
             DriveRequest::Torque { counts: -128 }
         );
-    }
-
-    #[test]
-    fn mode_notes() {
-        let req = DriveRequest::Speed { rpm: 10 };
-        assert!(mode_note(&req, Some(Mode::Speed)).is_none());
-        let n = mode_note(&req, Some(Mode::Position)).unwrap();
-        assert!(n.contains("position mode"), "{n}");
     }
 }
