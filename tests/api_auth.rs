@@ -381,3 +381,44 @@ async fn limits_on_connections_bodies_and_messages() {
     .await
     .expect("test finished in time");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_connections_are_closed_but_quiet_streams_are_kept() {
+    logs();
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config("idle_timeout_s = 1", "")).await;
+
+        // A client that connects and says nothing loses its connection.
+        let mut silent = tokio::net::TcpStream::connect(d.http).await.unwrap();
+        let mut buf = [0u8; 64];
+        let read = tokio::time::timeout(
+            Duration::from_secs(10),
+            tokio::io::AsyncReadExt::read(&mut silent, &mut buf),
+        )
+        .await
+        .expect("the idle connection was closed");
+        assert!(matches!(read, Ok(0) | Err(_)), "{read:?}");
+
+        // A stream subscribed to nothing gets pings, and stays open.
+        let mut ws = connect(d.http, "", None).await;
+        let quiet = tokio::time::timeout(Duration::from_secs(3), async {
+            loop {
+                match ws.next().await {
+                    Some(Ok(m)) if m.is_ping() => {}
+                    other => return other,
+                }
+            }
+        })
+        .await;
+        assert!(quiet.is_err(), "the quiet stream ended: {quiet:?}");
+        send_json(&mut ws, json!({"type": "subscribe", "drives": "all"})).await;
+        let ack = api_support::wait_for(&mut ws, Duration::from_secs(5), "the ack", |m| {
+            m["type"] == "subscribed"
+        })
+        .await;
+        assert_eq!(ack["drives"].as_array().unwrap().len(), 4);
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}

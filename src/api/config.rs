@@ -52,6 +52,9 @@ pub struct HttpConfig {
     pub max_body_bytes: usize,
     /// Connections served at once; more are answered 503 and closed.
     pub max_connections: usize,
+    /// A connection with no byte read or written for this long is closed
+    /// (stream clients are pinged well within it).
+    pub idle_timeout: Duration,
     /// Kernel send buffer per connection, bytes (0: the system's
     /// autotuning). It bounds how far behind a slow stream client can fall
     /// before it is skipped and told so.
@@ -77,6 +80,7 @@ impl Default for HttpConfig {
                 tokens: Vec::new(),
                 max_body_bytes: 65_536,
                 max_connections: 128,
+                idle_timeout: Duration::from_secs(120),
                 send_buffer_bytes: 65_536,
                 stream_buffer: 256,
                 lease_min: Duration::from_millis(100),
@@ -99,6 +103,7 @@ pub struct RawHttpConfig {
     token: Vec<RawToken>,
     max_body_bytes: i64,
     max_connections: i64,
+    idle_timeout_s: i64,
     send_buffer_bytes: i64,
     stream_buffer: i64,
     lease_min_ms: i64,
@@ -113,6 +118,7 @@ impl Default for RawHttpConfig {
             token: Vec::new(),
             max_body_bytes: 65_536,
             max_connections: 128,
+            idle_timeout_s: 120,
             send_buffer_bytes: 65_536,
             stream_buffer: 256,
             lease_min_ms: 100,
@@ -158,6 +164,7 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
     fn try_from(raw: RawHttpConfig) -> Result<Self, String> {
         let max_body_bytes = as_usize("max_body_bytes", raw.max_body_bytes, 256, 16 << 20)?;
         let max_connections = as_usize("max_connections", raw.max_connections, 1, 65_536)?;
+        let idle_timeout_s = in_range("idle_timeout_s", raw.idle_timeout_s, 1, 86_400)?;
         let send_buffer_bytes = if raw.send_buffer_bytes == 0 {
             0
         } else {
@@ -195,6 +202,7 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
             tokens,
             max_body_bytes,
             max_connections,
+            idle_timeout: Duration::from_secs(idle_timeout_s.unsigned_abs()),
             send_buffer_bytes,
             stream_buffer,
             lease_min: ms(lease_min_ms),

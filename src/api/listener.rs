@@ -6,13 +6,22 @@
 //! client gets a short `503 too-many-connections` and the socket is closed,
 //! so a flood of clients cannot exhaust the small box's file descriptors or
 //! memory while the clients already connected keep working.
+//!
+//! Permits must come back, so connections cannot live forever unattended:
+//! one that moves no byte for `[http] idle_timeout_s` is closed (the HTTP
+//! server sets no header timeout of its own), TCP keepalive finds peers
+//! that vanished without a word (power cut, cable pulled), and
+//! `TCP_USER_TIMEOUT` drops a peer that stops acknowledging data.
 
+use std::future::Future;
 use std::io;
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
 use std::time::Duration;
+
+use tokio::time::{Instant, Sleep};
 
 use axum::extract::connect_info::Connected;
 use axum::serve::{IncomingStream, Listener};
@@ -36,30 +45,49 @@ pub fn bind_address(listen: SocketAddr, has_tokens: bool) -> SocketAddr {
     SocketAddr::new(loopback, listen.port())
 }
 
+/// Keepalive probes start after this much silence...
+const KEEPALIVE_TIME: Duration = Duration::from_secs(30);
+/// ... and repeat this often ...
+const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(10);
+/// ... this many times before the connection is dropped.
+const KEEPALIVE_RETRIES: u32 = 3;
+/// Data unacknowledged for this long drops the connection.
+const USER_TIMEOUT: Duration = Duration::from_secs(60);
+
 /// A TCP listener that serves at most `max` connections at once.
 pub struct LimitedListener {
     inner: TcpListener,
     permits: Arc<Semaphore>,
     send_buffer: usize,
+    idle_timeout: Duration,
 }
 
 impl LimitedListener {
     /// Wraps `inner`; `send_buffer` bytes of kernel send buffer per
-    /// connection (0: the system's).
-    pub fn new(inner: TcpListener, max: usize, send_buffer: usize) -> Self {
+    /// connection (0: the system's); connections idle for `idle_timeout`
+    /// are closed.
+    pub fn new(inner: TcpListener, max: usize, send_buffer: usize, idle_timeout: Duration) -> Self {
         Self {
             inner,
             permits: Arc::new(Semaphore::new(max)),
             send_buffer,
+            idle_timeout,
         }
     }
 
     fn configure(&self, stream: &TcpStream) {
         // Status replies are small: do not let Nagle hold them back.
         let _ = stream.set_nodelay(true);
+        let socket = socket2::SockRef::from(stream);
         if self.send_buffer > 0 {
-            let _ = socket2::SockRef::from(stream).set_send_buffer_size(self.send_buffer);
+            let _ = socket.set_send_buffer_size(self.send_buffer);
         }
+        let keepalive = socket2::TcpKeepalive::new()
+            .with_time(KEEPALIVE_TIME)
+            .with_interval(KEEPALIVE_INTERVAL)
+            .with_retries(KEEPALIVE_RETRIES);
+        let _ = socket.set_tcp_keepalive(&keepalive);
+        let _ = socket.set_tcp_user_timeout(Some(USER_TIMEOUT));
     }
 }
 
@@ -110,13 +138,7 @@ impl Listener for LimitedListener {
             match self.permits.clone().try_acquire_owned() {
                 Ok(permit) => {
                     self.configure(&stream);
-                    return (
-                        LimitedStream {
-                            stream,
-                            _permit: permit,
-                        },
-                        addr,
-                    );
+                    return (LimitedStream::new(stream, permit, self.idle_timeout), addr);
                 }
                 Err(_) => {
                     tracing::debug!(client = %addr, "HTTP connection refused: connection limit reached");
@@ -131,10 +153,47 @@ impl Listener for LimitedListener {
     }
 }
 
-/// A connection holding its permit until it closes.
+/// A connection holding its permit until it closes, closed when idle.
 pub struct LimitedStream {
     stream: TcpStream,
     _permit: OwnedSemaphorePermit,
+    idle_timeout: Duration,
+    last_activity: Instant,
+    idle: Pin<Box<Sleep>>,
+}
+
+impl LimitedStream {
+    fn new(stream: TcpStream, permit: OwnedSemaphorePermit, idle_timeout: Duration) -> Self {
+        let now = Instant::now();
+        LimitedStream {
+            stream,
+            _permit: permit,
+            idle_timeout,
+            last_activity: now,
+            idle: Box::pin(tokio::time::sleep_until(now + idle_timeout)),
+        }
+    }
+
+    /// While a read waits: fails the read once nothing moved for the idle
+    /// timeout. The timer is armed lazily: activity only moves
+    /// `last_activity`, and a timer that fires early is re-armed.
+    fn poll_idle(&mut self, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        loop {
+            let deadline = self.last_activity + self.idle_timeout;
+            if Instant::now() >= deadline {
+                return Poll::Ready(Err(io::Error::new(
+                    io::ErrorKind::TimedOut,
+                    "connection idle for too long",
+                )));
+            }
+            if self.idle.deadline() != deadline {
+                self.idle.as_mut().reset(deadline);
+            }
+            if self.idle.as_mut().poll(cx).is_pending() {
+                return Poll::Pending;
+            }
+        }
+    }
 }
 
 impl AsyncRead for LimitedStream {
@@ -143,7 +202,17 @@ impl AsyncRead for LimitedStream {
         cx: &mut Context<'_>,
         buf: &mut ReadBuf<'_>,
     ) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.stream).poll_read(cx, buf)
+        let before = buf.filled().len();
+        match Pin::new(&mut self.stream).poll_read(cx, buf) {
+            Poll::Ready(Ok(())) => {
+                if buf.filled().len() > before {
+                    self.last_activity = Instant::now();
+                }
+                Poll::Ready(Ok(()))
+            }
+            Poll::Ready(Err(e)) => Poll::Ready(Err(e)),
+            Poll::Pending => self.poll_idle(cx),
+        }
     }
 }
 
@@ -153,7 +222,11 @@ impl AsyncWrite for LimitedStream {
         cx: &mut Context<'_>,
         buf: &[u8],
     ) -> Poll<io::Result<usize>> {
-        Pin::new(&mut self.stream).poll_write(cx, buf)
+        let written = Pin::new(&mut self.stream).poll_write(cx, buf);
+        if matches!(written, Poll::Ready(Ok(n)) if n > 0) {
+            self.last_activity = Instant::now();
+        }
+        written
     }
 
     fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
@@ -169,7 +242,11 @@ impl AsyncWrite for LimitedStream {
         cx: &mut Context<'_>,
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
-        Pin::new(&mut self.stream).poll_write_vectored(cx, bufs)
+        let written = Pin::new(&mut self.stream).poll_write_vectored(cx, bufs);
+        if matches!(written, Poll::Ready(Ok(n)) if n > 0) {
+            self.last_activity = Instant::now();
+        }
+        written
     }
 
     fn is_write_vectored(&self) -> bool {

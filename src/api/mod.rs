@@ -102,7 +102,12 @@ pub async fn start(
         shutdown.clone(),
     );
     let app = app(state.clone());
-    let listener = LimitedListener::new(tcp, http.max_connections, http.send_buffer_bytes);
+    let listener = LimitedListener::new(
+        tcp,
+        http.max_connections,
+        http.send_buffer_bytes,
+        http.idle_timeout,
+    );
     let task = tokio::spawn(async move {
         let served = axum::serve(
             listener,

@@ -254,7 +254,9 @@ type Sink = futures_util::stream::SplitSink<WebSocket, Message>;
 type Source = futures_util::stream::SplitStream<WebSocket>;
 
 /// Sends replies first, then updates (each preceded by a `lagged` notice
-/// when some were skipped); closes the socket when the daemon stops.
+/// when some were skipped), and a ping when nothing else went out for a
+/// while, so a quiet but healthy stream is not closed as idle; closes the
+/// socket when the daemon stops.
 async fn write_loop(
     state: &ApiState,
     mut sink: Sink,
@@ -262,25 +264,30 @@ async fn write_loop(
     mut events: mpsc::Receiver<Utf8Bytes>,
     missed: &AtomicU64,
 ) {
+    let period = (state.config.idle_timeout / 4).max(std::time::Duration::from_millis(100));
+    let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
+    ping.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         let next = tokio::select! {
             biased;
             () = state.shutdown.cancelled() => None,
-            Some(reply) = replies.recv() => Some(reply),
+            Some(reply) = replies.recv() => Some(Message::Text(reply)),
             Some(event) = events.recv() => {
                 let n = missed.swap(0, Ordering::Relaxed);
-                if n > 0 && !send(state, &mut sink, ServerMessage::Lagged { missed: n }.to_text()).await {
+                if n > 0 && !send(state, &mut sink, Message::Text(ServerMessage::Lagged { missed: n }.to_text())).await {
                     return;
                 }
-                Some(event)
+                Some(Message::Text(event))
             }
+            _ = ping.tick() => Some(Message::Ping(Default::default())),
             else => None,
         };
         match next {
-            Some(text) => {
-                if !send(state, &mut sink, text).await {
+            Some(message) => {
+                if !send(state, &mut sink, message).await {
                     return;
                 }
+                ping.reset();
             }
             None => break,
         }
@@ -294,10 +301,10 @@ async fn write_loop(
     }
 }
 
-/// Sends one text; false when the socket is gone or the daemon stops.
-async fn send(state: &ApiState, sink: &mut Sink, text: Utf8Bytes) -> bool {
+/// Sends one message; false when the socket is gone or the daemon stops.
+async fn send(state: &ApiState, sink: &mut Sink, message: Message) -> bool {
     tokio::select! {
-        sent = sink.send(Message::Text(text)) => sent.is_ok(),
+        sent = sink.send(message) => sent.is_ok(),
         () = state.shutdown.cancelled() => false,
     }
 }
