@@ -218,6 +218,28 @@ fn options(caller: &Caller) -> JobOptions {
     }
 }
 
+/// Writes the audit line of a write whose caller went away (the HTTP client
+/// disconnected and its handler was dropped) before the drive answered: the
+/// request may have reached the drive, and every write must be logged.
+struct AbandonedWrite<'a> {
+    who: &'a str,
+    bus: &'a str,
+    unit: u8,
+    what: String,
+    armed: bool,
+}
+
+impl Drop for AbandonedWrite<'_> {
+    fn drop(&mut self) {
+        if self.armed {
+            let outcome: Result<String, &str> = Err(
+                "the client went away before the drive answered; a request already on the wire was carried out, a queued one was dropped",
+            );
+            audit::write(self.who, self.bus, self.unit, &self.what, &outcome);
+        }
+    }
+}
+
 /// Sends `request` to the drive, waits for its confirmation, and logs it
 /// (every write, confirmed or not, goes to the audit log with `caller.who`).
 pub async fn send(
@@ -227,8 +249,17 @@ pub async fn send(
 ) -> Result<DriveReply, Problem> {
     let unit = target.drive.unit;
     let offline = is_offline(target);
+    let audit_unit = if request.is_broadcast() { 0 } else { unit };
+    let mut guard = AbandonedWrite {
+        who: &caller.who,
+        bus: target.bus.name(),
+        unit: audit_unit,
+        what: describe(request),
+        armed: request.is_write(),
+    };
     let result = target.bus.execute(unit, request, options(caller)).await;
-    if request.is_write() {
+    if guard.armed {
+        guard.armed = false;
         let outcome: Result<String, &BusError> = match &result {
             Ok(DriveReply::None) => Ok("sent as a broadcast (drives do not reply)".to_string()),
             Ok(_) => Ok("confirmed by the drive".to_string()),
@@ -237,8 +268,8 @@ pub async fn send(
         audit::write(
             &caller.who,
             target.bus.name(),
-            if request.is_broadcast() { 0 } else { unit },
-            &describe(request),
+            audit_unit,
+            &guard.what,
             &outcome,
         );
     }
@@ -323,6 +354,53 @@ pub async fn ensure_still(caller: &Caller, target: Target<'_>, force: bool) -> R
 mod tests {
     use super::*;
     use crate::drive::ConfigCommand;
+
+    #[test]
+    fn an_abandoned_write_is_still_audited() {
+        #[derive(Clone, Default)]
+        struct Buffer(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+        impl std::io::Write for Buffer {
+            fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+                self.0.lock().unwrap().extend_from_slice(b);
+                Ok(b.len())
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
+        }
+        let buffer = Buffer::default();
+        let writer = buffer.clone();
+        let subscriber = tracing_subscriber::fmt()
+            .with_writer(move || writer.clone())
+            .with_ansi(false)
+            .finish();
+        tracing::subscriber::with_default(subscriber, || {
+            let done = AbandonedWrite {
+                who: "scada",
+                bus: "line1",
+                unit: 3,
+                what: describe(&DriveRequest::Speed { rpm: 50 }),
+                armed: false,
+            };
+            drop(done);
+            let abandoned = AbandonedWrite {
+                who: "scada",
+                bus: "line1",
+                unit: 3,
+                what: describe(&DriveRequest::Speed { rpm: 60 }),
+                armed: true,
+            };
+            drop(abandoned);
+        });
+        let text = String::from_utf8(buffer.0.lock().unwrap().clone()).unwrap();
+        assert!(!text.contains("speed setpoint 50"), "{text}");
+        assert!(
+            text.contains("drivegate::audit")
+                && text.contains("speed setpoint 60")
+                && text.contains("went away"),
+            "{text}"
+        );
+    }
 
     #[test]
     fn written_values_in_units_and_raw() {
