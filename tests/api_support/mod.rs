@@ -1,5 +1,5 @@
-//! Helpers of the API tests: configurations derived from `FOUR_DRIVES`, a
-//! small JSON client over real HTTP, and WebSocket helpers.
+//! What the API tests share: configurations derived from `FOUR_DRIVES`, a
+//! small JSON client over real HTTP, and WebSocket send/receive functions.
 
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
