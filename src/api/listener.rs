@@ -58,6 +58,7 @@ const USER_TIMEOUT: Duration = Duration::from_secs(60);
 pub struct LimitedListener {
     inner: TcpListener,
     permits: Arc<Semaphore>,
+    refusals: Arc<Semaphore>,
     send_buffer: usize,
     idle_timeout: Duration,
 }
@@ -70,6 +71,7 @@ impl LimitedListener {
         Self {
             inner,
             permits: Arc::new(Semaphore::new(max)),
+            refusals: Arc::new(Semaphore::new(REFUSALS_IN_FLIGHT)),
             send_buffer,
             idle_timeout,
         }
@@ -107,10 +109,19 @@ fn over_limit_response() -> Vec<u8> {
     .into_bytes()
 }
 
+/// Refusals answered at once; beyond this (a flood) connections over the
+/// limit are closed without an answer.
+const REFUSALS_IN_FLIGHT: usize = 64;
+
+/// Answers 503, then reads what the client sent until it closes (or 1 s),
+/// so the answer is not lost to a reset.
 async fn refuse(mut stream: TcpStream) {
     let answer = async {
         stream.write_all(&over_limit_response()).await?;
-        stream.shutdown().await
+        stream.shutdown().await?;
+        let mut sink = [0u8; 1024];
+        while tokio::io::AsyncReadExt::read(&mut stream, &mut sink).await? > 0 {}
+        Ok::<(), io::Error>(())
     };
     let _ = tokio::time::timeout(Duration::from_secs(1), answer).await;
 }
@@ -142,7 +153,12 @@ impl Listener for LimitedListener {
                 }
                 Err(_) => {
                     tracing::debug!(client = %addr, "HTTP connection refused: connection limit reached");
-                    tokio::spawn(refuse(stream));
+                    if let Ok(slot) = self.refusals.clone().try_acquire_owned() {
+                        tokio::spawn(async move {
+                            refuse(stream).await;
+                            drop(slot);
+                        });
+                    }
                 }
             }
         }
