@@ -30,11 +30,9 @@ use utoipa::ToSchema;
 use super::control::describe;
 use super::hub::{Hub, ServerMessage};
 use crate::audit;
-use crate::bus::handle::JobOptions;
-use crate::bus::{Priority, SourceId};
-use crate::drive::{DriveReply, DriveRequest, Mode};
+use crate::drive::Mode;
 use crate::plant::Plant;
-use crate::safety::StopAction;
+use crate::safety::{self, StopAction, StopOutcome};
 
 /// A lease as clients see it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, ToSchema)]
@@ -311,52 +309,34 @@ impl LeaseBook {
         };
         let bus = self.plant.handle_of(drive);
         let unit = drive.unit;
-        let options = JobOptions {
-            priority: Priority::Emergency,
-            source: SourceId::INTERNAL,
-            queue_timeout: None,
-            max_attempts: None,
-        };
-        // The stop depends on the mode: zero speed means a zero current
-        // setpoint in torque mode, and nothing in position mode (it holds).
-        // The mode is read from the drive now: the cache may predate a mode
-        // command sent just before the setpoint. The brake needs no mode.
-        let mode = if self.action == StopAction::ZeroSpeed {
-            match bus.execute(unit, &DriveRequest::ReadStatus, options).await {
-                Ok(DriveReply::Status(s)) => s.mode(),
-                _ => bus
-                    .drive(unit)
-                    .and_then(|s| s.status)
-                    .map_or(lease.mode, |s| s.mode()),
-            }
-        } else {
-            lease.mode
-        };
         let who = format!("lease-expiry ({})", lease.owner);
-        let (sent, result) = match self.action {
-            StopAction::None => (
+        let outcome = safety::stop_drive(bus, unit, self.action, false, Some(lease.mode)).await;
+        let (sent, result) = match outcome {
+            Ok(StopOutcome {
+                sent: Some(request),
+                ..
+            }) => {
+                let result = Ok("confirmed by the drive".to_string());
+                audit::write(&who, bus.name(), unit, &describe(&request), &result);
+                (Some(describe(&request)), result)
+            }
+            Ok(StopOutcome { mode, .. }) if self.action != StopAction::None => (
+                None,
+                Ok(format!(
+                    "nothing to send: {} in {} mode holds the motor",
+                    self.action.name(),
+                    mode.map_or("unknown", |m| m.name())
+                )),
+            ),
+            Ok(_) => (
                 None,
                 Ok("on_lease_expiry = \"none\": nothing sent".to_string()),
             ),
-            action => match action.request(mode) {
-                None => (
-                    None,
-                    Ok(format!(
-                        "nothing to send: {} in {} mode holds the motor",
-                        action.name(),
-                        mode.name()
-                    )),
-                ),
-                Some(request) => {
-                    let result = bus
-                        .execute(unit, &request, options)
-                        .await
-                        .map(|_| "confirmed by the drive".to_string())
-                        .map_err(|e| e.to_string());
-                    audit::write(&who, bus.name(), unit, &describe(&request), &result);
-                    (Some(describe(&request)), result)
-                }
-            },
+            Err(e) => {
+                let result = Err(e.to_string());
+                audit::write(&who, bus.name(), unit, self.action.name(), &result);
+                (Some(self.action.name().to_string()), result)
+            }
         };
         match &result {
             Ok(r) => tracing::warn!(
