@@ -77,3 +77,35 @@ pub fn sim_request(data: &[u8]) {
         }
     }
 }
+
+/// Arbitrary bytes from a Modbus TCP client: the MBAP framing and every
+/// check a request goes through before the bus (shape, read-only class,
+/// broadcast, the polled copy).
+pub fn mbap(data: &[u8]) {
+    use drivegate::bus::DriveSnapshot;
+    use drivegate::modbus_tcp::{mbap, polled_copy, request};
+    let mut rest = data;
+    while let Ok(Some((frame, used))) = mbap::parse(rest) {
+        // A frame re-encodes to exactly the bytes it came from.
+        let mut again = Vec::new();
+        mbap::encode(frame.transaction, frame.unit, &frame.pdu, &mut again);
+        assert_eq!(again, rest[..used], "MBAP frame does not round-trip");
+        let _ = request::check_shape(&frame.pdu);
+        let _ = request::reads_only(&frame.pdu);
+        let _ = request::broadcastable(&frame.pdu);
+        let _ = request::describe(&frame.pdu);
+        let _ = polled_copy::status_registers(&frame.pdu);
+        let snapshot = DriveSnapshot {
+            unit: frame.unit,
+            status: Some(drivegate::drive::Status::default()),
+            seen_at: Some(std::time::SystemTime::now()),
+            seen_instant: Some(std::time::Instant::now()),
+            link: drivegate::bus::cache::Link::Online,
+            consecutive_failures: 0,
+        };
+        if let Some(reply) = polled_copy::answer(&frame.pdu, &snapshot, std::time::Duration::from_secs(1)) {
+            assert!(!reply.is_empty());
+        }
+        rest = &rest[used..];
+    }
+}

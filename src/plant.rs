@@ -8,10 +8,10 @@ use std::time::Duration;
 
 use tracing::{info, warn};
 
-use crate::bus::handle::JobOptions;
-use crate::bus::{BusHandle, Priority};
+use crate::audit;
+use crate::bus::BusHandle;
 use crate::config::{BusConfig, Config};
-use crate::safety::StopAction;
+use crate::safety::{self, StopAction, StopOutcome};
 use crate::sim::{SimHandle, Simulator};
 
 /// One running bus.
@@ -164,32 +164,31 @@ impl Plant {
         for bus in &self.buses {
             bus.handle.close();
         }
-        let mut stops = Vec::new();
-        for drive in &self.drives {
-            let handle = self.handle_of(drive);
-            let Some(status) = handle.drive(drive.unit).and_then(|s| s.status) else {
-                continue;
-            };
-            let moving = status.speed_rpm != 0 || status.current_counts.unsigned_abs() > 16;
-            if !moving {
-                continue;
-            }
-            if let Some(request) = action.request(status.mode()) {
-                let handle = handle.clone();
-                let (name, unit) = (drive.name.clone(), drive.unit);
-                stops.push(async move {
-                    let options = JobOptions::with_priority(Priority::Emergency);
-                    match handle.execute(unit, &request, options).await {
-                        Ok(_) => {
-                            info!(drive = %name, action = action.name(), "stopped at shutdown")
-                        }
-                        Err(e) => {
-                            warn!(drive = %name, action = action.name(), "safe stop failed: {e}")
-                        }
+        // Every drive is asked, not only those the polled copy shows moving:
+        // the copy may be older than the last command.
+        let stops = self.drives.iter().map(|drive| {
+            let handle = self.handle_of(drive).clone();
+            let (name, unit) = (drive.name.clone(), drive.unit);
+            async move {
+                match safety::stop_drive(&handle, unit, action, true, None).await {
+                    Ok(StopOutcome {
+                        sent: Some(request),
+                        ..
+                    }) => {
+                        audit::write(
+                            "shutdown",
+                            handle.name(),
+                            unit,
+                            request.name(),
+                            &Ok::<_, String>("confirmed by the drive".into()),
+                        );
+                        info!(drive = %name, action = action.name(), "stopped at shutdown")
                     }
-                });
+                    Ok(_) => {}
+                    Err(e) => warn!(drive = %name, action = action.name(), "safe stop failed: {e}"),
+                }
             }
-        }
+        });
         let all = futures_util::future::join_all(stops);
         if tokio::time::timeout(Duration::from_secs(5), all)
             .await

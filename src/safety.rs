@@ -3,7 +3,9 @@
 
 use serde::Deserialize;
 
-use crate::drive::{ConfigCommand, DriveRequest};
+use crate::bus::handle::JobOptions;
+use crate::bus::{BusError, BusHandle, Priority};
+use crate::drive::{ConfigCommand, DriveReply, DriveRequest, Mode, Status};
 
 /// How to stop a motor nobody controls.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
@@ -60,6 +62,77 @@ impl Default for SafetyConfig {
             on_lease_expiry: StopAction::ZeroSpeed,
         }
     }
+}
+
+/// True when the status shows the motor turning or pushing.
+pub fn is_moving(status: &Status) -> bool {
+    // 16 counts = 0.125 A: below that the current is sensor noise at rest.
+    status.speed_rpm != 0 || status.current_counts.unsigned_abs() > 16
+}
+
+/// What [`stop_drive`] found and did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StopOutcome {
+    /// The mode the decision was made on (`None` if it was not needed).
+    pub mode: Option<Mode>,
+    /// Whether the drive was moving (assumed when it could not be read).
+    pub moving: bool,
+    /// The request sent and confirmed, if any.
+    pub sent: Option<DriveRequest>,
+}
+
+/// Applies `action` to the drive at `unit`, at emergency priority.
+///
+/// What to send depends on the drive's mode (zero speed is a zero current
+/// setpoint in torque mode and nothing in position mode), so the mode is
+/// read from the drive now: the polled copy may predate a mode command sent
+/// a moment ago. If that read fails, `fallback` (or the polled copy) is used
+/// and the drive is assumed to be moving. With `only_if_moving`, a drive
+/// found standing is left alone.
+pub async fn stop_drive(
+    bus: &BusHandle,
+    unit: u8,
+    action: StopAction,
+    only_if_moving: bool,
+    fallback: Option<Mode>,
+) -> Result<StopOutcome, BusError> {
+    let options = JobOptions::with_priority(Priority::Emergency);
+    let mut outcome = StopOutcome {
+        mode: None,
+        moving: true,
+        sent: None,
+    };
+    if action == StopAction::None {
+        return Ok(outcome);
+    }
+    if action == StopAction::ZeroSpeed || only_if_moving {
+        match bus.execute(unit, &DriveRequest::ReadStatus, options).await {
+            Ok(DriveReply::Status(s)) => {
+                outcome.mode = Some(s.mode());
+                outcome.moving = is_moving(&s);
+            }
+            _ => {
+                outcome.mode =
+                    fallback.or_else(|| bus.drive(unit).and_then(|d| d.status).map(|s| s.mode()));
+            }
+        }
+    }
+    if only_if_moving && !outcome.moving {
+        return Ok(outcome);
+    }
+    let request = match action {
+        StopAction::Brake => Some(DriveRequest::Config(ConfigCommand::EmergencyBrake)),
+        // Mode unknown (never read): zero both setpoints that can turn it.
+        _ => match outcome.mode {
+            Some(mode) => action.request(mode),
+            None => Some(DriveRequest::Speed { rpm: 0 }),
+        },
+    };
+    if let Some(request) = request {
+        bus.execute(unit, &request, options).await?;
+        outcome.sent = Some(request);
+    }
+    Ok(outcome)
 }
 
 #[cfg(test)]

@@ -136,3 +136,40 @@ async fn none_leaves_the_drives_running() {
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drive_started_after_its_last_poll_is_still_stopped() {
+    bounded(async {
+        // Polled once an hour: the polled copy says "standing, open loop"
+        // while the motor is actually running in torque mode.
+        let toml = with_safety("zero-speed")
+            .replace("retries = 1", "retries = 1\npoll_interval_ms = 3600000");
+        let d = TestDaemon::start(&toml).await;
+        let (drive, bus) = d.plant.drive("conveyor").unwrap();
+        for request in [
+            DriveRequest::Config(ConfigCommand::Activate),
+            DriveRequest::Config(ConfigCommand::TorqueMode),
+            DriveRequest::Torque { counts: 256 },
+        ] {
+            bus.execute(drive.unit, &request, JobOptions::default())
+                .await
+                .unwrap();
+        }
+        let cached = bus.drive(1).unwrap().status.unwrap();
+        assert_eq!(
+            cached.mode(),
+            drivegate::drive::Mode::OpenLoop,
+            "the polled copy is stale"
+        );
+        let plant = d.plant.clone();
+        eventually(Duration::from_secs(5), "the motor turning", || {
+            (sim(&plant).drive(1)?.speed_rpm.abs() > 5.0).then_some(())
+        })
+        .await;
+        d.stop().await;
+        // The stop read the real mode and zeroed the torque setpoint.
+        let truth = sim(&plant).drive(1).unwrap();
+        assert_eq!(truth.setpoints.current_counts, 0, "{truth:?}");
+    })
+    .await;
+}

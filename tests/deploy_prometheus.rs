@@ -10,12 +10,10 @@ mod common;
 use std::net::{Ipv4Addr, SocketAddr, TcpListener as StdListener};
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::{FOUR_DRIVES, TestDaemon};
 use drivegate::drive::Fault;
-use drivegate::metrics::Metrics;
 use serde_json::Value;
 use tokio::process::{Child, Command};
 
@@ -75,30 +73,6 @@ async fn config_and_rules_pass_promtool() {
 }
 
 /// Serves `GET /metrics` from the daemon's registry on a loopback port.
-async fn serve_metrics(metrics: Arc<Metrics>) -> SocketAddr {
-    use axum::http::header::CONTENT_TYPE;
-    let listener = tokio::net::TcpListener::bind((Ipv4Addr::LOCALHOST, 0))
-        .await
-        .unwrap();
-    let addr = listener.local_addr().unwrap();
-    let app = axum::Router::new().route(
-        "/metrics",
-        axum::routing::get(move || {
-            let m = metrics.clone();
-            async move {
-                (
-                    [(CONTENT_TYPE, drivegate::metrics::CONTENT_TYPE)],
-                    m.render(),
-                )
-            }
-        }),
-    );
-    tokio::spawn(async move {
-        let _ = axum::serve(listener, app).await;
-    });
-    addr
-}
-
 fn free_port() -> u16 {
     StdListener::bind((Ipv4Addr::LOCALHOST, 0))
         .unwrap()
@@ -189,7 +163,8 @@ fn fill_variables(expr: &str) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn real_prometheus_fires_the_alert_for_a_simulated_fault() {
     let d = TestDaemon::start(FOUR_DRIVES).await;
-    let target = serve_metrics(d.metrics.clone()).await;
+    // The daemon's own HTTP listener serves /metrics.
+    let target = d.http;
     let tmp = tempfile::tempdir().unwrap();
     let (mut prometheus, base) = start_prometheus(tmp.path(), target).await;
     let client = reqwest::Client::builder()

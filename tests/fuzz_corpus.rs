@@ -33,3 +33,8 @@ fn config_corpus() {
 fn sim_request_corpus() {
     replay("sim_request", sim_request);
 }
+
+#[test]
+fn mbap_corpus() {
+    replay("mbap", mbap);
+}

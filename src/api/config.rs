@@ -1,21 +1,403 @@
-//! `[http]` section.
+//! `[http]` section: the listener, the API tokens and their roles, request
+//! and connection limits, the stream's per-client buffer and the bounds of
+//! setpoint leases.
+//!
+//! Values are checked while parsing (through [`RawHttpConfig`]), so a bad
+//! value is reported with the line of the `[http]` table. Token secrets are
+//! not read here: `file` and `env` are resolved when the API starts (see
+//! [`super::auth::Tokens::resolve`]), so `check-config` never needs them.
 
 use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
 
 use serde::Deserialize;
 
-/// The HTTP listener (REST, WebSocket, metrics, health).
+use super::roles::Role;
+
+/// Where a token's secret comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TokenSource {
+    /// The SHA-256 of the token (`sha256sum` of it, without the newline):
+    /// the config file then holds no secret.
+    Sha256([u8; 32]),
+    /// A file holding the token (trailing whitespace ignored), e.g. a
+    /// systemd credential.
+    File(PathBuf),
+    /// An environment variable holding the token.
+    Env(String),
+}
+
+/// One `[[http.token]]`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TokenConfig {
+    /// Name written to the audit log for every write made with it.
+    pub name: String,
+    /// What it may do.
+    pub role: Role,
+    /// Where its secret is.
+    pub source: TokenSource,
+}
+
+/// The HTTP listener (REST, WebSocket, metrics, health, docs).
 #[derive(Debug, Clone, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
+#[serde(try_from = "RawHttpConfig")]
 pub struct HttpConfig {
-    /// Address and port to listen on.
+    /// Address and port to listen on. With no tokens configured the API
+    /// binds the loopback address of the same family instead.
     pub listen: SocketAddr,
+    /// API tokens; empty means no authentication, loopback only.
+    pub tokens: Vec<TokenConfig>,
+    /// Largest request body (and WebSocket message) accepted, bytes.
+    pub max_body_bytes: usize,
+    /// Connections served at once; more are answered 503 and closed.
+    pub max_connections: usize,
+    /// A connection with no byte read or written for this long is closed
+    /// (stream clients are pinged well within it).
+    pub idle_timeout: Duration,
+    /// Kernel send buffer per connection, bytes (0: the system's
+    /// autotuning). It bounds how far behind a slow stream client can fall
+    /// before it is skipped and told so.
+    pub send_buffer_bytes: usize,
+    /// Stream messages waiting per WebSocket client before updates are
+    /// skipped (and the client told how many).
+    pub stream_buffer: usize,
+    /// Shortest lease a setpoint may ask for.
+    pub lease_min: Duration,
+    /// Longest lease a setpoint may ask for.
+    pub lease_max: Duration,
+    /// Lease given to setpoints that ask for none (`None`: no lease).
+    pub lease_default: Option<Duration>,
 }
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self {
-            listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+        // The raw defaults are valid by construction (tested below).
+        match HttpConfig::try_from(RawHttpConfig::default()) {
+            Ok(c) => c,
+            Err(_) => HttpConfig {
+                listen: default_listen(),
+                tokens: Vec::new(),
+                max_body_bytes: 65_536,
+                max_connections: 128,
+                idle_timeout: Duration::from_secs(120),
+                send_buffer_bytes: 65_536,
+                stream_buffer: 256,
+                lease_min: Duration::from_millis(100),
+                lease_max: Duration::from_millis(60_000),
+                lease_default: None,
+            },
         }
+    }
+}
+
+fn default_listen() -> SocketAddr {
+    SocketAddr::from(([127, 0, 0, 1], 8080))
+}
+
+/// `[http]` as written, before its values are checked.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RawHttpConfig {
+    listen: SocketAddr,
+    token: Vec<RawToken>,
+    max_body_bytes: i64,
+    max_connections: i64,
+    idle_timeout_s: i64,
+    send_buffer_bytes: i64,
+    stream_buffer: i64,
+    lease_min_ms: i64,
+    lease_max_ms: i64,
+    lease_default_ms: i64,
+}
+
+impl Default for RawHttpConfig {
+    fn default() -> Self {
+        Self {
+            listen: default_listen(),
+            token: Vec::new(),
+            max_body_bytes: 65_536,
+            max_connections: 128,
+            idle_timeout_s: 120,
+            send_buffer_bytes: 65_536,
+            stream_buffer: 256,
+            lease_min_ms: 100,
+            lease_max_ms: 60_000,
+            lease_default_ms: 0,
+        }
+    }
+}
+
+/// `[[http.token]]` as written.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawToken {
+    name: String,
+    role: Role,
+    sha256: Option<String>,
+    file: Option<PathBuf>,
+    env: Option<String>,
+}
+
+fn in_range(key: &str, v: i64, min: i64, max: i64) -> Result<i64, String> {
+    if (min..=max).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!(
+            "[http] {key} = {v} is out of range: valid {min} to {max}"
+        ))
+    }
+}
+
+fn as_usize(key: &str, v: i64, min: i64, max: i64) -> Result<usize, String> {
+    let v = in_range(key, v, min, max)?;
+    usize::try_from(v).map_err(|_| format!("[http] {key} = {v} does not fit this machine"))
+}
+
+fn ms(v: i64) -> Duration {
+    Duration::from_millis(v.unsigned_abs())
+}
+
+impl TryFrom<RawHttpConfig> for HttpConfig {
+    type Error = String;
+
+    fn try_from(raw: RawHttpConfig) -> Result<Self, String> {
+        let max_body_bytes = as_usize("max_body_bytes", raw.max_body_bytes, 256, 16 << 20)?;
+        let max_connections = as_usize("max_connections", raw.max_connections, 1, 65_536)?;
+        let idle_timeout_s = in_range("idle_timeout_s", raw.idle_timeout_s, 1, 86_400)?;
+        let send_buffer_bytes = if raw.send_buffer_bytes == 0 {
+            0
+        } else {
+            as_usize("send_buffer_bytes", raw.send_buffer_bytes, 4096, 16 << 20)
+                .map_err(|e| format!("{e} (or 0 for the system's autotuning)"))?
+        };
+        let stream_buffer = as_usize("stream_buffer", raw.stream_buffer, 1, 65_536)?;
+        let lease_min_ms = in_range("lease_min_ms", raw.lease_min_ms, 10, 3_600_000)?;
+        let lease_max_ms = in_range("lease_max_ms", raw.lease_max_ms, lease_min_ms, 86_400_000)?;
+        let lease_default = if raw.lease_default_ms == 0 {
+            None
+        } else {
+            let v = in_range(
+                "lease_default_ms",
+                raw.lease_default_ms,
+                lease_min_ms,
+                lease_max_ms,
+            )
+            .map_err(|e| format!("{e} (or 0 for no default lease)"))?;
+            Some(ms(v))
+        };
+        let mut tokens: Vec<TokenConfig> = Vec::with_capacity(raw.token.len());
+        for t in raw.token {
+            let token = TokenConfig::try_from(t)?;
+            if tokens.iter().any(|other| other.name == token.name) {
+                return Err(format!(
+                    "[[http.token]] name \"{}\" is used twice: names must be unique (they identify writers in the audit log)",
+                    token.name
+                ));
+            }
+            tokens.push(token);
+        }
+        Ok(HttpConfig {
+            listen: raw.listen,
+            tokens,
+            max_body_bytes,
+            max_connections,
+            idle_timeout: Duration::from_secs(idle_timeout_s.unsigned_abs()),
+            send_buffer_bytes,
+            stream_buffer,
+            lease_min: ms(lease_min_ms),
+            lease_max: ms(lease_max_ms),
+            lease_default,
+        })
+    }
+}
+
+impl TryFrom<RawToken> for TokenConfig {
+    type Error = String;
+
+    fn try_from(raw: RawToken) -> Result<Self, String> {
+        let name = raw.name;
+        let name_ok = !name.is_empty()
+            && name.len() <= 64
+            && name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
+        if !name_ok {
+            return Err(format!(
+                "[[http.token]] name \"{name}\" must be 1 to 64 letters, digits, '-', '_' or '.'"
+            ));
+        }
+        let given: Vec<&str> = [
+            raw.sha256.as_ref().map(|_| "sha256"),
+            raw.file.as_ref().map(|_| "file"),
+            raw.env.as_ref().map(|_| "env"),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        if given.len() != 1 {
+            return Err(format!(
+                "[[http.token]] \"{name}\": give exactly one of sha256, file or env (found {})",
+                if given.is_empty() {
+                    "none".to_string()
+                } else {
+                    given.join(" and ")
+                }
+            ));
+        }
+        let source = match (raw.sha256, raw.file, raw.env) {
+            (Some(hex), _, _) => TokenSource::Sha256(parse_sha256(&hex).ok_or_else(|| {
+                format!(
+                    "[[http.token]] \"{name}\": sha256 must be 64 hexadecimal digits (the output of `printf %s TOKEN | sha256sum`)"
+                )
+            })?),
+            (_, Some(path), _) => TokenSource::File(path),
+            (_, _, Some(var)) if !var.is_empty() => TokenSource::Env(var),
+            _ => {
+                return Err(format!(
+                    "[[http.token]] \"{name}\": env must name an environment variable"
+                ));
+            }
+        };
+        Ok(TokenConfig {
+            name,
+            role: raw.role,
+            source,
+        })
+    }
+}
+
+/// 64 hex digits to 32 bytes.
+pub fn parse_sha256(hex: &str) -> Option<[u8; 32]> {
+    let hex = hex.trim();
+    if hex.len() != 64 || !hex.is_ascii() {
+        return None;
+    }
+    let mut out = [0u8; 32];
+    for (i, byte) in out.iter_mut().enumerate() {
+        *byte = u8::from_str_radix(hex.get(2 * i..2 * i + 2)?, 16).ok()?;
+    }
+    Some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<HttpConfig, String> {
+        #[derive(Deserialize)]
+        struct Doc {
+            #[serde(default)]
+            http: HttpConfig,
+        }
+        toml::from_str::<Doc>(text)
+            .map(|d| d.http)
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn defaults_are_valid() {
+        let c = HttpConfig::try_from(RawHttpConfig::default()).unwrap();
+        assert_eq!(c, HttpConfig::default());
+        assert!(c.tokens.is_empty());
+        assert_eq!(c.lease_default, None);
+        assert_eq!(parse("").unwrap(), c);
+    }
+
+    #[test]
+    fn tokens_need_exactly_one_source() {
+        let ok = parse(
+            r#"
+            [http]
+            [[http.token]]
+            name = "scada"
+            role = "operator"
+            sha256 = "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"
+            [[http.token]]
+            name = "commissioning"
+            role = "admin"
+            file = "/etc/drivegate/admin.token"
+            [[http.token]]
+            name = "dashboard"
+            role = "viewer"
+            env = "DRIVEGATE_DASHBOARD_TOKEN"
+            "#,
+        )
+        .unwrap();
+        assert_eq!(ok.tokens.len(), 3);
+        assert_eq!(ok.tokens[0].role, Role::Operator);
+        assert!(
+            matches!(ok.tokens[2].source, TokenSource::Env(ref v) if v == "DRIVEGATE_DASHBOARD_TOKEN")
+        );
+
+        let both =
+            parse("[[http.token]]\nname = \"x\"\nrole = \"admin\"\nfile = \"/a\"\nenv = \"B\"\n")
+                .unwrap_err();
+        assert!(
+            both.contains("exactly one of sha256, file or env (found file and env)"),
+            "{both}"
+        );
+        let none = parse("[[http.token]]\nname = \"x\"\nrole = \"admin\"\n").unwrap_err();
+        assert!(none.contains("(found none)"), "{none}");
+        let bad = parse("[[http.token]]\nname = \"x\"\nrole = \"admin\"\nsha256 = \"abc\"\n")
+            .unwrap_err();
+        assert!(bad.contains("64 hexadecimal digits"), "{bad}");
+        let role =
+            parse("[[http.token]]\nname = \"x\"\nrole = \"root\"\nenv = \"T\"\n").unwrap_err();
+        assert!(role.contains("viewer") && role.contains("admin"), "{role}");
+        let twice = parse(
+            "[[http.token]]\nname = \"x\"\nrole = \"admin\"\nenv = \"A\"\n[[http.token]]\nname = \"x\"\nrole = \"viewer\"\nenv = \"B\"\n",
+        )
+        .unwrap_err();
+        assert!(twice.contains("used twice"), "{twice}");
+    }
+
+    #[test]
+    fn limits_are_checked_with_their_range() {
+        let e = parse("[http]\nmax_body_bytes = 10\n").unwrap_err();
+        assert!(
+            e.contains("max_body_bytes = 10 is out of range: valid 256 to"),
+            "{e}"
+        );
+        let e = parse("[http]\nlease_min_ms = 500\nlease_max_ms = 100\n").unwrap_err();
+        assert!(
+            e.contains("lease_max_ms = 100 is out of range: valid 500 to"),
+            "{e}"
+        );
+        let e = parse("[http]\nlease_default_ms = 5\n").unwrap_err();
+        assert!(e.contains("or 0 for no default lease"), "{e}");
+        let e = parse("[http]\nsend_buffer_bytes = 100\n").unwrap_err();
+        assert!(e.contains("autotuning"), "{e}");
+        let e = parse("[http]\nmax_conections = 5\n").unwrap_err();
+        assert!(e.contains("max_conections"), "{e}");
+        let c = parse("[http]\nlease_default_ms = 500\nsend_buffer_bytes = 0\n").unwrap();
+        assert_eq!(c.lease_default, Some(Duration::from_millis(500)));
+        assert_eq!(c.send_buffer_bytes, 0);
+    }
+
+    #[test]
+    fn the_documented_token_examples_are_valid() {
+        let reference = include_str!("../../config/drivegate.toml");
+        let examples: Vec<&str> = reference
+            .lines()
+            .skip_while(|l| *l != "# [[http.token]]")
+            .take_while(|l| l.starts_with('#'))
+            .map(|l| l.trim_start_matches('#').trim_start())
+            .collect();
+        let c = parse(&examples.join("\n")).unwrap();
+        let roles: Vec<Role> = c.tokens.iter().map(|t| t.role).collect();
+        assert_eq!(roles, [Role::Viewer, Role::Operator, Role::Admin]);
+    }
+
+    #[test]
+    fn sha256_hex() {
+        let d = parse_sha256("9F86D081884C7D659A2FEAA0C55AD015A3BF4F1B2B0B822CD15D6C15B0F00A08")
+            .unwrap();
+        assert_eq!(d[0], 0x9f);
+        assert_eq!(d[31], 0x08);
+        assert!(
+            parse_sha256("zz86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08")
+                .is_none()
+        );
     }
 }

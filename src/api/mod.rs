@@ -1,15 +1,58 @@
-//! The REST + WebSocket face (`/api/v1`), with its OpenAPI document.
+//! The REST + WebSocket face (`/api/v1`), with its OpenAPI document, access
+//! control and motor-safety leases.
+//!
+//! - [`listener`] binds (loopback only without tokens) and limits connections,
+//! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
+//! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`buses`] and
+//!   [`health`] are the routes, all documented in [`openapi`],
+//! - [`control`] is the write path they share (checks, confirmation, audit),
+//! - [`leases`] stops motors whose client went silent,
+//! - [`hub`] and [`stream`] are the WebSocket stream,
+//! - [`problem`] maps every error to `application/problem+json`.
+//!
+//! Handlers never touch a serial port: they submit jobs through the bus
+//! handles of the [`Plant`] and wait for the drive's confirmation.
 
+pub mod auth;
+pub mod buses;
+pub mod commands;
 pub mod config;
+pub mod control;
+pub mod drives;
+pub mod extract;
+pub mod health;
+pub mod hub;
+pub mod leases;
+pub mod listener;
+pub mod openapi;
+pub mod problem;
+pub mod request_metrics;
+pub mod roles;
+pub mod setpoints;
+pub mod settings;
+pub mod state;
+pub mod stream;
+pub mod timestamp;
 
 use std::sync::Arc;
+use std::time::Duration;
 
+use axum::Router;
+use axum::extract::DefaultBodyLimit;
+use axum::middleware;
 use tokio_util::sync::CancellationToken;
+use utoipa_swagger_ui::SwaggerUi;
 
 use crate::config::Config;
 use crate::faces::Listening;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
+use auth::Tokens;
+use hub::Hub;
+use leases::LeaseBook;
+use listener::{ClientAddr, LimitedListener};
+use problem::{Kind, Problem};
+use state::ApiState;
 
 /// Binds the HTTP listener and serves the API until `shutdown` fires.
 pub async fn start(
@@ -18,16 +61,116 @@ pub async fn start(
     metrics: Arc<Metrics>,
     shutdown: CancellationToken,
 ) -> Result<Listening, String> {
-    let listener = tokio::net::TcpListener::bind(config.http.listen)
+    let http = config.http.clone();
+    let tokens = Tokens::resolve(&http.tokens).map_err(|e| e.to_string())?;
+    let bind = listener::bind_address(http.listen, !tokens.is_empty());
+    let tcp = tokio::net::TcpListener::bind(bind)
         .await
-        .map_err(|e| format!("cannot listen for HTTP on {}: {e}", config.http.listen))?;
-    let addr = listener.local_addr().map_err(|e| e.to_string())?;
-    let _ = (plant, metrics);
+        .map_err(|e| format!("cannot listen for HTTP on {bind}: {e}"))?;
+    let addr = tcp.local_addr().map_err(|e| e.to_string())?;
+    if tokens.is_empty() {
+        if bind != http.listen {
+            tracing::warn!(
+                configured = %http.listen,
+                listening = %addr,
+                "no API tokens are configured: the API listens on loopback only, not on the configured address; add [[http.token]] sections to open it to the network"
+            );
+        } else {
+            tracing::info!(
+                listening = %addr,
+                "no API tokens are configured: the API is open to local clients only, with full rights"
+            );
+        }
+    } else {
+        tracing::info!(tokens = tokens.len(), "API tokens loaded");
+    }
+
+    let hub = Hub::start(&plant, &shutdown);
+    let leases = LeaseBook::new(
+        plant.clone(),
+        hub.clone(),
+        config.safety.on_lease_expiry,
+        shutdown.clone(),
+    );
+    let state = ApiState::new(
+        plant,
+        metrics,
+        http.clone(),
+        tokens,
+        leases,
+        hub,
+        shutdown.clone(),
+    );
+    let app = app(state.clone());
+    let listener = LimitedListener::new(
+        tcp,
+        http.max_connections,
+        http.send_buffer_bytes,
+        http.idle_timeout,
+    );
     let task = tokio::spawn(async move {
-        let app = axum::Router::new().route("/healthz", axum::routing::get(|| async { "ok" }));
-        let _ = axum::serve(listener, app)
-            .with_graceful_shutdown(async move { shutdown.cancelled().await })
-            .await;
+        let served = axum::serve(
+            listener,
+            app.into_make_service_with_connect_info::<ClientAddr>(),
+        )
+        .with_graceful_shutdown(shutdown.cancelled_owned())
+        .await;
+        if let Err(e) = served {
+            tracing::error!("the HTTP server failed: {e}");
+        }
+        // Upgraded connections are not the server's any more: the sessions
+        // close themselves on shutdown, and are waited for here.
+        state.sessions.close();
+        if tokio::time::timeout(Duration::from_secs(3), state.sessions.wait())
+            .await
+            .is_err()
+        {
+            tracing::warn!("some WebSocket sessions did not close within 3 s");
+        }
+        let _ = tokio::time::timeout(Duration::from_secs(2), state.leases.wait()).await;
     });
     Ok(Listening { addr, task })
+}
+
+/// The whole HTTP application: the documented routes, `/openapi.json`,
+/// `/docs`, problem answers for unknown routes, the body limit and the
+/// request counters.
+pub fn app(state: ApiState) -> Router {
+    let (routes, document) = openapi::router().split_for_parts();
+    let docs: Router<ApiState> = SwaggerUi::new(openapi::DOCS_PATH)
+        .url(openapi::DOCUMENT_PATH, openapi::finish(document))
+        .into();
+    routes
+        .merge(docs)
+        .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
+        .layer(DefaultBodyLimit::max(state.config.max_body_bytes))
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            request_metrics::count,
+        ))
+        .with_state(state)
+}
+
+async fn not_found(uri: axum::http::Uri) -> Problem {
+    Problem::new(
+        Kind::NotFound,
+        format!(
+            "no route {}: the routes are listed at {} and {}",
+            uri.path(),
+            openapi::DOCS_PATH,
+            openapi::DOCUMENT_PATH
+        ),
+    )
+}
+
+async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri) -> Problem {
+    Problem::new(
+        Kind::MethodNotAllowed,
+        format!(
+            "{} does not take {method}; see {}",
+            uri.path(),
+            openapi::DOCS_PATH
+        ),
+    )
 }

@@ -1,0 +1,399 @@
+//! Bearer tokens: resolved once at start (hash, file or environment), checked
+//! on every request in constant time, and turned into a [`Caller`]: who
+//! (for the audit log) and with which [`Role`].
+//!
+//! Only SHA-256 digests are kept in memory after start; a presented token is
+//! hashed and compared with every configured digest without an early exit,
+//! so the time taken says nothing about how close a guess was.
+
+use std::sync::Arc;
+
+use axum::extract::{ConnectInfo, FromRequestParts};
+use axum::http::header::AUTHORIZATION;
+use axum::http::request::Parts;
+use sha2::{Digest, Sha256};
+
+use super::config::{TokenConfig, TokenSource};
+use super::listener::ClientAddr;
+use super::problem::{Kind, Problem};
+use super::roles::Role;
+use super::state::ApiState;
+use crate::bus::SourceId;
+
+/// One usable token.
+#[derive(Clone)]
+struct Entry {
+    name: Arc<str>,
+    role: Role,
+    digest: [u8; 32],
+}
+
+/// The configured tokens, as digests.
+#[derive(Clone, Default)]
+pub struct Tokens {
+    entries: Vec<Entry>,
+}
+
+impl std::fmt::Debug for Tokens {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Names and roles only: never the digests.
+        f.debug_list()
+            .entries(self.entries.iter().map(|e| (&*e.name, e.role.name())))
+            .finish()
+    }
+}
+
+/// Why a configured token cannot be used; the daemon then refuses to start
+/// rather than run with fewer (or no) checks than configured.
+#[derive(Debug, thiserror::Error)]
+pub enum TokenError {
+    /// The token file cannot be read.
+    #[error("API token \"{name}\": cannot read {path}: {source}")]
+    File {
+        /// Token name.
+        name: String,
+        /// The file.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// The environment variable is not set (or not UTF-8).
+    #[error("API token \"{name}\": environment variable {var} is not set")]
+    Env {
+        /// Token name.
+        name: String,
+        /// The variable.
+        var: String,
+    },
+    /// The file or variable is empty.
+    #[error("API token \"{name}\": {origin} is empty")]
+    Empty {
+        /// Token name.
+        name: String,
+        /// Where it was read from.
+        origin: String,
+    },
+}
+
+impl Tokens {
+    /// Reads every token's secret and keeps its digest.
+    pub fn resolve(configs: &[TokenConfig]) -> Result<Tokens, TokenError> {
+        let mut entries = Vec::with_capacity(configs.len());
+        for t in configs {
+            let digest = match &t.source {
+                TokenSource::Sha256(d) => *d,
+                TokenSource::File(path) => {
+                    let text =
+                        std::fs::read_to_string(path).map_err(|source| TokenError::File {
+                            name: t.name.clone(),
+                            path: path.display().to_string(),
+                            source,
+                        })?;
+                    warn_if_world_readable(&t.name, path);
+                    digest_of_secret(&t.name, text.trim(), || path.display().to_string())?
+                }
+                TokenSource::Env(var) => {
+                    let value = std::env::var(var).map_err(|_| TokenError::Env {
+                        name: t.name.clone(),
+                        var: var.clone(),
+                    })?;
+                    digest_of_secret(&t.name, value.trim(), || format!("${var}"))?
+                }
+            };
+            entries.push(Entry {
+                name: t.name.as_str().into(),
+                role: t.role,
+                digest,
+            });
+        }
+        Ok(Tokens { entries })
+    }
+
+    /// True when no token is configured (no authentication, loopback only).
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// Number of tokens.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// The name and role of the token `presented`, if it is one of ours.
+    pub fn check(&self, presented: &str) -> Option<(Arc<str>, Role)> {
+        let digest: [u8; 32] = Sha256::digest(presented.as_bytes()).into();
+        let mut found = None;
+        for entry in &self.entries {
+            if constant_time_eq(&entry.digest, &digest) {
+                found = Some((entry.name.clone(), entry.role));
+            }
+        }
+        found
+    }
+}
+
+fn digest_of_secret(
+    name: &str,
+    secret: &str,
+    origin: impl FnOnce() -> String,
+) -> Result<[u8; 32], TokenError> {
+    if secret.is_empty() {
+        return Err(TokenError::Empty {
+            name: name.to_string(),
+            origin: origin(),
+        });
+    }
+    Ok(Sha256::digest(secret.as_bytes()).into())
+}
+
+fn warn_if_world_readable(name: &str, path: &std::path::Path) {
+    use std::os::unix::fs::PermissionsExt;
+    if let Ok(meta) = std::fs::metadata(path)
+        && meta.permissions().mode() & 0o004 != 0
+    {
+        tracing::warn!(
+            token = name,
+            file = %path.display(),
+            "the API token file is readable by every user: chmod o-r it"
+        );
+    }
+}
+
+/// Compares two digests in time independent of where they differ.
+fn constant_time_eq(a: &[u8; 32], b: &[u8; 32]) -> bool {
+    let diff = a
+        .iter()
+        .zip(b.iter())
+        .fold(0u8, |acc, (x, y)| acc | (x ^ y));
+    std::hint::black_box(diff) == 0
+}
+
+/// Who is asking, with what rights.
+#[derive(Debug, Clone)]
+pub struct Caller {
+    /// Token name, or the client address when no tokens are configured:
+    /// written to the audit log with every write.
+    pub who: Arc<str>,
+    /// What it may do.
+    pub role: Role,
+    /// Its share of the bus queues: one per token (or client address), so
+    /// one busy client cannot starve the others.
+    pub source: SourceId,
+}
+
+impl Caller {
+    /// Refuses with 403 unless the caller's role includes `needed`.
+    pub fn require(&self, needed: Role) -> Result<(), Problem> {
+        if self.role.allows(needed) {
+            Ok(())
+        } else {
+            Err(Problem::new(
+                Kind::Forbidden,
+                format!(
+                    "this needs the {} role; the token \"{}\" has the {} role",
+                    needed.name(),
+                    self.who,
+                    self.role.name()
+                ),
+            ))
+        }
+    }
+
+    /// Identifies the caller of a request. `allow_query` also accepts the
+    /// token as `?access_token=` (browsers cannot set headers on WebSockets).
+    pub fn from_parts(parts: &Parts, state: &ApiState, allow_query: bool) -> Result<Self, Problem> {
+        let peer = parts
+            .extensions
+            .get::<ConnectInfo<ClientAddr>>()
+            .map(|c| c.0.0);
+        if state.tokens.is_empty() {
+            // Loopback only (see `listener::bind`): every local client is admin.
+            let who: Arc<str> = peer.map_or_else(|| "local".into(), |a| a.to_string().into());
+            let key = peer.map_or_else(|| "local".to_string(), |a| a.ip().to_string());
+            return Ok(Caller {
+                who,
+                role: Role::Admin,
+                source: state.source_for(&key),
+            });
+        }
+        let presented = bearer(parts).or_else(|| {
+            allow_query
+                .then(|| query_token(parts.uri.query().unwrap_or("")))
+                .flatten()
+        });
+        let Some(presented) = presented else {
+            return Err(Problem::new(
+                Kind::Unauthorized,
+                "send an API token in the header Authorization: Bearer <token>",
+            ));
+        };
+        match state.tokens.check(&presented) {
+            Some((name, role)) => Ok(Caller {
+                source: state.source_for(&name),
+                who: name,
+                role,
+            }),
+            None => {
+                tracing::warn!(
+                    client = %peer.map_or_else(|| "unknown".to_string(), |a| a.to_string()),
+                    "refused a request with an unknown API token"
+                );
+                Err(Problem::new(
+                    Kind::Unauthorized,
+                    "the API token is not valid",
+                ))
+            }
+        }
+    }
+}
+
+fn bearer(parts: &Parts) -> Option<String> {
+    let value = parts.headers.get(AUTHORIZATION)?.to_str().ok()?;
+    let (scheme, token) = value.split_once(' ')?;
+    scheme
+        .eq_ignore_ascii_case("bearer")
+        .then(|| token.trim().to_string())
+        .filter(|t| !t.is_empty())
+}
+
+fn query_token(query: &str) -> Option<String> {
+    query.split('&').find_map(|pair| {
+        let (key, value) = pair.split_once('=')?;
+        (key == "access_token")
+            .then(|| percent_decode(value))
+            .flatten()
+    })
+}
+
+/// Decodes `%XX` escapes and `+` of a query value.
+fn percent_decode(s: &str) -> Option<String> {
+    let bytes = s.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'%' => {
+                let hex = s.get(i + 1..i + 3)?;
+                out.push(u8::from_str_radix(hex, 16).ok()?);
+                i += 3;
+            }
+            b'+' => {
+                out.push(b' ');
+                i += 1;
+            }
+            b => {
+                out.push(b);
+                i += 1;
+            }
+        }
+    }
+    String::from_utf8(out).ok().filter(|t| !t.is_empty())
+}
+
+impl FromRequestParts<ApiState> for Caller {
+    type Rejection = Problem;
+
+    async fn from_request_parts(parts: &mut Parts, state: &ApiState) -> Result<Self, Problem> {
+        Caller::from_parts(parts, state, false)
+    }
+}
+
+/// A [`Caller`] that may also present its token as `?access_token=`: only
+/// for the WebSocket stream, since browsers cannot set its headers.
+#[derive(Debug, Clone)]
+pub struct StreamCaller(pub Caller);
+
+impl FromRequestParts<ApiState> for StreamCaller {
+    type Rejection = Problem;
+
+    async fn from_request_parts(parts: &mut Parts, state: &ApiState) -> Result<Self, Problem> {
+        Caller::from_parts(parts, state, true).map(StreamCaller)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn token(name: &str, role: Role, source: TokenSource) -> TokenConfig {
+        TokenConfig {
+            name: name.to_string(),
+            role,
+            source,
+        }
+    }
+
+    #[test]
+    fn tokens_from_hash_and_file() {
+        let mut file = tempfile::NamedTempFile::new().unwrap();
+        std::io::Write::write_all(&mut file, b"s3cret-admin\n").unwrap();
+        let hash: [u8; 32] = Sha256::digest(b"op-token").into();
+        let tokens = Tokens::resolve(&[
+            token("scada", Role::Operator, TokenSource::Sha256(hash)),
+            token(
+                "admin",
+                Role::Admin,
+                TokenSource::File(file.path().to_path_buf()),
+            ),
+        ])
+        .unwrap();
+        assert_eq!(tokens.len(), 2);
+        let (name, role) = tokens.check("op-token").unwrap();
+        assert_eq!((&*name, role), ("scada", Role::Operator));
+        let (name, role) = tokens.check("s3cret-admin").unwrap();
+        assert_eq!((&*name, role), ("admin", Role::Admin));
+        assert!(tokens.check("s3cret-admin\n").is_none());
+        assert!(tokens.check("").is_none());
+        assert!(!format!("{tokens:?}").contains("s3cret"));
+    }
+
+    #[test]
+    fn unusable_tokens_stop_the_start() {
+        let missing = Tokens::resolve(&[token(
+            "x",
+            Role::Viewer,
+            TokenSource::File("/nonexistent/drivegate.token".into()),
+        )])
+        .unwrap_err();
+        assert!(
+            missing
+                .to_string()
+                .contains("cannot read /nonexistent/drivegate.token")
+        );
+        let unset = Tokens::resolve(&[token(
+            "x",
+            Role::Viewer,
+            TokenSource::Env("DRIVEGATE_SURELY_UNSET_VARIABLE".into()),
+        )])
+        .unwrap_err();
+        assert!(unset.to_string().contains("is not set"));
+        let empty = tempfile::NamedTempFile::new().unwrap();
+        let e = Tokens::resolve(&[token(
+            "x",
+            Role::Viewer,
+            TokenSource::File(empty.path().to_path_buf()),
+        )])
+        .unwrap_err();
+        assert!(e.to_string().contains("is empty"));
+    }
+
+    #[test]
+    fn query_tokens_are_decoded() {
+        assert_eq!(
+            query_token("drives=all&access_token=a%2Bb+c").as_deref(),
+            Some("a+b c")
+        );
+        assert_eq!(query_token("access_token="), None);
+        assert_eq!(query_token("access_token=%zz"), None);
+        assert_eq!(query_token("x=1"), None);
+    }
+
+    #[test]
+    fn digests_compare_whole() {
+        let a = [7u8; 32];
+        let mut b = a;
+        assert!(constant_time_eq(&a, &b));
+        b[31] ^= 1;
+        assert!(!constant_time_eq(&a, &b));
+    }
+}

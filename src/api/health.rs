@@ -1,0 +1,139 @@
+//! Liveness, readiness and metrics, for systemd, load balancers and
+//! Prometheus. They need no token: they show no secret and change nothing,
+//! and the tools that read them rarely carry credentials.
+
+use axum::Json;
+use axum::extract::State;
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use super::state::ApiState;
+use crate::bus::cache::Link;
+use crate::bus::handle::PortState;
+
+/// `/healthz`.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+pub struct Health {
+    /// Always `ok` while the process serves requests.
+    pub status: String,
+    /// drivegate's version.
+    pub version: String,
+}
+
+/// 200 while the process runs.
+#[utoipa::path(
+    get,
+    path = "/healthz",
+    tag = "health",
+    responses((status = 200, description = "The process is alive", body = Health))
+)]
+pub async fn healthz() -> Json<Health> {
+    Json(Health {
+        status: "ok".to_string(),
+        version: env!("CARGO_PKG_VERSION").to_string(),
+    })
+}
+
+/// One bus in `/readyz`.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+pub struct BusReadiness {
+    /// Bus name.
+    pub bus: String,
+    /// The serial port is open.
+    pub port_open: bool,
+    /// Drives answering.
+    pub drives_online: usize,
+    /// Drives configured.
+    pub drives: usize,
+}
+
+/// `/readyz`.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+pub struct Readiness {
+    /// True when every bus port is open and at least one drive answers.
+    pub ready: bool,
+    /// Why not, when not.
+    pub reasons: Vec<String>,
+    /// Each bus.
+    pub buses: Vec<BusReadiness>,
+}
+
+/// The readiness of the plant.
+pub fn readiness(state: &ApiState) -> Readiness {
+    let mut reasons = Vec::new();
+    let mut buses = Vec::new();
+    let mut online_total = 0;
+    for bus in state.plant.buses() {
+        let name = bus.handle.name().to_string();
+        let port_open = matches!(bus.handle.port_state(), PortState::Up { .. });
+        match bus.handle.port_state() {
+            PortState::Up { .. } => {}
+            PortState::Opening => reasons.push(format!("bus {name}: the port is not open yet")),
+            PortState::Down { reason, .. } => {
+                reasons.push(format!("bus {name}: the port is down ({reason})"));
+            }
+        }
+        let units: Vec<u8> = bus.config.drives.iter().map(|d| d.unit()).collect();
+        let online = bus
+            .handle
+            .drives()
+            .iter()
+            .filter(|s| units.contains(&s.unit) && s.link == Link::Online)
+            .count();
+        online_total += online;
+        buses.push(BusReadiness {
+            bus: name,
+            port_open,
+            drives_online: online,
+            drives: units.len(),
+        });
+    }
+    if online_total == 0 {
+        reasons.push("no drive answers its status polls".to_string());
+    }
+    Readiness {
+        ready: reasons.is_empty(),
+        reasons,
+        buses,
+    }
+}
+
+/// 200 when every bus port is open and at least one drive answers, else 503
+/// with the reasons.
+#[utoipa::path(
+    get,
+    path = "/readyz",
+    tag = "health",
+    responses(
+        (status = 200, description = "Ready", body = Readiness),
+        (status = 503, description = "Not ready; `reasons` says why", body = Readiness),
+    )
+)]
+pub async fn readyz(State(state): State<ApiState>) -> (StatusCode, Json<Readiness>) {
+    let r = readiness(&state);
+    let status = if r.ready {
+        StatusCode::OK
+    } else {
+        StatusCode::SERVICE_UNAVAILABLE
+    };
+    (status, Json(r))
+}
+
+/// Prometheus text exposition (version 0.0.4): drive values from the poll
+/// cache, bus counters, and the faces' counters. A scrape never touches the bus.
+#[utoipa::path(
+    get,
+    path = "/metrics",
+    tag = "health",
+    responses((status = 200, description = "Metrics", content_type = "text/plain; version=0.0.4", body = String))
+)]
+pub async fn metrics(State(state): State<ApiState>) -> Response {
+    let mut response = state.metrics.render().into_response();
+    response.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static(crate::metrics::CONTENT_TYPE),
+    );
+    response
+}

@@ -1,0 +1,218 @@
+//! The OpenAPI 3.1 document, built from the same route table the server
+//! runs (so they cannot drift), and the interactive page at `/docs`
+//! (Swagger UI, its assets built into the binary: it works with no
+//! internet). `openapi/openapi.json` is a checked-in copy that a test
+//! compares with [`document`].
+
+use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+use utoipa::openapi::{LicenseBuilder, OpenApi as Document};
+use utoipa::{IntoResponses, Modify, OpenApi};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+use super::problem::{ProblemDetails, ValidRange};
+use super::roles::Role;
+use super::state::ApiState;
+use super::stream::{ClientMessage, DriveSelection};
+use super::{buses, commands, drives, health, setpoints, settings, stream};
+
+/// Where the document is served.
+pub const DOCUMENT_PATH: &str = "/openapi.json";
+/// Where the interactive page is served.
+pub const DOCS_PATH: &str = "/docs";
+
+#[derive(OpenApi)]
+#[openapi(
+    info(
+        title = "drivegate",
+        description = "REST and WebSocket API of drivegate, the gateway to a bus of RS-485 (Modbus RTU) servo drives.\n\nEvery command returns only after the drive confirmed it. Errors are `application/problem+json` (RFC 9457); the `type` says what went wrong. Send the API token as `Authorization: Bearer <token>`; its role (viewer, operator, admin) decides what it may do. `/healthz`, `/readyz` and `/metrics` need no token."
+    ),
+    modifiers(&BearerScheme),
+    components(schemas(ProblemDetails, ValidRange, Role, ClientMessage, DriveSelection)),
+    tags(
+        (name = "drives", description = "Drives and their decoded status"),
+        (name = "commands", description = "Config commands and modes (manual 1.3)"),
+        (name = "setpoints", description = "Speed, position and torque setpoints and their motor-safety leases (manual 1.4 to 1.6)"),
+        (name = "settings", description = "Protection, ramps, inertia and RS-485 control (manual 1.8 to 1.12)"),
+        (name = "buses", description = "Bus health and counters, scans, address setting (manual 1.2)"),
+        (name = "stream", description = "The WebSocket stream of statuses and events, with commands"),
+        (name = "health", description = "Liveness, readiness and Prometheus metrics (no token needed)"),
+    )
+)]
+struct ApiDoc;
+
+/// Declares the bearer token scheme.
+struct BearerScheme;
+
+impl Modify for BearerScheme {
+    fn modify(&self, openapi: &mut Document) {
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "bearer",
+            SecurityScheme::Http(
+                HttpBuilder::new()
+                    .scheme(HttpAuthScheme::Bearer)
+                    .description(Some(
+                        "An API token from [[http.token]] in the configuration. Not needed when no tokens are configured (the API then listens on loopback only).",
+                    ))
+                    .build(),
+            ),
+        );
+    }
+}
+
+/// Errors of read routes.
+#[derive(IntoResponses)]
+pub enum ReadProblems {
+    /// `invalid-request`: a malformed parameter.
+    #[response(status = 400, content_type = "application/problem+json")]
+    BadRequest(ProblemDetails),
+    /// `unauthorized`: no token, or an unknown one.
+    #[response(status = 401, content_type = "application/problem+json")]
+    Unauthorized(ProblemDetails),
+    /// `unknown-drive` or `unknown-bus`.
+    #[response(status = 404, content_type = "application/problem+json")]
+    NotFound(ProblemDetails),
+}
+
+/// Errors of reads that may go to the bus.
+#[derive(IntoResponses)]
+pub enum FreshReadProblems {
+    /// `invalid-request`: a malformed parameter.
+    #[response(status = 400, content_type = "application/problem+json")]
+    BadRequest(ProblemDetails),
+    /// `unauthorized`: no token, or an unknown one.
+    #[response(status = 401, content_type = "application/problem+json")]
+    Unauthorized(ProblemDetails),
+    /// `unknown-drive`.
+    #[response(status = 404, content_type = "application/problem+json")]
+    NotFound(ProblemDetails),
+    /// `bus-busy`: the bus queue is full; see `Retry-After`.
+    #[response(status = 429, content_type = "application/problem+json")]
+    BusBusy(ProblemDetails),
+    /// `drive-refused`, `drive-unconfirmed`, `drive-bad-reply`.
+    #[response(status = 502, content_type = "application/problem+json")]
+    BadGateway(ProblemDetails),
+    /// `drive-offline` (also: no status read yet), `bus-down`,
+    /// `queue-timeout`, `shutting-down`.
+    #[response(status = 503, content_type = "application/problem+json")]
+    Unavailable(ProblemDetails),
+    /// `drive-timeout`: the drive did not answer.
+    #[response(status = 504, content_type = "application/problem+json")]
+    Timeout(ProblemDetails),
+}
+
+/// Errors of writes.
+#[derive(IntoResponses)]
+pub enum WriteProblems {
+    /// `invalid-request`: malformed JSON, wrong types, unknown or
+    /// contradictory fields.
+    #[response(status = 400, content_type = "application/problem+json")]
+    BadRequest(ProblemDetails),
+    /// `unauthorized`: no token, or an unknown one.
+    #[response(status = 401, content_type = "application/problem+json")]
+    Unauthorized(ProblemDetails),
+    /// `forbidden`: the token's role does not allow this.
+    #[response(status = 403, content_type = "application/problem+json")]
+    Forbidden(ProblemDetails),
+    /// `unknown-drive`, `unknown-bus`, `unknown-command`.
+    #[response(status = 404, content_type = "application/problem+json")]
+    NotFound(ProblemDetails),
+    /// `drive-not-active`, `drive-moving` (save while turning: send
+    /// `force`), `drive-busy` (calibrating), `confirmation-required`.
+    #[response(status = 409, content_type = "application/problem+json")]
+    Conflict(ProblemDetails),
+    /// `payload-too-large`.
+    #[response(status = 413, content_type = "application/problem+json")]
+    TooLarge(ProblemDetails),
+    /// `unsupported-media-type`: send `Content-Type: application/json`.
+    #[response(status = 415, content_type = "application/problem+json")]
+    NotJson(ProblemDetails),
+    /// `out-of-range`: `valid_range` gives the accepted range.
+    #[response(status = 422, content_type = "application/problem+json")]
+    OutOfRange(ProblemDetails),
+    /// `bus-busy`: the bus queue is full; see `Retry-After`.
+    #[response(status = 429, content_type = "application/problem+json")]
+    BusBusy(ProblemDetails),
+    /// `drive-refused` (a Modbus exception, `exception_code`),
+    /// `drive-unconfirmed`, `drive-bad-reply`.
+    #[response(status = 502, content_type = "application/problem+json")]
+    BadGateway(ProblemDetails),
+    /// `drive-offline`, `bus-down`, `queue-timeout`, `shutting-down`.
+    #[response(status = 503, content_type = "application/problem+json")]
+    Unavailable(ProblemDetails),
+    /// `drive-timeout`: the drive did not answer; whether it carried the
+    /// request out is unknown.
+    #[response(status = 504, content_type = "application/problem+json")]
+    Timeout(ProblemDetails),
+}
+
+/// Errors of lease routes.
+#[derive(IntoResponses)]
+pub enum LeaseProblems {
+    /// `invalid-request`.
+    #[response(status = 400, content_type = "application/problem+json")]
+    BadRequest(ProblemDetails),
+    /// `unauthorized`.
+    #[response(status = 401, content_type = "application/problem+json")]
+    Unauthorized(ProblemDetails),
+    /// `forbidden`: needs the operator role.
+    #[response(status = 403, content_type = "application/problem+json")]
+    Forbidden(ProblemDetails),
+    /// `unknown-drive`.
+    #[response(status = 404, content_type = "application/problem+json")]
+    NotFound(ProblemDetails),
+    /// `no-lease`: it expired (the motor was stopped) or was never granted.
+    #[response(status = 409, content_type = "application/problem+json")]
+    NoLease(ProblemDetails),
+    /// `out-of-range`: a lease length outside `[http] lease_min_ms` to `lease_max_ms`.
+    #[response(status = 422, content_type = "application/problem+json")]
+    OutOfRange(ProblemDetails),
+}
+
+/// Errors of admin bus operations (same classes as writes).
+pub type AdminBusProblems = WriteProblems;
+
+/// Every documented route, ready for its state.
+pub fn router() -> OpenApiRouter<ApiState> {
+    OpenApiRouter::with_openapi(ApiDoc::openapi())
+        .routes(routes!(health::healthz))
+        .routes(routes!(health::readyz))
+        .routes(routes!(health::metrics))
+        .routes(routes!(drives::list_drives))
+        .routes(routes!(drives::get_drive))
+        .routes(routes!(drives::get_status))
+        .routes(routes!(commands::post_command))
+        .routes(routes!(commands::put_mode))
+        .routes(routes!(setpoints::put_setpoint))
+        .routes(routes!(setpoints::post_renew))
+        .routes(routes!(setpoints::delete_lease))
+        .routes(routes!(settings::put_protection))
+        .routes(routes!(settings::put_speed_ramp))
+        .routes(routes!(settings::put_position_ramp))
+        .routes(routes!(settings::put_inertia))
+        .routes(routes!(settings::put_rs485_control))
+        .routes(routes!(buses::list_buses))
+        .routes(routes!(buses::get_bus))
+        .routes(routes!(buses::post_scan))
+        .routes(routes!(buses::post_address))
+        .routes(routes!(stream::stream))
+}
+
+/// Sets what the derive cannot: the version and the licence.
+pub fn finish(mut document: Document) -> Document {
+    document.info.version = env!("CARGO_PKG_VERSION").to_string();
+    document.info.license = Some(
+        LicenseBuilder::new()
+            .name("MIT OR Apache-2.0")
+            .identifier(Some("MIT OR Apache-2.0"))
+            .build(),
+    );
+    document
+}
+
+/// The OpenAPI document of the API.
+pub fn document() -> Document {
+    let (_, document) = router().split_for_parts();
+    finish(document)
+}

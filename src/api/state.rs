@@ -1,0 +1,126 @@
+//! What every handler shares: the plant, the metrics, the tokens, the
+//! leases, the stream hub, and the shutdown signal.
+
+use std::collections::HashMap;
+use std::ops::Deref;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+use super::auth::Tokens;
+use super::config::HttpConfig;
+use super::hub::Hub;
+use super::leases::LeaseBook;
+use super::problem::{Kind, Problem};
+use crate::bus::{BusHandle, SourceId};
+use crate::metrics::Metrics;
+use crate::plant::{Drive, Plant};
+
+/// The handlers' state; cheap to clone.
+#[derive(Clone)]
+pub struct ApiState(Arc<Shared>);
+
+/// The shared part of [`ApiState`].
+pub struct Shared {
+    /// Buses and drives.
+    pub plant: Arc<Plant>,
+    /// Counters (`/metrics`).
+    pub metrics: Arc<Metrics>,
+    /// The `[http]` section.
+    pub config: HttpConfig,
+    /// Configured tokens.
+    pub tokens: Tokens,
+    /// Setpoint leases.
+    pub leases: Arc<LeaseBook>,
+    /// The stream's fan-out of bus and lease events.
+    pub hub: Arc<Hub>,
+    /// Fires when the daemon stops.
+    pub shutdown: CancellationToken,
+    /// WebSocket sessions, which the HTTP server does not track once upgraded.
+    pub sessions: TaskTracker,
+    sources: Mutex<HashMap<String, SourceId>>,
+    next_connection: AtomicU64,
+}
+
+impl Deref for ApiState {
+    type Target = Shared;
+
+    fn deref(&self) -> &Shared {
+        &self.0
+    }
+}
+
+/// A drive resolved from a path: its place in the plant and its bus.
+#[derive(Clone, Copy)]
+pub struct Target<'a> {
+    /// Index in [`Plant::drives`] (the key of leases and subscriptions).
+    pub index: usize,
+    /// The drive.
+    pub drive: &'a Drive,
+    /// Its bus.
+    pub bus: &'a BusHandle,
+}
+
+impl ApiState {
+    /// The state of a starting API.
+    pub fn new(
+        plant: Arc<Plant>,
+        metrics: Arc<Metrics>,
+        config: HttpConfig,
+        tokens: Tokens,
+        leases: Arc<LeaseBook>,
+        hub: Arc<Hub>,
+        shutdown: CancellationToken,
+    ) -> Self {
+        ApiState(Arc::new(Shared {
+            plant,
+            metrics,
+            config,
+            tokens,
+            leases,
+            hub,
+            shutdown,
+            sessions: TaskTracker::new(),
+            sources: Mutex::new(HashMap::new()),
+            next_connection: AtomicU64::new(1),
+        }))
+    }
+
+    /// The queue source of a token name (or client address): stable, so a
+    /// client's requests share one fair turn on the bus.
+    pub fn source_for(&self, key: &str) -> SourceId {
+        let mut sources = self.sources.lock().unwrap_or_else(|p| p.into_inner());
+        *sources
+            .entry(key.to_string())
+            .or_insert_with(SourceId::new_unique)
+    }
+
+    /// A new WebSocket connection id.
+    pub fn next_connection_id(&self) -> u64 {
+        self.next_connection.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// The drive named `key` (or, on a single bus, with that unit number).
+    pub fn target(&self, key: &str) -> Result<Target<'_>, Problem> {
+        let (drive, bus) = self.plant.drive(key).map_err(|e| Problem::lookup(&e))?;
+        let index = self
+            .plant
+            .drives()
+            .iter()
+            .position(|d| d.name == drive.name)
+            .ok_or_else(|| Problem::new(Kind::Internal, "drive directory inconsistent"))?;
+        Ok(Target { index, drive, bus })
+    }
+
+    /// The drive at `index` in the plant.
+    pub fn target_at(&self, index: usize) -> Option<Target<'_>> {
+        let drive = self.plant.drives().get(index)?;
+        Some(Target {
+            index,
+            drive,
+            bus: self.plant.handle_of(drive),
+        })
+    }
+}

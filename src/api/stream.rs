@@ -1,0 +1,536 @@
+//! The WebSocket stream `GET /api/v1/stream`: a client subscribes to some
+//! or all drives and receives every status as soon as it is polled, online
+//! and offline events and lease expiries; it may send commands on the same
+//! socket and gets replies correlated by the `id` it chose.
+//!
+//! Each session has three parts: a forwarder that takes the hub's messages
+//! for the subscribed drives into a bounded buffer (`[http] stream_buffer`)
+//! without ever waiting, a writer that drains that buffer into the socket,
+//! and a reader that handles the client's messages. When the client reads
+//! too slowly the buffer fills, further updates are skipped and counted,
+//! and the client is told `{"type":"lagged","missed":N}` before the next
+//! update it gets: a slow client never slows the bus or the other clients.
+//!
+//! Leases granted over the socket end when it closes.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+use axum::extract::State;
+use axum::extract::ws::rejection::WebSocketUpgradeRejection;
+use axum::extract::ws::{CloseFrame, Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
+use axum::response::Response;
+use futures_util::{SinkExt, StreamExt};
+use serde::Deserialize;
+use serde::de::DeserializeOwned;
+use serde_json::Value;
+use tokio::sync::{Semaphore, broadcast, mpsc};
+use utoipa::{IntoParams, ToSchema};
+
+use super::auth::{Caller, StreamCaller};
+use super::buses;
+use super::commands::{self, ModeBody, parse_command};
+use super::drives;
+use super::extract::Params;
+use super::hub::{HubEvent, ServerMessage};
+use super::openapi::ReadProblems;
+use super::problem::{Kind, Problem};
+use super::setpoints::{self, RenewBody, SetpointBody};
+use super::settings;
+use super::state::ApiState;
+
+/// Replies (and other answers to the client's own messages) that may wait.
+const REPLY_BUFFER: usize = 64;
+/// Commands of one client in flight at once.
+const COMMANDS_IN_FLIGHT: usize = 16;
+
+/// Which drives: `"all"`, one name, or a list of names (unit numbers work
+/// on a single bus).
+#[derive(Debug, Clone, PartialEq, Deserialize, ToSchema)]
+#[serde(untagged)]
+pub enum DriveSelection {
+    /// `"all"` or one drive.
+    One(String),
+    /// Several drives (`[]`: none).
+    Many(Vec<String>),
+}
+
+/// A message the client sends.
+#[derive(Debug, Clone, PartialEq, Deserialize, ToSchema)]
+#[serde(tag = "type", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum ClientMessage {
+    /// Receive the updates of these drives from now on (replaces the
+    /// previous selection); answered with `subscribed`.
+    Subscribe {
+        /// `"all"`, a drive, or a list of drives.
+        drives: DriveSelection,
+    },
+    /// Run an operation; answered with `reply` carrying the same `id`.
+    ///
+    /// `op` is a command name (`activate`, `brake`, ... as in
+    /// `POST .../commands/{command}`, body `{"force": bool}`), or `mode`,
+    /// `setpoint`, `lease-renew`, `lease-release`, `status` (body
+    /// `{"fresh": bool}`), `protection`, `speed-ramp`, `position-ramp`,
+    /// `inertia`, `rs485-control` with the body of the REST route; `scan`
+    /// and `set-address` take `bus` instead of `drive`. A setpoint's lease
+    /// also ends when this socket closes.
+    Command {
+        /// Any JSON value; echoed in the reply.
+        id: Value,
+        /// The operation.
+        op: String,
+        /// The drive (name, or unit number on a single bus).
+        #[serde(default)]
+        drive: Option<String>,
+        /// The bus, for `scan` and `set-address`.
+        #[serde(default)]
+        bus: Option<String>,
+        /// The operation's body, as for the REST route.
+        #[serde(default)]
+        body: Option<Value>,
+    },
+}
+
+/// Stream query parameters.
+#[derive(Debug, Clone, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct StreamQuery {
+    /// Subscribe at once: `all`, or drive names separated by commas.
+    pub drives: Option<String>,
+    /// The API token, for browsers (which cannot set headers on a
+    /// WebSocket); prefer the Authorization header elsewhere.
+    pub access_token: Option<String>,
+}
+
+/// Drive indexes of a selection.
+fn resolve(state: &ApiState, selection: &DriveSelection) -> Result<Vec<usize>, Problem> {
+    let keys: Vec<&str> = match selection {
+        DriveSelection::One(s) if s == "all" => {
+            return Ok((0..state.plant.drives().len()).collect());
+        }
+        DriveSelection::One(s) => vec![s.as_str()],
+        DriveSelection::Many(list) => list.iter().map(String::as_str).collect(),
+    };
+    keys.into_iter()
+        .map(|k| state.target(k).map(|t| t.index))
+        .collect()
+}
+
+/// Streams statuses, online/offline and lease events; takes commands.
+///
+/// Connect with a WebSocket client (the token in the Authorization header,
+/// or `?access_token=` from a browser), then send
+/// `{"type":"subscribe","drives":"all"}` (or pass `?drives=all`). Messages
+/// from the server are `ServerMessage`s; messages to it `ClientMessage`s.
+#[utoipa::path(
+    get,
+    path = "/api/v1/stream",
+    tag = "stream",
+    security(("bearer" = [])),
+    params(StreamQuery),
+    responses(
+        (status = 101, description = "Switching to the WebSocket protocol; then ServerMessage JSON texts", body = ServerMessage),
+        ReadProblems,
+    )
+)]
+pub async fn stream(
+    State(state): State<ApiState>,
+    StreamCaller(caller): StreamCaller,
+    Params(query): Params<StreamQuery>,
+    upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
+) -> Result<Response, Problem> {
+    let upgrade = upgrade.map_err(|e| {
+        Problem::invalid(format!(
+            "this route is a WebSocket: connect with a WebSocket client ({})",
+            e.body_text()
+        ))
+    })?;
+    let initial = match query.drives.as_deref() {
+        None | Some("") => Vec::new(),
+        Some("all") => resolve(&state, &DriveSelection::One("all".to_string()))?,
+        Some(list) => resolve(
+            &state,
+            &DriveSelection::Many(list.split(',').map(|s| s.trim().to_string()).collect()),
+        )?,
+    };
+    let limit = state.config.max_body_bytes;
+    let session_state = state.clone();
+    Ok(upgrade
+        .max_message_size(limit)
+        .max_frame_size(limit)
+        .on_upgrade(move |socket| {
+            let sessions = session_state.sessions.clone();
+            sessions.track_future(session(session_state, caller, socket, initial))
+        }))
+}
+
+/// Which drives a session receives: one flag per drive of the plant, read
+/// by the forwarder for every message without locking.
+struct Selection(Vec<AtomicBool>);
+
+impl Selection {
+    fn new(drives: usize) -> Self {
+        Selection((0..drives).map(|_| AtomicBool::new(false)).collect())
+    }
+
+    fn set(&self, indexes: &[usize]) {
+        for (i, flag) in self.0.iter().enumerate() {
+            flag.store(indexes.contains(&i), Ordering::Relaxed);
+        }
+    }
+
+    fn wants(&self, drive: Option<usize>) -> bool {
+        match drive {
+            Some(i) => self.0.get(i).is_some_and(|f| f.load(Ordering::Relaxed)),
+            None => self.0.iter().any(|f| f.load(Ordering::Relaxed)),
+        }
+    }
+}
+
+async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Vec<usize>) {
+    let _counted = state.metrics.faces().ws_client();
+    let connection = state.next_connection_id();
+    state.leases.connection_opened(connection);
+    tracing::debug!(who = %caller.who, connection, "stream client connected");
+
+    let selection = Arc::new(Selection::new(state.plant.drives().len()));
+    selection.set(&initial);
+    let missed = Arc::new(AtomicU64::new(0));
+    let (events_tx, events_rx) = mpsc::channel(state.config.stream_buffer);
+    let (replies_tx, replies_rx) = mpsc::channel(REPLY_BUFFER);
+    let forwarder = tokio::spawn(forward(
+        state.hub.subscribe(),
+        selection.clone(),
+        missed.clone(),
+        events_tx,
+    ));
+    if !initial.is_empty() {
+        let _ = replies_tx.try_send(subscribed(&state, &initial));
+    }
+
+    let (sink, stream) = socket.split();
+    let writer = write_loop(&state, sink, replies_rx, events_rx, &missed);
+    let reader = read_loop(&state, &caller, connection, stream, &selection, replies_tx);
+    tokio::select! {
+        () = writer => {}
+        () = reader => {}
+    }
+    forwarder.abort();
+    state.leases.connection_closed(connection);
+    tracing::debug!(who = %caller.who, connection, "stream client gone");
+}
+
+/// Takes the hub's messages for the selected drives into the session's
+/// bounded buffer; never waits, counts what does not fit.
+async fn forward(
+    mut hub: broadcast::Receiver<HubEvent>,
+    selection: Arc<Selection>,
+    missed: Arc<AtomicU64>,
+    events: mpsc::Sender<Utf8Bytes>,
+) {
+    loop {
+        match hub.recv().await {
+            Ok(event) => {
+                if !selection.wants(event.drive) {
+                    continue;
+                }
+                match events.try_send(event.text) {
+                    Ok(()) => {}
+                    Err(mpsc::error::TrySendError::Full(_)) => {
+                        missed.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Err(mpsc::error::TrySendError::Closed(_)) => return,
+                }
+            }
+            Err(broadcast::error::RecvError::Lagged(n)) => {
+                missed.fetch_add(n, Ordering::Relaxed);
+            }
+            Err(broadcast::error::RecvError::Closed) => return,
+        }
+    }
+}
+
+type Sink = futures_util::stream::SplitSink<WebSocket, Message>;
+type Source = futures_util::stream::SplitStream<WebSocket>;
+
+/// Sends replies first, then updates (each preceded by a `lagged` notice
+/// when some were skipped), and a ping when nothing else went out for a
+/// while, so a quiet but healthy stream is not closed as idle; closes the
+/// socket when the daemon stops.
+async fn write_loop(
+    state: &ApiState,
+    mut sink: Sink,
+    mut replies: mpsc::Receiver<Utf8Bytes>,
+    mut events: mpsc::Receiver<Utf8Bytes>,
+    missed: &AtomicU64,
+) {
+    let period = (state.config.idle_timeout / 4).max(std::time::Duration::from_millis(100));
+    let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
+    ping.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        let next = tokio::select! {
+            biased;
+            () = state.shutdown.cancelled() => None,
+            Some(reply) = replies.recv() => Some(Message::Text(reply)),
+            Some(event) = events.recv() => {
+                let n = missed.swap(0, Ordering::Relaxed);
+                if n > 0 && !send(state, &mut sink, Message::Text(ServerMessage::Lagged { missed: n }.to_text())).await {
+                    return;
+                }
+                Some(Message::Text(event))
+            }
+            _ = ping.tick() => Some(Message::Ping(Default::default())),
+            else => None,
+        };
+        match next {
+            Some(message) => {
+                if !send(state, &mut sink, message).await {
+                    return;
+                }
+                ping.reset();
+            }
+            None => break,
+        }
+    }
+    if state.shutdown.is_cancelled() {
+        let close = Message::Close(Some(CloseFrame {
+            code: 1001,
+            reason: "drivegate is stopping".into(),
+        }));
+        let _ = tokio::time::timeout(std::time::Duration::from_secs(1), sink.send(close)).await;
+    }
+}
+
+/// Sends one message; false when the socket is gone or the daemon stops.
+async fn send(state: &ApiState, sink: &mut Sink, message: Message) -> bool {
+    tokio::select! {
+        sent = sink.send(message) => sent.is_ok(),
+        () = state.shutdown.cancelled() => false,
+    }
+}
+
+fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
+    ServerMessage::Subscribed {
+        drives: indexes
+            .iter()
+            .filter_map(|&i| state.plant.drives().get(i).map(|d| d.name.clone()))
+            .collect(),
+    }
+    .to_text()
+}
+
+/// Handles the client's messages until it closes the socket.
+async fn read_loop(
+    state: &ApiState,
+    caller: &Caller,
+    connection: u64,
+    mut stream: Source,
+    selection: &Selection,
+    replies: mpsc::Sender<Utf8Bytes>,
+) {
+    let in_flight = Arc::new(Semaphore::new(COMMANDS_IN_FLIGHT));
+    while let Some(message) = stream.next().await {
+        let text = match message {
+            Ok(Message::Text(text)) => text,
+            Ok(Message::Binary(_)) => {
+                let problem = Problem::invalid("send JSON text messages, not binary ones");
+                if replies
+                    .send(ServerMessage::Error { problem }.to_text())
+                    .await
+                    .is_err()
+                {
+                    return;
+                }
+                continue;
+            }
+            Ok(Message::Ping(_) | Message::Pong(_)) => continue,
+            Ok(Message::Close(_)) | Err(_) => return,
+        };
+        let answer = match serde_json::from_str::<ClientMessage>(text.as_str()) {
+            Err(e) => ServerMessage::Error {
+                problem: Problem::invalid(format!(
+                    "not a valid stream message: {e}; send {{\"type\":\"subscribe\",\"drives\":\"all\"}} or {{\"type\":\"command\",\"id\":1,\"op\":\"activate\",\"drive\":\"NAME\"}}"
+                )),
+            }
+            .to_text(),
+            Ok(ClientMessage::Subscribe { drives }) => match resolve(state, &drives) {
+                Ok(indexes) => {
+                    selection.set(&indexes);
+                    subscribed(state, &indexes)
+                }
+                Err(problem) => ServerMessage::Error { problem }.to_text(),
+            },
+            Ok(ClientMessage::Command {
+                id,
+                op,
+                drive,
+                bus,
+                body,
+            }) => {
+                let Ok(permit) = in_flight.clone().acquire_owned().await else {
+                    return;
+                };
+                let (state, caller, replies) = (state.clone(), caller.clone(), replies.clone());
+                // Commands run beside the reader, so a slow one (a scan, a
+                // timeout) does not hold up lease renewals sent after it.
+                state.sessions.clone().spawn(async move {
+                    let result = dispatch(&state, &caller, connection, &op, drive, bus, body).await;
+                    let reply = match result {
+                        Ok(result) => ServerMessage::Reply {
+                            id,
+                            ok: true,
+                            result: Some(result),
+                            problem: None,
+                        },
+                        Err(problem) => ServerMessage::Reply {
+                            id,
+                            ok: false,
+                            result: None,
+                            problem: Some(problem),
+                        },
+                    };
+                    let _ = replies.send(reply.to_text()).await;
+                    drop(permit);
+                });
+                continue;
+            }
+        };
+        if replies.send(answer).await.is_err() {
+            return;
+        }
+    }
+}
+
+fn body_as<T: DeserializeOwned>(op: &str, body: Option<Value>) -> Result<T, Problem> {
+    serde_json::from_value(body.unwrap_or_else(|| Value::Object(Default::default())))
+        .map_err(|e| Problem::invalid(format!("the body of \"{op}\" is not valid: {e}")))
+}
+
+fn json<T: serde::Serialize>(value: T) -> Result<Value, Problem> {
+    serde_json::to_value(value)
+        .map_err(|e| Problem::new(Kind::Internal, format!("cannot encode the reply: {e}")))
+}
+
+/// `{"force": bool}`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ForceBody {
+    #[serde(default)]
+    force: bool,
+}
+
+/// `{"fresh": bool}`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FreshBody {
+    #[serde(default)]
+    fresh: bool,
+}
+
+const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, scan, set-address";
+
+/// Runs one stream command through the same code as its REST route.
+async fn dispatch(
+    state: &ApiState,
+    caller: &Caller,
+    connection: u64,
+    op: &str,
+    drive: Option<String>,
+    bus: Option<String>,
+    body: Option<Value>,
+) -> Result<Value, Problem> {
+    if matches!(op, "scan" | "set-address") {
+        let bus = bus.ok_or_else(|| Problem::invalid(format!("\"{op}\" needs \"bus\"")))?;
+        return match op {
+            "scan" => json(buses::scan(state, caller, &bus, &body_as(op, body)?).await?),
+            _ => json(buses::set_address(state, caller, &bus, &body_as(op, body)?).await?),
+        };
+    }
+    let known = matches!(
+        op,
+        "mode"
+            | "setpoint"
+            | "lease-renew"
+            | "lease-release"
+            | "status"
+            | "protection"
+            | "speed-ramp"
+            | "position-ramp"
+            | "inertia"
+            | "rs485-control"
+    );
+    if !known && parse_command(op).is_err() {
+        return Err(Problem::invalid(format!("unknown op \"{op}\": use {OPS}")));
+    }
+    let key = drive.ok_or_else(|| Problem::invalid(format!("\"{op}\" needs \"drive\"")))?;
+    let key = key.as_str();
+    match op {
+        "mode" => {
+            let b: ModeBody = body_as(op, body)?;
+            json(commands::run(state, caller, key, b.mode.command(), false).await?)
+        }
+        "setpoint" => {
+            let b: SetpointBody = body_as(op, body)?;
+            json(setpoints::apply(state, caller, key, &b, Some(connection)).await?)
+        }
+        "lease-renew" => {
+            let b: RenewBody = body_as(op, body)?;
+            json(setpoints::renew(state, caller, key, &b).await?)
+        }
+        "lease-release" => json(setpoints::release(state, caller, key).await?),
+        "status" => {
+            let b: FreshBody = body_as(op, body)?;
+            json(drives::status(state, caller, key, b.fresh).await?)
+        }
+        "protection" => json(settings::protection(state, caller, key, &body_as(op, body)?).await?),
+        "speed-ramp" => json(settings::speed_ramp(state, caller, key, &body_as(op, body)?).await?),
+        "position-ramp" => {
+            json(settings::position_ramp(state, caller, key, &body_as(op, body)?).await?)
+        }
+        "inertia" => json(settings::inertia(state, caller, key, &body_as(op, body)?).await?),
+        "rs485-control" => {
+            json(settings::rs485_control(state, caller, key, &body_as(op, body)?).await?)
+        }
+        name => {
+            let command = parse_command(name)?;
+            let b: ForceBody = body_as(op, body)?;
+            json(commands::run(state, caller, key, command, b.force).await?)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn client_messages_parse() {
+        let m: ClientMessage =
+            serde_json::from_str(r#"{"type":"subscribe","drives":"all"}"#).unwrap();
+        assert_eq!(
+            m,
+            ClientMessage::Subscribe {
+                drives: DriveSelection::One("all".into())
+            }
+        );
+        let m: ClientMessage = serde_json::from_str(
+            r#"{"type":"command","id":"a7","op":"setpoint","drive":"conveyor","body":{"speed_rpm":100,"lease_ms":500}}"#,
+        )
+        .unwrap();
+        assert!(matches!(m, ClientMessage::Command { ref op, .. } if op == "setpoint"));
+        assert!(
+            serde_json::from_str::<ClientMessage>(r#"{"type":"subscribe","drives":"all","x":1}"#)
+                .is_err()
+        );
+        assert!(serde_json::from_str::<ClientMessage>(r#"{"type":"dance"}"#).is_err());
+    }
+
+    #[test]
+    fn selection_flags() {
+        let s = Selection::new(3);
+        assert!(!s.wants(None));
+        s.set(&[1]);
+        assert!(s.wants(Some(1)) && !s.wants(Some(0)) && s.wants(None));
+        assert!(!s.wants(Some(7)));
+    }
+}
