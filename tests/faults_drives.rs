@@ -41,7 +41,14 @@ async fn bounded(test: impl Future<Output = ()>) {
 async fn a_silent_drive_goes_offline_costs_little_and_fails_only_its_own_requests() {
     bounded(async {
         const SILENT: u8 = 8;
-        let d = TestDaemon::start(&eight_drives("sim", "response_timeout_ms = 50", "")).await;
+        // A timeout twice the default: only the silent drive's replies are
+        // missing, none delayed by the machine's scheduling.
+        let d = TestDaemon::start(&eight_drives(
+            "sim",
+            "response_timeout_ms = 100\nguard_ms = 20",
+            "",
+        ))
+        .await;
         let bus = d.plant.buses()[0].handle.clone();
         let truth = Arc::new(Truth::of_plant(d.plant.clone()));
         d.sim().set_silent(SILENT, true);
@@ -168,7 +175,7 @@ async fn a_power_cycled_drive_comes_back_with_what_its_flash_holds() {
         const CYCLED: u8 = 3;
         let d = TestDaemon::start(&eight_drives(
             "sim",
-            "response_timeout_ms = 50\noffline_backoff_ms = 200",
+            "response_timeout_ms = 100\nguard_ms = 20\noffline_backoff_ms = 200",
             "reboot_ms = 600",
         ))
         .await;

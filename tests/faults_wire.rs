@@ -165,6 +165,8 @@ async fn corrupted_replies_are_retried_or_reported_and_each_is_counted() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dropped_replies_time_out_and_each_is_counted() {
     bounded(async {
+        // A timeout twice the default: a reply delayed by the machine's
+        // scheduling cannot pass for a dropped one.
         let r = run(
             "response_timeout_ms = 100\nguard_ms = 20",
             FaultRates {
@@ -227,8 +229,10 @@ async fn late_replies_fall_in_the_guard_and_never_answer_the_next_request() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn noise_between_frames_is_discarded_or_spoils_one_attempt() {
     bounded(async {
+        // A long timeout: no reply can be late here, so a failed attempt
+        // is the noise's doing.
         let r = run(
-            "response_timeout_ms = 50",
+            "response_timeout_ms = 200\nguard_ms = 50",
             FaultRates {
                 noise_rate: 0.05,
                 ..FaultRates::default()

@@ -29,11 +29,14 @@ pub const UNITS: std::ops::RangeInclusive<u8> = 1..=8;
 
 /// A daemon config: one bus of eight drives (units 1-8, named `d1`..`d8`)
 /// on `port` (`"sim"` for the built-in simulator), one retry, extra
-/// `[[bus]]` keys in `bus` (timeouts, guard), extra `[bus.sim]` keys in `sim`. Modbus TCP is off: these tests
-/// drive the bus through its handle, as every face does.
+/// `[[bus]]` keys in `bus` (timeouts, guard), extra `[bus.sim]` keys in
+/// `sim`. Modbus TCP is off: these tests drive the bus through its handle,
+/// as every face does. No safe-stop action at shutdown: stopping the
+/// daemon adds no traffic to what the accounting compares.
 pub fn eight_drives(port: &str, bus: &str, sim: &str) -> String {
     let mut toml = format!(
         "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nenabled = false\n\
+         [safety]\non_shutdown = \"none\"\n\
          [[bus]]\nname = \"line\"\nport = \"{port}\"\nretries = 1\n{bus}\n"
     );
     if port == "sim" {
