@@ -14,7 +14,7 @@
 //!
 //! Two modes: `saturated` polls as fast as the bus allows
 //! (`poll_interval_ms = 0`), where every millisecond a fault takes is lost
-//! to the others; `paced` polls each drive every 100 ms (47 % of the wire),
+//! to the others; `paced` polls each drive every 100 ms (half the wire),
 //! where the spare time absorbs the faults.
 //!
 //! `cargo bench --bench faults`; `DRIVEGATE_BENCH_SECS` sets each window
