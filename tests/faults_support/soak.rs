@@ -212,7 +212,8 @@ pub struct Bounds {
     pub memory_growth: f64,
     /// ... plus this much, KiB (allocator rounding).
     pub memory_slack_kib: u64,
-    /// The last third's poll rate over the first third's, at least.
+    /// The last third's poll rate over the first third's, at least (0:
+    /// only that the buses still poll in the last third).
     pub poll_rate_kept: f64,
 }
 
@@ -303,7 +304,7 @@ impl Report {
             ));
         }
         let (r0, r1) = self.poll_rates();
-        if r0 <= 0.0 || r1 < r0 * bounds.poll_rate_kept {
+        if r0 <= 0.0 || r1 <= 0.0 || r1 < r0 * bounds.poll_rate_kept {
             broken.push(format!(
                 "poll rate: {r0:.1}/s in the first third, {r1:.1}/s in the last"
             ));
