@@ -30,7 +30,7 @@ where
     }
 }
 
-/// A JSON body that may be left out entirely (then `None`).
+/// A JSON body that may be left out entirely, or sent as `null` (then `None`).
 #[derive(Debug, Clone)]
 pub struct OptionalJsonBody<T>(pub Option<T>);
 
@@ -53,8 +53,9 @@ where
         if bytes.iter().all(u8::is_ascii_whitespace) {
             return Ok(OptionalJsonBody(None));
         }
-        serde_json::from_slice(&bytes)
-            .map(|v| OptionalJsonBody(Some(v)))
+        // `null` is as good as no body (the document allows either).
+        serde_json::from_slice::<Option<T>>(&bytes)
+            .map(OptionalJsonBody)
             .map_err(|e| Problem::invalid(format!("the JSON body is not valid: {e}")))
     }
 }

@@ -4,7 +4,10 @@
 //! - [`listener`] binds (loopback only without tokens) and limits connections,
 //! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
 //! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`buses`] and
-//!   [`health`] are the routes, all documented in [`openapi`],
+//!   [`health`] are the routes, all documented in [`openapi`] (the body
+//!   schemas a derive cannot write are in [`body_schemas`]),
+//! - [`extract`] and [`integers`] read requests, refusing bad ones with a
+//!   problem document,
 //! - [`control`] is the write path they share (checks, confirmation, audit),
 //! - [`leases`] stops motors whose client went silent,
 //! - [`hub`] and [`stream`] are the WebSocket stream,
@@ -14,6 +17,7 @@
 //! handles of the [`Plant`] and wait for the drive's confirmation.
 
 pub mod auth;
+pub mod body_schemas;
 pub mod buses;
 pub mod commands;
 pub mod config;
@@ -22,6 +26,7 @@ pub mod drives;
 pub mod extract;
 pub mod health;
 pub mod hub;
+pub mod integers;
 pub mod leases;
 pub mod listener;
 pub mod openapi;
@@ -138,7 +143,10 @@ pub async fn start(
 pub fn app(state: ApiState) -> Router {
     let (routes, document) = openapi::router().split_for_parts();
     let docs: Router<ApiState> = SwaggerUi::new(openapi::DOCS_PATH)
-        .url(openapi::DOCUMENT_PATH, openapi::finish(document))
+        .url(
+            openapi::DOCUMENT_PATH,
+            openapi::document_for(document, &state.config),
+        )
         .into();
     routes
         .merge(docs)

@@ -126,7 +126,7 @@ fn resolve(state: &ApiState, selection: &DriveSelection) -> Result<Vec<usize>, P
     get,
     path = "/api/v1/stream",
     tag = "stream",
-    security(("bearer" = [])),
+    security(("bearer" = ["viewer"])),
     params(StreamQuery),
     responses(
         (status = 101, description = "Switching to the WebSocket protocol; then ServerMessage JSON texts", body = ServerMessage),
