@@ -2,6 +2,7 @@
 //! control and motor-safety leases.
 //!
 //! - [`listener`] binds (loopback only without tokens) and limits connections,
+//!   [`server`] serves them with a deadline on every request,
 //! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
 //! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`buses`] and
 //!   [`health`] are the routes, all documented in [`openapi`] (the body
@@ -33,6 +34,7 @@ pub mod openapi;
 pub mod problem;
 pub mod request_metrics;
 pub mod roles;
+pub mod server;
 pub mod setpoints;
 pub mod settings;
 pub mod state;
@@ -55,7 +57,7 @@ use crate::plant::Plant;
 use auth::Tokens;
 use hub::Hub;
 use leases::LeaseBook;
-use listener::{ClientAddr, LimitedListener};
+use listener::LimitedListener;
 use problem::{Kind, Problem};
 use state::ApiState;
 
@@ -113,16 +115,9 @@ pub async fn start(
         http.send_buffer_bytes,
         http.idle_timeout,
     );
+    let read_timeout = http.read_timeout;
     let task = tokio::spawn(async move {
-        let served = axum::serve(
-            listener,
-            app.into_make_service_with_connect_info::<ClientAddr>(),
-        )
-        .with_graceful_shutdown(shutdown.cancelled_owned())
-        .await;
-        if let Err(e) = served {
-            tracing::error!("the HTTP server failed: {e}");
-        }
+        server::serve(listener, app, read_timeout, shutdown).await;
         // Upgraded connections are not the server's any more: the sessions
         // close themselves on shutdown, and are waited for here.
         state.sessions.close();

@@ -125,6 +125,10 @@ pub enum WriteProblems {
     /// `force`), `drive-busy` (calibrating), `confirmation-required`.
     #[response(status = 409, content_type = "application/problem+json")]
     Conflict(ProblemDetails),
+    /// `request-timeout`: the body did not arrive within `[http]
+    /// read_timeout_s`.
+    #[response(status = 408, content_type = "application/problem+json")]
+    TooSlow(ProblemDetails),
     /// `payload-too-large`.
     #[response(status = 413, content_type = "application/problem+json")]
     TooLarge(ProblemDetails),
@@ -168,6 +172,10 @@ pub enum LeaseProblems {
     /// `no-lease`: it expired (the motor was stopped) or was never granted.
     #[response(status = 409, content_type = "application/problem+json")]
     NoLease(ProblemDetails),
+    /// `request-timeout`: the body did not arrive within `[http]
+    /// read_timeout_s`.
+    #[response(status = 408, content_type = "application/problem+json")]
+    TooSlow(ProblemDetails),
     /// `out-of-range`: a lease length outside `[http] lease_min_ms` to `lease_max_ms`.
     #[response(status = 422, content_type = "application/problem+json")]
     OutOfRange(ProblemDetails),
