@@ -34,8 +34,9 @@ async fn within_deadline<T>(
     })
 }
 
-/// A JSON body; wrong JSON, wrong types and unknown fields are 400, a body
-/// over the limit 413, another content type 415, one too slow 408.
+/// A JSON body; wrong JSON, wrong types, unknown fields and anything but
+/// an object are 400, a body over the limit 413, another content type 415,
+/// one too slow 408.
 #[derive(Debug, Clone)]
 pub struct JsonBody<T>(pub T);
 
@@ -46,17 +47,20 @@ where
     type Rejection = Problem;
 
     async fn from_request(req: Request, state: &ApiState) -> Result<Self, Problem> {
-        within_deadline(state, async {
-            Json::<T>::from_request(req, state)
-                .await
-                .map(|Json(v)| JsonBody(v))
-                .map_err(Problem::from)
-        })
-        .await
+        if !says_json(req.headers()) {
+            return Err(not_json());
+        }
+        let bytes = read_body(req, state).await?;
+        object_or_null(&bytes, false)?;
+        Json::<T>::from_bytes(&bytes)
+            .map(|Json(v)| JsonBody(v))
+            .map_err(Problem::from)
     }
 }
 
-/// A JSON body that may be left out entirely, or sent as `null` (then `None`).
+/// A JSON body that may be left out entirely, or sent as `null` (then
+/// `None`); one that is there must be an object and say it is JSON, as for
+/// [`JsonBody`].
 #[derive(Debug, Clone)]
 pub struct OptionalJsonBody<T>(pub Option<T>);
 
@@ -67,23 +71,87 @@ where
     type Rejection = Problem;
 
     async fn from_request(req: Request, state: &ApiState) -> Result<Self, Problem> {
-        let bytes = within_deadline(state, async {
-            Bytes::from_request(req, state).await.map_err(|e| {
-                if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
-                    Problem::new(Kind::PayloadTooLarge, e.body_text())
-                } else {
-                    Problem::invalid(e.body_text())
-                }
-            })
-        })
-        .await?;
+        let json = says_json(req.headers());
+        // Refused before it is read, as for JsonBody, when it announces
+        // a length.
+        let announced = req
+            .headers()
+            .get(axum::http::header::CONTENT_LENGTH)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.parse::<u64>().ok())
+            .is_some_and(|n| n > 0);
+        if announced && !json {
+            return Err(not_json());
+        }
+        let bytes = read_body(req, state).await?;
         if bytes.iter().all(u8::is_ascii_whitespace) {
             return Ok(OptionalJsonBody(None));
         }
+        if !json {
+            return Err(not_json());
+        }
+        object_or_null(&bytes, true)?;
         // `null` is as good as no body (the document allows either).
-        serde_json::from_slice::<Option<T>>(&bytes)
-            .map(OptionalJsonBody)
-            .map_err(|e| Problem::invalid(format!("the JSON body is not valid: {e}")))
+        Json::<Option<T>>::from_bytes(&bytes)
+            .map(|Json(v)| OptionalJsonBody(v))
+            .map_err(Problem::from)
+    }
+}
+
+/// Reads the whole body, within the size limit and the deadline.
+async fn read_body(req: Request, state: &ApiState) -> Result<Bytes, Problem> {
+    within_deadline(state, async {
+        Bytes::from_request(req, state).await.map_err(|e| {
+            if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+                Problem::new(Kind::PayloadTooLarge, e.body_text())
+            } else {
+                Problem::invalid(e.body_text())
+            }
+        })
+    })
+    .await
+}
+
+fn not_json() -> Problem {
+    Problem::new(
+        Kind::UnsupportedMediaType,
+        "send the body as JSON with the header Content-Type: application/json",
+    )
+}
+
+/// Refuses a body that is not a JSON object (or `null`, where allowed):
+/// serde would otherwise read a struct from an array, field by field in
+/// declaration order, so `[100]` would be a speed setpoint.
+fn object_or_null(bytes: &[u8], null: bool) -> Result<(), Problem> {
+    let text = bytes.trim_ascii_start();
+    if text.starts_with(b"{") || (null && text.starts_with(b"null")) {
+        return Ok(());
+    }
+    Err(Problem::invalid(if null {
+        "the body must be a JSON object ({...}) or null"
+    } else {
+        "the body must be a JSON object ({...})"
+    }))
+}
+
+/// True when the request says its body is JSON (`application/json` or
+/// `application/*+json`), as axum's `Json` wants.
+fn says_json(headers: &axum::http::HeaderMap) -> bool {
+    let Some(value) = headers
+        .get(axum::http::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+    else {
+        return false;
+    };
+    let essence = value
+        .split(';')
+        .next()
+        .unwrap_or("")
+        .trim()
+        .to_ascii_lowercase();
+    match essence.split_once('/') {
+        Some(("application", subtype)) => subtype == "json" || subtype.ends_with("+json"),
+        _ => false,
     }
 }
 

@@ -414,7 +414,17 @@ async fn read_loop(
 }
 
 fn body_as<T: DeserializeOwned>(op: &str, body: Option<Value>) -> Result<T, Problem> {
-    serde_json::from_value(body.unwrap_or_else(|| Value::Object(Default::default())))
+    let body = match body {
+        None => Value::Object(Default::default()),
+        // serde would read a struct from an array, field by field.
+        Some(object @ Value::Object(_)) => object,
+        Some(_) => {
+            return Err(Problem::invalid(format!(
+                "the body of \"{op}\" must be a JSON object ({{...}})"
+            )));
+        }
+    };
+    serde_json::from_value(body)
         .map_err(|e| Problem::invalid(format!("the body of \"{op}\" is not valid: {e}")))
 }
 
