@@ -106,7 +106,9 @@ async fn garbage_and_huge_lengths_close_only_their_connection() {
             rng.fill(&mut bytes[..]);
             // Never a valid header by chance: protocol id 0 would need two
             // zero bytes here, and a valid one may write a drive.
-            bytes.get_mut(2).map(|b| *b |= 0x01);
+            if let Some(b) = bytes.get_mut(2) {
+                *b |= 0x01;
+            }
             let mut s = connect(addr).await;
             let _ = s.write_all(&bytes).await;
             // Under six bytes there is no header to refuse yet: the client
