@@ -98,8 +98,22 @@ where
     }
 }
 
-/// Reads the whole body, within the size limit and the deadline.
+/// Reads the whole body, within the size limit and the deadline. A body
+/// whose announced length is over the limit is refused at once, rather
+/// than after waiting for bytes that would be thrown away.
 async fn read_body(req: Request, state: &ApiState) -> Result<Bytes, Problem> {
+    let limit = state.config.max_body_bytes;
+    let announced = req
+        .headers()
+        .get(axum::http::header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if announced.is_some_and(|n| n > limit as u64) {
+        return Err(Problem::new(
+            Kind::PayloadTooLarge,
+            format!("the body is over the limit of {limit} bytes ([http] max_body_bytes)"),
+        ));
+    }
     within_deadline(state, async {
         Bytes::from_request(req, state).await.map_err(|e| {
             if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
