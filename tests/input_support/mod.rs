@@ -69,14 +69,20 @@ pub fn config(http: &str, modbus: &str, tokens: bool, rest: &str) -> String {
     format!("{text}\n{rest}\n")
 }
 
+/// Function codes the Modbus specification defines as reads (0x2B taken as
+/// its device identification read).
+pub const READS: [u8; 11] = [
+    0x01, 0x02, 0x03, 0x04, 0x07, 0x0B, 0x0C, 0x11, 0x14, 0x18, 0x2B,
+];
+
 /// Writes that reached the wire on every bus: transactions of any function
-/// other than 0x03 (reads: polls, fresh status reads, scans).
+/// but the reads (polls, fresh status reads and scans are 0x03).
 pub fn writes_on_wire(plant: &Plant) -> u64 {
     plant
         .buses()
         .iter()
         .flat_map(|b| b.handle.stats().transactions.into_iter())
-        .filter(|((function, _), _)| *function != 0x03)
+        .filter(|((function, _), _)| !READS.contains(function))
         .map(|(_, n)| n)
         .sum()
 }
@@ -335,15 +341,29 @@ impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for Captured {
     }
 }
 
-/// Installs the capture (once per binary) and returns it.
+/// Installs the capture (once per binary) and returns it. Everything at
+/// every level is kept except the events of the test's own clients (their
+/// libraries log the requests they send, tokens included, and share this
+/// process with the daemon).
 pub fn capture_logs() -> &'static Captured {
+    use tracing_subscriber::filter::{LevelFilter, Targets};
+    use tracing_subscriber::prelude::*;
     static LOGS: OnceLock<Captured> = OnceLock::new();
     LOGS.get_or_init(|| {
         let captured = Captured::default();
-        let _ = tracing_subscriber::fmt()
-            .with_writer(captured.clone())
-            .with_ansi(false)
-            .with_max_level(tracing::Level::TRACE)
+        let clients_only = Targets::new()
+            .with_default(LevelFilter::TRACE)
+            .with_target("tungstenite::handshake::client", LevelFilter::OFF)
+            .with_target("reqwest", LevelFilter::OFF)
+            .with_target("hyper_util::client", LevelFilter::OFF)
+            .with_target("hyper::client", LevelFilter::OFF);
+        let _ = tracing_subscriber::registry()
+            .with(
+                tracing_subscriber::fmt::layer()
+                    .with_writer(captured.clone())
+                    .with_ansi(false),
+            )
+            .with(clients_only)
             .try_init();
         captured
     })
