@@ -273,6 +273,8 @@ async fn write_loop(
             biased;
             () = state.shutdown.cancelled() => None,
             Some(reply) = replies.recv() => Some(Message::Text(reply)),
+            // Before updates: a stream always busy must still be pinged.
+            _ = ping.tick() => Some(Message::Ping(Default::default())),
             Some(event) = events.recv() => {
                 let n = missed.swap(0, Ordering::Relaxed);
                 if n > 0 && !send(state, &mut sink, Message::Text(ServerMessage::Lagged { missed: n }.to_text())).await {
@@ -280,7 +282,6 @@ async fn write_loop(
                 }
                 Some(Message::Text(event))
             }
-            _ = ping.tick() => Some(Message::Ping(Default::default())),
             else => None,
         };
         match next {
