@@ -402,6 +402,7 @@ async fn bodies_of_every_shape_are_answered_cleanly_and_refusals_write_nothing()
         let d = daemon().await;
         let baseline = Baseline::take().await;
         let bystander = Bystander::http(d.http, Some(VIEWER));
+        bystander.wait_for(3).await;
         let routes = Arc::new(body_routes());
         let (addr, plant) = (d.http, d.plant.clone());
         // Scans are the slow route (one response timeout per silent unit):
@@ -553,6 +554,7 @@ async fn odd_path_parameters_are_unknown_things_not_errors() {
         let d = daemon().await;
         let baseline = Baseline::take().await;
         let bystander = Bystander::http(d.http, Some(VIEWER));
+        bystander.wait_for(3).await;
         let (addr, plant) = (d.http, d.plant.clone());
         let templates = [
             ("GET", "/api/v1/drives/{}", ""),
@@ -646,6 +648,7 @@ async fn unknown_routes_are_404_and_wrong_methods_405_with_allow() {
         let d = daemon().await;
         let baseline = Baseline::take().await;
         let bystander = Bystander::http(d.http, Some(VIEWER));
+        bystander.wait_for(3).await;
         let addr = d.http;
 
         // Every documented path with every method it does not take.
@@ -752,6 +755,7 @@ async fn odd_headers_and_bearer_formats() {
         let d = daemon().await;
         let baseline = Baseline::take().await;
         let bystander = Bystander::http(d.http, Some(VIEWER));
+        bystander.wait_for(3).await;
         let addr = d.http;
         let status = "/api/v1/drives/conveyor/status";
 

@@ -302,13 +302,13 @@ async fn thousands_of_connections_opened_and_dropped() {
             &d,
             "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}",
         );
-        // The kernel may complete handshakes the daemon has not accepted
-        // yet when the client leaves; those the daemon sees as accepted or
-        // refused all the same.
-        assert_eq!(
-            accepted + refused,
-            f64::from(total) + 1.0,
-            "accepted {accepted}, refused {refused}"
+        // Each was seen by the daemon: accepted (and closed since) or
+        // refused. (A client may reset its connection before the daemon
+        // accepts it, which the kernel may hide from it: allow a few.)
+        let seen = accepted + refused;
+        assert!(
+            seen <= f64::from(total) + 1.0 && seen >= f64::from(total) * 0.99,
+            "accepted {accepted}, refused {refused} of {total}"
         );
         let during = bystander.answers() - before;
         let (ok, slowest) = bystander.finish(3, "3000 connections").await;

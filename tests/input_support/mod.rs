@@ -296,6 +296,16 @@ impl Bystander {
     /// least `min` right ones. Returns how many it got, and the longest an
     /// answer took.
     pub async fn finish(self, min: u64, during: &str) -> (u64, Duration) {
+        // Still served once the attack is over: two more right answers.
+        let target = self.answers() + 2;
+        let start = Instant::now();
+        while self.answers() < target
+            && !self.task.is_finished()
+            && start.elapsed() < Duration::from_secs(10)
+        {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        let after = self.answers() >= target;
         self.stop.cancel();
         let slowest = self.slowest.clone();
         let (ok, failures) = tokio::time::timeout(Duration::from_secs(10), self.task)
@@ -311,6 +321,10 @@ impl Bystander {
         assert!(
             ok >= min,
             "the well-behaved client got only {ok} answers during {during}"
+        );
+        assert!(
+            after,
+            "the well-behaved client was not served after {during}"
         );
         let slowest = *slowest.lock().unwrap();
         (ok, slowest)
