@@ -293,8 +293,10 @@ async fn thousands_of_connections_opened_and_dropped() {
 
         // Every one is accounted for: accepted (and closed since) or refused
         // over the limit; only the well-behaved client's is still open.
+        // (At most the well-behaved client's; if it left, its failure is
+        // reported below.)
         eventually(Duration::from_secs(10), "every connection closed", || {
-            (counter(&d, "drivegate_modbus_tcp_connections") == 1.0).then_some(())
+            (counter(&d, "drivegate_modbus_tcp_connections") <= 1.0).then_some(())
         })
         .await;
         let accepted = counter(&d, "drivegate_modbus_tcp_connections_accepted_total");
