@@ -109,3 +109,131 @@ pub fn mbap(data: &[u8]) {
         rest = &rest[used..];
     }
 }
+
+/// Arbitrary bytes as the JSON body of an API request (the first byte picks
+/// the route): the request types' parsing, then the range checks and unit
+/// conversions behind them. What passes the checks must be within the
+/// range the OpenAPI document states and make a frame the drive accepts,
+/// which decodes back to the same request.
+pub fn http_body(data: &[u8]) {
+    use drivegate::api::body_schemas;
+    use drivegate::api::buses::{AddressBody, ScanBody};
+    use drivegate::api::commands::ModeBody;
+    use drivegate::api::setpoints::{RenewBody, SetpointBody};
+    use drivegate::api::settings::{
+        InertiaBody, PositionRampBody, ProtectionBody, Rs485Body, SpeedRampBody,
+    };
+    use drivegate::api::stream::ClientMessage;
+    use drivegate::drive::{DriveRequest, units};
+
+    fn sent(request: DriveRequest) {
+        let pdu = request.pdu().expect("a checked request encodes");
+        assert_eq!(DriveRequest::from_pdu(&pdu), Some(request), "{pdu:02X?}");
+    }
+
+    let Some((&selector, json)) = data.split_first() else {
+        return;
+    };
+    match selector % 8 {
+        0 => {
+            let Ok(body) = serde_json::from_slice::<SetpointBody>(json) else {
+                return;
+            };
+            match body.request() {
+                Ok(request) => {
+                    if let Some(rpm) = body.speed_rpm {
+                        let (lo, hi) = body_schemas::SPEED_RPM_EXCLUSIVE;
+                        assert!(rpm > lo && rpm < hi, "{rpm} rpm accepted");
+                    }
+                    if let Some(deg) = body.position_deg {
+                        let (lo, hi) = body_schemas::POSITION_DEG;
+                        assert!(deg >= lo && deg <= hi, "{deg} deg accepted");
+                    }
+                    if let Some(a) = body.torque_a {
+                        let (lo, hi) = body_schemas::TORQUE_A;
+                        assert!(a >= lo && a <= hi, "{a} A accepted");
+                    }
+                    sent(request);
+                }
+                Err(problem) => {
+                    assert!(matches!(problem.status, 400 | 422), "{problem:?}");
+                    if problem.status == 422 {
+                        let range = problem.valid_range.clone().expect("422 names its range");
+                        assert!(range.min <= range.max);
+                    }
+                }
+            }
+        }
+        1 => {
+            let Ok(body) = serde_json::from_slice::<ProtectionBody>(json) else {
+                return;
+            };
+            let limit = match (body.limit_a, body.limit_counts) {
+                (Some(a), None) => units::current_limit(a),
+                (None, Some(c)) => units::current_limit_counts(c),
+                _ => return,
+            };
+            if let (Ok(limit_counts), Ok(stall_ms)) = (limit, units::stall_time_ms(body.stall_ms)) {
+                sent(DriveRequest::OverCurrent {
+                    limit_counts,
+                    stall_ms,
+                    save: body.save,
+                });
+            }
+        }
+        2 => {
+            let Ok(body) = serde_json::from_slice::<SpeedRampBody>(json) else {
+                return;
+            };
+            if let (Some(t), Some(rpm)) = (body.time_s, body.step_rpm)
+                && let Ok(alpha) = units::speed_ramp_alpha(t, rpm, 3.75)
+            {
+                assert!(alpha >= 1);
+                let time = units::speed_ramp_time(alpha, rpm, 3.75).expect("a ramp");
+                assert!(time.is_finite() && time > 0.0);
+                sent(DriveRequest::SpeedRamp { alpha, save: body.save });
+            }
+        }
+        3 => {
+            let Ok(body) = serde_json::from_slice::<PositionRampBody>(json) else {
+                return;
+            };
+            if let (Some(t), Some(deg)) = (body.time_s, body.step_deg)
+                && let Ok(alpha) = units::position_ramp_alpha(t, deg)
+            {
+                assert!(alpha >= 1);
+                let time = units::position_ramp_time(alpha, deg).expect("a ramp");
+                assert!(time.is_finite() && time > 0.0);
+                sent(DriveRequest::PositionRamp { alpha, save: body.save });
+            }
+        }
+        4 => {
+            if let Ok(body) = serde_json::from_slice::<InertiaBody>(json)
+                && let Ok(ratio) = units::inertia_ratio(body.ratio)
+            {
+                sent(DriveRequest::LoadInertia { ratio, save: body.save });
+            }
+        }
+        5 => {
+            let _ = serde_json::from_slice::<Option<ScanBody>>(json);
+            if let Ok(body) = serde_json::from_slice::<AddressBody>(json)
+                && let Ok(address) = u8::try_from(body.address)
+                && address >= 1
+            {
+                sent(DriveRequest::SetAddress { address });
+            }
+        }
+        6 => {
+            if let Ok(body) = serde_json::from_slice::<ModeBody>(json) {
+                sent(DriveRequest::Config(body.mode.command()));
+            }
+            let _ = serde_json::from_slice::<Option<RenewBody>>(json);
+            if let Ok(body) = serde_json::from_slice::<Rs485Body>(json) {
+                sent(DriveRequest::Rs485Control { enabled: body.enabled });
+            }
+        }
+        _ => {
+            let _ = serde_json::from_slice::<ClientMessage>(json);
+        }
+    }
+}

@@ -38,3 +38,8 @@ fn sim_request_corpus() {
 fn mbap_corpus() {
     replay("mbap", mbap);
 }
+
+#[test]
+fn http_body_corpus() {
+    replay("http_body", http_body);
+}

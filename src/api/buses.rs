@@ -13,6 +13,7 @@ use super::auth::Caller;
 use super::control;
 use super::drives::StatusView;
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
+use super::integers;
 use super::openapi::{AdminBusProblems, ReadProblems};
 use super::problem::{BusContext, Kind, Problem};
 use super::roles::Role;
@@ -169,7 +170,7 @@ fn find_bus<'a>(state: &'a ApiState, name: &str) -> Result<&'a Bus, Problem> {
     get,
     path = "/api/v1/buses",
     tag = "buses",
-    security(("bearer" = [])),
+    security(("bearer" = ["viewer"])),
     responses(
         (status = 200, description = "Every bus, in configuration order", body = [BusView]),
         ReadProblems,
@@ -187,7 +188,7 @@ pub async fn list_buses(
     get,
     path = "/api/v1/buses/{bus}",
     tag = "buses",
-    security(("bearer" = [])),
+    security(("bearer" = ["viewer"])),
     params(("bus" = String, Path, description = "Bus name")),
     responses(
         (status = 200, description = "The bus", body = BusView),
@@ -207,10 +208,13 @@ pub async fn get_bus(
 #[serde(deny_unknown_fields)]
 pub struct ScanBody {
     /// First unit to try (1..255).
-    #[serde(default = "default_from")]
+    #[serde(default = "default_from", deserialize_with = "integers::integer")]
+    #[schema(minimum = 1, maximum = 255)]
     pub from: i64,
-    /// Last unit to try (1..255); each silent unit costs a response timeout.
-    #[serde(default = "default_to")]
+    /// Last unit to try (1..255, not below `from`); each silent unit costs a
+    /// response timeout.
+    #[serde(default = "default_to", deserialize_with = "integers::integer")]
+    #[schema(minimum = 1, maximum = 255)]
     pub to: i64,
 }
 
@@ -274,7 +278,7 @@ fn unit_in(quantity: &'static str, v: i64) -> Result<u8, Problem> {
     post,
     path = "/api/v1/buses/{bus}/scan",
     tag = "buses",
-    security(("bearer" = [])),
+    security(("bearer" = ["admin"])),
     params(("bus" = String, Path, description = "Bus name")),
     request_body(content = Option<ScanBody>, description = "Optional: the unit range (default 1..32)"),
     responses(
@@ -370,6 +374,8 @@ pub async fn scan(
 #[serde(deny_unknown_fields)]
 pub struct AddressBody {
     /// The new address, 1..255.
+    #[serde(deserialize_with = "integers::integer")]
+    #[schema(minimum = 1, maximum = 255)]
     pub address: i64,
     /// Must be true: the broadcast sets the address of every drive that
     /// hears it, so only one drive may be connected to the bus.
@@ -403,7 +409,7 @@ pub struct AddressReply {
     post,
     path = "/api/v1/buses/{bus}/address",
     tag = "buses",
-    security(("bearer" = [])),
+    security(("bearer" = ["admin"])),
     params(("bus" = String, Path, description = "Bus name")),
     request_body(content = AddressBody, example = json!({"address": 5, "only_drive_on_bus": true})),
     responses(

@@ -133,7 +133,7 @@ pub fn parse_command(name: &str) -> Result<ConfigCommand, Problem> {
     post,
     path = "/api/v1/drives/{drive}/commands/{command}",
     tag = "commands",
-    security(("bearer" = [])),
+    security(("bearer" = ["operator"])),
     params(
         ("drive" = String, Path, description = "Drive name, or its unit number on a single bus"),
         ("command" = String, Path, description = "activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset (also speed-mode, position-mode, torque-mode)"),
@@ -192,7 +192,7 @@ impl ModeChoice {
     put,
     path = "/api/v1/drives/{drive}/mode",
     tag = "commands",
-    security(("bearer" = [])),
+    security(("bearer" = ["operator"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     request_body = ModeBody,
     responses(

@@ -55,6 +55,10 @@ pub struct HttpConfig {
     /// A connection with no byte read or written for this long is closed
     /// (stream clients are pinged well within it).
     pub idle_timeout: Duration,
+    /// A request's head must arrive within this long (of the connection
+    /// opening, or of the previous answer on a kept-alive connection), and
+    /// its body within as long again: slower clients are disconnected.
+    pub read_timeout: Duration,
     /// Kernel send buffer per connection, bytes (0: the system's
     /// autotuning). It bounds how far behind a slow stream client can fall
     /// before it is skipped and told so.
@@ -81,6 +85,7 @@ impl Default for HttpConfig {
                 max_body_bytes: 65_536,
                 max_connections: 128,
                 idle_timeout: Duration::from_secs(120),
+                read_timeout: Duration::from_secs(30),
                 send_buffer_bytes: 65_536,
                 stream_buffer: 256,
                 lease_min: Duration::from_millis(100),
@@ -104,6 +109,7 @@ pub struct RawHttpConfig {
     max_body_bytes: i64,
     max_connections: i64,
     idle_timeout_s: i64,
+    read_timeout_s: i64,
     send_buffer_bytes: i64,
     stream_buffer: i64,
     lease_min_ms: i64,
@@ -119,6 +125,7 @@ impl Default for RawHttpConfig {
             max_body_bytes: 65_536,
             max_connections: 128,
             idle_timeout_s: 120,
+            read_timeout_s: 30,
             send_buffer_bytes: 65_536,
             stream_buffer: 256,
             lease_min_ms: 100,
@@ -165,6 +172,7 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
         let max_body_bytes = as_usize("max_body_bytes", raw.max_body_bytes, 256, 16 << 20)?;
         let max_connections = as_usize("max_connections", raw.max_connections, 1, 65_536)?;
         let idle_timeout_s = in_range("idle_timeout_s", raw.idle_timeout_s, 1, 86_400)?;
+        let read_timeout_s = in_range("read_timeout_s", raw.read_timeout_s, 1, 3_600)?;
         let send_buffer_bytes = if raw.send_buffer_bytes == 0 {
             0
         } else {
@@ -203,6 +211,7 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
             max_body_bytes,
             max_connections,
             idle_timeout: Duration::from_secs(idle_timeout_s.unsigned_abs()),
+            read_timeout: Duration::from_secs(read_timeout_s.unsigned_abs()),
             send_buffer_bytes,
             stream_buffer,
             lease_min: ms(lease_min_ms),

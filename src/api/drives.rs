@@ -251,7 +251,7 @@ fn view(state: &ApiState, target: Target<'_>) -> DriveView {
     get,
     path = "/api/v1/drives",
     tag = "drives",
-    security(("bearer" = [])),
+    security(("bearer" = ["viewer"])),
     responses(
         (status = 200, description = "Every configured drive, in configuration order", body = [DriveView]),
         ReadProblems,
@@ -273,7 +273,7 @@ pub async fn list_drives(
     get,
     path = "/api/v1/drives/{drive}",
     tag = "drives",
-    security(("bearer" = [])),
+    security(("bearer" = ["viewer"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     responses(
         (status = 200, description = "The drive", body = DriveView),
@@ -348,7 +348,7 @@ pub async fn status(
     get,
     path = "/api/v1/drives/{drive}/status",
     tag = "drives",
-    security(("bearer" = [])),
+    security(("bearer" = ["viewer"])),
     params(
         ("drive" = String, Path, description = "Drive name, or its unit number on a single bus"),
         StatusQuery,

@@ -2,9 +2,13 @@
 //! control and motor-safety leases.
 //!
 //! - [`listener`] binds (loopback only without tokens) and limits connections,
+//!   [`server`] serves them with a deadline on every request,
 //! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
 //! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`buses`] and
-//!   [`health`] are the routes, all documented in [`openapi`],
+//!   [`health`] are the routes, all documented in [`openapi`] (the body
+//!   schemas a derive cannot write are in [`body_schemas`]),
+//! - [`extract`] and [`integers`] read requests, refusing bad ones with a
+//!   problem document,
 //! - [`control`] is the write path they share (checks, confirmation, audit),
 //! - [`leases`] stops motors whose client went silent,
 //! - [`hub`] and [`stream`] are the WebSocket stream,
@@ -14,6 +18,7 @@
 //! handles of the [`Plant`] and wait for the drive's confirmation.
 
 pub mod auth;
+pub mod body_schemas;
 pub mod buses;
 pub mod commands;
 pub mod config;
@@ -22,12 +27,14 @@ pub mod drives;
 pub mod extract;
 pub mod health;
 pub mod hub;
+pub mod integers;
 pub mod leases;
 pub mod listener;
 pub mod openapi;
 pub mod problem;
 pub mod request_metrics;
 pub mod roles;
+pub mod server;
 pub mod setpoints;
 pub mod settings;
 pub mod state;
@@ -50,7 +57,7 @@ use crate::plant::Plant;
 use auth::Tokens;
 use hub::Hub;
 use leases::LeaseBook;
-use listener::{ClientAddr, LimitedListener};
+use listener::LimitedListener;
 use problem::{Kind, Problem};
 use state::ApiState;
 
@@ -108,16 +115,9 @@ pub async fn start(
         http.send_buffer_bytes,
         http.idle_timeout,
     );
+    let read_timeout = http.read_timeout;
     let task = tokio::spawn(async move {
-        let served = axum::serve(
-            listener,
-            app.into_make_service_with_connect_info::<ClientAddr>(),
-        )
-        .with_graceful_shutdown(shutdown.cancelled_owned())
-        .await;
-        if let Err(e) = served {
-            tracing::error!("the HTTP server failed: {e}");
-        }
+        server::serve(listener, app, read_timeout, shutdown).await;
         // Upgraded connections are not the server's any more: the sessions
         // close themselves on shutdown, and are waited for here.
         state.sessions.close();
@@ -138,7 +138,10 @@ pub async fn start(
 pub fn app(state: ApiState) -> Router {
     let (routes, document) = openapi::router().split_for_parts();
     let docs: Router<ApiState> = SwaggerUi::new(openapi::DOCS_PATH)
-        .url(openapi::DOCUMENT_PATH, openapi::finish(document))
+        .url(
+            openapi::DOCUMENT_PATH,
+            openapi::document_for(document, &state.config),
+        )
         .into();
     routes
         .merge(docs)

@@ -4,12 +4,15 @@
 //! internet). `openapi/openapi.json` is a checked-in copy that a test
 //! compares with [`document`].
 
+use utoipa::Number;
+use utoipa::openapi::schema::Schema;
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
-use utoipa::openapi::{LicenseBuilder, OpenApi as Document};
+use utoipa::openapi::{LicenseBuilder, OpenApi as Document, RefOr};
 use utoipa::{IntoResponses, Modify, OpenApi};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+use super::config::HttpConfig;
 use super::problem::{ProblemDetails, ValidRange};
 use super::roles::Role;
 use super::state::ApiState;
@@ -53,7 +56,7 @@ impl Modify for BearerScheme {
                 HttpBuilder::new()
                     .scheme(HttpAuthScheme::Bearer)
                     .description(Some(
-                        "An API token from [[http.token]] in the configuration. Not needed when no tokens are configured (the API then listens on loopback only).",
+                        "An API token from [[http.token]] in the configuration. Not needed when no tokens are configured (the API then listens on loopback only). The role an operation needs (viewer, operator or admin; each includes the ones before it) is the scope of its bearer requirement.",
                     ))
                     .build(),
             ),
@@ -122,6 +125,10 @@ pub enum WriteProblems {
     /// `force`), `drive-busy` (calibrating), `confirmation-required`.
     #[response(status = 409, content_type = "application/problem+json")]
     Conflict(ProblemDetails),
+    /// `request-timeout`: the body did not arrive within `[http]
+    /// read_timeout_s`.
+    #[response(status = 408, content_type = "application/problem+json")]
+    TooSlow(ProblemDetails),
     /// `payload-too-large`.
     #[response(status = 413, content_type = "application/problem+json")]
     TooLarge(ProblemDetails),
@@ -165,6 +172,10 @@ pub enum LeaseProblems {
     /// `no-lease`: it expired (the motor was stopped) or was never granted.
     #[response(status = 409, content_type = "application/problem+json")]
     NoLease(ProblemDetails),
+    /// `request-timeout`: the body did not arrive within `[http]
+    /// read_timeout_s`.
+    #[response(status = 408, content_type = "application/problem+json")]
+    TooSlow(ProblemDetails),
     /// `out-of-range`: a lease length outside `[http] lease_min_ms` to `lease_max_ms`.
     #[response(status = 422, content_type = "application/problem+json")]
     OutOfRange(ProblemDetails),
@@ -211,8 +222,79 @@ pub fn finish(mut document: Document) -> Document {
     document
 }
 
-/// The OpenAPI document of the API.
+/// The OpenAPI document of the API, with the default configuration's
+/// limits (the checked-in `openapi/openapi.json`).
 pub fn document() -> Document {
     let (_, document) = router().split_for_parts();
-    finish(document)
+    document_for(document, &HttpConfig::default())
+}
+
+/// The document as a daemon with `config` serves it: the lease lengths it
+/// accepts are its own (`[http] lease_min_ms`, `lease_max_ms`).
+pub fn document_for(document: Document, config: &HttpConfig) -> Document {
+    let mut document = finish(document);
+    let ms = |d: std::time::Duration| usize::try_from(d.as_millis()).unwrap_or(usize::MAX);
+    let bounds = (ms(config.lease_min), ms(config.lease_max));
+    if let Some(components) = document.components.as_mut() {
+        for schema in components.schemas.values_mut() {
+            set_lease_bounds(schema, bounds);
+        }
+    }
+    document
+}
+
+/// Sets `minimum` and `maximum` of every `lease_ms` property in `schema`.
+fn set_lease_bounds(schema: &mut RefOr<Schema>, (min, max): (usize, usize)) {
+    let RefOr::T(schema) = schema else {
+        return;
+    };
+    let items = match schema {
+        Schema::Object(object) => {
+            for (name, property) in object.properties.iter_mut() {
+                if name == "lease_ms"
+                    && let RefOr::T(Schema::Object(lease)) = property
+                {
+                    lease.minimum = Some(Number::UInt(min));
+                    lease.maximum = Some(Number::UInt(max));
+                }
+                set_lease_bounds(property, (min, max));
+            }
+            return;
+        }
+        Schema::OneOf(one_of) => &mut one_of.items,
+        Schema::AllOf(all_of) => &mut all_of.items,
+        Schema::AnyOf(any_of) => &mut any_of.items,
+        _ => return,
+    };
+    for item in items {
+        set_lease_bounds(item, (min, max));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lease_lengths_are_the_configurations() {
+        let lease_bounds = |config: &HttpConfig| {
+            let (_, doc) = router().split_for_parts();
+            let value = serde_json::to_value(document_for(doc, config)).unwrap();
+            let schemas = &value["components"]["schemas"];
+            [
+                &schemas["SetpointBody"]["oneOf"][0]["properties"]["lease_ms"],
+                &schemas["SetpointBody"]["oneOf"][3]["properties"]["lease_ms"],
+                &schemas["RenewBody"]["properties"]["lease_ms"],
+            ]
+            .map(|p| (p["minimum"].as_u64(), p["maximum"].as_u64()))
+        };
+        let defaults = HttpConfig::default();
+        assert_eq!(lease_bounds(&defaults), [(Some(100), Some(60_000)); 3]);
+        let config = HttpConfig {
+            lease_min: std::time::Duration::from_millis(20),
+            lease_max: std::time::Duration::from_millis(5_000),
+            ..defaults
+        };
+        assert_eq!(lease_bounds(&config), [(Some(20), Some(5_000)); 3]);
+    }
 }

@@ -11,6 +11,7 @@
 //! | `forbidden` | 403 | the token's role does not allow this |
 //! | `unknown-drive`, `unknown-bus`, `unknown-command`, `not-found` | 404 | no such thing |
 //! | `method-not-allowed` | 405 | the route exists with other methods |
+//! | `request-timeout` | 408 | the body did not arrive within `[http] read_timeout_s` |
 //! | `payload-too-large` | 413 | body over `[http] max_body_bytes` |
 //! | `unsupported-media-type` | 415 | a body that is not `application/json` |
 //! | `out-of-range` | 422 | a value outside the manual's range; `valid_range` says which |
@@ -61,6 +62,8 @@ pub enum Kind {
     NotFound,
     /// 405: the route exists with other methods.
     MethodNotAllowed,
+    /// 408: the body came too slowly.
+    RequestTimeout,
     /// 413: body too large.
     PayloadTooLarge,
     /// 415: body is not JSON.
@@ -103,7 +106,7 @@ pub enum Kind {
 
 impl Kind {
     /// Every kind, for documentation and tests.
-    pub const ALL: [Kind; 27] = [
+    pub const ALL: [Kind; 28] = [
         Kind::InvalidRequest,
         Kind::Unauthorized,
         Kind::Forbidden,
@@ -112,6 +115,7 @@ impl Kind {
         Kind::UnknownCommand,
         Kind::NotFound,
         Kind::MethodNotAllowed,
+        Kind::RequestTimeout,
         Kind::PayloadTooLarge,
         Kind::UnsupportedMediaType,
         Kind::OutOfRange,
@@ -144,6 +148,7 @@ impl Kind {
             Kind::UnknownCommand => "unknown-command",
             Kind::NotFound => "not-found",
             Kind::MethodNotAllowed => "method-not-allowed",
+            Kind::RequestTimeout => "request-timeout",
             Kind::PayloadTooLarge => "payload-too-large",
             Kind::UnsupportedMediaType => "unsupported-media-type",
             Kind::OutOfRange => "out-of-range",
@@ -176,6 +181,7 @@ impl Kind {
                 StatusCode::NOT_FOUND
             }
             Kind::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
+            Kind::RequestTimeout => StatusCode::REQUEST_TIMEOUT,
             Kind::PayloadTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
             Kind::UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             Kind::OutOfRange => StatusCode::UNPROCESSABLE_ENTITY,
@@ -209,6 +215,7 @@ impl Kind {
             Kind::UnknownCommand => "No such command",
             Kind::NotFound => "No such resource",
             Kind::MethodNotAllowed => "Method not allowed here",
+            Kind::RequestTimeout => "The request body did not arrive in time",
             Kind::PayloadTooLarge => "The request body is too large",
             Kind::UnsupportedMediaType => "The request body must be JSON",
             Kind::OutOfRange => "A value is out of range",

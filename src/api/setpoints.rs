@@ -11,6 +11,7 @@ use utoipa::ToSchema;
 use super::auth::Caller;
 use super::control::{self, Written};
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
+use super::integers;
 use super::leases::LeaseInfo;
 use super::openapi::{LeaseProblems, WriteProblems};
 use super::problem::{Kind, Problem};
@@ -19,7 +20,8 @@ use super::state::{ApiState, Target};
 use crate::drive::{DriveRequest, Mode, RangeError, units};
 
 /// `PUT .../setpoint` body: exactly one setpoint, and optionally a lease.
-#[derive(Debug, Clone, Default, Deserialize, ToSchema)]
+/// Its OpenAPI schema is in [`super::body_schemas`].
+#[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SetpointBody {
     /// Speed at the gearbox output, rpm (-2048..2047, rounded to 1 rpm).
@@ -29,9 +31,11 @@ pub struct SetpointBody {
     /// Motor current, amps (-16..15.99, rounded to 1/128 A).
     pub torque_a: Option<f64>,
     /// Motor current, raw counts (-2048..2047; 1 A = 128).
+    #[serde(default, deserialize_with = "integers::optional")]
     pub torque_counts: Option<i64>,
     /// Stop the motor (`[safety] on_lease_expiry`) unless the setpoint is
     /// repeated or the lease renewed within this many ms.
+    #[serde(default, deserialize_with = "integers::optional")]
     pub lease_ms: Option<i64>,
 }
 
@@ -212,7 +216,7 @@ fn surely_not_applied(problem: &Problem) -> bool {
     put,
     path = "/api/v1/drives/{drive}/setpoint",
     tag = "setpoints",
-    security(("bearer" = [])),
+    security(("bearer" = ["operator"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     request_body(content = SetpointBody, examples(
         ("speed" = (value = json!({"speed_rpm": 100}))),
@@ -237,7 +241,9 @@ pub async fn put_setpoint(
 #[derive(Debug, Clone, Default, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct RenewBody {
-    /// A new lease length, ms (default: the current one).
+    /// A new lease length, ms (default: the current one), between
+    /// `[http] lease_min_ms` and `lease_max_ms`.
+    #[serde(default, deserialize_with = "integers::optional")]
     pub lease_ms: Option<i64>,
 }
 
@@ -271,7 +277,7 @@ pub async fn renew(
     post,
     path = "/api/v1/drives/{drive}/lease/renew",
     tag = "setpoints",
-    security(("bearer" = [])),
+    security(("bearer" = ["operator"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     request_body(content = Option<RenewBody>, description = "Optional: a new lease length"),
     responses(
@@ -316,7 +322,7 @@ pub async fn release(state: &ApiState, caller: &Caller, key: &str) -> Result<Lea
     delete,
     path = "/api/v1/drives/{drive}/lease",
     tag = "setpoints",
-    security(("bearer" = [])),
+    security(("bearer" = ["operator"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     responses(
         (status = 200, description = "The lease that ended", body = LeaseInfo),

@@ -11,6 +11,7 @@ use utoipa::ToSchema;
 use super::auth::Caller;
 use super::control::{self, Written};
 use super::extract::{JsonBody, PathParams};
+use super::integers;
 use super::openapi::WriteProblems;
 use super::problem::Problem;
 use super::roles;
@@ -57,16 +58,19 @@ async fn write_settings(
     })
 }
 
-/// `PUT .../protection` body.
-#[derive(Debug, Clone, Default, Deserialize, ToSchema)]
+/// `PUT .../protection` body. Its OpenAPI schema is in
+/// [`super::body_schemas`].
+#[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ProtectionBody {
     /// Current limit, amps (0..15.99); or give `limit_counts`.
     pub limit_a: Option<f64>,
     /// Current limit, raw counts (0..2047; 1 A = 128).
+    #[serde(default, deserialize_with = "integers::optional")]
     pub limit_counts: Option<i64>,
     /// How long the current may stay over the limit before the drive
     /// stalls the motor, ms (0..60000).
+    #[serde(deserialize_with = "integers::integer")]
     pub stall_ms: i64,
     /// Also write to flash (motor must stand still).
     #[serde(default)]
@@ -107,7 +111,7 @@ pub async fn protection(
     put,
     path = "/api/v1/drives/{drive}/protection",
     tag = "settings",
-    security(("bearer" = [])),
+    security(("bearer" = ["admin"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     request_body(content = ProtectionBody, example = json!({"limit_a": 12.0, "stall_ms": 3000, "save": false})),
     responses(
@@ -124,11 +128,13 @@ pub async fn put_protection(
     protection(&state, &caller, &key, &body).await.map(Json)
 }
 
-/// `PUT .../ramps/speed` body: `alpha`, or `time_s` with `step_rpm`.
-#[derive(Debug, Clone, Default, Deserialize, ToSchema)]
+/// `PUT .../ramps/speed` body: `alpha`, or `time_s` with `step_rpm`. Its
+/// OpenAPI schema is in [`super::body_schemas`].
+#[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SpeedRampBody {
     /// Ramp alpha (0 = ramp off; larger = faster; power-on default 500000).
+    #[serde(default, deserialize_with = "integers::optional")]
     pub alpha: Option<i64>,
     /// Time to reach `step_rpm` from standstill, seconds: alpha is solved
     /// with the manual's formula (2) and the drive's gear ratio.
@@ -144,10 +150,12 @@ pub struct SpeedRampBody {
 }
 
 /// `PUT .../ramps/position` body: `alpha`, or `time_s` with `step_deg`.
-#[derive(Debug, Clone, Default, Deserialize, ToSchema)]
+/// Its OpenAPI schema is in [`super::body_schemas`].
+#[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PositionRampBody {
     /// Ramp alpha (0 = ramp off; larger = faster; power-on default 500000).
+    #[serde(default, deserialize_with = "integers::optional")]
     pub alpha: Option<i64>,
     /// Time to move `step_deg` from standstill, seconds: alpha is solved
     /// with the manual's formula (3).
@@ -268,7 +276,7 @@ pub async fn speed_ramp(
     put,
     path = "/api/v1/drives/{drive}/ramps/speed",
     tag = "settings",
-    security(("bearer" = [])),
+    security(("bearer" = ["admin"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     request_body(content = SpeedRampBody, examples(
         ("by time" = (value = json!({"time_s": 0.5, "step_rpm": 200}))),
@@ -334,7 +342,7 @@ pub async fn position_ramp(
     put,
     path = "/api/v1/drives/{drive}/ramps/position",
     tag = "settings",
-    security(("bearer" = [])),
+    security(("bearer" = ["admin"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     request_body(content = PositionRampBody, examples(
         ("by time" = (value = json!({"time_s": 0.25, "step_deg": 180}))),
@@ -359,6 +367,8 @@ pub async fn put_position_ramp(
 #[serde(deny_unknown_fields)]
 pub struct InertiaBody {
     /// Load inertia as a multiple of the rotor's (1..65535).
+    #[serde(deserialize_with = "integers::integer")]
+    #[schema(minimum = 1, maximum = 65535)]
     pub ratio: i64,
     /// Also write to flash (motor must stand still).
     #[serde(default)]
@@ -389,7 +399,7 @@ pub async fn inertia(
     put,
     path = "/api/v1/drives/{drive}/inertia",
     tag = "settings",
-    security(("bearer" = [])),
+    security(("bearer" = ["admin"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     request_body(content = InertiaBody, example = json!({"ratio": 5, "save": true})),
     responses(
@@ -435,7 +445,7 @@ pub async fn rs485_control(
     put,
     path = "/api/v1/drives/{drive}/rs485-control",
     tag = "settings",
-    security(("bearer" = [])),
+    security(("bearer" = ["admin"])),
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     request_body(content = Rs485Body, example = json!({"enabled": true})),
     responses(

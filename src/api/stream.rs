@@ -126,7 +126,7 @@ fn resolve(state: &ApiState, selection: &DriveSelection) -> Result<Vec<usize>, P
     get,
     path = "/api/v1/stream",
     tag = "stream",
-    security(("bearer" = [])),
+    security(("bearer" = ["viewer"])),
     params(StreamQuery),
     responses(
         (status = 101, description = "Switching to the WebSocket protocol; then ServerMessage JSON texts", body = ServerMessage),
@@ -254,9 +254,10 @@ type Sink = futures_util::stream::SplitSink<WebSocket, Message>;
 type Source = futures_util::stream::SplitStream<WebSocket>;
 
 /// Sends replies first, then updates (each preceded by a `lagged` notice
-/// when some were skipped), and a ping when nothing else went out for a
-/// while, so a quiet but healthy stream is not closed as idle; closes the
-/// socket when the daemon stops.
+/// when some were skipped), and a ping every quarter of the idle timeout,
+/// busy or not: a healthy client's pongs keep even a quiet stream open,
+/// and their absence tells the reader a client has hung (see
+/// [`read_loop`]); closes the socket when the daemon stops.
 async fn write_loop(
     state: &ApiState,
     mut sink: Sink,
@@ -272,6 +273,8 @@ async fn write_loop(
             biased;
             () = state.shutdown.cancelled() => None,
             Some(reply) = replies.recv() => Some(Message::Text(reply)),
+            // Before updates: a stream always busy must still be pinged.
+            _ = ping.tick() => Some(Message::Ping(Default::default())),
             Some(event) = events.recv() => {
                 let n = missed.swap(0, Ordering::Relaxed);
                 if n > 0 && !send(state, &mut sink, Message::Text(ServerMessage::Lagged { missed: n }.to_text())).await {
@@ -279,7 +282,6 @@ async fn write_loop(
                 }
                 Some(Message::Text(event))
             }
-            _ = ping.tick() => Some(Message::Ping(Default::default())),
             else => None,
         };
         match next {
@@ -287,7 +289,6 @@ async fn write_loop(
                 if !send(state, &mut sink, message).await {
                     return;
                 }
-                ping.reset();
             }
             None => break,
         }
@@ -319,7 +320,11 @@ fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
     .to_text()
 }
 
-/// Handles the client's messages until it closes the socket.
+/// Handles the client's messages until it closes the socket, or sends
+/// nothing at all, not even the pong to a ping, for the idle timeout: a
+/// hung client that still holds its socket open (its kernel keeps the TCP
+/// connection alive and takes the pings) would otherwise hold a connection
+/// slot for ever.
 async fn read_loop(
     state: &ApiState,
     caller: &Caller,
@@ -329,7 +334,15 @@ async fn read_loop(
     replies: mpsc::Sender<Utf8Bytes>,
 ) {
     let in_flight = Arc::new(Semaphore::new(COMMANDS_IN_FLIGHT));
-    while let Some(message) = stream.next().await {
+    let silence = state.config.idle_timeout;
+    loop {
+        let Ok(next) = tokio::time::timeout(silence, stream.next()).await else {
+            tracing::debug!(who = %caller.who, connection, "stream client sent nothing, not even a pong, for {silence:?}: closing");
+            return;
+        };
+        let Some(message) = next else {
+            return;
+        };
         let text = match message {
             Ok(Message::Text(text)) => text,
             Ok(Message::Binary(_)) => {
@@ -402,7 +415,17 @@ async fn read_loop(
 }
 
 fn body_as<T: DeserializeOwned>(op: &str, body: Option<Value>) -> Result<T, Problem> {
-    serde_json::from_value(body.unwrap_or_else(|| Value::Object(Default::default())))
+    let body = match body {
+        None => Value::Object(Default::default()),
+        // serde would read a struct from an array, field by field.
+        Some(object @ Value::Object(_)) => object,
+        Some(_) => {
+            return Err(Problem::invalid(format!(
+                "the body of \"{op}\" must be a JSON object ({{...}})"
+            )));
+        }
+    };
+    serde_json::from_value(body)
         .map_err(|e| Problem::invalid(format!("the body of \"{op}\" is not valid: {e}")))
 }
 

@@ -11,7 +11,7 @@ use super::cache::{BusEvent, DriveSnapshot, StatusCache};
 use super::error::BusError;
 use super::job::{Exchange, Job, Priority, SourceId};
 use super::queue::{JobQueue, Refused};
-use super::stats::{BusStats, BusStatsSnapshot};
+use super::stats::{BusStats, BusStatsSnapshot, Outcome};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest};
 use crate::modbus::timing::LineTiming;
 
@@ -157,7 +157,29 @@ impl BusHandle {
             submitted: now,
             reply: tx,
         };
-        match self.shared.queue.push(job) {
+        let pushed = match self.shared.queue.push(job) {
+            // A class full of abandoned jobs (clients that sent a request
+            // and left, many times over) must not turn away a caller who is
+            // still waiting: those are dropped, as the scheduler would, and
+            // the job tried again.
+            Err(Refused::Full(job, capacity)) => {
+                let stale = self.shared.queue.take_stale(job.priority, now);
+                if stale.is_empty() {
+                    Err(Refused::Full(job, capacity))
+                } else {
+                    for gone in stale {
+                        self.shared
+                            .stats
+                            .record_transaction(gone.pdu[0], Outcome::Dropped, 0);
+                        let waited = now - gone.submitted;
+                        gone.finish(Err(BusError::Expired { waited }));
+                    }
+                    self.shared.queue.push(job)
+                }
+            }
+            other => other,
+        };
+        match pushed {
             Ok(()) => Ok(rx),
             Err(Refused::Full(job, capacity)) => {
                 self.shared.stats.record_busy_rejection();

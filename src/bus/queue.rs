@@ -7,6 +7,7 @@
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::Mutex;
+use std::time::Instant;
 
 use tokio::sync::Notify;
 
@@ -76,6 +77,22 @@ impl Class {
             self.len -= 1;
         }
         job
+    }
+
+    /// Takes out the jobs nobody waits for any more.
+    fn take_stale(&mut self, now: Instant) -> Vec<Job> {
+        let mut stale = Vec::new();
+        for queue in self.jobs.values_mut() {
+            let (gone, kept): (VecDeque<Job>, VecDeque<Job>) =
+                queue.drain(..).partition(|job| job.is_stale(now));
+            stale.extend(gone);
+            *queue = kept;
+        }
+        self.jobs.retain(|_, queue| !queue.is_empty());
+        let jobs = &self.jobs;
+        self.turn.retain(|source| jobs.contains_key(source));
+        self.len -= stale.len();
+        stale
     }
 
     fn drain(&mut self) -> Vec<Job> {
@@ -168,6 +185,14 @@ impl JobQueue {
         self.lock().closed
     }
 
+    /// Takes the jobs of `priority` whose caller has gone or whose deadline
+    /// passed out of the queue: a class filled with abandoned jobs (clients
+    /// that sent a request and left, many times over) must not turn away a
+    /// caller who is still waiting.
+    pub fn take_stale(&self, priority: Priority, now: Instant) -> Vec<Job> {
+        self.lock().classes[priority.index()].take_stale(now)
+    }
+
     /// Removes every waiting job (to fail them when the bus goes down).
     pub fn drain(&self) -> Vec<Job> {
         let mut inner = self.lock();
@@ -245,6 +270,35 @@ mod tests {
         // Other classes have their own room.
         let (j, _rx) = job(Priority::Emergency, 1, 0);
         assert!(q.push(j).is_ok());
+    }
+
+    #[test]
+    fn abandoned_jobs_can_be_taken_out_of_a_full_class() {
+        let q = JobQueue::new(QueueLimits {
+            per_class: 4,
+            per_source: 4,
+        });
+        // Three callers that left, one still waiting, in one class.
+        let mut waiting = None;
+        for source in 1..=4 {
+            let (j, rx) = job(Priority::Command, source, source as u8);
+            q.push(j).unwrap();
+            if source == 2 {
+                waiting = Some(rx);
+            }
+        }
+        let (j, _rx) = job(Priority::Command, 9, 9);
+        assert!(matches!(q.push(j), Err(Refused::Full(..))));
+        let stale = q.take_stale(Priority::Command, Instant::now());
+        assert_eq!(stale.len(), 3);
+        assert_eq!(q.depths(), [0, 1, 0]);
+        // The one still waiting keeps its place; the class has room again.
+        let (j, _rx9) = job(Priority::Command, 9, 9);
+        q.push(j).unwrap();
+        let order: Vec<u8> =
+            std::iter::from_fn(|| q.pop(Priority::Command).map(|j| j.unit)).collect();
+        assert_eq!(order, vec![2, 9]);
+        drop(waiting);
     }
 
     #[test]

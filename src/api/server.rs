@@ -1,0 +1,78 @@
+//! The HTTP server loop: hyper's HTTP/1 on each accepted connection, with a
+//! deadline on every request head, the client's address for the handlers,
+//! upgrades for the stream, and a graceful stop.
+//!
+//! A deadline is the defence against slow clients ("slow-loris"): one that
+//! sends a request a byte at a time moves a byte well within the idle
+//! timeout and would keep its connection, and one of the `max_connections`
+//! slots, for ever; enough of them and no one else gets in. hyper can time
+//! out a request head only with a timer, which axum's `serve` does not give
+//! it: here it gets tokio's and `[http] read_timeout_s`. The head of each
+//! request, the first as the later ones on a kept-alive connection, must
+//! arrive within it (so a kept-alive connection left unused that long is
+//! closed too); the body then has as long again (see [`super::extract`]).
+
+use std::time::Duration;
+
+use axum::Router;
+use axum::extract::ConnectInfo;
+use axum::serve::Listener;
+use hyper::body::Incoming;
+use hyper_util::rt::{TokioIo, TokioTimer};
+use hyper_util::service::TowerToHyperService;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+use tower::ServiceExt;
+
+use super::listener::{ClientAddr, LimitedListener};
+
+/// Serves `app` on the connections of `listener` until `shutdown` fires,
+/// then lets the requests in progress finish and waits for their
+/// connections to close. Upgraded connections (the stream) are the
+/// sessions' own and are not waited for here.
+pub async fn serve(
+    mut listener: LimitedListener,
+    app: Router,
+    read_timeout: Duration,
+    shutdown: CancellationToken,
+) {
+    let mut http = hyper::server::conn::http1::Builder::new();
+    http.timer(TokioTimer::new())
+        .header_read_timeout(read_timeout);
+    let connections = TaskTracker::new();
+    loop {
+        let (stream, addr) = tokio::select! {
+            () = shutdown.cancelled() => break,
+            accepted = listener.accept() => accepted,
+        };
+        let service = app
+            .clone()
+            .map_request(move |mut request: axum::http::Request<Incoming>| {
+                request
+                    .extensions_mut()
+                    .insert(ConnectInfo(ClientAddr(addr)));
+                request
+            });
+        let connection = http
+            .serve_connection(TokioIo::new(stream), TowerToHyperService::new(service))
+            .with_upgrades();
+        let shutdown = shutdown.clone();
+        connections.spawn(async move {
+            tokio::pin!(connection);
+            let served = tokio::select! {
+                served = connection.as_mut() => served,
+                () = shutdown.cancelled() => {
+                    connection.as_mut().graceful_shutdown();
+                    connection.await
+                }
+            };
+            if let Err(e) = served {
+                // Timeouts, resets and malformed requests: the client's doing.
+                tracing::debug!(client = %addr, "HTTP connection ended: {e}");
+            }
+        });
+    }
+    drop(listener);
+    connections.close();
+    connections.wait().await;
+}
