@@ -27,6 +27,10 @@ use tokio::net::TcpStream;
 const LIMIT: Duration = Duration::from_secs(60);
 /// `[http] read_timeout_s` of these tests.
 const READ_TIMEOUT: Duration = Duration::from_secs(1);
+/// `[http] read_timeout_s` of the slow-loris test: long enough that a
+/// loaded machine's stalls cannot close the trickling clients before the
+/// test has seen them hold every slot.
+const LORIS_READ_TIMEOUT: Duration = Duration::from_secs(3);
 
 /// Reads until the server closes the connection; what it sent, or `None`
 /// if it is still open after `limit`.
@@ -77,7 +81,7 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         // Eight slots; the idle timeout is long, so only the read deadline
         // can free a slot a trickling client holds.
         let d = TestDaemon::start(&config(
-            "max_connections = 8\nidle_timeout_s = 60\nread_timeout_s = 1",
+            "max_connections = 8\nidle_timeout_s = 60\nread_timeout_s = 3",
             "",
             true,
             "",
@@ -94,30 +98,42 @@ async fn slow_loris_heads_lose_their_connection_slots() {
             "GET /api/v1/drives/conveyor/status HTTP/1.1\r\nHost: drivegate\r\nAuthorization: Bearer {VIEWER}\r\nX-Padding: {}\r\n\r\n",
             "p".repeat(40)
         );
-        let started = Instant::now();
+        let (connected_tx, mut connected) = tokio::sync::mpsc::channel(7);
         let mut lorises = Vec::new();
         for _ in 0..7 {
             let head = head.clone();
+            let connected_tx = connected_tx.clone();
             lorises.push(tokio::spawn(async move {
                 let mut s = TcpStream::connect(addr).await.unwrap();
                 let opened = Instant::now();
+                let _ = connected_tx.send(opened).await;
                 let closed_early = trickle(&mut s, head.as_bytes(), Duration::from_millis(100)).await;
                 let answer = read_until_closed(&mut s, Duration::from_secs(10)).await;
                 (closed_early, opened.elapsed(), answer)
             }));
         }
-        // While they hold the slots, a newcomer is refused (503)...
+        // Once all seven are connected, and while they hold the slots, a
+        // newcomer is refused (503)...
+        drop(connected_tx);
+        let mut first_opened = None;
+        for _ in 0..7 {
+            let opened = connected.recv().await.expect("a trickling client connected");
+            first_opened.get_or_insert(opened);
+        }
+        let first_opened = first_opened.expect("seven trickling clients");
         let mut refused = false;
-        while !refused && started.elapsed() < READ_TIMEOUT * 9 / 10 {
-            tokio::time::sleep(Duration::from_millis(50)).await;
+        while !refused && first_opened.elapsed() < LORIS_READ_TIMEOUT * 9 / 10 {
             refused = get_status(addr).await == 503;
+            if !refused {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
         }
         assert!(refused, "seven trickling clients did not fill the slots");
         // ...and once the deadline has passed, served again.
         for loris in lorises {
             let (closed_early, after, answer) = loris.await.unwrap();
             assert!(closed_early, "a trickling client finished its head");
-            assert!(after >= READ_TIMEOUT, "closed after {after:?}");
+            assert!(after >= LORIS_READ_TIMEOUT, "closed after {after:?}");
             assert!(answer.is_some(), "a trickling client kept its connection");
         }
         let mut served = false;
@@ -140,7 +156,7 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         let answer = read_until_closed(&mut kept, Duration::from_secs(10))
             .await
             .expect("the unused kept-alive connection is closed");
-        assert!(opened.elapsed() >= READ_TIMEOUT);
+        assert!(opened.elapsed() >= LORIS_READ_TIMEOUT);
         assert!(String::from_utf8_lossy(&answer).starts_with("HTTP/1.1 200"));
 
         let (ok, slowest) = bystander.finish(3, "slow-loris heads").await;
