@@ -186,8 +186,10 @@ async fn truncated_frames_trickled_bytes_and_stalled_headers_time_out() {
         for _ in 0..20 {
             let request = request.clone();
             trickles.push(tokio::spawn(async move {
-                let mut s = connect(addr).await;
+                // Taken before connecting: the server's clock starts at
+                // its accept, which may come before `connect` returns.
                 let opened = Instant::now();
+                let mut s = connect(addr).await;
                 for byte in &request {
                     if s.write_all(&[*byte]).await.is_err() {
                         break;
@@ -198,9 +200,9 @@ async fn truncated_frames_trickled_bytes_and_stalled_headers_time_out() {
                 (closed, opened.elapsed())
             }));
         }
+        let opened = Instant::now();
         let mut header_only = connect(addr).await;
         header_only.write_all(&request[..7]).await.unwrap();
-        let opened = Instant::now();
         assert!(closed_within(&mut header_only, Duration::from_secs(10)).await);
         assert!(opened.elapsed() >= Duration::from_millis(400));
         for s in &mut stalled {

@@ -104,8 +104,10 @@ async fn slow_loris_heads_lose_their_connection_slots() {
             let head = head.clone();
             let connected_tx = connected_tx.clone();
             lorises.push(tokio::spawn(async move {
-                let mut s = TcpStream::connect(addr).await.unwrap();
+                // Taken before connecting: the server's deadline starts at
+                // its accept, which may come before `connect` returns.
                 let opened = Instant::now();
+                let mut s = TcpStream::connect(addr).await.unwrap();
                 let _ = connected_tx.send(opened).await;
                 let closed_early = trickle(&mut s, head.as_bytes(), Duration::from_millis(100)).await;
                 let answer = read_until_closed(&mut s, Duration::from_secs(10)).await;
@@ -149,10 +151,10 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         // A kept-alive connection left unused is closed after the deadline
         // too; one request on it is answered first.
         let mut kept = TcpStream::connect(addr).await.unwrap();
+        let opened = Instant::now();
         kept.write_all(b"GET /healthz HTTP/1.1\r\nHost: drivegate\r\n\r\n")
             .await
             .unwrap();
-        let opened = Instant::now();
         let answer = read_until_closed(&mut kept, Duration::from_secs(10))
             .await
             .expect("the unused kept-alive connection is closed");
@@ -201,8 +203,8 @@ async fn bodies_that_never_complete_are_answered_408_and_write_nothing() {
         for (i, how) in ["stall", "trickle", "chunked"].into_iter().enumerate() {
             let head = head("/api/v1/drives/lift/inertia");
             cases.push(tokio::spawn(async move {
-                let mut s = TcpStream::connect(addr).await.unwrap();
                 let opened = Instant::now();
+                let mut s = TcpStream::connect(addr).await.unwrap();
                 match how {
                     "stall" => {
                         s.write_all(head.as_bytes()).await.unwrap();

@@ -191,13 +191,15 @@ async fn idle_connections_time_out() {
     bounded(async {
         let d = TestDaemon::start(&four_drives_with("idle_timeout_ms = 300")).await;
         let addr = d.modbus_tcp.unwrap();
+        // Each instant is taken before the step that starts the server's
+        // idle clock (its reply, its accept), so it can only be earlier.
         let mut quiet = Raw::connect(addr).await;
-        assert_eq!(registers(&quiet.ask(1, &read(0xC0, 7)).await).len(), 7);
         let asked = Instant::now();
+        assert_eq!(registers(&quiet.ask(1, &read(0xC0, 7)).await).len(), 7);
         // Half a frame, then nothing: idle as well.
+        let opened = Instant::now();
         let mut stalled = Raw::connect(addr).await;
         stalled.send_bytes(&[0x00, 0x01, 0x00, 0x00, 0x00]).await;
-        let opened = Instant::now();
         assert!(quiet.closed_by_server().await);
         assert!(asked.elapsed() >= Duration::from_millis(300));
         assert!(stalled.closed_by_server().await);
