@@ -449,6 +449,26 @@ impl DriveModel {
 
     /// Carries out a write (checked with [`check_write`](Self::check_write)).
     pub fn write(&mut self, register: Register, value: u16) -> Result<(), Refusal> {
+        self.write_register(register, value)?;
+        self.apply_alpha();
+        Ok(())
+    }
+
+    /// Carries out a block write (function 0x10) as the drive does, at once:
+    /// a ramp's alpha, split over two registers, reaches the running ramp
+    /// whole. Applied half by half, the mix of new high and old low half
+    /// can be 0 ("ramp off", manual 1.9) and step the setpoint mid-ramp.
+    pub fn write_block(&mut self, writes: &[(Register, u16)]) -> Result<(), Refusal> {
+        let written = writes
+            .iter()
+            .try_for_each(|&(register, value)| self.write_register(register, value));
+        self.apply_alpha();
+        written
+    }
+
+    /// Writes one register; a ramp alpha goes to the settings only (see
+    /// [`apply_alpha`](Self::apply_alpha)).
+    fn write_register(&mut self, register: Register, value: u16) -> Result<(), Refusal> {
         self.check_write(register, value)?;
         match register {
             Register::SlaveAddr => {
@@ -528,9 +548,17 @@ impl DriveModel {
             Mode::Speed => self.settings.speed_alpha = alpha,
             _ => self.settings.position_alpha = alpha,
         }
-        if self.ramp_engaged == Some(mode) {
-            self.ramp.set_alpha(alpha);
-        }
+    }
+
+    /// Gives the running ramp its mode's alpha from the settings (no change
+    /// when it already has it).
+    fn apply_alpha(&mut self) {
+        let alpha = match self.ramp_engaged {
+            Some(Mode::Speed) => self.settings.speed_alpha,
+            Some(Mode::Position) => self.settings.position_alpha,
+            _ => return,
+        };
+        self.ramp.set_alpha(alpha);
     }
 
     fn save(&mut self, flag: Register) {

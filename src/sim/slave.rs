@@ -146,9 +146,12 @@ fn write_block(
     for (i, register) in registers.iter().enumerate() {
         drive.check_write(*register, value(i))?;
     }
-    for (i, register) in registers.iter().enumerate() {
-        drive.write(*register, value(i))?;
-    }
+    let writes: Vec<(Register, u16)> = registers
+        .iter()
+        .enumerate()
+        .map(|(i, register)| (*register, value(i)))
+        .collect();
+    drive.write_block(&writes)?;
     reply.extend_from_slice(&pdu[..5]);
     Ok(())
 }

@@ -570,6 +570,30 @@ fn a_new_setpoint_mid_ramp_replans_without_a_jump() {
 }
 
 #[test]
+fn a_block_write_of_alpha_reaches_the_ramp_whole() {
+    // From 0x0001_0000 to 5: applied half by half, the new high half with
+    // the old low half would be alpha 0, "ramp off", and the command would
+    // step to the target at once.
+    let mut d = active(ConfigCommand::SpeedMode);
+    set_alpha(&mut d, Register::SpeedTdRHigh, 0x0001_0000);
+    d.write(Register::SpeedRef, 133).unwrap();
+    d.advance(0.05);
+    let (_, ramp) = d.ramp().unwrap();
+    let before = ramp.value();
+    assert!(before < 100.0, "still ramping: {before}");
+    d.write_block(&[
+        (Register::SpeedTdRHigh, 0),
+        (Register::SpeedTdRLow, 5),
+        (Register::SpeedTdRSaveFlag, 0),
+    ])
+    .unwrap();
+    let (_, ramp) = d.ramp().unwrap();
+    assert_eq!(ramp.value(), before, "the command did not jump");
+    assert!(!ramp.settled(), "the ramp goes on, slower");
+    assert_eq!(d.view().settings.speed_alpha, 5);
+}
+
+#[test]
 fn torque_mode_accelerates_against_friction_up_to_a_top_speed() {
     let mut d = active(ConfigCommand::TorqueMode);
     d.write(Register::IqRef, 128).unwrap(); // 1 A
