@@ -4,7 +4,7 @@
 use serde::Deserialize;
 
 use crate::bus::handle::JobOptions;
-use crate::bus::{BusError, BusHandle, Priority};
+use crate::bus::{BusError, BusHandle, Priority, SourceId};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest, Mode, Status};
 
 /// How to stop a motor nobody controls.
@@ -96,7 +96,12 @@ pub async fn stop_drive(
     only_if_moving: bool,
     fallback: Option<Mode>,
 ) -> Result<StopOutcome, BusError> {
-    let options = JobOptions::with_priority(Priority::Emergency);
+    // From the daemon itself at emergency priority: the queue never refuses
+    // these for its limits, so stopping every drive at once is not "busy".
+    let options = JobOptions {
+        source: SourceId::INTERNAL,
+        ..JobOptions::with_priority(Priority::Emergency)
+    };
     let mut outcome = StopOutcome {
         mode: None,
         moving: true,

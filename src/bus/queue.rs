@@ -4,6 +4,11 @@
 //! Fairness matters for the Modbus TCP face: a client that pipelines hundreds
 //! of requests gets one turn per round like every other connection, and a
 //! per-source bound keeps it from filling the class for everybody.
+//!
+//! The daemon's own safe stops (emergency jobs of [`SourceId::INTERNAL`])
+//! are outside both bounds: a shutdown stops every drive at once, and a stop
+//! refused as busy would leave a motor running. They are bounded anyway, by
+//! the number of drives: each safe stop has one job in flight at a time.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::Mutex;
@@ -13,7 +18,8 @@ use tokio::sync::Notify;
 
 use super::job::{Job, Priority, SourceId};
 
-/// Capacities of a queue.
+/// Capacities of a queue (the daemon's own safe stops are not counted, see
+/// the module's documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct QueueLimits {
     /// Jobs a class may hold in all.
@@ -61,6 +67,16 @@ impl Class {
 
     fn source_len(&self, source: SourceId) -> usize {
         self.jobs.get(&source).map_or(0, VecDeque::len)
+    }
+
+    /// Jobs that count against the class's capacity: all but the daemon's
+    /// own safe stops.
+    fn counted_len(&self, priority: Priority) -> usize {
+        if priority == Priority::Emergency {
+            self.len - self.source_len(SourceId::INTERNAL)
+        } else {
+            self.len
+        }
     }
 
     /// Takes the next job of the source whose turn it is.
@@ -142,11 +158,13 @@ impl JobQueue {
             return Err(Refused::Closed(job));
         }
         let class = &mut inner.classes[job.priority.index()];
-        if class.len >= self.limits.per_class {
-            return Err(Refused::Full(job, self.limits.per_class));
-        }
-        if class.source_len(job.source) >= self.limits.per_source {
-            return Err(Refused::Full(job, self.limits.per_source));
+        if !is_safe_stop(&job) {
+            if class.counted_len(job.priority) >= self.limits.per_class {
+                return Err(Refused::Full(job, self.limits.per_class));
+            }
+            if class.source_len(job.source) >= self.limits.per_source {
+                return Err(Refused::Full(job, self.limits.per_source));
+            }
         }
         class.push(job);
         drop(inner);
@@ -204,6 +222,11 @@ impl JobQueue {
     pub async fn notified(&self) {
         self.notify.notified().await;
     }
+}
+
+/// True for the daemon's own safe-stop jobs, which no limit may refuse.
+fn is_safe_stop(job: &Job) -> bool {
+    job.priority == Priority::Emergency && job.source == SourceId::INTERNAL
 }
 
 #[cfg(test)]
@@ -270,6 +293,37 @@ mod tests {
         // Other classes have their own room.
         let (j, _rx) = job(Priority::Emergency, 1, 0);
         assert!(q.push(j).is_ok());
+    }
+
+    #[test]
+    fn the_daemons_safe_stops_are_never_refused() {
+        let q = JobQueue::new(QueueLimits {
+            per_class: 2,
+            per_source: 1,
+        });
+        let mut keep = vec![];
+        // A shutdown of ten drives: ten emergency jobs from the daemon at once.
+        for unit in 1..=10 {
+            let (j, rx) = job(Priority::Emergency, SourceId::INTERNAL.0, unit);
+            keep.push(rx);
+            assert!(q.push(j).is_ok(), "safe stop of unit {unit} refused");
+        }
+        // They leave a client's brake its room in the class...
+        let (j, rx) = job(Priority::Emergency, 7, 11);
+        keep.push(rx);
+        assert!(q.push(j).is_ok());
+        // ...and the client is still held to its own share.
+        let (j, rx) = job(Priority::Emergency, 7, 12);
+        keep.push(rx);
+        assert!(matches!(q.push(j), Err(Refused::Full(_, 1))));
+        // Only emergencies are exempt: the daemon's commands are bounded.
+        let (j, rx) = job(Priority::Command, SourceId::INTERNAL.0, 13);
+        keep.push(rx);
+        assert!(q.push(j).is_ok());
+        let (j, rx) = job(Priority::Command, SourceId::INTERNAL.0, 14);
+        keep.push(rx);
+        assert!(matches!(q.push(j), Err(Refused::Full(_, 1))));
+        assert_eq!(q.depths(), [11, 1, 0]);
     }
 
     #[test]
