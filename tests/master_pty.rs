@@ -380,7 +380,35 @@ async fn a_closed_port_is_an_error_not_a_timeout() {
     let _ = ptm.write_all(&[]).await;
     drop(ptm);
     let result = m.transact(1, &read_status(), None).await;
-    assert!(result.is_err(), "{result:?}");
+    // Found before anything was written: the request never left.
+    match result {
+        Err(failure) => assert!(!failure.request_sent(), "{failure}"),
+        Ok(report) => panic!("a closed port answered {report:?}"),
+    }
+}
+
+#[tokio::test]
+async fn a_port_closed_after_the_request_left_says_it_was_sent() {
+    let (mut ptm, slave) = SerialStream::pair().unwrap();
+    let path = slave.name().unwrap();
+    drop(slave);
+    let mut m = master(&path, settings()).await;
+    // The far end takes the request, then goes away before any reply.
+    let hang_up = tokio::spawn(async move {
+        let mut request = [0u8; 8];
+        ptm.read_exact(&mut request).await.unwrap();
+        drop(ptm);
+        request
+    });
+    let result = m.transact(1, &read_status(), None).await;
+    assert_eq!(
+        hang_up.await.unwrap().to_vec(),
+        DriveRequest::ReadStatus.frame(1).unwrap()
+    );
+    match result {
+        Err(failure) => assert!(failure.request_sent(), "{failure}"),
+        Ok(report) => panic!("a closed port answered {report:?}"),
+    }
 }
 
 #[tokio::test]

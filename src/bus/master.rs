@@ -111,6 +111,35 @@ pub struct Report {
     pub stray_bytes: usize,
 }
 
+/// The serial port itself failed during a transaction (adapter unplugged,
+/// I/O error): the port must be closed and reopened. Whether the request
+/// had started to leave decides what the caller may assume about the drive.
+#[derive(Debug, thiserror::Error)]
+pub enum PortFailure {
+    /// Not one byte of the request was written: the drive cannot have
+    /// received it.
+    #[error("{0}")]
+    BeforeSend(io::Error),
+    /// The request (or part of it) was written before the port failed:
+    /// the drive may have received and carried it out.
+    #[error("{0}")]
+    AfterSend(io::Error),
+}
+
+impl PortFailure {
+    /// True when the request may have reached the drive.
+    pub fn request_sent(&self) -> bool {
+        matches!(self, PortFailure::AfterSend(_))
+    }
+
+    /// The port's error, for whoever closes the port.
+    pub fn into_io(self) -> io::Error {
+        match self {
+            PortFailure::BeforeSend(e) | PortFailure::AfterSend(e) => e,
+        }
+    }
+}
+
 /// The RTU master; owns the port.
 pub struct RtuMaster {
     port: SerialStream,
@@ -145,12 +174,35 @@ impl RtuMaster {
     /// overrides the configured retries (1 = a single try).
     ///
     /// An `Err` is a failure of the port itself (unplugged adapter): the
-    /// caller should close and reopen it.
+    /// caller should close and reopen it. It says whether the request had
+    /// begun to go out: a write cut off by the port may still have reached
+    /// the drive.
     pub async fn transact(
         &mut self,
         unit: u8,
         pdu: &[u8],
         max_attempts: Option<u8>,
+    ) -> Result<Report, PortFailure> {
+        let mut sent = false;
+        self.attempts(unit, pdu, max_attempts, &mut sent)
+            .await
+            .map_err(|e| {
+                if sent {
+                    PortFailure::AfterSend(e)
+                } else {
+                    PortFailure::BeforeSend(e)
+                }
+            })
+    }
+
+    /// [`transact`](Self::transact)'s attempts; sets `sent` once a byte of
+    /// the request has been written.
+    async fn attempts(
+        &mut self,
+        unit: u8,
+        pdu: &[u8],
+        max_attempts: Option<u8>,
+        sent: &mut bool,
     ) -> io::Result<Report> {
         let frame = rtu_frame::encode(unit, pdu);
         if frame.len() > rtu_frame::MAX_FRAME || pdu.is_empty() {
@@ -169,7 +221,7 @@ impl RtuMaster {
         let mut last_fault = None;
         for attempt in 1..=attempts_allowed {
             self.wait_for_silence().await?;
-            let sent_at = self.send(&frame).await?;
+            let sent_at = self.send(&frame, sent).await?;
             started.get_or_insert(sent_at);
             let wire_end = sent_at + self.settings.line.wire_time(frame.len());
 
@@ -290,7 +342,8 @@ impl RtuMaster {
     }
 
     /// Puts one frame on the wire in one write; returns when it started.
-    async fn send(&mut self, frame: &[u8]) -> io::Result<Instant> {
+    /// Sets `sent` as soon as the port has taken a byte of it.
+    async fn send(&mut self, frame: &[u8], sent: &mut bool) -> io::Result<Instant> {
         let rs485 = self.settings.rs485;
         if rs485.direction == Direction::Rts {
             self.port
@@ -303,7 +356,18 @@ impl RtuMaster {
             }
         }
         let sent_at = Instant::now();
-        self.port.write_all(frame).await?;
+        // write_all, counting: an error after a partial write must not pass
+        // for a request that never left.
+        let mut written = 0;
+        while written < frame.len() {
+            match self.port.write(&frame[written..]).await? {
+                0 => return Err(io::ErrorKind::WriteZero.into()),
+                n => {
+                    written += n;
+                    *sent = true;
+                }
+            }
+        }
         self.port.flush().await?;
         if rs485.direction == Direction::Rts {
             // The bus thread is ours: blocking until the UART is empty is the

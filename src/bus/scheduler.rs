@@ -16,7 +16,7 @@ use super::cache::StatusCache;
 use super::error::BusError;
 use super::handle::{BusHandle, PortState, Shared};
 use super::job::{Exchange, Job, Priority};
-use super::master::{MasterSettings, Report, RtuMaster};
+use super::master::{MasterSettings, PortFailure, Report, RtuMaster};
 use super::poller::PollPlan;
 use super::port;
 use super::queue::{JobQueue, QueueLimits};
@@ -338,14 +338,19 @@ impl Scheduler {
         let queued = now - job.submitted;
         let report = match master.transact(job.unit, &job.pdu, attempts).await {
             Ok(report) => report,
-            Err(e) => {
+            Err(failure) => {
                 self.stats()
                     .record_transaction(function, Outcome::PortError, 1);
-                job.finish(Err(BusError::BusDown {
-                    bus: self.settings.name.clone(),
-                    reason: e.to_string(),
+                let (bus, unit) = (self.settings.name.clone(), job.unit);
+                let reason = failure.to_string();
+                // Once the frame has started to go out, the drive may act on
+                // it: the caller must not take it for never sent.
+                job.finish(Err(if failure.request_sent() {
+                    BusError::BusDownAfterSend { bus, unit, reason }
+                } else {
+                    BusError::BusDown { bus, reason }
                 }));
-                return Err(e);
+                return Err(failure.into_io());
             }
         };
         self.account(function, &report);
@@ -384,7 +389,10 @@ impl Scheduler {
     async fn run_poll(&mut self, master: &mut RtuMaster, unit: u8) -> io::Result<()> {
         let pdu: &[u8] = &STATUS_PDU;
         let offline = self.cache().is_offline(unit);
-        let report = master.transact(unit, pdu, offline.then_some(1)).await?;
+        let report = master
+            .transact(unit, pdu, offline.then_some(1))
+            .await
+            .map_err(PortFailure::into_io)?;
         self.account(pdu[0], &report);
         let status =
             report

@@ -1,0 +1,161 @@
+//! The bus engine (scheduler, queue, safe stops) against scripted peers on
+//! real ptys: the failures the simulator cannot produce on purpose, such as
+//! an adapter that goes away in the middle of a transaction.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use std::os::fd::OwnedFd;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use common::eventually;
+use drivegate::bus::handle::{JobOptions, PortState};
+use drivegate::bus::scheduler::{self, BusSettings};
+use drivegate::bus::{BusError, BusHandle};
+use drivegate::drive::DriveRequest;
+use drivegate::modbus::rtu_frame::{self, FrameLength};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::mpsc;
+use tokio_serial::{SerialPort, SerialStream};
+
+const LIMIT: Duration = Duration::from_secs(10);
+
+/// What the peer does with one request frame.
+enum Reply {
+    /// Send these bytes back.
+    Bytes(Vec<u8>),
+    /// Close the pty, as an unplugged adapter: the daemon's next read fails.
+    HangUp,
+}
+
+/// The far end of a pty, answering each request with a script.
+struct Peer {
+    /// The pty the bus opens.
+    path: String,
+    /// Every request frame the peer received, in order.
+    requests: mpsc::UnboundedReceiver<Vec<u8>>,
+    _keep: OwnedFd,
+}
+
+/// A pty whose far end answers each whole request frame with `answer`.
+fn start_peer(mut answer: impl FnMut(&[u8]) -> Reply + Send + 'static) -> Peer {
+    let (mut ptm, slave) = SerialStream::pair().unwrap();
+    let path = slave.name().unwrap();
+    // Keep the slave open without a lock, so the bus can open the path
+    // exclusively and the far end never reads EIO between two opens.
+    let keep = nix::fcntl::open(
+        path.as_str(),
+        nix::fcntl::OFlag::O_RDWR | nix::fcntl::OFlag::O_NOCTTY | nix::fcntl::OFlag::O_CLOEXEC,
+        nix::sys::stat::Mode::empty(),
+    )
+    .unwrap();
+    drop(slave);
+    let (tx, requests) = mpsc::unbounded_channel();
+    tokio::spawn(async move {
+        let mut buf = Vec::new();
+        let mut chunk = [0u8; 256];
+        loop {
+            let n = match ptm.read(&mut chunk).await {
+                Ok(0) | Err(_) => return,
+                Ok(n) => n,
+            };
+            buf.extend_from_slice(&chunk[..n]);
+            while let FrameLength::Known(len) = rtu_frame::request_length(&buf) {
+                if buf.len() < len {
+                    break;
+                }
+                let frame: Vec<u8> = buf.drain(..len).collect();
+                let reply = answer(&frame);
+                let _ = tx.send(frame);
+                match reply {
+                    Reply::Bytes(bytes) => ptm.write_all(&bytes).await.unwrap(),
+                    Reply::HangUp => return,
+                }
+            }
+        }
+    });
+    Peer {
+        path,
+        requests,
+        _keep: keep,
+    }
+}
+
+/// A bus on `path` with no polled drives: only the test's jobs go on the wire.
+fn bus_on(path: &str) -> (BusHandle, JoinHandle<()>) {
+    scheduler::spawn(BusSettings::new("pty", path, 115_200, vec![])).unwrap()
+}
+
+/// Waits for the port to open.
+async fn port_up(bus: &BusHandle) {
+    eventually(LIMIT, "the port to open", || {
+        matches!(bus.port_state(), PortState::Up { .. }).then_some(())
+    })
+    .await;
+}
+
+/// Stops the bus and waits for its thread.
+async fn stop(bus: &BusHandle, thread: JoinHandle<()>) {
+    bus.stop();
+    tokio::time::timeout(LIMIT, tokio::task::spawn_blocking(move || thread.join()))
+        .await
+        .expect("the bus thread stops")
+        .unwrap()
+        .unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_port_failing_after_the_request_was_sent_leaves_the_outcome_unknown() {
+    // The first write is echoed; at the second the adapter goes away once
+    // the write has reached the drive, before its echo: the drive may be
+    // running the new setpoint.
+    let mut writes = 0;
+    let mut peer = start_peer(move |frame| {
+        writes += 1;
+        if writes == 1 {
+            Reply::Bytes(frame.to_vec())
+        } else {
+            Reply::HangUp
+        }
+    });
+    let (bus, thread) = bus_on(&peer.path);
+    port_up(&bus).await;
+    let first = DriveRequest::Speed { rpm: 50 };
+    bus.execute(1, &first, JobOptions::default()).await.unwrap();
+    let write = DriveRequest::Speed { rpm: 100 };
+    let err = bus
+        .execute(1, &write, JobOptions::default())
+        .await
+        .unwrap_err();
+    for expected in [&first, &write] {
+        assert_eq!(
+            tokio::time::timeout(LIMIT, peer.requests.recv())
+                .await
+                .unwrap(),
+            Some(expected.frame(1).unwrap()),
+            "the drive received {expected:?}"
+        );
+    }
+    assert!(!err.not_sent(), "reported as never sent: {err}");
+    assert!(
+        matches!(&err, BusError::BusDownAfterSend { unit: 1, .. }),
+        "{err:?}"
+    );
+    assert!(err.to_string().contains("may have carried it out"), "{err}");
+    // The bus is down now, and says so to whoever comes next.
+    eventually(LIMIT, "the bus to go down", || {
+        matches!(bus.port_state(), PortState::Down { .. }).then_some(())
+    })
+    .await;
+    let refused = bus
+        .execute(1, &write, JobOptions::default())
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(refused, BusError::BusDown { .. }) && refused.not_sent(),
+        "{refused}"
+    );
+    stop(&bus, thread).await;
+}
