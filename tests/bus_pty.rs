@@ -7,6 +7,7 @@
 mod common;
 
 use std::os::fd::OwnedFd;
+use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -19,6 +20,7 @@ use drivegate::modbus::rtu_frame::{self, FrameLength};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
+use tokio_util::sync::CancellationToken;
 
 const LIMIT: Duration = Duration::from_secs(10);
 
@@ -39,9 +41,10 @@ struct Peer {
     _keep: OwnedFd,
 }
 
-/// A pty whose far end answers each whole request frame with `answer`.
-fn start_peer(mut answer: impl FnMut(&[u8]) -> Reply + Send + 'static) -> Peer {
-    let (mut ptm, slave) = SerialStream::pair().unwrap();
+/// A new pty: its far end, the path of the end the bus opens, and a
+/// handle that keeps that end open.
+fn pty() -> (SerialStream, String, OwnedFd) {
+    let (ptm, slave) = SerialStream::pair().unwrap();
     let path = slave.name().unwrap();
     // Keep the slave open without a lock, so the bus can open the path
     // exclusively and the far end never reads EIO between two opens.
@@ -52,6 +55,12 @@ fn start_peer(mut answer: impl FnMut(&[u8]) -> Reply + Send + 'static) -> Peer {
     )
     .unwrap();
     drop(slave);
+    (ptm, path, keep)
+}
+
+/// A pty whose far end answers each whole request frame with `answer`.
+fn start_peer(mut answer: impl FnMut(&[u8]) -> Reply + Send + 'static) -> Peer {
+    let (mut ptm, path, keep) = pty();
     let (tx, requests) = mpsc::unbounded_channel();
     tokio::spawn(async move {
         let mut buf = Vec::new();
@@ -158,4 +167,77 @@ async fn a_port_failing_after_the_request_was_sent_leaves_the_outcome_unknown() 
         "{refused}"
     );
     stop(&bus, thread).await;
+}
+
+/// Points `link` at `target` in one step (a rename), as udev does for a
+/// replugged adapter.
+fn relink(link: &Path, target: &str) {
+    let next = link.with_extension("next");
+    let _ = std::fs::remove_file(&next);
+    std::os::unix::fs::symlink(target, &next).unwrap();
+    std::fs::rename(&next, link).unwrap();
+}
+
+/// An adapter that opens fine and fails at its first request, every time:
+/// behind `link` there is always a fresh pty, and each one goes away as
+/// soon as the bus writes to it (a replacement is linked first, so the
+/// bus could reopen at once).
+fn flaky_adapter(link: PathBuf, stop: CancellationToken) -> tokio::task::JoinHandle<u64> {
+    /// The pty behind the link now.
+    struct Plugged {
+        ptm: SerialStream,
+        _keep: OwnedFd,
+    }
+    fn plug_in(link: &Path) -> Plugged {
+        let (ptm, path, keep) = pty();
+        relink(link, &path);
+        Plugged { ptm, _keep: keep }
+    }
+    tokio::spawn(async move {
+        let mut plugged = plug_in(&link);
+        let mut failed = 0;
+        let mut bytes = [0u8; 64];
+        loop {
+            tokio::select! {
+                read = plugged.ptm.read(&mut bytes) => match read {
+                    Ok(n) if n > 0 => {}
+                    _ => continue,
+                },
+                () = stop.cancelled() => return failed,
+            }
+            failed += 1;
+            // Dropping the old far end is the adapter failing under the bus.
+            plugged = plug_in(&link);
+        }
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_port_that_opens_and_fails_at_once_is_reopened_with_backoff() {
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("ttyFLAKY");
+    let stop_adapter = CancellationToken::new();
+    let adapter = flaky_adapter(link.clone(), stop_adapter.clone());
+    eventually(LIMIT, "the adapter's link", || link.exists().then_some(())).await;
+    let mut settings = BusSettings::new(
+        "flaky",
+        &link.display().to_string(),
+        115_200,
+        vec![(1, Duration::ZERO)],
+    );
+    settings.reopen_backoff = (Duration::from_millis(50), Duration::from_millis(400));
+    let (bus, thread) = scheduler::spawn(settings).unwrap();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let stats = bus.stats();
+    stop_adapter.cancel();
+    let failed = adapter.await.unwrap();
+    stop(&bus, thread).await;
+    // Backing off 50, 100, 200, 400, 400 ... ms, 2 s hold about 7 reopens;
+    // a bus thread that reopens at once does hundreds.
+    assert!(
+        (2..=12).contains(&stats.reopens),
+        "{} reopens in 2 s ({failed} ptys failed under the bus): {stats:?}",
+        stats.reopens
+    );
+    assert!(stats.port_errors <= 13, "{stats:?}");
 }

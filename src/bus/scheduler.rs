@@ -123,6 +123,62 @@ struct Scheduler {
     plan: PollPlan,
     /// Commands run in a row while a poll was due.
     commands_in_a_row: u32,
+    reopen: ReopenBackoff,
+}
+
+/// The wait before each attempt to (re)open the port: it doubles from the
+/// first to the longest delay while the port keeps failing, and starts over
+/// only once the port has proven itself (a transaction went through, or it
+/// stayed open as long as the longest delay). An open that succeeds proves
+/// nothing: an adapter that opens and fails at once would otherwise be
+/// reopened in a tight loop.
+#[derive(Debug)]
+struct ReopenBackoff {
+    first: Duration,
+    longest: Duration,
+    next: Duration,
+    /// When the port last opened, while it is open.
+    opened_at: Option<Instant>,
+    /// A transaction went through since it opened.
+    proven: bool,
+}
+
+impl ReopenBackoff {
+    fn new((first, longest): (Duration, Duration)) -> Self {
+        Self {
+            first,
+            longest: longest.max(first),
+            next: first,
+            opened_at: None,
+            proven: false,
+        }
+    }
+
+    /// The port opened at `now`.
+    fn opened(&mut self, now: Instant) {
+        self.opened_at = Some(now);
+        self.proven = false;
+    }
+
+    /// A transaction went through on the open port.
+    fn worked(&mut self) {
+        self.proven = true;
+    }
+
+    /// The port failed (or could not be opened) at `now`: how long to wait
+    /// before the next attempt.
+    fn failed(&mut self, now: Instant) -> Duration {
+        let stayed_up = self
+            .opened_at
+            .take()
+            .is_some_and(|t| now.saturating_duration_since(t) >= self.longest);
+        if std::mem::take(&mut self.proven) || stayed_up {
+            self.next = self.first;
+        }
+        let delay = self.next;
+        self.next = (self.next * 2).min(self.longest);
+        delay
+    }
 }
 
 /// The status read's PDU, built once.
@@ -137,6 +193,7 @@ impl Scheduler {
             settings.offline_backoff.1,
         );
         Self {
+            reopen: ReopenBackoff::new(settings.reopen_backoff),
             settings,
             shared,
             plan,
@@ -156,7 +213,6 @@ impl Scheduler {
         clock::tighten_timer_slack();
         let name = self.shared.name.clone();
         let mut master: Option<RtuMaster> = None;
-        let mut reopen_delay = self.settings.reopen_backoff.0;
         let mut opened_before = false;
         let mut last_open_error = String::new();
 
@@ -179,7 +235,7 @@ impl Scheduler {
                         master = Some(m);
                         self.stats().set_port_open(true, opened_before);
                         opened_before = true;
-                        reopen_delay = self.settings.reopen_backoff.0;
+                        self.reopen.opened(Instant::now());
                         last_open_error.clear();
                         self.shared.set_state(PortState::Up {
                             since: SystemTime::now(),
@@ -193,11 +249,8 @@ impl Scheduler {
                             last_open_error = reason.clone();
                         }
                         self.mark_down(reason);
-                        tokio::select! {
-                            () = tokio::time::sleep(reopen_delay) => {}
-                            () = self.shared.stop.cancelled() => {}
-                        }
-                        reopen_delay = (reopen_delay * 2).min(self.settings.reopen_backoff.1);
+                        let delay = self.reopen.failed(Instant::now());
+                        self.pause(delay).await;
                     }
                 }
                 continue;
@@ -205,45 +258,55 @@ impl Scheduler {
 
             // Let the line go quiet first, then choose: whatever arrived in
             // the meantime (an emergency brake) is considered.
-            match m.settle().await {
-                Ok(stray) if stray > 0 => self.stats().add_stray_bytes(stray),
-                Ok(_) => {}
-                Err(e) => {
-                    let reason = format!("serial port {} failed: {e}", self.settings.port);
-                    warn!(bus = %name, "{reason}; reopening");
-                    self.stats().record_port_error(&reason);
-                    master = None;
-                    self.mark_down(reason);
-                    continue;
-                }
-            }
-            let result = match self.next_work(Instant::now()) {
-                Work::Job(job) => self.run_job(m, job).await,
-                Work::Poll(unit) => self.run_poll(m, unit).await,
-                Work::Idle(until) => {
-                    let sleep = async {
-                        match until {
-                            Some(t) => tokio::time::sleep_until(t.into()).await,
-                            None => std::future::pending().await,
-                        }
-                    };
-                    tokio::select! {
-                        () = self.shared.queue.notified() => {}
-                        () = sleep => {}
-                        () = self.shared.stop.cancelled() => {}
+            let result = match m.settle().await {
+                Ok(stray) => {
+                    if stray > 0 {
+                        self.stats().add_stray_bytes(stray);
                     }
-                    Ok(())
+                    match self.next_work(Instant::now()) {
+                        Work::Job(job) => self.run_job(m, job).await,
+                        Work::Poll(unit) => self.run_poll(m, unit).await,
+                        Work::Idle(until) => {
+                            let sleep = async {
+                                match until {
+                                    Some(t) => tokio::time::sleep_until(t.into()).await,
+                                    None => std::future::pending().await,
+                                }
+                            };
+                            tokio::select! {
+                                () = self.shared.queue.notified() => {}
+                                () = sleep => {}
+                                () = self.shared.stop.cancelled() => {}
+                            }
+                            Ok(())
+                        }
+                    }
                 }
+                Err(e) => Err(e),
             };
             if let Err(e) = result {
+                // An adapter that opens and fails at once must not make this
+                // thread spin: the reopen waits, longer each time, until the
+                // port has proven itself again.
+                let delay = self.reopen.failed(Instant::now());
                 let reason = format!("serial port {} failed: {e}", self.settings.port);
-                warn!(bus = %name, "{reason}; reopening");
+                warn!(bus = %name, "{reason}; reopening in {delay:?}");
                 self.stats().record_port_error(&reason);
                 master = None;
                 self.mark_down(reason);
+                self.pause(delay).await;
             }
         }
         info!(bus = %name, "bus stopped");
+    }
+
+    /// Waits `delay` before the next attempt to open the port, or until the
+    /// bus is stopped.
+    async fn pause(&self, delay: Duration) {
+        tokio::select! {
+            () = tokio::time::sleep(delay) => {}
+            () = self.shared.stop.cancelled() => {}
+        }
     }
 
     /// Marks the port down and fails every waiting job: nobody should wait
@@ -310,7 +373,10 @@ impl Scheduler {
         Work::Idle(self.plan.next_due())
     }
 
-    fn account(&self, function: u8, report: &Report) {
+    /// Counts a transaction that went through the port (whatever the drive
+    /// answered): the port works.
+    fn account(&mut self, function: u8, report: &Report) {
+        self.reopen.worked();
         let stats = self.stats();
         stats.record_transaction(function, report.outcome, report.attempts);
         stats.transaction_duration.observe(report.on_wire);
@@ -424,5 +490,57 @@ impl Scheduler {
         self.plan
             .polled(unit, Instant::now(), self.cache().is_offline(unit));
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    #[test]
+    fn a_port_that_opens_and_fails_at_once_backs_off_further_each_time() {
+        let mut backoff = ReopenBackoff::new((100 * MS, 400 * MS));
+        let mut now = Instant::now();
+        let mut delays = vec![];
+        for _ in 0..5 {
+            backoff.opened(now);
+            now += MS;
+            let delay = backoff.failed(now);
+            delays.push(delay);
+            now += delay;
+        }
+        assert_eq!(delays, [100 * MS, 200 * MS, 400 * MS, 400 * MS, 400 * MS]);
+    }
+
+    #[test]
+    fn failed_opens_back_off_too() {
+        let mut backoff = ReopenBackoff::new((100 * MS, 400 * MS));
+        let now = Instant::now();
+        let delays: Vec<_> = (0..4).map(|_| backoff.failed(now)).collect();
+        assert_eq!(delays, [100 * MS, 200 * MS, 400 * MS, 400 * MS]);
+    }
+
+    #[test]
+    fn a_port_that_proved_itself_starts_over_at_the_first_delay() {
+        let mut backoff = ReopenBackoff::new((100 * MS, 400 * MS));
+        let now = Instant::now();
+        for _ in 0..3 {
+            backoff.failed(now);
+        }
+        // A transaction went through.
+        backoff.opened(now);
+        backoff.worked();
+        assert_eq!(backoff.failed(now + MS), 100 * MS);
+        // Failing on, it backs off again...
+        assert_eq!(backoff.failed(now), 200 * MS);
+        // ...until it stays open for as long as the longest delay, idle.
+        backoff.opened(now);
+        assert_eq!(backoff.failed(now + 400 * MS), 100 * MS);
+        // A success before the last open does not count for this one.
+        backoff.worked();
+        backoff.opened(now);
+        assert_eq!(backoff.failed(now + MS), 200 * MS);
     }
 }
