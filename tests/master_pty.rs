@@ -371,6 +371,36 @@ async fn a_broadcast_expects_nothing_and_waits_the_turnaround() {
 }
 
 #[tokio::test]
+async fn a_byte_during_the_broadcast_turnaround_does_not_cut_it_short() {
+    // Right after the broadcast, a byte of noise (or a drive that answered
+    // a broadcast it should not have): the drives still get their whole
+    // turnaround before the next request.
+    let (path, mut peer, _) = start_peer(vec![
+        Answer::Raw(vec![0x00], NOW),
+        Answer::Reply {
+            unit: 5,
+            pdu: status_reply(5),
+            delay: NOW,
+        },
+    ]);
+    let mut s = settings();
+    s.broadcast_delay = Duration::from_millis(200);
+    let mut m = master(&path, s).await;
+    let set = DriveRequest::SetAddress { address: 5 }.pdu().unwrap();
+    m.transact(0, &set, None).await.unwrap();
+    let r = m.transact(5, &read_status(), None).await.unwrap();
+    assert_eq!(turns_of(r.reply.as_ref().unwrap()), 5);
+    assert_eq!(r.stray_bytes, 1, "the noise was discarded");
+    let (_, t_broadcast) = peer.requests.recv().await.unwrap();
+    let (_, t_next) = peer.requests.recv().await.unwrap();
+    assert!(
+        t_next - t_broadcast >= Duration::from_millis(200),
+        "the next request came {:?} after the broadcast",
+        t_next - t_broadcast
+    );
+}
+
+#[tokio::test]
 async fn a_closed_port_is_an_error_not_a_timeout() {
     let (mut ptm, slave) = SerialStream::pair().unwrap();
     let path = slave.name().unwrap();

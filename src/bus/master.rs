@@ -13,7 +13,7 @@
 //!   arrives, and flushes the input, so a late reply to one request is never
 //!   taken as the answer to the next;
 //! - a broadcast (unit 0) is sent, followed by the turnaround delay, and no
-//!   reply is read.
+//!   reply is read; bytes arriving during the turnaround do not shorten it.
 
 use std::io;
 use std::time::{Duration, Instant};
@@ -304,8 +304,9 @@ impl RtuMaster {
         let t35 = self.settings.line.t3_5();
         // A line that never goes quiet (a babbling device) must not stall the
         // bus forever: after this long we send anyway, and the reply check
-        // sorts out the rest.
-        let give_up = Instant::now()
+        // sorts out the rest. Counted from the end of a broadcast's
+        // turnaround, which even a babbling line does not cut short.
+        let give_up = self.quiet_since.max(Instant::now())
             + self
                 .settings
                 .response_timeout
@@ -320,8 +321,12 @@ impl RtuMaster {
                 read = self.port.read(&mut self.buf[..]) => {
                     let n = eof_is_error(read)?;
                     self.stray += n;
-                    self.quiet_since = Instant::now();
-                    if self.quiet_since >= give_up {
+                    // The silence restarts now, unless it was set to end
+                    // later (a broadcast's turnaround): a stray byte must
+                    // not cut the drives' time to act short.
+                    let now = Instant::now();
+                    self.quiet_since = self.quiet_since.max(now);
+                    if now >= give_up {
                         break;
                     }
                 }
