@@ -14,7 +14,7 @@ use std::time::Duration;
 use common::eventually;
 use drivegate::bus::handle::{JobOptions, PortState};
 use drivegate::bus::scheduler::{self, BusSettings};
-use drivegate::bus::{BusError, BusHandle};
+use drivegate::bus::{BusError, BusHandle, Priority};
 use drivegate::drive::DriveRequest;
 use drivegate::modbus::rtu_frame::{self, FrameLength};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -28,6 +28,8 @@ const LIMIT: Duration = Duration::from_secs(10);
 enum Reply {
     /// Send these bytes back.
     Bytes(Vec<u8>),
+    /// Say nothing.
+    Nothing,
     /// Close the pty, as an unplugged adapter: the daemon's next read fails.
     HangUp,
 }
@@ -80,6 +82,7 @@ fn start_peer(mut answer: impl FnMut(&[u8]) -> Reply + Send + 'static) -> Peer {
                 let _ = tx.send(frame);
                 match reply {
                     Reply::Bytes(bytes) => ptm.write_all(&bytes).await.unwrap(),
+                    Reply::Nothing => {}
                     Reply::HangUp => return,
                 }
             }
@@ -240,4 +243,48 @@ async fn a_port_that_opens_and_fails_at_once_is_reopened_with_backoff() {
         stats.reopens
     );
     assert!(stats.port_errors <= 13, "{stats:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_job_accepted_while_the_bus_stops_is_answered() {
+    // Silent drives: each emergency read takes its two attempts and guard
+    // times (about 200 ms), long enough to submit more while it is on the wire.
+    let mut peer = start_peer(|_| Reply::Nothing);
+    let (bus, thread) = bus_on(&peer.path);
+    port_up(&bus).await;
+    let emergency = JobOptions::with_priority(Priority::Emergency);
+    let read = DriveRequest::ReadStatus;
+    let submit = |unit: u8| bus.submit(unit, read.pdu().unwrap(), emergency);
+    let on_wire = |unit: u8| read.frame(unit).unwrap();
+
+    let first = submit(1).unwrap();
+    assert_eq!(peer.requests.recv().await, Some(on_wire(1)));
+    bus.stop();
+    // Queued while the bus is stopping: the stop's last round sends it.
+    let second = submit(2).unwrap();
+    assert_eq!(peer.requests.recv().await, Some(on_wire(1)), "the retry");
+    assert_eq!(peer.requests.recv().await, Some(on_wire(2)));
+    // Submitted while that last round is on the wire: sent too, or refused
+    // once the bus has taken its last job; either way answered.
+    let third = submit(3);
+    for (unit, rx) in [(1, Ok(first)), (2, Ok(second)), (3, third)] {
+        let Ok(rx) = rx else { continue };
+        let answer = tokio::time::timeout(LIMIT, rx)
+            .await
+            .unwrap_or_else(|_| panic!("the job to unit {unit} was never answered"));
+        assert!(
+            matches!(answer, Ok(Err(BusError::Timeout { .. }))),
+            "unit {unit}: {answer:?}"
+        );
+    }
+    stop(&bus, thread).await;
+    // After the bus has stopped, nothing is taken, not even an emergency.
+    let after = submit(4).unwrap_err();
+    assert!(after.not_sent(), "{after}");
+    assert!(after.to_string().contains("shutting down"), "{after}");
+    assert!(
+        !matches!(bus.port_state(), PortState::Up { .. }),
+        "{:?}",
+        bus.port_state()
+    );
 }

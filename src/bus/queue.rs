@@ -44,6 +44,8 @@ pub enum Refused {
     Full(Job, usize),
     /// The queue is closed (shutting down or bus down).
     Closed(Job),
+    /// The bus has stopped for good: nobody will ever take the job.
+    Stopped(Job),
 }
 
 #[derive(Default)]
@@ -122,6 +124,8 @@ struct Inner {
     classes: [Class; 3],
     /// Normal submissions refused (emergency still accepted while draining).
     closed: bool,
+    /// Everything refused: the scheduler has taken its last job.
+    stopped: bool,
 }
 
 /// The queue shared by the handles (producers) and the scheduler (consumer).
@@ -138,6 +142,7 @@ impl JobQueue {
             inner: Mutex::new(Inner {
                 classes: Default::default(),
                 closed: false,
+                stopped: false,
             }),
             limits,
             notify: Notify::new(),
@@ -154,6 +159,9 @@ impl JobQueue {
     /// Queues a job, or gives it back with the reason.
     pub fn push(&self, job: Job) -> Result<(), Refused> {
         let mut inner = self.lock();
+        if inner.stopped {
+            return Err(Refused::Stopped(job));
+        }
         if inner.closed && job.priority != Priority::Emergency {
             return Err(Refused::Closed(job));
         }
@@ -215,6 +223,20 @@ impl JobQueue {
     pub fn drain(&self) -> Vec<Job> {
         let mut inner = self.lock();
         inner.classes.iter_mut().flat_map(Class::drain).collect()
+    }
+
+    /// Refuses every submission from now on, emergencies included, and
+    /// hands back what is still waiting: the consumer's last take. In one
+    /// step, so no job can slip in after it and wait for ever.
+    pub fn stop(&self) -> Vec<Job> {
+        let mut inner = self.lock();
+        inner.stopped = true;
+        inner.classes.iter_mut().flat_map(Class::drain).collect()
+    }
+
+    /// True once [`stop`](Self::stop) was called.
+    pub fn is_stopped(&self) -> bool {
+        self.lock().stopped
     }
 
     /// Waits until something was pushed (or the queue was closed) since the
@@ -367,5 +389,24 @@ mod tests {
         q.open();
         let (j, _rx3) = job(Priority::Command, 1, 0);
         assert!(q.push(j).is_ok());
+    }
+
+    #[test]
+    fn a_stopped_queue_hands_back_its_jobs_and_takes_nothing_more() {
+        let q = JobQueue::new(QueueLimits::default());
+        let (j, _rx1) = job(Priority::Emergency, 0, 1);
+        q.push(j).unwrap();
+        let (j, _rx2) = job(Priority::Command, 1, 2);
+        q.push(j).unwrap();
+        let last: Vec<u8> = q.stop().iter().map(|j| j.unit).collect();
+        assert_eq!(last, [1, 2]);
+        assert!(q.is_stopped());
+        // Not even the daemon's own safe stop: nobody would take it.
+        let (j, _rx3) = job(Priority::Emergency, 0, 3);
+        assert!(matches!(q.push(j), Err(Refused::Stopped(_))));
+        q.open();
+        let (j, _rx4) = job(Priority::Command, 1, 4);
+        assert!(matches!(q.push(j), Err(Refused::Stopped(_))));
+        assert_eq!(q.depths(), [0, 0, 0]);
     }
 }

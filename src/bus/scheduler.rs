@@ -5,7 +5,7 @@
 //! with HTTP or Modbus TCP work.
 
 use std::io;
-use std::sync::{Arc, LazyLock, Mutex};
+use std::sync::{Arc, LazyLock, Mutex, OnceLock};
 use std::thread;
 use std::time::{Duration, Instant, SystemTime};
 
@@ -70,8 +70,33 @@ impl BusSettings {
 
 /// Starts the bus's thread; returns its handle and the thread to join.
 pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle<()>)> {
+    let shared = new_shared(&settings);
+    let handle = BusHandle {
+        shared: shared.clone(),
+    };
+    let thread = thread::Builder::new()
+        .name(format!("bus-{}", shared.name))
+        .spawn(move || {
+            let runtime = match tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+            {
+                Ok(rt) => rt,
+                Err(e) => {
+                    warn!(bus = %shared.name, "cannot start the bus runtime: {e}");
+                    never_started(&shared, format!("cannot start the bus runtime: {e}"));
+                    return;
+                }
+            };
+            runtime.block_on(Scheduler::new(settings, shared).run());
+        })?;
+    Ok((handle, thread))
+}
+
+/// What the handles and the bus thread share, for `settings`.
+fn new_shared(settings: &BusSettings) -> Arc<Shared> {
     let name: Arc<str> = settings.name.as_str().into();
-    let shared = Arc::new(Shared {
+    Arc::new(Shared {
         name: name.clone(),
         queue: JobQueue::new(settings.queue),
         cache: StatusCache::new(
@@ -85,30 +110,28 @@ pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle
         response_timeout: settings.master.response_timeout,
         queue_timeout: settings.queue_timeout,
         stop: CancellationToken::new(),
-    });
-    let handle = BusHandle {
-        shared: shared.clone(),
+        ended: OnceLock::new(),
+    })
+}
+
+/// The bus could not start: it is down for good, the jobs already queued
+/// fail with the reason, and so does every later one.
+fn never_started(shared: &Shared, reason: String) {
+    let down = BusError::BusDown {
+        bus: shared.name.to_string(),
+        reason: reason.clone(),
     };
-    let thread = thread::Builder::new()
-        .name(format!("bus-{name}"))
-        .spawn(move || {
-            let runtime = match tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()
-            {
-                Ok(rt) => rt,
-                Err(e) => {
-                    warn!(bus = %shared.name, "cannot start the bus runtime: {e}");
-                    shared.set_state(PortState::Down {
-                        since: SystemTime::now(),
-                        reason: format!("cannot start the bus runtime: {e}"),
-                    });
-                    return;
-                }
-            };
-            runtime.block_on(Scheduler::new(settings, shared).run());
-        })?;
-    Ok((handle, thread))
+    let _ = shared.ended.set(down.clone());
+    shared.set_state(PortState::Down {
+        since: SystemTime::now(),
+        reason,
+    });
+    for job in shared.queue.stop() {
+        shared
+            .stats
+            .record_transaction(job.pdu[0], Outcome::PortError, 0);
+        job.finish(Err(down.clone()));
+    }
 }
 
 enum Work {
@@ -297,6 +320,13 @@ impl Scheduler {
                 self.pause(delay).await;
             }
         }
+        // The port is closed now. The counters (port_open included) keep
+        // the last state of the run: a scrape after the stop describes it.
+        drop(master);
+        self.shared.set_state(PortState::Down {
+            since: SystemTime::now(),
+            reason: "the bus has stopped: drivegate is shutting down".to_string(),
+        });
         info!(bus = %name, "bus stopped");
     }
 
@@ -331,13 +361,27 @@ impl Scheduler {
     }
 
     /// Runs what is left at a stop: emergency jobs (safe-stop actions) still
-    /// go out, everything else is refused.
+    /// go out, everything else is refused. Emergencies that arrive while the
+    /// first ones are on the wire get one more round; then the queue stops
+    /// taking anything, in the same step as the last take, so every job it
+    /// accepted gets an answer.
     async fn finish(&mut self, mut master: Option<&mut RtuMaster>) {
-        for job in self.shared.queue.drain() {
-            match (&mut master, job.priority) {
+        let waiting = self.shared.queue.drain();
+        self.run_or_refuse(waiting, &mut master).await;
+        // Before the queue stops, so a job it refuses finds the answer.
+        let _ = self.shared.ended.set(BusError::ShuttingDown);
+        let last = self.shared.queue.stop();
+        self.run_or_refuse(last, &mut master).await;
+    }
+
+    /// Sends the emergency jobs among `jobs` while the port works; refuses
+    /// the others as shutting down.
+    async fn run_or_refuse(&mut self, jobs: Vec<Job>, master: &mut Option<&mut RtuMaster>) {
+        for job in jobs {
+            match (master.as_deref_mut(), job.priority) {
                 (Some(m), Priority::Emergency) => {
                     if self.run_job(m, job).await.is_err() {
-                        master = None;
+                        *master = None;
                     }
                 }
                 _ => job.finish(Err(BusError::ShuttingDown)),
@@ -496,8 +540,32 @@ impl Scheduler {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::bus::handle::JobOptions;
 
     const MS: Duration = Duration::from_millis(1);
+
+    #[test]
+    fn a_bus_that_never_started_answers_every_job() {
+        let shared = new_shared(&BusSettings::new("line1", "/dev/null", 115_200, vec![]));
+        let bus = BusHandle {
+            shared: shared.clone(),
+        };
+        let emergency = JobOptions::with_priority(Priority::Emergency);
+        let mut queued = bus.submit(1, STATUS_PDU.clone(), emergency).unwrap();
+        never_started(&shared, "cannot start the bus runtime: no memory".into());
+        // The job that was waiting gets the reason...
+        match queued.try_recv() {
+            Ok(Err(BusError::BusDown { reason, .. })) => assert!(reason.contains("runtime")),
+            other => panic!("{other:?}"),
+        }
+        // ...and so does every later one, at once, emergencies included.
+        let later = bus.submit(1, STATUS_PDU.clone(), emergency).unwrap_err();
+        assert!(
+            matches!(&later, BusError::BusDown { reason, .. } if reason.contains("runtime")),
+            "{later}"
+        );
+        assert_eq!(bus.queue_depths(), [0, 0, 0]);
+    }
 
     #[test]
     fn a_port_that_opens_and_fails_at_once_backs_off_further_each_time() {
