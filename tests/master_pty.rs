@@ -401,6 +401,28 @@ async fn a_byte_during_the_broadcast_turnaround_does_not_cut_it_short() {
 }
 
 #[tokio::test]
+async fn a_burst_of_noise_longer_than_any_frame_is_a_bad_reply_not_an_unplug() {
+    // 1 KiB in one write, starting like a reply from unit 1 with a function
+    // code whose length is unknown (framed by silence): more than the
+    // master's buffer holds. It is a bad frame; the adapter is still there.
+    let noise = [vec![0x01, 0x41], vec![0x5A; 1022]].concat();
+    let (path, _peer, _) = start_peer(vec![
+        Answer::Raw(noise, NOW),
+        Answer::Reply {
+            unit: 1,
+            pdu: status_reply(8),
+            delay: NOW,
+        },
+    ]);
+    let mut m = master(&path, settings()).await;
+    let r = m.transact(1, &read_status(), Some(1)).await.unwrap();
+    assert_eq!((r.outcome, r.attempts), (Outcome::BadReply, 1), "{r:?}");
+    // The port works on: the next request gets its reply.
+    let r = m.transact(1, &read_status(), None).await.unwrap();
+    assert_eq!(turns_of(r.reply.as_ref().unwrap()), 8);
+}
+
+#[tokio::test]
 async fn a_closed_port_is_an_error_not_a_timeout() {
     let (mut ptm, slave) = SerialStream::pair().unwrap();
     let path = slave.name().unwrap();

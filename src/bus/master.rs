@@ -397,6 +397,12 @@ impl RtuMaster {
         let mut len = 0;
         let mut last_byte = Instant::now();
         loop {
+            // A full buffer holds no Modbus frame (the longest is 256 bytes):
+            // it is noise. Reading on would read into an empty slice, whose
+            // Ok(0) means an unplugged adapter.
+            if len >= self.buf.len() {
+                return Ok(Err(Fault::Mismatch("reply longer than any Modbus frame")));
+            }
             let need = match rtu_frame::response_length(&self.buf[..len]) {
                 FrameLength::Known(n) if len >= n => {
                     self.quiet_since = last_byte;
@@ -409,12 +415,8 @@ impl RtuMaster {
                     tokio::select! {
                         biased;
                         read = self.port.read(&mut self.buf[len..]) => {
-                            let n = eof_is_error(read)?;
-                            len += n;
+                            len += eof_is_error(read)?;
                             last_byte = Instant::now();
-                            if len >= self.buf.len() {
-                                return Ok(Err(Fault::Mismatch("reply longer than any Modbus frame")));
-                            }
                             continue;
                         }
                         slept = self.timer.sleep_until(last_byte + t35) => {
