@@ -17,6 +17,7 @@ use drivegate::bus::scheduler::{self, BusSettings};
 use drivegate::bus::{BusError, BusHandle, Priority};
 use drivegate::drive::DriveRequest;
 use drivegate::modbus::rtu_frame::{self, FrameLength};
+use drivegate::safety::{self, StopAction};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
@@ -287,4 +288,34 @@ async fn every_job_accepted_while_the_bus_stops_is_answered() {
         "{:?}",
         bus.port_state()
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zero_speed_with_the_mode_unknown_zeroes_both_setpoints() {
+    // A drive whose status cannot be read (it answers the read with an
+    // exception) and that was never polled: its mode is unknown. It may be
+    // in torque mode, where a zero speed setpoint would leave it pushing.
+    let mut peer = start_peer(|frame| match frame[1] {
+        0x03 => Reply::Bytes(rtu_frame::encode(frame[0], &[0x83, 0x04])),
+        _ => Reply::Bytes(frame.to_vec()),
+    });
+    let (bus, thread) = bus_on(&peer.path);
+    port_up(&bus).await;
+    let outcome = safety::stop_drive(&bus, 1, StopAction::ZeroSpeed, true, None)
+        .await
+        .unwrap();
+    let speed = DriveRequest::Speed { rpm: 0 };
+    let torque = DriveRequest::Torque { counts: 0 };
+    for expected in [&DriveRequest::ReadStatus, &speed, &torque] {
+        assert_eq!(
+            tokio::time::timeout(LIMIT, peer.requests.recv())
+                .await
+                .unwrap_or_else(|_| panic!("{expected:?} was never sent")),
+            Some(expected.frame(1).unwrap()),
+        );
+    }
+    assert_eq!((outcome.mode, outcome.moving), (None, true));
+    // What was confirmed, for the audit: both writes, in order.
+    assert_eq!(outcome.requests().collect::<Vec<_>>(), [&speed, &torque]);
+    stop(&bus, thread).await;
 }
