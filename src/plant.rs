@@ -171,21 +171,31 @@ impl Plant {
             let (name, unit) = (drive.name.clone(), drive.unit);
             async move {
                 match safety::stop_drive(&handle, unit, action, true, None).await {
-                    Ok(StopOutcome {
-                        sent: Some(request),
-                        ..
-                    }) => {
+                    Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
+                        // One line per write: with the mode unknown,
+                        // zero-speed is two (speed and torque setpoint 0).
+                        for request in outcome.requests() {
+                            audit::write(
+                                "shutdown",
+                                handle.name(),
+                                unit,
+                                request.name(),
+                                &Ok::<_, String>("confirmed by the drive".into()),
+                            );
+                        }
+                        info!(drive = %name, action = action.name(), "stopped at shutdown")
+                    }
+                    Ok(_) => {}
+                    Err(e) => {
                         audit::write(
                             "shutdown",
                             handle.name(),
                             unit,
-                            request.name(),
-                            &Ok::<_, String>("confirmed by the drive".into()),
+                            action.name(),
+                            &Err::<String, _>(e.to_string()),
                         );
-                        info!(drive = %name, action = action.name(), "stopped at shutdown")
+                        warn!(drive = %name, action = action.name(), "safe stop failed: {e}")
                     }
-                    Ok(_) => {}
-                    Err(e) => warn!(drive = %name, action = action.name(), "safe stop failed: {e}"),
                 }
             }
         });

@@ -4,7 +4,7 @@
 use serde::Deserialize;
 
 use crate::bus::handle::JobOptions;
-use crate::bus::{BusError, BusHandle, Priority};
+use crate::bus::{BusError, BusHandle, Priority, SourceId};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest, Mode, Status};
 
 /// How to stop a motor nobody controls.
@@ -13,7 +13,8 @@ use crate::drive::{ConfigCommand, DriveReply, DriveRequest, Mode, Status};
 pub enum StopAction {
     /// Leave it as it is.
     None,
-    /// Speed setpoint 0 in speed mode, current 0 in torque mode (ramped stop).
+    /// Speed setpoint 0 in speed mode, current 0 in torque mode (ramped
+    /// stop); both when the mode is unknown.
     #[default]
     ZeroSpeed,
     /// Emergency brake.
@@ -27,6 +28,22 @@ impl StopAction {
             StopAction::None => "none",
             StopAction::ZeroSpeed => "zero-speed",
             StopAction::Brake => "brake",
+        }
+    }
+
+    /// The requests that carry the action out on a drive whose mode is
+    /// `mode`, in order. With the mode unknown (its status could not be
+    /// read), zero-speed zeroes both setpoints that can turn the motor:
+    /// zeroing only the speed would leave a drive in torque mode pushing.
+    pub fn requests(self, mode: Option<Mode>) -> Vec<DriveRequest> {
+        match (self, mode) {
+            (StopAction::ZeroSpeed, None) => vec![
+                DriveRequest::Speed { rpm: 0 },
+                DriveRequest::Torque { counts: 0 },
+            ],
+            (StopAction::None, _) => Vec::new(),
+            (StopAction::Brake, _) => vec![DriveRequest::Config(ConfigCommand::EmergencyBrake)],
+            (StopAction::ZeroSpeed, Some(mode)) => self.request(mode).into_iter().collect(),
         }
     }
 
@@ -79,6 +96,16 @@ pub struct StopOutcome {
     pub moving: bool,
     /// The request sent and confirmed, if any.
     pub sent: Option<DriveRequest>,
+    /// A second request, confirmed after `sent`: with the mode unknown,
+    /// zero-speed zeroes the torque setpoint too.
+    pub also_sent: Option<DriveRequest>,
+}
+
+impl StopOutcome {
+    /// Every request sent and confirmed, in order (for the audit log).
+    pub fn requests(&self) -> impl Iterator<Item = &DriveRequest> {
+        self.sent.iter().chain(self.also_sent.iter())
+    }
 }
 
 /// Applies `action` to the drive at `unit`, at emergency priority.
@@ -87,8 +114,14 @@ pub struct StopOutcome {
 /// setpoint in torque mode and nothing in position mode), so the mode is
 /// read from the drive now: the polled copy may predate a mode command sent
 /// a moment ago. If that read fails, `fallback` (or the polled copy) is used
-/// and the drive is assumed to be moving. With `only_if_moving`, a drive
-/// found standing is left alone.
+/// and the drive is assumed to be moving; with no mode at all, zero-speed
+/// zeroes both the speed and the torque setpoint (see
+/// [`StopAction::requests`]). With `only_if_moving`, a drive found standing
+/// is left alone.
+///
+/// Every request is tried even if one before it failed (a drive that
+/// refused the speed setpoint may still take the torque one); the result is
+/// `Ok` only when all of them were confirmed, else the first error.
 pub async fn stop_drive(
     bus: &BusHandle,
     unit: u8,
@@ -96,11 +129,17 @@ pub async fn stop_drive(
     only_if_moving: bool,
     fallback: Option<Mode>,
 ) -> Result<StopOutcome, BusError> {
-    let options = JobOptions::with_priority(Priority::Emergency);
+    // From the daemon itself at emergency priority: the queue never refuses
+    // these for its limits, so stopping every drive at once is not "busy".
+    let options = JobOptions {
+        source: SourceId::INTERNAL,
+        ..JobOptions::with_priority(Priority::Emergency)
+    };
     let mut outcome = StopOutcome {
         mode: None,
         moving: true,
         sent: None,
+        also_sent: None,
     };
     if action == StopAction::None {
         return Ok(outcome);
@@ -120,19 +159,20 @@ pub async fn stop_drive(
     if only_if_moving && !outcome.moving {
         return Ok(outcome);
     }
-    let request = match action {
-        StopAction::Brake => Some(DriveRequest::Config(ConfigCommand::EmergencyBrake)),
-        // Mode unknown (never read): zero both setpoints that can turn it.
-        _ => match outcome.mode {
-            Some(mode) => action.request(mode),
-            None => Some(DriveRequest::Speed { rpm: 0 }),
-        },
-    };
-    if let Some(request) = request {
-        bus.execute(unit, &request, options).await?;
-        outcome.sent = Some(request);
+    let mut failed = None;
+    for request in action.requests(outcome.mode) {
+        match bus.execute(unit, &request, options).await {
+            Ok(_) if outcome.sent.is_none() => outcome.sent = Some(request),
+            Ok(_) => outcome.also_sent = Some(request),
+            Err(e) => {
+                failed.get_or_insert(e);
+            }
+        }
     }
-    Ok(outcome)
+    match failed {
+        Some(e) => Err(e),
+        None => Ok(outcome),
+    }
 }
 
 #[cfg(test)]
@@ -156,5 +196,31 @@ mod tests {
             Some(DriveRequest::Config(ConfigCommand::EmergencyBrake))
         );
         assert_eq!(StopAction::None.request(Mode::Speed), None);
+    }
+
+    #[test]
+    fn zero_speed_with_the_mode_unknown_zeroes_both_setpoints() {
+        assert_eq!(
+            StopAction::ZeroSpeed.requests(None),
+            [
+                DriveRequest::Speed { rpm: 0 },
+                DriveRequest::Torque { counts: 0 }
+            ]
+        );
+        // A known mode: the one setpoint that mode uses, or nothing.
+        assert_eq!(
+            StopAction::ZeroSpeed.requests(Some(Mode::Torque)),
+            [DriveRequest::Torque { counts: 0 }]
+        );
+        assert!(
+            StopAction::ZeroSpeed
+                .requests(Some(Mode::Position))
+                .is_empty()
+        );
+        assert_eq!(
+            StopAction::Brake.requests(None),
+            [DriveRequest::Config(ConfigCommand::EmergencyBrake)]
+        );
+        assert!(StopAction::None.requests(None).is_empty());
     }
 }

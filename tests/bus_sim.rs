@@ -1,6 +1,7 @@
 //! The bus engine against the built-in simulator through a real pty:
 //! polling, commands, priorities, offline drives, stale jobs, a full queue,
-//! injected wire faults and an adapter unplugged and plugged back.
+//! injected wire faults, an adapter unplugged and plugged back, and the
+//! safe stop of every drive at shutdown whatever the queue limits.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -464,4 +465,48 @@ async fn several_buses_each_have_their_own_scheduler() {
         assert!(bus.handle.drives().iter().all(|s| s.link == Link::Online));
     }
     d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_stops_every_drive_even_beyond_the_queue_limits() {
+    // Four moving drives, but a queue that takes one job per source and two
+    // per class: the safe stops of all four go at once from the daemon
+    // itself, and none of them may be refused as busy.
+    let config = FOUR_DRIVES.replace(
+        "retries = 1",
+        "retries = 1\nqueue_capacity = 2\nqueue_per_client = 1",
+    );
+    let d = TestDaemon::start(&config).await;
+    let bus = d.plant.buses()[0].handle.clone();
+    for unit in 1..=4 {
+        for request in [
+            DriveRequest::Config(ConfigCommand::Activate),
+            DriveRequest::Config(ConfigCommand::SpeedMode),
+            DriveRequest::Speed { rpm: 100 },
+        ] {
+            bus.execute(unit, &request, JobOptions::default())
+                .await
+                .unwrap();
+        }
+    }
+    for unit in 1..=4 {
+        eventually(LIMIT, "every drive turning", || {
+            bus.drive(unit)
+                .and_then(|s| s.status)
+                .filter(|s| s.speed_rpm != 0)
+        })
+        .await;
+    }
+    let plant = d.plant.clone();
+    d.stop().await;
+    let sim = plant.buses()[0].sim.as_ref().unwrap();
+    for unit in 1..=4 {
+        let drive = sim.drive(unit).unwrap();
+        assert_eq!(
+            drive.setpoints.speed_rpm, 0,
+            "unit {unit} was left turning at shutdown"
+        );
+    }
+    let stats = bus.stats();
+    assert_eq!(stats.busy_rejections, 0, "{stats:?}");
 }

@@ -54,7 +54,7 @@ async fn an_adapter_unplugged_during_traffic_is_reopened_and_nothing_is_lost() {
                     &truth,
                     UNITS,
                     10_000,
-                    &["bus_down", "timeout"],
+                    &["bus_down", "bus_down_after_send", "timeout"],
                     &stop,
                 )
                 .await
@@ -63,11 +63,15 @@ async fn an_adapter_unplugged_during_traffic_is_reopened_and_nothing_is_lost() {
         for _ in 0..UNPLUGS {
             tokio::time::sleep(Duration::from_millis(500)).await;
             truth.unplug_for(Duration::from_millis(300)).await;
-            eventually(Duration::from_secs(10), "the bus back up with every drive", || {
-                (matches!(bus.port_state(), PortState::Up { .. })
-                    && bus.drives().iter().all(|s| s.link == Link::Online))
-                .then_some(())
-            })
+            eventually(
+                Duration::from_secs(10),
+                "the bus back up with every drive",
+                || {
+                    (matches!(bus.port_state(), PortState::Up { .. })
+                        && bus.drives().iter().all(|s| s.link == Link::Online))
+                    .then_some(())
+                },
+            )
             .await;
         }
         tokio::time::sleep(Duration::from_millis(500)).await;
@@ -80,7 +84,10 @@ async fn an_adapter_unplugged_during_traffic_is_reopened_and_nothing_is_lost() {
             match event {
                 BusEvent::BusDown { reason, .. } => {
                     // The reason names the port and what happened.
-                    assert!(reason.contains("ttyUSB-drives") || reason.contains("/dev/pts"), "{reason}");
+                    assert!(
+                        reason.contains("ttyUSB-drives") || reason.contains("/dev/pts"),
+                        "{reason}"
+                    );
                     down += 1;
                 }
                 BusEvent::BusUp { .. } => up += 1,

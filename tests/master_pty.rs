@@ -360,14 +360,71 @@ async fn a_broadcast_expects_nothing_and_waits_the_turnaround() {
     );
     let r = m.transact(5, &read_status(), None).await.unwrap();
     assert_eq!(turns_of(r.reply.as_ref().unwrap()), 5);
-    let (b, t_broadcast) = peer.requests.recv().await.unwrap();
+    let (b, _) = peer.requests.recv().await.unwrap();
     assert_eq!(b, DriveRequest::SetAddress { address: 5 }.frame(0).unwrap());
+    // Measured from before the broadcast left: the peer may read it late
+    // on a loaded machine, never early.
     let (_, t_next) = peer.requests.recv().await.unwrap();
     assert!(
-        t_next - t_broadcast >= Duration::from_millis(200),
+        t_next - start >= Duration::from_millis(200),
         "{:?}",
-        t_next - t_broadcast
+        t_next - start
     );
+}
+
+#[tokio::test]
+async fn a_byte_during_the_broadcast_turnaround_does_not_cut_it_short() {
+    // Right after the broadcast, a byte of noise (or a drive that answered
+    // a broadcast it should not have): the drives still get their whole
+    // turnaround before the next request.
+    let (path, mut peer, _) = start_peer(vec![
+        Answer::Raw(vec![0x00], NOW),
+        Answer::Reply {
+            unit: 5,
+            pdu: status_reply(5),
+            delay: NOW,
+        },
+    ]);
+    let mut s = settings();
+    s.broadcast_delay = Duration::from_millis(200);
+    let mut m = master(&path, s).await;
+    let set = DriveRequest::SetAddress { address: 5 }.pdu().unwrap();
+    let start = Instant::now();
+    m.transact(0, &set, None).await.unwrap();
+    let r = m.transact(5, &read_status(), None).await.unwrap();
+    assert_eq!(turns_of(r.reply.as_ref().unwrap()), 5);
+    assert_eq!(r.stray_bytes, 1, "the noise was discarded");
+    // Measured from before the broadcast left: the peer may read it late
+    // on a loaded machine, never early.
+    let _broadcast = peer.requests.recv().await.unwrap();
+    let (_, t_next) = peer.requests.recv().await.unwrap();
+    assert!(
+        t_next - start >= Duration::from_millis(200),
+        "the next request came {:?} after the broadcast",
+        t_next - start
+    );
+}
+
+#[tokio::test]
+async fn a_burst_of_noise_longer_than_any_frame_is_a_bad_reply_not_an_unplug() {
+    // 1 KiB in one write, starting like a reply from unit 1 with a function
+    // code whose length is unknown (framed by silence): more than the
+    // master's buffer holds. It is a bad frame; the adapter is still there.
+    let noise = [vec![0x01, 0x41], vec![0x5A; 1022]].concat();
+    let (path, _peer, _) = start_peer(vec![
+        Answer::Raw(noise, NOW),
+        Answer::Reply {
+            unit: 1,
+            pdu: status_reply(8),
+            delay: NOW,
+        },
+    ]);
+    let mut m = master(&path, settings()).await;
+    let r = m.transact(1, &read_status(), Some(1)).await.unwrap();
+    assert_eq!((r.outcome, r.attempts), (Outcome::BadReply, 1), "{r:?}");
+    // The port works on: the next request gets its reply.
+    let r = m.transact(1, &read_status(), None).await.unwrap();
+    assert_eq!(turns_of(r.reply.as_ref().unwrap()), 8);
 }
 
 #[tokio::test]
@@ -380,7 +437,35 @@ async fn a_closed_port_is_an_error_not_a_timeout() {
     let _ = ptm.write_all(&[]).await;
     drop(ptm);
     let result = m.transact(1, &read_status(), None).await;
-    assert!(result.is_err(), "{result:?}");
+    // Found before anything was written: the request never left.
+    match result {
+        Err(failure) => assert!(!failure.request_sent(), "{failure}"),
+        Ok(report) => panic!("a closed port answered {report:?}"),
+    }
+}
+
+#[tokio::test]
+async fn a_port_closed_after_the_request_left_says_it_was_sent() {
+    let (mut ptm, slave) = SerialStream::pair().unwrap();
+    let path = slave.name().unwrap();
+    drop(slave);
+    let mut m = master(&path, settings()).await;
+    // The far end takes the request, then goes away before any reply.
+    let hang_up = tokio::spawn(async move {
+        let mut request = [0u8; 8];
+        ptm.read_exact(&mut request).await.unwrap();
+        drop(ptm);
+        request
+    });
+    let result = m.transact(1, &read_status(), None).await;
+    assert_eq!(
+        hang_up.await.unwrap().to_vec(),
+        DriveRequest::ReadStatus.frame(1).unwrap()
+    );
+    match result {
+        Err(failure) => assert!(failure.request_sent(), "{failure}"),
+        Ok(report) => panic!("a closed port answered {report:?}"),
+    }
 }
 
 #[tokio::test]

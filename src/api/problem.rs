@@ -396,6 +396,7 @@ impl Problem {
                 Kind::DriveTimeout,
                 format!("{err}; whether the drive carried the request out is unknown"),
             ),
+            BusError::BusDownAfterSend { .. } => Problem::new(Kind::DriveTimeout, err.to_string()),
             BusError::BadReply { .. } => Problem::new(
                 Kind::DriveBadReply,
                 format!(

@@ -22,12 +22,27 @@ pub enum BusError {
         /// The queue's capacity.
         capacity: usize,
     },
-    /// The serial port is closed (adapter unplugged or failing); it is being reopened.
+    /// The serial port is closed (adapter unplugged or failing; it is being
+    /// reopened) or failed before the request was written: nothing was sent.
     #[error("bus {bus} is down: {reason}")]
     BusDown {
         /// Bus name.
         bus: String,
         /// Why the port is closed.
+        reason: String,
+    },
+    /// The serial port failed after the request had (at least partly) gone
+    /// out: the drive may have received it and carried it out, but its
+    /// reply was lost with the port.
+    #[error(
+        "bus {bus} went down after the request was sent to the drive at unit {unit} ({reason}): the drive may have carried it out; check its state before repeating it"
+    )]
+    BusDownAfterSend {
+        /// Bus name.
+        bus: String,
+        /// Unit address the request went to (0: broadcast).
+        unit: u8,
+        /// What happened to the port.
         reason: String,
     },
     /// The drive did not answer in time, on every attempt.

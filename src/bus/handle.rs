@@ -1,7 +1,7 @@
 //! The handle the faces hold: submit jobs, read the cache, subscribe to
 //! events, read the counters. Cheap to clone; never touches the port.
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant, SystemTime};
 
 use tokio::sync::{broadcast, oneshot};
@@ -25,7 +25,8 @@ pub enum PortState {
         /// When it opened.
         since: SystemTime,
     },
-    /// Failed; being reopened with backoff.
+    /// Closed: failed and being reopened with backoff, or stopped for good
+    /// (at shutdown, or when the bus could not start); the reason says which.
     Down {
         /// When it failed.
         since: SystemTime,
@@ -87,6 +88,9 @@ pub(crate) struct Shared {
     pub(crate) response_timeout: Duration,
     pub(crate) queue_timeout: Duration,
     pub(crate) stop: CancellationToken,
+    /// Set once the bus has stopped for good (shut down, or never started):
+    /// the answer to every later submission.
+    pub(crate) ended: OnceLock<BusError>,
 }
 
 impl Shared {
@@ -139,6 +143,9 @@ impl BusHandle {
                 pdu.len()
             )));
         }
+        if let Some(ended) = self.shared.ended.get() {
+            return Err(ended.clone());
+        }
         if let PortState::Down { reason, .. } = self.shared.state() {
             return Err(BusError::BusDown {
                 bus: self.name().to_string(),
@@ -190,6 +197,12 @@ impl BusHandle {
                 })
             }
             Err(Refused::Closed(_)) => Err(BusError::ShuttingDown),
+            Err(Refused::Stopped(_)) => Err(self
+                .shared
+                .ended
+                .get()
+                .cloned()
+                .unwrap_or(BusError::ShuttingDown)),
         }
     }
 
@@ -262,7 +275,8 @@ impl BusHandle {
         self.shared.queue.close();
     }
 
-    /// Lets the scheduler exit once the queue is empty.
+    /// Lets the scheduler exit: it runs the emergency jobs still waiting,
+    /// refuses the rest, and from then on every submission is refused.
     pub fn stop(&self) {
         self.shared.queue.close();
         self.shared.stop.cancel();

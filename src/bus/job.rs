@@ -53,7 +53,9 @@ pub struct SourceId(pub u64);
 static NEXT_SOURCE: AtomicU64 = AtomicU64::new(1);
 
 impl SourceId {
-    /// The daemon itself (safe-stop actions, leases, internal reads).
+    /// The daemon itself (safe-stop actions, leases, internal reads). Its
+    /// emergency jobs (safe stops) are never refused for queue limits, so
+    /// it must not be used for work a client can multiply.
     pub const INTERNAL: SourceId = SourceId(0);
 
     /// A new, never used source id.

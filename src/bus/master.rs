@@ -13,7 +13,7 @@
 //!   arrives, and flushes the input, so a late reply to one request is never
 //!   taken as the answer to the next;
 //! - a broadcast (unit 0) is sent, followed by the turnaround delay, and no
-//!   reply is read.
+//!   reply is read; bytes arriving during the turnaround do not shorten it.
 
 use std::io;
 use std::time::{Duration, Instant};
@@ -111,6 +111,35 @@ pub struct Report {
     pub stray_bytes: usize,
 }
 
+/// The serial port itself failed during a transaction (adapter unplugged,
+/// I/O error): the port must be closed and reopened. Whether the request
+/// had started to leave decides what the caller may assume about the drive.
+#[derive(Debug, thiserror::Error)]
+pub enum PortFailure {
+    /// Not one byte of the request was written: the drive cannot have
+    /// received it.
+    #[error("{0}")]
+    BeforeSend(io::Error),
+    /// The request (or part of it) was written before the port failed:
+    /// the drive may have received and carried it out.
+    #[error("{0}")]
+    AfterSend(io::Error),
+}
+
+impl PortFailure {
+    /// True when the request may have reached the drive.
+    pub fn request_sent(&self) -> bool {
+        matches!(self, PortFailure::AfterSend(_))
+    }
+
+    /// The port's error, for whoever closes the port.
+    pub fn into_io(self) -> io::Error {
+        match self {
+            PortFailure::BeforeSend(e) | PortFailure::AfterSend(e) => e,
+        }
+    }
+}
+
 /// The RTU master; owns the port.
 pub struct RtuMaster {
     port: SerialStream,
@@ -145,12 +174,35 @@ impl RtuMaster {
     /// overrides the configured retries (1 = a single try).
     ///
     /// An `Err` is a failure of the port itself (unplugged adapter): the
-    /// caller should close and reopen it.
+    /// caller should close and reopen it. It says whether the request had
+    /// begun to go out: a write cut off by the port may still have reached
+    /// the drive.
     pub async fn transact(
         &mut self,
         unit: u8,
         pdu: &[u8],
         max_attempts: Option<u8>,
+    ) -> Result<Report, PortFailure> {
+        let mut sent = false;
+        self.attempts(unit, pdu, max_attempts, &mut sent)
+            .await
+            .map_err(|e| {
+                if sent {
+                    PortFailure::AfterSend(e)
+                } else {
+                    PortFailure::BeforeSend(e)
+                }
+            })
+    }
+
+    /// [`transact`](Self::transact)'s attempts; sets `sent` once a byte of
+    /// the request has been written.
+    async fn attempts(
+        &mut self,
+        unit: u8,
+        pdu: &[u8],
+        max_attempts: Option<u8>,
+        sent: &mut bool,
     ) -> io::Result<Report> {
         let frame = rtu_frame::encode(unit, pdu);
         if frame.len() > rtu_frame::MAX_FRAME || pdu.is_empty() {
@@ -169,7 +221,7 @@ impl RtuMaster {
         let mut last_fault = None;
         for attempt in 1..=attempts_allowed {
             self.wait_for_silence().await?;
-            let sent_at = self.send(&frame).await?;
+            let sent_at = self.send(&frame, sent).await?;
             started.get_or_insert(sent_at);
             let wire_end = sent_at + self.settings.line.wire_time(frame.len());
 
@@ -252,8 +304,9 @@ impl RtuMaster {
         let t35 = self.settings.line.t3_5();
         // A line that never goes quiet (a babbling device) must not stall the
         // bus forever: after this long we send anyway, and the reply check
-        // sorts out the rest.
-        let give_up = Instant::now()
+        // sorts out the rest. Counted from the end of a broadcast's
+        // turnaround, which even a babbling line does not cut short.
+        let give_up = self.quiet_since.max(Instant::now())
             + self
                 .settings
                 .response_timeout
@@ -268,8 +321,12 @@ impl RtuMaster {
                 read = self.port.read(&mut self.buf[..]) => {
                     let n = eof_is_error(read)?;
                     self.stray += n;
-                    self.quiet_since = Instant::now();
-                    if self.quiet_since >= give_up {
+                    // The silence restarts now, unless it was set to end
+                    // later (a broadcast's turnaround): a stray byte must
+                    // not cut the drives' time to act short.
+                    let now = Instant::now();
+                    self.quiet_since = self.quiet_since.max(now);
+                    if now >= give_up {
                         break;
                     }
                 }
@@ -290,7 +347,8 @@ impl RtuMaster {
     }
 
     /// Puts one frame on the wire in one write; returns when it started.
-    async fn send(&mut self, frame: &[u8]) -> io::Result<Instant> {
+    /// Sets `sent` as soon as the port has taken a byte of it.
+    async fn send(&mut self, frame: &[u8], sent: &mut bool) -> io::Result<Instant> {
         let rs485 = self.settings.rs485;
         if rs485.direction == Direction::Rts {
             self.port
@@ -303,7 +361,18 @@ impl RtuMaster {
             }
         }
         let sent_at = Instant::now();
-        self.port.write_all(frame).await?;
+        // write_all, counting: an error after a partial write must not pass
+        // for a request that never left.
+        let mut written = 0;
+        while written < frame.len() {
+            match self.port.write(&frame[written..]).await? {
+                0 => return Err(io::ErrorKind::WriteZero.into()),
+                n => {
+                    written += n;
+                    *sent = true;
+                }
+            }
+        }
         self.port.flush().await?;
         if rs485.direction == Direction::Rts {
             // The bus thread is ours: blocking until the UART is empty is the
@@ -328,6 +397,12 @@ impl RtuMaster {
         let mut len = 0;
         let mut last_byte = Instant::now();
         loop {
+            // A full buffer holds no Modbus frame (the longest is 256 bytes):
+            // it is noise. Reading on would read into an empty slice, whose
+            // Ok(0) means an unplugged adapter.
+            if len >= self.buf.len() {
+                return Ok(Err(Fault::Mismatch("reply longer than any Modbus frame")));
+            }
             let need = match rtu_frame::response_length(&self.buf[..len]) {
                 FrameLength::Known(n) if len >= n => {
                     self.quiet_since = last_byte;
@@ -340,12 +415,8 @@ impl RtuMaster {
                     tokio::select! {
                         biased;
                         read = self.port.read(&mut self.buf[len..]) => {
-                            let n = eof_is_error(read)?;
-                            len += n;
+                            len += eof_is_error(read)?;
                             last_byte = Instant::now();
-                            if len >= self.buf.len() {
-                                return Ok(Err(Fault::Mismatch("reply longer than any Modbus frame")));
-                            }
                             continue;
                         }
                         slept = self.timer.sleep_until(last_byte + t35) => {

@@ -4,6 +4,11 @@
 //! Fairness matters for the Modbus TCP face: a client that pipelines hundreds
 //! of requests gets one turn per round like every other connection, and a
 //! per-source bound keeps it from filling the class for everybody.
+//!
+//! The daemon's own safe stops (emergency jobs of [`SourceId::INTERNAL`])
+//! are outside both bounds: a shutdown stops every drive at once, and a stop
+//! refused as busy would leave a motor running. They are bounded anyway, by
+//! the number of drives: each safe stop has one job in flight at a time.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::Mutex;
@@ -13,7 +18,8 @@ use tokio::sync::Notify;
 
 use super::job::{Job, Priority, SourceId};
 
-/// Capacities of a queue.
+/// Capacities of a queue (the daemon's own safe stops are not counted, see
+/// the module's documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct QueueLimits {
     /// Jobs a class may hold in all.
@@ -38,6 +44,8 @@ pub enum Refused {
     Full(Job, usize),
     /// The queue is closed (shutting down or bus down).
     Closed(Job),
+    /// The bus has stopped for good: nobody will ever take the job.
+    Stopped(Job),
 }
 
 #[derive(Default)]
@@ -61,6 +69,16 @@ impl Class {
 
     fn source_len(&self, source: SourceId) -> usize {
         self.jobs.get(&source).map_or(0, VecDeque::len)
+    }
+
+    /// Jobs that count against the class's capacity: all but the daemon's
+    /// own safe stops.
+    fn counted_len(&self, priority: Priority) -> usize {
+        if priority == Priority::Emergency {
+            self.len - self.source_len(SourceId::INTERNAL)
+        } else {
+            self.len
+        }
     }
 
     /// Takes the next job of the source whose turn it is.
@@ -106,6 +124,8 @@ struct Inner {
     classes: [Class; 3],
     /// Normal submissions refused (emergency still accepted while draining).
     closed: bool,
+    /// Everything refused: the scheduler has taken its last job.
+    stopped: bool,
 }
 
 /// The queue shared by the handles (producers) and the scheduler (consumer).
@@ -122,6 +142,7 @@ impl JobQueue {
             inner: Mutex::new(Inner {
                 classes: Default::default(),
                 closed: false,
+                stopped: false,
             }),
             limits,
             notify: Notify::new(),
@@ -138,15 +159,20 @@ impl JobQueue {
     /// Queues a job, or gives it back with the reason.
     pub fn push(&self, job: Job) -> Result<(), Refused> {
         let mut inner = self.lock();
+        if inner.stopped {
+            return Err(Refused::Stopped(job));
+        }
         if inner.closed && job.priority != Priority::Emergency {
             return Err(Refused::Closed(job));
         }
         let class = &mut inner.classes[job.priority.index()];
-        if class.len >= self.limits.per_class {
-            return Err(Refused::Full(job, self.limits.per_class));
-        }
-        if class.source_len(job.source) >= self.limits.per_source {
-            return Err(Refused::Full(job, self.limits.per_source));
+        if !is_safe_stop(&job) {
+            if class.counted_len(job.priority) >= self.limits.per_class {
+                return Err(Refused::Full(job, self.limits.per_class));
+            }
+            if class.source_len(job.source) >= self.limits.per_source {
+                return Err(Refused::Full(job, self.limits.per_source));
+            }
         }
         class.push(job);
         drop(inner);
@@ -199,11 +225,30 @@ impl JobQueue {
         inner.classes.iter_mut().flat_map(Class::drain).collect()
     }
 
+    /// Refuses every submission from now on, emergencies included, and
+    /// hands back what is still waiting: the consumer's last take. In one
+    /// step, so no job can slip in after it and wait for ever.
+    pub fn stop(&self) -> Vec<Job> {
+        let mut inner = self.lock();
+        inner.stopped = true;
+        inner.classes.iter_mut().flat_map(Class::drain).collect()
+    }
+
+    /// True once [`stop`](Self::stop) was called.
+    pub fn is_stopped(&self) -> bool {
+        self.lock().stopped
+    }
+
     /// Waits until something was pushed (or the queue was closed) since the
     /// last wait; a push before the wait is not lost.
     pub async fn notified(&self) {
         self.notify.notified().await;
     }
+}
+
+/// True for the daemon's own safe-stop jobs, which no limit may refuse.
+fn is_safe_stop(job: &Job) -> bool {
+    job.priority == Priority::Emergency && job.source == SourceId::INTERNAL
 }
 
 #[cfg(test)]
@@ -273,6 +318,37 @@ mod tests {
     }
 
     #[test]
+    fn the_daemons_safe_stops_are_never_refused() {
+        let q = JobQueue::new(QueueLimits {
+            per_class: 2,
+            per_source: 1,
+        });
+        let mut keep = vec![];
+        // A shutdown of ten drives: ten emergency jobs from the daemon at once.
+        for unit in 1..=10 {
+            let (j, rx) = job(Priority::Emergency, SourceId::INTERNAL.0, unit);
+            keep.push(rx);
+            assert!(q.push(j).is_ok(), "safe stop of unit {unit} refused");
+        }
+        // They leave a client's brake its room in the class...
+        let (j, rx) = job(Priority::Emergency, 7, 11);
+        keep.push(rx);
+        assert!(q.push(j).is_ok());
+        // ...and the client is still held to its own share.
+        let (j, rx) = job(Priority::Emergency, 7, 12);
+        keep.push(rx);
+        assert!(matches!(q.push(j), Err(Refused::Full(_, 1))));
+        // Only emergencies are exempt: the daemon's commands are bounded.
+        let (j, rx) = job(Priority::Command, SourceId::INTERNAL.0, 13);
+        keep.push(rx);
+        assert!(q.push(j).is_ok());
+        let (j, rx) = job(Priority::Command, SourceId::INTERNAL.0, 14);
+        keep.push(rx);
+        assert!(matches!(q.push(j), Err(Refused::Full(_, 1))));
+        assert_eq!(q.depths(), [11, 1, 0]);
+    }
+
+    #[test]
     fn abandoned_jobs_can_be_taken_out_of_a_full_class() {
         let q = JobQueue::new(QueueLimits {
             per_class: 4,
@@ -313,5 +389,24 @@ mod tests {
         q.open();
         let (j, _rx3) = job(Priority::Command, 1, 0);
         assert!(q.push(j).is_ok());
+    }
+
+    #[test]
+    fn a_stopped_queue_hands_back_its_jobs_and_takes_nothing_more() {
+        let q = JobQueue::new(QueueLimits::default());
+        let (j, _rx1) = job(Priority::Emergency, 0, 1);
+        q.push(j).unwrap();
+        let (j, _rx2) = job(Priority::Command, 1, 2);
+        q.push(j).unwrap();
+        let last: Vec<u8> = q.stop().iter().map(|j| j.unit).collect();
+        assert_eq!(last, [1, 2]);
+        assert!(q.is_stopped());
+        // Not even the daemon's own safe stop: nobody would take it.
+        let (j, _rx3) = job(Priority::Emergency, 0, 3);
+        assert!(matches!(q.push(j), Err(Refused::Stopped(_))));
+        q.open();
+        let (j, _rx4) = job(Priority::Command, 1, 4);
+        assert!(matches!(q.push(j), Err(Refused::Stopped(_))));
+        assert_eq!(q.depths(), [0, 0, 0]);
     }
 }

@@ -5,7 +5,7 @@
 //! with HTTP or Modbus TCP work.
 
 use std::io;
-use std::sync::{Arc, LazyLock, Mutex};
+use std::sync::{Arc, LazyLock, Mutex, OnceLock};
 use std::thread;
 use std::time::{Duration, Instant, SystemTime};
 
@@ -16,7 +16,7 @@ use super::cache::StatusCache;
 use super::error::BusError;
 use super::handle::{BusHandle, PortState, Shared};
 use super::job::{Exchange, Job, Priority};
-use super::master::{MasterSettings, Report, RtuMaster};
+use super::master::{MasterSettings, PortFailure, Report, RtuMaster};
 use super::poller::PollPlan;
 use super::port;
 use super::queue::{JobQueue, QueueLimits};
@@ -70,8 +70,33 @@ impl BusSettings {
 
 /// Starts the bus's thread; returns its handle and the thread to join.
 pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle<()>)> {
+    let shared = new_shared(&settings);
+    let handle = BusHandle {
+        shared: shared.clone(),
+    };
+    let thread = thread::Builder::new()
+        .name(format!("bus-{}", shared.name))
+        .spawn(move || {
+            let runtime = match tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+            {
+                Ok(rt) => rt,
+                Err(e) => {
+                    warn!(bus = %shared.name, "cannot start the bus runtime: {e}");
+                    never_started(&shared, format!("cannot start the bus runtime: {e}"));
+                    return;
+                }
+            };
+            runtime.block_on(Scheduler::new(settings, shared).run());
+        })?;
+    Ok((handle, thread))
+}
+
+/// What the handles and the bus thread share, for `settings`.
+fn new_shared(settings: &BusSettings) -> Arc<Shared> {
     let name: Arc<str> = settings.name.as_str().into();
-    let shared = Arc::new(Shared {
+    Arc::new(Shared {
         name: name.clone(),
         queue: JobQueue::new(settings.queue),
         cache: StatusCache::new(
@@ -85,30 +110,28 @@ pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle
         response_timeout: settings.master.response_timeout,
         queue_timeout: settings.queue_timeout,
         stop: CancellationToken::new(),
-    });
-    let handle = BusHandle {
-        shared: shared.clone(),
+        ended: OnceLock::new(),
+    })
+}
+
+/// The bus could not start: it is down for good, the jobs already queued
+/// fail with the reason, and so does every later one.
+fn never_started(shared: &Shared, reason: String) {
+    let down = BusError::BusDown {
+        bus: shared.name.to_string(),
+        reason: reason.clone(),
     };
-    let thread = thread::Builder::new()
-        .name(format!("bus-{name}"))
-        .spawn(move || {
-            let runtime = match tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()
-            {
-                Ok(rt) => rt,
-                Err(e) => {
-                    warn!(bus = %shared.name, "cannot start the bus runtime: {e}");
-                    shared.set_state(PortState::Down {
-                        since: SystemTime::now(),
-                        reason: format!("cannot start the bus runtime: {e}"),
-                    });
-                    return;
-                }
-            };
-            runtime.block_on(Scheduler::new(settings, shared).run());
-        })?;
-    Ok((handle, thread))
+    let _ = shared.ended.set(down.clone());
+    shared.set_state(PortState::Down {
+        since: SystemTime::now(),
+        reason,
+    });
+    for job in shared.queue.stop() {
+        shared
+            .stats
+            .record_transaction(job.pdu[0], Outcome::PortError, 0);
+        job.finish(Err(down.clone()));
+    }
 }
 
 enum Work {
@@ -123,6 +146,62 @@ struct Scheduler {
     plan: PollPlan,
     /// Commands run in a row while a poll was due.
     commands_in_a_row: u32,
+    reopen: ReopenBackoff,
+}
+
+/// The wait before each attempt to (re)open the port: it doubles from the
+/// first to the longest delay while the port keeps failing, and starts over
+/// only once the port has proven itself (a transaction went through, or it
+/// stayed open as long as the longest delay). An open that succeeds proves
+/// nothing: an adapter that opens and fails at once would otherwise be
+/// reopened in a tight loop.
+#[derive(Debug)]
+struct ReopenBackoff {
+    first: Duration,
+    longest: Duration,
+    next: Duration,
+    /// When the port last opened, while it is open.
+    opened_at: Option<Instant>,
+    /// A transaction went through since it opened.
+    proven: bool,
+}
+
+impl ReopenBackoff {
+    fn new((first, longest): (Duration, Duration)) -> Self {
+        Self {
+            first,
+            longest: longest.max(first),
+            next: first,
+            opened_at: None,
+            proven: false,
+        }
+    }
+
+    /// The port opened at `now`.
+    fn opened(&mut self, now: Instant) {
+        self.opened_at = Some(now);
+        self.proven = false;
+    }
+
+    /// A transaction went through on the open port.
+    fn worked(&mut self) {
+        self.proven = true;
+    }
+
+    /// The port failed (or could not be opened) at `now`: how long to wait
+    /// before the next attempt.
+    fn failed(&mut self, now: Instant) -> Duration {
+        let stayed_up = self
+            .opened_at
+            .take()
+            .is_some_and(|t| now.saturating_duration_since(t) >= self.longest);
+        if std::mem::take(&mut self.proven) || stayed_up {
+            self.next = self.first;
+        }
+        let delay = self.next;
+        self.next = (self.next * 2).min(self.longest);
+        delay
+    }
 }
 
 /// The status read's PDU, built once.
@@ -137,6 +216,7 @@ impl Scheduler {
             settings.offline_backoff.1,
         );
         Self {
+            reopen: ReopenBackoff::new(settings.reopen_backoff),
             settings,
             shared,
             plan,
@@ -156,7 +236,6 @@ impl Scheduler {
         clock::tighten_timer_slack();
         let name = self.shared.name.clone();
         let mut master: Option<RtuMaster> = None;
-        let mut reopen_delay = self.settings.reopen_backoff.0;
         let mut opened_before = false;
         let mut last_open_error = String::new();
 
@@ -179,7 +258,7 @@ impl Scheduler {
                         master = Some(m);
                         self.stats().set_port_open(true, opened_before);
                         opened_before = true;
-                        reopen_delay = self.settings.reopen_backoff.0;
+                        self.reopen.opened(Instant::now());
                         last_open_error.clear();
                         self.shared.set_state(PortState::Up {
                             since: SystemTime::now(),
@@ -193,11 +272,8 @@ impl Scheduler {
                             last_open_error = reason.clone();
                         }
                         self.mark_down(reason);
-                        tokio::select! {
-                            () = tokio::time::sleep(reopen_delay) => {}
-                            () = self.shared.stop.cancelled() => {}
-                        }
-                        reopen_delay = (reopen_delay * 2).min(self.settings.reopen_backoff.1);
+                        let delay = self.reopen.failed(Instant::now());
+                        self.pause(delay).await;
                     }
                 }
                 continue;
@@ -205,45 +281,62 @@ impl Scheduler {
 
             // Let the line go quiet first, then choose: whatever arrived in
             // the meantime (an emergency brake) is considered.
-            match m.settle().await {
-                Ok(stray) if stray > 0 => self.stats().add_stray_bytes(stray),
-                Ok(_) => {}
-                Err(e) => {
-                    let reason = format!("serial port {} failed: {e}", self.settings.port);
-                    warn!(bus = %name, "{reason}; reopening");
-                    self.stats().record_port_error(&reason);
-                    master = None;
-                    self.mark_down(reason);
-                    continue;
-                }
-            }
-            let result = match self.next_work(Instant::now()) {
-                Work::Job(job) => self.run_job(m, job).await,
-                Work::Poll(unit) => self.run_poll(m, unit).await,
-                Work::Idle(until) => {
-                    let sleep = async {
-                        match until {
-                            Some(t) => tokio::time::sleep_until(t.into()).await,
-                            None => std::future::pending().await,
-                        }
-                    };
-                    tokio::select! {
-                        () = self.shared.queue.notified() => {}
-                        () = sleep => {}
-                        () = self.shared.stop.cancelled() => {}
+            let result = match m.settle().await {
+                Ok(stray) => {
+                    if stray > 0 {
+                        self.stats().add_stray_bytes(stray);
                     }
-                    Ok(())
+                    match self.next_work(Instant::now()) {
+                        Work::Job(job) => self.run_job(m, job).await,
+                        Work::Poll(unit) => self.run_poll(m, unit).await,
+                        Work::Idle(until) => {
+                            let sleep = async {
+                                match until {
+                                    Some(t) => tokio::time::sleep_until(t.into()).await,
+                                    None => std::future::pending().await,
+                                }
+                            };
+                            tokio::select! {
+                                () = self.shared.queue.notified() => {}
+                                () = sleep => {}
+                                () = self.shared.stop.cancelled() => {}
+                            }
+                            Ok(())
+                        }
+                    }
                 }
+                Err(e) => Err(e),
             };
             if let Err(e) = result {
+                // An adapter that opens and fails at once must not make this
+                // thread spin: the reopen waits, longer each time, until the
+                // port has proven itself again.
+                let delay = self.reopen.failed(Instant::now());
                 let reason = format!("serial port {} failed: {e}", self.settings.port);
-                warn!(bus = %name, "{reason}; reopening");
+                warn!(bus = %name, "{reason}; reopening in {delay:?}");
                 self.stats().record_port_error(&reason);
                 master = None;
                 self.mark_down(reason);
+                self.pause(delay).await;
             }
         }
+        // The port is closed now. The counters (port_open included) keep
+        // the last state of the run: a scrape after the stop describes it.
+        drop(master);
+        self.shared.set_state(PortState::Down {
+            since: SystemTime::now(),
+            reason: "the bus has stopped: drivegate is shutting down".to_string(),
+        });
         info!(bus = %name, "bus stopped");
+    }
+
+    /// Waits `delay` before the next attempt to open the port, or until the
+    /// bus is stopped.
+    async fn pause(&self, delay: Duration) {
+        tokio::select! {
+            () = tokio::time::sleep(delay) => {}
+            () = self.shared.stop.cancelled() => {}
+        }
     }
 
     /// Marks the port down and fails every waiting job: nobody should wait
@@ -268,13 +361,27 @@ impl Scheduler {
     }
 
     /// Runs what is left at a stop: emergency jobs (safe-stop actions) still
-    /// go out, everything else is refused.
+    /// go out, everything else is refused. Emergencies that arrive while the
+    /// first ones are on the wire get one more round; then the queue stops
+    /// taking anything, in the same step as the last take, so every job it
+    /// accepted gets an answer.
     async fn finish(&mut self, mut master: Option<&mut RtuMaster>) {
-        for job in self.shared.queue.drain() {
-            match (&mut master, job.priority) {
+        let waiting = self.shared.queue.drain();
+        self.run_or_refuse(waiting, &mut master).await;
+        // Before the queue stops, so a job it refuses finds the answer.
+        let _ = self.shared.ended.set(BusError::ShuttingDown);
+        let last = self.shared.queue.stop();
+        self.run_or_refuse(last, &mut master).await;
+    }
+
+    /// Sends the emergency jobs among `jobs` while the port works; refuses
+    /// the others as shutting down.
+    async fn run_or_refuse(&mut self, jobs: Vec<Job>, master: &mut Option<&mut RtuMaster>) {
+        for job in jobs {
+            match (master.as_deref_mut(), job.priority) {
                 (Some(m), Priority::Emergency) => {
                     if self.run_job(m, job).await.is_err() {
-                        master = None;
+                        *master = None;
                     }
                 }
                 _ => job.finish(Err(BusError::ShuttingDown)),
@@ -310,7 +417,10 @@ impl Scheduler {
         Work::Idle(self.plan.next_due())
     }
 
-    fn account(&self, function: u8, report: &Report) {
+    /// Counts a transaction that went through the port (whatever the drive
+    /// answered): the port works.
+    fn account(&mut self, function: u8, report: &Report) {
+        self.reopen.worked();
         let stats = self.stats();
         stats.record_transaction(function, report.outcome, report.attempts);
         stats.transaction_duration.observe(report.on_wire);
@@ -338,14 +448,19 @@ impl Scheduler {
         let queued = now - job.submitted;
         let report = match master.transact(job.unit, &job.pdu, attempts).await {
             Ok(report) => report,
-            Err(e) => {
+            Err(failure) => {
                 self.stats()
                     .record_transaction(function, Outcome::PortError, 1);
-                job.finish(Err(BusError::BusDown {
-                    bus: self.settings.name.clone(),
-                    reason: e.to_string(),
+                let (bus, unit) = (self.settings.name.clone(), job.unit);
+                let reason = failure.to_string();
+                // Once the frame has started to go out, the drive may act on
+                // it: the caller must not take it for never sent.
+                job.finish(Err(if failure.request_sent() {
+                    BusError::BusDownAfterSend { bus, unit, reason }
+                } else {
+                    BusError::BusDown { bus, reason }
                 }));
-                return Err(e);
+                return Err(failure.into_io());
             }
         };
         self.account(function, &report);
@@ -384,7 +499,10 @@ impl Scheduler {
     async fn run_poll(&mut self, master: &mut RtuMaster, unit: u8) -> io::Result<()> {
         let pdu: &[u8] = &STATUS_PDU;
         let offline = self.cache().is_offline(unit);
-        let report = master.transact(unit, pdu, offline.then_some(1)).await?;
+        let report = master
+            .transact(unit, pdu, offline.then_some(1))
+            .await
+            .map_err(PortFailure::into_io)?;
         self.account(pdu[0], &report);
         let status =
             report
@@ -416,5 +534,81 @@ impl Scheduler {
         self.plan
             .polled(unit, Instant::now(), self.cache().is_offline(unit));
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bus::handle::JobOptions;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    #[test]
+    fn a_bus_that_never_started_answers_every_job() {
+        let shared = new_shared(&BusSettings::new("line1", "/dev/null", 115_200, vec![]));
+        let bus = BusHandle {
+            shared: shared.clone(),
+        };
+        let emergency = JobOptions::with_priority(Priority::Emergency);
+        let mut queued = bus.submit(1, STATUS_PDU.clone(), emergency).unwrap();
+        never_started(&shared, "cannot start the bus runtime: no memory".into());
+        // The job that was waiting gets the reason...
+        match queued.try_recv() {
+            Ok(Err(BusError::BusDown { reason, .. })) => assert!(reason.contains("runtime")),
+            other => panic!("{other:?}"),
+        }
+        // ...and so does every later one, at once, emergencies included.
+        let later = bus.submit(1, STATUS_PDU.clone(), emergency).unwrap_err();
+        assert!(
+            matches!(&later, BusError::BusDown { reason, .. } if reason.contains("runtime")),
+            "{later}"
+        );
+        assert_eq!(bus.queue_depths(), [0, 0, 0]);
+    }
+
+    #[test]
+    fn a_port_that_opens_and_fails_at_once_backs_off_further_each_time() {
+        let mut backoff = ReopenBackoff::new((100 * MS, 400 * MS));
+        let mut now = Instant::now();
+        let mut delays = vec![];
+        for _ in 0..5 {
+            backoff.opened(now);
+            now += MS;
+            let delay = backoff.failed(now);
+            delays.push(delay);
+            now += delay;
+        }
+        assert_eq!(delays, [100 * MS, 200 * MS, 400 * MS, 400 * MS, 400 * MS]);
+    }
+
+    #[test]
+    fn failed_opens_back_off_too() {
+        let mut backoff = ReopenBackoff::new((100 * MS, 400 * MS));
+        let now = Instant::now();
+        let delays: Vec<_> = (0..4).map(|_| backoff.failed(now)).collect();
+        assert_eq!(delays, [100 * MS, 200 * MS, 400 * MS, 400 * MS]);
+    }
+
+    #[test]
+    fn a_port_that_proved_itself_starts_over_at_the_first_delay() {
+        let mut backoff = ReopenBackoff::new((100 * MS, 400 * MS));
+        let now = Instant::now();
+        for _ in 0..3 {
+            backoff.failed(now);
+        }
+        // A transaction went through.
+        backoff.opened(now);
+        backoff.worked();
+        assert_eq!(backoff.failed(now + MS), 100 * MS);
+        // Failing on, it backs off again...
+        assert_eq!(backoff.failed(now), 200 * MS);
+        // ...until it stays open for as long as the longest delay, idle.
+        backoff.opened(now);
+        assert_eq!(backoff.failed(now + 400 * MS), 100 * MS);
+        // A success before the last open does not count for this one.
+        backoff.worked();
+        backoff.opened(now);
+        assert_eq!(backoff.failed(now + MS), 200 * MS);
     }
 }

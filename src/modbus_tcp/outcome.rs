@@ -55,8 +55,12 @@ impl Outcome {
 /// The exception a client gets for a request the bus could not carry out.
 pub fn gateway_exception(error: &BusError) -> (ExceptionCode, Outcome) {
     match error {
-        // Sent, and every attempt went unanswered or garbled.
-        BusError::Timeout { .. } | BusError::BadReply { .. } => (
+        // Sent, and every attempt went unanswered or garbled; or sent, and
+        // the port failed before the reply: either way the drive may have
+        // carried it out, which 0x0A (never routed) would deny.
+        BusError::Timeout { .. }
+        | BusError::BadReply { .. }
+        | BusError::BusDownAfterSend { .. } => (
             ExceptionCode::GATEWAY_TARGET_FAILED,
             Outcome::GatewayTimeout,
         ),
@@ -121,6 +125,15 @@ mod tests {
         assert_eq!(
             gateway_exception(&full),
             (ExceptionCode(0x06), Outcome::Busy)
+        );
+        let cut = BusError::BusDownAfterSend {
+            bus: "line1".into(),
+            unit: 3,
+            reason: "unplugged".into(),
+        };
+        assert_eq!(
+            gateway_exception(&cut),
+            (ExceptionCode(0x0B), Outcome::GatewayTimeout)
         );
         let waited = BusError::Expired {
             waited: Duration::from_secs(5),

@@ -314,8 +314,9 @@ pub struct Tally {
     pub reads_answered: u64,
     /// Reads reported failed.
     pub reads_failed: u64,
-    /// Accepted jobs that failed because the port went down: each is a
-    /// `port_error` transaction in the metrics.
+    /// Accepted jobs that failed because the port went down (before their
+    /// request went out, or after): each is a `port_error` transaction in
+    /// the metrics.
     pub failed_bus_down: u64,
     /// Failures and refusals by kind (error variant).
     pub failures: BTreeMap<&'static str, u64>,
@@ -358,6 +359,7 @@ pub fn kind(e: &BusError) -> &'static str {
     match e {
         BusError::Busy { .. } => "busy",
         BusError::BusDown { .. } => "bus_down",
+        BusError::BusDownAfterSend { .. } => "bus_down_after_send",
         BusError::Timeout { .. } => "timeout",
         BusError::BadReply { .. } => "bad_reply",
         BusError::Exception { .. } => "exception",
@@ -422,7 +424,7 @@ pub async fn checked_traffic(
             assert!(e.not_sent(), "refused at submission yet maybe sent: {e}");
         }
         *tally.failures.entry(k).or_default() += 1;
-        if accepted && k == "bus_down" {
+        if accepted && matches!(k, "bus_down" | "bus_down_after_send") {
             tally.failed_bus_down += 1;
         }
     };
