@@ -302,10 +302,21 @@ async fn write_loop(
     }
 }
 
-/// Sends one message; false when the socket is gone or the daemon stops.
+/// Sends one message; false when the socket is gone, the daemon stops, or
+/// the client has not taken the message within the idle timeout: a hung
+/// client whose kernel keeps the connection open (and acknowledges, with a
+/// zero window) would otherwise hold the writer, and the session with its
+/// connection slot and leases, for ever.
 async fn send(state: &ApiState, sink: &mut Sink, message: Message) -> bool {
+    let limit = state.config.idle_timeout;
     tokio::select! {
-        sent = sink.send(message) => sent.is_ok(),
+        sent = tokio::time::timeout(limit, sink.send(message)) => match sent {
+            Ok(sent) => sent.is_ok(),
+            Err(_) => {
+                tracing::debug!("stream client took no message for {limit:?}: closing");
+                false
+            }
+        },
         () = state.shutdown.cancelled() => false,
     }
 }
@@ -324,7 +335,9 @@ fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
 /// nothing at all, not even the pong to a ping, for the idle timeout: a
 /// hung client that still holds its socket open (its kernel keeps the TCP
 /// connection alive and takes the pings) would otherwise hold a connection
-/// slot for ever.
+/// slot for ever. Time spent waiting for a free command slot or for room
+/// for an answer counts as silence too: both wait on a client that does
+/// not read its replies.
 async fn read_loop(
     state: &ApiState,
     caller: &Caller,
@@ -335,11 +348,16 @@ async fn read_loop(
 ) {
     let in_flight = Arc::new(Semaphore::new(COMMANDS_IN_FLIGHT));
     let silence = state.config.idle_timeout;
+    let mut deadline = tokio::time::Instant::now() + silence;
+    let gone = |what: &str| {
+        tracing::debug!(who = %caller.who, connection, "stream client {what} for {silence:?}: closing");
+    };
     loop {
-        let Ok(next) = tokio::time::timeout(silence, stream.next()).await else {
-            tracing::debug!(who = %caller.who, connection, "stream client sent nothing, not even a pong, for {silence:?}: closing");
+        let Ok(next) = tokio::time::timeout_at(deadline, stream.next()).await else {
+            gone("sent nothing, not even a pong,");
             return;
         };
+        deadline = tokio::time::Instant::now() + silence;
         let Some(message) = next else {
             return;
         };
@@ -347,14 +365,15 @@ async fn read_loop(
             Ok(Message::Text(text)) => text,
             Ok(Message::Binary(_)) => {
                 let problem = Problem::invalid("send JSON text messages, not binary ones");
-                if replies
-                    .send(ServerMessage::Error { problem }.to_text())
-                    .await
-                    .is_err()
-                {
-                    return;
+                let answer = ServerMessage::Error { problem }.to_text();
+                match tokio::time::timeout_at(deadline, replies.send(answer)).await {
+                    Ok(Ok(())) => continue,
+                    Ok(Err(_)) => return,
+                    Err(_) => {
+                        gone("read no answer");
+                        return;
+                    }
                 }
-                continue;
             }
             Ok(Message::Ping(_) | Message::Pong(_)) => continue,
             Ok(Message::Close(_)) | Err(_) => return,
@@ -380,9 +399,17 @@ async fn read_loop(
                 bus,
                 body,
             }) => {
-                let Ok(permit) = in_flight.clone().acquire_owned().await else {
-                    return;
-                };
+                let permit =
+                    match tokio::time::timeout_at(deadline, in_flight.clone().acquire_owned())
+                        .await
+                    {
+                        Ok(Ok(permit)) => permit,
+                        Ok(Err(_)) => return,
+                        Err(_) => {
+                            gone("left every command slot taken (it reads no replies)");
+                            return;
+                        }
+                    };
                 let (state, caller, replies) = (state.clone(), caller.clone(), replies.clone());
                 // Commands run beside the reader, so a slow one (a scan, a
                 // timeout) does not hold up lease renewals sent after it.
@@ -408,8 +435,13 @@ async fn read_loop(
                 continue;
             }
         };
-        if replies.send(answer).await.is_err() {
-            return;
+        match tokio::time::timeout_at(deadline, replies.send(answer)).await {
+            Ok(Ok(())) => {}
+            Ok(Err(_)) => return,
+            Err(_) => {
+                gone("read no answer");
+                return;
+            }
         }
     }
 }
