@@ -11,7 +11,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use api_support::{Api, config, connect, next_json, wait_for, ws_command};
+use api_support::{Api, config, connect, next_json, send_json, wait_for, ws_command};
 use common::{FOUR_DRIVES, TestDaemon, eventually};
 use serde_json::json;
 
@@ -274,6 +274,187 @@ async fn the_expiry_action_can_be_the_brake() {
             (sim.drive(1)?.speed_rpm.abs() < 1.0).then_some(())
         })
         .await;
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// A bus whose response timeout (and guard time) is 1.5 s, so a request to
+/// a unit nobody answers holds the wire for 3 s, and whose leases end with
+/// the brake: one emergency job, so nothing can slip in between the stop's
+/// read and its write, and a setpoint sent after it would release it.
+fn slow_bus_with_brake_on_expiry() -> String {
+    let toml = FOUR_DRIVES.replace("response_timeout_ms = 50", "response_timeout_ms = 1500");
+    format!("{toml}\n[safety]\non_lease_expiry = \"brake\"\n")
+}
+
+/// Holds the wire for 3 s with an emergency read of unit 30, which nobody
+/// answers, and returns once it is on the wire: commands queued meanwhile
+/// wait behind it.
+async fn hold_the_wire(
+    bus: &drivegate::bus::BusHandle,
+) -> tokio::sync::oneshot::Receiver<drivegate::bus::job::JobResult> {
+    use drivegate::bus::handle::JobOptions;
+    use drivegate::bus::{Priority, SourceId};
+    let options = JobOptions {
+        priority: Priority::Emergency,
+        source: SourceId::new_unique(),
+        queue_timeout: None,
+        max_attempts: Some(1),
+    };
+    let pdu = drivegate::drive::DriveRequest::ReadStatus.pdu().unwrap();
+    let blocker = bus.submit(30, pdu, options).unwrap();
+    eventually(Duration::from_secs(5), "the blocker on the wire", || {
+        (bus.queue_depths()[0] == 0).then_some(())
+    })
+    .await;
+    blocker
+}
+
+/// Waits until the conveyor's poll shows it active, so a setpoint goes
+/// straight to the queue (no read to confirm an inactive cached status).
+async fn polled_active(bus: &drivegate::bus::BusHandle) {
+    eventually(Duration::from_secs(5), "the conveyor polled active", || {
+        bus.drive(1)?.status?.active().then_some(())
+    })
+    .await;
+}
+
+/// Waits until the stream's setpoint for the conveyor is queued (the only
+/// command waiting) with its lease in place.
+async fn setpoint_queued(api: &Api, bus: &drivegate::bus::BusHandle) {
+    let start = Instant::now();
+    loop {
+        if bus.queue_depths()[1] == 1
+            && !api.get("/api/v1/drives/conveyor").await.expect(200)["lease"].is_null()
+        {
+            return;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(2),
+            "the setpoint was not queued with its lease"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+/// Writes (function 0x06) the bus has dealt with: sent, failed or dropped.
+fn writes_dealt_with(bus: &drivegate::bus::BusHandle) -> u64 {
+    bus.stats()
+        .transactions
+        .iter()
+        .filter(|((function, _), _)| *function == 0x06)
+        .map(|(_, n)| n)
+        .sum()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_setpoint_still_queued_when_its_socket_closes_never_runs_the_motor() {
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&slow_bus_with_brake_on_expiry()).await;
+        let api = Api::new(d.http, None);
+        let sim = d.sim();
+        let bus = d.plant.buses()[0].handle.clone();
+        api.activate_in("conveyor", "speed").await;
+        polled_active(&bus).await;
+        let mut ws = connect(d.http, "", None).await;
+        let before = writes_dealt_with(&bus);
+
+        // The setpoint queues behind a request that holds the wire, with
+        // its lease in place; then the client vanishes.
+        let blocker = hold_the_wire(&bus).await;
+        send_json(
+            &mut ws,
+            json!({"type": "command", "id": 1, "op": "setpoint", "drive": "conveyor",
+                   "body": {"speed_rpm": 200, "lease_ms": 60000}}),
+        )
+        .await;
+        setpoint_queued(&api, &bus).await;
+        drop(ws);
+
+        // Both writes dealt with, the brake and the setpoint (sent or
+        // dropped), in whichever order the daemon chose.
+        eventually(
+            Duration::from_secs(15),
+            "the brake and the setpoint",
+            || (writes_dealt_with(&bus) >= before + 2).then_some(()),
+        )
+        .await;
+        let conveyor = sim.drive(1).unwrap();
+        assert!(
+            conveyor.braking,
+            "the motor is not held: setpoint {} rpm, turning at {:.0} rpm",
+            conveyor.setpoints.speed_rpm, conveyor.speed_rpm
+        );
+        assert_eq!(
+            conveyor.setpoints.speed_rpm, 0,
+            "the setpoint reached the drive"
+        );
+        eventually(Duration::from_secs(5), "the conveyor standing", || {
+            (sim.drive(1)?.speed_rpm.abs() < 1.0).then_some(())
+        })
+        .await;
+        assert!(api.get("/api/v1/drives/conveyor").await.expect(200)["lease"].is_null());
+        drop(blocker);
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_renewal_before_the_setpoint_is_confirmed_keeps_the_pending_allowance() {
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&slow_bus_with_brake_on_expiry()).await;
+        let api = Api::new(d.http, None);
+        let sim = d.sim();
+        let bus = d.plant.buses()[0].handle.clone();
+        api.activate_in("conveyor", "speed").await;
+        polled_active(&bus).await;
+        let mut ws = connect(d.http, "", None).await;
+
+        let blocker = hold_the_wire(&bus).await;
+        send_json(
+            &mut ws,
+            json!({"type": "command", "id": 1, "op": "setpoint", "drive": "conveyor",
+                   "body": {"speed_rpm": 200, "lease_ms": 300}}),
+        )
+        .await;
+        setpoint_queued(&api, &bus).await;
+        // Renewed while the setpoint waits: the lease still allows for the
+        // queue (seconds), not just its own 300 ms, which would run out
+        // (and stop the motor) before the setpoint is even sent.
+        let renewed = ws_command(&mut ws, 2, "lease-renew", "conveyor", json!({})).await;
+        assert_eq!(renewed["ok"], true, "{renewed:#}");
+        let left = renewed["result"]["expires_in_ms"].as_u64().unwrap();
+        assert!(
+            left > 1000,
+            "the renewal cut the pending lease to {left} ms"
+        );
+
+        let reply = wait_for(
+            &mut ws,
+            Duration::from_secs(15),
+            "the setpoint's reply",
+            |v| v["type"] == "reply" && v["id"] == 1,
+        )
+        .await;
+        assert_eq!(reply["ok"], true, "{reply:#}");
+        assert_eq!(
+            reply["result"]["lease"]["lease_ms"], 300,
+            "the setpoint lost its lease while queued: {reply:#}"
+        );
+        // Then it runs its 300 ms and the brake holds the motor.
+        eventually(Duration::from_secs(5), "the brake at expiry", || {
+            sim.drive(1)?.braking.then_some(())
+        })
+        .await;
+        eventually(Duration::from_secs(5), "the conveyor standing", || {
+            (sim.drive(1)?.speed_rpm.abs() < 1.0).then_some(())
+        })
+        .await;
+        drop(blocker);
         d.stop().await;
     })
     .await

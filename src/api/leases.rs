@@ -58,6 +58,9 @@ struct Lease {
     connection: Option<u64>,
     duration: Duration,
     deadline: watch::Sender<Instant>,
+    /// False until its setpoint was sent: the deadline then still allows
+    /// for the bus queue.
+    confirmed: bool,
 }
 
 /// What [`LeaseBook::grant`] did.
@@ -160,6 +163,7 @@ impl LeaseBook {
             connection,
             duration,
             deadline,
+            confirmed: false,
         };
         // Dropping a replaced lease drops its sender, which ends its watcher.
         let replaced = self.lock().insert(index, lease).is_some();
@@ -179,7 +183,8 @@ impl LeaseBook {
                 lease.connection.is_some_and(|c| !self.live().contains(&c))
             };
             if !closed {
-                let lease = leases.get(&index)?;
+                let lease = leases.get_mut(&index)?;
+                lease.confirmed = true;
                 lease.deadline.send_replace(Instant::now() + lease.duration);
                 return Some(self.info(index, lease));
             }
@@ -202,13 +207,23 @@ impl LeaseBook {
 
     /// Pushes the deadline of drive `index`'s lease ahead by its length (or
     /// by a new `duration`); `None` when there is no lease (it expired).
+    /// While its setpoint waits for the bus the deadline is never brought
+    /// closer: the lease would end, and the stop go out at emergency
+    /// priority, before the setpoint it covers, which would then leave the
+    /// motor running with no lease.
     pub fn renew(&self, index: usize, duration: Option<Duration>) -> Option<LeaseInfo> {
         let mut leases = self.lock();
         let lease = leases.get_mut(&index)?;
         if let Some(d) = duration {
             lease.duration = d;
         }
-        lease.deadline.send_replace(Instant::now() + lease.duration);
+        let renewed = Instant::now() + lease.duration;
+        let deadline = if lease.confirmed {
+            renewed
+        } else {
+            renewed.max(*lease.deadline.borrow())
+        };
+        lease.deadline.send_replace(deadline);
         Some(self.info(index, lease))
     }
 

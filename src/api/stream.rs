@@ -11,7 +11,9 @@
 //! and the client is told `{"type":"lagged","missed":N}` before the next
 //! update it gets: a slow client never slows the bus or the other clients.
 //!
-//! Leases granted over the socket end when it closes.
+//! Leases granted over the socket end when it closes. The commands still
+//! in flight then are cancelled first (see [`InFlight`]), so the stop a
+//! lease's end sends never overtakes the setpoint it covers.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -25,6 +27,8 @@ use serde::Deserialize;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 use tokio::sync::{Semaphore, broadcast, mpsc};
+use tokio::task::JoinSet;
+use tokio_util::task::TaskTracker;
 use utoipa::{IntoParams, ToSchema};
 
 use super::auth::{Caller, StreamCaller};
@@ -38,6 +42,7 @@ use super::problem::{Kind, Problem};
 use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
 use super::state::ApiState;
+use crate::drive::ConfigCommand;
 
 /// Replies (and other answers to the client's own messages) that may wait.
 const REPLY_BUFFER: usize = 64;
@@ -209,15 +214,70 @@ async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Ve
     }
 
     let (sink, stream) = socket.split();
+    let mut in_flight = InFlight::default();
     let writer = write_loop(&state, sink, replies_rx, events_rx, &missed);
-    let reader = read_loop(&state, &caller, connection, stream, &selection, replies_tx);
+    let reader = read_loop(
+        &state,
+        &caller,
+        connection,
+        stream,
+        &selection,
+        replies_tx,
+        &mut in_flight,
+    );
     tokio::select! {
         () = writer => {}
         () = reader => {}
     }
     forwarder.abort();
+    // Only once no command of this session can reach the bus any more.
+    in_flight.end().await;
     state.leases.connection_closed(connection);
     tracing::debug!(who = %caller.who, connection, "stream client gone");
+}
+
+/// The session's commands in flight, each a task beside the reader.
+///
+/// When the socket closes they are cancelled before the session's leases
+/// end: a command whose job still waits in the bus queue is then dropped
+/// unsent (its caller has gone, as for an HTTP client that disconnects),
+/// and one already on the wire completes before the stop, which is queued
+/// only afterwards. Otherwise a setpoint queued at command priority would
+/// reach the drive after the stop its lease's end sent at emergency
+/// priority, and leave the motor running with no lease. Emergency brakes
+/// are let finish instead: dropping one would leave the motor running, and
+/// a brake confirmed first ends the lease, whose zero-speed stop would
+/// release it.
+#[derive(Default)]
+struct InFlight {
+    cancellable: JoinSet<()>,
+    brakes: JoinSet<()>,
+}
+
+impl InFlight {
+    /// Runs `task` (an emergency brake if `brake`), tracked by `tracker` so
+    /// a graceful stop waits for it.
+    fn spawn<F>(&mut self, tracker: &TaskTracker, brake: bool, task: F)
+    where
+        F: Future<Output = ()> + Send + 'static,
+    {
+        // Finished ones have nothing to report: forget them.
+        while self.cancellable.try_join_next().is_some() {}
+        while self.brakes.try_join_next().is_some() {}
+        let task = tracker.track_future(task);
+        if brake {
+            self.brakes.spawn(task);
+        } else {
+            self.cancellable.spawn(task);
+        }
+    }
+
+    /// Cancels the commands, lets the brakes finish, and returns when none
+    /// is left.
+    async fn end(mut self) {
+        self.cancellable.shutdown().await;
+        while self.brakes.join_next().await.is_some() {}
+    }
 }
 
 /// Takes the hub's messages for the selected drives into the session's
@@ -345,6 +405,7 @@ async fn read_loop(
     mut stream: Source,
     selection: &Selection,
     replies: mpsc::Sender<Utf8Bytes>,
+    commands: &mut InFlight,
 ) {
     let in_flight = Arc::new(Semaphore::new(COMMANDS_IN_FLIGHT));
     let silence = state.config.idle_timeout;
@@ -410,10 +471,12 @@ async fn read_loop(
                             return;
                         }
                     };
+                let brake = parse_command(&op).is_ok_and(|c| c == ConfigCommand::EmergencyBrake);
+                let tracker = state.sessions.clone();
                 let (state, caller, replies) = (state.clone(), caller.clone(), replies.clone());
                 // Commands run beside the reader, so a slow one (a scan, a
                 // timeout) does not hold up lease renewals sent after it.
-                state.sessions.clone().spawn(async move {
+                commands.spawn(&tracker, brake, async move {
                     let result = dispatch(&state, &caller, connection, &op, drive, bus, body).await;
                     let reply = match result {
                         Ok(result) => ServerMessage::Reply {
