@@ -460,3 +460,235 @@ async fn a_renewal_before_the_setpoint_is_confirmed_keeps_the_pending_allowance(
     .await
     .expect("test finished in time");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stop_the_drive_did_not_answer_is_tried_again_until_it_does() {
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(FOUR_DRIVES).await;
+        let api = Api::new(d.http, None);
+        let sim = d.sim();
+        let mut ws = connect(d.http, "?drives=conveyor", None).await;
+        api.activate_in("conveyor", "speed").await;
+        api.put(
+            "/api/v1/drives/conveyor/setpoint",
+            json!({"speed_rpm": 200, "lease_ms": 1000}),
+        )
+        .await
+        .expect(200);
+        // The drive stops answering (its motor keeps its setpoint), and the
+        // lease runs out: the stop gets no answer.
+        sim.set_silent(1, true);
+        let event = wait_for(
+            &mut ws,
+            Duration::from_secs(10),
+            "the lease-expired event",
+            |v| v["type"] == "lease-expired",
+        )
+        .await;
+        assert_eq!(
+            (event["ok"].as_bool(), event["retrying"].as_bool()),
+            (Some(false), Some(true)),
+            "{event:#}"
+        );
+        assert!(
+            event["result"].as_str().unwrap().contains("did not answer"),
+            "{event:#}"
+        );
+        let p = api
+            .post_empty("/api/v1/drives/conveyor/lease/renew")
+            .await
+            .expect_problem(409, "no-lease");
+        let detail = p["detail"].as_str().unwrap();
+        assert!(
+            detail.contains("not confirmed yet")
+                && detail.contains("did not answer")
+                && !detail.contains("was stopped"),
+            "{detail}"
+        );
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        assert_eq!(sim.drive(1).unwrap().setpoints.speed_rpm, 200);
+
+        // It answers again: the stop is tried again and confirmed.
+        sim.set_silent(1, false);
+        eventually(Duration::from_secs(15), "the zero-speed stop", || {
+            (sim.drive(1)?.setpoints.speed_rpm == 0).then_some(())
+        })
+        .await;
+        eventually(Duration::from_secs(5), "the conveyor standing", || {
+            (sim.drive(1)?.speed_rpm.abs() < 1.0).then_some(())
+        })
+        .await;
+        let event = wait_for(
+            &mut ws,
+            Duration::from_secs(10),
+            "the lease-stop event",
+            |v| v["type"] == "lease-stop",
+        )
+        .await;
+        assert_eq!(event["stopped"], true, "{event:#}");
+        assert!(event["attempts"].as_u64().unwrap() >= 2, "{event:#}");
+        assert!(
+            event["sent"]
+                .as_str()
+                .unwrap()
+                .contains("speed setpoint 0 rpm"),
+            "{event:#}"
+        );
+        let p = api
+            .post_empty("/api/v1/drives/conveyor/lease/renew")
+            .await
+            .expect_problem(409, "no-lease");
+        assert!(
+            p["detail"]
+                .as_str()
+                .unwrap()
+                .contains("confirmed by the drive"),
+            "{p:#}"
+        );
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// A USB adapter between the daemon and the simulated drives: the daemon
+/// opens a pty whose other end is relayed to the simulator's, so the
+/// adapter can be unplugged (the daemon's port fails and its path is gone)
+/// while the drives behind it keep their power and keep turning, as on a
+/// real bus.
+struct Adapter {
+    link: std::path::PathBuf,
+    drives: std::path::PathBuf,
+    relay: Option<tokio::task::JoinHandle<()>>,
+}
+
+impl Adapter {
+    fn new(link: &std::path::Path, drives: &std::path::Path) -> Self {
+        Adapter {
+            link: link.to_path_buf(),
+            drives: drives.to_path_buf(),
+            relay: None,
+        }
+    }
+
+    fn plug_in(&mut self) {
+        let mut pty = drivegate::sim::pty::Pty::open().unwrap();
+        let _ = std::fs::remove_file(&self.link);
+        std::os::unix::fs::symlink(pty.path(), &self.link).unwrap();
+        let mut drives = drivegate::bus::port::open(
+            &self.drives.display().to_string(),
+            115_200,
+            &Default::default(),
+        )
+        .unwrap();
+        self.relay = Some(tokio::spawn(async move {
+            let _ = tokio::io::copy_bidirectional(pty.master(), &mut drives).await;
+        }));
+    }
+
+    async fn unplug(&mut self) {
+        let _ = std::fs::remove_file(&self.link);
+        if let Some(relay) = self.relay.take() {
+            relay.abort();
+            let _ = relay.await;
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stop_the_bus_could_not_carry_is_sent_once_the_adapter_is_back() {
+    use drivegate::bus::handle::PortState;
+    use drivegate::sim::{SimConfig, Simulator};
+
+    tokio::time::timeout(LIMIT, async {
+        let sim = Simulator::start(SimConfig::for_units([1])).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("ttyUSB-drives");
+        let mut adapter = Adapter::new(&link, sim.port_path());
+        adapter.plug_in();
+        let toml = format!(
+            "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nenabled = false\n\
+             [[bus]]\nname = \"line\"\nport = \"{}\"\nresponse_timeout_ms = 200\n\
+             [[bus.drive]]\nunit = 1\nname = \"conveyor\"\ngear_ratio = 3.75\n",
+            link.display()
+        );
+        let d = TestDaemon::start(&toml).await;
+        let api = Api::new(d.http, None);
+        let bus = d.plant.buses()[0].handle.clone();
+        let mut ws = connect(d.http, "?drives=conveyor", None).await;
+        api.activate_in("conveyor", "speed").await;
+        api.put(
+            "/api/v1/drives/conveyor/setpoint",
+            json!({"speed_rpm": 200, "lease_ms": 2000}),
+        )
+        .await
+        .expect(200);
+
+        // Unplugged: the lease runs out while the bus is down.
+        adapter.unplug().await;
+        let event = wait_for(
+            &mut ws,
+            Duration::from_secs(10),
+            "the lease-expired event",
+            |v| v["type"] == "lease-expired",
+        )
+        .await;
+        assert_eq!(
+            (event["ok"].as_bool(), event["retrying"].as_bool()),
+            (Some(false), Some(true)),
+            "{event:#}"
+        );
+        assert!(
+            event["result"].as_str().unwrap().contains("is down"),
+            "{event:#}"
+        );
+        assert!(matches!(bus.port_state(), PortState::Down { .. }));
+        let p = api
+            .post_empty("/api/v1/drives/conveyor/lease/renew")
+            .await
+            .expect_problem(409, "no-lease");
+        let detail = p["detail"].as_str().unwrap();
+        assert!(
+            detail.contains("not confirmed yet") && detail.contains("is down"),
+            "{detail}"
+        );
+        // Behind the adapter the motor still turns.
+        let conveyor = sim.drive(1).unwrap();
+        assert_eq!(conveyor.setpoints.speed_rpm, 200);
+        assert!(conveyor.speed_rpm > 100.0, "{:.0} rpm", conveyor.speed_rpm);
+
+        // Plugged back in: the port reopens and the stop goes out.
+        adapter.plug_in();
+        eventually(Duration::from_secs(15), "the zero-speed stop", || {
+            (sim.drive(1)?.setpoints.speed_rpm == 0).then_some(())
+        })
+        .await;
+        eventually(Duration::from_secs(5), "the conveyor standing", || {
+            (sim.drive(1)?.speed_rpm.abs() < 1.0).then_some(())
+        })
+        .await;
+        let event = wait_for(
+            &mut ws,
+            Duration::from_secs(10),
+            "the lease-stop event",
+            |v| v["type"] == "lease-stop",
+        )
+        .await;
+        assert_eq!(event["stopped"], true, "{event:#}");
+        let p = api
+            .post_empty("/api/v1/drives/conveyor/lease/renew")
+            .await
+            .expect_problem(409, "no-lease");
+        assert!(
+            p["detail"]
+                .as_str()
+                .unwrap()
+                .contains("confirmed by the drive"),
+            "{p:#}"
+        );
+        d.stop().await;
+        adapter.unplug().await;
+    })
+    .await
+    .expect("test finished in time");
+}

@@ -75,7 +75,7 @@ pub enum ServerMessage {
         reason: String,
     },
     /// A motor-safety lease ended without renewal (or its WebSocket closed)
-    /// and the stop action was applied.
+    /// and the stop action was tried.
     LeaseExpired {
         /// Drive name.
         drive: String,
@@ -94,6 +94,32 @@ pub enum ServerMessage {
         /// True when the action was carried out (or nothing was needed).
         ok: bool,
         /// The drive's answer, or why the action failed.
+        result: String,
+        /// True when the action failed and drivegate keeps trying it until
+        /// the drive confirms it; a `lease-stop` message tells the end.
+        retrying: bool,
+    },
+    /// How the stop of a lease that failed at first ended: carried out at
+    /// last, or not tried again because something newer took over the
+    /// drive (a confirmed setpoint, brake or deactivation).
+    LeaseStop {
+        /// Drive name.
+        drive: String,
+        /// Its bus.
+        bus: String,
+        /// Its unit address.
+        unit: u8,
+        /// Who held the lease.
+        owner: String,
+        /// `[safety] on_lease_expiry`: `zero-speed` or `brake`.
+        action: String,
+        /// What was sent to the drive at last, if anything.
+        sent: Option<String>,
+        /// True when the drive confirmed the stop (or nothing was needed).
+        stopped: bool,
+        /// Tries made.
+        attempts: u32,
+        /// The drive's answer, or what took over.
         result: String,
     },
     /// This client fell behind: `missed` updates were skipped for it.
