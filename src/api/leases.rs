@@ -14,7 +14,9 @@
 //! The lease is put in place *before* its setpoint is sent, with a deadline
 //! that allows for the bus queue, and is given its real deadline once the
 //! drive confirmed: if the request is dropped halfway (the client went away
-//! mid-request), the motor is still covered.
+//! mid-request), the motor is still covered. Should the lease end before
+//! its setpoint is confirmed all the same, the stop is sent again once it
+//! is: the setpoint may have landed after the stop.
 //!
 //! A stop is followed until it is done. One that fails (bus down, no
 //! answer, not confirmed) is tried again with backoff, and at once when the
@@ -103,10 +105,12 @@ enum How {
 
 /// Where a lease's stop stands.
 enum Stop {
-    /// Being sent, or waiting to be tried again after `failures` tries.
+    /// Being sent, or waiting to be tried again after `failures` tries;
+    /// `again`: sent once more even if the try under way succeeds.
     Pending {
         failures: u32,
         last_error: Option<String>,
+        again: bool,
     },
     /// Carried out (or nothing was needed): what the drive confirmed.
     Done(String),
@@ -160,6 +164,16 @@ impl Book {
             *stop = Stop::Superseded(by.to_string());
         }
     }
+}
+
+/// What follows a try of a stop.
+enum Next {
+    /// Done, or no longer this stop's business.
+    Done,
+    /// It failed: try again after a pause.
+    Retry,
+    /// It succeeded, but the lease's setpoint landed meanwhile: once more.
+    Again,
 }
 
 /// The next step of a stop.
@@ -274,10 +288,20 @@ impl LeaseBook {
     /// The setpoint of lease `id` was sent (`applied`: and the drive
     /// confirmed it): its deadline is now `duration` ahead, and a confirmed
     /// setpoint takes over from a stop still being tried. A lease whose
-    /// WebSocket closed meanwhile ends at once, with its stop.
+    /// WebSocket closed meanwhile ends at once, with its stop; one that
+    /// ended already has its stop sent again, since the setpoint may have
+    /// landed after it.
     pub fn confirm(self: &Arc<Self>, index: usize, id: u64, applied: bool) -> Option<LeaseInfo> {
         let mut book = self.lock();
-        let lease = book.leases.get(&index).filter(|l| l.id == id)?;
+        let Some(lease) = book.leases.get(&index).filter(|l| l.id == id) else {
+            // It ended while its setpoint waited: the setpoint may have
+            // landed after the stop and set the motor going again.
+            if self.stop_again(&mut book, index, id) {
+                drop(book);
+                self.spawn_stop(index, id, true);
+            }
+            return None;
+        };
         let closed = lease
             .connection
             .is_some_and(|c| !book.live_connections.contains(&c));
@@ -286,7 +310,7 @@ impl LeaseBook {
             let go = self.begin_stop(&mut book, index, lease, "its WebSocket closed");
             drop(book);
             if let Some(id) = go {
-                self.spawn_stop(index, id);
+                self.spawn_stop(index, id, false);
             }
             return None;
         }
@@ -419,7 +443,7 @@ impl LeaseBook {
             started
         };
         for (index, id) in started {
-            self.spawn_stop(index, id);
+            self.spawn_stop(index, id, false);
         }
     }
 
@@ -451,13 +475,13 @@ impl LeaseBook {
             How::EndedBy(what) => format!("{head} when {what} was confirmed"),
             How::Stopping { why, stop, .. } => {
                 let stop = match stop {
-                    Stop::Pending {
-                        failures: 0,
-                        last_error: _,
-                    } => format!("its stop ({action}) is being sent"),
+                    Stop::Pending { failures: 0, .. } => {
+                        format!("its stop ({action}) is being sent")
+                    }
                     Stop::Pending {
                         failures,
                         last_error,
+                        ..
                     } => format!(
                         "its stop ({action}) is not confirmed yet: {failures} attempt(s) failed, the last with \"{}\"; drivegate keeps trying it until the drive confirms it",
                         last_error.as_deref().unwrap_or("no answer")
@@ -502,6 +526,7 @@ impl LeaseBook {
                         Stop::Pending {
                             failures: 0,
                             last_error: None,
+                            again: false,
                         }
                     },
                 },
@@ -510,10 +535,11 @@ impl LeaseBook {
         (!shutting_down).then_some(lease.id)
     }
 
-    fn spawn_stop(self: &Arc<Self>, index: usize, id: u64) {
+    /// Starts the stop of lease `id` (`announced`: its end was published).
+    fn spawn_stop(self: &Arc<Self>, index: usize, id: u64, announced: bool) {
         let book = self.clone();
         self.tasks
-            .spawn(async move { book.carry_out_stop(index, id).await });
+            .spawn(async move { book.carry_out_stop(index, id, announced).await });
     }
 
     /// Ends lease `id` on drive `index` if its deadline has passed; true
@@ -542,7 +568,7 @@ impl LeaseBook {
                 () = tokio::time::sleep_until(deadline.into()) => {
                     match self.end_if_due(index, id) {
                         Some(true) => {
-                            self.carry_out_stop(index, id).await;
+                            self.carry_out_stop(index, id, false).await;
                             return;
                         }
                         Some(false) => {}
@@ -577,10 +603,58 @@ impl LeaseBook {
     }
 
     /// Records a try of the stop of lease `id`: `Ok` with what the drive
-    /// confirmed, or the error. True when it is to be tried again: it
-    /// failed, and nothing took over meanwhile.
-    fn record_try(&self, index: usize, id: u64, result: &Result<String, String>) -> bool {
+    /// confirmed, or the error. Says whether to try again: after a pause
+    /// when it failed, at once when the lease's own setpoint reached the
+    /// drive during the try; not when it is done or something took over.
+    fn record_try(&self, index: usize, id: u64, result: &Result<String, String>) -> Next {
         let mut book = self.lock();
+        let Some(Ended {
+            id: ended,
+            how: How::Stopping { stop, .. },
+            ..
+        }) = book.ended.get_mut(&index)
+        else {
+            return Next::Done;
+        };
+        let Stop::Pending {
+            failures, again, ..
+        } = stop
+        else {
+            return Next::Done;
+        };
+        if *ended != id {
+            return Next::Done;
+        }
+        let (failures, again) = (*failures, *again);
+        match result {
+            Ok(_) if again => {
+                *stop = Stop::Pending {
+                    failures,
+                    last_error: None,
+                    again: false,
+                };
+                Next::Again
+            }
+            Ok(done) => {
+                *stop = Stop::Done(done.clone());
+                Next::Done
+            }
+            Err(e) => {
+                *stop = Stop::Pending {
+                    failures: failures + 1,
+                    last_error: Some(e.clone()),
+                    again: false,
+                };
+                Next::Retry
+            }
+        }
+    }
+
+    /// Lease `id` on drive `index` ended before the drive confirmed its
+    /// setpoint, so the stop may have gone out first and the setpoint
+    /// landed after it: the stop is sent again, after the try under way if
+    /// there is one. True when a new stop task is needed.
+    fn stop_again(&self, book: &mut Book, index: usize, id: u64) -> bool {
         let Some(Ended {
             id: ended,
             how: How::Stopping { stop, .. },
@@ -589,25 +663,26 @@ impl LeaseBook {
         else {
             return false;
         };
-        let Stop::Pending { failures, .. } = stop else {
-            return false;
-        };
         if *ended != id {
             return false;
         }
-        let failures = *failures + 1;
-        match result {
-            Ok(done) => {
-                *stop = Stop::Done(done.clone());
+        let drive = self.drive_name(index);
+        tracing::warn!(%drive, "a leased setpoint reached the drive after its lease had ended: sending the stop again");
+        match stop {
+            Stop::Pending { again, .. } => {
+                *again = true;
                 false
             }
-            Err(e) => {
+            Stop::Done(_) if !self.shutdown.is_cancelled() => {
                 *stop = Stop::Pending {
-                    failures,
-                    last_error: Some(e.clone()),
+                    failures: 0,
+                    last_error: None,
+                    again: false,
                 };
                 true
             }
+            // Taken over by something newer, or left to the safe stop.
+            _ => false,
         }
     }
 
@@ -626,8 +701,9 @@ impl LeaseBook {
     }
 
     /// Carries out the stop of lease `id` on drive `index`, trying again
-    /// after failures until it is done, taken over, or the daemon stops.
-    async fn carry_out_stop(self: Arc<Self>, index: usize, id: u64) {
+    /// after failures until it is done, taken over, or the daemon stops;
+    /// `announced`: the lease's end was published already.
+    async fn carry_out_stop(self: Arc<Self>, index: usize, id: u64, announced: bool) {
         let Some(drive) = self.plant.drives().get(index) else {
             return;
         };
@@ -659,7 +735,7 @@ impl LeaseBook {
                     if let Some(by) = by {
                         tracing::info!(drive = %drive.name, "the stop of an ended lease is not tried again: {by} took over the drive");
                         let result = Err(format!("not sent again: {by} took over the drive"));
-                        if tries == 0 {
+                        if tries == 0 && !announced {
                             self.announce_expired(&ended, None, &result, false);
                         } else {
                             self.announce_retried(&ended, tries, None, result);
@@ -675,20 +751,23 @@ impl LeaseBook {
             tries += 1;
             let outcome = safety::stop_drive(bus, unit, self.action, false, Some(mode)).await;
             let (sent, result) = self.describe_outcome(&ended, outcome, tries == 1);
-            let again = self.record_try(index, id, &result);
-            if tries == 1 {
-                self.announce_expired(&ended, sent.clone(), &result, again);
-            } else if result.is_ok() {
+            let next = self.record_try(index, id, &result);
+            if tries == 1 && !announced {
+                self.announce_expired(&ended, sent.clone(), &result, matches!(next, Next::Retry));
+            } else if matches!(next, Next::Done) && result.is_ok() {
                 self.announce_retried(&ended, tries, sent, result.clone());
             }
-            if !again {
-                return;
-            }
-            self.pause(&mut events, unit, wait).await;
-            wait = (wait * 2).min(RETRY_MAX);
-            if self.shutdown.is_cancelled() {
-                self.abandon(index, id);
-                return;
+            match next {
+                Next::Done => return,
+                Next::Again => {}
+                Next::Retry => {
+                    self.pause(&mut events, unit, wait).await;
+                    wait = (wait * 2).min(RETRY_MAX);
+                    if self.shutdown.is_cancelled() {
+                        self.abandon(index, id);
+                        return;
+                    }
+                }
             }
         }
     }
