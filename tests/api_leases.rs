@@ -731,7 +731,8 @@ async fn a_setpoint_confirmed_after_its_lease_ended_is_stopped_again() {
 
         // A lease over WebSocket 7, whose setpoint is still on its way when
         // the socket closes: the stop goes out at once.
-        book.connection_opened(7);
+        let (notices, _notices) = tokio::sync::mpsc::unbounded_channel();
+        book.connection_opened(7, notices);
         let owner: std::sync::Arc<str> = "a stream client".into();
         let grant = book.grant(
             conveyor,

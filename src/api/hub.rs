@@ -169,6 +169,9 @@ impl ServerMessage {
 pub struct HubEvent {
     /// Index of the drive in the plant, `None` for bus-wide news.
     pub drive: Option<usize>,
+    /// The stream session that got this message directly (the one that
+    /// held the lease it is about): it skips this copy.
+    pub delivered_to: Option<u64>,
     /// The JSON text.
     pub text: Utf8Bytes,
 }
@@ -205,10 +208,17 @@ impl Hub {
 
     /// Publishes `message` about drive `drive` (or everyone's business).
     pub fn publish(&self, drive: Option<usize>, message: &ServerMessage) {
+        self.publish_text(drive, None, message.to_text());
+    }
+
+    /// Publishes `text` about drive `drive`, which the stream session
+    /// `delivered_to` (if any) got directly already.
+    pub fn publish_text(&self, drive: Option<usize>, delivered_to: Option<u64>, text: Utf8Bytes) {
         // No session listening is not an error.
         let _ = self.tx.send(HubEvent {
             drive,
-            text: message.to_text(),
+            delivered_to,
+            text,
         });
     }
 

@@ -26,14 +26,20 @@
 //! shutdown, whose own safe stop covers every moving drive. How each
 //! drive's last lease ended is kept, so a client that finds no lease is told
 //! what really happened.
+//!
+//! A lease's end, and how its stop ended, are published on the stream for
+//! the drive's subscribers, and sent directly to the stream session that
+//! held the lease (if it is still open): that one cannot be skipped for a
+//! client that reads slowly, and needs no subscription.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use axum::extract::ws::Utf8Bytes;
 use serde::Serialize;
-use tokio::sync::{broadcast, watch};
+use tokio::sync::{broadcast, mpsc, watch};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use utoipa::ToSchema;
@@ -86,6 +92,8 @@ struct Ended {
     /// The lease's id.
     id: u64,
     owner: Arc<str>,
+    /// The stream session it was taken over, told how it ended.
+    connection: Option<u64>,
     at: Instant,
     how: How,
 }
@@ -134,7 +142,8 @@ pub struct Grant {
 struct Book {
     leases: HashMap<usize, Lease>,
     ended: HashMap<usize, Ended>,
-    live_connections: HashSet<u64>,
+    /// Open stream sessions, each with the way to send it lease news.
+    live_connections: HashMap<u64, mpsc::UnboundedSender<Utf8Bytes>>,
 }
 
 impl Book {
@@ -192,6 +201,7 @@ enum Turn {
 struct EndedLease<'a> {
     index: usize,
     owner: &'a str,
+    connection: Option<u64>,
     why: &'static str,
 }
 
@@ -304,7 +314,7 @@ impl LeaseBook {
         };
         let closed = lease
             .connection
-            .is_some_and(|c| !book.live_connections.contains(&c));
+            .is_some_and(|c| !book.live_connections.contains_key(&c));
         if closed {
             let lease = book.leases.remove(&index)?;
             let go = self.begin_stop(&mut book, index, lease, "its WebSocket closed");
@@ -374,6 +384,7 @@ impl LeaseBook {
                 Ended {
                     id: lease.id,
                     owner: lease.owner,
+                    connection: lease.connection,
                     at: Instant::now(),
                     how: How::Released(by.clone()),
                 },
@@ -395,6 +406,7 @@ impl LeaseBook {
                 Ended {
                     id: lease.id,
                     owner: lease.owner,
+                    connection: lease.connection,
                     at: Instant::now(),
                     how: How::EndedBy(what.to_string()),
                 },
@@ -415,9 +427,10 @@ impl LeaseBook {
         book.leases.get(&index).map(|l| self.info(index, l))
     }
 
-    /// A WebSocket connection opened: leases may be tied to it.
-    pub fn connection_opened(&self, connection: u64) {
-        self.lock().live_connections.insert(connection);
+    /// A WebSocket connection opened: leases may be tied to it, and news
+    /// of their end goes to `notices`.
+    pub fn connection_opened(&self, connection: u64, notices: mpsc::UnboundedSender<Utf8Bytes>) {
+        self.lock().live_connections.insert(connection, notices);
     }
 
     /// A WebSocket connection closed: its leases end now, with their stop.
@@ -516,6 +529,7 @@ impl LeaseBook {
             Ended {
                 id: lease.id,
                 owner: lease.owner,
+                connection: lease.connection,
                 at: Instant::now(),
                 how: How::Stopping {
                     why,
@@ -707,12 +721,13 @@ impl LeaseBook {
         let Some(drive) = self.plant.drives().get(index) else {
             return;
         };
-        let Some((owner, why)) = self.ended_lease(index, id) else {
+        let Some((owner, connection, why)) = self.ended_lease(index, id) else {
             return;
         };
         let ended = EndedLease {
             index,
             owner: &owner,
+            connection,
             why,
         };
         let bus = self.plant.handle_of(drive);
@@ -860,7 +875,9 @@ impl LeaseBook {
         result: &Result<String, String>,
         retrying: bool,
     ) {
-        let EndedLease { index, owner, why } = *ended;
+        let EndedLease {
+            index, owner, why, ..
+        } = *ended;
         let Some(drive) = self.plant.drives().get(index) else {
             return;
         };
@@ -882,8 +899,8 @@ impl LeaseBook {
             Ok(_) if sent.is_some() => Ok("confirmed by the drive".to_string()),
             other => other.clone(),
         };
-        self.hub.publish(
-            Some(index),
+        self.announce(
+            ended,
             &ServerMessage::LeaseExpired {
                 drive: drive.name.clone(),
                 bus: self.plant.handle_of(drive).name().to_string(),
@@ -919,8 +936,8 @@ impl LeaseBook {
             Ok(_) if sent.is_some() => Ok("confirmed by the drive".to_string()),
             other => other,
         };
-        self.hub.publish(
-            Some(index),
+        self.announce(
+            ended,
             &ServerMessage::LeaseStop {
                 drive: drive.name.clone(),
                 bus: self.plant.handle_of(drive).name().to_string(),
@@ -935,18 +952,33 @@ impl LeaseBook {
         );
     }
 
-    /// Owner and reason of lease `id`, the last on drive `index`.
-    fn ended_lease(&self, index: usize, id: u64) -> Option<(Arc<str>, &'static str)> {
+    /// Owner, stream session and reason of lease `id`, the last on drive
+    /// `index`.
+    fn ended_lease(&self, index: usize, id: u64) -> Option<(Arc<str>, Option<u64>, &'static str)> {
         let book = self.lock();
         match book.ended.get(&index)? {
             Ended {
                 id: ended,
                 owner,
+                connection,
                 how: How::Stopping { why, .. },
                 ..
-            } if *ended == id => Some((owner.clone(), why)),
+            } if *ended == id => Some((owner.clone(), *connection, why)),
             _ => None,
         }
+    }
+
+    /// Publishes `message` about a lease of `ended.index`, and sends it
+    /// directly to the stream session that held the lease, if still open
+    /// (which then skips the published copy).
+    fn announce(&self, ended: &EndedLease<'_>, message: &ServerMessage) {
+        let text = message.to_text();
+        let owner = ended
+            .connection
+            .and_then(|c| Some((c, self.lock().live_connections.get(&c)?.clone())));
+        let delivered_to =
+            owner.and_then(|(c, notices)| notices.send(text.clone()).is_ok().then_some(c));
+        self.hub.publish_text(Some(ended.index), delivered_to, text);
     }
 }
 

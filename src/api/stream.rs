@@ -11,7 +11,10 @@
 //! and the client is told `{"type":"lagged","missed":N}` before the next
 //! update it gets: a slow client never slows the bus or the other clients.
 //!
-//! Leases granted over the socket end when it closes. The commands still
+//! The end of a lease taken over the socket is sent to it directly, beside
+//! the forwarder: it is never skipped for a slow client, and needs no
+//! subscription. Leases granted over the socket end when it closes. The
+//! commands still
 //! in flight then are cancelled first (see [`InFlight`]), so the stop a
 //! lease's end sends never overtakes the setpoint it covers.
 
@@ -195,7 +198,9 @@ impl Selection {
 async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Vec<usize>) {
     let _counted = state.metrics.faces().ws_client();
     let connection = state.next_connection_id();
-    state.leases.connection_opened(connection);
+    // Unbounded, but only a lease of this client's own ending adds to it.
+    let (notices_tx, notices_rx) = mpsc::unbounded_channel();
+    state.leases.connection_opened(connection, notices_tx);
     tracing::debug!(who = %caller.who, connection, "stream client connected");
 
     let selection = Arc::new(Selection::new(state.plant.drives().len()));
@@ -205,6 +210,7 @@ async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Ve
     let (replies_tx, replies_rx) = mpsc::channel(REPLY_BUFFER);
     let forwarder = tokio::spawn(forward(
         state.hub.subscribe(),
+        connection,
         selection.clone(),
         missed.clone(),
         events_tx,
@@ -215,7 +221,7 @@ async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Ve
 
     let (sink, stream) = socket.split();
     let mut in_flight = InFlight::default();
-    let writer = write_loop(&state, sink, replies_rx, events_rx, &missed);
+    let writer = write_loop(&state, sink, replies_rx, notices_rx, events_rx, &missed);
     let reader = read_loop(
         &state,
         &caller,
@@ -281,9 +287,11 @@ impl InFlight {
 }
 
 /// Takes the hub's messages for the selected drives into the session's
-/// bounded buffer; never waits, counts what does not fit.
+/// bounded buffer; never waits, counts what does not fit. Messages the
+/// session got directly (its own leases' ends) are skipped.
 async fn forward(
     mut hub: broadcast::Receiver<HubEvent>,
+    connection: u64,
     selection: Arc<Selection>,
     missed: Arc<AtomicU64>,
     events: mpsc::Sender<Utf8Bytes>,
@@ -291,7 +299,7 @@ async fn forward(
     loop {
         match hub.recv().await {
             Ok(event) => {
-                if !selection.wants(event.drive) {
+                if event.delivered_to == Some(connection) || !selection.wants(event.drive) {
                     continue;
                 }
                 match events.try_send(event.text) {
@@ -313,15 +321,17 @@ async fn forward(
 type Sink = futures_util::stream::SplitSink<WebSocket, Message>;
 type Source = futures_util::stream::SplitStream<WebSocket>;
 
-/// Sends replies first, then updates (each preceded by a `lagged` notice
-/// when some were skipped), and a ping every quarter of the idle timeout,
-/// busy or not: a healthy client's pongs keep even a quiet stream open,
-/// and their absence tells the reader a client has hung (see
-/// [`read_loop`]); closes the socket when the daemon stops.
+/// Sends replies first, then news of the client's own leases, then
+/// updates (each preceded by a `lagged` notice when some were skipped), and
+/// a ping every quarter of the idle timeout, busy or not: a healthy
+/// client's pongs keep even a quiet stream open, and their absence tells
+/// the reader a client has hung (see [`read_loop`]); closes the socket when
+/// the daemon stops.
 async fn write_loop(
     state: &ApiState,
     mut sink: Sink,
     mut replies: mpsc::Receiver<Utf8Bytes>,
+    mut notices: mpsc::UnboundedReceiver<Utf8Bytes>,
     mut events: mpsc::Receiver<Utf8Bytes>,
     missed: &AtomicU64,
 ) {
@@ -333,6 +343,7 @@ async fn write_loop(
             biased;
             () = state.shutdown.cancelled() => None,
             Some(reply) = replies.recv() => Some(Message::Text(reply)),
+            Some(notice) = notices.recv() => Some(Message::Text(notice)),
             // Before updates: a stream always busy must still be pinged.
             _ = ping.tick() => Some(Message::Ping(Default::default())),
             Some(event) = events.recv() => {
