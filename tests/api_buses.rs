@@ -126,3 +126,88 @@ async fn address_setting_is_verified_at_the_new_address() {
     .await
     .expect("test finished in time");
 }
+
+/// A scan meets a full queue, then a job that waited its whole queue time:
+/// it tries that unit again and carries on, and no unit it found is lost.
+/// An emergency job to a unit nobody answers holds the wire for 6 s (a
+/// 3 s response timeout and as long a guard), one command fills the queue
+/// (capacity 1), and the scan's first read is refused busy; once that
+/// command is withdrawn the retry is queued, waits past its 2 s queue time
+/// behind the emergency job and is dropped unsent; the next try is read.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scan_tries_a_busy_unit_again_and_keeps_what_it_found() {
+    use drivegate::bus::handle::JobOptions;
+    use drivegate::bus::stats::Outcome;
+    use drivegate::bus::{Priority, SourceId};
+    use drivegate::drive::DriveRequest;
+
+    tokio::time::timeout(LIMIT, async {
+        let toml = FOUR_DRIVES.replace(
+            "response_timeout_ms = 50",
+            "response_timeout_ms = 3000\nguard_ms = 3000\nqueue_capacity = 1",
+        );
+        let d = TestDaemon::start(&toml).await;
+        let api = Api::new(d.http, None);
+        let bus = d.plant.buses()[0].handle.clone();
+        let status = DriveRequest::ReadStatus.pdu().unwrap();
+        let options = |priority| JobOptions {
+            priority,
+            source: SourceId::new_unique(),
+            queue_timeout: Some(Duration::from_secs(30)),
+            max_attempts: Some(1),
+        };
+
+        // Unit 30 answers nobody: 6 s on the wire, nothing else moves.
+        let blocker = bus
+            .submit(30, status.clone(), options(Priority::Emergency))
+            .unwrap();
+        common::eventually(Duration::from_secs(5), "the blocker on the wire", || {
+            (bus.queue_depths()[0] == 0).then_some(())
+        })
+        .await;
+        let filler = bus
+            .submit(1, status.clone(), options(Priority::Command))
+            .unwrap();
+        let before = bus.stats();
+
+        let scan = tokio::spawn({
+            let api = api.clone();
+            async move {
+                api.post("/api/v1/buses/sim/scan", json!({"from": 1, "to": 4}))
+                    .await
+            }
+        });
+        common::eventually(Duration::from_secs(5), "the scan refused busy", || {
+            (bus.stats().busy_rejections > before.busy_rejections).then_some(())
+        })
+        .await;
+        drop(filler);
+
+        let scan = scan.await.unwrap().expect(200);
+        let answered: Vec<u64> = scan["answered"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|h| h["unit"].as_u64().unwrap())
+            .collect();
+        assert_eq!(answered, [1, 2, 3, 4], "{scan:#}");
+        assert_eq!(scan["not_scanned"], json!([]), "{scan:#}");
+        let after = bus.stats();
+        let dropped = |s: &drivegate::bus::stats::BusStatsSnapshot| {
+            s.transactions
+                .get(&(0x03, Outcome::Dropped))
+                .copied()
+                .unwrap_or(0)
+        };
+        // The withdrawn command and the scan's expired read.
+        assert!(
+            dropped(&after) >= dropped(&before) + 2,
+            "{:?}",
+            after.transactions
+        );
+        drop(blocker);
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}

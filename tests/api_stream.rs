@@ -1,7 +1,8 @@
 //! The WebSocket stream over real sockets against the daemon on the
 //! simulator: subscriptions, statuses as they are polled, online/offline
 //! events, commands with correlated replies, malformed messages, a hundred
-//! clients while one never reads, and closing on shutdown.
+//! clients while one never reads, lease ends told to the client that held
+//! the lease, and closing on shutdown.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
@@ -291,6 +292,84 @@ async fn streams_are_closed_when_the_daemon_stops() {
             .await
             .expect("the daemon stopped")
             .unwrap();
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// The lease-expired events a stream gets for `drive` within `within`.
+async fn lease_ends(ws: &mut Ws, drive: &str, within: Duration) -> usize {
+    let until = tokio::time::Instant::now() + within;
+    let mut n = 0;
+    while let Ok(Some(Ok(m))) = tokio::time::timeout_at(until, ws.next()).await {
+        if let Message::Text(t) = m {
+            let v: serde_json::Value = serde_json::from_str(t.as_str()).unwrap();
+            if v["type"] == "lease-expired" && v["drive"] == drive {
+                n += 1;
+            }
+        }
+    }
+    n
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_client_holding_a_lease_is_told_it_ended() {
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config("stream_buffer = 2\nsend_buffer_bytes = 4096", "")).await;
+        let api = Api::new(d.http, None);
+        api.activate_in("conveyor", "speed").await;
+        let setpoint = json!({"speed_rpm": 100, "lease_ms": 300});
+
+        // Subscribed to nothing: the lease's end is its own business.
+        let mut quiet = connect(d.http, "", None).await;
+        let r = ws_command(&mut quiet, 1, "setpoint", "conveyor", setpoint.clone()).await;
+        assert_eq!(r["ok"], true, "{r:#}");
+        let ended = wait_for(
+            &mut quiet,
+            Duration::from_secs(10),
+            "the lease-expired event",
+            |v| v["type"] == "lease-expired",
+        )
+        .await;
+        assert_eq!(
+            (ended["drive"].as_str(), ended["ok"].as_bool()),
+            (Some("conveyor"), Some(true)),
+            "{ended:#}"
+        );
+
+        // Subscribed to everything and reading, it is told once.
+        let mut reader = connect(d.http, "?drives=all", None).await;
+        let r = ws_command(&mut reader, 2, "setpoint", "conveyor", setpoint.clone()).await;
+        assert_eq!(r["ok"], true, "{r:#}");
+        assert_eq!(
+            lease_ends(&mut reader, "conveyor", Duration::from_secs(3)).await,
+            1
+        );
+
+        // Subscribed to everything and not reading while the lease ends:
+        // updates are skipped for it, the lease's end is not.
+        let mut slow = connect_small_buffer(d.http, "?drives=all").await;
+        let r = ws_command(&mut slow, 3, "setpoint", "conveyor", setpoint).await;
+        assert_eq!(r["ok"], true, "{r:#}");
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        let ended = wait_for(
+            &mut slow,
+            Duration::from_secs(10),
+            "the lease-expired event",
+            |v| v["type"] == "lease-expired",
+        )
+        .await;
+        assert_eq!(ended["drive"], "conveyor");
+        let lagged = wait_for(
+            &mut slow,
+            Duration::from_secs(10),
+            "the lagged notice",
+            |v| v["type"] == "lagged",
+        )
+        .await;
+        assert!(lagged["missed"].as_u64().unwrap() > 0, "{lagged:#}");
+        drop((quiet, reader, slow));
+        d.stop().await;
     })
     .await
     .expect("test finished in time");

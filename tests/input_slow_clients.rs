@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use common::TestDaemon;
 use input_support::{
     ADMIN, Baseline, Bystander, LEAK_CHECK, VIEWER, check_answer, config, parse_answer,
-    writes_on_wire, ws_frame, ws_handshake,
+    writes_on_wire, ws_frame, ws_handshake, ws_handshake_small_buffer,
 };
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -352,6 +352,110 @@ async fn stream_clients_that_stop_answering_pings_are_closed() {
         drop((deaf, pinger));
         baseline
             .assert_back(Duration::from_secs(5), "hung stream clients")
+            .await;
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// The number of open stream sessions, from `/metrics`.
+async fn stream_clients(addr: SocketAddr) -> Option<u64> {
+    let text = reqwest::get(format!("http://{addr}/metrics"))
+        .await
+        .ok()?
+        .text()
+        .await
+        .ok()?;
+    text.lines()
+        .find_map(|l| l.strip_prefix("drivegate_websocket_clients "))
+        .and_then(|v| v.trim().parse().ok())
+}
+
+/// A stream client that sent a leased setpoint and a burst of commands,
+/// then hung: its kernel keeps the connection open and acknowledges, but it
+/// reads nothing. Its replies fill the socket, so the session's writer waits
+/// on the socket and its reader for a free command slot; neither may wait
+/// longer than the idle timeout, so the session ends, the connection slot
+/// comes back and the lease taken over the socket stops the motor.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hung_stream_client_with_commands_in_flight_loses_its_slot() {
+    let _serial = LEAK_CHECK.lock().await;
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config(
+            "idle_timeout_s = 2\nsend_buffer_bytes = 4096",
+            "",
+            false,
+            "",
+        ))
+        .await;
+        let addr = d.http;
+        let http = reqwest::Client::new();
+        for (method, path, body) in [
+            ("POST", "/api/v1/drives/conveyor/commands/activate", None),
+            ("PUT", "/api/v1/drives/conveyor/mode", Some(r#"{"mode":"speed"}"#)),
+        ] {
+            let url = format!("http://{addr}{path}");
+            let request = match body {
+                Some(b) => http
+                    .request(method.parse().unwrap(), url)
+                    .header("content-type", "application/json")
+                    .body(b),
+                None => http.request(method.parse().unwrap(), url),
+            };
+            assert_eq!(request.send().await.unwrap().status(), 200, "{path}");
+        }
+        let baseline = Baseline::take().await;
+
+        let opened = Instant::now();
+        let mut hung = ws_handshake_small_buffer(addr, "?drives=all").await;
+        let setpoint = r#"{"type":"command","id":0,"op":"setpoint","drive":"conveyor","body":{"speed_rpm":150,"lease_ms":60000}}"#;
+        hung.write_all(&ws_frame(0x1, setpoint.as_bytes(), true))
+            .await
+            .unwrap();
+        let sim = d.sim();
+        common::eventually(Duration::from_secs(5), "the setpoint on the drive", || {
+            (sim.drive(1)?.setpoints.speed_rpm == 150).then_some(())
+        })
+        .await;
+        for id in 1..=300 {
+            let status =
+                format!(r#"{{"type":"command","id":{id},"op":"status","drive":"conveyor"}}"#);
+            hung.write_all(&ws_frame(0x1, status.as_bytes(), true))
+                .await
+                .unwrap();
+        }
+        assert_eq!(stream_clients(addr).await, Some(1));
+
+        // Hung from now on. The session ends within the idle timeout of
+        // its last blocked wait, with a wide margin for a loaded machine.
+        let mut gone = false;
+        for _ in 0..150 {
+            if stream_clients(addr).await == Some(0) {
+                gone = true;
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        let after = opened.elapsed();
+        assert!(gone, "a hung stream client still holds its session after {after:?}");
+        assert!(after >= Duration::from_secs(2), "closed after {after:?}");
+        // The lease it held ended with it and stopped the motor.
+        common::eventually(Duration::from_secs(5), "the stop", || {
+            (sim.drive(1)?.setpoints.speed_rpm == 0).then_some(())
+        })
+        .await;
+        // The server closed the connection: what it had sent, then the end.
+        assert!(
+            read_until_closed(&mut hung, Duration::from_secs(10))
+                .await
+                .is_some(),
+            "the server kept the hung client's connection open"
+        );
+        println!("a hung stream client with commands in flight: closed after {after:?}");
+        drop(hung);
+        baseline
+            .assert_back(Duration::from_secs(5), "a hung stream client")
             .await;
         d.stop().await;
     })

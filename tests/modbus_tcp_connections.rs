@@ -394,7 +394,21 @@ async fn codes_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
         assert_eq!(c.ask(1, &[0x41, 0x10, 0x20]).await, [0xC1, 0x01]);
         // An odd address is the drive's 0x02.
         assert_eq!(c.ask(1, &read(0xC1, 1)).await, [0x83, 0x02]);
+        // Diagnostics "return query data" (sub-function 0000) echoes data of
+        // any length, so requests of every even length reach the drive,
+        // which lacks 0x08 and says so.
+        assert_eq!(
+            c.ask(1, &[0x08, 0x00, 0x00, 0xA5, 0x37]).await,
+            [0x88, 0x01]
+        );
+        let query = [0x08, 0x00, 0x00, 0x12, 0x34, 0x56, 0x78, 0x9A, 0xBC];
+        assert_eq!(c.ask(1, &query).await, [0x88, 0x01]);
         let stats = bus.stats();
+        assert_eq!(
+            stats.transactions.get(&(0x08, Outcome::Exception)),
+            Some(&2),
+            "both diagnostics requests on the wire"
+        );
         for function in [0x04, 0x01, 0x41] {
             assert_eq!(
                 stats.transactions.get(&(function, Outcome::Exception)),
@@ -409,7 +423,20 @@ async fn codes_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
         assert_eq!(c.ask(1, &short_block).await, [0x90, 0x03]);
         assert_eq!(c.ask(1, &[0x06, 0x00, 0x06]).await, [0x86, 0x03]);
         assert_eq!(c.ask(1, &read(0xC0, 126)).await, [0x83, 0x03]);
+        // Diagnostics data comes in whole words; other sub-functions take one.
+        assert_eq!(
+            c.ask(1, &[0x08, 0x00, 0x00, 0x12, 0x34, 0x56]).await,
+            [0x88, 0x03]
+        );
+        assert_eq!(
+            c.ask(1, &[0x08, 0x00, 0x0A, 0x00, 0x00, 0x00, 0x00]).await,
+            [0x88, 0x03]
+        );
         let stats = bus.stats();
+        assert_eq!(
+            stats.transactions.get(&(0x08, Outcome::Exception)),
+            Some(&2)
+        );
         assert!(
             !stats
                 .transactions

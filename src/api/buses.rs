@@ -247,6 +247,15 @@ pub struct ScanHit {
     pub exception_code: Option<u8>,
 }
 
+/// A unit the scan could not read: the bus stayed busy, or went down.
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct NotScanned {
+    /// Its address.
+    pub unit: u8,
+    /// Why it was not read (nothing was sent to it).
+    pub reason: String,
+}
+
 /// What a scan found.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
 pub struct ScanReply {
@@ -264,6 +273,39 @@ pub struct ScanReply {
     pub missing: Vec<String>,
     /// Units that stayed silent.
     pub silent: usize,
+    /// Units not read: the queue stayed full (or the read waited its whole
+    /// queue time) on every try, or the bus went down; scan them again.
+    pub not_scanned: Vec<NotScanned>,
+}
+
+/// Tries a scan gives a unit the bus is too busy for.
+const SCAN_TRIES: u32 = 3;
+/// Wait before trying a unit again after a full queue (times the try).
+const SCAN_BUSY_WAIT: Duration = Duration::from_millis(250);
+
+/// Reads `unit`'s status for a scan. The scan shares the bus with the
+/// commands and polls of everybody else, so a read refused because the
+/// queue is full is tried again after a short wait, and one that waited its
+/// whole queue time at once (it has waited already); neither was sent.
+async fn scan_read(
+    handle: &BusHandle,
+    unit: u8,
+    options: JobOptions,
+) -> Result<DriveReply, BusError> {
+    let mut tries = 1;
+    loop {
+        match handle
+            .execute(unit, &DriveRequest::ReadStatus, options)
+            .await
+        {
+            Err(BusError::Busy { .. }) if tries < SCAN_TRIES => {
+                tokio::time::sleep(SCAN_BUSY_WAIT * tries).await;
+            }
+            Err(BusError::Expired { .. }) if tries < SCAN_TRIES => {}
+            other => return other,
+        }
+        tries += 1;
+    }
 }
 
 fn unit_in(quantity: &'static str, v: i64) -> Result<u8, Problem> {
@@ -273,7 +315,9 @@ fn unit_in(quantity: &'static str, v: i64) -> Result<u8, Problem> {
 
 /// Reads the status of every unit in a range, one attempt each with a short
 /// queue wait, and reports which answered (admin). Polling goes on
-/// meanwhile; each silent unit costs one response timeout of bus time.
+/// meanwhile; each silent unit costs one response timeout of bus time. A
+/// unit the bus is too busy for is tried again, then reported in
+/// `not_scanned`; the rest of the range is scanned all the same.
 #[utoipa::path(
     post,
     path = "/api/v1/buses/{bus}/scan",
@@ -328,19 +372,18 @@ pub async fn scan(
         garbled: Vec::new(),
         missing: Vec::new(),
         silent: 0,
+        not_scanned: Vec::new(),
     };
     tracing::info!(who = %caller.who, bus = %handle.name(), from, to, "bus scan");
-    for unit in from..=to {
+    let mut units = from..=to;
+    while let Some(unit) = units.next() {
         let configured_as = bus
             .config
             .drives
             .iter()
             .find(|d| d.unit() == unit)
             .map(|d| d.name().to_string());
-        match handle
-            .execute(unit, &DriveRequest::ReadStatus, options)
-            .await
-        {
+        match scan_read(handle, unit, options).await {
             Ok(DriveReply::Status(s)) => reply.answered.push(ScanHit {
                 unit,
                 configured_as,
@@ -362,6 +405,30 @@ pub async fn scan(
             }
             Err(BusError::BadReply { .. } | BusError::Unconfirmed { .. }) => {
                 reply.garbled.push(unit);
+            }
+            Err(e @ (BusError::Busy { .. } | BusError::Expired { .. })) => {
+                reply.not_scanned.push(NotScanned {
+                    unit,
+                    reason: format!("tried {SCAN_TRIES} times: {e}"),
+                });
+            }
+            Err(e @ (BusError::BusDown { .. } | BusError::ShuttingDown)) => {
+                // Nothing found yet: the bus's state is the answer.
+                let found_nothing = reply.answered.is_empty()
+                    && reply.garbled.is_empty()
+                    && reply.silent == 0
+                    && reply.not_scanned.is_empty();
+                if found_nothing {
+                    return Err(Problem::bus(&e, BusContext::default()));
+                }
+                // The rest would fail alike: keep what was found.
+                let reason = e.to_string();
+                for unit in std::iter::once(unit).chain(units.by_ref()) {
+                    reply.not_scanned.push(NotScanned {
+                        unit,
+                        reason: reason.clone(),
+                    });
+                }
             }
             Err(e) => return Err(Problem::bus(&e, BusContext::default())),
         }

@@ -91,7 +91,13 @@ pub async fn run(
         ConfigCommand::EmergencyBrake | ConfigCommand::Deactivate
     ) {
         // A zero-speed stop at expiry would release the brake.
-        state.leases.release(target.index);
+        let what = match command {
+            ConfigCommand::EmergencyBrake => "the brake",
+            _ => "the deactivation",
+        };
+        state
+            .leases
+            .end_by(target.index, &format!("{what} from {}", caller.who));
     }
     Ok(CommandReply {
         drive: target.drive.name.clone(),

@@ -75,7 +75,7 @@ pub enum ServerMessage {
         reason: String,
     },
     /// A motor-safety lease ended without renewal (or its WebSocket closed)
-    /// and the stop action was applied.
+    /// and the stop action was tried.
     LeaseExpired {
         /// Drive name.
         drive: String,
@@ -94,6 +94,32 @@ pub enum ServerMessage {
         /// True when the action was carried out (or nothing was needed).
         ok: bool,
         /// The drive's answer, or why the action failed.
+        result: String,
+        /// True when the action failed and drivegate keeps trying it until
+        /// the drive confirms it; a `lease-stop` message tells the end.
+        retrying: bool,
+    },
+    /// How the stop of a lease that failed at first ended: carried out at
+    /// last, or not tried again because something newer took over the
+    /// drive (a confirmed setpoint, brake or deactivation).
+    LeaseStop {
+        /// Drive name.
+        drive: String,
+        /// Its bus.
+        bus: String,
+        /// Its unit address.
+        unit: u8,
+        /// Who held the lease.
+        owner: String,
+        /// `[safety] on_lease_expiry`: `zero-speed` or `brake`.
+        action: String,
+        /// What was sent to the drive at last, if anything.
+        sent: Option<String>,
+        /// True when the drive confirmed the stop (or nothing was needed).
+        stopped: bool,
+        /// Tries made.
+        attempts: u32,
+        /// The drive's answer, or what took over.
         result: String,
     },
     /// This client fell behind: `missed` updates were skipped for it.
@@ -143,6 +169,9 @@ impl ServerMessage {
 pub struct HubEvent {
     /// Index of the drive in the plant, `None` for bus-wide news.
     pub drive: Option<usize>,
+    /// The stream session that got this message directly (the one that
+    /// held the lease it is about): it skips this copy.
+    pub delivered_to: Option<u64>,
     /// The JSON text.
     pub text: Utf8Bytes,
 }
@@ -179,10 +208,17 @@ impl Hub {
 
     /// Publishes `message` about drive `drive` (or everyone's business).
     pub fn publish(&self, drive: Option<usize>, message: &ServerMessage) {
+        self.publish_text(drive, None, message.to_text());
+    }
+
+    /// Publishes `text` about drive `drive`, which the stream session
+    /// `delivered_to` (if any) got directly already.
+    pub fn publish_text(&self, drive: Option<usize>, delivered_to: Option<u64>, text: Utf8Bytes) {
         // No session listening is not an error.
         let _ = self.tx.send(HubEvent {
             drive,
-            text: message.to_text(),
+            delivered_to,
+            text,
         });
     }
 

@@ -169,7 +169,10 @@ pub enum LeaseProblems {
     /// `unknown-drive`.
     #[response(status = 404, content_type = "application/problem+json")]
     NotFound(ProblemDetails),
-    /// `no-lease`: it expired (the motor was stopped) or was never granted.
+    /// `no-lease`: none is in place; the detail says what became of the
+    /// last one (expired or its WebSocket closed, and whether its stop was
+    /// confirmed or is still being tried; released; ended by the brake or
+    /// deactivation), or that none was granted.
     #[response(status = 409, content_type = "application/problem+json")]
     NoLease(ProblemDetails),
     /// `request-timeout`: the body did not arrive within `[http]

@@ -76,7 +76,7 @@ pub enum Kind {
     DriveMoving,
     /// 409: the drive runs a procedure (calibration).
     DriveBusy,
-    /// 409: no lease to renew.
+    /// 409: no lease to renew or release.
     NoLease,
     /// 409: a dangerous request lacks its confirmation.
     ConfirmationRequired,
@@ -222,7 +222,7 @@ impl Kind {
             Kind::DriveNotActive => "The drive is not active",
             Kind::DriveMoving => "The motor is moving",
             Kind::DriveBusy => "The drive is busy with a procedure",
-            Kind::NoLease => "There is no lease to renew",
+            Kind::NoLease => "There is no lease",
             Kind::ConfirmationRequired => "A confirmation is required",
             Kind::BusBusy => "The bus is busy",
             Kind::DriveOffline => "The drive is offline",

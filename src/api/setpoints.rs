@@ -173,12 +173,17 @@ pub async fn apply(
     });
     let result = control::send(caller, target, &request).await;
     let lease = match (grant, &result) {
-        (None, _) => state.leases.get(target.index),
+        (None, Ok(_)) => {
+            let what = format!("a setpoint without a lease from {}", caller.who);
+            state.leases.took_over(target.index, &what);
+            state.leases.get(target.index)
+        }
+        (None, Err(_)) => state.leases.get(target.index),
         (Some(g), Err(problem)) if !g.replaced && surely_not_applied(problem) => {
             state.leases.withdraw(target.index, g.id);
             None
         }
-        (Some(g), _) => state.leases.confirm(target.index, g.id),
+        (Some(g), _) => state.leases.confirm(target.index, g.id, result.is_ok()),
     };
     result?;
     Ok(SetpointReply {
@@ -260,13 +265,10 @@ pub async fn renew(
         Some(ms) => lease_length(state, Some(ms))?,
         None => None,
     };
-    state.leases.renew(target.index, length).ok_or_else(|| {
+    state.leases.renew(target.index, length).map_err(|what| {
         Problem::new(
             Kind::NoLease,
-            format!(
-                "drive \"{}\" has no lease: it expired (and the motor was stopped) or was never granted; send the setpoint again with lease_ms",
-                target.drive.name
-            ),
+            format!("{what}; to take a lease, send the setpoint again with lease_ms"),
         )
         .for_drive(&target.drive.name)
     })
@@ -300,13 +302,16 @@ pub async fn post_renew(
 pub async fn release(state: &ApiState, caller: &Caller, key: &str) -> Result<LeaseInfo, Problem> {
     caller.require(Role::Operator)?;
     let target = state.target(key)?;
-    let info = state.leases.release(target.index).ok_or_else(|| {
-        Problem::new(
-            Kind::NoLease,
-            format!("drive \"{}\" has no lease to release", target.drive.name),
-        )
-        .for_drive(&target.drive.name)
-    })?;
+    let info = state
+        .leases
+        .release(target.index, &caller.who)
+        .map_err(|what| {
+            Problem::new(
+                Kind::NoLease,
+                format!("{what}; there is nothing to release"),
+            )
+            .for_drive(&target.drive.name)
+        })?;
     tracing::info!(
         target: "drivegate::audit",
         who = %caller.who,

@@ -11,7 +11,12 @@
 //! and the client is told `{"type":"lagged","missed":N}` before the next
 //! update it gets: a slow client never slows the bus or the other clients.
 //!
-//! Leases granted over the socket end when it closes.
+//! The end of a lease taken over the socket is sent to it directly, beside
+//! the forwarder: it is never skipped for a slow client, and needs no
+//! subscription. Leases granted over the socket end when it closes. The
+//! commands still
+//! in flight then are cancelled first (see [`InFlight`]), so the stop a
+//! lease's end sends never overtakes the setpoint it covers.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -25,6 +30,8 @@ use serde::Deserialize;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 use tokio::sync::{Semaphore, broadcast, mpsc};
+use tokio::task::JoinSet;
+use tokio_util::task::TaskTracker;
 use utoipa::{IntoParams, ToSchema};
 
 use super::auth::{Caller, StreamCaller};
@@ -38,6 +45,7 @@ use super::problem::{Kind, Problem};
 use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
 use super::state::ApiState;
+use crate::drive::ConfigCommand;
 
 /// Replies (and other answers to the client's own messages) that may wait.
 const REPLY_BUFFER: usize = 64;
@@ -190,7 +198,9 @@ impl Selection {
 async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Vec<usize>) {
     let _counted = state.metrics.faces().ws_client();
     let connection = state.next_connection_id();
-    state.leases.connection_opened(connection);
+    // Unbounded, but only a lease of this client's own ending adds to it.
+    let (notices_tx, notices_rx) = mpsc::unbounded_channel();
+    state.leases.connection_opened(connection, notices_tx);
     tracing::debug!(who = %caller.who, connection, "stream client connected");
 
     let selection = Arc::new(Selection::new(state.plant.drives().len()));
@@ -200,6 +210,7 @@ async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Ve
     let (replies_tx, replies_rx) = mpsc::channel(REPLY_BUFFER);
     let forwarder = tokio::spawn(forward(
         state.hub.subscribe(),
+        connection,
         selection.clone(),
         missed.clone(),
         events_tx,
@@ -209,21 +220,78 @@ async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Ve
     }
 
     let (sink, stream) = socket.split();
-    let writer = write_loop(&state, sink, replies_rx, events_rx, &missed);
-    let reader = read_loop(&state, &caller, connection, stream, &selection, replies_tx);
+    let mut in_flight = InFlight::default();
+    let writer = write_loop(&state, sink, replies_rx, notices_rx, events_rx, &missed);
+    let reader = read_loop(
+        &state,
+        &caller,
+        connection,
+        stream,
+        &selection,
+        replies_tx,
+        &mut in_flight,
+    );
     tokio::select! {
         () = writer => {}
         () = reader => {}
     }
     forwarder.abort();
+    // Only once no command of this session can reach the bus any more.
+    in_flight.end().await;
     state.leases.connection_closed(connection);
     tracing::debug!(who = %caller.who, connection, "stream client gone");
 }
 
+/// The session's commands in flight, each a task beside the reader.
+///
+/// When the socket closes they are cancelled before the session's leases
+/// end: a command whose job still waits in the bus queue is then dropped
+/// unsent (its caller has gone, as for an HTTP client that disconnects),
+/// and one already on the wire completes before the stop, which is queued
+/// only afterwards. Otherwise a setpoint queued at command priority would
+/// reach the drive after the stop its lease's end sent at emergency
+/// priority, and leave the motor running with no lease. Emergency brakes
+/// are let finish instead: dropping one would leave the motor running, and
+/// a brake confirmed first ends the lease, whose zero-speed stop would
+/// release it.
+#[derive(Default)]
+struct InFlight {
+    cancellable: JoinSet<()>,
+    brakes: JoinSet<()>,
+}
+
+impl InFlight {
+    /// Runs `task` (an emergency brake if `brake`), tracked by `tracker` so
+    /// a graceful stop waits for it.
+    fn spawn<F>(&mut self, tracker: &TaskTracker, brake: bool, task: F)
+    where
+        F: Future<Output = ()> + Send + 'static,
+    {
+        // Finished ones have nothing to report: forget them.
+        while self.cancellable.try_join_next().is_some() {}
+        while self.brakes.try_join_next().is_some() {}
+        let task = tracker.track_future(task);
+        if brake {
+            self.brakes.spawn(task);
+        } else {
+            self.cancellable.spawn(task);
+        }
+    }
+
+    /// Cancels the commands, lets the brakes finish, and returns when none
+    /// is left.
+    async fn end(mut self) {
+        self.cancellable.shutdown().await;
+        while self.brakes.join_next().await.is_some() {}
+    }
+}
+
 /// Takes the hub's messages for the selected drives into the session's
-/// bounded buffer; never waits, counts what does not fit.
+/// bounded buffer; never waits, counts what does not fit. Messages the
+/// session got directly (its own leases' ends) are skipped.
 async fn forward(
     mut hub: broadcast::Receiver<HubEvent>,
+    connection: u64,
     selection: Arc<Selection>,
     missed: Arc<AtomicU64>,
     events: mpsc::Sender<Utf8Bytes>,
@@ -231,7 +299,7 @@ async fn forward(
     loop {
         match hub.recv().await {
             Ok(event) => {
-                if !selection.wants(event.drive) {
+                if event.delivered_to == Some(connection) || !selection.wants(event.drive) {
                     continue;
                 }
                 match events.try_send(event.text) {
@@ -253,15 +321,17 @@ async fn forward(
 type Sink = futures_util::stream::SplitSink<WebSocket, Message>;
 type Source = futures_util::stream::SplitStream<WebSocket>;
 
-/// Sends replies first, then updates (each preceded by a `lagged` notice
-/// when some were skipped), and a ping every quarter of the idle timeout,
-/// busy or not: a healthy client's pongs keep even a quiet stream open,
-/// and their absence tells the reader a client has hung (see
-/// [`read_loop`]); closes the socket when the daemon stops.
+/// Sends replies first, then news of the client's own leases, then
+/// updates (each preceded by a `lagged` notice when some were skipped), and
+/// a ping every quarter of the idle timeout, busy or not: a healthy
+/// client's pongs keep even a quiet stream open, and their absence tells
+/// the reader a client has hung (see [`read_loop`]); closes the socket when
+/// the daemon stops.
 async fn write_loop(
     state: &ApiState,
     mut sink: Sink,
     mut replies: mpsc::Receiver<Utf8Bytes>,
+    mut notices: mpsc::UnboundedReceiver<Utf8Bytes>,
     mut events: mpsc::Receiver<Utf8Bytes>,
     missed: &AtomicU64,
 ) {
@@ -273,6 +343,7 @@ async fn write_loop(
             biased;
             () = state.shutdown.cancelled() => None,
             Some(reply) = replies.recv() => Some(Message::Text(reply)),
+            Some(notice) = notices.recv() => Some(Message::Text(notice)),
             // Before updates: a stream always busy must still be pinged.
             _ = ping.tick() => Some(Message::Ping(Default::default())),
             Some(event) = events.recv() => {
@@ -302,10 +373,21 @@ async fn write_loop(
     }
 }
 
-/// Sends one message; false when the socket is gone or the daemon stops.
+/// Sends one message; false when the socket is gone, the daemon stops, or
+/// the client has not taken the message within the idle timeout: a hung
+/// client whose kernel keeps the connection open (and acknowledges, with a
+/// zero window) would otherwise hold the writer, and the session with its
+/// connection slot and leases, for ever.
 async fn send(state: &ApiState, sink: &mut Sink, message: Message) -> bool {
+    let limit = state.config.idle_timeout;
     tokio::select! {
-        sent = sink.send(message) => sent.is_ok(),
+        sent = tokio::time::timeout(limit, sink.send(message)) => match sent {
+            Ok(sent) => sent.is_ok(),
+            Err(_) => {
+                tracing::debug!("stream client took no message for {limit:?}: closing");
+                false
+            }
+        },
         () = state.shutdown.cancelled() => false,
     }
 }
@@ -324,7 +406,9 @@ fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
 /// nothing at all, not even the pong to a ping, for the idle timeout: a
 /// hung client that still holds its socket open (its kernel keeps the TCP
 /// connection alive and takes the pings) would otherwise hold a connection
-/// slot for ever.
+/// slot for ever. Time spent waiting for a free command slot or for room
+/// for an answer counts as silence too: both wait on a client that does
+/// not read its replies.
 async fn read_loop(
     state: &ApiState,
     caller: &Caller,
@@ -332,14 +416,20 @@ async fn read_loop(
     mut stream: Source,
     selection: &Selection,
     replies: mpsc::Sender<Utf8Bytes>,
+    commands: &mut InFlight,
 ) {
     let in_flight = Arc::new(Semaphore::new(COMMANDS_IN_FLIGHT));
     let silence = state.config.idle_timeout;
+    let mut deadline = tokio::time::Instant::now() + silence;
+    let gone = |what: &str| {
+        tracing::debug!(who = %caller.who, connection, "stream client {what} for {silence:?}: closing");
+    };
     loop {
-        let Ok(next) = tokio::time::timeout(silence, stream.next()).await else {
-            tracing::debug!(who = %caller.who, connection, "stream client sent nothing, not even a pong, for {silence:?}: closing");
+        let Ok(next) = tokio::time::timeout_at(deadline, stream.next()).await else {
+            gone("sent nothing, not even a pong,");
             return;
         };
+        deadline = tokio::time::Instant::now() + silence;
         let Some(message) = next else {
             return;
         };
@@ -347,14 +437,15 @@ async fn read_loop(
             Ok(Message::Text(text)) => text,
             Ok(Message::Binary(_)) => {
                 let problem = Problem::invalid("send JSON text messages, not binary ones");
-                if replies
-                    .send(ServerMessage::Error { problem }.to_text())
-                    .await
-                    .is_err()
-                {
-                    return;
+                let answer = ServerMessage::Error { problem }.to_text();
+                match tokio::time::timeout_at(deadline, replies.send(answer)).await {
+                    Ok(Ok(())) => continue,
+                    Ok(Err(_)) => return,
+                    Err(_) => {
+                        gone("read no answer");
+                        return;
+                    }
                 }
-                continue;
             }
             Ok(Message::Ping(_) | Message::Pong(_)) => continue,
             Ok(Message::Close(_)) | Err(_) => return,
@@ -380,13 +471,23 @@ async fn read_loop(
                 bus,
                 body,
             }) => {
-                let Ok(permit) = in_flight.clone().acquire_owned().await else {
-                    return;
-                };
+                let permit =
+                    match tokio::time::timeout_at(deadline, in_flight.clone().acquire_owned())
+                        .await
+                    {
+                        Ok(Ok(permit)) => permit,
+                        Ok(Err(_)) => return,
+                        Err(_) => {
+                            gone("left every command slot taken (it reads no replies)");
+                            return;
+                        }
+                    };
+                let brake = parse_command(&op).is_ok_and(|c| c == ConfigCommand::EmergencyBrake);
+                let tracker = state.sessions.clone();
                 let (state, caller, replies) = (state.clone(), caller.clone(), replies.clone());
                 // Commands run beside the reader, so a slow one (a scan, a
                 // timeout) does not hold up lease renewals sent after it.
-                state.sessions.clone().spawn(async move {
+                commands.spawn(&tracker, brake, async move {
                     let result = dispatch(&state, &caller, connection, &op, drive, bus, body).await;
                     let reply = match result {
                         Ok(result) => ServerMessage::Reply {
@@ -408,8 +509,13 @@ async fn read_loop(
                 continue;
             }
         };
-        if replies.send(answer).await.is_err() {
-            return;
+        match tokio::time::timeout_at(deadline, replies.send(answer)).await {
+            Ok(Ok(())) => {}
+            Ok(Err(_)) => return,
+            Err(_) => {
+                gone("read no answer");
+                return;
+            }
         }
     }
 }

@@ -53,8 +53,10 @@ pub fn check(unit: u8, request: &[u8], frame: &[u8]) -> Result<Vec<u8>, Mismatch
         _ => return Err(Mismatch::OtherFunction),
     }
     let answers = match function {
-        // Echo of the request.
+        // Echo of the request (diagnostics: "return query data" only;
+        // the counters answer with their value).
         0x05 | 0x06 => reply == request,
+        0x08 if be_u16(request, 1) == Some(0) => reply == request,
         // Address and quantity of the request.
         0x0F | 0x10 => reply.len() == 5 && request.len() >= 5 && reply[1..5] == request[1..5],
         // Byte count of the quantity asked for.
@@ -129,6 +131,16 @@ mod tests {
         let other_ack = [0x10, 0x00, 0x24, 0x00, 0x02];
         assert_eq!(
             check(1, &block, &rtu_frame::encode(1, &other_ack)),
+            Err(Mismatch::OtherRequest)
+        );
+        // Return query data: the echo must repeat every data word.
+        let query = [0x08, 0x00, 0x00, 0x12, 0x34, 0x56, 0x78];
+        assert_eq!(
+            check(1, &query, &rtu_frame::encode(1, &query)),
+            Ok(query.to_vec())
+        );
+        assert_eq!(
+            check(1, &query, &rtu_frame::encode(1, &query[..5])),
             Err(Mismatch::OtherRequest)
         );
         // An empty request never matches anything.

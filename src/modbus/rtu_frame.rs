@@ -74,8 +74,9 @@ pub fn response_length(buf: &[u8]) -> FrameLength {
     match function {
         // unit, fc, byte count, data, CRC
         0x01 | 0x02 | 0x03 | 0x04 | 0x0C | 0x11 | 0x17 => byte_counted(buf, 2, 3),
-        // unit, fc, address/sub-function, value/quantity, CRC
-        0x05 | 0x06 | 0x08 | 0x0B | 0x0F | 0x10 => FrameLength::Known(8),
+        0x08 => diagnostics(buf),
+        // unit, fc, address, value/quantity, CRC
+        0x05 | 0x06 | 0x0B | 0x0F | 0x10 => FrameLength::Known(8),
         // unit, fc, status byte, CRC
         0x07 => FrameLength::Known(5),
         // unit, fc, address, and-mask, or-mask, CRC
@@ -90,7 +91,8 @@ pub fn request_length(buf: &[u8]) -> FrameLength {
         return FrameLength::NeedMore;
     };
     match function {
-        0x01..=0x06 | 0x08 => FrameLength::Known(8),
+        0x01..=0x06 => FrameLength::Known(8),
+        0x08 => diagnostics(buf),
         0x07 | 0x0B | 0x0C | 0x11 => FrameLength::Known(4),
         // unit, fc, address, quantity, byte count, data, CRC
         0x0F | 0x10 => byte_counted(buf, 6, 7),
@@ -98,6 +100,18 @@ pub fn request_length(buf: &[u8]) -> FrameLength {
         // unit, fc, read addr, read qty, write addr, write qty, byte count, data, CRC
         0x17 => byte_counted(buf, 10, 11),
         _ => FrameLength::BySilence,
+    }
+}
+
+/// A diagnostics frame (0x08), request or reply alike: unit, fc,
+/// sub-function, data, CRC. Sub-function 0000 ("return query data") echoes
+/// any number of data words, so only the silence ends it; every other
+/// sub-function carries one word.
+fn diagnostics(buf: &[u8]) -> FrameLength {
+    match (buf.get(2), buf.get(3)) {
+        (Some(0), Some(0)) => FrameLength::BySilence,
+        (Some(_), Some(_)) => FrameLength::Known(8),
+        _ => FrameLength::NeedMore,
     }
 }
 
@@ -150,6 +164,17 @@ mod tests {
         assert_eq!(response_length(&[1, 0x10]), FrameLength::Known(8));
         assert_eq!(response_length(&[1, 0x83]), FrameLength::Known(5));
         assert_eq!(response_length(&[1, 0x41]), FrameLength::BySilence);
+        // diagnostics: return query data echoes any length; the others one word
+        assert_eq!(response_length(&[1, 0x08, 0x00]), FrameLength::NeedMore);
+        assert_eq!(
+            response_length(&[1, 0x08, 0x00, 0x00]),
+            FrameLength::BySilence
+        );
+        assert_eq!(
+            response_length(&[1, 0x08, 0x00, 0x0B]),
+            FrameLength::Known(8)
+        );
+        assert_eq!(response_length(&[1, 0x88]), FrameLength::Known(5));
     }
 
     #[test]
@@ -165,5 +190,14 @@ mod tests {
             FrameLength::NeedMore
         );
         assert_eq!(request_length(&[1, 0x2B]), FrameLength::BySilence);
+        assert_eq!(request_length(&[1, 0x08, 0x00]), FrameLength::NeedMore);
+        assert_eq!(
+            request_length(&[1, 0x08, 0x00, 0x00]),
+            FrameLength::BySilence
+        );
+        assert_eq!(
+            request_length(&[1, 0x08, 0x00, 0x01]),
+            FrameLength::Known(8)
+        );
     }
 }

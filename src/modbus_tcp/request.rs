@@ -33,8 +33,19 @@ pub fn check_shape(pdu: &[u8]) -> Result<(), ExceptionCode> {
         0x03 | 0x04 if pdu.len() != 5 || !(1..=125).contains(&word(3)) => bad,
         // write single coil: address, 0x0000 or 0xFF00
         0x05 if pdu.len() != 5 || !matches!(word(3), 0x0000 | 0xFF00) => bad,
-        // write single register, diagnostics (sub-function and one word)
-        0x06 | 0x08 if pdu.len() != 5 => bad,
+        // write single register: address, value
+        0x06 if pdu.len() != 5 => bad,
+        // diagnostics: sub-function, then data in whole words; "return
+        // query data" (0000) echoes any number of them, every other
+        // sub-function takes one (section 6.8)
+        0x08 => {
+            let ok = match word(1) {
+                _ if pdu.len() < 5 => false,
+                0x0000 => pdu.len() % 2 == 1,
+                _ => pdu.len() == 5,
+            };
+            if ok { Ok(()) } else { bad }
+        }
         // read exception status, comm event counter and log, report server id
         0x07 | 0x0B | 0x0C | 0x11 if pdu.len() != 1 => bad,
         // write multiple coils: quantity 1..=1968, byte count ceil(q / 8)
@@ -146,6 +157,14 @@ mod tests {
             check_shape(&[0x17, 0, 3, 0, 6, 0, 0x0E, 0, 1, 2, 0, 0xFF]),
             Ok(())
         );
+        // diagnostics: return query data with one word, and with three;
+        // clear counters (000A) with its one word
+        assert_eq!(check_shape(&[0x08, 0x00, 0x00, 0xA5, 0x37]), Ok(()));
+        assert_eq!(
+            check_shape(&[0x08, 0x00, 0x00, 0x12, 0x34, 0x56, 0x78, 0x9A, 0xBC]),
+            Ok(())
+        );
+        assert_eq!(check_shape(&[0x08, 0x00, 0x0A, 0x00, 0x00]), Ok(()));
         // codes the specification leaves open pass unchecked
         assert_eq!(check_shape(&[0x41, 1, 2, 3]), Ok(()));
         assert_eq!(check_shape(&[0x2B, 0x0E, 0x01, 0x00]), Ok(()));
@@ -179,6 +198,12 @@ mod tests {
         assert_eq!(check_shape(&[0x11, 0x00]), VALUE);
         assert_eq!(check_shape(&[0x16, 0, 4, 0, 0xF2]), VALUE);
         assert_eq!(check_shape(&[0x06, 0x00, 0x06]), VALUE);
+        // diagnostics: half a word of query data, none at all, a second
+        // word for a sub-function that takes one, no sub-function
+        assert_eq!(check_shape(&[0x08, 0x00, 0x00, 0x12, 0x34, 0x56]), VALUE);
+        assert_eq!(check_shape(&[0x08, 0x00, 0x00]), VALUE);
+        assert_eq!(check_shape(&[0x08, 0x00, 0x0A, 0, 0, 0, 0]), VALUE);
+        assert_eq!(check_shape(&[0x08, 0x00]), VALUE);
     }
 
     #[test]

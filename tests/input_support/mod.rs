@@ -584,8 +584,19 @@ pub fn request(
 /// Opens the stream on a raw socket: the WebSocket handshake by hand, so a
 /// test can then send frames no client library would.
 pub async fn ws_handshake(addr: SocketAddr, query: &str) -> tokio::net::TcpStream {
+    ws_upgrade(tokio::net::TcpStream::connect(addr).await.unwrap(), query).await
+}
+
+/// As [`ws_handshake`], from a socket with a 4 KiB receive buffer: a
+/// server writing to a client that does not read fills it at once.
+pub async fn ws_handshake_small_buffer(addr: SocketAddr, query: &str) -> tokio::net::TcpStream {
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.set_recv_buffer_size(4096).unwrap();
+    ws_upgrade(socket.connect(addr).await.unwrap(), query).await
+}
+
+async fn ws_upgrade(mut stream: tokio::net::TcpStream, query: &str) -> tokio::net::TcpStream {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
     let request = format!(
         "GET /api/v1/stream{query} HTTP/1.1\r\nHost: drivegate\r\nUpgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
     );
