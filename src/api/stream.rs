@@ -14,9 +14,8 @@
 //! The end of a lease taken over the socket is sent to it directly, beside
 //! the forwarder: it is never skipped for a slow client, and needs no
 //! subscription. Leases granted over the socket end when it closes. The
-//! commands still
-//! in flight then are cancelled first (see [`InFlight`]), so the stop a
-//! lease's end sends never overtakes the setpoint it covers.
+//! commands still in flight then are cancelled first (see [`InFlight`]), so
+//! the stop a lease's end sends never overtakes the setpoint it covers.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
