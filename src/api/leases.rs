@@ -98,6 +98,19 @@ struct Ended {
     how: How,
 }
 
+impl Ended {
+    /// `lease` ended now, `how`.
+    fn now(lease: Lease, how: How) -> Self {
+        Ended {
+            id: lease.id,
+            owner: lease.owner,
+            connection: lease.connection,
+            at: Instant::now(),
+            how,
+        }
+    }
+}
+
 enum How {
     /// Ended without a stop (`DELETE .../lease`) by this caller.
     Released(Arc<str>),
@@ -379,16 +392,8 @@ impl LeaseBook {
         // A stop still to be done for an older lease goes on: what it
         // stops was never confirmed to have changed.
         if !book.stop_pending(index) {
-            book.ended.insert(
-                index,
-                Ended {
-                    id: lease.id,
-                    owner: lease.owner,
-                    connection: lease.connection,
-                    at: Instant::now(),
-                    how: How::Released(by.clone()),
-                },
-            );
+            book.ended
+                .insert(index, Ended::now(lease, How::Released(by.clone())));
         }
         Ok(info)
     }
@@ -401,16 +406,8 @@ impl LeaseBook {
         let mut book = self.lock();
         book.supersede(index, what);
         if let Some(lease) = book.leases.remove(&index) {
-            book.ended.insert(
-                index,
-                Ended {
-                    id: lease.id,
-                    owner: lease.owner,
-                    connection: lease.connection,
-                    at: Instant::now(),
-                    how: How::EndedBy(what.to_string()),
-                },
-            );
+            book.ended
+                .insert(index, Ended::now(lease, How::EndedBy(what.to_string())));
         }
     }
 
@@ -524,29 +521,19 @@ impl LeaseBook {
         why: &'static str,
     ) -> Option<u64> {
         let shutting_down = self.shutdown.is_cancelled();
-        book.ended.insert(
-            index,
-            Ended {
-                id: lease.id,
-                owner: lease.owner,
-                connection: lease.connection,
-                at: Instant::now(),
-                how: How::Stopping {
-                    why,
-                    mode: lease.mode,
-                    stop: if shutting_down {
-                        Stop::Abandoned
-                    } else {
-                        Stop::Pending {
-                            failures: 0,
-                            last_error: None,
-                            again: false,
-                        }
-                    },
-                },
-            },
-        );
-        (!shutting_down).then_some(lease.id)
+        let (id, mode) = (lease.id, lease.mode);
+        let stop = if shutting_down {
+            Stop::Abandoned
+        } else {
+            Stop::Pending {
+                failures: 0,
+                last_error: None,
+                again: false,
+            }
+        };
+        book.ended
+            .insert(index, Ended::now(lease, How::Stopping { why, mode, stop }));
+        (!shutting_down).then_some(id)
     }
 
     /// Starts the stop of lease `id` (`announced`: its end was published).
