@@ -5,6 +5,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
+mod pty_support;
 
 use std::os::fd::OwnedFd;
 use std::path::{Path, PathBuf};
@@ -18,9 +19,10 @@ use drivegate::bus::{BusError, BusHandle, Priority};
 use drivegate::drive::DriveRequest;
 use drivegate::modbus::rtu_frame::{self, FrameLength};
 use drivegate::safety::{self, StopAction};
+use pty_support::pty;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
-use tokio_serial::{SerialPort, SerialStream};
+use tokio_serial::SerialStream;
 use tokio_util::sync::CancellationToken;
 
 const LIMIT: Duration = Duration::from_secs(10);
@@ -42,23 +44,6 @@ struct Peer {
     /// Every request frame the peer received, in order.
     requests: mpsc::UnboundedReceiver<Vec<u8>>,
     _keep: OwnedFd,
-}
-
-/// A new pty: its far end, the path of the end the bus opens, and a
-/// handle that keeps that end open.
-fn pty() -> (SerialStream, String, OwnedFd) {
-    let (ptm, slave) = SerialStream::pair().unwrap();
-    let path = slave.name().unwrap();
-    // Keep the slave open without a lock, so the bus can open the path
-    // exclusively and the far end never reads EIO between two opens.
-    let keep = nix::fcntl::open(
-        path.as_str(),
-        nix::fcntl::OFlag::O_RDWR | nix::fcntl::OFlag::O_NOCTTY | nix::fcntl::OFlag::O_CLOEXEC,
-        nix::sys::stat::Mode::empty(),
-    )
-    .unwrap();
-    drop(slave);
-    (ptm, path, keep)
 }
 
 /// A pty whose far end answers each whole request frame with `answer`.

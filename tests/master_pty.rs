@@ -4,6 +4,8 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+mod pty_support;
+
 use std::os::fd::OwnedFd;
 use std::time::{Duration, Instant};
 
@@ -12,6 +14,7 @@ use drivegate::bus::port::{self, Direction, Rs485Settings};
 use drivegate::bus::stats::Outcome;
 use drivegate::drive::{DriveReply, DriveRequest, Status};
 use drivegate::modbus::rtu_frame::{self, FrameLength};
+use pty_support::pty;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
@@ -40,17 +43,7 @@ struct Peer {
 
 /// A pty whose far end answers with `script`, one entry per request.
 fn start_peer(script: Vec<Answer>) -> (String, Peer, mpsc::UnboundedReceiver<Instant>) {
-    let (mut ptm, slave) = SerialStream::pair().unwrap();
-    let path = slave.name().unwrap();
-    // Keep the slave open without a lock, so the master can open the path
-    // exclusively and the far end never reads EIO.
-    let keep = nix::fcntl::open(
-        path.as_str(),
-        nix::fcntl::OFlag::O_RDWR | nix::fcntl::OFlag::O_NOCTTY | nix::fcntl::OFlag::O_CLOEXEC,
-        nix::sys::stat::Mode::empty(),
-    )
-    .unwrap();
-    drop(slave);
+    let (mut ptm, path, keep) = pty();
     let (req_tx, req_rx) = mpsc::unbounded_channel();
     let (done_tx, done_rx) = mpsc::unbounded_channel();
     tokio::spawn(async move {
