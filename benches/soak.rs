@@ -21,7 +21,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
-#[path = "../tests/faults_support/soak.rs"]
+#[path = "../tests/soak/soak.rs"]
 mod soak;
 
 use std::time::Duration;

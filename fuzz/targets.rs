@@ -1,5 +1,5 @@
 // The fuzz targets' bodies. Included both by the cargo-fuzz binaries in
-// fuzz/fuzz_targets/ and by tests/fuzz_corpus.rs, which replays the
+// fuzz/fuzz_targets/ and by tests/protocol/fuzz_corpus.rs, which replays the
 // committed corpus in every `cargo test`.
 
 /// Arbitrary bytes arriving where the RTU master expects the reply to a

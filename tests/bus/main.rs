@@ -1,0 +1,18 @@
+//! The bus engine and the simulator through real ptys: the RTU master
+//! against scripted peers, the scheduler against scripted peers and
+//! against the simulator, the simulator's wire and timing, `drivegate sim`.
+//!
+//! A new test of the bus (master, scheduler, queue, poller) or of the
+//! simulator goes into the module of its part here. Helpers shared with
+//! other binaries live in `tests/support/`.
+
+#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
+
+#[path = "../support/mod.rs"]
+mod support;
+
+mod master_pty;
+mod pty;
+mod sim;
+mod sim_cli;
+mod sim_wire;

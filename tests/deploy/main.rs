@@ -1,0 +1,22 @@
+//! What an operator deploys and watches: the command line, the Debian
+//! package, the systemd unit, logs, the graceful stop, the Prometheus
+//! exposition with promtool and a real Prometheus server, the Grafana
+//! dashboard; and the metrics scrape benchmark (ignored by `cargo test`).
+//!
+//! A new test of packaging, service, logging or monitoring goes into the
+//! module of its part here.
+
+#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
+
+#[path = "../support/mod.rs"]
+mod support;
+
+mod cli;
+mod graceful_stop;
+mod grafana;
+mod logs;
+mod metrics;
+mod metrics_scrape_cost;
+mod package;
+mod prometheus;
+mod systemd;

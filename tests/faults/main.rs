@@ -1,0 +1,16 @@
+//! Faults through the real pty with eight simulated drives: wire faults at
+//! a known rate, a drive gone silent or powered off, the adapter unplugged
+//! and plugged back. Every job is answered and the accounting adds up.
+//!
+//! A new fault test goes into the module of its kind of fault here; the
+//! soak, which measures the whole process, has its own binary
+//! (`tests/soak/`).
+
+#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
+
+#[path = "../support/mod.rs"]
+mod support;
+
+mod adapter;
+mod drives;
+mod wire;

@@ -1,0 +1,14 @@
+//! The pure protocol code, without I/O: the maker's golden frames, property
+//! tests of encoders and decoders, and the committed fuzz corpus replayed.
+//!
+//! A new test of `drive/` or `modbus/` that needs no daemon goes here (or,
+//! better, beside the code as a unit test).
+
+#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
+
+#[path = "../support/mod.rs"]
+mod support;
+
+mod fuzz_corpus;
+mod properties;
+mod vectors;

@@ -1,0 +1,221 @@
+//! The HTTP API's limits hold however a client pushes them: a body over
+//! `[http] max_body_bytes` is refused with 413 whether its length is
+//! announced, chunked or only claimed, a stream message over it closes that
+//! stream, and a flood of connections beyond `max_connections` is refused
+//! while the connections already open keep being served.
+
+use std::time::Duration;
+
+use crate::support::TestDaemon;
+use crate::support::input::{
+    ADMIN, VIEWER, check_answer, config, parse_answer, raw_http, writes_on_wire, ws_frame,
+    ws_handshake,
+};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+const LIMIT: Duration = Duration::from_secs(60);
+const MAX_BODY: usize = 1024;
+
+/// A JSON object of exactly `n` bytes (a setpoint padded with spaces).
+fn object_of(n: usize) -> Vec<u8> {
+    let mut body = b"{\"speed_rpm\": 1".to_vec();
+    body.resize(n - 1, b' ');
+    body.push(b'}');
+    body
+}
+
+fn put(body_header: &str, body: &[u8]) -> Vec<u8> {
+    let mut bytes = format!(
+        "PUT /api/v1/drives/lift/setpoint HTTP/1.1\r\nHost: drivegate\r\nConnection: close\r\nAuthorization: Bearer {ADMIN}\r\nContent-Type: application/json\r\n{body_header}\r\n\r\n"
+    )
+    .into_bytes();
+    bytes.extend_from_slice(body);
+    bytes
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn body_limits_hold_however_the_body_comes() {
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config(
+            &format!("max_body_bytes = {MAX_BODY}\nread_timeout_s = 30"),
+            "",
+            true,
+            "",
+        ))
+        .await;
+        let addr = d.http;
+        let writes = writes_on_wire(&d.plant);
+
+        // At the limit: read (the drive is not active: 409); one over: 413.
+        let at = object_of(MAX_BODY);
+        let a = raw_http(addr, &put(&format!("Content-Length: {}", at.len()), &at))
+            .await
+            .unwrap();
+        check_answer(&a).unwrap();
+        assert_eq!(a.status, 409, "{}", a.text());
+        let over = object_of(MAX_BODY + 1);
+        let a = raw_http(
+            addr,
+            &put(&format!("Content-Length: {}", over.len()), &over),
+        )
+        .await
+        .unwrap();
+        check_answer(&a).unwrap();
+        assert_eq!(a.status, 413, "{}", a.text());
+
+        // A gigabyte announced and never sent: refused on the announcement.
+        let a = raw_http(addr, &put("Content-Length: 1000000000", b""))
+            .await
+            .unwrap();
+        check_answer(&a).unwrap();
+        assert_eq!(a.status, 413, "{}", a.text());
+
+        // Chunked: many small chunks adding up to more than the limit.
+        let mut chunked = Vec::new();
+        for _ in 0..10 {
+            chunked.extend_from_slice(format!("{:x}\r\n", 200).as_bytes());
+            chunked.extend_from_slice(&[b' '; 200]);
+            chunked.extend_from_slice(b"\r\n");
+        }
+        chunked.extend_from_slice(b"0\r\n\r\n");
+        let a = raw_http(addr, &put("Transfer-Encoding: chunked", &chunked))
+            .await
+            .unwrap();
+        check_answer(&a).unwrap();
+        assert_eq!(a.status, 413, "{}", a.text());
+        // One chunk announcing four gigabytes: refused once the limit is
+        // passed (a chunked body does not say its whole length).
+        let mut huge_chunk = b"ffffffff\r\n".to_vec();
+        huge_chunk.extend_from_slice(&object_of(2 * MAX_BODY));
+        let a = raw_http(addr, &put("Transfer-Encoding: chunked", &huge_chunk))
+            .await
+            .unwrap();
+        check_answer(&a).unwrap();
+        assert_eq!(a.status, 413, "{}", a.text());
+
+        // A length smaller than what follows: the rest is not a request.
+        let a = raw_http(addr, &put("Content-Length: 5", &object_of(500)))
+            .await
+            .unwrap();
+        check_answer(&a).unwrap();
+        assert_eq!(a.status, 400, "{}", a.text());
+        assert_eq!(writes_on_wire(&d.plant), writes, "an oversized body wrote");
+
+        // The stream: a message of exactly the limit is read, one byte more
+        // closes the stream.
+        let query = format!("?access_token={VIEWER}");
+        let mut s = ws_handshake(addr, &query).await;
+        let mut subscribe = br#"{"type":"subscribe","drives":"lift""#.to_vec();
+        subscribe.resize(MAX_BODY - 1, b' ');
+        subscribe.push(b'}');
+        s.write_all(&ws_frame(0x1, &subscribe, true)).await.unwrap();
+        let mut head = [0u8; 2];
+        tokio::time::timeout(Duration::from_secs(5), s.read_exact(&mut head))
+            .await
+            .unwrap()
+            .unwrap();
+        let mut text = vec![0u8; usize::from(head[1] & 0x7F)];
+        s.read_exact(&mut text).await.unwrap();
+        assert!(
+            String::from_utf8_lossy(&text).contains("subscribed"),
+            "{}",
+            String::from_utf8_lossy(&text)
+        );
+        subscribe.insert(1, b' ');
+        s.write_all(&ws_frame(0x1, &subscribe, true)).await.unwrap();
+        let mut rest = Vec::new();
+        let closed = tokio::time::timeout(Duration::from_secs(10), s.read_to_end(&mut rest)).await;
+        assert!(
+            closed.is_ok(),
+            "a message over the limit left the stream open"
+        );
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// Sends a GET on an open keep-alive connection and reads its answer.
+async fn ask(s: &mut TcpStream) -> u16 {
+    s.write_all(format!("GET /api/v1/drives/lift HTTP/1.1\r\nHost: drivegate\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut got = Vec::new();
+    let mut chunk = [0u8; 4096];
+    loop {
+        let n = tokio::time::timeout(Duration::from_secs(10), s.read(&mut chunk))
+            .await
+            .expect("an answer in time")
+            .unwrap();
+        assert!(n > 0, "closed");
+        got.extend_from_slice(&chunk[..n]);
+        if let Ok(a) = parse_answer(&got)
+            && a.header("content-length")
+                .and_then(|l| l.parse::<usize>().ok())
+                == Some(a.body.len())
+        {
+            return a.status;
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_connections_is_refused_and_the_open_ones_kept() {
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config("max_connections = 8", "", true, "")).await;
+        let addr = d.http;
+        let mut held = Vec::new();
+        for _ in 0..8 {
+            let mut s = TcpStream::connect(addr).await.unwrap();
+            assert_eq!(ask(&mut s).await, 200);
+            held.push(s);
+        }
+        // 300 at once: each is answered 503 too-many-connections, or closed
+        // without an answer once 64 refusals are in flight; never served.
+        let flood: Vec<_> = (0..300)
+            .map(|_| {
+                tokio::spawn(async move {
+                    raw_http(
+                        addr,
+                        format!("GET /api/v1/drives HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes(),
+                    )
+                    .await
+                })
+            })
+            .collect();
+        let (mut refused, mut dropped) = (0, 0);
+        for f in flood {
+            match f.await.unwrap() {
+                Ok(a) => {
+                    assert_eq!(a.status, 503, "a connection over the limit was served");
+                    assert_eq!(a.header("content-type"), Some("application/problem+json"));
+                    assert_eq!(a.json().unwrap()["type"], "urn:drivegate:problem:too-many-connections");
+                    refused += 1;
+                }
+                Err(_) => dropped += 1,
+            }
+        }
+        println!("HTTP connection flood: 300 over the limit of 8: {refused} answered 503, {dropped} closed unanswered");
+        assert!(refused > 0);
+        // The eight open connections are served as before.
+        for s in &mut held {
+            assert_eq!(ask(s).await, 200);
+        }
+        // Their slots come back when they close.
+        drop(held);
+        let mut served = false;
+        for _ in 0..50 {
+            let a = raw_http(addr, format!("GET /api/v1/drives HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes()).await;
+            if a.is_ok_and(|a| a.status == 200) {
+                served = true;
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        assert!(served, "the slots did not come back");
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}

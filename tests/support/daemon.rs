@@ -1,0 +1,144 @@
+//! The daemon in-process on the built-in simulator, listening on loopback
+//! ports chosen by the system: what the end-to-end tests talk to.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use drivegate::config::Config;
+use drivegate::faces::{self, Faces};
+use drivegate::metrics::Metrics;
+use drivegate::plant::Plant;
+use drivegate::sim::SimHandle;
+use tokio_util::sync::CancellationToken;
+
+/// A simulated bus of four drives, units 1-4, as fast as the bus allows.
+pub const FOUR_DRIVES: &str = r#"
+[http]
+listen = "127.0.0.1:0"
+[modbus_tcp]
+listen = "127.0.0.1:0"
+[[bus]]
+name = "sim"
+port = "sim"
+response_timeout_ms = 50
+retries = 1
+[bus.sim]
+turnaround_ms = 0.5
+seed = 7
+[[bus.drive]]
+unit = 1
+name = "conveyor"
+gear_ratio = 3.75
+[[bus.drive]]
+unit = 2
+name = "lift"
+gear_ratio = 10.0
+[[bus.drive]]
+unit = 3
+name = "turntable"
+gear_ratio = 3.75
+[[bus.drive]]
+unit = 4
+name = "feeder"
+gear_ratio = 1.0
+"#;
+
+/// A running daemon.
+pub struct TestDaemon {
+    pub config: Config,
+    pub plant: Arc<Plant>,
+    pub metrics: Arc<Metrics>,
+    pub http: SocketAddr,
+    pub modbus_tcp: Option<SocketAddr>,
+    shutdown: CancellationToken,
+    faces: Option<Faces>,
+}
+
+impl TestDaemon {
+    /// Starts the daemon with `toml` (listen addresses should use port 0)
+    /// and waits until every drive has answered a poll.
+    pub async fn start(toml: &str) -> TestDaemon {
+        let daemon = Self::start_no_wait(toml).await;
+        daemon.wait_all_online(Duration::from_secs(10)).await;
+        daemon
+    }
+
+    /// Starts the daemon without waiting for the drives.
+    pub async fn start_no_wait(toml: &str) -> TestDaemon {
+        let config = Config::parse(toml, "test config").expect("test config");
+        let plant = Arc::new(Plant::start(&config).expect("plant starts"));
+        let metrics = Metrics::new(plant.clone());
+        let shutdown = CancellationToken::new();
+        let faces = faces::start(&config, plant.clone(), metrics.clone(), shutdown.clone())
+            .await
+            .expect("faces start");
+        TestDaemon {
+            config,
+            plant,
+            metrics,
+            http: faces.http,
+            modbus_tcp: faces.modbus_tcp,
+            shutdown,
+            faces: Some(faces),
+        }
+    }
+
+    /// `http://127.0.0.1:port` + `path`.
+    pub fn url(&self, path: &str) -> String {
+        format!("http://{}{}", self.http, path)
+    }
+
+    /// The simulator of the first (or named) simulated bus.
+    pub fn sim(&self) -> &SimHandle {
+        self.plant
+            .buses()
+            .iter()
+            .find_map(|b| b.sim.as_ref())
+            .expect("a simulated bus")
+    }
+
+    /// Waits until every drive has a polled status.
+    pub async fn wait_all_online(&self, limit: Duration) {
+        let start = Instant::now();
+        loop {
+            let all = self
+                .plant
+                .buses()
+                .iter()
+                .all(|b| b.handle.drives().iter().all(|d| d.status.is_some()));
+            if all {
+                return;
+            }
+            assert!(
+                start.elapsed() < limit,
+                "drives did not come online within {limit:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+
+    /// Graceful stop, as on SIGTERM.
+    pub async fn stop(mut self) {
+        self.shutdown.cancel();
+        if let Some(faces) = self.faces.take() {
+            let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
+        }
+        self.plant.shutdown(self.config.safety.on_shutdown).await;
+    }
+}
+
+/// Polls `f` every 10 ms until it returns `Some`, or panics after `limit`.
+pub async fn eventually<T>(limit: Duration, what: &str, mut f: impl FnMut() -> Option<T>) -> T {
+    let start = Instant::now();
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(
+            start.elapsed() < limit,
+            "timed out after {limit:?} waiting for {what}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}

@@ -1,0 +1,18 @@
+//! What the test binaries share, one module per concept. Every binary
+//! includes this directory (`#[path = "../support/mod.rs"] mod support;`)
+//! and uses the part it needs.
+
+#![allow(dead_code)]
+
+pub mod api;
+pub mod daemon;
+pub mod faults;
+pub mod input;
+pub mod logs;
+pub mod modbus_tcp;
+pub mod pty;
+pub mod tools;
+pub mod vectors;
+
+#[allow(unused_imports)]
+pub use daemon::{FOUR_DRIVES, TestDaemon, eventually};
