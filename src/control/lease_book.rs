@@ -137,8 +137,9 @@ pub enum WriteKind {
 pub struct Ticket {
     drive: usize,
     kind: WriteKind,
-    /// Brakes confirmed on the drive when the write was sent.
-    epoch: u64,
+    /// Brakes sent to the drive before this write (for a brake: its own
+    /// number).
+    seen: u64,
     /// Who sent it, in words ("the brake from scada (Modbus TCP)").
     by: Arc<str>,
 }
@@ -364,8 +365,8 @@ struct Stop {
     again: bool,
     /// The end of the lease was published (after the first try).
     announced: bool,
-    /// Brakes confirmed when the try under way was sent.
-    epoch: u64,
+    /// Brakes sent before the try under way.
+    seen: u64,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -383,10 +384,15 @@ struct Slot {
     stop: Option<Stop>,
     /// Brakes and deactivations on their way.
     stopping_writes: u32,
-    /// Brakes confirmed (or sent unconfirmed) so far.
-    epoch: u64,
-    /// Stops taken over while on their way, with the epoch they were sent
-    /// at: one that may release a brake confirmed since must not stand.
+    /// Brakes sent to the drive so far: each brake's number.
+    brakes_sent: u64,
+    /// The highest number of a brake that reached the drive (or may have).
+    brake_landed: u64,
+    /// Brakes on their way, by number: true once a write sent before it
+    /// that releases a brake has landed, and may have landed after it.
+    brakes_in_flight: BTreeMap<u64, bool>,
+    /// Stops taken over while on their way, with the brakes sent before
+    /// them: what they send must still not release a later brake.
     orphans: Vec<(StopId, u64)>,
 }
 
@@ -510,10 +516,14 @@ impl LeaseBook {
         if matches!(kind, WriteKind::Brake | WriteKind::Deactivate) {
             slot.stopping_writes += 1;
         }
+        if kind == WriteKind::Brake {
+            slot.brakes_sent += 1;
+            slot.brakes_in_flight.insert(slot.brakes_sent, false);
+        }
         Ticket {
             drive,
             kind,
-            epoch: slot.epoch,
+            seen: slot.brakes_sent,
             by,
         }
     }
@@ -527,25 +537,36 @@ impl LeaseBook {
         match ticket.kind {
             WriteKind::Setpoint { lease } => {
                 self.settle_setpoint(drive, lease, applied, &by, now, &mut effects);
-                self.check_brake(drive, ticket.epoch, applied, &by, now);
+                if applied != Applied::No {
+                    self.released(drive, ticket.seen, &by, now);
+                }
             }
-            WriteKind::ReleasesBrake => self.check_brake(drive, ticket.epoch, applied, &by, now),
+            WriteKind::ReleasesBrake => {
+                if applied != Applied::No {
+                    self.released(drive, ticket.seen, &by, now);
+                }
+            }
             WriteKind::Brake | WriteKind::Deactivate => {
                 let slot = self.slot(drive);
                 slot.stopping_writes = slot.stopping_writes.saturating_sub(1);
                 let brake = ticket.kind == WriteKind::Brake;
+                // Whether a write sent before this brake landed meanwhile.
+                let overtaken =
+                    brake && slot.brakes_in_flight.remove(&ticket.seen).unwrap_or(false);
+                if brake && applied != Applied::No {
+                    slot.brake_landed = slot.brake_landed.max(ticket.seen);
+                }
                 match applied {
                     Applied::Yes => {
-                        if brake {
-                            self.slot(drive).epoch += 1;
-                        }
                         self.end_by(drive, &by, now, &mut effects);
+                        if overtaken && !self.shut_down {
+                            self.rebrake(drive, StopReason::BrakeReleased(by.clone()), now);
+                        }
                     }
                     Applied::Maybe if brake => {
-                        // It may have landed: what was sent before it must
-                        // not release it, and it is applied until the drive
-                        // confirms it.
-                        self.slot(drive).epoch += 1;
+                        // It may have landed, so what was sent before it
+                        // must not release it; and it is applied until the
+                        // drive confirms it.
                         self.end_with(
                             drive,
                             StopReason::BrakeUnconfirmed(by.clone()),
@@ -617,20 +638,20 @@ impl LeaseBook {
         }
     }
 
-    /// A brake-releasing write sent at `epoch` may have landed: if a brake
-    /// was confirmed since, it is applied again.
-    fn check_brake(
-        &mut self,
-        drive: usize,
-        epoch: u64,
-        applied: Applied,
-        by: &Arc<str>,
-        now: Instant,
-    ) {
-        if applied == Applied::No || self.shut_down {
+    /// A write that releases a brake, sent after `seen` brakes, reached
+    /// the drive (or may have). The results of writes come back in any
+    /// order, so it may have landed after any brake sent later: one that
+    /// landed already is applied again now; one still on its way is, once
+    /// it lands.
+    fn released(&mut self, drive: usize, seen: u64, by: &Arc<str>, now: Instant) {
+        if self.shut_down {
             return;
         }
-        if self.slot(drive).epoch > epoch {
+        let slot = self.slot(drive);
+        for (_, overtaken) in slot.brakes_in_flight.range_mut(seen + 1..) {
+            *overtaken = true;
+        }
+        if slot.brake_landed > seen {
             // A lease on the drive now is newer than the brake (the brake
             // ended the one before): the brake waits for it, and its
             // setpoint takes over.
@@ -669,7 +690,7 @@ impl LeaseBook {
             return;
         };
         if stop.state == StopState::InFlight {
-            slot.orphans.push((stop.id, stop.epoch));
+            slot.orphans.push((stop.id, stop.seen));
         }
         let result = format!("not sent again: {by} took over the drive");
         if let Some((id, owner, holder)) = &stop.lease {
@@ -763,7 +784,7 @@ impl LeaseBook {
         let mut reason = reason;
         if let Some(old) = slot.stop.take() {
             if old.state == StopState::InFlight {
-                slot.orphans.push((old.id, old.epoch));
+                slot.orphans.push((old.id, old.seen));
             }
             if old.action == StopAction::Brake {
                 action = StopAction::Brake;
@@ -797,7 +818,7 @@ impl LeaseBook {
             last_error: None,
             again: false,
             announced: false,
-            epoch: slot.epoch,
+            seen: slot.brakes_sent,
         });
     }
 
@@ -968,7 +989,7 @@ impl LeaseBook {
             {
                 stop.state = StopState::InFlight;
                 stop.tries += 1;
-                stop.epoch = slot.epoch;
+                stop.seen = slot.brakes_sent;
                 effects.push(Effect::Stop(StopOrder {
                     drive,
                     id: stop.id,
@@ -1019,13 +1040,9 @@ impl LeaseBook {
             // release a brake confirmed since.
             let orphan = slot.orphans.iter().position(|(o, _)| *o == id);
             if let Some(at) = orphan {
-                let (_, epoch) = slot.orphans.swap_remove(at);
-                if report.released_brake && slot.epoch > epoch && !shut_down {
-                    self.rebrake(
-                        drive,
-                        StopReason::BrakeReleased("a lease's stop".into()),
-                        now,
-                    );
+                let (_, seen) = slot.orphans.swap_remove(at);
+                if report.released_brake {
+                    self.released(drive, seen, &"a lease's stop".into(), now);
                 }
             }
             effects.extend(self.tick(now));
@@ -1034,7 +1051,7 @@ impl LeaseBook {
         let Some(mut stop) = slot.stop.take() else {
             return effects;
         };
-        let released_after_brake = report.released_brake && slot.epoch > stop.epoch;
+        let released = report.released_brake.then_some(stop.seen);
         let first = !stop.announced;
         let lease = stop.lease.clone();
         match &report.result {
@@ -1088,12 +1105,8 @@ impl LeaseBook {
                 }
             }
         }
-        if released_after_brake && !shut_down {
-            self.rebrake(
-                drive,
-                StopReason::BrakeReleased("a lease's stop".into()),
-                now,
-            );
+        if let Some(seen) = released {
+            self.released(drive, seen, &"a lease's stop".into(), now);
         }
         effects.extend(self.tick(now));
         effects

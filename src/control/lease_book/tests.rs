@@ -862,3 +862,31 @@ fn the_stop_action_and_the_lease_mode_are_what_the_stop_is_sent_with() {
     );
     assert_eq!(book.action(), StopAction::Brake);
 }
+
+#[test]
+fn the_brake_is_applied_again_whichever_result_comes_back_first() {
+    let t0 = Instant::now();
+    let mut book = LeaseBook::new(StopAction::ZeroSpeed);
+    // A setpoint, then a brake that overtakes it on the bus; the setpoint's
+    // result is settled first, the brake's after.
+    let setpoint = book.begin_write(LIFT, WriteKind::Setpoint { lease: None }, "x".into());
+    let brake = book.begin_write(LIFT, WriteKind::Brake, "the brake from plc".into());
+    assert!(stops(&book.end_write(&setpoint, Applied::Yes, t0)).is_empty());
+    let effects = book.end_write(&brake, Applied::Yes, t0 + MS);
+    let again = stops(&effects);
+    assert_eq!(again.len(), 1, "{effects:?}");
+    assert_eq!(again[0].action, StopAction::Brake);
+
+    // The same with a brake that was never sent: nothing to apply again.
+    let setpoint = book.begin_write(CONVEYOR, WriteKind::Setpoint { lease: None }, "x".into());
+    let brake = book.begin_write(CONVEYOR, WriteKind::Brake, "the brake from plc".into());
+    book.end_write(&setpoint, Applied::Yes, t0);
+    assert!(stops(&book.end_write(&brake, Applied::No, t0)).is_empty());
+    assert!(!book.stopping(CONVEYOR));
+
+    // A setpoint sent after the brake, settled before it: no brake again.
+    let brake = book.begin_write(CONVEYOR, WriteKind::Brake, "the brake from plc".into());
+    let after = book.begin_write(CONVEYOR, WriteKind::Setpoint { lease: None }, "x".into());
+    book.end_write(&after, Applied::Yes, t0);
+    assert!(stops(&book.end_write(&brake, Applied::Yes, t0)).is_empty());
+}
