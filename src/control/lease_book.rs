@@ -1162,11 +1162,16 @@ impl LeaseBook {
                 let state = match stop {
                     Some(Stop {
                         tries,
+                        state,
                         last_error: Some(error),
                         ..
-                    }) if *tries > 0 => format!(
-                        "its stop ({action}) is not confirmed yet: {tries} attempt(s) failed, the last with \"{error}\"; drivegate keeps trying it until the drive confirms it"
-                    ),
+                    }) => {
+                        // The try under way has not failed (yet).
+                        let failed = tries.saturating_sub(u32::from(*state == StopState::InFlight));
+                        format!(
+                            "its stop ({action}) is not confirmed yet: {failed} attempt(s) failed, the last with \"{error}\"; drivegate keeps trying it until the drive confirms it"
+                        )
+                    }
                     _ => format!("its stop ({action}) is being sent"),
                 };
                 format!("{head} because {}; {state}", reason.text())

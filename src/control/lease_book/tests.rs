@@ -206,6 +206,11 @@ fn a_failed_stop_is_retried_with_backoff_until_the_drive_confirms_it() {
     assert!(book.tick(t1 + RETRY_FIRST - MS).is_empty());
     let second = stops(&book.tick(t1 + RETRY_FIRST))[0].clone();
     assert_eq!(second.attempt, 2);
+    let said = book.no_lease(CONVEYOR, t1 + RETRY_FIRST).0;
+    assert!(
+        said.contains("1 attempt(s) failed"),
+        "the try under way has not failed: {said}"
+    );
     let t2 = t1 + RETRY_FIRST;
     let effects = book.stop_tried(CONVEYOR, second.id, failed("bus sim is down"), t2);
     assert!(
