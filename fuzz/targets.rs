@@ -80,7 +80,7 @@ pub fn sim_request(data: &[u8]) {
 
 /// Arbitrary bytes from a Modbus TCP client: the MBAP framing and every
 /// check a request goes through before the bus (shape, read-only class,
-/// broadcast, the polled copy).
+/// broadcast, the write decoder and its meaning, the polled copy).
 pub fn mbap(data: &[u8]) {
     use drivegate::bus::DriveSnapshot;
     use drivegate::modbus_tcp::{mbap, polled_copy, request};
@@ -93,7 +93,10 @@ pub fn mbap(data: &[u8]) {
         let _ = request::check_shape(&frame.pdu);
         let _ = request::reads_only(&frame.pdu);
         let _ = request::broadcastable(&frame.pdu);
-        let _ = request::describe(&frame.pdu);
+        // What the control core makes of it as a write, and its words.
+        let write = drivegate::control::Write::pdu(frame.pdu.clone());
+        let _ = write.meaning();
+        let _ = write.describe();
         let _ = polled_copy::status_registers(&frame.pdu);
         let snapshot = DriveSnapshot {
             unit: frame.unit,

@@ -8,6 +8,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::Config;
+use crate::control::Control;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 
@@ -25,6 +26,8 @@ pub struct Faces {
     pub http: SocketAddr,
     /// Where Modbus TCP listens, if enabled.
     pub modbus_tcp: Option<SocketAddr>,
+    /// The control core every face writes through.
+    pub control: Control,
     tasks: Vec<JoinHandle<()>>,
 }
 
@@ -34,22 +37,34 @@ impl Faces {
         for task in self.tasks {
             let _ = task.await;
         }
+        // Stops of leases still on the wire finish (the daemon's safe stop
+        // follows).
+        let _ = tokio::time::timeout(std::time::Duration::from_secs(2), self.control.wait()).await;
     }
 }
 
-/// Binds every configured listener (so a taken port fails the start) and
-/// serves them until `shutdown` fires.
+/// Starts the control core, binds every configured listener (so a taken
+/// port fails the start) and serves them until `shutdown` fires.
 pub async fn start(
     config: &Config,
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
     shutdown: CancellationToken,
 ) -> Result<Faces, String> {
-    let http = crate::api::start(config, plant.clone(), metrics.clone(), shutdown.clone()).await?;
+    let control = Control::start(plant.clone(), &config.safety, shutdown.clone());
+    let http = crate::api::start(
+        config,
+        plant.clone(),
+        metrics.clone(),
+        control.clone(),
+        shutdown.clone(),
+    )
+    .await?;
     tracing::info!(addr = %http.addr, "HTTP API listening");
     let mut tasks = vec![http.task];
     let modbus_tcp = if config.modbus_tcp.enabled {
-        let tcp = crate::modbus_tcp::start(config, plant, metrics, shutdown).await?;
+        let tcp =
+            crate::modbus_tcp::start(config, plant, metrics, control.clone(), shutdown).await?;
         tracing::info!(addr = %tcp.addr, "Modbus TCP listening");
         tasks.push(tcp.task);
         Some(tcp.addr)
@@ -59,6 +74,7 @@ pub async fn start(
     Ok(Faces {
         http: http.addr,
         modbus_tcp,
+        control,
         tasks,
     })
 }

@@ -4,11 +4,11 @@
 //! a request through them.
 
 pub mod api;
-pub mod audit;
 pub mod bench;
 pub mod bus;
 pub mod clock;
 pub mod config;
+pub mod control;
 pub mod daemon;
 pub mod drive;
 pub mod faces;

@@ -8,9 +8,9 @@ use std::time::Duration;
 
 use tracing::{info, warn};
 
-use crate::audit;
 use crate::bus::BusHandle;
 use crate::config::{BusConfig, Config};
+use crate::control::{Face, audit};
 use crate::safety::{self, StopAction, StopOutcome};
 use crate::sim::{SimHandle, Simulator};
 
@@ -176,11 +176,12 @@ impl Plant {
                         // zero-speed is two (speed and torque setpoint 0).
                         for request in outcome.requests() {
                             audit::write(
+                                Face::Internal.name(),
                                 "shutdown",
                                 handle.name(),
                                 unit,
                                 request.name(),
-                                &Ok::<_, String>("confirmed by the drive".into()),
+                                &Ok("confirmed by the drive".into()),
                             );
                         }
                         info!(drive = %name, action = action.name(), "stopped at shutdown")
@@ -188,11 +189,12 @@ impl Plant {
                     Ok(_) => {}
                     Err(e) => {
                         audit::write(
+                            Face::Internal.name(),
                             "shutdown",
                             handle.name(),
                             unit,
                             action.name(),
-                            &Err::<String, _>(e.to_string()),
+                            &Err(e.to_string()),
                         );
                         warn!(drive = %name, action = action.name(), "safe stop failed: {e}")
                     }

@@ -18,7 +18,7 @@ use super::listener::ClientAddr;
 use super::problem::{Kind, Problem};
 use super::roles::Role;
 use super::state::ApiState;
-use crate::bus::SourceId;
+use crate::control::Face;
 
 /// One usable token.
 #[derive(Clone)]
@@ -168,81 +168,83 @@ fn constant_time_eq(a: &[u8; 32], b: &[u8; 32]) -> bool {
     std::hint::black_box(diff) == 0
 }
 
-/// Who is asking, with what rights.
-#[derive(Debug, Clone)]
-pub struct Caller {
-    /// Token name, or the client address when no tokens are configured:
-    /// written to the audit log with every write.
-    pub who: Arc<str>,
-    /// What it may do.
-    pub role: Role,
-    /// Its share of the bus queues: one per token (or client address), so
-    /// one busy client cannot starve the others.
-    pub source: SourceId,
+pub use crate::control::Caller;
+
+/// Refusal of a caller whose role does not allow a route: the core's rule,
+/// rendered as 403.
+pub trait Require {
+    /// Refuses with 403 unless the caller's role includes `needed`.
+    fn require(&self, needed: Role) -> Result<(), Problem>;
 }
 
-impl Caller {
-    /// Refuses with 403 unless the caller's role includes `needed`.
-    pub fn require(&self, needed: Role) -> Result<(), Problem> {
+impl Require for Caller {
+    fn require(&self, needed: Role) -> Result<(), Problem> {
         if self.role.allows(needed) {
             Ok(())
         } else {
-            Err(Problem::new(
-                Kind::Forbidden,
-                format!(
-                    "this needs the {} role; the token \"{}\" has the {} role",
-                    needed.name(),
-                    self.who,
-                    self.role.name()
-                ),
-            ))
+            Err(forbidden(self, needed))
         }
     }
+}
 
-    /// Identifies the caller of a request. `allow_query` also accepts the
-    /// token as `?access_token=` (browsers cannot set headers on WebSockets).
-    pub fn from_parts(parts: &Parts, state: &ApiState, allow_query: bool) -> Result<Self, Problem> {
-        let peer = parts
-            .extensions
-            .get::<ConnectInfo<ClientAddr>>()
-            .map(|c| c.0.0);
-        if state.tokens.is_empty() {
-            // Loopback only (see `listener::bind`): every local client is admin.
-            let who: Arc<str> = peer.map_or_else(|| "local".into(), |a| a.to_string().into());
-            let key = peer.map_or_else(|| "local".to_string(), |a| a.ip().to_string());
-            return Ok(Caller {
-                who,
-                role: Role::Admin,
-                source: state.source_for(&key),
-            });
-        }
-        let presented = bearer(parts).or_else(|| {
-            allow_query
-                .then(|| query_token(parts.uri.query().unwrap_or("")))
-                .flatten()
-        });
-        let Some(presented) = presented else {
-            return Err(Problem::new(
+/// The 403 for `caller`, whose role lacks `needed`.
+pub fn forbidden(caller: &Caller, needed: Role) -> Problem {
+    Problem::new(
+        Kind::Forbidden,
+        format!(
+            "this needs the {} role; the token \"{}\" has the {} role",
+            needed.name(),
+            caller.who,
+            caller.role.name()
+        ),
+    )
+}
+
+/// Identifies the caller of a request. `allow_query` also accepts the
+/// token as `?access_token=` (browsers cannot set headers on WebSockets).
+pub fn identify(parts: &Parts, state: &ApiState, allow_query: bool) -> Result<Caller, Problem> {
+    let peer = parts
+        .extensions
+        .get::<ConnectInfo<ClientAddr>>()
+        .map(|c| c.0.0);
+    if state.tokens.is_empty() {
+        // Loopback only (see `listener::bind`): every local client is admin.
+        let who: Arc<str> = peer.map_or_else(|| "local".into(), |a| a.to_string().into());
+        let key = peer.map_or_else(|| "local".to_string(), |a| a.ip().to_string());
+        return Ok(Caller::new(
+            Face::Http,
+            who,
+            Role::Admin,
+            state.source_for(&key),
+        ));
+    }
+    let presented = bearer(parts).or_else(|| {
+        allow_query
+            .then(|| query_token(parts.uri.query().unwrap_or("")))
+            .flatten()
+    });
+    let Some(presented) = presented else {
+        return Err(Problem::new(
+            Kind::Unauthorized,
+            "send an API token in the header Authorization: Bearer <token>",
+        ));
+    };
+    match state.tokens.check(&presented) {
+        Some((name, role)) => Ok(Caller::new(
+            Face::Http,
+            name.clone(),
+            role,
+            state.source_for(&name),
+        )),
+        None => {
+            tracing::warn!(
+                client = %peer.map_or_else(|| "unknown".to_string(), |a| a.to_string()),
+                "refused a request with an unknown API token"
+            );
+            Err(Problem::new(
                 Kind::Unauthorized,
-                "send an API token in the header Authorization: Bearer <token>",
-            ));
-        };
-        match state.tokens.check(&presented) {
-            Some((name, role)) => Ok(Caller {
-                source: state.source_for(&name),
-                who: name,
-                role,
-            }),
-            None => {
-                tracing::warn!(
-                    client = %peer.map_or_else(|| "unknown".to_string(), |a| a.to_string()),
-                    "refused a request with an unknown API token"
-                );
-                Err(Problem::new(
-                    Kind::Unauthorized,
-                    "the API token is not valid",
-                ))
-            }
+                "the API token is not valid",
+            ))
         }
     }
 }
@@ -294,7 +296,7 @@ impl FromRequestParts<ApiState> for Caller {
     type Rejection = Problem;
 
     async fn from_request_parts(parts: &mut Parts, state: &ApiState) -> Result<Self, Problem> {
-        Caller::from_parts(parts, state, false)
+        identify(parts, state, false)
     }
 }
 
@@ -307,7 +309,7 @@ impl FromRequestParts<ApiState> for StreamCaller {
     type Rejection = Problem;
 
     async fn from_request_parts(parts: &mut Parts, state: &ApiState) -> Result<Self, Problem> {
-        Caller::from_parts(parts, state, true).map(StreamCaller)
+        identify(parts, state, true).map(StreamCaller)
     }
 }
 

@@ -9,7 +9,7 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::Caller;
+use super::auth::{Caller, Require};
 use super::control;
 use super::drives::StatusView;
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
@@ -19,10 +19,10 @@ use super::problem::{BusContext, Kind, Problem};
 use super::roles::Role;
 use super::state::ApiState;
 use super::timestamp::rfc3339;
-use crate::audit;
 use crate::bus::handle::{JobOptions, PortState};
 use crate::bus::stats::Outcome;
 use crate::bus::{BusError, BusHandle, Priority};
+use crate::control::{ControlRequest, Operation};
 use crate::drive::{DriveReply, DriveRequest, RangeError};
 use crate::plant::Bus;
 
@@ -348,7 +348,7 @@ pub async fn scan(
     name: &str,
     body: &ScanBody,
 ) -> Result<ScanReply, Problem> {
-    caller.require(Role::Admin)?;
+    caller.require(Operation::Scan.needs())?;
     let bus = find_bus(state, name)?;
     let from = unit_in("first unit", body.from)?;
     let to = unit_in("last unit", body.to)?;
@@ -448,6 +448,10 @@ pub struct AddressBody {
     /// hears it, so only one drive may be connected to the bus.
     #[serde(default)]
     pub only_drive_on_bus: bool,
+    /// Set the address even while a drive of the bus turns (a drive that
+    /// takes a new address stops answering at the old one mid-motion).
+    #[serde(default)]
+    pub force: bool,
 }
 
 /// What an address setting did.
@@ -510,25 +514,27 @@ pub async fn set_address(
         ));
     }
     let handle: &BusHandle = &bus.handle;
-    let request = DriveRequest::SetAddress { address };
+    let index = state
+        .plant
+        .buses()
+        .iter()
+        .position(|b| b.handle.name() == handle.name())
+        .ok_or_else(|| Problem::new(Kind::Internal, "bus directory inconsistent"))?;
+    let request = ControlRequest::drive(DriveRequest::SetAddress { address })
+        .single_drive(true)
+        .forced(body.force);
+    let target = state.control.unit_target(index, 0);
+    state
+        .control
+        .write(caller, target, request)
+        .await
+        .map_err(|f| control::problem(caller, &f, BusContext::default()))?;
     let options = JobOptions {
         priority: Priority::Command,
         source: caller.source,
         queue_timeout: None,
         max_attempts: None,
     };
-    let sent = handle.execute(0, &request, options).await;
-    let outcome: Result<String, &BusError> = sent
-        .as_ref()
-        .map(|_| "sent as a broadcast (drives do not reply)".to_string());
-    audit::write(
-        &caller.who,
-        handle.name(),
-        0,
-        &control::describe(&request),
-        &outcome,
-    );
-    sent.map_err(|e| Problem::bus(&e, BusContext::default()))?;
     let verified = handle
         .execute(address, &DriveRequest::ReadStatus, options)
         .await;

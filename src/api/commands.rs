@@ -6,13 +6,14 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::Caller;
+use super::auth::{Caller, Require};
 use super::control::{self, Written};
 use super::extract::{JsonBody, Params, PathParams};
 use super::openapi::WriteProblems;
 use super::problem::{Kind, Problem};
 use super::roles;
 use super::state::ApiState;
+use crate::control::ControlRequest;
 use crate::drive::{ConfigCommand, DriveRequest};
 
 /// What a command did.
@@ -41,7 +42,8 @@ pub struct CommandReply {
 #[serde(deny_unknown_fields)]
 pub struct CommandQuery {
     /// factory-reset writes flash, which the manual allows only at
-    /// standstill: `force=true` sends it while the motor turns.
+    /// standstill, and calibrate and fine-tune turn the motor on their
+    /// own: `force=true` sends them while the motor turns.
     #[serde(default)]
     pub force: bool,
 }
@@ -81,24 +83,14 @@ pub async fn run(
 ) -> Result<CommandReply, Problem> {
     caller.require(roles::for_command(command))?;
     let target = state.target(key)?;
-    if command == ConfigCommand::FactoryReset {
-        control::ensure_still(caller, target, force).await?;
-    }
     let request = DriveRequest::Config(command);
-    control::send(caller, target, &request).await?;
-    if matches!(
-        command,
-        ConfigCommand::EmergencyBrake | ConfigCommand::Deactivate
-    ) {
-        // A zero-speed stop at expiry would release the brake.
-        let what = match command {
-            ConfigCommand::EmergencyBrake => "the brake",
-            _ => "the deactivation",
-        };
-        state
-            .leases
-            .end_by(target.index, &format!("{what} from {}", caller.who));
-    }
+    control::send(
+        state,
+        caller,
+        target,
+        ControlRequest::drive(request).forced(force),
+    )
+    .await?;
     Ok(CommandReply {
         drive: target.drive.name.clone(),
         bus: target.bus.name().to_string(),

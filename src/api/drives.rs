@@ -11,9 +11,9 @@ use utoipa::{IntoParams, ToSchema};
 use super::auth::Caller;
 use super::control;
 use super::extract::{Params, PathParams};
-use super::leases::LeaseInfo;
 use super::openapi::{FreshReadProblems, ReadProblems};
 use super::problem::{Kind, Problem};
+use super::setpoints::{LeaseInfo, lease_of};
 use super::state::{ApiState, Target};
 use super::timestamp::rfc3339;
 use crate::bus::DriveSnapshot;
@@ -242,7 +242,7 @@ fn view(state: &ApiState, target: Target<'_>) -> DriveView {
             .as_ref()
             .and_then(|s| s.status.as_ref())
             .map(StatusView::from),
-        lease: state.leases.get(target.index),
+        lease: lease_of(state, target.index),
     }
 }
 
@@ -309,7 +309,7 @@ pub async fn status(
 ) -> Result<StatusReply, Problem> {
     let target = state.target(key)?;
     let (status, source, seen_at, age_ms) = if fresh {
-        let status = control::read_status(caller, target).await?;
+        let status = control::read_status(state, caller, target).await?;
         (status, StatusSource::Bus, SystemTime::now(), 0)
     } else {
         let snap = snapshot(target);

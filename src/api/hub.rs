@@ -1,6 +1,7 @@
 //! The stream's fan-out: one task per bus turns its events (polled statuses,
-//! online/offline, port up/down) into JSON once, and publishes them with
-//! lease events on one broadcast channel every WebSocket session reads.
+//! online/offline, port up/down) into JSON once, one task does the same for
+//! the control core's lease news, and both publish on one broadcast channel
+//! every WebSocket session reads.
 //!
 //! Serialising once per event rather than once per client keeps a hundred
 //! dashboards cheap; a broadcast send never waits, so clients can never
@@ -19,6 +20,7 @@ use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
 use super::timestamp::rfc3339;
 use crate::bus::BusEvent;
+use crate::control::{Control, ControlEvent, LeaseEvent, Published, SessionId};
 use crate::plant::Plant;
 
 /// Events the hub holds for sessions that fall behind; a session's own
@@ -122,6 +124,21 @@ pub enum ServerMessage {
         /// The drive's answer, or what took over.
         result: String,
     },
+    /// A motor-safety lease ended without a stop: released, replaced by a
+    /// newer lease, or ended by a write that stops the motor itself (a
+    /// brake or a deactivation, from any face), so no stop follows.
+    LeaseEnded {
+        /// Drive name.
+        drive: String,
+        /// Its bus.
+        bus: String,
+        /// Its unit address.
+        unit: u8,
+        /// Who held the lease.
+        owner: String,
+        /// Why it ended.
+        reason: String,
+    },
     /// This client fell behind: `missed` updates were skipped for it.
     Lagged {
         /// Messages skipped.
@@ -157,10 +174,19 @@ pub enum ServerMessage {
 impl ServerMessage {
     /// The message as a WebSocket text payload.
     pub fn to_text(&self) -> Utf8Bytes {
-        serde_json::to_string(self)
-            .unwrap_or_else(|e| format!("{{\"type\":\"error\",\"detail\":\"{e}\"}}"))
-            .into()
+        json_text(self)
     }
+}
+
+/// `value` as JSON text; if it cannot be serialised (never expected: every
+/// field serialises), an `error` message whose text is escaped like any
+/// other string, so the client still gets valid JSON.
+fn json_text<T: Serialize>(value: &T) -> Utf8Bytes {
+    serde_json::to_string(value)
+        .unwrap_or_else(|e| {
+            serde_json::json!({"type": "error", "detail": e.to_string()}).to_string()
+        })
+        .into()
 }
 
 /// One published message: the drive it concerns (`None`: every client),
@@ -171,7 +197,7 @@ pub struct HubEvent {
     pub drive: Option<usize>,
     /// The stream session that got this message directly (the one that
     /// held the lease it is about): it skips this copy.
-    pub delivered_to: Option<u64>,
+    pub delivered_to: Option<SessionId>,
     /// The JSON text.
     pub text: Utf8Bytes,
 }
@@ -182,10 +208,17 @@ pub struct Hub {
 }
 
 impl Hub {
-    /// Starts one forwarding task per bus of `plant`; they end with `shutdown`.
-    pub fn start(plant: &Arc<Plant>, shutdown: &CancellationToken) -> Arc<Hub> {
+    /// Starts one forwarding task per bus of `plant` and one for the
+    /// control core's news; they end with `shutdown`.
+    pub fn start(plant: &Arc<Plant>, control: &Control, shutdown: &CancellationToken) -> Arc<Hub> {
         let (tx, _) = broadcast::channel(CAPACITY);
         let hub = Arc::new(Hub { tx });
+        tokio::spawn(forward_control(
+            hub.clone(),
+            plant.clone(),
+            control.subscribe(),
+            shutdown.clone(),
+        ));
         for (bus_index, bus) in plant.buses().iter().enumerate() {
             let units: HashMap<u8, usize> = plant
                 .drives()
@@ -213,7 +246,12 @@ impl Hub {
 
     /// Publishes `text` about drive `drive`, which the stream session
     /// `delivered_to` (if any) got directly already.
-    pub fn publish_text(&self, drive: Option<usize>, delivered_to: Option<u64>, text: Utf8Bytes) {
+    pub fn publish_text(
+        &self,
+        drive: Option<usize>,
+        delivered_to: Option<SessionId>,
+        text: Utf8Bytes,
+    ) {
         // No session listening is not an error.
         let _ = self.tx.send(HubEvent {
             drive,
@@ -225,6 +263,97 @@ impl Hub {
     /// A receiver of every future message.
     pub fn subscribe(&self) -> broadcast::Receiver<HubEvent> {
         self.tx.subscribe()
+    }
+}
+
+/// A control event as a stream message, if the stream shows it (lease
+/// news; writes are not streamed).
+pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
+    let ControlEvent::Lease(lease) = event else {
+        return None;
+    };
+    let drive = plant.drives().get(lease.drive())?;
+    let (name, bus, unit) = (
+        drive.name.clone(),
+        plant.handle_of(drive).name().to_string(),
+        drive.unit,
+    );
+    let message = match lease.clone() {
+        LeaseEvent::Ended { owner, reason, .. } => ServerMessage::LeaseEnded {
+            drive: name,
+            bus,
+            unit,
+            owner: owner.to_string(),
+            reason,
+        },
+        LeaseEvent::Expired {
+            owner,
+            reason,
+            action,
+            sent,
+            ok,
+            result,
+            retrying,
+            ..
+        } => ServerMessage::LeaseExpired {
+            drive: name,
+            bus,
+            unit,
+            owner: owner.to_string(),
+            reason,
+            action: action.name().to_string(),
+            sent,
+            ok,
+            result,
+            retrying,
+        },
+        LeaseEvent::StopSettled {
+            owner,
+            action,
+            sent,
+            stopped,
+            attempts,
+            result,
+            ..
+        } => ServerMessage::LeaseStop {
+            drive: name,
+            bus,
+            unit,
+            owner: owner.to_string(),
+            action: action.name().to_string(),
+            sent,
+            stopped,
+            attempts,
+            result,
+        },
+    };
+    Some(message.to_text())
+}
+
+/// Publishes the control core's lease news.
+async fn forward_control(
+    hub: Arc<Hub>,
+    plant: Arc<Plant>,
+    mut rx: broadcast::Receiver<Published>,
+    shutdown: CancellationToken,
+) {
+    loop {
+        let published = tokio::select! {
+            () = shutdown.cancelled() => return,
+            published = rx.recv() => published,
+        };
+        match published {
+            Ok(p) => {
+                if let Some(text) = render(&plant, &p.event) {
+                    hub.publish_text(p.event.drive(), p.delivered_to, text);
+                }
+            }
+            Err(broadcast::error::RecvError::Lagged(n)) => {
+                tracing::warn!("the stream fell {n} control events behind");
+                hub.publish(None, &ServerMessage::Lagged { missed: n });
+            }
+            Err(broadcast::error::RecvError::Closed) => return,
+        }
     }
 }
 
@@ -310,5 +439,27 @@ async fn forward(
             Err(broadcast::error::RecvError::Closed) => return,
         };
         hub.publish(drive, &message);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A value whose serialisation fails with quotes in the message.
+    struct Unserialisable;
+
+    impl Serialize for Unserialisable {
+        fn serialize<S: serde::Serializer>(&self, _: S) -> Result<S::Ok, S::Error> {
+            Err(serde::ser::Error::custom("field \"x\" is \\ broken"))
+        }
+    }
+
+    #[test]
+    fn a_message_that_cannot_be_serialised_is_still_valid_json() {
+        let text = json_text(&Unserialisable);
+        let v: serde_json::Value = serde_json::from_str(text.as_str()).expect("valid JSON");
+        assert_eq!(v["type"], "error");
+        assert_eq!(v["detail"], "field \"x\" is \\ broken");
     }
 }

@@ -23,8 +23,7 @@ use std::time::Duration;
 
 use tokio::time::{Instant, Sleep};
 
-use axum::extract::connect_info::Connected;
-use axum::serve::{IncomingStream, Listener};
+use axum::serve::Listener;
 use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
@@ -273,12 +272,6 @@ impl AsyncWrite for LimitedStream {
 /// The client's address, as handlers see it (`ConnectInfo<ClientAddr>`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ClientAddr(pub SocketAddr);
-
-impl Connected<IncomingStream<'_, LimitedListener>> for ClientAddr {
-    fn connect_info(stream: IncomingStream<'_, LimitedListener>) -> Self {
-        ClientAddr(*stream.remote_addr())
-    }
-}
 
 #[cfg(test)]
 mod tests {

@@ -1,5 +1,7 @@
-//! The REST + WebSocket face (`/api/v1`), with its OpenAPI document, access
-//! control and motor-safety leases.
+//! The REST + WebSocket face (`/api/v1`), with its OpenAPI document and
+//! its authentication. Every write goes through the control core
+//! ([`crate::control`]): this face authenticates, translates, calls the
+//! core, and renders what it decided.
 //!
 //! - [`listener`] binds (loopback only without tokens) and limits connections,
 //!   [`server`] serves them with a deadline on every request,
@@ -9,8 +11,7 @@
 //!   schemas a derive cannot write are in [`body_schemas`]),
 //! - [`extract`] and [`integers`] read requests, refusing bad ones with a
 //!   problem document,
-//! - [`control`] is the write path they share (checks, confirmation, audit),
-//! - [`leases`] stops motors whose client went silent,
+//! - [`control`] hands their writes to the core and renders its outcomes,
 //! - [`hub`] and [`stream`] are the WebSocket stream,
 //! - [`problem`] maps every error to `application/problem+json`.
 //!
@@ -28,7 +29,6 @@ pub mod extract;
 pub mod health;
 pub mod hub;
 pub mod integers;
-pub mod leases;
 pub mod listener;
 pub mod openapi;
 pub mod problem;
@@ -51,12 +51,12 @@ use tokio_util::sync::CancellationToken;
 use utoipa_swagger_ui::SwaggerUi;
 
 use crate::config::Config;
+use crate::control::Control;
 use crate::faces::Listening;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 use auth::Tokens;
 use hub::Hub;
-use leases::LeaseBook;
 use listener::LimitedListener;
 use problem::{Kind, Problem};
 use state::ApiState;
@@ -66,6 +66,7 @@ pub async fn start(
     config: &Config,
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
+    control: Control,
     shutdown: CancellationToken,
 ) -> Result<Listening, String> {
     let http = config.http.clone();
@@ -92,19 +93,13 @@ pub async fn start(
         tracing::info!(tokens = tokens.len(), "API tokens loaded");
     }
 
-    let hub = Hub::start(&plant, &shutdown);
-    let leases = LeaseBook::new(
-        plant.clone(),
-        hub.clone(),
-        config.safety.on_lease_expiry,
-        shutdown.clone(),
-    );
+    let hub = Hub::start(&plant, &control, &shutdown);
     let state = ApiState::new(
         plant,
         metrics,
         http.clone(),
         tokens,
-        leases,
+        control,
         hub,
         shutdown.clone(),
     );
@@ -127,7 +122,6 @@ pub async fn start(
         {
             tracing::warn!("some WebSocket sessions did not close within 3 s");
         }
-        let _ = tokio::time::timeout(Duration::from_secs(2), state.leases.wait()).await;
     });
     Ok(Listening { addr, task })
 }

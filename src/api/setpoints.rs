@@ -8,16 +8,56 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::Caller;
+use super::auth::{Caller, Require, forbidden};
 use super::control::{self, Written};
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
 use super::integers;
-use super::leases::LeaseInfo;
 use super::openapi::{LeaseProblems, WriteProblems};
 use super::problem::{Kind, Problem};
 use super::roles::Role;
-use super::state::{ApiState, Target};
-use crate::drive::{DriveRequest, Mode, RangeError, units};
+use super::state::ApiState;
+use crate::control::lease_book::Holder;
+use crate::control::{ControlRequest, LeaseError, LeaseView, Operation};
+use crate::drive::{DriveRequest, RangeError, units};
+
+/// A lease as clients see it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, ToSchema)]
+pub struct LeaseInfo {
+    /// The drive it covers.
+    pub drive: String,
+    /// Who holds it (token name or client address).
+    pub owner: String,
+    /// Its length: each renewal pushes the deadline this far ahead.
+    pub lease_ms: u64,
+    /// Time left before the stop action, ms.
+    pub expires_in_ms: u64,
+    /// True when it also ends as soon as its WebSocket closes.
+    pub websocket: bool,
+}
+
+impl LeaseInfo {
+    /// The core's view of a lease on drive `drive`.
+    pub fn new(drive: &str, view: &LeaseView) -> Self {
+        LeaseInfo {
+            drive: drive.to_string(),
+            owner: view.owner.to_string(),
+            lease_ms: millis_u64(view.length),
+            expires_in_ms: millis_u64(view.expires_in),
+            websocket: matches!(view.holder, Holder::Session(_)),
+        }
+    }
+}
+
+fn millis_u64(d: Duration) -> u64 {
+    u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
+}
+
+/// The lease on drive `index` of the plant, as clients see it.
+pub fn lease_of(state: &ApiState, index: usize) -> Option<LeaseInfo> {
+    let view = state.control.lease(index)?;
+    let name = state.plant.drives().get(index)?.name.clone();
+    Some(LeaseInfo::new(&name, &view))
+}
 
 /// `PUT .../setpoint` body: exactly one setpoint, and optionally a lease.
 /// Its OpenAPI schema is in [`super::body_schemas`].
@@ -122,70 +162,27 @@ fn millis(d: Duration) -> i64 {
     i64::try_from(d.as_millis()).unwrap_or(i64::MAX)
 }
 
-/// How long a setpoint may take to be confirmed: the queue wait and every
-/// attempt's timeout, with a margin.
-fn pending_allowance(target: Target<'_>, state: &ApiState) -> Duration {
-    state
-        .plant
-        .buses()
-        .get(target.drive.bus)
-        .map_or(Duration::from_secs(10), |b| {
-            let c = &b.config;
-            let per_attempt = c.response_timeout_ms + c.guard_ms.unwrap_or(c.response_timeout_ms);
-            Duration::from_millis(c.queue_timeout_ms)
-                + Duration::from_millis(per_attempt) * (u32::from(c.retries) + 1)
-                + Duration::from_secs(1)
-        })
-}
-
-/// The mode a setpoint drives the motor in.
-fn setpoint_mode(request: &DriveRequest) -> Mode {
-    match request {
-        DriveRequest::Position { .. } => Mode::Position,
-        DriveRequest::Torque { .. } => Mode::Torque,
-        _ => Mode::Speed,
-    }
-}
-
-/// Sends a setpoint to drive `key` for `caller`; `connection` ties its
-/// lease to a WebSocket.
+/// Sends a setpoint to drive `key` for `caller`; a lease taken over the
+/// stream ends with its session too.
 pub async fn apply(
     state: &ApiState,
     caller: &Caller,
     key: &str,
     body: &SetpointBody,
-    connection: Option<u64>,
 ) -> Result<SetpointReply, Problem> {
     caller.require(Role::Operator)?;
     let target = state.target(key)?;
     let request = body.request()?;
     let lease = lease_length(state, body.lease_ms)?;
-    control::ensure_active(caller, target).await?;
-    let grant = lease.map(|d| {
-        state.leases.grant(
-            target.index,
-            setpoint_mode(&request),
-            &caller.who,
-            connection,
-            d,
-            pending_allowance(target, state),
-        )
-    });
-    let result = control::send(caller, target, &request).await;
-    let lease = match (grant, &result) {
-        (None, Ok(_)) => {
-            let what = format!("a setpoint without a lease from {}", caller.who);
-            state.leases.took_over(target.index, &what);
-            state.leases.get(target.index)
-        }
-        (None, Err(_)) => state.leases.get(target.index),
-        (Some(g), Err(problem)) if !g.replaced && surely_not_applied(problem) => {
-            state.leases.withdraw(target.index, g.id);
-            None
-        }
-        (Some(g), _) => state.leases.confirm(target.index, g.id, result.is_ok()),
-    };
-    result?;
+    let sent = control::send(
+        state,
+        caller,
+        target,
+        ControlRequest::drive(request).with_lease(lease),
+    )
+    .await;
+    let lease = lease_of(state, target.index);
+    sent?;
     Ok(SetpointReply {
         drive: target.drive.name.clone(),
         bus: target.bus.name().to_string(),
@@ -195,20 +192,14 @@ pub async fn apply(
     })
 }
 
-/// True when the drive surely did not take the setpoint: it was never sent,
-/// or the drive refused it.
-fn surely_not_applied(problem: &Problem) -> bool {
-    matches!(
-        problem.kind(),
-        Kind::BusBusy
-            | Kind::BusDown
-            | Kind::QueueTimeout
-            | Kind::ShuttingDown
-            | Kind::DriveNotActive
-            | Kind::DriveBusy
-            | Kind::DriveRefused
-            | Kind::Internal
-    )
+/// The problem for a lease that cannot be renewed or released.
+fn lease_problem(caller: &Caller, drive: &str, error: LeaseError, hint: &str) -> Problem {
+    match error {
+        LeaseError::Refused(_) => forbidden(caller, Operation::Lease.needs()),
+        LeaseError::NoLease(why) => {
+            Problem::new(Kind::NoLease, format!("{}; {hint}", why.0)).for_drive(drive)
+        }
+    }
 }
 
 /// Sends a speed, position or torque setpoint (operator); it returns once
@@ -239,7 +230,7 @@ pub async fn put_setpoint(
     PathParams(key): PathParams<String>,
     JsonBody(body): JsonBody<SetpointBody>,
 ) -> Result<Json<SetpointReply>, Problem> {
-    apply(&state, &caller, &key, &body, None).await.map(Json)
+    apply(&state, &caller, &key, &body).await.map(Json)
 }
 
 /// `POST .../lease/renew` body (optional).
@@ -265,13 +256,18 @@ pub async fn renew(
         Some(ms) => lease_length(state, Some(ms))?,
         None => None,
     };
-    state.leases.renew(target.index, length).map_err(|what| {
-        Problem::new(
-            Kind::NoLease,
-            format!("{what}; to take a lease, send the setpoint again with lease_ms"),
-        )
-        .for_drive(&target.drive.name)
-    })
+    state
+        .control
+        .renew(caller, target.index, length)
+        .map(|view| LeaseInfo::new(&target.drive.name, &view))
+        .map_err(|e| {
+            lease_problem(
+                caller,
+                &target.drive.name,
+                e,
+                "to take a lease, send the setpoint again with lease_ms",
+            )
+        })
 }
 
 /// Pushes the lease's deadline ahead by its length (operator).
@@ -302,23 +298,11 @@ pub async fn post_renew(
 pub async fn release(state: &ApiState, caller: &Caller, key: &str) -> Result<LeaseInfo, Problem> {
     caller.require(Role::Operator)?;
     let target = state.target(key)?;
-    let info = state
-        .leases
-        .release(target.index, &caller.who)
-        .map_err(|what| {
-            Problem::new(
-                Kind::NoLease,
-                format!("{what}; there is nothing to release"),
-            )
-            .for_drive(&target.drive.name)
-        })?;
-    tracing::info!(
-        target: "drivegate::audit",
-        who = %caller.who,
-        drive = %target.drive.name,
-        "lease released: the motor keeps its setpoint without a lease"
-    );
-    Ok(info)
+    let view = state
+        .control
+        .release(caller, target.index)
+        .map_err(|e| lease_problem(caller, &target.drive.name, e, "there is nothing to release"))?;
+    Ok(LeaseInfo::new(&target.drive.name, &view))
 }
 
 /// Ends the lease without stopping the motor (operator): the motor keeps

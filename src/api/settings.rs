@@ -8,7 +8,7 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::Caller;
+use super::auth::{Caller, Require};
 use super::control::{self, Written};
 use super::extract::{JsonBody, PathParams};
 use super::integers;
@@ -16,6 +16,7 @@ use super::openapi::WriteProblems;
 use super::problem::Problem;
 use super::roles;
 use super::state::{ApiState, Target};
+use crate::control::ControlRequest;
 use crate::drive::{DriveRequest, RangeError, units};
 
 /// What a settings write did.
@@ -45,10 +46,13 @@ async fn write_settings(
     let target = state.target(key)?;
     let request = build(target)?;
     request.validate()?;
-    if save {
-        control::ensure_still(caller, target, force).await?;
-    }
-    control::send(caller, target, &request).await?;
+    control::send(
+        state,
+        caller,
+        target,
+        ControlRequest::drive(request).forced(force),
+    )
+    .await?;
     Ok(SettingsReply {
         drive: target.drive.name.clone(),
         bus: target.bus.name().to_string(),

@@ -1,9 +1,8 @@
-//! What every handler shares: the plant, the metrics, the tokens, the
-//! leases, the stream hub, and the shutdown signal.
+//! What every handler shares: the plant, the control core, the metrics,
+//! the tokens, the stream hub, and the shutdown signal.
 
 use std::collections::HashMap;
 use std::ops::Deref;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use tokio_util::sync::CancellationToken;
@@ -12,9 +11,9 @@ use tokio_util::task::TaskTracker;
 use super::auth::Tokens;
 use super::config::HttpConfig;
 use super::hub::Hub;
-use super::leases::LeaseBook;
 use super::problem::{Kind, Problem};
 use crate::bus::{BusHandle, SourceId};
+use crate::control::{self, Control};
 use crate::metrics::Metrics;
 use crate::plant::{Drive, Plant};
 
@@ -32,8 +31,8 @@ pub struct Shared {
     pub config: HttpConfig,
     /// Configured tokens.
     pub tokens: Tokens,
-    /// Setpoint leases.
-    pub leases: Arc<LeaseBook>,
+    /// The control core: every write goes through it.
+    pub control: Control,
     /// The stream's fan-out of bus and lease events.
     pub hub: Arc<Hub>,
     /// Fires when the daemon stops.
@@ -41,7 +40,6 @@ pub struct Shared {
     /// WebSocket sessions, which the HTTP server does not track once upgraded.
     pub sessions: TaskTracker,
     sources: Mutex<HashMap<String, SourceId>>,
-    next_connection: AtomicU64,
 }
 
 impl Deref for ApiState {
@@ -63,6 +61,17 @@ pub struct Target<'a> {
     pub bus: &'a BusHandle,
 }
 
+impl Target<'_> {
+    /// Where the control core sends its writes.
+    pub fn control(&self) -> control::Target {
+        control::Target {
+            bus: self.drive.bus,
+            unit: self.drive.unit,
+            drive: Some(self.index),
+        }
+    }
+}
+
 impl ApiState {
     /// The state of a starting API.
     pub fn new(
@@ -70,7 +79,7 @@ impl ApiState {
         metrics: Arc<Metrics>,
         config: HttpConfig,
         tokens: Tokens,
-        leases: Arc<LeaseBook>,
+        control: Control,
         hub: Arc<Hub>,
         shutdown: CancellationToken,
     ) -> Self {
@@ -79,12 +88,11 @@ impl ApiState {
             metrics,
             config,
             tokens,
-            leases,
+            control,
             hub,
             shutdown,
             sessions: TaskTracker::new(),
             sources: Mutex::new(HashMap::new()),
-            next_connection: AtomicU64::new(1),
         }))
     }
 
@@ -95,11 +103,6 @@ impl ApiState {
         *sources
             .entry(key.to_string())
             .or_insert_with(SourceId::new_unique)
-    }
-
-    /// A new WebSocket connection id.
-    pub fn next_connection_id(&self) -> u64 {
-        self.next_connection.fetch_add(1, Ordering::Relaxed)
     }
 
     /// The drive named `key` (or, on a single bus, with that unit number).

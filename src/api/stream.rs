@@ -38,12 +38,13 @@ use super::buses;
 use super::commands::{self, ModeBody, parse_command};
 use super::drives;
 use super::extract::Params;
-use super::hub::{HubEvent, ServerMessage};
+use super::hub::{HubEvent, ServerMessage, render};
 use super::openapi::ReadProblems;
 use super::problem::{Kind, Problem};
 use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
 use super::state::ApiState;
+use crate::control::{ControlEvent, Face, SessionId};
 use crate::drive::ConfigCommand;
 
 /// Replies (and other answers to the client's own messages) that may wait.
@@ -196,11 +197,12 @@ impl Selection {
 
 async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Vec<usize>) {
     let _counted = state.metrics.faces().ws_client();
-    let connection = state.next_connection_id();
-    // Unbounded, but only a lease of this client's own ending adds to it.
-    let (notices_tx, notices_rx) = mpsc::unbounded_channel();
-    state.leases.connection_opened(connection, notices_tx);
-    tracing::debug!(who = %caller.who, connection, "stream client connected");
+    // Its leases end when it closes. News of their end comes on an
+    // unbounded channel, but only a lease of this client's own adds to it.
+    let (guard, notices_rx) = state.control.open_session("its WebSocket closed");
+    let connection = guard.id();
+    let caller = caller.in_session(Face::WebSocket, connection);
+    tracing::debug!(who = %caller.who, connection = connection.0, "stream client connected");
 
     let selection = Arc::new(Selection::new(state.plant.drives().len()));
     selection.set(&initial);
@@ -237,8 +239,8 @@ async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Ve
     forwarder.abort();
     // Only once no command of this session can reach the bus any more.
     in_flight.end().await;
-    state.leases.connection_closed(connection);
-    tracing::debug!(who = %caller.who, connection, "stream client gone");
+    drop(guard);
+    tracing::debug!(who = %caller.who, connection = connection.0, "stream client gone");
 }
 
 /// The session's commands in flight, each a task beside the reader.
@@ -290,7 +292,7 @@ impl InFlight {
 /// session got directly (its own leases' ends) are skipped.
 async fn forward(
     mut hub: broadcast::Receiver<HubEvent>,
-    connection: u64,
+    connection: SessionId,
     selection: Arc<Selection>,
     missed: Arc<AtomicU64>,
     events: mpsc::Sender<Utf8Bytes>,
@@ -330,7 +332,7 @@ async fn write_loop(
     state: &ApiState,
     mut sink: Sink,
     mut replies: mpsc::Receiver<Utf8Bytes>,
-    mut notices: mpsc::UnboundedReceiver<Utf8Bytes>,
+    mut notices: mpsc::UnboundedReceiver<Arc<ControlEvent>>,
     mut events: mpsc::Receiver<Utf8Bytes>,
     missed: &AtomicU64,
 ) {
@@ -342,7 +344,10 @@ async fn write_loop(
             biased;
             () = state.shutdown.cancelled() => None,
             Some(reply) = replies.recv() => Some(Message::Text(reply)),
-            Some(notice) = notices.recv() => Some(Message::Text(notice)),
+            Some(notice) = notices.recv() => match render(&state.plant, &notice) {
+                Some(text) => Some(Message::Text(text)),
+                None => continue,
+            },
             // Before updates: a stream always busy must still be pinged.
             _ = ping.tick() => Some(Message::Ping(Default::default())),
             Some(event) = events.recv() => {
@@ -411,7 +416,7 @@ fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
 async fn read_loop(
     state: &ApiState,
     caller: &Caller,
-    connection: u64,
+    connection: SessionId,
     mut stream: Source,
     selection: &Selection,
     replies: mpsc::Sender<Utf8Bytes>,
@@ -421,7 +426,7 @@ async fn read_loop(
     let silence = state.config.idle_timeout;
     let mut deadline = tokio::time::Instant::now() + silence;
     let gone = |what: &str| {
-        tracing::debug!(who = %caller.who, connection, "stream client {what} for {silence:?}: closing");
+        tracing::debug!(who = %caller.who, connection = connection.0, "stream client {what} for {silence:?}: closing");
     };
     loop {
         let Ok(next) = tokio::time::timeout_at(deadline, stream.next()).await else {
@@ -487,7 +492,7 @@ async fn read_loop(
                 // Commands run beside the reader, so a slow one (a scan, a
                 // timeout) does not hold up lease renewals sent after it.
                 commands.spawn(&tracker, brake, async move {
-                    let result = dispatch(&state, &caller, connection, &op, drive, bus, body).await;
+                    let result = dispatch(&state, &caller, &op, drive, bus, body).await;
                     let reply = match result {
                         Ok(result) => ServerMessage::Reply {
                             id,
@@ -561,7 +566,6 @@ const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, s
 async fn dispatch(
     state: &ApiState,
     caller: &Caller,
-    connection: u64,
     op: &str,
     drive: Option<String>,
     bus: Option<String>,
@@ -599,7 +603,7 @@ async fn dispatch(
         }
         "setpoint" => {
             let b: SetpointBody = body_as(op, body)?;
-            json(setpoints::apply(state, caller, key, &b, Some(connection)).await?)
+            json(setpoints::apply(state, caller, key, &b).await?)
         }
         "lease-renew" => {
             let b: RenewBody = body_as(op, body)?;

@@ -1,11 +1,57 @@
-//! What can go wrong with a job on the bus, in words a plant engineer can act on.
+//! What can go wrong with a job on the bus, in words a plant engineer can act on,
+//! with the cause kept typed: whether the request reached the wire (the
+//! variant), the port's I/O error kind, the fault of the last reply. The
+//! control core decides on these, never on the words.
 
+use std::fmt;
+use std::io;
 use std::time::Duration;
 
 use crate::drive::ReplyError;
 use crate::modbus::ExceptionCode;
 
 use super::job::Priority;
+use super::master::Fault;
+
+/// Why a serial port carries no requests.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PortCause {
+    /// The kind of the I/O error the port failed with, if it was one (not
+    /// for a bus that never started or has stopped).
+    pub kind: Option<io::ErrorKind>,
+    /// What the system or drivegate said, for people.
+    pub detail: String,
+}
+
+impl PortCause {
+    /// The port failed with `error`; `detail` says so in words.
+    pub fn io(error: &io::Error, detail: impl Into<String>) -> Self {
+        PortCause {
+            kind: Some(error.kind()),
+            detail: detail.into(),
+        }
+    }
+
+    /// A cause that is no I/O error (the bus never started, or stopped).
+    pub fn other(detail: impl Into<String>) -> Self {
+        PortCause {
+            kind: None,
+            detail: detail.into(),
+        }
+    }
+}
+
+impl fmt::Display for PortCause {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.detail)
+    }
+}
+
+impl From<String> for PortCause {
+    fn from(detail: String) -> Self {
+        PortCause::other(detail)
+    }
+}
 
 /// Why a job submitted to a bus did not produce a confirmed reply.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -29,7 +75,7 @@ pub enum BusError {
         /// Bus name.
         bus: String,
         /// Why the port is closed.
-        reason: String,
+        reason: PortCause,
     },
     /// The serial port failed after the request had (at least partly) gone
     /// out: the drive may have received it and carried it out, but its
@@ -43,7 +89,7 @@ pub enum BusError {
         /// Unit address the request went to (0: broadcast).
         unit: u8,
         /// What happened to the port.
-        reason: String,
+        reason: PortCause,
     },
     /// The drive did not answer in time, on every attempt.
     #[error("drive at unit {unit} did not answer ({attempts} attempt(s), {timeout_ms} ms each)")]
@@ -56,14 +102,14 @@ pub enum BusError {
         timeout_ms: u64,
     },
     /// Every attempt got a corrupted or unrelated reply.
-    #[error("drive at unit {unit} gave no valid reply in {attempts} attempt(s): {detail}")]
+    #[error("drive at unit {unit} gave no valid reply in {attempts} attempt(s): {}", fault.describe())]
     BadReply {
         /// Unit address.
         unit: u8,
         /// Attempts made.
         attempts: u8,
         /// What was wrong with the last reply.
-        detail: String,
+        fault: Fault,
     },
     /// The drive refused the request with a Modbus exception.
     #[error("drive at unit {unit} refused the request: {code}")]
@@ -79,7 +125,7 @@ pub enum BusError {
         /// Unit address.
         unit: u8,
         /// What did not match.
-        detail: String,
+        detail: &'static str,
     },
     /// The job's deadline passed while it waited; it never reached the wire.
     #[error("gave up after waiting {waited:?} for the bus; the request was not sent")]
@@ -100,11 +146,17 @@ impl BusError {
     pub fn from_reply(unit: u8, err: ReplyError) -> Self {
         match err {
             ReplyError::Exception(code) => BusError::Exception { unit, code },
-            ReplyError::Mismatch(detail) => BusError::Unconfirmed {
-                unit,
-                detail: detail.to_string(),
-            },
+            ReplyError::Mismatch(detail) => BusError::Unconfirmed { unit, detail },
         }
+    }
+
+    /// True when the drive answered and confirmed nothing: its exception,
+    /// or a reply that does not confirm the request.
+    pub fn answered(&self) -> bool {
+        matches!(
+            self,
+            BusError::Exception { .. } | BusError::Unconfirmed { .. }
+        )
     }
 
     /// True when the request surely never reached the wire.

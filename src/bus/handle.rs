@@ -149,7 +149,7 @@ impl BusHandle {
         if let PortState::Down { reason, .. } = self.shared.state() {
             return Err(BusError::BusDown {
                 bus: self.name().to_string(),
-                reason,
+                reason: reason.into(),
             });
         }
         let now = Instant::now();

@@ -14,9 +14,10 @@ use tracing::{debug, info, warn};
 
 use super::cache::StatusCache;
 use super::error::BusError;
+use super::error::PortCause;
 use super::handle::{BusHandle, PortState, Shared};
 use super::job::{Exchange, Job, Priority};
-use super::master::{MasterSettings, PortFailure, Report, RtuMaster};
+use super::master::{Fault, MasterSettings, PortFailure, Report, RtuMaster};
 use super::poller::PollPlan;
 use super::port;
 use super::queue::{JobQueue, QueueLimits};
@@ -119,7 +120,7 @@ fn new_shared(settings: &BusSettings) -> Arc<Shared> {
 fn never_started(shared: &Shared, reason: String) {
     let down = BusError::BusDown {
         bus: shared.name.to_string(),
-        reason: reason.clone(),
+        reason: reason.clone().into(),
     };
     let _ = shared.ended.set(down.clone());
     shared.set_state(PortState::Down {
@@ -271,7 +272,7 @@ impl Scheduler {
                             self.stats().record_port_error(&reason);
                             last_open_error = reason.clone();
                         }
-                        self.mark_down(reason);
+                        self.mark_down(reason.into());
                         let delay = self.reopen.failed(Instant::now());
                         self.pause(delay).await;
                     }
@@ -316,7 +317,7 @@ impl Scheduler {
                 warn!(bus = %name, "{reason}; reopening in {delay:?}");
                 self.stats().record_port_error(&reason);
                 master = None;
-                self.mark_down(reason);
+                self.mark_down(PortCause::io(&e, reason));
                 self.pause(delay).await;
             }
         }
@@ -341,7 +342,8 @@ impl Scheduler {
 
     /// Marks the port down and fails every waiting job: nobody should wait
     /// for a bus that may not come back soon.
-    fn mark_down(&self, reason: String) {
+    fn mark_down(&self, cause: PortCause) {
+        let reason = cause.detail.clone();
         if !matches!(self.shared.state(), PortState::Down { .. }) {
             self.stats().set_port_open(false, false);
             self.cache().record_port(false, &reason);
@@ -355,7 +357,7 @@ impl Scheduler {
                 .record_transaction(job.pdu[0], Outcome::PortError, 0);
             job.finish(Err(BusError::BusDown {
                 bus: self.settings.name.clone(),
-                reason: reason.clone(),
+                reason: cause.clone(),
             }));
         }
     }
@@ -452,7 +454,8 @@ impl Scheduler {
                 self.stats()
                     .record_transaction(function, Outcome::PortError, 1);
                 let (bus, unit) = (self.settings.name.clone(), job.unit);
-                let reason = failure.to_string();
+                let (PortFailure::BeforeSend(e) | PortFailure::AfterSend(e)) = &failure;
+                let reason = PortCause::io(e, failure.to_string());
                 // Once the frame has started to go out, the drive may act on
                 // it: the caller must not take it for never sent.
                 job.finish(Err(if failure.request_sent() {
@@ -486,9 +489,7 @@ impl Scheduler {
             (_, _) => Err(BusError::BadReply {
                 unit: job.unit,
                 attempts: report.attempts,
-                detail: report
-                    .fault
-                    .map_or_else(|| "invalid reply".to_string(), |f| f.describe()),
+                fault: report.fault.unwrap_or(Fault::Mismatch("invalid reply")),
             }),
         };
         self.stats().job_latency.observe(job.submitted.elapsed());
@@ -555,13 +556,13 @@ mod tests {
         never_started(&shared, "cannot start the bus runtime: no memory".into());
         // The job that was waiting gets the reason...
         match queued.try_recv() {
-            Ok(Err(BusError::BusDown { reason, .. })) => assert!(reason.contains("runtime")),
+            Ok(Err(BusError::BusDown { reason, .. })) => assert!(reason.detail.contains("runtime")),
             other => panic!("{other:?}"),
         }
         // ...and so does every later one, at once, emergencies included.
         let later = bus.submit(1, STATUS_PDU.clone(), emergency).unwrap_err();
         assert!(
-            matches!(&later, BusError::BusDown { reason, .. } if reason.contains("runtime")),
+            matches!(&later, BusError::BusDown { reason, .. } if reason.detail.contains("runtime")),
             "{later}"
         );
         assert_eq!(bus.queue_depths(), [0, 0, 0]);

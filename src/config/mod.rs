@@ -141,7 +141,7 @@ impl Config {
         }
         self.modbus_tcp
             .validate(self)
-            .map_err(|message| at(0..0, message))?;
+            .map_err(|(span, message)| at(span, message))?;
         Ok(())
     }
 

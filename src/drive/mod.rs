@@ -8,6 +8,7 @@ pub mod range;
 pub mod registers;
 pub mod status;
 pub mod units;
+pub mod writes;
 
 pub use command::ConfigCommand;
 pub use message::{DriveReply, DriveRequest, ReplyError};

@@ -1,14 +1,19 @@
-//! `[modbus_tcp]` section: the listener, its access rules, the unit map and
-//! the polled-copy reads.
+//! `[modbus_tcp]` section: the listener, its access rules (which networks
+//! may connect, and with which role), the unit map and the polled-copy
+//! reads.
 
 use std::collections::BTreeSet;
 use std::fmt;
 use std::net::SocketAddr;
+use std::ops::Range;
 use std::time::Duration;
 
 use ipnet::IpNet;
 use serde::Deserialize;
 use serde::de::{self, Deserializer, Visitor};
+use toml::Spanned;
+
+use crate::control::Role;
 
 /// The Modbus TCP listener.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
@@ -30,9 +35,15 @@ pub struct ModbusTcpConfig {
     /// answered.
     #[serde(deserialize_with = "int_in::<_, _, 1, 64>")]
     pub max_pipelined: usize,
-    /// Client networks allowed to connect; others are closed at once.
+    /// Client networks allowed to connect, with the admin role (viewer
+    /// with `read_only`); others are closed at once.
     pub allowed_networks: Vec<IpNet>,
-    /// Refuse every request that could change a drive (exception 0x01).
+    /// Client networks allowed to connect with a role of their own (and
+    /// the still-check override); the most specific entry a client is in,
+    /// here or in `allowed_networks`, decides.
+    pub clients: Vec<ClientNetwork>,
+    /// Every client is a viewer: every request that could change a drive
+    /// is refused (exception 0x01).
     pub read_only: bool,
     /// Answer a broadcast (unit 0) once it is on the wire; off, the client
     /// gets no reply, as Modbus specifies for broadcasts.
@@ -44,27 +55,67 @@ pub struct ModbusTcpConfig {
     pub polled_copy: Vec<PolledCopy>,
 }
 
+/// A client network and what its clients may do. A place for the
+/// network's further settings (a communication-loss time and action).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ClientNetwork {
+    /// The network (CIDR), e.g. "10.1.0.0/16".
+    pub network: IpNet,
+    /// What its clients may do: `viewer` (reads), `operator` (setpoints,
+    /// modes, brake, resets) or `admin` (also protection, ramps, inertia,
+    /// saves, calibration, address, factory reset and writes drivegate
+    /// cannot decode).
+    pub role: Spanned<Role>,
+    /// Send saves to flash, factory reset, address setting and calibration
+    /// even while the motor turns (refused with exception 0x06 otherwise).
+    #[serde(default)]
+    pub allow_saves_while_moving: bool,
+}
+
+impl ClientNetwork {
+    /// The role of its clients.
+    pub fn role(&self) -> Role {
+        *self.role.get_ref()
+    }
+}
+
 /// One range of the unit map.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct UnitMapEntry {
     /// Modbus TCP unit ids ("101-132" or a single id).
-    pub units: UnitRange,
+    pub units: Spanned<UnitRange>,
     /// The bus they go to.
-    pub bus: String,
+    pub bus: Spanned<String>,
     /// The units on that bus, in order (default: the same numbers).
     #[serde(default)]
-    pub bus_units: Option<UnitRange>,
+    pub bus_units: Option<Spanned<UnitRange>>,
 }
 
 impl UnitMapEntry {
+    /// The Modbus TCP unit ids.
+    pub fn units(&self) -> UnitRange {
+        *self.units.get_ref()
+    }
+
+    /// The name of the bus.
+    pub fn bus(&self) -> &str {
+        self.bus.get_ref()
+    }
+
     /// The bus unit a Modbus TCP unit of this entry goes to.
     pub fn bus_unit(&self, tcp_unit: u8) -> Option<u8> {
-        if !self.units.contains(tcp_unit) {
+        let units = self.units();
+        if !units.contains(tcp_unit) {
             return None;
         }
-        let first = self.bus_units.unwrap_or(self.units).first;
-        first.checked_add(tcp_unit - self.units.first)
+        let first = self
+            .bus_units
+            .as_ref()
+            .map_or(units, |b| *b.get_ref())
+            .first;
+        first.checked_add(tcp_unit - units.first)
     }
 }
 
@@ -73,7 +124,7 @@ impl UnitMapEntry {
 #[serde(deny_unknown_fields)]
 pub struct PolledCopy {
     /// The bus.
-    pub bus: String,
+    pub bus: Spanned<String>,
     /// Oldest poll a read may be answered from; older goes to the bus.
     #[serde(deserialize_with = "int_in::<_, _, 1, 60_000>")]
     pub max_age_ms: u64,
@@ -221,6 +272,7 @@ impl Default for ModbusTcpConfig {
             idle_timeout_ms: 60_000,
             max_pipelined: 16,
             allowed_networks: default_allowed_networks(),
+            clients: Vec::new(),
             read_only: false,
             broadcast_reply: false,
             unit_map: Vec::new(),
@@ -237,53 +289,81 @@ impl ModbusTcpConfig {
 
     /// Checks against the rest of the configuration: the unit map and the
     /// polled-copy entries must name configured buses, map ranges of equal
-    /// length and not overlap.
-    pub fn validate(&self, config: &crate::config::Config) -> Result<(), String> {
+    /// length and not overlap; with `read_only`, no client network may
+    /// have a role above viewer. An error comes with the span of the value
+    /// to fix.
+    pub fn validate(&self, config: &crate::config::Config) -> Result<(), (Range<usize>, String)> {
         let bus_names: Vec<&str> = config.buses.iter().map(|b| b.name()).collect();
-        let known = |bus: &str, what: String| {
-            if bus_names.contains(&bus) {
+        let known = |bus: &Spanned<String>, what: String| {
+            if bus_names.contains(&bus.get_ref().as_str()) {
                 Ok(())
             } else {
-                Err(format!(
-                    "[modbus_tcp] {what} names bus \"{bus}\", which is not configured (buses: {})",
-                    quoted(&bus_names)
+                Err((
+                    bus.span(),
+                    format!(
+                        "[modbus_tcp] {what} names bus \"{}\", which is not configured (buses: {})",
+                        bus.get_ref(),
+                        quoted(&bus_names)
+                    ),
                 ))
             }
         };
         for (i, entry) in self.unit_map.iter().enumerate() {
-            let what = format!("unit_map entry {} (units {})", i + 1, entry.units);
+            let units = entry.units();
+            let what = format!("unit_map entry {} (units {units})", i + 1);
             known(&entry.bus, what.clone())?;
-            if let Some(bus_units) = entry.bus_units
-                && bus_units.len() != entry.units.len()
+            if let Some(bus_units) = &entry.bus_units
+                && bus_units.get_ref().len() != units.len()
             {
-                return Err(format!(
-                    "[modbus_tcp] {what}: bus_units {bus_units} has {} units but units {} has {}: give ranges of the same length",
-                    bus_units.len(),
-                    entry.units,
-                    entry.units.len()
+                return Err((
+                    bus_units.span(),
+                    format!(
+                        "[modbus_tcp] {what}: bus_units {} has {} units but units {units} has {}: give ranges of the same length",
+                        bus_units.get_ref(),
+                        bus_units.get_ref().len(),
+                        units.len()
+                    ),
                 ));
             }
             if let Some((j, other)) = self.unit_map[..i]
                 .iter()
                 .enumerate()
-                .find(|(_, o)| o.units.overlaps(&entry.units))
+                .find(|(_, o)| o.units().overlaps(&units))
             {
-                return Err(format!(
-                    "[modbus_tcp] {what} overlaps unit_map entry {} (units {}): each Modbus TCP unit id may go to one place only",
-                    j + 1,
-                    other.units
+                return Err((
+                    entry.units.span(),
+                    format!(
+                        "[modbus_tcp] {what} overlaps unit_map entry {} (units {}): each Modbus TCP unit id may go to one place only",
+                        j + 1,
+                        other.units()
+                    ),
                 ));
             }
         }
         let mut seen = BTreeSet::new();
         for (i, entry) in self.polled_copy.iter().enumerate() {
             known(&entry.bus, format!("polled_copy entry {}", i + 1))?;
-            if !seen.insert(entry.bus.as_str()) {
-                return Err(format!(
-                    "[modbus_tcp] polled_copy lists bus \"{}\" twice: give one max_age_ms per bus",
-                    entry.bus
+            if !seen.insert(entry.bus.get_ref().as_str()) {
+                return Err((
+                    entry.bus.span(),
+                    format!(
+                        "[modbus_tcp] polled_copy lists bus \"{}\" twice: give one max_age_ms per bus",
+                        entry.bus.get_ref()
+                    ),
                 ));
             }
+        }
+        if self.read_only
+            && let Some(client) = self.clients.iter().find(|c| c.role() > Role::Viewer)
+        {
+            return Err((
+                client.role.span(),
+                format!(
+                    "[modbus_tcp] read_only = true makes every client a viewer, but the clients entry for {} gives the role {}: remove read_only, or make the entry a viewer",
+                    client.network,
+                    client.role().name()
+                ),
+            ));
         }
         Ok(())
     }
@@ -353,9 +433,12 @@ name = "b1"
         assert_eq!(tcp.allowed_networks, default_allowed_networks());
         assert_eq!(tcp.unit_map[1].bus_unit(101), Some(1));
         assert_eq!(tcp.polled_copy[0].max_age(), Duration::from_millis(250));
+        assert_eq!(tcp.clients[0].role(), Role::Operator);
+        assert_eq!(tcp.clients[1].role(), Role::Viewer);
         let mut defaults = tcp.clone();
         defaults.unit_map.clear();
         defaults.polled_copy.clear();
+        defaults.clients.clear();
         assert_eq!(defaults, ModbusTcpConfig::default());
     }
 
@@ -365,7 +448,7 @@ name = "b1"
         assert_eq!(c.max_connections, 64);
         assert_eq!(c.idle_timeout(), Duration::from_secs(60));
         assert!(!c.read_only && !c.broadcast_reply);
-        assert!(c.unit_map.is_empty() && c.polled_copy.is_empty());
+        assert!(c.unit_map.is_empty() && c.polled_copy.is_empty() && c.clients.is_empty());
         assert_eq!(c.allowed_networks.len(), 8);
     }
 
@@ -414,6 +497,57 @@ bus_units = "40"
         );
         let e = parse("allowed_networks = [\"10.0.0.0/33\"]").unwrap_err();
         assert!(e.contains("t.toml:2:"), "{e}");
+    }
+
+    #[test]
+    fn client_networks_carry_a_role_and_the_override() {
+        let c = parse(
+            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\n[[modbus_tcp.clients]]\nnetwork = \"10.1.9.0/24\"\nrole = \"admin\"\nallow_saves_while_moving = true",
+        )
+        .unwrap();
+        let clients = &c.modbus_tcp.clients;
+        assert_eq!(clients[0].role(), Role::Operator);
+        assert!(!clients[0].allow_saves_while_moving);
+        assert!(clients[1].allow_saves_while_moving);
+        let e = parse("[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"boss\"")
+            .unwrap_err();
+        assert!(
+            e.contains("t.toml:4:8") && e.contains("unknown variant `boss`"),
+            "{e}"
+        );
+        let e = parse("[[modbus_tcp.clients]]\nrole = \"viewer\"").unwrap_err();
+        assert!(e.contains("missing field `network`"), "{e}");
+        // read_only makes everybody a viewer: a higher role contradicts it.
+        let e = parse(
+            "read_only = true\n[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"",
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("t.toml:5:8") && e.contains("read_only = true makes every client a viewer"),
+            "{e}"
+        );
+        parse("read_only = true\n[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"viewer\"")
+            .unwrap();
+    }
+
+    #[test]
+    fn errors_point_at_the_value_to_fix() {
+        // line 1 is [modbus_tcp]; the bus name is on line 4, column 7.
+        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"C\"").unwrap_err();
+        assert!(e.starts_with("t.toml:4:7:"), "{e}");
+        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"A\"\nbus_units = \"1-3\"")
+            .unwrap_err();
+        assert!(e.starts_with("t.toml:5:13:"), "{e}");
+        let e = parse(
+            "[[modbus_tcp.unit_map]]\nunits = \"1-10\"\nbus = \"A\"\n[[modbus_tcp.unit_map]]\nunits = \"10-20\"\nbus = \"B\"",
+        )
+        .unwrap_err();
+        assert!(e.starts_with("t.toml:6:9:"), "{e}");
+        let e = parse(
+            "[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 100\n[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 50",
+        )
+        .unwrap_err();
+        assert!(e.starts_with("t.toml:6:7:"), "{e}");
     }
 
     #[test]

@@ -1,6 +1,13 @@
-//! Turns one Modbus TCP request into a bus job and the job's result into the
-//! reply PDU: routing by unit id, the read-only rule, the polled copy,
-//! broadcasts, gateway exceptions, metrics and the write audit log.
+//! Turns one Modbus TCP request into work and the work's result into the
+//! reply PDU: routing by unit id, the Modbus shape rules, the polled copy,
+//! broadcasts, gateway exceptions and metrics.
+//!
+//! Reads go to the bus as they came. Writes go through the control core
+//! ([`crate::control`]), decoded into what they mean for the drive: the
+//! core checks the client's role (from its network), the still-check and
+//! the other rules, keeps the leases and the brake, sends, and audits;
+//! this module renders its decision as the drive's own reply or an
+//! exception (see [`super::outcome`]).
 //!
 //! The connection (see [`super::connection`]) decides *when* replies go out;
 //! this module decides *what* they are.
@@ -13,18 +20,18 @@ use tokio::sync::oneshot;
 use tokio::sync::oneshot::error::TryRecvError;
 use tracing::{debug, warn};
 
+use super::access::Rights;
 use super::config::ModbusTcpConfig;
-use super::outcome::{Outcome, exception_pdu, gateway_exception};
+use super::outcome::{Outcome, exception_pdu, failure_reply, gateway_exception};
 use super::polled_copy;
 use super::request;
-use super::routing::{BusUnits, Route, UnitRoutes};
+use super::routing::{BusUnits, UnitRoutes};
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
 use crate::bus::{BusError, Priority, SourceId};
-use crate::drive::Register;
+use crate::control::{self, Caller, Control, ControlRequest, Face, Write};
 use crate::metrics::Metrics;
 use crate::modbus::ExceptionCode;
-use crate::modbus::function::{EXCEPTION_BIT, WRITE_SINGLE_REGISTER, be_u16};
 use crate::plant::Plant;
 
 /// One connected client.
@@ -32,29 +39,35 @@ use crate::plant::Plant;
 pub struct Client {
     /// Its address: who it is in the audit log.
     pub peer: SocketAddr,
-    /// Its source id: the bus queue takes turns between sources, so one
-    /// connection flooding requests cannot starve the others.
-    pub source: SourceId,
+    /// Who it is to the control core: its address, the role of its
+    /// network, and its source id (the bus queue takes turns between
+    /// sources, so one connection flooding requests cannot starve the
+    /// others).
+    pub caller: Caller,
+    /// Writes that need standstill go even while the motor turns.
+    pub allow_saves_while_moving: bool,
 }
 
 impl Client {
-    /// A new client at `peer`, with a source id of its own.
-    pub fn new(peer: SocketAddr) -> Self {
+    /// A new client at `peer` with `rights`, with a source id of its own.
+    pub fn new(peer: SocketAddr, rights: Rights) -> Self {
         Self {
             peer,
-            source: SourceId::new_unique(),
+            caller: Caller::new(
+                Face::ModbusTcp,
+                peer.to_string(),
+                rights.role,
+                SourceId::new_unique(),
+            ),
+            allow_saves_while_moving: rights.allow_saves_while_moving,
         }
-    }
-
-    fn who(&self) -> String {
-        self.peer.to_string()
     }
 }
 
 /// What to do about one request.
 #[derive(Debug)]
 pub enum Answer {
-    /// Reply with this PDU (already decided, counted and audited).
+    /// Reply with this PDU (already decided and counted).
     Now(Vec<u8>),
     /// Send nothing (a broadcast without reply).
     Silent,
@@ -65,17 +78,23 @@ pub enum Answer {
 /// The routing and policy of one listener.
 pub struct Gateway {
     plant: Arc<Plant>,
+    control: Control,
     metrics: Arc<Metrics>,
     routes: UnitRoutes,
     /// Maximum age of the polled copy per bus index (`None`: strict passthrough).
     polled_copy: Vec<Option<Duration>>,
-    read_only: bool,
     broadcast_reply: bool,
 }
 
 impl Gateway {
-    /// The gateway for `config` over `plant`; warns about unreachable units.
-    pub fn new(config: &ModbusTcpConfig, plant: Arc<Plant>, metrics: Arc<Metrics>) -> Self {
+    /// The gateway for `config` over `plant`, writing through `control`;
+    /// warns about unreachable units.
+    pub fn new(
+        config: &ModbusTcpConfig,
+        plant: Arc<Plant>,
+        control: Control,
+        metrics: Arc<Metrics>,
+    ) -> Self {
         let buses: Vec<BusUnits> = plant
             .buses()
             .iter()
@@ -94,16 +113,16 @@ impl Gateway {
                 config
                     .polled_copy
                     .iter()
-                    .find(|p| p.bus == b.name)
+                    .find(|p| p.bus.get_ref() == &b.name)
                     .map(|p| p.max_age())
             })
             .collect();
         Self {
             plant,
+            control,
             metrics,
             routes,
             polled_copy,
-            read_only: config.read_only,
             broadcast_reply: config.broadcast_reply,
         }
     }
@@ -114,15 +133,17 @@ impl Gateway {
     }
 
     /// Decides what to do with `pdu` sent by `client` to `unit`. Requests
-    /// that go to the bus are queued before this returns, so pipelined
-    /// requests wait in the bus queue, not in the socket.
-    pub fn handle(&self, client: &Client, unit: u8, pdu: Vec<u8>) -> Answer {
+    /// that go to the bus are queued before this returns (writes that need
+    /// the drive's state read first, after that read), so pipelined
+    /// requests keep their order and wait in the bus queue, not in the
+    /// socket.
+    pub async fn handle(&self, client: &Client, unit: u8, pdu: Vec<u8>) -> Answer {
         if pdu.is_empty() {
             // The MBAP codec never yields one; answer rather than panic.
             return Answer::Now(exception_pdu(0, ExceptionCode::ILLEGAL_FUNCTION));
         }
         if unit == 0 {
-            return self.broadcast(client, pdu);
+            return self.broadcast(client, pdu).await;
         }
         let Some(route) = self.routes.route(unit) else {
             return self.refuse(
@@ -136,27 +157,29 @@ impl Gateway {
         };
         let function = pdu[0];
         let bus = &self.plant.buses()[route.bus].handle;
-        let target = (bus.name(), route.unit);
-        if self.read_only && !request::reads_only(&pdu) {
-            return self.refuse(
-                client,
-                target,
-                &pdu,
-                ExceptionCode::ILLEGAL_FUNCTION,
-                Outcome::ReadOnly,
-                "refused: this Modbus TCP listener is read-only".to_string(),
-            );
-        }
         if let Err(code) = request::check_shape(&pdu) {
             return self.refuse(
                 client,
-                target,
+                (bus.name(), route.unit),
                 &pdu,
                 code,
                 Outcome::Invalid,
                 "refused: the request's length or quantity does not fit its function code"
                     .to_string(),
             );
+        }
+        if !request::reads_only(&pdu) {
+            let target = self.control.unit_target(route.bus, route.unit);
+            let request = ControlRequest::new(Write::pdu(pdu.clone()))
+                .forced(client.allow_saves_while_moving);
+            return match self.control.submit(&client.caller, target, request).await {
+                Ok(pending) => Answer::Pending(Pending::writes(&pdu, false, vec![pending])),
+                Err(failure) => {
+                    let (reply, outcome) = failure_reply(function, &failure);
+                    self.count(function, outcome);
+                    Answer::Now(reply)
+                }
+            };
         }
         if let Some(max_age) = self.polled_copy[route.bus]
             && let Some(snapshot) = bus.drive(route.unit)
@@ -165,20 +188,23 @@ impl Gateway {
             self.count(function, Outcome::Cached);
             return Answer::Now(reply);
         }
-        let mut pending = Pending::new(client, &pdu, false);
-        pending.submit(self, route, pdu);
-        Answer::Pending(pending)
+        let options = JobOptions {
+            priority: Priority::Command,
+            source: client.caller.source,
+            queue_timeout: None,
+            max_attempts: None,
+        };
+        let state = match bus.submit(route.unit, pdu.clone(), options) {
+            Ok(rx) => ReadState::Waiting(rx),
+            Err(e) => ReadState::Done(Err(e)),
+        };
+        Answer::Pending(Pending::Read { pdu, state })
     }
 
     /// Unit 0: every bus the listener reaches, no reply waited for.
-    fn broadcast(&self, client: &Client, pdu: Vec<u8>) -> Answer {
-        let refusal = if self.read_only {
-            Some((
-                ExceptionCode::ILLEGAL_FUNCTION,
-                Outcome::ReadOnly,
-                "refused: this Modbus TCP listener is read-only",
-            ))
-        } else if !request::broadcastable(&pdu) {
+    async fn broadcast(&self, client: &Client, pdu: Vec<u8>) -> Answer {
+        let function = pdu[0];
+        let refusal = if !request::broadcastable(&pdu) {
             Some((
                 ExceptionCode::ILLEGAL_FUNCTION,
                 Outcome::Refused,
@@ -189,15 +215,6 @@ impl Gateway {
                 code,
                 Outcome::Invalid,
                 "refused: the request's length or quantity does not fit its function",
-            ))
-        } else if self.readdresses_a_shared_bus(&pdu) {
-            // Manual 1.2: address setting is a broadcast and only one drive
-            // may be on the bus; on a bus of several drives every one of them
-            // would take the same address.
-            Some((
-                ExceptionCode::ILLEGAL_FUNCTION,
-                Outcome::Refused,
-                "refused: an address broadcast (SLAVE_ADDR) would give every drive of a bus with several drives the same address",
             ))
         } else if self.routes.broadcast_buses().is_empty() {
             Some((
@@ -210,16 +227,25 @@ impl Gateway {
         };
         if let Some((code, outcome, why)) = refusal {
             let answer = self.refuse(client, ("all", 0), &pdu, code, outcome, why.to_string());
-            return if self.broadcast_reply {
-                answer
-            } else {
-                Answer::Silent
-            };
+            return self.reply_to_broadcast(answer);
         }
-        let mut pending = Pending::new(client, &pdu, true);
+        let mut writes = Vec::new();
         for &bus in self.routes.broadcast_buses() {
-            pending.submit(self, Route { bus, unit: 0 }, pdu.clone());
+            let target = self.control.unit_target(bus, 0);
+            let request = ControlRequest::new(Write::pdu(pdu.clone()))
+                .forced(client.allow_saves_while_moving);
+            match self.control.submit(&client.caller, target, request).await {
+                Ok(pending) => writes.push(pending),
+                Err(failure) => {
+                    // The first bus that refuses answers for all; what went
+                    // out on the others already is settled as they end.
+                    let (reply, outcome) = failure_reply(function, &failure);
+                    self.count(function, outcome);
+                    return self.reply_to_broadcast(Answer::Now(reply));
+                }
+            }
         }
+        let mut pending = Pending::writes(&pdu, true, writes);
         if self.broadcast_reply {
             return Answer::Pending(pending);
         }
@@ -233,20 +259,17 @@ impl Gateway {
         Answer::Silent
     }
 
-    /// True for a broadcast write of SLAVE_ADDR reaching a bus with more
-    /// than one configured drive.
-    fn readdresses_a_shared_bus(&self, pdu: &[u8]) -> bool {
-        let slave_addr = pdu.first() == Some(&WRITE_SINGLE_REGISTER)
-            && be_u16(pdu, 1) == Some(Register::SlaveAddr.address());
-        slave_addr
-            && self
-                .routes
-                .broadcast_buses()
-                .iter()
-                .any(|&b| self.plant.buses()[b].config.drives.len() > 1)
+    /// A broadcast is answered only when the listener is set to.
+    fn reply_to_broadcast(&self, answer: Answer) -> Answer {
+        if self.broadcast_reply {
+            answer
+        } else {
+            Answer::Silent
+        }
     }
 
-    /// Answers at once with `code` (audited when the request was a write).
+    /// Answers at once with `code` a request the gateway cannot route or
+    /// whose shape is wrong (audited when it was a write).
     fn refuse(
         &self,
         client: &Client,
@@ -259,12 +282,16 @@ impl Gateway {
         let function = pdu.first().copied().unwrap_or(0);
         self.count(function, outcome);
         if !request::reads_only(pdu) {
-            crate::audit::write(
-                &client.who(),
+            let Write::Pdu { meaning, .. } = Write::pdu(pdu.to_vec()) else {
+                return Answer::Now(exception_pdu(function, code));
+            };
+            control::audit::write(
+                Face::ModbusTcp.name(),
+                &client.caller.who,
                 bus,
                 unit,
-                &request::describe(pdu),
-                &Err::<String, _>(format!("{why}; answered {code}")),
+                &control::written::describe_pdu(pdu, &meaning),
+                &Err(format!("{why}; answered {code}")),
             );
         } else {
             debug!(client = %client.peer, unit, "{why}; answered {code}");
@@ -277,186 +304,166 @@ impl Gateway {
     }
 }
 
-/// A request waiting for its bus job(s): one for a unit, one per bus for a
-/// broadcast. Holding it keeps the jobs alive; dropping or cancelling it
-/// makes the bus drop those still queued before they reach the wire.
+/// A read's bus job.
 #[derive(Debug)]
-pub struct Pending {
-    who: String,
-    source: SourceId,
-    request: Vec<u8>,
-    broadcast: bool,
-    jobs: Vec<Job>,
-}
-
-#[derive(Debug)]
-struct Job {
-    bus: Arc<str>,
-    unit: u8,
-    state: JobState,
-}
-
-#[derive(Debug)]
-enum JobState {
+pub enum ReadState {
+    /// On the queue or the wire.
     Waiting(oneshot::Receiver<JobResult>),
+    /// Done.
     Done(JobResult),
 }
 
-impl Pending {
-    fn new(client: &Client, pdu: &[u8], broadcast: bool) -> Self {
-        Self {
-            who: client.who(),
-            source: client.source,
-            request: pdu.to_vec(),
-            broadcast,
-            jobs: Vec::new(),
-        }
-    }
+/// A request waiting for the bus: a read's job, or the control core's
+/// pending writes (one for a unit, one per bus for a broadcast). Holding it
+/// keeps them alive; dropping or cancelling it makes the bus drop those
+/// still queued before they reach the wire (a brake excepted: the core
+/// follows it to its end).
+#[derive(Debug)]
+pub enum Pending {
+    /// A read, passed through.
+    Read {
+        /// The request.
+        pdu: Vec<u8>,
+        /// Its job.
+        state: ReadState,
+    },
+    /// Writes through the control core.
+    Writes {
+        /// The request.
+        pdu: Vec<u8>,
+        /// True for a broadcast.
+        broadcast: bool,
+        /// One per bus.
+        writes: Vec<control::Pending>,
+    },
+}
 
-    /// Queues `pdu` on the route's bus as a command from this client.
-    fn submit(&mut self, gateway: &Gateway, route: Route, pdu: Vec<u8>) {
-        let handle = &gateway.plant.buses()[route.bus].handle;
-        let options = JobOptions {
-            priority: Priority::Command,
-            source: self.source,
-            queue_timeout: None,
-            max_attempts: None,
-        };
-        let state = match handle.submit(route.unit, pdu, options) {
-            Ok(rx) => JobState::Waiting(rx),
-            Err(e) => JobState::Done(Err(e)),
-        };
-        self.jobs.push(Job {
-            bus: handle.name_arc(),
-            unit: route.unit,
-            state,
-        });
+impl Pending {
+    fn writes(pdu: &[u8], broadcast: bool, writes: Vec<control::Pending>) -> Self {
+        Pending::Writes {
+            pdu: pdu.to_vec(),
+            broadcast,
+            writes,
+        }
     }
 
     /// Waits until every job has a result. Cancel-safe: results already
     /// in stay in.
     pub async fn wait(&mut self) {
-        for job in &mut self.jobs {
-            if let JobState::Waiting(rx) = &mut job.state {
-                let result = rx.await.unwrap_or(Err(BusError::ShuttingDown));
-                job.state = JobState::Done(result);
+        match self {
+            Pending::Read { state, .. } => {
+                if let ReadState::Waiting(rx) = state {
+                    let result = rx.await.unwrap_or(Err(BusError::ShuttingDown));
+                    *state = ReadState::Done(result);
+                }
+            }
+            Pending::Writes { writes, .. } => {
+                for w in writes {
+                    w.wait().await;
+                }
             }
         }
     }
 
     /// True when every job has a result (without waiting).
     pub fn try_ready(&mut self) -> bool {
-        for job in &mut self.jobs {
-            if let JobState::Waiting(rx) = &mut job.state {
-                match rx.try_recv() {
-                    Ok(result) => job.state = JobState::Done(result),
-                    Err(TryRecvError::Closed) => {
-                        job.state = JobState::Done(Err(BusError::ShuttingDown))
+        match self {
+            Pending::Read { state, .. } => match state {
+                ReadState::Done(_) => true,
+                ReadState::Waiting(rx) => match rx.try_recv() {
+                    Ok(result) => {
+                        *state = ReadState::Done(result);
+                        true
                     }
-                    Err(TryRecvError::Empty) => return false,
-                }
-            }
+                    Err(TryRecvError::Closed) => {
+                        *state = ReadState::Done(Err(BusError::ShuttingDown));
+                        true
+                    }
+                    Err(TryRecvError::Empty) => false,
+                },
+            },
+            Pending::Writes { writes, .. } => writes.iter_mut().all(control::Pending::try_ready),
         }
-        true
     }
 
     /// The reply PDU once every job is done (for a broadcast, the write's
-    /// confirmation or the first failure); counts and audits it.
+    /// confirmation or the first failure); counts it.
     pub fn finish(self, metrics: &Metrics) -> Vec<u8> {
-        let function = self.request.first().copied().unwrap_or(0);
-        let is_write = !request::reads_only(&self.request);
-        let what = if is_write {
-            request::describe(&self.request)
-        } else {
-            String::new()
-        };
-        let mut reply = None;
-        let mut outcome = if self.broadcast {
-            Outcome::Broadcast
-        } else {
-            Outcome::Ok
-        };
-        for job in self.jobs {
-            let result = match job.state {
-                JobState::Done(result) => result,
-                JobState::Waiting(_) => Err(BusError::ShuttingDown),
-            };
-            let audit: Result<String, String> = match &result {
-                Ok(_) if self.broadcast => Ok("broadcast sent".to_string()),
-                Ok(exchange)
-                    if exchange
-                        .reply
-                        .first()
-                        .is_some_and(|f| f & EXCEPTION_BIT != 0) =>
-                {
-                    let code = ExceptionCode(exchange.reply.get(1).copied().unwrap_or(0));
-                    Err(format!("the drive refused it: {code}"))
-                }
-                Ok(exchange) => Ok(format!("confirmed [{}]", request::hex(&exchange.reply))),
-                Err(e) => Err(e.to_string()),
-            };
-            if is_write {
-                crate::audit::write(&self.who, &job.bus, job.unit, &what, &audit);
-            }
-            match result {
-                Ok(exchange) if !self.broadcast => {
-                    if exchange
-                        .reply
-                        .first()
-                        .is_some_and(|f| f & EXCEPTION_BIT != 0)
-                    {
-                        outcome = Outcome::Exception;
+        let (function, reply, outcome) = match self {
+            Pending::Read { pdu, state } => {
+                let function = pdu.first().copied().unwrap_or(0);
+                let result = match state {
+                    ReadState::Done(result) => result,
+                    ReadState::Waiting(_) => Err(BusError::ShuttingDown),
+                };
+                match result {
+                    Ok(exchange) => {
+                        let outcome = if exchange
+                            .reply
+                            .first()
+                            .is_some_and(|f| f & crate::modbus::function::EXCEPTION_BIT != 0)
+                        {
+                            Outcome::Exception
+                        } else {
+                            Outcome::Ok
+                        };
+                        (function, exchange.reply, outcome)
                     }
-                    reply = Some(exchange.reply);
+                    Err(e) => {
+                        let (code, outcome) = gateway_exception(&e);
+                        (function, exception_pdu(function, code), outcome)
+                    }
                 }
-                Ok(_) => {}
-                Err(e) => {
+            }
+            Pending::Writes {
+                pdu,
+                broadcast,
+                writes,
+            } => {
+                let function = pdu.first().copied().unwrap_or(0);
+                let mut answer = None;
+                for w in writes {
+                    let result = w.finish();
                     // The first failure is what the client hears about.
-                    if reply.is_none() {
-                        let (code, failed) = gateway_exception(&e);
-                        outcome = failed;
-                        reply = Some(exception_pdu(function, code));
+                    if answer.is_none() || (broadcast && result.is_err() && answer_ok(&answer)) {
+                        answer = Some(match result {
+                            Ok(control::Outcome::Confirmed { reply, .. }) => (reply, Outcome::Ok),
+                            Ok(control::Outcome::Broadcast) => {
+                                (request::write_confirmation(&pdu), Outcome::Broadcast)
+                            }
+                            Err(failure) => failure_reply(function, &failure),
+                        });
                     }
                 }
+                let (reply, outcome) = answer.unwrap_or_else(|| {
+                    (
+                        exception_pdu(function, ExceptionCode::GATEWAY_PATH_UNAVAILABLE),
+                        Outcome::PathUnavailable,
+                    )
+                });
+                (function, reply, outcome)
             }
-        }
+        };
         metrics.faces().tcp_request(function, outcome.label());
-        reply.unwrap_or_else(|| request::write_confirmation(&self.request))
+        reply
     }
 
     /// The client has gone: the bus drops the jobs still queued before they
-    /// reach the wire. A job already on the wire finishes there; its result
-    /// is audited if it is in by now.
-    pub fn cancel(mut self, metrics: &Metrics) {
-        let function = self.request.first().copied().unwrap_or(0);
-        for job in &mut self.jobs {
-            if let JobState::Waiting(rx) = &mut job.state {
-                rx.close();
-                if let Ok(result) = rx.try_recv() {
-                    job.state = JobState::Done(result);
-                }
+    /// reach the wire. A write already on the wire finishes there; the
+    /// control core audits it.
+    pub fn cancel(self, metrics: &Metrics) {
+        let function = match &self {
+            Pending::Read { pdu, .. } | Pending::Writes { pdu, .. } => {
+                pdu.first().copied().unwrap_or(0)
             }
-        }
+        };
         metrics
             .faces()
             .tcp_request(function, Outcome::Cancelled.label());
-        if request::reads_only(&self.request) {
-            return;
-        }
-        let what = request::describe(&self.request);
-        for job in &self.jobs {
-            let audit: Result<String, String> = match &job.state {
-                JobState::Done(Ok(exchange)) => Ok(format!(
-                    "carried out, but the client disconnected before the reply [{}]",
-                    request::hex(&exchange.reply)
-                )),
-                JobState::Done(Err(e)) => Err(e.to_string()),
-                JobState::Waiting(_) => Err(
-                    "the client disconnected before the reply: dropped unsent if still queued, otherwise its result is unknown"
-                        .to_string(),
-                ),
-            };
-            crate::audit::write(&self.who, &job.bus, job.unit, &what, &audit);
-        }
+        drop(self);
     }
+}
+
+fn answer_ok(answer: &Option<(Vec<u8>, Outcome)>) -> bool {
+    matches!(answer, Some((_, Outcome::Ok | Outcome::Broadcast)))
 }

@@ -8,10 +8,12 @@
 //! - [`mbap`] is the frame codec (pure),
 //! - [`request`] the Modbus rules the gateway applies before the bus,
 //! - [`routing`] the unit map, [`polled_copy`] status reads from the cache,
-//! - [`gateway`] turns a request into a bus job and the result into a reply,
-//! - [`outcome`] names outcomes and maps bus failures to gateway exceptions,
+//! - [`gateway`] passes reads to the bus and hands writes to the control
+//!   core ([`crate::control`]), which decides on them as for every face,
+//! - [`outcome`] names outcomes and maps bus failures and the core's
+//!   refusals to exceptions,
 //! - [`connection`] serves one client in order, [`server`] accepts them,
-//!   [`access`] checks where they come from.
+//!   [`access`] checks where they come from and gives them their role.
 //!
 //! `docs/modbus-tcp.md` says why the MBAP framing is the daemon's own
 //! rather than tokio-modbus's server.
@@ -32,11 +34,12 @@ use std::sync::Arc;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::Config;
+use crate::control::Control;
 use crate::faces::Listening;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 
-use access::AllowList;
+use access::Access;
 use connection::ConnectionSettings;
 use gateway::Gateway;
 use server::ServerSettings;
@@ -46,6 +49,7 @@ pub async fn start(
     config: &Config,
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
+    control: Control,
     shutdown: CancellationToken,
 ) -> Result<Listening, String> {
     let tcp = &config.modbus_tcp;
@@ -61,9 +65,9 @@ pub async fn start(
             format!("cannot listen for Modbus TCP on {}: {e}{hint}", tcp.listen)
         })?;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
-    let gateway = Arc::new(Gateway::new(tcp, plant, metrics));
+    let gateway = Arc::new(Gateway::new(tcp, plant, control, metrics));
     let settings = ServerSettings {
-        allow: AllowList::new(tcp.allowed_networks.clone()),
+        access: Access::from_config(tcp),
         max_connections: tcp.max_connections,
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),

@@ -1,8 +1,16 @@
-//! How a Modbus TCP request ended, for the metrics, and the gateway
-//! exception a bus failure is answered with (Modbus application protocol,
-//! section 7: 0x0A and 0x0B are the gateway codes).
+//! How a Modbus TCP request ended, for the metrics; the gateway exception
+//! a bus failure is answered with (Modbus application protocol, section 7:
+//! 0x0A and 0x0B are the gateway codes); and the exception each rule of the
+//! control core is answered with:
+//!
+//! | refused because | exception |
+//! |---|---|
+//! | the network's role does not allow the write | 0x01 illegal function |
+//! | an address broadcast to a bus of several drives | 0x01 illegal function |
+//! | a save, factory reset, address setting or calibration while the motor turns | 0x06 server device busy |
 
 use crate::bus::BusError;
+use crate::control::{Failure, Rule};
 use crate::modbus::ExceptionCode;
 
 /// The outcome label of one request.
@@ -22,8 +30,13 @@ pub enum Outcome {
     PathUnavailable,
     /// 0x06: the bus queue was full or the request waited too long.
     Busy,
-    /// 0x01: a write on a read-only listener.
+    /// 0x01: a write from a viewer (a read-only listener, or a viewer
+    /// network).
     ReadOnly,
+    /// 0x01: a write the client's role does not allow.
+    Forbidden,
+    /// 0x06: a write that needs standstill while the motor turns.
+    Moving,
     /// 0x01: a broadcast the gateway will not send (a read, or an address
     /// setting on a bus of several drives).
     Refused,
@@ -45,6 +58,8 @@ impl Outcome {
             Outcome::PathUnavailable => "path_unavailable",
             Outcome::Busy => "busy",
             Outcome::ReadOnly => "read_only",
+            Outcome::Forbidden => "forbidden",
+            Outcome::Moving => "moving",
             Outcome::Refused => "refused",
             Outcome::Invalid => "invalid",
             Outcome::Cancelled => "cancelled",
@@ -84,6 +99,33 @@ pub fn gateway_exception(error: &BusError) -> (ExceptionCode, Outcome) {
     }
 }
 
+/// The reply to a write the control core did not carry out: the drive's
+/// own reply when it answered, else the exception for the rule or the bus
+/// failure.
+pub fn failure_reply(function: u8, failure: &Failure) -> (Vec<u8>, Outcome) {
+    match failure {
+        Failure::Refused(refusal) => {
+            let (code, outcome) = match &refusal.rule {
+                Rule::Role { has, .. } if has.name() == "viewer" => {
+                    (ExceptionCode::ILLEGAL_FUNCTION, Outcome::ReadOnly)
+                }
+                Rule::Role { .. } => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::Forbidden),
+                Rule::SharedBusAddress => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::Refused),
+                Rule::Moving { .. } => (ExceptionCode::SERVER_DEVICE_BUSY, Outcome::Moving),
+            };
+            (exception_pdu(function, code), outcome)
+        }
+        Failure::DriveRefused { reply, .. } => (reply.clone(), Outcome::Exception),
+        Failure::Unknown {
+            reply: Some(reply), ..
+        } => (reply.clone(), Outcome::Ok),
+        Failure::CheckFailed(e) | Failure::NotSent(e) | Failure::Unknown { error: e, .. } => {
+            let (code, outcome) = gateway_exception(e);
+            (exception_pdu(function, code), outcome)
+        }
+    }
+}
+
 /// An exception reply PDU for `function`.
 pub fn exception_pdu(function: u8, code: ExceptionCode) -> Vec<u8> {
     vec![function | crate::modbus::function::EXCEPTION_BIT, code.0]
@@ -106,12 +148,12 @@ mod tests {
         let garbled = BusError::BadReply {
             unit: 3,
             attempts: 2,
-            detail: "CRC error".into(),
+            fault: crate::bus::master::Fault::Crc,
         };
         assert_eq!(gateway_exception(&garbled).0, ExceptionCode(0x0B));
         let down = BusError::BusDown {
             bus: "line1".into(),
-            reason: "unplugged".into(),
+            reason: crate::bus::error::PortCause::other("unplugged"),
         };
         assert_eq!(
             gateway_exception(&down),
@@ -129,7 +171,10 @@ mod tests {
         let cut = BusError::BusDownAfterSend {
             bus: "line1".into(),
             unit: 3,
-            reason: "unplugged".into(),
+            reason: crate::bus::error::PortCause::io(
+                &std::io::Error::from(std::io::ErrorKind::UnexpectedEof),
+                "unplugged",
+            ),
         };
         assert_eq!(
             gateway_exception(&cut),

@@ -108,29 +108,6 @@ pub fn write_confirmation(pdu: &[u8]) -> Vec<u8> {
     }
 }
 
-/// The PDU as hex bytes, for logs.
-pub fn hex(pdu: &[u8]) -> String {
-    pdu.iter()
-        .map(|b| format!("{b:02X}"))
-        .collect::<Vec<_>>()
-        .join(" ")
-}
-
-/// A write in words for the audit log: the manual's message when it is
-/// one (`speed-setpoint Speed { rpm: 100 }`), and always the raw PDU.
-pub fn describe(pdu: &[u8]) -> String {
-    let function = pdu.first().copied().unwrap_or(0);
-    let label = crate::modbus::function::label(function);
-    match crate::drive::DriveRequest::from_pdu(pdu) {
-        Some(request) => format!(
-            "Modbus TCP 0x{function:02X} {label}: {} {request:?} [{}]",
-            request.name(),
-            hex(pdu)
-        ),
-        None => format!("Modbus TCP 0x{function:02X} {label} [{}]", hex(pdu)),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -224,17 +201,5 @@ mod tests {
         assert_eq!(write_confirmation(&single), single);
         let block = [0x10, 0x00, 0x0C, 0x00, 0x03, 0x06, 0, 100, 0x03, 0xE8, 0, 0];
         assert_eq!(write_confirmation(&block), [0x10, 0x00, 0x0C, 0x00, 0x03]);
-    }
-
-    #[test]
-    fn writes_are_described_for_the_audit_log() {
-        assert_eq!(
-            describe(&[0x06, 0x00, 0x06, 0x00, 0x64]),
-            "Modbus TCP 0x06 write_single_register: speed-setpoint Speed { rpm: 100 } [06 00 06 00 64]"
-        );
-        assert_eq!(
-            describe(&[0x05, 0x00, 0x01, 0xFF, 0x00]),
-            "Modbus TCP 0x05 write_single_coil [05 00 01 FF 00]"
-        );
     }
 }

@@ -64,14 +64,15 @@ impl UnitRoutes {
             }
         } else {
             for entry in map {
-                let Some(bus) = buses.iter().position(|b| b.name == entry.bus) else {
+                let Some(bus) = buses.iter().position(|b| b.name == entry.bus()) else {
                     warnings.push(format!(
                         "the unit map names bus \"{}\", which is not configured",
-                        entry.bus
+                        entry.bus()
                     ));
                     continue;
                 };
-                for tcp_unit in entry.units.first..=entry.units.last {
+                let units = entry.units();
+                for tcp_unit in units.first..=units.last {
                     if let Some(unit) = entry.bus_unit(tcp_unit) {
                         routes[usize::from(tcp_unit)] = Some(Route { bus, unit });
                     }
@@ -99,6 +100,7 @@ impl UnitRoutes {
 mod tests {
     use super::*;
     use crate::modbus_tcp::config::UnitRange;
+    use toml::Spanned;
 
     fn bus(name: &str, units: &[u8]) -> BusUnits {
         BusUnits {
@@ -109,12 +111,15 @@ mod tests {
 
     fn entry(units: (u8, u8), bus: &str, bus_units: Option<(u8, u8)>) -> UnitMapEntry {
         UnitMapEntry {
-            units: UnitRange {
-                first: units.0,
-                last: units.1,
-            },
-            bus: bus.to_string(),
-            bus_units: bus_units.map(|(first, last)| UnitRange { first, last }),
+            units: Spanned::new(
+                0..0,
+                UnitRange {
+                    first: units.0,
+                    last: units.1,
+                },
+            ),
+            bus: Spanned::new(0..0, bus.to_string()),
+            bus_units: bus_units.map(|(first, last)| Spanned::new(0..0, UnitRange { first, last })),
         }
     }
 

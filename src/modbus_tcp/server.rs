@@ -17,15 +17,15 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
-use super::access::AllowList;
+use super::access::Access;
 use super::connection::{self, ConnectionSettings};
 use super::gateway::{Client, Gateway};
 
 /// What the accept loop enforces.
 #[derive(Debug, Clone)]
 pub struct ServerSettings {
-    /// Allowed client networks.
-    pub allow: AllowList,
+    /// Allowed client networks, with their rights.
+    pub access: Access,
     /// Connections served at once.
     pub max_connections: usize,
     /// Limits of each connection.
@@ -60,11 +60,11 @@ pub async fn run(
                 }
             }
         };
-        if !settings.allow.allows(peer.ip()) {
+        let Some(rights) = settings.access.rights(peer.ip()) else {
             metrics.faces().tcp_rejected("not_allowed");
-            warn!(client = %peer, "Modbus TCP connection refused: the address is not in [modbus_tcp] allowed_networks");
+            warn!(client = %peer, "Modbus TCP connection refused: the address is in none of the networks of [modbus_tcp] allowed_networks and clients");
             continue;
-        }
+        };
         let Ok(permit) = slots.clone().try_acquire_owned() else {
             metrics.faces().tcp_rejected("limit");
             warn!(client = %peer, "Modbus TCP connection refused: {} connections are open (max_connections)", settings.max_connections);
@@ -79,8 +79,15 @@ pub async fn run(
         tracker.spawn(async move {
             let _slot = permit;
             let _open = metrics.faces().tcp_connection();
-            debug!(client = %peer, "Modbus TCP client connected");
-            connection::serve(stream, Client::new(peer), gateway, connection, shutdown).await;
+            debug!(client = %peer, role = rights.role.name(), "Modbus TCP client connected");
+            connection::serve(
+                stream,
+                Client::new(peer, rights),
+                gateway,
+                connection,
+                shutdown,
+            )
+            .await;
         });
     }
     drop(listener);

@@ -691,77 +691,55 @@ async fn a_stop_the_bus_could_not_carry_is_sent_once_the_adapter_is_back() {
 /// Behind the stream's cancelled commands and the queue allowance, the last
 /// line: a leased setpoint the drive confirms after its lease has ended,
 /// and its stop has gone out, has the stop sent again. Driven through the
-/// lease book itself, since the daemon's own paths no longer let a
+/// control core itself, since the daemon's own faces no longer let a
 /// setpoint land so late (a stream's are dropped with it; a REST one
 /// expires in the queue before its lease's allowance runs out).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_setpoint_confirmed_after_its_lease_ended_is_stopped_again() {
-    use drivegate::api::hub::Hub;
-    use drivegate::api::leases::LeaseBook;
-    use drivegate::bus::handle::JobOptions;
-    use drivegate::drive::{DriveRequest, Mode};
-    use drivegate::safety::StopAction;
-    use tokio_util::sync::CancellationToken;
+    use drivegate::bus::SourceId;
+    use drivegate::control::{Caller, ControlRequest, Face, Role};
+    use drivegate::drive::DriveRequest;
 
     tokio::time::timeout(LIMIT, async {
-        let d = TestDaemon::start(FOUR_DRIVES).await;
+        let d = TestDaemon::start(&slow_bus_with_brake_on_expiry()).await;
         let api = Api::new(d.http, None);
         let sim = d.sim();
         let bus = d.plant.buses()[0].handle.clone();
         api.activate_in("conveyor", "speed").await;
-        let shutdown = CancellationToken::new();
-        let hub = Hub::start(&d.plant, &shutdown);
-        let book = LeaseBook::new(
-            d.plant.clone(),
-            hub,
-            StopAction::ZeroSpeed,
-            shutdown.clone(),
-        );
-        let conveyor = d
-            .plant
-            .drives()
-            .iter()
-            .position(|d| d.name == "conveyor")
-            .unwrap();
+        polled_active(&bus).await;
+        let control = d.control().clone();
+        let target = control.target("conveyor").unwrap();
 
-        // A lease over WebSocket 7, whose setpoint is still on its way when
-        // the socket closes: the stop goes out at once.
-        let (notices, _notices) = tokio::sync::mpsc::unbounded_channel();
-        book.connection_opened(7, notices);
-        let owner: std::sync::Arc<str> = "a stream client".into();
-        let grant = book.grant(
-            conveyor,
-            Mode::Speed,
-            &owner,
-            Some(7),
-            Duration::from_secs(60),
-            Duration::from_secs(10),
-        );
-        book.connection_closed(7);
-        let start = Instant::now();
-        while !book
-            .renew(conveyor, None)
-            .unwrap_err()
-            .contains("was carried out")
-        {
-            assert!(
-                start.elapsed() < Duration::from_secs(5),
-                "the stop was not carried out"
-            );
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
-        // Then the setpoint lands, and is confirmed.
-        bus.execute(1, &DriveRequest::Speed { rpm: 200 }, JobOptions::default())
-            .await
-            .unwrap();
-        assert_eq!(sim.drive(1).unwrap().setpoints.speed_rpm, 200);
-        assert_eq!(book.confirm(conveyor, grant.id, true), None);
-        eventually(Duration::from_secs(5), "the stop sent again", || {
-            (sim.drive(1)?.setpoints.speed_rpm == 0).then_some(())
+        // A lease over a session, whose setpoint waits behind a request
+        // holding the wire when the session closes: the stop (the brake)
+        // is queued at emergency priority and goes first.
+        let (session, _notices) = control.open_session("its WebSocket closed");
+        let caller = Caller::new(
+            Face::WebSocket,
+            "a stream client",
+            Role::Operator,
+            SourceId::new_unique(),
+        )
+        .in_session(Face::WebSocket, session.id());
+        let blocker = hold_the_wire(&bus).await;
+        let request = ControlRequest::drive(DriveRequest::Speed { rpm: 200 })
+            .with_lease(Some(Duration::from_secs(60)));
+        let mut pending = control.submit(&caller, target, request).await.unwrap();
+        drop(session);
+        // Then the setpoint lands, after the brake, and releases it ...
+        pending.wait().await;
+        assert!(pending.finish().is_ok());
+        drop(blocker);
+        // ... and the brake is applied again.
+        eventually(Duration::from_secs(10), "the brake applied again", || {
+            let conveyor = sim.drive(1)?;
+            (conveyor.braking && conveyor.setpoints.speed_rpm == 0).then_some(())
         })
         .await;
-        shutdown.cancel();
-        book.wait().await;
+        eventually(Duration::from_secs(5), "the conveyor standing", || {
+            (sim.drive(1)?.speed_rpm.abs() < 1.0).then_some(())
+        })
+        .await;
         d.stop().await;
     })
     .await

@@ -84,6 +84,11 @@ impl TestDaemon {
         }
     }
 
+    /// The control core every face writes through.
+    pub fn control(&self) -> &drivegate::control::Control {
+        &self.faces.as_ref().expect("running").control
+    }
+
     /// `http://127.0.0.1:port` + `path`.
     pub fn url(&self, path: &str) -> String {
         format!("http://{}{}", self.http, path)

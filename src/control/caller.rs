@@ -1,0 +1,106 @@
+//! Who asks: the face a request came through, who is behind it (for the
+//! audit log and lease owners), with which role, whose turn on the bus it
+//! takes, and the session (if any) whose closing ends its leases.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use super::policy::Role;
+use crate::bus::SourceId;
+
+/// The way a request came in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Face {
+    /// The REST API.
+    Http,
+    /// A command on the WebSocket stream.
+    WebSocket,
+    /// A Modbus TCP client.
+    ModbusTcp,
+    /// drivegate itself (safe stops, a brake applied again).
+    Internal,
+}
+
+impl Face {
+    /// Stable name for the audit log and events.
+    pub fn name(self) -> &'static str {
+        match self {
+            Face::Http => "http",
+            Face::WebSocket => "websocket",
+            Face::ModbusTcp => "modbus-tcp",
+            Face::Internal => "internal",
+        }
+    }
+
+    /// In words, for messages ("over Modbus TCP").
+    pub fn words(self) -> &'static str {
+        match self {
+            Face::Http => "over HTTP",
+            Face::WebSocket => "over the WebSocket stream",
+            Face::ModbusTcp => "over Modbus TCP",
+            Face::Internal => "by drivegate",
+        }
+    }
+}
+
+/// A connection that can hold leases: they end when it closes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct SessionId(pub u64);
+
+static NEXT_SESSION: AtomicU64 = AtomicU64::new(1);
+
+impl SessionId {
+    /// A new, never used session id.
+    pub fn new_unique() -> SessionId {
+        SessionId(NEXT_SESSION.fetch_add(1, Ordering::Relaxed))
+    }
+}
+
+/// Who is asking, with what rights.
+#[derive(Debug, Clone)]
+pub struct Caller {
+    /// The face it came through.
+    pub face: Face,
+    /// Token name or client address: written to the audit log with every
+    /// write, and shown as a lease's owner.
+    pub who: Arc<str>,
+    /// What it may do.
+    pub role: Role,
+    /// Its share of the bus queues, so one busy client cannot starve the
+    /// others.
+    pub source: SourceId,
+    /// The session its leases are tied to, if any.
+    pub session: Option<SessionId>,
+}
+
+impl Caller {
+    /// A caller on `face` without a session.
+    pub fn new(face: Face, who: impl Into<Arc<str>>, role: Role, source: SourceId) -> Self {
+        Caller {
+            face,
+            who: who.into(),
+            role,
+            source,
+            session: None,
+        }
+    }
+
+    /// The same caller within `session`, on `face`.
+    pub fn in_session(&self, face: Face, session: SessionId) -> Self {
+        Caller {
+            face,
+            session: Some(session),
+            ..self.clone()
+        }
+    }
+
+    /// drivegate itself.
+    pub fn internal(who: &str) -> Self {
+        Caller::new(Face::Internal, who, Role::Admin, SourceId::INTERNAL)
+    }
+
+    /// "scada (Modbus TCP)": who, and how, for messages.
+    pub fn describe(&self) -> String {
+        format!("{} {}", self.who, self.face.words())
+    }
+}

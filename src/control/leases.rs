@@ -1,0 +1,291 @@
+//! The lease book's driver: owns the [`LeaseBook`] behind a lock, wakes it
+//! when a deadline passes, carries out its effects (sends stops through
+//! [`crate::safety`], publishes its news), reports the stops' results
+//! back, and tells it when a bus or a drive answers again.
+//!
+//! One task sleeps until the book's next deadline; every change to the
+//! book wakes it to look again, so a renewal costs no task. Each stop runs
+//! in a task of its own, at emergency priority.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use tokio::sync::{Notify, broadcast, mpsc};
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+use super::audit;
+use super::caller::{Face, SessionId};
+use super::events::{ControlEvent, Events};
+use super::lease_book::{Effect, LeaseBook, LeaseEvent, StopOrder, StopReport};
+use super::written::describe;
+use crate::bus::{BusError, BusEvent};
+use crate::drive::DriveRequest;
+use crate::plant::Plant;
+use crate::safety::{self, StopAction, StopOutcome};
+
+/// The lease book with its driver.
+pub struct Leases {
+    plant: Arc<Plant>,
+    book: Mutex<LeaseBook>,
+    wake: Notify,
+    events: Arc<Events>,
+    /// Open sessions, with the way to tell them of their leases' ends.
+    sessions: Mutex<HashMap<SessionId, mpsc::UnboundedSender<Arc<ControlEvent>>>>,
+    shutdown: CancellationToken,
+    tasks: TaskTracker,
+}
+
+impl Leases {
+    /// Starts the driver for the drives of `plant`; leases end with
+    /// `action`. It stops when `shutdown` fires (the daemon's own safe stop
+    /// then covers every moving drive).
+    pub fn start(
+        plant: Arc<Plant>,
+        action: StopAction,
+        events: Arc<Events>,
+        shutdown: CancellationToken,
+    ) -> Arc<Leases> {
+        let leases = Arc::new(Leases {
+            plant: plant.clone(),
+            book: Mutex::new(LeaseBook::new(action)),
+            wake: Notify::new(),
+            events,
+            sessions: Mutex::new(HashMap::new()),
+            shutdown,
+            tasks: TaskTracker::new(),
+        });
+        let driver = leases.clone();
+        leases.tasks.spawn(async move { driver.run().await });
+        for (bus_index, bus) in plant.buses().iter().enumerate() {
+            let watcher = leases.clone();
+            let rx = bus.handle.subscribe();
+            leases
+                .tasks
+                .spawn(async move { watcher.watch_links(bus_index, rx).await });
+        }
+        leases
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, LeaseBook> {
+        self.book.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Runs `f` on the book at the current instant and carries out the
+    /// effects it returns.
+    pub fn with<R>(
+        self: &Arc<Self>,
+        f: impl FnOnce(&mut LeaseBook, Instant) -> (R, Vec<Effect>),
+    ) -> R {
+        let (result, effects) = {
+            let mut book = self.lock();
+            f(&mut book, Instant::now())
+        };
+        self.carry_out(effects);
+        self.wake.notify_one();
+        result
+    }
+
+    /// Reads the book at the current instant.
+    pub fn read<R>(&self, f: impl FnOnce(&LeaseBook, Instant) -> R) -> R {
+        let book = self.lock();
+        f(&book, Instant::now())
+    }
+
+    fn carry_out(self: &Arc<Self>, effects: Vec<Effect>) {
+        for effect in effects {
+            match effect {
+                Effect::Stop(order) => {
+                    if tokio::runtime::Handle::try_current().is_err() {
+                        // Only outside the daemon (a session dropped after
+                        // its runtime): nothing can be sent any more.
+                        tracing::warn!(
+                            drive = order.drive,
+                            "a stop could not be started: no runtime"
+                        );
+                        continue;
+                    }
+                    let leases = self.clone();
+                    self.tasks.spawn(async move { leases.stop(order).await });
+                }
+                Effect::Event(event) => self.announce(event),
+            }
+        }
+    }
+
+    /// Publishes lease news, and sends it directly to the session that
+    /// held the lease, if it is still open (which then skips the copy).
+    fn announce(&self, event: LeaseEvent) {
+        let session = event.holder().session();
+        let event = Arc::new(ControlEvent::Lease(event));
+        let delivered_to = session.filter(|s| {
+            self.sessions
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .get(s)
+                .is_some_and(|tx| tx.send(event.clone()).is_ok())
+        });
+        self.events.publish(event, delivered_to);
+    }
+
+    /// Opens a session: leases may be tied to it, and news of their end
+    /// comes out of the receiver. `closing` is how its end reads ("its
+    /// WebSocket closed").
+    pub fn open_session(
+        self: &Arc<Self>,
+        closing: &'static str,
+    ) -> (SessionId, mpsc::UnboundedReceiver<Arc<ControlEvent>>) {
+        let id = SessionId::new_unique();
+        let (tx, rx) = mpsc::unbounded_channel();
+        self.sessions
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(id, tx);
+        self.with(|book, _| {
+            book.session_opened(id, closing);
+            ((), Vec::new())
+        });
+        (id, rx)
+    }
+
+    /// A session closed: its leases end now, with their stop.
+    pub fn close_session(self: &Arc<Self>, id: SessionId) {
+        self.sessions
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(&id);
+        self.with(|book, now| ((), book.session_closed(id, now)));
+    }
+
+    /// Waits for the driver and the stops to finish (after shutdown).
+    pub async fn wait(&self) {
+        self.tasks.close();
+        self.tasks.wait().await;
+    }
+
+    async fn run(self: Arc<Self>) {
+        loop {
+            let next = self.lock().next_wake();
+            let sleep = async {
+                match next {
+                    Some(at) => tokio::time::sleep_until(at.into()).await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                () = self.shutdown.cancelled() => {
+                    self.lock().shutdown();
+                    return;
+                }
+                () = self.wake.notified() => {}
+                () = sleep => {}
+            }
+            let effects = self.lock().tick(Instant::now());
+            self.carry_out(effects);
+        }
+    }
+
+    /// Tells the book when the bus opens or one of its drives answers
+    /// again: stops waiting to be tried again go at once.
+    async fn watch_links(self: Arc<Self>, bus: usize, mut rx: broadcast::Receiver<BusEvent>) {
+        let drives_of = |unit: Option<u8>| -> Vec<usize> {
+            self.plant
+                .drives()
+                .iter()
+                .enumerate()
+                .filter(|(_, d)| d.bus == bus && unit.is_none_or(|u| u == d.unit))
+                .map(|(i, _)| i)
+                .collect()
+        };
+        loop {
+            let event = tokio::select! {
+                () = self.shutdown.cancelled() => return,
+                event = rx.recv() => event,
+            };
+            let drives = match event {
+                Ok(BusEvent::BusUp { .. }) => drives_of(None),
+                Ok(BusEvent::Online { unit, .. }) => drives_of(Some(unit)),
+                Ok(_) | Err(broadcast::error::RecvError::Lagged(_)) => continue,
+                Err(broadcast::error::RecvError::Closed) => return,
+            };
+            self.with(|book, now| ((), book.link_back(&drives, now)));
+        }
+    }
+
+    /// Sends one stop and reports how it went.
+    async fn stop(self: Arc<Self>, order: StopOrder) {
+        let Some(drive) = self.plant.drives().get(order.drive) else {
+            return;
+        };
+        let bus = self.plant.handle_of(drive);
+        let outcome =
+            safety::stop_drive(bus, drive.unit, order.action, false, Some(order.mode)).await;
+        let who = match &order.owner {
+            Some(owner) => format!("lease-expiry ({owner})"),
+            None => "brake-guard".to_string(),
+        };
+        let report = report(&order, outcome, |what, result| {
+            audit::write(
+                Face::Internal.name(),
+                &who,
+                bus.name(),
+                drive.unit,
+                what,
+                result,
+            );
+        });
+        self.with(|book, now| ((), book.stop_tried(order.drive, order.id, report, now)));
+    }
+}
+
+/// A stop's outcome in words: what was sent, and what the drive confirmed
+/// (or why it failed); `audit` gets what may have reached the drive, and
+/// the first failure.
+fn report(
+    order: &StopOrder,
+    outcome: Result<StopOutcome, BusError>,
+    audit: impl Fn(&str, &Result<String, String>),
+) -> StopReport {
+    let releases =
+        |r: &DriveRequest| matches!(r, DriveRequest::Speed { .. } | DriveRequest::Torque { .. });
+    match outcome {
+        Ok(stop) if stop.sent.is_some() => {
+            let sent: Vec<String> = stop.requests().map(describe).collect();
+            for what in &sent {
+                audit(what, &Ok("confirmed by the drive".to_string()));
+            }
+            let sent = sent.join(", ");
+            StopReport {
+                released_brake: stop.requests().any(releases),
+                result: Ok(format!("{sent} confirmed by the drive")),
+                sent: Some(sent),
+            }
+        }
+        Ok(StopOutcome { mode, .. }) if order.action != StopAction::None => StopReport {
+            sent: None,
+            result: Ok(format!(
+                "nothing to send: {} in {} mode holds the motor",
+                order.action.name(),
+                mode.map_or("unknown", |m| m.name())
+            )),
+            released_brake: false,
+        },
+        Ok(_) => StopReport {
+            sent: None,
+            result: Ok("on_lease_expiry = \"none\": nothing sent".to_string()),
+            released_brake: false,
+        },
+        Err(e) => {
+            let error = e.to_string();
+            if order.attempt == 1 || !e.not_sent() {
+                audit(order.action.name(), &Err(error.clone()));
+            }
+            StopReport {
+                sent: Some(order.action.name().to_string()),
+                result: Err(error),
+                released_brake: order.action == StopAction::ZeroSpeed && !e.not_sent(),
+            }
+        }
+    }
+}

@@ -1,0 +1,266 @@
+//! The control core: the one write path of the daemon, under every face.
+//!
+//! A face (HTTP, the WebSocket stream, Modbus TCP, and whatever comes next)
+//! only authenticates its client into a [`Caller`], translates its request
+//! into a [`ControlRequest`] for a [`Target`], calls [`Control::submit`] or
+//! [`Control::write`], and renders the typed result. Everything a write
+//! means for the motor is decided here, the same for every face:
+//!
+//! - [`policy`]: which role may do what, and what a write means (a
+//!   setpoint, a brake, a save to flash, ...);
+//! - the checks before sending (in [`write`]): the role; saves, factory
+//!   reset, address setting and calibration only at standstill unless the
+//!   face's override says so; an address broadcast only to a bus with one
+//!   drive (a setpoint to a drive that is not active the drive refuses
+//!   itself, with exception 0x04, whichever face sent it);
+//! - [`lease_book`] (pure) and its driver [`leases`]: motor-safety leases,
+//!   their stops, and the rule that a brake holds;
+//! - [`outcome`]: what became of a write, typed from the bus up;
+//! - [`audit`] and [`events`]: one wording in the log, one broadcast of
+//!   lease news and writes for whoever listens.
+
+pub mod audit;
+pub mod caller;
+pub mod events;
+pub mod lease_book;
+pub mod leases;
+pub mod outcome;
+pub mod policy;
+pub mod request;
+pub mod write;
+pub mod written;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::sync::{broadcast, mpsc};
+use tokio_util::sync::CancellationToken;
+
+pub use caller::{Caller, Face, SessionId};
+pub use events::{ControlEvent, Published, WriteEvent};
+pub use lease_book::{LeaseEvent, LeaseView, NoLease};
+pub use outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult};
+pub use policy::{Operation, Role};
+pub use request::{ControlRequest, Write};
+pub use write::Pending;
+
+use crate::plant::{LookupError, Plant};
+use crate::safety::SafetyConfig;
+use events::Events;
+use leases::Leases;
+
+/// Where a write goes: a bus, a unit on it (0: every drive, a broadcast),
+/// and the configured drive at that unit, if there is one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Target {
+    /// Index of the bus in the plant.
+    pub bus: usize,
+    /// Unit address; 0 for a broadcast.
+    pub unit: u8,
+    /// Index of the configured drive in the plant.
+    pub drive: Option<usize>,
+}
+
+/// Why a lease could not be renewed or released.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum LeaseError {
+    /// The caller may not.
+    Refused(Refusal),
+    /// There is none; the text says what became of the last one.
+    NoLease(NoLease),
+}
+
+/// The handle every face holds; cheap to clone.
+#[derive(Clone)]
+pub struct Control(Arc<Inner>);
+
+struct Inner {
+    plant: Arc<Plant>,
+    leases: Arc<Leases>,
+    events: Arc<Events>,
+}
+
+impl Control {
+    /// The core over `plant`, with `safety`'s lease-expiry action; its
+    /// lease driver stops when `shutdown` fires.
+    pub fn start(plant: Arc<Plant>, safety: &SafetyConfig, shutdown: CancellationToken) -> Self {
+        let events = Arc::new(Events::default());
+        let leases = Leases::start(
+            plant.clone(),
+            safety.on_lease_expiry,
+            events.clone(),
+            shutdown,
+        );
+        Control(Arc::new(Inner {
+            plant,
+            leases,
+            events,
+        }))
+    }
+
+    /// Buses and drives.
+    pub fn plant(&self) -> &Arc<Plant> {
+        &self.0.plant
+    }
+
+    /// Every future event of the core.
+    pub fn subscribe(&self) -> broadcast::Receiver<Published> {
+        self.0.events.subscribe()
+    }
+
+    pub(crate) fn leases(&self) -> &Arc<Leases> {
+        &self.0.leases
+    }
+
+    pub(crate) fn events(&self) -> &Arc<Events> {
+        &self.0.events
+    }
+
+    /// The configured drive named `key` (or, on a single bus, with that
+    /// unit number).
+    pub fn target(&self, key: &str) -> Result<Target, LookupError> {
+        let (drive, _) = self.0.plant.drive(key)?;
+        let index = self
+            .0
+            .plant
+            .drives()
+            .iter()
+            .position(|d| d.name == drive.name)
+            .ok_or_else(|| LookupError::Unknown(key.to_string()))?;
+        Ok(Target {
+            bus: drive.bus,
+            unit: drive.unit,
+            drive: Some(index),
+        })
+    }
+
+    /// `unit` on bus `bus` (0: a broadcast), configured or not.
+    pub fn unit_target(&self, bus: usize, unit: u8) -> Target {
+        let drive = (unit != 0)
+            .then(|| {
+                self.0
+                    .plant
+                    .drives()
+                    .iter()
+                    .position(|d| d.bus == bus && d.unit == unit)
+            })
+            .flatten();
+        Target { bus, unit, drive }
+    }
+
+    /// Refuses `caller` unless its role includes `needed`.
+    pub fn authorize(&self, caller: &Caller, needed: Role) -> Result<(), Refusal> {
+        policy_check(caller, needed)
+    }
+
+    /// The lease on drive `drive`, if any.
+    pub fn lease(&self, drive: usize) -> Option<LeaseView> {
+        self.0.leases.read(|book, now| book.lease(drive, now))
+    }
+
+    /// Pushes the deadline of drive `drive`'s lease ahead by its length (or
+    /// by a new `length`).
+    pub fn renew(
+        &self,
+        caller: &Caller,
+        drive: usize,
+        length: Option<Duration>,
+    ) -> Result<LeaseView, LeaseError> {
+        policy_check(caller, Operation::Lease.needs()).map_err(LeaseError::Refused)?;
+        let name = self.drive_name(drive);
+        self.0.leases.with(|book, now| {
+            let result = book
+                .renew(drive, length, now)
+                .map_err(|e| LeaseError::NoLease(named(&name, e)));
+            (result, Vec::new())
+        })
+    }
+
+    /// Ends drive `drive`'s lease without a stop: the motor keeps its
+    /// setpoint, unguarded.
+    pub fn release(&self, caller: &Caller, drive: usize) -> Result<LeaseView, LeaseError> {
+        policy_check(caller, Operation::Lease.needs()).map_err(LeaseError::Refused)?;
+        let name = self.drive_name(drive);
+        let released =
+            self.0
+                .leases
+                .with(|book, now| match book.release(drive, &caller.who, now) {
+                    Ok((view, effects)) => (Ok(view), effects),
+                    Err(e) => (Err(LeaseError::NoLease(named(&name, e))), Vec::new()),
+                })?;
+        audit::released(caller.face.name(), &caller.who, &name);
+        Ok(released)
+    }
+
+    /// Opens a session whose leases end when it closes (`closing` is how
+    /// that reads: "its WebSocket closed"). News of the end of its leases
+    /// comes out of the receiver, never skipped.
+    pub fn open_session(
+        &self,
+        closing: &'static str,
+    ) -> (SessionGuard, mpsc::UnboundedReceiver<Arc<ControlEvent>>) {
+        let (id, rx) = self.0.leases.open_session(closing);
+        (
+            SessionGuard {
+                id,
+                leases: self.0.leases.clone(),
+            },
+            rx,
+        )
+    }
+
+    /// Waits for the lease driver and its stops to finish (after shutdown).
+    pub async fn wait(&self) {
+        self.0.leases.wait().await;
+    }
+
+    fn drive_name(&self, drive: usize) -> String {
+        self.0
+            .plant
+            .drives()
+            .get(drive)
+            .map_or_else(String::new, |d| d.name.clone())
+    }
+}
+
+/// Refuses `caller` unless its role includes `needed`.
+fn policy_check(caller: &Caller, needed: Role) -> Result<(), Refusal> {
+    if caller.role.allows(needed) {
+        return Ok(());
+    }
+    Err(Refusal {
+        rule: Rule::Role {
+            needed,
+            has: caller.role,
+        },
+        detail: format!(
+            "this needs the {} role; {} has the {} role",
+            needed.name(),
+            caller.who,
+            caller.role.name()
+        ),
+    })
+}
+
+fn named(drive: &str, e: NoLease) -> NoLease {
+    NoLease(format!("drive \"{drive}\" {}", e.0))
+}
+
+/// An open session: dropping it ends its leases, with their stop.
+pub struct SessionGuard {
+    id: SessionId,
+    leases: Arc<Leases>,
+}
+
+impl SessionGuard {
+    /// The session's id, for [`Caller::in_session`].
+    pub fn id(&self) -> SessionId {
+        self.id
+    }
+}
+
+impl Drop for SessionGuard {
+    fn drop(&mut self) {
+        self.leases.close_session(self.id);
+    }
+}

@@ -1,0 +1,393 @@
+//! Who may do what, and what a write means for the motor: the facts every
+//! rule of the core is decided on, worked out once for a request whichever
+//! face it came from. Pure functions.
+//!
+//! Roles, each including the ones before it:
+//! - `viewer` reads (drives, status, buses, Modbus TCP reads) and watches
+//!   the stream,
+//! - `operator` runs the machine: activation, modes, setpoints and their
+//!   leases, the brake, set-zero and the resets that do not touch flash,
+//! - `admin` commissions it: protection, ramps, inertia, saves to flash,
+//!   calibration, factory reset, RS-485 control, bus scans, addresses, and
+//!   Modbus writes the core cannot decode.
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use crate::drive::registers::Register;
+use crate::drive::writes::PduMeaning;
+use crate::drive::{ConfigCommand, DriveRequest, Mode};
+
+/// A caller's role; each includes the rights of the ones before it.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Deserialize, Serialize, ToSchema,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// Reads and the stream.
+    Viewer,
+    /// Viewer, plus setpoints, modes, brake and resets.
+    Operator,
+    /// Operator, plus protection, ramps, inertia, saves, calibration,
+    /// factory reset, RS-485 control, scans and address setting.
+    Admin,
+}
+
+impl Role {
+    /// Stable name for messages and logs.
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Viewer => "viewer",
+            Role::Operator => "operator",
+            Role::Admin => "admin",
+        }
+    }
+
+    /// True when this role includes `needed`.
+    pub fn allows(self, needed: Role) -> bool {
+        self >= needed
+    }
+}
+
+/// What is not a write but still needs a role.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Operation {
+    /// Reading drives, status and buses.
+    Read,
+    /// Renewing or releasing a lease.
+    Lease,
+    /// Scanning a bus for units (each silent unit costs bus time).
+    Scan,
+}
+
+impl Operation {
+    /// The role it needs.
+    pub fn needs(self) -> Role {
+        match self {
+            Operation::Read => Role::Viewer,
+            Operation::Lease => Role::Operator,
+            Operation::Scan => Role::Admin,
+        }
+    }
+}
+
+/// The role a config command needs: calibration moves the motor on its own
+/// and factory reset rewrites flash, so they are commissioning work.
+pub fn for_command(command: ConfigCommand) -> Role {
+    match command {
+        ConfigCommand::Calibrate
+        | ConfigCommand::FineTuneCalibration
+        | ConfigCommand::FactoryReset => Role::Admin,
+        ConfigCommand::Activate
+        | ConfigCommand::Deactivate
+        | ConfigCommand::SetZero
+        | ConfigCommand::EmergencyBrake
+        | ConfigCommand::SoftReset
+        | ConfigCommand::FaultReset
+        | ConfigCommand::SpeedMode
+        | ConfigCommand::PositionMode
+        | ConfigCommand::TorqueMode => Role::Operator,
+    }
+}
+
+/// Why a write needs the motor standing still.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StillReason {
+    /// A save flag of 1.8 to 1.11 writes flash, which the manual allows only
+    /// at standstill.
+    Save,
+    /// Factory reset rewrites flash.
+    FactoryReset,
+    /// A drive taking a new address drops off the bus mid-motion.
+    Address,
+    /// Calibration and fine-tuning move the motor on their own.
+    Calibration,
+}
+
+impl StillReason {
+    /// In words, as the subject of "is refused while the motor turns".
+    pub fn what(self) -> &'static str {
+        match self {
+            StillReason::Save => "a save to flash",
+            StillReason::FactoryReset => "a factory reset",
+            StillReason::Address => "address setting",
+            StillReason::Calibration => "calibration",
+        }
+    }
+
+    /// Why, in words.
+    pub fn why(self) -> &'static str {
+        match self {
+            StillReason::Save | StillReason::FactoryReset => {
+                "the manual allows writing flash only at standstill"
+            }
+            StillReason::Address => {
+                "a drive that takes a new address stops answering at the old one mid-motion"
+            }
+            StillReason::Calibration => "calibration turns the motor on its own",
+        }
+    }
+}
+
+/// A write that stops the motor itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stopper {
+    /// The emergency brake.
+    Brake,
+    /// Deactivation.
+    Deactivate,
+}
+
+impl Stopper {
+    /// In words ("the brake").
+    pub fn name(self) -> &'static str {
+        match self {
+            Stopper::Brake => "the brake",
+            Stopper::Deactivate => "the deactivation",
+        }
+    }
+}
+
+/// What a write means for the motor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Meaning {
+    /// The role it needs.
+    pub needs: Role,
+    /// Set when it needs the motor standing still.
+    pub still: Option<StillReason>,
+    /// The mode of the setpoint it writes, if it writes one.
+    pub setpoint: Option<Mode>,
+    /// Set when it stops the motor itself.
+    pub stops: Option<Stopper>,
+    /// True when it releases a brake (setpoints, mode commands).
+    pub releases_brake: bool,
+    /// True when it goes ahead of everything on the bus (the brake).
+    pub emergency: bool,
+    /// True when it sets a drive's address.
+    pub address: bool,
+}
+
+impl Meaning {
+    fn new(needs: Role) -> Self {
+        Meaning {
+            needs,
+            still: None,
+            setpoint: None,
+            stops: None,
+            releases_brake: false,
+            emergency: false,
+            address: false,
+        }
+    }
+
+    /// Folds in another register's meaning: the stricter of each fact.
+    fn and(mut self, other: Meaning) -> Self {
+        self.needs = self.needs.max(other.needs);
+        self.still = self.still.or(other.still);
+        self.setpoint = self.setpoint.or(other.setpoint);
+        self.stops = self.stops.or(other.stops);
+        self.releases_brake |= other.releases_brake;
+        self.emergency |= other.emergency;
+        self.address |= other.address;
+        self
+    }
+}
+
+/// What a config command means.
+fn command(command: ConfigCommand) -> Meaning {
+    let mut m = Meaning::new(for_command(command));
+    match command {
+        ConfigCommand::EmergencyBrake => {
+            m.stops = Some(Stopper::Brake);
+            m.emergency = true;
+        }
+        ConfigCommand::Deactivate => m.stops = Some(Stopper::Deactivate),
+        ConfigCommand::Calibrate | ConfigCommand::FineTuneCalibration => {
+            m.still = Some(StillReason::Calibration);
+        }
+        ConfigCommand::FactoryReset => m.still = Some(StillReason::FactoryReset),
+        ConfigCommand::SpeedMode | ConfigCommand::PositionMode | ConfigCommand::TorqueMode => {
+            m.releases_brake = true;
+        }
+        ConfigCommand::Activate
+        | ConfigCommand::SetZero
+        | ConfigCommand::SoftReset
+        | ConfigCommand::FaultReset => {}
+    }
+    m
+}
+
+fn setpoint(mode: Mode) -> Meaning {
+    let mut m = Meaning::new(Role::Operator);
+    m.setpoint = Some(mode);
+    m.releases_brake = true;
+    m
+}
+
+fn settings(save: bool) -> Meaning {
+    let mut m = Meaning::new(Role::Admin);
+    if save {
+        m.still = Some(StillReason::Save);
+    }
+    m
+}
+
+/// What one of the manual's messages means.
+pub fn of_request(request: &DriveRequest) -> Meaning {
+    match *request {
+        DriveRequest::SetAddress { .. } => {
+            let mut m = Meaning::new(Role::Admin);
+            m.still = Some(StillReason::Address);
+            m.address = true;
+            m
+        }
+        DriveRequest::Config(c) => command(c),
+        DriveRequest::Speed { .. } => setpoint(Mode::Speed),
+        DriveRequest::Position { .. } => setpoint(Mode::Position),
+        DriveRequest::Torque { .. } => setpoint(Mode::Torque),
+        DriveRequest::ReadStatus => Meaning::new(Role::Viewer),
+        DriveRequest::OverCurrent { save, .. }
+        | DriveRequest::SpeedRamp { save, .. }
+        | DriveRequest::PositionRamp { save, .. }
+        | DriveRequest::LoadInertia { save, .. } => settings(save),
+        DriveRequest::Rs485Control { .. } => settings(false),
+    }
+}
+
+/// What a write of `value` to `register` means on its own.
+pub fn of_register(register: Register, value: u16) -> Meaning {
+    match register {
+        Register::SlaveAddr => of_request(&DriveRequest::SetAddress {
+            address: u8::try_from(value).unwrap_or(0),
+        }),
+        Register::Config => match ConfigCommand::from_code(value) {
+            Some(c) => command(c),
+            // A code the drive refuses: nothing the core can vouch for.
+            None => Meaning::new(Role::Admin),
+        },
+        Register::SpeedRef => setpoint(Mode::Speed),
+        Register::PositionRef => setpoint(Mode::Position),
+        Register::IqRef => setpoint(Mode::Torque),
+        Register::StalledCurrSaveFlag
+        | Register::SpeedTdRSaveFlag
+        | Register::PositionTdRSaveFlag
+        | Register::InertiaRatioSaveFlag => settings(value != 0),
+        _ => Meaning::new(Role::Admin),
+    }
+}
+
+/// What a Modbus write PDU means, as the drive would read it; a write the
+/// register table cannot explain needs the admin role.
+pub fn of_pdu(meaning: &PduMeaning) -> Meaning {
+    match meaning {
+        PduMeaning::Message(request) => of_request(request),
+        PduMeaning::Registers(writes) => writes
+            .iter()
+            .map(|&(r, v)| of_register(r, v))
+            .reduce(Meaning::and)
+            .unwrap_or(Meaning::new(Role::Admin)),
+        PduMeaning::Unknown => Meaning::new(Role::Admin),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn roles_are_ordered() {
+        assert!(Role::Admin.allows(Role::Operator));
+        assert!(Role::Operator.allows(Role::Viewer));
+        assert!(!Role::Viewer.allows(Role::Operator));
+        assert!(!Role::Operator.allows(Role::Admin));
+        assert_eq!(Operation::Scan.needs(), Role::Admin);
+        assert_eq!(Operation::Lease.needs(), Role::Operator);
+        assert_eq!(Operation::Read.needs(), Role::Viewer);
+    }
+
+    #[test]
+    fn commissioning_commands_need_admin() {
+        assert_eq!(for_command(ConfigCommand::FactoryReset), Role::Admin);
+        assert_eq!(for_command(ConfigCommand::Calibrate), Role::Admin);
+        assert_eq!(for_command(ConfigCommand::EmergencyBrake), Role::Operator);
+        assert_eq!(for_command(ConfigCommand::FaultReset), Role::Operator);
+    }
+
+    #[test]
+    fn the_brake_stops_the_motor_at_emergency_priority() {
+        let m = of_request(&DriveRequest::Config(ConfigCommand::EmergencyBrake));
+        assert_eq!(m.stops, Some(Stopper::Brake));
+        assert!(m.emergency && !m.releases_brake);
+        assert_eq!(m.needs, Role::Operator);
+        let m = of_request(&DriveRequest::Config(ConfigCommand::Deactivate));
+        assert_eq!(m.stops, Some(Stopper::Deactivate));
+        assert!(!m.emergency);
+    }
+
+    #[test]
+    fn setpoints_and_mode_commands_release_the_brake() {
+        let m = of_request(&DriveRequest::Torque { counts: 128 });
+        assert_eq!((m.setpoint, m.releases_brake), (Some(Mode::Torque), true));
+        let m = of_request(&DriveRequest::Config(ConfigCommand::SpeedMode));
+        assert_eq!((m.setpoint, m.releases_brake), (None, true));
+        let m = of_request(&DriveRequest::Config(ConfigCommand::FaultReset));
+        assert!(!m.releases_brake);
+    }
+
+    #[test]
+    fn still_checks() {
+        let save = DriveRequest::LoadInertia {
+            ratio: 5,
+            save: true,
+        };
+        assert_eq!(of_request(&save).still, Some(StillReason::Save));
+        let no_save = DriveRequest::LoadInertia {
+            ratio: 5,
+            save: false,
+        };
+        assert_eq!(of_request(&no_save).still, None);
+        assert_eq!(of_request(&no_save).needs, Role::Admin);
+        for (c, reason) in [
+            (ConfigCommand::FactoryReset, StillReason::FactoryReset),
+            (ConfigCommand::Calibrate, StillReason::Calibration),
+            (ConfigCommand::FineTuneCalibration, StillReason::Calibration),
+        ] {
+            assert_eq!(of_request(&DriveRequest::Config(c)).still, Some(reason));
+        }
+        let address = of_request(&DriveRequest::SetAddress { address: 4 });
+        assert_eq!(address.still, Some(StillReason::Address));
+        assert!(address.address);
+        assert_eq!(of_request(&DriveRequest::Speed { rpm: 0 }).still, None);
+    }
+
+    #[test]
+    fn register_writes_mean_what_the_message_would() {
+        // A save flag written on its own is a save.
+        let m = of_register(Register::SpeedTdRSaveFlag, 1);
+        assert_eq!((m.needs, m.still), (Role::Admin, Some(StillReason::Save)));
+        assert_eq!(of_register(Register::SpeedTdRSaveFlag, 0).still, None);
+        // One half of a ramp alpha: a setting.
+        let m = of_register(Register::SpeedTdRLow, 7);
+        assert_eq!((m.needs, m.still), (Role::Admin, None));
+        // Setpoints by register.
+        assert_eq!(
+            of_register(Register::PositionRef, 9000).setpoint,
+            Some(Mode::Position)
+        );
+        // CONFIG by code; an unknown code needs admin.
+        assert_eq!(of_register(Register::Config, 5).stops, Some(Stopper::Brake));
+        assert_eq!(of_register(Register::Config, 9).needs, Role::Admin);
+        // A write to a read-only register.
+        assert_eq!(of_register(Register::Speed, 1).needs, Role::Admin);
+        // A block: the stricter of each register.
+        let block = PduMeaning::Registers(vec![
+            (Register::SpeedRef, 100),
+            (Register::PositionRef, 0),
+            (Register::IqRef, 0),
+            (Register::StalledCurr, 1000),
+        ]);
+        let m = of_pdu(&block);
+        assert_eq!((m.needs, m.setpoint), (Role::Admin, Some(Mode::Speed)));
+        assert_eq!(of_pdu(&PduMeaning::Unknown).needs, Role::Admin);
+    }
+}

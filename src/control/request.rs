@@ -1,0 +1,109 @@
+//! What a face asks the core to write, in one form whichever face it came
+//! from: one of the manual's messages (typed faces), or a Modbus PDU with
+//! what the register table makes of it (passthrough faces); with the
+//! lease, override and confirmation that come with it.
+
+use std::time::Duration;
+
+use super::policy::{self, Meaning};
+use super::written::{describe, describe_pdu};
+use crate::drive::writes::{self, PduMeaning};
+use crate::drive::{DriveRequest, RangeError};
+
+/// The write itself.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Write {
+    /// One of the manual's messages.
+    Drive(DriveRequest),
+    /// A Modbus write PDU, sent as it came; its reply goes back as it came.
+    Pdu {
+        /// Function code and data.
+        pdu: Vec<u8>,
+        /// What the drive will make of it.
+        meaning: PduMeaning,
+    },
+}
+
+impl Write {
+    /// A raw write PDU, decoded.
+    pub fn pdu(pdu: Vec<u8>) -> Self {
+        let meaning = writes::decode(&pdu);
+        Write::Pdu { pdu, meaning }
+    }
+
+    /// What it means for the motor.
+    pub fn meaning(&self) -> Meaning {
+        match self {
+            Write::Drive(r) => policy::of_request(r),
+            Write::Pdu { meaning, .. } => policy::of_pdu(meaning),
+        }
+    }
+
+    /// In words, for the audit log.
+    pub fn describe(&self) -> String {
+        match self {
+            Write::Drive(r) => describe(r),
+            Write::Pdu { pdu, meaning } => describe_pdu(pdu, meaning),
+        }
+    }
+
+    /// The PDU to send.
+    pub fn encode(&self) -> Result<Vec<u8>, RangeError> {
+        match self {
+            Write::Drive(r) => r.pdu(),
+            Write::Pdu { pdu, .. } => Ok(pdu.clone()),
+        }
+    }
+}
+
+/// A write with what comes with it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ControlRequest {
+    /// The write.
+    pub write: Write,
+    /// For a setpoint: a lease of this length (the motor is stopped unless
+    /// it is renewed in time).
+    pub lease: Option<Duration>,
+    /// The face's override of the still-check (HTTP `force`, a Modbus TCP
+    /// network's `allow_saves_while_moving`): write even while the motor
+    /// turns.
+    pub force: bool,
+    /// For an address broadcast: the caller confirmed that only one drive
+    /// is connected to the bus.
+    pub single_drive: bool,
+}
+
+impl ControlRequest {
+    /// A write with no lease, override or confirmation.
+    pub fn new(write: Write) -> Self {
+        ControlRequest {
+            write,
+            lease: None,
+            force: false,
+            single_drive: false,
+        }
+    }
+
+    /// One of the manual's messages.
+    pub fn drive(request: DriveRequest) -> Self {
+        Self::new(Write::Drive(request))
+    }
+
+    /// With a lease of `length` (if any).
+    pub fn with_lease(mut self, length: Option<Duration>) -> Self {
+        self.lease = length;
+        self
+    }
+
+    /// With the still-check overridden (or not).
+    pub fn forced(mut self, force: bool) -> Self {
+        self.force = force;
+        self
+    }
+
+    /// With the single-drive confirmation of an address broadcast.
+    pub fn single_drive(mut self, confirmed: bool) -> Self {
+        self.single_drive = confirmed;
+        self
+    }
+}

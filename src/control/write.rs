@@ -1,0 +1,562 @@
+//! The write path: the checks a write needs before it is sent, the lease
+//! and brake bookkeeping around it, the bus job, and the settling of its
+//! result (leases, audit, events), the same for every face.
+//!
+//! [`Control::submit`] returns once the write is on the bus queue, so a
+//! face that pipelines (Modbus TCP) keeps its client's order; the
+//! [`Pending`] it returns yields the typed result. A pending write dropped
+//! before its result is settled all the same: a queued job is dropped
+//! unsent (the client went away), and a brake or deactivation is followed
+//! to its end whoever waits for it, since leases depend on it.
+
+use std::time::{Duration, Instant, SystemTime};
+
+use tokio::sync::oneshot;
+use tokio::sync::oneshot::error::TryRecvError;
+
+use super::audit;
+use super::caller::Caller;
+use super::events::{ControlEvent, WriteEvent};
+use super::lease_book::{Grant, Holder, LeaseAsk, Ticket, WriteKind};
+use super::outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult, applied};
+use super::policy::{Meaning, StillReason, Stopper};
+use super::request::{ControlRequest, Write};
+use super::{Control, Target, policy_check};
+use crate::bus::cache::Link;
+use crate::bus::handle::JobOptions;
+use crate::bus::job::JobResult;
+use crate::bus::{BusError, BusHandle, Priority};
+use crate::drive::{DriveReply, DriveRequest, ReplyError, Status};
+use crate::modbus::ExceptionCode;
+use crate::modbus::function::EXCEPTION_BIT;
+
+/// What the audit log says of a write whose caller went away first.
+const GONE: &str = "the client went away before the drive answered; a request already on the wire was carried out, a queued one was dropped";
+
+impl Control {
+    /// Checks `request` for `caller`, puts it on the bus queue, and
+    /// returns the way to its result. A refusal, a failed check or a bus
+    /// that takes nothing is settled (audited) and returned at once.
+    pub async fn submit(
+        &self,
+        caller: &Caller,
+        target: Target,
+        request: ControlRequest,
+    ) -> Result<Pending, Failure> {
+        let meaning = request.write.meaning();
+        let mut settle = Settle::new(self, caller, target, &request.write);
+        if let Err(refusal) = self.check(caller, target, &request, &meaning).await {
+            return Err(settle.failed(refusal));
+        }
+        let pdu = match request.write.encode() {
+            Ok(pdu) => pdu,
+            Err(e) => return Err(settle.failed(Failure::NotSent(BusError::Invalid(e.to_string())))),
+        };
+        settle.tickets = self.tickets(caller, target, &request, &meaning);
+        let options = JobOptions {
+            priority: if meaning.emergency {
+                Priority::Emergency
+            } else {
+                Priority::Command
+            },
+            source: caller.source,
+            queue_timeout: None,
+            max_attempts: None,
+        };
+        let Some(bus) = self
+            .plant()
+            .buses()
+            .get(target.bus)
+            .map(|b| b.handle.clone())
+        else {
+            return Err(settle.failed(Failure::NotSent(BusError::Invalid(format!(
+                "no bus at index {}",
+                target.bus
+            )))));
+        };
+        match bus.submit(target.unit, pdu, options) {
+            Ok(rx) => Ok(Pending {
+                settle: Some(settle),
+                state: State::Waiting(rx),
+                follow: meaning.stops.is_some(),
+            }),
+            Err(e) => Err(settle.failed(Failure::NotSent(e))),
+        }
+    }
+
+    /// [`submit`](Self::submit), then waits for the result.
+    pub async fn write(
+        &self,
+        caller: &Caller,
+        target: Target,
+        request: ControlRequest,
+    ) -> WriteResult {
+        let mut pending = self.submit(caller, target, request).await?;
+        pending.wait().await;
+        pending.finish()
+    }
+
+    /// Reads the drive's status now (not from the poll cache), with the
+    /// caller's turn on the bus.
+    pub async fn read_status(&self, caller: &Caller, target: Target) -> Result<Status, BusError> {
+        let bus = self.bus(target)?;
+        read(&bus, caller, target.unit).await
+    }
+
+    fn bus(&self, target: Target) -> Result<BusHandle, BusError> {
+        self.plant()
+            .buses()
+            .get(target.bus)
+            .map(|b| b.handle.clone())
+            .ok_or_else(|| BusError::Invalid(format!("no bus at index {}", target.bus)))
+    }
+
+    /// The rules checked before a write is sent.
+    async fn check(
+        &self,
+        caller: &Caller,
+        target: Target,
+        request: &ControlRequest,
+        meaning: &Meaning,
+    ) -> Result<(), Failure> {
+        policy_check(caller, meaning.needs).map_err(Failure::Refused)?;
+        let bus = self.bus(target).map_err(Failure::NotSent)?;
+        let drives_on_bus = self
+            .plant()
+            .drives()
+            .iter()
+            .filter(|d| d.bus == target.bus)
+            .count();
+        if meaning.address && target.unit == 0 && !request.single_drive && drives_on_bus > 1 {
+            return Err(Failure::Refused(Refusal {
+                rule: Rule::SharedBusAddress,
+                detail: format!(
+                    "an address broadcast would give every drive of bus {} ({drives_on_bus} configured) the same address: connect only the drive to be addressed",
+                    bus.name()
+                ),
+            }));
+        }
+        if let Some(still) = meaning.still {
+            self.ensure_still(&bus, caller, target, still, request.force)
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// Refuses a write that needs standstill while the motor turns, unless
+    /// `force`. The drive is read now: such writes are rare and the cache
+    /// may be a poll old. A broadcast checks every configured drive of the
+    /// bus that answers (one that does not is not there to move).
+    async fn ensure_still(
+        &self,
+        bus: &BusHandle,
+        caller: &Caller,
+        target: Target,
+        still: StillReason,
+        force: bool,
+    ) -> Result<(), Failure> {
+        let units: Vec<u8> = if target.unit == 0 {
+            self.plant()
+                .drives()
+                .iter()
+                .filter(|d| d.bus == target.bus)
+                .filter(|d| bus.drive(d.unit).is_none_or(|s| s.link != Link::Offline))
+                .map(|d| d.unit)
+                .collect()
+        } else {
+            vec![target.unit]
+        };
+        for unit in units {
+            let status = match read(bus, caller, unit).await {
+                Ok(s) => s,
+                Err(_) if target.unit == 0 => continue,
+                Err(e) => return Err(Failure::CheckFailed(e)),
+            };
+            if status.speed_rpm == 0 {
+                continue;
+            }
+            let name = self.name(self.unit_target(target.bus, unit));
+            if force {
+                audit::forced(
+                    caller.face.name(),
+                    &caller.who,
+                    &name,
+                    still.what(),
+                    status.speed_rpm,
+                );
+                continue;
+            }
+            return Err(Failure::Refused(Refusal {
+                rule: Rule::Moving {
+                    still,
+                    speed_rpm: status.speed_rpm,
+                },
+                detail: format!(
+                    "{name} turns at {} rpm: {} is refused while the motor turns ({}); stop the motor first",
+                    status.speed_rpm,
+                    still.what(),
+                    still.why()
+                ),
+            }));
+        }
+        Ok(())
+    }
+
+    /// The drive at `target` in words: `drive "lift"` or `unit 7 on bus line1`.
+    fn name(&self, target: Target) -> String {
+        match target.drive.and_then(|d| self.plant().drives().get(d)) {
+            Some(d) => format!("drive \"{}\"", d.name),
+            None => {
+                let bus = self
+                    .plant()
+                    .buses()
+                    .get(target.bus)
+                    .map_or("?", |b| b.handle.name());
+                format!("unit {} on bus {bus}", target.unit)
+            }
+        }
+    }
+
+    /// The lease and brake bookkeeping of a write about to be sent: one
+    /// ticket per configured drive it reaches (every drive of the bus for a
+    /// broadcast), with the lease granted for a setpoint.
+    fn tickets(
+        &self,
+        caller: &Caller,
+        target: Target,
+        request: &ControlRequest,
+        meaning: &Meaning,
+    ) -> Vec<Ticket> {
+        let drives: Vec<usize> = if target.unit == 0 {
+            self.plant()
+                .drives()
+                .iter()
+                .enumerate()
+                .filter(|(_, d)| d.bus == target.bus)
+                .map(|(i, _)| i)
+                .collect()
+        } else {
+            target.drive.into_iter().collect()
+        };
+        let kind = match (meaning.stops, meaning.setpoint) {
+            (Some(Stopper::Brake), _) => Some(WriteKind::Brake),
+            (Some(Stopper::Deactivate), _) => Some(WriteKind::Deactivate),
+            (None, Some(_)) => Some(WriteKind::Setpoint { lease: None }),
+            (None, None) if meaning.releases_brake => Some(WriteKind::ReleasesBrake),
+            (None, None) => None,
+        };
+        let Some(kind) = kind else {
+            return Vec::new();
+        };
+        let by: std::sync::Arc<str> = match meaning.stops {
+            Some(stopper) => format!("{} from {}", stopper.name(), caller.describe()),
+            None if meaning.setpoint.is_some() && request.lease.is_none() => {
+                format!("a setpoint without a lease from {}", caller.describe())
+            }
+            None => format!("a write from {}", caller.describe()),
+        }
+        .into();
+        let allowance = self.allowance(target.bus);
+        let leases = self.leases();
+        leases.with(|book, now| {
+            let mut effects = Vec::new();
+            let tickets = drives
+                .iter()
+                .map(|&drive| {
+                    let kind = match (kind, meaning.setpoint, request.lease) {
+                        (WriteKind::Setpoint { .. }, Some(mode), Some(length))
+                            if target.unit != 0 =>
+                        {
+                            let ask = LeaseAsk {
+                                owner: caller.who.clone(),
+                                holder: caller.session.map_or(Holder::Request, Holder::Session),
+                                mode,
+                                length,
+                                allowance,
+                            };
+                            let (grant, e): (Grant, _) = book.grant(drive, ask, now);
+                            effects.extend(e);
+                            WriteKind::Setpoint { lease: Some(grant) }
+                        }
+                        (kind, _, _) => kind,
+                    };
+                    book.begin_write(drive, kind, by.clone())
+                })
+                .collect();
+            (tickets, effects)
+        })
+    }
+
+    /// How long a write on bus `bus` may take to be settled: the queue
+    /// wait and every attempt's timeout, with a margin.
+    fn allowance(&self, bus: usize) -> Duration {
+        self.plant()
+            .buses()
+            .get(bus)
+            .map_or(Duration::from_secs(10), |b| {
+                let c = &b.config;
+                let per_attempt =
+                    c.response_timeout_ms + c.guard_ms.unwrap_or(c.response_timeout_ms);
+                Duration::from_millis(c.queue_timeout_ms)
+                    + Duration::from_millis(per_attempt) * (u32::from(c.retries) + 1)
+                    + Duration::from_secs(1)
+            })
+    }
+}
+
+/// Reads `unit`'s status with `caller`'s turn on the bus.
+async fn read(bus: &BusHandle, caller: &Caller, unit: u8) -> Result<Status, BusError> {
+    let options = JobOptions {
+        priority: Priority::Command,
+        source: caller.source,
+        queue_timeout: None,
+        max_attempts: None,
+    };
+    match bus
+        .execute(unit, &DriveRequest::ReadStatus, options)
+        .await?
+    {
+        DriveReply::Status(s) => Ok(s),
+        _ => Err(BusError::Unconfirmed {
+            unit,
+            detail: "the reply to a status read carried no status",
+        }),
+    }
+}
+
+/// Everything needed to settle a write once its result is known.
+struct Settle {
+    control: Control,
+    caller: Caller,
+    target: Target,
+    bus: std::sync::Arc<str>,
+    write: Write,
+    what: String,
+    tickets: Vec<Ticket>,
+}
+
+impl Settle {
+    fn new(control: &Control, caller: &Caller, target: Target, write: &Write) -> Self {
+        let bus = control
+            .plant()
+            .buses()
+            .get(target.bus)
+            .map_or_else(|| "?".into(), |b| b.handle.name_arc());
+        Settle {
+            control: control.clone(),
+            caller: caller.clone(),
+            target,
+            bus,
+            write: write.clone(),
+            what: write.describe(),
+            tickets: Vec::new(),
+        }
+    }
+
+    /// Settles a write that failed before it was sent.
+    fn failed(self, failure: impl Into<Failure>) -> Failure {
+        let failure = failure.into();
+        let result = Err(failure);
+        self.settle(&result, None);
+        match result {
+            Err(f) => f,
+            Ok(_) => Failure::NotSent(BusError::ShuttingDown),
+        }
+    }
+
+    /// Hands the result to the lease book, the audit log and the events.
+    /// `gone`: the caller went away before the result, which is unknown.
+    fn settle(self, result: &WriteResult, gone: Option<&str>) {
+        let applied = match gone {
+            Some(_) => Applied::Maybe,
+            None => applied(result),
+        };
+        if !self.tickets.is_empty() {
+            let tickets = self.tickets;
+            self.control.leases().with(|book, now: Instant| {
+                let effects = tickets
+                    .iter()
+                    .flat_map(|t| book.end_write(t, applied, now))
+                    .collect();
+                ((), effects)
+            });
+        }
+        let words: Result<String, String> = match (gone, result) {
+            (Some(why), _) => Err(why.to_string()),
+            (None, Ok(Outcome::Confirmed { .. })) => Ok("confirmed by the drive".to_string()),
+            (None, Ok(Outcome::Broadcast)) => {
+                Ok("sent as a broadcast (drives do not reply)".to_string())
+            }
+            (None, Err(Failure::Refused(r))) => Err(format!("refused: {}", r.detail)),
+            (None, Err(f)) => Err(f.to_string()),
+        };
+        audit::write(
+            self.caller.face.name(),
+            &self.caller.who,
+            &self.bus,
+            self.target.unit,
+            &self.what,
+            &words,
+        );
+        let event = ControlEvent::Write(WriteEvent {
+            at: SystemTime::now(),
+            face: self.caller.face,
+            who: self.caller.who.clone(),
+            bus: self.bus.clone(),
+            unit: self.target.unit,
+            drive: self.target.drive,
+            what: self.what,
+            result: words,
+        });
+        self.control.events().publish(event.into(), None);
+    }
+
+    /// What the bus's result means for this write.
+    fn interpret(&self, result: JobResult) -> WriteResult {
+        let unit = self.target.unit;
+        let exchange = match result {
+            Ok(exchange) => exchange,
+            Err(e) if e.not_sent() => return Err(Failure::NotSent(e)),
+            Err(e) => {
+                return Err(Failure::Unknown {
+                    error: e,
+                    reply: None,
+                });
+            }
+        };
+        if unit == 0 {
+            return Ok(Outcome::Broadcast);
+        }
+        let reply = exchange.reply;
+        match &self.write {
+            Write::Drive(request) => match request.parse_reply(&reply) {
+                Ok(typed) => Ok(Outcome::Confirmed {
+                    reply,
+                    typed: Some(typed),
+                }),
+                Err(ReplyError::Exception(code)) => {
+                    Err(Failure::DriveRefused { unit, code, reply })
+                }
+                Err(ReplyError::Mismatch(detail)) => Err(Failure::Unknown {
+                    error: BusError::Unconfirmed { unit, detail },
+                    reply: Some(reply),
+                }),
+            },
+            // The master checked that the reply answers this request.
+            Write::Pdu { .. } => match reply.first() {
+                Some(f) if f & EXCEPTION_BIT != 0 => {
+                    let code = ExceptionCode(reply.get(1).copied().unwrap_or(0));
+                    Err(Failure::DriveRefused { unit, code, reply })
+                }
+                _ => Ok(Outcome::Confirmed { reply, typed: None }),
+            },
+        }
+    }
+}
+
+enum State {
+    Waiting(oneshot::Receiver<JobResult>),
+    Done(JobResult),
+}
+
+/// A write on the bus queue. Wait for it with [`wait`](Self::wait) (or
+/// poll [`try_ready`](Self::try_ready)), then take the result with
+/// [`finish`](Self::finish). Dropped first, it is settled all the same.
+pub struct Pending {
+    settle: Option<Settle>,
+    state: State,
+    /// Followed to its end even if dropped: a brake or a deactivation.
+    follow: bool,
+}
+
+impl std::fmt::Debug for Pending {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pending")
+            .field("what", &self.settle.as_ref().map(|s| &s.what))
+            .finish()
+    }
+}
+
+impl Pending {
+    /// Waits until the bus has a result. Cancel-safe.
+    pub async fn wait(&mut self) {
+        if let State::Waiting(rx) = &mut self.state {
+            let result = rx.await.unwrap_or(Err(BusError::ShuttingDown));
+            self.state = State::Done(result);
+        }
+    }
+
+    /// True when the bus has a result (without waiting).
+    pub fn try_ready(&mut self) -> bool {
+        match &mut self.state {
+            State::Done(_) => true,
+            State::Waiting(rx) => match rx.try_recv() {
+                Ok(result) => {
+                    self.state = State::Done(result);
+                    true
+                }
+                Err(TryRecvError::Closed) => {
+                    self.state = State::Done(Err(BusError::ShuttingDown));
+                    true
+                }
+                Err(TryRecvError::Empty) => false,
+            },
+        }
+    }
+
+    /// The result, settled (leases, audit, events). Call after
+    /// [`wait`](Self::wait); a result not in yet counts as lost.
+    pub fn finish(mut self) -> WriteResult {
+        let Some(settle) = self.settle.take() else {
+            return Err(Failure::NotSent(BusError::ShuttingDown));
+        };
+        self.try_ready();
+        let state = std::mem::replace(&mut self.state, State::Done(Err(BusError::ShuttingDown)));
+        let result = match state {
+            State::Done(r) => settle.interpret(r),
+            State::Waiting(_) => Err(Failure::NotSent(BusError::ShuttingDown)),
+        };
+        settle.settle(&result, None);
+        result
+    }
+}
+
+impl Drop for Pending {
+    fn drop(&mut self) {
+        let Some(settle) = self.settle.take() else {
+            return;
+        };
+        let state = std::mem::replace(&mut self.state, State::Done(Err(BusError::ShuttingDown)));
+        match state {
+            State::Done(r) => {
+                let result = settle.interpret(r);
+                settle.settle(&result, None);
+            }
+            State::Waiting(rx) if self.follow => match tokio::runtime::Handle::try_current() {
+                // Leases depend on a brake's result: follow it whoever waits.
+                Ok(runtime) => {
+                    runtime.spawn(async move {
+                        let result = rx.await.unwrap_or(Err(BusError::ShuttingDown));
+                        let result = settle.interpret(result);
+                        settle.settle(&result, None);
+                    });
+                }
+                Err(_) => settle.settle(&Err(Failure::NotSent(BusError::ShuttingDown)), Some(GONE)),
+            },
+            State::Waiting(mut rx) => {
+                // Closed, a job still queued is dropped unsent; one on the
+                // wire runs, and its result is lost with the caller.
+                rx.close();
+                match rx.try_recv() {
+                    Ok(r) => {
+                        let result = settle.interpret(r);
+                        settle.settle(&result, None);
+                    }
+                    Err(_) => {
+                        settle.settle(&Err(Failure::NotSent(BusError::ShuttingDown)), Some(GONE))
+                    }
+                }
+            }
+        }
+    }
+}
