@@ -15,6 +15,7 @@ mod cli;
 mod graceful_stop;
 mod grafana;
 mod logs;
+mod manifest;
 mod metrics;
 mod metrics_scrape_cost;
 mod package;

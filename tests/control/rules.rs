@@ -6,17 +6,11 @@
 //! setpoint without a lease from any face takes over from the stop of a
 //! lease that ended.
 
-#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-mod api_support;
-mod common;
-mod modbus_tcp_support;
-
 use std::time::{Duration, Instant};
 
-use api_support::{Api, connect, next_json, wait_for, ws_command};
-use common::{FOUR_DRIVES, TestDaemon, eventually};
-use modbus_tcp_support::{Raw, four_drives_with, mbpoll, pymodbus, write};
+use crate::support::api::{Api, connect, next_json, wait_for, ws_command};
+use crate::support::modbus_tcp::{Raw, four_drives_with, mbpoll, pymodbus, write};
+use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use serde_json::json;
 
 const LIMIT: Duration = Duration::from_secs(90);

@@ -3,8 +3,6 @@
 //! (what only the tests and benchmarks use is a dev-dependency, so it is
 //! not built into the daemon).
 
-#![allow(clippy::unwrap_used, clippy::expect_used)]
-
 use std::path::Path;
 
 fn manifest() -> toml::Table {

@@ -3,15 +3,10 @@
 //! client comes from 127.0.0.1; each daemon gives that network another
 //! role. Checked with raw frames, pymodbus and mbpoll.
 
-#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-mod common;
-mod modbus_tcp_support;
-
 use std::time::Duration;
 
-use common::TestDaemon;
-use modbus_tcp_support::{Raw, four_drives_with, mbpoll, pymodbus, read, write};
+use crate::support::TestDaemon;
+use crate::support::modbus_tcp::{Raw, four_drives_with, mbpoll, pymodbus, read, write};
 
 const LIMIT: Duration = Duration::from_secs(60);
 const CONFIG: u16 = 0x0002;
@@ -133,7 +128,7 @@ async fn read_only_still_makes_everybody_a_viewer() {
             .await
             .unwrap();
         assert_eq!(
-            modbus_tcp_support::metric(
+            crate::support::modbus_tcp::metric(
                 &metrics,
                 "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"read_only\"}"
             ),

@@ -7,18 +7,12 @@
 //! deactivation from each face ends a lease the same way, and a setpoint
 //! the bus let overtake by the brake has the brake applied again.
 
-#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-mod api_support;
-mod common;
-mod modbus_tcp_support;
-
 use std::time::{Duration, Instant};
 
-use api_support::{Api, Ws, connect, next_json, wait_for, ws_command};
-use common::{FOUR_DRIVES, TestDaemon, eventually};
+use crate::support::api::{Api, Ws, connect, next_json, wait_for, ws_command};
+use crate::support::modbus_tcp::{Raw, write};
+use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::BusHandle;
-use modbus_tcp_support::{Raw, write};
 use serde_json::{Value, json};
 
 const LIMIT: Duration = Duration::from_secs(60);

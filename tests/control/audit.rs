@@ -4,19 +4,14 @@
 //! and after a PLC's brake ended an HTTP lease, no lease-expiry write is.
 
 // `common` is shared by several test crates: its `pub` items are for them.
-#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-mod api_support;
-mod common;
-mod modbus_tcp_support;
 
 use std::io::Write;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use api_support::Api;
-use common::{TestDaemon, eventually};
-use modbus_tcp_support::{Raw, four_drives_with, write};
+use crate::support::api::Api;
+use crate::support::modbus_tcp::{Raw, four_drives_with, write};
+use crate::support::{TestDaemon, eventually};
 use serde_json::json;
 
 /// The log lines written so far.

@@ -1,0 +1,16 @@
+//! The motor-safety rules of the control core, through every face: a brake
+//! or a deactivation ends a lease whichever face sent it, still-checks and
+//! their overrides, roles by token and by network, and one audit wording.
+//!
+//! One module per rule; a new test of a rule goes into its module. Helpers
+//! shared with other binaries live in `tests/support/`.
+
+#![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
+
+#[path = "../support/mod.rs"]
+mod support;
+
+mod audit;
+mod brake;
+mod roles;
+mod rules;
