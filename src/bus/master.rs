@@ -109,6 +109,10 @@ pub struct Report {
     pub busy: Duration,
     /// Bytes received that belonged to no reply.
     pub stray_bytes: usize,
+    /// The silence the master left before the request: from the end of the
+    /// previous frame (the last byte received, or sent with no reply) to
+    /// the first byte of this one. At least t3.5; the rest is overhead.
+    pub idle_before: Duration,
 }
 
 /// The serial port itself failed during a transaction (adapter unplugged,
@@ -219,9 +223,14 @@ impl RtuMaster {
         let mut started = None;
         let mut busy = Duration::ZERO;
         let mut last_fault = None;
+        let mut idle_before = Duration::ZERO;
         for attempt in 1..=attempts_allowed {
             self.wait_for_silence().await?;
+            let quiet_since = self.quiet_since;
             let sent_at = self.send(&frame, sent).await?;
+            if started.is_none() {
+                idle_before = sent_at.saturating_duration_since(quiet_since);
+            }
             started.get_or_insert(sent_at);
             let wire_end = sent_at + self.settings.line.wire_time(frame.len());
 
@@ -237,6 +246,7 @@ impl RtuMaster {
                     on_wire: wire_end - sent_at,
                     busy,
                     stray_bytes: self.stray,
+                    idle_before,
                 });
             }
 
@@ -266,6 +276,7 @@ impl RtuMaster {
                         on_wire: end - *started.get_or_insert(sent_at),
                         busy,
                         stray_bytes: self.stray,
+                        idle_before,
                     });
                 }
                 Err(fault) => {
@@ -285,7 +296,14 @@ impl RtuMaster {
             on_wire: started.map_or(Duration::ZERO, |s| s.elapsed()),
             busy,
             stray_bytes: self.stray,
+            idle_before,
         })
+    }
+
+    /// When the line may carry the next request: t3.5 after the end of the
+    /// last frame (later after a broadcast's turnaround).
+    pub fn line_free_at(&self) -> Instant {
+        self.quiet_since + self.settings.line.t3_5()
     }
 
     /// Waits until the line may carry the next request (t3.5 of silence).

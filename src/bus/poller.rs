@@ -56,6 +56,14 @@ impl PollPlan {
             .map(|d| d.unit)
     }
 
+    /// When `unit`'s next poll falls (or fell) due.
+    pub fn due_at(&self, unit: u8) -> Option<Instant> {
+        self.drives
+            .iter()
+            .find(|d| d.unit == unit)
+            .map(|d| d.next_due)
+    }
+
     /// When the next poll falls due, `None` with no drives.
     pub fn next_due(&self) -> Option<Instant> {
         self.drives.iter().map(|d| d.next_due).min()

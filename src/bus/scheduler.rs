@@ -147,6 +147,9 @@ struct Scheduler {
     /// Commands run in a row while a poll was due.
     commands_in_a_row: u32,
     reopen: ReopenBackoff,
+    /// When the line last became free for the next request: work waiting
+    /// since then went out after the master's own overhead only.
+    line_free_at: Instant,
 }
 
 /// The wait before each attempt to (re)open the port: it doubles from the
@@ -221,6 +224,7 @@ impl Scheduler {
             shared,
             plan,
             commands_in_a_row: 0,
+            line_free_at: Instant::now(),
         }
     }
 
@@ -286,6 +290,7 @@ impl Scheduler {
                     if stray > 0 {
                         self.stats().add_stray_bytes(stray);
                     }
+                    self.line_free_at = m.line_free_at();
                     match self.next_work(Instant::now()) {
                         Work::Job(job) => self.run_job(m, job).await,
                         Work::Poll(unit) => self.run_poll(m, unit).await,
@@ -418,10 +423,15 @@ impl Scheduler {
     }
 
     /// Counts a transaction that went through the port (whatever the drive
-    /// answered): the port works.
-    fn account(&mut self, function: u8, report: &Report) {
+    /// answered): the port works. `waiting_since` is when its work was ready
+    /// (submitted, or due): if that was before the line became free, the
+    /// silence before it is the master's doing and is measured.
+    fn account(&mut self, function: u8, report: &Report, waiting_since: Instant) {
         self.reopen.worked();
         let stats = self.stats();
+        if waiting_since <= self.line_free_at {
+            stats.interframe_idle.observe(report.idle_before);
+        }
         stats.record_transaction(function, report.outcome, report.attempts);
         stats.transaction_duration.observe(report.on_wire);
         stats.add_busy(report.busy);
@@ -463,7 +473,7 @@ impl Scheduler {
                 return Err(failure.into_io());
             }
         };
-        self.account(function, &report);
+        self.account(function, &report, job.submitted);
         let result = match (report.outcome, report.reply) {
             (Outcome::Ok | Outcome::Exception, Some(reply)) => {
                 if job.pdu == *STATUS_PDU
@@ -499,11 +509,12 @@ impl Scheduler {
     async fn run_poll(&mut self, master: &mut RtuMaster, unit: u8) -> io::Result<()> {
         let pdu: &[u8] = &STATUS_PDU;
         let offline = self.cache().is_offline(unit);
+        let due = self.plan.due_at(unit).unwrap_or_else(Instant::now);
         let report = master
             .transact(unit, pdu, offline.then_some(1))
             .await
             .map_err(PortFailure::into_io)?;
-        self.account(pdu[0], &report);
+        self.account(pdu[0], &report, due);
         let status =
             report
                 .reply

@@ -10,7 +10,7 @@ use crate::bus::master::MasterSettings;
 use crate::bus::port::Rs485Settings;
 use crate::bus::queue::QueueLimits;
 use crate::bus::scheduler::BusSettings;
-use crate::sim::{FaultRates, SimConfig, SimDriveConfig};
+use crate::sim::{Delivery, FaultRates, SimConfig, SimDriveConfig};
 
 /// One serial adapter and the drives on it.
 #[derive(Debug, Clone, Deserialize)]
@@ -124,6 +124,11 @@ pub struct SimSection {
     /// Fault injection rates.
     #[serde(default)]
     pub faults: FaultRates,
+    /// How reply bytes reach the daemon: `[bus.sim.delivery] chunk_bytes`,
+    /// `jitter_us` model a USB adapter's late chunks (default: a UART's
+    /// exact timing).
+    #[serde(default)]
+    pub delivery: Delivery,
 }
 
 impl Default for SimSection {
@@ -134,6 +139,7 @@ impl Default for SimSection {
             reboot_ms: default_reboot(),
             calibrated: default_calibrated(),
             faults: FaultRates::default(),
+            delivery: Delivery::default(),
         }
     }
 }
@@ -198,6 +204,7 @@ impl BusConfig {
             faults: section.faults,
             reboot_ms: section.reboot_ms,
             calibrated: section.calibrated,
+            delivery: section.delivery,
         }
     }
 

@@ -11,7 +11,7 @@ use super::config::SimConfig;
 use super::faults::{FaultInjector, FaultRates, Noise};
 use super::model::{DriveModel, SimDriveView};
 use super::slave;
-use super::stats::SimStats;
+use super::stats::{GapHistogram, SimStats};
 use crate::modbus::crc::crc_bytes;
 use crate::modbus::rtu_frame;
 
@@ -48,6 +48,7 @@ pub struct Bus {
     slots: Vec<Slot>,
     faults: FaultInjector,
     stats: SimStats,
+    gaps: GapHistogram,
     pdu: Vec<u8>,
     scratch: Vec<u8>,
 }
@@ -67,6 +68,7 @@ impl Bus {
                 .collect(),
             faults: FaultInjector::new(config.faults.clone(), config.seed),
             stats: SimStats::default(),
+            gaps: GapHistogram::default(),
             pdu: Vec::with_capacity(256),
             scratch: Vec::with_capacity(256),
         }
@@ -80,6 +82,16 @@ impl Bus {
     /// The counters, for the wire to update.
     pub fn stats_mut(&mut self) -> &mut SimStats {
         &mut self.stats
+    }
+
+    /// The silences seen before each request.
+    pub fn gaps(&self) -> &GapHistogram {
+        &self.gaps
+    }
+
+    /// Counts the silence before a request.
+    pub fn record_gap(&mut self, gap: Duration) {
+        self.gaps.record(gap);
     }
 
     /// The fault rates in force.

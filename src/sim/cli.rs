@@ -10,6 +10,7 @@ use tokio::signal::unix::{SignalKind, signal};
 
 use super::Simulator;
 use super::config::{DEFAULT_GEAR_RATIO, SimConfig, SimDriveConfig};
+use super::delivery::Delivery;
 use super::faults::FaultRates;
 
 /// Arguments of `drivegate sim`.
@@ -51,6 +52,13 @@ pub struct SimArgs {
     /// Units that never answer, e.g. "3,5".
     #[arg(long)]
     pub silent_units: Option<UnitList>,
+    /// Reply bytes handed over together, as a USB adapter does (1: each byte
+    /// on time, as a UART does).
+    #[arg(long, default_value_t = 1)]
+    pub chunk_bytes: u16,
+    /// Largest extra delay of each chunk, in microseconds.
+    #[arg(long, default_value_t = 0)]
+    pub jitter_us: u32,
 }
 
 impl SimArgs {
@@ -76,6 +84,10 @@ impl SimArgs {
                 late_ms: self.late_ms,
                 noise_rate: self.noise_rate,
                 silent_units: self.silent_units.clone().map(|u| u.0).unwrap_or_default(),
+            },
+            delivery: Delivery {
+                chunk_bytes: self.chunk_bytes,
+                jitter_us: self.jitter_us,
             },
             ..SimConfig::default()
         }

@@ -2,6 +2,7 @@
 
 use serde::Deserialize;
 
+use super::delivery::Delivery;
 use super::faults::FaultRates;
 use crate::drive::RangeError;
 use crate::drive::units::GEAR_RATIO;
@@ -40,6 +41,9 @@ pub struct SimConfig {
     /// Whether the drives' flash says their encoders have been calibrated
     /// (false models drives that never were: fine-tuning is then refused).
     pub calibrated: bool,
+    /// How the replies' bytes reach the master (a UART's exact timing, or a
+    /// USB adapter's late chunks).
+    pub delivery: Delivery,
 }
 
 impl Default for SimConfig {
@@ -67,6 +71,7 @@ impl SimConfig {
             faults: FaultRates::default(),
             reboot_ms: 300.0,
             calibrated: true,
+            delivery: Delivery::default(),
         }
     }
 
@@ -95,6 +100,7 @@ impl SimConfig {
                 "",
             )?;
         }
+        self.delivery.validate()?;
         self.faults.validate()
     }
 }

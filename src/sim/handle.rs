@@ -16,7 +16,7 @@ use super::faults::FaultRates;
 use super::lock;
 use super::model::{DriveModel, SimDriveView};
 use super::physics::Environment;
-use super::stats::SimStats;
+use super::stats::{GapHistogram, SimStats};
 use crate::drive::{Fault, RangeError};
 
 /// Why a handle operation was refused.
@@ -100,6 +100,12 @@ impl SimHandle {
     /// The wire's counters.
     pub fn stats(&self) -> SimStats {
         lock(&self.bus).stats()
+    }
+
+    /// The silences the wire saw before each request (the master's idle
+    /// time between frames, as the drives see it).
+    pub fn gaps(&self) -> GapHistogram {
+        lock(&self.bus).gaps().clone()
     }
 
     /// The fault rates in force.

@@ -14,6 +14,8 @@
 //! - [`model`]: one drive: registers, flash, commands, protections, faults;
 //! - [`slave`]: the Modbus slave (PDU in, PDU out, exceptions);
 //! - [`faults`]: seeded fault injection on the wire;
+//! - [`delivery`]: when the master receives each reply byte (a UART, or a
+//!   USB adapter's late chunks);
 //! - [`bus`]: the drives on one line, who answers what;
 //! - [`wire`]: framing and the line's timing on the pty;
 //! - [`pty`]: the pseudo-terminal;
@@ -28,6 +30,7 @@ pub mod bus;
 pub mod cli;
 pub mod config;
 pub mod control;
+pub mod delivery;
 pub mod faults;
 pub mod handle;
 pub mod model;
@@ -47,10 +50,11 @@ use std::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 pub use config::{ConfigError, SimConfig, SimDriveConfig};
+pub use delivery::Delivery;
 pub use faults::FaultRates;
 pub use handle::{SimError, SimHandle};
 pub use model::SimDriveView;
-pub use stats::SimStats;
+pub use stats::{GapHistogram, SimStats};
 
 use bus::Bus;
 use wire::Wire;

@@ -12,7 +12,9 @@
 //! - The reply starts no earlier than the end of the request's wire time +
 //!   t3.5 + the drive's turnaround (+ injected lateness), and its byte `i` is
 //!   written at `reply_start + wire_time(i + 1)`, computed from that schedule,
-//!   writing together all bytes already due when a wakeup comes late.
+//!   writing together all bytes already due when a wakeup comes late. With a
+//!   USB adapter's [`Delivery`], bytes are handed over in chunks, late; the
+//!   wire's own timing (and so the silence the master owes) does not change.
 //! - A request whose first byte arrives less than t3.5 after the end of the
 //!   previous activity (the last reply byte's scheduled end, or the end of the
 //!   previous request when it had no reply) is a gap violation. The check is
@@ -27,10 +29,13 @@ use std::io;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 use super::bus::Bus;
 use super::config::SimConfig;
+use super::delivery::Delivery;
 use super::lock;
 use super::pty::Pty;
 use crate::clock::PreciseTimer;
@@ -80,6 +85,12 @@ pub struct Wire {
     timer: PreciseTimer,
     rx: Rx,
     tx: Vec<u8>,
+    /// When each byte of `tx` is handed to the master.
+    release: Vec<Instant>,
+    delivery: Delivery,
+    /// Draws the delivery's jitter (its own stream: the faults' draws stay
+    /// the same whatever the delivery).
+    rng: ChaCha8Rng,
     /// End of the last wire activity.
     quiet_from: Option<Instant>,
 }
@@ -96,6 +107,9 @@ impl Wire {
             timer: PreciseTimer::new()?,
             rx: Rx::new(),
             tx: Vec::with_capacity(MAX_FRAME),
+            release: Vec::with_capacity(MAX_FRAME),
+            delivery: config.delivery,
+            rng: ChaCha8Rng::seed_from_u64(config.seed ^ 0xDE11_7E12),
             quiet_from: None,
         })
     }
@@ -169,6 +183,9 @@ impl Wire {
             if violation {
                 bus.stats_mut().gap_violations += 1;
             }
+            if let Some(q) = self.quiet_from {
+                bus.record_gap(arrival.saturating_duration_since(q));
+            }
             bus.request(&self.rx.bytes[..len], Instant::now(), &mut self.tx)
         };
         self.rx.consume(len);
@@ -188,26 +205,26 @@ impl Wire {
         Ok(())
     }
 
-    /// Writes `tx` one character time per byte from `start`; returns the
-    /// scheduled end of the last byte.
+    /// Writes `tx` one character time per byte from `start`, handed over as
+    /// the delivery says; returns the scheduled end of the last byte on the
+    /// wire.
     async fn send_paced(&mut self, start: Instant) -> io::Result<Instant> {
         let len = self.tx.len();
+        self.delivery
+            .schedule(&self.line, start, len, &mut self.rng, &mut self.release);
+        let last = self.release.last().copied().unwrap_or(start);
         let mut sent = 0;
         while sent < len {
             let now = Instant::now();
-            let mut due = sent;
-            while due < len && start + self.line.wire_time(due + 1) <= now {
-                due += 1;
-            }
+            let due = sent + self.release[sent..].partition_point(|&t| t <= now);
             if due > sent {
                 self.pty.master().write_all(&self.tx[sent..due]).await?;
                 sent = due;
             } else {
                 // Only the last byte's time decides when the master may go on:
                 // it is timed precisely, the others are allowed a little late.
-                let last = sent + 1 == len;
-                self.read_until(Some(start + self.line.wire_time(sent + 1)), last)
-                    .await?;
+                let next = self.release[sent];
+                self.read_until(Some(next), next == last).await?;
             }
         }
         Ok(start + self.line.wire_time(len))
