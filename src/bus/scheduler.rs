@@ -217,6 +217,7 @@ impl Scheduler {
             settings.drives.iter().copied(),
             settings.offline_backoff.0,
             settings.offline_backoff.1,
+            Instant::now(),
         );
         Self {
             reopen: ReopenBackoff::new(settings.reopen_backoff),
