@@ -4,6 +4,10 @@
 //! - one frame in flight; each request goes out in one write, only after the
 //!   line has been silent for t3.5 (bytes seen meanwhile are stray: counted,
 //!   discarded, and the silence starts again);
+//! - the response timeout is the wait for the reply's first byte; once bytes
+//!   flow, the deadline follows the wire (the bytes still to come at the
+//!   character time, plus t3.5 and an allowance for delivery), so a long
+//!   reply at a low baud rate is not cut off by a timeout meant for silence;
 //! - the reply is framed by the length its function code implies, or by
 //!   t3.5 of silence for codes whose length it cannot know, and checked:
 //!   CRC, unit, function, and that it answers *this* request (an echo must
@@ -11,7 +15,10 @@
 //!   byte count asked for);
 //! - after a timeout or a bad frame it waits a guard time, discarding what
 //!   arrives, and flushes the input, so a late reply to one request is never
-//!   taken as the answer to the next;
+//!   taken as the answer to the next. After a timeout in which not one byte
+//!   arrived (a drive that is off), the guard only lasts as long as a reply
+//!   starting at the timeout would take, unless a fixed guard is configured:
+//!   a dead drive then costs its timeout and little more;
 //! - a broadcast (unit 0) is sent, followed by the turnaround delay, and no
 //!   reply is read; bytes arriving during the turnaround do not shorten it.
 
@@ -30,17 +37,24 @@ use crate::modbus::reply::{self, Mismatch};
 use crate::modbus::rtu_frame::{self, FrameLength};
 use crate::modbus::timing::LineTiming;
 
+/// Time allowed, beyond the wire's own pace, for the rest of a reply to
+/// reach the master once it has begun: USB adapters hand bytes over in
+/// packets up to 16 ms apart (FTDI's default latency timer), and the system
+/// may run the reader late. A reply that pauses longer is cut short.
+pub const DELIVERY_ALLOWANCE: Duration = Duration::from_millis(20);
+
 /// Timing and retry settings of a master.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MasterSettings {
     /// The line's baud rate and character timing.
     pub line: LineTiming,
-    /// How long to wait for a reply after the request has left the wire.
+    /// How long to wait for a reply's first byte after the request has left
+    /// the wire (the rest follows at the wire's pace).
     pub response_timeout: Duration,
     /// Attempts after the first, for timeouts and bad frames.
     pub retries: u8,
     /// Silence kept after a timeout or bad frame, discarding anything late.
-    pub guard_time: Duration,
+    pub guard: Guard,
     /// Time the drives get to act on a broadcast before the next request.
     pub broadcast_delay: Duration,
     /// RS-485 direction control.
@@ -55,17 +69,32 @@ impl MasterSettings {
             line: LineTiming::new_8n1(baud),
             response_timeout,
             retries,
-            guard_time: response_timeout,
+            guard: Guard::Auto,
             broadcast_delay: Duration::from_millis(20),
             rs485: Rs485Settings::default(),
         }
     }
 }
 
+/// How long the line is kept after a failed attempt, discarding whatever
+/// arrives, so that a late reply is not taken for the next request's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Guard {
+    /// After a bad frame: the response timeout. After a timeout in which not
+    /// one byte arrived: as long as the awaited reply, had it started at the
+    /// timeout, takes on the wire, plus t3.5, and on while bytes keep
+    /// coming. A drive that is off then costs its timeout and a few
+    /// milliseconds, not twice its timeout.
+    Auto,
+    /// This long after every failed attempt: for drives that may answer
+    /// later than the response timeout.
+    Fixed(Duration),
+}
+
 /// What was wrong with one attempt.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Fault {
-    /// Nothing (or too little) arrived before the timeout.
+    /// Not one byte arrived before the timeout.
     Timeout,
     /// A frame arrived with a bad CRC.
     Crc,
@@ -251,7 +280,7 @@ impl RtuMaster {
             }
 
             let received = self
-                .receive(unit, wire_end + self.settings.response_timeout)
+                .receive(unit, pdu, wire_end + self.settings.response_timeout)
                 .await?;
             let end = Instant::now();
             busy += (end - sent_at) + t35;
@@ -281,7 +310,15 @@ impl RtuMaster {
                 }
                 Err(fault) => {
                     let guard_start = Instant::now();
-                    self.guard().await?;
+                    match (self.settings.guard, &fault) {
+                        (Guard::Auto, Fault::Timeout) => {
+                            let reply_len = rtu_frame::expected_response_length(pdu)
+                                .unwrap_or(rtu_frame::MAX_FRAME);
+                            self.guard_late_reply(reply_len).await?;
+                        }
+                        (Guard::Auto, _) => self.guard(self.settings.response_timeout).await?,
+                        (Guard::Fixed(time), _) => self.guard(time).await?,
+                    }
                     busy += guard_start.elapsed();
                     last_fault = Some(fault);
                 }
@@ -408,12 +445,28 @@ impl RtuMaster {
         Ok(sent_at)
     }
 
-    /// Reads one reply frame into `buf`; `Ok(Err(fault))` for a protocol
-    /// fault, `Err` for a port failure.
-    async fn receive(&mut self, unit: u8, deadline: Instant) -> io::Result<Result<usize, Fault>> {
-        let t35 = self.settings.line.t3_5();
+    /// Reads one reply frame to `request` into `buf`; `Ok(Err(fault))` for a
+    /// protocol fault, `Err` for a port failure.
+    ///
+    /// `first_byte_by` is the response timeout: the wait for the reply's
+    /// first byte. Once bytes flow, the deadline follows the wire: the bytes
+    /// still to come at the character time, plus t3.5 and the
+    /// [`DELIVERY_ALLOWANCE`], counted from the last bytes received, but
+    /// never earlier than the timeout. A 125-register reply takes 265 ms at
+    /// 9600 baud; a drive that starts it in time gets it through whatever
+    /// the timeout.
+    async fn receive(
+        &mut self,
+        unit: u8,
+        request: &[u8],
+        first_byte_by: Instant,
+    ) -> io::Result<Result<usize, Fault>> {
+        let line = self.settings.line;
+        let t35 = line.t3_5();
+        let expected = rtu_frame::expected_response_length(request).unwrap_or(rtu_frame::MAX_FRAME);
         let mut len = 0;
         let mut last_byte = Instant::now();
+        let mut deadline = first_byte_by;
         loop {
             // A full buffer holds no Modbus frame (the longest is 256 bytes):
             // it is noise. Reading on would read into an empty slice, whose
@@ -445,8 +498,13 @@ impl RtuMaster {
                     }
                 }
             };
-            if len > 0 && self.buf[0] != unit {
-                return Ok(Err(Fault::Mismatch("reply from another unit")));
+            if len > 0 {
+                if self.buf[0] != unit {
+                    return Ok(Err(Fault::Mismatch("reply from another unit")));
+                }
+                let remaining = need.unwrap_or(expected).saturating_sub(len);
+                deadline =
+                    deadline.max(last_byte + line.wire_time(remaining) + t35 + DELIVERY_ALLOWANCE);
             }
             let end = need.map_or(self.buf.len(), |n| n.min(self.buf.len()));
             match tokio::time::timeout_at(deadline.into(), self.port.read(&mut self.buf[len..end]))
@@ -462,18 +520,48 @@ impl RtuMaster {
         }
     }
 
-    /// After a fault: keep the line for `guard_time`, discarding anything
-    /// that arrives (a late reply), then flush the input.
-    async fn guard(&mut self) -> io::Result<()> {
-        let until = Instant::now() + self.settings.guard_time;
+    /// After a fault: keep the line for `time`, discarding anything that
+    /// arrives (a late reply), then flush the input.
+    async fn guard(&mut self, time: Duration) -> io::Result<()> {
+        let until = Instant::now() + time;
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
                     self.stray += eof_is_error(read)?;
                 }
-                () = tokio::time::sleep_until(until.into()) => break,
+                slept = self.timer.sleep_until_relaxed(until) => {
+                    slept?;
+                    break;
+                }
             }
         }
+        self.flush_input()
+    }
+
+    /// After a timeout in which nothing arrived: keep the line as long as a
+    /// reply of `reply_len` bytes starting now would take, plus t3.5, and
+    /// on until t3.5 of silence if bytes come meanwhile (the late reply is
+    /// then discarded whole); then flush the input.
+    async fn guard_late_reply(&mut self, reply_len: usize) -> io::Result<()> {
+        let line = self.settings.line;
+        let mut until = Instant::now() + line.wire_time(reply_len) + line.t3_5();
+        loop {
+            tokio::select! {
+                read = self.port.read(&mut self.buf[..]) => {
+                    self.stray += eof_is_error(read)?;
+                    until = until.max(Instant::now() + line.t3_5());
+                }
+                slept = self.timer.sleep_until_relaxed(until) => {
+                    slept?;
+                    break;
+                }
+            }
+        }
+        self.flush_input()
+    }
+
+    /// Discards whatever the port holds unread; the line is silent from now.
+    fn flush_input(&mut self) -> io::Result<()> {
         self.port
             .clear(tokio_serial::ClearBuffer::Input)
             .map_err(io::Error::other)?;

@@ -511,8 +511,12 @@ impl Scheduler {
         let pdu: &[u8] = &STATUS_PDU;
         let offline = self.cache().is_offline(unit);
         let due = self.plan.due_at(unit).unwrap_or_else(Instant::now);
+        // A drive that did not answer its last poll (or never has) is
+        // probed with one attempt: if it is off, a retry only costs another
+        // timeout, and the next poll comes anyway.
+        let single = !self.cache().answering(unit);
         let report = master
-            .transact(unit, pdu, offline.then_some(1))
+            .transact(unit, pdu, single.then_some(1))
             .await
             .map_err(PortFailure::into_io)?;
         self.account(pdu[0], &report, due);

@@ -53,8 +53,14 @@ fn defaults_fill_in() {
     );
     let s = bus.settings("/dev/ttyUSB0");
     assert_eq!(s.drives, vec![(1, std::time::Duration::ZERO)]);
-    assert_eq!(s.master.guard_time, std::time::Duration::from_millis(50));
+    assert_eq!(s.master.guard, crate::bus::master::Guard::Auto);
     assert_eq!(bus.drives[0].gear_ratio, 3.75);
+    // A guard given is kept after every fault.
+    let c = parse(&MINIMAL.replace("[[bus]]", "[[bus]]\nguard_ms = 80")).unwrap();
+    assert_eq!(
+        c.buses[0].settings("/dev/ttyUSB0").master.guard,
+        crate::bus::master::Guard::Fixed(std::time::Duration::from_millis(80))
+    );
 }
 
 #[test]

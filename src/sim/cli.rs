@@ -52,6 +52,10 @@ pub struct SimArgs {
     /// Units that never answer, e.g. "3,5".
     #[arg(long)]
     pub silent_units: Option<UnitList>,
+    /// Units of plain register devices (meters, I/O modules) beside the
+    /// drives, e.g. "100": 65536 holding registers each, for long reads.
+    #[arg(long)]
+    pub devices: Option<UnitList>,
     /// Reply bytes handed over together, as a USB adapter does (1: each byte
     /// on time, as a UART does).
     #[arg(long, default_value_t = 1)]
@@ -77,6 +81,7 @@ impl SimArgs {
                     gear_ratio: self.gear_ratio,
                 })
                 .collect(),
+            devices: self.devices.clone().map(|u| u.0).unwrap_or_default(),
             faults: FaultRates {
                 drop_rate: self.drop_rate,
                 crc_error_rate: self.crc_error_rate,

@@ -33,6 +33,9 @@ pub struct SimConfig {
     pub seed: u64,
     /// The drives on the bus.
     pub drives: Vec<SimDriveConfig>,
+    /// Units of plain register devices (meters, I/O modules) on the same
+    /// bus: 65536 holding registers each, register `a` holding `a`.
+    pub devices: Vec<u8>,
     /// Fault injection.
     pub faults: FaultRates,
     /// How long a drive stays silent after a power cycle or a software
@@ -68,6 +71,7 @@ impl SimConfig {
                     gear_ratio: DEFAULT_GEAR_RATIO,
                 })
                 .collect(),
+            devices: Vec::new(),
             faults: FaultRates::default(),
             reboot_ms: 300.0,
             calibrated: true,
@@ -99,6 +103,14 @@ impl SimConfig {
                 GEAR_RATIO.1,
                 "",
             )?;
+        }
+        for (i, &unit) in self.devices.iter().enumerate() {
+            if unit == 0 {
+                return Err(ConfigError::BroadcastUnit);
+            }
+            if self.drives.iter().any(|d| d.unit == unit) || self.devices[..i].contains(&unit) {
+                return Err(ConfigError::DuplicateUnit(unit));
+            }
         }
         self.delivery.validate()?;
         self.faults.validate()
@@ -156,5 +168,8 @@ mod tests {
         c = SimConfig::for_units([1]);
         c.drives[0].gear_ratio = 0.0;
         assert!(c.validate().is_err());
+        c = SimConfig::for_units([1]);
+        c.devices = vec![100, 1];
+        assert_eq!(c.validate(), Err(ConfigError::DuplicateUnit(1)));
     }
 }

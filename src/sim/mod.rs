@@ -12,6 +12,7 @@
 //! - [`physics`]: the motor, its supply and its heat;
 //! - [`control`]: the drive's speed and position loops;
 //! - [`model`]: one drive: registers, flash, commands, protections, faults;
+//! - [`device`]: a plain register device (meter, I/O) on the same bus;
 //! - [`slave`]: the Modbus slave (PDU in, PDU out, exceptions);
 //! - [`faults`]: seeded fault injection on the wire;
 //! - [`delivery`]: when the master receives each reply byte (a UART, or a
@@ -31,6 +32,7 @@ pub mod cli;
 pub mod config;
 pub mod control;
 pub mod delivery;
+pub mod device;
 pub mod faults;
 pub mod handle;
 pub mod model;
