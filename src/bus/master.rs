@@ -25,12 +25,9 @@
 use std::io;
 use std::time::{Duration, Instant};
 
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio_serial::{SerialPort, SerialStream};
-
 use super::port::{Direction, Rs485Settings};
-use super::rs485;
 use super::stats::Outcome;
+use super::transport::Transport;
 use crate::clock::PreciseTimer;
 use crate::modbus::function::EXCEPTION_BIT;
 use crate::modbus::reply::{self, Mismatch};
@@ -175,7 +172,7 @@ impl PortFailure {
 
 /// The RTU master; owns the port.
 pub struct RtuMaster {
-    port: SerialStream,
+    port: Transport,
     settings: MasterSettings,
     timer: PreciseTimer,
     /// The line has been silent since this instant (may be in the future
@@ -186,10 +183,11 @@ pub struct RtuMaster {
 }
 
 impl RtuMaster {
-    /// A master on an open port; must be created in the runtime that drives it.
-    pub fn new(port: SerialStream, settings: MasterSettings) -> io::Result<Self> {
+    /// A master on an open port (a serial adapter or a serial device
+    /// server's connection); must be created in the runtime that drives it.
+    pub fn new(port: impl Into<Transport>, settings: MasterSettings) -> io::Result<Self> {
         Ok(Self {
-            port,
+            port: port.into(),
             settings,
             timer: PreciseTimer::new()?,
             quiet_since: Instant::now(),
@@ -374,7 +372,7 @@ impl RtuMaster {
             tokio::select! {
                 biased;
                 read = self.port.read(&mut self.buf[..]) => {
-                    let n = eof_is_error(read)?;
+                    let n = self.got(read)?;
                     self.stray += n;
                     // The silence restarts now, unless it was set to end
                     // later (a broadcast's turnaround): a stray byte must
@@ -392,7 +390,7 @@ impl RtuMaster {
         // elsewhere) are stray too.
         loop {
             match self.port.try_read(&mut self.buf[..]) {
-                Ok(0) => return Err(unplugged()),
+                Ok(0) => return Err(self.port.closed()),
                 Ok(n) => self.stray += n,
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
                 Err(e) => return Err(e),
@@ -406,9 +404,7 @@ impl RtuMaster {
     async fn send(&mut self, frame: &[u8], sent: &mut bool) -> io::Result<Instant> {
         let rs485 = self.settings.rs485;
         if rs485.direction == Direction::Rts {
-            self.port
-                .write_request_to_send(rs485.rts_active_high)
-                .map_err(io::Error::other)?;
+            self.port.set_rts(rs485.rts_active_high)?;
             if !rs485.before().is_zero() {
                 self.timer
                     .sleep_until(Instant::now() + rs485.before())
@@ -432,15 +428,13 @@ impl RtuMaster {
         if rs485.direction == Direction::Rts {
             // The bus thread is ours: blocking until the UART is empty is the
             // exact moment to release the line.
-            rs485::drain(&self.port)?;
+            self.port.drain()?;
             if !rs485.after().is_zero() {
                 self.timer
                     .sleep_until(Instant::now() + rs485.after())
                     .await?;
             }
-            self.port
-                .write_request_to_send(!rs485.rts_active_high)
-                .map_err(io::Error::other)?;
+            self.port.set_rts(!rs485.rts_active_high)?;
         }
         Ok(sent_at)
     }
@@ -486,7 +480,7 @@ impl RtuMaster {
                     tokio::select! {
                         biased;
                         read = self.port.read(&mut self.buf[len..]) => {
-                            len += eof_is_error(read)?;
+                            len += self.got(read)?;
                             last_byte = Instant::now();
                             continue;
                         }
@@ -511,7 +505,7 @@ impl RtuMaster {
                 .await
             {
                 Ok(read) => {
-                    len += eof_is_error(read)?;
+                    len += self.got(read)?;
                     last_byte = Instant::now();
                 }
                 Err(_) if len == 0 => return Ok(Err(Fault::Timeout)),
@@ -527,7 +521,7 @@ impl RtuMaster {
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
-                    self.stray += eof_is_error(read)?;
+                    self.stray += self.got(read)?;
                 }
                 slept = self.timer.sleep_until_relaxed(until) => {
                     slept?;
@@ -548,7 +542,7 @@ impl RtuMaster {
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
-                    self.stray += eof_is_error(read)?;
+                    self.stray += self.got(read)?;
                     until = until.max(Instant::now() + line.t3_5());
                 }
                 slept = self.timer.sleep_until_relaxed(until) => {
@@ -562,25 +556,17 @@ impl RtuMaster {
 
     /// Discards whatever the port holds unread; the line is silent from now.
     fn flush_input(&mut self) -> io::Result<()> {
-        self.port
-            .clear(tokio_serial::ClearBuffer::Input)
-            .map_err(io::Error::other)?;
+        self.port.clear_input()?;
         self.quiet_since = Instant::now();
         Ok(())
     }
-}
 
-/// A serial read of 0 bytes means the device went away.
-fn eof_is_error(read: io::Result<usize>) -> io::Result<usize> {
-    match read {
-        Ok(0) => Err(unplugged()),
-        other => other,
+    /// A read's byte count; a read of 0 bytes means the line went away (the
+    /// adapter was unplugged, the device server closed the connection).
+    fn got(&self, read: io::Result<usize>) -> io::Result<usize> {
+        match read {
+            Ok(0) => Err(self.port.closed()),
+            other => other,
+        }
     }
-}
-
-fn unplugged() -> io::Error {
-    io::Error::new(
-        io::ErrorKind::UnexpectedEof,
-        "the serial port was closed (adapter unplugged?)",
-    )
 }

@@ -18,9 +18,10 @@ use super::handle::{BusHandle, PortState, Shared};
 use super::job::{Exchange, Job, Priority};
 use super::master::{MasterSettings, PortFailure, Report, RtuMaster};
 use super::poller::PollPlan;
-use super::port;
 use super::queue::{JobQueue, QueueLimits};
 use super::stats::{BusStats, Outcome};
+use super::tcp_port;
+use super::transport;
 use crate::clock;
 use crate::drive::{DriveReply, DriveRequest};
 
@@ -29,7 +30,7 @@ use crate::drive::{DriveReply, DriveRequest};
 pub struct BusSettings {
     /// Name used in logs, metrics and the API.
     pub name: String,
-    /// Serial device path.
+    /// Serial device path, or `tcp://host:port` for a serial device server.
     pub port: String,
     /// Master timing, retries and RS-485 settings.
     pub master: MasterSettings,
@@ -250,16 +251,19 @@ impl Scheduler {
                 break;
             }
             let Some(m) = master.as_mut() else {
-                match port::open(
-                    &self.settings.port,
-                    self.settings.master.line.baud(),
-                    &self.settings.master.rs485,
-                )
-                .map_err(|e| e.to_string())
-                .and_then(|p| RtuMaster::new(p, self.settings.master).map_err(|e| e.to_string()))
-                {
+                let opened = tokio::select! {
+                    opened = transport::open(
+                        &self.settings.port,
+                        self.settings.master.line.baud(),
+                        &self.settings.master.rs485,
+                    ) => opened,
+                    () = self.shared.stop.cancelled() => continue,
+                };
+                match opened.map_err(|e| e.to_string()).and_then(|p| {
+                    RtuMaster::new(p, self.settings.master).map_err(|e| e.to_string())
+                }) {
                     Ok(m) => {
-                        info!(bus = %name, port = %self.settings.port, "serial port open");
+                        info!(bus = %name, port = %self.settings.port, "{} open", self.port_kind());
                         master = Some(m);
                         self.stats().set_port_open(true, opened_before);
                         opened_before = true;
@@ -318,7 +322,7 @@ impl Scheduler {
                 // thread spin: the reopen waits, longer each time, until the
                 // port has proven itself again.
                 let delay = self.reopen.failed(Instant::now());
-                let reason = format!("serial port {} failed: {e}", self.settings.port);
+                let reason = format!("{} {} failed: {e}", self.port_kind(), self.settings.port);
                 warn!(bus = %name, "{reason}; reopening in {delay:?}");
                 self.stats().record_port_error(&reason);
                 master = None;
@@ -334,6 +338,15 @@ impl Scheduler {
             reason: "the bus has stopped: drivegate is shutting down".to_string(),
         });
         info!(bus = %name, "bus stopped");
+    }
+
+    /// What the port is, for messages.
+    fn port_kind(&self) -> &'static str {
+        if tcp_port::address(&self.settings.port).is_some() {
+            "connection to the serial device server"
+        } else {
+            "serial port"
+        }
     }
 
     /// Waits `delay` before the next attempt to open the port, or until the

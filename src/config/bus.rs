@@ -18,8 +18,9 @@ use crate::sim::{Delivery, FaultRates, SimConfig, SimDriveConfig};
 pub struct BusConfig {
     /// Name in logs, metrics and the API.
     pub name: Spanned<Name>,
-    /// Serial device (prefer a stable `/dev/serial/by-id/...` path), or
-    /// `"sim"` for the built-in simulator.
+    /// Serial device (prefer a stable `/dev/serial/by-id/...` path),
+    /// `tcp://host:port` for a serial device server, or `"sim"` for the
+    /// built-in simulator.
     pub port: Spanned<String>,
     /// Baud rate (the drives speak 115200).
     #[serde(

@@ -182,3 +182,33 @@ fn sim_section_only_for_sim() {
     );
     assert_eq!(sim.drives[0].gear_ratio, 3.75);
 }
+
+#[test]
+fn serial_device_servers_are_ports_too() {
+    let tcp = MINIMAL.replace("/dev/ttyUSB0", "tcp://192.168.127.254:4001");
+    let c = parse(&tcp).unwrap();
+    assert_eq!(
+        c.buses[0].settings("tcp://192.168.127.254:4001").port,
+        "tcp://192.168.127.254:4001"
+    );
+    // Mistakes point at the port, with the form to use.
+    let e = err(&MINIMAL.replace("/dev/ttyUSB0", "tcp://192.168.127.254"));
+    assert!(e.starts_with("test.toml:4:8: "), "{e}");
+    assert!(
+        e.contains("has no port number") && e.contains("tcp://host:port"),
+        "{e}"
+    );
+    let e = err(&MINIMAL.replace("/dev/ttyUSB0", "tcp://nport:70000"));
+    assert!(e.contains("1 to 65535"), "{e}");
+    // Direction control is the device server's.
+    let e = err(&format!("{tcp}\n[bus.rs485]\ndirection = \"rts\"\n"));
+    assert!(
+        e.starts_with("test.toml:4:8: ") && e.contains("serial device server"),
+        "{e}"
+    );
+    // One bus per device server port.
+    let e = err(&format!(
+        "{tcp}\n[[bus]]\nname = \"line2\"\nport = \"tcp://192.168.127.254:4001\"\n[[bus.drive]]\nunit = 1\nname = \"b\"\n"
+    ));
+    assert!(e.contains("is used by two buses"), "{e}");
+}
