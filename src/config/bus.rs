@@ -213,6 +213,7 @@ impl BusConfig {
             reboot_ms: section.reboot_ms,
             calibrated: section.calibrated,
             delivery: section.delivery,
+            listen: None,
         }
     }
 

@@ -1,8 +1,10 @@
-//! `drivegate sim`: a simulated bus of drives on a pty for third-party tools
-//! (mbpoll, pymodbus, the daemon on another machine's config).
+//! `drivegate sim`: a simulated bus of drives on a pty, or on TCP as a serial
+//! device server serves a line, for third-party tools (mbpoll, pymodbus, the
+//! daemon with `port = "tcp://..."`).
 
 use std::fmt;
 use std::io::{self, Write};
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::str::FromStr;
 
@@ -17,8 +19,12 @@ use super::faults::FaultRates;
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimArgs {
     /// Where to link the pty (a symlink to /dev/pts/N, removed on exit).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "listen")]
     pub link: Option<PathBuf>,
+    /// Serve the bus on TCP at this address (e.g. 127.0.0.1:4001), as a
+    /// serial device server does, instead of on a pty.
+    #[arg(long)]
+    pub listen: Option<SocketAddr>,
     /// Addresses of the simulated drives: ranges and lists, e.g. "1-8" or "1,3,5-7".
     #[arg(long, default_value = "1-8")]
     pub units: UnitList,
@@ -94,13 +100,15 @@ impl SimArgs {
                 chunk_bytes: self.chunk_bytes,
                 jitter_us: self.jitter_us,
             },
+            listen: self.listen,
             ..SimConfig::default()
         }
     }
 }
 
 /// Runs the simulator until SIGINT or SIGTERM: prints the pty path (and the
-/// link) on one line of stdout, and a line of counters on exit.
+/// link), or the `tcp://` address, on one line of stdout, and a line of
+/// counters on exit.
 pub async fn run(args: SimArgs) -> io::Result<()> {
     let mut interrupt = signal(SignalKind::interrupt())?;
     let mut terminate = signal(SignalKind::terminate())?;
@@ -276,5 +284,13 @@ mod tests {
         assert_eq!((config.faults.drop_rate, config.seed), (0.1, 9));
         assert_eq!(config.drives[0].gear_ratio, 10.0);
         assert!(Cli::try_parse_from(["sim", "--units", "0-3"]).is_err());
+        let cli = Cli::parse_from(["sim", "--listen", "127.0.0.1:4001"]);
+        assert_eq!(
+            cli.args.config().listen,
+            Some("127.0.0.1:4001".parse().unwrap())
+        );
+        assert!(
+            Cli::try_parse_from(["sim", "--listen", "127.0.0.1:4001", "--link", "/tmp/x"]).is_err()
+        );
     }
 }

@@ -1,5 +1,7 @@
 //! What a simulated bus is made of: its line, its drives, its faults.
 
+use std::net::SocketAddr;
+
 use serde::Deserialize;
 
 use super::delivery::Delivery;
@@ -47,6 +49,9 @@ pub struct SimConfig {
     /// How the replies' bytes reach the master (a UART's exact timing, or a
     /// USB adapter's late chunks).
     pub delivery: Delivery,
+    /// Serve the bus on TCP at this address, as a serial device server does,
+    /// instead of behind a pty.
+    pub listen: Option<SocketAddr>,
 }
 
 impl Default for SimConfig {
@@ -76,6 +81,7 @@ impl SimConfig {
             reboot_ms: 300.0,
             calibrated: true,
             delivery: Delivery::default(),
+            listen: None,
         }
     }
 

@@ -1,5 +1,5 @@
 //! The drive simulator: a timing-accurate bus of drives behind real RTU bytes
-//! on a pty.
+//! on a pty (or on TCP, as a serial device server serves a line).
 //!
 //! The daemon runs it in-process for a bus configured with `port = "sim"`;
 //! `drivegate sim` serves it to third-party tools. A master opens
@@ -18,8 +18,9 @@
 //! - [`delivery`]: when the master receives each reply byte (a UART, or a
 //!   USB adapter's late chunks);
 //! - [`bus`]: the drives on one line, who answers what;
-//! - [`wire`]: framing and the line's timing on the pty;
+//! - [`wire`]: framing and the line's timing on the pty or TCP;
 //! - [`pty`]: the pseudo-terminal;
+//! - [`tcp`]: the line served on TCP;
 //! - [`handle`]: control of a running simulator.
 //!
 //! The simulator runs on its own thread (`sim-bus`) with a current-thread
@@ -41,6 +42,7 @@ pub mod pty;
 pub mod ramp;
 pub mod slave;
 pub mod stats;
+pub mod tcp;
 pub mod wire;
 
 use std::io;
@@ -59,14 +61,15 @@ pub use model::SimDriveView;
 pub use stats::{GapHistogram, SimStats};
 
 use bus::Bus;
+use tcp::Disconnects;
 use wire::Wire;
 
 /// Starts simulated buses.
 pub struct Simulator;
 
 impl Simulator {
-    /// Starts a simulator on its own thread behind a new pty; returns once
-    /// the pty is ready to be opened.
+    /// Starts a simulator on its own thread behind a new pty (or listening
+    /// on `config.listen`); returns once masters can open it.
     pub fn start(config: SimConfig) -> io::Result<SimHandle> {
         config
             .validate()
@@ -80,7 +83,9 @@ impl Simulator {
             move || run(config, bus, cancel, ready_tx)
         })?;
         match ready_rx.recv() {
-            Ok(Ok(path)) => Ok(SimHandle::new(path, bus, cancel, thread)),
+            Ok(Ok((path, disconnects))) => {
+                Ok(SimHandle::new(path, disconnects, bus, cancel, thread))
+            }
             Ok(Err(e)) => {
                 let _ = thread.join();
                 Err(e)
@@ -88,7 +93,7 @@ impl Simulator {
             Err(_) => {
                 let _ = thread.join();
                 Err(io::Error::other(
-                    "the simulator stopped before its pty was ready",
+                    "the simulator stopped before its port was ready",
                 ))
             }
         }
@@ -100,7 +105,7 @@ fn run(
     config: SimConfig,
     bus: Arc<Mutex<Bus>>,
     cancel: CancellationToken,
-    ready: mpsc::SyncSender<io::Result<PathBuf>>,
+    ready: mpsc::SyncSender<io::Result<(PathBuf, Option<Arc<Disconnects>>)>>,
 ) {
     crate::clock::tighten_timer_slack();
     let runtime = match tokio::runtime::Builder::new_current_thread()
@@ -121,7 +126,7 @@ fn run(
                 return;
             }
         };
-        let _ = ready.send(Ok(wire.path().to_path_buf()));
+        let _ = ready.send(Ok((wire.path().to_path_buf(), wire.disconnects())));
         tokio::select! {
             () = cancel.cancelled() => {}
             result = wire.serve() => {

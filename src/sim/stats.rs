@@ -33,6 +33,8 @@ pub struct SimStats {
     pub exceptions: u64,
     /// Requests answered by more than one drive at once (same address).
     pub collisions: u64,
+    /// Masters that connected, for a simulator served on TCP.
+    pub connections: u64,
 }
 
 impl fmt::Display for SimStats {
@@ -41,7 +43,7 @@ impl fmt::Display for SimStats {
             f,
             "requests={} replies={} broadcasts={} gap_violations={} bad_crc_requests={} \
              truncated_frames={} unanswered={} dropped={} corrupted={} late={} noise_bursts={} \
-             exceptions={} collisions={}",
+             exceptions={} collisions={} connections={}",
             self.requests,
             self.replies,
             self.broadcasts,
@@ -54,7 +56,8 @@ impl fmt::Display for SimStats {
             self.late,
             self.noise_bursts,
             self.exceptions,
-            self.collisions
+            self.collisions,
+            self.connections
         )
     }
 }

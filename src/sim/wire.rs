@@ -1,5 +1,6 @@
-//! The simulated RS-485 wire: frames requests from the pty's bytes and puts
-//! replies back at the pace of the configured baud rate.
+//! The simulated RS-485 wire: frames requests from the master's bytes (on a
+//! pty, or on TCP as a serial device server serves them) and puts replies
+//! back at the pace of the configured baud rate.
 //!
 //! A pty carries bytes in microseconds whatever the baud rate, so the wire's
 //! timing is modelled here, in one place:
@@ -38,6 +39,7 @@ use super::config::SimConfig;
 use super::delivery::Delivery;
 use super::lock;
 use super::pty::Pty;
+use super::tcp::{Disconnects, TcpLine};
 use crate::clock::PreciseTimer;
 use crate::modbus::rtu_frame::{FrameLength, MAX_FRAME, MIN_FRAME, request_length};
 use crate::modbus::timing::LineTiming;
@@ -76,9 +78,37 @@ impl Rx {
     }
 }
 
+/// Where the master is.
+enum Line {
+    /// Behind a pty, as on a serial adapter.
+    Pty(Pty),
+    /// On TCP, as behind a serial device server.
+    Tcp(TcpLine),
+}
+
+impl Line {
+    async fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        match self {
+            Line::Pty(pty) => pty.master().read(buf).await,
+            Line::Tcp(tcp) => tcp.read(buf).await,
+        }
+    }
+
+    async fn write_all(&mut self, bytes: &[u8]) -> io::Result<()> {
+        match self {
+            Line::Pty(pty) => pty.master().write_all(bytes).await,
+            Line::Tcp(tcp) => tcp.write_all(bytes).await,
+        }
+    }
+}
+
 /// The wire task's state.
 pub struct Wire {
-    pty: Pty,
+    line_io: Line,
+    /// Where masters connect: the pty's path, or `tcp://ip:port`.
+    endpoint: std::path::PathBuf,
+    /// TCP connections accepted, as last counted.
+    connections: u64,
     bus: Arc<Mutex<Bus>>,
     line: LineTiming,
     turnaround: Duration,
@@ -96,11 +126,21 @@ pub struct Wire {
 }
 
 impl Wire {
-    /// Opens the pty and prepares the timing for `config`; must run inside
-    /// the simulator's runtime.
+    /// Opens the pty (or listens on `config.listen`) and prepares the
+    /// timing for `config`; must run inside the simulator's runtime.
     pub fn new(config: &SimConfig, bus: Arc<Mutex<Bus>>) -> io::Result<Self> {
+        let line_io = match config.listen {
+            Some(address) => Line::Tcp(TcpLine::bind(address)?),
+            None => Line::Pty(Pty::open()?),
+        };
+        let endpoint = match &line_io {
+            Line::Pty(pty) => pty.path().to_path_buf(),
+            Line::Tcp(tcp) => tcp.endpoint().into(),
+        };
         Ok(Wire {
-            pty: Pty::open()?,
+            line_io,
+            endpoint,
+            connections: 0,
             bus,
             line: LineTiming::new_8n1(config.baud),
             turnaround: Duration::from_secs_f64(config.turnaround_ms.max(0.0) / 1000.0),
@@ -114,9 +154,17 @@ impl Wire {
         })
     }
 
-    /// The pty slave path masters open.
+    /// Where masters connect: the pty slave's path, or `tcp://ip:port`.
     pub fn path(&self) -> &std::path::Path {
-        self.pty.path()
+        &self.endpoint
+    }
+
+    /// On TCP, the handle that closes the master's connection on request.
+    pub fn disconnects(&self) -> Option<Arc<Disconnects>> {
+        match &self.line_io {
+            Line::Tcp(tcp) => Some(tcp.disconnects()),
+            Line::Pty(_) => None,
+        }
     }
 
     /// Serves requests until an I/O error (or until the caller drops it).
@@ -218,7 +266,7 @@ impl Wire {
             let now = Instant::now();
             let due = sent + self.release[sent..].partition_point(|&t| t <= now);
             if due > sent {
-                self.pty.master().write_all(&self.tx[sent..due]).await?;
+                self.line_io.write_all(&self.tx[sent..due]).await?;
                 sent = due;
             } else {
                 // Only the last byte's time decides when the master may go on:
@@ -235,7 +283,7 @@ impl Wire {
     /// (spinning its last stretch), others may be a little late.
     async fn read_until(&mut self, deadline: Option<Instant>, precise: bool) -> io::Result<bool> {
         let mut buf = [0u8; 256];
-        let master = self.pty.master();
+        let master = &mut self.line_io;
         let n = match deadline {
             None => master.read(&mut buf).await?,
             Some(deadline) => {
@@ -260,10 +308,19 @@ impl Wire {
             tokio::time::sleep(Duration::from_millis(10)).await;
             return Ok(false);
         }
+        let at = Instant::now();
+        if let Line::Tcp(tcp) = &self.line_io
+            && tcp.accepted() != self.connections
+        {
+            // A new master: what the last one left half sent is not its.
+            self.connections = tcp.accepted();
+            self.rx.clear();
+            lock(&self.bus).stats_mut().connections = self.connections;
+        }
         if self.rx.bytes.len() + n > RX_LIMIT {
             self.drop_partial();
         }
-        self.rx.push(&buf[..n], Instant::now());
+        self.rx.push(&buf[..n], at);
         Ok(true)
     }
 }
