@@ -50,15 +50,17 @@ const TURNAROUND_MS: f64 = 0.5;
 enum Transport {
     Pty,
     Usb,
+    Tcp,
 }
 
 impl Transport {
-    const ALL: [Transport; 2] = [Transport::Pty, Transport::Usb];
+    const ALL: [Transport; 3] = [Transport::Pty, Transport::Usb, Transport::Tcp];
 
     fn name(self) -> &'static str {
         match self {
             Transport::Pty => "pty",
             Transport::Usb => "usb",
+            Transport::Tcp => "tcp",
         }
     }
 
@@ -195,6 +197,9 @@ fn start_sim(transport: Transport, scenario: Scenario) -> SimHandle {
     config.baud = BAUD;
     config.turnaround_ms = TURNAROUND_MS;
     config.delivery = transport.delivery();
+    if transport == Transport::Tcp {
+        config.listen = Some("127.0.0.1:0".parse().unwrap());
+    }
     if scenario == Scenario::DeadDrive {
         config.faults.silent_units = vec![DEAD_UNIT];
     }

@@ -73,7 +73,7 @@ listen = "127.0.0.1:8080"
 listen = "127.0.0.1:5020"
 [[bus]]
 name = "line1"
-port = "/dev/ttyUSB0"      # or "sim" for the built-in simulator
+port = "/dev/ttyUSB0"      # or "tcp://host:port", or "sim" for the built-in simulator
 baud = 115200
 response_timeout_ms = 50
 retries = 1
