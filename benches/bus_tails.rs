@@ -23,7 +23,8 @@
 //! are printed beside each run.
 //!
 //! `cargo bench --bench bus_tails`; `DRIVEGATE_BENCH_SECS` sets each run's
-//! length (default 10); `DRIVEGATE_BENCH_ONLY=pty,usb` picks transports.
+//! length (default 10); `DRIVEGATE_BENCH_ONLY=pty,usb` picks transports,
+//! `DRIVEGATE_BENCH_SCENARIOS=off,1hz,dead` scenarios.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
@@ -91,6 +92,14 @@ impl Scenario {
             Scenario::PollingOff => "polling off",
             Scenario::Polling1Hz => "polling 1 Hz",
             Scenario::DeadDrive => "1 Hz + dead drive",
+        }
+    }
+
+    fn key(self) -> &'static str {
+        match self {
+            Scenario::PollingOff => "off",
+            Scenario::Polling1Hz => "1hz",
+            Scenario::DeadDrive => "dead",
         }
     }
 
@@ -344,9 +353,13 @@ fn main() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(10u64);
-    let only: Option<Vec<String>> = std::env::var("DRIVEGATE_BENCH_ONLY")
-        .ok()
-        .map(|s| s.split(',').map(|t| t.trim().to_string()).collect());
+    let list = |name: &str| -> Option<Vec<String>> {
+        std::env::var(name)
+            .ok()
+            .map(|s| s.split(',').map(|t| t.trim().to_string()).collect())
+    };
+    let only = list("DRIVEGATE_BENCH_ONLY");
+    let scenarios = list("DRIVEGATE_BENCH_SCENARIOS");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -383,6 +396,12 @@ fn main() {
             continue;
         }
         for scenario in Scenario::ALL {
+            if scenarios
+                .as_ref()
+                .is_some_and(|o| !o.iter().any(|s| s == scenario.key()))
+            {
+                continue;
+            }
             let f = runtime.block_on(run(transport, scenario, secs));
             let old = before(transport, scenario).map_or_else(
                 || "-".to_string(),

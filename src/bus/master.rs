@@ -28,7 +28,7 @@ use std::time::{Duration, Instant};
 use super::port::{Direction, Rs485Settings};
 use super::stats::Outcome;
 use super::transport::Transport;
-use crate::clock::PreciseTimer;
+use crate::clock::{PreciseTimer, SPIN};
 use crate::modbus::function::EXCEPTION_BIT;
 use crate::modbus::reply::{self, Mismatch};
 use crate::modbus::rtu_frame::{self, FrameLength};
@@ -39,6 +39,17 @@ use crate::modbus::timing::LineTiming;
 /// packets up to 16 ms apart (FTDI's default latency timer), and the system
 /// may run the reader late. A reply that pauses longer is cut short.
 pub const DELIVERY_ALLOWANCE: Duration = Duration::from_millis(20);
+
+/// How long before the line is free the scheduler picks the next job: the
+/// choice and the frame are ready when the silence ends, and the master
+/// spins through the rest of it instead of risking a late wake-up. An
+/// emergency that arrives in this last stretch goes on the next turn.
+pub const PICK_AHEAD: Duration = Duration::from_micros(100);
+
+/// The end of a reply is awaited spinning when it is due within this long:
+/// the last byte is then read as it arrives, not a wake-up later (at
+/// 115200 baud, the last two bytes).
+const SPIN_FOR_LAST_BYTES: Duration = Duration::from_micros(200);
 
 /// Timing and retry settings of a master.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -252,7 +263,8 @@ impl RtuMaster {
         let mut last_fault = None;
         let mut idle_before = Duration::ZERO;
         for attempt in 1..=attempts_allowed {
-            self.wait_for_silence().await?;
+            self.wait_for_silence(Duration::ZERO, PICK_AHEAD + PICK_AHEAD)
+                .await?;
             let quiet_since = self.quiet_since;
             let sent_at = self.send(&frame, sent).await?;
             if started.is_none() {
@@ -341,19 +353,21 @@ impl RtuMaster {
         self.quiet_since + self.settings.line.t3_5()
     }
 
-    /// Waits until the line may carry the next request (t3.5 of silence).
-    /// The scheduler calls this *before* it picks the next job, so a command
-    /// that arrives during the silence goes next instead of waiting for one
-    /// more poll. Returns the stray bytes discarded meanwhile.
+    /// Waits until the line may carry the next request (t3.5 of silence),
+    /// less [`PICK_AHEAD`]. The scheduler calls this *before* it picks the
+    /// next job, so a command that arrives during the silence goes next
+    /// instead of waiting for one more poll; [`transact`](Self::transact)
+    /// then waits out the rest. Returns the stray bytes discarded meanwhile.
     pub async fn settle(&mut self) -> io::Result<usize> {
         self.stray = 0;
-        self.wait_for_silence().await?;
+        self.wait_for_silence(PICK_AHEAD, SPIN).await?;
         Ok(std::mem::take(&mut self.stray))
     }
 
-    /// Waits until the line has been silent for t3.5, discarding (and
-    /// counting) whatever arrives meanwhile; every byte restarts the silence.
-    async fn wait_for_silence(&mut self) -> io::Result<()> {
+    /// Waits until the line has been silent for t3.5 (less `early`),
+    /// discarding (and counting) whatever arrives meanwhile; every byte
+    /// restarts the silence. The last `spin` of the wait is spun.
+    async fn wait_for_silence(&mut self, early: Duration, spin: Duration) -> io::Result<()> {
         let t35 = self.settings.line.t3_5();
         // A line that never goes quiet (a babbling device) must not stall the
         // bus forever: after this long we send anyway, and the reply check
@@ -365,9 +379,17 @@ impl RtuMaster {
                 .response_timeout
                 .max(Duration::from_millis(50));
         loop {
-            let deadline = self.quiet_since + t35;
-            if Instant::now() >= deadline {
-                break;
+            let deadline = self.quiet_since + t35.saturating_sub(early);
+            let now = Instant::now();
+            if now >= deadline {
+                // Bytes that arrived but were not read yet (while we were
+                // busy elsewhere, or spinning) are stray too, and the
+                // silence starts again after them.
+                if self.drain_input()? == 0 || now >= give_up {
+                    break;
+                }
+                self.quiet_since = self.quiet_since.max(Instant::now());
+                continue;
             }
             tokio::select! {
                 biased;
@@ -383,20 +405,27 @@ impl RtuMaster {
                         break;
                     }
                 }
-                slept = self.timer.sleep_until(deadline) => slept?,
+                // Spinning through the last stretch (the job is picked by
+                // then): no wake-up can come late.
+                slept = self.timer.sleep_until_spinning(deadline, spin) => slept?,
             }
         }
-        // Bytes that arrived but were not read yet (e.g. while we were busy
-        // elsewhere) are stray too.
+        Ok(())
+    }
+
+    /// Reads and discards what has arrived, without waiting; the count.
+    fn drain_input(&mut self) -> io::Result<usize> {
+        let mut drained = 0;
         loop {
             match self.port.try_read(&mut self.buf[..]) {
                 Ok(0) => return Err(self.port.closed()),
-                Ok(n) => self.stray += n,
+                Ok(n) => drained += n,
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
                 Err(e) => return Err(e),
             }
         }
-        Ok(())
+        self.stray += drained;
+        Ok(drained)
     }
 
     /// Puts one frame on the wire in one write; returns when it started.
@@ -501,6 +530,16 @@ impl RtuMaster {
                     deadline.max(last_byte + line.wire_time(remaining) + t35 + DELIVERY_ALLOWANCE);
             }
             let end = need.map_or(self.buf.len(), |n| n.min(self.buf.len()));
+            if let Some(n) = need
+                && len > 0
+            {
+                let have = self.spin_for_the_rest(n, len, last_byte, deadline)?;
+                if have > len {
+                    len = have;
+                    last_byte = Instant::now();
+                    continue;
+                }
+            }
             match tokio::time::timeout_at(deadline.into(), self.port.read(&mut self.buf[len..end]))
                 .await
             {
@@ -512,6 +551,36 @@ impl RtuMaster {
                 Err(_) => return Ok(Err(Fault::Mismatch("reply cut short"))),
             }
         }
+    }
+
+    /// When the rest of a reply of `n` bytes (`len` read, the last at
+    /// `last_byte`) is due within [`SPIN_FOR_LAST_BYTES`], reads it
+    /// spinning, so the reply's end is seen as it arrives and not a wake-up
+    /// later. Returns how many bytes `buf` holds then: `n`, or fewer when
+    /// the rest did not come in time (or is further away than that), and
+    /// the caller reads on.
+    fn spin_for_the_rest(
+        &mut self,
+        n: usize,
+        len: usize,
+        last_byte: Instant,
+        deadline: Instant,
+    ) -> io::Result<usize> {
+        let rest = self.settings.line.wire_time(n - len);
+        if rest > SPIN_FOR_LAST_BYTES || n > self.buf.len() {
+            return Ok(len);
+        }
+        let until = (last_byte + rest + SPIN_FOR_LAST_BYTES / 2).min(deadline);
+        let mut have = len;
+        while have < n && Instant::now() < until {
+            match self.port.try_read(&mut self.buf[have..n]) {
+                Ok(0) => return Err(self.port.closed()),
+                Ok(k) => have += k,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => std::hint::spin_loop(),
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(have)
     }
 
     /// After a fault: keep the line for `time`, discarding anything that

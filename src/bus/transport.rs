@@ -5,6 +5,7 @@
 
 use std::io;
 
+use socket2::SockRef;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio_serial::{SerialPort, SerialStream};
@@ -77,10 +78,17 @@ impl Transport {
     }
 
     /// Reads what has arrived without waiting (`WouldBlock` when nothing).
+    /// Asks the system every time, whatever the runtime last heard: a
+    /// master spinning through a silence reads bytes that came meanwhile.
     pub fn try_read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
         match self {
             Transport::Serial(port) => port.try_read(buf),
-            Transport::Tcp { stream, .. } => stream.try_read(buf),
+            Transport::Tcp { stream, .. } => {
+                // tokio's own try_read answers from the readiness its
+                // reactor last saw, which a spinning thread never updates.
+                let socket = SockRef::from(&*stream);
+                std::io::Read::read(&mut &*socket, buf)
+            }
         }
     }
 
@@ -126,11 +134,12 @@ impl Transport {
             Transport::Serial(port) => port
                 .clear(tokio_serial::ClearBuffer::Input)
                 .map_err(io::Error::other),
-            Transport::Tcp { stream, address } => {
+            Transport::Tcp { address, .. } => {
+                let address = address.clone();
                 let mut sink = [0u8; 512];
                 loop {
-                    match stream.try_read(&mut sink) {
-                        Ok(0) => return Err(tcp_port::closed(address)),
+                    match self.try_read(&mut sink) {
+                        Ok(0) => return Err(tcp_port::closed(&address)),
                         Ok(_) => {}
                         Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(()),
                         Err(e) => return Err(e),
