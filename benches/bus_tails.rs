@@ -28,6 +28,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -254,6 +255,50 @@ fn percentile(sorted: &[Duration], p: f64) -> f64 {
     sorted[i.min(sorted.len() - 1)].as_secs_f64() * 1e3
 }
 
+/// The clients, back to back on `addr` for `secs`: every latency (sorted),
+/// the failed reads, the seconds it took.
+async fn clients(addr: SocketAddr, secs: u64) -> (Vec<Duration>, usize, f64) {
+    let start = Instant::now();
+    let deadline = start + Duration::from_secs(secs);
+    let mut tasks = Vec::new();
+    for client in 0..CLIENTS {
+        let unit = (client % usize::from(DRIVES)) as u8 + 1;
+        tasks.push(tokio::spawn(async move {
+            let mut ctx = tcp::connect_slave(addr, Slave(unit)).await.unwrap();
+            let mut latencies = Vec::new();
+            let mut errors = 0;
+            while Instant::now() < deadline {
+                let sent = Instant::now();
+                match ctx.read_holding_registers(0x00C0, 7).await {
+                    Ok(Ok(regs)) if regs.len() == 7 => latencies.push(sent.elapsed()),
+                    _ => errors += 1,
+                }
+            }
+            (latencies, errors)
+        }));
+    }
+    let mut latencies = Vec::new();
+    let mut errors = 0;
+    for t in tasks {
+        let (l, e) = t.await.unwrap();
+        latencies.extend(l);
+        errors += e;
+    }
+    latencies.sort();
+    (latencies, errors, start.elapsed().as_secs_f64())
+}
+
+fn limit_per_s() -> f64 {
+    let line = LineTiming::new_8n1(BAUD);
+    1.0 / line
+        .transaction_time(8, 19, Duration::from_secs_f64(TURNAROUND_MS / 1e3))
+        .as_secs_f64()
+}
+
+fn ms(d: Option<Duration>) -> f64 {
+    d.map_or(0.0, |d| d.as_secs_f64() * 1e3)
+}
+
 async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     let sim = start_sim(transport, scenario);
     let port = sim.port_path().display().to_string();
@@ -282,33 +327,7 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     let stats_before = bus.stats();
     let sim_before = sim.stats();
     let gaps_before = sim.gaps();
-    let start = Instant::now();
-    let deadline = start + Duration::from_secs(secs);
-    let mut tasks = Vec::new();
-    for client in 0..CLIENTS {
-        let unit = (client % usize::from(DRIVES)) as u8 + 1;
-        tasks.push(tokio::spawn(async move {
-            let mut ctx = tcp::connect_slave(addr, Slave(unit)).await.unwrap();
-            let mut latencies = Vec::new();
-            let mut errors = 0;
-            while Instant::now() < deadline {
-                let sent = Instant::now();
-                match ctx.read_holding_registers(0x00C0, 7).await {
-                    Ok(Ok(regs)) if regs.len() == 7 => latencies.push(sent.elapsed()),
-                    _ => errors += 1,
-                }
-            }
-            (latencies, errors)
-        }));
-    }
-    let mut latencies = Vec::new();
-    let mut errors = 0;
-    for t in tasks {
-        let (l, e) = t.await.unwrap();
-        latencies.extend(l);
-        errors += e;
-    }
-    let elapsed = start.elapsed().as_secs_f64();
+    let (latencies, errors, elapsed) = clients(addr, secs).await;
     let stats_after = bus.stats();
     let sim_after = sim.stats();
     let gaps = sim.gaps().since(&gaps_before);
@@ -317,16 +336,10 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     plant.shutdown(drivegate::safety::StopAction::None).await;
     drop(sim);
 
-    latencies.sort();
-    let line = LineTiming::new_8n1(BAUD);
-    let limit = 1.0
-        / line
-            .transaction_time(8, 19, Duration::from_secs_f64(TURNAROUND_MS / 1e3))
-            .as_secs_f64();
-    let answered = stats_after.count(Outcome::Ok) - stats_before.count(Outcome::Ok);
-    let ms = |d: Option<Duration>| d.map_or(0.0, |d| d.as_secs_f64() * 1e3);
     Figures {
-        bus_share: 100.0 * answered as f64 / elapsed / limit,
+        bus_share: 100.0 * (sim_after.replies - sim_before.replies) as f64
+            / elapsed
+            / limit_per_s(),
         p50_ms: percentile(&latencies, 0.50),
         p99_ms: percentile(&latencies, 0.99),
         max_ms: percentile(&latencies, 1.0),
@@ -346,6 +359,75 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
         timeouts: stats_after.count(Outcome::Timeout) - stats_before.count(Outcome::Timeout),
         errors,
     }
+}
+
+/// mbusd on the simulated wire of `transport`, with the same clients:
+/// figures to set beside drivegate's with polling off.
+async fn run_mbusd(mbusd: &str, transport: Transport, secs: u64) -> Figures {
+    let sim = start_sim(transport, Scenario::PollingOff);
+    let free = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = free.local_addr().unwrap();
+    drop(free);
+    let mut child = tokio::process::Command::new(mbusd)
+        .args(["-d", "-L", "-", "-v", "0", "-p"])
+        .arg(sim.port_path())
+        .args(["-s", "115200", "-A", "127.0.0.1", "-P"])
+        .arg(addr.port().to_string())
+        .args(["-R", "2", "-W", "50", "-N", "1", "-C", "32", "-T", "0"])
+        .stdout(std::process::Stdio::null())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    let up = Instant::now();
+    while tokio::net::TcpStream::connect(addr).await.is_err() {
+        assert!(
+            up.elapsed() < Duration::from_secs(5),
+            "mbusd did not listen"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let sim_before = sim.stats();
+    let gaps_before = sim.gaps();
+    let (latencies, errors, elapsed) = clients(addr, secs).await;
+    let sim_after = sim.stats();
+    let gaps = sim.gaps().since(&gaps_before);
+    let _ = child.kill().await;
+    drop(sim);
+    Figures {
+        bus_share: 100.0 * (sim_after.replies - sim_before.replies) as f64
+            / elapsed
+            / limit_per_s(),
+        p50_ms: percentile(&latencies, 0.50),
+        p99_ms: percentile(&latencies, 0.99),
+        max_ms: percentile(&latencies, 1.0),
+        wire_idle_p50_ms: ms(gaps.quantile(0.50)),
+        wire_idle_p99_ms: ms(gaps.quantile(0.99)),
+        master_idle_p50_ms: 0.0,
+        master_idle_p99_ms: 0.0,
+        violations: sim_after.gap_violations - sim_before.gap_violations,
+        timeouts: 0,
+        errors,
+    }
+}
+
+fn print_row(port: &str, scenario: &str, f: &Figures, before: String) {
+    println!(
+        "{:<5} {:<18} {:>6.1}% {:>5.1} ms {:>5.1} ms {:>5.1} ms {:>6.2}/{:.2} ms {:>6.2}/{:.2} ms {:>5} {:>5} {:>4}   {}",
+        port,
+        scenario,
+        f.bus_share,
+        f.p50_ms,
+        f.p99_ms,
+        f.max_ms,
+        f.wire_idle_p50_ms,
+        f.wire_idle_p99_ms,
+        f.master_idle_p50_ms,
+        f.master_idle_p99_ms,
+        f.violations,
+        f.timeouts,
+        f.errors,
+        before
+    );
 }
 
 fn main() {
@@ -412,23 +494,19 @@ fn main() {
                     )
                 },
             );
-            println!(
-                "{:<5} {:<18} {:>6.1}% {:>5.1} ms {:>5.1} ms {:>5.1} ms {:>6.2}/{:.2} ms {:>6.2}/{:.2} ms {:>5} {:>5} {:>4}   {}",
-                transport.name(),
-                scenario.name(),
-                f.bus_share,
-                f.p50_ms,
-                f.p99_ms,
-                f.max_ms,
-                f.wire_idle_p50_ms,
-                f.wire_idle_p99_ms,
-                f.master_idle_p50_ms,
-                f.master_idle_p99_ms,
-                f.violations,
-                f.timeouts,
-                f.errors,
-                old
-            );
+            print_row(transport.name(), scenario.name(), &f, old);
+        }
+    }
+    if let Ok(mbusd) = std::env::var("DRIVEGATE_BENCH_MBUSD") {
+        for transport in [Transport::Pty, Transport::Usb] {
+            if only
+                .as_ref()
+                .is_some_and(|o| !o.iter().any(|t| t == transport.name()))
+            {
+                continue;
+            }
+            let f = runtime.block_on(run_mbusd(&mbusd, transport, secs));
+            print_row(transport.name(), "mbusd -R 2", &f, "-".to_string());
         }
     }
 }
