@@ -283,6 +283,7 @@ fn add(a: &SimStats, b: &SimStats) -> SimStats {
         noise_bursts: a.noise_bursts + b.noise_bursts,
         exceptions: a.exceptions + b.exceptions,
         collisions: a.collisions + b.collisions,
+        connections: a.connections + b.connections,
     }
 }
 
@@ -301,6 +302,7 @@ fn diff(a: &SimStats, b: &SimStats) -> SimStats {
         noise_bursts: a.noise_bursts - b.noise_bursts,
         exceptions: a.exceptions - b.exceptions,
         collisions: a.collisions - b.collisions,
+        connections: a.connections - b.connections,
     }
 }
 

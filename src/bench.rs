@@ -4,8 +4,9 @@
 //! bus polling every drive as fast as the bus allows, measures the achieved
 //! status polls per second against the theoretical limit (request + reply on
 //! the wire + 2 x t3.5 + turnaround), counts the silent-interval violations
-//! the simulator saw, and injects commands at random moments to measure how
-//! long a command waits while polling saturates the bus.
+//! the simulator saw and the silence it saw before each request (t3.5 plus
+//! the master's overhead), and injects commands at random moments to
+//! measure how long a command waits while polling saturates the bus.
 
 use std::time::{Duration, Instant};
 
@@ -53,6 +54,9 @@ pub struct BenchResult {
     pub command_latency: (Duration, Duration, Duration),
     /// One status transaction on the wire (the unit of the latency figures).
     pub transaction: Duration,
+    /// The silence before each request as the wire saw it (p50, p99): t3.5
+    /// plus the master's overhead.
+    pub wire_idle: (Duration, Duration),
 }
 
 /// Runs one measurement with `drives` drives.
@@ -87,9 +91,15 @@ pub async fn measure(args: &BenchArgs, drives: u8) -> Result<BenchResult, String
     let transaction = line.transaction_time(8, 19, turnaround);
 
     // Poll rate, undisturbed.
+    let gaps_before = sim.gaps();
     let before = (bus.stats(), sim.stats(), Instant::now());
     tokio::time::sleep(Duration::from_secs_f64(args.seconds)).await;
     let after = (bus.stats(), sim.stats(), Instant::now());
+    let gaps = sim.gaps().since(&gaps_before);
+    let wire_idle = (
+        gaps.quantile(0.5).unwrap_or_default(),
+        gaps.quantile(0.99).unwrap_or_default(),
+    );
     let elapsed = (after.2 - before.2).as_secs_f64();
     let polls = after.0.polls - before.0.polls;
     let poll_failures = after.0.poll_failures - before.0.poll_failures;
@@ -131,6 +141,7 @@ pub async fn measure(args: &BenchArgs, drives: u8) -> Result<BenchResult, String
         poll_failures,
         command_latency,
         transaction,
+        wire_idle,
     })
 }
 
@@ -141,7 +152,7 @@ pub async fn run(args: BenchArgs) -> Result<(), String> {
         args.baud, args.turnaround_ms
     );
     println!(
-        "{:>6} {:>10} {:>10} {:>8} {:>6} {:>6} {:>10} {:>10} {:>10}",
+        "{:>6} {:>10} {:>10} {:>8} {:>6} {:>6} {:>10} {:>10} {:>10} {:>16}",
         "drives",
         "polls/s",
         "limit/s",
@@ -150,13 +161,14 @@ pub async fn run(args: BenchArgs) -> Result<(), String> {
         "fails",
         "cmd p50",
         "cmd p99",
-        "cmd max"
+        "cmd max",
+        "idle p50/p99"
     );
     for &n in &args.drives {
         let r = measure(&args, n).await?;
         let ms = |d: Duration| format!("{:.2} ms", d.as_secs_f64() * 1000.0);
         println!(
-            "{:>6} {:>10.1} {:>10.1} {:>7.1}% {:>6} {:>6} {:>10} {:>10} {:>10}",
+            "{:>6} {:>10.1} {:>10.1} {:>7.1}% {:>6} {:>6} {:>10} {:>10} {:>10} {:>16}",
             r.drives,
             r.polls_per_s,
             r.limit_per_s,
@@ -166,6 +178,11 @@ pub async fn run(args: BenchArgs) -> Result<(), String> {
             ms(r.command_latency.0),
             ms(r.command_latency.1),
             ms(r.command_latency.2),
+            format!(
+                "{:.2}/{:.2} ms",
+                r.wire_idle.0.as_secs_f64() * 1e3,
+                r.wire_idle.1.as_secs_f64() * 1e3
+            ),
         );
         println!(
             "{:>6} command p99 = {:.2} status transaction times ({} per transaction)",

@@ -53,6 +53,17 @@ impl PreciseTimer {
         self.sleep(deadline, SPIN).await
     }
 
+    /// Sleeps until `deadline`, spinning (not sleeping) when it is at most
+    /// `spin` away: for a thread that must not risk a wake-up just before a
+    /// deadline it is about to act on.
+    pub async fn sleep_until_spinning(
+        &mut self,
+        deadline: Instant,
+        spin: std::time::Duration,
+    ) -> io::Result<()> {
+        self.sleep(deadline, spin.max(SPIN)).await
+    }
+
     /// Sleeps until about `deadline` without spinning: for waits where tens
     /// of microseconds late do not matter, to save the CPU.
     pub async fn sleep_until_relaxed(&mut self, deadline: Instant) -> io::Result<()> {

@@ -228,6 +228,14 @@ impl StatusCache {
             .is_some_and(|d| d.link == Link::Offline)
     }
 
+    /// True when `unit` answered its last poll: only then are its polls worth
+    /// a retry (a drive that is off would cost a timeout each time).
+    pub fn answering(&self, unit: u8) -> bool {
+        self.lock()
+            .get(&unit)
+            .is_some_and(|d| d.link == Link::Online && d.consecutive_failures == 0)
+    }
+
     /// The snapshot of one drive.
     pub fn get(&self, unit: u8) -> Option<DriveSnapshot> {
         self.lock().get(&unit).cloned()

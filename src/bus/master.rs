@@ -4,6 +4,10 @@
 //! - one frame in flight; each request goes out in one write, only after the
 //!   line has been silent for t3.5 (bytes seen meanwhile are stray: counted,
 //!   discarded, and the silence starts again);
+//! - the response timeout is the wait for the reply's first byte; once bytes
+//!   flow, the deadline follows the wire (the bytes still to come at the
+//!   character time, plus t3.5 and an allowance for delivery), so a long
+//!   reply at a low baud rate is not cut off by a timeout meant for silence;
 //! - the reply is framed by the length its function code implies, or by
 //!   t3.5 of silence for codes whose length it cannot know, and checked:
 //!   CRC, unit, function, and that it answers *this* request (an echo must
@@ -11,36 +15,54 @@
 //!   byte count asked for);
 //! - after a timeout or a bad frame it waits a guard time, discarding what
 //!   arrives, and flushes the input, so a late reply to one request is never
-//!   taken as the answer to the next;
+//!   taken as the answer to the next. After a timeout in which not one byte
+//!   arrived (a drive that is off), the guard only lasts as long as a reply
+//!   starting at the timeout would take, unless a fixed guard is configured:
+//!   a dead drive then costs its timeout and little more;
 //! - a broadcast (unit 0) is sent, followed by the turnaround delay, and no
 //!   reply is read; bytes arriving during the turnaround do not shorten it.
 
 use std::io;
 use std::time::{Duration, Instant};
 
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio_serial::{SerialPort, SerialStream};
-
 use super::port::{Direction, Rs485Settings};
-use super::rs485;
 use super::stats::Outcome;
-use crate::clock::PreciseTimer;
+use super::transport::Transport;
+use crate::clock::{PreciseTimer, SPIN};
 use crate::modbus::function::EXCEPTION_BIT;
 use crate::modbus::reply::{self, Mismatch};
 use crate::modbus::rtu_frame::{self, FrameLength};
 use crate::modbus::timing::LineTiming;
+
+/// Time allowed, beyond the wire's own pace, for the rest of a reply to
+/// reach the master once it has begun: USB adapters hand bytes over in
+/// packets up to 16 ms apart (FTDI's default latency timer), and the system
+/// may run the reader late. A reply that pauses longer is cut short.
+pub const DELIVERY_ALLOWANCE: Duration = Duration::from_millis(20);
+
+/// How long before the line is free the scheduler picks the next job: the
+/// choice and the frame are ready when the silence ends, and the master
+/// spins through the rest of it instead of risking a late wake-up. An
+/// emergency that arrives in this last stretch goes on the next turn.
+pub const PICK_AHEAD: Duration = Duration::from_micros(100);
+
+/// The end of a reply is awaited spinning when it is due within this long:
+/// the last byte is then read as it arrives, not a wake-up later (at
+/// 115200 baud, the last two bytes).
+const SPIN_FOR_LAST_BYTES: Duration = Duration::from_micros(200);
 
 /// Timing and retry settings of a master.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MasterSettings {
     /// The line's baud rate and character timing.
     pub line: LineTiming,
-    /// How long to wait for a reply after the request has left the wire.
+    /// How long to wait for a reply's first byte after the request has left
+    /// the wire (the rest follows at the wire's pace).
     pub response_timeout: Duration,
     /// Attempts after the first, for timeouts and bad frames.
     pub retries: u8,
     /// Silence kept after a timeout or bad frame, discarding anything late.
-    pub guard_time: Duration,
+    pub guard: Guard,
     /// Time the drives get to act on a broadcast before the next request.
     pub broadcast_delay: Duration,
     /// RS-485 direction control.
@@ -55,17 +77,32 @@ impl MasterSettings {
             line: LineTiming::new_8n1(baud),
             response_timeout,
             retries,
-            guard_time: response_timeout,
+            guard: Guard::Auto,
             broadcast_delay: Duration::from_millis(20),
             rs485: Rs485Settings::default(),
         }
     }
 }
 
+/// How long the line is kept after a failed attempt, discarding whatever
+/// arrives, so that a late reply is not taken for the next request's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Guard {
+    /// After a bad frame: the response timeout. After a timeout in which not
+    /// one byte arrived: as long as the awaited reply, had it started at the
+    /// timeout, takes on the wire, plus t3.5, and on while bytes keep
+    /// coming. A drive that is off then costs its timeout and a few
+    /// milliseconds, not twice its timeout.
+    Auto,
+    /// This long after every failed attempt: for drives that may answer
+    /// later than the response timeout.
+    Fixed(Duration),
+}
+
 /// What was wrong with one attempt.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Fault {
-    /// Nothing (or too little) arrived before the timeout.
+    /// Not one byte arrived before the timeout.
     Timeout,
     /// A frame arrived with a bad CRC.
     Crc,
@@ -109,6 +146,10 @@ pub struct Report {
     pub busy: Duration,
     /// Bytes received that belonged to no reply.
     pub stray_bytes: usize,
+    /// The silence the master left before the request: from the end of the
+    /// previous frame (the last byte received, or sent with no reply) to
+    /// the first byte of this one. At least t3.5; the rest is overhead.
+    pub idle_before: Duration,
 }
 
 /// The serial port itself failed during a transaction (adapter unplugged,
@@ -142,7 +183,7 @@ impl PortFailure {
 
 /// The RTU master; owns the port.
 pub struct RtuMaster {
-    port: SerialStream,
+    port: Transport,
     settings: MasterSettings,
     timer: PreciseTimer,
     /// The line has been silent since this instant (may be in the future
@@ -153,10 +194,11 @@ pub struct RtuMaster {
 }
 
 impl RtuMaster {
-    /// A master on an open port; must be created in the runtime that drives it.
-    pub fn new(port: SerialStream, settings: MasterSettings) -> io::Result<Self> {
+    /// A master on an open port (a serial adapter or a serial device
+    /// server's connection); must be created in the runtime that drives it.
+    pub fn new(port: impl Into<Transport>, settings: MasterSettings) -> io::Result<Self> {
         Ok(Self {
-            port,
+            port: port.into(),
             settings,
             timer: PreciseTimer::new()?,
             quiet_since: Instant::now(),
@@ -219,9 +261,15 @@ impl RtuMaster {
         let mut started = None;
         let mut busy = Duration::ZERO;
         let mut last_fault = None;
+        let mut idle_before = Duration::ZERO;
         for attempt in 1..=attempts_allowed {
-            self.wait_for_silence().await?;
+            self.wait_for_silence(Duration::ZERO, PICK_AHEAD + PICK_AHEAD)
+                .await?;
+            let quiet_since = self.quiet_since;
             let sent_at = self.send(&frame, sent).await?;
+            if started.is_none() {
+                idle_before = sent_at.saturating_duration_since(quiet_since);
+            }
             started.get_or_insert(sent_at);
             let wire_end = sent_at + self.settings.line.wire_time(frame.len());
 
@@ -237,11 +285,12 @@ impl RtuMaster {
                     on_wire: wire_end - sent_at,
                     busy,
                     stray_bytes: self.stray,
+                    idle_before,
                 });
             }
 
             let received = self
-                .receive(unit, wire_end + self.settings.response_timeout)
+                .receive(unit, pdu, wire_end + self.settings.response_timeout)
                 .await?;
             let end = Instant::now();
             busy += (end - sent_at) + t35;
@@ -266,11 +315,20 @@ impl RtuMaster {
                         on_wire: end - *started.get_or_insert(sent_at),
                         busy,
                         stray_bytes: self.stray,
+                        idle_before,
                     });
                 }
                 Err(fault) => {
                     let guard_start = Instant::now();
-                    self.guard().await?;
+                    match (self.settings.guard, &fault) {
+                        (Guard::Auto, Fault::Timeout) => {
+                            let reply_len = rtu_frame::expected_response_length(pdu)
+                                .unwrap_or(rtu_frame::MAX_FRAME);
+                            self.guard_late_reply(reply_len).await?;
+                        }
+                        (Guard::Auto, _) => self.guard(self.settings.response_timeout).await?,
+                        (Guard::Fixed(time), _) => self.guard(time).await?,
+                    }
                     busy += guard_start.elapsed();
                     last_fault = Some(fault);
                 }
@@ -285,22 +343,31 @@ impl RtuMaster {
             on_wire: started.map_or(Duration::ZERO, |s| s.elapsed()),
             busy,
             stray_bytes: self.stray,
+            idle_before,
         })
     }
 
-    /// Waits until the line may carry the next request (t3.5 of silence).
-    /// The scheduler calls this *before* it picks the next job, so a command
-    /// that arrives during the silence goes next instead of waiting for one
-    /// more poll. Returns the stray bytes discarded meanwhile.
+    /// When the line may carry the next request: t3.5 after the end of the
+    /// last frame (later after a broadcast's turnaround).
+    pub fn line_free_at(&self) -> Instant {
+        self.quiet_since + self.settings.line.t3_5()
+    }
+
+    /// Waits until the line may carry the next request (t3.5 of silence),
+    /// less [`PICK_AHEAD`]. The scheduler calls this *before* it picks the
+    /// next job, so a command that arrives during the silence goes next
+    /// instead of waiting for one more poll; [`transact`](Self::transact)
+    /// then waits out the rest. Returns the stray bytes discarded meanwhile.
     pub async fn settle(&mut self) -> io::Result<usize> {
         self.stray = 0;
-        self.wait_for_silence().await?;
+        self.wait_for_silence(PICK_AHEAD, SPIN).await?;
         Ok(std::mem::take(&mut self.stray))
     }
 
-    /// Waits until the line has been silent for t3.5, discarding (and
-    /// counting) whatever arrives meanwhile; every byte restarts the silence.
-    async fn wait_for_silence(&mut self) -> io::Result<()> {
+    /// Waits until the line has been silent for t3.5 (less `early`),
+    /// discarding (and counting) whatever arrives meanwhile; every byte
+    /// restarts the silence. The last `spin` of the wait is spun.
+    async fn wait_for_silence(&mut self, early: Duration, spin: Duration) -> io::Result<()> {
         let t35 = self.settings.line.t3_5();
         // A line that never goes quiet (a babbling device) must not stall the
         // bus forever: after this long we send anyway, and the reply check
@@ -312,14 +379,22 @@ impl RtuMaster {
                 .response_timeout
                 .max(Duration::from_millis(50));
         loop {
-            let deadline = self.quiet_since + t35;
-            if Instant::now() >= deadline {
-                break;
+            let deadline = self.quiet_since + t35.saturating_sub(early);
+            let now = Instant::now();
+            if now >= deadline {
+                // Bytes that arrived but were not read yet (while we were
+                // busy elsewhere, or spinning) are stray too, and the
+                // silence starts again after them.
+                if self.drain_input()? == 0 || now >= give_up {
+                    break;
+                }
+                self.quiet_since = self.quiet_since.max(Instant::now());
+                continue;
             }
             tokio::select! {
                 biased;
                 read = self.port.read(&mut self.buf[..]) => {
-                    let n = eof_is_error(read)?;
+                    let n = self.got(read)?;
                     self.stray += n;
                     // The silence restarts now, unless it was set to end
                     // later (a broadcast's turnaround): a stray byte must
@@ -330,20 +405,27 @@ impl RtuMaster {
                         break;
                     }
                 }
-                slept = self.timer.sleep_until(deadline) => slept?,
+                // Spinning through the last stretch (the job is picked by
+                // then): no wake-up can come late.
+                slept = self.timer.sleep_until_spinning(deadline, spin) => slept?,
             }
         }
-        // Bytes that arrived but were not read yet (e.g. while we were busy
-        // elsewhere) are stray too.
+        Ok(())
+    }
+
+    /// Reads and discards what has arrived, without waiting; the count.
+    fn drain_input(&mut self) -> io::Result<usize> {
+        let mut drained = 0;
         loop {
             match self.port.try_read(&mut self.buf[..]) {
-                Ok(0) => return Err(unplugged()),
-                Ok(n) => self.stray += n,
+                Ok(0) => return Err(self.port.closed()),
+                Ok(n) => drained += n,
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
                 Err(e) => return Err(e),
             }
         }
-        Ok(())
+        self.stray += drained;
+        Ok(drained)
     }
 
     /// Puts one frame on the wire in one write; returns when it started.
@@ -351,9 +433,7 @@ impl RtuMaster {
     async fn send(&mut self, frame: &[u8], sent: &mut bool) -> io::Result<Instant> {
         let rs485 = self.settings.rs485;
         if rs485.direction == Direction::Rts {
-            self.port
-                .write_request_to_send(rs485.rts_active_high)
-                .map_err(io::Error::other)?;
+            self.port.set_rts(rs485.rts_active_high)?;
             if !rs485.before().is_zero() {
                 self.timer
                     .sleep_until(Instant::now() + rs485.before())
@@ -377,25 +457,39 @@ impl RtuMaster {
         if rs485.direction == Direction::Rts {
             // The bus thread is ours: blocking until the UART is empty is the
             // exact moment to release the line.
-            rs485::drain(&self.port)?;
+            self.port.drain()?;
             if !rs485.after().is_zero() {
                 self.timer
                     .sleep_until(Instant::now() + rs485.after())
                     .await?;
             }
-            self.port
-                .write_request_to_send(!rs485.rts_active_high)
-                .map_err(io::Error::other)?;
+            self.port.set_rts(!rs485.rts_active_high)?;
         }
         Ok(sent_at)
     }
 
-    /// Reads one reply frame into `buf`; `Ok(Err(fault))` for a protocol
-    /// fault, `Err` for a port failure.
-    async fn receive(&mut self, unit: u8, deadline: Instant) -> io::Result<Result<usize, Fault>> {
-        let t35 = self.settings.line.t3_5();
+    /// Reads one reply frame to `request` into `buf`; `Ok(Err(fault))` for a
+    /// protocol fault, `Err` for a port failure.
+    ///
+    /// `first_byte_by` is the response timeout: the wait for the reply's
+    /// first byte. Once bytes flow, the deadline follows the wire: the bytes
+    /// still to come at the character time, plus t3.5 and the
+    /// [`DELIVERY_ALLOWANCE`], counted from the last bytes received, but
+    /// never earlier than the timeout. A 125-register reply takes 265 ms at
+    /// 9600 baud; a drive that starts it in time gets it through whatever
+    /// the timeout.
+    async fn receive(
+        &mut self,
+        unit: u8,
+        request: &[u8],
+        first_byte_by: Instant,
+    ) -> io::Result<Result<usize, Fault>> {
+        let line = self.settings.line;
+        let t35 = line.t3_5();
+        let expected = rtu_frame::expected_response_length(request).unwrap_or(rtu_frame::MAX_FRAME);
         let mut len = 0;
         let mut last_byte = Instant::now();
+        let mut deadline = first_byte_by;
         loop {
             // A full buffer holds no Modbus frame (the longest is 256 bytes):
             // it is noise. Reading on would read into an empty slice, whose
@@ -415,7 +509,7 @@ impl RtuMaster {
                     tokio::select! {
                         biased;
                         read = self.port.read(&mut self.buf[len..]) => {
-                            len += eof_is_error(read)?;
+                            len += self.got(read)?;
                             last_byte = Instant::now();
                             continue;
                         }
@@ -427,15 +521,30 @@ impl RtuMaster {
                     }
                 }
             };
-            if len > 0 && self.buf[0] != unit {
-                return Ok(Err(Fault::Mismatch("reply from another unit")));
+            if len > 0 {
+                if self.buf[0] != unit {
+                    return Ok(Err(Fault::Mismatch("reply from another unit")));
+                }
+                let remaining = need.unwrap_or(expected).saturating_sub(len);
+                deadline =
+                    deadline.max(last_byte + line.wire_time(remaining) + t35 + DELIVERY_ALLOWANCE);
             }
             let end = need.map_or(self.buf.len(), |n| n.min(self.buf.len()));
+            if let Some(n) = need
+                && len > 0
+            {
+                let have = self.spin_for_the_rest(n, len, last_byte, deadline)?;
+                if have > len {
+                    len = have;
+                    last_byte = Instant::now();
+                    continue;
+                }
+            }
             match tokio::time::timeout_at(deadline.into(), self.port.read(&mut self.buf[len..end]))
                 .await
             {
                 Ok(read) => {
-                    len += eof_is_error(read)?;
+                    len += self.got(read)?;
                     last_byte = Instant::now();
                 }
                 Err(_) if len == 0 => return Ok(Err(Fault::Timeout)),
@@ -444,37 +553,89 @@ impl RtuMaster {
         }
     }
 
-    /// After a fault: keep the line for `guard_time`, discarding anything
-    /// that arrives (a late reply), then flush the input.
-    async fn guard(&mut self) -> io::Result<()> {
-        let until = Instant::now() + self.settings.guard_time;
+    /// When the rest of a reply of `n` bytes (`len` read, the last at
+    /// `last_byte`) is due within [`SPIN_FOR_LAST_BYTES`], reads it
+    /// spinning, so the reply's end is seen as it arrives and not a wake-up
+    /// later. Returns how many bytes `buf` holds then: `n`, or fewer when
+    /// the rest did not come in time (or is further away than that), and
+    /// the caller reads on.
+    fn spin_for_the_rest(
+        &mut self,
+        n: usize,
+        len: usize,
+        last_byte: Instant,
+        deadline: Instant,
+    ) -> io::Result<usize> {
+        let rest = self.settings.line.wire_time(n - len);
+        if rest > SPIN_FOR_LAST_BYTES || n > self.buf.len() {
+            return Ok(len);
+        }
+        let until = (last_byte + rest + SPIN_FOR_LAST_BYTES / 2).min(deadline);
+        let mut have = len;
+        while have < n && Instant::now() < until {
+            match self.port.try_read(&mut self.buf[have..n]) {
+                Ok(0) => return Err(self.port.closed()),
+                Ok(k) => have += k,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => std::hint::spin_loop(),
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(have)
+    }
+
+    /// After a fault: keep the line for `time`, discarding anything that
+    /// arrives (a late reply), then flush the input.
+    async fn guard(&mut self, time: Duration) -> io::Result<()> {
+        let until = Instant::now() + time;
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
-                    self.stray += eof_is_error(read)?;
+                    self.stray += self.got(read)?;
                 }
-                () = tokio::time::sleep_until(until.into()) => break,
+                slept = self.timer.sleep_until_relaxed(until) => {
+                    slept?;
+                    break;
+                }
             }
         }
-        self.port
-            .clear(tokio_serial::ClearBuffer::Input)
-            .map_err(io::Error::other)?;
+        self.flush_input()
+    }
+
+    /// After a timeout in which nothing arrived: keep the line as long as a
+    /// reply of `reply_len` bytes starting now would take, plus t3.5, and
+    /// on until t3.5 of silence if bytes come meanwhile (the late reply is
+    /// then discarded whole); then flush the input.
+    async fn guard_late_reply(&mut self, reply_len: usize) -> io::Result<()> {
+        let line = self.settings.line;
+        let mut until = Instant::now() + line.wire_time(reply_len) + line.t3_5();
+        loop {
+            tokio::select! {
+                read = self.port.read(&mut self.buf[..]) => {
+                    self.stray += self.got(read)?;
+                    until = until.max(Instant::now() + line.t3_5());
+                }
+                slept = self.timer.sleep_until_relaxed(until) => {
+                    slept?;
+                    break;
+                }
+            }
+        }
+        self.flush_input()
+    }
+
+    /// Discards whatever the port holds unread; the line is silent from now.
+    fn flush_input(&mut self) -> io::Result<()> {
+        self.port.clear_input()?;
         self.quiet_since = Instant::now();
         Ok(())
     }
-}
 
-/// A serial read of 0 bytes means the device went away.
-fn eof_is_error(read: io::Result<usize>) -> io::Result<usize> {
-    match read {
-        Ok(0) => Err(unplugged()),
-        other => other,
+    /// A read's byte count; a read of 0 bytes means the line went away (the
+    /// adapter was unplugged, the device server closed the connection).
+    fn got(&self, read: io::Result<usize>) -> io::Result<usize> {
+        match read {
+            Ok(0) => Err(self.port.closed()),
+            other => other,
+        }
     }
-}
-
-fn unplugged() -> io::Error {
-    io::Error::new(
-        io::ErrorKind::UnexpectedEof,
-        "the serial port was closed (adapter unplugged?)",
-    )
 }

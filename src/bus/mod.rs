@@ -2,6 +2,8 @@
 //! transaction on it; everything else talks to it through a [`BusHandle`].
 //!
 //! - [`port`] opens the adapter (and sets RS-485 direction control),
+//! - [`tcp_port`] connects to a serial device server (`tcp://host:port`),
+//! - [`transport`] is either, as the master sees it,
 //! - [`master`] is the RTU master: one frame in flight, t3.5 silences, reply
 //!   framing and checks, retries, guard time and input flush after faults,
 //! - [`queue`] holds waiting jobs by priority, fair between submitters,
@@ -22,6 +24,8 @@ pub mod queue;
 pub mod rs485;
 pub mod scheduler;
 pub mod stats;
+pub mod tcp_port;
+pub mod transport;
 
 pub use cache::{BusEvent, DriveSnapshot};
 pub use error::BusError;

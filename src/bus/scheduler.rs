@@ -19,9 +19,10 @@ use super::handle::{BusHandle, PortState, Shared};
 use super::job::{Exchange, Job, Priority};
 use super::master::{Fault, MasterSettings, PortFailure, Report, RtuMaster};
 use super::poller::PollPlan;
-use super::port;
 use super::queue::{JobQueue, QueueLimits};
 use super::stats::{BusStats, Outcome};
+use super::tcp_port;
+use super::transport;
 use crate::clock;
 use crate::drive::{DriveReply, DriveRequest};
 
@@ -30,7 +31,7 @@ use crate::drive::{DriveReply, DriveRequest};
 pub struct BusSettings {
     /// Name used in logs, metrics and the API.
     pub name: String,
-    /// Serial device path.
+    /// Serial device path, or `tcp://host:port` for a serial device server.
     pub port: String,
     /// Master timing, retries and RS-485 settings.
     pub master: MasterSettings,
@@ -148,6 +149,9 @@ struct Scheduler {
     /// Commands run in a row while a poll was due.
     commands_in_a_row: u32,
     reopen: ReopenBackoff,
+    /// When the line last became free for the next request: work waiting
+    /// since then went out after the master's own overhead only.
+    line_free_at: Instant,
 }
 
 /// The wait before each attempt to (re)open the port: it doubles from the
@@ -215,6 +219,7 @@ impl Scheduler {
             settings.drives.iter().copied(),
             settings.offline_backoff.0,
             settings.offline_backoff.1,
+            Instant::now(),
         );
         Self {
             reopen: ReopenBackoff::new(settings.reopen_backoff),
@@ -222,6 +227,7 @@ impl Scheduler {
             shared,
             plan,
             commands_in_a_row: 0,
+            line_free_at: Instant::now(),
         }
     }
 
@@ -246,16 +252,19 @@ impl Scheduler {
                 break;
             }
             let Some(m) = master.as_mut() else {
-                match port::open(
-                    &self.settings.port,
-                    self.settings.master.line.baud(),
-                    &self.settings.master.rs485,
-                )
-                .map_err(|e| e.to_string())
-                .and_then(|p| RtuMaster::new(p, self.settings.master).map_err(|e| e.to_string()))
-                {
+                let opened = tokio::select! {
+                    opened = transport::open(
+                        &self.settings.port,
+                        self.settings.master.line.baud(),
+                        &self.settings.master.rs485,
+                    ) => opened,
+                    () = self.shared.stop.cancelled() => continue,
+                };
+                match opened.map_err(|e| e.to_string()).and_then(|p| {
+                    RtuMaster::new(p, self.settings.master).map_err(|e| e.to_string())
+                }) {
                     Ok(m) => {
-                        info!(bus = %name, port = %self.settings.port, "serial port open");
+                        info!(bus = %name, port = %self.settings.port, "{} open", self.port_kind());
                         master = Some(m);
                         self.stats().set_port_open(true, opened_before);
                         opened_before = true;
@@ -287,6 +296,7 @@ impl Scheduler {
                     if stray > 0 {
                         self.stats().add_stray_bytes(stray);
                     }
+                    self.line_free_at = m.line_free_at();
                     match self.next_work(Instant::now()) {
                         Work::Job(job) => self.run_job(m, job).await,
                         Work::Poll(unit) => self.run_poll(m, unit).await,
@@ -313,7 +323,7 @@ impl Scheduler {
                 // thread spin: the reopen waits, longer each time, until the
                 // port has proven itself again.
                 let delay = self.reopen.failed(Instant::now());
-                let reason = format!("serial port {} failed: {e}", self.settings.port);
+                let reason = format!("{} {} failed: {e}", self.port_kind(), self.settings.port);
                 warn!(bus = %name, "{reason}; reopening in {delay:?}");
                 self.stats().record_port_error(&reason);
                 master = None;
@@ -329,6 +339,15 @@ impl Scheduler {
             reason: "the bus has stopped: drivegate is shutting down".to_string(),
         });
         info!(bus = %name, "bus stopped");
+    }
+
+    /// What the port is, for messages.
+    fn port_kind(&self) -> &'static str {
+        if tcp_port::address(&self.settings.port).is_some() {
+            "connection to the serial device server"
+        } else {
+            "serial port"
+        }
     }
 
     /// Waits `delay` before the next attempt to open the port, or until the
@@ -420,10 +439,15 @@ impl Scheduler {
     }
 
     /// Counts a transaction that went through the port (whatever the drive
-    /// answered): the port works.
-    fn account(&mut self, function: u8, report: &Report) {
+    /// answered): the port works. `waiting_since` is when its work was ready
+    /// (submitted, or due): if that was before the line became free, the
+    /// silence before it is the master's doing and is measured.
+    fn account(&mut self, function: u8, report: &Report, waiting_since: Instant) {
         self.reopen.worked();
         let stats = self.stats();
+        if waiting_since <= self.line_free_at {
+            stats.interframe_idle.observe(report.idle_before);
+        }
         stats.record_transaction(function, report.outcome, report.attempts);
         stats.transaction_duration.observe(report.on_wire);
         stats.add_busy(report.busy);
@@ -466,7 +490,7 @@ impl Scheduler {
                 return Err(failure.into_io());
             }
         };
-        self.account(function, &report);
+        self.account(function, &report, job.submitted);
         let result = match (report.outcome, report.reply) {
             (Outcome::Ok | Outcome::Exception, Some(reply)) => {
                 if job.pdu == *STATUS_PDU
@@ -500,11 +524,16 @@ impl Scheduler {
     async fn run_poll(&mut self, master: &mut RtuMaster, unit: u8) -> io::Result<()> {
         let pdu: &[u8] = &STATUS_PDU;
         let offline = self.cache().is_offline(unit);
+        let due = self.plan.due_at(unit).unwrap_or_else(Instant::now);
+        // A drive that did not answer its last poll (or never has) is
+        // probed with one attempt: if it is off, a retry only costs another
+        // timeout, and the next poll comes anyway.
+        let single = !self.cache().answering(unit);
         let report = master
-            .transact(unit, pdu, offline.then_some(1))
+            .transact(unit, pdu, single.then_some(1))
             .await
             .map_err(PortFailure::into_io)?;
-        self.account(pdu[0], &report);
+        self.account(pdu[0], &report, due);
         let status =
             report
                 .reply

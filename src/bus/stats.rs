@@ -52,6 +52,13 @@ impl Outcome {
     }
 }
 
+/// Bounds for the silence between frames: fine around t3.5 (1.75 ms above
+/// 19200 baud, 2 to 4 ms at 19200 and 9600), where the master's overhead shows.
+pub const IDLE_BOUNDS: &[f64] = &[
+    0.0010, 0.0015, 0.00175, 0.0018, 0.00185, 0.0019, 0.00195, 0.0020, 0.0021, 0.0022, 0.0025,
+    0.0030, 0.0035, 0.0040, 0.0045, 0.0050, 0.0075, 0.010, 0.020, 0.050,
+];
+
 /// A histogram with fixed bucket bounds in seconds.
 #[derive(Debug)]
 pub struct Histogram {
@@ -134,6 +141,9 @@ pub struct BusStats {
     pub transaction_duration: Histogram,
     /// Time from submission to completion of each job (queue wait included).
     pub job_latency: Histogram,
+    /// Silence left between the end of a frame and the next request, when
+    /// that request was already waiting: t3.5 plus the master's overhead.
+    pub interframe_idle: Histogram,
     busy_ns: AtomicU64,
     polls: AtomicU64,
     poll_failures: AtomicU64,
@@ -174,6 +184,8 @@ pub struct BusStatsSnapshot {
     pub transaction_duration: HistogramSnapshot,
     /// Job latencies (queue + wire).
     pub job_latency: HistogramSnapshot,
+    /// Silences between frames while work was waiting.
+    pub interframe_idle: HistogramSnapshot,
 }
 
 impl Default for BusStats {
@@ -190,6 +202,7 @@ impl BusStats {
             retries: AtomicU64::new(0),
             transaction_duration: Histogram::new(DURATION_BOUNDS),
             job_latency: Histogram::new(DURATION_BOUNDS),
+            interframe_idle: Histogram::new(IDLE_BOUNDS),
             busy_ns: AtomicU64::new(0),
             polls: AtomicU64::new(0),
             poll_failures: AtomicU64::new(0),
@@ -283,6 +296,7 @@ impl BusStats {
                 .clone(),
             transaction_duration: self.transaction_duration.snapshot(),
             job_latency: self.job_latency.snapshot(),
+            interframe_idle: self.interframe_idle.snapshot(),
         }
     }
 }

@@ -6,11 +6,11 @@ use serde::Deserialize;
 use toml::Spanned;
 
 use super::values::{self, Name, UnitAddress};
-use crate::bus::master::MasterSettings;
+use crate::bus::master::{Guard, MasterSettings};
 use crate::bus::port::Rs485Settings;
 use crate::bus::queue::QueueLimits;
 use crate::bus::scheduler::BusSettings;
-use crate::sim::{FaultRates, SimConfig, SimDriveConfig};
+use crate::sim::{Delivery, FaultRates, SimConfig, SimDriveConfig};
 
 /// One serial adapter and the drives on it.
 #[derive(Debug, Clone, Deserialize)]
@@ -18,8 +18,9 @@ use crate::sim::{FaultRates, SimConfig, SimDriveConfig};
 pub struct BusConfig {
     /// Name in logs, metrics and the API.
     pub name: Spanned<Name>,
-    /// Serial device (prefer a stable `/dev/serial/by-id/...` path), or
-    /// `"sim"` for the built-in simulator.
+    /// Serial device (prefer a stable `/dev/serial/by-id/...` path),
+    /// `tcp://host:port` for a serial device server, or `"sim"` for the
+    /// built-in simulator.
     pub port: Spanned<String>,
     /// Baud rate (the drives speak 115200).
     #[serde(
@@ -43,7 +44,8 @@ pub struct BusConfig {
     #[serde(default, deserialize_with = "values::int_in::<_, _, 0, 3600000>")]
     pub poll_interval_ms: u64,
     /// Silence kept after a timeout or bad reply, discarding late bytes
-    /// (default: the response timeout).
+    /// (default: the response timeout after a bad reply; after a timeout in
+    /// which nothing arrived, what a reply starting at the timeout needs).
     #[serde(default, deserialize_with = "values::opt_int_in::<_, _, 0, 10000>")]
     pub guard_ms: Option<u64>,
     /// Time the drives get after a broadcast before the next request.
@@ -121,9 +123,18 @@ pub struct SimSection {
     /// Whether the simulated drives start calibrated.
     #[serde(default = "default_calibrated")]
     pub calibrated: bool,
+    /// Units of plain register devices (meters, I/O) simulated beside the
+    /// drives: 65536 holding registers each, for long reads.
+    #[serde(default)]
+    pub devices: Vec<u8>,
     /// Fault injection rates.
     #[serde(default)]
     pub faults: FaultRates,
+    /// How reply bytes reach the daemon: `[bus.sim.delivery] chunk_bytes`,
+    /// `jitter_us` model a USB adapter's late chunks (default: a UART's
+    /// exact timing).
+    #[serde(default)]
+    pub delivery: Delivery,
 }
 
 impl Default for SimSection {
@@ -133,7 +144,9 @@ impl Default for SimSection {
             seed: default_seed(),
             reboot_ms: default_reboot(),
             calibrated: default_calibrated(),
+            devices: Vec::new(),
             faults: FaultRates::default(),
+            delivery: Delivery::default(),
         }
     }
 }
@@ -195,9 +208,12 @@ impl BusConfig {
                     gear_ratio: d.gear_ratio,
                 })
                 .collect(),
+            devices: section.devices,
             faults: section.faults,
             reboot_ms: section.reboot_ms,
             calibrated: section.calibrated,
+            delivery: section.delivery,
+            listen: None,
         }
     }
 
@@ -206,7 +222,9 @@ impl BusConfig {
     pub fn settings(&self, port_path: &str) -> BusSettings {
         let timeout = Duration::from_millis(self.response_timeout_ms);
         let mut master = MasterSettings::new(self.baud, timeout, self.retries);
-        master.guard_time = self.guard_ms.map_or(timeout, Duration::from_millis);
+        master.guard = self
+            .guard_ms
+            .map_or(Guard::Auto, |ms| Guard::Fixed(Duration::from_millis(ms)));
         master.broadcast_delay = Duration::from_millis(self.broadcast_delay_ms);
         master.rs485 = self.rs485;
         let mut settings = BusSettings::new(

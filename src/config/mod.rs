@@ -101,6 +101,18 @@ impl Config {
                     format!("port {port} is used by two buses: one bus per adapter"),
                 ));
             }
+            if let Some(address) = crate::bus::tcp_port::address(port) {
+                address.map_err(|message| at(bus.port.span(), message))?;
+                if bus.rs485.direction != crate::bus::port::Direction::Auto {
+                    return Err(at(
+                        bus.port.span(),
+                        format!(
+                            "{port} is a serial device server, which switches the RS-485 \
+                             direction itself: remove [bus.rs485] direction (or set it to \"auto\")"
+                        ),
+                    ));
+                }
+            }
             if bus.drives.is_empty() {
                 return Err(at(
                     bus.name.span(),

@@ -53,8 +53,14 @@ fn defaults_fill_in() {
     );
     let s = bus.settings("/dev/ttyUSB0");
     assert_eq!(s.drives, vec![(1, std::time::Duration::ZERO)]);
-    assert_eq!(s.master.guard_time, std::time::Duration::from_millis(50));
+    assert_eq!(s.master.guard, crate::bus::master::Guard::Auto);
     assert_eq!(bus.drives[0].gear_ratio, 3.75);
+    // A guard given is kept after every fault.
+    let c = parse(&MINIMAL.replace("[[bus]]", "[[bus]]\nguard_ms = 80")).unwrap();
+    assert_eq!(
+        c.buses[0].settings("/dev/ttyUSB0").master.guard,
+        crate::bus::master::Guard::Fixed(std::time::Duration::from_millis(80))
+    );
 }
 
 #[test]
@@ -67,7 +73,7 @@ listen = "127.0.0.1:8080"
 listen = "127.0.0.1:5020"
 [[bus]]
 name = "line1"
-port = "/dev/ttyUSB0"      # or "sim" for the built-in simulator
+port = "/dev/ttyUSB0"      # or "tcp://host:port", or "sim" for the built-in simulator
 baud = 115200
 response_timeout_ms = 50
 retries = 1
@@ -175,4 +181,34 @@ fn sim_section_only_for_sim() {
         (3, 0.0, 0.05)
     );
     assert_eq!(sim.drives[0].gear_ratio, 3.75);
+}
+
+#[test]
+fn serial_device_servers_are_ports_too() {
+    let tcp = MINIMAL.replace("/dev/ttyUSB0", "tcp://192.168.127.254:4001");
+    let c = parse(&tcp).unwrap();
+    assert_eq!(
+        c.buses[0].settings("tcp://192.168.127.254:4001").port,
+        "tcp://192.168.127.254:4001"
+    );
+    // Mistakes point at the port, with the form to use.
+    let e = err(&MINIMAL.replace("/dev/ttyUSB0", "tcp://192.168.127.254"));
+    assert!(e.starts_with("test.toml:4:8: "), "{e}");
+    assert!(
+        e.contains("has no port number") && e.contains("tcp://host:port"),
+        "{e}"
+    );
+    let e = err(&MINIMAL.replace("/dev/ttyUSB0", "tcp://nport:70000"));
+    assert!(e.contains("1 to 65535"), "{e}");
+    // Direction control is the device server's.
+    let e = err(&format!("{tcp}\n[bus.rs485]\ndirection = \"rts\"\n"));
+    assert!(
+        e.starts_with("test.toml:4:8: ") && e.contains("serial device server"),
+        "{e}"
+    );
+    // One bus per device server port.
+    let e = err(&format!(
+        "{tcp}\n[[bus]]\nname = \"line2\"\nport = \"tcp://192.168.127.254:4001\"\n[[bus.drive]]\nunit = 1\nname = \"b\"\n"
+    ));
+    assert!(e.contains("is used by two buses"), "{e}");
 }

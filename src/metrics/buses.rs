@@ -54,6 +54,14 @@ static LATENCY: Spec = Spec {
     kind: Kind::Histogram,
     labels: BUS,
 };
+static IDLE: Spec = Spec {
+    name: "drivegate_bus_interframe_idle_seconds",
+    help: "Silence the master left between the end of a frame (the last reply byte received) \
+           and its next request, counted when that request was already waiting: t3.5 (1.75 ms \
+           above 19200 baud) plus the gateway's own overhead.",
+    kind: Kind::Histogram,
+    labels: BUS,
+};
 static BUSY: Spec = Spec {
     name: "drivegate_bus_busy_seconds_total",
     help: "Seconds the wire was occupied by frames, silences and waits for replies.",
@@ -129,13 +137,14 @@ static SIM_INJECTED: Spec = Spec {
     labels: &["bus", "kind"],
 };
 
-static SPECS: [&Spec; 18] = [
+static SPECS: [&Spec; 19] = [
     &INFO,
     &PORT_OPEN,
     &TRANSACTIONS,
     &RETRIES,
     &DURATION,
     &LATENCY,
+    &IDLE,
     &BUSY,
     &UTILISATION,
     &POLLS,
@@ -181,6 +190,7 @@ struct Families {
     retries: Family,
     duration: Family,
     latency: Family,
+    idle: Family,
     busy: Family,
     utilisation: Family,
     polls: Family,
@@ -204,6 +214,7 @@ impl Families {
             retries: RETRIES.family(),
             duration: DURATION.family(),
             latency: LATENCY.family(),
+            idle: IDLE.family(),
             busy: BUSY.family(),
             utilisation: UTILISATION.family(),
             polls: POLLS.family(),
@@ -230,6 +241,7 @@ impl Families {
         self.retries.set(&l, stats.retries as f64);
         self.duration.set_histogram(&l, &stats.transaction_duration);
         self.latency.set_histogram(&l, &stats.job_latency);
+        self.idle.set_histogram(&l, &stats.interframe_idle);
         self.busy.set(&l, stats.busy_seconds);
         if let Some(ratio) = utilisation {
             self.utilisation.set(&l, ratio);
@@ -287,6 +299,7 @@ impl Families {
             self.retries,
             self.duration,
             self.latency,
+            self.idle,
             self.busy,
             self.utilisation,
             self.polls,

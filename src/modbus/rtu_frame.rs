@@ -103,6 +103,32 @@ pub fn request_length(buf: &[u8]) -> FrameLength {
     }
 }
 
+/// Length of the (normal) reply frame that answers the request `pdu`
+/// (function code onward), when its function code tells; `None` for codes
+/// whose reply length only the reply says. An exception reply (5 bytes) is
+/// never longer.
+pub fn expected_response_length(pdu: &[u8]) -> Option<usize> {
+    let function = *pdu.first()?;
+    let quantity = be_u16(pdu, 3).map(usize::from);
+    match function {
+        // unit, fc, byte count, data, CRC
+        0x01 | 0x02 => Some(5 + quantity?.div_ceil(8)),
+        0x03 | 0x04 => Some(5 + 2 * quantity?),
+        0x17 => Some(5 + 2 * quantity?),
+        0x05 | 0x06 | 0x0B | 0x0F | 0x10 => Some(8),
+        0x07 => Some(5),
+        0x16 => Some(10),
+        // Diagnostics: "return query data" echoes the request, the other
+        // sub-functions answer one word.
+        0x08 => match be_u16(pdu, 1)? {
+            0 => Some(pdu.len() + 3),
+            _ => Some(8),
+        },
+        _ => None,
+    }
+    .map(|n| n.min(MAX_FRAME))
+}
+
 /// A diagnostics frame (0x08), request or reply alike: unit, fc,
 /// sub-function, data, CRC. Sub-function 0000 ("return query data") echoes
 /// any number of data words, so only the silence ends it; every other
@@ -175,6 +201,41 @@ mod tests {
             FrameLength::Known(8)
         );
         assert_eq!(response_length(&[1, 0x88]), FrameLength::Known(5));
+    }
+
+    #[test]
+    fn expected_response_lengths() {
+        // status read, 7 registers: 3 + 14 + 2
+        assert_eq!(
+            expected_response_length(&[0x03, 0x00, 0xC0, 0x00, 0x07]),
+            Some(19)
+        );
+        // 125 registers: the longest frame, 255 bytes
+        assert_eq!(
+            expected_response_length(&[0x03, 0x00, 0x00, 0x00, 125]),
+            Some(255)
+        );
+        // 9 coils: two data bytes
+        assert_eq!(
+            expected_response_length(&[0x01, 0x00, 0x00, 0x00, 9]),
+            Some(7)
+        );
+        assert_eq!(
+            expected_response_length(&[0x06, 0x00, 0x02, 0x00, 0x05]),
+            Some(8)
+        );
+        assert_eq!(
+            expected_response_length(&[0x10, 0x00, 0x0C, 0x00, 3, 6, 0, 1, 0, 2, 0, 0]),
+            Some(8)
+        );
+        assert_eq!(
+            expected_response_length(&[0x08, 0x00, 0x00, 0x12, 0x34]),
+            Some(8)
+        );
+        assert_eq!(expected_response_length(&[0x2B, 0x0E, 0x01, 0x00]), None);
+        // Too short to say.
+        assert_eq!(expected_response_length(&[0x03, 0x00]), None);
+        assert_eq!(expected_response_length(&[]), None);
     }
 
     #[test]

@@ -8,10 +8,11 @@
 use std::time::{Duration, Instant};
 
 use super::config::SimConfig;
+use super::device::RegisterDevice;
 use super::faults::{FaultInjector, FaultRates, Noise};
 use super::model::{DriveModel, SimDriveView};
 use super::slave;
-use super::stats::SimStats;
+use super::stats::{GapHistogram, SimStats};
 use crate::modbus::crc::crc_bytes;
 use crate::modbus::rtu_frame;
 
@@ -46,8 +47,10 @@ pub struct Outcome {
 #[derive(Debug)]
 pub struct Bus {
     slots: Vec<Slot>,
+    devices: Vec<RegisterDevice>,
     faults: FaultInjector,
     stats: SimStats,
+    gaps: GapHistogram,
     pdu: Vec<u8>,
     scratch: Vec<u8>,
 }
@@ -65,8 +68,14 @@ impl Bus {
                     clock: now,
                 })
                 .collect(),
+            devices: config
+                .devices
+                .iter()
+                .map(|&u| RegisterDevice::new(u))
+                .collect(),
             faults: FaultInjector::new(config.faults.clone(), config.seed),
             stats: SimStats::default(),
+            gaps: GapHistogram::default(),
             pdu: Vec::with_capacity(256),
             scratch: Vec::with_capacity(256),
         }
@@ -80,6 +89,16 @@ impl Bus {
     /// The counters, for the wire to update.
     pub fn stats_mut(&mut self) -> &mut SimStats {
         &mut self.stats
+    }
+
+    /// The silences seen before each request.
+    pub fn gaps(&self) -> &GapHistogram {
+        &self.gaps
+    }
+
+    /// Counts the silence before a request.
+    pub fn record_gap(&mut self, gap: Duration) {
+        self.gaps.record(gap);
     }
 
     /// The fault rates in force.
@@ -102,6 +121,11 @@ impl Bus {
         let slot = self.slots.iter_mut().find(|s| s.model.address() == unit)?;
         slot.advance_to(now);
         Some(&mut slot.model)
+    }
+
+    /// The plain register device at `unit`, if there is one.
+    pub fn device(&self, unit: u8) -> Option<&RegisterDevice> {
+        self.devices.iter().find(|d| d.unit() == unit)
     }
 
     /// Snapshots of every drive, advanced to `now`, in configuration order.
@@ -156,6 +180,19 @@ impl Bus {
                 frame_into(reply, unit, &self.pdu);
             } else {
                 // Two drivers on the line at once: the bytes collide.
+                frame_into(&mut self.scratch, unit, &self.pdu);
+                collide(reply, &self.scratch);
+            }
+        }
+        for device in self.devices.iter_mut().filter(|d| d.unit() == unit) {
+            let exception = device.answer(pdu, &mut self.pdu);
+            answering += 1;
+            if answering == 1 {
+                if exception.is_some() {
+                    self.stats.exceptions += 1;
+                }
+                frame_into(reply, unit, &self.pdu);
+            } else {
                 frame_into(&mut self.scratch, unit, &self.pdu);
                 collide(reply, &self.scratch);
             }
@@ -315,6 +352,21 @@ mod tests {
         assert_eq!(send(&mut bus, 1, DriveRequest::ReadStatus, now), None);
         let s = bus.stats();
         assert_eq!((s.corrupted, s.dropped, s.replies), (1, 1, 2));
+    }
+
+    #[test]
+    fn plain_devices_answer_long_reads() {
+        let now = Instant::now();
+        let mut config = SimConfig::for_units([1]);
+        config.devices = vec![100];
+        let mut bus = Bus::new(&config, now);
+        let frame = rtu_frame::encode(100, &[0x03, 0x00, 0x00, 0x00, 125]);
+        let mut reply = Vec::new();
+        assert!(bus.request(&frame, now, &mut reply).reply);
+        assert_eq!(reply.len(), 255, "the longest RTU frame");
+        assert_eq!(&reply[..3], &[100, 0x03, 250]);
+        assert!(crate::modbus::crc::frame_crc_ok(&reply));
+        assert_eq!(bus.device(100).map(|d| d.register(3)), Some(3));
     }
 
     #[test]

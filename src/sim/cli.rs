@@ -1,8 +1,10 @@
-//! `drivegate sim`: a simulated bus of drives on a pty for third-party tools
-//! (mbpoll, pymodbus, the daemon on another machine's config).
+//! `drivegate sim`: a simulated bus of drives on a pty, or on TCP as a serial
+//! device server serves a line, for third-party tools (mbpoll, pymodbus, the
+//! daemon with `port = "tcp://..."`).
 
 use std::fmt;
 use std::io::{self, Write};
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::str::FromStr;
 
@@ -10,14 +12,19 @@ use tokio::signal::unix::{SignalKind, signal};
 
 use super::Simulator;
 use super::config::{DEFAULT_GEAR_RATIO, SimConfig, SimDriveConfig};
+use super::delivery::Delivery;
 use super::faults::FaultRates;
 
 /// Arguments of `drivegate sim`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimArgs {
     /// Where to link the pty (a symlink to /dev/pts/N, removed on exit).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "listen")]
     pub link: Option<PathBuf>,
+    /// Serve the bus on TCP at this address (e.g. 127.0.0.1:4001), as a
+    /// serial device server does, instead of on a pty.
+    #[arg(long)]
+    pub listen: Option<SocketAddr>,
     /// Addresses of the simulated drives: ranges and lists, e.g. "1-8" or "1,3,5-7".
     #[arg(long, default_value = "1-8")]
     pub units: UnitList,
@@ -51,6 +58,17 @@ pub struct SimArgs {
     /// Units that never answer, e.g. "3,5".
     #[arg(long)]
     pub silent_units: Option<UnitList>,
+    /// Units of plain register devices (meters, I/O modules) beside the
+    /// drives, e.g. "100": 65536 holding registers each, for long reads.
+    #[arg(long)]
+    pub devices: Option<UnitList>,
+    /// Reply bytes handed over together, as a USB adapter does (1: each byte
+    /// on time, as a UART does).
+    #[arg(long, default_value_t = 1)]
+    pub chunk_bytes: u16,
+    /// Largest extra delay of each chunk, in microseconds.
+    #[arg(long, default_value_t = 0)]
+    pub jitter_us: u32,
 }
 
 impl SimArgs {
@@ -69,6 +87,7 @@ impl SimArgs {
                     gear_ratio: self.gear_ratio,
                 })
                 .collect(),
+            devices: self.devices.clone().map(|u| u.0).unwrap_or_default(),
             faults: FaultRates {
                 drop_rate: self.drop_rate,
                 crc_error_rate: self.crc_error_rate,
@@ -77,13 +96,19 @@ impl SimArgs {
                 noise_rate: self.noise_rate,
                 silent_units: self.silent_units.clone().map(|u| u.0).unwrap_or_default(),
             },
+            delivery: Delivery {
+                chunk_bytes: self.chunk_bytes,
+                jitter_us: self.jitter_us,
+            },
+            listen: self.listen,
             ..SimConfig::default()
         }
     }
 }
 
 /// Runs the simulator until SIGINT or SIGTERM: prints the pty path (and the
-/// link) on one line of stdout, and a line of counters on exit.
+/// link), or the `tcp://` address, on one line of stdout, and a line of
+/// counters on exit.
 pub async fn run(args: SimArgs) -> io::Result<()> {
     let mut interrupt = signal(SignalKind::interrupt())?;
     let mut terminate = signal(SignalKind::terminate())?;
@@ -259,5 +284,13 @@ mod tests {
         assert_eq!((config.faults.drop_rate, config.seed), (0.1, 9));
         assert_eq!(config.drives[0].gear_ratio, 10.0);
         assert!(Cli::try_parse_from(["sim", "--units", "0-3"]).is_err());
+        let cli = Cli::parse_from(["sim", "--listen", "127.0.0.1:4001"]);
+        assert_eq!(
+            cli.args.config().listen,
+            Some("127.0.0.1:4001".parse().unwrap())
+        );
+        assert!(
+            Cli::try_parse_from(["sim", "--listen", "127.0.0.1:4001", "--link", "/tmp/x"]).is_err()
+        );
     }
 }

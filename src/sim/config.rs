@@ -1,7 +1,10 @@
 //! What a simulated bus is made of: its line, its drives, its faults.
 
+use std::net::SocketAddr;
+
 use serde::Deserialize;
 
+use super::delivery::Delivery;
 use super::faults::FaultRates;
 use crate::drive::RangeError;
 use crate::drive::units::GEAR_RATIO;
@@ -32,6 +35,9 @@ pub struct SimConfig {
     pub seed: u64,
     /// The drives on the bus.
     pub drives: Vec<SimDriveConfig>,
+    /// Units of plain register devices (meters, I/O modules) on the same
+    /// bus: 65536 holding registers each, register `a` holding `a`.
+    pub devices: Vec<u8>,
     /// Fault injection.
     pub faults: FaultRates,
     /// How long a drive stays silent after a power cycle or a software
@@ -40,6 +46,12 @@ pub struct SimConfig {
     /// Whether the drives' flash says their encoders have been calibrated
     /// (false models drives that never were: fine-tuning is then refused).
     pub calibrated: bool,
+    /// How the replies' bytes reach the master (a UART's exact timing, or a
+    /// USB adapter's late chunks).
+    pub delivery: Delivery,
+    /// Serve the bus on TCP at this address, as a serial device server does,
+    /// instead of behind a pty.
+    pub listen: Option<SocketAddr>,
 }
 
 impl Default for SimConfig {
@@ -64,9 +76,12 @@ impl SimConfig {
                     gear_ratio: DEFAULT_GEAR_RATIO,
                 })
                 .collect(),
+            devices: Vec::new(),
             faults: FaultRates::default(),
             reboot_ms: 300.0,
             calibrated: true,
+            delivery: Delivery::default(),
+            listen: None,
         }
     }
 
@@ -95,6 +110,15 @@ impl SimConfig {
                 "",
             )?;
         }
+        for (i, &unit) in self.devices.iter().enumerate() {
+            if unit == 0 {
+                return Err(ConfigError::BroadcastUnit);
+            }
+            if self.drives.iter().any(|d| d.unit == unit) || self.devices[..i].contains(&unit) {
+                return Err(ConfigError::DuplicateUnit(unit));
+            }
+        }
+        self.delivery.validate()?;
         self.faults.validate()
     }
 }
@@ -150,5 +174,8 @@ mod tests {
         c = SimConfig::for_units([1]);
         c.drives[0].gear_ratio = 0.0;
         assert!(c.validate().is_err());
+        c = SimConfig::for_units([1]);
+        c.devices = vec![100, 1];
+        assert_eq!(c.validate(), Err(ConfigError::DuplicateUnit(1)));
     }
 }

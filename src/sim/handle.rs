@@ -16,7 +16,8 @@ use super::faults::FaultRates;
 use super::lock;
 use super::model::{DriveModel, SimDriveView};
 use super::physics::Environment;
-use super::stats::SimStats;
+use super::stats::{GapHistogram, SimStats};
+use super::tcp::Disconnects;
 use crate::drive::{Fault, RangeError};
 
 /// Why a handle operation was refused.
@@ -38,6 +39,7 @@ pub enum SimError {
 /// the link made with [`link_at`](Self::link_at).
 pub struct SimHandle {
     path: PathBuf,
+    disconnects: Option<Arc<Disconnects>>,
     link: Option<PathBuf>,
     bus: Arc<Mutex<Bus>>,
     cancel: CancellationToken,
@@ -47,12 +49,14 @@ pub struct SimHandle {
 impl SimHandle {
     pub(super) fn new(
         path: PathBuf,
+        disconnects: Option<Arc<Disconnects>>,
         bus: Arc<Mutex<Bus>>,
         cancel: CancellationToken,
         thread: JoinHandle<()>,
     ) -> Self {
         SimHandle {
             path,
+            disconnects,
             link: None,
             bus,
             cancel,
@@ -60,9 +64,17 @@ impl SimHandle {
         }
     }
 
-    /// The pty path a master opens (e.g. `/dev/pts/3`).
+    /// Where a master connects: the pty path (e.g. `/dev/pts/3`), or
+    /// `tcp://ip:port` for a simulator served on TCP; what a bus's `port`
+    /// is set to.
     pub fn port_path(&self) -> &Path {
         &self.path
+    }
+
+    /// Closes the TCP connection of the master (a device server's reboot, a
+    /// network cut); the simulator takes the next one. False behind a pty.
+    pub fn disconnect(&self) -> bool {
+        self.disconnects.as_ref().map(|d| d.disconnect()).is_some()
     }
 
     /// The symlink made by [`link_at`](Self::link_at), if any.
@@ -74,6 +86,12 @@ impl SimHandle {
     /// a real file); it is removed when the simulator stops.
     pub fn link_at(&mut self, link: impl AsRef<Path>) -> io::Result<()> {
         let link = link.as_ref();
+        if self.disconnects.is_some() {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                "a simulator served on TCP has no pty to link to",
+            ));
+        }
         match fs::symlink_metadata(link) {
             Ok(meta) if meta.file_type().is_symlink() => fs::remove_file(link)?,
             Ok(_) => {
@@ -100,6 +118,12 @@ impl SimHandle {
     /// The wire's counters.
     pub fn stats(&self) -> SimStats {
         lock(&self.bus).stats()
+    }
+
+    /// The silences the wire saw before each request (the master's idle
+    /// time between frames, as the drives see it).
+    pub fn gaps(&self) -> GapHistogram {
+        lock(&self.bus).gaps().clone()
     }
 
     /// The fault rates in force.

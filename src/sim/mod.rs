@@ -1,5 +1,5 @@
 //! The drive simulator: a timing-accurate bus of drives behind real RTU bytes
-//! on a pty.
+//! on a pty (or on TCP, as a serial device server serves a line).
 //!
 //! The daemon runs it in-process for a bus configured with `port = "sim"`;
 //! `drivegate sim` serves it to third-party tools. A master opens
@@ -12,11 +12,15 @@
 //! - [`physics`]: the motor, its supply and its heat;
 //! - [`control`]: the drive's speed and position loops;
 //! - [`model`]: one drive: registers, flash, commands, protections, faults;
+//! - [`device`]: a plain register device (meter, I/O) on the same bus;
 //! - [`slave`]: the Modbus slave (PDU in, PDU out, exceptions);
 //! - [`faults`]: seeded fault injection on the wire;
+//! - [`delivery`]: when the master receives each reply byte (a UART, or a
+//!   USB adapter's late chunks);
 //! - [`bus`]: the drives on one line, who answers what;
-//! - [`wire`]: framing and the line's timing on the pty;
+//! - [`wire`]: framing and the line's timing on the pty or TCP;
 //! - [`pty`]: the pseudo-terminal;
+//! - [`tcp`]: the line served on TCP;
 //! - [`handle`]: control of a running simulator.
 //!
 //! The simulator runs on its own thread (`sim-bus`) with a current-thread
@@ -28,6 +32,8 @@ pub mod bus;
 pub mod cli;
 pub mod config;
 pub mod control;
+pub mod delivery;
+pub mod device;
 pub mod faults;
 pub mod handle;
 pub mod model;
@@ -36,6 +42,7 @@ pub mod pty;
 pub mod ramp;
 pub mod slave;
 pub mod stats;
+pub mod tcp;
 pub mod wire;
 
 use std::io;
@@ -47,20 +54,22 @@ use std::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 pub use config::{ConfigError, SimConfig, SimDriveConfig};
+pub use delivery::Delivery;
 pub use faults::FaultRates;
 pub use handle::{SimError, SimHandle};
 pub use model::SimDriveView;
-pub use stats::SimStats;
+pub use stats::{GapHistogram, SimStats};
 
 use bus::Bus;
+use tcp::Disconnects;
 use wire::Wire;
 
 /// Starts simulated buses.
 pub struct Simulator;
 
 impl Simulator {
-    /// Starts a simulator on its own thread behind a new pty; returns once
-    /// the pty is ready to be opened.
+    /// Starts a simulator on its own thread behind a new pty (or listening
+    /// on `config.listen`); returns once masters can open it.
     pub fn start(config: SimConfig) -> io::Result<SimHandle> {
         config
             .validate()
@@ -74,7 +83,9 @@ impl Simulator {
             move || run(config, bus, cancel, ready_tx)
         })?;
         match ready_rx.recv() {
-            Ok(Ok(path)) => Ok(SimHandle::new(path, bus, cancel, thread)),
+            Ok(Ok((path, disconnects))) => {
+                Ok(SimHandle::new(path, disconnects, bus, cancel, thread))
+            }
             Ok(Err(e)) => {
                 let _ = thread.join();
                 Err(e)
@@ -82,7 +93,7 @@ impl Simulator {
             Err(_) => {
                 let _ = thread.join();
                 Err(io::Error::other(
-                    "the simulator stopped before its pty was ready",
+                    "the simulator stopped before its port was ready",
                 ))
             }
         }
@@ -94,7 +105,7 @@ fn run(
     config: SimConfig,
     bus: Arc<Mutex<Bus>>,
     cancel: CancellationToken,
-    ready: mpsc::SyncSender<io::Result<PathBuf>>,
+    ready: mpsc::SyncSender<io::Result<(PathBuf, Option<Arc<Disconnects>>)>>,
 ) {
     crate::clock::tighten_timer_slack();
     let runtime = match tokio::runtime::Builder::new_current_thread()
@@ -115,7 +126,7 @@ fn run(
                 return;
             }
         };
-        let _ = ready.send(Ok(wire.path().to_path_buf()));
+        let _ = ready.send(Ok((wire.path().to_path_buf(), wire.disconnects())));
         tokio::select! {
             () = cancel.cancelled() => {}
             result = wire.serve() => {

@@ -1,5 +1,6 @@
-//! The simulated RS-485 wire: frames requests from the pty's bytes and puts
-//! replies back at the pace of the configured baud rate.
+//! The simulated RS-485 wire: frames requests from the master's bytes (on a
+//! pty, or on TCP as a serial device server serves them) and puts replies
+//! back at the pace of the configured baud rate.
 //!
 //! A pty carries bytes in microseconds whatever the baud rate, so the wire's
 //! timing is modelled here, in one place:
@@ -12,7 +13,9 @@
 //! - The reply starts no earlier than the end of the request's wire time +
 //!   t3.5 + the drive's turnaround (+ injected lateness), and its byte `i` is
 //!   written at `reply_start + wire_time(i + 1)`, computed from that schedule,
-//!   writing together all bytes already due when a wakeup comes late.
+//!   writing together all bytes already due when a wakeup comes late. With a
+//!   USB adapter's [`Delivery`], bytes are handed over in chunks, late; the
+//!   wire's own timing (and so the silence the master owes) does not change.
 //! - A request whose first byte arrives less than t3.5 after the end of the
 //!   previous activity (the last reply byte's scheduled end, or the end of the
 //!   previous request when it had no reply) is a gap violation. The check is
@@ -27,15 +30,23 @@ use std::io;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 use super::bus::Bus;
 use super::config::SimConfig;
+use super::delivery::Delivery;
 use super::lock;
 use super::pty::Pty;
+use super::tcp::{Disconnects, TcpLine};
 use crate::clock::PreciseTimer;
 use crate::modbus::rtu_frame::{FrameLength, MAX_FRAME, MIN_FRAME, request_length};
 use crate::modbus::timing::LineTiming;
+
+/// How long past the earliest moment a request may start the simulator
+/// watches for it spinning (see [`Wire::watch_for_request`]).
+const REQUEST_WATCH: Duration = Duration::from_micros(150);
 
 /// Bytes kept waiting to be framed; beyond this the line is garbage.
 const RX_LIMIT: usize = 4 * MAX_FRAME;
@@ -71,38 +82,101 @@ impl Rx {
     }
 }
 
+/// Where the master is.
+enum Line {
+    /// Behind a pty, as on a serial adapter.
+    Pty(Pty),
+    /// On TCP, as behind a serial device server.
+    Tcp(TcpLine),
+}
+
+impl Line {
+    async fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        match self {
+            Line::Pty(pty) => pty.master().read(buf).await,
+            Line::Tcp(tcp) => tcp.read(buf).await,
+        }
+    }
+
+    async fn write_all(&mut self, bytes: &[u8]) -> io::Result<()> {
+        match self {
+            Line::Pty(pty) => pty.master().write_all(bytes).await,
+            Line::Tcp(tcp) => tcp.write_all(bytes).await,
+        }
+    }
+
+    /// Reads what has arrived without waiting (`WouldBlock` when nothing).
+    fn try_read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        match self {
+            Line::Pty(pty) => pty.master().try_read(buf),
+            Line::Tcp(tcp) => tcp.try_read(buf),
+        }
+    }
+}
+
 /// The wire task's state.
 pub struct Wire {
-    pty: Pty,
+    line_io: Line,
+    /// Where masters connect: the pty's path, or `tcp://ip:port`.
+    endpoint: std::path::PathBuf,
+    /// TCP connections accepted, as last counted.
+    connections: u64,
     bus: Arc<Mutex<Bus>>,
     line: LineTiming,
     turnaround: Duration,
     timer: PreciseTimer,
     rx: Rx,
     tx: Vec<u8>,
+    /// When each byte of `tx` is handed to the master.
+    release: Vec<Instant>,
+    delivery: Delivery,
+    /// Draws the delivery's jitter (its own stream: the faults' draws stay
+    /// the same whatever the delivery).
+    rng: ChaCha8Rng,
     /// End of the last wire activity.
     quiet_from: Option<Instant>,
 }
 
 impl Wire {
-    /// Opens the pty and prepares the timing for `config`; must run inside
-    /// the simulator's runtime.
+    /// Opens the pty (or listens on `config.listen`) and prepares the
+    /// timing for `config`; must run inside the simulator's runtime.
     pub fn new(config: &SimConfig, bus: Arc<Mutex<Bus>>) -> io::Result<Self> {
+        let line_io = match config.listen {
+            Some(address) => Line::Tcp(TcpLine::bind(address)?),
+            None => Line::Pty(Pty::open()?),
+        };
+        let endpoint = match &line_io {
+            Line::Pty(pty) => pty.path().to_path_buf(),
+            Line::Tcp(tcp) => tcp.endpoint().into(),
+        };
         Ok(Wire {
-            pty: Pty::open()?,
+            line_io,
+            endpoint,
+            connections: 0,
             bus,
             line: LineTiming::new_8n1(config.baud),
             turnaround: Duration::from_secs_f64(config.turnaround_ms.max(0.0) / 1000.0),
             timer: PreciseTimer::new()?,
             rx: Rx::new(),
             tx: Vec::with_capacity(MAX_FRAME),
+            release: Vec::with_capacity(MAX_FRAME),
+            delivery: config.delivery,
+            rng: ChaCha8Rng::seed_from_u64(config.seed ^ 0xDE11_7E12),
             quiet_from: None,
         })
     }
 
-    /// The pty slave path masters open.
+    /// Where masters connect: the pty slave's path, or `tcp://ip:port`.
     pub fn path(&self) -> &std::path::Path {
-        self.pty.path()
+        &self.endpoint
+    }
+
+    /// On TCP, the handle that closes the master's connection on request.
+    pub fn disconnects(&self) -> Option<Arc<Disconnects>> {
+        match &self.line_io {
+            Line::Tcp(tcp) => Some(tcp.disconnects()),
+            Line::Pty(_) => None,
+        }
     }
 
     /// Serves requests until an I/O error (or until the caller drops it).
@@ -117,7 +191,9 @@ impl Wire {
     async fn next_frame(&mut self) -> io::Result<usize> {
         loop {
             let Some(&first) = self.rx.arrivals.first() else {
-                self.read_until(None, false).await?;
+                if !self.watch_for_request().await? {
+                    self.read_until(None, false).await?;
+                }
                 continue;
             };
             let length = request_length(&self.rx.bytes);
@@ -149,6 +225,39 @@ impl Wire {
         }
     }
 
+    /// Around the moment the next request may start (t3.5 after the last
+    /// activity), watches the line spinning instead of waiting for a
+    /// wake-up, so a request's arrival is seen when it comes, as on a wire,
+    /// and not when the simulator's thread is next run. True when bytes
+    /// came; false when none came in [`REQUEST_WATCH`] (the master is late or
+    /// idle: then it is waited for as usual).
+    async fn watch_for_request(&mut self) -> io::Result<bool> {
+        let Some(quiet) = self.quiet_from else {
+            return Ok(false);
+        };
+        let legal = quiet + self.line.t3_5();
+        if Instant::now() >= legal + REQUEST_WATCH {
+            return Ok(false);
+        }
+        // Early bytes (a master breaking the silence) are read as they come.
+        if self.read_until(Some(legal), true).await? {
+            return Ok(true);
+        }
+        let mut buf = [0u8; 256];
+        while Instant::now() < legal + REQUEST_WATCH {
+            match self.line_io.try_read(&mut buf) {
+                Ok(n) if n > 0 => {
+                    self.push_received(&buf[..n], Instant::now());
+                    return Ok(true);
+                }
+                Ok(_) => return Ok(false),
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => std::hint::spin_loop(),
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(false)
+    }
+
     fn drop_partial(&mut self) {
         self.rx.clear();
         lock(&self.bus).stats_mut().truncated_frames += 1;
@@ -169,6 +278,9 @@ impl Wire {
             if violation {
                 bus.stats_mut().gap_violations += 1;
             }
+            if let Some(q) = self.quiet_from {
+                bus.record_gap(arrival.saturating_duration_since(q));
+            }
             bus.request(&self.rx.bytes[..len], Instant::now(), &mut self.tx)
         };
         self.rx.consume(len);
@@ -188,26 +300,26 @@ impl Wire {
         Ok(())
     }
 
-    /// Writes `tx` one character time per byte from `start`; returns the
-    /// scheduled end of the last byte.
+    /// Writes `tx` one character time per byte from `start`, handed over as
+    /// the delivery says; returns the scheduled end of the last byte on the
+    /// wire.
     async fn send_paced(&mut self, start: Instant) -> io::Result<Instant> {
         let len = self.tx.len();
+        self.delivery
+            .schedule(&self.line, start, len, &mut self.rng, &mut self.release);
+        let last = self.release.last().copied().unwrap_or(start);
         let mut sent = 0;
         while sent < len {
             let now = Instant::now();
-            let mut due = sent;
-            while due < len && start + self.line.wire_time(due + 1) <= now {
-                due += 1;
-            }
+            let due = sent + self.release[sent..].partition_point(|&t| t <= now);
             if due > sent {
-                self.pty.master().write_all(&self.tx[sent..due]).await?;
+                self.line_io.write_all(&self.tx[sent..due]).await?;
                 sent = due;
             } else {
                 // Only the last byte's time decides when the master may go on:
                 // it is timed precisely, the others are allowed a little late.
-                let last = sent + 1 == len;
-                self.read_until(Some(start + self.line.wire_time(sent + 1)), last)
-                    .await?;
+                let next = self.release[sent];
+                self.read_until(Some(next), next == last).await?;
             }
         }
         Ok(start + self.line.wire_time(len))
@@ -218,7 +330,7 @@ impl Wire {
     /// (spinning its last stretch), others may be a little late.
     async fn read_until(&mut self, deadline: Option<Instant>, precise: bool) -> io::Result<bool> {
         let mut buf = [0u8; 256];
-        let master = self.pty.master();
+        let master = &mut self.line_io;
         let n = match deadline {
             None => master.read(&mut buf).await?,
             Some(deadline) => {
@@ -243,10 +355,23 @@ impl Wire {
             tokio::time::sleep(Duration::from_millis(10)).await;
             return Ok(false);
         }
-        if self.rx.bytes.len() + n > RX_LIMIT {
+        self.push_received(&buf[..n], Instant::now());
+        Ok(true)
+    }
+
+    /// Keeps bytes read at `at` for framing.
+    fn push_received(&mut self, bytes: &[u8], at: Instant) {
+        if let Line::Tcp(tcp) = &self.line_io
+            && tcp.accepted() != self.connections
+        {
+            // A new master: what the last one left half sent is not its.
+            self.connections = tcp.accepted();
+            self.rx.clear();
+            lock(&self.bus).stats_mut().connections = self.connections;
+        }
+        if self.rx.bytes.len() + bytes.len() > RX_LIMIT {
             self.drop_partial();
         }
-        self.rx.push(&buf[..n], Instant::now());
-        Ok(true)
+        self.rx.push(bytes, at);
     }
 }

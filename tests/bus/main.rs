@@ -11,8 +11,13 @@
 #[path = "../support/mod.rs"]
 mod support;
 
+mod dead_drive;
+mod long_replies;
 mod master_pty;
+mod master_timing;
 mod pty;
 mod sim;
 mod sim_cli;
+mod sim_listen;
 mod sim_wire;
+mod tcp_port;

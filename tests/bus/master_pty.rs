@@ -6,7 +6,7 @@ use std::os::fd::OwnedFd;
 use std::time::{Duration, Instant};
 
 use crate::support::pty::pty;
-use drivegate::bus::master::{MasterSettings, RtuMaster};
+use drivegate::bus::master::{Guard, MasterSettings, RtuMaster};
 use drivegate::bus::port::{self, Direction, Rs485Settings};
 use drivegate::bus::stats::Outcome;
 use drivegate::drive::{DriveReply, DriveRequest, Status};
@@ -104,7 +104,7 @@ fn status_reply(turns: u16) -> Vec<u8> {
 
 fn settings() -> MasterSettings {
     let mut s = MasterSettings::new(115_200, Duration::from_millis(30), 1);
-    s.guard_time = Duration::from_millis(40);
+    s.guard = Guard::Fixed(Duration::from_millis(40));
     s
 }
 

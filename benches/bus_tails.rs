@@ -1,0 +1,512 @@
+//! Bus share and client tails: 16 Modbus TCP clients (tokio-modbus) reading
+//! the status block of 8 drives back to back, through the whole daemon, on
+//! a wire-timed simulated bus at 115200 baud with a 0.5 ms turnaround.
+//!
+//! Three scenarios, each on every transport:
+//! - background polling off (one poll per drive at start, then none);
+//! - polling at 1 Hz per drive;
+//! - polling at 1 Hz with a 9th configured drive that never answers.
+//!
+//! Transports: the simulator behind a pty with a UART's exact timing
+//! (`pty`); the same with a USB adapter's delivery, replies handed over in
+//! 8-byte chunks up to 0.5 ms late (`usb`, "a foreign wire"); the simulator
+//! served on TCP, the daemon on `tcp://` as to a serial device server
+//! (`tcp`).
+//!
+//! Figures per run: answered transactions per second as a share of the
+//! wire's limit (request + reply on the wire + 2 x t3.5 + turnaround), the
+//! clients' latency p50 / p99 / max, the silence before each request as the
+//! wire saw it (p50 / p99, from the simulator) and as the master left it
+//! (p50 / p99, `drivegate_bus_interframe_idle_seconds`), t3.5 violations,
+//! and timeouts (the dead drive's probes). The figures recorded before the
+//! phased polling, cheap dead drives, overhead and reply-deadline changes
+//! are printed beside each run.
+//!
+//! `cargo bench --bench bus_tails`; `DRIVEGATE_BENCH_SECS` sets each run's
+//! length (default 10); `DRIVEGATE_BENCH_ONLY=pty,usb` picks transports,
+//! `DRIVEGATE_BENCH_SCENARIOS=off,1hz,dead` scenarios.
+
+#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use drivegate::bus::stats::{HistogramSnapshot, Outcome};
+use drivegate::config::Config;
+use drivegate::metrics::Metrics;
+use drivegate::modbus::timing::LineTiming;
+use drivegate::plant::Plant;
+use drivegate::sim::{Delivery, SimConfig, SimHandle, Simulator};
+use tokio_modbus::client::Reader;
+use tokio_modbus::{Slave, client::tcp};
+use tokio_util::sync::CancellationToken;
+
+const CLIENTS: usize = 16;
+const DRIVES: u8 = 8;
+const DEAD_UNIT: u8 = 9;
+const BAUD: u32 = 115_200;
+const TURNAROUND_MS: f64 = 0.5;
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Transport {
+    Pty,
+    Usb,
+    Tcp,
+}
+
+impl Transport {
+    const ALL: [Transport; 3] = [Transport::Pty, Transport::Usb, Transport::Tcp];
+
+    fn name(self) -> &'static str {
+        match self {
+            Transport::Pty => "pty",
+            Transport::Usb => "usb",
+            Transport::Tcp => "tcp",
+        }
+    }
+
+    fn delivery(self) -> Delivery {
+        match self {
+            Transport::Usb => Delivery::USB,
+            _ => Delivery::default(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Scenario {
+    PollingOff,
+    Polling1Hz,
+    DeadDrive,
+}
+
+impl Scenario {
+    const ALL: [Scenario; 3] = [
+        Scenario::PollingOff,
+        Scenario::Polling1Hz,
+        Scenario::DeadDrive,
+    ];
+
+    fn name(self) -> &'static str {
+        match self {
+            Scenario::PollingOff => "polling off",
+            Scenario::Polling1Hz => "polling 1 Hz",
+            Scenario::DeadDrive => "1 Hz + dead drive",
+        }
+    }
+
+    fn key(self) -> &'static str {
+        match self {
+            Scenario::PollingOff => "off",
+            Scenario::Polling1Hz => "1hz",
+            Scenario::DeadDrive => "dead",
+        }
+    }
+
+    fn poll_interval_ms(self) -> u64 {
+        match self {
+            // One poll per drive at start, none for the next hour.
+            Scenario::PollingOff => 3_600_000,
+            _ => 1000,
+        }
+    }
+
+    fn units(self) -> Vec<u8> {
+        match self {
+            Scenario::DeadDrive => (1..=DEAD_UNIT).collect(),
+            _ => (1..=DRIVES).collect(),
+        }
+    }
+}
+
+/// Figures of one run.
+#[derive(Debug, Clone, Copy, Default)]
+struct Figures {
+    /// Answered transactions as a share of the limit, %.
+    bus_share: f64,
+    p50_ms: f64,
+    p99_ms: f64,
+    max_ms: f64,
+    /// Silence before each request as the wire saw it, ms.
+    wire_idle_p50_ms: f64,
+    wire_idle_p99_ms: f64,
+    /// Silence the master left, ms.
+    master_idle_p50_ms: f64,
+    master_idle_p99_ms: f64,
+    violations: u64,
+    timeouts: u64,
+    errors: usize,
+}
+
+/// Figures measured before phased polling, cheap dead drives, the overhead
+/// work and the reply deadline, on the same 2-core machine shared with
+/// other builds (load average 6), 10 s per run: (transport, scenario, [bus
+/// share %, p50, p99, max ms, wire idle p50, p99 ms]). `None`: the
+/// transport did not exist yet.
+const BEFORE: &[(&str, &str, Option<[f64; 6]>)] = &[
+    (
+        "pty",
+        "polling off",
+        Some([97.2, 103.3, 114.4, 119.4, 1.80, 5.27]),
+    ),
+    (
+        "pty",
+        "polling 1 Hz",
+        Some([97.3, 105.5, 133.6, 137.1, 1.80, 5.13]),
+    ),
+    (
+        "pty",
+        "1 Hz + dead drive",
+        Some([88.6, 106.0, 324.8, 332.7, 1.80, 5.77]),
+    ),
+    (
+        "usb",
+        "polling off",
+        Some([94.8, 106.6, 117.3, 122.0, 2.06, 3.77]),
+    ),
+    (
+        "usb",
+        "polling 1 Hz",
+        Some([92.0, 111.6, 145.7, 152.3, 2.08, 6.29]),
+    ),
+    (
+        "usb",
+        "1 Hz + dead drive",
+        Some([84.0, 111.9, 332.0, 341.3, 2.09, 6.67]),
+    ),
+    ("tcp", "polling off", None),
+    ("tcp", "polling 1 Hz", None),
+    ("tcp", "1 Hz + dead drive", None),
+];
+
+fn before(transport: Transport, scenario: Scenario) -> Option<[f64; 6]> {
+    BEFORE
+        .iter()
+        .find(|(t, s, _)| *t == transport.name() && *s == scenario.name())
+        .and_then(|(_, _, f)| *f)
+}
+
+fn daemon_config(port: &str, scenario: Scenario) -> String {
+    let mut toml = format!(
+        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"bench\"\nport = \"{port}\"\nbaud = {BAUD}\nresponse_timeout_ms = 50\n\
+         retries = 1\npoll_interval_ms = {}\n",
+        scenario.poll_interval_ms()
+    );
+    for unit in scenario.units() {
+        toml.push_str(&format!(
+            "[[bus.drive]]\nunit = {unit}\nname = \"d{unit}\"\ngear_ratio = 3.75\n"
+        ));
+    }
+    toml
+}
+
+fn start_sim(transport: Transport, scenario: Scenario) -> SimHandle {
+    let mut config = SimConfig::for_units(scenario.units());
+    config.baud = BAUD;
+    config.turnaround_ms = TURNAROUND_MS;
+    config.delivery = transport.delivery();
+    if transport == Transport::Tcp {
+        config.listen = Some("127.0.0.1:0".parse().unwrap());
+    }
+    if scenario == Scenario::DeadDrive {
+        config.faults.silent_units = vec![DEAD_UNIT];
+    }
+    Simulator::start(config).unwrap()
+}
+
+/// Quantile `p` of a bucketed histogram's difference `after - before`,
+/// interpolated linearly inside its bucket, in ms.
+fn histogram_quantile(before: &HistogramSnapshot, after: &HistogramSnapshot, p: f64) -> f64 {
+    let counts: Vec<u64> = after
+        .cumulative
+        .iter()
+        .zip(&before.cumulative)
+        .map(|(a, b)| a - b)
+        .collect();
+    let total = after.count - before.count;
+    if total == 0 {
+        return 0.0;
+    }
+    let rank = p * total as f64;
+    let mut lower = (0.0, 0u64);
+    for (bound, &cumulative) in after.bounds.iter().zip(&counts) {
+        if cumulative as f64 >= rank {
+            let in_bucket = (cumulative - lower.1) as f64;
+            let share = if in_bucket > 0.0 {
+                (rank - lower.1 as f64) / in_bucket
+            } else {
+                1.0
+            };
+            return (lower.0 + (bound - lower.0) * share) * 1e3;
+        }
+        lower = (*bound, cumulative);
+    }
+    // Beyond the last bound.
+    after.bounds.last().copied().unwrap_or(0.0) * 1e3
+}
+
+fn percentile(sorted: &[Duration], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
+    sorted[i.min(sorted.len() - 1)].as_secs_f64() * 1e3
+}
+
+/// The clients, back to back on `addr` for `secs`: every latency (sorted),
+/// the failed reads, the seconds it took.
+async fn clients(addr: SocketAddr, secs: u64) -> (Vec<Duration>, usize, f64) {
+    let start = Instant::now();
+    let deadline = start + Duration::from_secs(secs);
+    let mut tasks = Vec::new();
+    for client in 0..CLIENTS {
+        let unit = (client % usize::from(DRIVES)) as u8 + 1;
+        tasks.push(tokio::spawn(async move {
+            let mut ctx = tcp::connect_slave(addr, Slave(unit)).await.unwrap();
+            let mut latencies = Vec::new();
+            let mut errors = 0;
+            while Instant::now() < deadline {
+                let sent = Instant::now();
+                match ctx.read_holding_registers(0x00C0, 7).await {
+                    Ok(Ok(regs)) if regs.len() == 7 => latencies.push(sent.elapsed()),
+                    _ => errors += 1,
+                }
+            }
+            (latencies, errors)
+        }));
+    }
+    let mut latencies = Vec::new();
+    let mut errors = 0;
+    for t in tasks {
+        let (l, e) = t.await.unwrap();
+        latencies.extend(l);
+        errors += e;
+    }
+    latencies.sort();
+    (latencies, errors, start.elapsed().as_secs_f64())
+}
+
+fn limit_per_s() -> f64 {
+    let line = LineTiming::new_8n1(BAUD);
+    1.0 / line
+        .transaction_time(8, 19, Duration::from_secs_f64(TURNAROUND_MS / 1e3))
+        .as_secs_f64()
+}
+
+fn ms(d: Option<Duration>) -> f64 {
+    d.map_or(0.0, |d| d.as_secs_f64() * 1e3)
+}
+
+async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
+    let sim = start_sim(transport, scenario);
+    let port = sim.port_path().display().to_string();
+    let config = Config::parse(&daemon_config(&port, scenario), "bench").unwrap();
+    let plant = Arc::new(Plant::start(&config).unwrap());
+    let metrics = Metrics::new(plant.clone());
+    let shutdown = CancellationToken::new();
+    let faces = drivegate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
+        .await
+        .unwrap();
+    let addr = faces.modbus_tcp.unwrap();
+    let bus = plant.buses()[0].handle.clone();
+
+    // Every live drive has answered once.
+    let warm = Instant::now();
+    while bus
+        .drives()
+        .iter()
+        .filter(|d| d.unit <= DRIVES)
+        .any(|d| d.status.is_none())
+    {
+        assert!(warm.elapsed() < Duration::from_secs(10), "drives silent");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+
+    let stats_before = bus.stats();
+    let sim_before = sim.stats();
+    let gaps_before = sim.gaps();
+    let (latencies, errors, elapsed) = clients(addr, secs).await;
+    let stats_after = bus.stats();
+    let sim_after = sim.stats();
+    let gaps = sim.gaps().since(&gaps_before);
+    shutdown.cancel();
+    faces.wait().await;
+    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drop(sim);
+
+    Figures {
+        bus_share: 100.0 * (sim_after.replies - sim_before.replies) as f64
+            / elapsed
+            / limit_per_s(),
+        p50_ms: percentile(&latencies, 0.50),
+        p99_ms: percentile(&latencies, 0.99),
+        max_ms: percentile(&latencies, 1.0),
+        wire_idle_p50_ms: ms(gaps.quantile(0.50)),
+        wire_idle_p99_ms: ms(gaps.quantile(0.99)),
+        master_idle_p50_ms: histogram_quantile(
+            &stats_before.interframe_idle,
+            &stats_after.interframe_idle,
+            0.50,
+        ),
+        master_idle_p99_ms: histogram_quantile(
+            &stats_before.interframe_idle,
+            &stats_after.interframe_idle,
+            0.99,
+        ),
+        violations: sim_after.gap_violations - sim_before.gap_violations,
+        timeouts: stats_after.count(Outcome::Timeout) - stats_before.count(Outcome::Timeout),
+        errors,
+    }
+}
+
+/// mbusd on the simulated wire of `transport`, with the same clients:
+/// figures to set beside drivegate's with polling off.
+async fn run_mbusd(mbusd: &str, transport: Transport, secs: u64) -> Figures {
+    let sim = start_sim(transport, Scenario::PollingOff);
+    let free = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = free.local_addr().unwrap();
+    drop(free);
+    let mut child = tokio::process::Command::new(mbusd)
+        .args(["-d", "-L", "-", "-v", "0", "-p"])
+        .arg(sim.port_path())
+        .args(["-s", "115200", "-A", "127.0.0.1", "-P"])
+        .arg(addr.port().to_string())
+        .args(["-R", "2", "-W", "50", "-N", "1", "-C", "32", "-T", "0"])
+        .stdout(std::process::Stdio::null())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    let up = Instant::now();
+    while tokio::net::TcpStream::connect(addr).await.is_err() {
+        assert!(
+            up.elapsed() < Duration::from_secs(5),
+            "mbusd did not listen"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let sim_before = sim.stats();
+    let gaps_before = sim.gaps();
+    let (latencies, errors, elapsed) = clients(addr, secs).await;
+    let sim_after = sim.stats();
+    let gaps = sim.gaps().since(&gaps_before);
+    let _ = child.kill().await;
+    drop(sim);
+    Figures {
+        bus_share: 100.0 * (sim_after.replies - sim_before.replies) as f64
+            / elapsed
+            / limit_per_s(),
+        p50_ms: percentile(&latencies, 0.50),
+        p99_ms: percentile(&latencies, 0.99),
+        max_ms: percentile(&latencies, 1.0),
+        wire_idle_p50_ms: ms(gaps.quantile(0.50)),
+        wire_idle_p99_ms: ms(gaps.quantile(0.99)),
+        master_idle_p50_ms: 0.0,
+        master_idle_p99_ms: 0.0,
+        violations: sim_after.gap_violations - sim_before.gap_violations,
+        timeouts: 0,
+        errors,
+    }
+}
+
+fn print_row(port: &str, scenario: &str, f: &Figures, before: String) {
+    println!(
+        "{:<5} {:<18} {:>6.1}% {:>5.1} ms {:>5.1} ms {:>5.1} ms {:>6.2}/{:.2} ms {:>6.2}/{:.2} ms {:>5} {:>5} {:>4}   {}",
+        port,
+        scenario,
+        f.bus_share,
+        f.p50_ms,
+        f.p99_ms,
+        f.max_ms,
+        f.wire_idle_p50_ms,
+        f.wire_idle_p99_ms,
+        f.master_idle_p50_ms,
+        f.master_idle_p99_ms,
+        f.violations,
+        f.timeouts,
+        f.errors,
+        before
+    );
+}
+
+fn main() {
+    let secs = std::env::var("DRIVEGATE_BENCH_SECS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(10u64);
+    let list = |name: &str| -> Option<Vec<String>> {
+        std::env::var(name)
+            .ok()
+            .map(|s| s.split(',').map(|t| t.trim().to_string()).collect())
+    };
+    let only = list("DRIVEGATE_BENCH_ONLY");
+    let scenarios = list("DRIVEGATE_BENCH_SCENARIOS");
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let line = LineTiming::new_8n1(BAUD);
+    let transaction = line.transaction_time(8, 19, Duration::from_secs_f64(TURNAROUND_MS / 1e3));
+    println!(
+        "bus tails: {CLIENTS} Modbus TCP clients reading status back to back, {DRIVES} drives at \
+         {BAUD} baud, turnaround {TURNAROUND_MS} ms, {secs} s per run; status read {:.3} ms on \
+         the wire -> limit {:.1}/s; t3.5 = {:.2} ms",
+        transaction.as_secs_f64() * 1e3,
+        1.0 / transaction.as_secs_f64(),
+        line.t3_5().as_secs_f64() * 1e3
+    );
+    println!(
+        "{:<5} {:<18} {:>7} {:>8} {:>8} {:>8} {:>15} {:>15} {:>5} {:>5} {:>4}   before: bus p50 p99 max, wire idle p50/99",
+        "port",
+        "scenario",
+        "bus",
+        "p50",
+        "p99",
+        "max",
+        "wire idle p50/99",
+        "master p50/99",
+        "viol",
+        "tmo",
+        "err",
+    );
+    for transport in Transport::ALL {
+        if only
+            .as_ref()
+            .is_some_and(|o| !o.iter().any(|t| t == transport.name()))
+        {
+            continue;
+        }
+        for scenario in Scenario::ALL {
+            if scenarios
+                .as_ref()
+                .is_some_and(|o| !o.iter().any(|s| s == scenario.key()))
+            {
+                continue;
+            }
+            let f = runtime.block_on(run(transport, scenario, secs));
+            let old = before(transport, scenario).map_or_else(
+                || "-".to_string(),
+                |b| {
+                    format!(
+                        "{:.1} % {:.1} {:.1} {:.1} ms, {:.2}/{:.2} ms",
+                        b[0], b[1], b[2], b[3], b[4], b[5]
+                    )
+                },
+            );
+            print_row(transport.name(), scenario.name(), &f, old);
+        }
+    }
+    if let Ok(mbusd) = std::env::var("DRIVEGATE_BENCH_MBUSD") {
+        for transport in [Transport::Pty, Transport::Usb] {
+            if only
+                .as_ref()
+                .is_some_and(|o| !o.iter().any(|t| t == transport.name()))
+            {
+                continue;
+            }
+            let f = runtime.block_on(run_mbusd(&mbusd, transport, secs));
+            print_row(transport.name(), "mbusd -R 2", &f, "-".to_string());
+        }
+    }
+}

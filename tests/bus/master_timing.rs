@@ -1,0 +1,250 @@
+//! The RTU master's deadlines against a peer on a real pty that writes
+//! frames whole, in pieces, late or never: the guard after a drive that
+//! stays silent, and the reply deadline that follows the wire once a reply
+//! has begun (long replies at low baud rates).
+//!
+//! Bounds come from the design, not from an idle machine: lower bounds are
+//! what the master must wait at least; upper bounds sit far from the old
+//! behaviour they rule out.
+
+use std::time::{Duration, Instant};
+
+use crate::support::pty::pty;
+use drivegate::bus::master::{Fault, Guard, MasterSettings, RtuMaster};
+use drivegate::bus::port;
+use drivegate::bus::stats::Outcome;
+use drivegate::modbus::rtu_frame;
+use drivegate::modbus::timing::LineTiming;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::mpsc;
+use tokio_serial::SerialStream;
+
+/// What the peer does with each request it reads.
+#[derive(Debug, Clone)]
+enum Step {
+    /// Nothing.
+    Silence,
+    /// After `delay`, write `bytes` at once.
+    Write { delay: Duration, bytes: Vec<u8> },
+}
+
+/// A peer on the far end of a pty running `script`, one step per request;
+/// reports each request's arrival time.
+fn peer(
+    mut ptm: SerialStream,
+    script: Vec<Step>,
+) -> (
+    mpsc::UnboundedReceiver<Instant>,
+    mpsc::UnboundedReceiver<Instant>,
+) {
+    let (arrived_tx, arrived) = mpsc::unbounded_channel();
+    let (written_tx, written) = mpsc::unbounded_channel();
+    tokio::spawn(async move {
+        let mut buf = Vec::new();
+        for step in script {
+            loop {
+                let mut chunk = [0u8; 256];
+                let n = match ptm.read(&mut chunk).await {
+                    Ok(0) | Err(_) => return,
+                    Ok(n) => n,
+                };
+                let at = Instant::now();
+                buf.extend_from_slice(&chunk[..n]);
+                if let rtu_frame::FrameLength::Known(len) = rtu_frame::request_length(&buf)
+                    && buf.len() >= len
+                {
+                    buf.drain(..len);
+                    let _ = arrived_tx.send(at);
+                    break;
+                }
+            }
+            if let Step::Write { delay, bytes } = step {
+                tokio::time::sleep(delay).await;
+                ptm.write_all(&bytes).await.unwrap();
+                let _ = written_tx.send(Instant::now());
+            }
+        }
+        std::future::pending::<()>().await;
+    });
+    (arrived, written)
+}
+
+fn settings(baud: u32, timeout_ms: u64, retries: u8) -> MasterSettings {
+    MasterSettings::new(baud, Duration::from_millis(timeout_ms), retries)
+}
+
+async fn master(path: &str, settings: MasterSettings) -> RtuMaster {
+    let port = port::open(path, settings.line.baud(), &settings.rs485).unwrap();
+    RtuMaster::new(port, settings).unwrap()
+}
+
+/// Read `count` holding registers from 0.
+fn read(count: u16) -> Vec<u8> {
+    let [hi, lo] = count.to_be_bytes();
+    vec![0x03, 0x00, 0x00, hi, lo]
+}
+
+/// The reply frame of unit 100 to `read(count)`, register `a` holding `a + offset`.
+fn reply(count: u16, offset: u16) -> Vec<u8> {
+    let mut pdu = vec![0x03, (count * 2) as u8];
+    for a in 0..count {
+        pdu.extend_from_slice(&(a + offset).to_be_bytes());
+    }
+    rtu_frame::encode(100, &pdu)
+}
+
+#[tokio::test]
+async fn a_silent_drive_costs_its_timeouts_and_a_short_guard_not_twice_the_timeout() {
+    let (ptm, path, _keep) = pty();
+    let (mut arrived, _) = peer(ptm, vec![Step::Silence, Step::Silence]);
+    let mut m = master(&path, settings(115_200, 200, 1)).await;
+    let status = [0x03, 0x00, 0xC0, 0x00, 0x07];
+    let r = m.transact(1, &status, None).await.unwrap();
+    assert_eq!((r.outcome, r.attempts), (Outcome::Timeout, 2));
+    assert_eq!(r.fault, Some(Fault::Timeout));
+    let first = arrived.recv().await.unwrap();
+    let retry = arrived.recv().await.unwrap();
+    let gap = retry - first;
+    // The retry waits the timeout and the guard a 19-byte reply starting at
+    // the timeout would need (1.65 ms + t3.5)...
+    let line = LineTiming::new_8n1(115_200);
+    let least = Duration::from_millis(200) + line.wire_time(19) + line.t3_5();
+    assert!(gap >= least - Duration::from_millis(1), "{gap:?}");
+    // ...not a guard as long as the timeout (400 ms between the two).
+    assert!(gap < Duration::from_millis(350), "{gap:?}");
+}
+
+#[tokio::test]
+async fn a_fixed_guard_is_kept_after_a_silent_timeout() {
+    let (ptm, path, _keep) = pty();
+    let (mut arrived, _) = peer(ptm, vec![Step::Silence, Step::Silence]);
+    let mut s = settings(115_200, 50, 1);
+    s.guard = Guard::Fixed(Duration::from_millis(150));
+    let mut m = master(&path, s).await;
+    let r = m
+        .transact(1, &[0x03, 0x00, 0xC0, 0x00, 0x07], None)
+        .await
+        .unwrap();
+    assert_eq!(r.outcome, Outcome::Timeout);
+    let first = arrived.recv().await.unwrap();
+    let retry = arrived.recv().await.unwrap();
+    // The timeout, then the whole 150 ms guard.
+    assert!(
+        retry - first >= Duration::from_millis(199),
+        "{:?}",
+        retry - first
+    );
+}
+
+#[tokio::test]
+async fn a_reply_that_starts_in_the_short_guard_is_discarded_whole() {
+    // 9600 baud: the guard after a silent timeout is the 255-byte reply's
+    // 266 ms + t3.5. The first reply starts 20 ms after the timeout, inside
+    // it; the retry's reply (values + 1) must be the one returned.
+    let (ptm, path, _keep) = pty();
+    let line = LineTiming::new_8n1(9600);
+    let late = line.wire_time(8) + Duration::from_millis(50 + 20);
+    let (_, _) = peer(
+        ptm,
+        vec![
+            Step::Write {
+                delay: late,
+                bytes: reply(125, 0),
+            },
+            Step::Write {
+                delay: Duration::ZERO,
+                bytes: reply(125, 1),
+            },
+        ],
+    );
+    let mut m = master(&path, settings(9600, 50, 1)).await;
+    let r = m.transact(100, &read(125), None).await.unwrap();
+    assert_eq!((r.outcome, r.attempts), (Outcome::Ok, 2));
+    let pdu = r.reply.unwrap();
+    assert_eq!(
+        &pdu[2..4],
+        &[0x00, 0x01],
+        "the retry's reply, not the late one"
+    );
+    assert!(
+        r.stray_bytes >= 255,
+        "the late reply was discarded: {}",
+        r.stray_bytes
+    );
+}
+
+#[tokio::test]
+async fn long_replies_at_low_baud_follow_the_wire_not_the_timeout() {
+    for baud in [9600, 19_200] {
+        let line = LineTiming::new_8n1(baud);
+        let (mut ptm, path, _keep) = pty();
+        let mut m = master(&path, settings(baud, 50, 0)).await;
+        // A peer that writes the 255-byte reply at the wire's pace, a few
+        // bytes at a time, after a 1 ms turnaround.
+        let pacer = tokio::spawn(async move {
+            let mut request = [0u8; 8];
+            ptm.read_exact(&mut request).await.unwrap();
+            let frame = reply(125, 0);
+            let start = Instant::now() + Duration::from_millis(1);
+            for (i, piece) in frame.chunks(4).enumerate() {
+                let due = start + line.wire_time((i + 1) * 4);
+                tokio::time::sleep_until(due.into()).await;
+                ptm.write_all(piece).await.unwrap();
+            }
+            ptm
+        });
+        let sent = Instant::now();
+        let r = m.transact(100, &read(125), None).await.unwrap();
+        assert_eq!(r.outcome, Outcome::Ok, "{baud} baud: {:?}", r.fault);
+        let pdu = r.reply.unwrap();
+        assert_eq!(pdu.len(), 252);
+        assert_eq!(&pdu[248..], &[0x00, 123, 0x00, 124]);
+        // It took its wire time, far more than the 50 ms timeout.
+        assert!(sent.elapsed() >= line.wire_time(255), "{baud} baud");
+        drop(pacer.await.unwrap());
+    }
+}
+
+#[tokio::test]
+async fn a_reply_that_stops_halfway_is_cut_short_once_the_rest_is_overdue() {
+    let line = LineTiming::new_8n1(9600);
+    let (ptm, path, _keep) = pty();
+    let mut frame = reply(125, 0);
+    frame.truncate(100);
+    let (_, mut written) = peer(
+        ptm,
+        vec![Step::Write {
+            delay: Duration::from_millis(1),
+            bytes: frame,
+        }],
+    );
+    let mut m = master(&path, settings(9600, 50, 0)).await;
+    let r = m.transact(100, &read(125), None).await.unwrap();
+    let done = Instant::now();
+    assert_eq!(r.outcome, Outcome::BadReply);
+    assert_eq!(r.fault, Some(Fault::Mismatch("reply cut short")));
+    // Not before the 155 missing bytes could have come, plus t3.5.
+    let written = written.recv().await.unwrap();
+    assert!(done - written >= line.wire_time(155) + line.t3_5());
+}
+
+#[tokio::test]
+async fn a_long_reply_whose_first_byte_is_late_is_a_timeout() {
+    let line = LineTiming::new_8n1(9600);
+    let (ptm, path, _keep) = pty();
+    let (_, _) = peer(
+        ptm,
+        vec![Step::Write {
+            delay: line.wire_time(8) + Duration::from_millis(60),
+            bytes: reply(125, 0),
+        }],
+    );
+    let mut m = master(&path, settings(9600, 50, 0)).await;
+    let r = m.transact(100, &read(125), None).await.unwrap();
+    assert_eq!(
+        (r.outcome, r.fault),
+        (Outcome::Timeout, Some(Fault::Timeout))
+    );
+    // The late reply came during the guard and was discarded whole.
+    assert_eq!(r.stray_bytes, 255);
+}
