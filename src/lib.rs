@@ -9,6 +9,7 @@ pub mod bench;
 pub mod bus;
 pub mod clock;
 pub mod config;
+pub mod console;
 pub mod daemon;
 pub mod drive;
 pub mod faces;

@@ -177,7 +177,7 @@ impl Plant {
                         for request in outcome.requests() {
                             audit::write(
                                 "shutdown",
-                                handle.name(),
+                                &handle,
                                 unit,
                                 request.name(),
                                 &Ok::<_, String>("confirmed by the drive".into()),
@@ -189,7 +189,7 @@ impl Plant {
                     Err(e) => {
                         audit::write(
                             "shutdown",
-                            handle.name(),
+                            &handle,
                             unit,
                             action.name(),
                             &Err::<String, _>(e.to_string()),

@@ -523,7 +523,7 @@ pub async fn set_address(
         .map(|_| "sent as a broadcast (drives do not reply)".to_string());
     audit::write(
         &caller.who,
-        handle.name(),
+        handle,
         0,
         &control::describe(&request),
         &outcome,

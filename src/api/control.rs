@@ -12,7 +12,7 @@ use super::state::Target;
 use crate::audit;
 use crate::bus::cache::Link;
 use crate::bus::handle::JobOptions;
-use crate::bus::{BusError, Priority};
+use crate::bus::{BusError, BusHandle, Priority};
 use crate::drive::units::COUNTS_PER_AMP;
 use crate::drive::{DriveReply, DriveRequest, Register, Status};
 
@@ -223,7 +223,7 @@ fn options(caller: &Caller) -> JobOptions {
 /// request may have reached the drive, and every write must be logged.
 struct AbandonedWrite<'a> {
     who: &'a str,
-    bus: &'a str,
+    bus: &'a BusHandle,
     unit: u8,
     what: String,
     armed: bool,
@@ -252,7 +252,7 @@ pub async fn send(
     let audit_unit = if request.is_broadcast() { 0 } else { unit };
     let mut guard = AbandonedWrite {
         who: &caller.who,
-        bus: target.bus.name(),
+        bus: target.bus,
         unit: audit_unit,
         what: describe(request),
         armed: request.is_write(),
@@ -265,13 +265,7 @@ pub async fn send(
             Ok(_) => Ok("confirmed by the drive".to_string()),
             Err(e) => Err(e),
         };
-        audit::write(
-            &caller.who,
-            target.bus.name(),
-            audit_unit,
-            &guard.what,
-            &outcome,
-        );
+        audit::write(&caller.who, target.bus, audit_unit, &guard.what, &outcome);
     }
     result.map_err(|e| {
         Problem::bus(

@@ -122,6 +122,29 @@ pub enum ServerMessage {
         /// The drive's answer, or what took over.
         result: String,
     },
+    /// A write to a drive, from any client or face (REST, stream, Modbus
+    /// TCP) or from drivegate itself (a lease's stop, the shutdown stop),
+    /// once the drive answered or the write failed: the audit log's line.
+    Write {
+        /// Drive name; `null` for a broadcast (unit 0) or a unit that is
+        /// not configured.
+        drive: Option<String>,
+        /// Its bus.
+        bus: String,
+        /// The unit written to (0: broadcast).
+        unit: u8,
+        /// Who sent it: a token name, a client address, or
+        /// `lease-expiry (<owner>)`, `shutdown`.
+        who: String,
+        /// What was written, in words, with the registers and raw values.
+        what: String,
+        /// True when the drive confirmed it.
+        ok: bool,
+        /// The drive's answer, or why the write failed.
+        answer: String,
+        /// When (RFC 3339, UTC).
+        at: String,
+    },
     /// This client fell behind: `missed` updates were skipped for it.
     Lagged {
         /// Messages skipped.
@@ -286,6 +309,22 @@ async fn forward(
                         bus: bus.to_string(),
                         unit,
                         reason,
+                    },
+                )
+            }
+            Ok(BusEvent::Write(record)) => {
+                let drive = units.get(&record.unit).copied();
+                (
+                    drive,
+                    ServerMessage::Write {
+                        drive: drive.map(name),
+                        bus: record.bus.to_string(),
+                        unit: record.unit,
+                        who: record.who.clone(),
+                        what: record.what.clone(),
+                        ok: record.ok,
+                        answer: record.answer.clone(),
+                        at: rfc3339(record.at),
                     },
                 )
             }

@@ -814,13 +814,7 @@ impl LeaseBook {
                 ..
             }) => {
                 let confirmed: Result<String, &str> = Ok("confirmed by the drive".to_string());
-                audit::write(
-                    &who,
-                    bus.name(),
-                    drive.unit,
-                    &describe(&request),
-                    &confirmed,
-                );
+                audit::write(&who, bus, drive.unit, &describe(&request), &confirmed);
                 let sent = describe(&request);
                 (
                     Some(sent.clone()),
@@ -843,7 +837,7 @@ impl LeaseBook {
                 if first || !e.not_sent() {
                     audit::write(
                         &who,
-                        bus.name(),
+                        bus,
                         drive.unit,
                         self.action.name(),
                         &Err::<String, _>(&e),

@@ -111,6 +111,29 @@ pub enum BusEvent {
         /// Why.
         reason: String,
     },
+    /// A write to a drive was carried out or failed (every face's, and the
+    /// daemon's own stops): the audit log's line, for live watchers.
+    Write(Arc<WriteRecord>),
+}
+
+/// One audited write: who sent what to which unit, and the drive's answer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WriteRecord {
+    /// Bus name.
+    pub bus: Arc<str>,
+    /// Unit address (0: a broadcast).
+    pub unit: u8,
+    /// Token name, client address, or the daemon's own (`lease-expiry
+    /// (owner)`, `shutdown`).
+    pub who: String,
+    /// The request in words.
+    pub what: String,
+    /// True when the drive confirmed it.
+    pub ok: bool,
+    /// The drive's answer, or why it failed.
+    pub answer: String,
+    /// When it was decided.
+    pub at: SystemTime,
 }
 
 /// Capacity of the event channel: a subscriber lagging further behind is
@@ -145,6 +168,11 @@ impl StatusCache {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u8, DriveSnapshot>> {
         self.drives.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Tells the subscribers of a write (see [`crate::audit`]).
+    pub fn record_write(&self, record: WriteRecord) {
+        self.publish(BusEvent::Write(Arc::new(record)));
     }
 
     fn publish(&self, event: BusEvent) {

@@ -103,6 +103,12 @@ impl Shared {
     }
 }
 
+impl std::fmt::Debug for BusHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("BusHandle").field(&self.name()).finish()
+    }
+}
+
 /// A cheap, cloneable way to one bus.
 #[derive(Clone)]
 pub struct BusHandle {
@@ -252,6 +258,11 @@ impl BusHandle {
     /// Every future status, online/offline and bus event of this bus.
     pub fn subscribe(&self) -> broadcast::Receiver<BusEvent> {
         self.shared.cache.subscribe()
+    }
+
+    /// Publishes an audited write to the subscribers (see [`crate::audit`]).
+    pub fn report_write(&self, record: super::cache::WriteRecord) {
+        self.shared.cache.record_write(record);
     }
 
     /// The bus's counters.

@@ -20,7 +20,7 @@ use super::request;
 use super::routing::{BusUnits, Route, UnitRoutes};
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
-use crate::bus::{BusError, Priority, SourceId};
+use crate::bus::{BusError, BusHandle, Priority, SourceId};
 use crate::drive::Register;
 use crate::metrics::Metrics;
 use crate::modbus::ExceptionCode;
@@ -127,7 +127,7 @@ impl Gateway {
         let Some(route) = self.routes.route(unit) else {
             return self.refuse(
                 client,
-                ("-", unit),
+                (None, unit),
                 &pdu,
                 ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
                 Outcome::PathUnavailable,
@@ -136,7 +136,7 @@ impl Gateway {
         };
         let function = pdu[0];
         let bus = &self.plant.buses()[route.bus].handle;
-        let target = (bus.name(), route.unit);
+        let target = (Some(bus), route.unit);
         if self.read_only && !request::reads_only(&pdu) {
             return self.refuse(
                 client,
@@ -209,7 +209,7 @@ impl Gateway {
             None
         };
         if let Some((code, outcome, why)) = refusal {
-            let answer = self.refuse(client, ("all", 0), &pdu, code, outcome, why.to_string());
+            let answer = self.refuse(client, (None, 0), &pdu, code, outcome, why.to_string());
             return if self.broadcast_reply {
                 answer
             } else {
@@ -250,7 +250,7 @@ impl Gateway {
     fn refuse(
         &self,
         client: &Client,
-        (bus, unit): (&str, u8),
+        (bus, unit): (Option<&BusHandle>, u8),
         pdu: &[u8],
         code: ExceptionCode,
         outcome: Outcome,
@@ -259,13 +259,12 @@ impl Gateway {
         let function = pdu.first().copied().unwrap_or(0);
         self.count(function, outcome);
         if !request::reads_only(pdu) {
-            crate::audit::write(
-                &client.who(),
-                bus,
-                unit,
-                &request::describe(pdu),
-                &Err::<String, _>(format!("{why}; answered {code}")),
-            );
+            let what = request::describe(pdu);
+            let refused = Err::<String, _>(format!("{why}; answered {code}"));
+            match bus {
+                Some(bus) => crate::audit::write(&client.who(), bus, unit, &what, &refused),
+                None => crate::audit::write_unrouted(&client.who(), unit, &what, &refused),
+            }
         } else {
             debug!(client = %client.peer, unit, "{why}; answered {code}");
         }
@@ -291,7 +290,7 @@ pub struct Pending {
 
 #[derive(Debug)]
 struct Job {
-    bus: Arc<str>,
+    bus: BusHandle,
     unit: u8,
     state: JobState,
 }
@@ -327,7 +326,7 @@ impl Pending {
             Err(e) => JobState::Done(Err(e)),
         };
         self.jobs.push(Job {
-            bus: handle.name_arc(),
+            bus: handle.clone(),
             unit: route.unit,
             state,
         });
