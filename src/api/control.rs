@@ -364,6 +364,8 @@ mod tests {
         }
         let buffer = Buffer::default();
         let writer = buffer.clone();
+        let bus = crate::bus::scheduler::unstarted("line1");
+        let mut events = bus.subscribe();
         let subscriber = tracing_subscriber::fmt()
             .with_writer(move || writer.clone())
             .with_ansi(false)
@@ -371,7 +373,7 @@ mod tests {
         tracing::subscriber::with_default(subscriber, || {
             let done = AbandonedWrite {
                 who: "scada",
-                bus: "line1",
+                bus: &bus,
                 unit: 3,
                 what: describe(&DriveRequest::Speed { rpm: 50 }),
                 armed: false,
@@ -379,7 +381,7 @@ mod tests {
             drop(done);
             let abandoned = AbandonedWrite {
                 who: "scada",
-                bus: "line1",
+                bus: &bus,
                 unit: 3,
                 what: describe(&DriveRequest::Speed { rpm: 60 }),
                 armed: true,
@@ -394,6 +396,17 @@ mod tests {
                 && text.contains("went away"),
             "{text}"
         );
+        // Watchers of the bus are told of the abandoned write only.
+        match events.try_recv() {
+            Ok(crate::bus::BusEvent::Write(w)) => {
+                assert!(
+                    w.what.contains("speed setpoint 60") && !w.ok && w.who == "scada",
+                    "{w:?}"
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(events.try_recv().is_err());
     }
 
     #[test]

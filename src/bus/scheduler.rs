@@ -93,6 +93,15 @@ pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle
     Ok((handle, thread))
 }
 
+/// A handle to a bus whose thread never runs, for unit tests of code that
+/// holds a handle (its jobs wait for ever; its events can be watched).
+#[cfg(test)]
+pub(crate) fn unstarted(name: &str) -> BusHandle {
+    BusHandle {
+        shared: new_shared(&BusSettings::new(name, "/dev/null", 115_200, vec![])),
+    }
+}
+
 /// What the handles and the bus thread share, for `settings`.
 fn new_shared(settings: &BusSettings) -> Arc<Shared> {
     let name: Arc<str> = settings.name.as_str().into();
