@@ -46,7 +46,10 @@ pub fn token_tables() -> String {
     .collect()
 }
 
-/// `FOUR_DRIVES` with the role tokens (if `tokens`) and `rest` appended.
+/// `FOUR_DRIVES` with the role tokens (if `tokens`) and `rest` appended,
+/// and a 250 ms response timeout: a browser beside the daemon on a loaded
+/// 2-core machine can hold the simulator's thread off the CPU for longer
+/// than the 50 ms a quiet wire needs, and these tests are about the page.
 pub fn config(tokens: bool, rest: &str) -> String {
     let anchor = "[http]\nlisten = \"127.0.0.1:0\"\n";
     let base = crate::common::FOUR_DRIVES;
@@ -57,6 +60,8 @@ pub fn config(tokens: bool, rest: &str) -> String {
     } else {
         String::new()
     };
+    let tail = tail.replace("response_timeout_ms = 50", "response_timeout_ms = 250");
+    assert!(tail.contains("response_timeout_ms = 250"));
     format!("{head}{tables}{tail}\n{rest}\n")
 }
 

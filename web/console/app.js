@@ -144,7 +144,9 @@ async function login(message) {
 async function whoami() {
   for (;;) {
     try {
-      return await get('/api/v1/whoami');
+      const me = await get('/api/v1/whoami');
+      if (me.role) return me;
+      await login('');
     } catch (e) {
       if (e instanceof ApiError && e.status === 401) {
         await login(token() ? `${e.message}. Enter a valid token.` : '');

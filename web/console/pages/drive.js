@@ -115,7 +115,7 @@ function mount(main, { name }, ctx) {
   // What the drive holds.
   const held = h('div', { class: 'held' });
   const heldNote = new Note();
-  const refresh = h('button', { type: 'button' }, 'Read from the drive');
+  const refresh = h('button', { type: 'button', dataset: { read: 'settings' } }, 'Read from the drive');
   const readHeld = () => run(refresh, heldNote, 'reading…', () => get(drivePath(name, '/settings')), (r) => {
     held.replaceChildren(settingsTable(r));
     return `read at ${clock(r.read_at)}`;
