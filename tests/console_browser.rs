@@ -728,3 +728,165 @@ async fn the_event_log_shows_every_write_live_and_the_ramp_time_follows_the_manu
     browser.stop().await;
     daemon.stop().await;
 }
+
+/// Not a test: writes the screenshots in docs/ (run with
+/// `DRIVEGATE_SCREENSHOTS=docs cargo test --test console_browser -- --ignored screenshots`).
+/// A small plant scene: one drive running, one positioning, one in fault,
+/// one gone silent.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "writes docs/console-*.png"]
+async fn screenshots() {
+    let dir = std::path::PathBuf::from(
+        std::env::var("DRIVEGATE_SCREENSHOTS").unwrap_or_else(|_| "docs".into()),
+    );
+    let dir = if dir.is_absolute() {
+        dir
+    } else {
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(dir)
+    };
+    let daemon = TestDaemon::start(&config(true, "")).await;
+    let a = Some(ADMIN);
+    for drive in ["conveyor", "lift"] {
+        rest_ok(
+            &daemon,
+            a,
+            "POST",
+            &format!("/api/v1/drives/{drive}/commands/activate"),
+            None,
+        )
+        .await;
+    }
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/conveyor/mode",
+        Some(json!({"mode": "speed"})),
+    )
+    .await;
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/lift/mode",
+        Some(json!({"mode": "position"})),
+    )
+    .await;
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/conveyor/ramps/speed",
+        Some(json!({"time_s": 1.0, "step_rpm": 150})),
+    )
+    .await;
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/lift/ramps/position",
+        Some(json!({"time_s": 2.0, "step_deg": 90})),
+    )
+    .await;
+    let browser = Browser::start(&[]).await;
+    let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(ADMIN)).await;
+    // Some history for the plots: speed steps up, reverses, settles.
+    for (rpm, secs) in [(150, 4), (-80, 4), (100, 4)] {
+        rest_ok(
+            &daemon,
+            a,
+            "PUT",
+            "/api/v1/drives/conveyor/setpoint",
+            Some(json!({"speed_rpm": rpm})),
+        )
+        .await;
+        tokio::time::sleep(Duration::from_secs(secs)).await;
+    }
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/lift/setpoint",
+        Some(json!({"position_deg": 90.0})),
+    )
+    .await;
+    daemon
+        .sim()
+        .inject_fault(3, drivegate::drive::Fault::OverTemperature)
+        .unwrap();
+    daemon.sim().set_silent(4, true);
+    until(LONG, "the feeder offline", || {
+        daemon.plant.buses()[0]
+            .handle
+            .drive(4)
+            .is_some_and(|d| d.link == drivegate::bus::cache::Link::Offline)
+    })
+    .await;
+    page.wait_for("document.querySelector('[data-read=settings]') && !document.querySelector('[data-read=settings]').disabled", LONG, "settings read").await;
+    page.screenshot(&dir.join("console-drive.png"), true).await;
+
+    page.eval("location.hash = '#/'").await;
+    page.wait_for("document.querySelectorAll('tr.fault').length === 1 && document.querySelectorAll('tr.offline').length === 1", LONG, "the scene").await;
+    tokio::time::sleep(Duration::from_secs(2)).await; // two bus polls for the utilisation
+    page.screenshot(&dir.join("console-overview.png"), false)
+        .await;
+
+    page.eval("location.hash = '#/settings/conveyor'").await;
+    page.wait_for(
+        "!!document.querySelector('[data-preview=step_rpm]')",
+        LONG,
+        "settings",
+    )
+    .await;
+    page.screenshot(&dir.join("console-settings.png"), true)
+        .await;
+
+    page.eval("location.hash = '#/commissioning'").await;
+    page.wait_for(
+        "!!document.querySelector('[data-action=scan]')",
+        LONG,
+        "commissioning",
+    )
+    .await;
+    page.fill("[data-field=scan-to]", "8").await;
+    page.click("[data-action=scan]").await;
+    page.wait_for(
+        "document.querySelector('#scan-h').parentElement.querySelector('.note.ok')",
+        LONG,
+        "the scan",
+    )
+    .await;
+    page.screenshot(&dir.join("console-commissioning.png"), true)
+        .await;
+
+    page.eval("location.hash = '#/events'").await;
+    page.wait_for(
+        "document.querySelectorAll('table.log tbody tr').length > 5",
+        LONG,
+        "events",
+    )
+    .await;
+    page.screenshot(&dir.join("console-events.png"), false)
+        .await;
+
+    // Tablet width.
+    let tablet = browser.new_page(820, 1180).await;
+    tablet
+        .goto(&format!("{}/#/drive/conveyor", daemon.url("")))
+        .await;
+    tablet
+        .wait_for(
+            "document.getElementById('login').open",
+            LONG,
+            "the token dialog",
+        )
+        .await;
+    tablet.fill("#login input", OPERATOR).await;
+    tablet.click("#login button[type=submit]").await;
+    tablet.wait_for("window.drivegate && drivegate.stream.state === 'open' && document.querySelector('.controls')", LONG, "tablet").await;
+    tablet
+        .screenshot(&dir.join("console-drive-tablet.png"), false)
+        .await;
+    browser.stop().await;
+    daemon.stop().await;
+}

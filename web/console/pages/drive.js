@@ -56,8 +56,9 @@ function mount(main, { name }, ctx) {
 
   // Controls.
   let jog = null;
+  let controls = null;
   if (store.can('operator')) {
-    const controls = buildControls(name, d, ctx);
+    controls = buildControls(name, d, ctx);
     jog = controls.jog;
     main.append(controls.section);
     cleanups.push(() => controls.jog.dispose(), () => controls.torqueJog.dispose());
@@ -98,7 +99,10 @@ function mount(main, { name }, ctx) {
         legend: { show: false },
         cursor: { drag: { x: false, y: false } },
         scales: { x: { time: true } },
-        axes: [{ stroke: '#444', grid: { stroke: '#e5e7eb' } }, { stroke: '#444', grid: { stroke: '#e5e7eb' }, size: 56 }],
+        axes: [
+          { stroke: '#444', grid: { stroke: '#e5e7eb' }, values: (_, ticks) => ticks.map(timeOfDay) },
+          { stroke: '#444', grid: { stroke: '#e5e7eb' }, size: 56 },
+        ],
         series: [{}, { label, stroke: colour, width: 2, points: { show: false } }],
       }, [[], []], box);
       plots.push({ key, u, box });
@@ -160,6 +164,7 @@ function mount(main, { name }, ctx) {
     set('temperature', s ? `${fmt(s.temperature_c)} °C` : '–');
     set('flags', s ? `${s.calibrated ? 'calibrated' : 'not calibrated'}, STATUS 0x${s.flags.toString(16).padStart(4, '0')}` : '–');
     set('age', d.receivedAt !== undefined ? `${age(now - d.receivedAt)} ago` : '–');
+    if (controls) controls.show(s);
     // Plots at most 30 times a second.
     if (plots.length && now - lastPlot > 33) {
       lastPlot = now;
@@ -173,6 +178,11 @@ function mount(main, { name }, ctx) {
   cleanups.push(() => clearInterval(ages), () => frame && cancelAnimationFrame(frame));
   draw();
   return () => cleanups.forEach((f) => f());
+}
+
+/** 24-hour time of day for the plots' axis. */
+function timeOfDay(seconds) {
+  return new Date(seconds * 1000).toLocaleTimeString([], { hour12: false });
 }
 
 function settingsTable(r) {
@@ -209,9 +219,7 @@ function buildControls(name, d, { stream, brakeDrive }) {
       (r) => `${text}: confirmed by the drive (${r.written.map((w) => `${w.register}=${w.raw}`).join(', ')})`));
     return b;
   };
-  section.append(h('div', { class: 'group' }, h('h3', {}, 'Drive'),
-    h('div', { class: 'row' }, command('activate', 'Activate'), command('deactivate', 'Deactivate'), command('fault-reset', 'Fault reset')),
-    stateNote.el));
+  const activation = h('div', { class: 'row' }, command('activate', 'Activate'), command('deactivate', 'Deactivate'), command('fault-reset', 'Fault reset'));
 
   // Mode.
   const modeNote = new Note();
@@ -221,7 +229,8 @@ function buildControls(name, d, { stream, brakeDrive }) {
       () => put(drivePath(name, '/mode'), { mode: m }), `${m} mode: confirmed by the drive`));
     return b;
   });
-  section.append(h('div', { class: 'group' }, h('h3', {}, 'Mode'), h('div', { class: 'row', role: 'group', 'aria-label': 'Mode' }, modeButtons), modeNote.el));
+  section.append(h('div', { class: 'group' }, h('h3', {}, 'Drive'), activation, stateNote.el,
+    h('h3', {}, 'Mode'), h('div', { class: 'row', role: 'group', 'aria-label': 'Mode' }, modeButtons), modeNote.el));
 
   // Hold-to-jog (speed).
   const jogNote = new Note();
@@ -280,5 +289,13 @@ function buildControls(name, d, { stream, brakeDrive }) {
     h('p', { class: 'hint' }, 'Applied while held, with the same lease as the jog: an unloaded motor in torque mode speeds up until something stops it.'),
     h('div', { class: 'row' }, amps.wrap, tMinus, tPlus), torqueState, torqueNote.el));
 
-  return { section, jog, torqueJog, brake };
+  /** Marks the drive's current mode and activation on the buttons. */
+  const show = (st) => {
+    for (const b of modeButtons) b.setAttribute('aria-pressed', String(!!st && st.mode === b.dataset.mode));
+    for (const b of activation.children) {
+      const on = st && ((b.dataset.command === 'activate' && st.active) || (b.dataset.command === 'deactivate' && !st.active));
+      b.setAttribute('aria-pressed', String(!!on));
+    }
+  };
+  return { section, jog, torqueJog, brake, show };
 }
