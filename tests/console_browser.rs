@@ -723,7 +723,7 @@ async fn the_event_log_shows_every_write_live_and_the_ramp_time_follows_the_manu
     page.fill("[data-field=step_rpm]", "133").await;
     page.fill("[data-field=step_rpm-alpha]", "5000").await;
     let preview = text(&page, "[data-preview=step_rpm]").await;
-    assert!(preview.starts_with("0.204 s"), "{preview}");
+    assert!(preview.starts_with("0.2044 s"), "{preview}");
     assert_clean(&page, &daemon.url(""));
     browser.stop().await;
     daemon.stop().await;

@@ -77,6 +77,9 @@ function form(title, ...children) {
 
 const invalid = (text) => new Error(text);
 
+/** A ramp time with four significant digits (a fast ramp is milliseconds). */
+const seconds4 = (t) => String(Number(t.toPrecision(4)));
+
 function protectionForm(name, r) {
   const limit = numberField('Over-current limit (A, 0 to 15.99)', { value: fmt(r.protection.limit_a, 2), dataset: { field: 'limit_a' } });
   const stall = numberField('Stall time (ms, 0 to 60000)', { value: String(r.protection.stall_ms), dataset: { field: 'stall_ms' } });
@@ -100,17 +103,17 @@ function rampForm({ name, title, path, alpha, stepLabel, stepDefault, stepKey, t
   const alphaField = numberField('Alpha (0 = ramp off)', { value: String(alpha), dataset: { field: `${stepKey}-alpha` } });
   const preview = h('p', { class: 'preview', role: 'status', dataset: { preview: stepKey } });
   const currentTime = time(alpha, stepDefault);
-  seconds.input.value = currentTime ? currentTime.toFixed(3) : '';
+  seconds.input.value = currentTime ? seconds4(currentTime) : '';
   const update = () => {
     const st = step.value();
     if (byTime.checked) {
       const t = seconds.value();
       const a = Number.isFinite(t) && Number.isFinite(st) ? solve(t, st) : null;
-      preview.textContent = a ? `alpha ${a}: ${fmt(time(a, st), 3)} s for a step of ${st} (formula ${stepKey === 'step_rpm' ? 2 : 3})` : 'type a time and a step';
+      preview.textContent = a ? `alpha ${a}: ${seconds4(time(a, st))} s for a step of ${st} (formula ${stepKey === 'step_rpm' ? 2 : 3})` : 'type a time and a step';
     } else {
       const a = alphaField.value();
       const t = Number.isFinite(a) && Number.isFinite(st) ? time(a, st) : null;
-      preview.textContent = a === 0 ? 'ramp off: setpoints apply at once' : t ? `${fmt(t, 3)} s for a step of ${st} (formula ${stepKey === 'step_rpm' ? 2 : 3})` : 'type alpha and a step';
+      preview.textContent = a === 0 ? 'ramp off: setpoints apply at once' : t ? `${seconds4(t)} s for a step of ${st} (formula ${stepKey === 'step_rpm' ? 2 : 3})` : 'type alpha and a step';
     }
     seconds.wrap.hidden = !byTime.checked;
     alphaField.wrap.hidden = byTime.checked;
