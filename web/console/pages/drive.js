@@ -170,6 +170,7 @@ function mount(main, { name }, ctx) {
       lastPlot = now;
       const hist = d.history;
       for (const p of plots) p.u.setData([hist.t, hist[p.key]]);
+      store.stats.plotsDrawn = (store.stats.plotsDrawn || 0) + plots.length;
     }
   }
   const schedule = () => { if (!frame) frame = requestAnimationFrame(draw); };

@@ -89,6 +89,7 @@ function mount(main, _params, { store }) {
     set(r, 'temp', s ? fmt(s.temperature_c) : '–');
     set(r, 'age', d.receivedAt !== undefined ? age(now - d.receivedAt) : '–');
     store.stats.rowsDrawn = (store.stats.rowsDrawn || 0) + 1;
+    if (s && store.stats.firstRowsAt === undefined) store.stats.firstRowsAt = now;
   }
 
   function drawBuses() {
@@ -110,6 +111,7 @@ function mount(main, _params, { store }) {
 
   function draw() {
     frame = 0;
+    store.stats.frames = (store.stats.frames || 0) + 1;
     const now = performance.now();
     const stale = store.stream.state !== 'open';
     if (all) {
