@@ -35,7 +35,10 @@ use tokio_util::sync::CancellationToken;
 use cdp::{Browser, Page};
 
 fn env(name: &str, default: u64) -> u64 {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
 }
 
 /// `buses` simulated buses of `per_bus` drives each, polled flat out.
@@ -48,7 +51,10 @@ fn config(buses: u32, per_bus: u32) -> String {
             b + 1
         );
         for u in 1..=per_bus {
-            c += &format!("[[bus.drive]]\nunit = {u}\nname = \"d{}-{u:02}\"\ngear_ratio = 3.75\n", b + 1);
+            c += &format!(
+                "[[bus.drive]]\nunit = {u}\nname = \"d{}-{u:02}\"\ngear_ratio = 3.75\n",
+                b + 1
+            );
         }
     }
     c
@@ -58,13 +64,21 @@ fn config(buses: u32, per_bus: u32) -> String {
 fn cpu_seconds(root: u32) -> f64 {
     let tick = 100.0; // USER_HZ on Linux
     let mut total = 0.0;
-    let Ok(dir) = std::fs::read_dir("/proc") else { return 0.0 };
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return 0.0;
+    };
     let mut parents = std::collections::HashMap::new();
     let mut times = std::collections::HashMap::new();
     for entry in dir.flatten() {
-        let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else { continue };
-        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else { continue };
-        let Some(after) = stat.rfind(')').map(|i| &stat[i + 2..]) else { continue };
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+            continue;
+        };
+        let Some(after) = stat.rfind(')').map(|i| &stat[i + 2..]) else {
+            continue;
+        };
         let f: Vec<&str> = after.split_whitespace().collect();
         let ppid: u32 = f[1].parse().unwrap_or(0);
         let t = f[11].parse::<f64>().unwrap_or(0.0) + f[12].parse::<f64>().unwrap_or(0.0);
@@ -104,11 +118,23 @@ async fn start(buses: u32, per_bus: u32) -> Daemon {
         .unwrap();
     let base = format!("http://{}", faces.http);
     let start = Instant::now();
-    while plant.buses().iter().any(|b| b.handle.drives().iter().any(|d| d.status.is_none())) {
-        assert!(start.elapsed() < Duration::from_secs(60), "drives did not come online");
+    while plant
+        .buses()
+        .iter()
+        .any(|b| b.handle.drives().iter().any(|d| d.status.is_none()))
+    {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "drives did not come online"
+        );
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-    Daemon { base, plant, shutdown, faces }
+    Daemon {
+        base,
+        plant,
+        shutdown,
+        faces,
+    }
 }
 
 /// Bytes the page's requests took on the wire (headers and bodies).
@@ -122,7 +148,11 @@ fn bytes_loaded(page: &Page) -> f64 {
 fn ws_bytes(page: &Page) -> f64 {
     page.events_of("Network.webSocketFrameReceived")
         .iter()
-        .map(|e| e["params"]["response"]["payloadData"].as_str().map_or(0, str::len) as f64)
+        .map(|e| {
+            e["params"]["response"]["payloadData"]
+                .as_str()
+                .map_or(0, str::len) as f64
+        })
         .sum()
 }
 
@@ -145,12 +175,20 @@ async fn first_view(browser: &Browser, base: &str, loads: u64) {
                 "the first live value",
             )
             .await;
-        let a: Vec<f64> = v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap_or(0.0)).collect();
+        let a: Vec<f64> = v
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap_or(0.0))
+            .collect();
         let bytes = bytes_loaded(&page);
         if i == 0 {
             println!(
                 "  cold (empty cache): load event {:.0} ms, first rows drawn {:.0} ms, first live value {:.0} ms; {:.1} KB transferred in {} requests",
-                a[0], a[1], a[2], bytes / 1024.0,
+                a[0],
+                a[1],
+                a[2],
+                bytes / 1024.0,
                 page.events_of("Network.loadingFinished").len()
             );
         } else {
@@ -165,7 +203,11 @@ async fn first_view(browser: &Browser, base: &str, loads: u64) {
         let mut bytes: Vec<f64> = times.iter().map(|t| t.3).collect();
         println!(
             "  warm (ETag revalidation), median of {}: load event {:.0} ms, first rows drawn {:.0} ms, first live value {:.0} ms; {:.1} KB transferred",
-            times.len(), median(&mut load), median(&mut rows), median(&mut live), median(&mut bytes) / 1024.0
+            times.len(),
+            median(&mut load),
+            median(&mut rows),
+            median(&mut live),
+            median(&mut bytes) / 1024.0
         );
     }
 }
@@ -178,14 +220,28 @@ async fn keep_up(browser: &Browser, base: &str, hash: &str, seconds: u64, label:
     // Settle, then measure.
     tokio::time::sleep(Duration::from_secs(2)).await;
     let stats = "[drivegate.store.stats.statusReceived, drivegate.store.stats.rowsDrawn || 0, drivegate.store.stats.frames || 0, drivegate.store.stats.plotsDrawn || 0]";
-    let before: Vec<f64> = page.eval(stats).await.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    let before: Vec<f64> = page
+        .eval(stats)
+        .await
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
     let m0 = page.metrics().await;
     let cpu0 = cpu_seconds(browser.pid);
     let ws0 = ws_bytes(&page);
     let t0 = Instant::now();
     tokio::time::sleep(Duration::from_secs(seconds)).await;
     let wall = t0.elapsed().as_secs_f64();
-    let after: Vec<f64> = page.eval(stats).await.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    let after: Vec<f64> = page
+        .eval(stats)
+        .await
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
     let m1 = page.metrics().await;
     let cpu1 = cpu_seconds(browser.pid);
     let ws1 = ws_bytes(&page);
@@ -197,7 +253,11 @@ async fn keep_up(browser: &Browser, base: &str, hash: &str, seconds: u64, label:
         "  {label}: received {:.0} statuses/s; drew {:.0} row updates/s{} in {:.0} frames/s; stream {:.1} KB/s; lagged notices {}; renderer main thread busy {:.1} % (script {:.1} %); all chromium processes {:.1} % of one core",
         rate(0),
         rate(1),
-        if rate(3) > 0.0 { format!(", {:.0} plot redraws/s", rate(3)) } else { String::new() },
+        if rate(3) > 0.0 {
+            format!(", {:.0} plot redraws/s", rate(3))
+        } else {
+            String::new()
+        },
         rate(2),
         (ws1 - ws0) / wall / 1024.0,
         lagged,
@@ -212,21 +272,47 @@ async fn keep_up(browser: &Browser, base: &str, hash: &str, seconds: u64, label:
 async fn main() {
     let seconds = env("BENCH_SECONDS", 10);
     let loads = env("BENCH_LOADS", 10);
-    println!("drivegate console benchmark: chromium headless on loopback, simulated drives at 115200 baud polled as fast as the bus allows");
+    println!(
+        "drivegate console benchmark: chromium headless on loopback, simulated drives at 115200 baud polled as fast as the bus allows"
+    );
     for (buses, per_bus) in [(1, 32), (4, 32)] {
         let daemon = start(buses, per_bus).await;
         let browser = Browser::start(&[]).await;
         println!("{} drives on {} bus(es):", buses * per_bus, buses);
         first_view(&browser, &daemon.base, loads).await;
-        let polls0: u64 = daemon.plant.buses().iter().map(|b| b.handle.stats().polls).sum();
+        let polls0: u64 = daemon
+            .plant
+            .buses()
+            .iter()
+            .map(|b| b.handle.stats().polls)
+            .sum();
         let t = Instant::now();
         keep_up(&browser, &daemon.base, "/", seconds, "overview").await;
-        let polls = daemon.plant.buses().iter().map(|b| b.handle.stats().polls).sum::<u64>() - polls0;
-        println!("  the buses polled {:.0} statuses/s meanwhile", polls as f64 / t.elapsed().as_secs_f64());
-        keep_up(&browser, &daemon.base, "/drive/d1-01", seconds, "drive page (4 plots)").await;
+        let polls = daemon
+            .plant
+            .buses()
+            .iter()
+            .map(|b| b.handle.stats().polls)
+            .sum::<u64>()
+            - polls0;
+        println!(
+            "  the buses polled {:.0} statuses/s meanwhile",
+            polls as f64 / t.elapsed().as_secs_f64()
+        );
+        keep_up(
+            &browser,
+            &daemon.base,
+            "/drive/d1-01",
+            seconds,
+            "drive page (4 plots)",
+        )
+        .await;
         browser.stop().await;
         daemon.shutdown.cancel();
         let _ = tokio::time::timeout(Duration::from_secs(5), daemon.faces.wait()).await;
-        daemon.plant.shutdown(drivegate::safety::StopAction::None).await;
+        daemon
+            .plant
+            .shutdown(drivegate::safety::StopAction::None)
+            .await;
     }
 }

@@ -106,15 +106,17 @@ function buildHeader() {
 }
 
 function shortcuts(e) {
+  // Keys typed into a field are the field's (a capital B in a search box
+  // must not brake the plant); the brake button is one Tab away.
   const typing = e.target.closest('input, textarea, select, [contenteditable]');
-  if (e.ctrlKey || e.metaKey || e.altKey) return;
+  if (e.ctrlKey || e.metaKey || e.altKey || typing) return;
   if (e.key === 'B' && e.shiftKey && store.can('operator')) {
     e.preventDefault();
     brakeAll();
     return;
   }
-  if (typing || document.querySelector('dialog[open]')) return;
-  const keys = { o: '/', e: '/events', c: '/commissioning' };
+  if (document.querySelector('dialog[open]')) return;
+  const keys = { o: '/', e: '/events', c: '/commissioning', s: '/settings' };
   if (keys[e.key] && !e.shiftKey) {
     e.preventDefault();
     navigate(keys[e.key]);
