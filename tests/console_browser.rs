@@ -890,3 +890,77 @@ async fn screenshots() {
     browser.stop().await;
     daemon.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn commissioning_scans_with_progress_guards_the_address_and_follows_a_calibration() {
+    let daemon = TestDaemon::start(&config(true, "")).await;
+    let browser = Browser::start(&[]).await;
+    let page = open(&browser, &daemon.url(""), "/commissioning", Some(ADMIN)).await;
+    // Before any scan the broadcast is not offered.
+    page.wait_for(
+        "!!document.querySelector('[data-action=set-address]')",
+        LONG,
+        "the page",
+    )
+    .await;
+    assert_eq!(
+        page.eval("document.querySelector('[data-action=set-address]').disabled")
+            .await,
+        json!(true)
+    );
+
+    page.fill("[data-field=scan-to]", "12").await;
+    page.click("[data-action=scan]").await;
+    page.wait_for(
+        "(() => { const n = document.querySelector('#scan-h').parentElement.querySelector('.note'); return n.classList.contains('ok') || n.classList.contains('fail'); })()",
+        LONG,
+        "the scan's end",
+    )
+    .await;
+    let note = text(&page, "#scan-h ~ output.note").await;
+    assert!(note.starts_with("scanned: 4 answered"), "{note}");
+    assert_eq!(
+        page.eval(
+            "(() => { const p = document.querySelector('progress'); return [p.value, p.max]; })()"
+        )
+        .await,
+        json!([12, 12])
+    );
+    // Four drives answer, and the scan did not cover 1 to 255: still refused, saying why.
+    assert_eq!(
+        page.eval("document.querySelector('[data-action=set-address]').disabled")
+            .await,
+        json!(true)
+    );
+    let why = text(&page, ".check").await;
+    assert!(why.contains("did not cover units 1 to 255"), "{why}");
+
+    // Calibration of the lift, confirmed in the dialog, followed to its end.
+    page.eval("(() => { const s = document.getElementById('proc-drive'); s.value = 'lift'; })()")
+        .await;
+    page.eval("[...document.querySelectorAll('button')].find((b) => b.textContent === 'Calibrate…').click()").await;
+    page.wait_for(
+        "document.getElementById('dialog').open",
+        LONG,
+        "the confirmation",
+    )
+    .await;
+    let body = text(&page, "#dialog").await;
+    assert!(body.contains("about 4 s"), "{body}");
+    page.click("#dialog button[value=ok]").await;
+    let done = page
+        .wait_for(
+            "(() => { const n = document.getElementById('proc-h').parentElement.querySelector('output.note'); return (n.classList.contains('ok') && n.textContent.includes('done')) || n.classList.contains('fail') ? n.textContent : null; })()",
+            LONG,
+            "the calibration's end",
+        )
+        .await;
+    assert!(
+        done.as_str().unwrap().contains("Calibration done")
+            && done.as_str().unwrap().contains("reports calibrated"),
+        "{done}"
+    );
+    assert_clean(&page, &daemon.url(""));
+    browser.stop().await;
+    daemon.stop().await;
+}
