@@ -964,3 +964,56 @@ async fn commissioning_scans_with_progress_guards_the_address_and_follows_a_cali
     browser.stop().await;
     daemon.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_keyboard_jogs_and_a_lost_focus_releases() {
+    let daemon = TestDaemon::start(&config(true, "")).await;
+    let watcher = Watcher::start(daemon.http, Some(ADMIN)).await;
+    let browser = Browser::start(&[]).await;
+    let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(OPERATOR)).await;
+    activate_in_speed_mode(&page).await;
+    page.eval("document.activeElement.blur()").await;
+
+    // Held arrow key: backward while held, stopped by the lease on key-up.
+    page.key("keyDown", "ArrowLeft", "ArrowLeft", 37, 0).await;
+    until(LONG, "the motor turning backward", || {
+        speed(&daemon.plant, 1).is_some_and(|s| s < -20)
+    })
+    .await;
+    let released = Instant::now();
+    page.key("keyUp", "ArrowLeft", "ArrowLeft", 37, 0).await;
+    let (_, m) = watcher
+        .wait(released, LONG, "the lease's end after key-up", |v| {
+            v["type"] == "lease-expired" && v["drive"] == "conveyor"
+        })
+        .await;
+    assert_eq!(m["reason"], "it was not renewed in time", "{m}");
+    until(LONG, "the motor standing still", || {
+        speed(&daemon.plant, 1) == Some(0)
+    })
+    .await;
+
+    // Held, then the window loses focus (no key-up ever comes): released.
+    page.key("keyDown", "ArrowRight", "ArrowRight", 39, 0).await;
+    until(LONG, "the motor turning forward", || {
+        speed(&daemon.plant, 1).is_some_and(|s| s > 20)
+    })
+    .await;
+    let blurred = Instant::now();
+    page.eval("window.dispatchEvent(new Event('blur'))").await;
+    let (_, m) = watcher
+        .wait(blurred, LONG, "the lease's end after the lost focus", |v| {
+            v["type"] == "lease-expired" && v["drive"] == "conveyor"
+        })
+        .await;
+    assert_eq!(m["reason"], "it was not renewed in time", "{m}");
+    until(LONG, "the motor standing still", || {
+        speed(&daemon.plant, 1) == Some(0)
+    })
+    .await;
+    let state = text(&page, ".jog-state").await;
+    assert!(state.contains("the window lost focus"), "{state}");
+    assert_clean(&page, &daemon.url(""));
+    browser.stop().await;
+    daemon.stop().await;
+}
