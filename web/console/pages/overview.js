@@ -1,7 +1,9 @@
 // Overview: every bus and every drive at a glance, live. A drive in fault,
 // stalled or offline stands out (colour, and a word, never colour alone);
-// rows update in place, at most once per animation frame, so 64 drives at
-// the bus's full rate cost the browser little.
+// rows update in place, only the cells that changed, at most 20 times a
+// second (faster than anyone reads, and a quarter of the layout work of
+// drawing every frame), so a hundred drives at the bus's full rate cost the
+// browser little.
 
 import { h, fmt, age, words } from '../ui.js';
 import { positionTurns } from '../store.js';
@@ -25,6 +27,9 @@ export function condition(d, stale) {
   if (!s.active) return { cls: 'inactive', text: 'inactive' };
   return { cls: 'ok', text: s.speed_rpm !== 0 ? 'running' : 'ready' };
 }
+
+/** Shortest time between two draws, ms. */
+const DRAW_MS = 50;
 
 const COLUMNS = [
   ['Drive', 'name'], ['Bus / unit', 'where'], ['State', 'state'], ['Mode', 'mode'],
@@ -88,7 +93,12 @@ function mount(main, _params, { store }) {
     set(r, 'voltage', s ? fmt(s.voltage_v) : '–');
     set(r, 'temp', s ? fmt(s.temperature_c) : '–');
     set(r, 'age', d.receivedAt !== undefined ? age(now - d.receivedAt) : '–');
-    store.stats.rowsDrawn = (store.stats.rowsDrawn || 0) + 1;
+    // For the benchmark: statuses that reached the screen (two arriving
+    // between draws count once), and when the first one did.
+    if (d.receivedAt !== undefined && r.drawn !== d.receivedAt) {
+      r.drawn = d.receivedAt;
+      store.stats.rowsDrawn = (store.stats.rowsDrawn || 0) + 1;
+    }
     if (s && store.stats.firstRowsAt === undefined) store.stats.firstRowsAt = now;
   }
 
@@ -149,8 +159,17 @@ function mount(main, _params, { store }) {
     }
   }
 
+  let last = 0;
+  let timer = 0;
   function schedule() {
-    if (!frame) frame = requestAnimationFrame(draw);
+    if (frame || timer) return;
+    const wait = last + DRAW_MS - performance.now();
+    if (wait <= 0) frame = requestAnimationFrame(drawn);
+    else timer = setTimeout(() => { timer = 0; frame = requestAnimationFrame(drawn); }, wait);
+  }
+  function drawn() {
+    last = performance.now();
+    draw();
   }
 
   const off = store.subscribe((name) => {
@@ -164,6 +183,7 @@ function mount(main, _params, { store }) {
   return () => {
     off();
     clearInterval(ages);
+    clearTimeout(timer);
     if (frame) cancelAnimationFrame(frame);
   };
 }
