@@ -249,16 +249,18 @@ async fn keep_up(browser: &Browser, base: &str, hash: &str, seconds: u64, label:
     let task = (m1["TaskDuration"] - m0["TaskDuration"]) / wall;
     let script = (m1["ScriptDuration"] - m0["ScriptDuration"]) / wall;
     let lagged: Value = page.eval("drivegate.stream.counts.lagged || 0").await;
+    let drawn = if rate(3) > 0.0 {
+        format!("redrew the 4 plots {:.0} times/s", rate(3) / 4.0)
+    } else {
+        format!(
+            "drew {:.0} of them/s (two between draws count once) in {:.0} draws/s",
+            rate(1),
+            rate(2)
+        )
+    };
     println!(
-        "  {label}: received {:.0} statuses/s; drew {:.0} row updates/s{} in {:.0} frames/s; stream {:.1} KB/s; lagged notices {}; renderer main thread busy {:.1} % (script {:.1} %); all chromium processes {:.1} % of one core",
+        "  {label}: received {:.0} statuses/s, {drawn}; stream {:.1} KB/s; lagged notices {}; renderer main thread busy {:.1} % (script {:.1} %); all chromium processes {:.1} % of one core",
         rate(0),
-        rate(1),
-        if rate(3) > 0.0 {
-            format!(", {:.0} plot redraws/s", rate(3))
-        } else {
-            String::new()
-        },
-        rate(2),
         (ws1 - ws0) / wall / 1024.0,
         lagged,
         task * 100.0,
