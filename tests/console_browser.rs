@@ -887,6 +887,17 @@ async fn screenshots() {
     tablet
         .screenshot(&dir.join("console-drive-tablet.png"), false)
         .await;
+    tablet.eval("location.hash = '#/'").await;
+    tablet
+        .wait_for(
+            "document.querySelectorAll('table.drives tbody tr').length === 4",
+            LONG,
+            "the overview at tablet width",
+        )
+        .await;
+    tablet
+        .screenshot(&dir.join("console-overview-tablet.png"), false)
+        .await;
     browser.stop().await;
     daemon.stop().await;
 }
