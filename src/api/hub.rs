@@ -139,6 +139,29 @@ pub enum ServerMessage {
         /// Why it ended.
         reason: String,
     },
+    /// A write to a drive, from any client or face (REST, stream, Modbus
+    /// TCP) or from drivegate itself (a lease's stop, the shutdown stop),
+    /// once the drive answered or the write failed: the audit log's line.
+    Write {
+        /// Drive name; `null` for a broadcast (unit 0) or a unit that is
+        /// not configured.
+        drive: Option<String>,
+        /// Its bus.
+        bus: String,
+        /// The unit written to (0: broadcast).
+        unit: u8,
+        /// Who sent it: a token name, a client address, or
+        /// `lease-expiry (<owner>)`, `shutdown`.
+        who: String,
+        /// What was written, in words, with the registers and raw values.
+        what: String,
+        /// True when the drive confirmed it.
+        ok: bool,
+        /// The drive's answer, or why the write failed.
+        answer: String,
+        /// When (RFC 3339, UTC).
+        at: String,
+    },
     /// This client fell behind: `missed` updates were skipped for it.
     Lagged {
         /// Messages skipped.
@@ -266,11 +289,29 @@ impl Hub {
     }
 }
 
-/// A control event as a stream message, if the stream shows it (lease
-/// news; writes are not streamed).
+/// A control event as a stream message: lease news, and every write the
+/// core settled (from any face, and the daemon's own stops).
 pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
-    let ControlEvent::Lease(lease) = event else {
-        return None;
+    let lease = match event {
+        ControlEvent::Lease(lease) => lease,
+        ControlEvent::Write(w) => {
+            let message = ServerMessage::Write {
+                drive: w
+                    .drive
+                    .and_then(|i| plant.drives().get(i))
+                    .map(|d| d.name.clone()),
+                bus: w.bus.to_string(),
+                unit: w.unit,
+                who: w.who.to_string(),
+                what: w.what.clone(),
+                ok: w.result.is_ok(),
+                answer: match &w.result {
+                    Ok(a) | Err(a) => a.clone(),
+                },
+                at: rfc3339(w.at),
+            };
+            return Some(message.to_text());
+        }
     };
     let drive = plant.drives().get(lease.drive())?;
     let (name, bus, unit) = (

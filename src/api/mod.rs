@@ -6,8 +6,8 @@
 //! - [`listener`] binds (loopback only without tokens) and limits connections,
 //!   [`server`] serves them with a deadline on every request,
 //! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
-//! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`buses`] and
-//!   [`health`] are the routes, all documented in [`openapi`] (the body
+//! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`readback`],
+//!   [`buses`], [`whoami`] and [`health`] are the routes, all documented in [`openapi`] (the body
 //!   schemas a derive cannot write are in [`body_schemas`]),
 //! - [`extract`] and [`integers`] read requests, refusing bad ones with a
 //!   problem document,
@@ -32,6 +32,7 @@ pub mod integers;
 pub mod listener;
 pub mod openapi;
 pub mod problem;
+pub mod readback;
 pub mod request_metrics;
 pub mod roles;
 pub mod server;
@@ -40,6 +41,7 @@ pub mod settings;
 pub mod state;
 pub mod stream;
 pub mod timestamp;
+pub mod whoami;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -127,7 +129,7 @@ pub async fn start(
 }
 
 /// The whole HTTP application: the documented routes, `/openapi.json`,
-/// `/docs`, problem answers for unknown routes, the body limit and the
+/// `/docs`, the web console (`/`, `/console/`), problem answers for unknown routes, the body limit and the
 /// request counters.
 pub fn app(state: ApiState) -> Router {
     let (routes, document) = openapi::router().split_for_parts();
@@ -139,6 +141,7 @@ pub fn app(state: ApiState) -> Router {
         .into();
     routes
         .merge(docs)
+        .merge(crate::console::router())
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(state.config.max_body_bytes))

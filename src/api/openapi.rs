@@ -17,7 +17,7 @@ use super::problem::{ProblemDetails, ValidRange};
 use super::roles::Role;
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
-use super::{buses, commands, drives, health, setpoints, settings, stream};
+use super::{buses, commands, drives, health, readback, setpoints, settings, stream, whoami};
 
 /// Where the document is served.
 pub const DOCUMENT_PATH: &str = "/openapi.json";
@@ -196,6 +196,8 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(drives::list_drives))
         .routes(routes!(drives::get_drive))
         .routes(routes!(drives::get_status))
+        .routes(routes!(readback::get_settings))
+        .routes(routes!(whoami::whoami))
         .routes(routes!(commands::post_command))
         .routes(routes!(commands::put_mode))
         .routes(routes!(setpoints::put_setpoint))

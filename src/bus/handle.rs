@@ -103,6 +103,12 @@ impl Shared {
     }
 }
 
+impl std::fmt::Debug for BusHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("BusHandle").field(&self.name()).finish()
+    }
+}
+
 /// A cheap, cloneable way to one bus.
 #[derive(Clone)]
 pub struct BusHandle {

@@ -9,7 +9,7 @@
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Instant, SystemTime};
 
 use tokio::sync::{Notify, broadcast, mpsc};
 use tokio_util::sync::CancellationToken;
@@ -17,7 +17,7 @@ use tokio_util::task::TaskTracker;
 
 use super::audit;
 use super::caller::{Face, SessionId};
-use super::events::{ControlEvent, Events};
+use super::events::{ControlEvent, Events, WriteEvent};
 use super::lease_book::{Effect, LeaseBook, LeaseEvent, StopOrder, StopReport};
 use super::written::describe;
 use crate::bus::{BusError, BusEvent};
@@ -225,15 +225,28 @@ impl Leases {
             Some(owner) => format!("lease-expiry ({owner})"),
             None => "brake-guard".to_string(),
         };
+        let who: Arc<str> = who.into();
+        let bus_name: Arc<str> = bus.name().into();
         let report = report(&order, outcome, |what, result| {
             audit::write(
                 Face::Internal.name(),
                 &who,
-                bus.name(),
+                &bus_name,
                 drive.unit,
                 what,
                 result,
             );
+            let event = ControlEvent::Write(WriteEvent {
+                at: SystemTime::now(),
+                face: Face::Internal,
+                who: who.clone(),
+                bus: bus_name.clone(),
+                unit: drive.unit,
+                drive: Some(order.drive),
+                what: what.to_string(),
+                result: result.clone(),
+            });
+            self.events.publish(event.into(), None);
         });
         self.with(|book, now| ((), book.stop_tried(order.drive, order.id, report, now)));
     }

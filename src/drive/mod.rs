@@ -6,6 +6,7 @@ pub mod command;
 pub mod message;
 pub mod range;
 pub mod registers;
+pub mod settings;
 pub mod status;
 pub mod units;
 pub mod writes;

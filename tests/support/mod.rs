@@ -5,6 +5,7 @@
 #![allow(dead_code)]
 
 pub mod api;
+pub mod cdp;
 pub mod daemon;
 pub mod faults;
 pub mod input;

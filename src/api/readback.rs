@@ -1,0 +1,169 @@
+//! `GET /api/v1/drives/{drive}/settings`: what the drive holds now, read from
+//! it (its setpoints, protection, ramps, inertia and RS-485 control), so a
+//! settings form starts from the drive's values and not from a guess.
+//!
+//! Six reads at command priority (see [`crate::drive::settings::BLOCKS`]);
+//! a read changes nothing, so it is not audited.
+
+use axum::Json;
+use axum::extract::State;
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use super::auth::Caller;
+use super::control;
+use super::extract::PathParams;
+use super::openapi::FreshReadProblems;
+use super::problem::{BusContext, Problem};
+use super::state::ApiState;
+use super::timestamp::rfc3339;
+use crate::bus::handle::JobOptions;
+use crate::bus::{BusError, Priority};
+use crate::drive::settings::{self, BLOCKS, DriveSettings, REGISTERS};
+use crate::drive::units::{self, COUNTS_PER_AMP};
+
+/// The setpoint registers, as last written (by anyone).
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct SetpointsView {
+    /// SPEED_REF, rpm.
+    pub speed_rpm: i16,
+    /// POSITION_REF, degrees.
+    pub position_deg: f64,
+    /// IQ_REF, amps.
+    pub torque_a: f64,
+    /// IQ_REF, counts.
+    pub torque_counts: i16,
+}
+
+/// Over-current protection (manual 1.8).
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct ProtectionView {
+    /// Current limit, amps.
+    pub limit_a: f64,
+    /// Current limit, counts (1 A = 128).
+    pub limit_counts: u16,
+    /// How long the current may stay over the limit, ms.
+    pub stall_ms: u16,
+}
+
+/// A ramp (manual 1.9, 1.10).
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct RampView {
+    /// Alpha; 0 turns the ramp off.
+    pub alpha: u32,
+}
+
+/// What a drive holds, read from it.
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct DriveSettingsView {
+    /// Drive name.
+    pub drive: String,
+    /// Its bus.
+    pub bus: String,
+    /// Its unit address.
+    pub unit: u8,
+    /// The configured gear ratio (for the speed ramp's formula).
+    pub gear_ratio: f64,
+    /// When the registers were read (RFC 3339, UTC).
+    pub read_at: String,
+    /// The setpoint registers.
+    pub setpoints: SetpointsView,
+    /// Over-current protection.
+    pub protection: ProtectionView,
+    /// Speed ramp.
+    pub speed_ramp: RampView,
+    /// Position ramp.
+    pub position_ramp: RampView,
+    /// Load inertia, times the rotor's.
+    pub inertia_ratio: u16,
+    /// True when RS-485 controls the motor (false: CAN).
+    pub rs485_control: bool,
+}
+
+impl DriveSettingsView {
+    fn new(state: &ApiState, key: &str, s: &DriveSettings) -> Result<Self, Problem> {
+        let target = state.target(key)?;
+        Ok(DriveSettingsView {
+            drive: target.drive.name.clone(),
+            bus: target.bus.name().to_string(),
+            unit: target.drive.unit,
+            gear_ratio: target.drive.gear_ratio,
+            read_at: rfc3339(std::time::SystemTime::now()),
+            setpoints: SetpointsView {
+                speed_rpm: s.speed_rpm,
+                position_deg: units::centideg_to_degrees(s.position_centideg),
+                torque_a: units::counts_to_amps(s.torque_counts),
+                torque_counts: s.torque_counts,
+            },
+            protection: ProtectionView {
+                limit_a: f64::from(s.limit_counts) / COUNTS_PER_AMP,
+                limit_counts: s.limit_counts,
+                stall_ms: s.stall_ms,
+            },
+            speed_ramp: RampView {
+                alpha: s.speed_alpha,
+            },
+            position_ramp: RampView {
+                alpha: s.position_alpha,
+            },
+            inertia_ratio: s.inertia_ratio,
+            rs485_control: s.rs485_control,
+        })
+    }
+}
+
+/// Reads the settings of `key` from the drive.
+pub async fn read(
+    state: &ApiState,
+    caller: &Caller,
+    key: &str,
+) -> Result<DriveSettingsView, Problem> {
+    let target = state.target(key)?;
+    let unit = target.drive.unit;
+    let context = || BusContext {
+        drive: Some(&target.drive.name),
+        offline: control::is_offline(target),
+        setpoint: false,
+    };
+    let options = JobOptions {
+        priority: Priority::Command,
+        source: caller.source,
+        queue_timeout: None,
+        max_attempts: None,
+    };
+    let mut values = [0u16; REGISTERS];
+    let mut at = 0;
+    for (start, count) in BLOCKS {
+        let exchange = target
+            .bus
+            .transact(unit, settings::read_pdu(start, count), options)
+            .await
+            .map_err(|e| Problem::bus(&e, context()))?;
+        let block = settings::parse_read_reply(&exchange.reply, count)
+            .map_err(|e| Problem::bus(&BusError::from_reply(unit, e), context()))?;
+        values[at..at + block.len()].copy_from_slice(&block);
+        at += block.len();
+    }
+    DriveSettingsView::new(state, key, &DriveSettings::from_registers(&values))
+}
+
+/// The drive's setpoints and settings, read from it now (six reads at
+/// command priority).
+#[utoipa::path(
+    get,
+    path = "/api/v1/drives/{drive}/settings",
+    tag = "settings",
+    security(("bearer" = ["viewer"])),
+    params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
+    responses(
+        (status = 200, description = "The values the drive holds", body = DriveSettingsView),
+        FreshReadProblems,
+    )
+)]
+pub async fn get_settings(
+    State(state): State<ApiState>,
+    caller: Caller,
+    PathParams(key): PathParams<String>,
+) -> Result<Json<DriveSettingsView>, Problem> {
+    read(&state, &caller, &key).await.map(Json)
+}

@@ -1,0 +1,262 @@
+//! The public API the console stands on, and that any client may use:
+//! `GET /api/v1/whoami`, `GET /api/v1/drives/{drive}/settings` (read back
+//! from the drive) and the stream's `write` messages (every write, from
+//! every face, with who, what and the drive's answer).
+
+use std::time::{Duration, Instant};
+
+use serde_json::{Value, json};
+
+use crate::harness::{ADMIN, OPERATOR, VIEWER, Watcher, config};
+use crate::support::modbus_tcp::{Raw, write};
+use crate::support::{FOUR_DRIVES, TestDaemon};
+
+const LONG: Duration = Duration::from_secs(20);
+
+async fn call(
+    d: &TestDaemon,
+    token: Option<&str>,
+    method: &str,
+    path: &str,
+    body: Option<Value>,
+) -> (u16, Value) {
+    let mut r = reqwest::Client::new().request(method.parse().unwrap(), d.url(path));
+    if let Some(t) = token {
+        r = r.bearer_auth(t);
+    }
+    if let Some(b) = body {
+        r = r.json(&b);
+    }
+    let res = r.send().await.unwrap();
+    (
+        res.status().as_u16(),
+        res.json().await.unwrap_or(Value::Null),
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn whoami_names_the_token_and_its_role() {
+    let open = TestDaemon::start(FOUR_DRIVES).await;
+    let (status, me) = call(&open, None, "GET", "/api/v1/whoami", None).await;
+    assert_eq!(status, 200);
+    assert_eq!(
+        (me["role"].clone(), me["tokens_required"].clone()),
+        (json!("admin"), json!(false))
+    );
+    assert!(
+        me["who"].as_str().unwrap().starts_with("127.0.0.1:"),
+        "{me}"
+    );
+    open.stop().await;
+
+    let d = TestDaemon::start(&config(true, "")).await;
+    let (status, me) = call(&d, None, "GET", "/api/v1/whoami", None).await;
+    assert_eq!(
+        (status, me),
+        (
+            200,
+            json!({"who": null, "role": null, "tokens_required": true})
+        )
+    );
+    for (token, name, role) in [
+        (VIEWER, "dashboard", "viewer"),
+        (OPERATOR, "panel", "operator"),
+        (ADMIN, "commissioning", "admin"),
+    ] {
+        let (status, me) = call(&d, Some(token), "GET", "/api/v1/whoami", None).await;
+        assert_eq!(
+            (status, me),
+            (
+                200,
+                json!({"who": name, "role": role, "tokens_required": true})
+            )
+        );
+    }
+    let (status, problem) = call(&d, Some("not-a-token"), "GET", "/api/v1/whoami", None).await;
+    assert_eq!(
+        (status, problem["type"].clone()),
+        (401, json!("urn:drivegate:problem:unauthorized"))
+    );
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn settings_are_read_back_from_the_drive() {
+    let d = TestDaemon::start(&config(true, "")).await;
+    let (status, s) = call(
+        &d,
+        Some(VIEWER),
+        "GET",
+        "/api/v1/drives/lift/settings",
+        None,
+    )
+    .await;
+    assert_eq!(status, 200, "{s}");
+    assert_eq!(
+        (
+            s["drive"].clone(),
+            s["unit"].clone(),
+            s["gear_ratio"].clone()
+        ),
+        (json!("lift"), json!(2), json!(10.0))
+    );
+    assert_eq!(
+        s["speed_ramp"]["alpha"], 500_000,
+        "the power-on default (manual 1.9)"
+    );
+    assert_eq!(s["rs485_control"], true);
+
+    // What an admin writes is what the drive then holds.
+    let writes = [
+        ("/protection", json!({"limit_a": 10.0, "stall_ms": 2000})),
+        ("/ramps/speed", json!({"alpha": 5000})),
+        ("/ramps/position", json!({"alpha": 200})),
+        ("/inertia", json!({"ratio": 7})),
+    ];
+    for (path, body) in writes {
+        let (status, r) = call(
+            &d,
+            Some(ADMIN),
+            "PUT",
+            &format!("/api/v1/drives/lift{path}"),
+            Some(body),
+        )
+        .await;
+        assert_eq!(status, 200, "{path}: {r}");
+    }
+    call(
+        &d,
+        Some(OPERATOR),
+        "POST",
+        "/api/v1/drives/lift/commands/activate",
+        None,
+    )
+    .await;
+    let (status, r) = call(
+        &d,
+        Some(OPERATOR),
+        "PUT",
+        "/api/v1/drives/lift/setpoint",
+        Some(json!({"position_deg": -45.5})),
+    )
+    .await;
+    assert_eq!(status, 200, "{r}");
+    let (_, s) = call(
+        &d,
+        Some(VIEWER),
+        "GET",
+        "/api/v1/drives/lift/settings",
+        None,
+    )
+    .await;
+    assert_eq!(
+        s["protection"],
+        json!({"limit_a": 10.0, "limit_counts": 1280, "stall_ms": 2000})
+    );
+    assert_eq!(
+        (
+            s["speed_ramp"]["alpha"].clone(),
+            s["position_ramp"]["alpha"].clone()
+        ),
+        (json!(5000), json!(200))
+    );
+    assert_eq!(s["inertia_ratio"], 7);
+    assert_eq!(s["setpoints"]["position_deg"], -45.5);
+
+    let (status, p) = call(
+        &d,
+        Some(VIEWER),
+        "GET",
+        "/api/v1/drives/nope/settings",
+        None,
+    )
+    .await;
+    assert_eq!(
+        (status, p["type"].clone()),
+        (404, json!("urn:drivegate:problem:unknown-drive"))
+    );
+    let (status, _) = call(&d, None, "GET", "/api/v1/drives/lift/settings", None).await;
+    assert_eq!(status, 401);
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_write_of_every_face_is_on_the_stream() {
+    let d = TestDaemon::start(&config(true, "")).await;
+    let watcher = Watcher::start(d.http, Some(VIEWER)).await;
+    let is_write = |drive: &'static str, who: &'static str, what: &'static str| {
+        move |v: &Value| {
+            v["type"] == "write"
+                && v["drive"] == drive
+                && v["who"] == who
+                && v["what"].as_str().unwrap_or("").contains(what)
+        }
+    };
+
+    // REST.
+    let start = Instant::now();
+    call(
+        &d,
+        Some(OPERATOR),
+        "POST",
+        "/api/v1/drives/conveyor/commands/activate",
+        None,
+    )
+    .await;
+    let (_, w) = watcher
+        .wait(
+            start,
+            LONG,
+            "the REST write",
+            is_write("conveyor", "panel", "activate"),
+        )
+        .await;
+    assert_eq!(w["ok"], true);
+    assert_eq!(w["answer"], "confirmed by the drive");
+    assert_eq!(
+        (w["bus"].clone(), w["unit"].clone()),
+        (json!("sim"), json!(1))
+    );
+    assert!(w["at"].as_str().unwrap().ends_with('Z'));
+
+    // Modbus TCP: a write the drive refuses (a speed beyond 2047 rpm).
+    let mut raw = Raw::connect(d.modbus_tcp.unwrap()).await;
+    let start = Instant::now();
+    raw.ask(2, &write(0x0006, 3000)).await;
+    let (_, w) = watcher
+        .wait(start, LONG, "the Modbus TCP write", |v| {
+            v["type"] == "write"
+                && v["drive"] == "lift"
+                && v["who"].as_str().unwrap_or("").starts_with("127.0.0.1:")
+        })
+        .await;
+    assert_eq!(w["ok"], false, "{w}");
+    assert!(w["answer"].as_str().unwrap().contains("refused"), "{w}");
+
+    // The daemon's own: a lease's stop.
+    call(
+        &d,
+        Some(OPERATOR),
+        "PUT",
+        "/api/v1/drives/conveyor/mode",
+        Some(json!({"mode": "speed"})),
+    )
+    .await;
+    let start = Instant::now();
+    let (status, r) = call(
+        &d,
+        Some(OPERATOR),
+        "PUT",
+        "/api/v1/drives/conveyor/setpoint",
+        Some(json!({"speed_rpm": 30, "lease_ms": 200})),
+    )
+    .await;
+    assert_eq!(status, 200, "{r}");
+    let (_, w) = watcher
+        .wait(start, LONG, "the lease's stop", |v| {
+            v["type"] == "write" && v["who"] == "lease-expiry (panel)"
+        })
+        .await;
+    assert_eq!(w["ok"], true, "{w}");
+    d.stop().await;
+}

@@ -1,0 +1,179 @@
+// The console's shell: who the user is (token entry), the live connection,
+// the navigation between pages, the emergency brake on every page and the
+// keyboard shortcuts. A page is one module in pages/ with
+//   export const page = { id, title, nav, role, match(path), mount(main, params, ctx) }
+// where mount returns a function that unmounts it. Adding a page is adding
+// a file and an entry in PAGES.
+
+import { ApiError, drivePath, get, post, setToken, token } from './api.js';
+import { Stream } from './stream.js';
+import { Store } from './store.js';
+import { h, Note } from './ui.js';
+import { page as overview } from './pages/overview.js';
+import { page as drive } from './pages/drive.js';
+import { page as settings } from './pages/settings.js';
+import { page as commissioning } from './pages/commissioning.js';
+import { page as events } from './pages/events.js';
+
+const PAGES = [overview, drive, settings, commissioning, events];
+
+const stream = new Stream();
+const store = new Store(stream);
+const ctx = { stream, store, brakeDrive, navigate };
+let unmount = null;
+
+// For the tests and the benchmark: what the page has received and drawn.
+window.drivegate = { stream, store, pages: PAGES.map((p) => p.id) };
+
+function navigate(path) {
+  location.hash = `#${path}`;
+}
+
+function route() {
+  const path = decodeURI(location.hash.replace(/^#/, '')) || '/';
+  let found = null;
+  let params = null;
+  for (const p of PAGES) {
+    params = p.match(path);
+    if (params) { found = p; break; }
+  }
+  if (!found) { found = overview; params = {}; }
+  if (unmount) { unmount(); unmount = null; }
+  const main = document.getElementById('main');
+  main.replaceChildren();
+  main.dataset.page = found.id;
+  if (found.role && !store.can(found.role)) {
+    main.append(h('section', { class: 'panel' }, h('h1', {}, found.title),
+      h('p', {}, `This page needs the ${found.role} role; this token "${store.me.who}" has the ${store.me.role} role.`)));
+  } else {
+    unmount = found.mount(main, params, ctx) || null;
+  }
+  document.title = `${found.title} — drivegate`;
+  for (const a of document.querySelectorAll('#nav a')) {
+    a.toggleAttribute('aria-current', a.dataset.page === found.id);
+    if (a.dataset.page === found.id) a.setAttribute('aria-current', 'page');
+  }
+}
+
+function buildNav() {
+  const nav = document.getElementById('nav');
+  nav.replaceChildren(...PAGES.filter((p) => p.nav && (!p.role || store.can(p.role)))
+    .map((p) => h('a', { href: `#${p.nav.path}`, dataset: { page: p.id }, accesskey: p.nav.key }, p.nav.label)));
+}
+
+function showConnection({ state, reason }) {
+  const el = document.getElementById('conn');
+  el.className = `conn ${state}`;
+  el.textContent = state === 'open' ? 'live'
+    : state === 'connecting' ? 'connecting…'
+      : `connection lost${reason ? ` (${reason})` : ''}: values are stale, reconnecting`;
+  document.body.classList.toggle('stale', state !== 'open');
+}
+
+/** Sends the emergency brake to one drive; resolves with the reply. */
+function brakeDrive(name) {
+  return post(drivePath(name, '/commands/brake'));
+}
+
+/** The brake to every drive at once, each at emergency priority. */
+async function brakeAll() {
+  const note = brakeNote;
+  const names = store.order.slice();
+  note.pending(`braking ${names.length} drives…`);
+  const results = await Promise.allSettled(names.map((n) => brakeDrive(n)));
+  const failed = results
+    .map((r, i) => (r.status === 'rejected' ? `${names[i]}: ${r.reason instanceof ApiError ? r.reason.message : r.reason}` : null))
+    .filter(Boolean);
+  if (failed.length === 0) note.ok(`brake confirmed by all ${names.length} drives`);
+  else note.fail(new ApiError({ title: `Brake failed on ${failed.length} of ${names.length} drives`, detail: failed.join('; ') }, 0));
+  store.log({ kind: 'brake', severity: failed.length ? 'bad' : 'warn', drive: null,
+    who: store.me.who, text: `emergency brake of all drives from this page: ${failed.length ? failed.join('; ') : 'all confirmed'}` });
+}
+
+const brakeNote = new Note();
+
+function buildHeader() {
+  const who = document.getElementById('who');
+  who.replaceChildren(h('span', { class: `role ${store.me.role}` }, store.me.role), ' ', store.me.who);
+  if (store.me.tokens_required) {
+    who.append(' ', h('button', { class: 'link', onclick: () => { setToken(null); location.reload(); } }, 'Forget token'));
+  }
+  const brake = document.getElementById('brake-all');
+  brake.hidden = !store.can('operator');
+  brake.addEventListener('click', () => brakeAll());
+  document.getElementById('brake-note').replaceWith(brakeNote.el);
+  brakeNote.el.id = 'brake-note';
+}
+
+function shortcuts(e) {
+  // Keys typed into a field are the field's (a capital B in a search box
+  // must not brake the plant); the brake button is one Tab away.
+  const typing = e.target.closest('input, textarea, select, [contenteditable]');
+  if (e.ctrlKey || e.metaKey || e.altKey || typing) return;
+  if (e.key === 'B' && e.shiftKey && store.can('operator')) {
+    e.preventDefault();
+    brakeAll();
+    return;
+  }
+  if (document.querySelector('dialog[open]')) return;
+  const keys = { o: '/', e: '/events', c: '/commissioning', s: '/settings' };
+  if (keys[e.key] && !e.shiftKey) {
+    e.preventDefault();
+    navigate(keys[e.key]);
+  } else if (e.key === '?') {
+    e.preventDefault();
+    document.getElementById('help').showModal();
+  }
+}
+
+async function login(message) {
+  const dialog = document.getElementById('login');
+  const input = dialog.querySelector('input');
+  const out = dialog.querySelector('output');
+  out.textContent = message || '';
+  dialog.showModal();
+  input.focus();
+  return new Promise((resolve) => {
+    dialog.querySelector('form').addEventListener('submit', (e) => {
+      e.preventDefault();
+      setToken(input.value.trim());
+      dialog.close();
+      resolve();
+    }, { once: true });
+  });
+}
+
+async function whoami() {
+  for (;;) {
+    try {
+      const me = await get('/api/v1/whoami');
+      if (me.role) return me;
+      await login('');
+    } catch (e) {
+      if (e instanceof ApiError && e.status === 401) {
+        await login(token() ? `${e.message}. Enter a valid token.` : '');
+      } else {
+        document.getElementById('main').replaceChildren(h('section', { class: 'panel' },
+          h('h1', {}, 'drivegate does not answer'), h('p', { role: 'alert' }, e.message),
+          h('button', { onclick: () => location.reload() }, 'Try again')));
+        throw e;
+      }
+    }
+  }
+}
+
+async function start() {
+  store.me = await whoami();
+  document.body.dataset.role = store.me.role;
+  buildHeader();
+  buildNav();
+  stream.on('state', showConnection);
+  await store.refreshDrives().catch(() => {});
+  stream.connect();
+  store.watchBuses();
+  window.addEventListener('hashchange', route);
+  document.addEventListener('keydown', shortcuts);
+  route();
+}
+
+start().catch((e) => console.warn('drivegate console did not start:', e.message));

@@ -1,0 +1,236 @@
+// What the page knows: the drives (from GET /api/v1/drives, then every
+// status on the stream), the buses (GET /api/v1/buses, every 2 s), who the
+// user is, and the event log. Pages read it and ask to be told of changes;
+// the stream is read once here, whatever page is open, so the event log
+// keeps everything since the page was opened.
+
+import { get } from './api.js';
+
+const MAX_EVENTS = 5000;
+const BUS_PERIOD_MS = 2000;
+
+export class Store {
+  constructor(stream) {
+    this.stream = stream;
+    this.me = null;
+    this.drives = new Map();
+    this.order = [];
+    this.buses = new Map();
+    this.events = [];
+    this.listeners = new Set();
+    this.eventListeners = new Set();
+    this.stats = { statusReceived: 0, firstValueAt: null };
+    this.busTimer = null;
+    stream.on('*', (m) => this.onMessage(m));
+    stream.on('state', (s) => {
+      if (s.state === 'open') this.refreshDrives().catch(() => {});
+      this.log({ kind: 'link', severity: s.state === 'open' ? 'info' : 'warn', drive: null,
+        text: s.state === 'open' ? 'live connection to drivegate open'
+          : s.state === 'closed' ? `live connection to drivegate lost${s.reason ? `: ${s.reason}` : ''}; reconnecting` : null });
+      this.changed(null);
+    });
+  }
+
+  /** Role check for showing controls; the daemon checks every request anyway. */
+  can(role) {
+    const rank = { viewer: 0, operator: 1, admin: 2 };
+    return this.me !== null && rank[this.me.role] >= rank[role];
+  }
+
+  async refreshDrives() {
+    const list = await get('/api/v1/drives');
+    const now = performance.now();
+    const order = [];
+    for (const v of list) {
+      order.push(v.name);
+      const d = this.drives.get(v.name) || { name: v.name, history: null };
+      d.bus = v.bus;
+      d.unit = v.unit;
+      d.gearRatio = v.gear_ratio;
+      d.link = v.link;
+      d.lease = v.lease;
+      if (v.status && (!d.status || d.receivedAt === undefined)) {
+        d.status = v.status;
+        d.receivedAt = now - (v.age_ms ?? 0);
+      }
+      this.drives.set(v.name, d);
+    }
+    this.order = order;
+    this.changed(null);
+  }
+
+  async refreshBuses() {
+    const list = await get('/api/v1/buses');
+    const now = performance.now();
+    for (const b of list) {
+      const prev = this.buses.get(b.name);
+      const c = b.counters;
+      const tx = c.ok + c.exceptions + c.timeouts + c.crc_errors + c.bad_replies;
+      const errors = c.timeouts + c.crc_errors + c.bad_replies;
+      const entry = { ...b, at: now, tx, errors, utilisation: null, errorRate: null };
+      if (prev) {
+        const dt = (now - prev.at) / 1000;
+        if (dt > 0) entry.utilisation = Math.min(1, Math.max(0, (c.busy_seconds - prev.counters.busy_seconds) / dt));
+        const dtx = tx - prev.tx;
+        entry.errorRate = dtx > 0 ? (errors - prev.errors) / dtx : 0;
+      }
+      this.buses.set(b.name, entry);
+    }
+    this.changed(null);
+  }
+
+  /** Polls the buses' counters while the page is open. */
+  watchBuses() {
+    const tick = () => {
+      this.refreshBuses().catch(() => {}).finally(() => {
+        this.busTimer = setTimeout(tick, BUS_PERIOD_MS);
+      });
+    };
+    tick();
+  }
+
+  onMessage(m) {
+    switch (m.type) {
+      case 'status': this.onStatus(m); break;
+      case 'online':
+        this.setLink(m.drive, 'online');
+        this.log({ kind: 'link', severity: 'info', drive: m.drive, text: 'online: answers its polls again' });
+        break;
+      case 'offline':
+        this.setLink(m.drive, 'offline');
+        this.log({ kind: 'link', severity: 'bad', drive: m.drive, text: `offline: ${m.reason}` });
+        break;
+      case 'bus-up':
+        this.log({ kind: 'bus', severity: 'info', drive: null, bus: m.bus, text: `bus ${m.bus}: port open` });
+        this.refreshBuses().catch(() => {});
+        break;
+      case 'bus-down':
+        this.log({ kind: 'bus', severity: 'bad', drive: null, bus: m.bus, text: `bus ${m.bus}: port down: ${m.reason}` });
+        this.refreshBuses().catch(() => {});
+        break;
+      case 'lease-expired':
+        this.log({ kind: 'lease', severity: m.ok ? 'warn' : 'bad', drive: m.drive, who: m.owner,
+          text: `lease of ${m.owner} ended (${m.reason}); ${m.action}: ${m.result}${m.retrying ? ' — retrying until the drive confirms' : ''}` });
+        this.clearLease(m.drive);
+        break;
+      case 'lease-stop':
+        this.log({ kind: 'lease', severity: m.stopped ? 'info' : 'warn', drive: m.drive, who: m.owner,
+          text: `stop after the lease of ${m.owner}: ${m.result} (${m.attempts} tries)` });
+        break;
+      case 'write':
+        this.log({ kind: 'write', severity: m.ok ? 'info' : 'bad', drive: m.drive, who: m.who, bus: m.bus,
+          at: Date.parse(m.at), text: `${m.what} → ${m.answer}` });
+        break;
+      case 'lagged':
+        this.log({ kind: 'link', severity: 'warn', drive: null, text: `this page fell behind: ${m.missed} updates skipped` });
+        break;
+      default:
+        break;
+    }
+  }
+
+  onStatus(m) {
+    let d = this.drives.get(m.drive);
+    if (!d) {
+      d = { name: m.drive, bus: m.bus, unit: m.unit, history: null };
+      this.drives.set(m.drive, d);
+      this.order.push(m.drive);
+    }
+    const prev = d.status;
+    const s = m.status;
+    const now = performance.now();
+    d.status = s;
+    d.receivedAt = now;
+    d.seenAt = m.seen_at;
+    if (d.link !== 'online') d.link = 'online';
+    this.stats.statusReceived += 1;
+    if (this.stats.firstValueAt === null) this.stats.firstValueAt = now;
+    if (d.history) d.history.push(Date.parse(m.seen_at) / 1000, s);
+    if (prev) {
+      if (prev.fault !== s.fault) {
+        this.log(s.fault === 'none'
+          ? { kind: 'fault', severity: 'info', drive: m.drive, text: `fault cleared (was ${prev.fault.replaceAll('_', ' ')})` }
+          : { kind: 'fault', severity: 'bad', drive: m.drive, text: `fault: ${s.fault.replaceAll('_', ' ')} (code ${s.fault_code})` });
+      }
+      if (prev.stalled !== s.stalled) {
+        this.log({ kind: 'stall', severity: s.stalled ? 'bad' : 'info', drive: m.drive,
+          text: s.stalled ? `stalled at ${s.current_a.toFixed(2)} A: needs a fault reset` : 'stall cleared' });
+      }
+      if (prev.active !== s.active) {
+        this.log({ kind: 'state', severity: 'info', drive: m.drive, text: s.active ? 'activated' : 'deactivated' });
+      }
+      if (prev.mode !== s.mode) {
+        this.log({ kind: 'state', severity: 'info', drive: m.drive, text: `mode: ${s.mode.replaceAll('_', ' ')}` });
+      }
+    }
+    this.changed(m.drive);
+  }
+
+  setLink(name, link) {
+    const d = this.drives.get(name);
+    if (d) { d.link = link; this.changed(name); }
+  }
+
+  clearLease(name) {
+    const d = this.drives.get(name);
+    if (d) { d.lease = null; this.changed(name); }
+  }
+
+  /** Adds an entry to the event log (newest last in the array). */
+  log(entry) {
+    if (!entry.text) return;
+    const e = { at: Date.now(), who: null, bus: null, ...entry, id: this.events.length ? this.events[this.events.length - 1].id + 1 : 1 };
+    this.events.push(e);
+    if (this.events.length > MAX_EVENTS) this.events.splice(0, this.events.length - MAX_EVENTS);
+    for (const fn of this.eventListeners) fn(e);
+  }
+
+  /** `fn(driveName | null)` on every change (null: several or not one drive). */
+  subscribe(fn) {
+    this.listeners.add(fn);
+    return () => this.listeners.delete(fn);
+  }
+
+  onEvent(fn) {
+    this.eventListeners.add(fn);
+    return () => this.eventListeners.delete(fn);
+  }
+
+  changed(name) {
+    for (const fn of this.listeners) fn(name);
+  }
+}
+
+/** A drive's recent values for the plots: a window of `seconds`. */
+export class History {
+  constructor(seconds = 30) {
+    this.seconds = seconds;
+    this.t = [];
+    this.speed = [];
+    this.position = [];
+    this.current = [];
+    this.temperature = [];
+  }
+
+  push(t, s) {
+    this.t.push(t);
+    this.speed.push(s.speed_rpm);
+    this.position.push(positionTurns(s));
+    this.current.push(s.current_a);
+    this.temperature.push(s.temperature_c);
+    const cut = this.t.findIndex((x) => x >= t - this.seconds);
+    if (cut > 0) {
+      for (const a of [this.t, this.speed, this.position, this.current, this.temperature]) a.splice(0, cut);
+    }
+  }
+}
+
+/**
+ * The position as one number of output turns: whole turns (a 16-bit
+ * counter, read as signed so a joint just below zero is -1, not 65535) plus
+ * the angle within the turn.
+ */
+export function positionTurns(s) {
+  const turns = s.turns >= 32768 ? s.turns - 65536 : s.turns;
+  return turns + s.angle_deg / 360;
+}
