@@ -31,6 +31,19 @@ impl Write {
         Write::Pdu { pdu, meaning }
     }
 
+    /// True for one whole message of the manual with valid values (not a
+    /// part of one, nor values the drive would refuse).
+    pub fn is_message(&self) -> bool {
+        matches!(
+            self,
+            Write::Drive(_)
+                | Write::Pdu {
+                    meaning: PduMeaning::Message(_),
+                    ..
+                }
+        )
+    }
+
     /// What it means for the motor.
     pub fn meaning(&self) -> Meaning {
         match self {
