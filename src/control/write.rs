@@ -305,6 +305,7 @@ impl Control {
                                 mode,
                                 length,
                                 allowance,
+                                action: request.lease_action,
                             };
                             let (grant, e): (Grant, _) = book.grant(drive, ask, now);
                             effects.extend(e);
