@@ -537,19 +537,30 @@ impl Pending {
     }
 
     /// The result, settled (leases, audit, events). Call after
-    /// [`wait`](Self::wait); a result not in yet counts as lost.
+    /// [`wait`](Self::wait): a result not in yet is given up on, and the
+    /// write settled as one whose caller went away (it may still run).
     pub fn finish(mut self) -> WriteResult {
         let Some(settle) = self.settle.take() else {
             return Err(Failure::NotSent(BusError::ShuttingDown));
         };
         self.try_ready();
         let state = std::mem::replace(&mut self.state, State::Done(Err(BusError::ShuttingDown)));
-        let result = match state {
-            State::Done(r) => settle.interpret(r),
-            State::Waiting(_) => Err(Failure::NotSent(BusError::ShuttingDown)),
-        };
-        settle.settle(&result, None);
-        result
+        match state {
+            State::Done(r) => {
+                let result = settle.interpret(r);
+                settle.settle(&result, None);
+                result
+            }
+            State::Waiting(mut rx) => {
+                rx.close();
+                let result = Err(Failure::Unknown {
+                    error: BusError::ShuttingDown,
+                    reply: None,
+                });
+                settle.settle(&result, Some(GONE));
+                result
+            }
+        }
     }
 }
 
