@@ -32,6 +32,16 @@ impl Write {
         Write::Pdu { pdu, meaning }
     }
 
+    /// A write PDU to a unit that is not a configured drive (another
+    /// device on the bus): the drive's register table says nothing about
+    /// it, so it is a raw write, whatever its addresses.
+    pub fn device_pdu(pdu: Vec<u8>) -> Self {
+        Write::Pdu {
+            pdu,
+            meaning: PduMeaning::Unknown,
+        }
+    }
+
     /// True for one whole message of the manual with valid values (not a
     /// part of one, nor values the drive would refuse).
     pub fn is_message(&self) -> bool {
