@@ -243,6 +243,12 @@ async fn a_setpoint_the_brake_overtook_has_the_brake_applied_again() {
             let pdu = write(register, value);
             assert_eq!(plc.ask(LIFT, &pdu).await, pdu);
         }
+        // Polled active: the setpoint goes straight to the queue (no read
+        // to confirm an inactive polled status first).
+        eventually(LIMIT, "the lift polled active", || {
+            bus.drive(LIFT)?.status?.active().then_some(())
+        })
+        .await;
         let before = writes(&bus);
         // The PLC pipelines a setpoint and then the brake. Both wait behind
         // the held wire; the brake, at emergency priority, goes first, and
