@@ -250,8 +250,15 @@ async fn a_full_queue_says_busy() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn injected_faults_never_deliver_a_reply_to_the_wrong_request() {
     // 5 % dropped, 5 % corrupted, 5 % late (past the 50 ms timeout, inside
-    // the guard), 5 % noise after replies.
-    let config = FOUR_DRIVES.replace("retries = 1", "retries = 1\nguard_ms = 100").replace(
+    // the guard), 5 % noise after replies. A loaded machine may make more
+    // replies late, or later than the guard: those fail their attempt
+    // (timeout, bad reply), never deliver another request's value.
+    let config = crate::support::replaced(
+        FOUR_DRIVES,
+        crate::support::WIRE_TIMING,
+        "response_timeout_ms = 50\nguard_ms = 100",
+    )
+    .replace(
         "seed = 7",
         "seed = 7\n[bus.sim.faults]\ndrop_rate = 0.05\ncrc_error_rate = 0.05\nlate_rate = 0.05\nlate_ms = 70\nnoise_rate = 0.05",
     );
