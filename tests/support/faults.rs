@@ -758,9 +758,12 @@ pub const LONGEST_REPLY: u64 = 19;
 /// longer than the timeout, it answers late like a slow drive would. That
 /// is the machine's doing, not the master's, so it is allowed, but it must
 /// be rare (a master that gave up early would make most replies late) and
-/// each must be a whole reply the master discarded
-/// ([`assert_late_replies_discarded`]). Every injected fault still fails
-/// its attempt: fewer failed attempts than faults fails here.
+/// each must be a reply the master did not take
+/// ([`assert_late_replies_discarded`]): its attempt timed out, or, when
+/// the machine held it past the guard time too, the attempt it met refused
+/// it as a bad reply (what RTU allows: never taken as an answer). Every
+/// injected fault still fails its attempt: fewer failed attempts than
+/// faults fails here.
 pub fn late_by_the_machine(wire: &Wire, sim: &SimStats) -> u64 {
     let injected = sim.dropped + sim.unanswered + sim.late + sim.corrupted;
     let failed = wire.failed_attempts();
