@@ -15,10 +15,11 @@
 //!   byte count asked for);
 //! - after a timeout or a bad frame it waits a guard time, discarding what
 //!   arrives, and flushes the input, so a late reply to one request is never
-//!   taken as the answer to the next. After a timeout in which not one byte
-//!   arrived (a drive that is off), the guard only lasts as long as a reply
-//!   starting at the timeout would take, unless a fixed guard is configured:
-//!   a dead drive then costs its timeout and little more;
+//!   taken as the answer to the next. A probe of a drive not known to answer
+//!   (off, or never heard) gets one attempt, and after a timeout in which
+//!   not one byte arrived its guard only lasts as long as a reply starting
+//!   at the timeout would take, unless a fixed guard is configured: a dead
+//!   drive then costs its timeout and little more;
 //! - a broadcast (unit 0) is sent, followed by the turnaround delay, and no
 //!   reply is read; bytes arriving during the turnaround do not shorten it.
 
@@ -83,11 +84,13 @@ impl MasterSettings {
 /// arrives, so that a late reply is not taken for the next request's.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Guard {
-    /// After a bad frame: the response timeout. After a timeout in which not
-    /// one byte arrived: as long as the awaited reply, had it started at the
-    /// timeout, takes on the wire, plus t3.5, and on while bytes keep
-    /// coming. A drive that is off then costs its timeout and a few
-    /// milliseconds, not twice its timeout.
+    /// The response timeout; but after a [probe](RtuMaster::probe)'s
+    /// timeout in which not one byte arrived, as long as the awaited reply,
+    /// had it started at the timeout, takes on the wire, plus t3.5, and on
+    /// while bytes keep coming. A drive that is off then costs its timeout
+    /// and a few milliseconds per probe, while a drive that answered its
+    /// last request and is late once keeps the whole guard for its late
+    /// reply.
     Auto,
     /// This long after every failed attempt: for drives that may answer
     /// later than the response timeout.
@@ -220,8 +223,26 @@ impl RtuMaster {
         pdu: &[u8],
         max_attempts: Option<u8>,
     ) -> Result<Report, PortFailure> {
+        self.run(unit, pdu, max_attempts, false).await
+    }
+
+    /// Sends `pdu` once to `unit`, a drive not known to answer (off, or not
+    /// heard yet): no retry, and after a timeout in which nothing arrived
+    /// only the guard a late reply needs (with [`Guard::Auto`]). Errors as
+    /// for [`transact`](Self::transact).
+    pub async fn probe(&mut self, unit: u8, pdu: &[u8]) -> Result<Report, PortFailure> {
+        self.run(unit, pdu, Some(1), true).await
+    }
+
+    async fn run(
+        &mut self,
+        unit: u8,
+        pdu: &[u8],
+        max_attempts: Option<u8>,
+        probe: bool,
+    ) -> Result<Report, PortFailure> {
         let mut sent = false;
-        self.attempts(unit, pdu, max_attempts, &mut sent)
+        self.attempts(unit, pdu, max_attempts, probe, &mut sent)
             .await
             .map_err(|e| {
                 if sent {
@@ -232,13 +253,14 @@ impl RtuMaster {
             })
     }
 
-    /// [`transact`](Self::transact)'s attempts; sets `sent` once a byte of
-    /// the request has been written.
+    /// The attempts of a transaction (or a probe); sets `sent` once a byte
+    /// of the request has been written.
     async fn attempts(
         &mut self,
         unit: u8,
         pdu: &[u8],
         max_attempts: Option<u8>,
+        probe: bool,
         sent: &mut bool,
     ) -> io::Result<Report> {
         let frame = rtu_frame::encode(unit, pdu);
@@ -316,7 +338,7 @@ impl RtuMaster {
                 Err(fault) => {
                     let guard_start = Instant::now();
                     match (self.settings.guard, &fault) {
-                        (Guard::Auto, Fault::Timeout) => {
+                        (Guard::Auto, Fault::Timeout) if probe => {
                             let reply_len = rtu_frame::expected_response_length(pdu)
                                 .unwrap_or(rtu_frame::MAX_FRAME);
                             self.guard_late_reply(reply_len).await?;

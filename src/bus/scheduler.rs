@@ -467,12 +467,22 @@ impl Scheduler {
             job.finish(Err(BusError::Expired { waited }));
             return Ok(());
         }
-        // An offline drive gets one try: its retries would cost everybody.
-        let attempts = job
-            .max_attempts
-            .or_else(|| (job.unit != 0 && self.cache().is_offline(job.unit)).then_some(1));
+        // An offline drive is probed: one try and a short guard; its retries
+        // would cost everybody.
+        let offline = job.unit != 0 && self.cache().is_offline(job.unit);
         let queued = now - job.submitted;
-        let report = match master.transact(job.unit, &job.pdu, attempts).await {
+        let sent = if offline && job.max_attempts.is_none_or(|n| n <= 1) {
+            master.probe(job.unit, &job.pdu).await
+        } else {
+            master
+                .transact(
+                    job.unit,
+                    &job.pdu,
+                    job.max_attempts.or(offline.then_some(1)),
+                )
+                .await
+        };
+        let report = match sent {
             Ok(report) => report,
             Err(failure) => {
                 self.stats()
@@ -526,13 +536,15 @@ impl Scheduler {
         let offline = self.cache().is_offline(unit);
         let due = self.plan.due_at(unit).unwrap_or_else(Instant::now);
         // A drive that did not answer its last poll (or never has) is
-        // probed with one attempt: if it is off, a retry only costs another
-        // timeout, and the next poll comes anyway.
-        let single = !self.cache().answering(unit);
-        let report = master
-            .transact(unit, pdu, single.then_some(1))
-            .await
-            .map_err(PortFailure::into_io)?;
+        // probed: one attempt and a short guard. If it is off, a retry or a
+        // long guard only costs everybody time, and the next poll comes
+        // anyway.
+        let report = if self.cache().answering(unit) {
+            master.transact(unit, pdu, None).await
+        } else {
+            master.probe(unit, pdu).await
+        }
+        .map_err(PortFailure::into_io)?;
         self.account(pdu[0], &report, due);
         let status =
             report

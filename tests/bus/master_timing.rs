@@ -94,24 +94,63 @@ fn reply(count: u16, offset: u16) -> Vec<u8> {
 }
 
 #[tokio::test]
-async fn a_silent_drive_costs_its_timeouts_and_a_short_guard_not_twice_the_timeout() {
+async fn a_silent_drive_is_probed_once_with_a_short_guard() {
     let (ptm, path, _keep) = pty();
     let (mut arrived, _) = peer(ptm, vec![Step::Silence, Step::Silence]);
     let mut m = master(&path, settings(115_200, 200, 1)).await;
     let status = [0x03, 0x00, 0xC0, 0x00, 0x07];
-    let r = m.transact(1, &status, None).await.unwrap();
-    assert_eq!((r.outcome, r.attempts), (Outcome::Timeout, 2));
-    assert_eq!(r.fault, Some(Fault::Timeout));
+    for _ in 0..2 {
+        let r = m.probe(1, &status).await.unwrap();
+        // One attempt whatever the retries.
+        assert_eq!((r.outcome, r.attempts), (Outcome::Timeout, 1));
+        assert_eq!(r.fault, Some(Fault::Timeout));
+    }
     let first = arrived.recv().await.unwrap();
-    let retry = arrived.recv().await.unwrap();
-    let gap = retry - first;
-    // The retry waits the timeout and the guard a 19-byte reply starting at
-    // the timeout would need (1.65 ms + t3.5)...
+    let second = arrived.recv().await.unwrap();
+    let gap = second - first;
+    // The next request waits the timeout and the guard a 19-byte reply
+    // starting at the timeout would need (1.65 ms + t3.5)...
     let line = LineTiming::new_8n1(115_200);
     let least = Duration::from_millis(200) + line.wire_time(19) + line.t3_5();
     assert!(gap >= least - Duration::from_millis(1), "{gap:?}");
     // ...not a guard as long as the timeout (400 ms between the two).
     assert!(gap < Duration::from_millis(350), "{gap:?}");
+}
+
+#[tokio::test]
+async fn a_drive_that_answers_keeps_the_whole_guard_for_a_late_reply() {
+    // Not a probe: the first reply comes 20 ms after the 50 ms timeout,
+    // inside the guard of a whole timeout, and is discarded; the retry's
+    // reply (values + 1) is the one returned, and nothing spills over.
+    let (ptm, path, _keep) = pty();
+    let line = LineTiming::new_8n1(115_200);
+    let (_, _) = peer(
+        ptm,
+        vec![
+            Step::Write {
+                delay: line.wire_time(8) + Duration::from_millis(70),
+                bytes: reply(7, 0),
+            },
+            Step::Write {
+                delay: Duration::ZERO,
+                bytes: reply(7, 1),
+            },
+            Step::Write {
+                delay: Duration::ZERO,
+                bytes: reply(7, 2),
+            },
+        ],
+    );
+    let mut m = master(&path, settings(115_200, 50, 1)).await;
+    let r = m.transact(100, &read(7), None).await.unwrap();
+    assert_eq!((r.outcome, r.attempts), (Outcome::Ok, 2));
+    assert_eq!(&r.reply.unwrap()[2..4], &[0x00, 0x01]);
+    assert!(r.stray_bytes >= 19, "{}", r.stray_bytes);
+    let r = m.transact(100, &read(7), None).await.unwrap();
+    assert_eq!(
+        (r.attempts, &r.reply.unwrap()[2..4]),
+        (1, &[0x00, 0x02][..])
+    );
 }
 
 #[tokio::test]
@@ -137,10 +176,11 @@ async fn a_fixed_guard_is_kept_after_a_silent_timeout() {
 }
 
 #[tokio::test]
-async fn a_reply_that_starts_in_the_short_guard_is_discarded_whole() {
-    // 9600 baud: the guard after a silent timeout is the 255-byte reply's
-    // 266 ms + t3.5. The first reply starts 20 ms after the timeout, inside
-    // it; the retry's reply (values + 1) must be the one returned.
+async fn a_reply_that_starts_in_a_probes_short_guard_is_discarded_whole() {
+    // 9600 baud: the guard after a probe's silent timeout is the 255-byte
+    // reply's 266 ms + t3.5. The reply starts 20 ms after the timeout,
+    // inside it, and is discarded whole; the next request's reply (values
+    // + 1) is the next request's.
     let (ptm, path, _keep) = pty();
     let line = LineTiming::new_8n1(9600);
     let late = line.wire_time(8) + Duration::from_millis(50 + 20);
@@ -158,19 +198,12 @@ async fn a_reply_that_starts_in_the_short_guard_is_discarded_whole() {
         ],
     );
     let mut m = master(&path, settings(9600, 50, 1)).await;
-    let r = m.transact(100, &read(125), None).await.unwrap();
-    assert_eq!((r.outcome, r.attempts), (Outcome::Ok, 2));
-    let pdu = r.reply.unwrap();
-    assert_eq!(
-        &pdu[2..4],
-        &[0x00, 0x01],
-        "the retry's reply, not the late one"
-    );
-    assert!(
-        r.stray_bytes >= 255,
-        "the late reply was discarded: {}",
-        r.stray_bytes
-    );
+    let r = m.probe(100, &read(125)).await.unwrap();
+    assert_eq!((r.outcome, r.attempts), (Outcome::Timeout, 1));
+    assert_eq!(r.stray_bytes, 255, "the late reply was discarded whole");
+    let r = m.probe(100, &read(125)).await.unwrap();
+    assert_eq!(r.outcome, Outcome::Ok);
+    assert_eq!(&r.reply.unwrap()[2..4], &[0x00, 0x01], "its own reply");
 }
 
 #[tokio::test]

@@ -17,6 +17,7 @@ mod grafana;
 mod logs;
 mod manifest;
 mod metrics;
+mod metrics_bus_idle;
 mod metrics_scrape_cost;
 mod package;
 mod prometheus;
