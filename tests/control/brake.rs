@@ -229,7 +229,11 @@ async fn a_setpoint_the_brake_overtook_has_the_brake_applied_again() {
     tokio::time::timeout(LIMIT, async {
         // A second of response timeout: the wire can be held long enough
         // for both writes to be queued behind it.
-        let toml = FOUR_DRIVES.replace("response_timeout_ms = 50", "response_timeout_ms = 1000");
+        let toml = crate::support::replaced(
+            FOUR_DRIVES,
+            crate::support::WIRE_TIMING,
+            "response_timeout_ms = 1000\nguard_ms = 50",
+        );
         let d = TestDaemon::start(&toml).await;
         let bus = d.plant.buses()[0].handle.clone();
         let mut plc = Raw::connect(d.modbus_tcp.unwrap()).await;
