@@ -9,7 +9,7 @@ use std::time::Duration;
 use tracing::{info, warn};
 
 use crate::audit;
-use crate::bus::BusHandle;
+use crate::bus::{BusHandle, Origin};
 use crate::config::{BusConfig, Config};
 use crate::safety::{self, StopAction, StopOutcome};
 use crate::sim::{SimHandle, Simulator};
@@ -170,7 +170,8 @@ impl Plant {
             let handle = self.handle_of(drive).clone();
             let (name, unit) = (drive.name.clone(), drive.unit);
             async move {
-                match safety::stop_drive(&handle, unit, action, true, None).await {
+                match safety::stop_drive(&handle, unit, action, true, None, Origin::Shutdown).await
+                {
                     Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
                         // One line per write: with the mode unknown,
                         // zero-speed is two (speed and torque setpoint 0).

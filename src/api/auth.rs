@@ -18,7 +18,7 @@ use super::listener::ClientAddr;
 use super::problem::{Kind, Problem};
 use super::roles::Role;
 use super::state::ApiState;
-use crate::bus::SourceId;
+use crate::bus::{Origin, SourceId};
 
 /// One usable token.
 #[derive(Clone)]
@@ -179,6 +179,9 @@ pub struct Caller {
     /// Its share of the bus queues: one per token (or client address), so
     /// one busy client cannot starve the others.
     pub source: SourceId,
+    /// What the bus monitor shows as the cause of this caller's frames
+    /// (HTTP by default; a stream session sets its own).
+    pub origin: Origin,
 }
 
 impl Caller {
@@ -211,6 +214,7 @@ impl Caller {
             let who: Arc<str> = peer.map_or_else(|| "local".into(), |a| a.to_string().into());
             let key = peer.map_or_else(|| "local".to_string(), |a| a.ip().to_string());
             return Ok(Caller {
+                origin: Origin::Http { who: who.clone() },
                 who,
                 role: Role::Admin,
                 source: state.source_for(&key),
@@ -230,6 +234,7 @@ impl Caller {
         match state.tokens.check(&presented) {
             Some((name, role)) => Ok(Caller {
                 source: state.source_for(&name),
+                origin: Origin::Http { who: name.clone() },
                 who: name,
                 role,
             }),

@@ -295,7 +295,7 @@ async fn scan_read(
     let mut tries = 1;
     loop {
         match handle
-            .execute(unit, &DriveRequest::ReadStatus, options)
+            .execute(unit, &DriveRequest::ReadStatus, options.clone())
             .await
         {
             Err(BusError::Busy { .. }) if tries < SCAN_TRIES => {
@@ -363,6 +363,7 @@ pub async fn scan(
         source: caller.source,
         queue_timeout: Some(Duration::from_secs(2)),
         max_attempts: Some(1),
+        origin: caller.origin.clone(),
     };
     let mut reply = ScanReply {
         bus: handle.name().to_string(),
@@ -383,7 +384,7 @@ pub async fn scan(
             .iter()
             .find(|d| d.unit() == unit)
             .map(|d| d.name().to_string());
-        match scan_read(handle, unit, options).await {
+        match scan_read(handle, unit, options.clone()).await {
             Ok(DriveReply::Status(s)) => reply.answered.push(ScanHit {
                 unit,
                 configured_as,
@@ -516,8 +517,9 @@ pub async fn set_address(
         source: caller.source,
         queue_timeout: None,
         max_attempts: None,
+        origin: caller.origin.clone(),
     };
-    let sent = handle.execute(0, &request, options).await;
+    let sent = handle.execute(0, &request, options.clone()).await;
     let outcome: Result<String, &BusError> = sent
         .as_ref()
         .map(|_| "sent as a broadcast (drives do not reply)".to_string());

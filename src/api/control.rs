@@ -215,6 +215,7 @@ fn options(caller: &Caller) -> JobOptions {
         source: caller.source,
         queue_timeout: None,
         max_attempts: None,
+        origin: caller.origin.clone(),
     }
 }
 

@@ -47,7 +47,7 @@ use utoipa::ToSchema;
 use super::control::describe;
 use super::hub::{Hub, ServerMessage};
 use crate::audit;
-use crate::bus::{BusError, BusEvent};
+use crate::bus::{BusError, BusEvent, Origin};
 use crate::drive::Mode;
 use crate::plant::Plant;
 use crate::safety::{self, StopAction, StopOutcome};
@@ -751,7 +751,11 @@ impl LeaseBook {
                 return;
             }
             tries += 1;
-            let outcome = safety::stop_drive(bus, unit, self.action, false, Some(mode)).await;
+            let origin = Origin::LeaseExpiry {
+                owner: owner.clone(),
+            };
+            let outcome =
+                safety::stop_drive(bus, unit, self.action, false, Some(mode), origin).await;
             let (sent, result) = self.describe_outcome(&ended, outcome, tries == 1);
             let next = self.record_try(index, id, &result);
             if tries == 1 && !announced {

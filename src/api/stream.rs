@@ -44,6 +44,7 @@ use super::problem::{Kind, Problem};
 use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
 use super::state::ApiState;
+use crate::bus::Origin;
 use crate::drive::ConfigCommand;
 
 /// Replies (and other answers to the client's own messages) that may wait.
@@ -194,9 +195,13 @@ impl Selection {
     }
 }
 
-async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Vec<usize>) {
+async fn session(state: ApiState, mut caller: Caller, socket: WebSocket, initial: Vec<usize>) {
     let _counted = state.metrics.faces().ws_client();
     let connection = state.next_connection_id();
+    caller.origin = Origin::WebSocket {
+        session: connection,
+        who: caller.who.clone(),
+    };
     // Unbounded, but only a lease of this client's own ending adds to it.
     let (notices_tx, notices_rx) = mpsc::unbounded_channel();
     state.leases.connection_opened(connection, notices_tx);

@@ -10,6 +10,7 @@ use tokio_util::sync::CancellationToken;
 use super::cache::{BusEvent, DriveSnapshot, StatusCache};
 use super::error::BusError;
 use super::job::{Exchange, Job, Priority, SourceId};
+use super::origin::Origin;
 use super::queue::{JobQueue, Refused};
 use super::stats::{BusStats, BusStatsSnapshot, Outcome};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest};
@@ -36,7 +37,7 @@ pub enum PortState {
 }
 
 /// Options of one submission.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct JobOptions {
     /// Priority class.
     pub priority: Priority,
@@ -46,6 +47,8 @@ pub struct JobOptions {
     pub queue_timeout: Option<Duration>,
     /// Attempts allowed (`None`: the bus's retries).
     pub max_attempts: Option<u8>,
+    /// Who caused the job, shown by the bus monitor (set by the face).
+    pub origin: Origin,
 }
 
 impl Default for JobOptions {
@@ -55,6 +58,7 @@ impl Default for JobOptions {
             source: SourceId::INTERNAL,
             queue_timeout: None,
             max_attempts: None,
+            origin: Origin::Internal,
         }
     }
 }
@@ -161,6 +165,7 @@ impl BusHandle {
             source: options.source,
             deadline: Some(now + options.queue_timeout.unwrap_or(self.shared.queue_timeout)),
             max_attempts: options.max_attempts,
+            origin: options.origin,
             submitted: now,
             reply: tx,
         };

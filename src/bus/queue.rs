@@ -269,6 +269,7 @@ mod tests {
                 pdu: vec![0x03],
                 priority,
                 source: SourceId(source),
+                origin: Default::default(),
                 deadline: None,
                 max_attempts: None,
                 submitted: Instant::now(),

@@ -551,7 +551,9 @@ mod tests {
             shared: shared.clone(),
         };
         let emergency = JobOptions::with_priority(Priority::Emergency);
-        let mut queued = bus.submit(1, STATUS_PDU.clone(), emergency).unwrap();
+        let mut queued = bus
+            .submit(1, STATUS_PDU.clone(), emergency.clone())
+            .unwrap();
         never_started(&shared, "cannot start the bus runtime: no memory".into());
         // The job that was waiting gets the reason...
         match queued.try_recv() {

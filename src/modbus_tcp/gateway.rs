@@ -20,7 +20,7 @@ use super::request;
 use super::routing::{BusUnits, Route, UnitRoutes};
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
-use crate::bus::{BusError, Priority, SourceId};
+use crate::bus::{BusError, Origin, Priority, SourceId};
 use crate::drive::Register;
 use crate::metrics::Metrics;
 use crate::modbus::ExceptionCode;
@@ -113,16 +113,17 @@ impl Gateway {
         &self.metrics
     }
 
-    /// Decides what to do with `pdu` sent by `client` to `unit`. Requests
-    /// that go to the bus are queued before this returns, so pipelined
-    /// requests wait in the bus queue, not in the socket.
-    pub fn handle(&self, client: &Client, unit: u8, pdu: Vec<u8>) -> Answer {
+    /// Decides what to do with `pdu` sent by `client` to `unit` in MBAP
+    /// transaction `transaction`. Requests that go to the bus are queued
+    /// before this returns, so pipelined requests wait in the bus queue,
+    /// not in the socket.
+    pub fn handle(&self, client: &Client, transaction: u16, unit: u8, pdu: Vec<u8>) -> Answer {
         if pdu.is_empty() {
             // The MBAP codec never yields one; answer rather than panic.
             return Answer::Now(exception_pdu(0, ExceptionCode::ILLEGAL_FUNCTION));
         }
         if unit == 0 {
-            return self.broadcast(client, pdu);
+            return self.broadcast(client, transaction, pdu);
         }
         let Some(route) = self.routes.route(unit) else {
             return self.refuse(
@@ -165,13 +166,13 @@ impl Gateway {
             self.count(function, Outcome::Cached);
             return Answer::Now(reply);
         }
-        let mut pending = Pending::new(client, &pdu, false);
+        let mut pending = Pending::new(client, transaction, &pdu, false);
         pending.submit(self, route, pdu);
         Answer::Pending(pending)
     }
 
     /// Unit 0: every bus the listener reaches, no reply waited for.
-    fn broadcast(&self, client: &Client, pdu: Vec<u8>) -> Answer {
+    fn broadcast(&self, client: &Client, transaction: u16, pdu: Vec<u8>) -> Answer {
         let refusal = if self.read_only {
             Some((
                 ExceptionCode::ILLEGAL_FUNCTION,
@@ -216,7 +217,7 @@ impl Gateway {
                 Answer::Silent
             };
         }
-        let mut pending = Pending::new(client, &pdu, true);
+        let mut pending = Pending::new(client, transaction, &pdu, true);
         for &bus in self.routes.broadcast_buses() {
             pending.submit(self, Route { bus, unit: 0 }, pdu.clone());
         }
@@ -284,6 +285,7 @@ impl Gateway {
 pub struct Pending {
     who: String,
     source: SourceId,
+    origin: Origin,
     request: Vec<u8>,
     broadcast: bool,
     jobs: Vec<Job>,
@@ -303,10 +305,11 @@ enum JobState {
 }
 
 impl Pending {
-    fn new(client: &Client, pdu: &[u8], broadcast: bool) -> Self {
+    fn new(client: &Client, transaction: u16, pdu: &[u8], broadcast: bool) -> Self {
         Self {
             who: client.who(),
             source: client.source,
+            origin: Origin::modbus_tcp(client.peer, transaction),
             request: pdu.to_vec(),
             broadcast,
             jobs: Vec::new(),
@@ -321,6 +324,7 @@ impl Pending {
             source: self.source,
             queue_timeout: None,
             max_attempts: None,
+            origin: self.origin.clone(),
         };
         let state = match handle.submit(route.unit, pdu, options) {
             Ok(rx) => JobState::Waiting(rx),
