@@ -99,8 +99,11 @@ impl Plant {
                 Some(sim) => sim.port_path().display().to_string(),
                 None => bus_config.port.get_ref().clone(),
             };
-            let (handle, thread) = crate::bus::scheduler::spawn(bus_config.settings(&port))
-                .map_err(|source| PlantError::Bus {
+            let mut settings = bus_config.settings(&port);
+            settings.monitor = config.monitor.settings();
+            settings.scope = config.scope.settings();
+            let (handle, thread) =
+                crate::bus::scheduler::spawn(settings).map_err(|source| PlantError::Bus {
                     bus: name.clone(),
                     source,
                 })?;

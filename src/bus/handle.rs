@@ -15,6 +15,8 @@ use super::queue::{JobQueue, Refused};
 use super::stats::{BusStats, BusStatsSnapshot, Outcome};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest};
 use crate::modbus::timing::LineTiming;
+use crate::monitor::BusMonitor;
+use crate::scope::Scope;
 
 /// State of a bus's serial port.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -87,6 +89,10 @@ pub(crate) struct Shared {
     pub(crate) queue: JobQueue,
     pub(crate) cache: StatusCache,
     pub(crate) stats: BusStats,
+    /// Every frame on the wire, and the per-attempt counters.
+    pub(crate) monitor: Arc<BusMonitor>,
+    /// The capture slot.
+    pub(crate) scope: Arc<Scope>,
     pub(crate) state: Mutex<PortState>,
     pub(crate) line: LineTiming,
     pub(crate) response_timeout: Duration,
@@ -262,6 +268,22 @@ impl BusHandle {
     /// The bus's counters.
     pub fn stats(&self) -> BusStatsSnapshot {
         self.shared.stats.snapshot()
+    }
+
+    /// The bus monitor: the last frames on the wire, the per-attempt counters.
+    pub fn monitor(&self) -> &Arc<BusMonitor> {
+        &self.shared.monitor
+    }
+
+    /// The scope's capture slot. After arming a capture, [`wake`](Self::wake)
+    /// the bus so its polling follows at once.
+    pub fn scope(&self) -> &Arc<Scope> {
+        &self.shared.scope
+    }
+
+    /// Wakes the bus thread to look at its work again (a capture was armed).
+    pub fn wake(&self) {
+        self.shared.queue.wake();
     }
 
     /// Jobs waiting per priority class (emergency, command, poll).
