@@ -147,7 +147,8 @@ fn bus_view(bus: &Bus) -> BusView {
     }
 }
 
-fn find_bus<'a>(state: &'a ApiState, name: &str) -> Result<&'a Bus, Problem> {
+/// The bus named `name`, or an `unknown-bus` problem listing the buses.
+pub fn find_bus<'a>(state: &'a ApiState, name: &str) -> Result<&'a Bus, Problem> {
     state.plant.bus(name).ok_or_else(|| {
         let names: Vec<&str> = state
             .plant

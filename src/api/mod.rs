@@ -4,8 +4,9 @@
 //! - [`listener`] binds (loopback only without tokens) and limits connections,
 //!   [`server`] serves them with a deadline on every request,
 //! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
-//! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`buses`] and
-//!   [`health`] are the routes, all documented in [`openapi`] (the body
+//! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`buses`],
+//!   [`monitor`] (every frame on the wire), [`scope`] (triggered captures)
+//!   and [`health`] are the routes, all documented in [`openapi`] (the body
 //!   schemas a derive cannot write are in [`body_schemas`]),
 //! - [`extract`] and [`integers`] read requests, refusing bad ones with a
 //!   problem document,
@@ -30,10 +31,12 @@ pub mod hub;
 pub mod integers;
 pub mod leases;
 pub mod listener;
+pub mod monitor;
 pub mod openapi;
 pub mod problem;
 pub mod request_metrics;
 pub mod roles;
+pub mod scope;
 pub mod server;
 pub mod setpoints;
 pub mod settings;
@@ -93,6 +96,7 @@ pub async fn start(
     }
 
     let hub = Hub::start(&plant, &shutdown);
+    scope::publish_progress(&plant, &hub, &shutdown);
     let leases = LeaseBook::new(
         plant.clone(),
         hub.clone(),

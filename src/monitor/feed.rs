@@ -45,6 +45,11 @@ impl Feed {
         self.filter = filter;
     }
 
+    /// The monitor it reads.
+    pub fn monitor(&self) -> &Arc<BusMonitor> {
+        &self.monitor
+    }
+
     /// The filter in force.
     pub fn filter(&self) -> &FrameFilter {
         &self.filter

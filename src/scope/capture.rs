@@ -13,7 +13,7 @@ use std::time::{Duration, Instant, SystemTime};
 use super::field::Field;
 use super::trigger::{Detector, Trigger};
 use crate::bus::Origin;
-use crate::drive::Status;
+use crate::drive::{RangeError, Status};
 
 /// A length: a number of samples per captured drive, or a time.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -75,64 +75,100 @@ impl Amount {
 }
 
 /// Why a capture cannot be armed as asked.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("{0}")]
-pub struct SpecError(pub String);
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SpecError {
+    /// Contradictory or incomplete.
+    #[error("{0}")]
+    Invalid(String),
+    /// A value out of its range (or a capture larger than allowed), with
+    /// what would fit.
+    #[error("{range}{hint}")]
+    Range {
+        /// The range.
+        range: RangeError,
+        /// What would fit, when the range alone does not say.
+        hint: String,
+    },
+}
+
+fn range(r: Result<f64, RangeError>) -> Result<f64, SpecError> {
+    r.map_err(|range| SpecError::Range {
+        range,
+        hint: String::new(),
+    })
+}
 
 impl CaptureSpec {
     /// Checks the capture against `limits`; returns the pre-trigger and
     /// post-trigger capacities in samples.
     pub fn check(&self, limits: &Limits) -> Result<(usize, usize), SpecError> {
-        let err = |m: String| Err(SpecError(m));
+        let invalid = |m: String| Err(SpecError::Invalid(m));
         if self.units.is_empty() {
-            return err("capture at least one drive".into());
+            return invalid("capture at least one drive".into());
         }
         if let Some(unit) = self.trigger.watched_unit()
             && !self.units.contains(&unit)
         {
-            return err(format!(
+            return invalid(format!(
                 "the trigger watches unit {unit}, which is not captured: capture it too"
             ));
         }
         if self.fields.is_empty() {
-            return err("choose at least one field".into());
-        }
-        for (what, amount, min) in [
-            ("pre-trigger", self.pre_trigger, 0.0),
-            ("length", self.length, 1.0),
-        ] {
-            match amount {
-                Amount::Samples(n) if f64::from(n) < min => {
-                    return err(format!("the {what} must be at least {min} sample(s)"));
-                }
-                Amount::Seconds(s) if !(s.is_finite() && (0.0..=MAX_SECONDS).contains(&s)) => {
-                    return err(format!("the {what} must be 0 to {MAX_SECONDS} s, not {s}"));
-                }
-                Amount::Seconds(s) if what == "length" && s <= 0.0 => {
-                    return err("the length must be more than 0 s".into());
-                }
-                _ => {}
-            }
-        }
-        if self.wait.is_zero() || self.wait > limits.max_wait {
-            return err(format!(
-                "the wait for the trigger must be more than 0 and at most {} s",
-                limits.max_wait.as_secs()
-            ));
+            return invalid("choose at least one field".into());
         }
         let drives = self.units.len();
+        let per_drive = (limits.max_samples / drives) as f64;
+        for (quantity, amount, min) in [
+            ("pre-trigger", self.pre_trigger, 0.0),
+            ("capture length", self.length, 1.0),
+        ] {
+            match amount {
+                Amount::Samples(n) => {
+                    range(RangeError::check(
+                        quantity,
+                        f64::from(n),
+                        min,
+                        per_drive,
+                        "samples per drive",
+                    ))?;
+                }
+                Amount::Seconds(s) => {
+                    range(RangeError::check(
+                        quantity,
+                        s,
+                        min * 0.001,
+                        MAX_SECONDS,
+                        "s",
+                    ))?;
+                }
+            }
+        }
+        range(RangeError::check(
+            "trigger wait",
+            self.wait.as_secs_f64(),
+            0.001,
+            limits.max_wait.as_secs_f64(),
+            "s",
+        ))?;
         let pre = self.pre_trigger.capacity(drives, limits.wire_rate);
         let post = self.length.capacity(drives, limits.wire_rate);
         if pre + post > limits.max_samples {
-            let per_drive = limits.max_samples / drives;
             let seconds = limits.max_samples as f64 / (limits.wire_rate * 1.05);
-            return err(format!(
-                "a pre-trigger of {} and a length of {} need up to {} samples; [scope] max_samples allows {}: at most {per_drive} samples per drive for {drives} drive(s), or about {seconds:.1} s in all",
-                self.pre_trigger.describe(),
-                self.length.describe(),
-                pre + post,
-                limits.max_samples
-            ));
+            return Err(SpecError::Range {
+                range: RangeError {
+                    quantity: "capture size",
+                    value: (pre + post) as f64,
+                    min: 1.0,
+                    max: limits.max_samples as f64,
+                    unit: "samples",
+                },
+                hint: format!(
+                    " ([scope] max_samples): a pre-trigger of {} and a length of {} need up to {} samples; at most {per_drive} samples per drive for {drives} drive(s) fit, or about {seconds:.1} s in all at the wire's rate",
+                    self.pre_trigger.describe(),
+                    self.length.describe(),
+                    pre + post,
+                ),
+            });
         }
         Ok((pre, post))
     }
@@ -729,9 +765,10 @@ mod tests {
             Amount::Samples(1000),
             Amount::Seconds(60.0),
         );
-        let e = s.check(&limits()).unwrap_err().0;
+        let e = s.check(&limits()).unwrap_err().to_string();
         assert!(
-            e.contains("[scope] max_samples allows 10000") && e.contains("5000 samples per drive"),
+            e.contains("valid 1 to 10000 samples ([scope] max_samples)")
+                && e.contains("5000 samples per drive"),
             "{e}"
         );
         let ok = spec(
@@ -744,12 +781,21 @@ mod tests {
         assert_eq!((pre, post), (200, 1799));
         let mut bad = ok.clone();
         bad.trigger = Trigger::Stall { unit: 3 };
-        assert!(bad.check(&limits()).unwrap_err().0.contains("not captured"));
+        assert!(
+            bad.check(&limits())
+                .unwrap_err()
+                .to_string()
+                .contains("not captured")
+        );
         bad = ok.clone();
         bad.length = Amount::Samples(0);
         assert!(bad.check(&limits()).is_err());
-        bad = ok;
+        bad = ok.clone();
         bad.units.clear();
         assert!(bad.check(&limits()).is_err());
+        bad = ok;
+        bad.pre_trigger = Amount::Seconds(-1.0);
+        let e = bad.check(&limits()).unwrap_err().to_string();
+        assert_eq!(e, "pre-trigger -1 s is out of range: valid 0 to 3600 s");
     }
 }

@@ -58,7 +58,7 @@ impl Default for ScopeSettings {
 }
 
 /// Why the scope refused a request.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ScopeError {
     /// A capture is running on this bus.
     #[error(
@@ -167,7 +167,7 @@ impl Scope {
     /// Arms a capture of `spec` at `now`; refused while one runs.
     pub fn arm(&self, spec: CaptureSpec, now: Instant) -> Result<u64, ScopeError> {
         if let Some(&unknown) = spec.units.iter().find(|u| !self.units.contains(u)) {
-            return Err(ScopeError::Invalid(SpecError(format!(
+            return Err(ScopeError::Invalid(SpecError::Invalid(format!(
                 "unit {unknown} is not a configured drive of this bus"
             ))));
         }
