@@ -492,6 +492,12 @@ impl Capture {
         let Some(fired) = &self.fired else {
             return;
         };
+        if sample.at < fired.at {
+            // Read before a trigger that came from outside (by hand) while
+            // its reply was on the wire: it belongs before the trigger.
+            self.keep_late_before_trigger(sample);
+            return;
+        }
         match self.spec.length {
             Amount::Samples(n) => {
                 if self.per_unit[index] < n && self.post.len() < self.post_capacity {
@@ -513,6 +519,25 @@ impl Capture {
                     self.end(End::Complete, sample.at);
                 }
             }
+        }
+    }
+
+    /// A sample taken before the trigger that arrived after it: added to
+    /// the pre-trigger buffer within its bounds.
+    fn keep_late_before_trigger(&mut self, sample: Sample) {
+        if self.pre_capacity == 0 {
+            return;
+        }
+        if let Amount::Samples(n) = self.spec.pre_trigger {
+            let held = self.pre.iter().filter(|s| s.unit == sample.unit).count();
+            if held >= n as usize
+                && let Some(oldest) = self.pre.iter().position(|s| s.unit == sample.unit)
+            {
+                self.pre.remove(oldest);
+            }
+        }
+        if self.pre.len() < self.pre_capacity {
+            self.pre.push_back(sample);
         }
     }
 
@@ -727,15 +752,19 @@ mod tests {
             ),
             t0,
         );
-        c.trigger_now(t0 + MS, Origin::Http { who: "op".into() })
+        c.on_sample(1, &speed(1), t0);
+        c.trigger_now(t0 + 2 * MS, Origin::Http { who: "op".into() })
             .unwrap();
         assert!(c.trigger_now(t0 + MS, Origin::Internal).is_err());
-        c.on_sample(1, &speed(1), t0 + 2 * MS);
+        // Read before the trigger, its reply after it: before the trigger.
+        c.on_sample(1, &speed(1), t0 + MS);
+        assert_eq!(c.counts(), (2, 0));
+        c.on_sample(1, &speed(1), t0 + 3 * MS);
         c.tick(t0 + Duration::from_secs(1));
         assert!(c.is_running(), "100 samples take 0.6 s at full rate");
         c.tick(t0 + Duration::from_secs(3));
         assert_eq!(c.phase(), Phase::Ended(End::Incomplete));
-        assert_eq!(c.counts(), (0, 1));
+        assert_eq!(c.counts(), (2, 1));
     }
 
     #[test]
