@@ -349,7 +349,7 @@ pub async fn get_frames_csv(
 }
 
 /// The frames of the ring as a PCAP file that Wireshark and tshark decode as
-/// Modbus RTU: `tshark -r FILE -d udp.port==502,mbrtu` (each RTU frame is
+/// Modbus RTU: `tshark -r FILE -o mbrtu.udp.port:502` (each RTU frame is
 /// the payload of a UDP datagram to or from port 502; unit N is 127.0.1.N;
 /// timeouts, having no bytes, are left out). Filters as for `frames`.
 #[utoipa::path(

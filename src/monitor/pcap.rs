@@ -4,12 +4,16 @@
 //! A PCAP has no link type for a serial line that Wireshark decodes as
 //! Modbus RTU out of the box, so each RTU frame (unit, PDU, CRC, exactly as
 //! on the wire) is the payload of a UDP datagram over raw IPv4 (link type
-//! 101), which Wireshark's `mbrtu` dissector takes with "decode UDP port
-//! 502 as Modbus RTU":
+//! 101), which Wireshark's `mbrtu` dissector takes once its UDP port is set
+//! to 502; it then tells queries (to 502) from responses (from 502) by the
+//! port, which it cannot do from an RTU frame alone (a write's echo is the
+//! write):
 //!
 //! ```text
-//! tshark -r line1.pcap -d udp.port==502,mbrtu
+//! tshark -r line1.pcap -o mbrtu.udp.port:502
 //! ```
+//!
+//! (In Wireshark: Preferences, Protocols, Modbus/RTU, UDP port 502.)
 //!
 //! The addresses and ports are labels, not a network: drivegate is
 //! 127.0.0.1 port 49152, unit N is 127.0.1.N port 502 (so requests go to
