@@ -1,0 +1,334 @@
+//! The scope's rate and the bus monitor's cost, as shares of the wire's
+//! physical limit, on the simulator (wire-timed, 115200 baud, no faults,
+//! 0 turnaround unless `DRIVEGATE_BENCH_TURNAROUND_MS` says otherwise).
+//!
+//! - Scope: samples per second of a capture of 1 drive and of 4 drives,
+//!   alone on their bus and among 8 drives (the others at `[scope]
+//!   floor_rate_hz`, 10 by default), against the status-poll limit (one
+//!   read = 8 + 19 bytes on the wire + 2 x t3.5 = 5.844 ms: 171.1/s); the
+//!   floor rate the other drives kept.
+//! - Monitor: status polls per second of 4 drives with `[monitor]` off, on
+//!   with no client, and on with two live WebSocket clients, and the CPU
+//!   time of the bus thread in each case.
+//! - Memory: a full ring of `[monitor] ring_frames` (default 10000) and the
+//!   largest capture (`[scope] max_samples`, default 200000).
+//!
+//! `cargo bench --bench scope`; `DRIVEGATE_BENCH_SECS` sets each window
+//! (default 5). Exits 1 if a goal is missed: scope >= 95 % of the limit
+//! for a drive alone on its bus, bus rate with the monitor and two
+//! clients >= 99 % of the rate with it off.
+
+#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use drivegate::bus::Origin;
+use drivegate::config::{Config, MonitorConfig, ScopeConfig};
+use drivegate::faces;
+use drivegate::metrics::Metrics;
+use drivegate::modbus::timing::LineTiming;
+use drivegate::monitor::record::Direction;
+use drivegate::plant::Plant;
+use drivegate::scope::capture::{Amount, CaptureSpec};
+use drivegate::scope::field::Field;
+use drivegate::scope::trigger::Trigger;
+use futures_util::StreamExt;
+use tokio_util::sync::CancellationToken;
+
+fn env<T: std::str::FromStr>(name: &str, default: T) -> T {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn config(drives: u8, monitor: bool, turnaround_ms: f64) -> String {
+    let mut toml = format!(
+        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nenabled = false\n\
+         [monitor]\nenabled = {monitor}\n\
+         [[bus]]\nname = \"bench\"\nport = \"sim\"\nbaud = 115200\n\
+         [bus.sim]\nturnaround_ms = {turnaround_ms}\nseed = 3\n"
+    );
+    for unit in 1..=drives {
+        toml.push_str(&format!(
+            "[[bus.drive]]\nunit = {unit}\nname = \"d{unit}\"\ngear_ratio = 3.75\n"
+        ));
+    }
+    toml
+}
+
+async fn start(toml: &str) -> Arc<Plant> {
+    let config = Config::parse(toml, "bench").unwrap();
+    let plant = Arc::new(Plant::start(&config).unwrap());
+    let t = Instant::now();
+    while !plant.buses()[0]
+        .handle
+        .drives()
+        .iter()
+        .all(|d| d.status.is_some())
+    {
+        assert!(t.elapsed() < Duration::from_secs(10), "drives offline");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    plant
+}
+
+/// CPU seconds the bus thread has used (from /proc, 10 ms ticks).
+fn bus_thread_cpu() -> f64 {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
+        return f64::NAN;
+    };
+    for task in tasks.flatten() {
+        let comm = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
+        if comm.trim() == "bus-bench" {
+            let stat = std::fs::read_to_string(task.path().join("stat")).unwrap_or_default();
+            // Fields after the command's closing parenthesis: utime is the
+            // 12th, stime the 13th.
+            let rest = stat.rsplit(')').next().unwrap_or("");
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            let ticks: f64 = f[11].parse::<f64>().unwrap() + f[12].parse::<f64>().unwrap();
+            return ticks / 100.0;
+        }
+    }
+    f64::NAN
+}
+
+struct ScopeRun {
+    captured: u8,
+    drives: u8,
+    /// Samples per second, all captured drives.
+    samples_per_s: f64,
+    /// Polls per second each other drive kept (min, max).
+    others: Option<(f64, f64)>,
+}
+
+async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> ScopeRun {
+    let plant = start(&config(drives, true, turnaround)).await;
+    let bus = plant.buses()[0].handle.clone();
+    let units: Vec<u8> = (1..=captured).collect();
+    let spec = CaptureSpec {
+        units: units.clone(),
+        fields: vec![Field::SpeedRpm],
+        trigger: Trigger::Immediate,
+        pre_trigger: Amount::Samples(0),
+        length: Amount::Seconds(secs),
+        wait: Duration::from_secs(10),
+    };
+    bus.scope().arm(spec, Instant::now()).unwrap();
+    bus.wake();
+    while bus.scope().is_running() {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let (count, first, last) = bus
+        .scope()
+        .with_capture(|c| {
+            let samples: Vec<_> = c.samples().collect();
+            (
+                samples.len(),
+                samples.first().map(|s| s.at),
+                samples.last().map(|s| s.at),
+            )
+        })
+        .unwrap();
+    let span = (last.unwrap() - first.unwrap()).as_secs_f64();
+    let samples_per_s = (count - 1) as f64 / span;
+    // The other drives' polls in the capture's time, from the monitor.
+    let monitor = bus.monitor();
+    let from = monitor.ns_since_start(first.unwrap());
+    let to = monitor.ns_since_start(last.unwrap());
+    let frames = monitor.last(monitor.capacity());
+    let others = (captured < drives).then(|| {
+        let rates: Vec<f64> = (captured + 1..=drives)
+            .map(|u| {
+                let n = frames
+                    .iter()
+                    .filter(|r| {
+                        r.direction == Direction::Request
+                            && r.unit == u
+                            && r.origin == Origin::Poller
+                            && r.at_ns >= from
+                            && r.at_ns < to
+                    })
+                    .count();
+                n as f64 / span
+            })
+            .collect();
+        (
+            rates.iter().copied().fold(f64::MAX, f64::min),
+            rates.iter().copied().fold(0.0, f64::max),
+        )
+    });
+    plant.shutdown(drivegate::safety::StopAction::None).await;
+    ScopeRun {
+        captured,
+        drives,
+        samples_per_s,
+        others,
+    }
+}
+
+struct BusRun {
+    polls_per_s: f64,
+    cpu_share: f64,
+    frames_to_clients: u64,
+    lost: u64,
+}
+
+async fn bus_run(monitor: bool, clients: usize, secs: f64, turnaround: f64) -> BusRun {
+    let toml = config(4, monitor, turnaround);
+    let config = Config::parse(&toml, "bench").unwrap();
+    let plant = start(&toml).await;
+    let metrics = Metrics::new(plant.clone());
+    let shutdown = CancellationToken::new();
+    let faces = faces::start(&config, plant.clone(), metrics, shutdown.clone())
+        .await
+        .unwrap();
+    let received = Arc::new(AtomicU64::new(0));
+    let lost = Arc::new(AtomicU64::new(0));
+    let mut readers = Vec::new();
+    for _ in 0..clients {
+        let url = format!("ws://{}/api/v1/buses/bench/monitor/live?backlog=0", faces.http);
+        let (mut ws, _) = tokio_tungstenite::connect_async(url).await.unwrap();
+        let (received, lost) = (received.clone(), lost.clone());
+        readers.push(tokio::spawn(async move {
+            while let Some(Ok(m)) = ws.next().await {
+                if let Ok(text) = m.into_text() {
+                    let v: serde_json::Value = serde_json::from_str(text.as_str()).unwrap();
+                    if v["type"] == "frames" {
+                        received.fetch_add(
+                            v["frames"].as_array().unwrap().len() as u64,
+                            Ordering::Relaxed,
+                        );
+                        lost.fetch_add(v["lost"].as_u64().unwrap(), Ordering::Relaxed);
+                    }
+                }
+            }
+        }));
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let bus = plant.buses()[0].handle.clone();
+    let (polls0, cpu0, t0, got0) = (
+        bus.stats().polls,
+        bus_thread_cpu(),
+        Instant::now(),
+        received.load(Ordering::Relaxed),
+    );
+    tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+    let (polls1, cpu1, t1, got1) = (
+        bus.stats().polls,
+        bus_thread_cpu(),
+        Instant::now(),
+        received.load(Ordering::Relaxed),
+    );
+    let elapsed = (t1 - t0).as_secs_f64();
+    shutdown.cancel();
+    for r in readers {
+        r.abort();
+    }
+    let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
+    plant.shutdown(drivegate::safety::StopAction::None).await;
+    BusRun {
+        polls_per_s: (polls1 - polls0) as f64 / elapsed,
+        cpu_share: (cpu1 - cpu0) / elapsed,
+        frames_to_clients: got1 - got0,
+        lost: lost.load(Ordering::Relaxed),
+    }
+}
+
+fn main() {
+    let secs: f64 = env("DRIVEGATE_BENCH_SECS", 5.0);
+    let turnaround: f64 = env("DRIVEGATE_BENCH_TURNAROUND_MS", 0.0);
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let line = LineTiming::new_8n1(115_200);
+    let read = line.transaction_time(8, 19, Duration::from_secs_f64(turnaround / 1000.0));
+    let limit = 1.0 / read.as_secs_f64();
+    let mut failed = false;
+    println!(
+        "scope at 115200 baud, turnaround {turnaround} ms: status-read limit {limit:.1}/s ({:.3} ms a read), {secs} s a capture",
+        read.as_secs_f64() * 1000.0
+    );
+    println!(
+        "{:>9} {:>7} {:>12} {:>9} {:>22}",
+        "captured", "drives", "samples/s", "of limit", "others' polls/s (min-max)"
+    );
+    runtime.block_on(async {
+        for (drives, captured) in [(1, 1), (4, 4), (8, 1), (8, 4)] {
+            let r = scope_run(drives, captured, secs, turnaround).await;
+            let share = r.samples_per_s / limit;
+            let others = r
+                .others
+                .map_or("-".to_string(), |(a, b)| format!("{a:.1} - {b:.1}"));
+            println!(
+                "{:>9} {:>7} {:>12.1} {:>8.1}% {:>22}",
+                r.captured,
+                r.drives,
+                r.samples_per_s,
+                100.0 * share,
+                others
+            );
+            if r.captured == r.drives && share < 0.95 {
+                println!("   goal missed: a capture alone on its bus below 95 % of the limit");
+                failed = true;
+            }
+        }
+    });
+
+    println!();
+    println!("bus of 4 drives polled at full rate; monitor off, on, on with two live clients");
+    println!(
+        "{:>30} {:>10} {:>9} {:>10} {:>14} {:>6}",
+        "", "polls/s", "of limit", "bus CPU", "frames to clients", "lost"
+    );
+    runtime.block_on(async {
+        let off = bus_run(false, 0, secs, turnaround).await;
+        let on = bus_run(true, 0, secs, turnaround).await;
+        let two = bus_run(true, 2, secs, turnaround).await;
+        for (name, r) in [
+            ("monitor off", &off),
+            ("monitor on, no client", &on),
+            ("monitor on, two live clients", &two),
+        ] {
+            println!(
+                "{:>30} {:>10.1} {:>8.1}% {:>9.1}% {:>14} {:>6}",
+                name,
+                r.polls_per_s,
+                100.0 * r.polls_per_s / limit,
+                100.0 * r.cpu_share,
+                r.frames_to_clients,
+                r.lost
+            );
+        }
+        let ratio = two.polls_per_s / off.polls_per_s;
+        println!(
+            "bus rate with the monitor and two clients: {:.2} % of the rate with it off",
+            100.0 * ratio
+        );
+        if ratio < 0.99 {
+            println!("   goal missed: below 99 %");
+            failed = true;
+        }
+    });
+
+    println!();
+    let monitor = MonitorConfig::default();
+    let scope = ScopeConfig::default();
+    println!(
+        "memory: a full ring of {} frames {:.2} MB per bus ({} bytes a frame); the largest capture, {} samples, {:.2} MB ({} bytes a sample)",
+        monitor.ring_frames,
+        monitor.memory_per_bus() as f64 / 1e6,
+        monitor.memory_per_bus() / monitor.ring_frames,
+        scope.max_samples,
+        scope.memory_per_capture() as f64 / 1e6,
+        scope.memory_per_capture() / scope.max_samples,
+    );
+    if failed {
+        std::process::exit(1);
+    }
+}
