@@ -190,7 +190,10 @@ async fn bus_run(monitor: bool, clients: usize, secs: f64, turnaround: f64) -> B
     let lost = Arc::new(AtomicU64::new(0));
     let mut readers = Vec::new();
     for _ in 0..clients {
-        let url = format!("ws://{}/api/v1/buses/bench/monitor/live?backlog=0", faces.http);
+        let url = format!(
+            "ws://{}/api/v1/buses/bench/monitor/live?backlog=0",
+            faces.http
+        );
         let (mut ws, _) = tokio_tungstenite::connect_async(url).await.unwrap();
         let (received, lost) = (received.clone(), lost.clone());
         readers.push(tokio::spawn(async move {

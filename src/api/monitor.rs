@@ -37,8 +37,8 @@ use crate::plant::Bus;
 
 /// Frames a JSON answer holds when `limit` is not given.
 const DEFAULT_LIMIT: usize = 1000;
-/// Frames a JSON answer may hold.
-const MAX_LIMIT: usize = 100_000;
+/// Frames an answer may hold: the largest ring.
+const MAX_LIMIT: usize = 1_000_000;
 /// How often the live feed looks for new frames.
 const FEED_PERIOD: Duration = Duration::from_millis(50);
 /// Frames one live message holds at most.
@@ -67,13 +67,35 @@ pub struct FrameQuery {
     pub who: Option<String>,
     /// Start at this sequence number (the `next` of a previous answer);
     /// without it, the last `limit` frames.
+    #[param(minimum = 0, maximum = 9_223_372_036_854_775_807_i64)]
     pub from: Option<u64>,
-    /// Frames at most (JSON: default 1000, at most 100000; downloads: the
-    /// whole ring).
+    /// Frames at most (JSON: default 1000; downloads: the whole ring).
+    #[param(minimum = 1, maximum = 1_000_000)]
     pub limit: Option<usize>,
 }
 
 impl FrameQuery {
+    /// `limit` checked, or `default`.
+    fn limit(&self, default: usize) -> Result<usize, Problem> {
+        match self.limit.unwrap_or(default) {
+            n @ 1..=MAX_LIMIT => Ok(n),
+            n => Err(Problem::invalid(format!(
+                "limit must be 1 to {MAX_LIMIT}, not {n}"
+            ))),
+        }
+    }
+
+    /// `from` checked (a JSON Schema int64).
+    fn from(&self) -> Result<Option<u64>, Problem> {
+        match self.from {
+            Some(n) if n > i64::MAX as u64 => Err(Problem::invalid(format!(
+                "from must be 0 to {}, not {n}",
+                i64::MAX
+            ))),
+            other => Ok(other),
+        }
+    }
+
     fn filter(&self) -> Result<FrameFilter, Problem> {
         FrameFilter::parse(&FilterText {
             units: self.unit.as_deref(),
@@ -281,13 +303,8 @@ pub async fn get_frames(
     let bus = find_bus(&state, &name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
-    let limit = query.limit.unwrap_or(DEFAULT_LIMIT);
-    if limit == 0 || limit > MAX_LIMIT {
-        return Err(Problem::invalid(format!(
-            "limit must be 1 to {MAX_LIMIT}, not {limit}"
-        )));
-    }
-    let (records, next, missed) = select(monitor, &filter, query.from, limit);
+    let limit = query.limit(DEFAULT_LIMIT)?;
+    let (records, next, missed) = select(monitor, &filter, query.from()?, limit);
     let clock = monitor.clock();
     Ok(Json(FramesReply {
         bus: bus.handle.name().to_string(),
@@ -331,8 +348,8 @@ pub async fn get_frames_csv(
     let bus = find_bus(&state, &name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
-    let limit = query.limit.unwrap_or(monitor.capacity()).max(1);
-    let (records, _, _) = select(monitor, &filter, query.from, limit);
+    let limit = query.limit(monitor.capacity())?;
+    let (records, _, _) = select(monitor, &filter, query.from()?, limit);
     let clock = monitor.clock();
     let mut text = String::with_capacity(160 * (records.len() + 1));
     text.push_str(CSV_HEADER);
@@ -373,8 +390,8 @@ pub async fn get_frames_pcap(
     let bus = find_bus(&state, &name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
-    let limit = query.limit.unwrap_or(monitor.capacity()).max(1);
-    let (records, _, _) = select(monitor, &filter, query.from, limit);
+    let limit = query.limit(monitor.capacity())?;
+    let (records, _, _) = select(monitor, &filter, query.from()?, limit);
     Ok(download(
         pcap::file(&records, monitor.clock()),
         "application/vnd.tcpdump.pcap",

@@ -320,6 +320,9 @@ pub async fn get_scope(
         (status = 403, description = "`forbidden`: needs the operator role", body = ProblemDetails, content_type = "application/problem+json"),
         (status = 404, description = "`unknown-bus`, `unknown-drive`", body = ProblemDetails, content_type = "application/problem+json"),
         (status = 409, description = "`scope-busy`: a capture runs on this bus", body = ProblemDetails, content_type = "application/problem+json"),
+        (status = 408, description = "`request-timeout`: the body did not arrive within `[http] read_timeout_s`", body = ProblemDetails, content_type = "application/problem+json"),
+        (status = 413, description = "`payload-too-large`", body = ProblemDetails, content_type = "application/problem+json"),
+        (status = 415, description = "`unsupported-media-type`: send `Content-Type: application/json`", body = ProblemDetails, content_type = "application/problem+json"),
         (status = 422, description = "`out-of-range`: a length, wait or capture size beyond the limits; `valid_range` says which", body = ProblemDetails, content_type = "application/problem+json"),
     )
 )]
