@@ -332,16 +332,25 @@ pub async fn post_scope(
     PathParams(name): PathParams<String>,
     JsonBody(body): JsonBody<ArmBody>,
 ) -> Result<(StatusCode, Json<ScopeState>), Problem> {
+    arm(&state, &caller, &name, &body).map(|armed| (StatusCode::CREATED, Json(armed)))
+}
+
+/// Arms a capture on bus `name` for `caller` (the REST route and the
+/// stream's `scope-arm`).
+pub fn arm(
+    state: &ApiState,
+    caller: &Caller,
+    name: &str,
+    body: &ArmBody,
+) -> Result<ScopeState, Problem> {
     caller.require(Role::Operator)?;
-    let bus = find_bus(&state, &name)?;
-    let spec = spec(&state, bus, &body)?;
+    let bus = find_bus(state, name)?;
+    let spec = spec(state, bus, body)?;
     let scope = bus.handle.scope();
     let id = scope.arm(spec, Instant::now()).map_err(scope_problem)?;
     bus.handle.wake();
     tracing::info!(who = %caller.who, bus = %bus.handle.name(), capture = id, "scope capture armed");
-    let armed = current_state(bus)
-        .ok_or_else(|| Problem::new(Kind::Internal, "the capture just armed is gone"))?;
-    Ok((StatusCode::CREATED, Json(armed)))
+    current_state(bus).ok_or_else(|| Problem::new(Kind::Internal, "the capture just armed is gone"))
 }
 
 /// Cancels the running capture (operator); it keeps what it holds.
@@ -363,17 +372,21 @@ pub async fn delete_scope(
     caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<ScopeState>, Problem> {
+    cancel(&state, &caller, &name).map(Json)
+}
+
+/// Cancels the capture on bus `name` for `caller` (the REST route and the
+/// stream's `scope-cancel`).
+pub fn cancel(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
     caller.require(Role::Operator)?;
-    let bus = find_bus(&state, &name)?;
+    let bus = find_bus(state, name)?;
     let id = bus
         .handle
         .scope()
         .cancel(Instant::now())
         .map_err(scope_problem)?;
     tracing::info!(who = %caller.who, bus = %bus.handle.name(), capture = id, "scope capture cancelled");
-    current_state(bus)
-        .map(Json)
-        .ok_or_else(|| Problem::new(Kind::Internal, "the capture is gone"))
+    current_state(bus).ok_or_else(|| Problem::new(Kind::Internal, "the capture is gone"))
 }
 
 /// Triggers the armed capture now (operator), whatever its trigger.
@@ -395,15 +408,19 @@ pub async fn post_trigger(
     caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<ScopeState>, Problem> {
+    trigger(&state, &caller, &name).map(Json)
+}
+
+/// Triggers the capture on bus `name` for `caller` (the REST route and the
+/// stream's `scope-trigger`).
+pub fn trigger(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
     caller.require(Role::Operator)?;
-    let bus = find_bus(&state, &name)?;
+    let bus = find_bus(state, name)?;
     bus.handle
         .scope()
         .trigger(Instant::now(), caller.origin.clone())
         .map_err(scope_problem)?;
-    current_state(bus)
-        .map(Json)
-        .ok_or_else(|| Problem::new(Kind::Internal, "the capture is gone"))
+    current_state(bus).ok_or_else(|| Problem::new(Kind::Internal, "the capture is gone"))
 }
 
 /// The samples of the current (or last) capture, one trace per drive,
