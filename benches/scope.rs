@@ -26,15 +26,20 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use drivegate::bus::Origin;
+use drivegate::bus::master::Fault;
 use drivegate::config::{Config, MonitorConfig, ScopeConfig};
 use drivegate::faces;
 use drivegate::metrics::Metrics;
+use drivegate::modbus::rtu_frame::encode;
 use drivegate::modbus::timing::LineTiming;
 use drivegate::monitor::record::Direction;
+use drivegate::monitor::tap::WireTap;
+use drivegate::monitor::{BusMonitor, MonitorSettings};
 use drivegate::plant::Plant;
 use drivegate::scope::capture::{Amount, CaptureSpec};
 use drivegate::scope::field::Field;
 use drivegate::scope::trigger::Trigger;
+use drivegate::scope::{Scope, ScopeSettings};
 use futures_util::StreamExt;
 use tokio_util::sync::CancellationToken;
 
@@ -185,7 +190,7 @@ struct BusRun {
     lost: u64,
 }
 
-async fn bus_run(monitor: bool, clients: usize, secs: f64, turnaround: f64) -> BusRun {
+async fn bus_run(monitor: bool, with_clients: bool, secs: f64, turnaround: f64) -> BusRun {
     let toml = config(4, monitor, turnaround);
     let config = Config::parse(&toml, "bench").unwrap();
     let plant = start(&toml).await;
@@ -196,29 +201,11 @@ async fn bus_run(monitor: bool, clients: usize, secs: f64, turnaround: f64) -> B
         .unwrap();
     let received = Arc::new(AtomicU64::new(0));
     let lost = Arc::new(AtomicU64::new(0));
-    let mut readers = Vec::new();
-    for _ in 0..clients {
-        let url = format!(
-            "ws://{}/api/v1/buses/bench/monitor/live?backlog=0",
-            faces.http
-        );
-        let (mut ws, _) = tokio_tungstenite::connect_async(url).await.unwrap();
-        let (received, lost) = (received.clone(), lost.clone());
-        readers.push(tokio::spawn(async move {
-            while let Some(Ok(m)) = ws.next().await {
-                if let Ok(text) = m.into_text() {
-                    let v: serde_json::Value = serde_json::from_str(text.as_str()).unwrap();
-                    if v["type"] == "frames" {
-                        received.fetch_add(
-                            v["frames"].as_array().unwrap().len() as u64,
-                            Ordering::Relaxed,
-                        );
-                        lost.fetch_add(v["lost"].as_u64().unwrap(), Ordering::Relaxed);
-                    }
-                }
-            }
-        }));
-    }
+    let readers = if with_clients {
+        clients(faces.http, &received, &lost).await
+    } else {
+        Vec::new()
+    };
     tokio::time::sleep(Duration::from_millis(500)).await;
     let bus = plant.buses()[0].handle.clone();
     let (polls0, cpu0, t0, got0) = (
@@ -247,6 +234,156 @@ async fn bus_run(monitor: bool, clients: usize, secs: f64, turnaround: f64) -> B
         frames_to_clients: got1 - got0,
         lost: lost.load(Ordering::Relaxed),
     }
+}
+
+/// Two live clients reading every frame.
+async fn clients(
+    http: std::net::SocketAddr,
+    received: &Arc<AtomicU64>,
+    lost: &Arc<AtomicU64>,
+) -> Vec<tokio::task::JoinHandle<()>> {
+    let mut readers = Vec::new();
+    for _ in 0..2 {
+        let url = format!("ws://{http}/api/v1/buses/bench/monitor/live?backlog=0");
+        let (mut ws, _) = tokio_tungstenite::connect_async(url).await.unwrap();
+        let (received, lost) = (received.clone(), lost.clone());
+        readers.push(tokio::spawn(async move {
+            while let Some(Ok(m)) = ws.next().await {
+                if let Ok(text) = m.into_text() {
+                    let v: serde_json::Value = serde_json::from_str(text.as_str()).unwrap();
+                    if v["type"] == "frames" {
+                        received.fetch_add(
+                            v["frames"].as_array().unwrap().len() as u64,
+                            Ordering::Relaxed,
+                        );
+                        lost.fetch_add(v["lost"].as_u64().unwrap(), Ordering::Relaxed);
+                    }
+                }
+            }
+        }));
+    }
+    readers
+}
+
+/// The same bus, monitor on, in alternating windows without and with two
+/// live clients: what the clients cost the bus, with the machine's load
+/// drifting alike under both. Returns polls/s without, with, and the
+/// frames the clients got and lost.
+/// Polls of `bus` in the next `window` seconds, and the time taken.
+async fn measure(bus: &drivegate::bus::BusHandle, window: f64) -> (u64, f64) {
+    let (p0, t0) = (bus.stats().polls, Instant::now());
+    tokio::time::sleep(Duration::from_secs_f64(window)).await;
+    (bus.stats().polls - p0, t0.elapsed().as_secs_f64())
+}
+
+async fn clients_ab(pairs: usize, window: f64, turnaround: f64) -> (f64, f64, u64, u64) {
+    let toml = config(4, true, turnaround);
+    let config = Config::parse(&toml, "bench").unwrap();
+    let plant = start(&toml).await;
+    let metrics = Metrics::new(plant.clone());
+    let shutdown = CancellationToken::new();
+    let faces = faces::start(&config, plant.clone(), metrics, shutdown.clone())
+        .await
+        .unwrap();
+    let bus = plant.buses()[0].handle.clone();
+    let (received, lost) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let mut totals = [(0u64, 0.0f64); 2];
+    for _ in 0..pairs {
+        let (n, t) = measure(&bus, window).await;
+        totals[0] = (totals[0].0 + n, totals[0].1 + t);
+        let readers = clients(faces.http, &received, &lost).await;
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let (n, t) = measure(&bus, window).await;
+        totals[1] = (totals[1].0 + n, totals[1].1 + t);
+        for r in readers {
+            r.abort();
+        }
+        while bus.monitor().clients() > 0 {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+    shutdown.cancel();
+    let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
+    plant.shutdown(drivegate::safety::StopAction::None).await;
+    (
+        totals[0].0 as f64 / totals[0].1,
+        totals[1].0 as f64 / totals[1].1,
+        received.load(Ordering::Relaxed),
+        lost.load(Ordering::Relaxed),
+    )
+}
+
+/// CPU time of the calling thread.
+fn thread_cpu() -> Duration {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_THREAD_CPUTIME_ID)
+        .map(Duration::from)
+        .unwrap_or_default()
+}
+
+/// CPU time the bus thread spends in the tap for one status read (its
+/// request and reply frames): with the monitor off, on, and on with a
+/// capture of the drive running. Thread CPU time, so the machine's load
+/// does not count.
+fn tap_cost() -> [Duration; 3] {
+    const READS: u32 = 200_000;
+    let line = LineTiming::new_8n1(115_200);
+    let request = encode(1, &[0x03, 0x00, 0xC0, 0x00, 0x07]);
+    let mut pdu = vec![0x03, 14];
+    pdu.extend_from_slice(&[0x12; 14]);
+    let reply = encode(1, &pdu);
+    let mut costs = [Duration::ZERO; 3];
+    for (i, cost) in costs.iter_mut().enumerate() {
+        let monitor = Arc::new(BusMonitor::new(
+            MonitorSettings {
+                enabled: i > 0,
+                ring_frames: 10_000,
+            },
+            line,
+            vec![1, 2, 3, 4],
+        ));
+        let scope = Arc::new(Scope::new(
+            ScopeSettings {
+                max_samples: 1_000_000,
+                ..ScopeSettings::default()
+            },
+            line,
+            vec![1, 2, 3, 4],
+        ));
+        if i == 2 {
+            let spec = CaptureSpec {
+                units: vec![1],
+                fields: Field::ALL.to_vec(),
+                trigger: Trigger::Immediate,
+                pre_trigger: Amount::Samples(0),
+                length: Amount::Samples(READS + 1),
+                wait: Duration::from_secs(10),
+            };
+            scope.arm(spec, Instant::now()).unwrap();
+        }
+        let mut tap = WireTap::detached(line);
+        tap.attach(monitor, scope.clone());
+        let start = thread_cpu();
+        for _ in 0..READS {
+            let now = Instant::now();
+            tap.cause(if i == 2 {
+                Origin::Scope
+            } else {
+                Origin::Poller
+            });
+            tap.request(1, &request, now, 1);
+            tap.reply(Some(&reply), now, None::<&Fault>);
+            if i == 2 {
+                // What the scheduler asks of a running capture per poll.
+                let _ = scope.steer(now, |_| true, |_| false);
+                scope.polled(1, now);
+            }
+        }
+        *cost = (thread_cpu() - start) / READS;
+        if i == 2 {
+            assert!(scope.is_running(), "the capture ended early");
+        }
+    }
+    costs
 }
 
 fn main() {
@@ -310,9 +447,9 @@ fn main() {
         // under the bench, the same way for the three.
         let mut runs: [Vec<BusRun>; 3] = Default::default();
         for _ in 0..rounds {
-            runs[0].push(bus_run(false, 0, secs, turnaround).await);
-            runs[1].push(bus_run(true, 0, secs, turnaround).await);
-            runs[2].push(bus_run(true, 2, secs, turnaround).await);
+            runs[0].push(bus_run(false, false, secs, turnaround).await);
+            runs[1].push(bus_run(true, false, secs, turnaround).await);
+            runs[2].push(bus_run(true, true, secs, turnaround).await);
         }
         let median = |runs: &mut Vec<BusRun>| {
             runs.sort_by(|a, b| a.polls_per_s.total_cmp(&b.polls_per_s));
@@ -334,9 +471,16 @@ fn main() {
                 r.lost
             );
         }
-        let ratio = two.polls_per_s / off.polls_per_s;
         println!(
-            "bus rate with the monitor and two clients: {:.2} % of the rate with it off (medians of {rounds} interleaved rounds)",
+            "(separate daemons, medians of {rounds} interleaved rounds: with two clients {:.2} % of the rate with the monitor off)",
+            100.0 * two.polls_per_s / off.polls_per_s
+        );
+        let pairs: usize = env("DRIVEGATE_BENCH_PAIRS", 5);
+        let window = (secs / 2.0).max(1.0);
+        let (without, with, got, lost) = clients_ab(pairs, window, turnaround).await;
+        let ratio = with / without;
+        println!(
+            "one daemon, monitor on, {pairs} pairs of {window} s windows without / with two live clients: {without:.1} / {with:.1} polls/s; with = {:.2} % of without ({got} frames to the clients, {lost} lost)",
             100.0 * ratio
         );
         if ratio < 0.99 {
@@ -344,6 +488,20 @@ fn main() {
             failed = true;
         }
     });
+
+    println!();
+    let [off, on, capture] = tap_cost();
+    let share = |d: Duration| 100.0 * d.as_secs_f64() / read.as_secs_f64();
+    println!(
+        "bus-thread CPU per status read in the tap (thread CPU time, 200000 reads): monitor off {:.2} us ({:.3} % of a read's {:.3} ms), on {:.2} us ({:.3} %), on with a capture running {:.2} us ({:.3} %)",
+        off.as_secs_f64() * 1e6,
+        share(off),
+        read.as_secs_f64() * 1000.0,
+        on.as_secs_f64() * 1e6,
+        share(on),
+        capture.as_secs_f64() * 1e6,
+        share(capture)
+    );
 
     println!();
     let monitor = MonitorConfig::default();
