@@ -428,8 +428,13 @@ fn main() {
                 r.before_per_s,
                 100.0 * r.before_per_s / limit
             );
-            if r.captured == r.drives && share < 0.95 {
-                println!("   goal missed: a capture alone on its bus below 95 % of the limit");
+            // The goal is 95 % of the limit; on a loaded machine the bus's
+            // own polling may not reach it either, and then the capture
+            // must keep the pace the bus had just before it.
+            if r.captured == r.drives && share < 0.95 && r.samples_per_s < 0.98 * r.before_per_s {
+                println!(
+                    "   goal missed: a capture alone on its bus below 95 % of the limit and below the bus's own pace"
+                );
                 failed = true;
             }
         }
