@@ -41,6 +41,26 @@ pub struct AmountBody {
     pub seconds: Option<f64>,
 }
 
+/// A length: `{"samples": N}` (per captured drive) or `{"seconds": S}`,
+/// exactly one. (The document's view of [`AmountBody`], which reads it.)
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(untagged, deny_unknown_fields)]
+#[allow(dead_code)]
+pub enum AmountSchema {
+    /// Samples of each captured drive.
+    Samples {
+        /// Samples of each captured drive.
+        #[schema(minimum = 0)]
+        samples: u32,
+    },
+    /// Seconds.
+    Seconds {
+        /// Seconds.
+        #[schema(minimum = 0, maximum = 3600)]
+        seconds: f64,
+    },
+}
+
 impl AmountBody {
     fn amount(&self, what: &str) -> Result<Amount, Problem> {
         match (self.samples, self.seconds) {
@@ -113,13 +133,16 @@ pub struct ArmBody {
     pub trigger: TriggerBody,
     /// What to keep from before the trigger (default: nothing).
     #[serde(default)]
+    #[schema(value_type = Option<AmountSchema>)]
     pub pre_trigger: Option<AmountBody>,
     /// What to keep from the trigger on.
+    #[schema(value_type = AmountSchema)]
     pub length: AmountBody,
     /// How long to wait for the trigger, s (default 300, at most `[scope]
     /// max_wait_s`); then the capture ends `timed-out` with its pre-trigger
     /// samples.
     #[serde(default)]
+    #[schema(exclusive_minimum = 0, maximum = 86400)]
     pub wait_s: Option<f64>,
 }
 
