@@ -62,6 +62,7 @@ impl Control {
             source: caller.source,
             queue_timeout: None,
             max_attempts: None,
+            origin: caller.origin.clone(),
         };
         let Some(bus) = self
             .plant()
@@ -311,6 +312,7 @@ async fn read(bus: &BusHandle, caller: &Caller, unit: u8) -> Result<Status, BusE
         source: caller.source,
         queue_timeout: None,
         max_attempts: None,
+        origin: caller.origin.clone(),
     };
     match bus
         .execute(unit, &DriveRequest::ReadStatus, options)
