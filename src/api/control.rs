@@ -56,6 +56,7 @@ pub fn problem(caller: &Caller, failure: &Failure, ctx: BusContext<'_>) -> Probl
                 Kind::DriveMoving,
                 format!("{}, or send \"force\": true", refusal.detail),
             ),
+            Rule::NotActive => Problem::new(Kind::DriveNotActive, refusal.detail.clone()),
             Rule::SharedBusAddress => {
                 Problem::new(Kind::ConfirmationRequired, refusal.detail.clone())
             }

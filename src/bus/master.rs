@@ -47,11 +47,6 @@ pub const DELIVERY_ALLOWANCE: Duration = Duration::from_millis(20);
 /// emergency that arrives in this last stretch goes on the next turn.
 pub const PICK_AHEAD: Duration = Duration::from_micros(100);
 
-/// The end of a reply is awaited spinning when it is due within this long:
-/// the last byte is then read as it arrives, not a wake-up later (at
-/// 115200 baud, the last two bytes).
-const SPIN_FOR_LAST_BYTES: Duration = Duration::from_micros(200);
-
 /// Timing and retry settings of a master.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MasterSettings {
@@ -547,16 +542,6 @@ impl RtuMaster {
                     deadline.max(last_byte + line.wire_time(remaining) + t35 + DELIVERY_ALLOWANCE);
             }
             let end = need.map_or(self.buf.len(), |n| n.min(self.buf.len()));
-            if let Some(n) = need
-                && len > 0
-            {
-                let have = self.spin_for_the_rest(n, len, last_byte, deadline)?;
-                if have > len {
-                    len = have;
-                    last_byte = Instant::now();
-                    continue;
-                }
-            }
             match tokio::time::timeout_at(deadline.into(), self.port.read(&mut self.buf[len..end]))
                 .await
             {
@@ -568,36 +553,6 @@ impl RtuMaster {
                 Err(_) => return Ok(Err(Fault::Mismatch("reply cut short"))),
             }
         }
-    }
-
-    /// When the rest of a reply of `n` bytes (`len` read, the last at
-    /// `last_byte`) is due within [`SPIN_FOR_LAST_BYTES`], reads it
-    /// spinning, so the reply's end is seen as it arrives and not a wake-up
-    /// later. Returns how many bytes `buf` holds then: `n`, or fewer when
-    /// the rest did not come in time (or is further away than that), and
-    /// the caller reads on.
-    fn spin_for_the_rest(
-        &mut self,
-        n: usize,
-        len: usize,
-        last_byte: Instant,
-        deadline: Instant,
-    ) -> io::Result<usize> {
-        let rest = self.settings.line.wire_time(n - len);
-        if rest > SPIN_FOR_LAST_BYTES || n > self.buf.len() {
-            return Ok(len);
-        }
-        let until = (last_byte + rest + SPIN_FOR_LAST_BYTES / 2).min(deadline);
-        let mut have = len;
-        while have < n && Instant::now() < until {
-            match self.port.try_read(&mut self.buf[have..n]) {
-                Ok(0) => return Err(self.port.closed()),
-                Ok(k) => have += k,
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => std::hint::spin_loop(),
-                Err(e) => return Err(e),
-            }
-        }
-        Ok(have)
     }
 
     /// After a fault: keep the line for `time`, discarding anything that

@@ -89,6 +89,9 @@ pub struct LeaseAsk {
     pub length: Duration,
     /// How long its setpoint may take to be settled (queue and retries).
     pub allowance: Duration,
+    /// Its stop, if not the book's (a face's own setting, such as a
+    /// communication-loss action).
+    pub action: Option<StopAction>,
 }
 
 /// A lease as faces show it.
@@ -306,6 +309,7 @@ struct Lease {
     owner: Arc<str>,
     holder: Holder,
     mode: Mode,
+    action: StopAction,
     length: Duration,
     deadline: Instant,
     /// False until its setpoint was settled: the deadline then still
@@ -473,6 +477,7 @@ impl LeaseBook {
             owner: ask.owner.clone(),
             holder: ask.holder,
             mode: ask.mode,
+            action: ask.action.unwrap_or(self.action),
             length: ask.length,
             deadline: now + ask.length + ask.allowance,
             confirmed: false,
@@ -732,7 +737,8 @@ impl LeaseBook {
 
     /// Ends `drive`'s lease now with the stop action.
     fn end_with_stop(&mut self, drive: usize, reason: StopReason, now: Instant) {
-        let action = self.action;
+        let slot = self.slot(drive);
+        let action = slot.lease.as_ref().map_or(StopAction::None, |l| l.action);
         self.end_with(drive, reason, action, now);
     }
 
@@ -844,7 +850,6 @@ impl LeaseBook {
         if self.shut_down {
             return;
         }
-        let action = self.action;
         let slot = self.slot(drive);
         if let Some(stop) = slot.stop.as_mut()
             && stop.lease.as_ref().is_some_and(|(l, _, _)| *l == id)
@@ -861,8 +866,8 @@ impl LeaseBook {
             how:
                 How::Stopped {
                     reason,
+                    action,
                     end: StopEnd::Done(_),
-                    ..
                 },
             ..
         }) = slot.last.as_ref()
@@ -874,7 +879,7 @@ impl LeaseBook {
             return;
         }
         let lease = (id, owner.clone(), *holder);
-        let reason = reason.clone();
+        let (reason, action) = (reason.clone(), *action);
         slot.last = Some(Ended {
             id,
             owner: lease.1.clone(),

@@ -8,11 +8,11 @@
 //!
 //! - [`policy`]: which role may do what, and what a write means (a
 //!   setpoint, a brake, a save to flash, ...);
-//! - the checks before sending (in [`write`]): the role; saves, factory
+//! - the checks before sending (in [`write`]): the role; a setpoint only to
+//!   an active drive (as the drive itself would answer); saves, factory
 //!   reset, address setting and calibration only at standstill unless the
 //!   face's override says so; an address broadcast only to a bus with one
-//!   drive (a setpoint to a drive that is not active the drive refuses
-//!   itself, with exception 0x04, whichever face sent it);
+//!   drive;
 //! - [`lease_book`] (pure) and its driver [`leases`]: motor-safety leases,
 //!   their stops, and the rule that a brake holds;
 //! - [`outcome`]: what became of a write, typed from the bus up;

@@ -52,6 +52,9 @@ pub enum Rule {
     /// An address broadcast to a bus of several drives: every one of them
     /// would take the address.
     SharedBusAddress,
+    /// A setpoint to a drive that is not active (the drive would refuse
+    /// it itself).
+    NotActive,
 }
 
 impl Rule {
@@ -61,6 +64,7 @@ impl Rule {
             Rule::Role { .. } => "role",
             Rule::Moving { .. } => "moving",
             Rule::SharedBusAddress => "shared-bus-address",
+            Rule::NotActive => "not-active",
         }
     }
 }

@@ -9,6 +9,7 @@ use super::policy::{self, Meaning};
 use super::written::{describe, describe_pdu};
 use crate::drive::writes::{self, PduMeaning};
 use crate::drive::{DriveRequest, RangeError};
+use crate::safety::StopAction;
 
 /// The write itself.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -29,6 +30,29 @@ impl Write {
     pub fn pdu(pdu: Vec<u8>) -> Self {
         let meaning = writes::decode(&pdu);
         Write::Pdu { pdu, meaning }
+    }
+
+    /// A write PDU to a unit that is not a configured drive (another
+    /// device on the bus): the drive's register table says nothing about
+    /// it, so it is a raw write, whatever its addresses.
+    pub fn device_pdu(pdu: Vec<u8>) -> Self {
+        Write::Pdu {
+            pdu,
+            meaning: PduMeaning::Unknown,
+        }
+    }
+
+    /// True for one whole message of the manual with valid values (not a
+    /// part of one, nor values the drive would refuse).
+    pub fn is_message(&self) -> bool {
+        matches!(
+            self,
+            Write::Drive(_)
+                | Write::Pdu {
+                    meaning: PduMeaning::Message(_),
+                    ..
+                }
+        )
     }
 
     /// What it means for the motor.
@@ -64,6 +88,8 @@ pub struct ControlRequest {
     /// For a setpoint: a lease of this length (the motor is stopped unless
     /// it is renewed in time).
     pub lease: Option<Duration>,
+    /// The lease's stop, if not `[safety] on_lease_expiry`.
+    pub lease_action: Option<StopAction>,
     /// The face's override of the still-check (HTTP `force`, a Modbus TCP
     /// network's `allow_saves_while_moving`): write even while the motor
     /// turns.
@@ -79,6 +105,7 @@ impl ControlRequest {
         ControlRequest {
             write,
             lease: None,
+            lease_action: None,
             force: false,
             single_drive: false,
         }
@@ -92,6 +119,12 @@ impl ControlRequest {
     /// With a lease of `length` (if any).
     pub fn with_lease(mut self, length: Option<Duration>) -> Self {
         self.lease = length;
+        self
+    }
+
+    /// With a stop of its own for the lease.
+    pub fn with_lease_action(mut self, action: Option<StopAction>) -> Self {
+        self.lease_action = action;
         self
     }
 

@@ -52,6 +52,12 @@ impl Control {
             Ok(pdu) => pdu,
             Err(e) => return Err(settle.failed(Failure::NotSent(BusError::Invalid(e.to_string())))),
         };
+        let bus = match self.bus(target) {
+            Ok(bus) => bus,
+            Err(e) => return Err(settle.failed(Failure::NotSent(e))),
+        };
+        // The lease is in place, and the brake guard knows of the write,
+        // before it can reach the wire.
         settle.tickets = self.tickets(caller, target, &request, &meaning);
         let options = JobOptions {
             priority: if meaning.emergency {
@@ -63,17 +69,6 @@ impl Control {
             queue_timeout: None,
             max_attempts: None,
             origin: caller.origin.clone(),
-        };
-        let Some(bus) = self
-            .plant()
-            .buses()
-            .get(target.bus)
-            .map(|b| b.handle.clone())
-        else {
-            return Err(settle.failed(Failure::NotSent(BusError::Invalid(format!(
-                "no bus at index {}",
-                target.bus
-            )))));
         };
         match bus.submit(target.unit, pdu, options) {
             Ok(rx) => Ok(Pending {
@@ -137,11 +132,48 @@ impl Control {
                 ),
             }));
         }
+        // A setpoint to a drive that is not active: the drive would refuse
+        // it (0x04); refused here, nothing goes on the wire. Only a whole
+        // message with valid values: the drive checks the values first
+        // (0x03), and its answer is the one to give.
+        if meaning.setpoint.is_some() && target.unit != 0 && request.write.is_message() {
+            self.ensure_active(&bus, caller, target).await?;
+        }
         if let Some(still) = meaning.still {
             self.ensure_still(&bus, caller, target, still, request.force)
                 .await?;
         }
         Ok(())
+    }
+
+    /// Refuses a setpoint to a drive that is not active. The poll cache may
+    /// predate an activation sent a moment ago, so an inactive cached
+    /// status is confirmed with a fresh read before refusing.
+    async fn ensure_active(
+        &self,
+        bus: &BusHandle,
+        caller: &Caller,
+        target: Target,
+    ) -> Result<(), Failure> {
+        match bus.drive(target.unit).and_then(|s| s.status) {
+            Some(s) if s.active() => return Ok(()),
+            // Never polled (or not configured): the drive decides.
+            None => return Ok(()),
+            Some(_) => {}
+        }
+        let status = read(bus, caller, target.unit)
+            .await
+            .map_err(Failure::CheckFailed)?;
+        if status.active() {
+            return Ok(());
+        }
+        Err(Failure::Refused(Refusal {
+            rule: Rule::NotActive,
+            detail: format!(
+                "{} is not active: it takes setpoints only when active; send the activate command first",
+                self.name(target)
+            ),
+        }))
     }
 
     /// Refuses a write that needs standstill while the motor turns, unless
@@ -274,6 +306,7 @@ impl Control {
                                 mode,
                                 length,
                                 allowance,
+                                action: request.lease_action,
                             };
                             let (grant, e): (Grant, _) = book.grant(drive, ask, now);
                             effects.extend(e);
@@ -355,10 +388,9 @@ impl Settle {
         }
     }
 
-    /// Settles a write that failed before it was sent.
-    fn failed(self, failure: impl Into<Failure>) -> Failure {
-        let failure = failure.into();
-        let result = Err(failure);
+    /// Settles a write that failed before it was sent, and returns why.
+    fn failed(self, failure: Failure) -> Failure {
+        let result: WriteResult = Err(failure);
         self.settle(&result, None);
         match result {
             Err(f) => f,
@@ -507,19 +539,30 @@ impl Pending {
     }
 
     /// The result, settled (leases, audit, events). Call after
-    /// [`wait`](Self::wait); a result not in yet counts as lost.
+    /// [`wait`](Self::wait): a result not in yet is given up on, and the
+    /// write settled as one whose caller went away (it may still run).
     pub fn finish(mut self) -> WriteResult {
         let Some(settle) = self.settle.take() else {
             return Err(Failure::NotSent(BusError::ShuttingDown));
         };
         self.try_ready();
         let state = std::mem::replace(&mut self.state, State::Done(Err(BusError::ShuttingDown)));
-        let result = match state {
-            State::Done(r) => settle.interpret(r),
-            State::Waiting(_) => Err(Failure::NotSent(BusError::ShuttingDown)),
-        };
-        settle.settle(&result, None);
-        result
+        match state {
+            State::Done(r) => {
+                let result = settle.interpret(r);
+                settle.settle(&result, None);
+                result
+            }
+            State::Waiting(mut rx) => {
+                rx.close();
+                let result = Err(Failure::Unknown {
+                    error: BusError::ShuttingDown,
+                    reply: None,
+                });
+                settle.settle(&result, Some(GONE));
+                result
+            }
+        }
     }
 }
 

@@ -182,8 +182,12 @@ impl Gateway {
             .with_origin(Origin::modbus_tcp(client.peer, transaction));
         if !request::reads_only(&pdu) {
             let target = self.control.unit_target(route.bus, route.unit);
-            let request = ControlRequest::new(Write::pdu(pdu.clone()))
-                .forced(client.allow_saves_while_moving);
+            let write = if target.drive.is_some() {
+                Write::pdu(pdu.clone())
+            } else {
+                Write::device_pdu(pdu.clone())
+            };
+            let request = ControlRequest::new(write).forced(client.allow_saves_while_moving);
             return match self.control.submit(&caller, target, request).await {
                 Ok(pending) => Answer::Pending(Pending::writes(&pdu, false, vec![pending])),
                 Err(failure) => {

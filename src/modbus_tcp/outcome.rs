@@ -8,6 +8,7 @@
 //! | the network's role does not allow the write | 0x01 illegal function |
 //! | an address broadcast to a bus of several drives | 0x01 illegal function |
 //! | a save, factory reset, address setting or calibration while the motor turns | 0x06 server device busy |
+//! | a setpoint to a drive that is not active | 0x04 server device failure, as the drive answers it |
 
 use crate::bus::BusError;
 use crate::control::{Failure, Rule};
@@ -127,6 +128,8 @@ pub fn failure_reply(function: u8, failure: &Failure) -> (Vec<u8>, Outcome) {
                 Rule::Role { .. } => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::Forbidden),
                 Rule::SharedBusAddress => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::Refused),
                 Rule::Moving { .. } => (ExceptionCode::SERVER_DEVICE_BUSY, Outcome::Moving),
+                // What the drive itself answers.
+                Rule::NotActive => (ExceptionCode::SERVER_DEVICE_FAILURE, Outcome::Exception),
             };
             (exception_pdu(function, code), outcome)
         }

@@ -117,22 +117,6 @@ impl TcpLine {
         }
     }
 
-    /// Reads what the master has sent without waiting (`WouldBlock` when
-    /// nothing, or nobody is connected); asks the system every time.
-    pub fn try_read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
-        match &self.connection {
-            Some(connection) => {
-                let socket = socket2::SockRef::from(connection);
-                match io::Read::read(&mut &*socket, buf) {
-                    // A close is seen (and the next master awaited) by `read`.
-                    Ok(0) => Err(io::ErrorKind::WouldBlock.into()),
-                    other => other,
-                }
-            }
-            None => Err(io::ErrorKind::WouldBlock.into()),
-        }
-    }
-
     /// Sends `bytes` to the master, if one is connected.
     pub async fn write_all(&mut self, bytes: &[u8]) -> io::Result<()> {
         if let Some(connection) = &mut self.connection

@@ -44,10 +44,6 @@ use crate::clock::PreciseTimer;
 use crate::modbus::rtu_frame::{FrameLength, MAX_FRAME, MIN_FRAME, request_length};
 use crate::modbus::timing::LineTiming;
 
-/// How long past the earliest moment a request may start the simulator
-/// watches for it spinning (see [`Wire::watch_for_request`]).
-const REQUEST_WATCH: Duration = Duration::from_micros(150);
-
 /// Bytes kept waiting to be framed; beyond this the line is garbage.
 const RX_LIMIT: usize = 4 * MAX_FRAME;
 
@@ -102,14 +98,6 @@ impl Line {
         match self {
             Line::Pty(pty) => pty.master().write_all(bytes).await,
             Line::Tcp(tcp) => tcp.write_all(bytes).await,
-        }
-    }
-
-    /// Reads what has arrived without waiting (`WouldBlock` when nothing).
-    fn try_read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
-        match self {
-            Line::Pty(pty) => pty.master().try_read(buf),
-            Line::Tcp(tcp) => tcp.try_read(buf),
         }
     }
 }
@@ -191,9 +179,7 @@ impl Wire {
     async fn next_frame(&mut self) -> io::Result<usize> {
         loop {
             let Some(&first) = self.rx.arrivals.first() else {
-                if !self.watch_for_request().await? {
-                    self.read_until(None, false).await?;
-                }
+                self.read_until(None, false).await?;
                 continue;
             };
             let length = request_length(&self.rx.bytes);
@@ -223,39 +209,6 @@ impl Wire {
                 _ => self.drop_partial(),
             }
         }
-    }
-
-    /// Around the moment the next request may start (t3.5 after the last
-    /// activity), watches the line spinning instead of waiting for a
-    /// wake-up, so a request's arrival is seen when it comes, as on a wire,
-    /// and not when the simulator's thread is next run. True when bytes
-    /// came; false when none came in [`REQUEST_WATCH`] (the master is late or
-    /// idle: then it is waited for as usual).
-    async fn watch_for_request(&mut self) -> io::Result<bool> {
-        let Some(quiet) = self.quiet_from else {
-            return Ok(false);
-        };
-        let legal = quiet + self.line.t3_5();
-        if Instant::now() >= legal + REQUEST_WATCH {
-            return Ok(false);
-        }
-        // Early bytes (a master breaking the silence) are read as they come.
-        if self.read_until(Some(legal), true).await? {
-            return Ok(true);
-        }
-        let mut buf = [0u8; 256];
-        while Instant::now() < legal + REQUEST_WATCH {
-            match self.line_io.try_read(&mut buf) {
-                Ok(n) if n > 0 => {
-                    self.push_received(&buf[..n], Instant::now());
-                    return Ok(true);
-                }
-                Ok(_) => return Ok(false),
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => std::hint::spin_loop(),
-                Err(e) => return Err(e),
-            }
-        }
-        Ok(false)
     }
 
     fn drop_partial(&mut self) {

@@ -137,8 +137,9 @@ async fn a_scan_tries_a_busy_unit_again_and_keeps_what_it_found() {
     use drivegate::drive::DriveRequest;
 
     tokio::time::timeout(LIMIT, async {
-        let toml = FOUR_DRIVES.replace(
-            "response_timeout_ms = 50",
+        let toml = crate::support::replaced(
+            FOUR_DRIVES,
+            crate::support::WIRE_TIMING,
             "response_timeout_ms = 3000\nguard_ms = 3000\nqueue_capacity = 1",
         );
         let d = TestDaemon::start(&toml).await;

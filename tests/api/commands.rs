@@ -365,6 +365,13 @@ async fn calibration_fine_tuning_and_the_resets() {
             s.calibrated().then_some(())
         })
         .await;
+        // Fine-tuning, like calibration, needs the motor standing still:
+        // calibration's last nudge settles first.
+        eventually(Duration::from_secs(10), "the lift standing", || {
+            let s = d.plant.buses()[0].handle.drive(2)?.status?;
+            (s.speed_rpm == 0).then_some(())
+        })
+        .await;
         api.command("lift", "fine-tune").await;
         assert_eq!(sim.drive(2).unwrap().procedure, Some(Procedure::FineTuning));
 

@@ -150,7 +150,8 @@ async fn health_readiness_metrics_and_unknown_routes() {
         for unit in 1..=4 {
             d.sim().set_silent(unit, true);
         }
-        crate::support::eventually(Duration::from_secs(10), "every drive offline", || {
+        // Three failed polls each, two attempts a poll, 300 ms an attempt.
+        crate::support::eventually(Duration::from_secs(30), "every drive offline", || {
             d.plant.buses()[0]
                 .handle
                 .drives()

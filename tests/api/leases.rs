@@ -280,7 +280,11 @@ async fn the_expiry_action_can_be_the_brake() {
 /// the brake: one emergency job, so nothing can slip in between the stop's
 /// read and its write, and a setpoint sent after it would release it.
 fn slow_bus_with_brake_on_expiry() -> String {
-    let toml = FOUR_DRIVES.replace("response_timeout_ms = 50", "response_timeout_ms = 1500");
+    let toml = crate::support::replaced(
+        FOUR_DRIVES,
+        crate::support::WIRE_TIMING,
+        "response_timeout_ms = 1500",
+    );
     format!("{toml}\n[safety]\non_lease_expiry = \"brake\"\n")
 }
 

@@ -102,9 +102,18 @@ fn status_reply(turns: u16) -> Vec<u8> {
     pdu
 }
 
+/// The response timeout and guard time of these tests: far longer than a
+/// loaded machine keeps the peer (a task on this test's thread) from
+/// answering, so only the script's own silences and delays are faults.
+const TIMEOUT: Duration = Duration::from_millis(500);
+const GUARD: Duration = Duration::from_millis(600);
+
+/// The drives' time to act on a broadcast in these tests.
+const BROADCAST_DELAY: Duration = Duration::from_millis(1000);
+
 fn settings() -> MasterSettings {
-    let mut s = MasterSettings::new(115_200, Duration::from_millis(30), 1);
-    s.guard = Guard::Fixed(Duration::from_millis(40));
+    let mut s = MasterSettings::new(115_200, TIMEOUT, 1);
+    s.guard = Guard::Fixed(GUARD);
     s
 }
 
@@ -172,14 +181,15 @@ async fn the_next_request_waits_for_the_silent_interval() {
 
 #[tokio::test]
 async fn a_timeout_is_retried_and_a_late_reply_is_not_taken_for_the_next() {
-    // First request: the reply comes 50 ms late (past the 30 ms timeout but
-    // inside the 40 ms guard). The retry is answered with turns=2. Then a
-    // second transaction must get turns=3, never the stale turns=1.
+    // First request: the reply comes 800 ms late (300 ms past the timeout,
+    // 300 ms before the end of the guard that follows it). The retry is
+    // answered with turns=2. Then a second transaction must get turns=3,
+    // never the stale turns=1.
     let (path, _peer, _) = start_peer(vec![
         Answer::Reply {
             unit: 1,
             pdu: status_reply(1),
-            delay: Duration::from_millis(50),
+            delay: TIMEOUT + GUARD / 2,
         },
         Answer::Reply {
             unit: 1,
@@ -334,7 +344,7 @@ async fn a_broadcast_expects_nothing_and_waits_the_turnaround() {
     ]);
     let mut s = settings();
     // Long enough that a loaded machine's stalls cannot pass for it.
-    s.broadcast_delay = Duration::from_millis(200);
+    s.broadcast_delay = BROADCAST_DELAY;
     let mut m = master(&path, s).await;
     let set = DriveRequest::SetAddress { address: 5 }.pdu().unwrap();
     let start = Instant::now();
@@ -344,7 +354,7 @@ async fn a_broadcast_expects_nothing_and_waits_the_turnaround() {
         (Outcome::Ok, Some(&[][..]))
     );
     assert!(
-        start.elapsed() < Duration::from_millis(200),
+        start.elapsed() < BROADCAST_DELAY,
         "a broadcast does not wait for a reply"
     );
     let r = m.transact(5, &read_status(), None).await.unwrap();
@@ -354,11 +364,7 @@ async fn a_broadcast_expects_nothing_and_waits_the_turnaround() {
     // Measured from before the broadcast left: the peer may read it late
     // on a loaded machine, never early.
     let (_, t_next) = peer.requests.recv().await.unwrap();
-    assert!(
-        t_next - start >= Duration::from_millis(200),
-        "{:?}",
-        t_next - start
-    );
+    assert!(t_next - start >= BROADCAST_DELAY, "{:?}", t_next - start);
 }
 
 #[tokio::test]
@@ -375,7 +381,7 @@ async fn a_byte_during_the_broadcast_turnaround_does_not_cut_it_short() {
         },
     ]);
     let mut s = settings();
-    s.broadcast_delay = Duration::from_millis(200);
+    s.broadcast_delay = BROADCAST_DELAY;
     let mut m = master(&path, s).await;
     let set = DriveRequest::SetAddress { address: 5 }.pdu().unwrap();
     let start = Instant::now();
@@ -388,7 +394,7 @@ async fn a_byte_during_the_broadcast_turnaround_does_not_cut_it_short() {
     let _broadcast = peer.requests.recv().await.unwrap();
     let (_, t_next) = peer.requests.recv().await.unwrap();
     assert!(
-        t_next - start >= Duration::from_millis(200),
+        t_next - start >= BROADCAST_DELAY,
         "the next request came {:?} after the broadcast",
         t_next - start
     );

@@ -238,6 +238,16 @@ async fn a_setpoint_the_brake_overtook_has_the_brake_applied_again() {
             let pdu = write(register, value);
             assert_eq!(plc.ask(LIFT, &pdu).await, pdu);
         }
+        // The poll cache shows the drive active, so the setpoint's
+        // active-check needs no read of its own (which would wait behind
+        // the held wire, and hold the brake back with it).
+        eventually(LIMIT, "lift polled active", || {
+            bus.drive(LIFT)
+                .and_then(|s| s.status)
+                .is_some_and(|s| s.active())
+                .then_some(())
+        })
+        .await;
         let before = writes(&bus);
         // The PLC pipelines a setpoint and then the brake. Both wait behind
         // the held wire; the brake, at emergency priority, goes first, and

@@ -6,18 +6,20 @@
 //! before the unplug answers a request from after it, and `/metrics`
 //! counts the port errors, the reopens and every job the outage failed.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
 
 use crate::support::faults::{
-    PollCounter, Truth, UNITS, Wire, assert_polled, drive_up, eight_drives, stop_and_scrape,
-    traffic_on,
+    PollCounter, Setting, Truth, UNITS, Wire, assert_polled, drive_up, eight_drives,
+    stop_and_scrape, traffic_on,
 };
 use crate::support::{TestDaemon, eventually};
 use drivegate::bus::BusEvent;
 use drivegate::bus::cache::Link;
-use drivegate::bus::handle::PortState;
+use drivegate::bus::handle::{JobOptions, PortState};
 use drivegate::sim::SimConfig;
+use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 
 const LIMIT: Duration = Duration::from_secs(45);
@@ -32,7 +34,7 @@ async fn an_adapter_unplugged_during_traffic_is_reopened_and_nothing_is_lost() {
         let truth = Arc::new(Truth::linked(SimConfig::for_units(UNITS), &link));
         let d = TestDaemon::start(&eight_drives(
             &link.display().to_string(),
-            "response_timeout_ms = 50",
+            crate::support::WIRE_TIMING,
             "",
         ))
         .await;
@@ -69,7 +71,25 @@ async fn an_adapter_unplugged_during_traffic_is_reopened_and_nothing_is_lost() {
             )
             .await;
         }
-        tokio::time::sleep(Duration::from_millis(500)).await;
+        // The traffic goes on until every drive has answered four polls
+        // since the last replug: an event, not a time, as a loaded machine
+        // polls more slowly.
+        let mut after = bus.subscribe();
+        let mut polled: BTreeMap<u8, u32> = BTreeMap::new();
+        tokio::time::timeout(Duration::from_secs(20), async {
+            while UNITS
+                .into_iter()
+                .any(|u| polled.get(&u).copied().unwrap_or(0) < 4)
+            {
+                match after.recv().await {
+                    Ok(BusEvent::Status { unit, .. }) => *polled.entry(unit).or_default() += 1,
+                    Ok(_) | Err(RecvError::Lagged(_)) => {}
+                    Err(RecvError::Closed) => panic!("the bus's events ended"),
+                }
+            }
+        })
+        .await
+        .unwrap_or_else(|_| panic!("drives polled after the outages: {polled:?}"));
         stop.cancel();
         let (total, each) = traffic.await.unwrap();
         let polls = polls.finish().await;
@@ -89,6 +109,22 @@ async fn an_adapter_unplugged_during_traffic_is_reopened_and_nothing_is_lost() {
                 _ => {}
             }
         }
+        // After the outages every drive takes a write and reads it back.
+        for unit in UNITS {
+            let (request, value) = Setting::SpeedRamp.write(900_000 + u32::from(unit));
+            bus.execute(unit, &request, JobOptions::default())
+                .await
+                .unwrap_or_else(|e| panic!("unit {unit} after the outages: {e}"));
+            let read = bus
+                .transact(unit, Setting::SpeedRamp.read_pdu(), JobOptions::default())
+                .await
+                .unwrap_or_else(|e| panic!("unit {unit} after the outages: {e}"));
+            assert_eq!(
+                Setting::SpeedRamp.decode(&read.reply),
+                Some(value),
+                "unit {unit}"
+            );
+        }
         let (s, _plant) = stop_and_scrape(d).await;
         let wire = Wire::of(&s, BUS);
         eprintln!("{total:?}\n{wire:?}\npolls {polls:?}\ndown {down} up {up}");
@@ -98,9 +134,12 @@ async fn an_adapter_unplugged_during_traffic_is_reopened_and_nothing_is_lost() {
         // refused unsent while the bus was down.
         assert!(total.failed_bus_down >= 1, "{total:?}");
         assert!(total.writes_refused + total.reads_refused >= 1, "{total:?}");
-        // Between and after the outages every drive worked.
+        // Between the outages every drive worked, and after them each took
+        // a write and read it back (above, before the stop: how much
+        // traffic fits between the outages depends on how fast the machine
+        // is, not on the daemon).
         for (unit, tally) in &each {
-            assert!(tally.writes_confirmed >= 8, "unit {unit}: {tally:?}");
+            assert!(tally.writes_confirmed >= 1, "unit {unit}: {tally:?}");
         }
         assert_polled(&polls, UNITS, 4);
         // Each outage is one bus-down and one bus-up event, one reopen.

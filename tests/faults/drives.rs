@@ -10,8 +10,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::support::faults::{
-    JOB_LIMIT, PollCounter, Setting, Truth, UNITS, Wire, assert_polled, drive_up, eight_drives,
-    stop_and_scrape, traffic_on,
+    JOB_LIMIT, PollCounter, Setting, Truth, UNITS, Wire, assert_late_replies_discarded,
+    assert_polled, drive_up, eight_drives, late_by_the_machine, stop_and_scrape, traffic_on,
 };
 use crate::support::{TestDaemon, eventually};
 use drivegate::bus::cache::Link;
@@ -36,11 +36,11 @@ async fn bounded(test: impl Future<Output = ()>) {
 async fn a_silent_drive_goes_offline_costs_little_and_fails_only_its_own_requests() {
     bounded(async {
         const SILENT: u8 = 8;
-        // A timeout twice the default: only the silent drive's replies are
-        // missing, none delayed by the machine's scheduling.
+        // Only the silent drive's replies are missing; one the machine's
+        // scheduling delays past the timeout arrives in the guard time.
         let d = TestDaemon::start(&eight_drives(
             "sim",
-            "response_timeout_ms = 100\nguard_ms = 20",
+            "response_timeout_ms = 250\nguard_ms = 50",
             "",
         ))
         .await;
@@ -124,17 +124,21 @@ async fn a_silent_drive_goes_offline_costs_little_and_fails_only_its_own_request
             ) >= 3.0
         );
         // Exact: every attempt at the silent drive went unanswered and timed
-        // out, and no other attempt failed.
+        // out, and no other attempt failed but for a reply the machine made
+        // late (rare, discarded when it came, retried).
+        let late = late_by_the_machine(&wire, &sim);
+        assert_late_replies_discarded(&wire, &sim, late);
         assert_eq!(
-            wire.retries + wire.timeout,
-            sim.unanswered,
+            wire.retries + wire.timeout + wire.bad_reply,
+            sim.unanswered + late,
             "{wire:?} {sim}"
         );
+        assert_eq!(wire.crc_error, 0);
+        assert!(wire.bad_reply <= late, "{wire:?}");
         assert_eq!(
-            (wire.crc_error, wire.bad_reply, wire.stray_bytes),
-            (0, 0, 0)
+            wire.timeout + wire.bad_reply,
+            wire.poll_failures + errors.len() as u64
         );
-        assert_eq!(wire.timeout, wire.poll_failures + errors.len() as u64);
         assert_eq!(sim.requests, wire.attempts());
         // It costs little: offline after 3 failed polls, then polled with a
         // backoff of 1 s doubling, so within `elapsed` seconds at most
@@ -170,8 +174,9 @@ async fn a_power_cycled_drive_comes_back_with_what_its_flash_holds() {
         const CYCLED: u8 = 3;
         let d = TestDaemon::start(&eight_drives(
             "sim",
-            "response_timeout_ms = 100\nguard_ms = 20\noffline_backoff_ms = 200",
-            "reboot_ms = 600",
+            "response_timeout_ms = 250\nguard_ms = 50\noffline_backoff_ms = 200",
+            // Long enough that the traffic meets it even on a loaded machine.
+            "reboot_ms = 2000",
         ))
         .await;
         let bus = d.plant.buses()[0].handle.clone();
@@ -241,21 +246,22 @@ async fn a_power_cycled_drive_comes_back_with_what_its_flash_holds() {
         let wire = Wire::of(&s, BUS);
         eprintln!("{wire:?}\n{sim}");
         // Exact: every attempt at the rebooting drive went unanswered and
-        // timed out; nothing else failed.
+        // timed out; nothing else failed but for a reply the machine made
+        // late (rare, discarded when it came, retried).
         assert!(sim.unanswered >= 2, "{sim}");
+        let late = late_by_the_machine(&wire, &sim);
+        assert_late_replies_discarded(&wire, &sim, late);
         assert_eq!(
-            wire.retries + wire.timeout,
-            sim.unanswered,
+            wire.retries + wire.timeout + wire.bad_reply,
+            sim.unanswered + late,
             "{wire:?} {sim}"
         );
         assert_eq!(
-            wire.timeout,
+            wire.timeout + wire.bad_reply,
             wire.poll_failures + total.writes_failed + total.reads_failed
         );
-        assert_eq!(
-            (wire.crc_error, wire.bad_reply, wire.stray_bytes),
-            (0, 0, 0)
-        );
+        assert_eq!(wire.crc_error, 0);
+        assert!(wire.bad_reply <= late, "{wire:?}");
         assert_eq!(sim.requests, wire.attempts());
         // The drive is back up in /metrics.
         for unit in UNITS {

@@ -35,14 +35,27 @@ fn cases(default: u32) -> u32 {
         .unwrap_or(default)
 }
 
-/// The daemon with the role tokens and a small body limit; silent units
-/// cost little bus time (20 ms and a 5 ms guard), so the scans that
-/// generated bodies start stay short.
+/// The daemon with the role tokens and a small body limit.
 async fn daemon() -> TestDaemon {
-    let text = config(&format!("max_body_bytes = {MAX_BODY}"), "", true, "").replace(
-        "response_timeout_ms = 50",
-        "response_timeout_ms = 20\nguard_ms = 5",
-    );
+    TestDaemon::start(&config(
+        &format!("max_body_bytes = {MAX_BODY}"),
+        "",
+        true,
+        "",
+    ))
+    .await
+}
+
+/// [`daemon`] with drives at every unit of a scan's default range (1-32),
+/// so the scans that generated bodies start spend no bus time on silent
+/// units.
+async fn daemon_with_every_scanned_unit() -> TestDaemon {
+    let text = crate::support::input::drives_up_to_32(&config(
+        &format!("max_body_bytes = {MAX_BODY}"),
+        "",
+        true,
+        "",
+    ));
     TestDaemon::start(&text).await
 }
 
@@ -392,7 +405,7 @@ mod mime_probe {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bodies_of_every_shape_are_answered_cleanly_and_refusals_write_nothing() {
     tokio::time::timeout(LIMIT, async {
-        let d = daemon().await;
+        let d = daemon_with_every_scanned_unit().await;
         let baseline = Baseline::take(&d).await;
         let bystander = Bystander::http(d.http, Some(VIEWER));
         bystander.wait_for(3).await;

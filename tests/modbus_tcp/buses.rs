@@ -37,7 +37,7 @@ bus_units = "1-32"
 [[bus]]
 name = "A"
 port = "sim"
-response_timeout_ms = 20
+response_timeout_ms = 250
 retries = 0
 [bus.sim]
 seed = 1
@@ -51,7 +51,7 @@ name = "a2"
 [[bus]]
 name = "B"
 port = "sim"
-response_timeout_ms = 20
+response_timeout_ms = 250
 retries = 0
 [bus.sim]
 seed = 2
@@ -124,7 +124,7 @@ async fn a_unit_map_reaches_two_buses_through_one_listener() {
 async fn a_bus_that_is_down_is_gateway_path_unavailable() {
     bounded(async {
         let toml = TWO_BUSES.replace(
-            "name = \"B\"\nport = \"sim\"\nresponse_timeout_ms = 20\nretries = 0\n[bus.sim]\nseed = 2\n",
+            "name = \"B\"\nport = \"sim\"\nresponse_timeout_ms = 250\nretries = 0\n[bus.sim]\nseed = 2\n",
             "name = \"B\"\nport = \"/dev/drivegate-test-no-such-adapter\"\n",
         );
         let d = TestDaemon::start_no_wait(&toml).await;

@@ -77,7 +77,11 @@ async fn a_client_that_disconnects_has_its_queued_requests_dropped_unsent() {
     bounded(async {
         // A long response timeout: whatever is on the wire when B sends stays
         // there for half a second, far longer than B takes to disconnect.
-        let toml = FOUR_DRIVES.replace("response_timeout_ms = 50", "response_timeout_ms = 500");
+        let toml = crate::support::replaced(
+            FOUR_DRIVES,
+            crate::support::WIRE_TIMING,
+            "response_timeout_ms = 500",
+        );
         let d = TestDaemon::start(&toml).await;
         let addr = d.modbus_tcp.unwrap();
         let (_, bus) = d.plant.drive("lift").unwrap();

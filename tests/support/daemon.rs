@@ -12,7 +12,17 @@ use drivegate::plant::Plant;
 use drivegate::sim::SimHandle;
 use tokio_util::sync::CancellationToken;
 
-/// A simulated bus of four drives, units 1-4, as fast as the bus allows.
+/// The response timeout and guard time of the test buses. The simulator
+/// answers within a few milliseconds, but it is a thread of this process,
+/// and on a loaded machine (other builds, other tests) a thread can wait
+/// 100 ms and more for a CPU: a timeout in the tens of milliseconds would
+/// make a drive that answered look silent. The guard after a timeout is
+/// shorter, so a silent unit costs 300 ms an attempt. A test replaces these
+/// lines whole to set its own.
+pub const WIRE_TIMING: &str = "response_timeout_ms = 250\nguard_ms = 50";
+
+/// A simulated bus of four drives, units 1-4, as fast as the bus allows
+/// (the response timeout is [`WIRE_TIMING`]).
 pub const FOUR_DRIVES: &str = r#"
 [http]
 listen = "127.0.0.1:0"
@@ -21,7 +31,8 @@ listen = "127.0.0.1:0"
 [[bus]]
 name = "sim"
 port = "sim"
-response_timeout_ms = 50
+response_timeout_ms = 250
+guard_ms = 50
 retries = 1
 [bus.sim]
 turnaround_ms = 0.5
@@ -43,6 +54,16 @@ unit = 4
 name = "feeder"
 gear_ratio = 1.0
 "#;
+
+/// `text` with `from` replaced by `to`; panics if `text` has no `from` (a
+/// replacement that silently does nothing would test something else).
+pub fn replaced(text: &str, from: &str, to: &str) -> String {
+    assert!(
+        text.contains(from),
+        "no {from:?} in the configuration to replace"
+    );
+    text.replace(from, to)
+}
 
 /// A running daemon.
 pub struct TestDaemon {

@@ -14,7 +14,7 @@ use drivegate::bus::{BusError, BusEvent, BusHandle, SourceId};
 use drivegate::drive::{DriveReply, DriveRequest};
 use drivegate::plant::Plant;
 use drivegate::sim::model::Settings;
-use drivegate::sim::{SimConfig, SimDriveView, SimHandle, Simulator};
+use drivegate::sim::{SimConfig, SimDriveView, SimHandle, SimStats, Simulator};
 use tokio::sync::Mutex;
 use tokio_util::sync::CancellationToken;
 
@@ -744,6 +744,61 @@ impl Wire {
     pub fn failed_attempts(&self) -> u64 {
         self.retries + self.timeout + self.crc_error + self.bad_reply
     }
+}
+
+/// The shortest and longest reply frames of the checked workload: a
+/// one-register read (7 bytes) and the status block (19 bytes).
+pub const SHORTEST_REPLY: u64 = 7;
+pub const LONGEST_REPLY: u64 = 19;
+
+/// Failed attempts that no injected fault explains: replies that came
+/// after the response timeout although the simulator did not delay them.
+/// The simulator is a thread of this process, on the same CPUs as the
+/// other tests and whatever else the machine runs; kept from running for
+/// longer than the timeout, it answers late like a slow drive would. That
+/// is the machine's doing, not the master's, so it is allowed, but it must
+/// be rare (a master that gave up early would make most replies late) and
+/// each must be a reply the master did not take
+/// ([`assert_late_replies_discarded`]): its attempt timed out, or, when
+/// the machine held it past the guard time too, the attempt it met refused
+/// it as a bad reply (what RTU allows: never taken as an answer). Every
+/// injected fault still fails its attempt: fewer failed attempts than
+/// faults fails here.
+pub fn late_by_the_machine(wire: &Wire, sim: &SimStats) -> u64 {
+    let injected = sim.dropped + sim.unanswered + sim.late + sim.corrupted;
+    let failed = wire.failed_attempts();
+    assert!(
+        failed >= injected,
+        "{failed} failed attempts for {injected} injected faults: {wire:?} {sim}"
+    );
+    let late = failed - injected;
+    assert!(
+        late * 50 <= sim.requests,
+        "{late} of {} replies came after the response timeout without being made late: {wire:?} {sim}",
+        sim.requests
+    );
+    late
+}
+
+/// In a run without noise, the replies no attempt took are exactly the
+/// late ones (the simulator's and `machine_late`); corrupted replies were
+/// taken, and failed their CRC. Each of the simulator's late replies came
+/// whole in the guard time and was discarded as stray bytes; one the
+/// machine made later than the guard was flushed before the next request,
+/// uncounted, so those only bound the count from above.
+pub fn assert_late_replies_discarded(wire: &Wire, sim: &SimStats, machine_late: u64) {
+    let late = sim.late + machine_late;
+    assert_eq!(
+        sim.replies - (wire.ok + wire.exception + sim.corrupted),
+        late,
+        "replies not taken: {wire:?} {sim}"
+    );
+    assert!(
+        (SHORTEST_REPLY * sim.late..=LONGEST_REPLY * late).contains(&wire.stray_bytes),
+        "{} stray bytes for {} late replies and {machine_late} made late by the machine",
+        wire.stray_bytes,
+        sim.late
+    );
 }
 
 /// The simulator's fault counters as `/metrics` exports them.

@@ -16,4 +16,4 @@ pub mod tools;
 pub mod vectors;
 
 #[allow(unused_imports)]
-pub use daemon::{FOUR_DRIVES, TestDaemon, eventually};
+pub use daemon::{FOUR_DRIVES, TestDaemon, WIRE_TIMING, eventually, replaced};

@@ -25,8 +25,9 @@ pub(crate) fn four_drives_with(modbus_tcp: &str) -> String {
 pub(crate) fn drives(n: u8, modbus_tcp: &str, bus: &str) -> String {
     let mut toml = format!(
         "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n{modbus_tcp}\n\
-         [[bus]]\nname = \"sim\"\nport = \"sim\"\nresponse_timeout_ms = 50\nretries = 1\n{bus}\n\
-         [bus.sim]\nturnaround_ms = 0.5\nseed = 11\n"
+         [[bus]]\nname = \"sim\"\nport = \"sim\"\n{timeout}\nretries = 1\n{bus}\n\
+         [bus.sim]\nturnaround_ms = 0.5\nseed = 11\n",
+        timeout = crate::support::WIRE_TIMING
     );
     for unit in 1..=n {
         toml.push_str(&format!(

@@ -14,6 +14,7 @@ fn ask(owner: &str, holder: Holder, mode: Mode, length: Duration) -> LeaseAsk {
         mode,
         length,
         allowance: 5 * SECOND,
+        action: None,
     }
 }
 
@@ -894,4 +895,30 @@ fn the_brake_is_applied_again_whichever_result_comes_back_first() {
     let after = book.begin_write(CONVEYOR, WriteKind::Setpoint { lease: None }, "x".into());
     book.end_write(&after, Applied::Yes, t0);
     assert!(stops(&book.end_write(&brake, Applied::Yes, t0)).is_empty());
+}
+
+#[test]
+fn a_lease_may_carry_its_own_stop_action() {
+    let t0 = Instant::now();
+    let mut book = LeaseBook::new(StopAction::ZeroSpeed);
+    let ask = LeaseAsk {
+        action: Some(StopAction::Brake),
+        ..ask("plc", Holder::Session(SessionId(9)), Mode::Speed, SECOND)
+    };
+    book.session_opened(SessionId(9), "its connection closed");
+    let (grant, _) = book.grant(CONVEYOR, ask, t0);
+    let ticket = book.begin_write(
+        CONVEYOR,
+        WriteKind::Setpoint { lease: Some(grant) },
+        "x".into(),
+    );
+    book.end_write(&ticket, Applied::Yes, t0);
+    let effects = book.session_closed(SessionId(9), t0);
+    assert_eq!(stops(&effects)[0].action, StopAction::Brake);
+    // Another drive's lease keeps the book's action.
+    leased(&mut book, LIFT, "scada", SECOND, t0);
+    assert_eq!(
+        stops(&book.tick(t0 + SECOND))[0].action,
+        StopAction::ZeroSpeed
+    );
 }
