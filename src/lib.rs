@@ -17,6 +17,8 @@ pub mod logging;
 pub mod metrics;
 pub mod modbus;
 pub mod modbus_tcp;
+pub mod monitor;
 pub mod plant;
 pub mod safety;
+pub mod scope;
 pub mod sim;

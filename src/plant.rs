@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use tracing::{info, warn};
 
-use crate::bus::BusHandle;
+use crate::bus::{BusHandle, Origin};
 use crate::config::{BusConfig, Config};
 use crate::control::{Face, audit};
 use crate::safety::{self, StopAction, StopOutcome};
@@ -99,8 +99,11 @@ impl Plant {
                 Some(sim) => sim.port_path().display().to_string(),
                 None => bus_config.port.get_ref().clone(),
             };
-            let (handle, thread) = crate::bus::scheduler::spawn(bus_config.settings(&port))
-                .map_err(|source| PlantError::Bus {
+            let mut settings = bus_config.settings(&port);
+            settings.monitor = config.monitor.settings();
+            settings.scope = config.scope.settings();
+            let (handle, thread) =
+                crate::bus::scheduler::spawn(settings).map_err(|source| PlantError::Bus {
                     bus: name.clone(),
                     source,
                 })?;
@@ -170,7 +173,8 @@ impl Plant {
             let handle = self.handle_of(drive).clone();
             let (name, unit) = (drive.name.clone(), drive.unit);
             async move {
-                match safety::stop_drive(&handle, unit, action, true, None).await {
+                match safety::stop_drive(&handle, unit, action, true, None, Origin::Shutdown).await
+                {
                     Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
                         // One line per write: with the mode unknown,
                         // zero-speed is two (speed and torque setpoint 0).

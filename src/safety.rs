@@ -4,7 +4,7 @@
 use serde::Deserialize;
 
 use crate::bus::handle::JobOptions;
-use crate::bus::{BusError, BusHandle, Priority, SourceId};
+use crate::bus::{BusError, BusHandle, Origin, Priority, SourceId};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest, Mode, Status};
 
 /// How to stop a motor nobody controls.
@@ -117,7 +117,8 @@ impl StopOutcome {
 /// and the drive is assumed to be moving; with no mode at all, zero-speed
 /// zeroes both the speed and the torque setpoint (see
 /// [`StopAction::requests`]). With `only_if_moving`, a drive found standing
-/// is left alone.
+/// is left alone. `origin` says why, for the bus monitor (a lease's end,
+/// the shutdown).
 ///
 /// Every request is tried even if one before it failed (a drive that
 /// refused the speed setpoint may still take the torque one); the result is
@@ -128,11 +129,13 @@ pub async fn stop_drive(
     action: StopAction,
     only_if_moving: bool,
     fallback: Option<Mode>,
+    origin: Origin,
 ) -> Result<StopOutcome, BusError> {
     // From the daemon itself at emergency priority: the queue never refuses
     // these for its limits, so stopping every drive at once is not "busy".
     let options = JobOptions {
         source: SourceId::INTERNAL,
+        origin,
         ..JobOptions::with_priority(Priority::Emergency)
     };
     let mut outcome = StopOutcome {
@@ -145,7 +148,10 @@ pub async fn stop_drive(
         return Ok(outcome);
     }
     if action == StopAction::ZeroSpeed || only_if_moving {
-        match bus.execute(unit, &DriveRequest::ReadStatus, options).await {
+        match bus
+            .execute(unit, &DriveRequest::ReadStatus, options.clone())
+            .await
+        {
             Ok(DriveReply::Status(s)) => {
                 outcome.mode = Some(s.mode());
                 outcome.moving = is_moving(&s);
@@ -161,7 +167,7 @@ pub async fn stop_drive(
     }
     let mut failed = None;
     for request in action.requests(outcome.mode) {
-        match bus.execute(unit, &request, options).await {
+        match bus.execute(unit, &request, options.clone()).await {
             Ok(_) if outcome.sent.is_none() => outcome.sent = Some(request),
             Ok(_) => outcome.also_sent = Some(request),
             Err(e) => {

@@ -147,7 +147,8 @@ fn bus_view(bus: &Bus) -> BusView {
     }
 }
 
-fn find_bus<'a>(state: &'a ApiState, name: &str) -> Result<&'a Bus, Problem> {
+/// The bus named `name`, or an `unknown-bus` problem listing the buses.
+pub fn find_bus<'a>(state: &'a ApiState, name: &str) -> Result<&'a Bus, Problem> {
     state.plant.bus(name).ok_or_else(|| {
         let names: Vec<&str> = state
             .plant
@@ -295,7 +296,7 @@ async fn scan_read(
     let mut tries = 1;
     loop {
         match handle
-            .execute(unit, &DriveRequest::ReadStatus, options)
+            .execute(unit, &DriveRequest::ReadStatus, options.clone())
             .await
         {
             Err(BusError::Busy { .. }) if tries < SCAN_TRIES => {
@@ -363,6 +364,7 @@ pub async fn scan(
         source: caller.source,
         queue_timeout: Some(Duration::from_secs(2)),
         max_attempts: Some(1),
+        origin: caller.origin.clone(),
     };
     let mut reply = ScanReply {
         bus: handle.name().to_string(),
@@ -383,7 +385,7 @@ pub async fn scan(
             .iter()
             .find(|d| d.unit() == unit)
             .map(|d| d.name().to_string());
-        match scan_read(handle, unit, options).await {
+        match scan_read(handle, unit, options.clone()).await {
             Ok(DriveReply::Status(s)) => reply.answered.push(ScanHit {
                 unit,
                 configured_as,
@@ -534,6 +536,7 @@ pub async fn set_address(
         source: caller.source,
         queue_timeout: None,
         max_attempts: None,
+        origin: caller.origin.clone(),
     };
     let verified = handle
         .execute(address, &DriveRequest::ReadStatus, options)

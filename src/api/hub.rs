@@ -22,6 +22,7 @@ use super::timestamp::rfc3339;
 use crate::bus::BusEvent;
 use crate::control::{Control, ControlEvent, LeaseEvent, Published, SessionId};
 use crate::plant::Plant;
+use crate::scope::result::ScopeState;
 
 /// Events the hub holds for sessions that fall behind; a session's own
 /// bounded buffer comes after this.
@@ -162,6 +163,11 @@ pub enum ServerMessage {
         /// When (RFC 3339, UTC).
         at: String,
     },
+    /// A scope capture was armed, triggered, ended, or filled some more
+    /// (every 100 ms while it runs): its state, as `GET
+    /// /api/v1/buses/{bus}/scope` shows it. Sent to every client
+    /// subscribed to at least one drive.
+    Scope(ScopeState),
     /// This client fell behind: `missed` updates were skipped for it.
     Lagged {
         /// Messages skipped.

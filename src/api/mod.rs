@@ -7,7 +7,9 @@
 //!   [`server`] serves them with a deadline on every request,
 //! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
 //! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`readback`],
-//!   [`buses`], [`whoami`] and [`health`] are the routes, all documented in [`openapi`] (the body
+//!   [`buses`], [`monitor`] (every frame on the wire), [`scope`]
+//!   (triggered captures), [`whoami`] and [`health`] are the routes, all
+//!   documented in [`openapi`] (the body
 //!   schemas a derive cannot write are in [`body_schemas`]),
 //! - [`extract`] and [`integers`] read requests, refusing bad ones with a
 //!   problem document,
@@ -30,11 +32,13 @@ pub mod health;
 pub mod hub;
 pub mod integers;
 pub mod listener;
+pub mod monitor;
 pub mod openapi;
 pub mod problem;
 pub mod readback;
 pub mod request_metrics;
 pub mod roles;
+pub mod scope;
 pub mod server;
 pub mod setpoints;
 pub mod settings;
@@ -96,6 +100,7 @@ pub async fn start(
     }
 
     let hub = Hub::start(&plant, &control, &shutdown);
+    scope::publish_progress(&plant, &hub, &shutdown);
     let state = ApiState::new(
         plant,
         metrics,

@@ -13,11 +13,14 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::config::HttpConfig;
+use super::monitor::MonitorClientMessage;
 use super::problem::{ProblemDetails, ValidRange};
 use super::roles::Role;
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
-use super::{buses, commands, drives, health, readback, setpoints, settings, stream, whoami};
+use super::{
+    buses, commands, drives, health, monitor, readback, scope, setpoints, settings, stream, whoami,
+};
 
 /// Where the document is served.
 pub const DOCUMENT_PATH: &str = "/openapi.json";
@@ -31,7 +34,14 @@ pub const DOCS_PATH: &str = "/docs";
         description = "REST and WebSocket API of drivegate, the gateway to a bus of RS-485 (Modbus RTU) servo drives.\n\nEvery command returns only after the drive confirmed it. Errors are `application/problem+json` (RFC 9457); the `type` says what went wrong. Send the API token as `Authorization: Bearer <token>`; its role (viewer, operator, admin) decides what it may do. `/healthz`, `/readyz` and `/metrics` need no token."
     ),
     modifiers(&BearerScheme),
-    components(schemas(ProblemDetails, ValidRange, Role, ClientMessage, DriveSelection)),
+    components(schemas(
+        ProblemDetails,
+        ValidRange,
+        Role,
+        ClientMessage,
+        DriveSelection,
+        MonitorClientMessage
+    )),
     tags(
         (name = "drives", description = "Drives and their decoded status"),
         (name = "commands", description = "Config commands and modes (manual 1.3)"),
@@ -39,6 +49,8 @@ pub const DOCS_PATH: &str = "/docs";
         (name = "settings", description = "Protection, ramps, inertia and RS-485 control (manual 1.8 to 1.12)"),
         (name = "buses", description = "Bus health and counters, scans, address setting (manual 1.2)"),
         (name = "stream", description = "The WebSocket stream of statuses and events, with commands"),
+        (name = "monitor", description = "Every frame on the wire of a bus: decoded, with its outcome and who caused it; live, and as CSV or PCAP"),
+        (name = "scope", description = "Triggered captures of status fields at the bus's full rate"),
         (name = "health", description = "Liveness, readiness and Prometheus metrics (no token needed)"),
     )
 )]
@@ -213,6 +225,19 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(buses::post_scan))
         .routes(routes!(buses::post_address))
         .routes(routes!(stream::stream))
+        .routes(routes!(monitor::get_monitor))
+        .routes(routes!(monitor::get_frames))
+        .routes(routes!(monitor::get_frames_csv))
+        .routes(routes!(monitor::get_frames_pcap))
+        .routes(routes!(monitor::live))
+        .routes(routes!(
+            scope::get_scope,
+            scope::post_scope,
+            scope::delete_scope
+        ))
+        .routes(routes!(scope::post_trigger))
+        .routes(routes!(scope::get_result))
+        .routes(routes!(scope::get_result_csv))
 }
 
 /// Sets what the derive cannot: the version and the licence.

@@ -20,6 +20,10 @@
 //! | `drive-busy` | 409 | the drive is calibrating or fine-tuning |
 //! | `no-lease` | 409 | renewing a lease that is not there (it expired) |
 //! | `confirmation-required` | 409 | address setting without `only_drive_on_bus` |
+//! | `scope-busy` | 409 | a capture is running on the bus: one at a time |
+//! | `capture-not-running` | 409 | trigger or cancel a capture that is over |
+//! | `no-capture` | 404 | no capture was armed on the bus since start-up |
+//! | `monitor-off` | 409 | `[monitor] enabled = false`: no frames are kept |
 //! | `bus-busy` | 429 | the bus queue is full; `Retry-After` says when to retry |
 //! | `drive-offline`, `bus-down`, `queue-timeout`, `shutting-down`, `too-many-connections` | 503 | the drive or bus cannot be reached now |
 //! | `drive-timeout` | 504 | the drive did not answer |
@@ -80,6 +84,14 @@ pub enum Kind {
     NoLease,
     /// 409: a dangerous request lacks its confirmation.
     ConfirmationRequired,
+    /// 409: a capture is running on the bus.
+    ScopeBusy,
+    /// 409: the capture is over (or not triggered yet, for some operations).
+    CaptureNotRunning,
+    /// 404: no capture was armed on the bus.
+    NoCapture,
+    /// 409: the bus monitor is off.
+    MonitorOff,
     /// 429: bus queue full.
     BusBusy,
     /// 503: drive offline.
@@ -106,7 +118,7 @@ pub enum Kind {
 
 impl Kind {
     /// Every kind, for documentation and tests.
-    pub const ALL: [Kind; 28] = [
+    pub const ALL: [Kind; 32] = [
         Kind::InvalidRequest,
         Kind::Unauthorized,
         Kind::Forbidden,
@@ -124,6 +136,10 @@ impl Kind {
         Kind::DriveBusy,
         Kind::NoLease,
         Kind::ConfirmationRequired,
+        Kind::ScopeBusy,
+        Kind::CaptureNotRunning,
+        Kind::NoCapture,
+        Kind::MonitorOff,
         Kind::BusBusy,
         Kind::DriveOffline,
         Kind::BusDown,
@@ -157,6 +173,10 @@ impl Kind {
             Kind::DriveBusy => "drive-busy",
             Kind::NoLease => "no-lease",
             Kind::ConfirmationRequired => "confirmation-required",
+            Kind::ScopeBusy => "scope-busy",
+            Kind::CaptureNotRunning => "capture-not-running",
+            Kind::NoCapture => "no-capture",
+            Kind::MonitorOff => "monitor-off",
             Kind::BusBusy => "bus-busy",
             Kind::DriveOffline => "drive-offline",
             Kind::BusDown => "bus-down",
@@ -177,9 +197,11 @@ impl Kind {
             Kind::InvalidRequest => StatusCode::BAD_REQUEST,
             Kind::Unauthorized => StatusCode::UNAUTHORIZED,
             Kind::Forbidden => StatusCode::FORBIDDEN,
-            Kind::UnknownDrive | Kind::UnknownBus | Kind::UnknownCommand | Kind::NotFound => {
-                StatusCode::NOT_FOUND
-            }
+            Kind::UnknownDrive
+            | Kind::UnknownBus
+            | Kind::UnknownCommand
+            | Kind::NotFound
+            | Kind::NoCapture => StatusCode::NOT_FOUND,
             Kind::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             Kind::RequestTimeout => StatusCode::REQUEST_TIMEOUT,
             Kind::PayloadTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
@@ -189,7 +211,10 @@ impl Kind {
             | Kind::DriveMoving
             | Kind::DriveBusy
             | Kind::NoLease
-            | Kind::ConfirmationRequired => StatusCode::CONFLICT,
+            | Kind::ConfirmationRequired
+            | Kind::ScopeBusy
+            | Kind::CaptureNotRunning
+            | Kind::MonitorOff => StatusCode::CONFLICT,
             Kind::BusBusy => StatusCode::TOO_MANY_REQUESTS,
             Kind::DriveOffline
             | Kind::BusDown
@@ -224,6 +249,10 @@ impl Kind {
             Kind::DriveBusy => "The drive is busy with a procedure",
             Kind::NoLease => "There is no lease",
             Kind::ConfirmationRequired => "A confirmation is required",
+            Kind::ScopeBusy => "A capture is running on this bus",
+            Kind::CaptureNotRunning => "The capture is not running",
+            Kind::NoCapture => "No capture yet",
+            Kind::MonitorOff => "The bus monitor is off",
             Kind::BusBusy => "The bus is busy",
             Kind::DriveOffline => "The drive is offline",
             Kind::BusDown => "The bus is down",

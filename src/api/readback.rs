@@ -130,13 +130,14 @@ pub async fn read(
         source: caller.source,
         queue_timeout: None,
         max_attempts: None,
+        origin: caller.origin.clone(),
     };
     let mut values = [0u16; REGISTERS];
     let mut at = 0;
     for (start, count) in BLOCKS {
         let exchange = target
             .bus
-            .transact(unit, settings::read_pdu(start, count), options)
+            .transact(unit, settings::read_pdu(start, count), options.clone())
             .await
             .map_err(|e| Problem::bus(&e, context()))?;
         let block = settings::parse_read_reply(&exchange.reply, count)

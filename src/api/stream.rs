@@ -41,6 +41,7 @@ use super::extract::Params;
 use super::hub::{HubEvent, ServerMessage, render};
 use super::openapi::ReadProblems;
 use super::problem::{Kind, Problem};
+use super::scope;
 use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
 use super::state::ApiState;
@@ -79,9 +80,10 @@ pub enum ClientMessage {
     /// `POST .../commands/{command}`, body `{"force": bool}`), or `mode`,
     /// `setpoint`, `lease-renew`, `lease-release`, `status` (body
     /// `{"fresh": bool}`), `protection`, `speed-ramp`, `position-ramp`,
-    /// `inertia`, `rs485-control` with the body of the REST route; `scan`
-    /// and `set-address` take `bus` instead of `drive`. A setpoint's lease
-    /// also ends when this socket closes.
+    /// `inertia`, `rs485-control` with the body of the REST route; `scan`,
+    /// `set-address`, `scope-arm`, `scope-trigger` and `scope-cancel` take
+    /// `bus` instead of `drive`. A setpoint's lease also ends when this
+    /// socket closes.
     Command {
         /// Any JSON value; echoed in the reply.
         id: Value,
@@ -90,7 +92,7 @@ pub enum ClientMessage {
         /// The drive (name, or unit number on a single bus).
         #[serde(default)]
         drive: Option<String>,
-        /// The bus, for `scan` and `set-address`.
+        /// The bus, for `scan`, `set-address` and the `scope-` operations.
         #[serde(default)]
         bus: Option<String>,
         /// The operation's body, as for the REST route.
@@ -560,7 +562,7 @@ struct FreshBody {
     fresh: bool,
 }
 
-const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, scan, set-address";
+const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, scan, set-address, scope-arm, scope-trigger, scope-cancel";
 
 /// Runs one stream command through the same code as its REST route.
 async fn dispatch(
@@ -571,10 +573,16 @@ async fn dispatch(
     bus: Option<String>,
     body: Option<Value>,
 ) -> Result<Value, Problem> {
-    if matches!(op, "scan" | "set-address") {
+    if matches!(
+        op,
+        "scan" | "set-address" | "scope-arm" | "scope-trigger" | "scope-cancel"
+    ) {
         let bus = bus.ok_or_else(|| Problem::invalid(format!("\"{op}\" needs \"bus\"")))?;
         return match op {
             "scan" => json(buses::scan(state, caller, &bus, &body_as(op, body)?).await?),
+            "scope-arm" => json(scope::arm(state, caller, &bus, &body_as(op, body)?)?),
+            "scope-trigger" => json(scope::trigger(state, caller, &bus)?),
+            "scope-cancel" => json(scope::cancel(state, caller, &bus)?),
             _ => json(buses::set_address(state, caller, &bus, &body_as(op, body)?).await?),
         };
     }

@@ -1,5 +1,5 @@
 //! Wall-clock times in the API: RFC 3339, UTC, milliseconds
-//! (`2026-11-22T03:39:12.345Z`).
+//! (`2026-11-22T03:39:12.345Z`), or microseconds for the wire's times.
 
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -7,13 +7,26 @@ use std::time::{SystemTime, UNIX_EPOCH};
 /// shown as the epoch (a drive cannot have been seen then).
 pub fn rfc3339(t: SystemTime) -> String {
     let since = t.duration_since(UNIX_EPOCH).unwrap_or_default();
-    let secs = since.as_secs();
-    let millis = since.subsec_millis();
+    let (date, millis) = (date_time(since.as_secs()), since.subsec_millis());
+    format!("{date}.{millis:03}Z")
+}
+
+/// Formats `t` as RFC 3339 in UTC with microseconds
+/// (`2026-11-22T03:39:12.345678Z`): the bus monitor's and the scope's
+/// times, where a frame lasts a fraction of a millisecond.
+pub fn rfc3339_micros(t: SystemTime) -> String {
+    let since = t.duration_since(UNIX_EPOCH).unwrap_or_default();
+    let (date, micros) = (date_time(since.as_secs()), since.subsec_micros());
+    format!("{date}.{micros:06}Z")
+}
+
+/// `YYYY-MM-DDTHH:MM:SS` of `secs` since the epoch.
+fn date_time(secs: u64) -> String {
     let days = i64::try_from(secs / 86_400).unwrap_or(0);
     let rem = secs % 86_400;
     let (y, m, d) = civil_from_days(days);
     format!(
-        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{millis:03}Z",
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}",
         rem / 3600,
         (rem / 60) % 60,
         rem % 60
@@ -45,6 +58,8 @@ mod tests {
         assert_eq!(rfc3339(UNIX_EPOCH), "1970-01-01T00:00:00.000Z");
         let t = UNIX_EPOCH + Duration::from_millis(951_782_400_123); // leap day 2000
         assert_eq!(rfc3339(t), "2000-02-29T00:00:00.123Z");
+        let t = UNIX_EPOCH + Duration::from_micros(951_782_400_123_456);
+        assert_eq!(rfc3339_micros(t), "2000-02-29T00:00:00.123456Z");
         let t = UNIX_EPOCH + Duration::from_secs(1_795_318_752);
         assert_eq!(rfc3339(t), "2026-11-22T03:39:12.000Z");
         let t = UNIX_EPOCH + Duration::from_secs(4_107_542_399);

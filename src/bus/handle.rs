@@ -10,10 +10,13 @@ use tokio_util::sync::CancellationToken;
 use super::cache::{BusEvent, DriveSnapshot, StatusCache};
 use super::error::BusError;
 use super::job::{Exchange, Job, Priority, SourceId};
+use super::origin::Origin;
 use super::queue::{JobQueue, Refused};
 use super::stats::{BusStats, BusStatsSnapshot, Outcome};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest};
 use crate::modbus::timing::LineTiming;
+use crate::monitor::BusMonitor;
+use crate::scope::Scope;
 
 /// State of a bus's serial port.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -36,7 +39,7 @@ pub enum PortState {
 }
 
 /// Options of one submission.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct JobOptions {
     /// Priority class.
     pub priority: Priority,
@@ -46,6 +49,8 @@ pub struct JobOptions {
     pub queue_timeout: Option<Duration>,
     /// Attempts allowed (`None`: the bus's retries).
     pub max_attempts: Option<u8>,
+    /// Who caused the job, shown by the bus monitor (set by the face).
+    pub origin: Origin,
 }
 
 impl Default for JobOptions {
@@ -55,6 +60,7 @@ impl Default for JobOptions {
             source: SourceId::INTERNAL,
             queue_timeout: None,
             max_attempts: None,
+            origin: Origin::Internal,
         }
     }
 }
@@ -83,6 +89,10 @@ pub(crate) struct Shared {
     pub(crate) queue: JobQueue,
     pub(crate) cache: StatusCache,
     pub(crate) stats: BusStats,
+    /// Every frame on the wire, and the per-attempt counters.
+    pub(crate) monitor: Arc<BusMonitor>,
+    /// The capture slot.
+    pub(crate) scope: Arc<Scope>,
     pub(crate) state: Mutex<PortState>,
     pub(crate) line: LineTiming,
     pub(crate) response_timeout: Duration,
@@ -167,6 +177,7 @@ impl BusHandle {
             source: options.source,
             deadline: Some(now + options.queue_timeout.unwrap_or(self.shared.queue_timeout)),
             max_attempts: options.max_attempts,
+            origin: options.origin,
             submitted: now,
             reply: tx,
         };
@@ -263,6 +274,22 @@ impl BusHandle {
     /// The bus's counters.
     pub fn stats(&self) -> BusStatsSnapshot {
         self.shared.stats.snapshot()
+    }
+
+    /// The bus monitor: the last frames on the wire, the per-attempt counters.
+    pub fn monitor(&self) -> &Arc<BusMonitor> {
+        &self.shared.monitor
+    }
+
+    /// The scope's capture slot. After arming a capture, [`wake`](Self::wake)
+    /// the bus so its polling follows at once.
+    pub fn scope(&self) -> &Arc<Scope> {
+        &self.shared.scope
+    }
+
+    /// Wakes the bus thread to look at its work again (a capture was armed).
+    pub fn wake(&self) {
+        self.shared.queue.wake();
     }
 
     /// Jobs waiting per priority class (emergency, command, poll).

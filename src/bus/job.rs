@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::oneshot;
 
 use super::error::BusError;
+use super::origin::Origin;
 
 /// Priority classes, served strictly in this order (with a share kept for
 /// polling, see the scheduler).
@@ -92,6 +93,8 @@ pub struct Job {
     pub priority: Priority,
     /// Who asked, for fair queuing.
     pub source: SourceId,
+    /// What caused it, for the bus monitor and the scope's write trigger.
+    pub origin: Origin,
     /// Drop the job unsent once this passes.
     pub deadline: Option<Instant>,
     /// Attempts allowed, overriding the bus's retries (e.g. 1 for an offline drive).

@@ -34,6 +34,7 @@ use crate::modbus::function::EXCEPTION_BIT;
 use crate::modbus::reply::{self, Mismatch};
 use crate::modbus::rtu_frame::{self, FrameLength};
 use crate::modbus::timing::LineTiming;
+use crate::monitor::tap::WireTap;
 
 /// Time allowed, beyond the wire's own pace, for the rest of a reply to
 /// reach the master once it has begun: USB adapters hand bytes over in
@@ -189,6 +190,8 @@ pub struct RtuMaster {
     quiet_since: Instant,
     buf: Box<[u8; 512]>,
     stray: usize,
+    /// Hands every frame to the bus monitor and the scope.
+    tap: WireTap,
 }
 
 impl RtuMaster {
@@ -202,12 +205,18 @@ impl RtuMaster {
             quiet_since: Instant::now(),
             buf: Box::new([0; 512]),
             stray: 0,
+            tap: WireTap::detached(settings.line),
         })
     }
 
     /// The master's settings.
     pub fn settings(&self) -> &MasterSettings {
         &self.settings
+    }
+
+    /// The tap that shows every frame to the bus monitor and the scope.
+    pub fn tap(&mut self) -> &mut WireTap {
+        &mut self.tap
     }
 
     /// Sends `pdu` to `unit` and returns the checked reply. `max_attempts`
@@ -287,6 +296,7 @@ impl RtuMaster {
             if started.is_none() {
                 idle_before = sent_at.saturating_duration_since(quiet_since);
             }
+            self.tap.request(unit, &frame, sent_at, attempt);
             started.get_or_insert(sent_at);
             let wire_end = sent_at + self.settings.line.wire_time(frame.len());
 
@@ -311,12 +321,15 @@ impl RtuMaster {
                 .await?;
             let end = Instant::now();
             busy += (end - sent_at) + t35;
+            let framed = received.as_ref().ok().copied();
             let checked = received.and_then(|len| {
                 reply::check(unit, pdu, &self.buf[..len]).map_err(|m| match m {
                     Mismatch::Crc => Fault::Crc,
                     other => Fault::Mismatch(other.describe()),
                 })
             });
+            let frame = framed.map(|n| &self.buf[..n]);
+            self.tap.reply(frame, end, checked.as_ref().err());
             match checked {
                 Ok(reply) => {
                     let outcome = if reply.first().is_some_and(|f| f & EXCEPTION_BIT != 0) {
@@ -413,6 +426,7 @@ impl RtuMaster {
                 read = self.port.read(&mut self.buf[..]) => {
                     let n = self.got(read)?;
                     self.stray += n;
+                    self.tap.stray(&self.buf[..n], Instant::now());
                     // The silence restarts now, unless it was set to end
                     // later (a broadcast's turnaround): a stray byte must
                     // not cut the drives' time to act short.
@@ -436,7 +450,10 @@ impl RtuMaster {
         loop {
             match self.port.try_read(&mut self.buf[..]) {
                 Ok(0) => return Err(self.port.closed()),
-                Ok(n) => drained += n,
+                Ok(n) => {
+                    drained += n;
+                    self.tap.stray(&self.buf[..n], Instant::now());
+                }
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
                 Err(e) => return Err(e),
             }
@@ -567,7 +584,9 @@ impl RtuMaster {
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
-                    self.stray += self.got(read)?;
+                    let n = self.got(read)?;
+                    self.stray += n;
+                    self.tap.stray(&self.buf[..n], Instant::now());
                 }
                 slept = self.timer.sleep_until_relaxed(until) => {
                     slept?;
@@ -588,7 +607,9 @@ impl RtuMaster {
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
-                    self.stray += self.got(read)?;
+                    let n = self.got(read)?;
+                    self.stray += n;
+                    self.tap.stray(&self.buf[..n], Instant::now());
                     until = until.max(Instant::now() + line.t3_5());
                 }
                 slept = self.timer.sleep_until_relaxed(until) => {

@@ -11,13 +11,15 @@
 //! - [`scheduler`] is the task's loop tying them together,
 //! - [`cache`] keeps each drive's latest status and publishes changes,
 //! - [`stats`] counts what happened on the wire, for health and metrics,
-//! - [`handle`] is what the faces (HTTP, Modbus TCP, metrics) hold.
+//! - [`handle`] is what the faces (HTTP, Modbus TCP, metrics) hold,
+//! - [`origin`] says who caused each job (for the monitor and the scope).
 
 pub mod cache;
 pub mod error;
 pub mod handle;
 pub mod job;
 pub mod master;
+pub mod origin;
 pub mod poller;
 pub mod port;
 pub mod queue;
@@ -31,3 +33,4 @@ pub use cache::{BusEvent, DriveSnapshot};
 pub use error::BusError;
 pub use handle::BusHandle;
 pub use job::{Exchange, Priority, SourceId};
+pub use origin::Origin;

@@ -111,6 +111,12 @@ impl PollPlan {
             .map(|d| d.next_due)
     }
 
+    /// True when `unit`'s poll is due at `now` (its interval, or an offline
+    /// drive's backoff, is over); the scope asks this while it steers.
+    pub fn is_due(&self, unit: u8, now: Instant) -> bool {
+        self.due_at(unit).is_some_and(|due| due <= now)
+    }
+
     /// When the next poll falls due, `None` with no drives.
     pub fn next_due(&self) -> Option<Instant> {
         self.drives.iter().map(|d| d.next_due).min()

@@ -239,6 +239,12 @@ impl JobQueue {
         self.lock().stopped
     }
 
+    /// Wakes the scheduler as a push would: something else it weighs
+    /// changed (a capture was armed).
+    pub fn wake(&self) {
+        self.notify.notify_one();
+    }
+
     /// Waits until something was pushed (or the queue was closed) since the
     /// last wait; a push before the wait is not lost.
     pub async fn notified(&self) {
@@ -269,6 +275,7 @@ mod tests {
                 pdu: vec![0x03],
                 priority,
                 source: SourceId(source),
+                origin: Default::default(),
                 deadline: None,
                 max_attempts: None,
                 submitted: Instant::now(),

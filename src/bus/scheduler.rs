@@ -25,6 +25,9 @@ use super::tcp_port;
 use super::transport;
 use crate::clock;
 use crate::drive::{DriveReply, DriveRequest};
+use crate::monitor::{BusMonitor, MonitorSettings};
+use crate::scope::steer::Steer;
+use crate::scope::{Scope, ScopeSettings};
 
 /// Everything a bus needs to run.
 #[derive(Debug, Clone)]
@@ -50,6 +53,10 @@ pub struct BusSettings {
     /// After this many commands in a row while a poll is due, the poll goes
     /// first, so a flood of commands cannot freeze the status of every drive.
     pub poll_share: u32,
+    /// The bus monitor's ring (`[monitor]`).
+    pub monitor: MonitorSettings,
+    /// The scope's limits and floor rate (`[scope]`).
+    pub scope: ScopeSettings,
 }
 
 impl BusSettings {
@@ -66,6 +73,8 @@ impl BusSettings {
             queue: QueueLimits::default(),
             queue_timeout: Duration::from_secs(5),
             poll_share: 4,
+            monitor: MonitorSettings::default(),
+            scope: ScopeSettings::default(),
         }
     }
 }
@@ -98,6 +107,7 @@ pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle
 /// What the handles and the bus thread share, for `settings`.
 fn new_shared(settings: &BusSettings) -> Arc<Shared> {
     let name: Arc<str> = settings.name.as_str().into();
+    let units: Vec<u8> = settings.drives.iter().map(|d| d.0).collect();
     Arc::new(Shared {
         name: name.clone(),
         queue: JobQueue::new(settings.queue),
@@ -107,6 +117,12 @@ fn new_shared(settings: &BusSettings) -> Arc<Shared> {
             settings.offline_after,
         ),
         stats: BusStats::new(),
+        monitor: Arc::new(BusMonitor::new(
+            settings.monitor,
+            settings.master.line,
+            units.clone(),
+        )),
+        scope: Arc::new(Scope::new(settings.scope, settings.master.line, units)),
         state: Mutex::new(PortState::Opening),
         line: settings.master.line,
         response_timeout: settings.master.response_timeout,
@@ -263,8 +279,10 @@ impl Scheduler {
                 match opened.map_err(|e| e.to_string()).and_then(|p| {
                     RtuMaster::new(p, self.settings.master).map_err(|e| e.to_string())
                 }) {
-                    Ok(m) => {
+                    Ok(mut m) => {
                         info!(bus = %name, port = %self.settings.port, "{} open", self.port_kind());
+                        m.tap()
+                            .attach(self.shared.monitor.clone(), self.shared.scope.clone());
                         master = Some(m);
                         self.stats().set_port_open(true, opened_before);
                         opened_before = true;
@@ -415,7 +433,18 @@ impl Scheduler {
         if let Some(job) = queue.pop(Priority::Emergency) {
             return Work::Job(job);
         }
-        let poll_due = self.plan.due(now);
+        // While a capture runs the scope says which drive's poll is due.
+        let (plan, cache) = (&self.plan, &self.shared.cache);
+        let steer = self.shared.scope.steer(
+            now,
+            |unit| plan.is_due(unit, now),
+            |unit| cache.is_offline(unit),
+        );
+        let poll_due = match steer {
+            Some(Steer::Poll(unit)) => Some(unit),
+            Some(Steer::Wait(_)) => None,
+            None => self.plan.due(now),
+        };
         if let Some(unit) = poll_due
             && self.commands_in_a_row >= self.settings.poll_share
         {
@@ -435,7 +464,10 @@ impl Scheduler {
         if let Some(job) = queue.pop(Priority::Poll) {
             return Work::Job(job);
         }
-        Work::Idle(self.plan.next_due())
+        match steer {
+            Some(Steer::Wait(until)) => Work::Idle(Some(until)),
+            _ => Work::Idle(self.plan.next_due()),
+        }
     }
 
     /// Counts a transaction that went through the port (whatever the drive
@@ -471,6 +503,7 @@ impl Scheduler {
         // would cost everybody.
         let offline = job.unit != 0 && self.cache().is_offline(job.unit);
         let queued = now - job.submitted;
+        master.tap().cause(job.origin.clone());
         let sent = if offline && job.max_attempts.is_none_or(|n| n <= 1) {
             master.probe(job.unit, &job.pdu).await
         } else {
@@ -539,6 +572,7 @@ impl Scheduler {
         // probed: one attempt and a short guard. If it is off, a retry or a
         // long guard only costs everybody time, and the next poll comes
         // anyway.
+        master.tap().cause(self.shared.scope.poll_origin(unit));
         let report = if self.cache().answering(unit) {
             master.transact(unit, pdu, None).await
         } else {
@@ -573,8 +607,9 @@ impl Scheduler {
             }
         }
         self.stats().record_poll(status.is_some());
-        self.plan
-            .polled(unit, Instant::now(), self.cache().is_offline(unit));
+        let now = Instant::now();
+        self.plan.polled(unit, now, self.cache().is_offline(unit));
+        self.shared.scope.polled(unit, now);
         Ok(())
     }
 }
@@ -593,7 +628,9 @@ mod tests {
             shared: shared.clone(),
         };
         let emergency = JobOptions::with_priority(Priority::Emergency);
-        let mut queued = bus.submit(1, STATUS_PDU.clone(), emergency).unwrap();
+        let mut queued = bus
+            .submit(1, STATUS_PDU.clone(), emergency.clone())
+            .unwrap();
         never_started(&shared, "cannot start the bus runtime: no memory".into());
         // The job that was waiting gets the reason...
         match queued.try_recv() {

@@ -1,11 +1,13 @@
 //! The daemon's configuration: a TOML file, validated with errors that point
 //! at the line and column to fix.
 //!
-//! Sections: `[http]`, `[modbus_tcp]`, `[log]`, `[safety]` and one `[[bus]]`
+//! Sections: `[http]`, `[modbus_tcp]`, `[log]`, `[safety]`, `[monitor]`,
+//! `[scope]` and one `[[bus]]`
 //! per serial adapter, each with its `[[bus.drive]]` list (and optional
 //! `[bus.rs485]`, `[bus.sim]`). `config/drivegate.toml` documents every key.
 
 mod bus;
+mod diagnostics;
 mod error;
 mod values;
 
@@ -15,6 +17,7 @@ use std::path::Path;
 use serde::Deserialize;
 
 pub use bus::{BusConfig, DriveConfig, SimSection};
+pub use diagnostics::{MonitorConfig, ScopeConfig};
 pub use error::ConfigError;
 
 use crate::api::config::HttpConfig;
@@ -42,6 +45,12 @@ pub struct Config {
     /// What to do with moving motors when clients vanish or the daemon stops.
     #[serde(default)]
     pub safety: SafetyConfig,
+    /// The bus monitor (frames kept per bus).
+    #[serde(default)]
+    pub monitor: MonitorConfig,
+    /// The scope (capture limits, the floor rate of the other drives).
+    #[serde(default)]
+    pub scope: ScopeConfig,
     /// The buses (serial adapters), at least one.
     #[serde(rename = "bus", default)]
     pub buses: Vec<BusConfig>,

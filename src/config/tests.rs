@@ -212,3 +212,24 @@ fn serial_device_servers_are_ports_too() {
     ));
     assert!(e.contains("is used by two buses"), "{e}");
 }
+
+#[test]
+fn monitor_and_scope_sections() {
+    let c = parse(MINIMAL).unwrap();
+    assert_eq!(c.monitor, MonitorConfig::default());
+    assert!(c.monitor.enabled);
+    assert_eq!(c.scope.floor_rate_hz, 10.0);
+    let c = parse(&format!(
+        "[monitor]\nenabled = false\nring_frames = 500\n[scope]\nmax_samples = 5000\nfloor_rate_hz = 2.5\n{MINIMAL}"
+    ))
+    .unwrap();
+    assert_eq!(c.monitor.settings().ring_frames, 500);
+    assert_eq!(c.monitor.memory_per_bus(), 0);
+    assert_eq!(c.scope.settings().max_samples, 5000);
+    let e = err(&format!("[scope]\nfloor_rate_hz = 0\n{MINIMAL}"));
+    assert!(e.contains("2:17") && e.contains("0.1 to 100"), "{e}");
+    let e = err(&format!("[monitor]\nring_frames = 5\n{MINIMAL}"));
+    assert!(e.contains("2:15") && e.contains("16 to 1000000"), "{e}");
+    let e = err(&format!("[scope]\nmax_sample = 5\n{MINIMAL}"));
+    assert!(e.contains("2:1") && e.contains("max_sample"), "{e}");
+}

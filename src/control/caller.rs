@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use super::policy::Role;
-use crate::bus::SourceId;
+use crate::bus::{Origin, SourceId};
 
 /// The way a request came in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -56,6 +56,20 @@ impl SessionId {
     }
 }
 
+/// The bus monitor's cause of a caller's frames on `face`. A Modbus TCP
+/// client's is set per request by its face (peer and transaction id).
+fn origin_of(face: Face, who: &Arc<str>, session: Option<SessionId>) -> Origin {
+    match (face, session) {
+        (Face::Http, _) => Origin::Http { who: who.clone() },
+        (Face::WebSocket, Some(session)) => Origin::WebSocket {
+            session: session.0,
+            who: who.clone(),
+        },
+        (Face::WebSocket, None) => Origin::Http { who: who.clone() },
+        (Face::ModbusTcp | Face::Internal, _) => Origin::Internal,
+    }
+}
+
 /// Who is asking, with what rights.
 #[derive(Debug, Clone)]
 pub struct Caller {
@@ -71,14 +85,20 @@ pub struct Caller {
     pub source: SourceId,
     /// The session its leases are tied to, if any.
     pub session: Option<SessionId>,
+    /// What the bus monitor shows as the cause of this caller's frames:
+    /// derived from the face and who, refined by a face that knows more
+    /// (a Modbus TCP request's transaction id).
+    pub origin: Origin,
 }
 
 impl Caller {
     /// A caller on `face` without a session.
     pub fn new(face: Face, who: impl Into<Arc<str>>, role: Role, source: SourceId) -> Self {
+        let who = who.into();
         Caller {
+            origin: origin_of(face, &who, None),
             face,
-            who: who.into(),
+            who,
             role,
             source,
             session: None,
@@ -90,6 +110,15 @@ impl Caller {
         Caller {
             face,
             session: Some(session),
+            origin: origin_of(face, &self.who, Some(session)),
+            ..self.clone()
+        }
+    }
+
+    /// The same caller, its frames shown as caused by `origin`.
+    pub fn with_origin(&self, origin: Origin) -> Self {
+        Caller {
+            origin,
             ..self.clone()
         }
     }

@@ -20,7 +20,7 @@ use super::caller::{Face, SessionId};
 use super::events::{ControlEvent, Events, WriteEvent};
 use super::lease_book::{Effect, LeaseBook, LeaseEvent, StopOrder, StopReport};
 use super::written::describe;
-use crate::bus::{BusError, BusEvent};
+use crate::bus::{BusError, BusEvent, Origin};
 use crate::drive::DriveRequest;
 use crate::plant::Plant;
 use crate::safety::{self, StopAction, StopOutcome};
@@ -219,8 +219,20 @@ impl Leases {
             return;
         };
         let bus = self.plant.handle_of(drive);
-        let outcome =
-            safety::stop_drive(bus, drive.unit, order.action, false, Some(order.mode)).await;
+        // A brake applied again has no lease behind it: drivegate's own.
+        let origin = order
+            .owner
+            .clone()
+            .map_or(Origin::Internal, |owner| Origin::LeaseExpiry { owner });
+        let outcome = safety::stop_drive(
+            bus,
+            drive.unit,
+            order.action,
+            false,
+            Some(order.mode),
+            origin,
+        )
+        .await;
         let who = match &order.owner {
             Some(owner) => format!("lease-expiry ({owner})"),
             None => "brake-guard".to_string(),

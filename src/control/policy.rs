@@ -58,6 +58,9 @@ pub enum Operation {
     Lease,
     /// Scanning a bus for units (each silent unit costs bus time).
     Scan,
+    /// Arming, triggering or cancelling a scope capture: it changes how the
+    /// bus polls (its drives get every poll, the others the floor rate).
+    Capture,
 }
 
 impl Operation {
@@ -67,6 +70,7 @@ impl Operation {
             Operation::Read => Role::Viewer,
             Operation::Lease => Role::Operator,
             Operation::Scan => Role::Admin,
+            Operation::Capture => Role::Operator,
         }
     }
 }
@@ -303,6 +307,7 @@ mod tests {
         assert_eq!(Operation::Scan.needs(), Role::Admin);
         assert_eq!(Operation::Lease.needs(), Role::Operator);
         assert_eq!(Operation::Read.needs(), Role::Viewer);
+        assert_eq!(Operation::Capture.needs(), Role::Operator);
     }
 
     #[test]

@@ -68,6 +68,7 @@ impl Control {
             source: caller.source,
             queue_timeout: None,
             max_attempts: None,
+            origin: caller.origin.clone(),
         };
         match bus.submit(target.unit, pdu, options) {
             Ok(rx) => Ok(Pending {
@@ -344,6 +345,7 @@ async fn read(bus: &BusHandle, caller: &Caller, unit: u8) -> Result<Status, BusE
         source: caller.source,
         queue_timeout: None,
         max_attempts: None,
+        origin: caller.origin.clone(),
     };
     match bus
         .execute(unit, &DriveRequest::ReadStatus, options)

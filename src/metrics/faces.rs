@@ -7,6 +7,10 @@ use prometheus::{
     HistogramOpts, HistogramVec, IntCounter, IntCounterVec, IntGauge, Opts, Registry,
 };
 
+/// Function codes the drives use (read holding registers, write single,
+/// write multiple): their Modbus TCP series are exported from start-up.
+const TCP_FUNCTIONS: [u8; 3] = [0x03, 0x06, 0x10];
+
 /// The faces' metrics.
 #[derive(Clone)]
 pub struct FaceMetrics {
@@ -60,7 +64,7 @@ impl FaceMetrics {
         )
         .unwrap_or_else(|e| unreachable_metric("drivegate_http_request_duration_seconds", &e));
         let _ = registry.register(Box::new(http_duration.clone()));
-        Self {
+        let metrics = Self {
             http_requests: counter_vec(
                 registry,
                 "drivegate_http_requests_total",
@@ -100,7 +104,18 @@ impl FaceMetrics {
                 "drivegate_modbus_tcp_malformed_frames_total",
                 "Malformed Modbus TCP frames (the connection was closed).",
             ),
+        };
+        // The drives' function codes with every outcome exist from start-up
+        // at 0, so rate() sees the first request and a dashboard panel
+        // shows 0 rather than "No data" before any client came.
+        for function in TCP_FUNCTIONS {
+            for outcome in crate::modbus_tcp::outcome::Outcome::ALL {
+                metrics
+                    .tcp_requests
+                    .with_label_values(&[&format!("0x{function:02x}"), outcome.label()]);
+            }
         }
+        metrics
     }
 
     /// Counts one HTTP request; `route` is the route template (`/api/v1/drives/{drive}`),
@@ -173,6 +188,18 @@ mod tests {
             assert_eq!(m.ws_clients.get(), 2);
         }
         assert_eq!(m.ws_clients.get(), 0);
+        // Exported at 0 before the first request.
+        let zero = registry
+            .gather()
+            .into_iter()
+            .find(|f| f.name() == "drivegate_modbus_tcp_requests_total")
+            .unwrap();
+        assert_eq!(zero.get_metric().len(), 3 * 11);
+        assert!(
+            zero.get_metric()
+                .iter()
+                .all(|m| m.get_counter().get_value() == 0.0)
+        );
         m.tcp_request(3, "ok");
         let names: Vec<String> = registry
             .gather()

@@ -4,6 +4,8 @@
 //! - `drives`: per-drive series read from the poll cache at scrape time,
 //! - `buses`: per-bus series read from the bus counters, queues and port
 //!   state (and the simulator's wire counters) at scrape time,
+//! - `wire`: per-attempt wire errors per bus and unit, the bus monitor's
+//!   and the scope's figures,
 //! - `utilisation`: the sampler behind `drivegate_bus_utilisation_ratio`,
 //! - `process`: build information and the process's own resources,
 //! - `family`: the plumbing that turns those values into families.
@@ -17,6 +19,7 @@ mod faces;
 mod family;
 mod process;
 mod utilisation;
+mod wire;
 
 use std::sync::{Arc, Weak};
 
@@ -44,9 +47,10 @@ impl Metrics {
         let registry = Registry::new();
         let faces = FaceMetrics::register(&registry);
         let utilisation = Arc::new(Utilisation::new(&plant));
-        let collectors: [Box<dyn prometheus::core::Collector>; 2] = [
+        let collectors: [Box<dyn prometheus::core::Collector>; 3] = [
             Box::new(drives::DriveCollector::new(plant.clone())),
             Box::new(buses::BusCollector::new(plant.clone(), utilisation.clone())),
+            Box::new(wire::WireCollector::new(plant.clone())),
         ];
         for collector in collectors {
             if let Err(e) = registry.register(collector) {

@@ -108,7 +108,10 @@ pub async fn serve(
                 Ok(Some((frame, used))) => {
                     buf.advance(used);
                     idle.as_mut().reset(Instant::now() + settings.idle_timeout);
-                    let reply = match gateway.handle(&client, frame.unit, frame.pdu).await {
+                    let reply = match gateway
+                        .handle(&client, frame.transaction, frame.unit, frame.pdu)
+                        .await
+                    {
                         Answer::Now(pdu) => Reply::Ready(pdu),
                         Answer::Pending(p) => Reply::Pending(p),
                         Answer::Silent => continue,

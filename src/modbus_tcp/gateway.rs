@@ -28,7 +28,7 @@ use super::request;
 use super::routing::{BusUnits, UnitRoutes};
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
-use crate::bus::{BusError, Priority, SourceId};
+use crate::bus::{BusError, Origin, Priority, SourceId};
 use crate::control::{self, Caller, Control, ControlRequest, Face, Write};
 use crate::metrics::Metrics;
 use crate::modbus::ExceptionCode;
@@ -58,7 +58,8 @@ impl Client {
                 peer.to_string(),
                 rights.role,
                 SourceId::new_unique(),
-            ),
+            )
+            .with_origin(Origin::modbus_tcp(peer, 0)),
             allow_saves_while_moving: rights.allow_saves_while_moving,
         }
     }
@@ -132,18 +133,24 @@ impl Gateway {
         &self.metrics
     }
 
-    /// Decides what to do with `pdu` sent by `client` to `unit`. Requests
-    /// that go to the bus are queued before this returns (writes that need
-    /// the drive's state read first, after that read), so pipelined
-    /// requests keep their order and wait in the bus queue, not in the
-    /// socket.
-    pub async fn handle(&self, client: &Client, unit: u8, pdu: Vec<u8>) -> Answer {
+    /// Decides what to do with `pdu` sent by `client` to `unit` in MBAP
+    /// transaction `transaction`. Requests that go to the bus are queued
+    /// before this returns (writes that need the drive's state read first,
+    /// after that read), so pipelined requests keep their order and wait in
+    /// the bus queue, not in the socket.
+    pub async fn handle(
+        &self,
+        client: &Client,
+        transaction: u16,
+        unit: u8,
+        pdu: Vec<u8>,
+    ) -> Answer {
         if pdu.is_empty() {
             // The MBAP codec never yields one; answer rather than panic.
             return Answer::Now(exception_pdu(0, ExceptionCode::ILLEGAL_FUNCTION));
         }
         if unit == 0 {
-            return self.broadcast(client, pdu).await;
+            return self.broadcast(client, transaction, pdu).await;
         }
         let Some(route) = self.routes.route(unit) else {
             return self.refuse(
@@ -168,6 +175,11 @@ impl Gateway {
                     .to_string(),
             );
         }
+        // The bus monitor shows this request's frames as the client's,
+        // with its transaction id.
+        let caller = client
+            .caller
+            .with_origin(Origin::modbus_tcp(client.peer, transaction));
         if !request::reads_only(&pdu) {
             let target = self.control.unit_target(route.bus, route.unit);
             let write = if target.drive.is_some() {
@@ -176,7 +188,7 @@ impl Gateway {
                 Write::device_pdu(pdu.clone())
             };
             let request = ControlRequest::new(write).forced(client.allow_saves_while_moving);
-            return match self.control.submit(&client.caller, target, request).await {
+            return match self.control.submit(&caller, target, request).await {
                 Ok(pending) => Answer::Pending(Pending::writes(&pdu, false, vec![pending])),
                 Err(failure) => {
                     let (reply, outcome) = failure_reply(function, &failure);
@@ -194,9 +206,10 @@ impl Gateway {
         }
         let options = JobOptions {
             priority: Priority::Command,
-            source: client.caller.source,
+            source: caller.source,
             queue_timeout: None,
             max_attempts: None,
+            origin: caller.origin,
         };
         let state = match bus.submit(route.unit, pdu.clone(), options) {
             Ok(rx) => ReadState::Waiting(rx),
@@ -206,7 +219,7 @@ impl Gateway {
     }
 
     /// Unit 0: every bus the listener reaches, no reply waited for.
-    async fn broadcast(&self, client: &Client, pdu: Vec<u8>) -> Answer {
+    async fn broadcast(&self, client: &Client, transaction: u16, pdu: Vec<u8>) -> Answer {
         let function = pdu[0];
         let refusal = if !request::broadcastable(&pdu) {
             Some((
@@ -233,12 +246,15 @@ impl Gateway {
             let answer = self.refuse(client, ("all", 0), &pdu, code, outcome, why.to_string());
             return self.reply_to_broadcast(answer);
         }
+        let caller = client
+            .caller
+            .with_origin(Origin::modbus_tcp(client.peer, transaction));
         let mut writes = Vec::new();
         for &bus in self.routes.broadcast_buses() {
             let target = self.control.unit_target(bus, 0);
             let request = ControlRequest::new(Write::pdu(pdu.clone()))
                 .forced(client.allow_saves_while_moving);
-            match self.control.submit(&client.caller, target, request).await {
+            match self.control.submit(&caller, target, request).await {
                 Ok(pending) => writes.push(pending),
                 Err(failure) => {
                     // The first bus that refuses answers for all; what went

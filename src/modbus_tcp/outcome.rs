@@ -48,6 +48,21 @@ pub enum Outcome {
 }
 
 impl Outcome {
+    /// Every outcome, for the series exported from start-up.
+    pub const ALL: [Outcome; 11] = [
+        Outcome::Ok,
+        Outcome::Exception,
+        Outcome::Cached,
+        Outcome::Broadcast,
+        Outcome::GatewayTimeout,
+        Outcome::PathUnavailable,
+        Outcome::Busy,
+        Outcome::ReadOnly,
+        Outcome::Refused,
+        Outcome::Invalid,
+        Outcome::Cancelled,
+    ];
+
     /// Stable label for `drivegate_modbus_tcp_requests_total`.
     pub fn label(self) -> &'static str {
         match self {

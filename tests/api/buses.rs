@@ -151,6 +151,7 @@ async fn a_scan_tries_a_busy_unit_again_and_keeps_what_it_found() {
             source: SourceId::new_unique(),
             queue_timeout: Some(Duration::from_secs(30)),
             max_attempts: Some(1),
+            origin: Default::default(),
         };
 
         // Unit 30 answers nobody: 6 s on the wire, nothing else moves.

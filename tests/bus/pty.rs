@@ -11,7 +11,7 @@ use crate::support::eventually;
 use crate::support::pty::pty;
 use drivegate::bus::handle::{JobOptions, PortState};
 use drivegate::bus::scheduler::{self, BusSettings};
-use drivegate::bus::{BusError, BusHandle, Priority};
+use drivegate::bus::{BusError, BusHandle, Origin, Priority};
 use drivegate::drive::DriveRequest;
 use drivegate::modbus::rtu_frame::{self, FrameLength};
 use drivegate::safety::{self, StopAction};
@@ -235,7 +235,7 @@ async fn every_job_accepted_while_the_bus_stops_is_answered() {
     port_up(&bus).await;
     let emergency = JobOptions::with_priority(Priority::Emergency);
     let read = DriveRequest::ReadStatus;
-    let submit = |unit: u8| bus.submit(unit, read.pdu().unwrap(), emergency);
+    let submit = |unit: u8| bus.submit(unit, read.pdu().unwrap(), emergency.clone());
     let on_wire = |unit: u8| read.frame(unit).unwrap();
 
     let first = submit(1).unwrap();
@@ -281,7 +281,7 @@ async fn zero_speed_with_the_mode_unknown_zeroes_both_setpoints() {
     });
     let (bus, thread) = bus_on(&peer.path);
     port_up(&bus).await;
-    let outcome = safety::stop_drive(&bus, 1, StopAction::ZeroSpeed, true, None)
+    let outcome = safety::stop_drive(&bus, 1, StopAction::ZeroSpeed, true, None, Origin::Internal)
         .await
         .unwrap();
     let speed = DriveRequest::Speed { rpm: 0 };

@@ -214,6 +214,7 @@ async fn hold_the_wire(
         source: SourceId::new_unique(),
         queue_timeout: None,
         max_attempts: Some(1),
+        origin: Default::default(),
     };
     let pdu = drivegate::drive::DriveRequest::ReadStatus.pdu().unwrap();
     let blocker = bus.submit(30, pdu, options).unwrap();

@@ -116,6 +116,7 @@ fn dashboard_is_importable() {
         "Transaction time",
         "Utilisation (10 s)",
         "Errors",
+        "Wire errors per attempt",
     ] {
         assert!(titles.contains(&wanted), "no {wanted} panel");
     }
@@ -126,7 +127,8 @@ async fn dashboard_queries_use_only_exported_metrics() {
     tokio::time::timeout(Duration::from_secs(30), async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         // Activity, so that every kind of series exists: a command, a fault,
-        // and one count on each of the faces' labelled counters.
+        // and one count on the HTTP counters. The Modbus TCP and per-attempt
+        // wire counters exist from start-up, with no request at all.
         let (drive, bus) = d.plant.drive("conveyor").unwrap();
         bus.execute(
             drive.unit,
@@ -139,7 +141,6 @@ async fn dashboard_queries_use_only_exported_metrics() {
         d.metrics
             .faces()
             .http_request("/metrics", "GET", 200, Duration::from_millis(1));
-        d.metrics.faces().tcp_request(0x03, "ok");
         let text = eventually(Duration::from_secs(5), "utilisation exported", || {
             let text = d.metrics.render();
             text.contains("drivegate_bus_utilisation_ratio{")
@@ -178,6 +179,9 @@ async fn dashboard_queries_use_only_exported_metrics() {
             "drivegate_drive_stalled",
             "drivegate_bus_utilisation_ratio",
             "drivegate_bus_transaction_duration_seconds_bucket",
+            "drivegate_bus_wire_errors_total",
+            "drivegate_bus_wire_attempts_total",
+            "drivegate_modbus_tcp_requests_total",
         ] {
             assert!(used.contains(name), "the dashboard does not show {name}");
         }

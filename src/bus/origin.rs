@@ -1,0 +1,176 @@
+//! Who caused a bus job: carried with every job to the wire, so the bus
+//! monitor can say for each frame which client (or which part of the daemon)
+//! put it there, and the scope can trigger on a write from any face.
+//!
+//! The faces set it when they submit; the poller, the scope and the safe
+//! stops set their own. It is a label, not a permission: it never changes
+//! how a job is queued or run.
+
+use std::fmt;
+use std::net::{IpAddr, SocketAddr};
+use std::sync::Arc;
+
+/// The cause of one bus job.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub enum Origin {
+    /// The daemon itself, for work no client asked for (tests, tools).
+    #[default]
+    Internal,
+    /// The background status poll.
+    Poller,
+    /// A status poll the scope asked for (a captured drive, at full rate).
+    Scope,
+    /// A REST request: the token's name (or the client's address when no
+    /// tokens are configured).
+    Http {
+        /// Token name or client address.
+        who: Arc<str>,
+    },
+    /// A command sent on a WebSocket stream.
+    WebSocket {
+        /// The stream session's number.
+        session: u64,
+        /// Token name or client address.
+        who: Arc<str>,
+    },
+    /// A Modbus TCP request (the client's address is kept as address and
+    /// port, which keeps every job small).
+    ModbusTcp {
+        /// The client's IP address.
+        ip: IpAddr,
+        /// The client's port.
+        port: u16,
+        /// The request's MBAP transaction id.
+        transaction: u16,
+    },
+    /// The stop sent when a motor-safety lease ended.
+    LeaseExpiry {
+        /// Who held the lease.
+        owner: Arc<str>,
+    },
+    /// The safe stop at shutdown.
+    Shutdown,
+}
+
+/// Every origin kind, for filters, metrics and documentation.
+pub const KINDS: [&str; 8] = [
+    "internal",
+    "poller",
+    "scope",
+    "http",
+    "websocket",
+    "modbus-tcp",
+    "lease-expiry",
+    "shutdown",
+];
+
+impl Origin {
+    /// A Modbus TCP request from `peer` with MBAP transaction id `transaction`.
+    pub fn modbus_tcp(peer: SocketAddr, transaction: u16) -> Self {
+        Origin::ModbusTcp {
+            ip: peer.ip(),
+            port: peer.port(),
+            transaction,
+        }
+    }
+
+    /// Stable kind name (`poller`, `http`, `modbus-tcp`, ...), one of [`KINDS`].
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Origin::Internal => "internal",
+            Origin::Poller => "poller",
+            Origin::Scope => "scope",
+            Origin::Http { .. } => "http",
+            Origin::WebSocket { .. } => "websocket",
+            Origin::ModbusTcp { .. } => "modbus-tcp",
+            Origin::LeaseExpiry { .. } => "lease-expiry",
+            Origin::Shutdown => "shutdown",
+        }
+    }
+
+    /// The client behind it, if any: a token name, a client address, a
+    /// Modbus TCP peer, a lease's owner.
+    pub fn who(&self) -> Option<String> {
+        match self {
+            Origin::Http { who } | Origin::WebSocket { who, .. } => Some(who.to_string()),
+            Origin::ModbusTcp { ip, port, .. } => Some(SocketAddr::new(*ip, *port).to_string()),
+            Origin::LeaseExpiry { owner } => Some(owner.to_string()),
+            _ => None,
+        }
+    }
+
+    /// The WebSocket session or Modbus TCP transaction id, if any.
+    pub fn reference(&self) -> Option<u64> {
+        match self {
+            Origin::WebSocket { session, .. } => Some(*session),
+            Origin::ModbusTcp { transaction, .. } => Some(u64::from(*transaction)),
+            _ => None,
+        }
+    }
+
+    /// True for work the daemon does on its own schedule (polls), as
+    /// opposed to something a client or a safety rule asked for.
+    pub fn is_background(&self) -> bool {
+        matches!(self, Origin::Poller | Origin::Scope)
+    }
+}
+
+impl fmt::Display for Origin {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Origin::Internal => f.write_str("drivegate"),
+            Origin::Poller => f.write_str("poller"),
+            Origin::Scope => f.write_str("scope"),
+            Origin::Http { who } => write!(f, "HTTP {who}"),
+            Origin::WebSocket { session, who } => write!(f, "WebSocket {who} (session {session})"),
+            Origin::ModbusTcp {
+                ip,
+                port,
+                transaction,
+            } => write!(
+                f,
+                "Modbus TCP {} (transaction {transaction})",
+                SocketAddr::new(*ip, *port)
+            ),
+            Origin::LeaseExpiry { owner } => write!(f, "lease expiry ({owner}'s lease)"),
+            Origin::Shutdown => f.write_str("shutdown"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kinds_and_texts() {
+        let tcp = Origin::modbus_tcp("127.0.0.1:50211".parse().unwrap(), 17);
+        assert_eq!(tcp.kind(), "modbus-tcp");
+        assert_eq!(tcp.who().as_deref(), Some("127.0.0.1:50211"));
+        assert_eq!(tcp.reference(), Some(17));
+        assert_eq!(
+            tcp.to_string(),
+            "Modbus TCP 127.0.0.1:50211 (transaction 17)"
+        );
+        let http = Origin::Http {
+            who: "scada".into(),
+        };
+        assert_eq!(http.to_string(), "HTTP scada");
+        assert!(Origin::Poller.is_background() && !http.is_background());
+        for o in [
+            Origin::Internal,
+            Origin::Poller,
+            Origin::Scope,
+            http,
+            Origin::WebSocket {
+                session: 3,
+                who: "a".into(),
+            },
+            tcp,
+            Origin::LeaseExpiry { owner: "a".into() },
+            Origin::Shutdown,
+        ] {
+            assert!(KINDS.contains(&o.kind()), "{o:?}");
+        }
+    }
+}
