@@ -656,11 +656,13 @@ async fn session(state: ApiState, bus: String, mut feed: Feed, socket: WebSocket
     let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
     let mut paused = false;
     let mut lost_total = 0u64;
-    let mut first = Some(MonitorMessage::state(feed.filter(), false).text());
+    // A `state` message to send before anything else: the first one, and
+    // the answer to each filter, pause or resume.
+    let mut pending_state = Some(MonitorMessage::state(feed.filter(), false).text());
     let reader_done = reader;
     tokio::pin!(reader_done);
     'session: loop {
-        if let Some(text) = first.take()
+        if let Some(text) = pending_state.take()
             && !send(&state, &mut sink, Message::Text(text)).await
         {
             break;
@@ -678,7 +680,7 @@ async fn session(state: ApiState, bus: String, mut feed: Feed, socket: WebSocket
             Ok(()) = control.changed() => {
                 let (filter, p) = control.borrow_and_update().clone();
                 paused = p;
-                first = Some(MonitorMessage::state(&filter, paused).text());
+                pending_state = Some(MonitorMessage::state(&filter, paused).text());
                 feed.set_filter(filter);
                 continue;
             }

@@ -29,8 +29,9 @@ use crate::scope::result::{self, ScopeResult, ScopeState};
 use crate::scope::trigger::{Edge, Trigger};
 use crate::scope::{Scope, ScopeError};
 
-/// A length: `{"samples": n}` (per captured drive) or `{"seconds": s}`.
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize, ToSchema)]
+/// A length: `{"samples": n}` (per captured drive) or `{"seconds": s}`, as
+/// read (the document shows it as [`AmountSchema`]).
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AmountBody {
     /// Samples of each captured drive.

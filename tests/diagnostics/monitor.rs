@@ -197,7 +197,53 @@ async fn every_frame_says_who_caused_it() {
         assert_eq!(units, [1, 2, 3, 4]);
         assert!(view["units"][0]["attempts"].as_u64().unwrap() > 0);
         assert_eq!(view["units"][0]["drive"], "conveyor");
+
+        // A lease that runs out: its stop is the lease's, naming its owner.
+        api.put("/api/v1/drives/conveyor/mode", json!({"mode": "speed"}))
+            .await
+            .expect(200);
+        api.put(
+            "/api/v1/drives/conveyor/setpoint",
+            json!({"speed_rpm": 50, "lease_ms": 200}),
+        )
+        .await
+        .expect(200);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        let stop = loop {
+            let found = frames(
+                &api.get(&format!(
+                    "{FRAMES}?source=lease-expiry&outcome=sent&function=6"
+                ))
+                .await
+                .expect(200),
+            );
+            if let Some(f) = found.into_iter().next() {
+                break f;
+            }
+            assert!(Instant::now() < deadline, "no stop from the lease's end");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        assert_eq!(stop["source_who"], "panel");
+        assert_eq!(stop["meaning"], "speed setpoint 0 rpm");
+
+        // The shutdown's safe stop of a moving drive.
+        api.put("/api/v1/drives/conveyor/setpoint", json!({"speed_rpm": 30}))
+            .await
+            .expect(200);
+        let monitor = d.plant.buses()[0].handle.monitor().clone();
         d.stop().await;
+        let clock = *monitor.clock();
+        let last: Vec<_> = monitor
+            .last(200)
+            .iter()
+            .map(|r| drivegate::monitor::view::FrameView::new(r, &clock))
+            .collect();
+        assert!(
+            last.iter().any(|f| f.source == "shutdown"
+                && f.direction == "request"
+                && f.meaning == "speed setpoint 0 rpm"),
+            "no safe stop from the shutdown among the last frames"
+        );
     })
     .await;
 }
@@ -466,9 +512,13 @@ async fn a_live_client_that_never_reads_loses_frames_not_the_bus_its_pace() {
             }
         }
         assert!(read > 3 * 256, "the reading client got {read} frames");
+        // The bus went on at its pace: a coarse check, as a loaded machine
+        // moves both figures (benches/scope.rs measures the cost of live
+        // clients); what cannot move is that the ring went round five times
+        // while the stuck client held its socket.
         let (with_clients, _) = poll_rate(&api, frames_seen() - 256).await;
         assert!(
-            with_clients > 0.85 * alone,
+            with_clients > 0.7 * alone,
             "{with_clients:.1} polls/s with a stuck client, {alone:.1} without"
         );
 
