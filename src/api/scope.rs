@@ -470,10 +470,9 @@ pub async fn get_result(
     let scope = bus.handle.scope();
     scope.tick(Instant::now());
     let name = namer(bus);
-    scope
-        .with_capture(|c| result::result(c, bus.handle.name(), &name))
-        .map(Json)
-        .map_err(scope_problem)
+    // Copied out, then rendered: the bus thread never waits for the JSON.
+    let capture = scope.snapshot().map_err(scope_problem)?;
+    Ok(Json(result::result(&capture, bus.handle.name(), &name)))
 }
 
 /// The samples of the current (or last) capture as CSV: `time` (RFC 3339,
@@ -500,9 +499,8 @@ pub async fn get_result_csv(
     let scope = bus.handle.scope();
     scope.tick(Instant::now());
     let name = namer(bus);
-    let (id, text) = scope
-        .with_capture(|c| (c.id(), result::csv(c, &name)))
-        .map_err(scope_problem)?;
+    let capture = scope.snapshot().map_err(scope_problem)?;
+    let (id, text) = (capture.id(), result::csv(&capture, &name));
     let mut response = text.into_response();
     let headers = response.headers_mut();
     headers.insert(

@@ -18,7 +18,7 @@ pub struct MonitorConfig {
     /// Keep the frames (the per-attempt counters of `/metrics` run anyway).
     #[serde(default = "default_enabled")]
     pub enabled: bool,
-    /// Frames kept per bus (each takes about 330 bytes).
+    /// Frames kept per bus (each takes 352 bytes).
     #[serde(
         default = "default_ring_frames",
         deserialize_with = "values::int_in::<_, _, 16, 1000000>"
@@ -58,7 +58,7 @@ impl MonitorConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ScopeConfig {
-    /// Samples one capture may hold (each takes about 40 bytes).
+    /// Samples one capture may hold (each takes 32 bytes).
     #[serde(
         default = "default_max_samples",
         deserialize_with = "values::int_in::<_, _, 1000, 10000000>"

@@ -4,7 +4,7 @@
 //! allocate: the ring is allocated once, each slot has its own lock, and a
 //! reader holds a slot's lock only while it copies that one record. So the
 //! writer can at worst find the one slot it writes being copied, for the
-//! time of a ~300-byte copy, and a reader that is slow, stuck or gone
+//! time of a ~350-byte copy, and a reader that is slow, stuck or gone
 //! costs the writer nothing: it simply finds, when it reads again, that
 //! the frames it had not read yet were overwritten, and counts them lost.
 

@@ -345,6 +345,37 @@ impl Capture {
         self.pre.iter().chain(self.post.iter())
     }
 
+    /// The times of the first and the last sample held.
+    pub fn first_last(&self) -> (Option<Instant>, Option<Instant>) {
+        let first = self.pre.front().or(self.post.first()).map(|s| s.at);
+        let last = self.post.last().or(self.pre.back()).map(|s| s.at);
+        (first, last)
+    }
+
+    /// The samples from the trigger on.
+    pub fn post(&self) -> &[Sample] {
+        &self.post
+    }
+
+    /// A copy of everything but the samples from the trigger on (which a
+    /// reader copies in steps, see [`extend_post`](Self::extend_post)).
+    pub fn copy_without_post(&self) -> Capture {
+        Capture {
+            spec: self.spec.clone(),
+            per_unit: self.per_unit.clone(),
+            pre: self.pre.clone(),
+            post: Vec::new(),
+            detector: self.detector.clone(),
+            fired: self.fired.clone(),
+            ..*self
+        }
+    }
+
+    /// Appends samples to a copy made by [`copy_without_post`](Self::copy_without_post).
+    pub fn extend_post(&mut self, samples: &[Sample]) {
+        self.post.extend_from_slice(samples);
+    }
+
     /// Samples it may hold at most.
     pub fn capacity(&self) -> usize {
         self.pre_capacity + self.post_capacity

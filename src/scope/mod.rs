@@ -233,10 +233,48 @@ impl Scope {
         self.settle(&mut inner);
     }
 
-    /// Reads the current (or last) capture.
+    /// Reads the current (or last) capture, under the lock the bus thread
+    /// takes for each sample while a capture runs: `f` must be quick (use
+    /// [`snapshot`](Self::snapshot) for the samples).
     pub fn with_capture<T>(&self, f: impl FnOnce(&Capture) -> T) -> Result<T, ScopeError> {
         let inner = self.lock();
         inner.capture.as_ref().map(f).ok_or(ScopeError::None)
+    }
+
+    /// A copy of the current (or last) capture, samples included, to render
+    /// outside the lock. While a capture runs, its samples after the
+    /// trigger are copied a batch at a time, the lock released between
+    /// batches, so a reader holds up the bus thread for one batch's copy
+    /// at most (8192 samples, 256 kB), never for the rendering.
+    pub fn snapshot(&self) -> Result<Capture, ScopeError> {
+        const BATCH: usize = 8192;
+        let (mut copy, id) = {
+            let inner = self.lock();
+            let capture = inner.capture.as_ref().ok_or(ScopeError::None)?;
+            if !capture.is_running() {
+                // The bus thread no longer touches it.
+                return Ok(capture.clone());
+            }
+            (capture.copy_without_post(), capture.id())
+        };
+        loop {
+            let inner = self.lock();
+            let Some(post) = inner
+                .capture
+                .as_ref()
+                .filter(|c| c.id() == id)
+                .map(Capture::post)
+            else {
+                break;
+            };
+            let copied = copy.post().len();
+            if copied >= post.len() {
+                break;
+            }
+            let end = post.len().min(copied + BATCH);
+            copy.extend_post(&post[copied..end]);
+        }
+        Ok(copy)
     }
 
     /// Clears the running flag once the capture ended.
@@ -404,6 +442,36 @@ mod tests {
         assert!(scope.arm(spec(&[1]), t0).is_ok());
         assert!(scope.cancel(t0).is_ok());
         assert!(matches!(scope.cancel(t0), Err(ScopeError::State(_))));
+    }
+
+    #[test]
+    fn a_snapshot_of_a_running_capture_holds_every_sample_so_far() {
+        let scope = scope();
+        let t0 = Instant::now();
+        let mut spec = spec(&[1]);
+        spec.trigger = Trigger::Immediate;
+        spec.length = Amount::Samples(20_000);
+        scope.arm(spec, t0).unwrap();
+        let request = encode(1, &STATUS_READ);
+        for i in 0..10_000u64 {
+            let rpm = (i % 1000) as i16;
+            scope.on_reply(
+                1,
+                &request,
+                &status_reply(1, rpm),
+                t0 + Duration::from_micros(i),
+            );
+        }
+        let copy = scope.snapshot().unwrap();
+        assert!(copy.is_running());
+        assert_eq!(copy.counts(), (0, 10_000));
+        assert!(
+            copy.samples()
+                .enumerate()
+                .all(|(i, s)| s.status.speed_rpm == (i % 1000) as i16)
+        );
+        scope.cancel(t0).unwrap();
+        assert_eq!(scope.snapshot().unwrap().counts(), (0, 10_000));
     }
 
     #[test]

@@ -167,11 +167,10 @@ pub fn state(capture: &Capture, bus: &str, name: &dyn Fn(u8) -> String) -> Scope
         target_samples: capture.target(),
         capacity_samples: capture.capacity(),
         memory_bytes: capture.capacity() * std::mem::size_of::<super::capture::Sample>(),
-        rate_hz: rate(
-            pre + post,
-            capture.samples().next().map(|s| s.at),
-            capture.samples().last().map(|s| s.at),
-        ),
+        rate_hz: {
+            let (first, last) = capture.first_last();
+            rate(pre + post, first, last)
+        },
     }
 }
 
