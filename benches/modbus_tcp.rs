@@ -208,7 +208,9 @@ fn report(name: &str, r: &PhaseResult, limit_per_s: f64) {
     stale.sort();
     let wire = r.wire_transactions as f64 / secs;
     let polls = r.polls as f64 / secs;
-    let tcp_on_wire = (r.wire_transactions - r.polls) as f64 / secs;
+    // A snapshot taken between a poll's transaction count and its poll
+    // count makes the polls' difference one more than the transactions'.
+    let tcp_on_wire = r.wire_transactions.saturating_sub(r.polls) as f64 / secs;
     println!("\n== {name} ==");
     println!(
         "TCP reads answered: {reads:.1}/s ({} in {secs:.1} s, {} errors); per client min {} max {}",
