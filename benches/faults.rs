@@ -3,7 +3,7 @@
 //! the healthy drives' status polls are answered, next to the fault-free
 //! rate.
 //!
-//! The bound (issue 6): the other drives keep their poll rate within 10 %
+//! The bound: the other drives keep their poll rate within 10 %
 //! of the fault-free rate, except for the time the faulty traffic itself
 //! takes. That time, F, is measured from the bus's own counters: the wire
 //! time of the window (`busy_seconds`) minus what the answered polls took

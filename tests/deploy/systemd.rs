@@ -80,7 +80,7 @@ async fn unit_file_passes_systemd_analyze_verify() {
 
 #[tokio::test]
 async fn unit_file_is_notify_type_with_hardening_and_port_502() {
-    // The directives issue 5 asks for, present and not commented out.
+    // The hardening directives the unit must have, present and not commented out.
     let lines: Vec<&str> = UNIT.lines().map(str::trim).collect();
     for wanted in [
         "Type=notify",
