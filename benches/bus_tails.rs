@@ -141,41 +141,41 @@ struct Figures {
 
 /// Figures measured before phased polling, cheap dead drives, the overhead
 /// work and the reply deadline (the code of commit a892837, which only adds
-/// the measurements), on the same shared 2-core machine, run back to back
-/// with the figures of the README, at `nice -n -10` (load average 2 to 8
-/// from other builds), 10 s per run: (transport, scenario, [bus share %,
-/// p50, p99, max ms, wire idle p50, p99 ms]). `None`: the transport did
-/// not exist yet.
+/// the measurements), on the same 2-core machine, run back to back with the
+/// figures of the README at `nice -n -10` while the machine was quiet (load
+/// average below 1), 10 s per run: (transport, scenario, [bus share %, p50,
+/// p99, max ms, wire idle p50, p99 ms]). `None`: the transport did not
+/// exist yet.
 const BEFORE: &[(&str, &str, Option<[f64; 6]>)] = &[
     (
         "pty",
         "polling off",
-        Some([97.7, 103.6, 108.2, 108.8, 1.86, 3.00]),
+        Some([97.9, 102.8, 112.2, 116.6, 1.83, 4.51]),
     ),
     (
         "pty",
         "polling 1 Hz",
-        Some([98.0, 103.7, 130.3, 131.0, 1.85, 2.98]),
+        Some([98.3, 103.0, 129.0, 130.2, 1.84, 2.31]),
     ),
     (
         "pty",
         "1 Hz + dead drive",
-        Some([89.1, 103.6, 325.4, 332.8, 1.84, 3.66]),
+        Some([89.3, 103.0, 325.4, 333.0, 1.83, 3.45]),
     ),
     (
         "usb",
         "polling off",
-        Some([94.1, 107.5, 122.4, 129.5, 2.13, 2.55]),
+        Some([94.4, 107.3, 111.0, 112.1, 2.11, 2.51]),
     ),
     (
         "usb",
         "polling 1 Hz",
-        Some([93.8, 108.3, 136.6, 139.0, 2.13, 4.20]),
+        Some([94.3, 107.9, 137.7, 138.7, 2.12, 2.58]),
     ),
     (
         "usb",
         "1 Hz + dead drive",
-        Some([84.5, 108.1, 330.5, 338.5, 2.08, 4.91]),
+        Some([85.4, 108.5, 331.9, 339.5, 2.14, 3.83]),
     ),
     ("tcp", "polling off", None),
     ("tcp", "polling 1 Hz", None),
