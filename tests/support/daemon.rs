@@ -81,7 +81,9 @@ impl TestDaemon {
     /// and waits until every drive has answered a poll.
     pub async fn start(toml: &str) -> TestDaemon {
         let daemon = Self::start_no_wait(toml).await;
-        daemon.wait_all_online(Duration::from_secs(10)).await;
+        // Generous: on a loaded machine a first poll can time out, and the
+        // drive is then probed again later.
+        daemon.wait_all_online(Duration::from_secs(30)).await;
         daemon
     }
 

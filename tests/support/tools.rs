@@ -14,7 +14,6 @@ pub fn how_to_get(tool: &str) -> String {
     let python_package = match tool {
         "st" | "schemathesis" => Some("schemathesis"),
         "pymodbus" => Some("pymodbus"),
-        "playwright" => Some("playwright"),
         _ => None,
     };
     if let Some(package) = python_package {
