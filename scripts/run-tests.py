@@ -1,13 +1,16 @@
 #!/usr/bin/env python3
-"""Builds the tests with `cargo test --locked --no-run` and runs the test
-binaries side by side, the longest first.
+"""Builds the tests with `cargo test --locked --no-run` and runs them, each
+end-to-end test in a process of its own, several at once, the longest first.
 
 Most tests wait on the simulated wire and on timers, not on the CPU, so one
 binary after another (what `cargo test` does) leaves the machine idle most of
-the time. Each binary's output goes to target/test-logs/NAME.log and is
-printed whole when the binary fails. How long each binary took is kept in
-target/test-logs/durations.tsv to order the next run; before a first run,
-tests/durations.tsv (seconds measured once, only an order) stands in.
+the time, and a binary's slowest test holds up the rest. Here every test of
+an end-to-end binary is run as `BINARY --exact NAME`, and a pool keeps
+`--jobs` of them going; the unit tests (a fraction of a second) run as one
+process. A failed test's whole output is printed; every test's is kept under
+target/test-logs/. How long each took is kept in target/test-logs/durations.tsv
+to order the next run; before a first run, tests/durations.tsv (seconds
+measured once, only an order) stands in.
 
 Usage: run-tests.py [--jobs N]   (scripts/test calls it with no arguments)
 """
@@ -24,6 +27,8 @@ ROOT = Path(__file__).resolve().parent.parent
 LOGS = ROOT / "target" / "test-logs"
 DURATIONS = LOGS / "durations.tsv"
 FIRST_ORDER = ROOT / "tests" / "durations.tsv"
+# Seconds after which a test process is killed and counted as failed.
+LIMIT = 600
 
 
 def say(message):
@@ -31,13 +36,14 @@ def say(message):
 
 
 def build():
-    """Builds every test target; returns [(name, argv)] to run."""
+    """Builds every test target; returns [(binary name, executable, split)]
+    where `split` says to run its tests one process each."""
     command = [
         "cargo", "test", "--locked", "--no-run",
         "--message-format=json-render-diagnostics",
     ]
     process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, text=True)
-    runs = []
+    binaries = []
     for line in process.stdout:
         try:
             message = json.loads(line)
@@ -50,35 +56,54 @@ def build():
             continue
         target = message["target"]
         kind = target["kind"][0]
-        name = target["name"] if kind in ("test", "bench") else f"{kind}:{target['name']}"
-        runs.append((name, [executable]))
+        if kind == "test":
+            binaries.append((target["name"], executable, True))
+        else:
+            binaries.append((f"{kind}:{target['name']}", executable, False))
     if process.wait() != 0:
         say("the tests do not build (errors above)")
         sys.exit(process.returncode or 1)
-    # The documentation's examples, which only cargo can run.
-    runs.append(("doc", ["cargo", "test", "--locked", "--doc", "--quiet"]))
-    return runs
+    return binaries
+
+
+def listed(executable, ignored=False):
+    argv = [executable, "--list", "--format", "terse"] + (["--ignored"] if ignored else [])
+    out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    return [l[: -len(": test")] for l in out.splitlines() if l.endswith(": test")]
+
+
+def jobs_of(binaries):
+    """[(key, argv)]: one per end-to-end test, one per other binary, and
+    the documentation's examples (which only cargo can run)."""
+    jobs = []
+    for name, executable, split in binaries:
+        if not split:
+            jobs.append((name, [executable]))
+            continue
+        ignored = set(listed(executable, ignored=True))
+        for test in listed(executable):
+            if test not in ignored:
+                jobs.append((f"{name}/{test}", [executable, "--exact", test]))
+    jobs.append(("doc", ["cargo", "test", "--locked", "--doc", "--quiet"]))
+    return jobs
 
 
 def read_durations(path):
     durations = {}
     try:
         for line in path.read_text().splitlines():
-            name, _, seconds = line.partition("\t")
-            durations[name] = float(seconds)
+            if line.startswith("#"):
+                continue
+            key, _, seconds = line.partition("\t")
+            durations[key] = float(seconds)
     except (OSError, ValueError):
         pass
     return durations
 
 
-def known_durations():
-    return read_durations(FIRST_ORDER) | read_durations(DURATIONS)
-
-
-def summary_line(log_text):
-    """The last `test result:` line of a binary's output."""
-    lines = [l for l in log_text.splitlines() if l.startswith("test result:")]
-    return lines[-1] if lines else "(no test result line)"
+def result_line(text):
+    lines = [l for l in text.splitlines() if l.startswith("test result:")]
+    return lines[-1] if lines else ""
 
 
 def main():
@@ -86,56 +111,84 @@ def main():
     parser.add_argument(
         "--jobs",
         type=int,
-        default=int(os.environ.get("DRIVEGATE_TEST_JOBS", "4")),
-        help="test binaries at once (default 4, or DRIVEGATE_TEST_JOBS)",
+        default=int(os.environ.get("DRIVEGATE_TEST_JOBS", "8")),
+        help="tests at once (default 8, or DRIVEGATE_TEST_JOBS)",
     )
-    jobs = max(1, parser.parse_args().jobs)
+    jobs_at_once = max(1, parser.parse_args().jobs)
 
-    runs = build()
+    binaries = build()
     LOGS.mkdir(parents=True, exist_ok=True)
-    durations = known_durations()
-    # Longest first; a binary never timed before counts as long.
-    runs.sort(key=lambda run: -durations.get(run[0], 1e9))
+    durations = read_durations(FIRST_ORDER) | read_durations(DURATIONS)
+    waiting = jobs_of(binaries)
+    # Longest first; a test never timed before counts as long.
+    waiting.sort(key=lambda job: -durations.get(job[0], 1e9))
 
-    env = dict(os.environ, CARGO_MANIFEST_DIR=str(ROOT))
-    waiting = list(runs)
+    # A test's own threads: it runs one test, with the tokio runtime its
+    # attribute asks for.
+    env = dict(os.environ, CARGO_MANIFEST_DIR=str(ROOT), RUST_TEST_THREADS="1")
     running = {}
     finished = []
     started = time.monotonic()
-    say(f"running {len(runs)} test binaries, {jobs} at a time")
+    say(f"running {len(waiting)} test processes from {len(binaries)} binaries, "
+        f"{jobs_at_once} at a time")
     while waiting or running:
-        while waiting and len(running) < jobs:
-            name, argv = waiting.pop(0)
-            log = open(LOGS / f"{name.replace(':', '-')}.log", "w")
+        while waiting and len(running) < jobs_at_once:
+            key, argv = waiting.pop(0)
+            path = LOGS / (key.replace("/", "--").replace(":", "-") + ".log")
+            log = open(path, "w")
             process = subprocess.Popen(
                 argv, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT
             )
-            running[process.pid] = (name, process, log, time.monotonic())
-        pid, status = os.wait()
+            running[process.pid] = (key, process, log, time.monotonic())
+        pid, status = os.waitpid(-1, os.WNOHANG)
+        if pid == 0:
+            # Every test bounds its own time; this is for one that does not.
+            now = time.monotonic()
+            for key, process, log, began in running.values():
+                if now - began > LIMIT and process.returncode is None:
+                    say(f"{key} still runs after {LIMIT} s: stopping it")
+                    process.kill()
+            time.sleep(0.02)
+            continue
         if pid not in running:
             continue
-        name, process, log, began = running.pop(pid)
+        key, process, log, began = running.pop(pid)
         process.returncode = os.waitstatus_to_exitcode(status)
         log.close()
         seconds = time.monotonic() - began
-        text = Path(log.name).read_text(errors="replace")
         ok = process.returncode == 0
-        finished.append((name, ok, seconds))
-        if ok:
-            say(f"{name}: {summary_line(text)} ({seconds:.1f} s)")
-        else:
+        finished.append((key, ok, seconds))
+        text = Path(log.name).read_text(errors="replace")
+        if not ok:
             print(text, flush=True)
-            say(f"{name}: FAILED, exit {process.returncode} ({seconds:.1f} s); log: {log.name}")
+            say(f"FAILED {key} (exit {process.returncode}, {seconds:.1f} s); log: {log.name}")
+        elif "/" not in key:
+            say(f"{key}: {result_line(text)}")
 
-    durations.update({name: seconds for name, ok, seconds in finished if ok})
-    DURATIONS.write_text("".join(f"{n}\t{s:.1f}\n" for n, s in sorted(durations.items())))
+    # The tests of this build only: a removed test's time goes with it.
+    durations.update({key: seconds for key, ok, seconds in finished if ok})
+    keep = {key for key, _, _ in finished}
+    DURATIONS.write_text(
+        "".join(f"{k}\t{s:.1f}\n" for k, s in sorted(durations.items()) if k in keep)
+    )
 
-    failed = [name for name, ok, _ in finished if not ok]
     total = time.monotonic() - started
+    failed = [key for key, ok, _ in finished if not ok]
+    per_binary = {}
+    for key, ok, seconds in finished:
+        binary = key.split("/")[0]
+        count, busy = per_binary.get(binary, (0, 0.0))
+        per_binary[binary] = (count + 1, busy + seconds)
+    for binary, (count, busy) in sorted(per_binary.items()):
+        if count > 1:
+            say(f"{binary}: {count} tests, {busy:.0f} s of test time")
+    slowest = sorted(finished, key=lambda f: -f[2])[:3]
+    say("slowest: " + ", ".join(f"{k} {s:.1f} s" for k, _, s in slowest))
     if failed:
-        say(f"FAILED: {', '.join(failed)} ({total:.0f} s); logs in {LOGS}")
+        say(f"FAILED {len(failed)} of {len(finished)}: {', '.join(failed)} ({total:.0f} s); "
+            f"logs in {LOGS}")
         sys.exit(1)
-    say(f"all {len(finished)} test binaries passed in {total:.0f} s")
+    say(f"all {len(finished)} passed in {total:.0f} s")
 
 
 if __name__ == "__main__":
