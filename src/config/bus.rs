@@ -214,6 +214,9 @@ impl BusConfig {
             calibrated: section.calibrated,
             delivery: section.delivery,
             listen: None,
+            // Later than the master waits, a reply only crosses its next
+            // request.
+            max_lag: Some(Duration::from_millis(self.response_timeout_ms)),
         }
     }
 

@@ -101,6 +101,7 @@ impl SimArgs {
                 jitter_us: self.jitter_us,
             },
             listen: self.listen,
+            max_lag: None,
             ..SimConfig::default()
         }
     }

@@ -1,6 +1,7 @@
 //! What a simulated bus is made of: its line, its drives, its faults.
 
 use std::net::SocketAddr;
+use std::time::Duration;
 
 use serde::Deserialize;
 
@@ -52,6 +53,12 @@ pub struct SimConfig {
     /// Serve the bus on TCP at this address, as a serial device server does,
     /// instead of behind a pty.
     pub listen: Option<SocketAddr>,
+    /// A reply the simulator could only start this much later than its time
+    /// (the machine kept its thread from running) is not sent: the master
+    /// has given up on it, and it would cross the next request on the line.
+    /// `None`: sent however late. The daemon's own simulator uses the bus's
+    /// response timeout.
+    pub max_lag: Option<Duration>,
 }
 
 impl Default for SimConfig {
@@ -82,6 +89,7 @@ impl SimConfig {
             calibrated: true,
             delivery: Delivery::default(),
             listen: None,
+            max_lag: None,
         }
     }
 

@@ -27,6 +27,11 @@ pub struct SimStats {
     pub corrupted: u64,
     /// Replies sent late.
     pub late: u64,
+    /// Replies not sent because the simulator fell behind their time by
+    /// more than its `max_lag` (the machine kept its thread from running):
+    /// a drive answers on time, and a reply that late would cross the
+    /// master's next request. The master sees a lost reply.
+    pub stalled: u64,
     /// Bursts of noise written between frames.
     pub noise_bursts: u64,
     /// Exception replies.
@@ -42,7 +47,7 @@ impl fmt::Display for SimStats {
         write!(
             f,
             "requests={} replies={} broadcasts={} gap_violations={} bad_crc_requests={} \
-             truncated_frames={} unanswered={} dropped={} corrupted={} late={} noise_bursts={} \
+             truncated_frames={} unanswered={} dropped={} corrupted={} late={} stalled={} noise_bursts={} \
              exceptions={} collisions={} connections={}",
             self.requests,
             self.replies,
@@ -54,6 +59,7 @@ impl fmt::Display for SimStats {
             self.dropped,
             self.corrupted,
             self.late,
+            self.stalled,
             self.noise_bursts,
             self.exceptions,
             self.collisions,

@@ -112,6 +112,8 @@ pub struct Wire {
     bus: Arc<Mutex<Bus>>,
     line: LineTiming,
     turnaround: Duration,
+    /// See [`SimConfig::max_lag`](super::config::SimConfig::max_lag).
+    max_lag: Option<Duration>,
     timer: PreciseTimer,
     rx: Rx,
     tx: Vec<u8>,
@@ -144,6 +146,7 @@ impl Wire {
             bus,
             line: LineTiming::new_8n1(config.baud),
             turnaround: Duration::from_secs_f64(config.turnaround_ms.max(0.0) / 1000.0),
+            max_lag: config.max_lag,
             timer: PreciseTimer::new()?,
             rx: Rx::new(),
             tx: Vec::with_capacity(MAX_FRAME),
@@ -242,21 +245,33 @@ impl Wire {
             return Ok(());
         }
         let reply_start = wire_end + t3_5 + self.turnaround + outcome.late;
-        let reply_end = self.send_paced(reply_start).await?;
+        let Some(reply_end) = self.send_paced(reply_start, self.max_lag).await? else {
+            let mut bus = lock(&self.bus);
+            let stats = bus.stats_mut();
+            stats.replies -= 1;
+            stats.stalled += 1;
+            self.quiet_from = Some(wire_end);
+            return Ok(());
+        };
         self.quiet_from = Some(reply_end);
         if let Some(noise) = outcome.noise {
             // Noise is not a frame: it does not move the end of activity.
             self.tx.clear();
             self.tx.extend_from_slice(noise.bytes());
-            self.send_paced(reply_end + t3_5).await?;
+            self.send_paced(reply_end + t3_5, None).await?;
         }
         Ok(())
     }
 
     /// Writes `tx` one character time per byte from `start`, handed over as
     /// the delivery says; returns the scheduled end of the last byte on the
-    /// wire.
-    async fn send_paced(&mut self, start: Instant) -> io::Result<Instant> {
+    /// wire, or `None` when its first byte would have gone out more than
+    /// `max_lag` late: then nothing is sent.
+    async fn send_paced(
+        &mut self,
+        start: Instant,
+        max_lag: Option<Duration>,
+    ) -> io::Result<Option<Instant>> {
         let len = self.tx.len();
         self.delivery
             .schedule(&self.line, start, len, &mut self.rng, &mut self.release);
@@ -264,6 +279,16 @@ impl Wire {
         let mut sent = 0;
         while sent < len {
             let now = Instant::now();
+            if sent == 0
+                && let Some(max_lag) = max_lag
+                && now > self.release[0] + max_lag
+            {
+                tracing::info!(
+                    behind_ms = (now - self.release[0]).as_millis() as u64,
+                    "the simulator fell behind (the machine kept it from running): reply not sent"
+                );
+                return Ok(None);
+            }
             let due = sent + self.release[sent..].partition_point(|&t| t <= now);
             if due > sent {
                 self.line_io.write_all(&self.tx[sent..due]).await?;
@@ -275,7 +300,7 @@ impl Wire {
                 self.read_until(Some(next), next == last).await?;
             }
         }
-        Ok(start + self.line.wire_time(len))
+        Ok(Some(start + self.line.wire_time(len)))
     }
 
     /// Reads what arrives until `deadline` (forever if `None`); true when
