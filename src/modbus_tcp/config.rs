@@ -13,7 +13,8 @@ use serde::Deserialize;
 use serde::de::{self, Deserializer, Visitor};
 use toml::Spanned;
 
-use crate::control::Role;
+use crate::control::{CommLoss, Role};
+use crate::safety::StopAction;
 
 /// The Modbus TCP listener.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
@@ -55,8 +56,8 @@ pub struct ModbusTcpConfig {
     pub polled_copy: Vec<PolledCopy>,
 }
 
-/// A client network and what its clients may do. A place for the
-/// network's further settings (a communication-loss time and action).
+/// A client network and what its clients may do, with its
+/// communication-loss function.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ClientNetwork {
@@ -71,12 +72,52 @@ pub struct ClientNetwork {
     /// even while the motor turns (refused with exception 0x06 otherwise).
     #[serde(default)]
     pub allow_saves_while_moving: bool,
+    /// The communication-loss time, ms: a setpoint or mode command from a
+    /// client of this network takes a lease on the drive, held by its
+    /// connection; any request on the connection renews it; no request for
+    /// this long, or the connection closing, ends it with
+    /// `comm_loss_action`. Absent: off (no lease, as without the entry).
+    #[serde(default, deserialize_with = "comm_loss_ms")]
+    pub comm_loss_ms: Option<u64>,
+    /// What the end of such a lease sends: `zero-speed` (the default),
+    /// `brake`, or `none` (the lease is shown and its end audited and
+    /// counted, but nothing is written to the drive).
+    #[serde(default)]
+    pub comm_loss_action: Option<Spanned<StopAction>>,
 }
+
+/// Shortest communication-loss time: below it, a PLC's ordinary jitter
+/// would stop the motor.
+pub const COMM_LOSS_MIN_MS: u64 = 20;
+/// Longest communication-loss time.
+pub const COMM_LOSS_MAX_MS: u64 = 60_000;
 
 impl ClientNetwork {
     /// The role of its clients.
     pub fn role(&self) -> Role {
         *self.role.get_ref()
+    }
+
+    /// Its communication-loss function, if it has a time.
+    pub fn comm_loss(&self) -> Option<CommLoss> {
+        Some(CommLoss {
+            after: Duration::from_millis(self.comm_loss_ms?),
+            action: self
+                .comm_loss_action
+                .as_ref()
+                .map_or(StopAction::ZeroSpeed, |a| *a.get_ref()),
+        })
+    }
+}
+
+/// `comm_loss_ms`, refused outside its bounds with the key and the range.
+fn comm_loss_ms<'de, D: Deserializer<'de>>(d: D) -> Result<Option<u64>, D::Error> {
+    let v = i64::deserialize(d)?;
+    match u64::try_from(v) {
+        Ok(ms) if (COMM_LOSS_MIN_MS..=COMM_LOSS_MAX_MS).contains(&ms) => Ok(Some(ms)),
+        _ => Err(de::Error::custom(format!(
+            "comm_loss_ms = {v} is out of range: valid {COMM_LOSS_MIN_MS} to {COMM_LOSS_MAX_MS} ms"
+        ))),
     }
 }
 
@@ -352,6 +393,17 @@ impl ModbusTcpConfig {
                     ),
                 ));
             }
+        }
+        if let Some((client, action)) = self.clients.iter().find_map(|c| {
+            Some((c, c.comm_loss_action.as_ref()?)).filter(|_| c.comm_loss_ms.is_none())
+        }) {
+            return Err((
+                action.span(),
+                format!(
+                    "[modbus_tcp] the clients entry for {} has comm_loss_action but no comm_loss_ms: give the time ({COMM_LOSS_MIN_MS} to {COMM_LOSS_MAX_MS} ms) after which a silent client's motors get the action, or remove comm_loss_action",
+                    client.network
+                ),
+            ));
         }
         if self.read_only
             && let Some(client) = self.clients.iter().find(|c| c.role() > Role::Viewer)

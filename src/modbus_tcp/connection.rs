@@ -18,6 +18,11 @@
 //!   client that sends half a frame and stalls is idle too), or a reply could
 //!   not be written for that long (a client that does not read);
 //! - the daemon stops.
+//!
+//! The connection is a session of the control core: every whole request
+//! tells the core it is alive (which renews the leases of a network's
+//! communication-loss function), and its end, once the requests still
+//! queued are cancelled, ends them with their stop.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -32,6 +37,7 @@ use tracing::{debug, warn};
 
 use super::gateway::{Answer, Client, Gateway, Pending};
 use super::mbap::{self, MAX_FRAME};
+use crate::control::SessionGuard;
 
 /// Bytes of unparsed requests a connection may buffer (about 250 frames)
 /// beyond the ones queued on the bus.
@@ -88,6 +94,7 @@ enum End {
 pub async fn serve(
     stream: TcpStream,
     client: Client,
+    session: SessionGuard,
     gateway: Arc<Gateway>,
     settings: ConnectionSettings,
     shutdown: CancellationToken,
@@ -107,6 +114,7 @@ pub async fn serve(
             match mbap::parse(&buf) {
                 Ok(Some((frame, used))) => {
                     buf.advance(used);
+                    session.active();
                     idle.as_mut().reset(Instant::now() + settings.idle_timeout);
                     let reply = match gateway
                         .handle(&client, frame.transaction, frame.unit, frame.pdu)
@@ -185,6 +193,9 @@ pub async fn serve(
             Reply::Ready(_) => {}
         }
     }
+    // Only once none of its queued writes can reach the bus: a setpoint
+    // landing after the stop would set the motor going again.
+    drop(session);
     let _ = wr.shutdown().await;
     if matches!(
         end,
