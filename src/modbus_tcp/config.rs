@@ -583,6 +583,65 @@ bus_units = "40"
     }
 
     #[test]
+    fn client_networks_may_have_a_comm_loss_time_and_action() {
+        let c = parse(
+            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 500\n[[modbus_tcp.clients]]\nnetwork = \"10.2.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 20\ncomm_loss_action = \"brake\"\n[[modbus_tcp.clients]]\nnetwork = \"10.3.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 60000\ncomm_loss_action = \"none\"\n[[modbus_tcp.clients]]\nnetwork = \"10.4.0.0/16\"\nrole = \"operator\"",
+        )
+        .unwrap();
+        let loss: Vec<Option<CommLoss>> =
+            c.modbus_tcp.clients.iter().map(|c| c.comm_loss()).collect();
+        let ms = Duration::from_millis;
+        assert_eq!(
+            loss,
+            [
+                Some(CommLoss {
+                    after: ms(500),
+                    action: StopAction::ZeroSpeed
+                }),
+                Some(CommLoss {
+                    after: ms(20),
+                    action: StopAction::Brake
+                }),
+                Some(CommLoss {
+                    after: ms(60_000),
+                    action: StopAction::None
+                }),
+                None,
+            ],
+            "zero-speed by default; off without a time"
+        );
+        for bad in ["19", "60001", "0", "-5"] {
+            let e = parse(&format!(
+                "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = {bad}"
+            ))
+            .unwrap_err();
+            assert!(
+                e.contains("t.toml:5:16")
+                    && e.contains(&format!(
+                        "comm_loss_ms = {bad} is out of range: valid 20 to 60000 ms"
+                    )),
+                "{e}"
+            );
+        }
+        let e = parse(
+            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_action = \"stop\"",
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("t.toml:5:20") && e.contains("unknown variant `stop`"),
+            "{e}"
+        );
+        let e = parse(
+            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_action = \"brake\"",
+        )
+        .unwrap_err();
+        assert!(
+            e.starts_with("t.toml:5:20:") && e.contains("has comm_loss_action but no comm_loss_ms"),
+            "{e}"
+        );
+    }
+
+    #[test]
     fn errors_point_at_the_value_to_fix() {
         // line 1 is [modbus_tcp]; the bus name is on line 4, column 7.
         let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"C\"").unwrap_err();
