@@ -479,13 +479,22 @@ name = "b1"
             .replace(
                 "# bus = \"line1\"\n# max_age_ms",
                 "bus = \"line1\"\nmax_age_ms",
-            );
+            )
+            .replace("# comm_loss_ms", "comm_loss_ms")
+            .replace("# comm_loss_action", "comm_loss_action");
         let c = Config::parse(&text, "drivegate.toml").unwrap();
         let tcp = &c.modbus_tcp;
         assert_eq!(tcp.allowed_networks, default_allowed_networks());
         assert_eq!(tcp.unit_map[1].bus_unit(101), Some(1));
         assert_eq!(tcp.polled_copy[0].max_age(), Duration::from_millis(250));
         assert_eq!(tcp.clients[0].role(), Role::Operator);
+        assert_eq!(
+            tcp.clients[0].comm_loss(),
+            Some(CommLoss {
+                after: Duration::from_millis(500),
+                action: StopAction::ZeroSpeed
+            })
+        );
         assert_eq!(tcp.clients[1].role(), Role::Viewer);
         let mut defaults = tcp.clone();
         defaults.unit_map.clear();
