@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 use crate::support::api::{Api, Ws, connect, next_json, wait_for};
+use crate::support::logs::{capture_logs, log_text};
 use crate::support::modbus_tcp::{Plc, four_drives_with, metric};
 use crate::support::proxy::CutProxy;
 use crate::support::{TestDaemon, eventually};
@@ -101,11 +102,17 @@ async fn stopped(d: &TestDaemon) {
     .await;
 }
 
+/// `drivegate_modbus_tcp_comm_loss_stops_total` of bus `sim` for
+/// `reason`; the series must be there, at 0 from start-up.
 fn comm_loss_stops(d: &TestDaemon, reason: &str) -> f64 {
-    metric(
-        &d.metrics.render(),
-        &format!("drivegate_modbus_tcp_comm_loss_stops_total{{bus=\"sim\",reason=\"{reason}\"}}"),
-    )
+    let series =
+        format!("drivegate_modbus_tcp_comm_loss_stops_total{{bus=\"sim\",reason=\"{reason}\"}}");
+    let text = d.metrics.render();
+    assert!(
+        text.contains(&format!("{series} ")),
+        "no {series} in:\n{text}"
+    );
+    metric(&text, &series)
 }
 
 /// The stop's write, as the stream shows it: drivegate's, for the lease of
@@ -200,6 +207,7 @@ async fn a_polling_plc_keeps_its_motor_turning_and_a_silent_one_is_stopped() {
 async fn a_plc_closing_its_connection_is_stopped_at_once() {
     // Ten times longer than the bound on "at once" below.
     const COMM_LOSS_MS: u64 = 60_000;
+    capture_logs();
     tokio::time::timeout(LIMIT, async {
         let d = TestDaemon::start(&config(&format!(
             "comm_loss_ms = {COMM_LOSS_MS}\ncomm_loss_action = \"zero-speed\""
@@ -223,6 +231,25 @@ async fn a_plc_closing_its_connection_is_stopped_at_once() {
         assert_eq!(
             expired["sent"], "speed setpoint 0 rpm (SPEED_REF=0)",
             "{expired:#}"
+        );
+        // The audit log has the lease's end, its holder and why.
+        let who = format!("who={owner}");
+        let line = eventually(EVENT, "the lease's end in the audit log", || {
+            log_text()
+                .lines()
+                .find(|l| {
+                    l.contains("drivegate::audit")
+                        && l.contains("lease ended with its stop")
+                        && l.contains(&who)
+                })
+                .map(str::to_string)
+        })
+        .await;
+        assert!(
+            line.contains("reason=its Modbus TCP connection closed")
+                && line.contains("action=\"zero-speed\"")
+                && line.contains("confirmed by the drive"),
+            "{line}"
         );
         stopped(&d).await;
         assert_eq!(comm_loss_stops(&d, "closed"), 1.0);
