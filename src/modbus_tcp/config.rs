@@ -480,8 +480,11 @@ name = "b1"
                 "# bus = \"line1\"\n# max_age_ms",
                 "bus = \"line1\"\nmax_age_ms",
             )
-            .replace("# comm_loss_ms", "comm_loss_ms")
-            .replace("# comm_loss_action", "comm_loss_action");
+            .replace("# comm_loss_ms = 500", "comm_loss_ms = 500")
+            .replace(
+                "# comm_loss_action = \"zero-speed\"",
+                "comm_loss_action = \"zero-speed\"",
+            );
         let c = Config::parse(&text, "drivegate.toml").unwrap();
         let tcp = &c.modbus_tcp;
         assert_eq!(tcp.allowed_networks, default_allowed_networks());
