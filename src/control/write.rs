@@ -284,6 +284,22 @@ impl Control {
             return Vec::new();
         };
         let allowance = self.allowance(target.bus);
+        // A broadcast setpoint moves only the drives that are active: the
+        // others refuse it, and would refuse the stop of a lease too.
+        // Read before the book is locked: the poll cache has its own lock.
+        let active: Vec<usize> = drives
+            .iter()
+            .copied()
+            .filter(|_| target.unit == 0)
+            .filter(|&drive| {
+                self.plant()
+                    .drives()
+                    .get(drive)
+                    .and_then(|d| self.plant().buses().get(d.bus)?.handle.drive(d.unit))
+                    .and_then(|s| s.status)
+                    .is_some_and(|s| s.active())
+            })
+            .collect();
         let leases = self.leases();
         leases.with(|book, now| {
             // The lease asked for (a setpoint's over HTTP or the stream),
@@ -303,7 +319,7 @@ impl Control {
                 .map(|&drive| {
                     // What the lease covers: a setpoint, or a mode command
                     // under communication loss; a broadcast takes one per
-                    // drive only for communication loss.
+                    // active drive, only for communication loss.
                     let mode = match kind {
                         WriteKind::Setpoint { .. } => meaning.setpoint,
                         WriteKind::ReleasesBrake { .. } if terms.is_some_and(|t| t.comm_loss) => {
@@ -312,7 +328,9 @@ impl Control {
                         _ => None,
                     };
                     let grant = match (mode, terms) {
-                        (Some(mode), Some(terms)) if target.unit != 0 || terms.comm_loss => {
+                        (Some(mode), Some(terms))
+                            if target.unit != 0 || (terms.comm_loss && active.contains(&drive)) =>
+                        {
                             let ask = LeaseAsk {
                                 owner: caller.owner(),
                                 holder: caller.session.map_or(Holder::Request, Holder::Session),

@@ -16,7 +16,7 @@ use serde_json::Value;
 
 use crate::support::api::{Api, Ws, connect, next_json, wait_for};
 use crate::support::logs::{capture_logs, log_text};
-use crate::support::modbus_tcp::{Plc, four_drives_with, metric};
+use crate::support::modbus_tcp::{Plc, Raw, four_drives_with, metric, write};
 use crate::support::proxy::CutProxy;
 use crate::support::{TestDaemon, eventually};
 use drivegate::bus::BusHandle;
@@ -389,6 +389,115 @@ async fn an_http_brake_ends_a_plc_lease_and_no_stop_follows() {
         );
         assert_eq!(comm_loss_stops(&d, "timeout"), 0.0);
         assert_eq!(comm_loss_stops(&d, "closed"), 0.0);
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_broadcast_setpoint_takes_a_lease_on_each_active_drive() {
+    const COMM_LOSS_MS: u64 = 60_000;
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config(&format!("comm_loss_ms = {COMM_LOSS_MS}"))).await;
+        let api = Api::new(d.http, None);
+        let mut ws = connect(d.http, "?drives=all", None).await;
+        // The conveyor is active in speed mode; the lift is not.
+        api.activate_in("conveyor", "speed").await;
+        eventually(EVENT, "the poll seeing the conveyor active", || {
+            d.plant.buses()[0]
+                .handle
+                .drive(CONVEYOR)?
+                .status?
+                .active()
+                .then_some(())
+        })
+        .await;
+        let mut plc = Raw::connect(d.modbus_tcp.unwrap()).await;
+        let owner = format!("modbus-tcp {}", plc.stream.local_addr().unwrap());
+        plc.send(1, 0, &write(SPEED_REF, RPM)).await;
+        eventually(EVENT, "the conveyor turning", || {
+            (d.sim().drive(CONVEYOR)?.speed_rpm > 100.0).then_some(())
+        })
+        .await;
+        let held = lease(&api).await;
+        assert_eq!(
+            (&held["owner"], &held["comm_loss"]),
+            (&owner.as_str().into(), &true.into())
+        );
+        for other in ["lift", "turntable", "feeder"] {
+            let drive = api
+                .get(&format!("/api/v1/drives/{other}"))
+                .await
+                .expect(200);
+            assert!(drive["lease"].is_null(), "{other}: {drive:#}");
+        }
+        // Closed: the conveyor alone is stopped.
+        drop(plc);
+        let expired = wait_for(&mut ws, EVENT, "lease-expired", |v| {
+            v["type"] == "lease-expired"
+        })
+        .await;
+        assert_eq!(
+            (&expired["drive"], &expired["ok"]),
+            (&"conveyor".into(), &true.into())
+        );
+        stopped(&d).await;
+        let seen = messages_within(&mut ws, Duration::from_millis(500)).await;
+        assert!(!seen.iter().any(lease_news), "{seen:#?}");
+        assert_eq!(comm_loss_stops(&d, "closed"), 1.0);
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_leased_setpoint_over_http_takes_over_and_the_plcs_silence_stops_nothing() {
+    const COMM_LOSS_MS: u64 = 1000;
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config(&format!(
+            "comm_loss_ms = {COMM_LOSS_MS}\ncomm_loss_action = \"brake\""
+        )))
+        .await;
+        let api = Api::new(d.http, None);
+        let mut ws = connect(d.http, "?drives=conveyor", None).await;
+        let mut plc = plc_turning(&d, d.modbus_tcp.unwrap()).await;
+        let owner = lease(&api).await["owner"].as_str().unwrap().to_string();
+        let r = api
+            .put(
+                "/api/v1/drives/conveyor/setpoint",
+                serde_json::json!({"speed_rpm": 200, "lease_ms": 60000}),
+            )
+            .await
+            .expect(200);
+        assert_eq!(r["lease"]["comm_loss"], false, "{r:#}");
+        let ended = wait_for(&mut ws, EVENT, "lease-ended", |v| {
+            v["type"] == "lease-ended"
+        })
+        .await;
+        assert_eq!(ended["owner"], owner.as_str());
+        assert!(
+            ended["reason"]
+                .as_str()
+                .unwrap()
+                .starts_with("replaced by a leased setpoint from"),
+            "{ended:#}"
+        );
+        // The PLC goes quiet, then closes: its time passes, nothing stops.
+        plc.tell("silence").await;
+        let seen = messages_within(&mut ws, Duration::from_millis(COMM_LOSS_MS + 1000)).await;
+        plc.tell("close").await;
+        let later = messages_within(&mut ws, Duration::from_millis(500)).await;
+        let news: Vec<&Value> = seen
+            .iter()
+            .chain(&later)
+            .filter(|v| lease_news(v))
+            .collect();
+        assert!(news.is_empty(), "{news:#?}");
+        let drive = d.sim().drive(CONVEYOR).unwrap();
+        assert!(!drive.braking && drive.setpoints.speed_rpm == 200);
+        assert_eq!(lease(&api).await["comm_loss"], false);
         d.stop().await;
     })
     .await
