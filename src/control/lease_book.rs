@@ -1335,7 +1335,8 @@ impl LeaseBook {
                 action: stop_action,
                 end,
             } => {
-                let action = if *stop_action == StopAction::None {
+                // A stop left to the safe stop does not keep its action.
+                let action = if matches!(end, StopEnd::Abandoned) {
                     action
                 } else {
                     stop_action.name()

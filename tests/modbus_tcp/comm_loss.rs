@@ -503,3 +503,40 @@ async fn a_leased_setpoint_over_http_takes_over_and_the_plcs_silence_stops_nothi
     .await
     .expect("test finished in time");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn action_none_shows_and_counts_the_loss_and_leaves_the_motor_turning() {
+    tokio::time::timeout(LIMIT, async {
+        let d =
+            TestDaemon::start(&config("comm_loss_ms = 60000\ncomm_loss_action = \"none\"")).await;
+        let api = Api::new(d.http, None);
+        let bus = d.plant.buses()[0].handle.clone();
+        let mut ws = connect(d.http, "?drives=conveyor", None).await;
+        let mut plc = plc_turning(&d, d.modbus_tcp.unwrap()).await;
+        let held = lease(&api).await;
+        assert_eq!(
+            (&held["action"], &held["comm_loss"]),
+            (&"none".into(), &true.into())
+        );
+        let before = writes(&bus);
+        plc.tell("close").await;
+        let expired = wait_for(&mut ws, EVENT, "lease-expired", |v| {
+            v["type"] == "lease-expired"
+        })
+        .await;
+        assert_eq!(expired["action"], "none", "{expired:#}");
+        assert!(expired["sent"].is_null(), "{expired:#}");
+        assert_eq!(
+            expired["result"],
+            "the lease's action is \"none\": nothing sent"
+        );
+        assert_eq!(comm_loss_stops(&d, "closed"), 1.0);
+        assert_eq!(writes(&bus), before, "something was written");
+        let drive = d.sim().drive(CONVEYOR).unwrap();
+        assert_eq!(drive.setpoints.speed_rpm, RPM as i16);
+        assert!(drive.speed_rpm > 100.0);
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}

@@ -1141,6 +1141,24 @@ fn action_none_shows_and_counts_the_loss_and_sends_nothing_else() {
     // The driver sends nothing for "none" and reports so.
     let order = stops(&effects)[0].clone();
     assert_eq!(order.action, StopAction::None);
+    let report = StopReport {
+        sent: None,
+        result: Ok("the lease's action is \"none\": nothing sent".to_string()),
+        released_brake: false,
+    };
+    let effects = book.stop_tried(CONVEYOR, order.id, report, t0 + 510 * MS);
+    let LeaseEvent::Expired {
+        action, sent, ok, ..
+    } = events(&effects)[0]
+    else {
+        panic!("{effects:?}");
+    };
+    assert_eq!((*action, sent, *ok), (StopAction::None, &None, true));
+    let said = book.no_lease(CONVEYOR, t0 + SECOND).0;
+    assert!(
+        said.contains("its stop (none) was carried out: the lease's action is \"none\""),
+        "{said}"
+    );
 }
 
 #[test]
