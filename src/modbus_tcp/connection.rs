@@ -19,10 +19,11 @@
 //!   not be written for that long (a client that does not read);
 //! - the daemon stops.
 //!
-//! The connection is a session of the control core: every whole request
-//! tells the core it is alive (which renews the leases of a network's
-//! communication-loss function), and its end, once the requests still
-//! queued are cancelled, ends them with their stop.
+//! The connection is a session of the control core: whatever the client
+//! sends tells the core it is alive (which renews the leases of a network's
+//! communication-loss function; requests are read even while the pipeline
+//! is full), and its end, once the requests still queued are cancelled,
+//! ends them with their stop.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -114,7 +115,6 @@ pub async fn serve(
             match mbap::parse(&buf) {
                 Ok(Some((frame, used))) => {
                     buf.advance(used);
-                    session.active();
                     idle.as_mut().reset(Instant::now() + settings.idle_timeout);
                     let reply = match gateway
                         .handle(&client, frame.transaction, frame.unit, frame.pdu)
@@ -180,7 +180,9 @@ pub async fn serve(
                 // After a malformed frame the bytes mean nothing: read only
                 // to notice the client leaving.
                 Ok(_) if malformed => buf.clear(),
-                Ok(_) => {}
+                // The client is alive, even while its requests wait for
+                // room in the pipeline behind a slow bus.
+                Ok(_) => session.active(),
                 Err(e) => break End::Failed(e),
             },
             () = &mut idle, if queue.is_empty() => break End::Idle,
