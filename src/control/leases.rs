@@ -29,7 +29,7 @@ use crate::safety::{self, StopAction, StopOutcome};
 /// Communication-loss leases of one bus that ended.
 #[derive(Default)]
 struct CommLossCount {
-    silent: AtomicU64,
+    timed_out: AtomicU64,
     closed: AtomicU64,
 }
 
@@ -132,7 +132,11 @@ impl Leases {
                         .get(drive)
                         .and_then(|d| self.comm_loss.get(d.bus));
                     if let Some(count) = count {
-                        let counter = if closed { &count.closed } else { &count.silent };
+                        let counter = if closed {
+                            &count.closed
+                        } else {
+                            &count.timed_out
+                        };
                         counter.fetch_add(1, Ordering::Relaxed);
                     }
                 }
@@ -190,7 +194,7 @@ impl Leases {
     pub fn comm_loss_ends(&self, bus: usize) -> (u64, u64) {
         self.comm_loss.get(bus).map_or((0, 0), |c| {
             (
-                c.silent.load(Ordering::Relaxed),
+                c.timed_out.load(Ordering::Relaxed),
                 c.closed.load(Ordering::Relaxed),
             )
         })
