@@ -14,7 +14,9 @@
 //! Phase 2, polled copy on: reads are answered from the latest poll, first
 //! with each client reading every 5 ms (a dashboard), then back to back (the
 //! ceiling, bound by the CPU). Reports reads/s and the staleness the clients
-//! saw. Staleness is measured
+//! saw. Phase 3, communication loss: phase 2's back-to-back reads again, the clients' network under a
+//! communication-loss time (each request renews its connection's leases).
+//! Staleness is measured
 //! physically: every drive turns at a constant speed, and each reply's
 //! position (CYCLE_NUM, ANGLE) is compared with the simulated drive's true
 //! position when the reply arrives; the lag divided by the speed is the age
@@ -301,6 +303,24 @@ fn main() {
     report(
         "polled copy, clients back to back (CPU-bound: the machine's cores are the limit)",
         &flat_out,
+        limit,
+    );
+    // The same with the clients' network under a communication-loss time:
+    // every request renews its connection's leases (the cost of the
+    // function, where requests cost least).
+    let watched = format!(
+        "{polled_copy}\n[[modbus_tcp.clients]]\nnetwork = \"127.0.0.1/32\"\nrole = \"operator\"\ncomm_loss_ms = 1000"
+    );
+    let comm_loss = runtime.block_on(run_phase(
+        "polled copy, back to back, comm_loss_ms",
+        &config(0, &watched),
+        secs,
+        CLIENTS,
+        None,
+    ));
+    report(
+        "polled copy, clients back to back, the clients' network with comm_loss_ms = 1000",
+        &comm_loss,
         limit,
     );
 }

@@ -52,6 +52,7 @@ pub async fn start(
     shutdown: CancellationToken,
 ) -> Result<Faces, String> {
     let control = Control::start(plant.clone(), &config.safety, shutdown.clone());
+    metrics.watch_control(&control);
     let http = crate::api::start(
         config,
         plant.clone(),

@@ -77,8 +77,10 @@ pub enum ServerMessage {
         /// Why.
         reason: String,
     },
-    /// A motor-safety lease ended without renewal (or its WebSocket closed)
-    /// and the stop action was tried.
+    /// A motor-safety lease ended without renewal (or its WebSocket
+    /// closed; or, for a Modbus TCP client's communication-loss lease, no
+    /// request came within the time or its connection closed) and the
+    /// stop action was tried.
     LeaseExpired {
         /// Drive name.
         drive: String,
@@ -90,7 +92,8 @@ pub enum ServerMessage {
         owner: String,
         /// Why it ended.
         reason: String,
-        /// `[safety] on_lease_expiry`: `zero-speed`, `brake` or `none`.
+        /// `[safety] on_lease_expiry` (or the client network's
+        /// `comm_loss_action`): `zero-speed`, `brake` or `none`.
         action: String,
         /// What was sent to the drive, if anything.
         sent: Option<String>,
@@ -114,7 +117,8 @@ pub enum ServerMessage {
         unit: u8,
         /// Who held the lease.
         owner: String,
-        /// `[safety] on_lease_expiry`: `zero-speed` or `brake`.
+        /// `[safety] on_lease_expiry` (or the client network's
+        /// `comm_loss_action`): `zero-speed` or `brake`.
         action: String,
         /// What was sent to the drive at last, if anything.
         sent: Option<String>,

@@ -25,25 +25,36 @@ use crate::drive::{DriveRequest, RangeError, units};
 pub struct LeaseInfo {
     /// The drive it covers.
     pub drive: String,
-    /// Who holds it (token name or client address).
+    /// Who holds it: a token's name, or a Modbus TCP client's face and
+    /// address ("modbus-tcp 10.1.2.3:50412").
     pub owner: String,
     /// Its length: each renewal pushes the deadline this far ahead.
     pub lease_ms: u64,
     /// Time left before the stop action, ms.
     pub expires_in_ms: u64,
+    /// What its end sends: `zero-speed`, `brake`, or `none`.
+    pub action: String,
     /// True when it also ends as soon as its WebSocket closes.
     pub websocket: bool,
+    /// True for a lease of a Modbus TCP client's communication-loss
+    /// function (`comm_loss_ms` of its network): any request on its
+    /// connection renews it; `lease_ms` without one, or the connection
+    /// closing, ends it with `action`.
+    pub comm_loss: bool,
 }
 
 impl LeaseInfo {
     /// The core's view of a lease on drive `drive`.
     pub fn new(drive: &str, view: &LeaseView) -> Self {
+        let session = matches!(view.holder, Holder::Session(_));
         LeaseInfo {
             drive: drive.to_string(),
             owner: view.owner.to_string(),
             lease_ms: millis_u64(view.length),
             expires_in_ms: millis_u64(view.expires_in),
-            websocket: matches!(view.holder, Holder::Session(_)),
+            action: view.action.name().to_string(),
+            websocket: session && !view.comm_loss,
+            comm_loss: view.comm_loss,
         }
     }
 }

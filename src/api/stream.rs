@@ -201,7 +201,7 @@ async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Ve
     let _counted = state.metrics.faces().ws_client();
     // Its leases end when it closes. News of their end comes on an
     // unbounded channel, but only a lease of this client's own adds to it.
-    let (guard, notices_rx) = state.control.open_session("its WebSocket closed");
+    let (guard, notices_rx) = state.control.open_session("its WebSocket closed", None);
     let connection = guard.id();
     let caller = caller.in_session(Face::WebSocket, connection);
     tracing::debug!(who = %caller.who, connection = connection.0, "stream client connected");

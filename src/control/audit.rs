@@ -1,7 +1,10 @@
 //! The write log: every write the core carries out or refuses is logged
 //! with the face, who sent it, what was written and what came of it, under
 //! the target `drivegate::audit` so it can be routed or filtered on its
-//! own. One wording for every face.
+//! own. One wording for every face. The news of leases (their end, with
+//! why and what their stop did) is logged here too.
+
+use super::lease_book::LeaseEvent;
 
 /// Logs one write: `who` is a token name or a client address, `what` the
 /// request in words, `result` the drive's answer or why it failed.
@@ -45,4 +48,71 @@ pub fn released(face: &str, who: &str, drive: &str) {
         drive,
         "lease released: the motor keeps its setpoint without a lease"
     );
+}
+
+/// Logs news of a lease on drive `drive`: its end (why, and what its stop
+/// did), or how a stop that failed at first ended. `who` is its holder.
+pub fn lease(drive: &str, event: &LeaseEvent) {
+    match event {
+        LeaseEvent::Ended { owner, reason, .. } => tracing::info!(
+            target: "drivegate::audit",
+            who = %owner,
+            drive,
+            reason = %reason,
+            "lease ended without a stop"
+        ),
+        LeaseEvent::Expired {
+            owner,
+            reason,
+            action,
+            sent,
+            ok,
+            result,
+            retrying,
+            ..
+        } => {
+            let sent = sent.as_deref().unwrap_or("nothing");
+            if *ok {
+                tracing::warn!(
+                    target: "drivegate::audit",
+                    who = %owner,
+                    drive,
+                    reason = %reason,
+                    action = action.name(),
+                    sent,
+                    result = %result,
+                    "lease ended with its stop"
+                );
+            } else {
+                tracing::warn!(
+                    target: "drivegate::audit",
+                    who = %owner,
+                    drive,
+                    reason = %reason,
+                    action = action.name(),
+                    sent,
+                    error = %result,
+                    retrying,
+                    "lease ended; its stop failed"
+                );
+            }
+        }
+        LeaseEvent::StopSettled {
+            owner,
+            action,
+            stopped,
+            attempts,
+            result,
+            ..
+        } => tracing::warn!(
+            target: "drivegate::audit",
+            who = %owner,
+            drive,
+            action = action.name(),
+            stopped,
+            attempts,
+            result = %result,
+            "stop of an ended lease settled"
+        ),
+    }
 }

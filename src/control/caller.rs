@@ -128,6 +128,17 @@ impl Caller {
         Caller::new(Face::Internal, who, Role::Admin, SourceId::INTERNAL)
     }
 
+    /// Who holds a lease this caller takes, as lease views and the stream
+    /// show it: a token's name, or for a Modbus TCP client its face and
+    /// address ("modbus-tcp 10.1.2.3:50412"), since an address alone does
+    /// not say what it is.
+    pub fn owner(&self) -> Arc<str> {
+        match self.face {
+            Face::ModbusTcp => format!("{} {}", self.face.name(), self.who).into(),
+            Face::Http | Face::WebSocket | Face::Internal => self.who.clone(),
+        }
+    }
+
     /// "scada (Modbus TCP)": who, and how, for messages.
     pub fn describe(&self) -> String {
         format!("{} {}", self.who, self.face.words())

@@ -11,8 +11,12 @@
 //!   that allows for the bus queue, and gets its own deadline once the
 //!   write is settled; a setpoint that surely did not land takes its lease
 //!   back (unless it replaced another, which then still covers the motor);
-//! - a lease not renewed in time, or whose session (WebSocket) closed, ends
-//!   with the stop action, retried with backoff (cut short when the bus or
+//! - a session may have a communication-loss time (a Modbus TCP client's
+//!   network): its setpoints and mode commands then take a lease of that
+//!   length with the network's action, which any request of the session
+//!   renews; silence for that long, or the session closing, ends it;
+//! - a lease not renewed in time, or whose session (WebSocket, Modbus TCP
+//!   connection) closed, ends with the stop action, retried with backoff (cut short when the bus or
 //!   the drive comes back) until the drive confirms it, something newer
 //!   takes over the drive, or the daemon stops;
 //! - a stop due while a newer lease is on the drive waits for it: if that
@@ -75,6 +79,29 @@ impl Holder {
     }
 }
 
+/// A session's communication-loss function: a lease for each of its
+/// setpoints and mode commands, renewed by any request of the session, and
+/// ended by `after` of silence or by the session closing, with `action`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CommLoss {
+    /// Silence that ends its leases.
+    pub after: Duration,
+    /// What their end sends (`None`: nothing; the end is still shown).
+    pub action: StopAction,
+}
+
+/// The lease a write takes: its length, its stop, and whether its
+/// session's silence ends it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Terms {
+    /// Its length.
+    pub length: Duration,
+    /// Its stop, if not the book's.
+    pub action: Option<StopAction>,
+    /// A communication-loss lease: renewed by any request of its session.
+    pub comm_loss: bool,
+}
+
 /// What a lease is asked for with.
 #[derive(Debug, Clone)]
 pub struct LeaseAsk {
@@ -92,6 +119,9 @@ pub struct LeaseAsk {
     /// Its stop, if not the book's (a face's own setting, such as a
     /// communication-loss action).
     pub action: Option<StopAction>,
+    /// A communication-loss lease: any request of its session renews it,
+    /// and its end by time reads as communication lost.
+    pub comm_loss: bool,
 }
 
 /// A lease as faces show it.
@@ -107,6 +137,10 @@ pub struct LeaseView {
     pub length: Duration,
     /// Time left before the stop.
     pub expires_in: Duration,
+    /// What its end sends.
+    pub action: StopAction,
+    /// A communication-loss lease (renewed by any request of its session).
+    pub comm_loss: bool,
 }
 
 /// What [`LeaseBook::grant`] did.
@@ -130,8 +164,12 @@ pub enum WriteKind {
     Brake,
     /// A deactivation.
     Deactivate,
-    /// Anything else that releases a brake (a mode command).
-    ReleasesBrake,
+    /// Anything else that releases a brake (a mode command), with the
+    /// lease granted for it (a communication-loss lease).
+    ReleasesBrake {
+        /// Its lease, if it came with one.
+        lease: Option<Grant>,
+    },
 }
 
 /// A write in progress, as the book tracks it: taken before the write is
@@ -159,6 +197,8 @@ impl Ticket {
 pub enum StopReason {
     /// Nobody renewed it in time.
     NotRenewed,
+    /// Its session sent nothing for this long (communication loss).
+    CommLost(Duration),
     /// Its session closed (the text says how: "its WebSocket closed").
     SessionClosed(&'static str),
     /// A brake was sent but the drive did not confirm it: the brake is
@@ -173,6 +213,10 @@ impl StopReason {
     pub fn text(&self) -> String {
         match self {
             StopReason::NotRenewed => "it was not renewed in time".to_string(),
+            StopReason::CommLost(after) => format!(
+                "communication was lost: no request came on its connection for {} ms",
+                after.as_millis()
+            ),
             StopReason::SessionClosed(how) => (*how).to_string(),
             StopReason::BrakeUnconfirmed(by) => {
                 format!("{by} was sent but not confirmed by the drive")
@@ -298,6 +342,14 @@ pub enum Effect {
     Stop(StopOrder),
     /// Publish this.
     Event(LeaseEvent),
+    /// A communication-loss lease on `drive` ended: by silence (`closed`
+    /// false) or by its session closing. Counted per bus.
+    CommLoss {
+        /// Drive index.
+        drive: usize,
+        /// True when its session closed.
+        closed: bool,
+    },
 }
 
 /// Why there is no lease to renew or release, in words.
@@ -310,6 +362,7 @@ struct Lease {
     holder: Holder,
     mode: Mode,
     action: StopAction,
+    comm_loss: bool,
     length: Duration,
     deadline: Instant,
     /// False until its setpoint was settled: the deadline then still
@@ -400,14 +453,22 @@ struct Slot {
     orphans: Vec<(StopId, u64)>,
 }
 
+/// An open session.
+struct Session {
+    /// How its closing reads ("its WebSocket closed").
+    closing: &'static str,
+    /// Its communication-loss function, if it has one.
+    comm_loss: Option<CommLoss>,
+}
+
 /// Every lease of the plant.
 pub struct LeaseBook {
     action: StopAction,
     retry_first: Duration,
     retry_max: Duration,
     slots: BTreeMap<usize, Slot>,
-    /// Open sessions, with what their closing is called.
-    sessions: BTreeMap<SessionId, &'static str>,
+    /// Open sessions.
+    sessions: BTreeMap<SessionId, Session>,
     next_id: u64,
     shut_down: bool,
 }
@@ -442,30 +503,87 @@ impl LeaseBook {
     }
 
     /// A session opened; `closing` is how its end reads in messages
-    /// ("its WebSocket closed").
-    pub fn session_opened(&mut self, session: SessionId, closing: &'static str) {
-        self.sessions.insert(session, closing);
+    /// ("its WebSocket closed"), `comm_loss` its communication-loss
+    /// function, if it has one.
+    pub fn session_opened(
+        &mut self,
+        session: SessionId,
+        closing: &'static str,
+        comm_loss: Option<CommLoss>,
+    ) {
+        self.sessions
+            .insert(session, Session { closing, comm_loss });
     }
 
     /// A session closed: its leases end now, with their stop.
     pub fn session_closed(&mut self, session: SessionId, now: Instant) -> Vec<Effect> {
-        let closing = self.sessions.remove(&session).unwrap_or(SESSION_CLOSED);
-        let drives: Vec<usize> = self
+        let closing = self
+            .sessions
+            .remove(&session)
+            .map_or(SESSION_CLOSED, |s| s.closing);
+        let drives: Vec<(usize, bool)> = self
             .slots
             .iter()
-            .filter(|(_, s)| {
-                s.lease
-                    .as_ref()
-                    .is_some_and(|l| l.holder == Holder::Session(session))
+            .filter_map(|(d, s)| {
+                let lease = s.lease.as_ref()?;
+                (lease.holder == Holder::Session(session)).then_some((*d, lease.comm_loss))
             })
-            .map(|(d, _)| *d)
             .collect();
         let mut effects = Vec::new();
-        for drive in drives {
+        for (drive, comm_loss) in drives {
+            if comm_loss && !self.shut_down {
+                effects.push(Effect::CommLoss {
+                    drive,
+                    closed: true,
+                });
+            }
             self.end_with_stop(drive, StopReason::SessionClosed(closing), now);
         }
         effects.extend(self.tick(now));
         effects
+    }
+
+    /// Any request came on `session`: its communication-loss leases run
+    /// for their length from `now` (never brought closer while a setpoint
+    /// waits for the bus). Other leases are renewed only when asked.
+    pub fn session_active(&mut self, session: SessionId, now: Instant) {
+        for slot in self.slots.values_mut() {
+            if let Some(lease) = slot.lease.as_mut()
+                && lease.comm_loss
+                && lease.holder == Holder::Session(session)
+            {
+                lease.deadline = if lease.confirmed {
+                    now + lease.length
+                } else {
+                    (now + lease.length).max(lease.deadline)
+                };
+            }
+        }
+    }
+
+    /// The lease a setpoint or mode command of a caller in `session` takes:
+    /// the one it asked for (`asked`, with `action`), else, in a session
+    /// with a communication-loss time, a communication-loss lease; else
+    /// none.
+    pub fn terms(
+        &self,
+        session: Option<SessionId>,
+        asked: Option<Duration>,
+        action: Option<StopAction>,
+    ) -> Option<Terms> {
+        if let Some(length) = asked {
+            return Some(Terms {
+                length,
+                action,
+                comm_loss: false,
+            });
+        }
+        let comm_loss = self.sessions.get(&session?)?.comm_loss?;
+        Some(Terms {
+            length: comm_loss.after,
+            action: Some(comm_loss.action),
+            comm_loss: true,
+        })
     }
 
     /// Puts a lease on `drive` for `ask`, replacing any lease there. Until
@@ -478,6 +596,7 @@ impl LeaseBook {
             holder: ask.holder,
             mode: ask.mode,
             action: ask.action.unwrap_or(self.action),
+            comm_loss: ask.comm_loss,
             length: ask.length,
             deadline: now + ask.length + ask.allowance,
             confirmed: false,
@@ -487,13 +606,18 @@ impl LeaseBook {
         let mut effects = Vec::new();
         let replaced = old.is_some();
         if let Some(old) = old {
-            let reason = format!("replaced by a leased setpoint from {}", ask.owner);
-            effects.push(Effect::Event(LeaseEvent::Ended {
-                drive,
-                owner: old.owner.clone(),
-                holder: old.holder,
-                reason,
-            }));
+            // A communication-loss lease taken again by its own session (a
+            // PLC writing its setpoint each cycle) goes on: no news.
+            let same = old.comm_loss && ask.comm_loss && old.holder == ask.holder;
+            if !same {
+                let reason = format!("replaced by a leased setpoint from {}", ask.owner);
+                effects.push(Effect::Event(LeaseEvent::Ended {
+                    drive,
+                    owner: old.owner.clone(),
+                    holder: old.holder,
+                    reason,
+                }));
+            }
             // A stop still to be done for an older lease goes on: what it
             // stops was never confirmed to have changed.
             if !matches!(
@@ -541,12 +665,17 @@ impl LeaseBook {
         let mut effects = Vec::new();
         match ticket.kind {
             WriteKind::Setpoint { lease } => {
-                self.settle_setpoint(drive, lease, applied, &by, now, &mut effects);
+                self.settle_setpoint(drive, lease, applied, &by, true, now, &mut effects);
                 if applied != Applied::No {
                     self.released(drive, ticket.seen, &by, now);
                 }
             }
-            WriteKind::ReleasesBrake => {
+            WriteKind::ReleasesBrake { lease } => {
+                if lease.is_some() {
+                    // A mode command sets no speed: it never takes over a
+                    // stop still being tried.
+                    self.settle_setpoint(drive, lease, applied, &by, false, now, &mut effects);
+                }
                 if applied != Applied::No {
                     self.released(drive, ticket.seen, &by, now);
                 }
@@ -587,12 +716,16 @@ impl LeaseBook {
         effects
     }
 
+    /// Settles the lease of a setpoint (or mode command) and, when
+    /// `takes_over`, ends a stop still being tried on the drive.
+    #[allow(clippy::too_many_arguments)]
     fn settle_setpoint(
         &mut self,
         drive: usize,
         grant: Option<Grant>,
         applied: Applied,
         by: &Arc<str>,
+        takes_over: bool,
         now: Instant,
         effects: &mut Vec<Effect>,
     ) {
@@ -620,14 +753,18 @@ impl LeaseBook {
             self.slot(drive).lease = None;
             return;
         }
-        let closed = self
-            .slots
-            .get(&drive)
-            .and_then(|s| s.lease.as_ref())
+        let lease = self.slots.get(&drive).and_then(|s| s.lease.as_ref());
+        let closed = lease
             .and_then(|l| l.holder.session())
             .is_some_and(|s| !self.sessions.contains_key(&s));
         if closed {
             // Its session closed while the setpoint was on its way.
+            if lease.is_some_and(|l| l.comm_loss) && !self.shut_down {
+                effects.push(Effect::CommLoss {
+                    drive,
+                    closed: true,
+                });
+            }
             self.end_with_stop(drive, StopReason::SessionClosed(SESSION_CLOSED), now);
             return;
         }
@@ -637,7 +774,7 @@ impl LeaseBook {
         lease.confirmed = true;
         lease.deadline = now + lease.length;
         let owner = lease.owner.clone();
-        if applied == Applied::Yes {
+        if applied == Applied::Yes && takes_over {
             let by: Arc<str> = format!("a leased setpoint from {owner}").into();
             self.supersede(drive, &by, effects);
         }
@@ -971,16 +1108,28 @@ impl LeaseBook {
         if self.shut_down {
             return Vec::new();
         }
-        let expired: Vec<usize> = self
+        let expired: Vec<(usize, Option<Duration>)> = self
             .slots
             .iter()
-            .filter(|(_, s)| s.lease.as_ref().is_some_and(|l| l.deadline <= now))
-            .map(|(d, _)| *d)
+            .filter_map(|(d, s)| {
+                let lease = s.lease.as_ref().filter(|l| l.deadline <= now)?;
+                Some((*d, lease.comm_loss.then_some(lease.length)))
+            })
             .collect();
-        for drive in expired {
-            self.end_with_stop(drive, StopReason::NotRenewed, now);
-        }
         let mut effects = Vec::new();
+        for (drive, comm_loss) in expired {
+            let reason = match comm_loss {
+                Some(after) => {
+                    effects.push(Effect::CommLoss {
+                        drive,
+                        closed: false,
+                    });
+                    StopReason::CommLost(after)
+                }
+                None => StopReason::NotRenewed,
+            };
+            self.end_with_stop(drive, reason, now);
+        }
         for (&drive, slot) in &mut self.slots {
             let held = slot.stopping_writes > 0 || slot.lease.is_some();
             let Some(stop) = slot.stop.as_mut() else {
@@ -1186,7 +1335,8 @@ impl LeaseBook {
                 action: stop_action,
                 end,
             } => {
-                let action = if *stop_action == StopAction::None {
+                // A stop left to the safe stop does not keep its action.
+                let action = if matches!(end, StopEnd::Abandoned) {
                     action
                 } else {
                     stop_action.name()
@@ -1215,6 +1365,8 @@ fn view(lease: &Lease, now: Instant) -> LeaseView {
         holder: lease.holder,
         length: lease.length,
         expires_in: lease.deadline.saturating_duration_since(now),
+        action: lease.action,
+        comm_loss: lease.comm_loss,
     }
 }
 

@@ -8,6 +8,7 @@
 //! in a task of its own, at emergency priority.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Instant, SystemTime};
 
@@ -18,12 +19,19 @@ use tokio_util::task::TaskTracker;
 use super::audit;
 use super::caller::{Face, SessionId};
 use super::events::{ControlEvent, Events, WriteEvent};
-use super::lease_book::{Effect, LeaseBook, LeaseEvent, StopOrder, StopReport};
+use super::lease_book::{CommLoss, Effect, LeaseBook, LeaseEvent, StopOrder, StopReport};
 use super::written::describe;
 use crate::bus::{BusError, BusEvent, Origin};
 use crate::drive::DriveRequest;
 use crate::plant::Plant;
 use crate::safety::{self, StopAction, StopOutcome};
+
+/// Communication-loss leases of one bus that ended.
+#[derive(Default)]
+struct CommLossCount {
+    timed_out: AtomicU64,
+    closed: AtomicU64,
+}
 
 /// The lease book with its driver.
 pub struct Leases {
@@ -33,6 +41,8 @@ pub struct Leases {
     events: Arc<Events>,
     /// Open sessions, with the way to tell them of their leases' ends.
     sessions: Mutex<HashMap<SessionId, mpsc::UnboundedSender<Arc<ControlEvent>>>>,
+    /// Communication-loss lease ends per bus: by silence, by a close.
+    comm_loss: Vec<CommLossCount>,
     shutdown: CancellationToken,
     tasks: TaskTracker,
 }
@@ -53,6 +63,11 @@ impl Leases {
             wake: Notify::new(),
             events,
             sessions: Mutex::new(HashMap::new()),
+            comm_loss: plant
+                .buses()
+                .iter()
+                .map(|_| CommLossCount::default())
+                .collect(),
             shutdown,
             tasks: TaskTracker::new(),
         });
@@ -110,6 +125,21 @@ impl Leases {
                     self.tasks.spawn(async move { leases.stop(order).await });
                 }
                 Effect::Event(event) => self.announce(event),
+                Effect::CommLoss { drive, closed } => {
+                    let count = self
+                        .plant
+                        .drives()
+                        .get(drive)
+                        .and_then(|d| self.comm_loss.get(d.bus));
+                    if let Some(count) = count {
+                        let counter = if closed {
+                            &count.closed
+                        } else {
+                            &count.timed_out
+                        };
+                        counter.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
             }
         }
     }
@@ -117,6 +147,9 @@ impl Leases {
     /// Publishes lease news, and sends it directly to the session that
     /// held the lease, if it is still open (which then skips the copy).
     fn announce(&self, event: LeaseEvent) {
+        if let Some(drive) = self.plant.drives().get(event.drive()) {
+            audit::lease(&drive.name, &event);
+        }
         let session = event.holder().session();
         let event = Arc::new(ControlEvent::Lease(event));
         let delivered_to = session.filter(|s| {
@@ -131,10 +164,11 @@ impl Leases {
 
     /// Opens a session: leases may be tied to it, and news of their end
     /// comes out of the receiver. `closing` is how its end reads ("its
-    /// WebSocket closed").
+    /// WebSocket closed"); `comm_loss`, its communication-loss function.
     pub fn open_session(
         self: &Arc<Self>,
         closing: &'static str,
+        comm_loss: Option<CommLoss>,
     ) -> (SessionId, mpsc::UnboundedReceiver<Arc<ControlEvent>>) {
         let id = SessionId::new_unique();
         let (tx, rx) = mpsc::unbounded_channel();
@@ -143,10 +177,27 @@ impl Leases {
             .unwrap_or_else(|p| p.into_inner())
             .insert(id, tx);
         self.with(|book, _| {
-            book.session_opened(id, closing);
+            book.session_opened(id, closing, comm_loss);
             ((), Vec::new())
         });
         (id, rx)
+    }
+
+    /// A request came on session `id`: its communication-loss leases run
+    /// on. Deadlines only move later, so the driver need not wake.
+    pub fn session_active(&self, id: SessionId) {
+        self.lock().session_active(id, Instant::now());
+    }
+
+    /// Communication-loss leases of bus `bus` that ended since start-up:
+    /// by silence, and by their session closing.
+    pub fn comm_loss_ends(&self, bus: usize) -> (u64, u64) {
+        self.comm_loss.get(bus).map_or((0, 0), |c| {
+            (
+                c.timed_out.load(Ordering::Relaxed),
+                c.closed.load(Ordering::Relaxed),
+            )
+        })
     }
 
     /// A session closed: its leases end now, with their stop.
@@ -298,7 +349,7 @@ fn report(
         },
         Ok(_) => StopReport {
             sent: None,
-            result: Ok("on_lease_expiry = \"none\": nothing sent".to_string()),
+            result: Ok("the lease's action is \"none\": nothing sent".to_string()),
             released_brake: false,
         },
         Err(e) => {

@@ -38,7 +38,7 @@ use tokio_util::sync::CancellationToken;
 
 pub use caller::{Caller, Face, SessionId};
 pub use events::{ControlEvent, Published, WriteEvent};
-pub use lease_book::{LeaseEvent, LeaseView, NoLease};
+pub use lease_book::{CommLoss, LeaseEvent, LeaseView, NoLease};
 pub use outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult};
 pub use policy::{Operation, Role};
 pub use request::{ControlRequest, Write};
@@ -193,20 +193,32 @@ impl Control {
     }
 
     /// Opens a session whose leases end when it closes (`closing` is how
-    /// that reads: "its WebSocket closed"). News of the end of its leases
-    /// comes out of the receiver, never skipped.
+    /// that reads: "its WebSocket closed"). With `comm_loss`, its setpoints
+    /// and mode commands each take a lease that any request of the session
+    /// renews ([`SessionGuard::active`]) and silence ends: the
+    /// communication-loss function of a Modbus TCP client's network. News
+    /// of the end of its leases comes out of the receiver, never skipped.
     pub fn open_session(
         &self,
         closing: &'static str,
+        comm_loss: Option<CommLoss>,
     ) -> (SessionGuard, mpsc::UnboundedReceiver<Arc<ControlEvent>>) {
-        let (id, rx) = self.0.leases.open_session(closing);
+        let (id, rx) = self.0.leases.open_session(closing, comm_loss);
         (
             SessionGuard {
                 id,
+                watched: comm_loss.is_some(),
                 leases: self.0.leases.clone(),
             },
             rx,
         )
+    }
+
+    /// Communication-loss leases of bus `bus` that ended since start-up:
+    /// by silence (no request within the time), and by their connection
+    /// closing. Each was followed by its action.
+    pub fn comm_loss_ends(&self, bus: usize) -> (u64, u64) {
+        self.0.leases.comm_loss_ends(bus)
     }
 
     /// Waits for the lease driver and its stops to finish (after shutdown).
@@ -249,6 +261,8 @@ fn named(drive: &str, e: NoLease) -> NoLease {
 /// An open session: dropping it ends its leases, with their stop.
 pub struct SessionGuard {
     id: SessionId,
+    /// It has a communication-loss function.
+    watched: bool,
     leases: Arc<Leases>,
 }
 
@@ -256,6 +270,14 @@ impl SessionGuard {
     /// The session's id, for [`Caller::in_session`].
     pub fn id(&self) -> SessionId {
         self.id
+    }
+
+    /// A request came on the session: its communication-loss leases run
+    /// for their time from now. Costs nothing without communication loss.
+    pub fn active(&self) {
+        if self.watched {
+            self.leases.session_active(self.id);
+        }
     }
 }
 

@@ -163,6 +163,8 @@ pub struct Meaning {
     pub setpoint: Option<Mode>,
     /// Set when it stops the motor itself.
     pub stops: Option<Stopper>,
+    /// The mode a mode command puts the drive in.
+    pub mode: Option<Mode>,
     /// True when it releases a brake (setpoints, mode commands).
     pub releases_brake: bool,
     /// True when it goes ahead of everything on the bus (the brake).
@@ -178,6 +180,7 @@ impl Meaning {
             still: None,
             setpoint: None,
             stops: None,
+            mode: None,
             releases_brake: false,
             emergency: false,
             address: false,
@@ -190,6 +193,7 @@ impl Meaning {
         self.still = self.still.or(other.still);
         self.setpoint = self.setpoint.or(other.setpoint);
         self.stops = self.stops.or(other.stops);
+        self.mode = self.mode.or(other.mode);
         self.releases_brake |= other.releases_brake;
         self.emergency |= other.emergency;
         self.address |= other.address;
@@ -210,7 +214,16 @@ fn command(command: ConfigCommand) -> Meaning {
             m.still = Some(StillReason::Calibration);
         }
         ConfigCommand::FactoryReset => m.still = Some(StillReason::FactoryReset),
-        ConfigCommand::SpeedMode | ConfigCommand::PositionMode | ConfigCommand::TorqueMode => {
+        ConfigCommand::SpeedMode => {
+            m.mode = Some(Mode::Speed);
+            m.releases_brake = true;
+        }
+        ConfigCommand::PositionMode => {
+            m.mode = Some(Mode::Position);
+            m.releases_brake = true;
+        }
+        ConfigCommand::TorqueMode => {
+            m.mode = Some(Mode::Torque);
             m.releases_brake = true;
         }
         ConfigCommand::Activate
@@ -334,9 +347,18 @@ mod tests {
         let m = of_request(&DriveRequest::Torque { counts: 128 });
         assert_eq!((m.setpoint, m.releases_brake), (Some(Mode::Torque), true));
         let m = of_request(&DriveRequest::Config(ConfigCommand::SpeedMode));
-        assert_eq!((m.setpoint, m.releases_brake), (None, true));
+        assert_eq!(
+            (m.setpoint, m.mode, m.releases_brake),
+            (None, Some(Mode::Speed), true)
+        );
+        for (c, mode) in [
+            (ConfigCommand::PositionMode, Mode::Position),
+            (ConfigCommand::TorqueMode, Mode::Torque),
+        ] {
+            assert_eq!(of_request(&DriveRequest::Config(c)).mode, Some(mode));
+        }
         let m = of_request(&DriveRequest::Config(ConfigCommand::FaultReset));
-        assert!(!m.releases_brake);
+        assert!(!m.releases_brake && m.mode.is_none());
     }
 
     #[test]

@@ -275,44 +275,83 @@ impl Control {
             (Some(Stopper::Brake), _) => Some(WriteKind::Brake),
             (Some(Stopper::Deactivate), _) => Some(WriteKind::Deactivate),
             (None, Some(_)) => Some(WriteKind::Setpoint { lease: None }),
-            (None, None) if meaning.releases_brake => Some(WriteKind::ReleasesBrake),
+            (None, None) if meaning.releases_brake => {
+                Some(WriteKind::ReleasesBrake { lease: None })
+            }
             (None, None) => None,
         };
         let Some(kind) = kind else {
             return Vec::new();
         };
-        let by: std::sync::Arc<str> = match meaning.stops {
-            Some(stopper) => format!("{} from {}", stopper.name(), caller.describe()),
-            None if meaning.setpoint.is_some() && request.lease.is_none() => {
-                format!("a setpoint without a lease from {}", caller.describe())
-            }
-            None => format!("a write from {}", caller.describe()),
-        }
-        .into();
         let allowance = self.allowance(target.bus);
+        // A broadcast setpoint moves only the drives that are active: the
+        // others refuse it, and would refuse the stop of a lease too.
+        // Read before the book is locked: the poll cache has its own lock.
+        let active: Vec<usize> = drives
+            .iter()
+            .copied()
+            .filter(|_| target.unit == 0)
+            .filter(|&drive| {
+                self.plant()
+                    .drives()
+                    .get(drive)
+                    .and_then(|d| self.plant().buses().get(d.bus)?.handle.drive(d.unit))
+                    .and_then(|s| s.status)
+                    .is_some_and(|s| s.active())
+            })
+            .collect();
         let leases = self.leases();
         leases.with(|book, now| {
+            // The lease asked for (a setpoint's over HTTP or the stream),
+            // else the session's communication-loss lease, if it has one.
+            let terms = book.terms(caller.session, request.lease, request.lease_action);
+            let by: std::sync::Arc<str> = match meaning.stops {
+                Some(stopper) => format!("{} from {}", stopper.name(), caller.describe()),
+                None if meaning.setpoint.is_some() && terms.is_none() => {
+                    format!("a setpoint without a lease from {}", caller.describe())
+                }
+                None => format!("a write from {}", caller.describe()),
+            }
+            .into();
             let mut effects = Vec::new();
             let tickets = drives
                 .iter()
                 .map(|&drive| {
-                    let kind = match (kind, meaning.setpoint, request.lease) {
-                        (WriteKind::Setpoint { .. }, Some(mode), Some(length))
-                            if target.unit != 0 =>
+                    // What the lease covers: a setpoint, or a mode command
+                    // under communication loss; a broadcast takes one per
+                    // active drive, only for communication loss.
+                    let mode = match kind {
+                        WriteKind::Setpoint { .. } => meaning.setpoint,
+                        WriteKind::ReleasesBrake { .. } if terms.is_some_and(|t| t.comm_loss) => {
+                            meaning.mode
+                        }
+                        _ => None,
+                    };
+                    let grant = match (mode, terms) {
+                        (Some(mode), Some(terms))
+                            if target.unit != 0 || (terms.comm_loss && active.contains(&drive)) =>
                         {
                             let ask = LeaseAsk {
-                                owner: caller.who.clone(),
+                                owner: caller.owner(),
                                 holder: caller.session.map_or(Holder::Request, Holder::Session),
                                 mode,
-                                length,
+                                length: terms.length,
                                 allowance,
-                                action: request.lease_action,
+                                action: terms.action,
+                                comm_loss: terms.comm_loss,
                             };
                             let (grant, e): (Grant, _) = book.grant(drive, ask, now);
                             effects.extend(e);
-                            WriteKind::Setpoint { lease: Some(grant) }
+                            Some(grant)
                         }
-                        (kind, _, _) => kind,
+                        _ => None,
+                    };
+                    let kind = match kind {
+                        WriteKind::Setpoint { .. } => WriteKind::Setpoint { lease: grant },
+                        WriteKind::ReleasesBrake { .. } => {
+                            WriteKind::ReleasesBrake { lease: grant }
+                        }
+                        other => other,
                     };
                     book.begin_write(drive, kind, by.clone())
                 })

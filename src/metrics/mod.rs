@@ -6,6 +6,7 @@
 //!   state (and the simulator's wire counters) at scrape time,
 //! - `wire`: per-attempt wire errors per bus and unit, the bus monitor's
 //!   and the scope's figures,
+//! - `control`: the control core's counters (communication-loss lease ends),
 //! - `utilisation`: the sampler behind `drivegate_bus_utilisation_ratio`,
 //! - `process`: build information and the process's own resources,
 //! - `family`: the plumbing that turns those values into families.
@@ -14,6 +15,7 @@
 //! so a scrape never puts a frame on the wire nor waits for one.
 
 mod buses;
+mod control;
 mod drives;
 mod faces;
 mod family;
@@ -68,6 +70,17 @@ impl Metrics {
             runtime.spawn(sample_utilisation(Arc::downgrade(&metrics)));
         }
         metrics
+    }
+
+    /// Exports the counters of `control`, the core every face writes
+    /// through (started after the metrics, with the faces).
+    pub fn watch_control(&self, control: &crate::control::Control) {
+        if let Err(e) = self
+            .registry
+            .register(Box::new(control::ControlCollector::new(control.clone())))
+        {
+            tracing::warn!("the control core's metrics are not exported: {e}");
+        }
     }
 
     /// The faces' counters, for the HTTP and Modbus TCP code to update.

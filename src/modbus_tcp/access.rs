@@ -12,7 +12,7 @@ use std::net::IpAddr;
 use ipnet::IpNet;
 
 use super::config::ModbusTcpConfig;
-use crate::control::Role;
+use crate::control::{CommLoss, Role};
 
 /// What a client of one network may do.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -21,6 +21,8 @@ pub struct Rights {
     pub role: Role,
     /// Writes that need standstill are sent even while the motor turns.
     pub allow_saves_while_moving: bool,
+    /// Its communication-loss function, if it has one.
+    pub comm_loss: Option<CommLoss>,
 }
 
 /// The allowed client networks of a listener, with their rights.
@@ -46,6 +48,7 @@ impl Access {
                 Role::Admin
             },
             allow_saves_while_moving: false,
+            comm_loss: None,
         };
         let mut networks: Vec<(IpNet, Rights)> = config
             .allowed_networks
@@ -63,6 +66,7 @@ impl Access {
                 Rights {
                     role,
                     allow_saves_while_moving: c.allow_saves_while_moving,
+                    comm_loss: c.comm_loss(),
                 },
             )
         }));
@@ -72,7 +76,8 @@ impl Access {
     /// The rights of a client at `ip`, `None` if it may not connect. An
     /// IPv4 client reaching an IPv6 socket appears as `::ffff:a.b.c.d` and
     /// is checked as IPv4. Of the networks it is in, the most specific
-    /// decides; between equally specific ones, the lesser rights.
+    /// decides; between equally specific ones, the lesser rights, and the
+    /// one with a communication-loss function.
     pub fn rights(&self, ip: IpAddr) -> Option<Rights> {
         let ip = ip.to_canonical();
         self.networks
@@ -86,6 +91,7 @@ impl Access {
                         rb.allow_saves_while_moving
                             .cmp(&ra.allow_saves_while_moving),
                     )
+                    .then(has_comm_loss(ra).cmp(&has_comm_loss(rb)))
             })
             .map(|(_, r)| *r)
     }
@@ -94,6 +100,10 @@ impl Access {
     pub fn allows(&self, ip: IpAddr) -> bool {
         self.rights(ip).is_some()
     }
+}
+
+fn has_comm_loss(rights: &Rights) -> bool {
+    rights.comm_loss.is_some()
 }
 
 #[cfg(test)]
@@ -109,6 +119,7 @@ mod tests {
         Rights {
             role: Role::Admin,
             allow_saves_while_moving: false,
+            comm_loss: None,
         }
     }
 
@@ -214,6 +225,7 @@ role = "viewer"
         let viewer = Rights {
             role: Role::Viewer,
             allow_saves_while_moving: false,
+            comm_loss: None,
         };
         let net: IpNet = "10.0.0.0/8".parse().unwrap();
         let access = Access::new(vec![(net, admin()), (net, viewer)]);

@@ -13,7 +13,8 @@ use serde::Deserialize;
 use serde::de::{self, Deserializer, Visitor};
 use toml::Spanned;
 
-use crate::control::Role;
+use crate::control::{CommLoss, Role};
+use crate::safety::StopAction;
 
 /// The Modbus TCP listener.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
@@ -55,8 +56,8 @@ pub struct ModbusTcpConfig {
     pub polled_copy: Vec<PolledCopy>,
 }
 
-/// A client network and what its clients may do. A place for the
-/// network's further settings (a communication-loss time and action).
+/// A client network and what its clients may do, with its
+/// communication-loss function.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ClientNetwork {
@@ -71,12 +72,52 @@ pub struct ClientNetwork {
     /// even while the motor turns (refused with exception 0x06 otherwise).
     #[serde(default)]
     pub allow_saves_while_moving: bool,
+    /// The communication-loss time, ms: a setpoint or mode command from a
+    /// client of this network takes a lease on the drive, held by its
+    /// connection; any request on the connection renews it; no request for
+    /// this long, or the connection closing, ends it with
+    /// `comm_loss_action`. Absent: off (no lease, as without the entry).
+    #[serde(default, deserialize_with = "comm_loss_ms")]
+    pub comm_loss_ms: Option<u64>,
+    /// What the end of such a lease sends: `zero-speed` (the default),
+    /// `brake`, or `none` (the lease is shown and its end audited and
+    /// counted, but nothing is written to the drive).
+    #[serde(default)]
+    pub comm_loss_action: Option<Spanned<StopAction>>,
 }
+
+/// Shortest communication-loss time: below it, a PLC's ordinary jitter
+/// would stop the motor.
+pub const COMM_LOSS_MIN_MS: u64 = 20;
+/// Longest communication-loss time.
+pub const COMM_LOSS_MAX_MS: u64 = 60_000;
 
 impl ClientNetwork {
     /// The role of its clients.
     pub fn role(&self) -> Role {
         *self.role.get_ref()
+    }
+
+    /// Its communication-loss function, if it has a time.
+    pub fn comm_loss(&self) -> Option<CommLoss> {
+        Some(CommLoss {
+            after: Duration::from_millis(self.comm_loss_ms?),
+            action: self
+                .comm_loss_action
+                .as_ref()
+                .map_or(StopAction::ZeroSpeed, |a| *a.get_ref()),
+        })
+    }
+}
+
+/// `comm_loss_ms`, refused outside its bounds with the key and the range.
+fn comm_loss_ms<'de, D: Deserializer<'de>>(d: D) -> Result<Option<u64>, D::Error> {
+    let v = i64::deserialize(d)?;
+    match u64::try_from(v) {
+        Ok(ms) if (COMM_LOSS_MIN_MS..=COMM_LOSS_MAX_MS).contains(&ms) => Ok(Some(ms)),
+        _ => Err(de::Error::custom(format!(
+            "comm_loss_ms = {v} is out of range: valid {COMM_LOSS_MIN_MS} to {COMM_LOSS_MAX_MS} ms"
+        ))),
     }
 }
 
@@ -353,6 +394,17 @@ impl ModbusTcpConfig {
                 ));
             }
         }
+        if let Some((client, action)) = self.clients.iter().find_map(|c| {
+            Some((c, c.comm_loss_action.as_ref()?)).filter(|_| c.comm_loss_ms.is_none())
+        }) {
+            return Err((
+                action.span(),
+                format!(
+                    "[modbus_tcp] the clients entry for {} has comm_loss_action but no comm_loss_ms: give the time ({COMM_LOSS_MIN_MS} to {COMM_LOSS_MAX_MS} ms) after which a silent client's motors get the action, or remove comm_loss_action",
+                    client.network
+                ),
+            ));
+        }
         if self.read_only
             && let Some(client) = self.clients.iter().find(|c| c.role() > Role::Viewer)
         {
@@ -427,6 +479,11 @@ name = "b1"
             .replace(
                 "# bus = \"line1\"\n# max_age_ms",
                 "bus = \"line1\"\nmax_age_ms",
+            )
+            .replace("# comm_loss_ms = 500", "comm_loss_ms = 500")
+            .replace(
+                "# comm_loss_action = \"zero-speed\"",
+                "comm_loss_action = \"zero-speed\"",
             );
         let c = Config::parse(&text, "drivegate.toml").unwrap();
         let tcp = &c.modbus_tcp;
@@ -434,6 +491,13 @@ name = "b1"
         assert_eq!(tcp.unit_map[1].bus_unit(101), Some(1));
         assert_eq!(tcp.polled_copy[0].max_age(), Duration::from_millis(250));
         assert_eq!(tcp.clients[0].role(), Role::Operator);
+        assert_eq!(
+            tcp.clients[0].comm_loss(),
+            Some(CommLoss {
+                after: Duration::from_millis(500),
+                action: StopAction::ZeroSpeed
+            })
+        );
         assert_eq!(tcp.clients[1].role(), Role::Viewer);
         let mut defaults = tcp.clone();
         defaults.unit_map.clear();
@@ -528,6 +592,65 @@ bus_units = "40"
         );
         parse("read_only = true\n[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"viewer\"")
             .unwrap();
+    }
+
+    #[test]
+    fn client_networks_may_have_a_comm_loss_time_and_action() {
+        let c = parse(
+            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 500\n[[modbus_tcp.clients]]\nnetwork = \"10.2.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 20\ncomm_loss_action = \"brake\"\n[[modbus_tcp.clients]]\nnetwork = \"10.3.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 60000\ncomm_loss_action = \"none\"\n[[modbus_tcp.clients]]\nnetwork = \"10.4.0.0/16\"\nrole = \"operator\"",
+        )
+        .unwrap();
+        let loss: Vec<Option<CommLoss>> =
+            c.modbus_tcp.clients.iter().map(|c| c.comm_loss()).collect();
+        let ms = Duration::from_millis;
+        assert_eq!(
+            loss,
+            [
+                Some(CommLoss {
+                    after: ms(500),
+                    action: StopAction::ZeroSpeed
+                }),
+                Some(CommLoss {
+                    after: ms(20),
+                    action: StopAction::Brake
+                }),
+                Some(CommLoss {
+                    after: ms(60_000),
+                    action: StopAction::None
+                }),
+                None,
+            ],
+            "zero-speed by default; off without a time"
+        );
+        for bad in ["19", "60001", "0", "-5"] {
+            let e = parse(&format!(
+                "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = {bad}"
+            ))
+            .unwrap_err();
+            assert!(
+                e.contains("t.toml:5:16")
+                    && e.contains(&format!(
+                        "comm_loss_ms = {bad} is out of range: valid 20 to 60000 ms"
+                    )),
+                "{e}"
+            );
+        }
+        let e = parse(
+            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_action = \"stop\"",
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("t.toml:5:20") && e.contains("unknown variant `stop`"),
+            "{e}"
+        );
+        let e = parse(
+            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_action = \"brake\"",
+        )
+        .unwrap_err();
+        assert!(
+            e.starts_with("t.toml:5:20:") && e.contains("has comm_loss_action but no comm_loss_ms"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -18,6 +18,12 @@
 //!   client that sends half a frame and stalls is idle too), or a reply could
 //!   not be written for that long (a client that does not read);
 //! - the daemon stops.
+//!
+//! The connection is a session of the control core: whatever the client
+//! sends tells the core it is alive (which renews the leases of a network's
+//! communication-loss function; requests are read even while the pipeline
+//! is full), and its end, once the requests still queued are cancelled,
+//! ends them with their stop.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -32,6 +38,7 @@ use tracing::{debug, warn};
 
 use super::gateway::{Answer, Client, Gateway, Pending};
 use super::mbap::{self, MAX_FRAME};
+use crate::control::SessionGuard;
 
 /// Bytes of unparsed requests a connection may buffer (about 250 frames)
 /// beyond the ones queued on the bus.
@@ -88,6 +95,7 @@ enum End {
 pub async fn serve(
     stream: TcpStream,
     client: Client,
+    session: SessionGuard,
     gateway: Arc<Gateway>,
     settings: ConnectionSettings,
     shutdown: CancellationToken,
@@ -172,7 +180,9 @@ pub async fn serve(
                 // After a malformed frame the bytes mean nothing: read only
                 // to notice the client leaving.
                 Ok(_) if malformed => buf.clear(),
-                Ok(_) => {}
+                // The client is alive, even while its requests wait for
+                // room in the pipeline behind a slow bus.
+                Ok(_) => session.active(),
                 Err(e) => break End::Failed(e),
             },
             () = &mut idle, if queue.is_empty() => break End::Idle,
@@ -185,6 +195,9 @@ pub async fn serve(
             Reply::Ready(_) => {}
         }
     }
+    // Only once none of its queued writes can reach the bus: a setpoint
+    // landing after the stop would set the motor going again.
+    drop(session);
     let _ = wr.shutdown().await;
     if matches!(
         end,

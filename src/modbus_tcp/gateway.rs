@@ -29,7 +29,7 @@ use super::routing::{BusUnits, UnitRoutes};
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
 use crate::bus::{BusError, Origin, Priority, SourceId};
-use crate::control::{self, Caller, Control, ControlRequest, Face, Write};
+use crate::control::{self, Caller, Control, ControlRequest, Face, SessionId, Write};
 use crate::metrics::Metrics;
 use crate::modbus::ExceptionCode;
 use crate::plant::Plant;
@@ -49,8 +49,9 @@ pub struct Client {
 }
 
 impl Client {
-    /// A new client at `peer` with `rights`, with a source id of its own.
-    pub fn new(peer: SocketAddr, rights: Rights) -> Self {
+    /// A new client at `peer` with `rights` in `session` (its connection),
+    /// with a source id of its own.
+    pub fn new(peer: SocketAddr, rights: Rights, session: SessionId) -> Self {
         Self {
             peer,
             caller: Caller::new(
@@ -59,6 +60,7 @@ impl Client {
                 rights.role,
                 SourceId::new_unique(),
             )
+            .in_session(Face::ModbusTcp, session)
             .with_origin(Origin::modbus_tcp(peer, 0)),
             allow_saves_while_moving: rights.allow_saves_while_moving,
         }
@@ -131,6 +133,11 @@ impl Gateway {
     /// The metrics this gateway counts into.
     pub fn metrics(&self) -> &Arc<Metrics> {
         &self.metrics
+    }
+
+    /// The control core its writes go through.
+    pub fn control(&self) -> &Control {
+        &self.control
     }
 
     /// Decides what to do with `pdu` sent by `client` to `unit` in MBAP

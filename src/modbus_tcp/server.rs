@@ -80,14 +80,14 @@ pub async fn run(
             let _slot = permit;
             let _open = metrics.faces().tcp_connection();
             debug!(client = %peer, role = rights.role.name(), "Modbus TCP client connected");
-            connection::serve(
-                stream,
-                Client::new(peer, rights),
-                gateway,
-                connection,
-                shutdown,
-            )
-            .await;
+            // The connection is a session of the core: the leases of its
+            // communication-loss function are held by it (news of their end
+            // has nowhere to go on Modbus TCP: it is on the stream).
+            let (session, _news) = gateway
+                .control()
+                .open_session("its Modbus TCP connection closed", rights.comm_loss);
+            let client = Client::new(peer, rights, session.id());
+            connection::serve(stream, client, session, gateway, connection, shutdown).await;
         });
     }
     drop(listener);

@@ -718,7 +718,7 @@ async fn a_setpoint_confirmed_after_its_lease_ended_is_stopped_again() {
         // A lease over a session, whose setpoint waits behind a request
         // holding the wire when the session closes: the stop (the brake)
         // is queued at emergency priority and goes first.
-        let (session, _notices) = control.open_session("its WebSocket closed");
+        let (session, _notices) = control.open_session("its WebSocket closed", None);
         let caller = Caller::new(
             Face::WebSocket,
             "a stream client",

@@ -14,4 +14,5 @@ mod support;
 mod api;
 mod assets;
 mod browser;
+mod comm_loss;
 mod harness;

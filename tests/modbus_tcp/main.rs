@@ -13,4 +13,5 @@ mod support;
 mod audit;
 mod buses;
 mod clients;
+mod comm_loss;
 mod connections;

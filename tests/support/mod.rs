@@ -11,6 +11,7 @@ pub mod faults;
 pub mod input;
 pub mod logs;
 pub mod modbus_tcp;
+pub mod proxy;
 pub mod pty;
 pub mod tools;
 pub mod vectors;

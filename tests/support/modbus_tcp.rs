@@ -205,6 +205,89 @@ pub(crate) async fn pymodbus(addr: SocketAddr, args: &[&str]) -> serde_json::Val
     })
 }
 
+/// A PLC: the pymodbus client of `tests/python/plc_client.py` in a process
+/// of its own, told what to do line by line (write, poll in the
+/// background, fall silent, close).
+pub(crate) struct Plc {
+    child: tokio::process::Child,
+    stdin: tokio::process::ChildStdin,
+    lines: tokio::io::Lines<tokio::io::BufReader<tokio::process::ChildStdout>>,
+}
+
+impl Plc {
+    /// Starts the client and connects it to `addr`. Fails the test, saying
+    /// what to install, when python3 or pymodbus is missing.
+    pub(crate) async fn connect(addr: SocketAddr) -> Plc {
+        use tokio::io::AsyncBufReadExt;
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/plc_client.py");
+        let mut child = tokio::process::Command::new("python3")
+            .arg(script)
+            .arg(addr.ip().to_string())
+            .arg(addr.port().to_string())
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .kill_on_drop(true)
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!(
+                    "cannot run python3 ({e}): {}",
+                    crate::support::tools::how_to_get("pymodbus")
+                )
+            });
+        let stdin = child.stdin.take().expect("stdin");
+        let stdout = child.stdout.take().expect("stdout");
+        let mut plc = Plc {
+            child,
+            stdin,
+            lines: tokio::io::BufReader::new(stdout).lines(),
+        };
+        let hello = plc.answer().await;
+        assert_eq!(hello["connected"], true, "{hello}");
+        plc
+    }
+
+    async fn answer(&mut self) -> serde_json::Value {
+        let line = tokio::time::timeout(STEP, self.lines.next_line())
+            .await
+            .expect("the PLC client answers in time")
+            .expect("the PLC client's output");
+        let Some(line) = line else {
+            let status = self.child.try_wait().ok().flatten();
+            assert_ne!(
+                status.and_then(|s| s.code()),
+                Some(3),
+                "pymodbus is missing: {}",
+                crate::support::tools::how_to_get("pymodbus")
+            );
+            panic!("the PLC client ended ({status:?})");
+        };
+        serde_json::from_str(&line).unwrap_or_else(|e| panic!("not JSON ({e}): {line:?}"))
+    }
+
+    /// Sends one command line; its JSON answer.
+    pub(crate) async fn tell(&mut self, command: &str) -> serde_json::Value {
+        self.stdin
+            .write_all(format!("{command}\n").as_bytes())
+            .await
+            .expect("the PLC client reads its commands");
+        self.answer().await
+    }
+
+    /// Writes `value` to `address` of `unit`, expecting the echo.
+    pub(crate) async fn write(&mut self, unit: u8, address: u16, value: u16) {
+        let answer = self.tell(&format!("write {unit} {address} {value}")).await;
+        assert_eq!(
+            answer["written"], true,
+            "write {address:#06x} = {value}: {answer}"
+        );
+    }
+
+    /// Kills the process (SIGKILL) and waits for it.
+    pub(crate) async fn kill(mut self) {
+        self.child.kill().await.expect("the PLC client killed");
+    }
+}
+
 /// Runs mbpoll with `options` against `addr` (writing `values` if any); its
 /// exit success and stdout+stderr. Fails the test, saying what to install,
 /// when mbpoll is missing.

@@ -113,6 +113,10 @@ export class Store {
           text: `lease of ${m.owner} ended (${m.reason}); ${m.action}: ${m.result}${m.retrying ? ' — retrying until the drive confirms' : ''}` });
         this.clearLease(m.drive);
         break;
+      case 'lease-ended':
+        this.log({ kind: 'lease', severity: 'info', drive: m.drive, who: m.owner,
+          text: `lease of ${m.owner} ended without a stop (${m.reason})` });
+        break;
       case 'lease-stop':
         this.log({ kind: 'lease', severity: m.stopped ? 'info' : 'warn', drive: m.drive, who: m.owner,
           text: `stop after the lease of ${m.owner}: ${m.result} (${m.attempts} tries)` });
