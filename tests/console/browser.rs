@@ -19,11 +19,11 @@ use crate::support::TestDaemon;
 const LEASE: Duration = Duration::from_millis(300);
 /// Room for a loaded machine's scheduling beside the lease itself.
 const SLACK: Duration = Duration::from_millis(1500);
-const LONG: Duration = Duration::from_secs(30);
+pub(crate) const LONG: Duration = Duration::from_secs(30);
 
 /// Opens the console at `base` + `#hash`, enters `token` in the token
 /// dialog if asked, and waits until the page is live with every drive.
-async fn open(browser: &Browser, base: &str, hash: &str, token: Option<&str>) -> Page {
+pub(crate) async fn open(browser: &Browser, base: &str, hash: &str, token: Option<&str>) -> Page {
     let page = browser.new_page(1280, 900).await;
     page.goto(&format!("{base}/#{hash}")).await;
     if let Some(t) = token {
@@ -47,7 +47,7 @@ async fn open(browser: &Browser, base: &str, hash: &str, token: Option<&str>) ->
 }
 
 /// No errors, and every request to the daemon's own address.
-fn assert_clean(page: &Page, base: &str) {
+pub(crate) fn assert_clean(page: &Page, base: &str) {
     assert_no_errors(page, false);
     assert_loopback(page, base);
 }
@@ -55,7 +55,7 @@ fn assert_clean(page: &Page, base: &str) {
 /// No exception, no console.error, no failed load; with `answers_too`, not
 /// even an error status from the API (chromium logs every 4xx and 5xx
 /// answer, which the page shows in words beside its control).
-fn assert_no_errors(page: &Page, answers_too: bool) {
+pub(crate) fn assert_no_errors(page: &Page, answers_too: bool) {
     let errors: Vec<String> = page
         .errors()
         .into_iter()
@@ -65,7 +65,7 @@ fn assert_no_errors(page: &Page, answers_too: bool) {
 }
 
 /// Every request the page made went to `base` (the daemon, or the proxy).
-fn assert_loopback(page: &Page, base: &str) {
+pub(crate) fn assert_loopback(page: &Page, base: &str) {
     let ws = base.replacen("http://", "ws://", 1);
     let requests = page.requests();
     assert!(!requests.is_empty());
@@ -73,13 +73,14 @@ fn assert_loopback(page: &Page, base: &str) {
         assert!(
             url.starts_with(&format!("{base}/"))
                 || url.starts_with(&format!("{ws}/"))
+                || url.starts_with(&format!("blob:{base}/"))
                 || url == "about:blank",
             "a request left the daemon: {url}"
         );
     }
 }
 
-async fn text(page: &Page, selector: &str) -> String {
+pub(crate) async fn text(page: &Page, selector: &str) -> String {
     page.eval(&format!(
         "(document.querySelector({}) || {{}}).textContent || ''",
         serde_json::to_string(selector).unwrap()
@@ -92,7 +93,7 @@ async fn text(page: &Page, selector: &str) -> String {
 
 /// A REST call that must succeed; a drive that did not answer in time (a
 /// loaded machine's simulator) is asked again, twice at most.
-async fn rest_ok(
+pub(crate) async fn rest_ok(
     daemon: &TestDaemon,
     token: Option<&str>,
     method: &str,
@@ -112,7 +113,7 @@ async fn rest_ok(
     panic!("{method} {path}: {} {:#}", last.0, last.1);
 }
 
-async fn rest(
+pub(crate) async fn rest(
     daemon: &TestDaemon,
     token: Option<&str>,
     method: &str,
@@ -238,6 +239,8 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
         ("/settings/lift", "[data-field=limit_a]"),
         ("/commissioning", "[data-action=scan]"),
         ("/events", "table.log"),
+        ("/scope", "[data-action=arm]"),
+        ("/monitor", "table.frames tbody tr[data-seq]"),
         ("/", "table.drives"),
     ] {
         page.eval(&format!("location.hash = '#{hash}'")).await;
@@ -446,6 +449,8 @@ async fn a_viewer_token_sees_no_control() {
         "/events",
         "/commissioning",
         "/settings/conveyor",
+        "/scope",
+        "/monitor",
     ] {
         page.eval(&format!("location.hash = '#{hash}'")).await;
         page.wait_for(

@@ -14,4 +14,5 @@ mod support;
 mod api;
 mod assets;
 mod browser;
+mod diagnostics;
 mod harness;
