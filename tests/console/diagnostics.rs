@@ -220,7 +220,7 @@ async fn the_scope_page_arms_on_a_level_fills_plots_exports_and_shows_a_refusal(
     )
     .await;
     assert_eq!(status, 409, "{problem:#}");
-    assert_eq!(problem["type"].as_str().unwrap().rsplit('/').next(), Some("scope-busy"));
+    assert_eq!(problem["type"], "urn:drivegate:problem:scope-busy");
     let refusal = refusal.as_str().unwrap();
     assert!(
         refusal.contains(problem["detail"].as_str().unwrap()),
