@@ -790,6 +790,24 @@ async fn screenshots() {
     .await;
     let browser = Browser::start(&[]).await;
     let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(ADMIN)).await;
+    // A capture of the conveyor and the lift around the speed's first step
+    // (for the scope page): 0.5 s before it, 2.5 s from it.
+    let (status, armed) = rest(
+        &daemon,
+        a,
+        "POST",
+        "/api/v1/buses/sim/scope",
+        Some(json!({
+            "drives": ["conveyor", "lift"],
+            "fields": ["speed_rpm", "current_a", "angle_deg"],
+            "trigger": {"type": "rising", "drive": "conveyor", "field": "speed_rpm", "level": 20},
+            "pre_trigger": {"seconds": 0.5},
+            "length": {"seconds": 2.5}
+        })),
+    )
+    .await;
+    assert_eq!(status, 201, "{armed:#}");
+    tokio::time::sleep(Duration::from_secs(1)).await; // a full pre-trigger buffer
     // Some history for the plots: speed steps up, reverses, settles.
     for (rpm, secs) in [(150, 4), (-80, 4), (100, 4)] {
         rest_ok(
@@ -867,6 +885,62 @@ async fn screenshots() {
     )
     .await;
     page.screenshot(&dir.join("console-events.png"), false)
+        .await;
+
+    page.eval("location.hash = '#/scope'").await;
+    page.wait_for(
+        "document.querySelector('.capture-state').dataset.state === 'complete' \
+         && document.querySelectorAll('[data-scope-plot] canvas').length === 3",
+        LONG,
+        "the scope's plots",
+    )
+    .await;
+    page.screenshot(&dir.join("console-scope.png"), true).await;
+
+    // The monitor of the conveyor (unit 1) with a Modbus TCP client's
+    // write and a setpoint from HTTP among the polls.
+    page.eval("location.hash = '#/monitor'").await;
+    page.wait_for(
+        "document.querySelectorAll('table.frames tbody tr[data-seq]').length > 30",
+        LONG,
+        "the monitor",
+    )
+    .await;
+    page.eval(
+        "(() => { const s = document.querySelector('[data-filter=unit]'); s.value = '1'; s.dispatchEvent(new Event('change')); })()",
+    )
+    .await;
+    page.wait_for(
+        "(() => { const r = [...document.querySelectorAll('table.frames tbody tr[data-seq]')]; return r.length > 20 && r.every((x) => x.dataset.unit === '1'); })()",
+        LONG,
+        "the conveyor's frames",
+    )
+    .await;
+    let mut tcp = tokio::net::TcpStream::connect(daemon.modbus_tcp.unwrap())
+        .await
+        .unwrap();
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    tcp.write_all(&[0, 0x21, 0, 0, 0, 6, 1, 0x06, 0x00, 0x02, 0x00, 0x00])
+        .await
+        .unwrap();
+    let mut echo = [0u8; 12];
+    tcp.read_exact(&mut echo).await.unwrap();
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/conveyor/setpoint",
+        Some(json!({"speed_rpm": 60})),
+    )
+    .await;
+    page.wait_for(
+        "!!document.querySelector('tr[data-source=modbus-tcp]') && !!document.querySelector('tr[data-source=http]')",
+        LONG,
+        "the client's frames",
+    )
+    .await;
+    page.click("[data-action=pause]").await;
+    page.screenshot(&dir.join("console-monitor.png"), false)
         .await;
 
     // Tablet width.
