@@ -139,12 +139,12 @@ function mount(main, params, ctx) {
       h('td', { title: f.direction }, `${ARROW[f.direction] || ''} ${f.direction}`),
       h('td', {}, f.unit === 0 ? '0 all' : `${f.unit}${nameOf.has(f.unit) ? ` ${nameOf.get(f.unit)}` : ''}`),
       h('td', { title: FUNCTIONS[f.function] || '' }, f.function === null || f.function === undefined ? '–' : hex(f.function)),
-      h('td', {}, f.meaning),
+      h('td', { title: f.meaning }, f.meaning),
       h('td', { class: 'bytes', title: `${f.length} bytes, ${f.wire_us} µs on the wire` }, f.bytes),
       h('td', { class: f.crc === 'bad' ? 'bad' : '' }, f.crc),
-      h('td', {}, `${f.outcome.replaceAll('_', ' ')}${retry}${f.detail ? `: ${f.detail}` : ''}`),
+      h('td', { title: f.detail || '' }, `${f.outcome.replaceAll('_', ' ')}${retry}${f.detail ? `: ${f.detail}` : ''}`),
       h('td', { class: 'num' }, f.turnaround_us === null || f.turnaround_us === undefined ? '' : `${fmt(f.turnaround_us / 1000, 2)} ms`),
-      h('td', {}, f.source_text));
+      h('td', { title: f.source_text }, f.source_text));
   };
 
   function showCount() {
