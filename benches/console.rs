@@ -288,7 +288,7 @@ async fn keep_up_monitor(browser: &Browser, daemon: &Daemon, seconds: u64) {
     )
     .await;
     tokio::time::sleep(Duration::from_secs(2)).await;
-    let stats = "(() => { const m = drivegate.store.stats.monitor; return [m.received, m.rendered, m.dropped, m.lost, m.draws, document.querySelectorAll('table.frames tbody tr').length]; })()";
+    let stats = "(() => { const m = drivegate.store.stats.monitor; return [m.received, m.rendered, m.dropped, m.lost, m.draws, document.querySelectorAll('.frame-rows > .frame').length]; })()";
     let read = |v: Value| -> Vec<f64> {
         v.as_array()
             .unwrap()
@@ -327,6 +327,23 @@ async fn keep_up_monitor(browser: &Browser, daemon: &Daemon, seconds: u64) {
         task * 100.0,
         script * 100.0,
         (cpu1 - cpu0) / wall * 100.0,
+    );
+    // Paused: the frames still arrive and are counted, nothing is drawn.
+    page.eval("document.querySelector('[data-action=pause]').click()")
+        .await;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let p0 = page.metrics().await;
+    let received0 = read(page.eval(stats).await)[0];
+    let t0 = Instant::now();
+    tokio::time::sleep(Duration::from_secs(seconds)).await;
+    let wall = t0.elapsed().as_secs_f64();
+    let p1 = page.metrics().await;
+    let received = read(page.eval(stats).await)[0] - received0;
+    println!(
+        "  the same page paused: received {:.0} frames/s, renderer main thread busy {:.1} % (script {:.1} %)",
+        received / wall,
+        (p1["TaskDuration"] - p0["TaskDuration"]) / wall * 100.0,
+        (p1["ScriptDuration"] - p0["ScriptDuration"]) / wall * 100.0,
     );
     browser.close_page(&page).await;
 }

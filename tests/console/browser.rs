@@ -240,7 +240,7 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
         ("/commissioning", "[data-action=scan]"),
         ("/events", "table.log"),
         ("/scope", "[data-action=arm]"),
-        ("/monitor", "table.frames tbody tr[data-seq]"),
+        ("/monitor", ".frame-rows [data-seq]"),
         ("/", "table.drives"),
     ] {
         page.eval(&format!("location.hash = '#{hash}'")).await;
@@ -901,7 +901,7 @@ async fn screenshots() {
     // write and a setpoint from HTTP among the polls.
     page.eval("location.hash = '#/monitor'").await;
     page.wait_for(
-        "document.querySelectorAll('table.frames tbody tr[data-seq]').length > 30",
+        "document.querySelectorAll('.frame-rows [data-seq]').length > 30",
         LONG,
         "the monitor",
     )
@@ -911,7 +911,7 @@ async fn screenshots() {
     )
     .await;
     page.wait_for(
-        "(() => { const r = [...document.querySelectorAll('table.frames tbody tr[data-seq]')]; return r.length > 20 && r.every((x) => x.dataset.unit === '1'); })()",
+        "(() => { const r = [...document.querySelectorAll('.frame-rows [data-seq]')]; return r.length > 20 && r.every((x) => x.dataset.unit === '1'); })()",
         LONG,
         "the conveyor's frames",
     )
@@ -934,7 +934,7 @@ async fn screenshots() {
     )
     .await;
     page.wait_for(
-        "!!document.querySelector('tr[data-source=modbus-tcp]') && !!document.querySelector('tr[data-source=http]')",
+        "!!document.querySelector('.frame[data-source=modbus-tcp]') && !!document.querySelector('.frame[data-source=http]')",
         LONG,
         "the client's frames",
     )

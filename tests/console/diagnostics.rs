@@ -250,7 +250,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
     let page = open(&browser, &base, "/monitor", Some(VIEWER)).await;
     page.wait_for(
         "document.querySelector('[data-feed]').dataset.feed === 'open' \
-         && document.querySelectorAll('table.frames tbody tr[data-seq]').length > 10",
+         && document.querySelectorAll('.frame-rows [data-seq]').length > 10",
         LONG,
         "the live list",
     )
@@ -284,7 +284,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
     .await;
     let shown = page
         .wait_for(
-            "(() => { const r = [...document.querySelectorAll('tr[data-source=http][data-who=commissioning][data-unit=\"2\"]')] \
+            "(() => { const r = [...document.querySelectorAll('.frame[data-source=http][data-who=commissioning][data-unit=\"2\"]')] \
              .find((r) => r.textContent.includes('speed setpoint')); return r && r.textContent; })()",
             LONG,
             "the setpoint's frame, caused by the token",
@@ -300,7 +300,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
     let shown = page
         .wait_for(
             &format!(
-                "(() => {{ const r = document.querySelector('tr[data-source=modbus-tcp][data-who=\"{peer}\"]'); return r && r.textContent; }})()"
+                "(() => {{ const r = document.querySelector('.frame[data-source=modbus-tcp][data-who=\"{peer}\"]'); return r && r.textContent; }})()"
             ),
             LONG,
             "the Modbus TCP frame, caused by its peer",
@@ -318,7 +318,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
     // through the API's filter): the write and its echo.
     choose(&page, "[data-filter=source]", "modbus-tcp").await;
     page.wait_for(
-        "(() => { const rows = [...document.querySelectorAll('table.frames tbody tr[data-seq]')]; \
+        "(() => { const rows = [...document.querySelectorAll('.frame-rows [data-seq]')]; \
          return rows.length >= 2 && rows.every((r) => r.dataset.source === 'modbus-tcp'); })()",
         LONG,
         "only Modbus TCP frames",
@@ -327,7 +327,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
     // Back to every source: the polls fill the list again.
     choose(&page, "[data-filter=source]", "").await;
     page.wait_for(
-        "[...document.querySelectorAll('table.frames tbody tr[data-seq]')].filter((r) => r.dataset.source === 'poller').length > 10",
+        "[...document.querySelectorAll('.frame-rows [data-seq]')].filter((r) => r.dataset.source === 'poller').length > 10",
         LONG,
         "the polls again",
     )
@@ -341,7 +341,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
         "paused",
     )
     .await;
-    let first = "document.querySelector('table.frames tbody tr[data-seq]').dataset.seq";
+    let first = "document.querySelector('.frame-rows [data-seq]').dataset.seq";
     let held = page.eval(first).await;
     let received = page
         .eval("drivegate.store.stats.monitor.received")
@@ -364,7 +364,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
     )
     .await;
     let rows = page
-        .eval("document.querySelectorAll('table.frames tbody tr').length")
+        .eval("document.querySelectorAll('.frame-rows > .frame').length")
         .await
         .as_u64()
         .unwrap();

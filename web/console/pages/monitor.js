@@ -25,6 +25,11 @@ export const page = {
 export const ROWS = 500;
 /** Frames asked of the ring at each (re)connection. */
 const BACKLOG = ROWS;
+/**
+ * The list moves at most this often: faster than anyone reads it, and each
+ * move lays out the list again (the feed brings frames every 50 ms).
+ */
+const DRAW_MS = 200;
 
 const FUNCTIONS = {
   1: 'read coils', 2: 'read discrete inputs', 3: 'read holding registers', 4: 'read input registers',
@@ -86,7 +91,10 @@ function mount(main, params, ctx) {
   pcap.addEventListener('click', () => run(pcap, downloadNote, 'downloading…',
     () => download(busPath(bus, `/monitor/frames.pcap${query('?')}`)), (r) => `${r.name}: ${fmt(r.bytes / 1024, 1)} KB`));
 
-  const tbody = h('tbody');
+  // A list of rows in ARIA table roles rather than a <table>: each row is
+  // its own box that the browser lays out (and skips while off screen) on
+  // its own, so a new row costs the same with 50 or 500 below it.
+  const tbody = h('div', { class: 'frame-rows', role: 'rowgroup' });
   main.append(h('section', { class: 'panel monitor' },
     h('h1', {}, 'Bus monitor ', h('span', { class: 'small' }, 'bus '), buses.length > 1 ? h('span', { class: 'filters' }, busSelect) : bus, ' ', conn),
     h('p', { class: 'hint' }, 'Every frame on the wire, newest first, with who caused it. ',
@@ -95,9 +103,9 @@ function mount(main, params, ctx) {
     h('div', { class: 'row filters' }, unit, fn, outcome, source, who, pause),
     filterNote.el,
     count,
-    h('div', { class: 'scroll' }, h('table', { class: 'log frames' },
-      h('thead', {}, h('tr', {}, ['Time', 'Dir', 'Unit', 'Function', 'Meaning', 'Bytes', 'CRC', 'Outcome', 'Turnaround', 'Caused by']
-        .map((t) => h('th', { scope: 'col' }, t)))),
+    h('div', { class: 'scroll' }, h('div', { class: 'frames', role: 'table', 'aria-label': 'Frames, newest first' },
+      h('div', { role: 'rowgroup', class: 'frame-head' }, h('div', { role: 'row', class: 'frame' }, ['Time', 'Dir', 'Unit', 'Function', 'Meaning', 'Bytes', 'CRC', 'Outcome', 'Turnaround', 'Caused by']
+        .map((t) => h('span', { role: 'columnheader' }, t)))),
       tbody)),
     h('div', { class: 'row filters' }, csv, pcap, downloadNote.el),
     h('p', { class: 'hint' }, 'Open the PCAP with Wireshark or tshark, which decode it as Modbus RTU once told its UDP port: ',
@@ -129,28 +137,28 @@ function mount(main, params, ctx) {
 
   const row = (f) => {
     if (f.lostHere) {
-      return h('tr', { class: 'lost', dataset: { lost: String(f.lostHere) } },
-        h('td', { colspan: 10 }, `${f.lostHere} frames lost here: this page read more slowly than the bus`));
+      return h('div', { role: 'row', class: 'frame lost', dataset: { lost: String(f.lostHere) } },
+        h('span', { role: 'cell' }, `${f.lostHere} frames lost here: this page read more slowly than the bus`));
     }
     const retry = f.attempt > 1 ? ` (retry ${f.attempt - 1})` : '';
     const cls = BAD.has(f.outcome) ? 'bad' : (WARN.has(f.outcome) || f.attempt > 1) ? 'warn' : '';
-    return h('tr', { class: cls, dataset: { seq: String(f.seq), source: f.source, who: f.source_who || '', outcome: f.outcome, unit: String(f.unit) } },
-      h('td', {}, h('time', { datetime: f.time }, timeUs(f.time_us))),
-      h('td', { title: f.direction }, `${ARROW[f.direction] || ''} ${f.direction}`),
-      h('td', {}, f.unit === 0 ? '0 all' : `${f.unit}${nameOf.has(f.unit) ? ` ${nameOf.get(f.unit)}` : ''}`),
-      h('td', { title: FUNCTIONS[f.function] || '' }, f.function === null || f.function === undefined ? '–' : hex(f.function)),
-      h('td', { title: f.meaning }, f.meaning),
-      h('td', { class: 'bytes', title: `${f.length} bytes, ${f.wire_us} µs on the wire` }, f.bytes),
-      h('td', { class: f.crc === 'bad' ? 'bad' : '' }, f.crc),
-      h('td', { title: f.detail || '' }, `${f.outcome.replaceAll('_', ' ')}${retry}${f.detail ? `: ${f.detail}` : ''}`),
-      h('td', { class: 'num' }, f.turnaround_us === null || f.turnaround_us === undefined ? '' : `${fmt(f.turnaround_us / 1000, 2)} ms`),
-      h('td', { title: f.source_text }, f.source_text));
+    return h('div', { role: 'row', class: `frame ${cls}`, dataset: { seq: String(f.seq), source: f.source, who: f.source_who || '', outcome: f.outcome, unit: String(f.unit) } },
+      h('span', { role: 'cell' }, h('time', { datetime: f.time }, timeUs(f.time_us))),
+      h('span', { role: 'cell', title: f.direction }, `${ARROW[f.direction] || ''} ${f.direction}`),
+      h('span', { role: 'cell' }, f.unit === 0 ? '0 all' : `${f.unit}${nameOf.has(f.unit) ? ` ${nameOf.get(f.unit)}` : ''}`),
+      h('span', { role: 'cell', title: FUNCTIONS[f.function] || '' }, f.function === null || f.function === undefined ? '–' : hex(f.function)),
+      h('span', { role: 'cell', title: f.meaning }, f.meaning),
+      h('span', { role: 'cell', class: 'bytes', title: `${f.length} bytes, ${f.wire_us} µs on the wire` }, f.bytes),
+      h('span', { role: 'cell', class: f.crc === 'bad' ? 'bad' : '' }, f.crc),
+      h('span', { role: 'cell', title: f.detail || '' }, `${f.outcome.replaceAll('_', ' ')}${retry}${f.detail ? `: ${f.detail}` : ''}`),
+      h('span', { role: 'cell', class: 'num' }, f.turnaround_us === null || f.turnaround_us === undefined ? '' : `${fmt(f.turnaround_us / 1000, 2)} ms`),
+      h('span', { role: 'cell', title: f.source_text }, f.source_text));
   };
 
   function showCount() {
     const lost = stats.lost ? `, ${stats.lost} lost (this page read more slowly than the bus)` : ', none lost';
     const held = paused ? `; paused: ${stats.received - pausedAt} frames arrived since, the list resumes with the newest` : '';
-    count.textContent = `${stats.received} frames received live${lost}; ${tbody.rows.length} rows shown${held}`;
+    count.textContent = `${stats.received} frames received live${lost}; ${tbody.childElementCount} rows shown${held}`;
     count.classList.toggle('bad', stats.lost > 0);
   }
 
@@ -163,11 +171,21 @@ function mount(main, params, ctx) {
     for (let i = batch.length - 1; i >= 0; i -= 1) fragment.append(row(batch[i]));
     tbody.prepend(fragment);
     stats.rendered += batch.length;
-    while (tbody.rows.length > ROWS) tbody.lastElementChild.remove();
+    while (tbody.childElementCount > ROWS) tbody.lastElementChild.remove();
     stats.draws += 1;
     showCount();
   }
-  const schedule = () => { if (!frame && !paused) frame = requestAnimationFrame(draw); };
+  let lastDraw = 0;
+  let wait = 0;
+  const schedule = () => {
+    if (frame || wait || paused) return;
+    const due = lastDraw + DRAW_MS - performance.now();
+    if (due > 0) {
+      wait = setTimeout(() => { wait = 0; schedule(); }, due);
+      return;
+    }
+    frame = requestAnimationFrame((t) => { lastDraw = performance.now(); draw(t); });
+  };
 
   function take(frames) {
     for (const f of frames) queue.push(f);
@@ -185,6 +203,7 @@ function mount(main, params, ctx) {
     if (paused) {
       pausedAt = stats.received;
       if (frame) { cancelAnimationFrame(frame); frame = 0; }
+      if (wait) { clearTimeout(wait); wait = 0; }
     } else {
       schedule();
     }
@@ -283,6 +302,7 @@ function mount(main, params, ctx) {
     gone = true;
     clearTimeout(timer);
     if (frame) cancelAnimationFrame(frame);
+    clearTimeout(wait);
     if (ws) { const old = ws; ws = null; old.close(1000, 'page closed'); }
     delete store.stats.monitor;
   };
