@@ -175,7 +175,10 @@ async fn the_scope_page_arms_on_a_level_fills_plots_exports_and_shows_a_refusal(
     assert_eq!(rows.len() as u64, held);
     let t: Vec<f64> = rows.iter().map(|r| r[1].parse().unwrap()).collect();
     assert!(t[0] < 0.0 && *t.last().unwrap() > 0.0, "{t:?}");
-    let first_after = rows.iter().find(|r| r[1].parse::<f64>().unwrap() >= 0.0).unwrap();
+    let first_after = rows
+        .iter()
+        .find(|r| r[1].parse::<f64>().unwrap() >= 0.0)
+        .unwrap();
     assert!(
         first_after[4].parse::<f64>().unwrap() >= 50.0,
         "{first_after:?}"
@@ -395,9 +398,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
     );
     let decoded = String::from_utf8(out.stdout).unwrap();
     assert!(
-        decoded.lines().count() > 100
-            && decoded.contains("Query")
-            && decoded.contains("Response"),
+        decoded.lines().count() > 100 && decoded.contains("Query") && decoded.contains("Response"),
         "{decoded}"
     );
     assert_clean(&page, &base);

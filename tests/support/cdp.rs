@@ -256,8 +256,7 @@ impl Browser {
             let done: Vec<&Value> = all
                 .iter()
                 .filter(|e| {
-                    e["method"] == "Browser.downloadProgress"
-                        && e["params"]["state"] == "completed"
+                    e["method"] == "Browser.downloadProgress" && e["params"]["state"] == "completed"
                 })
                 .collect();
             if let Some(e) = done.get(seen) {
