@@ -7,7 +7,7 @@
 
 import { ApiError, busPath, download, get, token } from '../api.js';
 import { h, fmt, clock, Note, run } from '../ui.js';
-import { busesOf } from './scope.js';
+import { busesOf } from '../store.js';
 
 export const page = {
   id: 'monitor',

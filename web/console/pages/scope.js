@@ -7,6 +7,7 @@
 // control that caused it.
 
 import { busPath, download, get, post, api } from '../api.js';
+import { busesOf } from '../store.js';
 import { h, fmt, clock, Note, run, numberField } from '../ui.js';
 
 export const page = {
@@ -54,16 +55,6 @@ const COLOURS = ['#1d4ed8', '#b91c1c', '#047857', '#b45309', '#7c3aed', '#0e7490
 const REFRESH_MS = 1000;
 /** Above this many samples the plot waits for the end instead. */
 const LIVE_PLOT_MAX = 20000;
-
-/** The buses of the configured drives, in order. */
-export function busesOf(store) {
-  const out = [];
-  for (const n of store.order) {
-    const d = store.drives.get(n);
-    if (d && d.bus && !out.includes(d.bus)) out.push(d.bus);
-  }
-  return out;
-}
 
 function mount(main, params, ctx) {
   const { store, stream, navigate } = ctx;
