@@ -207,7 +207,7 @@ function mount(main, params, ctx) {
   get(busPath(bus, '/scope')).then((v) => {
     limits.textContent = `At most ${v.max_samples} samples a capture (${fmt(v.max_memory_bytes / 1e6, 1)} MB), `
       + `${fmt(v.wire_rate_hz, 1)} samples/s on this wire (all captured drives together), `
-      + `other drives keep ${fmt(v.floor_rate_hz, 1)} polls/s, a trigger is awaited ${fmt(v.max_wait_s, 0)} s at most.`;
+      + `other drives keep ${fmt(v.floor_rate_hz, 1)} polls/s; the longest wait for a trigger is ${fmt(v.max_wait_s, 0)} s.`;
     if (v.capture) show(v.capture);
   }).catch((e) => { limits.textContent = ''; captureNote.fail(e); exportNote.fail(e); });
 
