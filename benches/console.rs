@@ -15,6 +15,10 @@
 //! Rows: 32 drives on one bus (the bus's full rate), and 128 drives on four
 //! buses (four times that) for headroom. The same for the drive page with
 //! its four plots.
+//! 3. The bus monitor page on the first bus: every frame on the wire
+//!    (requests and replies of a bus polled flat out) received, drawn as
+//!    rows or dropped between two draws, lost by the feed, and the
+//!    renderer's main thread.
 //!
 //! Environment: `BENCH_SECONDS` (default 10), `BENCH_LOADS` (10).
 
@@ -270,6 +274,80 @@ async fn keep_up(browser: &Browser, base: &str, hash: &str, seconds: u64, label:
     browser.close_page(&page).await;
 }
 
+/// The bus monitor page open on the first bus for `seconds`: the frames
+/// the bus put on the wire against those the page received, drew and
+/// dropped (more than one screen's worth between two draws), the frames
+/// the feed lost for it, and the renderer's main thread.
+async fn keep_up_monitor(browser: &Browser, daemon: &Daemon, seconds: u64) {
+    let page = browser.new_page(1280, 900).await;
+    page.goto(&format!("{}/#/monitor", daemon.base)).await;
+    page.wait_for(
+        "window.drivegate && drivegate.store.stats.monitor && drivegate.store.stats.monitor.received > 0",
+        Duration::from_secs(60),
+        "the live list",
+    )
+    .await;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let stats = "(() => { const m = drivegate.store.stats.monitor; return [m.received, m.rendered, m.dropped, m.lost, m.draws, document.querySelectorAll('.frame-rows > .frame').length]; })()";
+    let read = |v: Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let monitor = daemon.plant.buses()[0].handle.monitor().clone();
+    let before = read(page.eval(stats).await);
+    let wire0 = monitor.frames();
+    let m0 = page.metrics().await;
+    let cpu0 = cpu_seconds(browser.pid);
+    let ws0 = ws_bytes(&page);
+    let t0 = Instant::now();
+    tokio::time::sleep(Duration::from_secs(seconds)).await;
+    let wall = t0.elapsed().as_secs_f64();
+    let after = read(page.eval(stats).await);
+    let wire = (monitor.frames() - wire0) as f64 / wall;
+    let m1 = page.metrics().await;
+    let cpu1 = cpu_seconds(browser.pid);
+    let ws1 = ws_bytes(&page);
+    let rate = |i: usize| (after[i] - before[i]) / wall;
+    let task = (m1["TaskDuration"] - m0["TaskDuration"]) / wall;
+    let script = (m1["ScriptDuration"] - m0["ScriptDuration"]) / wall;
+    println!(
+        "  monitor page (bus {}): the wire carried {wire:.0} frames/s; the page received {:.0}/s ({:.1} %), drew {:.0} rows/s in {:.0} draws/s, dropped {:.0} undrawn, the feed lost {:.0} for it; {} rows in the list; feed {:.1} KB/s; renderer main thread busy {:.1} % (script {:.1} %); all chromium processes {:.1} % of one core",
+        daemon.plant.buses()[0].handle.name(),
+        rate(0),
+        rate(0) / wire * 100.0,
+        rate(1),
+        rate(4),
+        after[2] - before[2],
+        after[3] - before[3],
+        after[5],
+        (ws1 - ws0) / wall / 1024.0,
+        task * 100.0,
+        script * 100.0,
+        (cpu1 - cpu0) / wall * 100.0,
+    );
+    // Paused: the frames still arrive and are counted, nothing is drawn.
+    page.eval("document.querySelector('[data-action=pause]').click()")
+        .await;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let p0 = page.metrics().await;
+    let received0 = read(page.eval(stats).await)[0];
+    let t0 = Instant::now();
+    tokio::time::sleep(Duration::from_secs(seconds)).await;
+    let wall = t0.elapsed().as_secs_f64();
+    let p1 = page.metrics().await;
+    let received = read(page.eval(stats).await)[0] - received0;
+    println!(
+        "  the same page paused: received {:.0} frames/s, renderer main thread busy {:.1} % (script {:.1} %)",
+        received / wall,
+        (p1["TaskDuration"] - p0["TaskDuration"]) / wall * 100.0,
+        (p1["ScriptDuration"] - p0["ScriptDuration"]) / wall * 100.0,
+    );
+    browser.close_page(&page).await;
+}
+
 #[tokio::main(flavor = "multi_thread")]
 async fn main() {
     let seconds = env("BENCH_SECONDS", 10);
@@ -309,6 +387,7 @@ async fn main() {
             "drive page (4 plots)",
         )
         .await;
+        keep_up_monitor(&browser, &daemon, seconds).await;
         browser.stop().await;
         daemon.shutdown.cancel();
         let _ = tokio::time::timeout(Duration::from_secs(5), daemon.faces.wait()).await;

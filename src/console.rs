@@ -79,6 +79,8 @@ pub const ASSETS: &[Asset] = &[
         JS
     ),
     asset!("pages/events.js", "console/pages/events.js", JS),
+    asset!("pages/scope.js", "console/pages/scope.js", JS),
+    asset!("pages/monitor.js", "console/pages/monitor.js", JS),
     asset!(
         "vendor/uplot/uPlot.iife.min.js",
         "vendor/uplot/uPlot.iife.min.js",

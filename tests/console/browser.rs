@@ -19,11 +19,11 @@ use crate::support::TestDaemon;
 const LEASE: Duration = Duration::from_millis(300);
 /// Room for a loaded machine's scheduling beside the lease itself.
 const SLACK: Duration = Duration::from_millis(1500);
-const LONG: Duration = Duration::from_secs(30);
+pub(crate) const LONG: Duration = Duration::from_secs(30);
 
 /// Opens the console at `base` + `#hash`, enters `token` in the token
 /// dialog if asked, and waits until the page is live with every drive.
-async fn open(browser: &Browser, base: &str, hash: &str, token: Option<&str>) -> Page {
+pub(crate) async fn open(browser: &Browser, base: &str, hash: &str, token: Option<&str>) -> Page {
     let page = browser.new_page(1280, 900).await;
     page.goto(&format!("{base}/#{hash}")).await;
     if let Some(t) = token {
@@ -47,7 +47,7 @@ async fn open(browser: &Browser, base: &str, hash: &str, token: Option<&str>) ->
 }
 
 /// No errors, and every request to the daemon's own address.
-fn assert_clean(page: &Page, base: &str) {
+pub(crate) fn assert_clean(page: &Page, base: &str) {
     assert_no_errors(page, false);
     assert_loopback(page, base);
 }
@@ -55,7 +55,7 @@ fn assert_clean(page: &Page, base: &str) {
 /// No exception, no console.error, no failed load; with `answers_too`, not
 /// even an error status from the API (chromium logs every 4xx and 5xx
 /// answer, which the page shows in words beside its control).
-fn assert_no_errors(page: &Page, answers_too: bool) {
+pub(crate) fn assert_no_errors(page: &Page, answers_too: bool) {
     let errors: Vec<String> = page
         .errors()
         .into_iter()
@@ -65,7 +65,7 @@ fn assert_no_errors(page: &Page, answers_too: bool) {
 }
 
 /// Every request the page made went to `base` (the daemon, or the proxy).
-fn assert_loopback(page: &Page, base: &str) {
+pub(crate) fn assert_loopback(page: &Page, base: &str) {
     let ws = base.replacen("http://", "ws://", 1);
     let requests = page.requests();
     assert!(!requests.is_empty());
@@ -73,13 +73,14 @@ fn assert_loopback(page: &Page, base: &str) {
         assert!(
             url.starts_with(&format!("{base}/"))
                 || url.starts_with(&format!("{ws}/"))
+                || url.starts_with(&format!("blob:{base}/"))
                 || url == "about:blank",
             "a request left the daemon: {url}"
         );
     }
 }
 
-async fn text(page: &Page, selector: &str) -> String {
+pub(crate) async fn text(page: &Page, selector: &str) -> String {
     page.eval(&format!(
         "(document.querySelector({}) || {{}}).textContent || ''",
         serde_json::to_string(selector).unwrap()
@@ -92,7 +93,7 @@ async fn text(page: &Page, selector: &str) -> String {
 
 /// A REST call that must succeed; a drive that did not answer in time (a
 /// loaded machine's simulator) is asked again, twice at most.
-async fn rest_ok(
+pub(crate) async fn rest_ok(
     daemon: &TestDaemon,
     token: Option<&str>,
     method: &str,
@@ -112,7 +113,7 @@ async fn rest_ok(
     panic!("{method} {path}: {} {:#}", last.0, last.1);
 }
 
-async fn rest(
+pub(crate) async fn rest(
     daemon: &TestDaemon,
     token: Option<&str>,
     method: &str,
@@ -238,6 +239,8 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
         ("/settings/lift", "[data-field=limit_a]"),
         ("/commissioning", "[data-action=scan]"),
         ("/events", "table.log"),
+        ("/scope", "[data-action=arm]"),
+        ("/monitor", ".frame-rows [data-seq]"),
         ("/", "table.drives"),
     ] {
         page.eval(&format!("location.hash = '#{hash}'")).await;
@@ -446,6 +449,8 @@ async fn a_viewer_token_sees_no_control() {
         "/events",
         "/commissioning",
         "/settings/conveyor",
+        "/scope",
+        "/monitor",
     ] {
         page.eval(&format!("location.hash = '#{hash}'")).await;
         page.wait_for(
@@ -785,6 +790,24 @@ async fn screenshots() {
     .await;
     let browser = Browser::start(&[]).await;
     let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(ADMIN)).await;
+    // A capture of the conveyor and the lift around the speed's first step
+    // (for the scope page): 0.5 s before it, 2.5 s from it.
+    let (status, armed) = rest(
+        &daemon,
+        a,
+        "POST",
+        "/api/v1/buses/sim/scope",
+        Some(json!({
+            "drives": ["conveyor", "lift"],
+            "fields": ["speed_rpm", "current_a", "angle_deg"],
+            "trigger": {"type": "rising", "drive": "conveyor", "field": "speed_rpm", "level": 20},
+            "pre_trigger": {"seconds": 0.5},
+            "length": {"seconds": 2.5}
+        })),
+    )
+    .await;
+    assert_eq!(status, 201, "{armed:#}");
+    tokio::time::sleep(Duration::from_secs(1)).await; // a full pre-trigger buffer
     // Some history for the plots: speed steps up, reverses, settles.
     for (rpm, secs) in [(150, 4), (-80, 4), (100, 4)] {
         rest_ok(
@@ -862,6 +885,62 @@ async fn screenshots() {
     )
     .await;
     page.screenshot(&dir.join("console-events.png"), false)
+        .await;
+
+    page.eval("location.hash = '#/scope'").await;
+    page.wait_for(
+        "document.querySelector('.capture-state').dataset.state === 'complete' \
+         && document.querySelectorAll('[data-scope-plot] canvas').length === 3",
+        LONG,
+        "the scope's plots",
+    )
+    .await;
+    page.screenshot(&dir.join("console-scope.png"), true).await;
+
+    // The monitor of the conveyor (unit 1) with a Modbus TCP client's
+    // write and a setpoint from HTTP among the polls.
+    page.eval("location.hash = '#/monitor'").await;
+    page.wait_for(
+        "document.querySelectorAll('.frame-rows [data-seq]').length > 30",
+        LONG,
+        "the monitor",
+    )
+    .await;
+    page.eval(
+        "(() => { const s = document.querySelector('[data-filter=unit]'); s.value = '1'; s.dispatchEvent(new Event('change')); })()",
+    )
+    .await;
+    page.wait_for(
+        "(() => { const r = [...document.querySelectorAll('.frame-rows [data-seq]')]; return r.length > 20 && r.every((x) => x.dataset.unit === '1'); })()",
+        LONG,
+        "the conveyor's frames",
+    )
+    .await;
+    let mut tcp = tokio::net::TcpStream::connect(daemon.modbus_tcp.unwrap())
+        .await
+        .unwrap();
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    tcp.write_all(&[0, 0x21, 0, 0, 0, 6, 1, 0x06, 0x00, 0x02, 0x00, 0x00])
+        .await
+        .unwrap();
+    let mut echo = [0u8; 12];
+    tcp.read_exact(&mut echo).await.unwrap();
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/conveyor/setpoint",
+        Some(json!({"speed_rpm": 60})),
+    )
+    .await;
+    page.wait_for(
+        "!!document.querySelector('.frame[data-source=modbus-tcp]') && !!document.querySelector('.frame[data-source=http]')",
+        LONG,
+        "the client's frames",
+    )
+    .await;
+    page.click("[data-action=pause]").await;
+    page.screenshot(&dir.join("console-monitor.png"), false)
         .await;
 
     // Tablet width.

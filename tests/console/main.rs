@@ -15,4 +15,5 @@ mod api;
 mod assets;
 mod browser;
 mod comm_loss;
+mod diagnostics;
 mod harness;

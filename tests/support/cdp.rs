@@ -223,6 +223,66 @@ impl Browser {
             .await;
     }
 
+    /// Lets pages save downloads into `dir` under the names the server
+    /// gives them; the browser reports each one (`Browser.downloadWillBegin`,
+    /// `Browser.downloadProgress`).
+    pub async fn allow_downloads(&self, dir: &Path) {
+        self.call(
+            "Browser.setDownloadBehavior",
+            json!({"behavior": "allow", "downloadPath": dir, "eventsEnabled": true}),
+        )
+        .await;
+    }
+
+    /// Downloads completed so far.
+    pub fn downloads_done(&self) -> usize {
+        self.events
+            .all()
+            .iter()
+            .filter(|e| {
+                e["method"] == "Browser.downloadProgress" && e["params"]["state"] == "completed"
+            })
+            .count()
+    }
+
+    /// Waits until more than `seen` downloads completed, and returns the
+    /// file name of the next one (in the download directory). A cancelled
+    /// download fails.
+    pub async fn wait_download(&self, seen: usize, limit: Duration) -> String {
+        let start = Instant::now();
+        loop {
+            let notified = self.events.changed.notified();
+            let all = self.events.all();
+            let done: Vec<&Value> = all
+                .iter()
+                .filter(|e| {
+                    e["method"] == "Browser.downloadProgress" && e["params"]["state"] == "completed"
+                })
+                .collect();
+            if let Some(e) = done.get(seen) {
+                let guid = &e["params"]["guid"];
+                let begun = all
+                    .iter()
+                    .find(|b| {
+                        b["method"] == "Browser.downloadWillBegin" && &b["params"]["guid"] == guid
+                    })
+                    .expect("a download that began");
+                return begun["params"]["suggestedFilename"]
+                    .as_str()
+                    .unwrap()
+                    .to_string();
+            }
+            assert!(
+                !all.iter().any(|e| e["method"] == "Browser.downloadProgress"
+                    && e["params"]["state"] == "canceled"),
+                "a download was cancelled"
+            );
+            let left = limit.saturating_sub(start.elapsed());
+            assert!(!left.is_zero(), "no download within {limit:?}");
+            let _ = tokio::time::timeout(left, notified).await;
+        }
+    }
+
     /// Ends chromium.
     pub async fn stop(mut self) {
         let _ = self.child.start_kill();

@@ -45,14 +45,59 @@ export async function api(method, path, body) {
   const text = await res.text();
   let json = null;
   try { json = text ? JSON.parse(text) : null; } catch { json = null; }
-  if (!res.ok) {
-    const problem = json && typeof json === 'object' && json.detail
-      ? json
-      : { title: res.statusText, detail: text || `HTTP ${res.status}` };
-    throw new ApiError(problem, res.status);
-  }
+  if (!res.ok) throw refusal(res, json, text);
   return json;
 }
+
+/** The ApiError of a refused answer: its problem+json, or its words. */
+function refusal(res, json, text) {
+  const problem = json && typeof json === 'object' && json.detail
+    ? json
+    : { title: res.statusText, detail: text || `HTTP ${res.status}` };
+  return new ApiError(problem, res.status);
+}
+
+/**
+ * Downloads one of the API's files (a capture's CSV, the monitor's PCAP)
+ * with the tab's token, and hands it to the browser as a file under the
+ * name the API gives it. A plain link cannot carry the token, so the file
+ * is fetched here and saved from memory. Resolves {name, bytes}.
+ */
+export async function download(path, fallbackName = null) {
+  const headers = {};
+  const t = token();
+  if (t) headers.Authorization = `Bearer ${t}`;
+  let res;
+  try {
+    res = await fetch(path, { headers, cache: 'no-store' });
+  } catch (e) {
+    throw new ApiError({ title: 'No answer from drivegate', detail: `the download did not reach drivegate (${e.message})` }, 0);
+  }
+  if (!res.ok) {
+    const text = await res.text();
+    let json = null;
+    try { json = JSON.parse(text); } catch { json = null; }
+    throw refusal(res, json, text);
+  }
+  const blob = await res.blob();
+  const named = /filename="([^"]+)"/.exec(res.headers.get('Content-Disposition') || '');
+  const name = named ? named[1] : (fallbackName || path.split('?')[0].split('/').pop());
+  const url = URL.createObjectURL(blob);
+  const a = document.createElement('a');
+  a.href = url;
+  a.download = name;
+  a.hidden = true;
+  document.body.append(a);
+  a.click();
+  a.remove();
+  // The browser has taken the file once the click returned; the URL is
+  // kept a while for slow save dialogs, then freed.
+  setTimeout(() => URL.revokeObjectURL(url), 60_000);
+  return { name, bytes: blob.size };
+}
+
+/** `/api/v1/buses/<name>` with the name escaped. */
+export const busPath = (name, rest = '') => `/api/v1/buses/${encodeURIComponent(name)}${rest}`;
 
 export const get = (path) => api('GET', path);
 export const post = (path, body) => api('POST', path, body);

@@ -14,8 +14,10 @@ import { page as drive } from './pages/drive.js';
 import { page as settings } from './pages/settings.js';
 import { page as commissioning } from './pages/commissioning.js';
 import { page as events } from './pages/events.js';
+import { page as scope } from './pages/scope.js';
+import { page as monitor } from './pages/monitor.js';
 
-const PAGES = [overview, drive, settings, commissioning, events];
+const PAGES = [overview, drive, settings, commissioning, events, scope, monitor];
 
 const stream = new Stream();
 const store = new Store(stream);
@@ -116,7 +118,7 @@ function shortcuts(e) {
     return;
   }
   if (document.querySelector('dialog[open]')) return;
-  const keys = { o: '/', e: '/events', c: '/commissioning', s: '/settings' };
+  const keys = { o: '/', e: '/events', c: '/commissioning', s: '/settings', p: '/scope', m: '/monitor' };
   if (keys[e.key] && !e.shiftKey) {
     e.preventDefault();
     navigate(keys[e.key]);

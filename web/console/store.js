@@ -205,6 +205,16 @@ export class Store {
   }
 }
 
+/** The buses of the configured drives, in the drives' order. */
+export function busesOf(store) {
+  const out = [];
+  for (const n of store.order) {
+    const d = store.drives.get(n);
+    if (d && d.bus && !out.includes(d.bus)) out.push(d.bus);
+  }
+  return out;
+}
+
 /** A drive's recent values for the plots: a window of `seconds`. */
 export class History {
   constructor(seconds = 30) {
