@@ -285,9 +285,11 @@ async fn stream_clients_that_stop_answering_pings_are_closed() {
         // Two that read what comes but never answer, not even a pong: one
         // subscribed to nothing (it only gets pings), one to every drive (a
         // busy stream).
+        // (The daemon's idle time starts when it takes the stream, after
+        // `opened`, however long the handshakes take.)
+        let opened = Instant::now();
         let mut deaf = ws_handshake(addr, "").await;
         let mut mute = ws_handshake(addr, "?drives=all").await;
-        let opened = Instant::now();
         let mute_read = tokio::spawn(async move {
             let got = read_until_closed(&mut mute, Duration::from_secs(10)).await;
             got.map(|bytes| bytes.len())
