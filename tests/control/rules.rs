@@ -254,7 +254,29 @@ async fn failed_attempts(api: &Api, drive: &str) -> u32 {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_setpoint_without_a_lease_from_each_face_takes_over_a_failing_stop() {
+async fn a_setpoint_without_a_lease_over_http_takes_over_a_failing_stop() {
+    a_setpoint_without_a_lease_takes_over_a_failing_stop("conveyor", 1, "over HTTP").await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_setpoint_without_a_lease_over_the_stream_takes_over_a_failing_stop() {
+    a_setpoint_without_a_lease_takes_over_a_failing_stop(
+        "turntable",
+        3,
+        "over the WebSocket stream",
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_setpoint_without_a_lease_over_modbus_tcp_takes_over_a_failing_stop() {
+    a_setpoint_without_a_lease_takes_over_a_failing_stop("feeder", 4, "over Modbus TCP").await;
+}
+
+/// A leased setpoint to `drive`, whose drive then stops answering: the
+/// lease runs out and its stop fails again and again, until a setpoint
+/// without a lease from `face` reaches the drive first.
+async fn a_setpoint_without_a_lease_takes_over_a_failing_stop(drive: &str, unit: u8, face: &str) {
     tokio::time::timeout(LIMIT, async {
         let d = TestDaemon::start(&slow_offline_polls()).await;
         let api = Api::new(d.http, None);
@@ -264,84 +286,78 @@ async fn a_setpoint_without_a_lease_from_each_face_takes_over_a_failing_stop() {
         let mut ws = connect(d.http, "", None).await;
         let mut plc = Raw::connect(d.modbus_tcp.unwrap()).await;
 
-        for (drive, unit, face) in [
-            ("conveyor", 1u8, "over HTTP"),
-            ("turntable", 3, "over the WebSocket stream"),
-            ("feeder", 4, "over Modbus TCP"),
-        ] {
-            api.activate_in(drive, "speed").await;
-            api.put(
-                &format!("/api/v1/drives/{drive}/setpoint"),
-                json!({"speed_rpm": 100, "lease_ms": 300}),
-            )
-            .await
-            .expect(200);
-            // The drive stops answering; the lease runs out, and its stop
-            // fails again and again.
-            sim.set_silent(unit, true);
-            let path = format!("/api/v1/drives/{drive}");
-            while !api.get(&path).await.expect(200)["lease"].is_null() {
-                tokio::time::sleep(Duration::from_millis(20)).await;
-            }
-            let start = Instant::now();
-            while failed_attempts(&api, drive).await < 4 {
-                assert!(
-                    start.elapsed() < Duration::from_secs(30),
-                    "{drive}: the stop was not retried"
-                );
-                tokio::time::sleep(Duration::from_millis(20)).await;
-            }
-            // The next try is 2 s away. The drive answers again, and a
-            // setpoint without a lease reaches it first.
-            sim.set_silent(unit, false);
-            match face {
-                "over HTTP" => {
-                    api.put(
-                        &format!("/api/v1/drives/{drive}/setpoint"),
-                        json!({"speed_rpm": 150}),
-                    )
-                    .await
-                    .expect(200);
-                }
-                "over the WebSocket stream" => {
-                    let r = ws_command(
-                        &mut ws,
-                        u64::from(unit),
-                        "setpoint",
-                        drive,
-                        json!({"speed_rpm": 150}),
-                    )
-                    .await;
-                    assert_eq!(r["ok"], true, "{r:#}");
-                }
-                _ => {
-                    let pdu = write(0x0006, 150);
-                    assert_eq!(plc.ask(unit, &pdu).await, pdu);
-                }
-            }
-            let settled = wait_for(&mut watch, LIMIT, "lease-stop", |v| {
-                v["type"] == "lease-stop" && v["drive"] == drive
-            })
-            .await;
-            assert_eq!(settled["stopped"], false, "{settled:#}");
-            let result = settled["result"].as_str().unwrap();
-            assert!(
-                result.contains("a setpoint without a lease from")
-                    && result.contains(&format!("{face} took over")),
-                "{result}"
-            );
-            // The stop is not tried again: the setpoint stands.
-            tokio::time::sleep(Duration::from_millis(2500)).await;
-            assert_eq!(sim.drive(unit).unwrap().setpoints.speed_rpm, 150, "{drive}");
-            let p = api
-                .post_empty(&format!("/api/v1/drives/{drive}/lease/renew"))
-                .await
-                .expect_problem(409, "no-lease");
-            assert!(
-                p["detail"].as_str().unwrap().contains("is not tried again"),
-                "{p:#}"
-            );
+        api.activate_in(drive, "speed").await;
+        api.put(
+            &format!("/api/v1/drives/{drive}/setpoint"),
+            json!({"speed_rpm": 100, "lease_ms": 300}),
+        )
+        .await
+        .expect(200);
+        // The drive stops answering; the lease runs out, and its stop
+        // fails again and again.
+        sim.set_silent(unit, true);
+        let path = format!("/api/v1/drives/{drive}");
+        while !api.get(&path).await.expect(200)["lease"].is_null() {
+            tokio::time::sleep(Duration::from_millis(20)).await;
         }
+        let start = Instant::now();
+        while failed_attempts(&api, drive).await < 4 {
+            assert!(
+                start.elapsed() < Duration::from_secs(30),
+                "{drive}: the stop was not retried"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        // The next try is 2 s away. The drive answers again, and a
+        // setpoint without a lease reaches it first.
+        sim.set_silent(unit, false);
+        match face {
+            "over HTTP" => {
+                api.put(
+                    &format!("/api/v1/drives/{drive}/setpoint"),
+                    json!({"speed_rpm": 150}),
+                )
+                .await
+                .expect(200);
+            }
+            "over the WebSocket stream" => {
+                let r = ws_command(
+                    &mut ws,
+                    u64::from(unit),
+                    "setpoint",
+                    drive,
+                    json!({"speed_rpm": 150}),
+                )
+                .await;
+                assert_eq!(r["ok"], true, "{r:#}");
+            }
+            _ => {
+                let pdu = write(0x0006, 150);
+                assert_eq!(plc.ask(unit, &pdu).await, pdu);
+            }
+        }
+        let settled = wait_for(&mut watch, LIMIT, "lease-stop", |v| {
+            v["type"] == "lease-stop" && v["drive"] == drive
+        })
+        .await;
+        assert_eq!(settled["stopped"], false, "{settled:#}");
+        let result = settled["result"].as_str().unwrap();
+        assert!(
+            result.contains("a setpoint without a lease from")
+                && result.contains(&format!("{face} took over")),
+            "{result}"
+        );
+        // The stop is not tried again: the setpoint stands.
+        tokio::time::sleep(Duration::from_millis(2500)).await;
+        assert_eq!(sim.drive(unit).unwrap().setpoints.speed_rpm, 150, "{drive}");
+        let p = api
+            .post_empty(&format!("/api/v1/drives/{drive}/lease/renew"))
+            .await
+            .expect_problem(409, "no-lease");
+        assert!(
+            p["detail"].as_str().unwrap().contains("is not tried again"),
+            "{p:#}"
+        );
         d.stop().await;
     })
     .await
