@@ -129,6 +129,14 @@ static SIM_GAPS: Spec = Spec {
     kind: Kind::Counter,
     labels: BUS,
 };
+static SIM_STALLED: Spec = Spec {
+    name: "drivegate_sim_stalled_replies_total",
+    help: "Simulated bus only: replies the simulator did not send because the machine kept it \
+           from running past the response timeout; the master saw them as lost. Above 0, the \
+           machine is too busy for the simulated timing.",
+    kind: Kind::Counter,
+    labels: BUS,
+};
 static SIM_INJECTED: Spec = Spec {
     name: "drivegate_sim_injected_faults_total",
     help: "Simulated bus only: wire faults injected by the simulator, by kind (dropped, \
@@ -202,6 +210,7 @@ struct Families {
     port_errors: Family,
     sim_requests: Family,
     sim_gaps: Family,
+    sim_stalled: Family,
     sim_injected: Family,
 }
 
@@ -226,6 +235,7 @@ impl Families {
             port_errors: PORT_ERRORS.family(),
             sim_requests: SIM_REQUESTS.family(),
             sim_gaps: SIM_GAPS.family(),
+            sim_stalled: SIM_STALLED.family(),
             sim_injected: SIM_INJECTED.family(),
         }
     }
@@ -261,6 +271,7 @@ impl Families {
             let s = sim.stats();
             self.sim_requests.set(&l, s.requests as f64);
             self.sim_gaps.set(&l, s.gap_violations as f64);
+            self.sim_stalled.set(&l, s.stalled as f64);
             for (kind, n) in [
                 ("dropped", s.dropped),
                 ("corrupted", s.corrupted),
@@ -311,6 +322,7 @@ impl Families {
             self.port_errors,
             self.sim_requests,
             self.sim_gaps,
+            self.sim_stalled,
             self.sim_injected,
         ]
         .into_iter()

@@ -6,7 +6,7 @@ use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use tokio_util::sync::CancellationToken;
 
@@ -118,6 +118,15 @@ impl SimHandle {
     /// The wire's counters.
     pub fn stats(&self) -> SimStats {
         lock(&self.bus).stats()
+    }
+
+    /// Keeps the simulator from running for `time`, as a starved machine
+    /// would; blocks the calling thread that long. A request that arrives
+    /// meanwhile is answered late, or not at all once the master has given
+    /// up on it (see `SimConfig::max_lag`).
+    pub fn stall(&self, time: Duration) {
+        let _bus = lock(&self.bus);
+        std::thread::sleep(time);
     }
 
     /// The silences the wire saw before each request (the master's idle

@@ -452,6 +452,7 @@ async fn bus_series_count_the_wire() {
             Some(0.0)
         );
         assert!(value(&s, "drivegate_sim_requests_total", &bus).unwrap() >= polls);
+        assert!(value(&s, "drivegate_sim_stalled_replies_total", &bus).is_some());
         assert_eq!(
             value(
                 &s,

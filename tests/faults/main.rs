@@ -13,4 +13,5 @@ mod support;
 
 mod adapter;
 mod drives;
+mod stall;
 mod wire;
