@@ -112,13 +112,23 @@ fn over_limit_response() -> Vec<u8> {
 /// limit are closed without an answer.
 const REFUSALS_IN_FLIGHT: usize = 64;
 
-/// Answers 503, then reads what the client sent until it closes (or 1 s),
-/// so the answer is not lost to a reset.
+/// How long a refused client has to start its request before the 503.
+const REFUSAL_WAIT: Duration = Duration::from_millis(500);
+
+/// Answers 503 once the client's request has begun (or after
+/// [`REFUSAL_WAIT`]), then reads what the client sent until it closes (or
+/// 1 s), so the answer is not lost to a reset. An HTTP client takes an
+/// answer that comes before its request for a broken server, not a refusal.
 async fn refuse(mut stream: TcpStream) {
+    let mut sink = [0u8; 1024];
+    let _ = tokio::time::timeout(
+        REFUSAL_WAIT,
+        tokio::io::AsyncReadExt::read(&mut stream, &mut sink),
+    )
+    .await;
     let answer = async {
         stream.write_all(&over_limit_response()).await?;
         stream.shutdown().await?;
-        let mut sink = [0u8; 1024];
         while tokio::io::AsyncReadExt::read(&mut stream, &mut sink).await? > 0 {}
         Ok::<(), io::Error>(())
     };

@@ -117,13 +117,19 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         }
         let first_opened = first_opened.expect("seven trickling clients");
         let mut refused = false;
+        let mut seen = Vec::new();
         while !refused && first_opened.elapsed() < LORIS_READ_TIMEOUT * 9 / 10 {
-            refused = get_status(addr).await == 503;
+            let status = get_status(addr).await;
+            seen.push((status, first_opened.elapsed()));
+            refused = status == 503;
             if !refused {
                 tokio::time::sleep(Duration::from_millis(50)).await;
             }
         }
-        assert!(refused, "seven trickling clients did not fill the slots");
+        assert!(
+            refused,
+            "seven trickling clients did not fill the slots: {seen:?}"
+        );
         // ...and once the deadline has passed, served again.
         for loris in lorises {
             let (closed_early, after, answer) = loris.await.unwrap();
