@@ -7,13 +7,13 @@
 //! deactivation from each face ends a lease the same way, and a setpoint
 //! the bus let overtake by the brake has the brake applied again.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use crate::support::api::{Api, Ws, connect, next_json, wait_for, ws_command};
-use crate::support::modbus_tcp::{Raw, write};
+use crate::support::api::{Api, Ws, connect, messages_within, next_json, wait_for, ws_command};
+use crate::support::modbus_tcp::{Raw, write, writes_handled};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::BusHandle;
-use serde_json::{Value, json};
+use serde_json::json;
 
 const LIMIT: Duration = Duration::from_secs(60);
 const LIFT: u8 = 2;
@@ -25,32 +25,6 @@ const ACTIVATE: u16 = 0x0000;
 const TORQUE_MODE: u16 = 0x000C;
 /// The lease of the scenario.
 const LEASE_MS: u64 = 1500;
-
-/// Writes (function 0x06) the bus has dealt with: sent, failed or dropped.
-fn writes(bus: &BusHandle) -> u64 {
-    bus.stats()
-        .transactions
-        .iter()
-        .filter(|((function, _), _)| *function == 0x06)
-        .map(|(_, n)| n)
-        .sum()
-}
-
-/// Reads the stream for `window` and returns every message.
-async fn messages_within(ws: &mut Ws, window: Duration) -> Vec<Value> {
-    let until = Instant::now() + window;
-    let mut seen = Vec::new();
-    loop {
-        let left = until.saturating_duration_since(Instant::now());
-        if left.is_zero() {
-            return seen;
-        }
-        match tokio::time::timeout(left, next_json(ws, LIMIT)).await {
-            Ok(v) => seen.push(v),
-            Err(_) => return seen,
-        }
-    }
-}
 
 /// The lease's time and a margin pass; the brake still holds the lift, no
 /// write reached the bus after it, and no lease expired.
@@ -66,7 +40,7 @@ async fn the_brake_holds(d: &TestDaemon, ws: &mut Ws, writes_after_brake: u64) {
         "a stop followed the brake: {seen:#?}"
     );
     assert_eq!(
-        writes(&bus),
+        writes_handled(&bus),
         writes_after_brake,
         "a write followed the brake"
     );
@@ -107,7 +81,7 @@ async fn a_plc_brake_ends_an_http_lease_and_nothing_releases_it() {
         let mut plc = Raw::connect(d.modbus_tcp.unwrap()).await;
         let plc_addr = plc.stream.local_addr().unwrap().to_string();
         plc_brake(&mut plc).await;
-        let after = writes(&bus);
+        let after = writes_handled(&bus);
         // At once, not at some later poll.
         assert!(api.get("/api/v1/drives/lift").await.expect(200)["lease"].is_null());
         let ended = wait_for(&mut ws, LIMIT, "lease-ended", |v| {
@@ -150,7 +124,7 @@ async fn a_plc_brake_ends_a_websocket_lease_and_nothing_releases_it() {
 
         let mut plc = Raw::connect(d.modbus_tcp.unwrap()).await;
         plc_brake(&mut plc).await;
-        let after = writes(&bus);
+        let after = writes_handled(&bus);
         assert!(api.get("/api/v1/drives/lift").await.expect(200)["lease"].is_null());
         // The session that held the lease is told, without subscribing.
         let ended = wait_for(&mut ws, LIMIT, "lease-ended", |v| {
@@ -170,7 +144,7 @@ async fn a_plc_brake_ends_a_websocket_lease_and_nothing_releases_it() {
         let mut watch = connect(d.http, "?drives=lift", None).await;
         let seen = messages_within(&mut watch, Duration::from_millis(500)).await;
         assert!(!seen.iter().any(|v| v["type"] == "lease-expired"));
-        assert_eq!(writes(&bus), after);
+        assert_eq!(writes_handled(&bus), after);
         assert!(d.sim().drive(LIFT).unwrap().braking);
         d.stop().await;
     })
@@ -194,7 +168,7 @@ async fn a_plc_alone_brakes_and_the_brake_holds() {
         })
         .await;
         plc_brake(&mut plc).await;
-        let after = writes(&bus);
+        let after = writes_handled(&bus);
         the_brake_holds(&d, &mut ws, after).await;
         d.stop().await;
     })
@@ -252,7 +226,7 @@ async fn a_setpoint_the_brake_overtook_has_the_brake_applied_again() {
                 .then_some(())
         })
         .await;
-        let before = writes(&bus);
+        let before = writes_handled(&bus);
         // The PLC pipelines a setpoint and then the brake. Both wait behind
         // the held wire; the brake, at emergency priority, goes first, and
         // the setpoint lands after it: that releases the brake ...
@@ -270,7 +244,7 @@ async fn a_setpoint_the_brake_overtook_has_the_brake_applied_again() {
         assert_eq!((r1, r2), (write(IQ_REF, 128), write(CONFIG, BRAKE)));
         // ... so the brake is applied again, and holds.
         eventually(LIMIT, "the brake applied again", || {
-            (writes(&bus) == before + 3).then_some(())
+            (writes_handled(&bus) == before + 3).then_some(())
         })
         .await;
         let lift = d.sim().drive(LIFT).unwrap();
@@ -300,7 +274,7 @@ async fn ends_the_lease(
     .await
     .expect(200);
     stop().await;
-    let after = writes(&bus);
+    let after = writes_handled(&bus);
     assert!(
         api.get(&format!("/api/v1/drives/{drive}"))
             .await
@@ -309,7 +283,7 @@ async fn ends_the_lease(
         "{drive}: the lease is still there"
     );
     tokio::time::sleep(Duration::from_millis(1200)).await;
-    assert_eq!(writes(&bus), after, "{drive}: a stop followed");
+    assert_eq!(writes_handled(&bus), after, "{drive}: a stop followed");
     let view = d.sim().drive(unit).unwrap();
     assert!(
         !view.active || view.braking,

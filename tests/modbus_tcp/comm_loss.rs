@@ -14,12 +14,11 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-use crate::support::api::{Api, Ws, connect, next_json, wait_for};
+use crate::support::api::{Api, Ws, connect, messages_within, wait_for};
 use crate::support::logs::{capture_logs, log_text};
-use crate::support::modbus_tcp::{Plc, Raw, four_drives_with, metric, write};
+use crate::support::modbus_tcp::{Plc, Raw, four_drives_with, metric, write, writes_handled};
 use crate::support::proxy::CutProxy;
 use crate::support::{TestDaemon, eventually};
-use drivegate::bus::BusHandle;
 
 const LIMIT: Duration = Duration::from_secs(90);
 /// Longest wait for an event the design says must come.
@@ -60,37 +59,11 @@ async fn lease(api: &Api) -> Value {
     api.get("/api/v1/drives/conveyor").await.expect(200)["lease"].clone()
 }
 
-/// Every stream message for `window`.
-async fn messages_within(ws: &mut Ws, window: Duration) -> Vec<Value> {
-    let until = Instant::now() + window;
-    let mut seen = Vec::new();
-    loop {
-        let left = until.saturating_duration_since(Instant::now());
-        if left.is_zero() {
-            return seen;
-        }
-        match tokio::time::timeout(left, next_json(ws, LIMIT)).await {
-            Ok(v) => seen.push(v),
-            Err(_) => return seen,
-        }
-    }
-}
-
 fn lease_news(v: &Value) -> bool {
     matches!(
         v["type"].as_str(),
         Some("lease-expired" | "lease-stop" | "lease-ended")
     )
-}
-
-/// Single-register writes (0x06) the bus has dealt with.
-fn writes(bus: &BusHandle) -> u64 {
-    bus.stats()
-        .transactions
-        .iter()
-        .filter(|((function, _), _)| *function == 0x06)
-        .map(|(_, n)| n)
-        .sum()
 }
 
 /// The conveyor comes to rest: the stop set its speed setpoint to 0.
@@ -333,7 +306,7 @@ async fn an_http_brake_ends_a_plc_lease_and_no_stop_follows() {
         let owner = lease(&api).await["owner"].as_str().unwrap().to_string();
 
         api.command("conveyor", "brake").await;
-        let after = writes(&bus);
+        let after = writes_handled(&bus);
         assert!(lease(&api).await.is_null(), "ended at once");
         let ended = wait_for(&mut ws, EVENT, "lease-ended", |v| {
             v["type"] == "lease-ended"
@@ -382,7 +355,7 @@ async fn an_http_brake_ends_a_plc_lease_and_no_stop_follows() {
             .filter(|v| v["type"] == "write")
             .collect();
         assert!(stops.is_empty(), "a write followed the brake: {stops:#?}");
-        assert_eq!(writes(&bus), after, "a write reached the bus");
+        assert_eq!(writes_handled(&bus), after, "a write reached the bus");
         assert!(
             d.sim().drive(CONVEYOR).unwrap().braking,
             "the brake was released"
@@ -518,7 +491,7 @@ async fn action_none_shows_and_counts_the_loss_and_leaves_the_motor_turning() {
             (&held["action"], &held["comm_loss"]),
             (&"none".into(), &true.into())
         );
-        let before = writes(&bus);
+        let before = writes_handled(&bus);
         plc.tell("close").await;
         let expired = wait_for(&mut ws, EVENT, "lease-expired", |v| {
             v["type"] == "lease-expired"
@@ -531,7 +504,7 @@ async fn action_none_shows_and_counts_the_loss_and_leaves_the_motor_turning() {
             "the lease's action is \"none\": nothing sent"
         );
         assert_eq!(comm_loss_stops(&d, "closed"), 1.0);
-        assert_eq!(writes(&bus), before, "something was written");
+        assert_eq!(writes_handled(&bus), before, "something was written");
         let drive = d.sim().drive(CONVEYOR).unwrap();
         assert_eq!(drive.setpoints.speed_rpm, RPM as i16);
         assert!(drive.speed_rpm > 100.0);

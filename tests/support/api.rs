@@ -244,3 +244,19 @@ pub async fn ws_command(ws: &mut Ws, id: u64, op: &str, drive: &str, body: Value
     })
     .await
 }
+
+/// Reads the stream for `window` and returns every message.
+pub async fn messages_within(ws: &mut Ws, window: Duration) -> Vec<Value> {
+    let until = Instant::now() + window;
+    let mut seen = Vec::new();
+    loop {
+        let left = until.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return seen;
+        }
+        match tokio::time::timeout(left, next_json(ws, left + Duration::from_secs(1))).await {
+            Ok(v) => seen.push(v),
+            Err(_) => return seen,
+        }
+    }
+}

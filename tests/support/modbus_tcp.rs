@@ -323,3 +323,13 @@ impl OutputWithin for tokio::process::Command {
         }
     }
 }
+
+/// Writes (function 0x06) the bus has dealt with: sent, failed or dropped.
+pub fn writes_handled(bus: &drivegate::bus::BusHandle) -> u64 {
+    bus.stats()
+        .transactions
+        .iter()
+        .filter(|((function, _), _)| *function == 0x06)
+        .map(|(_, n)| n)
+        .sum()
+}
