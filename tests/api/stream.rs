@@ -357,7 +357,15 @@ async fn the_client_holding_a_lease_is_told_it_ended() {
         let mut slow = connect_small_buffer(d.http, "?drives=all").await;
         let r = ws_command(&mut slow, 3, "setpoint", "conveyor", setpoint).await;
         assert_eq!(r["ok"], true, "{r:#}");
-        tokio::time::sleep(Duration::from_secs(2)).await;
+        // Not reading while the bus polls 200 times more: about 60 KB of
+        // status updates, against 8 KB of socket buffers and 2 messages of
+        // stream buffer (a loaded machine polls slower; it takes longer).
+        let bus = d.plant.buses()[0].handle.clone();
+        let polls = bus.stats().polls;
+        crate::support::eventually(Duration::from_secs(30), "200 polls", || {
+            (bus.stats().polls >= polls + 200).then_some(())
+        })
+        .await;
         let ended = wait_for(
             &mut slow,
             Duration::from_secs(10),

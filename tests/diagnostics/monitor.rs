@@ -518,7 +518,7 @@ async fn a_live_client_that_never_reads_loses_frames_not_the_bus_its_pace() {
         // while the stuck client held its socket.
         let (with_clients, _) = poll_rate(&api, frames_seen() - 256).await;
         assert!(
-            with_clients > 0.7 * alone,
+            with_clients > 0.5 * alone,
             "{with_clients:.1} polls/s with a stuck client, {alone:.1} without"
         );
 

@@ -214,7 +214,10 @@ async fn without_polled_copy_every_read_uses_the_bus() {
                 .copied()
                 .unwrap_or(0)
         };
-        assert!(reads(&after) - reads(&before) >= 20 + (after.polls - before.polls));
+        // Every read used the bus, beside every poll that succeeded (on a
+        // loaded machine a poll can time out).
+        let polled = (after.polls - after.poll_failures) - (before.polls - before.poll_failures);
+        assert!(reads(&after) - reads(&before) >= 20 + polled);
         d.stop().await;
     })
     .await;
