@@ -188,6 +188,9 @@ pub struct RtuMaster {
     /// The line has been silent since this instant (may be in the future
     /// after a broadcast: the drives' turnaround).
     quiet_since: Instant,
+    /// When the last guard ended: the silence measured before the next
+    /// request counts from t3.5 before it, not from the guard's start.
+    guard_ended: Instant,
     buf: Box<[u8; 512]>,
     stray: usize,
     /// Hands every frame to the bus monitor and the scope.
@@ -203,6 +206,7 @@ impl RtuMaster {
             settings,
             timer: PreciseTimer::new()?,
             quiet_since: Instant::now(),
+            guard_ended: Instant::now(),
             buf: Box::new([0; 512]),
             stray: 0,
             tap: WireTap::detached(settings.line),
@@ -291,7 +295,11 @@ impl RtuMaster {
         for attempt in 1..=attempts_allowed {
             self.wait_for_silence(Duration::ZERO, PICK_AHEAD + PICK_AHEAD)
                 .await?;
-            let quiet_since = self.quiet_since;
+            let quiet_since = self.quiet_since.max(
+                self.guard_ended
+                    .checked_sub(t35)
+                    .unwrap_or(self.quiet_since),
+            );
             let sent_at = self.send(&frame, sent).await?;
             if started.is_none() {
                 idle_before = sent_at.saturating_duration_since(quiet_since);
@@ -580,13 +588,16 @@ impl RtuMaster {
     /// After a fault: keep the line for `time`, discarding anything that
     /// arrives (a late reply), then flush the input.
     async fn guard(&mut self, time: Duration) -> io::Result<()> {
-        let until = Instant::now() + time;
+        let start = Instant::now();
+        let until = start + time;
+        let mut quiet_from = start;
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
                     let n = self.got(read)?;
                     self.stray += n;
-                    self.tap.stray(&self.buf[..n], Instant::now());
+                    quiet_from = Instant::now();
+                    self.tap.stray(&self.buf[..n], quiet_from);
                 }
                 slept = self.timer.sleep_until_relaxed(until) => {
                     slept?;
@@ -594,23 +605,27 @@ impl RtuMaster {
                 }
             }
         }
-        self.flush_input()
+        self.end_guard(quiet_from)
     }
 
     /// After a timeout in which nothing arrived: keep the line as long as a
     /// reply of `reply_len` bytes starting now would take, plus t3.5, and
     /// on until t3.5 of silence if bytes come meanwhile (the late reply is
-    /// then discarded whole); then flush the input.
+    /// then discarded whole); then flush the input. The guard ends in
+    /// t3.5 of silence, so the next request need not wait another.
     async fn guard_late_reply(&mut self, reply_len: usize) -> io::Result<()> {
         let line = self.settings.line;
-        let mut until = Instant::now() + line.wire_time(reply_len) + line.t3_5();
+        let start = Instant::now();
+        let mut quiet_from = start;
+        let mut until = start + line.wire_time(reply_len) + line.t3_5();
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
                     let n = self.got(read)?;
                     self.stray += n;
-                    self.tap.stray(&self.buf[..n], Instant::now());
-                    until = until.max(Instant::now() + line.t3_5());
+                    quiet_from = Instant::now();
+                    self.tap.stray(&self.buf[..n], quiet_from);
+                    until = until.max(quiet_from + line.t3_5());
                 }
                 slept = self.timer.sleep_until_relaxed(until) => {
                     slept?;
@@ -618,13 +633,24 @@ impl RtuMaster {
                 }
             }
         }
-        self.flush_input()
+        self.end_guard(quiet_from)
     }
 
-    /// Discards whatever the port holds unread; the line is silent from now.
-    fn flush_input(&mut self) -> io::Result<()> {
+    /// Ends a guard: discards whatever the port still holds (counted as
+    /// stray when it can be read) and flushes the input. The line has been
+    /// silent since `quiet_from` (the guard's start, or the last byte it
+    /// discarded) unless bytes were still waiting: the guard's own silence
+    /// counts towards the t3.5 before the next request, which after a
+    /// guard of t3.5 or more can go at once.
+    fn end_guard(&mut self, quiet_from: Instant) -> io::Result<()> {
+        let waiting = self.drain_input()?;
         self.port.clear_input()?;
-        self.quiet_since = Instant::now();
+        self.guard_ended = Instant::now();
+        self.quiet_since = if waiting > 0 {
+            Instant::now()
+        } else {
+            quiet_from
+        };
         Ok(())
     }
 
