@@ -188,9 +188,6 @@ pub struct RtuMaster {
     /// The line has been silent since this instant (may be in the future
     /// after a broadcast: the drives' turnaround).
     quiet_since: Instant,
-    /// When the last guard ended: the silence measured before the next
-    /// request counts from t3.5 before it, not from the guard's start.
-    guard_ended: Instant,
     buf: Box<[u8; 512]>,
     stray: usize,
     /// Hands every frame to the bus monitor and the scope.
@@ -206,7 +203,6 @@ impl RtuMaster {
             settings,
             timer: PreciseTimer::new()?,
             quiet_since: Instant::now(),
-            guard_ended: Instant::now(),
             buf: Box::new([0; 512]),
             stray: 0,
             tap: WireTap::detached(settings.line),
@@ -295,11 +291,7 @@ impl RtuMaster {
         for attempt in 1..=attempts_allowed {
             self.wait_for_silence(Duration::ZERO, PICK_AHEAD + PICK_AHEAD)
                 .await?;
-            let quiet_since = self.quiet_since.max(
-                self.guard_ended
-                    .checked_sub(t35)
-                    .unwrap_or(self.quiet_since),
-            );
+            let quiet_since = self.quiet_since;
             let sent_at = self.send(&frame, sent).await?;
             if started.is_none() {
                 idle_before = sent_at.saturating_duration_since(quiet_since);
@@ -588,16 +580,13 @@ impl RtuMaster {
     /// After a fault: keep the line for `time`, discarding anything that
     /// arrives (a late reply), then flush the input.
     async fn guard(&mut self, time: Duration) -> io::Result<()> {
-        let start = Instant::now();
-        let until = start + time;
-        let mut quiet_from = start;
+        let until = Instant::now() + time;
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
                     let n = self.got(read)?;
                     self.stray += n;
-                    quiet_from = Instant::now();
-                    self.tap.stray(&self.buf[..n], quiet_from);
+                    self.tap.stray(&self.buf[..n], Instant::now());
                 }
                 slept = self.timer.sleep_until_relaxed(until) => {
                     slept?;
@@ -605,27 +594,23 @@ impl RtuMaster {
                 }
             }
         }
-        self.end_guard(quiet_from)
+        self.flush_input()
     }
 
     /// After a timeout in which nothing arrived: keep the line as long as a
     /// reply of `reply_len` bytes starting now would take, plus t3.5, and
     /// on until t3.5 of silence if bytes come meanwhile (the late reply is
-    /// then discarded whole); then flush the input. The guard ends in
-    /// t3.5 of silence, so the next request need not wait another.
+    /// then discarded whole); then flush the input.
     async fn guard_late_reply(&mut self, reply_len: usize) -> io::Result<()> {
         let line = self.settings.line;
-        let start = Instant::now();
-        let mut quiet_from = start;
-        let mut until = start + line.wire_time(reply_len) + line.t3_5();
+        let mut until = Instant::now() + line.wire_time(reply_len) + line.t3_5();
         loop {
             tokio::select! {
                 read = self.port.read(&mut self.buf[..]) => {
                     let n = self.got(read)?;
                     self.stray += n;
-                    quiet_from = Instant::now();
-                    self.tap.stray(&self.buf[..n], quiet_from);
-                    until = until.max(quiet_from + line.t3_5());
+                    self.tap.stray(&self.buf[..n], Instant::now());
+                    until = until.max(Instant::now() + line.t3_5());
                 }
                 slept = self.timer.sleep_until_relaxed(until) => {
                     slept?;
@@ -633,24 +618,13 @@ impl RtuMaster {
                 }
             }
         }
-        self.end_guard(quiet_from)
+        self.flush_input()
     }
 
-    /// Ends a guard: discards whatever the port still holds (counted as
-    /// stray when it can be read) and flushes the input. The line has been
-    /// silent since `quiet_from` (the guard's start, or the last byte it
-    /// discarded) unless bytes were still waiting: the guard's own silence
-    /// counts towards the t3.5 before the next request, which after a
-    /// guard of t3.5 or more can go at once.
-    fn end_guard(&mut self, quiet_from: Instant) -> io::Result<()> {
-        let waiting = self.drain_input()?;
+    /// Discards whatever the port holds unread; the line is silent from now.
+    fn flush_input(&mut self) -> io::Result<()> {
         self.port.clear_input()?;
-        self.guard_ended = Instant::now();
-        self.quiet_since = if waiting > 0 {
-            Instant::now()
-        } else {
-            quiet_from
-        };
+        self.quiet_since = Instant::now();
         Ok(())
     }
 
