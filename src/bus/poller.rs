@@ -201,8 +201,10 @@ impl PollPlan {
                 let backoff = d.backoff.map_or(min, |b| (b * 2).min(max));
                 d.backoff = Some(backoff);
                 // From when the probe fell due, so a backoff of whole
-                // periods keeps the phase exactly.
-                d.next_due = d.in_phase_from(d.next_due.min(now) + backoff);
+                // periods keeps the phase exactly; but never sooner than
+                // the backoff from now (a probe longer than the backoff).
+                let from = d.next_due.min(now) + backoff;
+                d.next_due = d.in_phase_from(if from > now { from } else { now + backoff });
             }
             // A drive that answered before keeps its period until it is
             // reported offline: one missed reply is not an outage.
@@ -592,5 +594,16 @@ mod tests {
         // answers as they were.
         plan.answered(1, t0 + 20 * MS);
         assert_eq!(plan.due_at(1), Some(t0 + SECOND));
+    }
+
+    #[test]
+    fn a_probe_longer_than_the_backoff_is_not_followed_by_another_at_once() {
+        let t0 = Instant::now();
+        let mut plan = PollPlan::new([(1, 200 * MS)], 200 * MS, 400 * MS, t0);
+        // A 300 ms timeout: the probe due at t0 ends at 300 ms.
+        plan.polled(1, t0 + 300 * MS, OFFLINE);
+        assert_eq!(plan.due_at(1), Some(t0 + 600 * MS));
+        plan.polled(1, t0 + 900 * MS, OFFLINE);
+        assert_eq!(plan.due_at(1), Some(t0 + 1000 * MS));
     }
 }
