@@ -29,7 +29,7 @@
 //!
 //! `cargo bench --bench bus_tails`; `DRIVEGATE_BENCH_SECS` sets each run's
 //! length (default 10); `DRIVEGATE_BENCH_ONLY=pty,usb` picks transports,
-//! `DRIVEGATE_BENCH_SCENARIOS=off,1hz,dead` scenarios.
+//! `DRIVEGATE_BENCH_SCENARIOS=off,1hz,dead,dead-steady` scenarios.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
