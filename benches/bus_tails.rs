@@ -5,7 +5,11 @@
 //! Three scenarios, each on every transport:
 //! - background polling off (one poll per drive at start, then none);
 //! - polling at 1 Hz per drive;
-//! - polling at 1 Hz with a 9th configured drive that never answers.
+//! - polling at 1 Hz with a 9th configured drive that never answers, over
+//!   the first 10 s after start (`dead`: it is probed, found silent and
+//!   backed off), and once it is offline and probed at its longest backoff
+//!   (`dead-steady`: the longest backoff set to 5 s for the bench, so the
+//!   window holds probes; the default 30 s costs a sixth of that).
 //!
 //! Transports: the simulator behind a pty with a UART's exact timing
 //! (`pty`); the same with a USB adapter's delivery, replies handed over in
@@ -18,13 +22,14 @@
 //! clients' latency p50 / p99 / max, the silence before each request as the
 //! wire saw it (p50 / p99, from the simulator) and as the master left it
 //! (p50 / p99, `drivegate_bus_interframe_idle_seconds`), t3.5 violations,
-//! and timeouts (the dead drive's probes). The figures recorded before the
+//! timeouts (the dead drive's probes) and background polls made (a poll is
+//! skipped when a client has just read the same status). The figures recorded before the
 //! phased polling, cheap dead drives, overhead and reply-deadline changes
 //! are printed beside each run.
 //!
 //! `cargo bench --bench bus_tails`; `DRIVEGATE_BENCH_SECS` sets each run's
 //! length (default 10); `DRIVEGATE_BENCH_ONLY=pty,usb` picks transports,
-//! `DRIVEGATE_BENCH_SCENARIOS=off,1hz,dead` scenarios.
+//! `DRIVEGATE_BENCH_SCENARIOS=off,1hz,dead,dead-steady` scenarios.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
@@ -47,6 +52,8 @@ const DRIVES: u8 = 8;
 const DEAD_UNIT: u8 = 9;
 const BAUD: u32 = 115_200;
 const TURNAROUND_MS: f64 = 0.5;
+/// The longest backoff of the dead drive in the steady scenario.
+const STEADY_BACKOFF_MS: u64 = 5000;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Transport {
@@ -79,13 +86,15 @@ enum Scenario {
     PollingOff,
     Polling1Hz,
     DeadDrive,
+    DeadSteady,
 }
 
 impl Scenario {
-    const ALL: [Scenario; 3] = [
+    const ALL: [Scenario; 4] = [
         Scenario::PollingOff,
         Scenario::Polling1Hz,
         Scenario::DeadDrive,
+        Scenario::DeadSteady,
     ];
 
     fn name(self) -> &'static str {
@@ -93,6 +102,7 @@ impl Scenario {
             Scenario::PollingOff => "polling off",
             Scenario::Polling1Hz => "polling 1 Hz",
             Scenario::DeadDrive => "1 Hz + dead drive",
+            Scenario::DeadSteady => "dead, steady",
         }
     }
 
@@ -101,6 +111,7 @@ impl Scenario {
             Scenario::PollingOff => "off",
             Scenario::Polling1Hz => "1hz",
             Scenario::DeadDrive => "dead",
+            Scenario::DeadSteady => "dead-steady",
         }
     }
 
@@ -114,7 +125,7 @@ impl Scenario {
 
     fn units(self) -> Vec<u8> {
         match self {
-            Scenario::DeadDrive => (1..=DEAD_UNIT).collect(),
+            Scenario::DeadDrive | Scenario::DeadSteady => (1..=DEAD_UNIT).collect(),
             _ => (1..=DRIVES).collect(),
         }
     }
@@ -136,6 +147,8 @@ struct Figures {
     master_idle_p99_ms: f64,
     violations: u64,
     timeouts: u64,
+    /// Background polls made.
+    polls: u64,
     errors: usize,
 }
 
@@ -196,6 +209,9 @@ fn daemon_config(port: &str, scenario: Scenario) -> String {
          retries = 1\npoll_interval_ms = {}\n",
         scenario.poll_interval_ms()
     );
+    if scenario == Scenario::DeadSteady {
+        toml.push_str(&format!("offline_backoff_max_ms = {STEADY_BACKOFF_MS}\n"));
+    }
     for unit in scenario.units() {
         toml.push_str(&format!(
             "[[bus.drive]]\nunit = {unit}\nname = \"d{unit}\"\ngear_ratio = 3.75\n"
@@ -212,7 +228,7 @@ fn start_sim(transport: Transport, scenario: Scenario) -> SimHandle {
     if transport == Transport::Tcp {
         config.listen = Some("127.0.0.1:0".parse().unwrap());
     }
-    if scenario == Scenario::DeadDrive {
+    if matches!(scenario, Scenario::DeadDrive | Scenario::DeadSteady) {
         config.faults.silent_units = vec![DEAD_UNIT];
     }
     Simulator::start(config).unwrap()
@@ -325,6 +341,17 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
         assert!(warm.elapsed() < Duration::from_secs(10), "drives silent");
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
+    // Steady: the dead drive is offline and its backoff has reached the
+    // longest (1, 2, 4, then 5 s).
+    if scenario == Scenario::DeadSteady {
+        while bus
+            .drive(DEAD_UNIT)
+            .is_none_or(|d| d.consecutive_failures < 4)
+        {
+            assert!(warm.elapsed() < Duration::from_secs(30), "no backoff");
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
 
     let stats_before = bus.stats();
     let sim_before = sim.stats();
@@ -359,6 +386,7 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
         ),
         violations: sim_after.gap_violations - sim_before.gap_violations,
         timeouts: stats_after.count(Outcome::Timeout) - stats_before.count(Outcome::Timeout),
+        polls: stats_after.polls - stats_before.polls,
         errors,
     }
 }
@@ -408,13 +436,14 @@ async fn run_mbusd(mbusd: &str, transport: Transport, secs: u64) -> Figures {
         master_idle_p99_ms: 0.0,
         violations: sim_after.gap_violations - sim_before.gap_violations,
         timeouts: 0,
+        polls: 0,
         errors,
     }
 }
 
 fn print_row(port: &str, scenario: &str, f: &Figures, before: String) {
     println!(
-        "{:<5} {:<18} {:>6.1}% {:>5.1} ms {:>5.1} ms {:>5.1} ms {:>6.2}/{:.2} ms {:>6.2}/{:.2} ms {:>5} {:>5} {:>4}   {}",
+        "{:<5} {:<18} {:>6.1}% {:>5.1} ms {:>5.1} ms {:>5.1} ms {:>6.2}/{:.2} ms {:>6.2}/{:.2} ms {:>5} {:>5} {:>5} {:>4}   {}",
         port,
         scenario,
         f.bus_share,
@@ -427,6 +456,7 @@ fn print_row(port: &str, scenario: &str, f: &Figures, before: String) {
         f.master_idle_p99_ms,
         f.violations,
         f.timeouts,
+        f.polls,
         f.errors,
         before
     );
@@ -459,7 +489,7 @@ fn main() {
         line.t3_5().as_secs_f64() * 1e3
     );
     println!(
-        "{:<5} {:<18} {:>7} {:>8} {:>8} {:>8} {:>15} {:>15} {:>5} {:>5} {:>4}   before: bus p50 p99 max, wire idle p50/99",
+        "{:<5} {:<18} {:>7} {:>8} {:>8} {:>8} {:>15} {:>15} {:>5} {:>5} {:>5} {:>4}   before: bus p50 p99 max, wire idle p50/99",
         "port",
         "scenario",
         "bus",
@@ -470,6 +500,7 @@ fn main() {
         "master p50/99",
         "viol",
         "tmo",
+        "polls",
         "err",
     );
     for transport in Transport::ALL {

@@ -18,7 +18,7 @@ use super::error::PortCause;
 use super::handle::{BusHandle, PortState, Shared};
 use super::job::{Exchange, Job, Priority};
 use super::master::{Fault, MasterSettings, PortFailure, Report, RtuMaster};
-use super::poller::PollPlan;
+use super::poller::{PollPlan, PollResult};
 use super::queue::{JobQueue, QueueLimits};
 use super::stats::{BusStats, Outcome};
 use super::tcp_port;
@@ -536,10 +536,17 @@ impl Scheduler {
         self.account(function, &report, job.submitted);
         let result = match (report.outcome, report.reply) {
             (Outcome::Ok | Outcome::Exception, Some(reply)) => {
+                // A client's read of a drive's status is as good as a poll
+                // (the plan may skip the next one); any answer says the
+                // drive is there.
+                let now = Instant::now();
                 if job.pdu == *STATUS_PDU
                     && let Ok(DriveReply::Status(s)) = DriveRequest::ReadStatus.parse_reply(&reply)
                 {
                     self.cache().record_status(job.unit, s);
+                    self.plan.refreshed(job.unit, now);
+                } else if job.unit != 0 {
+                    self.plan.answered(job.unit, now);
                 }
                 Ok(Exchange {
                     reply,
@@ -608,7 +615,14 @@ impl Scheduler {
         }
         self.stats().record_poll(status.is_some());
         let now = Instant::now();
-        self.plan.polled(unit, now, self.cache().is_offline(unit));
+        let result = if status.is_some() {
+            PollResult::Answered
+        } else {
+            PollResult::Failed {
+                offline: self.cache().is_offline(unit),
+            }
+        };
+        self.plan.polled(unit, now, result);
         self.shared.scope.polled(unit, now);
         Ok(())
     }

@@ -516,3 +516,55 @@ async fn shutdown_stops_every_drive_even_beyond_the_queue_limits() {
     let stats = bus.stats();
     assert_eq!(stats.busy_rejections, 0, "{stats:?}");
 }
+
+/// Two drives polled every 400 ms; a client reads the first one's status
+/// every 50 ms.
+const TWO_DRIVES_AT_400_MS: &str = r#"
+[http]
+listen = "127.0.0.1:0"
+[[bus]]
+name = "line"
+port = "sim"
+poll_interval_ms = 400
+[bus.sim]
+turnaround_ms = 0.5
+[[bus.drive]]
+unit = 1
+name = "read"
+[[bus.drive]]
+unit = 2
+name = "polled"
+"#;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_status_a_client_reads_spares_that_drives_polls() {
+    let d = TestDaemon::start(TWO_DRIVES_AT_400_MS).await;
+    let bus = d.plant.buses()[0].handle.clone();
+    let status = DriveRequest::ReadStatus;
+    // The first client read goes before the window, so unit 1's poll is
+    // already pushed on when it starts.
+    bus.execute(1, &status, JobOptions::default())
+        .await
+        .unwrap();
+    let before = bus.stats().polls;
+    let start = std::time::Instant::now();
+    let mut reads = 0;
+    while start.elapsed() < Duration::from_secs(4) {
+        let reply = bus.execute(1, &status, JobOptions::default()).await;
+        assert!(matches!(reply, Ok(DriveReply::Status(_))), "{reply:?}");
+        reads += 1;
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let polls = bus.stats().polls - before;
+    // Unit 2 is polled every 400 ms, 10 times in 4 s (11 at the window's
+    // edges). Unit 1's polls are all made by the client's reads, but for
+    // one whenever the machine holds the client up for over 200 ms (half
+    // the interval); unpolled, it would add 10 more.
+    assert!((9..=14).contains(&polls), "{polls} polls, {reads} reads");
+    // Both statuses are fresh.
+    for unit in [1, 2] {
+        let age = bus.drive(unit).unwrap().age().unwrap();
+        assert!(age < Duration::from_secs(1), "unit {unit}: {age:?}");
+    }
+    d.stop().await;
+}
