@@ -70,6 +70,11 @@ pub struct SafetyConfig {
     pub on_shutdown: StopAction,
     /// Applied when a client's setpoint lease runs out.
     pub on_lease_expiry: StopAction,
+    /// The lease of a jog from the web console, ms: how long the motor runs
+    /// on after the page's last renewal (it renews three times a lease).
+    /// Longer rides out a tablet's Wi-Fi hiccups; shorter stops sooner.
+    #[serde(deserialize_with = "crate::config::values::int_in::<_, _, 100, 5000>")]
+    pub jog_lease_ms: u64,
 }
 
 impl Default for SafetyConfig {
@@ -77,6 +82,7 @@ impl Default for SafetyConfig {
         Self {
             on_shutdown: StopAction::ZeroSpeed,
             on_lease_expiry: StopAction::ZeroSpeed,
+            jog_lease_ms: 300,
         }
     }
 }

@@ -33,6 +33,9 @@ pub struct WhoAmI {
     /// True when this daemon needs a token (false: every local client is
     /// admin).
     pub tokens_required: bool,
+    /// The lease a jog from the console asks for, ms (`[safety]
+    /// jog_lease_ms`): the motor runs on this long after the last renewal.
+    pub jog_lease_ms: u64,
 }
 
 /// The presented token's name and role, and whether a token is needed.
@@ -52,11 +55,13 @@ pub async fn whoami(
     caller: Result<Caller, Problem>,
 ) -> Result<Json<WhoAmI>, Problem> {
     let tokens_required = !state.tokens.is_empty();
+    let jog_lease_ms = u64::try_from(state.control.jog_lease().as_millis()).unwrap_or(u64::MAX);
     if tokens_required && !headers.contains_key(AUTHORIZATION) {
         return Ok(Json(WhoAmI {
             who: None,
             role: None,
             tokens_required,
+            jog_lease_ms,
         }));
     }
     let caller = caller?;
@@ -64,5 +69,6 @@ pub async fn whoami(
         who: Some(caller.who.to_string()),
         role: Some(caller.role),
         tokens_required,
+        jog_lease_ms,
     }))
 }

@@ -9,7 +9,7 @@
 mod bus;
 mod diagnostics;
 mod error;
-mod values;
+pub(crate) mod values;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;

@@ -233,3 +233,13 @@ fn monitor_and_scope_sections() {
     let e = err(&format!("[scope]\nmax_sample = 5\n{MINIMAL}"));
     assert!(e.contains("2:1") && e.contains("max_sample"), "{e}");
 }
+
+#[test]
+fn the_console_jog_lease_is_bounded() {
+    let c = parse(MINIMAL).unwrap();
+    assert_eq!(c.safety.jog_lease_ms, 300);
+    let c = parse(&format!("[safety]\njog_lease_ms = 1500\n{MINIMAL}")).unwrap();
+    assert_eq!(c.safety.jog_lease_ms, 1500);
+    let e = err(&format!("[safety]\njog_lease_ms = 50\n{MINIMAL}"));
+    assert!(e.contains("2:16") && e.contains("100 to 5000"), "{e}");
+}

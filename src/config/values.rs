@@ -4,7 +4,7 @@
 use serde::{Deserialize, Deserializer, de::Error};
 
 /// An integer in `MIN..=MAX`.
-pub(super) fn int_in<'de, D, T, const MIN: i64, const MAX: i64>(d: D) -> Result<T, D::Error>
+pub(crate) fn int_in<'de, D, T, const MIN: i64, const MAX: i64>(d: D) -> Result<T, D::Error>
 where
     D: Deserializer<'de>,
     T: TryFrom<i64>,

@@ -78,6 +78,7 @@ struct Inner {
     plant: Arc<Plant>,
     leases: Arc<Leases>,
     events: Arc<Events>,
+    jog_lease: Duration,
 }
 
 impl Control {
@@ -95,7 +96,13 @@ impl Control {
             plant,
             leases,
             events,
+            jog_lease: Duration::from_millis(safety.jog_lease_ms),
         }))
+    }
+
+    /// The lease a console jog asks for (`[safety] jog_lease_ms`).
+    pub fn jog_lease(&self) -> Duration {
+        self.0.jog_lease
     }
 
     /// Buses and drives.

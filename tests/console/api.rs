@@ -40,8 +40,12 @@ async fn whoami_names_the_token_and_its_role() {
     let (status, me) = call(&open, None, "GET", "/api/v1/whoami", None).await;
     assert_eq!(status, 200);
     assert_eq!(
-        (me["role"].clone(), me["tokens_required"].clone()),
-        (json!("admin"), json!(false))
+        (
+            me["role"].clone(),
+            me["tokens_required"].clone(),
+            me["jog_lease_ms"].clone()
+        ),
+        (json!("admin"), json!(false), json!(300))
     );
     assert!(
         me["who"].as_str().unwrap().starts_with("127.0.0.1:"),
@@ -55,7 +59,8 @@ async fn whoami_names_the_token_and_its_role() {
         (status, me),
         (
             200,
-            json!({"who": null, "role": null, "tokens_required": true})
+            json!({"who": null, "role": null, "tokens_required": true,
+                   "jog_lease_ms": crate::harness::JOG_LEASE_MS})
         )
     );
     for (token, name, role) in [
@@ -68,7 +73,8 @@ async fn whoami_names_the_token_and_its_role() {
             (status, me),
             (
                 200,
-                json!({"who": name, "role": role, "tokens_required": true})
+                json!({"who": name, "role": role, "tokens_required": true,
+                       "jog_lease_ms": crate::harness::JOG_LEASE_MS})
             )
         );
     }

@@ -16,7 +16,7 @@ use crate::harness::{ADMIN, OPERATOR, Proxy, VIEWER, Watcher, config, speed, unt
 use crate::support::TestDaemon;
 
 /// The jog's lease in the page (web/console/jog.js).
-const LEASE: Duration = Duration::from_millis(300);
+const LEASE: Duration = Duration::from_millis(crate::harness::JOG_LEASE_MS);
 /// Room for a loaded machine's scheduling beside the lease itself.
 const SLACK: Duration = Duration::from_millis(1500);
 pub(crate) const LONG: Duration = Duration::from_secs(30);

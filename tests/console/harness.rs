@@ -60,8 +60,13 @@ pub fn config(tokens: bool, rest: &str) -> String {
     };
     let tail = tail.replace("response_timeout_ms = 50", "response_timeout_ms = 250");
     assert!(tail.contains("response_timeout_ms = 250"));
-    format!("{head}{tables}{tail}\n{rest}\n")
+    format!("{head}{tables}{tail}\n{rest}\n[safety]\njog_lease_ms = {JOG_LEASE_MS}\n")
 }
+
+/// The console's jog lease in these tests (`[safety] jog_lease_ms`, 300 by
+/// default): long enough that a renewal a loaded machine delays (the page
+/// renews three times a lease) does not end a jog that is still held.
+pub const JOG_LEASE_MS: u64 = 1000;
 
 /// The speed the daemon last polled from `unit` on the first bus, rpm.
 pub fn speed(plant: &Plant, unit: u8) -> Option<i16> {

@@ -3,25 +3,27 @@
 // simply stops renewing.
 //
 // The motor is stopped by the daemon, never by the page's goodwill: the
-// lease ends LEASE_MS after the last renewal (a released button, a window
+// lease ends `leaseMs` after the last renewal (a released button, a window
 // that lost focus, a frozen or closed tab, a cut network) and drivegate
 // then stops the motor ([safety] on_lease_expiry). A lease taken over the
 // stream also ends as soon as the socket closes. The page sends no "stop"
 // of its own on release, so what a user sees on release is exactly what
 // happens when the page dies.
 
-/** The lease of a jog, ms: how long the motor runs on after the last renewal. */
-export const LEASE_MS = 300;
+/** The lease of a jog when the daemon names none ([safety] jog_lease_ms), ms. */
+export const DEFAULT_LEASE_MS = 300;
 /** Renewals per lease: one lost or late renewal does not stop the motor. */
-const RENEW_MS = 100;
+const RENEWALS_PER_LEASE = 3;
 
 export class Jog {
   /**
    * `stream` carries the commands; `setpoint(direction)` gives the body
    * ({speed_rpm} or {torque_a}) for a direction of +1 or -1; `report`
-   * receives {state, error} for the page to show.
+   * receives {state, error} for the page to show; `leaseMs` is how long the
+   * motor runs on after the last renewal.
    */
-  constructor(stream, drive, setpoint, report) {
+  constructor(stream, drive, setpoint, report, leaseMs = DEFAULT_LEASE_MS) {
+    this.leaseMs = leaseMs;
     this.stream = stream;
     this.drive = drive;
     this.setpoint = setpoint;
@@ -48,11 +50,11 @@ export class Jog {
     this.direction = direction;
     const generation = ++this.generation;
     this.report({ state: 'starting', direction });
-    this.stream.command('setpoint', this.drive, { ...body, lease_ms: LEASE_MS })
+    this.stream.command('setpoint', this.drive, { ...body, lease_ms: this.leaseMs })
       .then(() => {
         if (generation !== this.generation || this.direction === 0) return;
         this.report({ state: 'running', direction });
-        this.timer = setInterval(() => this.renew(generation), RENEW_MS);
+        this.timer = setInterval(() => this.renew(generation), this.leaseMs / RENEWALS_PER_LEASE);
       })
       .catch((e) => {
         if (generation !== this.generation) return;
@@ -62,7 +64,7 @@ export class Jog {
   }
 
   renew(generation) {
-    this.stream.command('lease-renew', this.drive, { lease_ms: LEASE_MS }).catch((e) => {
+    this.stream.command('lease-renew', this.drive, { lease_ms: this.leaseMs }).catch((e) => {
       if (generation !== this.generation) return;
       // The lease is gone (brake, deactivation, another client, the
       // connection): stop asking, and say why.

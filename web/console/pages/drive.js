@@ -4,7 +4,7 @@
 
 import { drivePath, get, post, put } from '../api.js';
 import { History, positionTurns } from '../store.js';
-import { Jog, LEASE_MS } from '../jog.js';
+import { Jog, DEFAULT_LEASE_MS } from '../jog.js';
 import { h, fmt, age, words, Note, run, numberField, clock } from '../ui.js';
 import { condition } from './overview.js';
 import { speedRampTime, positionRampTime } from '../ramps.js';
@@ -202,7 +202,7 @@ function settingsTable(r) {
   return h('table', { class: 'kv' }, h('tbody', {}, rows.map(([k, v]) => h('tr', {}, h('th', { scope: 'row' }, k), h('td', {}, v)))));
 }
 
-function buildControls(name, d, { stream, brakeDrive }) {
+function buildControls(name, d, { store, stream, brakeDrive }) {
   const section = h('section', { class: 'panel controls', 'aria-labelledby': 'ctl-h' }, h('h2', { id: 'ctl-h' }, 'Control'));
 
   // Brake.
@@ -233,7 +233,8 @@ function buildControls(name, d, { stream, brakeDrive }) {
   section.append(h('div', { class: 'group' }, h('h3', {}, 'Drive'), activation, stateNote.el,
     h('h3', {}, 'Mode'), h('div', { class: 'row', role: 'group', 'aria-label': 'Mode' }, modeButtons), modeNote.el));
 
-  // Hold-to-jog (speed).
+  // Hold-to-jog (speed), with the daemon's jog lease.
+  const leaseMs = store.me.jog_lease_ms ?? DEFAULT_LEASE_MS;
   const jogNote = new Note();
   const rpm = numberField('Jog speed (rpm)', { value: '60', size: 6, dataset: { field: 'jog-rpm' } });
   const jogState = h('span', { class: 'jog-state', role: 'status', dataset: { jog: 'idle' } }, 'released');
@@ -241,7 +242,7 @@ function buildControls(name, d, { stream, brakeDrive }) {
     stateEl.dataset.jog = state;
     stateEl.textContent = state === 'running' ? `jogging ${direction > 0 ? 'forward' : 'backward'}`
       : state === 'starting' ? 'starting…'
-        : state === 'released' ? `released (${why}): drivegate stops the motor when the ${LEASE_MS} ms lease runs out`
+        : state === 'released' ? `released (${why}): drivegate stops the motor when the ${leaseMs} ms lease runs out`
           : 'released';
     if (error) note.fail(error); else if (state === 'running') note.clear();
   };
@@ -252,13 +253,13 @@ function buildControls(name, d, { stream, brakeDrive }) {
       throw new Error(`jogging drives the motor in speed mode; the drive is in ${words(d.status.mode)} mode: switch to speed mode first`);
     }
     return { speed_rpm: Math.round(Math.abs(v)) * dir };
-  }, report(jogNote, jogState));
+  }, report(jogNote, jogState), leaseMs);
   const back = h('button', { type: 'button', class: 'jog', dataset: { jog: 'backward' }, 'aria-keyshortcuts': 'ArrowLeft' }, '◀ hold to jog back');
   const fwd = h('button', { type: 'button', class: 'jog', dataset: { jog: 'forward' }, 'aria-keyshortcuts': 'ArrowRight' }, 'hold to jog forward ▶');
   jog.bind(back, -1);
   jog.bind(fwd, 1);
   section.append(h('div', { class: 'group' }, h('h3', {}, 'Jog (speed mode)'),
-    h('p', { class: 'hint' }, `Hold a button (or ← / →). The setpoint carries a ${LEASE_MS} ms lease renewed while held; on release, lost focus, a closed tab or a cut network drivegate stops the motor when the lease runs out.`),
+    h('p', { class: 'hint' }, `Hold a button (or ← / →). The setpoint carries a ${leaseMs} ms lease renewed while held; on release, lost focus, a closed tab or a cut network drivegate stops the motor when the lease runs out.`),
     h('div', { class: 'row' }, rpm.wrap, back, fwd), jogState, jogNote.el));
 
   // Go to a position.
@@ -281,7 +282,7 @@ function buildControls(name, d, { stream, brakeDrive }) {
     const v = amps.value();
     if (!Number.isFinite(v)) throw new Error('type a current in amps');
     return { torque_a: Math.abs(v) * dir };
-  }, report(torqueNote, torqueState));
+  }, report(torqueNote, torqueState), leaseMs);
   const tMinus = h('button', { type: 'button', class: 'jog', dataset: { torque: 'negative' } }, '◀ hold −');
   const tPlus = h('button', { type: 'button', class: 'jog', dataset: { torque: 'positive' } }, 'hold + ▶');
   torqueJog.bind(tMinus, -1);
