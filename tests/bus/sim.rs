@@ -526,6 +526,8 @@ listen = "127.0.0.1:0"
 name = "line"
 port = "sim"
 poll_interval_ms = 400
+response_timeout_ms = 250
+guard_ms = 50
 [bus.sim]
 turnaround_ms = 0.5
 [[bus.drive]]

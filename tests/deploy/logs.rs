@@ -27,6 +27,8 @@ level = "info"
 [[bus]]
 name = "sim"
 port = "sim"
+response_timeout_ms = 250
+guard_ms = 50
 [[bus.drive]]
 unit = 1
 name = "conveyor"

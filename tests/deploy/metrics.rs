@@ -502,6 +502,8 @@ listen = "127.0.0.1:0"
 [[bus]]
 name = "quiet"
 port = "sim"
+response_timeout_ms = 250
+guard_ms = 50
 poll_interval_ms = 3600000
 [[bus.drive]]
 unit = 1

@@ -132,6 +132,8 @@ format = "text"
 [[bus]]
 name = "sim"
 port = "sim"
+response_timeout_ms = 250
+guard_ms = 50
 [[bus.drive]]
 unit = 1
 name = "conveyor"
