@@ -66,6 +66,16 @@ fn lease_news(v: &Value) -> bool {
     )
 }
 
+/// The PLC falls silent past its time (`comm_loss_ms`), then closes its
+/// connection; every stream message seen meanwhile.
+async fn silence_then_close(plc: &mut Plc, ws: &mut Ws, comm_loss_ms: u64) -> Vec<Value> {
+    plc.tell("silence").await;
+    let mut seen = messages_within(ws, Duration::from_millis(comm_loss_ms + 1000)).await;
+    plc.tell("close").await;
+    seen.extend(messages_within(ws, Duration::from_millis(500)).await);
+    seen
+}
+
 /// The conveyor comes to rest: the stop set its speed setpoint to 0.
 async fn stopped(d: &TestDaemon) {
     eventually(EVENT, "the conveyor stopping", || {
@@ -339,21 +349,10 @@ async fn an_http_brake_ends_a_plc_lease_and_no_stop_follows() {
 
         // The PLC falls silent, then closes: past the time, nothing is
         // sent, and the brake holds.
-        plc.tell("silence").await;
-        let seen = messages_within(&mut ws, Duration::from_millis(COMM_LOSS_MS + 1000)).await;
-        plc.tell("close").await;
-        let later = messages_within(&mut ws, Duration::from_millis(500)).await;
-        let news: Vec<&Value> = seen
-            .iter()
-            .chain(&later)
-            .filter(|v| lease_news(v))
-            .collect();
+        let seen = silence_then_close(&mut plc, &mut ws, COMM_LOSS_MS).await;
+        let news: Vec<&Value> = seen.iter().filter(|v| lease_news(v)).collect();
         assert!(news.is_empty(), "a stop followed the brake: {news:#?}");
-        let stops: Vec<&Value> = seen
-            .iter()
-            .chain(&later)
-            .filter(|v| v["type"] == "write")
-            .collect();
+        let stops: Vec<&Value> = seen.iter().filter(|v| v["type"] == "write").collect();
         assert!(stops.is_empty(), "a write followed the brake: {stops:#?}");
         assert_eq!(writes_handled(&bus), after, "a write reached the bus");
         assert!(
@@ -458,15 +457,8 @@ async fn a_leased_setpoint_over_http_takes_over_and_the_plcs_silence_stops_nothi
             "{ended:#}"
         );
         // The PLC goes quiet, then closes: its time passes, nothing stops.
-        plc.tell("silence").await;
-        let seen = messages_within(&mut ws, Duration::from_millis(COMM_LOSS_MS + 1000)).await;
-        plc.tell("close").await;
-        let later = messages_within(&mut ws, Duration::from_millis(500)).await;
-        let news: Vec<&Value> = seen
-            .iter()
-            .chain(&later)
-            .filter(|v| lease_news(v))
-            .collect();
+        let seen = silence_then_close(&mut plc, &mut ws, COMM_LOSS_MS).await;
+        let news: Vec<&Value> = seen.iter().filter(|v| lease_news(v)).collect();
         assert!(news.is_empty(), "{news:#?}");
         let drive = d.sim().drive(CONVEYOR).unwrap();
         assert!(!drive.braking && drive.setpoints.speed_rpm == 200);
