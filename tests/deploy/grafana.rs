@@ -117,6 +117,7 @@ fn dashboard_is_importable() {
         "Utilisation (10 s)",
         "Errors",
         "Wire errors per attempt",
+        "Motors stopped on communication loss",
     ] {
         assert!(titles.contains(&wanted), "no {wanted} panel");
     }
