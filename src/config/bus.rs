@@ -274,7 +274,7 @@ fn default_offline_after() -> u32 {
     3
 }
 fn default_backoff() -> u64 {
-    1000
+    2000
 }
 fn default_backoff_max() -> u64 {
     30_000
