@@ -101,7 +101,7 @@ fn dashboard_is_importable() {
             assert!(t["refId"].as_str().is_some(), "{title}");
         }
     }
-    // The panels the issue names.
+    // The panels a plant engineer looks for first.
     let titles: Vec<&str> = panels.iter().filter_map(|p| p["title"].as_str()).collect();
     for wanted in [
         "Temperature",
@@ -169,7 +169,7 @@ async fn dashboard_queries_use_only_exported_metrics() {
                 used.insert(name);
             }
         }
-        // The dashboard covers the drive values the issue lists.
+        // The dashboard covers every drive value the daemon exports.
         for name in [
             "drivegate_drive_temperature_celsius",
             "drivegate_drive_supply_voltage_volts",
