@@ -169,7 +169,7 @@ async fn dashboard_queries_use_only_exported_metrics() {
                 used.insert(name);
             }
         }
-        // The dashboard covers every drive value the daemon exports.
+        // The dashboard covers the drive values a plant engineer watches.
         for name in [
             "drivegate_drive_temperature_celsius",
             "drivegate_drive_supply_voltage_volts",
