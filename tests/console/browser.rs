@@ -724,6 +724,35 @@ async fn the_event_log_shows_every_write_live_and_the_ramp_time_follows_the_manu
     page.fill("[data-field=step_rpm-alpha]", "5000").await;
     let preview = text(&page, "[data-preview=step_rpm]").await;
     assert!(preview.starts_with("0.2044 s"), "{preview}");
+
+    // The drive page's read-back says so when another client writes after
+    // it, and a new read clears that.
+    page.eval("location.hash = '#/drive/lift'").await;
+    let held_read = "document.querySelector('.held').dataset.stale === 'false'";
+    page.wait_for(held_read, LONG, "the settings read back")
+        .await;
+    rest_ok(
+        &daemon,
+        Some(OPERATOR),
+        "PUT",
+        "/api/v1/drives/lift/mode",
+        Some(json!({"mode": "position"})),
+    )
+    .await;
+    page.wait_for(
+        "document.querySelector('.held').dataset.stale === 'true'",
+        LONG,
+        "the read-back marked stale",
+    )
+    .await;
+    let note = text(&page, ".held + .row .note").await;
+    assert!(
+        note.contains("written since") && note.contains("read again"),
+        "{note}"
+    );
+    page.click("[data-read=settings]").await;
+    page.wait_for(held_read, LONG, "the settings read again")
+        .await;
     assert_clean(&page, &daemon.url(""));
     browser.stop().await;
     daemon.stop().await;
@@ -744,7 +773,12 @@ async fn screenshots() {
     } else {
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(dir)
     };
-    let daemon = TestDaemon::start(&config(true, "")).await;
+    // The product's own jog lease on the pictures, not the tests' longer one.
+    let toml = config(true, "").replace(
+        &format!("jog_lease_ms = {}", crate::harness::JOG_LEASE_MS),
+        "jog_lease_ms = 300",
+    );
+    let daemon = TestDaemon::start(&toml).await;
     let a = Some(ADMIN);
     for drive in ["conveyor", "lift"] {
         rest_ok(

@@ -120,8 +120,11 @@ function mount(main, { name }, ctx) {
   const held = h('div', { class: 'held' });
   const heldNote = new Note();
   const refresh = h('button', { type: 'button', dataset: { read: 'settings' } }, 'Read from the drive');
+  let heldAt = Infinity;
   const readHeld = () => run(refresh, heldNote, 'reading…', () => get(drivePath(name, '/settings')), (r) => {
     held.replaceChildren(settingsTable(r));
+    heldAt = Date.parse(r.read_at);
+    held.dataset.stale = 'false';
     return `read at ${clock(r.read_at)}`;
   });
   refresh.addEventListener('click', readHeld);
@@ -139,6 +142,12 @@ function mount(main, { name }, ctx) {
   eventList.replaceChildren(...mine.map(eventItem));
   cleanups.push(store.onEvent((e) => {
     if (e.drive !== name) return;
+    // A write since the read-back: the table no longer says what the
+    // drive holds.
+    if (e.kind === 'write' && e.at > heldAt && held.dataset.stale !== 'true') {
+      held.dataset.stale = 'true';
+      heldNote.set('warn', `read at ${clock(heldAt)}; written since (${clock(e.at)}): read again to see what the drive holds now`);
+    }
     eventList.prepend(eventItem(e));
     while (eventList.children.length > 50) eventList.lastChild.remove();
   }));

@@ -76,6 +76,8 @@ function mount(main, _params, { store }) {
     if (r.text[key] !== text) {
       r.text[key] = text;
       r.cells[key].textContent = text;
+      // A narrow window cuts long cells: the whole text on hover.
+      if (key === 'state') r.cells[key].title = text;
     }
   }
 
