@@ -20,12 +20,20 @@ fn ask(owner: &str, holder: Holder, mode: Mode, length: Duration) -> LeaseAsk {
 }
 
 /// A leased setpoint on `drive`, granted and confirmed at `at`.
+/// A lease granted to `ask` at `at`, and its setpoint sent (not settled).
+fn leased_write(book: &mut LeaseBook, drive: usize, ask: LeaseAsk, at: Instant) -> (Grant, Ticket) {
+    let by = format!("a leased setpoint from {}", ask.owner);
+    let (grant, _) = book.grant(drive, ask, at);
+    let ticket = book.begin_write(drive, WriteKind::Setpoint { lease: Some(grant) }, by.into());
+    (grant, ticket)
+}
+
 fn leased(book: &mut LeaseBook, drive: usize, owner: &str, length: Duration, at: Instant) -> Grant {
-    let (grant, _) = book.grant(drive, ask(owner, Holder::Request, Mode::Speed, length), at);
-    let ticket = book.begin_write(
+    let (grant, ticket) = leased_write(
+        book,
         drive,
-        WriteKind::Setpoint { lease: Some(grant) },
-        format!("a leased setpoint from {owner}").into(),
+        ask(owner, Holder::Request, Mode::Speed, length),
+        at,
     );
     book.end_write(&ticket, Applied::Yes, at);
     grant
@@ -314,15 +322,11 @@ fn a_release_ends_the_lease_without_a_stop() {
 fn a_setpoint_that_surely_did_not_land_takes_its_lease_back() {
     let t0 = Instant::now();
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
-    let (grant, _) = book.grant(
+    let (_, ticket) = leased_write(
+        &mut book,
         CONVEYOR,
         ask("scada", Holder::Request, Mode::Speed, SECOND),
         t0,
-    );
-    let ticket = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
-        "x".into(),
     );
     let effects = book.end_write(&ticket, Applied::No, t0);
     assert!(effects.is_empty());
@@ -726,15 +730,11 @@ fn a_session_closing_ends_its_leases_with_their_stop() {
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
     let session = SessionId(7);
     book.session_opened(session, "its WebSocket closed", None);
-    let (grant, _) = book.grant(
+    let (_, ticket) = leased_write(
+        &mut book,
         CONVEYOR,
         ask("panel", Holder::Session(session), Mode::Speed, 60 * SECOND),
         t0,
-    );
-    let ticket = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
-        "x".into(),
     );
     book.end_write(&ticket, Applied::Yes, t0);
     leased(&mut book, LIFT, "scada", 60 * SECOND, t0);
@@ -767,15 +767,11 @@ fn a_setpoint_settled_after_its_session_closed_ends_at_once() {
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
     let session = SessionId(8);
     book.session_opened(session, "its WebSocket closed", None);
-    let (grant, _) = book.grant(
+    let (_, ticket) = leased_write(
+        &mut book,
         CONVEYOR,
         ask("panel", Holder::Session(session), Mode::Speed, 60 * SECOND),
         t0,
-    );
-    let ticket = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
-        "x".into(),
     );
     // Closed while the setpoint is queued: the lease ends with its stop ...
     let effects = book.session_closed(session, t0);
@@ -808,15 +804,11 @@ fn a_setpoint_settled_after_its_session_closed_ends_at_once() {
 fn a_leased_setpoint_landing_while_its_stop_is_on_its_way_has_it_sent_again() {
     let t0 = Instant::now();
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
-    let (grant, _) = book.grant(
+    let (_, ticket) = leased_write(
+        &mut book,
         CONVEYOR,
         ask("scada", Holder::Request, Mode::Speed, SECOND),
         t0,
-    );
-    let ticket = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
-        "x".into(),
     );
     let order = stops(&book.tick(t0 + 6 * SECOND))[0].clone();
     book.end_write(&ticket, Applied::Yes, t0 + 6 * SECOND);
@@ -871,12 +863,12 @@ fn at_shutdown_nothing_more_is_sent() {
 fn the_stop_action_and_the_lease_mode_are_what_the_stop_is_sent_with() {
     let t0 = Instant::now();
     let mut book = LeaseBook::new(StopAction::Brake);
-    let (grant, _) = book.grant(
+    let (_, ticket) = leased_write(
+        &mut book,
         LIFT,
         ask("scada", Holder::Request, Mode::Torque, SECOND),
         t0,
     );
-    let ticket = book.begin_write(LIFT, WriteKind::Setpoint { lease: Some(grant) }, "x".into());
     book.end_write(&ticket, Applied::Yes, t0);
     let order = stops(&book.tick(t0 + SECOND))[0].clone();
     assert_eq!(
