@@ -43,7 +43,6 @@ pub mod setpoints;
 pub mod settings;
 pub mod state;
 pub mod stream;
-pub mod timestamp;
 pub mod whoami;
 
 use std::net::SocketAddr;
