@@ -53,6 +53,8 @@ pub async fn start(
 ) -> Result<Faces, String> {
     let control = Control::start(plant.clone(), &config.safety, shutdown.clone());
     metrics.watch_control(&control);
+    // What the last process owed the motors, before any client is taken.
+    control.replay().await;
     let http = crate::api::start(
         config,
         plant.clone(),

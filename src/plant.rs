@@ -10,7 +10,7 @@ use tracing::{info, warn};
 
 use crate::bus::{BusHandle, Origin};
 use crate::config::{BusConfig, Config};
-use crate::control::{Face, audit};
+use crate::control::{Face, WriteEnd, audit};
 use crate::safety::{self, StopAction, StopOutcome};
 use crate::sim::{SimHandle, Simulator};
 
@@ -185,7 +185,7 @@ impl Plant {
                                 handle.name(),
                                 unit,
                                 request.name(),
-                                &Ok("confirmed by the drive".into()),
+                                &WriteEnd::Confirmed,
                             );
                         }
                         info!(drive = %name, action = action.name(), "stopped at shutdown")
@@ -198,7 +198,7 @@ impl Plant {
                             handle.name(),
                             unit,
                             action.name(),
-                            &Err(e.to_string()),
+                            &WriteEnd::bus_error(e.clone()),
                         );
                         warn!(drive = %name, action = action.name(), "safe stop failed: {e}")
                     }

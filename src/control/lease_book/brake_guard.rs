@@ -19,10 +19,20 @@ impl LeaseBook {
             slot.brakes_sent += 1;
             slot.brakes_in_flight.insert(slot.brakes_sent, false);
         }
+        let seen = slot.brakes_sent;
+        match kind {
+            // Journaled before it is sent: a restart applies a brake it
+            // cannot know was confirmed again.
+            WriteKind::Brake => self.note_brake(drive, BrakeState::Sent),
+            WriteKind::Setpoint { .. } | WriteKind::ReleasesBrake { .. } => {
+                self.note_brake(drive, BrakeState::Off);
+            }
+            WriteKind::Deactivate => {}
+        }
         Ticket {
             drive,
             kind,
-            seen: slot.brakes_sent,
+            seen,
             by,
         }
     }
@@ -62,6 +72,9 @@ impl LeaseBook {
                 }
                 match applied {
                     Applied::Yes => {
+                        if brake {
+                            self.note_brake(drive, BrakeState::Confirmed);
+                        }
                         self.end_by(drive, &by, now, &mut effects);
                         if overtaken && !self.shut_down {
                             self.rebrake(drive, StopReason::BrakeReleased(by.clone()), now);
@@ -118,6 +131,9 @@ impl LeaseBook {
     ) {
         let ended_by: Arc<str> = by.clone();
         self.supersede(drive, &ended_by, effects);
+        if self.slots.get(&drive).is_some_and(|s| s.lease.is_some()) {
+            self.note(Note::LeaseEnded { drive });
+        }
         let slot = self.slot(drive);
         if let Some(lease) = slot.lease.take() {
             effects.push(Effect::Event(LeaseEvent::Ended {

@@ -34,10 +34,12 @@
 //!   again.
 
 mod brake_guard;
+mod notes;
 mod sessions;
 mod stop_retry;
 mod types;
 
+pub use notes::Note;
 pub use stop_retry::{RETRY_FIRST, RETRY_MAX};
 pub use types::*;
 
@@ -47,6 +49,7 @@ use std::time::{Duration, Instant};
 
 use super::caller::SessionId;
 use super::outcome::Applied;
+use crate::control::journal::format::BrakeState;
 use crate::drive::Mode;
 use crate::safety::StopAction;
 
@@ -64,6 +67,8 @@ struct Lease {
     /// False until its setpoint was settled: the deadline then still
     /// allows for the bus queue.
     confirmed: bool,
+    /// The deadline the safety journal holds, once journaled.
+    journaled: Option<Instant>,
 }
 
 /// How a drive's last lease ended.
@@ -147,6 +152,8 @@ struct Slot {
     /// Stops taken over while on their way, with the brakes sent before
     /// them: what they send must still not release a later brake.
     orphans: Vec<(StopId, u64)>,
+    /// The drive's brake as the safety journal holds it.
+    brake_journal: Option<BrakeState>,
 }
 
 /// An open session.
@@ -167,6 +174,8 @@ pub struct LeaseBook {
     sessions: BTreeMap<SessionId, Session>,
     next_id: u64,
     shut_down: bool,
+    /// Facts for the safety journal, taken by the driver.
+    notes: Vec<Note>,
 }
 
 impl LeaseBook {
@@ -180,6 +189,7 @@ impl LeaseBook {
             sessions: BTreeMap::new(),
             next_id: 1,
             shut_down: false,
+            notes: Vec::new(),
         }
     }
 
@@ -212,6 +222,7 @@ impl LeaseBook {
             length: ask.length,
             deadline: now + ask.length + ask.allowance,
             confirmed: false,
+            journaled: None,
         };
         let slot = self.slot(drive);
         let old = slot.lease.replace(lease);
@@ -221,6 +232,14 @@ impl LeaseBook {
             // A communication-loss lease taken again by its own session (a
             // PLC writing its setpoint each cycle) goes on: no news.
             let same = old.comm_loss && ask.comm_loss && old.holder == ask.holder;
+            if let Some(new) = slot.lease.as_mut()
+                && same
+                && (old.owner.clone(), old.action, old.mode)
+                    == (new.owner.clone(), new.action, new.mode)
+            {
+                // Journaled already, and its deadline does not matter.
+                new.journaled = old.journaled;
+            }
             if !same {
                 let reason = format!("replaced by a leased setpoint from {}", ask.owner);
                 effects.push(Effect::Event(LeaseEvent::Ended {
@@ -248,6 +267,7 @@ impl LeaseBook {
                 });
             }
         }
+        self.note_lease(drive);
         (Grant { id, replaced }, effects)
     }
 
@@ -286,6 +306,7 @@ impl LeaseBook {
         if applied == Applied::No && !grant.replaced {
             // Surely never reached the drive, and covered nothing before.
             self.slot(drive).lease = None;
+            self.note(Note::LeaseEnded { drive });
             return;
         }
         let lease = self.slots.get(&drive).and_then(|s| s.lease.as_ref());
@@ -309,6 +330,7 @@ impl LeaseBook {
         lease.confirmed = true;
         lease.deadline = now + lease.length;
         let owner = lease.owner.clone();
+        self.note_lease(drive);
         if applied == Applied::Yes && takes_over {
             let by: Arc<str> = format!("a leased setpoint from {owner}").into();
             self.supersede(drive, &by, effects);
@@ -336,7 +358,9 @@ impl LeaseBook {
         } else {
             renewed.max(lease.deadline)
         };
-        Ok(view(lease, now))
+        let shown = view(lease, now);
+        self.note_lease(drive);
+        Ok(shown)
     }
 
     /// Ends `drive`'s lease without a stop, for `by`.
@@ -350,6 +374,7 @@ impl LeaseBook {
             return Err(self.no_lease(drive, now));
         };
         let shown = view(&lease, now);
+        self.note(Note::LeaseEnded { drive });
         let slot = self.slot(drive);
         let effects = vec![Effect::Event(LeaseEvent::Ended {
             drive,

@@ -17,6 +17,9 @@ impl LeaseBook {
     /// Something newer took over `drive`: a stop still to be done there is
     /// not tried again.
     pub(super) fn supersede(&mut self, drive: usize, by: &Arc<str>, effects: &mut Vec<Effect>) {
+        if self.slots.get(&drive).is_some_and(|s| s.stop.is_some()) {
+            self.note(Note::StopEnded { drive });
+        }
         let slot = self.slot(drive);
         let Some(stop) = slot.stop.take() else {
             return;
@@ -111,6 +114,7 @@ impl LeaseBook {
         now: Instant,
     ) {
         let id = StopId(self.next());
+        let ends_lease = lease.is_some();
         let shut_down = self.shut_down;
         let slot = self.slot(drive);
         let mut action = action;
@@ -141,6 +145,7 @@ impl LeaseBook {
             Self::abandon_last(slot);
             return;
         }
+        let owner = lease.as_ref().map(|(_, owner, _)| owner.clone());
         slot.stop = Some(Stop {
             id,
             lease,
@@ -153,6 +158,13 @@ impl LeaseBook {
             again: false,
             announced: false,
             seen: slot.brakes_sent,
+        });
+        self.note(Note::Stop {
+            drive,
+            owner,
+            action,
+            mode,
+            ends_lease,
         });
     }
 
@@ -257,41 +269,11 @@ impl LeaseBook {
         let released = report.released_brake.then_some(stop.seen);
         let first = !stop.announced;
         let lease = stop.lease.clone();
+        let mut finished = None;
         match &report.result {
-            Ok(_) if stop.again && !shut_down => {
-                stop.again = false;
-                stop.state = StopState::Due(now);
-                stop.announced = true;
-                if let Some((_, owner, holder)) = &lease
-                    && first
-                {
-                    effects.push(Effect::Event(expired(
-                        drive, owner, *holder, &stop, &report, false,
-                    )));
-                }
-                slot.stop = Some(stop);
-            }
-            Ok(result) => {
-                if let Some((lease_id, owner, holder)) = &lease {
-                    effects.push(Effect::Event(if first {
-                        expired(drive, owner, *holder, &stop, &report, false)
-                    } else {
-                        settled(drive, owner, *holder, &stop, &report)
-                    }));
-                    if let Some(Ended { id: ended, how, .. }) = slot.last.as_mut()
-                        && ended == lease_id
-                    {
-                        *how = How::Stopped {
-                            reason: stop.reason.clone(),
-                            action: stop.action,
-                            end: StopEnd::Done(result.clone()),
-                        };
-                    }
-                }
-            }
-            Err(error) => {
+            StopResult::Failed(error) => {
                 let wait = backoff(retry_first, retry_max, stop.tries);
-                stop.last_error = Some(error.clone());
+                stop.last_error = Some(error.to_string());
                 stop.state = StopState::Due(now + wait);
                 if let Some((_, owner, holder)) = &lease
                     && first
@@ -306,6 +288,46 @@ impl LeaseBook {
                 } else {
                     slot.stop = Some(stop);
                 }
+            }
+            _ if stop.again && !shut_down => {
+                stop.again = false;
+                stop.state = StopState::Due(now);
+                stop.announced = true;
+                if let Some((_, owner, holder)) = &lease
+                    && first
+                {
+                    effects.push(Effect::Event(expired(
+                        drive, owner, *holder, &stop, &report, false,
+                    )));
+                }
+                slot.stop = Some(stop);
+            }
+            _ => {
+                finished = Some(stop.action);
+                if let Some((lease_id, owner, holder)) = &lease {
+                    effects.push(Effect::Event(if first {
+                        expired(drive, owner, *holder, &stop, &report, false)
+                    } else {
+                        settled(drive, owner, *holder, &stop, &report)
+                    }));
+                    if let Some(Ended { id: ended, how, .. }) = slot.last.as_mut()
+                        && ended == lease_id
+                    {
+                        *how = How::Stopped {
+                            reason: stop.reason.clone(),
+                            action: stop.action,
+                            end: StopEnd::Done(report.text()),
+                        };
+                    }
+                }
+            }
+        }
+        if let Some(action) = finished {
+            self.note(Note::StopEnded { drive });
+            if action == StopAction::Brake {
+                self.note_brake(drive, BrakeState::Confirmed);
+            } else if report.released_brake {
+                self.note_brake(drive, BrakeState::Off);
             }
         }
         if let Some(seen) = released {
@@ -335,11 +357,14 @@ pub(super) fn backoff(first: Duration, max: Duration, tries: u32) -> Duration {
     (first * 2u32.pow(doublings)).min(max)
 }
 
-/// What the stream shows as a stop's result: the drive's answer, or why.
-pub(super) fn shown(report: &StopReport) -> Result<String, String> {
+/// What the stream shows as a stop's result: whether it was carried out,
+/// and the drive's answer, or why not.
+pub(super) fn shown(report: &StopReport) -> (bool, String) {
     match &report.result {
-        Ok(_) if report.sent.is_some() => Ok("confirmed by the drive".to_string()),
-        other => other.clone(),
+        StopResult::Confirmed if report.sent.is_some() => {
+            (true, "confirmed by the drive".to_string())
+        }
+        _ => (report.is_ok(), report.text()),
     }
 }
 
@@ -359,8 +384,8 @@ pub(super) fn expired(
         reason: stop.reason.text(),
         action: stop.action,
         sent: report.sent.clone(),
-        ok: result.is_ok(),
-        result: result.unwrap_or_else(|e| e),
+        ok: result.0,
+        result: result.1,
         retrying,
     }
 }
@@ -379,8 +404,8 @@ pub(super) fn settled(
         holder,
         action: stop.action,
         sent: report.sent.clone(),
-        stopped: result.is_ok(),
+        stopped: result.0,
         attempts: stop.tries,
-        result: result.unwrap_or_else(|e| e),
+        result: result.1,
     }
 }

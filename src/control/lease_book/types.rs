@@ -4,6 +4,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use crate::bus::BusError;
 use crate::control::caller::SessionId;
 use crate::drive::Mode;
 use crate::safety::StopAction;
@@ -163,6 +164,8 @@ pub enum StopReason {
     BrakeUnconfirmed(Arc<str>),
     /// A write that releases the brake landed after a brake.
     BrakeReleased(Arc<str>),
+    /// drivegate restarted owing this stop (why, in words).
+    Restarted(Arc<str>),
 }
 
 impl StopReason {
@@ -181,6 +184,7 @@ impl StopReason {
             StopReason::BrakeReleased(by) => {
                 format!("{by}, sent before a brake, reached the drive after it")
             }
+            StopReason::Restarted(why) => why.to_string(),
         }
     }
 }
@@ -202,16 +206,58 @@ pub struct StopOrder {
     pub attempt: u32,
 }
 
+/// What one try of a stop came to.
+#[derive(Debug, Clone, PartialEq)]
+pub enum StopResult {
+    /// The drive confirmed what was sent.
+    Confirmed,
+    /// Nothing to send: `action` in this mode already holds the motor.
+    NothingToSend {
+        /// The stop action.
+        action: StopAction,
+        /// The drive's mode, if it could be read.
+        mode: Option<Mode>,
+    },
+    /// The lease's action is "none".
+    ActionNone,
+    /// The try failed.
+    Failed(BusError),
+}
+
 /// What became of one try of a stop, as the driver reports it.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct StopReport {
     /// What was sent, in words, if anything may have reached the drive.
     pub sent: Option<String>,
     /// What the drive confirmed, or why the try failed.
-    pub result: Result<String, String>,
+    pub result: StopResult,
     /// True when something that can release a brake may have reached the
     /// drive (a zero-speed setpoint).
     pub released_brake: bool,
+}
+
+impl StopReport {
+    /// True unless the try failed.
+    pub fn is_ok(&self) -> bool {
+        !matches!(self.result, StopResult::Failed(_))
+    }
+
+    /// The try in words: what the drive confirmed, or why it failed.
+    pub fn text(&self) -> String {
+        match (&self.result, &self.sent) {
+            (StopResult::Confirmed, Some(sent)) => format!("{sent} confirmed by the drive"),
+            (StopResult::Confirmed, None) => "confirmed by the drive".to_string(),
+            (StopResult::NothingToSend { action, mode }, _) => format!(
+                "nothing to send: {} in {} mode holds the motor",
+                action.name(),
+                mode.map_or("unknown", |m| m.name())
+            ),
+            (StopResult::ActionNone, _) => {
+                "the lease's action is \"none\": nothing sent".to_string()
+            }
+            (StopResult::Failed(error), _) => error.to_string(),
+        }
+    }
 }
 
 /// News of a lease, for the stream and the event log.

@@ -57,7 +57,7 @@ fn a_brake_ends_a_stop_still_being_tried() {
     leased(&mut book, LIFT, "scada", SECOND, t0);
     let t1 = t0 + SECOND;
     let order = stops(&book.tick(t1))[0].clone();
-    book.stop_tried(LIFT, order.id, failed("no answer"), t1);
+    book.stop_tried(LIFT, order.id, failed(), t1);
     let effects = stopping_write(
         &mut book,
         LIFT,
@@ -114,7 +114,7 @@ fn a_brake_the_drive_did_not_confirm_is_applied_until_it_does() {
     // Never a zero speed: the brake, whatever the configured action.
     assert_eq!((order.action, order.attempt), (StopAction::Brake, 1));
     assert!(book.lease(LIFT, t0).is_none());
-    let effects = book.stop_tried(LIFT, order.id, failed("no answer"), t0);
+    let effects = book.stop_tried(LIFT, order.id, failed(), t0);
     let LeaseEvent::Expired {
         reason,
         action,

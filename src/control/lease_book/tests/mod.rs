@@ -66,15 +66,20 @@ fn events(effects: &[Effect]) -> Vec<&LeaseEvent> {
 fn confirmed(sent: &str) -> StopReport {
     StopReport {
         sent: Some(sent.to_string()),
-        result: Ok(format!("{sent} confirmed by the drive")),
+        result: StopResult::Confirmed,
         released_brake: true,
     }
 }
 
-fn failed(error: &str) -> StopReport {
+/// A try of a zero-speed stop the drive did not answer.
+fn failed() -> StopReport {
     StopReport {
         sent: Some("zero-speed".to_string()),
-        result: Err(error.to_string()),
+        result: StopResult::Failed(crate::bus::BusError::Timeout {
+            unit: 1,
+            attempts: 3,
+            timeout_ms: 250,
+        }),
         released_brake: false,
     }
 }
@@ -246,12 +251,7 @@ fn at_shutdown_nothing_more_is_sent() {
     assert!(book.lease(CONVEYOR, t0).is_none());
     assert!(book.tick(t0 + 10 * SECOND).is_empty());
     assert_eq!(book.next_wake(), None);
-    let effects = book.stop_tried(
-        LIFT,
-        order.id,
-        failed("the daemon is shutting down"),
-        t0 + SECOND,
-    );
+    let effects = book.stop_tried(LIFT, order.id, failed(), t0 + SECOND);
     assert!(stops(&effects).is_empty());
     let said = book.no_lease(LIFT, t0 + SECOND).0;
     assert!(said.contains("left to the safe stop"), "{said}");

@@ -281,7 +281,7 @@ fn action_none_shows_and_counts_the_loss_and_sends_nothing_else() {
     assert_eq!(order.action, StopAction::None);
     let report = StopReport {
         sent: None,
-        result: Ok("the lease's action is \"none\": nothing sent".to_string()),
+        result: StopResult::ActionNone,
         released_brake: false,
     };
     let effects = book.stop_tried(CONVEYOR, order.id, report, t0 + 510 * MS);
@@ -306,7 +306,7 @@ fn a_mode_command_takes_a_comm_loss_lease_and_never_takes_over_a_stop() {
     // The lease of a setpoint ends and its stop fails.
     plc_write(&mut book, CONVEYOR, Mode::Speed, true, Applied::Yes, t0);
     let order = stops(&book.tick(t0 + 500 * MS))[0].clone();
-    book.stop_tried(CONVEYOR, order.id, failed("timeout"), t0 + 600 * MS);
+    book.stop_tried(CONVEYOR, order.id, failed(), t0 + 600 * MS);
     // The client comes back with a mode command: it takes a lease ...
     let (grant, _) = plc_write(
         &mut book,

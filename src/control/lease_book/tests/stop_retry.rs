@@ -71,12 +71,7 @@ fn a_failed_stop_is_retried_with_backoff_until_the_drive_confirms_it() {
     leased(&mut book, CONVEYOR, "scada", SECOND, t0);
     let t1 = t0 + SECOND;
     let first = stops(&book.tick(t1))[0].clone();
-    let effects = book.stop_tried(
-        CONVEYOR,
-        first.id,
-        failed("drive at unit 1 did not answer"),
-        t1,
-    );
+    let effects = book.stop_tried(CONVEYOR, first.id, failed(), t1);
     let LeaseEvent::Expired {
         ok,
         retrying,
@@ -105,7 +100,7 @@ fn a_failed_stop_is_retried_with_backoff_until_the_drive_confirms_it() {
         "the try under way has not failed: {said}"
     );
     let t2 = t1 + RETRY_FIRST;
-    let effects = book.stop_tried(CONVEYOR, second.id, failed("bus sim is down"), t2);
+    let effects = book.stop_tried(CONVEYOR, second.id, failed(), t2);
     assert!(
         events(&effects).is_empty(),
         "retries are announced only at the end"
@@ -138,7 +133,7 @@ fn the_backoff_stops_growing_and_a_link_back_cuts_it_short() {
     leased(&mut book, CONVEYOR, "scada", SECOND, t0);
     let t1 = t0 + SECOND;
     let first = stops(&book.tick(t1))[0].clone();
-    book.stop_tried(CONVEYOR, first.id, failed("bus sim is down"), t1);
+    book.stop_tried(CONVEYOR, first.id, failed(), t1);
     // The bus comes back 10 ms later: the stop goes at once.
     let effects = book.link_back(&[LIFT], t1 + 10 * MS);
     assert!(stops(&effects).is_empty(), "another drive's link");
@@ -153,7 +148,7 @@ fn a_setpoint_without_a_lease_takes_over_a_stop_still_being_tried() {
     leased(&mut book, CONVEYOR, "scada", SECOND, t0);
     let t1 = t0 + SECOND;
     let order = stops(&book.tick(t1))[0].clone();
-    book.stop_tried(CONVEYOR, order.id, failed("no answer"), t1);
+    book.stop_tried(CONVEYOR, order.id, failed(), t1);
     // A PLC writes a speed without a lease; the drive confirms it.
     let ticket = book.begin_write(
         CONVEYOR,
@@ -174,7 +169,7 @@ fn a_setpoint_without_a_lease_takes_over_a_stop_still_being_tried() {
     // A setpoint whose result is unknown takes nothing over.
     leased(&mut book, LIFT, "scada", SECOND, t0);
     let order = stops(&book.tick(t1))[0].clone();
-    book.stop_tried(LIFT, order.id, failed("no answer"), t1);
+    book.stop_tried(LIFT, order.id, failed(), t1);
     let ticket = book.begin_write(LIFT, WriteKind::Setpoint { lease: None }, "x".into());
     book.end_write(&ticket, Applied::Maybe, t1);
     assert!(book.stopping(LIFT));
@@ -192,7 +187,7 @@ fn a_stop_due_waits_while_a_newer_lease_is_on_its_way() {
     leased(&mut book, CONVEYOR, "scada", SECOND, t0);
     let t1 = t0 + SECOND;
     let order = stops(&book.tick(t1))[0].clone();
-    book.stop_tried(CONVEYOR, order.id, failed("no answer"), t1);
+    book.stop_tried(CONVEYOR, order.id, failed(), t1);
     let (grant, _) = book.grant(
         CONVEYOR,
         ask("panel", Holder::Request, Mode::Speed, SECOND),
