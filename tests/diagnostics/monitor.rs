@@ -9,7 +9,10 @@
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
-use crate::support::api::{Api, config, connect, next_json, sha256_hex, ws_command};
+use crate::support::api::{Api, connect, next_json, ws_command};
+use crate::support::bounded;
+use crate::support::config::ConfigBuilder;
+use crate::support::csv::csv_fields;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::sim::FaultRates;
 use futures_util::StreamExt;
@@ -20,12 +23,6 @@ use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
 const LIMIT: Duration = Duration::from_secs(150);
 const FRAMES: &str = "/api/v1/buses/sim/monitor/frames";
-
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(LIMIT, test)
-        .await
-        .expect("test did not finish in time");
-}
 
 fn frames(reply: &Value) -> Vec<Value> {
     reply["frames"].as_array().unwrap().clone()
@@ -69,12 +66,11 @@ async fn modbus_tcp(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_frame_says_who_caused_it() {
-    bounded(async {
-        let http = format!(
-            "[[http.token]]\nname = \"panel\"\nrole = \"operator\"\nsha256 = \"{}\"",
-            sha256_hex("panel-token")
-        );
-        let d = TestDaemon::start(&config(&http, "")).await;
+    bounded(LIMIT, async {
+        let toml = ConfigBuilder::four_drives()
+            .http_token("panel", "operator", "panel-token")
+            .toml();
+        let d = TestDaemon::start(&toml).await;
         let api = Api::new(d.http, Some("panel-token"));
 
         // REST: activate the conveyor with the token "panel".
@@ -248,25 +244,6 @@ async fn every_frame_says_who_caused_it() {
     .await;
 }
 
-/// Splits one CSV line (RFC 4180 quoting).
-fn csv_fields(line: &str) -> Vec<String> {
-    let mut fields = vec![String::new()];
-    let mut quoted = false;
-    let mut chars = line.chars().peekable();
-    while let Some(c) = chars.next() {
-        match (c, quoted) {
-            ('"', true) if chars.peek() == Some(&'"') => {
-                chars.next();
-                fields.last_mut().unwrap().push('"');
-            }
-            ('"', _) => quoted = !quoted,
-            (',', false) => fields.push(String::new()),
-            (c, _) => fields.last_mut().unwrap().push(c),
-        }
-    }
-    fields
-}
-
 async fn text(url: String) -> (String, Vec<u8>) {
     let response = reqwest::get(url).await.unwrap();
     assert_eq!(response.status(), 200);
@@ -282,7 +259,7 @@ async fn text(url: String) -> (String, Vec<u8>) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn csv_and_a_pcap_that_tshark_decodes() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         // Three function codes on the wire: polls (0x03), a command (0x06)
@@ -465,12 +442,12 @@ async fn poll_rate(api: &Api, after: u64) -> (f64, u64) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_live_client_that_never_reads_loses_frames_not_the_bus_its_pace() {
-    bounded(async {
-        let d = TestDaemon::start(&config(
-            "send_buffer_bytes = 4096",
-            "[monitor]\nring_frames = 256\n",
-        ))
-        .await;
+    bounded(LIMIT, async {
+        let toml = ConfigBuilder::four_drives()
+            .http("send_buffer_bytes = 4096")
+            .section("monitor", "ring_frames = 256")
+            .toml();
+        let d = TestDaemon::start(&toml).await;
         let api = Api::new(d.http, None);
         let monitor = d.plant.buses()[0].handle.monitor().clone();
         let frames_seen = || monitor.frames();
@@ -554,7 +531,7 @@ async fn a_live_client_that_never_reads_loses_frames_not_the_bus_its_pace() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn with_five_percent_corrupted_the_per_attempt_count_matches_the_simulator() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let bus = d.plant.buses()[0].handle.clone();
         let sim = d.sim();

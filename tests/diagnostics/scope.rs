@@ -6,19 +6,16 @@
 
 use std::time::Duration;
 
-use crate::support::api::{Api, config, connect, sha256_hex, wait_for};
+use crate::support::api::{Api, connect, wait_for};
+use crate::support::bounded;
+use crate::support::config::ConfigBuilder;
+use crate::support::csv::csv_fields;
 use crate::support::{FOUR_DRIVES, TestDaemon};
 use serde_json::{Value, json};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 const LIMIT: Duration = Duration::from_secs(45);
 const SCOPE: &str = "/api/v1/buses/sim/scope";
-
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(LIMIT, test)
-        .await
-        .expect("test did not finish in time");
-}
 
 /// Waits until the capture reaches `state` (or any end if `None`) and
 /// returns its result.
@@ -63,7 +60,7 @@ fn trigger_index(trace: &Value) -> usize {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_speed_step_triggers_at_the_first_sample_through_the_level() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         api.activate_in("conveyor", "speed").await;
@@ -138,7 +135,7 @@ async fn a_speed_step_triggers_at_the_first_sample_through_the_level() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stall_triggers_with_the_time_before_it() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         // A low current limit and a short stall time, then a torque above it.
@@ -238,7 +235,7 @@ async fn modbus_tcp(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_write_from_modbus_tcp_triggers_and_names_its_client() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         api.post(
@@ -295,28 +292,9 @@ async fn a_write_from_modbus_tcp_triggers_and_names_its_client() {
     .await;
 }
 
-/// Splits one CSV line (RFC 4180 quoting).
-fn csv_fields(line: &str) -> Vec<String> {
-    let mut fields = vec![String::new()];
-    let mut quoted = false;
-    let mut chars = line.chars().peekable();
-    while let Some(c) = chars.next() {
-        match (c, quoted) {
-            ('"', true) if chars.peek() == Some(&'"') => {
-                chars.next();
-                fields.last_mut().unwrap().push('"');
-            }
-            ('"', _) => quoted = !quoted,
-            (',', false) => fields.push(String::new()),
-            (c, _) => fields.last_mut().unwrap().push(c),
-        }
-    }
-    fields
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn csv_result_one_capture_per_bus_and_the_stream() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         let mut ws = connect(d.http, "?drives=conveyor", None).await;
@@ -454,13 +432,13 @@ async fn csv_result_one_capture_per_bus_and_the_stream() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_captures_are_refused_with_what_would_fit_and_viewers_may_not_arm() {
-    bounded(async {
-        let http = format!(
-            "[[http.token]]\nname = \"panel\"\nrole = \"viewer\"\nsha256 = \"{}\"\n[[http.token]]\nname = \"shift\"\nrole = \"operator\"\nsha256 = \"{}\"",
-            sha256_hex("view-token"),
-            sha256_hex("operate-token")
-        );
-        let d = TestDaemon::start(&config(&http, "[scope]\nmax_samples = 2000\n")).await;
+    bounded(LIMIT, async {
+        let toml = ConfigBuilder::four_drives()
+            .http_token("panel", "viewer", "view-token")
+            .http_token("shift", "operator", "operate-token")
+            .section("scope", "max_samples = 2000")
+            .toml();
+        let d = TestDaemon::start(&toml).await;
         let viewer = Api::new(d.http, Some("view-token"));
         let operator = viewer.with_token(Some("operate-token"));
         let body = json!({
@@ -523,8 +501,8 @@ async fn bad_captures_are_refused_with_what_would_fit_and_viewers_may_not_arm() 
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_other_drives_keep_their_floor_rate_and_commands_go_through() {
-    bounded(async {
-        let d = TestDaemon::start(&config("", "[scope]\nfloor_rate_hz = 20\n")).await;
+    bounded(LIMIT, async {
+        let d = TestDaemon::start(&ConfigBuilder::four_drives().section("scope", "floor_rate_hz = 20").toml()).await;
         let api = Api::new(d.http, None);
         let armed = api
             .post(
