@@ -13,11 +13,11 @@ use crate::support::api::{Api, connect, next_json, ws_command};
 use crate::support::bounded;
 use crate::support::config::ConfigBuilder;
 use crate::support::csv::csv_fields;
+use crate::support::modbus_tcp::Raw;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::sim::FaultRates;
 use futures_util::StreamExt;
 use serde_json::{Value, json};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
@@ -42,28 +42,6 @@ fn reply_to<'a>(all: &'a [Value], request: &Value) -> &'a Value {
     reply
 }
 
-/// Sends one Modbus TCP request and returns the reply PDU.
-async fn modbus_tcp(
-    stream: &mut tokio::net::TcpStream,
-    transaction: u16,
-    unit: u8,
-    pdu: &[u8],
-) -> Vec<u8> {
-    let mut adu = Vec::new();
-    adu.extend_from_slice(&transaction.to_be_bytes());
-    adu.extend_from_slice(&[0, 0]);
-    adu.extend_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
-    adu.push(unit);
-    adu.extend_from_slice(pdu);
-    stream.write_all(&adu).await.unwrap();
-    let mut head = [0u8; 7];
-    stream.read_exact(&mut head).await.unwrap();
-    let len = u16::from_be_bytes([head[4], head[5]]) as usize;
-    let mut pdu = vec![0u8; len - 1];
-    stream.read_exact(&mut pdu).await.unwrap();
-    pdu
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_frame_says_who_caused_it() {
     bounded(LIMIT, async {
@@ -80,11 +58,9 @@ async fn every_frame_says_who_caused_it() {
         let reply = ws_command(&mut ws, 1, "activate", "lift", json!({})).await;
         assert_eq!(reply["ok"], true, "{reply:#}");
         // Modbus TCP: activate the feeder (unit 4), transaction 0x0042.
-        let mut tcp = tokio::net::TcpStream::connect(d.modbus_tcp.unwrap())
-            .await
-            .unwrap();
-        let peer = tcp.local_addr().unwrap().to_string();
-        let echo = modbus_tcp(&mut tcp, 0x42, 4, &[0x06, 0x00, 0x02, 0x00, 0x00]).await;
+        let mut tcp = Raw::connect(d.modbus_tcp.unwrap()).await;
+        let peer = tcp.stream.local_addr().unwrap().to_string();
+        let echo = tcp.ask_as(0x42, 4, &[0x06, 0x00, 0x02, 0x00, 0x00]).await;
         assert_eq!(echo, [0x06, 0x00, 0x02, 0x00, 0x00]);
 
         let all = frames(&api.get(&format!("{FRAMES}?limit=100000")).await.expect(200));

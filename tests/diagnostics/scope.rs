@@ -10,9 +10,9 @@ use crate::support::api::{Api, connect, wait_for};
 use crate::support::bounded;
 use crate::support::config::ConfigBuilder;
 use crate::support::csv::csv_fields;
+use crate::support::modbus_tcp::Raw;
 use crate::support::{FOUR_DRIVES, TestDaemon};
 use serde_json::{Value, json};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 const LIMIT: Duration = Duration::from_secs(45);
 const SCOPE: &str = "/api/v1/buses/sim/scope";
@@ -210,29 +210,6 @@ async fn a_stall_triggers_with_the_time_before_it() {
     .await;
 }
 
-/// Sends one Modbus TCP request and returns the reply PDU.
-async fn modbus_tcp(
-    stream: &mut tokio::net::TcpStream,
-    transaction: u16,
-    unit: u8,
-    pdu: &[u8],
-) -> Vec<u8> {
-    let mut adu = Vec::new();
-    adu.extend_from_slice(&transaction.to_be_bytes());
-    adu.extend_from_slice(&[0, 0]);
-    adu.extend_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
-    adu.push(unit);
-    adu.extend_from_slice(pdu);
-    stream.write_all(&adu).await.unwrap();
-    let mut head = [0u8; 7];
-    stream.read_exact(&mut head).await.unwrap();
-    assert_eq!(u16::from_be_bytes([head[0], head[1]]), transaction);
-    let len = u16::from_be_bytes([head[4], head[5]]) as usize;
-    let mut pdu = vec![0u8; len - 1];
-    stream.read_exact(&mut pdu).await.unwrap();
-    pdu
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_write_from_modbus_tcp_triggers_and_names_its_client() {
     bounded(LIMIT, async {
@@ -258,18 +235,16 @@ async fn a_write_from_modbus_tcp_triggers_and_names_its_client() {
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
         // A read from Modbus TCP is no write; polls are none either.
-        let mut tcp = tokio::net::TcpStream::connect(d.modbus_tcp.unwrap())
-            .await
-            .unwrap();
-        let read = modbus_tcp(&mut tcp, 7, 4, &[0x03, 0x00, 0xC0, 0x00, 0x07]).await;
+        let mut tcp = Raw::connect(d.modbus_tcp.unwrap()).await;
+        let read = tcp.ask_as(7, 4, &[0x03, 0x00, 0xC0, 0x00, 0x07]).await;
         assert_eq!(read[..2], [0x03, 14]);
         assert_eq!(
             api.get(SCOPE).await.expect(200)["capture"]["state"],
             "armed"
         );
         // CONFIG = activate (manual 1.3), transaction 0x1234.
-        let local = tcp.local_addr().unwrap();
-        let echo = modbus_tcp(&mut tcp, 0x1234, 4, &[0x06, 0x00, 0x02, 0x00, 0x00]).await;
+        let local = tcp.stream.local_addr().unwrap();
+        let echo = tcp.ask_as(0x1234, 4, &[0x06, 0x00, 0x02, 0x00, 0x00]).await;
         assert_eq!(echo, [0x06, 0x00, 0x02, 0x00, 0x00]);
         let result = wait_state(&api, "complete").await;
         let trigger = &result["trigger"];

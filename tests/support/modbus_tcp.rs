@@ -110,7 +110,12 @@ impl Raw {
     /// Sends one request and returns the reply PDU, checking that the reply
     /// carries the request's transaction and unit ids.
     pub(crate) async fn ask(&mut self, unit: u8, pdu: &[u8]) -> Vec<u8> {
-        let transaction = rand_transaction();
+        self.ask_as(rand_transaction(), unit, pdu).await
+    }
+
+    /// [`ask`](Self::ask) with the transaction id `transaction`, for tests
+    /// that look for it where the daemon reports the request's source.
+    pub(crate) async fn ask_as(&mut self, transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
         self.send(transaction, unit, pdu).await;
         let (t, u, reply) = self.recv().await.expect("a reply, not a close");
         assert_eq!((t, u), (transaction, unit), "reply ids for {pdu:02X?}");
