@@ -48,3 +48,4 @@ pub mod plant;
 pub mod safety;
 pub mod scope;
 pub mod sim;
+pub mod timestamp;

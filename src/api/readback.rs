@@ -16,11 +16,11 @@ use super::extract::PathParams;
 use super::openapi::FreshReadProblems;
 use super::problem::{BusContext, Problem};
 use super::state::ApiState;
-use super::timestamp::rfc3339;
 use crate::bus::handle::JobOptions;
 use crate::bus::{BusError, Priority};
 use crate::drive::settings::{self, BLOCKS, DriveSettings, REGISTERS};
 use crate::drive::units::{self, COUNTS_PER_AMP};
+use crate::timestamp::rfc3339;
 
 /// The setpoint registers, as last written (by anyone).
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]

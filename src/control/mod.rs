@@ -27,6 +27,7 @@ pub mod leases;
 pub mod outcome;
 pub mod policy;
 pub mod request;
+pub mod shutdown;
 pub mod write;
 pub mod written;
 
@@ -42,6 +43,7 @@ pub use lease_book::{CommLoss, LeaseEvent, LeaseView, NoLease};
 pub use outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult};
 pub use policy::{Operation, Role};
 pub use request::{ControlRequest, Write};
+pub use shutdown::shutdown;
 pub use write::Pending;
 
 use crate::plant::{LookupError, Plant};

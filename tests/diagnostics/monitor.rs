@@ -202,7 +202,7 @@ async fn every_frame_says_who_caused_it() {
         api.put("/api/v1/drives/conveyor/setpoint", json!({"speed_rpm": 30}))
             .await
             .expect(200);
-        let monitor = d.plant.buses()[0].handle.monitor().clone();
+        let monitor = d.plant.buses()[0].monitor().clone();
         d.stop().await;
         let clock = *monitor.clock();
         let last: Vec<_> = monitor
@@ -425,7 +425,7 @@ async fn a_live_client_that_never_reads_loses_frames_not_the_bus_its_pace() {
             .toml();
         let d = TestDaemon::start(&toml).await;
         let api = Api::new(d.http, None);
-        let monitor = d.plant.buses()[0].handle.monitor().clone();
+        let monitor = d.plant.buses()[0].monitor().clone();
         let frames_seen = || monitor.frames();
 
         // The bus's pace with no client: one second of polls.
@@ -512,12 +512,9 @@ async fn with_five_percent_corrupted_the_per_attempt_count_matches_the_simulator
         let bus = d.plant.buses()[0].handle.clone();
         let sim = d.sim();
         let before = (sim.stats().corrupted, bus.stats());
-        let counted = |bus: &drivegate::bus::BusHandle| -> u64 {
-            (1..=4)
-                .map(|u| bus.monitor().counters().unit(u).crc_errors)
-                .sum()
-        };
-        let counted_before = counted(&bus);
+        let monitor = d.plant.buses()[0].monitor().clone();
+        let counted = || -> u64 { (1..=4).map(|u| monitor.counters().unit(u).crc_errors).sum() };
+        let counted_before = counted();
         sim.set_fault_rates(FaultRates {
             crc_error_rate: 0.05,
             ..FaultRates::default()
@@ -538,7 +535,7 @@ async fn with_five_percent_corrupted_the_per_attempt_count_matches_the_simulator
         })
         .await;
         let injected = sim.stats().corrupted - before.0;
-        let per_attempt = counted(&bus) - counted_before;
+        let per_attempt = counted() - counted_before;
         let diff = (per_attempt as f64 - injected as f64).abs();
         assert!(
             diff <= 0.03 * injected as f64 + 2.0,
@@ -561,7 +558,7 @@ async fn with_five_percent_corrupted_the_per_attempt_count_matches_the_simulator
             })
             .map(|l| l.rsplit(' ').next().unwrap().parse::<f64>().unwrap())
             .sum();
-        assert_eq!(exported as u64, counted(&bus));
+        assert_eq!(exported as u64, counted());
         d.stop().await;
     })
     .await;

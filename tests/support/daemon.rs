@@ -152,6 +152,6 @@ impl TestDaemon {
         if let Some(faces) = self.faces.take() {
             let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
         }
-        self.plant.shutdown(self.config.safety.on_shutdown).await;
+        drivegate::control::shutdown(&self.plant, self.config.safety.on_shutdown).await;
     }
 }
