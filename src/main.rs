@@ -31,6 +31,9 @@ enum Command {
     Sim(drivegate::sim::cli::SimArgs),
     /// Measures status polling and command latency against the wire's limit.
     Bench(drivegate::bench::BenchArgs),
+    /// Finds the drives on a line, without configuration, and says what
+    /// silence or garbage usually means on RS-485.
+    Probe(drivegate::probe::ProbeArgs),
     /// API tokens.
     #[command(subcommand)]
     Token(TokenCommand),
@@ -56,6 +59,7 @@ fn main() -> ExitCode {
         Command::CheckConfig { file } => check_config(&file),
         Command::Serve { config } => serve(config),
         Command::Bench(args) => run(|| drivegate::bench::run(args)),
+        Command::Probe(args) => run(|| drivegate::probe::run(args)),
         Command::Token(TokenCommand::New { name, role }) => new_token(&name, &role),
         Command::Sim(args) => run(|| async move {
             drivegate::sim::cli::run(args)
