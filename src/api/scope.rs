@@ -14,8 +14,9 @@ use serde::{Deserialize, Serialize};
 use tokio_util::sync::CancellationToken;
 use utoipa::ToSchema;
 
-use super::auth::{Caller, Require};
+use super::auth::Caller;
 use super::buses::find_bus;
+use super::control;
 use super::extract::{JsonBody, PathParams};
 use super::hub::{Hub, ServerMessage};
 use super::openapi::ReadProblems;
@@ -367,7 +368,7 @@ pub fn arm(
     name: &str,
     body: &ArmBody,
 ) -> Result<ScopeState, Problem> {
-    caller.require(Operation::Capture.needs())?;
+    control::authorize(state, caller, Operation::Capture)?;
     let bus = find_bus(state, name)?;
     let spec = spec(state, bus, body)?;
     let scope = bus.handle.scope();
@@ -402,7 +403,7 @@ pub async fn delete_scope(
 /// Cancels the capture on bus `name` for `caller` (the REST route and the
 /// stream's `scope-cancel`).
 pub fn cancel(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
-    caller.require(Operation::Capture.needs())?;
+    control::authorize(state, caller, Operation::Capture)?;
     let bus = find_bus(state, name)?;
     let id = bus
         .handle
@@ -438,7 +439,7 @@ pub async fn post_trigger(
 /// Triggers the capture on bus `name` for `caller` (the REST route and the
 /// stream's `scope-trigger`).
 pub fn trigger(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
-    caller.require(Operation::Capture.needs())?;
+    control::authorize(state, caller, Operation::Capture)?;
     let bus = find_bus(state, name)?;
     bus.handle
         .scope()
