@@ -2,14 +2,16 @@
 //! the directory of drives by name. The faces resolve a drive here and then
 //! talk to its bus through the bus's handle.
 
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
 use tracing::{info, warn};
 
-use crate::bus::BusHandle;
+use crate::bus::{BusHandle, Observers};
 use crate::config::{BusConfig, Config};
+use crate::monitor::BusMonitor;
+use crate::scope::Scope;
 use crate::sim::{SimHandle, Simulator};
 
 /// One running bus.
@@ -20,7 +22,22 @@ pub struct Bus {
     pub handle: BusHandle,
     /// The built-in simulator behind it, for `port = "sim"`.
     pub sim: Option<SimHandle>,
+    monitor: Arc<BusMonitor>,
+    scope: Arc<Scope>,
     thread: Mutex<Option<JoinHandle<()>>>,
+}
+
+impl Bus {
+    /// Its monitor: the last frames on the wire, the per-attempt counters.
+    pub fn monitor(&self) -> &Arc<BusMonitor> {
+        &self.monitor
+    }
+
+    /// Its scope's capture slot. After arming a capture,
+    /// [`wake`](BusHandle::wake) the bus so its polling follows at once.
+    pub fn scope(&self) -> &Arc<Scope> {
+        &self.scope
+    }
 }
 
 /// One configured drive.
@@ -98,8 +115,18 @@ impl Plant {
                 None => bus_config.port.get_ref().clone(),
             };
             let mut settings = bus_config.settings(&port);
-            settings.monitor = config.monitor.settings();
-            settings.scope = config.scope.settings();
+            let units: Vec<u8> = bus_config.drives.iter().map(|d| d.unit()).collect();
+            let line = settings.master.line;
+            let monitor = Arc::new(BusMonitor::new(
+                config.monitor.settings(),
+                line,
+                units.clone(),
+            ));
+            let scope = Arc::new(Scope::new(config.scope.settings(), line, units));
+            settings.observers = Observers {
+                wire: vec![monitor.clone(), scope.clone()],
+                steering: Some(scope.clone()),
+            };
             let (handle, thread) =
                 crate::bus::scheduler::spawn(settings).map_err(|source| PlantError::Bus {
                     bus: name.clone(),
@@ -117,6 +144,8 @@ impl Plant {
                 config: bus_config.clone(),
                 handle,
                 sim,
+                monitor,
+                scope,
                 thread: Mutex::new(Some(thread)),
             });
         }

@@ -32,6 +32,7 @@ pub mod hub;
 pub mod integers;
 pub mod listener;
 pub mod monitor;
+pub mod new_token;
 pub mod openapi;
 pub mod problem;
 pub mod readback;
@@ -42,7 +43,6 @@ pub mod setpoints;
 pub mod settings;
 pub mod state;
 pub mod stream;
-pub mod timestamp;
 pub mod whoami;
 
 use std::net::SocketAddr;
