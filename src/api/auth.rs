@@ -15,10 +15,10 @@ use sha2::{Digest, Sha256};
 
 use super::listener::ClientAddr;
 use super::problem::{Kind, Problem};
-use super::roles::Role;
 use super::state::ApiState;
 use crate::config::http::{TokenConfig, TokenSource};
 use crate::control::Face;
+use crate::control::Role;
 
 /// One usable token.
 #[derive(Clone)]
@@ -169,23 +169,6 @@ fn constant_time_eq(a: &[u8; 32], b: &[u8; 32]) -> bool {
 }
 
 pub use crate::control::Caller;
-
-/// Refusal of a caller whose role does not allow a route: the core's rule,
-/// rendered as 403.
-pub trait Require {
-    /// Refuses with 403 unless the caller's role includes `needed`.
-    fn require(&self, needed: Role) -> Result<(), Problem>;
-}
-
-impl Require for Caller {
-    fn require(&self, needed: Role) -> Result<(), Problem> {
-        if self.role.allows(needed) {
-            Ok(())
-        } else {
-            Err(forbidden(self, needed))
-        }
-    }
-}
 
 /// The 403 for `caller`, whose role lacks `needed`.
 pub fn forbidden(caller: &Caller, needed: Role) -> Problem {

@@ -118,7 +118,7 @@ const SPEED: &str = "Speed at the gearbox output, rpm (-2048..2047, rounded to 1
 const POSITION: &str = "Position at the gearbox output, degrees (-180..180, rounded to 0.01).";
 const TORQUE_AMPS: &str = "Motor current, amps (-16..15.99, rounded to 1/128 A).";
 const TORQUE_COUNTS: &str = "Motor current, raw counts (-2048..2047; 1 A = 128).";
-const LEASE: &str = "Stop the motor (`[safety] on_lease_expiry`) unless the setpoint is repeated or the lease renewed within this many ms (`[http] lease_min_ms` to `lease_max_ms`).";
+const LEASE: &str = "Stop the motor (`[safety] on_lease_expiry`) unless the setpoint is repeated or the lease renewed within this many ms (`[safety] lease_min_ms` to `lease_max_ms`).";
 const OTHER_SETPOINT: &str = "Only one setpoint per request.";
 
 impl PartialSchema for SetpointBody {

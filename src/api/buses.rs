@@ -9,14 +9,13 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::{Caller, Require};
+use super::auth::Caller;
 use super::control;
 use super::drives::StatusView;
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
 use super::integers;
 use super::openapi::{AdminBusProblems, ReadProblems};
 use super::problem::{BusContext, Kind, Problem};
-use super::roles::Role;
 use super::state::ApiState;
 use crate::bus::handle::{JobOptions, PortState};
 use crate::bus::stats::Outcome;
@@ -349,7 +348,7 @@ pub async fn scan(
     name: &str,
     body: &ScanBody,
 ) -> Result<ScanReply, Problem> {
-    caller.require(Operation::Scan.needs())?;
+    control::authorize(state, caller, Operation::Scan)?;
     let bus = find_bus(state, name)?;
     let from = unit_in("first unit", body.from)?;
     let to = unit_in("last unit", body.to)?;
@@ -506,15 +505,8 @@ pub async fn set_address(
     name: &str,
     body: &AddressBody,
 ) -> Result<AddressReply, Problem> {
-    caller.require(Role::Admin)?;
     let bus = find_bus(state, name)?;
     let address = unit_in("drive address", body.address)?;
-    if !body.only_drive_on_bus {
-        return Err(Problem::new(
-            Kind::ConfirmationRequired,
-            "address setting is a broadcast: every drive that hears it takes the new address. Disconnect every other drive from this bus, then send \"only_drive_on_bus\": true",
-        ));
-    }
     let handle: &BusHandle = &bus.handle;
     let index = state
         .plant
@@ -523,7 +515,7 @@ pub async fn set_address(
         .position(|b| b.handle.name() == handle.name())
         .ok_or_else(|| Problem::new(Kind::Internal, "bus directory inconsistent"))?;
     let request = ControlRequest::drive(DriveRequest::SetAddress { address })
-        .single_drive(true)
+        .single_drive(body.only_drive_on_bus)
         .forced(body.force);
     let target = state.control.unit_target(index, 0);
     state
@@ -566,7 +558,12 @@ pub async fn set_address(
         .iter()
         .find(|d| d.unit() == address)
         .map(|d| d.name().to_string());
-    tracing::info!(target: "drivegate::audit", who = %caller.who, bus = %handle.name(), address, "drive address set and verified");
+    crate::control::audit::address_verified(
+        caller.face.name(),
+        &caller.who,
+        handle.name(),
+        address,
+    );
     Ok(AddressReply {
         bus: handle.name().to_string(),
         address,

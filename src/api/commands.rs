@@ -6,14 +6,14 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::{Caller, Require};
+use super::auth::Caller;
 use super::control::{self, Written};
 use super::extract::{JsonBody, Params, PathParams};
 use super::openapi::WriteProblems;
 use super::problem::{Kind, Problem};
-use super::roles;
 use super::state::ApiState;
 use crate::control::ControlRequest;
+use crate::control::policy::of_request as request_meaning;
 use crate::drive::{ConfigCommand, DriveRequest};
 
 /// What a command did.
@@ -81,7 +81,6 @@ pub async fn run(
     command: ConfigCommand,
     force: bool,
 ) -> Result<CommandReply, Problem> {
-    caller.require(roles::for_command(command))?;
     let target = state.target(key)?;
     let request = DriveRequest::Config(command);
     control::send(
@@ -97,7 +96,7 @@ pub async fn run(
         unit: target.drive.unit,
         command: command.name().to_string(),
         written: control::written(&request),
-        priority: if command == ConfigCommand::EmergencyBrake {
+        priority: if request_meaning(&request).emergency {
             "emergency"
         } else {
             "command"

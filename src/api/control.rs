@@ -9,8 +9,8 @@ use super::problem::{BusContext, Kind, Problem};
 use super::state::{ApiState, Target};
 use crate::bus::BusError;
 use crate::bus::cache::Link;
-use crate::control::{ControlRequest, Failure, Outcome, Rule};
-use crate::drive::{DriveReply, Status};
+use crate::control::{ControlRequest, Failure, Operation, Outcome, Refusal, Rule};
+use crate::drive::{DriveReply, RangeError, Status};
 
 pub use crate::control::written::{Written, describe, written};
 
@@ -57,9 +57,11 @@ pub fn problem(caller: &Caller, failure: &Failure, ctx: BusContext<'_>) -> Probl
                 format!("{}, or send \"force\": true", refusal.detail),
             ),
             Rule::NotActive => Problem::new(Kind::DriveNotActive, refusal.detail.clone()),
-            Rule::SharedBusAddress => {
-                Problem::new(Kind::ConfirmationRequired, refusal.detail.clone())
-            }
+            Rule::SharedBusAddress => Problem::new(
+                Kind::ConfirmationRequired,
+                format!("{}: send \"only_drive_on_bus\": true", refusal.detail),
+            ),
+            Rule::LeaseLength { .. } => lease_problem(refusal),
         },
         other => match other.bus_error() {
             Some(e) => Problem::bus(&e, ctx),
@@ -69,6 +71,33 @@ pub fn problem(caller: &Caller, failure: &Failure, ctx: BusContext<'_>) -> Probl
     match ctx.drive {
         Some(drive) => p.for_drive(drive),
         None => p,
+    }
+}
+
+/// Refuses `caller` (403) unless the core's policy lets its role do
+/// `operation` (what is not a write: scans, scope captures).
+pub fn authorize(state: &ApiState, caller: &Caller, operation: Operation) -> Result<(), Problem> {
+    state
+        .control
+        .authorize(caller, operation)
+        .map_err(|refusal| match refusal.rule {
+            Rule::Role { needed, .. } => forbidden(caller, needed),
+            _ => Problem::new(Kind::Internal, refusal.detail),
+        })
+}
+
+/// The problem of a lease length the core refused: out of range, with
+/// the valid range.
+pub fn lease_problem(refusal: &Refusal) -> Problem {
+    match refusal.rule {
+        Rule::LeaseLength { asked, min, max } => Problem::range(&RangeError {
+            quantity: "lease",
+            value: asked as f64,
+            min: min as f64,
+            max: max as f64,
+            unit: "ms",
+        }),
+        _ => Problem::new(Kind::Internal, refusal.detail.clone()),
     }
 }
 

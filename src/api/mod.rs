@@ -37,7 +37,6 @@ pub mod openapi;
 pub mod problem;
 pub mod readback;
 pub mod request_metrics;
-pub mod roles;
 pub mod scope;
 pub mod server;
 pub mod setpoints;
@@ -145,7 +144,7 @@ pub fn app(state: ApiState, pages: Router<ApiState>) -> Router {
     let docs: Router<ApiState> = SwaggerUi::new(openapi::DOCS_PATH)
         .url(
             openapi::DOCUMENT_PATH,
-            openapi::document_for(document, &state.config),
+            openapi::document_for(document, state.control.lease_bounds()),
         )
         .into();
     routes

@@ -14,13 +14,13 @@ use utoipa_axum::routes;
 
 use super::monitor::MonitorClientMessage;
 use super::problem::{ProblemDetails, ValidRange};
-use super::roles::Role;
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
 use super::{
     buses, commands, drives, health, monitor, readback, scope, setpoints, settings, stream, whoami,
 };
-use crate::config::HttpConfig;
+use crate::control::LeaseBounds;
+use crate::control::Role;
 
 /// Where the document is served.
 pub const DOCUMENT_PATH: &str = "/openapi.json";
@@ -191,7 +191,7 @@ pub enum LeaseProblems {
     /// read_timeout_s`.
     #[response(status = 408, content_type = "application/problem+json")]
     TooSlow(ProblemDetails),
-    /// `out-of-range`: a lease length outside `[http] lease_min_ms` to `lease_max_ms`.
+    /// `out-of-range`: a lease length outside `[safety] lease_min_ms` to `lease_max_ms`.
     #[response(status = 422, content_type = "application/problem+json")]
     OutOfRange(ProblemDetails),
 }
@@ -256,15 +256,21 @@ pub fn finish(mut document: Document) -> Document {
 /// limits (the checked-in `openapi/openapi.json`).
 pub fn document() -> Document {
     let (_, document) = router().split_for_parts();
-    document_for(document, &HttpConfig::default())
+    let safety = crate::config::SafetyConfig::default();
+    let bounds = LeaseBounds {
+        min: std::time::Duration::from_millis(safety.lease_min_ms),
+        max: std::time::Duration::from_millis(safety.lease_max_ms),
+    };
+    document_for(document, bounds)
 }
 
-/// The document as a daemon with `config` serves it: the lease lengths it
-/// accepts are its own (`[http] lease_min_ms`, `lease_max_ms`).
-pub fn document_for(document: Document, config: &HttpConfig) -> Document {
+/// The document as a daemon whose core has `lease_bounds` serves it: the
+/// lease lengths it accepts are its own (`[safety] lease_min_ms`,
+/// `lease_max_ms`).
+pub fn document_for(document: Document, lease_bounds: LeaseBounds) -> Document {
     let mut document = finish(document);
     let ms = |d: std::time::Duration| usize::try_from(d.as_millis()).unwrap_or(usize::MAX);
-    let bounds = (ms(config.lease_min), ms(config.lease_max));
+    let bounds = (ms(lease_bounds.min), ms(lease_bounds.max));
     if let Some(components) = document.components.as_mut() {
         for schema in components.schemas.values_mut() {
             set_lease_bounds(schema, bounds);
@@ -307,9 +313,9 @@ mod tests {
 
     #[test]
     fn lease_lengths_are_the_configurations() {
-        let lease_bounds = |config: &HttpConfig| {
+        let lease_bounds = |bounds: LeaseBounds| {
             let (_, doc) = router().split_for_parts();
-            let value = serde_json::to_value(document_for(doc, config)).unwrap();
+            let value = serde_json::to_value(document_for(doc, bounds)).unwrap();
             let schemas = &value["components"]["schemas"];
             [
                 &schemas["SetpointBody"]["oneOf"][0]["properties"]["lease_ms"],
@@ -318,13 +324,22 @@ mod tests {
             ]
             .map(|p| (p["minimum"].as_u64(), p["maximum"].as_u64()))
         };
-        let defaults = HttpConfig::default();
-        assert_eq!(lease_bounds(&defaults), [(Some(100), Some(60_000)); 3]);
-        let config = HttpConfig {
-            lease_min: std::time::Duration::from_millis(20),
-            lease_max: std::time::Duration::from_millis(5_000),
-            ..defaults
+        let ms = std::time::Duration::from_millis;
+        let defaults = LeaseBounds {
+            min: ms(100),
+            max: ms(60_000),
         };
-        assert_eq!(lease_bounds(&config), [(Some(20), Some(5_000)); 3]);
+        assert_eq!(lease_bounds(defaults), [(Some(100), Some(60_000)); 3]);
+        let config = LeaseBounds {
+            min: ms(20),
+            max: ms(5_000),
+        };
+        assert_eq!(lease_bounds(config), [(Some(20), Some(5_000)); 3]);
+        // The document the daemon is built with has the defaults.
+        let value = serde_json::to_value(document()).unwrap();
+        assert_eq!(
+            value["components"]["schemas"]["RenewBody"]["properties"]["lease_ms"]["maximum"],
+            60_000
+        );
     }
 }

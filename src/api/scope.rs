@@ -14,8 +14,9 @@ use serde::{Deserialize, Serialize};
 use tokio_util::sync::CancellationToken;
 use utoipa::ToSchema;
 
-use super::auth::{Caller, Require};
+use super::auth::Caller;
 use super::buses::find_bus;
+use super::control;
 use super::extract::{JsonBody, PathParams};
 use super::hub::{Hub, ServerMessage};
 use super::openapi::ReadProblems;
@@ -366,7 +367,7 @@ pub fn arm(
     name: &str,
     body: &ArmBody,
 ) -> Result<ScopeState, Problem> {
-    caller.require(Operation::Capture.needs())?;
+    control::authorize(state, caller, Operation::Capture)?;
     let bus = find_bus(state, name)?;
     let spec = spec(state, bus, body)?;
     let scope = bus.scope();
@@ -401,7 +402,7 @@ pub async fn delete_scope(
 /// Cancels the capture on bus `name` for `caller` (the REST route and the
 /// stream's `scope-cancel`).
 pub fn cancel(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
-    caller.require(Operation::Capture.needs())?;
+    control::authorize(state, caller, Operation::Capture)?;
     let bus = find_bus(state, name)?;
     let id = bus.scope().cancel(Instant::now()).map_err(scope_problem)?;
     tracing::info!(who = %caller.who, bus = %bus.handle.name(), capture = id, "scope capture cancelled");
@@ -433,7 +434,7 @@ pub async fn post_trigger(
 /// Triggers the capture on bus `name` for `caller` (the REST route and the
 /// stream's `scope-trigger`).
 pub fn trigger(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
-    caller.require(Operation::Capture.needs())?;
+    control::authorize(state, caller, Operation::Capture)?;
     let bus = find_bus(state, name)?;
     bus.scope()
         .trigger(Instant::now(), caller.origin.clone())

@@ -8,17 +8,16 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::{Caller, Require, forbidden};
+use super::auth::{Caller, forbidden};
 use super::control::{self, Written};
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
 use super::integers;
 use super::openapi::{LeaseProblems, WriteProblems};
 use super::problem::{Kind, Problem};
-use super::roles::Role;
 use super::state::ApiState;
 use crate::control::lease_book::Holder;
-use crate::control::{ControlRequest, LeaseError, LeaseView, Operation};
-use crate::drive::{DriveRequest, RangeError, units};
+use crate::control::{ControlRequest, LeaseError, LeaseView, Refusal, Rule};
+use crate::drive::{DriveRequest, units};
 
 /// A lease as clients see it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, ToSchema)]
@@ -156,21 +155,14 @@ pub struct SetpointReply {
     pub lease: Option<LeaseInfo>,
 }
 
-/// The lease length asked for (or the configured default), checked.
-fn lease_length(state: &ApiState, asked: Option<i64>) -> Result<Option<Duration>, Problem> {
-    let Some(ms) = asked else {
-        return Ok(state.config.lease_default);
-    };
-    let (min, max) = (
-        millis(state.config.lease_min),
-        millis(state.config.lease_max),
-    );
-    let ms = RangeError::check_int("lease", ms, min, max, "ms")?;
-    Ok(Some(Duration::from_millis(ms.unsigned_abs())))
-}
-
-fn millis(d: Duration) -> i64 {
-    i64::try_from(d.as_millis()).unwrap_or(i64::MAX)
+/// The lease length asked for (or `[http] lease_default_ms`); the core
+/// checks it against its bounds. A negative length asks for 0 ms, which
+/// no bound allows.
+fn lease_length(state: &ApiState, asked: Option<i64>) -> Option<Duration> {
+    match asked {
+        Some(ms) => Some(Duration::from_millis(u64::try_from(ms).unwrap_or(0))),
+        None => state.config.lease_default,
+    }
 }
 
 /// Sends a setpoint to drive `key` for `caller`; a lease taken over the
@@ -181,10 +173,9 @@ pub async fn apply(
     key: &str,
     body: &SetpointBody,
 ) -> Result<SetpointReply, Problem> {
-    caller.require(Role::Operator)?;
     let target = state.target(key)?;
     let request = body.request()?;
-    let lease = lease_length(state, body.lease_ms)?;
+    let lease = lease_length(state, body.lease_ms);
     let sent = control::send(
         state,
         caller,
@@ -206,7 +197,11 @@ pub async fn apply(
 /// The problem for a lease that cannot be renewed or released.
 fn lease_problem(caller: &Caller, drive: &str, error: LeaseError, hint: &str) -> Problem {
     match error {
-        LeaseError::Refused(_) => forbidden(caller, Operation::Lease.needs()),
+        LeaseError::Refused(Refusal {
+            rule: Rule::Role { needed, .. },
+            ..
+        }) => forbidden(caller, needed),
+        LeaseError::Refused(refusal) => control::lease_problem(&refusal),
         LeaseError::NoLease(why) => {
             Problem::new(Kind::NoLease, format!("{}; {hint}", why.0)).for_drive(drive)
         }
@@ -249,7 +244,7 @@ pub async fn put_setpoint(
 #[serde(deny_unknown_fields)]
 pub struct RenewBody {
     /// A new lease length, ms (default: the current one), between
-    /// `[http] lease_min_ms` and `lease_max_ms`.
+    /// `[safety] lease_min_ms` and `lease_max_ms`.
     #[serde(default, deserialize_with = "integers::optional")]
     pub lease_ms: Option<i64>,
 }
@@ -261,12 +256,8 @@ pub async fn renew(
     key: &str,
     body: &RenewBody,
 ) -> Result<LeaseInfo, Problem> {
-    caller.require(Role::Operator)?;
     let target = state.target(key)?;
-    let length = match body.lease_ms {
-        Some(ms) => lease_length(state, Some(ms))?,
-        None => None,
-    };
+    let length = body.lease_ms.and_then(|ms| lease_length(state, Some(ms)));
     state
         .control
         .renew(caller, target.index, length)
@@ -307,7 +298,6 @@ pub async fn post_renew(
 
 /// Ends drive `key`'s lease without stopping the motor.
 pub async fn release(state: &ApiState, caller: &Caller, key: &str) -> Result<LeaseInfo, Problem> {
-    caller.require(Role::Operator)?;
     let target = state.target(key)?;
     let view = state
         .control

@@ -8,13 +8,12 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::{Caller, Require};
+use super::auth::Caller;
 use super::control::{self, Written};
 use super::extract::{JsonBody, PathParams};
 use super::integers;
 use super::openapi::WriteProblems;
 use super::problem::Problem;
-use super::roles;
 use super::state::{ApiState, Target};
 use crate::control::ControlRequest;
 use crate::drive::{DriveRequest, RangeError, units};
@@ -42,7 +41,6 @@ async fn write_settings(
     force: bool,
     build: impl FnOnce(Target<'_>) -> Result<DriveRequest, Problem>,
 ) -> Result<SettingsReply, Problem> {
-    caller.require(roles::SETTINGS)?;
     let target = state.target(key)?;
     let request = build(target)?;
     request.validate()?;

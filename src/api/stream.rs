@@ -46,7 +46,7 @@ use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
 use super::state::ApiState;
 use crate::control::{ControlEvent, Face, SessionId};
-use crate::drive::ConfigCommand;
+use crate::drive::DriveRequest;
 
 /// Replies (and other answers to the client's own messages) that may wait.
 const REPLY_BUFFER: usize = 64;
@@ -488,7 +488,11 @@ async fn read_loop(
                             return;
                         }
                     };
-                let brake = parse_command(&op).is_ok_and(|c| c == ConfigCommand::EmergencyBrake);
+                // A write that stops the motor is carried out even if the
+                // socket closes first: the core's meaning of it says so.
+                let brake = parse_command(&op).is_ok_and(|c| {
+                    crate::control::policy::of_request(&DriveRequest::Config(c)).survives_caller()
+                });
                 let tracker = state.sessions.clone();
                 let (state, caller, replies) = (state.clone(), caller.clone(), replies.clone());
                 // Commands run beside the reader, so a slow one (a scan, a

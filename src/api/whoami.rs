@@ -18,8 +18,8 @@ use utoipa::ToSchema;
 use super::auth::Caller;
 use super::openapi::ReadProblems;
 use super::problem::Problem;
-use super::roles::Role;
 use super::state::ApiState;
+use crate::control::Role;
 
 /// Who a token is.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]

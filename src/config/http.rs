@@ -1,6 +1,8 @@
 //! `[http]` section: the listener, the API tokens and their roles, request
-//! and connection limits, the stream's per-client buffer and the bounds of
-//! setpoint leases.
+//! and connection limits, the stream's per-client buffer and the lease a
+//! setpoint gets when it asks for none. The bounds of a lease are the
+//! control core's, the same for every face (`[safety] lease_min_ms`,
+//! `lease_max_ms`).
 //!
 //! Values are checked while parsing (through [`RawHttpConfig`]), so a bad
 //! value is reported with the line of the `[http]` table. Token secrets are
@@ -66,11 +68,8 @@ pub struct HttpConfig {
     /// Stream messages waiting per WebSocket client before updates are
     /// skipped (and the client told how many).
     pub stream_buffer: usize,
-    /// Shortest lease a setpoint may ask for.
-    pub lease_min: Duration,
-    /// Longest lease a setpoint may ask for.
-    pub lease_max: Duration,
-    /// Lease given to setpoints that ask for none (`None`: no lease).
+    /// Lease given to setpoints that ask for none (`None`: no lease);
+    /// within `[safety] lease_min_ms` to `lease_max_ms`.
     pub lease_default: Option<Duration>,
 }
 
@@ -88,8 +87,6 @@ impl Default for HttpConfig {
                 read_timeout: Duration::from_secs(30),
                 send_buffer_bytes: 65_536,
                 stream_buffer: 256,
-                lease_min: Duration::from_millis(100),
-                lease_max: Duration::from_millis(60_000),
                 lease_default: None,
             },
         }
@@ -112,8 +109,10 @@ pub struct RawHttpConfig {
     read_timeout_s: i64,
     send_buffer_bytes: i64,
     stream_buffer: i64,
-    lease_min_ms: i64,
-    lease_max_ms: i64,
+    /// Moved to `[safety]`: refused here with where it went.
+    lease_min_ms: Option<i64>,
+    /// Moved to `[safety]`: refused here with where it went.
+    lease_max_ms: Option<i64>,
     lease_default_ms: i64,
 }
 
@@ -128,8 +127,8 @@ impl Default for RawHttpConfig {
             read_timeout_s: 30,
             send_buffer_bytes: 65_536,
             stream_buffer: 256,
-            lease_min_ms: 100,
-            lease_max_ms: 60_000,
+            lease_min_ms: None,
+            lease_max_ms: None,
             lease_default_ms: 0,
         }
     }
@@ -180,18 +179,22 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
                 .map_err(|e| format!("{e} (or 0 for the system's autotuning)"))?
         };
         let stream_buffer = as_usize("stream_buffer", raw.stream_buffer, 1, 65_536)?;
-        let lease_min_ms = in_range("lease_min_ms", raw.lease_min_ms, 10, 3_600_000)?;
-        let lease_max_ms = in_range("lease_max_ms", raw.lease_max_ms, lease_min_ms, 86_400_000)?;
+        for (key, given) in [
+            ("lease_min_ms", raw.lease_min_ms),
+            ("lease_max_ms", raw.lease_max_ms),
+        ] {
+            if given.is_some() {
+                return Err(format!(
+                    "[http] {key} has moved to [safety] {key}: the bounds of a lease are the control core's, the same for every face"
+                ));
+            }
+        }
+        // Within the lease bounds of [safety]: checked with the whole file.
         let lease_default = if raw.lease_default_ms == 0 {
             None
         } else {
-            let v = in_range(
-                "lease_default_ms",
-                raw.lease_default_ms,
-                lease_min_ms,
-                lease_max_ms,
-            )
-            .map_err(|e| format!("{e} (or 0 for no default lease)"))?;
+            let v = in_range("lease_default_ms", raw.lease_default_ms, 10, 86_400_000)
+                .map_err(|e| format!("{e} (or 0 for no default lease)"))?;
             Some(ms(v))
         };
         let mut tokens: Vec<TokenConfig> = Vec::with_capacity(raw.token.len());
@@ -214,8 +217,6 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
             read_timeout: Duration::from_secs(read_timeout_s.unsigned_abs()),
             send_buffer_bytes,
             stream_buffer,
-            lease_min: ms(lease_min_ms),
-            lease_max: ms(lease_max_ms),
             lease_default,
         })
     }
@@ -368,9 +369,9 @@ mod tests {
             e.contains("max_body_bytes = 10 is out of range: valid 256 to"),
             "{e}"
         );
-        let e = parse("[http]\nlease_min_ms = 500\nlease_max_ms = 100\n").unwrap_err();
+        let e = parse("[http]\nlease_max_ms = 100\n").unwrap_err();
         assert!(
-            e.contains("lease_max_ms = 100 is out of range: valid 500 to"),
+            e.contains("[http] lease_max_ms has moved to [safety] lease_max_ms"),
             "{e}"
         );
         let e = parse("[http]\nlease_default_ms = 5\n").unwrap_err();

@@ -165,9 +165,42 @@ impl Config {
                 ));
             }
         }
+        self.check_leases(origin)?;
         self.modbus_tcp
             .validate(self)
             .map_err(|(span, message)| at(span, message))?;
+        Ok(())
+    }
+
+    /// The lease bounds of `[safety]` hold together, and the console's jog
+    /// lease and `[http]`'s default lease are within them.
+    fn check_leases(&self, origin: &str) -> Result<(), ConfigError> {
+        let invalid = |message: String| ConfigError::Invalid {
+            origin: origin.to_string(),
+            line: 1,
+            column: 1,
+            message,
+        };
+        let (min, max) = (self.safety.lease_min_ms, self.safety.lease_max_ms);
+        if max < min {
+            return Err(invalid(format!(
+                "[safety] lease_max_ms = {max} is out of range: valid {min} (lease_min_ms) to 86400000"
+            )));
+        }
+        let jog = self.safety.jog_lease_ms;
+        if !(min..=max).contains(&jog) {
+            return Err(invalid(format!(
+                "[safety] jog_lease_ms = {jog} is out of range: valid {min} to {max} (lease_min_ms to lease_max_ms): the console's jog asks for this lease"
+            )));
+        }
+        if let Some(default) = self.http.lease_default {
+            let ms = u64::try_from(default.as_millis()).unwrap_or(u64::MAX);
+            if !(min..=max).contains(&ms) {
+                return Err(invalid(format!(
+                    "[http] lease_default_ms = {ms} is out of range: valid {min} to {max} ([safety] lease_min_ms to lease_max_ms), or 0 for no default lease"
+                )));
+            }
+        }
         Ok(())
     }
 

@@ -44,6 +44,15 @@ pub struct SafetyConfig {
     /// Longer rides out a tablet's Wi-Fi hiccups; shorter stops sooner.
     #[serde(deserialize_with = "int_in::<_, _, 100, 5000>")]
     pub jog_lease_ms: u64,
+    /// Shortest lease a setpoint may ask for, ms, from any face: below it a
+    /// client's ordinary network jitter would stop the motor.
+    #[serde(deserialize_with = "int_in::<_, _, 10, 3_600_000>")]
+    pub lease_min_ms: u64,
+    /// Longest lease a setpoint may ask for, ms (at least
+    /// `lease_min_ms`): how long a motor may run on for a client that went
+    /// silent.
+    #[serde(deserialize_with = "int_in::<_, _, 10, 86_400_000>")]
+    pub lease_max_ms: u64,
     /// Where the safety journal is kept (leases, stops owed, brakes), so
     /// a restart keeps every promise made about a motor. `None`: systemd's
     /// `$STATE_DIRECTORY`, else none (nothing survives a restart).
@@ -71,6 +80,8 @@ impl Default for SafetyConfig {
             on_shutdown: StopAction::ZeroSpeed,
             on_lease_expiry: StopAction::ZeroSpeed,
             jog_lease_ms: 300,
+            lease_min_ms: 100,
+            lease_max_ms: 60_000,
             state_dir: None,
             on_unknown_state: StopAction::ZeroSpeed,
         }

@@ -243,3 +243,38 @@ fn the_console_jog_lease_is_bounded() {
     let e = err(&format!("[safety]\njog_lease_ms = 50\n{MINIMAL}"));
     assert!(e.contains("2:16") && e.contains("100 to 5000"), "{e}");
 }
+
+#[test]
+fn lease_bounds_are_the_cores_and_bound_the_default_lease() {
+    let c = parse(MINIMAL).unwrap();
+    assert_eq!(
+        (c.safety.lease_min_ms, c.safety.lease_max_ms),
+        (100, 60_000)
+    );
+    let c = parse(&format!(
+        "[safety]\nlease_min_ms = 50\nlease_max_ms = 2000\n{MINIMAL}"
+    ))
+    .unwrap();
+    assert_eq!((c.safety.lease_min_ms, c.safety.lease_max_ms), (50, 2000));
+    let e = err(&format!(
+        "[safety]\nlease_min_ms = 500\nlease_max_ms = 100\n{MINIMAL}"
+    ));
+    assert!(
+        e.contains("lease_max_ms = 100 is out of range: valid 500"),
+        "{e}"
+    );
+    let e = err(&format!(
+        "[http]\nlease_default_ms = 5000\n[safety]\nlease_max_ms = 1000\n{MINIMAL}"
+    ));
+    assert!(
+        e.contains("lease_default_ms = 5000 is out of range: valid 100 to 1000"),
+        "{e}"
+    );
+    let e = err(&format!("[safety]\nlease_min_ms = 500\n{MINIMAL}"));
+    assert!(
+        e.contains("jog_lease_ms = 300 is out of range: valid 500"),
+        "{e}"
+    );
+    let e = err(&format!("[http]\nlease_min_ms = 100\n{MINIMAL}"));
+    assert!(e.contains("moved to [safety] lease_min_ms"), "{e}");
+}

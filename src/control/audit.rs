@@ -6,6 +6,7 @@
 
 use super::events::WriteEnd;
 use super::lease_book::LeaseEvent;
+use super::request::Write;
 
 /// Logs one write: `who` is a token name or a client address, `what` the
 /// request in words, `result` the drive's answer or why it failed.
@@ -15,6 +16,20 @@ pub fn write(face: &str, who: &str, bus: &str, unit: u8, what: &str, result: &Wr
     } else {
         tracing::warn!(target: "drivegate::audit", face, who, bus, unit, what, error = %result, "write failed")
     }
+}
+
+/// Logs a write its face refused before it reached the core's rules (a
+/// Modbus TCP request for no configured bus, or of the wrong shape), in
+/// the wording of every other write.
+pub fn refused_by_face(face: &str, who: &str, bus: &str, unit: u8, write: &Write, why: &str) {
+    self::write(
+        face,
+        who,
+        bus,
+        unit,
+        &write.describe(),
+        &WriteEnd::Answered(why.to_string()),
+    );
 }
 
 /// Logs a write sent while the motor turns, as its caller's override
@@ -27,6 +42,19 @@ pub fn forced(face: &str, who: &str, drive: &str, what: &str, speed_rpm: i16) {
         drive,
         speed_rpm,
         "{what} while the motor turns, as the override allowed"
+    );
+}
+
+/// Logs an address setting confirmed by a status read at the new address
+/// (the broadcast itself is logged by [`write`]).
+pub fn address_verified(face: &str, who: &str, bus: &str, address: u8) {
+    tracing::info!(
+        target: "drivegate::audit",
+        face,
+        who,
+        bus,
+        address,
+        "drive address set and verified"
     );
 }
 

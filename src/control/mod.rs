@@ -29,6 +29,7 @@ pub mod outcome;
 pub mod policy;
 pub mod request;
 pub mod restart;
+pub mod rules;
 pub mod shutdown;
 pub mod write;
 pub mod written;
@@ -45,6 +46,7 @@ pub use lease_book::{CommLoss, LeaseEvent, LeaseView, NoLease};
 pub use outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult};
 pub use policy::{Operation, Role};
 pub use request::{ControlRequest, Write};
+pub use rules::LeaseBounds;
 pub use shutdown::shutdown;
 pub use write::Pending;
 
@@ -85,6 +87,7 @@ struct Inner {
     leases: Arc<Leases>,
     events: Arc<Events>,
     jog_lease: Duration,
+    lease_bounds: LeaseBounds,
     /// What the journal held at start-up, until it is replayed.
     recovered: std::sync::Mutex<Option<Recovered>>,
     on_unknown_state: StopAction,
@@ -118,6 +121,10 @@ impl Control {
             leases,
             events,
             jog_lease: Duration::from_millis(safety.jog_lease_ms),
+            lease_bounds: LeaseBounds {
+                min: Duration::from_millis(safety.lease_min_ms),
+                max: Duration::from_millis(safety.lease_max_ms),
+            },
             recovered: std::sync::Mutex::new(Some(opened.recovered)),
             on_unknown_state: safety.on_unknown_state,
             journal_news: opened.news,
@@ -186,6 +193,12 @@ impl Control {
         self.0.jog_lease
     }
 
+    /// The shortest and longest lease a setpoint may ask for (`[safety]
+    /// lease_min_ms`, `lease_max_ms`), from any face.
+    pub fn lease_bounds(&self) -> LeaseBounds {
+        self.0.lease_bounds
+    }
+
     /// Buses and drives.
     pub fn plant(&self) -> &Arc<Plant> {
         &self.0.plant
@@ -236,9 +249,11 @@ impl Control {
         Target { bus, unit, drive }
     }
 
-    /// Refuses `caller` unless its role includes `needed`.
-    pub fn authorize(&self, caller: &Caller, needed: Role) -> Result<(), Refusal> {
-        policy_check(caller, needed)
+    /// Refuses `caller` unless its role allows `operation` (what is not
+    /// a write: a write's role comes from its meaning, in
+    /// [`submit`](Self::submit)).
+    pub fn authorize(&self, caller: &Caller, operation: Operation) -> Result<(), Refusal> {
+        rules::role(caller, operation.needs())
     }
 
     /// The lease on drive `drive`, if any.
@@ -254,7 +269,13 @@ impl Control {
         drive: usize,
         length: Option<Duration>,
     ) -> Result<LeaseView, LeaseError> {
-        policy_check(caller, Operation::Lease.needs()).map_err(LeaseError::Refused)?;
+        rules::role(caller, Operation::Lease.needs()).map_err(LeaseError::Refused)?;
+        if let Some(length) = length {
+            self.0
+                .lease_bounds
+                .check(length)
+                .map_err(LeaseError::Refused)?;
+        }
         let name = self.drive_name(drive);
         self.0.leases.with(|book, now| {
             let result = book
@@ -267,7 +288,7 @@ impl Control {
     /// Ends drive `drive`'s lease without a stop: the motor keeps its
     /// setpoint, unguarded.
     pub fn release(&self, caller: &Caller, drive: usize) -> Result<LeaseView, LeaseError> {
-        policy_check(caller, Operation::Lease.needs()).map_err(LeaseError::Refused)?;
+        rules::role(caller, Operation::Lease.needs()).map_err(LeaseError::Refused)?;
         let name = self.drive_name(drive);
         let released =
             self.0
@@ -321,25 +342,6 @@ impl Control {
             .get(drive)
             .map_or_else(String::new, |d| d.name.clone())
     }
-}
-
-/// Refuses `caller` unless its role includes `needed`.
-fn policy_check(caller: &Caller, needed: Role) -> Result<(), Refusal> {
-    if caller.role.allows(needed) {
-        return Ok(());
-    }
-    Err(Refusal {
-        rule: Rule::Role {
-            needed,
-            has: caller.role,
-        },
-        detail: format!(
-            "this needs the {} role; {} has the {} role",
-            needed.name(),
-            caller.who,
-            caller.role.name()
-        ),
-    })
 }
 
 fn named(drive: &str, e: NoLease) -> NoLease {

@@ -49,9 +49,19 @@ pub enum Rule {
         /// The speed read, rpm.
         speed_rpm: i16,
     },
-    /// An address broadcast to a bus of several drives: every one of them
-    /// would take the address.
+    /// An address broadcast without the caller's confirmation that only
+    /// one drive is connected to the bus: every drive that hears it takes
+    /// the address.
     SharedBusAddress,
+    /// A lease length outside `[safety] lease_min_ms` to `lease_max_ms`.
+    LeaseLength {
+        /// The length asked for, ms.
+        asked: u64,
+        /// The shortest allowed, ms.
+        min: u64,
+        /// The longest allowed, ms.
+        max: u64,
+    },
     /// A setpoint to a drive that is not active (the drive would refuse
     /// it itself).
     NotActive,
@@ -65,6 +75,7 @@ impl Rule {
             Rule::Moving { .. } => "moving",
             Rule::SharedBusAddress => "shared-bus-address",
             Rule::NotActive => "not-active",
+            Rule::LeaseLength { .. } => "lease-length",
         }
     }
 }

@@ -141,6 +141,14 @@ pub struct Meaning {
 }
 
 impl Meaning {
+    /// True when the write is carried out even if its caller goes away
+    /// before it is settled (a WebSocket closing, a Modbus TCP client
+    /// disconnecting): a write that stops the motor. The core follows it
+    /// to its end, and a face must not cancel it.
+    pub fn survives_caller(&self) -> bool {
+        self.stops.is_some()
+    }
+
     fn new(needs: Role) -> Self {
         Meaning {
             needs,

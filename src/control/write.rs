@@ -18,10 +18,11 @@ use super::audit;
 use super::caller::Caller;
 use super::events::{ControlEvent, WriteEnd, WriteEvent};
 use super::lease_book::{Grant, Holder, LeaseAsk, Ticket, WriteKind};
-use super::outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult, applied};
-use super::policy::{Meaning, StillReason, Stopper};
+use super::outcome::{Applied, Failure, Outcome, WriteResult, applied};
+use super::policy::{Meaning, Stopper};
 use super::request::{ControlRequest, Write};
-use super::{Control, Target, policy_check};
+use super::rules::{self, Activity, Decision, Facts, Need, Speed};
+use super::{Control, Target};
 use crate::bus::cache::Link;
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
@@ -74,7 +75,7 @@ impl Control {
             Ok(rx) => Ok(Pending {
                 settle: Some(settle),
                 state: State::Waiting(rx),
-                follow: meaning.stops.is_some(),
+                follow: meaning.survives_caller(),
             }),
             Err(e) => Err(settle.failed(Failure::NotSent(e))),
         }
@@ -107,7 +108,8 @@ impl Control {
             .ok_or_else(|| BusError::Invalid(format!("no bus at index {}", target.bus)))
     }
 
-    /// The rules checked before a write is sent.
+    /// The rules checked before a write is sent ([`rules::decide`]), with
+    /// the facts they ask for gathered here.
     async fn check(
         &self,
         caller: &Caller,
@@ -115,79 +117,85 @@ impl Control {
         request: &ControlRequest,
         meaning: &Meaning,
     ) -> Result<(), Failure> {
-        policy_check(caller, meaning.needs).map_err(Failure::Refused)?;
+        // The role first: a caller it refuses costs no bus time.
+        rules::role(caller, meaning.needs).map_err(Failure::Refused)?;
         let bus = self.bus(target).map_err(Failure::NotSent)?;
-        let drives_on_bus = self
-            .plant()
-            .drives()
-            .iter()
-            .filter(|d| d.bus == target.bus)
-            .count();
-        if meaning.address && target.unit == 0 && !request.single_drive && drives_on_bus > 1 {
-            return Err(Failure::Refused(Refusal {
-                rule: Rule::SharedBusAddress,
-                detail: format!(
-                    "an address broadcast would give every drive of bus {} ({drives_on_bus} configured) the same address: connect only the drive to be addressed",
-                    bus.name()
-                ),
-            }));
+        let mut facts = Facts {
+            name: self.name(target),
+            bus: bus.name().to_string(),
+            drives_on_bus: self
+                .plant()
+                .drives()
+                .iter()
+                .filter(|d| d.bus == target.bus)
+                .count(),
+            lease_bounds: self.lease_bounds(),
+            active: None,
+            speeds: None,
+        };
+        loop {
+            match rules::decide(caller, meaning, request, target, &facts) {
+                Err(refusal) => return Err(Failure::Refused(refusal)),
+                Ok(Decision::Send { forced }) => {
+                    if let Some(still) = meaning.still {
+                        for speed in forced {
+                            audit::forced(
+                                caller.face.name(),
+                                &caller.who,
+                                &speed.name,
+                                still.what(),
+                                speed.rpm,
+                            );
+                        }
+                    }
+                    return Ok(());
+                }
+                Ok(Decision::Read(Need::Active)) => {
+                    facts.active = Some(self.activity(&bus, caller, target).await?);
+                }
+                Ok(Decision::Read(Need::Speeds)) => {
+                    facts.speeds = Some(self.speeds(&bus, caller, target, request.force).await?);
+                }
+            }
         }
-        // A setpoint to a drive that is not active: the drive would refuse
-        // it (0x04); refused here, nothing goes on the wire. Only a whole
-        // message with valid values: the drive checks the values first
-        // (0x03), and its answer is the one to give.
-        if meaning.setpoint.is_some() && target.unit != 0 && request.write.is_message() {
-            self.ensure_active(&bus, caller, target).await?;
-        }
-        if let Some(still) = meaning.still {
-            self.ensure_still(&bus, caller, target, still, request.force)
-                .await?;
-        }
-        Ok(())
     }
 
-    /// Refuses a setpoint to a drive that is not active. The poll cache may
+    /// Whether the drive a setpoint goes to is active. The poll cache may
     /// predate an activation sent a moment ago, so an inactive cached
-    /// status is confirmed with a fresh read before refusing.
-    async fn ensure_active(
+    /// status is confirmed with a fresh read.
+    async fn activity(
         &self,
         bus: &BusHandle,
         caller: &Caller,
         target: Target,
-    ) -> Result<(), Failure> {
+    ) -> Result<Activity, Failure> {
         match bus.drive(target.unit).and_then(|s| s.status) {
-            Some(s) if s.active() => return Ok(()),
+            Some(s) if s.active() => return Ok(Activity::Active),
             // Never polled (or not configured): the drive decides.
-            None => return Ok(()),
+            None => return Ok(Activity::Unknown),
             Some(_) => {}
         }
         let status = read(bus, caller, target.unit)
             .await
             .map_err(Failure::CheckFailed)?;
-        if status.active() {
-            return Ok(());
-        }
-        Err(Failure::Refused(Refusal {
-            rule: Rule::NotActive,
-            detail: format!(
-                "{} is not active: it takes setpoints only when active; send the activate command first",
-                self.name(target)
-            ),
-        }))
+        Ok(if status.active() {
+            Activity::Active
+        } else {
+            Activity::Inactive
+        })
     }
 
-    /// Refuses a write that needs standstill while the motor turns, unless
-    /// `force`. The drive is read now: such writes are rare and the cache
-    /// may be a poll old. A broadcast checks every configured drive of the
-    /// bus that answers (one that does not is not there to move).
-    async fn ensure_still(
+    /// The speed of every drive a write that needs standstill reaches. The
+    /// drive is read now: such writes are rare and the cache may be a poll
+    /// old. A broadcast reads every configured drive of the bus that
+    /// answers (one that does not is not there to move).
+    async fn speeds(
         &self,
         bus: &BusHandle,
         caller: &Caller,
         target: Target,
-        still: StillReason,
         force: bool,
-    ) -> Result<(), Failure> {
+    ) -> Result<Vec<Speed>, Failure> {
         let units: Vec<u8> = if target.unit == 0 {
             self.plant()
                 .drives()
@@ -199,40 +207,24 @@ impl Control {
         } else {
             vec![target.unit]
         };
+        let mut speeds = Vec::with_capacity(units.len());
         for unit in units {
             let status = match read(bus, caller, unit).await {
                 Ok(s) => s,
                 Err(_) if target.unit == 0 => continue,
                 Err(e) => return Err(Failure::CheckFailed(e)),
             };
-            if status.speed_rpm == 0 {
-                continue;
+            speeds.push(Speed {
+                name: self.name(self.unit_target(target.bus, unit)),
+                rpm: status.speed_rpm,
+            });
+            // The first drive that turns decides, unless overridden: the
+            // others need not be read.
+            if status.speed_rpm != 0 && !force {
+                break;
             }
-            let name = self.name(self.unit_target(target.bus, unit));
-            if force {
-                audit::forced(
-                    caller.face.name(),
-                    &caller.who,
-                    &name,
-                    still.what(),
-                    status.speed_rpm,
-                );
-                continue;
-            }
-            return Err(Failure::Refused(Refusal {
-                rule: Rule::Moving {
-                    still,
-                    speed_rpm: status.speed_rpm,
-                },
-                detail: format!(
-                    "{name} turns at {} rpm: {} is refused while the motor turns ({}); stop the motor first",
-                    status.speed_rpm,
-                    still.what(),
-                    still.why()
-                ),
-            }));
         }
-        Ok(())
+        Ok(speeds)
     }
 
     /// The drive at `target` in words: `drive "lift"` or `unit 7 on bus line1`.

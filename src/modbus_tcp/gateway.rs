@@ -309,16 +309,13 @@ impl Gateway {
         let function = pdu.first().copied().unwrap_or(0);
         self.count(function, outcome);
         if !request::reads_only(pdu) {
-            let Write::Pdu { meaning, .. } = Write::pdu(pdu.to_vec()) else {
-                return Answer::Now(exception_pdu(function, code));
-            };
-            control::audit::write(
-                Face::ModbusTcp.name(),
+            control::audit::refused_by_face(
+                client.caller.face.name(),
                 &client.caller.who,
                 bus,
                 unit,
-                &control::written::describe_pdu(pdu, &meaning),
-                &control::WriteEnd::Answered(format!("{why}; answered {code}")),
+                &Write::pdu(pdu.to_vec()),
+                &format!("{why}; answered {code}"),
             );
         } else {
             debug!(client = %client.peer, unit, "{why}; answered {code}");
@@ -493,4 +490,168 @@ impl Pending {
 
 fn answer_ok(answer: &Option<(Vec<u8>, Outcome)>) -> bool {
     matches!(answer, Some((_, Outcome::Ok | Outcome::Broadcast)))
+}
+
+#[cfg(test)]
+mod tests {
+    //! The gateway's own decisions, on a plant with no bus: what it answers
+    //! before anything reaches the bus or the core (an empty PDU, a unit no
+    //! bus has, a broadcast it cannot send), how a bus result becomes the
+    //! reply, and what it counts. The path through the bus and the core is
+    //! tested end to end in `tests/modbus_tcp/` and `tests/control/`.
+
+    use std::time::Duration;
+
+    use tokio_util::sync::CancellationToken;
+
+    use super::*;
+    use crate::bus::job::Exchange;
+    use crate::config::Config;
+    use crate::control::Role;
+    use crate::modbus_tcp::access::Rights;
+
+    fn gateway(broadcast_reply: bool) -> Gateway {
+        let mut config = Config::embedded_default().expect("the built-in config");
+        config.buses.clear();
+        config.modbus_tcp.unit_map.clear();
+        config.modbus_tcp.broadcast_reply = broadcast_reply;
+        let plant = Arc::new(Plant::start(&config).expect("a plant with no bus"));
+        let control = Control::start(plant.clone(), &config.safety, CancellationToken::new());
+        let metrics = Metrics::new(plant.clone());
+        Gateway::new(&config.modbus_tcp, plant, control, metrics)
+    }
+
+    fn client(role: Role) -> Client {
+        let rights = Rights {
+            role,
+            allow_saves_while_moving: false,
+            comm_loss: None,
+        };
+        Client::new(
+            SocketAddr::from(([127, 0, 0, 1], 50_000)),
+            rights,
+            SessionId::new_unique(),
+        )
+    }
+
+    /// The count of `function` with `outcome` in the metrics.
+    fn counted(gateway: &Gateway, function: &str, outcome: &str) -> bool {
+        let series = format!(
+            "drivegate_modbus_tcp_requests_total{{function=\"{function}\",outcome=\"{outcome}\"}} 1"
+        );
+        gateway.metrics().render().lines().any(|l| l == series)
+    }
+
+    fn now(answer: Answer) -> Vec<u8> {
+        match answer {
+            Answer::Now(pdu) => pdu,
+            other => panic!("expected an answer now, got {other:?}"),
+        }
+    }
+
+    #[tokio::test]
+    async fn an_empty_pdu_is_an_illegal_function_not_a_panic() {
+        let g = gateway(false);
+        assert_eq!(
+            now(g.handle(&client(Role::Admin), 1, 1, Vec::new()).await),
+            [0x80, 0x01]
+        );
+    }
+
+    #[tokio::test]
+    async fn a_unit_on_no_bus_is_path_unavailable_and_counted() {
+        let g = gateway(false);
+        // A read of the status block, and a write, to unit 7.
+        let read = vec![0x03, 0x00, 0xC0, 0x00, 0x07];
+        assert_eq!(
+            now(g.handle(&client(Role::Viewer), 1, 7, read).await),
+            [0x83, 0x0A]
+        );
+        assert!(counted(&g, "0x03", "path_unavailable"));
+        let write = vec![0x06, 0x00, 0x02, 0x00, 0x05];
+        assert_eq!(
+            now(g.handle(&client(Role::Admin), 2, 7, write).await),
+            [0x86, 0x0A]
+        );
+        assert!(counted(&g, "0x06", "path_unavailable"));
+    }
+
+    #[tokio::test]
+    async fn a_broadcast_is_answered_only_when_the_listener_says_so() {
+        // A read cannot be broadcast: nobody would answer it.
+        let read = vec![0x03, 0x00, 0xC0, 0x00, 0x07];
+        let silent = gateway(false);
+        assert!(matches!(
+            silent
+                .handle(&client(Role::Admin), 1, 0, read.clone())
+                .await,
+            Answer::Silent
+        ));
+        assert!(counted(&silent, "0x03", "refused"));
+        let answering = gateway(true);
+        assert_eq!(
+            now(answering.handle(&client(Role::Admin), 1, 0, read).await),
+            [0x83, 0x01]
+        );
+        // A write of the wrong length, and a write with no bus to go to.
+        let short = vec![0x10, 0x00, 0x24, 0x00, 0x02, 0x04, 0x00];
+        assert_eq!(
+            now(answering.handle(&client(Role::Admin), 2, 0, short).await),
+            [0x90, 0x03]
+        );
+        let brake = vec![0x06, 0x00, 0x02, 0x00, 0x05];
+        assert_eq!(
+            now(answering.handle(&client(Role::Admin), 3, 0, brake).await),
+            [0x86, 0x0A]
+        );
+    }
+
+    #[tokio::test]
+    async fn a_reads_bus_result_becomes_its_reply() {
+        let g = gateway(false);
+        let read = vec![0x03, 0x00, 0xC0, 0x00, 0x01];
+        let exchange = |reply: Vec<u8>| Exchange {
+            reply,
+            attempts: 1,
+            queued: Duration::ZERO,
+            on_wire: Duration::ZERO,
+        };
+        let finished = |result: JobResult| {
+            Pending::Read {
+                pdu: read.clone(),
+                state: ReadState::Done(result),
+            }
+            .finish(g.metrics())
+        };
+        // The drive's reply, and its exception, go back as they came.
+        assert_eq!(
+            finished(Ok(exchange(vec![0x03, 0x02, 0x00, 0x10]))),
+            [0x03, 0x02, 0x00, 0x10]
+        );
+        assert_eq!(finished(Ok(exchange(vec![0x83, 0x02]))), [0x83, 0x02]);
+        assert!(counted(&g, "0x03", "exception"));
+        // No answer from the drive: the gateway's target failed (0x0B).
+        let timeout = BusError::Timeout {
+            unit: 2,
+            attempts: 2,
+            timeout_ms: 50,
+        };
+        assert_eq!(finished(Err(timeout)), [0x83, 0x0B]);
+        assert!(counted(&g, "0x03", "gateway_timeout"));
+        // Writes with no bus to go to: path unavailable.
+        let none = Pending::writes(&[0x06, 0x00, 0x02, 0x00, 0x05], true, Vec::new());
+        assert_eq!(none.finish(g.metrics()), [0x86, 0x0A]);
+    }
+
+    #[test]
+    fn the_first_failure_of_a_broadcast_is_what_the_client_hears() {
+        let ok = Some((vec![0x06], Outcome::Ok));
+        assert!(answer_ok(&ok));
+        assert!(answer_ok(&Some((vec![0x06], Outcome::Broadcast))));
+        assert!(!answer_ok(&Some((
+            vec![0x86, 0x0B],
+            Outcome::GatewayTimeout
+        ))));
+        assert!(!answer_ok(&None));
+    }
 }

@@ -11,7 +11,7 @@
 //! | a setpoint to a drive that is not active | 0x04 server device failure, as the drive answers it |
 
 use crate::bus::BusError;
-use crate::control::{Failure, Rule};
+use crate::control::{Failure, Role, Rule};
 use crate::modbus::ExceptionCode;
 
 /// The outcome label of one request.
@@ -122,11 +122,14 @@ pub fn failure_reply(function: u8, failure: &Failure) -> (Vec<u8>, Outcome) {
     match failure {
         Failure::Refused(refusal) => {
             let (code, outcome) = match &refusal.rule {
-                Rule::Role { has, .. } if has.name() == "viewer" => {
-                    (ExceptionCode::ILLEGAL_FUNCTION, Outcome::ReadOnly)
-                }
+                Rule::Role {
+                    has: Role::Viewer, ..
+                } => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::ReadOnly),
                 Rule::Role { .. } => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::Forbidden),
                 Rule::SharedBusAddress => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::Refused),
+                // A Modbus TCP client asks for no lease length (its
+                // network's comm_loss_ms is checked with the config).
+                Rule::LeaseLength { .. } => (ExceptionCode::ILLEGAL_DATA_VALUE, Outcome::Refused),
                 Rule::Moving { .. } => (ExceptionCode::SERVER_DEVICE_BUSY, Outcome::Moving),
                 // What the drive itself answers.
                 Rule::NotActive => (ExceptionCode::SERVER_DEVICE_FAILURE, Outcome::Exception),

@@ -2,8 +2,9 @@
 //! or a deactivation ends a lease whichever face sent it, still-checks and
 //! their overrides, roles by token and by network, and one audit wording.
 //!
-//! One module per rule; a new test of a rule goes into its module. Helpers
-//! shared with other binaries live in `tests/support/`.
+//! One module per rule; a new test of a rule goes into its module, and a
+//! row into `every_face`'s table, which runs every rule through every face.
+//! Helpers shared with other binaries live in `tests/support/`.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
@@ -12,5 +13,6 @@ mod support;
 
 mod audit;
 mod brake;
+mod every_face;
 mod roles;
 mod rules;

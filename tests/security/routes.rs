@@ -14,7 +14,7 @@ use crate::support::input::{
     ADMIN, OPERATOR, RawAnswer, VIEWER, check_answer, config, raw_http, request, writes_on_wire,
 };
 use crate::support::logs::{capture_logs, log_text};
-use drivegate::api::roles::{self, Role};
+use drivegate::control::policy::{self, Role};
 use drivegate::drive::ConfigCommand;
 use futures_util::{SinkExt, StreamExt};
 use serde_json::{Value, json};
@@ -165,7 +165,8 @@ fn writes(doc: &Value) -> Vec<Write> {
             };
             if path.contains("{command}") {
                 for command in ConfigCommand::ALL {
-                    let role = roles::for_command(command);
+                    let role =
+                        policy::of_request(&drivegate::drive::DriveRequest::Config(command)).needs;
                     assert!(
                         role >= documented,
                         "{}: below the route's role",

@@ -61,6 +61,15 @@ impl Raw {
         }
     }
 
+    /// A client over `stream`, already connected (from an address of the
+    /// test's choosing: a network's role depends on it).
+    pub(crate) fn from_stream(stream: TcpStream) -> Raw {
+        Raw {
+            stream,
+            buf: Vec::new(),
+        }
+    }
+
     /// Sends one request.
     pub(crate) async fn send(&mut self, transaction: u16, unit: u8, pdu: &[u8]) {
         self.send_bytes(&frame(transaction, unit, pdu)).await;
