@@ -28,6 +28,9 @@
 //!   [`console`] (its assets), [`metrics`].
 //! - Putting it together: [`config`], [`plant`], [`faces`], [`daemon`],
 //!   [`logging`], [`bench`] (`drivegate bench`).
+//!
+//! `timestamp` (the one time format of every face and observer) is used
+//! only inside the daemon, so it is `pub(crate)`.
 
 pub mod api;
 pub mod bench;
@@ -48,4 +51,4 @@ pub mod plant;
 pub mod safety;
 pub mod scope;
 pub mod sim;
-pub mod timestamp;
+pub(crate) mod timestamp;
