@@ -50,6 +50,8 @@ pub async fn start(
             .map(|o| o.label()),
     );
     metrics.watch_control(&control);
+    // What the last process owed the motors, before any client is taken.
+    control.replay().await;
     let (http, task) = crate::api::start(
         config,
         plant.clone(),

@@ -48,6 +48,7 @@ pub mod modbus;
 pub mod modbus_tcp;
 pub mod monitor;
 pub mod plant;
+pub mod probe;
 pub mod safety;
 pub mod scope;
 pub mod sim;

@@ -32,6 +32,7 @@ pub mod hub;
 pub mod integers;
 pub mod listener;
 pub mod monitor;
+pub mod new_token;
 pub mod openapi;
 pub mod problem;
 pub mod readback;

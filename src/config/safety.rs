@@ -32,7 +32,7 @@ impl StopAction {
 }
 
 /// `[safety]` section.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SafetyConfig {
     /// Applied to every moving drive when the daemon stops.
@@ -44,6 +44,25 @@ pub struct SafetyConfig {
     /// Longer rides out a tablet's Wi-Fi hiccups; shorter stops sooner.
     #[serde(deserialize_with = "int_in::<_, _, 100, 5000>")]
     pub jog_lease_ms: u64,
+    /// Where the safety journal is kept (leases, stops owed, brakes), so
+    /// a restart keeps every promise made about a motor. `None`: systemd's
+    /// `$STATE_DIRECTORY`, else none (nothing survives a restart).
+    pub state_dir: Option<std::path::PathBuf>,
+    /// Applied at start-up to every drive found moving when the safety
+    /// journal could not be read: who asked for what is unknown.
+    pub on_unknown_state: StopAction,
+}
+
+impl SafetyConfig {
+    /// The state directory: `state_dir`, else `$STATE_DIRECTORY` (the
+    /// first, when systemd lists several).
+    pub fn state_dir(&self) -> Option<std::path::PathBuf> {
+        self.state_dir.clone().or_else(|| {
+            let env = std::env::var_os("STATE_DIRECTORY")?;
+            let first = env.to_string_lossy().split(':').next()?.to_string();
+            (!first.is_empty()).then(|| first.into())
+        })
+    }
 }
 
 impl Default for SafetyConfig {
@@ -52,6 +71,8 @@ impl Default for SafetyConfig {
             on_shutdown: StopAction::ZeroSpeed,
             on_lease_expiry: StopAction::ZeroSpeed,
             jog_lease_ms: 300,
+            state_dir: None,
+            on_unknown_state: StopAction::ZeroSpeed,
         }
     }
 }

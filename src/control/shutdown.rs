@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use tracing::{info, warn};
 
-use super::{Face, audit};
+use super::{Face, WriteEnd, audit};
 use crate::bus::Origin;
 use crate::plant::Plant;
 use crate::safety::{self, StopAction, StopOutcome};
@@ -33,7 +33,7 @@ pub async fn shutdown(plant: &Plant, action: StopAction) {
                             handle.name(),
                             unit,
                             request.name(),
-                            &Ok("confirmed by the drive".into()),
+                            &WriteEnd::Confirmed,
                         );
                     }
                     info!(drive = %name, action = action.name(), "stopped at shutdown")
@@ -46,7 +46,7 @@ pub async fn shutdown(plant: &Plant, action: StopAction) {
                         handle.name(),
                         unit,
                         action.name(),
-                        &Err(e.to_string()),
+                        &WriteEnd::bus_error(e.clone()),
                     );
                     warn!(drive = %name, action = action.name(), "safe stop failed: {e}")
                 }

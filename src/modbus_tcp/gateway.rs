@@ -318,7 +318,7 @@ impl Gateway {
                 bus,
                 unit,
                 &control::written::describe_pdu(pdu, &meaning),
-                &Err(format!("{why}; answered {code}")),
+                &control::WriteEnd::Answered(format!("{why}; answered {code}")),
             );
         } else {
             debug!(client = %client.peer, unit, "{why}; answered {code}");

@@ -18,7 +18,10 @@
 //! - `delivery`: when the master receives each reply byte (a UART, or a
 //!   USB adapter's late chunks);
 //! - [`bus`]: the drives on one line, who answers what;
-//! - `wire`: framing and the line's timing on the pty or TCP;
+//! - `uart`: what a receiver at one baud rate reads of bytes sent at
+//!   another (a master at the wrong rate);
+//! - `wire`: framing and the line's timing on the pty or TCP, and an
+//!   adapter's echo;
 //! - [`pty`]: the pseudo-terminal;
 //! - `tcp`: the line served on TCP;
 //! - `handle`: control of a running simulator.
@@ -43,6 +46,7 @@ pub(crate) mod ramp;
 pub(crate) mod slave;
 pub(crate) mod stats;
 pub(crate) mod tcp;
+pub(crate) mod uart;
 pub(crate) mod wire;
 
 use std::io;

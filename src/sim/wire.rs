@@ -100,6 +100,15 @@ impl Line {
             Line::Tcp(tcp) => tcp.write_all(bytes).await,
         }
     }
+
+    /// The baud rate the master set on its end of the pty (the pty's two
+    /// ends share one termios), if it can be read.
+    fn master_baud(&mut self) -> Option<u32> {
+        match self {
+            Line::Pty(pty) => tokio_serial::SerialPort::baud_rate(pty.master()).ok(),
+            Line::Tcp(_) => None,
+        }
+    }
 }
 
 /// The wire task's state.
@@ -125,6 +134,10 @@ pub(crate) struct Wire {
     rng: ChaCha8Rng,
     /// End of the last wire activity.
     quiet_from: Option<Instant>,
+    /// See [`SimConfig::echo`].
+    echo: bool,
+    /// See [`SimConfig::check_master_baud`].
+    check_master_baud: bool,
 }
 
 impl Wire {
@@ -154,6 +167,8 @@ impl Wire {
             delivery: config.delivery,
             rng: ChaCha8Rng::seed_from_u64(config.seed ^ 0xDE11_7E12),
             quiet_from: None,
+            echo: config.echo,
+            check_master_baud: config.check_master_baud,
         })
     }
 
@@ -244,6 +259,10 @@ impl Wire {
             self.quiet_from = Some(wire_end);
             return Ok(());
         }
+        if let Some(master_baud) = self.master_baud_if_other() {
+            let read = super::uart::resample(&self.tx, self.line.baud(), master_baud);
+            self.tx = read;
+        }
         let reply_start = wire_end + t3_5 + self.turnaround + outcome.late;
         let Some(reply_end) = self.send_paced(reply_start, self.max_lag).await? else {
             let mut bus = lock(&self.bus);
@@ -333,8 +352,29 @@ impl Wire {
             tokio::time::sleep(Duration::from_millis(10)).await;
             return Ok(false);
         }
-        self.push_received(&buf[..n], Instant::now());
+        let at = Instant::now();
+        if self.echo {
+            self.line_io.write_all(&buf[..n]).await?;
+        }
+        match self.master_baud_if_other() {
+            Some(master_baud) => {
+                let heard = super::uart::resample(&buf[..n], master_baud, self.line.baud());
+                self.push_received(&heard, at);
+            }
+            None => self.push_received(&buf[..n], at),
+        }
         Ok(true)
+    }
+
+    /// With [`SimConfig::check_master_baud`], the master's rate when it is
+    /// not the wire's.
+    fn master_baud_if_other(&mut self) -> Option<u32> {
+        if !self.check_master_baud {
+            return None;
+        }
+        self.line_io
+            .master_baud()
+            .filter(|&baud| baud != self.line.baud())
     }
 
     /// Keeps bytes read at `at` for framing.
