@@ -5,6 +5,7 @@
 use std::time::Duration;
 
 use crate::support::api::Api;
+use crate::support::config::ConfigBuilder;
 use crate::support::{FOUR_DRIVES, TestDaemon};
 use serde_json::json;
 
@@ -137,11 +138,9 @@ async fn a_scan_tries_a_busy_unit_again_and_keeps_what_it_found() {
     use drivegate::drive::DriveRequest;
 
     tokio::time::timeout(LIMIT, async {
-        let toml = crate::support::replaced(
-            FOUR_DRIVES,
-            crate::support::WIRE_TIMING,
-            "response_timeout_ms = 3000\nguard_ms = 3000\nqueue_capacity = 1",
-        );
+        let toml = ConfigBuilder::four_drives()
+            .with_bus("sim", |b| b.timing(3000, 3000).keys("queue_capacity = 1"))
+            .toml();
         let d = TestDaemon::start(&toml).await;
         let api = Api::new(d.http, None);
         let bus = d.plant.buses()[0].handle.clone();
