@@ -81,6 +81,18 @@ fn check_config(file: &std::path::Path) -> ExitCode {
             if c.buses.is_empty() {
                 println!("no bus configured: `drivegate probe --port PATH` finds the drives");
             }
+            match c.safety.state_dir() {
+                Some(dir) => match drivegate::control::journal::check_writable(&dir) {
+                    Ok(()) => println!("safety journal: {} is writable", dir.display()),
+                    Err(e) => {
+                        eprintln!("{e}");
+                        return ExitCode::FAILURE;
+                    }
+                },
+                None => println!(
+                    "safety journal: none ([safety] state_dir unset and no $STATE_DIRECTORY): leases are not kept across a restart"
+                ),
+            }
             ExitCode::SUCCESS
         }
         Err(e) => {
@@ -115,13 +127,18 @@ fn serve(path: Option<PathBuf>) -> ExitCode {
         Some(p) => Config::load(p),
         None => Config::embedded_default(),
     };
-    let config = match config {
+    let mut config = match config {
         Ok(c) => c,
         Err(e) => {
             eprintln!("drivegate: {e}");
             return ExitCode::FAILURE;
         }
     };
+    if path.is_none() && config.safety.state_dir().is_none() {
+        // The simulated plant of `serve` alone keeps its journal where the
+        // README says: the user's state directory.
+        config.safety.state_dir = Some(drivegate::control::journal::default_dir());
+    }
     if let Some(note) = drivegate::logging::init(&config.log) {
         tracing::warn!("{note}");
     }

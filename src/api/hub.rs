@@ -18,11 +18,11 @@ use utoipa::ToSchema;
 
 use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
-use super::timestamp::rfc3339;
 use crate::bus::BusEvent;
 use crate::control::{Control, ControlEvent, LeaseEvent, Published, SessionId};
 use crate::plant::Plant;
 use crate::scope::result::ScopeState;
+use crate::timestamp::rfc3339;
 
 /// Events the hub holds for sessions that fall behind; a session's own
 /// bounded buffer comes after this.
@@ -315,9 +315,7 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
                 who: w.who.to_string(),
                 what: w.what.clone(),
                 ok: w.result.is_ok(),
-                answer: match &w.result {
-                    Ok(a) | Err(a) => a.clone(),
-                },
+                answer: w.result.to_string(),
                 at: rfc3339(w.at),
             };
             return Some(message.to_text());

@@ -12,7 +12,7 @@ use rand::rngs::OsRng;
 use serde::Deserialize;
 use sha2::{Digest, Sha256};
 
-use super::config::HttpConfig;
+use crate::config::HttpConfig;
 use super::roles::Role;
 
 /// Bytes of randomness in a token.
@@ -96,7 +96,7 @@ fn hex(bytes: &[u8]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::api::config::TokenSource;
+    use crate::config::http::TokenSource;
 
     #[test]
     fn the_lines_hold_the_digest_of_the_token() {

@@ -25,8 +25,6 @@ use crate::drive::DriveRequest;
 use crate::modbus::timing::LineTiming;
 use crate::monitor::record::Direction;
 use crate::monitor::{BusMonitor, MonitorSettings};
-use crate::scope::Scope;
-use crate::scope::ScopeSettings;
 use crate::sim::cli::UnitList;
 use diagnosis::{COMMON_BAUDS, Heard, RateScan, UnitReads};
 
@@ -243,8 +241,8 @@ async fn scan(
         line,
         Vec::new(),
     ));
-    let scope = Arc::new(Scope::new(ScopeSettings::default(), line, Vec::new()));
-    master.tap().attach(monitor.clone(), scope);
+    let observer: Arc<dyn crate::bus::observers::WireObserver> = monitor.clone();
+    master.tap().attach(vec![observer]);
     let mut cursor = 0;
     let mut result = RateScan {
         baud,

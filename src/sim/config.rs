@@ -11,7 +11,7 @@ use crate::drive::RangeError;
 use crate::drive::units::GEAR_RATIO;
 
 /// The gear ratio of the manual's examples, used when none is given.
-pub const DEFAULT_GEAR_RATIO: f64 = 3.75;
+pub(crate) const DEFAULT_GEAR_RATIO: f64 = 3.75;
 
 /// One simulated drive.
 #[derive(Debug, Clone, Deserialize, PartialEq)]

@@ -13,7 +13,7 @@
 
 /// The bytes a receiver at `read_baud` makes of `bytes` sent back to back
 /// at `sent_baud`.
-pub fn resample(bytes: &[u8], sent_baud: u32, read_baud: u32) -> Vec<u8> {
+pub(crate) fn resample(bytes: &[u8], sent_baud: u32, read_baud: u32) -> Vec<u8> {
     if sent_baud == read_baud || sent_baud == 0 || read_baud == 0 {
         return bytes.to_vec();
     }

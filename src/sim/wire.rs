@@ -112,7 +112,7 @@ impl Line {
 }
 
 /// The wire task's state.
-pub struct Wire {
+pub(crate) struct Wire {
     line_io: Line,
     /// Where masters connect: the pty's path, or `tcp://ip:port`.
     endpoint: std::path::PathBuf,
@@ -143,7 +143,7 @@ pub struct Wire {
 impl Wire {
     /// Opens the pty (or listens on `config.listen`) and prepares the
     /// timing for `config`; must run inside the simulator's runtime.
-    pub fn new(config: &SimConfig, bus: Arc<Mutex<Bus>>) -> io::Result<Self> {
+    pub(crate) fn new(config: &SimConfig, bus: Arc<Mutex<Bus>>) -> io::Result<Self> {
         let line_io = match config.listen {
             Some(address) => Line::Tcp(TcpLine::bind(address)?),
             None => Line::Pty(Pty::open()?),
@@ -173,12 +173,12 @@ impl Wire {
     }
 
     /// Where masters connect: the pty slave's path, or `tcp://ip:port`.
-    pub fn path(&self) -> &std::path::Path {
+    pub(crate) fn path(&self) -> &std::path::Path {
         &self.endpoint
     }
 
     /// On TCP, the handle that closes the master's connection on request.
-    pub fn disconnects(&self) -> Option<Arc<Disconnects>> {
+    pub(crate) fn disconnects(&self) -> Option<Arc<Disconnects>> {
         match &self.line_io {
             Line::Tcp(tcp) => Some(tcp.disconnects()),
             Line::Pty(_) => None,
@@ -186,7 +186,7 @@ impl Wire {
     }
 
     /// Serves requests until an I/O error (or until the caller drops it).
-    pub async fn serve(mut self) -> io::Result<()> {
+    pub(crate) async fn serve(mut self) -> io::Result<()> {
         loop {
             let len = self.next_frame().await?;
             self.answer(len).await?;

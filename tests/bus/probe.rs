@@ -7,7 +7,7 @@
 use std::time::Duration;
 
 use drivegate::sim::Simulator;
-use drivegate::sim::config::SimConfig;
+use drivegate::sim::SimConfig;
 
 /// Runs the probe on `sim`'s pty with `args`; its stdout.
 async fn probe(sim: &SimConfig, args: &[&str]) -> String {
