@@ -12,8 +12,8 @@ use rand::rngs::OsRng;
 use serde::Deserialize;
 use sha2::{Digest, Sha256};
 
-use crate::config::HttpConfig;
 use super::roles::Role;
+use crate::config::HttpConfig;
 
 /// Bytes of randomness in a token.
 pub const TOKEN_BYTES: usize = 32;

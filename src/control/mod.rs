@@ -28,8 +28,8 @@ pub mod leases;
 pub mod outcome;
 pub mod policy;
 pub mod request;
-pub mod shutdown;
 pub mod restart;
+pub mod shutdown;
 pub mod write;
 pub mod written;
 

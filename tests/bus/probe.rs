@@ -6,8 +6,8 @@
 
 use std::time::Duration;
 
-use drivegate::sim::Simulator;
 use drivegate::sim::SimConfig;
+use drivegate::sim::Simulator;
 
 /// Runs the probe on `sim`'s pty with `args`; its stdout.
 async fn probe(sim: &SimConfig, args: &[&str]) -> String {
