@@ -271,8 +271,18 @@ async fn no_bus_and_a_bus_without_drives_are_served() {
             .await
             .expect(200);
         assert_eq!(scan["silent"], 2, "{scan}");
-        let metrics = api.raw(|c| c.get(d.url("/metrics"))).await;
-        assert_eq!(metrics.status, 200);
+        // The bus has its series; no drive has any.
+        let metrics = reqwest::get(d.url("/metrics"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        assert!(
+            metrics.contains("drivegate_bus_port_open{bus=\"line1\"}"),
+            "{metrics}"
+        );
+        assert!(!metrics.contains("drivegate_drive_up{"), "{metrics}");
         d.stop().await;
     })
     .await
