@@ -176,6 +176,45 @@ impl Drop for WsClientGuard {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::modbus_tcp::outcome::Outcome;
+
+    #[test]
+    fn every_modbus_tcp_outcome_has_its_series_from_start_up() {
+        let registry = Registry::new();
+        let _m = FaceMetrics::register(&registry);
+        let family = registry
+            .gather()
+            .into_iter()
+            .find(|f| f.name() == "drivegate_modbus_tcp_requests_total")
+            .unwrap();
+        let series: Vec<(String, String)> = family
+            .get_metric()
+            .iter()
+            .map(|m| {
+                let label = |name: &str| {
+                    m.get_label()
+                        .iter()
+                        .find(|l| l.name() == name)
+                        .map(|l| l.value().to_string())
+                        .unwrap_or_default()
+                };
+                (label("function"), label("outcome"))
+            })
+            .collect();
+        // The two a hand-kept list once left out, by name, and then all.
+        for outcome in ["forbidden", "moving"] {
+            assert!(
+                series.contains(&("0x06".to_string(), outcome.to_string())),
+                "{outcome} missing from {series:?}"
+            );
+        }
+        for function in TCP_FUNCTIONS {
+            for outcome in Outcome::ALL {
+                let key = (format!("0x{function:02x}"), outcome.label().to_string());
+                assert!(series.contains(&key), "{key:?} missing from {series:?}");
+            }
+        }
+    }
 
     #[test]
     fn counts_and_guards() {
@@ -194,7 +233,10 @@ mod tests {
             .into_iter()
             .find(|f| f.name() == "drivegate_modbus_tcp_requests_total")
             .unwrap();
-        assert_eq!(zero.get_metric().len(), 3 * 11);
+        assert_eq!(
+            zero.get_metric().len(),
+            TCP_FUNCTIONS.len() * Outcome::ALL.len()
+        );
         assert!(
             zero.get_metric()
                 .iter()
