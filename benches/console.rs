@@ -391,9 +391,6 @@ async fn main() {
         browser.stop().await;
         daemon.shutdown.cancel();
         let _ = tokio::time::timeout(Duration::from_secs(5), daemon.faces.wait()).await;
-        daemon
-            .plant
-            .shutdown(drivegate::safety::StopAction::None)
-            .await;
+        drivegate::control::shutdown(&daemon.plant, drivegate::safety::StopAction::None).await;
     }
 }

@@ -243,5 +243,5 @@ async fn main() {
 
     shutdown.cancel();
     faces.wait().await;
-    plant.shutdown(config.safety.on_shutdown).await;
+    drivegate::control::shutdown(&plant, config.safety.on_shutdown).await;
 }

@@ -175,7 +175,7 @@ async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> Scop
             rates.iter().copied().fold(0.0, f64::max),
         )
     });
-    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     ScopeRun {
         captured,
         drives,
@@ -229,7 +229,7 @@ async fn bus_run(monitor: bool, with_clients: bool, secs: f64, turnaround: f64) 
         r.abort();
     }
     let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
-    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     BusRun {
         polls_per_s: (polls1 - polls0) as f64 / elapsed,
         cpu_share: (cpu1 - cpu0) / elapsed,
@@ -318,7 +318,7 @@ async fn clients_ab(pairs: usize, window: f64, turnaround: f64) -> (f64, f64, u6
     }
     shutdown.cancel();
     let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
-    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     (
         totals[0].0 as f64 / totals[0].1,
         totals[1].0 as f64 / totals[1].1,

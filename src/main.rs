@@ -31,6 +31,26 @@ enum Command {
     Sim(drivegate::sim::cli::SimArgs),
     /// Measures status polling and command latency against the wire's limit.
     Bench(drivegate::bench::BenchArgs),
+    /// Finds the drives on a line, without configuration, and says what
+    /// silence or garbage usually means on RS-485.
+    Probe(drivegate::probe::ProbeArgs),
+    /// API tokens.
+    #[command(subcommand)]
+    Token(TokenCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum TokenCommand {
+    /// Makes a new random token: prints it once, and the [[http.token]]
+    /// lines (its SHA-256) to paste into the configuration.
+    New {
+        /// The name the audit log gives the token's writes.
+        #[arg(long)]
+        name: String,
+        /// viewer, operator or admin.
+        #[arg(long)]
+        role: String,
+    },
 }
 
 fn main() -> ExitCode {
@@ -39,6 +59,8 @@ fn main() -> ExitCode {
         Command::CheckConfig { file } => check_config(&file),
         Command::Serve { config } => serve(config),
         Command::Bench(args) => run(|| drivegate::bench::run(args)),
+        Command::Probe(args) => run(|| drivegate::probe::run(args)),
+        Command::Token(TokenCommand::New { name, role }) => new_token(&name, &role),
         Command::Sim(args) => run(|| async move {
             drivegate::sim::cli::run(args)
                 .await
@@ -56,10 +78,42 @@ fn check_config(file: &std::path::Path) -> ExitCode {
                 c.buses.len(),
                 c.drive_count()
             );
+            match c.safety.state_dir() {
+                Some(dir) => match drivegate::control::journal::check_writable(&dir) {
+                    Ok(()) => println!("safety journal: {} is writable", dir.display()),
+                    Err(e) => {
+                        eprintln!("{e}");
+                        return ExitCode::FAILURE;
+                    }
+                },
+                None => println!(
+                    "safety journal: none ([safety] state_dir unset and no $STATE_DIRECTORY): leases are not kept across a restart"
+                ),
+            }
             ExitCode::SUCCESS
         }
         Err(e) => {
             eprintln!("{e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn new_token(name: &str, role: &str) -> ExitCode {
+    match drivegate::api::new_token::generate(name, role) {
+        Ok(made) => {
+            println!("Token (shown only now; give it to the client, keep it secret):");
+            println!();
+            println!("    {}", made.token);
+            println!();
+            println!("Add these lines to the configuration (they hold only the token's SHA-256),");
+            println!("then restart drivegate:");
+            println!();
+            print!("{}", made.config);
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("drivegate: {e}");
             ExitCode::FAILURE
         }
     }
@@ -70,13 +124,18 @@ fn serve(path: Option<PathBuf>) -> ExitCode {
         Some(p) => Config::load(p),
         None => Config::embedded_default(),
     };
-    let config = match config {
+    let mut config = match config {
         Ok(c) => c,
         Err(e) => {
             eprintln!("drivegate: {e}");
             return ExitCode::FAILURE;
         }
     };
+    if path.is_none() && config.safety.state_dir().is_none() {
+        // The simulated plant of `serve` alone keeps its journal where the
+        // README says: the user's state directory.
+        config.safety.state_dir = Some(drivegate::control::journal::default_dir());
+    }
     if let Some(note) = drivegate::logging::init(&config.log) {
         tracing::warn!("{note}");
     }

@@ -8,11 +8,9 @@ use std::time::Duration;
 
 use tracing::{info, warn};
 
-use crate::bus::{BusHandle, Observers, Origin};
+use crate::bus::{BusHandle, Observers};
 use crate::config::{BusConfig, Config};
-use crate::control::{Face, audit};
 use crate::monitor::BusMonitor;
-use crate::safety::{self, StopAction, StopOutcome};
 use crate::scope::Scope;
 use crate::sim::{SimHandle, Simulator};
 
@@ -190,57 +188,17 @@ impl Plant {
         &self.buses[drive.bus].handle
     }
 
-    /// Stops the plant: no new work, `action` on every moving drive, then
-    /// the buses finish their frame on the wire and stop.
-    pub async fn shutdown(&self, action: StopAction) {
+    /// Takes no new work on any bus (the first step of the shutdown stop,
+    /// `crate::control::shutdown`).
+    pub fn close(&self) {
         for bus in &self.buses {
             bus.handle.close();
         }
-        // Every drive is asked, not only those the polled copy shows moving:
-        // the copy may be older than the last command.
-        let stops = self.drives.iter().map(|drive| {
-            let handle = self.handle_of(drive).clone();
-            let (name, unit) = (drive.name.clone(), drive.unit);
-            async move {
-                match safety::stop_drive(&handle, unit, action, true, None, Origin::Shutdown).await
-                {
-                    Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
-                        // One line per write: with the mode unknown,
-                        // zero-speed is two (speed and torque setpoint 0).
-                        for request in outcome.requests() {
-                            audit::write(
-                                Face::Internal.name(),
-                                "shutdown",
-                                handle.name(),
-                                unit,
-                                request.name(),
-                                &Ok("confirmed by the drive".into()),
-                            );
-                        }
-                        info!(drive = %name, action = action.name(), "stopped at shutdown")
-                    }
-                    Ok(_) => {}
-                    Err(e) => {
-                        audit::write(
-                            Face::Internal.name(),
-                            "shutdown",
-                            handle.name(),
-                            unit,
-                            action.name(),
-                            &Err(e.to_string()),
-                        );
-                        warn!(drive = %name, action = action.name(), "safe stop failed: {e}")
-                    }
-                }
-            }
-        });
-        let all = futures_util::future::join_all(stops);
-        if tokio::time::timeout(Duration::from_secs(5), all)
-            .await
-            .is_err()
-        {
-            warn!("safe-stop actions did not finish within 5 s");
-        }
+    }
+
+    /// Stops every bus once it finished the frame on the wire, and waits
+    /// (at most 5 s a bus) for its thread.
+    pub async fn stop(&self) {
         for bus in &self.buses {
             bus.handle.stop();
         }

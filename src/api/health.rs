@@ -58,6 +58,10 @@ pub struct Readiness {
     pub reasons: Vec<String>,
     /// Each bus.
     pub buses: Vec<BusReadiness>,
+    /// What is wrong with the safety journal, in words: none, unreadable
+    /// at start-up (set aside), or not writable (leases then work in
+    /// memory only). It does not make drivegate unready.
+    pub safety_journal: Vec<String>,
 }
 
 /// The readiness of the plant.
@@ -97,6 +101,7 @@ pub fn readiness(state: &ApiState) -> Readiness {
         ready: reasons.is_empty(),
         reasons,
         buses,
+        safety_journal: state.control.journal_warnings(),
     }
 }
 

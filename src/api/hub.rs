@@ -315,9 +315,7 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
                 who: w.who.to_string(),
                 what: w.what.clone(),
                 ok: w.result.is_ok(),
-                answer: match &w.result {
-                    Ok(a) | Err(a) => a.clone(),
-                },
+                answer: w.result.to_string(),
                 at: rfc3339(w.at),
             };
             return Some(message.to_text());

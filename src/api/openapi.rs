@@ -12,7 +12,6 @@ use utoipa::{IntoResponses, Modify, OpenApi};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
-use super::config::HttpConfig;
 use super::monitor_live::MonitorClientMessage;
 use super::problem::{ProblemDetails, ValidRange};
 use super::roles::Role;
@@ -22,6 +21,7 @@ use super::{
     buses, commands, drives, health, monitor, monitor_live, readback, scope, setpoints, settings,
     stream, whoami,
 };
+use crate::config::HttpConfig;
 
 /// Where the document is served.
 pub const DOCUMENT_PATH: &str = "/openapi.json";

@@ -2,7 +2,7 @@
 //! it (its setpoints, protection, ramps, inertia and RS-485 control), so a
 //! settings form starts from the drive's values and not from a guess.
 //!
-//! Six reads at command priority (see [`crate::drive::settings::BLOCKS`]);
+//! Six reads at command priority (see `drive::settings::BLOCKS`);
 //! a read changes nothing, so it is not audited.
 
 use axum::Json;

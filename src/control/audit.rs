@@ -4,25 +4,16 @@
 //! own. One wording for every face. The news of leases (their end, with
 //! why and what their stop did) is logged here too.
 
+use super::events::WriteEnd;
 use super::lease_book::LeaseEvent;
 
 /// Logs one write: `who` is a token name or a client address, `what` the
 /// request in words, `result` the drive's answer or why it failed.
-pub fn write(
-    face: &str,
-    who: &str,
-    bus: &str,
-    unit: u8,
-    what: &str,
-    result: &Result<String, String>,
-) {
-    match result {
-        Ok(answer) => {
-            tracing::info!(target: "drivegate::audit", face, who, bus, unit, what, answer = %answer, "write confirmed")
-        }
-        Err(e) => {
-            tracing::warn!(target: "drivegate::audit", face, who, bus, unit, what, error = %e, "write failed")
-        }
+pub fn write(face: &str, who: &str, bus: &str, unit: u8, what: &str, result: &WriteEnd) {
+    if result.is_ok() {
+        tracing::info!(target: "drivegate::audit", face, who, bus, unit, what, answer = %result, "write confirmed")
+    } else {
+        tracing::warn!(target: "drivegate::audit", face, who, bus, unit, what, error = %result, "write failed")
     }
 }
 

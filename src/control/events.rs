@@ -14,12 +14,68 @@ use tokio::sync::broadcast;
 
 use super::caller::{Face, SessionId};
 use super::lease_book::LeaseEvent;
+use super::outcome::{Failure, Outcome, WriteResult};
+use crate::bus::BusError;
 
 /// Events held for subscribers that fall behind.
 const CAPACITY: usize = 4096;
 
+/// What became of a write, as the log and the stream tell it: typed here,
+/// put in words only where it is shown ([`std::fmt::Display`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum WriteEnd {
+    /// The drive confirmed it.
+    Confirmed,
+    /// Sent as a broadcast: drives do not reply.
+    Broadcast,
+    /// Refused, not sent, refused by the drive, or not confirmed.
+    Failed(Failure),
+    /// Its caller went away before the drive answered (why, in words).
+    CallerGone(String),
+    /// A face answered it with an exception before it reached the core
+    /// (why, in words).
+    Answered(String),
+}
+
+impl WriteEnd {
+    /// What a write's result comes to.
+    pub fn of(result: &WriteResult) -> Self {
+        match result {
+            Ok(Outcome::Confirmed { .. }) => WriteEnd::Confirmed,
+            Ok(Outcome::Broadcast) => WriteEnd::Broadcast,
+            Err(f) => WriteEnd::Failed(f.clone()),
+        }
+    }
+
+    /// A write the bus could not carry out (nothing sent, or not
+    /// confirmed).
+    pub fn bus_error(error: BusError) -> Self {
+        WriteEnd::Failed(if error.not_sent() {
+            Failure::NotSent(error)
+        } else {
+            Failure::Unknown { error, reply: None }
+        })
+    }
+
+    /// True when the drive confirmed it (or it went out as a broadcast).
+    pub fn is_ok(&self) -> bool {
+        matches!(self, WriteEnd::Confirmed | WriteEnd::Broadcast)
+    }
+}
+
+impl std::fmt::Display for WriteEnd {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            WriteEnd::Confirmed => f.write_str("confirmed by the drive"),
+            WriteEnd::Broadcast => f.write_str("sent as a broadcast (drives do not reply)"),
+            WriteEnd::Failed(failure) => write!(f, "{failure}"),
+            WriteEnd::CallerGone(why) | WriteEnd::Answered(why) => f.write_str(why),
+        }
+    }
+}
+
 /// A write the core carried out, or refused.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct WriteEvent {
     /// When it was settled.
     pub at: SystemTime,
@@ -36,11 +92,11 @@ pub struct WriteEvent {
     /// What was written, in words.
     pub what: String,
     /// What the drive confirmed, or why it failed or was refused.
-    pub result: Result<String, String>,
+    pub result: WriteEnd,
 }
 
 /// One event of the core.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum ControlEvent {
     /// News of a lease.
     Lease(LeaseEvent),

@@ -18,11 +18,15 @@ use tokio_util::task::TaskTracker;
 
 use super::audit;
 use super::caller::{Face, SessionId};
-use super::events::{ControlEvent, Events, WriteEvent};
-use super::lease_book::{CommLoss, Effect, LeaseBook, LeaseEvent, StopOrder, StopReport};
+use super::events::{ControlEvent, Events, WriteEnd, WriteEvent};
+use super::journal::Journal;
+use super::journal::format::{self as record, Action, HolderKind, ModeName, Record};
+use super::lease_book::{
+    CommLoss, Effect, Holder, LeaseBook, LeaseEvent, Note, StopOrder, StopReport, StopResult,
+};
 use super::written::describe;
 use crate::bus::{BusError, BusEvent, Origin};
-use crate::drive::DriveRequest;
+use crate::drive::{DriveRequest, Mode};
 use crate::plant::Plant;
 use crate::safety::{self, StopAction, StopOutcome};
 
@@ -45,6 +49,8 @@ pub struct Leases {
     comm_loss: Vec<CommLossCount>,
     shutdown: CancellationToken,
     tasks: TaskTracker,
+    /// The safety journal: what a restart must know.
+    journal: Mutex<Journal>,
 }
 
 impl Leases {
@@ -55,6 +61,7 @@ impl Leases {
         plant: Arc<Plant>,
         action: StopAction,
         events: Arc<Events>,
+        journal: Journal,
         shutdown: CancellationToken,
     ) -> Arc<Leases> {
         let leases = Arc::new(Leases {
@@ -70,6 +77,7 @@ impl Leases {
                 .collect(),
             shutdown,
             tasks: TaskTracker::new(),
+            journal: Mutex::new(journal),
         });
         let driver = leases.clone();
         leases.tasks.spawn(async move { driver.run().await });
@@ -93,13 +101,90 @@ impl Leases {
         self: &Arc<Self>,
         f: impl FnOnce(&mut LeaseBook, Instant) -> (R, Vec<Effect>),
     ) -> R {
-        let (result, effects) = {
-            let mut book = self.lock();
-            f(&mut book, Instant::now())
-        };
+        let (result, effects) = self.journaled(f);
         self.carry_out(effects);
         self.wake.notify_one();
         result
+    }
+
+    /// Runs `f` on the book and writes what it asks the journal to keep,
+    /// synced, before returning: before anything `f` decided is sent. The
+    /// journal is locked before the book is let go, so records reach the
+    /// disk in the order of the book's transitions.
+    fn journaled<R>(&self, f: impl FnOnce(&mut LeaseBook, Instant) -> R) -> R {
+        let mut book = self.lock();
+        let result = f(&mut book, Instant::now());
+        let notes = book.take_notes();
+        if notes.is_empty() {
+            return result;
+        }
+        let mut journal = self.journal.lock().unwrap_or_else(|p| p.into_inner());
+        drop(book);
+        let records: Vec<Record> = notes.iter().filter_map(|n| self.record(n)).collect();
+        if let Err(why) = journal.append(&records) {
+            // Never a reason to refuse a write, least of all a brake.
+            for r in &records {
+                tracing::warn!(record = ?r, "not kept across a restart: {why}");
+            }
+        }
+        result
+    }
+
+    /// A note of the book as a journal record.
+    fn record(&self, note: &Note) -> Option<Record> {
+        let name = |drive: usize| self.plant.drives().get(drive).map(|d| d.name.clone());
+        Some(match note {
+            Note::Lease {
+                drive,
+                owner,
+                holder,
+                comm_loss,
+                deadline,
+                length,
+                action,
+                mode,
+            } => Record::Lease {
+                drive: name(*drive)?,
+                owner: owner.to_string(),
+                holder: match (holder, comm_loss) {
+                    (Holder::Request, _) => HolderKind::Http,
+                    (Holder::Session(_), false) => HolderKind::Session,
+                    (Holder::Session(_), true) => HolderKind::CommLoss,
+                },
+                deadline_ms: record::unix_ms(wall_clock(*deadline)),
+                length_ms: u64::try_from(length.as_millis()).unwrap_or(u64::MAX),
+                action: action_of(*action),
+                mode: mode_of(*mode),
+            },
+            Note::LeaseEnded { drive } => Record::LeaseEnded {
+                drive: name(*drive)?,
+            },
+            Note::Stop {
+                drive,
+                owner,
+                action,
+                mode,
+                ends_lease,
+            } => Record::Stop {
+                drive: name(*drive)?,
+                owner: owner.as_ref().map(|o| o.to_string()),
+                action: action_of(*action),
+                mode: mode_of(*mode),
+                ends_lease: *ends_lease,
+            },
+            Note::StopEnded { drive } => Record::StopEnded {
+                drive: name(*drive)?,
+            },
+            Note::Brake { drive, state } => Record::Brake {
+                drive: name(*drive)?,
+                state: *state,
+            },
+        })
+    }
+
+    /// The safety journal.
+    pub fn journal<R>(&self, f: impl FnOnce(&Journal) -> R) -> R {
+        f(&self.journal.lock().unwrap_or_else(|p| p.into_inner()))
     }
 
     /// Reads the book at the current instant.
@@ -186,7 +271,7 @@ impl Leases {
     /// A request came on session `id`: its communication-loss leases run
     /// on. Deadlines only move later, so the driver need not wake.
     pub fn session_active(&self, id: SessionId) {
-        self.lock().session_active(id, Instant::now());
+        self.journaled(|book, now| book.session_active(id, now));
     }
 
     /// Communication-loss leases of bus `bus` that ended since start-up:
@@ -227,12 +312,18 @@ impl Leases {
             tokio::select! {
                 () = self.shutdown.cancelled() => {
                     self.lock().shutdown();
+                    // The daemon's safe stop covers every drive from here:
+                    // nothing before is owed to the next process.
+                    let mut journal = self.journal.lock().unwrap_or_else(|p| p.into_inner());
+                    if let Err(why) = journal.append(&[Record::Shutdown]) {
+                        tracing::warn!("the clean stop is not journaled: {why}");
+                    }
                     return;
                 }
                 () = self.wake.notified() => {}
                 () = sleep => {}
             }
-            let effects = self.lock().tick(Instant::now());
+            let effects = self.journaled(|book, now| book.tick(now));
             self.carry_out(effects);
         }
     }
@@ -315,13 +406,13 @@ impl Leases {
     }
 }
 
-/// A stop's outcome in words: what was sent, and what the drive confirmed
-/// (or why it failed); `audit` gets what may have reached the drive, and
+/// A stop's outcome: what was sent, and what the drive confirmed (or why
+/// it failed); `audit` gets each write that may have reached the drive, and
 /// the first failure.
 fn report(
     order: &StopOrder,
     outcome: Result<StopOutcome, BusError>,
-    audit: impl Fn(&str, &Result<String, String>),
+    audit: impl Fn(&str, &WriteEnd),
 ) -> StopReport {
     let releases =
         |r: &DriveRequest| matches!(r, DriveRequest::Speed { .. } | DriveRequest::Torque { .. });
@@ -329,39 +420,83 @@ fn report(
         Ok(stop) if stop.sent.is_some() => {
             let sent: Vec<String> = stop.requests().map(describe).collect();
             for what in &sent {
-                audit(what, &Ok("confirmed by the drive".to_string()));
+                audit(what, &WriteEnd::Confirmed);
             }
-            let sent = sent.join(", ");
             StopReport {
                 released_brake: stop.requests().any(releases),
-                result: Ok(format!("{sent} confirmed by the drive")),
-                sent: Some(sent),
+                result: StopResult::Confirmed,
+                sent: Some(sent.join(", ")),
             }
         }
         Ok(StopOutcome { mode, .. }) if order.action != StopAction::None => StopReport {
             sent: None,
-            result: Ok(format!(
-                "nothing to send: {} in {} mode holds the motor",
-                order.action.name(),
-                mode.map_or("unknown", |m| m.name())
-            )),
+            result: StopResult::NothingToSend {
+                action: order.action,
+                mode,
+            },
             released_brake: false,
         },
         Ok(_) => StopReport {
             sent: None,
-            result: Ok("the lease's action is \"none\": nothing sent".to_string()),
+            result: StopResult::ActionNone,
             released_brake: false,
         },
         Err(e) => {
-            let error = e.to_string();
             if order.attempt == 1 || !e.not_sent() {
-                audit(order.action.name(), &Err(error.clone()));
+                audit(order.action.name(), &WriteEnd::bus_error(e.clone()));
             }
             StopReport {
                 sent: Some(order.action.name().to_string()),
-                result: Err(error),
                 released_brake: order.action == StopAction::ZeroSpeed && !e.not_sent(),
+                result: StopResult::Failed(e),
             }
         }
+    }
+}
+
+/// The wall-clock time of `at`.
+fn wall_clock(at: Instant) -> SystemTime {
+    let now = Instant::now();
+    let wall = SystemTime::now();
+    if at >= now {
+        wall + (at - now)
+    } else {
+        wall.checked_sub(now - at).unwrap_or(wall)
+    }
+}
+
+fn action_of(action: StopAction) -> Action {
+    match action {
+        StopAction::ZeroSpeed => Action::ZeroSpeed,
+        StopAction::Brake => Action::Brake,
+        StopAction::None => Action::None,
+    }
+}
+
+/// The stop action a journal record names.
+pub(crate) fn stop_action(action: Action) -> StopAction {
+    match action {
+        Action::ZeroSpeed => StopAction::ZeroSpeed,
+        Action::Brake => StopAction::Brake,
+        Action::None => StopAction::None,
+    }
+}
+
+fn mode_of(mode: Mode) -> ModeName {
+    match mode {
+        Mode::OpenLoop => ModeName::OpenLoop,
+        Mode::Speed => ModeName::Speed,
+        Mode::Position => ModeName::Position,
+        Mode::Torque => ModeName::Torque,
+    }
+}
+
+/// The mode a journal record names.
+pub(crate) fn mode(name: ModeName) -> Mode {
+    match name {
+        ModeName::OpenLoop => Mode::OpenLoop,
+        ModeName::Speed => Mode::Speed,
+        ModeName::Position => Mode::Position,
+        ModeName::Torque => Mode::Torque,
     }
 }

@@ -22,11 +22,14 @@
 pub mod audit;
 pub mod caller;
 pub mod events;
+pub mod journal;
 pub mod lease_book;
 pub mod leases;
 pub mod outcome;
 pub mod policy;
 pub mod request;
+pub mod restart;
+pub mod shutdown;
 pub mod write;
 pub mod written;
 
@@ -37,16 +40,19 @@ use tokio::sync::{broadcast, mpsc};
 use tokio_util::sync::CancellationToken;
 
 pub use caller::{Caller, Face, SessionId};
-pub use events::{ControlEvent, Published, WriteEvent};
+pub use events::{ControlEvent, Published, WriteEnd, WriteEvent};
 pub use lease_book::{CommLoss, LeaseEvent, LeaseView, NoLease};
 pub use outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult};
 pub use policy::{Operation, Role};
 pub use request::{ControlRequest, Write};
+pub use shutdown::shutdown;
 pub use write::Pending;
 
 use crate::plant::{LookupError, Plant};
-use crate::safety::SafetyConfig;
+use crate::safety::{SafetyConfig, StopAction};
 use events::Events;
+use journal::Journal;
+use journal::replay::Recovered;
 use leases::Leases;
 
 /// Where a write goes: a bus, a unit on it (0: every drive, a broadcast),
@@ -79,6 +85,13 @@ struct Inner {
     leases: Arc<Leases>,
     events: Arc<Events>,
     jog_lease: Duration,
+    /// What the journal held at start-up, until it is replayed.
+    recovered: std::sync::Mutex<Option<Recovered>>,
+    on_unknown_state: StopAction,
+    /// What start-up found in the journal, in words (for `/readyz`).
+    journal_news: Vec<String>,
+    /// Replayed decisions by kind.
+    replayed: std::sync::Mutex<restart::Counts>,
 }
 
 impl Control {
@@ -86,10 +99,18 @@ impl Control {
     /// lease driver stops when `shutdown` fires.
     pub fn start(plant: Arc<Plant>, safety: &SafetyConfig, shutdown: CancellationToken) -> Self {
         let events = Arc::new(Events::default());
+        let opened = Journal::open(safety.state_dir().as_deref());
+        for news in &opened.news {
+            match opened.journal.health() {
+                journal::Health::Off(_) => tracing::info!("{news}"),
+                _ => tracing::warn!("{news}"),
+            }
+        }
         let leases = Leases::start(
             plant.clone(),
             safety.on_lease_expiry,
             events.clone(),
+            opened.journal,
             shutdown,
         );
         Control(Arc::new(Inner {
@@ -97,7 +118,67 @@ impl Control {
             leases,
             events,
             jog_lease: Duration::from_millis(safety.jog_lease_ms),
+            recovered: std::sync::Mutex::new(Some(opened.recovered)),
+            on_unknown_state: safety.on_unknown_state,
+            journal_news: opened.news,
+            replayed: std::sync::Mutex::new(restart::Counts::new()),
         }))
+    }
+
+    /// Replays the safety journal (once): what the last process owed the
+    /// motors is owed again. Call before any face takes a client.
+    pub async fn replay(&self) {
+        let recovered = self
+            .0
+            .recovered
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take();
+        let Some(recovered) = recovered else {
+            return;
+        };
+        let decisions = restart::run(
+            &self.0.plant,
+            &self.0.leases,
+            &recovered,
+            self.0.on_unknown_state,
+        )
+        .await;
+        let mut counts = self.0.replayed.lock().unwrap_or_else(|p| p.into_inner());
+        for d in &decisions {
+            *counts.entry(restart::kind(&d.what)).or_default() += 1;
+        }
+    }
+
+    /// Decisions of the start-up replay, by kind.
+    pub fn replayed(&self) -> restart::Counts {
+        self.0
+            .replayed
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// The safety journal's health and counts.
+    pub fn journal(&self) -> (journal::Health, journal::Counts) {
+        self.0.leases.journal(|j| (j.health().clone(), j.counts()))
+    }
+
+    /// What is wrong with the safety journal, in words (empty: nothing).
+    pub fn journal_warnings(&self) -> Vec<String> {
+        let mut out = self.0.journal_news.clone();
+        match self.0.leases.journal(|j| j.health().clone()) {
+            journal::Health::Ok => {}
+            journal::Health::Off(why) => {
+                if !out.contains(&why) {
+                    out.push(why);
+                }
+            }
+            journal::Health::Failing(why) => out.push(format!(
+                "{why}; leases work in memory only and are not kept across a restart"
+            )),
+        }
+        out
     }
 
     /// The lease a console jog asks for (`[safety] jog_lease_ms`).

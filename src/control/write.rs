@@ -16,7 +16,7 @@ use tokio::sync::oneshot::error::TryRecvError;
 
 use super::audit;
 use super::caller::Caller;
-use super::events::{ControlEvent, WriteEvent};
+use super::events::{ControlEvent, WriteEnd, WriteEvent};
 use super::lease_book::{Grant, Holder, LeaseAsk, Ticket, WriteKind};
 use super::outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult, applied};
 use super::policy::{Meaning, StillReason, Stopper};
@@ -454,14 +454,9 @@ impl Settle {
                 ((), effects)
             });
         }
-        let words: Result<String, String> = match (gone, result) {
-            (Some(why), _) => Err(why.to_string()),
-            (None, Ok(Outcome::Confirmed { .. })) => Ok("confirmed by the drive".to_string()),
-            (None, Ok(Outcome::Broadcast)) => {
-                Ok("sent as a broadcast (drives do not reply)".to_string())
-            }
-            (None, Err(Failure::Refused(r))) => Err(format!("refused: {}", r.detail)),
-            (None, Err(f)) => Err(f.to_string()),
+        let words = match gone {
+            Some(why) => WriteEnd::CallerGone(why.to_string()),
+            None => WriteEnd::of(result),
         };
         audit::write(
             self.caller.face.name(),

@@ -8,6 +8,7 @@ use prometheus::proto::MetricFamily;
 
 use super::family::{Kind, Spec};
 use crate::control::Control;
+use crate::control::journal::Health;
 
 static COMM_LOSS: Spec = Spec {
     name: "drivegate_modbus_tcp_comm_loss_stops_total",
@@ -16,6 +17,38 @@ static COMM_LOSS: Spec = Spec {
            request within comm_loss_ms) or closed (the connection closed).",
     kind: Kind::Counter,
     labels: &["bus", "reason"],
+};
+
+static REPLAYED: Spec = Spec {
+    name: "drivegate_restart_decisions_total",
+    help: "Decisions of the start-up replay of the safety journal, by decision: stops owed \
+           (holder gone, ran out, unfinished, brake again, unknown state), HTTP leases kept, \
+           stops not sent because a confirmed brake holds, drives no longer configured.",
+    kind: Kind::Counter,
+    labels: &["decision"],
+};
+
+static JOURNAL_OK: Spec = Spec {
+    name: "drivegate_safety_journal_ok",
+    help: "1 when the safety journal is written and synced; 0 when there is none or it cannot \
+           be written (leases then work in memory only and are not kept across a restart).",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
+static JOURNAL_EVENTS: Spec = Spec {
+    name: "drivegate_safety_journal_events_total",
+    help: "The safety journal's life: records appended, write errors, compactions, and \
+           journals set aside at start-up because they could not be read.",
+    kind: Kind::Counter,
+    labels: &["event"],
+};
+
+static JOURNAL_BYTES: Spec = Spec {
+    name: "drivegate_safety_journal_bytes",
+    help: "Size of the safety journal file.",
+    kind: Kind::Gauge,
+    labels: &[],
 };
 
 /// Exports the control core's counters.
@@ -28,7 +61,13 @@ impl ControlCollector {
     pub(crate) fn new(control: Control) -> Self {
         Self {
             control,
-            descs: vec![COMM_LOSS.desc()],
+            descs: vec![
+                COMM_LOSS.desc(),
+                REPLAYED.desc(),
+                JOURNAL_OK.desc(),
+                JOURNAL_EVENTS.desc(),
+                JOURNAL_BYTES.desc(),
+            ],
         }
     }
 }
@@ -46,6 +85,27 @@ impl Collector for ControlCollector {
             comm_loss.set(&[name, "timeout"], timeout as f64);
             comm_loss.set(&[name, "closed"], closed as f64);
         }
-        vec![comm_loss.finish()]
+        let mut replayed = REPLAYED.family();
+        let counts = self.control.replayed();
+        for kind in crate::control::restart::KINDS {
+            replayed.set(&[kind], counts.get(kind).copied().unwrap_or(0) as f64);
+        }
+        let (health, c) = self.control.journal();
+        let mut ok = JOURNAL_OK.family();
+        ok.set(&[], f64::from(u8::from(health == Health::Ok)));
+        let mut events = JOURNAL_EVENTS.family();
+        events.set(&["record"], c.records as f64);
+        events.set(&["write-error"], c.write_errors as f64);
+        events.set(&["compaction"], c.compactions as f64);
+        events.set(&["set-aside"], c.set_aside as f64);
+        let mut bytes = JOURNAL_BYTES.family();
+        bytes.set(&[], c.bytes as f64);
+        vec![
+            comm_loss.finish(),
+            replayed.finish(),
+            ok.finish(),
+            events.finish(),
+            bytes.finish(),
+        ]
     }
 }

@@ -1,0 +1,418 @@
+//! The safety journal's file format, pure: no I/O here.
+//!
+//! ```text
+//! header:  "DRVGJRNL" (8 bytes)  version: u32 LE (1)
+//! record:  length: u32 LE  crc32(payload): u32 LE  payload (JSON, `length` bytes)
+//! ```
+//!
+//! Why this shape: the file is only ever appended to, and a power cut can
+//! leave the last append half written. Each record says how long it is and
+//! carries a CRC-32 of its bytes, so a torn or garbled tail is recognised
+//! (too short, or a CRC that does not match) and ignored instead of being
+//! read as something the daemon promised. A bad record with good records
+//! after it cannot come from a torn append: that file is not trusted at
+//! all. The header's magic and version make a file of another program, or
+//! of a newer drivegate, readable as "not mine" rather than as garbage.
+//! The payload is JSON so an engineer can read a journal with a few lines
+//! of script, and a field added later is ignored by an older reader.
+
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use serde::{Deserialize, Serialize};
+
+/// The first 8 bytes of a journal.
+pub const MAGIC: &[u8; 8] = b"DRVGJRNL";
+/// The format this drivegate writes and reads.
+pub const VERSION: u32 = 1;
+/// Header length: the magic and the version.
+pub const HEADER_LEN: usize = 12;
+/// A record's frame: its length and its CRC.
+pub const FRAME_LEN: usize = 8;
+/// No record is longer: a longer length field is garbage.
+pub const MAX_RECORD: usize = 64 * 1024;
+
+/// Who held a lease, as a restart must know it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum HolderKind {
+    /// A single request (REST, with a token): its client can renew it
+    /// against the next process.
+    Http,
+    /// A session (a WebSocket): it ends with the process.
+    Session,
+    /// A session's communication-loss function (a Modbus TCP client's
+    /// network): it ends with the process.
+    CommLoss,
+}
+
+impl HolderKind {
+    /// In words.
+    pub fn words(self) -> &'static str {
+        match self {
+            HolderKind::Http => "an HTTP client",
+            HolderKind::Session => "a WebSocket stream session",
+            HolderKind::CommLoss => "a Modbus TCP connection with a communication-loss time",
+        }
+    }
+}
+
+/// A stop action as written in the journal.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Action {
+    /// Zero speed (or torque) in the drive's mode.
+    ZeroSpeed,
+    /// The emergency brake.
+    Brake,
+    /// Nothing.
+    None,
+}
+
+/// A drive mode as written in the journal.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ModeName {
+    /// Open loop.
+    OpenLoop,
+    /// Speed.
+    Speed,
+    /// Position.
+    Position,
+    /// Torque.
+    Torque,
+}
+
+/// Where a brake sent to a drive stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BrakeState {
+    /// Sent; the drive has not confirmed it (yet).
+    Sent,
+    /// The drive confirmed it: the last confirmed command was a brake.
+    Confirmed,
+    /// Surely not applied, or a write since released it.
+    Off,
+}
+
+/// One record: a fact a restart must know. Drives by name, so a journal
+/// survives a reordering of the configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "record", rename_all = "kebab-case")]
+pub enum Record {
+    /// A lease is on the drive, until `deadline_ms` (Unix ms) at the
+    /// latest.
+    Lease {
+        /// Drive name.
+        drive: String,
+        /// Who holds it (token name, client address).
+        owner: String,
+        /// What holds it.
+        holder: HolderKind,
+        /// Its deadline, Unix time in ms: never later than the one
+        /// promised (see `Journal`'s horizon rule).
+        deadline_ms: u64,
+        /// Its length, ms.
+        length_ms: u64,
+        /// What its end sends.
+        action: Action,
+        /// The mode its setpoint drives the motor in.
+        mode: ModeName,
+    },
+    /// The drive's lease ended without a stop (released, ended by a brake
+    /// or deactivation, or its setpoint surely never landed).
+    LeaseEnded {
+        /// Drive name.
+        drive: String,
+    },
+    /// A stop of the drive is being carried out (it ends the drive's
+    /// lease when `ends_lease`).
+    Stop {
+        /// Drive name.
+        drive: String,
+        /// Who held the lease it ends, if it ends one.
+        owner: Option<String>,
+        /// What to send.
+        action: Action,
+        /// The mode to decide on when the drive's cannot be read.
+        mode: ModeName,
+        /// It ends the drive's lease.
+        ends_lease: bool,
+    },
+    /// The drive's stop ended: confirmed, or taken over by something newer.
+    StopEnded {
+        /// Drive name.
+        drive: String,
+    },
+    /// A brake on its way, confirmed, or released.
+    Brake {
+        /// Drive name.
+        drive: String,
+        /// Where it stands.
+        state: BrakeState,
+    },
+    /// drivegate stopped cleanly: its safe stop covered every drive, and
+    /// nothing before this record is owed.
+    Shutdown,
+}
+
+/// Milliseconds since the Unix epoch (0 before it).
+pub fn unix_ms(t: SystemTime) -> u64 {
+    t.duration_since(UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+}
+
+/// The time `ms` after the Unix epoch.
+pub fn from_unix_ms(ms: u64) -> SystemTime {
+    UNIX_EPOCH + Duration::from_millis(ms)
+}
+
+/// The header of a new journal.
+pub fn header() -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER_LEN);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&VERSION.to_le_bytes());
+    out
+}
+
+/// One record, framed.
+pub fn encode(record: &Record) -> Vec<u8> {
+    // A record of strings and numbers always serializes.
+    let payload = serde_json::to_vec(record).unwrap_or_default();
+    let mut out = Vec::with_capacity(FRAME_LEN + payload.len());
+    out.extend_from_slice(&u32::try_from(payload.len()).unwrap_or(0).to_le_bytes());
+    out.extend_from_slice(&crc32(&payload).to_le_bytes());
+    out.extend_from_slice(&payload);
+    out
+}
+
+/// Why a journal cannot be trusted, in words.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Unreadable {
+    /// The file does not start with the magic.
+    #[error("it is not a drivegate safety journal (its first bytes are not \"DRVGJRNL\")")]
+    NotAJournal,
+    /// Another version of the format.
+    #[error("it is in format version {0}; this drivegate reads version {VERSION}")]
+    Version(u32),
+    /// A bad record with more after it: not a torn append.
+    #[error("record {index} at byte {offset} is damaged ({why}) and more follows it")]
+    Damaged {
+        /// 0-based record number.
+        index: usize,
+        /// Its byte offset.
+        offset: usize,
+        /// What is wrong with it.
+        why: &'static str,
+    },
+    /// The file could not be read at all.
+    #[error("it could not be read: {0}")]
+    Io(String),
+}
+
+/// A journal read back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decoded {
+    /// Its records, in order.
+    pub records: Vec<Record>,
+    /// Bytes of good records, header included: where the next append goes.
+    pub good_len: usize,
+    /// Bytes of a torn last record ignored (0: none).
+    pub torn: usize,
+}
+
+/// Reads a journal's bytes. An empty file is an empty journal (a crash
+/// while creating it); a torn last record is left out and counted.
+pub fn decode(bytes: &[u8]) -> Result<Decoded, Unreadable> {
+    if bytes.is_empty() {
+        return Ok(Decoded {
+            records: Vec::new(),
+            good_len: 0,
+            torn: 0,
+        });
+    }
+    if bytes.len() < HEADER_LEN {
+        // A header cut short is a journal torn while it was created, if
+        // what there is matches.
+        let n = bytes.len().min(MAGIC.len());
+        if bytes[..n] == MAGIC[..n] {
+            return Ok(Decoded {
+                records: Vec::new(),
+                good_len: 0,
+                torn: bytes.len(),
+            });
+        }
+        return Err(Unreadable::NotAJournal);
+    }
+    if &bytes[..8] != MAGIC {
+        return Err(Unreadable::NotAJournal);
+    }
+    let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+    if version != VERSION {
+        return Err(Unreadable::Version(version));
+    }
+    let mut records = Vec::new();
+    let mut at = HEADER_LEN;
+    while at < bytes.len() {
+        let rest = &bytes[at..];
+        let torn = |why| -> Result<Decoded, Unreadable> {
+            Err(Unreadable::Damaged {
+                index: records.len(),
+                offset: at,
+                why,
+            })
+        };
+        if rest.len() < FRAME_LEN {
+            break; // a torn frame
+        }
+        let len = u32::from_le_bytes([rest[0], rest[1], rest[2], rest[3]]) as usize;
+        let crc = u32::from_le_bytes([rest[4], rest[5], rest[6], rest[7]]);
+        if len > MAX_RECORD {
+            return torn("its length is impossible");
+        }
+        let Some(payload) = rest.get(FRAME_LEN..FRAME_LEN + len) else {
+            break; // a torn payload
+        };
+        let last = FRAME_LEN + len == rest.len();
+        if crc32(payload) != crc {
+            if last {
+                break; // torn mid-write: its bytes never all reached the disk
+            }
+            return torn("its CRC does not match");
+        }
+        match serde_json::from_slice::<Record>(payload) {
+            Ok(record) => records.push(record),
+            Err(_) => return torn("its CRC matches but its content is not a known record"),
+        }
+        at += FRAME_LEN + len;
+    }
+    Ok(Decoded {
+        records,
+        good_len: at,
+        torn: bytes.len() - at,
+    })
+}
+
+/// CRC-32 (IEEE 802.3, the one of zip and PNG).
+pub fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &b in bytes {
+        crc = TABLE[((crc ^ u32::from(b)) & 0xFF) as usize] ^ (crc >> 8);
+    }
+    !crc
+}
+
+const TABLE: [u32; 256] = {
+    let mut table = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        let mut c = i as u32;
+        let mut k = 0;
+        while k < 8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            k += 1;
+        }
+        table[i] = c;
+        i += 1;
+    }
+    table
+};
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    fn lease(drive: &str) -> Record {
+        Record::Lease {
+            drive: drive.to_string(),
+            owner: "scada".to_string(),
+            holder: HolderKind::Http,
+            deadline_ms: 1_700_000_000_000,
+            length_ms: 1000,
+            action: Action::ZeroSpeed,
+            mode: ModeName::Speed,
+        }
+    }
+
+    fn journal(records: &[Record]) -> Vec<u8> {
+        let mut bytes = header();
+        for r in records {
+            bytes.extend(encode(r));
+        }
+        bytes
+    }
+
+    #[test]
+    fn crc32_matches_the_check_value() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+    }
+
+    #[test]
+    fn records_read_back_as_written() {
+        let records = vec![
+            lease("conveyor"),
+            Record::Brake {
+                drive: "lift".into(),
+                state: BrakeState::Confirmed,
+            },
+            Record::Shutdown,
+        ];
+        let bytes = journal(&records);
+        let d = decode(&bytes).unwrap();
+        assert_eq!(d.records, records);
+        assert_eq!((d.good_len, d.torn), (bytes.len(), 0));
+    }
+
+    #[test]
+    fn a_torn_last_record_is_ignored_at_every_cut() {
+        let whole = journal(&[lease("conveyor"), lease("lift")]);
+        let first_end = journal(&[lease("conveyor")]).len();
+        for cut in first_end + 1..whole.len() {
+            let d = decode(&whole[..cut]).unwrap();
+            assert_eq!(d.records, vec![lease("conveyor")], "cut at {cut}");
+            assert_eq!((d.good_len, d.torn), (first_end, cut - first_end));
+        }
+        // A last record with its bytes written but garbled (the sectors
+        // reached the disk out of order) is torn too.
+        let mut garbled = whole.clone();
+        let last = garbled.len() - 2;
+        garbled[last] ^= 0x55;
+        assert_eq!(decode(&garbled).unwrap().records.len(), 1);
+    }
+
+    #[test]
+    fn a_damaged_record_before_good_ones_makes_the_journal_unreadable() {
+        let mut bytes = journal(&[lease("conveyor"), lease("lift")]);
+        bytes[HEADER_LEN + FRAME_LEN + 3] ^= 0x55;
+        assert!(matches!(
+            decode(&bytes),
+            Err(Unreadable::Damaged { index: 0, .. })
+        ));
+    }
+
+    #[test]
+    fn other_files_and_versions_are_not_read() {
+        assert_eq!(
+            decode(b"hello, this is not a journal"),
+            Err(Unreadable::NotAJournal)
+        );
+        let mut v2 = journal(&[]);
+        v2[8] = 2;
+        assert_eq!(decode(&v2), Err(Unreadable::Version(2)));
+        // An impossible length.
+        let mut long = journal(&[]);
+        long.extend_from_slice(&u32::MAX.to_le_bytes());
+        long.extend_from_slice(&[0; 100]);
+        assert!(matches!(decode(&long), Err(Unreadable::Damaged { .. })));
+    }
+
+    #[test]
+    fn empty_and_half_headers_are_new_journals() {
+        assert!(decode(b"").unwrap().records.is_empty());
+        assert_eq!(decode(b"DRVG").unwrap().torn, 4);
+    }
+}

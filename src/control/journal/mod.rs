@@ -1,0 +1,298 @@
+//! The safety journal: what a restart must know of the promises drivegate
+//! made about the motors (leases, stops still owed, brakes), kept in
+//! `[safety] state_dir` so that none is forgotten when the process dies
+//! (a `kill -9`, an OOM kill, a watchdog restart, a power cut).
+//!
+//! Records ([`format`]) are appended and synced to the disk before the
+//! write that needs them goes to the bus; the file is compacted (a snapshot
+//! written to a temporary file, synced, renamed over it, the directory
+//! synced) when it grows. At start-up [`replay`] decides, as a pure
+//! function, what is owed. A journal that cannot be read is set aside
+//! (renamed) and never keeps the daemon from starting; a disk that cannot
+//! be written leaves the leases working in memory, with a warning on each
+//! write the journal misses.
+
+pub mod format;
+pub mod replay;
+
+use std::fs::{self, File, OpenOptions};
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+use std::time::SystemTime;
+
+use format::{Decoded, Record, Unreadable};
+use replay::{JournalState, Recovered};
+
+/// The journal's file name in the state directory.
+pub const FILE: &str = "safety.journal";
+/// Compacted once it is this long (and twice its last snapshot).
+pub const COMPACT_AT: u64 = 64 * 1024;
+
+/// The state directory of `drivegate serve` without a configuration:
+/// `$XDG_STATE_HOME/drivegate`, else `~/.local/state/drivegate`, else
+/// `./drivegate-state`.
+pub fn default_dir() -> PathBuf {
+    if let Some(xdg) = std::env::var_os("XDG_STATE_HOME").filter(|x| !x.is_empty()) {
+        return PathBuf::from(xdg).join("drivegate");
+    }
+    match std::env::var_os("HOME").filter(|h| !h.is_empty()) {
+        Some(home) => PathBuf::from(home).join(".local/state/drivegate"),
+        None => PathBuf::from("drivegate-state"),
+    }
+}
+
+/// Checks that the journal can be kept in `dir`: created if missing, a
+/// file written, synced and removed. The error says what to fix.
+pub fn check_writable(dir: &Path) -> Result<(), String> {
+    let probe = dir.join(format!("{FILE}.check"));
+    let result = fs::create_dir_all(dir).and_then(|()| {
+        let mut f = File::create(&probe)?;
+        f.write_all(b"drivegate")?;
+        f.sync_all()?;
+        fs::remove_file(&probe)
+    });
+    result.map_err(|e| {
+        format!(
+            "[safety] state_dir {}: the safety journal cannot be written there: {e}; leases would not be kept across a restart (make it a writable directory, or with systemd set StateDirectory=drivegate)",
+            dir.display()
+        )
+    })
+}
+
+/// How the journal stands, for the log, `/readyz` and the metrics.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Health {
+    /// Written and synced.
+    Ok,
+    /// There is no state directory: nothing survives a restart.
+    Off(String),
+    /// It cannot be written: leases work in memory only (why, in words).
+    Failing(String),
+}
+
+/// Counts of the journal's life, for the metrics.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Counts {
+    /// Records appended.
+    pub records: u64,
+    /// Appends that failed.
+    pub write_errors: u64,
+    /// Compactions done.
+    pub compactions: u64,
+    /// Journals set aside as unreadable at start-up.
+    pub set_aside: u64,
+    /// Bytes of the file.
+    pub bytes: u64,
+}
+
+/// The open journal.
+pub struct Journal {
+    dir: Option<PathBuf>,
+    file: Option<File>,
+    state: JournalState,
+    /// The file must be rewritten from `state` before the next append (an
+    /// append failed half way, or it was never created).
+    rewrite: bool,
+    health: Health,
+    counts: Counts,
+    /// Bytes of the last snapshot.
+    snapshot_len: u64,
+}
+
+/// What opening the journal found.
+pub struct Opened {
+    /// The journal, ready for appends.
+    pub journal: Journal,
+    /// What it held.
+    pub recovered: Recovered,
+    /// What happened, in words, for the log and `/readyz` (empty: nothing
+    /// worth saying).
+    pub news: Vec<String>,
+}
+
+impl Journal {
+    /// Opens (or creates) the journal in `dir`; `None`: there is none.
+    pub fn open(dir: Option<&Path>) -> Opened {
+        let Some(dir) = dir else {
+            let why = "no state directory ([safety] state_dir, or systemd's $STATE_DIRECTORY): leases and stops owed are not kept across a restart".to_string();
+            return Opened {
+                journal: Journal::new(None, Health::Off(why.clone())),
+                recovered: Recovered::Read(JournalState::default()),
+                news: vec![why],
+            };
+        };
+        let path = dir.join(FILE);
+        let mut news = Vec::new();
+        let mut journal = Journal::new(Some(dir.to_path_buf()), Health::Ok);
+        let bytes = match fs::read(&path) {
+            Ok(bytes) => Ok(bytes),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(Vec::new()),
+            Err(e) => Err(Unreadable::Io(e.to_string())),
+        };
+        let recovered = match bytes.and_then(|b| format::decode(&b)) {
+            Ok(Decoded { records, torn, .. }) => {
+                if torn > 0 {
+                    news.push(format!(
+                        "the safety journal {} ended in a record cut short ({torn} bytes, a write the power cut or the crash interrupted); it was left out",
+                        path.display()
+                    ));
+                }
+                journal.state = JournalState::of(&records);
+                Recovered::Read(journal.state.clone())
+            }
+            Err(why) => {
+                journal.counts.set_aside += 1;
+                let aside = dir.join(format!(
+                    "{FILE}.unreadable-{}",
+                    format::unix_ms(SystemTime::now())
+                ));
+                let moved = match fs::rename(&path, &aside) {
+                    Ok(()) => format!("it was set aside as {}", aside.display()),
+                    Err(e) => format!("it could not be set aside ({e})"),
+                };
+                news.push(format!(
+                    "the safety journal {} could not be read: {why}; {moved}. What the last process promised about the motors is unknown: [safety] on_unknown_state is applied to every drive found moving",
+                    path.display()
+                ));
+                Recovered::Unreadable
+            }
+        };
+        // Start from a clean snapshot: no torn tail, nothing ended.
+        journal.rewrite = true;
+        if let Err(e) = journal.compact() {
+            journal.fail(format!(
+                "the safety journal {} cannot be written: {e}",
+                path.display()
+            ));
+            if let Health::Failing(why) = &journal.health {
+                news.push(format!(
+                    "{why}; leases work in memory only and are not kept across a restart"
+                ));
+            }
+        }
+        Opened {
+            journal,
+            recovered,
+            news,
+        }
+    }
+
+    fn new(dir: Option<PathBuf>, health: Health) -> Self {
+        Journal {
+            dir,
+            file: None,
+            state: JournalState::default(),
+            rewrite: false,
+            health,
+            counts: Counts::default(),
+            snapshot_len: 0,
+        }
+    }
+
+    /// How it stands.
+    pub fn health(&self) -> &Health {
+        &self.health
+    }
+
+    /// Its counts.
+    pub fn counts(&self) -> Counts {
+        self.counts
+    }
+
+    /// What it holds now.
+    pub fn state(&self) -> &JournalState {
+        &self.state
+    }
+
+    /// Appends `records` and syncs them to the disk (one sync for all).
+    /// The state is kept in memory even when the disk fails, so the
+    /// journal is whole again once the disk takes writes.
+    pub fn append(&mut self, records: &[Record]) -> Result<(), String> {
+        for r in records {
+            self.state.apply(r);
+        }
+        if self.dir.is_none() || records.is_empty() {
+            return Ok(());
+        }
+        let result = if self.rewrite {
+            self.compact()
+        } else {
+            self.write(records)
+        };
+        match result {
+            Ok(()) => {
+                self.counts.records += records.len() as u64;
+                if !matches!(self.health, Health::Ok) {
+                    tracing::info!("the safety journal is written again");
+                    self.health = Health::Ok;
+                }
+                if self.counts.bytes > COMPACT_AT.max(2 * self.snapshot_len)
+                    && let Err(e) = self.compact()
+                {
+                    self.fail(format!("the safety journal could not be compacted: {e}"));
+                }
+                Ok(())
+            }
+            Err(e) => {
+                self.counts.write_errors += 1;
+                self.rewrite = true;
+                let why = format!("the safety journal could not be written: {e}");
+                self.fail(why.clone());
+                Err(why)
+            }
+        }
+    }
+
+    fn fail(&mut self, why: String) {
+        self.health = Health::Failing(why);
+        self.file = None;
+        self.rewrite = true;
+    }
+
+    fn write(&mut self, records: &[Record]) -> io::Result<()> {
+        let Some(file) = self.file.as_mut() else {
+            return Err(io::Error::other("the journal is not open"));
+        };
+        let mut bytes = Vec::new();
+        for r in records {
+            bytes.extend(format::encode(r));
+        }
+        file.write_all(&bytes)?;
+        file.sync_data()?;
+        self.counts.bytes += bytes.len() as u64;
+        Ok(())
+    }
+
+    /// Rewrites the journal as a snapshot of its state: a temporary file,
+    /// synced, renamed over the journal, and the directory synced, so the
+    /// journal is at every instant either the old file or the new one.
+    fn compact(&mut self) -> io::Result<()> {
+        let Some(dir) = self.dir.clone() else {
+            return Ok(());
+        };
+        fs::create_dir_all(&dir)?;
+        let tmp = dir.join(format!("{FILE}.tmp"));
+        let path = dir.join(FILE);
+        let mut bytes = format::header();
+        for r in self.state.snapshot() {
+            bytes.extend(format::encode(&r));
+        }
+        let written = (|| {
+            let mut f = File::create(&tmp)?;
+            f.write_all(&bytes)?;
+            f.sync_all()?;
+            fs::rename(&tmp, &path)?;
+            File::open(&dir)?.sync_all()
+        })();
+        if let Err(e) = written {
+            let _ = fs::remove_file(&tmp);
+            return Err(e);
+        }
+        self.file = Some(OpenOptions::new().append(true).open(&path)?);
+        self.counts.bytes = bytes.len() as u64;
+        self.snapshot_len = bytes.len() as u64;
+        self.counts.compactions += 1;
+        self.rewrite = false;
+        Ok(())
+    }
+}

@@ -1,0 +1,193 @@
+//! The start-up replay of the safety journal, carried out: before any face
+//! takes a client, what the last process owed the motors is put back into
+//! the lease book (leases an HTTP client may still renew, stops owed, tried
+//! until the drives confirm them), each decision audited with
+//! `face="restart"` and counted for the metrics. The decisions themselves
+//! are [`super::journal::replay::replay`], a pure function.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime};
+
+use super::journal::format::Action;
+use super::journal::replay::{self, Decision, DriveAtStart, Recovered, Replayed, StopWhy};
+use super::leases::{self, Leases};
+use crate::bus::cache::Link;
+use crate::plant::Plant;
+use crate::safety::{self, StopAction};
+
+/// How long start-up waits for the drives' first statuses when the journal
+/// could not be read (only then does it matter which drives move).
+const FIRST_STATUS: Duration = Duration::from_secs(5);
+
+/// Replayed decisions by kind, for the metrics.
+pub type Counts = BTreeMap<&'static str, u64>;
+
+/// Every kind of decision, so each series exists from start-up.
+pub const KINDS: [&str; 8] = [
+    "stop-holder-gone",
+    "stop-ran-out",
+    "stop-unfinished",
+    "brake-again",
+    "stop-unknown-state",
+    "lease-kept",
+    "brake-holds",
+    "not-configured",
+];
+
+/// The metric label of a decision.
+pub fn kind(what: &Replayed) -> &'static str {
+    match what {
+        Replayed::Stop { why, .. } => match why {
+            StopWhy::HolderGone(_) => "stop-holder-gone",
+            StopWhy::RanOut => "stop-ran-out",
+            StopWhy::Unfinished => "stop-unfinished",
+            StopWhy::BrakeUnconfirmed => "brake-again",
+            StopWhy::UnknownState => "stop-unknown-state",
+        },
+        Replayed::Keep { .. } => "lease-kept",
+        Replayed::BrakeHolds { .. } => "brake-holds",
+        Replayed::NotConfigured => "not-configured",
+    }
+}
+
+/// Replays `recovered` into the lease book; returns the decisions made.
+pub async fn run(
+    plant: &Arc<Plant>,
+    leases: &Arc<Leases>,
+    recovered: &Recovered,
+    on_unknown: StopAction,
+) -> Vec<Decision> {
+    let statuses = if *recovered == Recovered::Unreadable {
+        first_statuses(plant).await
+    } else {
+        plant
+            .drives()
+            .iter()
+            .map(|d| DriveAtStart {
+                name: d.name.clone(),
+                moving: None,
+            })
+            .collect()
+    };
+    let on_unknown = match on_unknown {
+        StopAction::ZeroSpeed => Action::ZeroSpeed,
+        StopAction::Brake => Action::Brake,
+        StopAction::None => Action::None,
+    };
+    let decisions = replay::replay(recovered, SystemTime::now(), &statuses, on_unknown);
+    let index = |name: &str| plant.drives().iter().position(|d| d.name == name);
+    leases.with(|book, now: Instant| {
+        for d in &decisions {
+            audit(d);
+            let Some(drive) = index(&d.drive) else {
+                continue;
+            };
+            match &d.what {
+                Replayed::Stop {
+                    owner,
+                    action,
+                    mode,
+                    why,
+                } => book.restart_stop(
+                    drive,
+                    owner.as_deref().map(Arc::from),
+                    leases::stop_action(*action),
+                    leases::mode(*mode),
+                    why.words().into(),
+                    now,
+                ),
+                Replayed::Keep { lease, left } => book.restore_lease(
+                    drive,
+                    lease.owner.as_str().into(),
+                    lease.length,
+                    *left,
+                    leases::stop_action(lease.action),
+                    leases::mode(lease.mode),
+                    now,
+                ),
+                Replayed::BrakeHolds { .. } => book.restore_brake(drive),
+                Replayed::NotConfigured => {}
+            }
+        }
+        ((), book.tick(now))
+    });
+    decisions
+}
+
+/// Each configured drive, moving or not, once it was polled (or the wait
+/// ran out: then `None`).
+async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
+    let deadline = tokio::time::Instant::now() + FIRST_STATUS;
+    loop {
+        let seen: Vec<DriveAtStart> = plant
+            .drives()
+            .iter()
+            .map(|d| {
+                let state = plant.handle_of(d).drive(d.unit);
+                let known = state.as_ref().is_some_and(|s| s.link != Link::Unknown);
+                DriveAtStart {
+                    name: d.name.clone(),
+                    moving: state
+                        .and_then(|s| s.status)
+                        .filter(|_| known)
+                        .map(|s| safety::is_moving(&s)),
+                }
+            })
+            .collect();
+        let all = plant.drives().iter().all(|d| {
+            plant
+                .handle_of(d)
+                .drive(d.unit)
+                .is_some_and(|s| s.link != Link::Unknown)
+        });
+        if all || tokio::time::Instant::now() >= deadline {
+            return seen;
+        }
+        // The poller's first round: a status per drive, each a few ms.
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+fn audit(d: &Decision) {
+    let drive = d.drive.as_str();
+    let decision = kind(&d.what);
+    match &d.what {
+        Replayed::Stop {
+            owner, action, why, ..
+        } => tracing::warn!(
+            target: "drivegate::audit",
+            face = "restart",
+            drive,
+            who = owner.as_deref().unwrap_or("drivegate"),
+            decision,
+            action = leases::stop_action(*action).name(),
+            "restart: a stop is owed because {}; it is sent and tried until the drive confirms it",
+            why.words()
+        ),
+        Replayed::Keep { lease, left } => tracing::info!(
+            target: "drivegate::audit",
+            face = "restart",
+            drive,
+            who = %lease.owner,
+            decision,
+            left_ms = left.as_millis() as u64,
+            "restart: the HTTP lease goes on until its deadline; its client may renew it"
+        ),
+        Replayed::BrakeHolds { owner } => tracing::warn!(
+            target: "drivegate::audit",
+            face = "restart",
+            drive,
+            who = owner.as_deref().unwrap_or("drivegate"),
+            decision,
+            "restart: the drive's last confirmed command was a brake; no stop that would release it is sent"
+        ),
+        Replayed::NotConfigured => tracing::warn!(
+            target: "drivegate::audit",
+            face = "restart",
+            drive,
+            decision,
+            "restart: the safety journal names a drive that is not configured any more; nothing is sent"
+        ),
+    }
+}
