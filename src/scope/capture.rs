@@ -354,6 +354,15 @@ impl Capture {
                 self.pre.pop_front();
             }
         }
+        // A count is per drive: a drive polled more often than another (a
+        // client's read between polls) must not push the other's samples
+        // out of the buffer.
+        if let Amount::Samples(n) = self.spec.pre_trigger
+            && self.pre.iter().filter(|s| s.unit == sample.unit).count() >= n as usize
+            && let Some(oldest) = self.pre.iter().position(|s| s.unit == sample.unit)
+        {
+            self.pre.remove(oldest);
+        }
         if self.pre.len() == self.pre_capacity {
             self.pre.pop_front();
         }
@@ -554,6 +563,37 @@ mod tests {
         let first_post = c.samples().nth(pre).unwrap();
         assert_eq!((first_post.unit, first_post.status.stalled()), (2, true));
         assert_eq!(c.fired().unwrap().what, "the drive stalled");
+    }
+
+    #[test]
+    fn a_pre_trigger_count_is_kept_per_drive_when_one_drive_is_sampled_more() {
+        let t0 = Instant::now();
+        let mut c = arm(
+            spec(
+                &[1, 2],
+                Trigger::Manual,
+                Amount::Samples(5),
+                Amount::Samples(2),
+            ),
+            t0,
+        );
+        let mut t = t0;
+        // Drive 2 first, then drive 1 three times as often.
+        for _ in 0..5 {
+            t += POLL;
+            c.on_sample(2, &speed(2), t);
+        }
+        for _ in 0..15 {
+            t += POLL;
+            c.on_sample(1, &speed(1), t);
+        }
+        c.trigger_now(t, Origin::Internal).unwrap();
+        let held = |unit| c.samples().filter(|s| s.unit == unit).count();
+        assert_eq!(
+            (held(1), held(2)),
+            (5, 5),
+            "5 before the trigger of each drive"
+        );
     }
 
     #[test]
