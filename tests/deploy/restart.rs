@@ -64,7 +64,10 @@ impl Bench {
     /// The configuration: three drives on the link, loopback a Modbus TCP
     /// operator network with a communication-loss time, the journal in
     /// `state_dir`.
-    fn config(&self, state_dir: &Path) -> PathBuf {
+    fn config(&self, state_dir: Option<&Path>) -> PathBuf {
+        let state_dir = state_dir.map_or_else(String::new, |d| {
+            format!("[safety]\nstate_dir = \"{}\"", d.display())
+        });
         let toml = format!(
             r#"
 [http]
@@ -78,8 +81,7 @@ comm_loss_ms = 60000
 [log]
 format = "json"
 level = "info"
-[safety]
-state_dir = "{}"
+{}
 [[bus]]
 name = "line"
 port = "{}"
@@ -95,7 +97,7 @@ name = "lift"
 unit = 3
 name = "belt"
 "#,
-            state_dir.display(),
+            state_dir,
             self.link.display()
         );
         let path = self.dir.path().join("drivegate.toml");
@@ -108,15 +110,25 @@ name = "belt"
     }
 
     async fn serve_with(&self, state_dir: &Path) -> Daemon {
+        self.serve_env(Some(state_dir), None).await
+    }
+
+    /// Serves with `state_dir` in the configuration and `env` as systemd's
+    /// `$STATE_DIRECTORY`.
+    async fn serve_env(&self, state_dir: Option<&Path>, env: Option<&Path>) -> Daemon {
         let config = self.config(state_dir);
-        let mut child = Command::new(env!("CARGO_BIN_EXE_drivegate"))
+        let mut command = Command::new(env!("CARGO_BIN_EXE_drivegate"));
+        match env {
+            Some(dir) => command.env("STATE_DIRECTORY", dir),
+            None => command.env_remove("STATE_DIRECTORY"),
+        };
+        let mut child = command
             .arg("serve")
             .arg("--config")
             .arg(&config)
             .env_remove("RUST_LOG")
             .env_remove("JOURNAL_STREAM")
             .env_remove("NOTIFY_SOCKET")
-            .env_remove("STATE_DIRECTORY")
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
@@ -536,6 +548,32 @@ async fn a_state_dir_that_cannot_be_written_leaves_leases_working_in_memory() {
                 .is_some_and(|m| m.contains("not kept across a restart"))
         });
         assert!(warned);
+        d.kill9().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// The unit has systemd make `/var/lib/drivegate` and name it in
+/// `$STATE_DIRECTORY`, where the daemon keeps its journal when the
+/// configuration names no directory.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_journal_goes_to_systemds_state_directory() {
+    let unit = include_str!("../../deploy/systemd/drivegate.service");
+    assert!(unit.lines().any(|l| l == "StateDirectory=drivegate"));
+    tokio::time::timeout(LIMIT, async {
+        let bench = Bench::new().await;
+        let state = bench.dir.path().join("var-lib-drivegate");
+        std::fs::create_dir(&state).unwrap();
+        let d = bench.serve_env(None, Some(&state)).await;
+        let journal = std::fs::read(state.join("safety.journal")).unwrap();
+        assert_eq!(&journal[..8], b"DRVGJRNL");
+        assert!(
+            d.api.get("/readyz").await.body["safety_journal"]
+                .as_array()
+                .unwrap()
+                .is_empty()
+        );
         d.kill9().await;
     })
     .await
