@@ -456,7 +456,7 @@ async fn a_brake_confirmed_before_the_crash_gets_no_write_after_it() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_garbled_journal_is_set_aside_and_moving_drives_get_on_unknown_state() {
+async fn a_garbled_journal_is_unreadable_and_moving_drives_get_on_unknown_state() {
     tokio::time::timeout(LIMIT, async {
         let bench = Bench::new().await;
         let d = bench.serve().await;
@@ -483,7 +483,7 @@ async fn a_garbled_journal_is_set_aside_and_moving_drives_get_on_unknown_state()
             .collect();
         assert_eq!(aside.len(), 1, "the journal was set aside, not deleted");
         assert_eq!(
-            d.metric("drivegate_safety_journal_events_total{event=\"set-aside\"}")
+            d.metric("drivegate_safety_journal_events_total{event=\"unreadable\"}")
                 .await,
             1.0
         );
