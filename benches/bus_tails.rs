@@ -362,7 +362,7 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     let gaps = sim.gaps().since(&gaps_before);
     shutdown.cancel();
     faces.wait().await;
-    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     drop(sim);
 
     Figures {

@@ -296,7 +296,7 @@ async fn keep_up_monitor(browser: &Browser, daemon: &Daemon, seconds: u64) {
             .map(|x| x.as_f64().unwrap())
             .collect()
     };
-    let monitor = daemon.plant.buses()[0].handle.monitor().clone();
+    let monitor = daemon.plant.buses()[0].monitor().clone();
     let before = read(page.eval(stats).await);
     let wire0 = monitor.frames();
     let m0 = page.metrics().await;
@@ -391,9 +391,6 @@ async fn main() {
         browser.stop().await;
         daemon.shutdown.cancel();
         let _ = tokio::time::timeout(Duration::from_secs(5), daemon.faces.wait()).await;
-        daemon
-            .plant
-            .shutdown(drivegate::safety::StopAction::None)
-            .await;
+        drivegate::control::shutdown(&daemon.plant, drivegate::safety::StopAction::None).await;
     }
 }

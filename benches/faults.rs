@@ -236,7 +236,7 @@ async fn run(fault: Fault, poll_interval_ms: u64, secs: f64) -> Measure {
         (Some(s), Some(b)) => diff(&s.stats(), &b),
         _ => sim_stats,
     };
-    plant.shutdown(StopAction::None).await;
+    drivegate::control::shutdown(&plant, StopAction::None).await;
     let sim = match linked.take() {
         Some(replugged) => add(&sim, &replugged.stats()),
         None => sim,

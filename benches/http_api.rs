@@ -279,7 +279,7 @@ async fn main() {
 
     shutdown.cancel();
     faces.wait().await;
-    plant.shutdown(config.safety.on_shutdown).await;
+    drivegate::control::shutdown(&plant, config.safety.on_shutdown).await;
 
     // 5. An hour of renewals every 100 ms.
     if let Some(dir) = &state_dir {

@@ -185,7 +185,7 @@ async fn run_phase(
     };
     shutdown.cancel();
     faces.wait().await;
-    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     result
 }
 

@@ -30,13 +30,13 @@ use std::time::{Duration, Instant};
 
 use drivegate::bus::Origin;
 use drivegate::bus::master::Fault;
+use drivegate::bus::tap::WireTap;
 use drivegate::config::{Config, MonitorConfig, ScopeConfig};
 use drivegate::faces;
 use drivegate::metrics::Metrics;
 use drivegate::modbus::rtu_frame::encode;
 use drivegate::modbus::timing::LineTiming;
 use drivegate::monitor::record::Direction;
-use drivegate::monitor::tap::WireTap;
 use drivegate::monitor::{BusMonitor, MonitorSettings};
 use drivegate::plant::Plant;
 use drivegate::scope::capture::{Amount, CaptureSpec};
@@ -119,6 +119,7 @@ struct ScopeRun {
 async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> ScopeRun {
     let plant = start(&config(drives, true, turnaround)).await;
     let bus = plant.buses()[0].handle.clone();
+    let (scope, monitor) = (plant.buses()[0].scope(), plant.buses()[0].monitor());
     // The same bus's plain polling, just before: the machine's pace now.
     let (p0, t0) = (bus.stats().polls, Instant::now());
     tokio::time::sleep(Duration::from_secs_f64(secs.min(3.0))).await;
@@ -132,13 +133,12 @@ async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> Scop
         length: Amount::Seconds(secs),
         wait: Duration::from_secs(10),
     };
-    bus.scope().arm(spec, Instant::now()).unwrap();
+    scope.arm(spec, Instant::now()).unwrap();
     bus.wake();
-    while bus.scope().is_running() {
+    while scope.is_running() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    let (count, first, last) = bus
-        .scope()
+    let (count, first, last) = scope
         .with_capture(|c| {
             let samples: Vec<_> = c.samples().collect();
             (
@@ -151,7 +151,6 @@ async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> Scop
     let span = (last.unwrap() - first.unwrap()).as_secs_f64();
     let samples_per_s = (count - 1) as f64 / span;
     // The other drives' polls in the capture's time, from the monitor.
-    let monitor = bus.monitor();
     let from = monitor.ns_since_start(first.unwrap());
     let to = monitor.ns_since_start(last.unwrap());
     let frames = monitor.last(monitor.capacity());
@@ -176,7 +175,7 @@ async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> Scop
             rates.iter().copied().fold(0.0, f64::max),
         )
     });
-    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     ScopeRun {
         captured,
         drives,
@@ -230,7 +229,7 @@ async fn bus_run(monitor: bool, with_clients: bool, secs: f64, turnaround: f64) 
         r.abort();
     }
     let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
-    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     BusRun {
         polls_per_s: (polls1 - polls0) as f64 / elapsed,
         cpu_share: (cpu1 - cpu0) / elapsed,
@@ -313,13 +312,13 @@ async fn clients_ab(pairs: usize, window: f64, turnaround: f64) -> (f64, f64, u6
         for r in readers {
             r.abort();
         }
-        while bus.monitor().clients() > 0 {
+        while plant.buses()[0].monitor().clients() > 0 {
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
     }
     shutdown.cancel();
     let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
-    plant.shutdown(drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     (
         totals[0].0 as f64 / totals[0].1,
         totals[1].0 as f64 / totals[1].1,
@@ -376,7 +375,7 @@ fn tap_cost() -> [Duration; 3] {
             scope.arm(spec, Instant::now()).unwrap();
         }
         let mut tap = WireTap::detached(line);
-        tap.attach(monitor, scope.clone());
+        tap.attach(vec![monitor, scope.clone()]);
         let start = thread_cpu();
         for _ in 0..READS {
             let now = Instant::now();

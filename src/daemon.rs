@@ -79,7 +79,7 @@ pub async fn serve(config: Config) -> Result<(), DaemonError> {
             FACES_STOP_LIMIT.as_secs()
         );
     }
-    plant.shutdown(config.safety.on_shutdown).await;
+    crate::control::shutdown(&plant, config.safety.on_shutdown).await;
     watchdog_stop.cancel();
     if let Some(w) = watchdog {
         let _ = w.await;
@@ -90,7 +90,7 @@ pub async fn serve(config: Config) -> Result<(), DaemonError> {
 
 /// How long open connections get to finish after a stop signal; the unit
 /// file's `TimeoutStopSec` leaves room for this plus the safe stop (each bus
-/// step is bounded to 5 s in [`Plant::shutdown`]).
+/// step is bounded to 5 s in [`crate::control::shutdown`]).
 const FACES_STOP_LIMIT: Duration = Duration::from_secs(5);
 
 fn notify_systemd(states: &[sd_notify::NotifyState<'_>]) {

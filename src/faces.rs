@@ -12,14 +12,6 @@ use crate::control::Control;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 
-/// A face that is listening: where, and the task serving it.
-pub struct Listening {
-    /// The bound address (the real port when the config said port 0).
-    pub addr: SocketAddr,
-    /// The task serving it; it ends after the shutdown token fired.
-    pub task: JoinHandle<()>,
-}
-
 /// The running faces.
 pub struct Faces {
     /// Where the HTTP API (REST, WebSocket, metrics) listens.
@@ -52,30 +44,36 @@ pub async fn start(
     shutdown: CancellationToken,
 ) -> Result<Faces, String> {
     let control = Control::start(plant.clone(), &config.safety, shutdown.clone());
+    metrics.faces().tcp_outcomes(
+        crate::modbus_tcp::outcome::Outcome::ALL
+            .iter()
+            .map(|o| o.label()),
+    );
     metrics.watch_control(&control);
     // What the last process owed the motors, before any client is taken.
     control.replay().await;
-    let http = crate::api::start(
+    let (http, task) = crate::api::start(
         config,
         plant.clone(),
         metrics.clone(),
         control.clone(),
+        crate::console::router(),
         shutdown.clone(),
     )
     .await?;
-    tracing::info!(addr = %http.addr, "HTTP API listening");
-    let mut tasks = vec![http.task];
+    tracing::info!(addr = %http, "HTTP API listening");
+    let mut tasks = vec![task];
     let modbus_tcp = if config.modbus_tcp.enabled {
-        let tcp =
+        let (addr, task) =
             crate::modbus_tcp::start(config, plant, metrics, control.clone(), shutdown).await?;
-        tracing::info!(addr = %tcp.addr, "Modbus TCP listening");
-        tasks.push(tcp.task);
-        Some(tcp.addr)
+        tracing::info!(addr = %addr, "Modbus TCP listening");
+        tasks.push(task);
+        Some(addr)
     } else {
         None
     };
     Ok(Faces {
-        http: http.addr,
+        http,
         modbus_tcp,
         control,
         tasks,

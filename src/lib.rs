@@ -2,6 +2,32 @@
 //!
 //! See `docs/architecture.md` for the picture of the modules and the path of
 //! a request through them.
+//!
+//! # What the library exposes, and to whom
+//!
+//! The library's users are the `drivegate` binary (`src/main.rs`), the
+//! benchmarks (`benches/`), the fuzz targets (`fuzz/targets.rs`) and the
+//! end-to-end tests (`tests/`). Each module below is public because one of
+//! them needs it, for the parts named here. In [`drive`], [`modbus`] and
+//! [`sim`] every other part is `pub(crate)`: their surface is what they
+//! re-export plus those parts.
+//!
+//! - Protocol, pure code: [`drive`] (requests, replies, status; `units` for
+//!   the conversions the fuzz targets check), [`modbus`] (`crc`,
+//!   `rtu_frame`, `reply`, `timing`: the framing and line timing the
+//!   tests and benchmarks put on a wire).
+//! - The simulator, [`sim`]: its configuration and handle, `bus` (fuzzed
+//!   with requests), `cli` (`drivegate sim`), `model` (a drive's settings
+//!   and procedures, which tests read back) and `pty`.
+//! - The bus and its observers: [`bus`] (the handle every face uses, and the
+//!   RTU master and port the pty tests drive directly), [`monitor`],
+//!   [`scope`], [`clock`].
+//! - The control core, [`control`], with [`safety`]'s stop actions.
+//! - The faces: [`api`] (the request bodies and stream messages fuzzed, the
+//!   OpenAPI document checked for drift), [`modbus_tcp`] (MBAP, fuzzed),
+//!   [`console`] (its assets), [`metrics`].
+//! - Putting it together: [`config`], [`plant`], [`faces`], [`daemon`],
+//!   [`logging`], [`bench`] (`drivegate bench`).
 
 pub mod api;
 pub mod bench;
@@ -19,6 +45,8 @@ pub mod modbus;
 pub mod modbus_tcp;
 pub mod monitor;
 pub mod plant;
+pub mod probe;
 pub mod safety;
 pub mod scope;
 pub mod sim;
+pub mod timestamp;

@@ -31,6 +31,26 @@ enum Command {
     Sim(drivegate::sim::cli::SimArgs),
     /// Measures status polling and command latency against the wire's limit.
     Bench(drivegate::bench::BenchArgs),
+    /// Finds the drives on a line, without configuration, and says what
+    /// silence or garbage usually means on RS-485.
+    Probe(drivegate::probe::ProbeArgs),
+    /// API tokens.
+    #[command(subcommand)]
+    Token(TokenCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum TokenCommand {
+    /// Makes a new random token: prints it once, and the [[http.token]]
+    /// lines (its SHA-256) to paste into the configuration.
+    New {
+        /// The name the audit log gives the token's writes.
+        #[arg(long)]
+        name: String,
+        /// viewer, operator or admin.
+        #[arg(long)]
+        role: String,
+    },
 }
 
 fn main() -> ExitCode {
@@ -39,6 +59,8 @@ fn main() -> ExitCode {
         Command::CheckConfig { file } => check_config(&file),
         Command::Serve { config } => serve(config),
         Command::Bench(args) => run(|| drivegate::bench::run(args)),
+        Command::Probe(args) => run(|| drivegate::probe::run(args)),
+        Command::Token(TokenCommand::New { name, role }) => new_token(&name, &role),
         Command::Sim(args) => run(|| async move {
             drivegate::sim::cli::run(args)
                 .await
@@ -72,6 +94,26 @@ fn check_config(file: &std::path::Path) -> ExitCode {
         }
         Err(e) => {
             eprintln!("{e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn new_token(name: &str, role: &str) -> ExitCode {
+    match drivegate::api::new_token::generate(name, role) {
+        Ok(made) => {
+            println!("Token (shown only now; give it to the client, keep it secret):");
+            println!();
+            println!("    {}", made.token);
+            println!();
+            println!("Add these lines to the configuration (they hold only the token's SHA-256),");
+            println!("then restart drivegate:");
+            println!();
+            print!("{}", made.config);
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("drivegate: {e}");
             ExitCode::FAILURE
         }
     }

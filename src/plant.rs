@@ -2,16 +2,16 @@
 //! the directory of drives by name. The faces resolve a drive here and then
 //! talk to its bus through the bus's handle.
 
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
 use tracing::{info, warn};
 
-use crate::bus::{BusHandle, Origin};
+use crate::bus::{BusHandle, Observers};
 use crate::config::{BusConfig, Config};
-use crate::control::{Face, WriteEnd, audit};
-use crate::safety::{self, StopAction, StopOutcome};
+use crate::monitor::BusMonitor;
+use crate::scope::Scope;
 use crate::sim::{SimHandle, Simulator};
 
 /// One running bus.
@@ -22,7 +22,22 @@ pub struct Bus {
     pub handle: BusHandle,
     /// The built-in simulator behind it, for `port = "sim"`.
     pub sim: Option<SimHandle>,
+    monitor: Arc<BusMonitor>,
+    scope: Arc<Scope>,
     thread: Mutex<Option<JoinHandle<()>>>,
+}
+
+impl Bus {
+    /// Its monitor: the last frames on the wire, the per-attempt counters.
+    pub fn monitor(&self) -> &Arc<BusMonitor> {
+        &self.monitor
+    }
+
+    /// Its scope's capture slot. After arming a capture,
+    /// [`wake`](BusHandle::wake) the bus so its polling follows at once.
+    pub fn scope(&self) -> &Arc<Scope> {
+        &self.scope
+    }
 }
 
 /// One configured drive.
@@ -100,8 +115,18 @@ impl Plant {
                 None => bus_config.port.get_ref().clone(),
             };
             let mut settings = bus_config.settings(&port);
-            settings.monitor = config.monitor.settings();
-            settings.scope = config.scope.settings();
+            let units: Vec<u8> = bus_config.drives.iter().map(|d| d.unit()).collect();
+            let line = settings.master.line;
+            let monitor = Arc::new(BusMonitor::new(
+                config.monitor.settings(),
+                line,
+                units.clone(),
+            ));
+            let scope = Arc::new(Scope::new(config.scope.settings(), line, units));
+            settings.observers = Observers {
+                wire: vec![monitor.clone(), scope.clone()],
+                steering: Some(scope.clone()),
+            };
             let (handle, thread) =
                 crate::bus::scheduler::spawn(settings).map_err(|source| PlantError::Bus {
                     bus: name.clone(),
@@ -119,6 +144,8 @@ impl Plant {
                 config: bus_config.clone(),
                 handle,
                 sim,
+                monitor,
+                scope,
                 thread: Mutex::new(Some(thread)),
             });
         }
@@ -161,57 +188,17 @@ impl Plant {
         &self.buses[drive.bus].handle
     }
 
-    /// Stops the plant: no new work, `action` on every moving drive, then
-    /// the buses finish their frame on the wire and stop.
-    pub async fn shutdown(&self, action: StopAction) {
+    /// Takes no new work on any bus (the first step of the shutdown stop,
+    /// `crate::control::shutdown`).
+    pub fn close(&self) {
         for bus in &self.buses {
             bus.handle.close();
         }
-        // Every drive is asked, not only those the polled copy shows moving:
-        // the copy may be older than the last command.
-        let stops = self.drives.iter().map(|drive| {
-            let handle = self.handle_of(drive).clone();
-            let (name, unit) = (drive.name.clone(), drive.unit);
-            async move {
-                match safety::stop_drive(&handle, unit, action, true, None, Origin::Shutdown).await
-                {
-                    Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
-                        // One line per write: with the mode unknown,
-                        // zero-speed is two (speed and torque setpoint 0).
-                        for request in outcome.requests() {
-                            audit::write(
-                                Face::Internal.name(),
-                                "shutdown",
-                                handle.name(),
-                                unit,
-                                request.name(),
-                                &WriteEnd::Confirmed,
-                            );
-                        }
-                        info!(drive = %name, action = action.name(), "stopped at shutdown")
-                    }
-                    Ok(_) => {}
-                    Err(e) => {
-                        audit::write(
-                            Face::Internal.name(),
-                            "shutdown",
-                            handle.name(),
-                            unit,
-                            action.name(),
-                            &WriteEnd::bus_error(e.clone()),
-                        );
-                        warn!(drive = %name, action = action.name(), "safe stop failed: {e}")
-                    }
-                }
-            }
-        });
-        let all = futures_util::future::join_all(stops);
-        if tokio::time::timeout(Duration::from_secs(5), all)
-            .await
-            .is_err()
-        {
-            warn!("safe-stop actions did not finish within 5 s");
-        }
+    }
+
+    /// Stops every bus once it finished the frame on the wire, and waits
+    /// (at most 5 s a bus) for its thread.
+    pub async fn stop(&self) {
         for bus in &self.buses {
             bus.handle.stop();
         }

@@ -13,11 +13,11 @@ use axum::http::header::AUTHORIZATION;
 use axum::http::request::Parts;
 use sha2::{Digest, Sha256};
 
-use super::config::{TokenConfig, TokenSource};
 use super::listener::ClientAddr;
 use super::problem::{Kind, Problem};
 use super::roles::Role;
 use super::state::ApiState;
+use crate::config::http::{TokenConfig, TokenSource};
 use crate::control::Face;
 
 /// One usable token.

@@ -18,13 +18,13 @@ use super::openapi::{AdminBusProblems, ReadProblems};
 use super::problem::{BusContext, Kind, Problem};
 use super::roles::Role;
 use super::state::ApiState;
-use super::timestamp::rfc3339;
 use crate::bus::handle::{JobOptions, PortState};
 use crate::bus::stats::Outcome;
 use crate::bus::{BusError, BusHandle, Priority};
 use crate::control::{ControlRequest, Operation};
 use crate::drive::{DriveReply, DriveRequest, RangeError};
 use crate::plant::Bus;
+use crate::timestamp::rfc3339;
 
 /// Jobs waiting on a bus, by priority.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, ToSchema)]

@@ -15,10 +15,10 @@ use super::openapi::{FreshReadProblems, ReadProblems};
 use super::problem::{Kind, Problem};
 use super::setpoints::{LeaseInfo, lease_of};
 use super::state::{ApiState, Target};
-use super::timestamp::rfc3339;
 use crate::bus::DriveSnapshot;
 use crate::bus::cache::Link;
 use crate::drive::{Fault, Mode, Status};
+use crate::timestamp::rfc3339;
 
 /// Control mode (STATUS bits 4..3).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]

@@ -18,11 +18,11 @@ use utoipa::ToSchema;
 
 use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
-use super::timestamp::rfc3339;
 use crate::bus::BusEvent;
 use crate::control::{Control, ControlEvent, LeaseEvent, Published, SessionId};
 use crate::plant::Plant;
 use crate::scope::result::ScopeState;
+use crate::timestamp::rfc3339;
 
 /// Events the hub holds for sessions that fall behind; a session's own
 /// bounded buffer comes after this.

@@ -24,7 +24,6 @@ pub mod auth;
 pub mod body_schemas;
 pub mod buses;
 pub mod commands;
-pub mod config;
 pub mod control;
 pub mod drives;
 pub mod extract;
@@ -33,6 +32,7 @@ pub mod hub;
 pub mod integers;
 pub mod listener;
 pub mod monitor;
+pub mod new_token;
 pub mod openapi;
 pub mod problem;
 pub mod readback;
@@ -44,21 +44,21 @@ pub mod setpoints;
 pub mod settings;
 pub mod state;
 pub mod stream;
-pub mod timestamp;
 pub mod whoami;
 
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
 use axum::Router;
 use axum::extract::DefaultBodyLimit;
 use axum::middleware;
+use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use utoipa_swagger_ui::SwaggerUi;
 
 use crate::config::Config;
 use crate::control::Control;
-use crate::faces::Listening;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 use auth::Tokens;
@@ -67,14 +67,18 @@ use listener::LimitedListener;
 use problem::{Kind, Problem};
 use state::ApiState;
 
-/// Binds the HTTP listener and serves the API until `shutdown` fires.
+/// Binds the HTTP listener and serves the API, with `pages` (the web
+/// console, a face of its own above this one) beside its routes, until
+/// `shutdown` fires. Returns the bound address (the real port when the
+/// config said port 0) and the task serving it.
 pub async fn start(
     config: &Config,
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
     control: Control,
+    pages: Router<ApiState>,
     shutdown: CancellationToken,
-) -> Result<Listening, String> {
+) -> Result<(SocketAddr, JoinHandle<()>), String> {
     let http = config.http.clone();
     let tokens = Tokens::resolve(&http.tokens).map_err(|e| e.to_string())?;
     let bind = listener::bind_address(http.listen, !tokens.is_empty());
@@ -110,7 +114,7 @@ pub async fn start(
         hub,
         shutdown.clone(),
     );
-    let app = app(state.clone());
+    let app = app(state.clone(), pages);
     let listener = LimitedListener::new(
         tcp,
         http.max_connections,
@@ -130,13 +134,13 @@ pub async fn start(
             tracing::warn!("some WebSocket sessions did not close within 3 s");
         }
     });
-    Ok(Listening { addr, task })
+    Ok((addr, task))
 }
 
 /// The whole HTTP application: the documented routes, `/openapi.json`,
-/// `/docs`, the web console (`/`, `/console/`), problem answers for unknown routes, the body limit and the
-/// request counters.
-pub fn app(state: ApiState) -> Router {
+/// `/docs`, `pages` (the web console: `/`, `/console/`), problem answers
+/// for unknown routes, the body limit and the request counters.
+pub fn app(state: ApiState, pages: Router<ApiState>) -> Router {
     let (routes, document) = openapi::router().split_for_parts();
     let docs: Router<ApiState> = SwaggerUi::new(openapi::DOCS_PATH)
         .url(
@@ -146,7 +150,7 @@ pub fn app(state: ApiState) -> Router {
         .into();
     routes
         .merge(docs)
-        .merge(crate::console::router())
+        .merge(pages)
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(state.config.max_body_bytes))

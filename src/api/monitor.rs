@@ -179,7 +179,7 @@ fn drive_name(bus: &Bus, unit: u8) -> Option<String> {
 }
 
 fn monitor_of(bus: &Bus) -> Result<&Arc<BusMonitor>, Problem> {
-    let monitor = bus.handle.monitor();
+    let monitor = bus.monitor();
     if monitor.enabled() {
         Ok(monitor)
     } else {
@@ -251,7 +251,7 @@ pub async fn get_monitor(
     PathParams(name): PathParams<String>,
 ) -> Result<Json<MonitorView>, Problem> {
     let bus = find_bus(&state, &name)?;
-    let monitor = bus.handle.monitor();
+    let monitor = bus.monitor();
     let units = monitor
         .counters()
         .snapshot(monitor.units())

@@ -12,7 +12,6 @@ use utoipa::{IntoResponses, Modify, OpenApi};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
-use super::config::HttpConfig;
 use super::monitor::MonitorClientMessage;
 use super::problem::{ProblemDetails, ValidRange};
 use super::roles::Role;
@@ -21,6 +20,7 @@ use super::stream::{ClientMessage, DriveSelection};
 use super::{
     buses, commands, drives, health, monitor, readback, scope, setpoints, settings, stream, whoami,
 };
+use crate::config::HttpConfig;
 
 /// Where the document is served.
 pub const DOCUMENT_PATH: &str = "/openapi.json";

@@ -2,7 +2,7 @@
 //! it (its setpoints, protection, ramps, inertia and RS-485 control), so a
 //! settings form starts from the drive's values and not from a guess.
 //!
-//! Six reads at command priority (see [`crate::drive::settings::BLOCKS`]);
+//! Six reads at command priority (see `drive::settings::BLOCKS`);
 //! a read changes nothing, so it is not audited.
 
 use axum::Json;
@@ -16,11 +16,11 @@ use super::extract::PathParams;
 use super::openapi::FreshReadProblems;
 use super::problem::{BusContext, Problem};
 use super::state::ApiState;
-use super::timestamp::rfc3339;
 use crate::bus::handle::JobOptions;
 use crate::bus::{BusError, Priority};
 use crate::drive::settings::{self, BLOCKS, DriveSettings, REGISTERS};
 use crate::drive::units::{self, COUNTS_PER_AMP};
+use crate::timestamp::rfc3339;
 
 /// The setpoint registers, as last written (by anyone).
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]

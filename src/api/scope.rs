@@ -200,8 +200,7 @@ fn namer(bus: &Bus) -> impl Fn(u8) -> String + '_ {
 
 fn current_state(bus: &Bus) -> Option<ScopeState> {
     let name = namer(bus);
-    bus.handle
-        .scope()
+    bus.scope()
         .with_capture(|c| result::state(c, bus.handle.name(), &name))
         .ok()
 }
@@ -265,7 +264,7 @@ fn spec(state: &ApiState, bus: &Bus, body: &ArmBody) -> Result<CaptureSpec, Prob
         None => DEFAULT_WAIT,
         Some(s) if s.is_finite() && s > 0.0 && s <= 1e6 => Duration::from_secs_f64(s),
         Some(s) => {
-            let max = bus.handle.scope().settings().max_wait.as_secs_f64();
+            let max = bus.scope().settings().max_wait.as_secs_f64();
             return Err(Problem::range(&crate::drive::RangeError {
                 quantity: "trigger wait",
                 value: s,
@@ -307,7 +306,7 @@ pub async fn get_scope(
     PathParams(name): PathParams<String>,
 ) -> Result<Json<ScopeView>, Problem> {
     let bus = find_bus(&state, &name)?;
-    let scope = bus.handle.scope();
+    let scope = bus.scope();
     scope.tick(Instant::now());
     let limits = scope.limits();
     Ok(Json(ScopeView {
@@ -370,7 +369,7 @@ pub fn arm(
     caller.require(Operation::Capture.needs())?;
     let bus = find_bus(state, name)?;
     let spec = spec(state, bus, body)?;
-    let scope = bus.handle.scope();
+    let scope = bus.scope();
     let id = scope.arm(spec, Instant::now()).map_err(scope_problem)?;
     bus.handle.wake();
     tracing::info!(who = %caller.who, bus = %bus.handle.name(), capture = id, "scope capture armed");
@@ -404,11 +403,7 @@ pub async fn delete_scope(
 pub fn cancel(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
     caller.require(Operation::Capture.needs())?;
     let bus = find_bus(state, name)?;
-    let id = bus
-        .handle
-        .scope()
-        .cancel(Instant::now())
-        .map_err(scope_problem)?;
+    let id = bus.scope().cancel(Instant::now()).map_err(scope_problem)?;
     tracing::info!(who = %caller.who, bus = %bus.handle.name(), capture = id, "scope capture cancelled");
     current_state(bus).ok_or_else(|| Problem::new(Kind::Internal, "the capture is gone"))
 }
@@ -440,8 +435,7 @@ pub async fn post_trigger(
 pub fn trigger(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
     caller.require(Operation::Capture.needs())?;
     let bus = find_bus(state, name)?;
-    bus.handle
-        .scope()
+    bus.scope()
         .trigger(Instant::now(), caller.origin.clone())
         .map_err(scope_problem)?;
     current_state(bus).ok_or_else(|| Problem::new(Kind::Internal, "the capture is gone"))
@@ -467,7 +461,7 @@ pub async fn get_result(
     PathParams(name): PathParams<String>,
 ) -> Result<Json<ScopeResult>, Problem> {
     let bus = find_bus(&state, &name)?;
-    let scope = bus.handle.scope();
+    let scope = bus.scope();
     scope.tick(Instant::now());
     let name = namer(bus);
     // Copied out, then rendered: the bus thread never waits for the JSON.
@@ -496,7 +490,7 @@ pub async fn get_result_csv(
     PathParams(name): PathParams<String>,
 ) -> Result<Response, Problem> {
     let bus = find_bus(&state, &name)?;
-    let scope = bus.handle.scope();
+    let scope = bus.scope();
     scope.tick(Instant::now());
     let name = namer(bus);
     let capture = scope.snapshot().map_err(scope_problem)?;
@@ -530,7 +524,7 @@ pub fn publish_progress(plant: &Arc<Plant>, hub: &Arc<Hub>, shutdown: &Cancellat
             let Some(bus) = plant.buses().get(index) else {
                 return;
             };
-            let scope: &Scope = bus.handle.scope();
+            let scope: &Scope = bus.scope();
             let mut last: Option<(u64, &'static str, usize)> = None;
             loop {
                 if !scope.is_running() {

@@ -9,10 +9,10 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 use super::auth::Tokens;
-use super::config::HttpConfig;
 use super::hub::Hub;
 use super::problem::{Kind, Problem};
 use crate::bus::{BusHandle, SourceId};
+use crate::config::HttpConfig;
 use crate::control::{self, Control};
 use crate::metrics::Metrics;
 use crate::plant::{Drive, Plant};

@@ -10,8 +10,8 @@ use std::time::Duration;
 use crate::drive::ReplyError;
 use crate::modbus::ExceptionCode;
 
-use super::job::Priority;
-use super::master::Fault;
+use super::fault::Fault;
+use super::priority::Priority;
 
 /// Why a serial port carries no requests.
 #[derive(Debug, Clone, PartialEq, Eq)]

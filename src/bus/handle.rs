@@ -15,8 +15,6 @@ use super::queue::{JobQueue, Refused};
 use super::stats::{BusStats, BusStatsSnapshot, Outcome};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest};
 use crate::modbus::timing::LineTiming;
-use crate::monitor::BusMonitor;
-use crate::scope::Scope;
 
 /// State of a bus's serial port.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -89,10 +87,6 @@ pub(crate) struct Shared {
     pub(crate) queue: JobQueue,
     pub(crate) cache: StatusCache,
     pub(crate) stats: BusStats,
-    /// Every frame on the wire, and the per-attempt counters.
-    pub(crate) monitor: Arc<BusMonitor>,
-    /// The capture slot.
-    pub(crate) scope: Arc<Scope>,
     pub(crate) state: Mutex<PortState>,
     pub(crate) line: LineTiming,
     pub(crate) response_timeout: Duration,
@@ -276,18 +270,8 @@ impl BusHandle {
         self.shared.stats.snapshot()
     }
 
-    /// The bus monitor: the last frames on the wire, the per-attempt counters.
-    pub fn monitor(&self) -> &Arc<BusMonitor> {
-        &self.shared.monitor
-    }
-
-    /// The scope's capture slot. After arming a capture, [`wake`](Self::wake)
-    /// the bus so its polling follows at once.
-    pub fn scope(&self) -> &Arc<Scope> {
-        &self.shared.scope
-    }
-
-    /// Wakes the bus thread to look at its work again (a capture was armed).
+    /// Wakes the bus thread to look at its work again (a capture was armed,
+    /// so the polling its steering asks for follows at once).
     pub fn wake(&self) {
         self.shared.queue.wake();
     }

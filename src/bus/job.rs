@@ -1,6 +1,5 @@
 //! A job: one Modbus request waiting for its turn on the wire.
 
-use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
@@ -8,43 +7,7 @@ use tokio::sync::oneshot;
 
 use super::error::BusError;
 use super::origin::Origin;
-
-/// Priority classes, served strictly in this order (with a share kept for
-/// polling, see the scheduler).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Priority {
-    /// Emergency brake and safe-stop actions: next on the wire, always.
-    Emergency,
-    /// Setpoints, configuration, passthrough and fresh reads.
-    Command,
-    /// Background status polling.
-    Poll,
-}
-
-impl Priority {
-    /// All classes, most urgent first.
-    pub const ALL: [Priority; 3] = [Priority::Emergency, Priority::Command, Priority::Poll];
-
-    /// Stable name for logs and metric labels.
-    pub fn name(self) -> &'static str {
-        match self {
-            Priority::Emergency => "emergency",
-            Priority::Command => "command",
-            Priority::Poll => "poll",
-        }
-    }
-
-    /// Index into per-class arrays.
-    pub fn index(self) -> usize {
-        self as usize
-    }
-}
-
-impl fmt::Display for Priority {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
-}
+pub use super::priority::Priority;
 
 /// Who submitted a job: queues are fair between sources, so one flooding
 /// client (a Modbus TCP connection, say) cannot starve the others.

@@ -26,15 +26,16 @@
 use std::io;
 use std::time::{Duration, Instant};
 
+pub use super::fault::Fault;
 use super::port::{Direction, Rs485Settings};
 use super::stats::Outcome;
+use super::tap::WireTap;
 use super::transport::Transport;
 use crate::clock::{PreciseTimer, SPIN};
 use crate::modbus::function::EXCEPTION_BIT;
 use crate::modbus::reply::{self, Mismatch};
 use crate::modbus::rtu_frame::{self, FrameLength};
 use crate::modbus::timing::LineTiming;
-use crate::monitor::tap::WireTap;
 
 /// Time allowed, beyond the wire's own pace, for the rest of a reply to
 /// reach the master once it has begun: USB adapters hand bytes over in
@@ -98,33 +99,12 @@ pub enum Guard {
     Fixed(Duration),
 }
 
-/// What was wrong with one attempt.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Fault {
-    /// Not one byte arrived before the timeout.
-    Timeout,
-    /// A frame arrived with a bad CRC.
-    Crc,
-    /// A frame that does not answer the request.
-    Mismatch(&'static str),
-}
-
-impl Fault {
-    fn outcome(&self) -> Outcome {
-        match self {
-            Fault::Timeout => Outcome::Timeout,
-            Fault::Crc => Outcome::CrcError,
-            Fault::Mismatch(_) => Outcome::BadReply,
-        }
-    }
-
-    /// Text for error messages.
-    pub fn describe(&self) -> String {
-        match self {
-            Fault::Timeout => "no reply".to_string(),
-            Fault::Crc => "CRC error".to_string(),
-            Fault::Mismatch(what) => what.to_string(),
-        }
+/// The outcome counted in the bus's statistics for a failed attempt.
+fn fault_outcome(fault: &Fault) -> Outcome {
+    match fault {
+        Fault::Timeout => Outcome::Timeout,
+        Fault::Crc => Outcome::CrcError,
+        Fault::Mismatch(_) => Outcome::BadReply,
     }
 }
 
@@ -190,7 +170,7 @@ pub struct RtuMaster {
     quiet_since: Instant,
     buf: Box<[u8; 512]>,
     stray: usize,
-    /// Hands every frame to the bus monitor and the scope.
+    /// Shows every frame to the bus's observers (the monitor, the scope).
     tap: WireTap,
 }
 
@@ -214,7 +194,7 @@ impl RtuMaster {
         &self.settings
     }
 
-    /// The tap that shows every frame to the bus monitor and the scope.
+    /// The tap that shows every frame to the bus's observers.
     pub fn tap(&mut self) -> &mut WireTap {
         &mut self.tap
     }
@@ -366,7 +346,7 @@ impl RtuMaster {
         }
         let fault = last_fault.unwrap_or(Fault::Timeout);
         Ok(Report {
-            outcome: fault.outcome(),
+            outcome: fault_outcome(&fault),
             reply: None,
             attempts: attempts_allowed,
             fault: Some(fault),

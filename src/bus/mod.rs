@@ -12,20 +12,29 @@
 //! - [`cache`] keeps each drive's latest status and publishes changes,
 //! - [`stats`] counts what happened on the wire, for health and metrics,
 //! - [`handle`] is what the faces (HTTP, Modbus TCP, metrics) hold,
-//! - [`origin`] says who caused each job (for the monitor and the scope).
+//! - [`origin`] says who caused each job (for the monitor and the scope),
+//! - [`observers`] is what the bus shows and asks of those who watch it
+//!   (the bus monitor, the scope), through the master's [`tap`]; the bus
+//!   never names them,
+//! - [`fault`] and [`priority`] are leaves shared by the master, the
+//!   queue and the errors.
 
 pub mod cache;
 pub mod error;
+pub mod fault;
 pub mod handle;
 pub mod job;
 pub mod master;
+pub mod observers;
 pub mod origin;
 pub mod poller;
 pub mod port;
+pub mod priority;
 pub mod queue;
 pub mod rs485;
 pub mod scheduler;
 pub mod stats;
+pub mod tap;
 pub mod tcp_port;
 pub mod transport;
 
@@ -33,4 +42,5 @@ pub use cache::{BusEvent, DriveSnapshot};
 pub use error::BusError;
 pub use handle::BusHandle;
 pub use job::{Exchange, Priority, SourceId};
+pub use observers::Observers;
 pub use origin::Origin;

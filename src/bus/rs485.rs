@@ -4,10 +4,60 @@
 
 use std::io;
 use std::os::fd::{AsRawFd, BorrowedFd};
+use std::time::Duration;
 
+use serde::Deserialize;
 use tokio_serial::SerialStream;
 
-use super::port::Rs485Settings;
+/// How the RS-485 transceiver's driver is switched on for sending.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Direction {
+    /// The adapter switches by itself (most USB RS-485 adapters).
+    #[default]
+    Auto,
+    /// The daemon raises RTS while sending and drops it once the frame is out.
+    Rts,
+    /// The kernel's RS-485 mode (TIOCSRS485) toggles RTS around each send.
+    Kernel,
+}
+
+/// RS-485 options of a bus.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Rs485Settings {
+    /// Direction control method.
+    pub direction: Direction,
+    /// RTS level that enables the driver (true: high while sending).
+    pub rts_active_high: bool,
+    /// Delay between enabling the driver and the first bit, in us.
+    pub delay_before_send_us: u32,
+    /// Delay between the last bit and releasing the driver, in us.
+    pub delay_after_send_us: u32,
+}
+
+impl Default for Rs485Settings {
+    fn default() -> Self {
+        Self {
+            direction: Direction::Auto,
+            rts_active_high: true,
+            delay_before_send_us: 0,
+            delay_after_send_us: 0,
+        }
+    }
+}
+
+impl Rs485Settings {
+    /// Delay before sending.
+    pub fn before(&self) -> Duration {
+        Duration::from_micros(u64::from(self.delay_before_send_us))
+    }
+
+    /// Delay after sending.
+    pub fn after(&self) -> Duration {
+        Duration::from_micros(u64::from(self.delay_after_send_us))
+    }
+}
 
 /// `struct serial_rs485` of `<linux/serial.h>`.
 #[repr(C)]

@@ -18,6 +18,8 @@ use super::error::PortCause;
 use super::handle::{BusHandle, PortState, Shared};
 use super::job::{Exchange, Job, Priority};
 use super::master::{Fault, MasterSettings, PortFailure, Report, RtuMaster};
+use super::observers::{Observers, Steer};
+use super::origin::Origin;
 use super::poller::{PollPlan, PollResult};
 use super::queue::{JobQueue, QueueLimits};
 use super::stats::{BusStats, Outcome};
@@ -25,9 +27,6 @@ use super::tcp_port;
 use super::transport;
 use crate::clock;
 use crate::drive::{DriveReply, DriveRequest};
-use crate::monitor::{BusMonitor, MonitorSettings};
-use crate::scope::steer::Steer;
-use crate::scope::{Scope, ScopeSettings};
 
 /// Everything a bus needs to run.
 #[derive(Debug, Clone)]
@@ -53,10 +52,9 @@ pub struct BusSettings {
     /// After this many commands in a row while a poll is due, the poll goes
     /// first, so a flood of commands cannot freeze the status of every drive.
     pub poll_share: u32,
-    /// The bus monitor's ring (`[monitor]`).
-    pub monitor: MonitorSettings,
-    /// The scope's limits and floor rate (`[scope]`).
-    pub scope: ScopeSettings,
+    /// Who watches the wire and may steer the polling (the bus monitor,
+    /// the scope); none by default.
+    pub observers: Observers,
 }
 
 impl BusSettings {
@@ -73,8 +71,7 @@ impl BusSettings {
             queue: QueueLimits::default(),
             queue_timeout: Duration::from_secs(5),
             poll_share: 4,
-            monitor: MonitorSettings::default(),
-            scope: ScopeSettings::default(),
+            observers: Observers::default(),
         }
     }
 }
@@ -107,7 +104,6 @@ pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle
 /// What the handles and the bus thread share, for `settings`.
 fn new_shared(settings: &BusSettings) -> Arc<Shared> {
     let name: Arc<str> = settings.name.as_str().into();
-    let units: Vec<u8> = settings.drives.iter().map(|d| d.0).collect();
     Arc::new(Shared {
         name: name.clone(),
         queue: JobQueue::new(settings.queue),
@@ -117,12 +113,6 @@ fn new_shared(settings: &BusSettings) -> Arc<Shared> {
             settings.offline_after,
         ),
         stats: BusStats::new(),
-        monitor: Arc::new(BusMonitor::new(
-            settings.monitor,
-            settings.master.line,
-            units.clone(),
-        )),
-        scope: Arc::new(Scope::new(settings.scope, settings.master.line, units)),
         state: Mutex::new(PortState::Opening),
         line: settings.master.line,
         response_timeout: settings.master.response_timeout,
@@ -281,8 +271,7 @@ impl Scheduler {
                 }) {
                     Ok(mut m) => {
                         info!(bus = %name, port = %self.settings.port, "{} open", self.port_kind());
-                        m.tap()
-                            .attach(self.shared.monitor.clone(), self.shared.scope.clone());
+                        m.tap().attach(self.settings.observers.wire.clone());
                         master = Some(m);
                         self.stats().set_port_open(true, opened_before);
                         opened_before = true;
@@ -435,11 +424,11 @@ impl Scheduler {
         }
         // While a capture runs the scope says which drive's poll is due.
         let (plan, cache) = (&self.plan, &self.shared.cache);
-        let steer = self.shared.scope.steer(
-            now,
-            |unit| plan.is_due(unit, now),
-            |unit| cache.is_offline(unit),
-        );
+        let steer = self.settings.observers.steering.as_ref().and_then(|s| {
+            s.steer(now, &|unit| plan.is_due(unit, now), &|unit| {
+                cache.is_offline(unit)
+            })
+        });
         let poll_due = match steer {
             Some(Steer::Poll(unit)) => Some(unit),
             Some(Steer::Wait(_)) => None,
@@ -579,7 +568,11 @@ impl Scheduler {
         // probed: one attempt and a short guard. If it is off, a retry or a
         // long guard only costs everybody time, and the next poll comes
         // anyway.
-        master.tap().cause(self.shared.scope.poll_origin(unit));
+        let origin = match &self.settings.observers.steering {
+            Some(s) => s.poll_origin(unit),
+            None => Origin::Poller,
+        };
+        master.tap().cause(origin);
         let report = if self.cache().answering(unit) {
             master.transact(unit, pdu, None).await
         } else {
@@ -623,7 +616,9 @@ impl Scheduler {
             }
         };
         self.plan.polled(unit, now, result);
-        self.shared.scope.polled(unit, now);
+        if let Some(s) = &self.settings.observers.steering {
+            s.polled(unit, now);
+        }
         Ok(())
     }
 }

@@ -217,6 +217,8 @@ impl BusConfig {
             // Later than the master waits, a reply only crosses its next
             // request.
             max_lag: Some(Duration::from_millis(self.response_timeout_ms)),
+            echo: false,
+            check_master_baud: false,
         }
     }
 

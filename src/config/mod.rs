@@ -9,6 +9,10 @@
 mod bus;
 mod diagnostics;
 mod error;
+pub mod http;
+pub mod modbus_tcp;
+mod role;
+mod safety;
 pub(crate) mod values;
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -19,11 +23,12 @@ use serde::Deserialize;
 pub use bus::{BusConfig, DriveConfig, SimSection};
 pub use diagnostics::{MonitorConfig, ScopeConfig};
 pub use error::ConfigError;
+pub use http::HttpConfig;
+pub use modbus_tcp::ModbusTcpConfig;
+pub use role::Role;
+pub use safety::{SafetyConfig, StopAction};
 
-use crate::api::config::HttpConfig;
 use crate::logging::LogConfig;
-use crate::modbus_tcp::config::ModbusTcpConfig;
-use crate::safety::SafetyConfig;
 
 /// The configuration the daemon runs with when none is given: one simulated
 /// bus of four drives, HTTP on 127.0.0.1:8080, Modbus TCP on 127.0.0.1:5020.

@@ -29,6 +29,7 @@ pub mod outcome;
 pub mod policy;
 pub mod request;
 pub mod restart;
+pub mod shutdown;
 pub mod write;
 pub mod written;
 
@@ -44,6 +45,7 @@ pub use lease_book::{CommLoss, LeaseEvent, LeaseView, NoLease};
 pub use outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult};
 pub use policy::{Operation, Role};
 pub use request::{ControlRequest, Write};
+pub use shutdown::shutdown;
 pub use write::Pending;
 
 use crate::plant::{LookupError, Plant};

@@ -11,43 +11,10 @@
 //!   calibration, factory reset, RS-485 control, bus scans, addresses, and
 //!   Modbus writes the core cannot decode.
 
-use serde::{Deserialize, Serialize};
-use utoipa::ToSchema;
-
+pub use crate::config::Role;
 use crate::drive::registers::Register;
 use crate::drive::writes::PduMeaning;
 use crate::drive::{ConfigCommand, DriveRequest, Mode};
-
-/// A caller's role; each includes the rights of the ones before it.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Deserialize, Serialize, ToSchema,
-)]
-#[serde(rename_all = "lowercase")]
-pub enum Role {
-    /// Reads and the stream.
-    Viewer,
-    /// Viewer, plus setpoints, modes, brake and resets.
-    Operator,
-    /// Operator, plus protection, ramps, inertia, saves, calibration,
-    /// factory reset, RS-485 control, scans and address setting.
-    Admin,
-}
-
-impl Role {
-    /// Stable name for messages and logs.
-    pub fn name(self) -> &'static str {
-        match self {
-            Role::Viewer => "viewer",
-            Role::Operator => "operator",
-            Role::Admin => "admin",
-        }
-    }
-
-    /// True when this role includes `needed`.
-    pub fn allows(self, needed: Role) -> bool {
-        self >= needed
-    }
-}
 
 /// What is not a write but still needs a role.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -2,14 +2,14 @@
 //! code: the register table, the config commands, status decoding, value
 //! ranges and unit conversions, and typed requests and replies. No I/O here.
 
-pub mod command;
-pub mod message;
-pub mod range;
-pub mod registers;
-pub mod settings;
-pub mod status;
+pub(crate) mod command;
+pub(crate) mod message;
+pub(crate) mod range;
+pub(crate) mod registers;
+pub(crate) mod settings;
+pub(crate) mod status;
 pub mod units;
-pub mod writes;
+pub(crate) mod writes;
 
 pub use command::ConfigCommand;
 pub use message::{DriveReply, DriveRequest, ReplyError};

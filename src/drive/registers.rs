@@ -69,9 +69,9 @@ pub enum Register {
 }
 
 /// Address of the first status register; the status block is 7 registers.
-pub const STATUS_BLOCK_START: u16 = 0x00C0;
+pub(crate) const STATUS_BLOCK_START: u16 = 0x00C0;
 /// Number of registers in the status block.
-pub const STATUS_BLOCK_LEN: u16 = 7;
+pub(crate) const STATUS_BLOCK_LEN: u16 = 7;
 
 impl Register {
     /// Every register, in address order.

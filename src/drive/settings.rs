@@ -12,7 +12,7 @@ use crate::modbus::ExceptionCode;
 use crate::modbus::function::{EXCEPTION_BIT, READ_HOLDING_REGISTERS};
 
 /// The readable blocks: first register and number of registers.
-pub const BLOCKS: [(Register, u16); 6] = [
+pub(crate) const BLOCKS: [(Register, u16); 6] = [
     (Register::SpeedRef, 3),        // SPEED_REF, POSITION_REF, IQ_REF
     (Register::StalledCurr, 2),     // STALLED_CURR, STALLED_DURATION_MS
     (Register::SpeedTdRHigh, 2),    // speed ramp alpha, high and low
@@ -22,11 +22,11 @@ pub const BLOCKS: [(Register, u16); 6] = [
 ];
 
 /// Registers read in all.
-pub const REGISTERS: usize = 11;
+pub(crate) const REGISTERS: usize = 11;
 
 /// What a drive holds, in its own units.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct DriveSettings {
+pub(crate) struct DriveSettings {
     /// SPEED_REF, rpm at the output.
     pub speed_rpm: i16,
     /// POSITION_REF, 0.01 degree at the output.
@@ -48,7 +48,7 @@ pub struct DriveSettings {
 }
 
 /// The request PDU reading one block.
-pub fn read_pdu(start: Register, count: u16) -> Vec<u8> {
+pub(crate) fn read_pdu(start: Register, count: u16) -> Vec<u8> {
     let mut pdu = vec![READ_HOLDING_REGISTERS];
     pdu.extend_from_slice(&start.address().to_be_bytes());
     pdu.extend_from_slice(&count.to_be_bytes());
@@ -56,7 +56,7 @@ pub fn read_pdu(start: Register, count: u16) -> Vec<u8> {
 }
 
 /// The register values of a read reply of `count` registers.
-pub fn parse_read_reply(reply: &[u8], count: u16) -> Result<Vec<u16>, ReplyError> {
+pub(crate) fn parse_read_reply(reply: &[u8], count: u16) -> Result<Vec<u16>, ReplyError> {
     match reply.first() {
         Some(&f) if f == READ_HOLDING_REGISTERS | EXCEPTION_BIT => {
             let code = reply.get(1).copied().unwrap_or(0);
@@ -77,7 +77,7 @@ pub fn parse_read_reply(reply: &[u8], count: u16) -> Result<Vec<u16>, ReplyError
 
 impl DriveSettings {
     /// Decodes the values of [`BLOCKS`], in order.
-    pub fn from_registers(v: &[u16; REGISTERS]) -> Self {
+    pub(crate) fn from_registers(v: &[u16; REGISTERS]) -> Self {
         let alpha = |high: u16, low: u16| (u32::from(high) << 16) | u32::from(low);
         DriveSettings {
             speed_rpm: v[0] as i16,

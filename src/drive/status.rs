@@ -130,11 +130,11 @@ impl Fault {
 }
 
 /// STATUS bit 7: drive active.
-pub const FLAG_ACTIVE: u16 = 1 << 7;
+pub(crate) const FLAG_ACTIVE: u16 = 1 << 7;
 /// STATUS bit 6: encoder calibrated.
-pub const FLAG_CALIBRATED: u16 = 1 << 6;
+pub(crate) const FLAG_CALIBRATED: u16 = 1 << 6;
 /// STATUS bit 5: stalled (needs a fault reset).
-pub const FLAG_STALLED: u16 = 1 << 5;
+pub(crate) const FLAG_STALLED: u16 = 1 << 5;
 
 /// One decoded status read, in the drive's own units.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

@@ -23,7 +23,7 @@ pub enum PduMeaning {
 }
 
 /// Decodes a write PDU (function 0x06 or 0x10 on the drive's registers).
-pub fn decode(pdu: &[u8]) -> PduMeaning {
+pub(crate) fn decode(pdu: &[u8]) -> PduMeaning {
     if let Some(request) = DriveRequest::from_pdu(pdu)
         && request.is_write()
     {

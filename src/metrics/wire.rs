@@ -96,7 +96,7 @@ impl Collector for WireCollector {
         let mut scope = SCOPE.family();
         for bus in self.plant.buses() {
             let name = bus.handle.name();
-            let monitor = bus.handle.monitor();
+            let monitor = bus.monitor();
             for (unit, c) in monitor.counters().snapshot(monitor.units()) {
                 let unit = unit.to_string();
                 attempts.set(&[name, &unit], c.attempts as f64);
@@ -108,7 +108,7 @@ impl Collector for WireCollector {
             frames.set(&[name], monitor.frames() as f64);
             lost.set(&[name], monitor.lost() as f64);
             clients.set(&[name], monitor.clients() as f64);
-            scope.set_bool(&[name], bus.handle.scope().is_running());
+            scope.set_bool(&[name], bus.scope().is_running());
         }
         [attempts, errors, stray, frames, lost, clients, scope]
             .into_iter()

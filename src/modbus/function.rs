@@ -1,26 +1,24 @@
 //! Modbus function codes used by the drives, and helpers to read PDUs.
 
 /// 0x03 Read Holding Registers.
-pub const READ_HOLDING_REGISTERS: u8 = 0x03;
-/// 0x04 Read Input Registers.
-pub const READ_INPUT_REGISTERS: u8 = 0x04;
+pub(crate) const READ_HOLDING_REGISTERS: u8 = 0x03;
 /// 0x06 Write Single Register.
-pub const WRITE_SINGLE_REGISTER: u8 = 0x06;
+pub(crate) const WRITE_SINGLE_REGISTER: u8 = 0x06;
 /// 0x10 Write Multiple Registers.
-pub const WRITE_MULTIPLE_REGISTERS: u8 = 0x10;
+pub(crate) const WRITE_MULTIPLE_REGISTERS: u8 = 0x10;
 
 /// Bit set in the function code of an exception reply.
-pub const EXCEPTION_BIT: u8 = 0x80;
+pub(crate) const EXCEPTION_BIT: u8 = 0x80;
 
 /// Reads a big-endian u16 at `offset`, if the slice is long enough.
-pub fn be_u16(bytes: &[u8], offset: usize) -> Option<u16> {
+pub(crate) fn be_u16(bytes: &[u8], offset: usize) -> Option<u16> {
     let hi = *bytes.get(offset)?;
     let lo = *bytes.get(offset + 1)?;
     Some(u16::from_be_bytes([hi, lo]))
 }
 
 /// A short human label for a function code, used in logs and metric labels.
-pub fn label(function: u8) -> &'static str {
+pub(crate) fn label(function: u8) -> &'static str {
     match function {
         0x01 => "read_coils",
         0x02 => "read_discrete_inputs",

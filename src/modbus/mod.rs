@@ -2,8 +2,8 @@
 //! CRC, function and exception codes, RTU framing and RTU line timing. Pure code, no I/O.
 
 pub mod crc;
-pub mod exception;
-pub mod function;
+pub(crate) mod exception;
+pub(crate) mod function;
 pub mod reply;
 pub mod rtu_frame;
 pub mod timing;

@@ -11,7 +11,7 @@ use std::net::IpAddr;
 
 use ipnet::IpNet;
 
-use super::config::ModbusTcpConfig;
+use crate::config::ModbusTcpConfig;
 use crate::control::{CommLoss, Role};
 
 /// What a client of one network may do.
@@ -66,7 +66,10 @@ impl Access {
                 Rights {
                     role,
                     allow_saves_while_moving: c.allow_saves_while_moving,
-                    comm_loss: c.comm_loss(),
+                    comm_loss: c.comm_loss().map(|l| CommLoss {
+                        after: l.after,
+                        action: l.action,
+                    }),
                 },
             )
         }));
@@ -109,7 +112,7 @@ fn has_comm_loss(rights: &Rights) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::modbus_tcp::config::default_allowed_networks;
+    use crate::config::modbus_tcp::default_allowed_networks;
 
     fn ip(s: &str) -> IpAddr {
         s.parse().unwrap()

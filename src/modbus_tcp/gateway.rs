@@ -21,7 +21,6 @@ use tokio::sync::oneshot::error::TryRecvError;
 use tracing::{debug, warn};
 
 use super::access::Rights;
-use super::config::ModbusTcpConfig;
 use super::outcome::{Outcome, exception_pdu, failure_reply, gateway_exception};
 use super::polled_copy;
 use super::request;
@@ -29,6 +28,7 @@ use super::routing::{BusUnits, UnitRoutes};
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
 use crate::bus::{BusError, Origin, Priority, SourceId};
+use crate::config::ModbusTcpConfig;
 use crate::control::{self, Caller, Control, ControlRequest, Face, SessionId, Write};
 use crate::metrics::Metrics;
 use crate::modbus::ExceptionCode;

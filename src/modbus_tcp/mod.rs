@@ -19,7 +19,6 @@
 //! rather than tokio-modbus's server.
 
 pub mod access;
-pub mod config;
 pub mod connection;
 pub mod gateway;
 pub mod mbap;
@@ -29,13 +28,14 @@ pub mod request;
 pub mod routing;
 pub mod server;
 
+use std::net::SocketAddr;
 use std::sync::Arc;
 
+use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::Config;
 use crate::control::Control;
-use crate::faces::Listening;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 
@@ -45,13 +45,14 @@ use gateway::Gateway;
 use server::ServerSettings;
 
 /// Binds the Modbus TCP listener and serves it until `shutdown` fires.
+/// Returns the bound address and the task serving it.
 pub async fn start(
     config: &Config,
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
     control: Control,
     shutdown: CancellationToken,
-) -> Result<Listening, String> {
+) -> Result<(SocketAddr, JoinHandle<()>), String> {
     let tcp = &config.modbus_tcp;
     let listener = tokio::net::TcpListener::bind(tcp.listen)
         .await
@@ -75,5 +76,5 @@ pub async fn start(
         },
     };
     let task = tokio::spawn(server::run(listener, gateway, settings, shutdown));
-    Ok(Listening { addr, task })
+    Ok((addr, task))
 }

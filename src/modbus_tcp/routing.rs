@@ -7,7 +7,7 @@
 //! on two of them is ambiguous and reaches neither (the daemon says so when
 //! it starts). Anything else is answered 0x0A, gateway path unavailable.
 
-use super::config::UnitMapEntry;
+use crate::config::modbus_tcp::UnitMapEntry;
 
 /// A unit's destination.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -99,7 +99,7 @@ impl UnitRoutes {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::modbus_tcp::config::UnitRange;
+    use crate::config::modbus_tcp::UnitRange;
     use toml::Spanned;
 
     fn bus(name: &str, units: &[u8]) -> BusUnits {

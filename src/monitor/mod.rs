@@ -1,8 +1,8 @@
 //! The bus monitor: every frame on the wire of a bus, with its time,
 //! direction, bytes, meaning, CRC, outcome, turnaround and who caused it.
 //!
-//! - [`tap`] is what the RTU master calls as frames go out and come in (on
-//!   the bus thread): it fills a record, counts, and feeds the scope,
+//! - [`tap`] is the monitor's side of the bus's wire tap (on the bus
+//!   thread): it fills a record and counts,
 //! - [`record`] is one frame, fixed size; [`ring`] keeps the last N,
 //! - [`counters`] counts faults per attempt and unit, for `/metrics`,
 //! - [`decode`] says what a frame means (the drive's message or generic
@@ -59,6 +59,8 @@ impl Default for MonitorSettings {
 pub struct BusMonitor {
     ring: Option<Ring>,
     counters: WireCounters,
+    /// The line's timing, for the drives' turnaround.
+    line: LineTiming,
     epoch: Instant,
     clock: WallClock,
     units: Vec<u8>,
@@ -75,6 +77,7 @@ impl BusMonitor {
                 .enabled
                 .then(|| Ring::new(settings.ring_frames.max(1))),
             counters: WireCounters::new(),
+            line,
             epoch: Instant::now(),
             clock: WallClock {
                 epoch: SystemTime::now(),
@@ -104,6 +107,11 @@ impl BusMonitor {
     /// The configured units.
     pub fn units(&self) -> &[u8] {
         &self.units
+    }
+
+    /// Time a frame of `bytes` takes on this monitor's line.
+    pub fn wire_time(&self, bytes: usize) -> std::time::Duration {
+        self.line.wire_time(bytes)
     }
 
     /// ns since the monitor started, of `at`.

@@ -6,7 +6,8 @@ use crate::modbus::rtu_frame::MAX_FRAME;
 
 /// Bytes of a request kept with each reply, so a reply can be decoded
 /// (and filtered) without its request: unit, function, address, count.
-pub const REQUEST_HEAD: usize = 8;
+/// The bus's tap keeps as many.
+pub use crate::bus::tap::REQUEST_HEAD;
 
 /// Which way a frame went.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

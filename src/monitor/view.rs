@@ -7,7 +7,7 @@ use utoipa::ToSchema;
 
 use super::decode::{self, hex};
 use super::record::FrameRecord;
-use crate::api::timestamp::rfc3339_micros;
+use crate::timestamp::rfc3339_micros;
 
 /// One frame on the wire, decoded.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]

@@ -7,11 +7,13 @@
 //! - [`field`] lists the status fields in engineering units;
 //! - [`steer`] decides which drive is polled while a capture runs: the
 //!   captured drives at full rate, the others at a floor rate;
-//! - [`result`] renders a capture as JSON or CSV.
+//! - [`result`] renders a capture as JSON or CSV;
+//! - [`tap`] is the scope's side of the bus: what it takes from the wire
+//!   and how it steers the polling.
 //!
 //! [`Scope`] is the one capture slot of a bus, shared by the bus thread
-//! (which feeds it samples and write events, through the monitor's tap, and
-//! asks it which drive to poll) and the API (which arms, triggers, cancels
+//! (which feeds it samples and write events through the bus's wire tap,
+//! and asks it which drive to poll) and the API (which arms, triggers, cancels
 //! and reads it). With no capture running the bus thread only reads one
 //! atomic flag.
 
@@ -19,6 +21,7 @@ pub mod capture;
 pub mod field;
 pub mod result;
 pub mod steer;
+pub mod tap;
 pub mod trigger;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -28,11 +31,12 @@ use std::time::{Duration, Instant, SystemTime};
 use tokio::sync::Notify;
 
 use crate::bus::Origin;
+use crate::bus::observers::Steer;
 use crate::drive::Status;
 use crate::drive::registers::{STATUS_BLOCK_LEN, STATUS_BLOCK_START};
 use crate::modbus::timing::LineTiming;
 use capture::{Capture, CaptureSpec, Limits, SpecError};
-use steer::{PollSteer, Steer};
+use steer::PollSteer;
 
 /// `[scope]` settings.
 #[derive(Debug, Clone, Copy, PartialEq)]

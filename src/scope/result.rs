@@ -10,7 +10,7 @@ use serde::Serialize;
 use utoipa::ToSchema;
 
 use super::capture::{Capture, Fired};
-use crate::api::timestamp::rfc3339_micros;
+use crate::timestamp::rfc3339_micros;
 
 /// The trigger of a capture and, once it fired, when and why.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]

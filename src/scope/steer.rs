@@ -10,14 +10,7 @@
 
 use std::time::{Duration, Instant};
 
-/// What to do next.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Steer {
-    /// Read this unit's status.
-    Poll(u8),
-    /// Nothing is due: look again at this time (or when a job arrives).
-    Wait(Instant),
-}
+pub use crate::bus::observers::Steer;
 
 /// How long to wait when every drive is waiting out a backoff.
 const IDLE: Duration = Duration::from_millis(5);

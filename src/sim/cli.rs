@@ -69,6 +69,15 @@ pub struct SimArgs {
     /// Largest extra delay of each chunk, in microseconds.
     #[arg(long, default_value_t = 0)]
     pub jitter_us: u32,
+    /// Echo every byte the master sends, as an adapter without automatic
+    /// direction control does (the master hears its own request first).
+    #[arg(long)]
+    pub echo: bool,
+    /// Model a master at another baud rate than --baud: the bytes each way
+    /// are what a UART at one rate reads of bits sent at the other (so the
+    /// drives stay silent to a master at the wrong rate). Pty only.
+    #[arg(long, conflicts_with = "listen")]
+    pub check_master_baud: bool,
 }
 
 impl SimArgs {
@@ -102,6 +111,8 @@ impl SimArgs {
             },
             listen: self.listen,
             max_lag: None,
+            echo: self.echo,
+            check_master_baud: self.check_master_baud,
             ..SimConfig::default()
         }
     }

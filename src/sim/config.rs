@@ -11,7 +11,7 @@ use crate::drive::RangeError;
 use crate::drive::units::GEAR_RATIO;
 
 /// The gear ratio of the manual's examples, used when none is given.
-pub const DEFAULT_GEAR_RATIO: f64 = 3.75;
+pub(crate) const DEFAULT_GEAR_RATIO: f64 = 3.75;
 
 /// One simulated drive.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
@@ -59,6 +59,15 @@ pub struct SimConfig {
     /// `None`: sent however late. The daemon's own simulator uses the bus's
     /// response timeout.
     pub max_lag: Option<Duration>,
+    /// Send every byte the master writes straight back, as an RS-485
+    /// adapter without automatic direction control (or with echo on) makes
+    /// its master hear its own request before any answer.
+    pub echo: bool,
+    /// On a pty, read the baud rate the master set on its end and, when it
+    /// is not `baud`, pass the bytes each way through [`super::uart`] (the
+    /// levels at the sender's rate, sampled at the receiver's): the drives
+    /// then hear garbage, as real ones do from a master at the wrong rate.
+    pub check_master_baud: bool,
 }
 
 impl Default for SimConfig {
@@ -90,6 +99,8 @@ impl SimConfig {
             delivery: Delivery::default(),
             listen: None,
             max_lag: None,
+            echo: false,
+            check_master_baud: false,
         }
     }
 
@@ -100,9 +111,6 @@ impl SimConfig {
         }
         RangeError::check("turnaround", self.turnaround_ms, 0.0, 1000.0, "ms")?;
         RangeError::check("reboot time", self.reboot_ms, 0.0, 60_000.0, "ms")?;
-        if self.drives.is_empty() {
-            return Err(ConfigError::NoDrives);
-        }
         for (i, drive) in self.drives.iter().enumerate() {
             if drive.unit == 0 {
                 return Err(ConfigError::BroadcastUnit);
@@ -134,9 +142,6 @@ impl SimConfig {
 /// A simulated bus that cannot be built.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ConfigError {
-    /// No drive on the bus.
-    #[error("the simulated bus has no drives: give at least one unit")]
-    NoDrives,
     /// A drive at address 0.
     #[error("unit 0 is the broadcast address, not a drive: use 1 to 255")]
     BroadcastUnit,
@@ -163,8 +168,9 @@ mod tests {
         assert_eq!(c.validate(), Err(ConfigError::DuplicateUnit(1)));
         c = SimConfig::for_units([0]);
         assert_eq!(c.validate(), Err(ConfigError::BroadcastUnit));
+        // No drive: a silent line, as a bus with every drive off.
         c = SimConfig::for_units([]);
-        assert_eq!(c.validate(), Err(ConfigError::NoDrives));
+        assert_eq!(c.validate(), Ok(()));
         c = SimConfig::for_units([1]);
         c.turnaround_ms = -1.0;
         assert_eq!(

@@ -7,9 +7,9 @@
 //! actual for 0.2047 s planned; position: 0.275 s for 0.2507 s).
 
 /// Time constant of the speed loop, s.
-pub const SPEED_LOOP_TAU: f64 = 0.003;
+pub(crate) const SPEED_LOOP_TAU: f64 = 0.003;
 /// Time constant of the position loop (around the speed loop), s.
-pub const POSITION_LOOP_TAU: f64 = 0.013;
+pub(crate) const POSITION_LOOP_TAU: f64 = 0.013;
 
 /// Fraction of the error a first-order loop with time constant `tau`
 /// removes in `dt`.
@@ -23,7 +23,7 @@ fn gain(dt: f64, tau: f64) -> f64 {
 
 /// Speed loop: the acceleration (rad/s^2) that brings `speed` towards
 /// `command` (both rad/s at the motor shaft) over the next `dt`.
-pub fn speed_loop(command: f64, speed: f64, dt: f64) -> f64 {
+pub(crate) fn speed_loop(command: f64, speed: f64, dt: f64) -> f64 {
     if dt <= 0.0 {
         return 0.0;
     }
@@ -34,13 +34,13 @@ pub fn speed_loop(command: f64, speed: f64, dt: f64) -> f64 {
 /// `angle` to `command` (rad at the motor shaft). Without feed-forward of the
 /// command's rate the motor trails a moving command by about the loop's
 /// time constant, as the manual's position measurements show.
-pub fn position_loop(command: f64, angle: f64) -> f64 {
+pub(crate) fn position_loop(command: f64, angle: f64) -> f64 {
     (command - angle) / POSITION_LOOP_TAU
 }
 
 /// Emergency brake: the largest deceleration the drive can ask for; the
 /// current limit decides what the motor really does.
-pub fn brake(speed: f64, dt: f64) -> f64 {
+pub(crate) fn brake(speed: f64, dt: f64) -> f64 {
     if dt <= 0.0 { 0.0 } else { -speed / dt }
 }
 

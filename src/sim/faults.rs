@@ -69,7 +69,7 @@ impl Noise {
 
 /// What happens to one reply.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct ReplyFate {
+pub(crate) struct ReplyFate {
     /// The reply is not sent.
     pub drop: bool,
     /// Extra delay before the reply.
@@ -82,14 +82,14 @@ pub struct ReplyFate {
 
 /// The seeded source of faults.
 #[derive(Debug, Clone)]
-pub struct FaultInjector {
+pub(crate) struct FaultInjector {
     rates: FaultRates,
     rng: ChaCha8Rng,
 }
 
 impl FaultInjector {
     /// Faults at `rates`, drawn from `seed`.
-    pub fn new(rates: FaultRates, seed: u64) -> Self {
+    pub(crate) fn new(rates: FaultRates, seed: u64) -> Self {
         FaultInjector {
             rates,
             rng: ChaCha8Rng::seed_from_u64(seed),
@@ -97,17 +97,17 @@ impl FaultInjector {
     }
 
     /// The rates in force.
-    pub fn rates(&self) -> &FaultRates {
+    pub(crate) fn rates(&self) -> &FaultRates {
         &self.rates
     }
 
     /// Changes the rates; the random sequence goes on.
-    pub fn set_rates(&mut self, rates: FaultRates) {
+    pub(crate) fn set_rates(&mut self, rates: FaultRates) {
         self.rates = rates;
     }
 
     /// Makes `unit` silent or lets it answer again.
-    pub fn set_silent(&mut self, unit: u8, silent: bool) {
+    pub(crate) fn set_silent(&mut self, unit: u8, silent: bool) {
         self.rates.silent_units.retain(|&u| u != unit);
         if silent {
             self.rates.silent_units.push(unit);
@@ -115,7 +115,7 @@ impl FaultInjector {
     }
 
     /// Decides the fate of the next reply.
-    pub fn decide(&mut self) -> ReplyFate {
+    pub(crate) fn decide(&mut self) -> ReplyFate {
         let drop: f64 = self.rng.random();
         let late: f64 = self.rng.random();
         let crc: f64 = self.rng.random();

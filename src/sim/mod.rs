@@ -8,20 +8,23 @@
 //! drives' behaviour follow the manual.
 //!
 //! The parts, each pure except the last three:
-//! - [`ramp`]: the setpoint ramp (bang-bang, manual 1.9/1.10);
-//! - [`physics`]: the motor, its supply and its heat;
-//! - [`control`]: the drive's speed and position loops;
+//! - `ramp`: the setpoint ramp (bang-bang, manual 1.9/1.10);
+//! - `physics`: the motor, its supply and its heat;
+//! - `control`: the drive's speed and position loops;
 //! - [`model`]: one drive: registers, flash, commands, protections, faults;
-//! - [`device`]: a plain register device (meter, I/O) on the same bus;
-//! - [`slave`]: the Modbus slave (PDU in, PDU out, exceptions);
-//! - [`faults`]: seeded fault injection on the wire;
-//! - [`delivery`]: when the master receives each reply byte (a UART, or a
+//! - `device`: a plain register device (meter, I/O) on the same bus;
+//! - `slave`: the Modbus slave (PDU in, PDU out, exceptions);
+//! - `faults`: seeded fault injection on the wire;
+//! - `delivery`: when the master receives each reply byte (a UART, or a
 //!   USB adapter's late chunks);
 //! - [`bus`]: the drives on one line, who answers what;
-//! - [`wire`]: framing and the line's timing on the pty or TCP;
+//! - `uart`: what a receiver at one baud rate reads of bytes sent at
+//!   another (a master at the wrong rate);
+//! - `wire`: framing and the line's timing on the pty or TCP, and an
+//!   adapter's echo;
 //! - [`pty`]: the pseudo-terminal;
-//! - [`tcp`]: the line served on TCP;
-//! - [`handle`]: control of a running simulator.
+//! - `tcp`: the line served on TCP;
+//! - `handle`: control of a running simulator.
 //!
 //! The simulator runs on its own thread (`sim-bus`) with a current-thread
 //! runtime, so its timing does not depend on the load of the caller's
@@ -30,20 +33,21 @@
 
 pub mod bus;
 pub mod cli;
-pub mod config;
-pub mod control;
-pub mod delivery;
-pub mod device;
-pub mod faults;
-pub mod handle;
+pub(crate) mod config;
+pub(crate) mod control;
+pub(crate) mod delivery;
+pub(crate) mod device;
+pub(crate) mod faults;
+pub(crate) mod handle;
 pub mod model;
-pub mod physics;
+pub(crate) mod physics;
 pub mod pty;
-pub mod ramp;
-pub mod slave;
-pub mod stats;
-pub mod tcp;
-pub mod wire;
+pub(crate) mod ramp;
+pub(crate) mod slave;
+pub(crate) mod stats;
+pub(crate) mod tcp;
+pub(crate) mod uart;
+pub(crate) mod wire;
 
 use std::io;
 use std::path::PathBuf;

@@ -10,7 +10,7 @@
 
 /// Electrical, mechanical and thermal constants of the simulated motor.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MotorParams {
+pub(crate) struct MotorParams {
     /// Torque constant, N·m/A (equal to the back-EMF constant in V·s/rad).
     pub torque_constant: f64,
     /// Winding resistance, ohm.
@@ -38,7 +38,7 @@ pub struct MotorParams {
 impl MotorParams {
     /// The simulated motor: no-load speed about 4000 rpm at 24 V, stalls at
     /// 16 A with 0.9 N·m, one minute thermal time constant.
-    pub const DEFAULT: MotorParams = MotorParams {
+    pub(crate) const DEFAULT: MotorParams = MotorParams {
         torque_constant: 0.057,
         resistance: 0.4,
         rotor_inertia: 3.0e-5,
@@ -58,7 +58,7 @@ const STANDSTILL: f64 = 1e-6;
 
 /// What the drive's power stage does during a step.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Drive {
+pub(crate) enum Drive {
     /// Power stage off: the motor coasts against friction and load.
     Off,
     /// Current loop: drive this current (A), within what the supply allows.
@@ -91,7 +91,7 @@ impl Default for Environment {
 
 /// The state of the motor, its supply and its temperature.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Motor {
+pub(crate) struct Motor {
     params: MotorParams,
     gear_ratio: f64,
     inertia_ratio: f64,
@@ -112,7 +112,7 @@ pub struct Motor {
 
 impl Motor {
     /// A motor at rest at ambient temperature.
-    pub fn new(params: MotorParams, gear_ratio: f64, env: Environment) -> Self {
+    pub(crate) fn new(params: MotorParams, gear_ratio: f64, env: Environment) -> Self {
         Motor {
             params,
             gear_ratio,
@@ -128,68 +128,68 @@ impl Motor {
     }
 
     /// The gearbox ratio (motor turns per output turn).
-    pub fn gear_ratio(&self) -> f64 {
+    pub(crate) fn gear_ratio(&self) -> f64 {
         self.gear_ratio
     }
 
     /// Sets the load inertia as a multiple of the rotor's (manual 1.11).
-    pub fn set_inertia_ratio(&mut self, ratio: f64) {
+    pub(crate) fn set_inertia_ratio(&mut self, ratio: f64) {
         self.inertia_ratio = ratio.max(0.0);
     }
 
     /// Total inertia at the motor shaft: rotor x (1 + load ratio).
-    pub fn inertia(&self) -> f64 {
+    pub(crate) fn inertia(&self) -> f64 {
         self.params.rotor_inertia * (1.0 + self.inertia_ratio)
     }
 
     /// The environment.
-    pub fn environment(&self) -> Environment {
+    pub(crate) fn environment(&self) -> Environment {
         self.env
     }
 
     /// Changes the environment (load, supply, ambient).
-    pub fn set_environment(&mut self, env: Environment) {
+    pub(crate) fn set_environment(&mut self, env: Environment) {
         self.env = env;
     }
 
     /// Motor shaft angle, rad.
-    pub fn angle(&self) -> f64 {
+    pub(crate) fn angle(&self) -> f64 {
         self.angle
     }
 
     /// Moves the motor shaft angle by whole output turns (the drive forgets
     /// its turn count at power-off); `delta` in rad at the motor shaft.
-    pub fn shift_angle(&mut self, delta: f64) {
+    pub(crate) fn shift_angle(&mut self, delta: f64) {
         self.angle += delta;
     }
 
     /// Motor shaft speed, rad/s.
-    pub fn speed(&self) -> f64 {
+    pub(crate) fn speed(&self) -> f64 {
         self.speed
     }
 
     /// Output angle, rad.
-    pub fn output_angle(&self) -> f64 {
+    pub(crate) fn output_angle(&self) -> f64 {
         self.angle / self.gear_ratio
     }
 
     /// Output speed, rad/s.
-    pub fn output_speed(&self) -> f64 {
+    pub(crate) fn output_speed(&self) -> f64 {
         self.speed / self.gear_ratio
     }
 
     /// Drive current, A.
-    pub fn current(&self) -> f64 {
+    pub(crate) fn current(&self) -> f64 {
         self.current
     }
 
     /// Drive temperature, °C.
-    pub fn temperature(&self) -> f64 {
+    pub(crate) fn temperature(&self) -> f64 {
         self.temperature
     }
 
     /// Voltage at the drive's supply terminals, V.
-    pub fn bus_voltage(&self) -> f64 {
+    pub(crate) fn bus_voltage(&self) -> f64 {
         self.bus_voltage
     }
 
@@ -209,7 +209,7 @@ impl Motor {
 
     /// Advances the motor by `dt` seconds (the caller keeps `dt` at 1 ms or less
     /// while anything moves).
-    pub fn step(&mut self, drive: Drive, dt: f64) {
+    pub(crate) fn step(&mut self, drive: Drive, dt: f64) {
         let p = self.params;
         let j = self.inertia();
         let load = self.load_at_motor();
@@ -266,7 +266,7 @@ impl Motor {
 
     /// Advances a motor that stands still with a constant current (nothing
     /// but temperature changes): any `dt`, exact.
-    pub fn hold(&mut self, dt: f64) {
+    pub(crate) fn hold(&mut self, dt: f64) {
         self.heat(dt);
     }
 
@@ -304,7 +304,7 @@ impl Motor {
     }
 
     /// True when the shaft stands still.
-    pub fn at_standstill(&self) -> bool {
+    pub(crate) fn at_standstill(&self) -> bool {
         self.speed == 0.0
     }
 }

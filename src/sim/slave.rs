@@ -46,7 +46,11 @@ impl From<Refusal> for ExceptionCode {
 
 /// Answers one request `pdu` (function code onward) addressed to `drive`,
 /// writing the reply PDU into `reply`; returns the exception if it is one.
-pub fn answer(drive: &mut DriveModel, pdu: &[u8], reply: &mut Vec<u8>) -> Option<ExceptionCode> {
+pub(crate) fn answer(
+    drive: &mut DriveModel,
+    pdu: &[u8],
+    reply: &mut Vec<u8>,
+) -> Option<ExceptionCode> {
     reply.clear();
     let function = pdu.first().copied().unwrap_or(0);
     let result = match function {
@@ -68,7 +72,7 @@ pub fn answer(drive: &mut DriveModel, pdu: &[u8], reply: &mut Vec<u8>) -> Option
 
 /// Carries out a broadcast (unit 0) `pdu`: writes take effect, nothing is
 /// answered, reads and refusals are ignored. `scratch` is a reusable buffer.
-pub fn broadcast(drive: &mut DriveModel, pdu: &[u8], scratch: &mut Vec<u8>) {
+pub(crate) fn broadcast(drive: &mut DriveModel, pdu: &[u8], scratch: &mut Vec<u8>) {
     if matches!(
         pdu.first(),
         Some(&WRITE_SINGLE_REGISTER | &WRITE_MULTIPLE_REGISTERS)

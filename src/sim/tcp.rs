@@ -20,14 +20,14 @@ use tokio::sync::Notify;
 /// Asks the line to close its current connection (a device server's
 /// reboot, a network cut), for tests of the master's reconnection.
 #[derive(Debug, Default)]
-pub struct Disconnects {
+pub(crate) struct Disconnects {
     asked: AtomicU64,
     notify: Notify,
 }
 
 impl Disconnects {
     /// Closes the connection of the moment, if any.
-    pub fn disconnect(&self) {
+    pub(crate) fn disconnect(&self) {
         self.asked.fetch_add(1, Ordering::SeqCst);
         self.notify.notify_waiters();
     }
@@ -38,7 +38,7 @@ impl Disconnects {
 }
 
 /// The listening side and the master's connection.
-pub struct TcpLine {
+pub(crate) struct TcpLine {
     listener: TcpListener,
     address: SocketAddr,
     connection: Option<TcpStream>,
@@ -52,7 +52,7 @@ pub struct TcpLine {
 impl TcpLine {
     /// Listens on `address` (port 0: one the system picks); must be called
     /// inside the simulator's runtime.
-    pub fn bind(address: SocketAddr) -> io::Result<Self> {
+    pub(crate) fn bind(address: SocketAddr) -> io::Result<Self> {
         let std_listener = std::net::TcpListener::bind(address)?;
         std_listener.set_nonblocking(true)?;
         let listener = TcpListener::from_std(std_listener)?;
@@ -68,24 +68,24 @@ impl TcpLine {
     }
 
     /// Where a master connects: `tcp://ip:port`.
-    pub fn endpoint(&self) -> String {
+    pub(crate) fn endpoint(&self) -> String {
         format!("tcp://{}", self.address)
     }
 
     /// The handle that closes connections on request.
-    pub fn disconnects(&self) -> Arc<Disconnects> {
+    pub(crate) fn disconnects(&self) -> Arc<Disconnects> {
         Arc::clone(&self.disconnects)
     }
 
     /// Connections accepted so far.
-    pub fn accepted(&self) -> u64 {
+    pub(crate) fn accepted(&self) -> u64 {
         self.accepted
     }
 
     /// Reads what the master sends, waiting for a master to connect when
     /// none is; never returns 0 (a closed connection means waiting for the
     /// next one). Cancel-safe.
-    pub async fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+    pub(crate) async fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
         let disconnects = Arc::clone(&self.disconnects);
         loop {
             let notified = disconnects.notify.notified();
@@ -118,7 +118,7 @@ impl TcpLine {
     }
 
     /// Sends `bytes` to the master, if one is connected.
-    pub async fn write_all(&mut self, bytes: &[u8]) -> io::Result<()> {
+    pub(crate) async fn write_all(&mut self, bytes: &[u8]) -> io::Result<()> {
         if let Some(connection) = &mut self.connection
             && connection.write_all(bytes).await.is_err()
         {

@@ -100,10 +100,19 @@ impl Line {
             Line::Tcp(tcp) => tcp.write_all(bytes).await,
         }
     }
+
+    /// The baud rate the master set on its end of the pty (the pty's two
+    /// ends share one termios), if it can be read.
+    fn master_baud(&mut self) -> Option<u32> {
+        match self {
+            Line::Pty(pty) => tokio_serial::SerialPort::baud_rate(pty.master()).ok(),
+            Line::Tcp(_) => None,
+        }
+    }
 }
 
 /// The wire task's state.
-pub struct Wire {
+pub(crate) struct Wire {
     line_io: Line,
     /// Where masters connect: the pty's path, or `tcp://ip:port`.
     endpoint: std::path::PathBuf,
@@ -125,12 +134,16 @@ pub struct Wire {
     rng: ChaCha8Rng,
     /// End of the last wire activity.
     quiet_from: Option<Instant>,
+    /// See [`SimConfig::echo`].
+    echo: bool,
+    /// See [`SimConfig::check_master_baud`].
+    check_master_baud: bool,
 }
 
 impl Wire {
     /// Opens the pty (or listens on `config.listen`) and prepares the
     /// timing for `config`; must run inside the simulator's runtime.
-    pub fn new(config: &SimConfig, bus: Arc<Mutex<Bus>>) -> io::Result<Self> {
+    pub(crate) fn new(config: &SimConfig, bus: Arc<Mutex<Bus>>) -> io::Result<Self> {
         let line_io = match config.listen {
             Some(address) => Line::Tcp(TcpLine::bind(address)?),
             None => Line::Pty(Pty::open()?),
@@ -154,16 +167,18 @@ impl Wire {
             delivery: config.delivery,
             rng: ChaCha8Rng::seed_from_u64(config.seed ^ 0xDE11_7E12),
             quiet_from: None,
+            echo: config.echo,
+            check_master_baud: config.check_master_baud,
         })
     }
 
     /// Where masters connect: the pty slave's path, or `tcp://ip:port`.
-    pub fn path(&self) -> &std::path::Path {
+    pub(crate) fn path(&self) -> &std::path::Path {
         &self.endpoint
     }
 
     /// On TCP, the handle that closes the master's connection on request.
-    pub fn disconnects(&self) -> Option<Arc<Disconnects>> {
+    pub(crate) fn disconnects(&self) -> Option<Arc<Disconnects>> {
         match &self.line_io {
             Line::Tcp(tcp) => Some(tcp.disconnects()),
             Line::Pty(_) => None,
@@ -171,7 +186,7 @@ impl Wire {
     }
 
     /// Serves requests until an I/O error (or until the caller drops it).
-    pub async fn serve(mut self) -> io::Result<()> {
+    pub(crate) async fn serve(mut self) -> io::Result<()> {
         loop {
             let len = self.next_frame().await?;
             self.answer(len).await?;
@@ -243,6 +258,10 @@ impl Wire {
         if !outcome.reply {
             self.quiet_from = Some(wire_end);
             return Ok(());
+        }
+        if let Some(master_baud) = self.master_baud_if_other() {
+            let read = super::uart::resample(&self.tx, self.line.baud(), master_baud);
+            self.tx = read;
         }
         let reply_start = wire_end + t3_5 + self.turnaround + outcome.late;
         let Some(reply_end) = self.send_paced(reply_start, self.max_lag).await? else {
@@ -333,8 +352,29 @@ impl Wire {
             tokio::time::sleep(Duration::from_millis(10)).await;
             return Ok(false);
         }
-        self.push_received(&buf[..n], Instant::now());
+        let at = Instant::now();
+        if self.echo {
+            self.line_io.write_all(&buf[..n]).await?;
+        }
+        match self.master_baud_if_other() {
+            Some(master_baud) => {
+                let heard = super::uart::resample(&buf[..n], master_baud, self.line.baud());
+                self.push_received(&heard, at);
+            }
+            None => self.push_received(&buf[..n], at),
+        }
         Ok(true)
+    }
+
+    /// With [`SimConfig::check_master_baud`], the master's rate when it is
+    /// not the wire's.
+    fn master_baud_if_other(&mut self) -> Option<u32> {
+        if !self.check_master_baud {
+            return None;
+        }
+        self.line_io
+            .master_baud()
+            .filter(|&baud| baud != self.line.baud())
     }
 
     /// Keeps bytes read at `at` for framing.

@@ -7,7 +7,8 @@ use std::io::Write as _;
 use std::time::Duration;
 
 use crate::support::TestDaemon;
-use crate::support::api::{Api, config, connect, next_json, send_json, sha256_hex};
+use crate::support::api::{Api, config, connect, next_json, send_json};
+use crate::support::config::sha256_hex;
 use crate::support::logs::{capture_logs, log_text};
 use futures_util::StreamExt;
 use serde_json::json;

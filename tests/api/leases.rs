@@ -7,6 +7,7 @@
 use std::time::{Duration, Instant};
 
 use crate::support::api::{Api, config, connect, next_json, send_json, wait_for, ws_command};
+use crate::support::bus::hold_the_wire;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use serde_json::json;
 
@@ -286,30 +287,6 @@ fn slow_bus_with_brake_on_expiry() -> String {
         "response_timeout_ms = 1500",
     );
     format!("{toml}\n[safety]\non_lease_expiry = \"brake\"\n")
-}
-
-/// Holds the wire for 3 s with an emergency read of unit 30, which nobody
-/// answers, and returns once it is on the wire: commands queued meanwhile
-/// wait behind it.
-async fn hold_the_wire(
-    bus: &drivegate::bus::BusHandle,
-) -> tokio::sync::oneshot::Receiver<drivegate::bus::job::JobResult> {
-    use drivegate::bus::handle::JobOptions;
-    use drivegate::bus::{Priority, SourceId};
-    let options = JobOptions {
-        priority: Priority::Emergency,
-        source: SourceId::new_unique(),
-        queue_timeout: None,
-        max_attempts: Some(1),
-        origin: Default::default(),
-    };
-    let pdu = drivegate::drive::DriveRequest::ReadStatus.pdu().unwrap();
-    let blocker = bus.submit(30, pdu, options).unwrap();
-    eventually(Duration::from_secs(5), "the blocker on the wire", || {
-        (bus.queue_depths()[0] == 0).then_some(())
-    })
-    .await;
-    blocker
 }
 
 /// Waits until the conveyor's poll shows it active, so a setpoint goes

@@ -15,6 +15,7 @@ mod dead_drive;
 mod long_replies;
 mod master_pty;
 mod master_timing;
+mod probe;
 mod pty;
 mod sim;
 mod sim_cli;

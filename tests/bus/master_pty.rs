@@ -5,7 +5,7 @@
 use std::os::fd::OwnedFd;
 use std::time::{Duration, Instant};
 
-use crate::support::pty::pty;
+use crate::support::pty::{master, pty};
 use drivegate::bus::master::{Guard, MasterSettings, RtuMaster};
 use drivegate::bus::port::{self, Direction, Rs485Settings};
 use drivegate::bus::stats::Outcome;
@@ -115,11 +115,6 @@ fn settings() -> MasterSettings {
     let mut s = MasterSettings::new(115_200, TIMEOUT, 1);
     s.guard = Guard::Fixed(GUARD);
     s
-}
-
-async fn master(path: &str, settings: MasterSettings) -> RtuMaster {
-    let port = port::open(path, 115_200, &settings.rs485).unwrap();
-    RtuMaster::new(port, settings).unwrap()
 }
 
 fn read_status() -> Vec<u8> {

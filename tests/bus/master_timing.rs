@@ -9,9 +9,8 @@
 
 use std::time::{Duration, Instant};
 
-use crate::support::pty::pty;
-use drivegate::bus::master::{Fault, Guard, MasterSettings, RtuMaster};
-use drivegate::bus::port;
+use crate::support::pty::{master, pty};
+use drivegate::bus::master::{Fault, Guard, MasterSettings};
 use drivegate::bus::stats::Outcome;
 use drivegate::modbus::rtu_frame;
 use drivegate::modbus::timing::LineTiming;
@@ -71,11 +70,6 @@ fn peer(
 
 fn settings(baud: u32, timeout_ms: u64, retries: u8) -> MasterSettings {
     MasterSettings::new(baud, Duration::from_millis(timeout_ms), retries)
-}
-
-async fn master(path: &str, settings: MasterSettings) -> RtuMaster {
-    let port = port::open(path, settings.line.baud(), &settings.rs485).unwrap();
-    RtuMaster::new(port, settings).unwrap()
 }
 
 /// Read `count` holding registers from 0.

@@ -5,6 +5,7 @@
 
 use std::time::Duration;
 
+use crate::support::config::ConfigBuilder;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::cache::Link;
 use drivegate::bus::handle::{JobOptions, PortState};
@@ -213,10 +214,11 @@ async fn jobs_whose_caller_left_never_reach_the_wire() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_full_queue_says_busy() {
-    let config = FOUR_DRIVES.replace(
-        "retries = 1",
-        "retries = 1\nqueue_capacity = 4\nqueue_per_client = 4",
-    );
+    let config = ConfigBuilder::four_drives()
+        .with_bus("sim", |b| {
+            b.keys("queue_capacity = 4\nqueue_per_client = 4")
+        })
+        .toml();
     let d = TestDaemon::start(&config).await;
     let bus = &d.plant.buses()[0].handle;
     let write = DriveRequest::Rs485Control { enabled: true }.pdu().unwrap();
@@ -255,15 +257,13 @@ async fn injected_faults_never_deliver_a_reply_to_the_wrong_request() {
     // the simulator up: a reply it makes late fails its attempt (timeout,
     // bad reply), never delivers another request's value, and the late
     // bytes never meet the next request on the wire.
-    let config = crate::support::replaced(
-        FOUR_DRIVES,
-        crate::support::WIRE_TIMING,
-        "response_timeout_ms = 100\nguard_ms = 350",
-    )
-    .replace(
-        "seed = 7",
-        "seed = 7\n[bus.sim.faults]\ndrop_rate = 0.05\ncrc_error_rate = 0.05\nlate_rate = 0.05\nlate_ms = 250\nnoise_rate = 0.05",
-    );
+    let config = ConfigBuilder::four_drives()
+        .with_bus("sim", |b| {
+            b.timing(100, 350).sim_faults(
+                "drop_rate = 0.05\ncrc_error_rate = 0.05\nlate_rate = 0.05\nlate_ms = 250\nnoise_rate = 0.05",
+            )
+        })
+        .toml();
     let d = TestDaemon::start(&config).await;
     let bus = &d.plant.buses()[0].handle;
     let (mut confirmed, mut failed) = (0, 0);
@@ -440,9 +440,9 @@ async fn address_setting_is_a_broadcast() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn several_buses_each_have_their_own_scheduler() {
-    let two = format!(
-        "{FOUR_DRIVES}\n[[bus]]\nname = \"second\"\nport = \"sim\"\n[[bus.drive]]\nunit = 1\nname = \"press\"\n[[bus.drive]]\nunit = 2\nname = \"saw\"\n"
-    );
+    let two = ConfigBuilder::four_drives()
+        .bus("second", |b| b.drive(1, "press").drive(2, "saw"))
+        .toml();
     let d = TestDaemon::start(&two).await;
     assert_eq!(d.plant.buses().len(), 2);
     // The same unit on two buses is two drives, found by name.
@@ -478,10 +478,11 @@ async fn shutdown_stops_every_drive_even_beyond_the_queue_limits() {
     // Four moving drives, but a queue that takes one job per source and two
     // per class: the safe stops of all four go at once from the daemon
     // itself, and none of them may be refused as busy.
-    let config = FOUR_DRIVES.replace(
-        "retries = 1",
-        "retries = 1\nqueue_capacity = 2\nqueue_per_client = 1",
-    );
+    let config = ConfigBuilder::four_drives()
+        .with_bus("sim", |b| {
+            b.keys("queue_capacity = 2\nqueue_per_client = 1")
+        })
+        .toml();
     let d = TestDaemon::start(&config).await;
     let bus = d.plant.buses()[0].handle.clone();
     for unit in 1..=4 {

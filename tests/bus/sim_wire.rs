@@ -7,6 +7,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly by design
 
+use crate::support::bounded;
 use crate::support::vectors::vectors;
 use std::time::{Duration, Instant};
 
@@ -169,16 +170,9 @@ fn status_of(reply: &[u8]) -> Status {
     }
 }
 
-/// Bounds a test's waits.
-async fn bounded<F: std::future::Future>(seconds: u64, f: F) -> F::Output {
-    tokio::time::timeout(Duration::from_secs(seconds), f)
-        .await
-        .expect("the test took too long")
-}
-
 #[tokio::test]
 async fn status_read_matches_the_drives_status() {
-    bounded(10, async {
+    bounded(Duration::from_secs(10), async {
         let handle = start(&[1, 2], 0.0);
         let mut master = Master::open(&handle);
         let reply = master
@@ -197,7 +191,7 @@ async fn status_read_matches_the_drives_status() {
 
 #[tokio::test]
 async fn every_golden_request_gets_the_manuals_reply() {
-    bounded(20, async {
+    bounded(Duration::from_secs(20), async {
         let all = vectors();
         let mut checked = 0;
         for (i, v) in all.iter().enumerate() {
@@ -258,7 +252,7 @@ async fn every_golden_request_gets_the_manuals_reply() {
 
 #[tokio::test]
 async fn replies_respect_the_wire_time_the_silence_and_the_turnaround() {
-    bounded(10, async {
+    bounded(Duration::from_secs(10), async {
         let turnaround = Duration::from_micros(500);
         let handle = start(&[1], 0.5);
         let mut master = Master::open(&handle);
@@ -295,7 +289,7 @@ async fn replies_respect_the_wire_time_the_silence_and_the_turnaround() {
 
 #[tokio::test]
 async fn back_to_back_polls_run_at_the_lines_limit_not_faster() {
-    bounded(10, async {
+    bounded(Duration::from_secs(10), async {
         let handle = start(&[1], 0.0);
         let mut master = Master::open(&handle);
         let line = LineTiming::new_8n1(BAUD);
@@ -324,7 +318,7 @@ async fn back_to_back_polls_run_at_the_lines_limit_not_faster() {
 
 #[tokio::test]
 async fn gap_violations_are_counted_only_without_the_silence() {
-    bounded(20, async {
+    bounded(Duration::from_secs(20), async {
         let handle = start(&[1], 0.0);
         let mut master = Master::open(&handle);
         let request = frame(1, DriveRequest::ReadStatus);
@@ -371,7 +365,7 @@ async fn gap_violations_are_counted_only_without_the_silence() {
 
 #[tokio::test]
 async fn bad_crc_unknown_units_and_unknown_functions() {
-    bounded(10, async {
+    bounded(Duration::from_secs(10), async {
         let handle = start(&[1], 0.0);
         let mut master = Master::open(&handle);
         let mut bad = frame(1, DriveRequest::ReadStatus);
@@ -479,7 +473,7 @@ async fn faulty_run(seed: u64) -> FaultyRun {
 
 #[tokio::test]
 async fn fault_injection_meets_its_rates_and_repeats_with_the_seed() {
-    bounded(45, async {
+    bounded(Duration::from_secs(45), async {
         // Each run on its own thread, so one cannot delay the other's reads.
         let run = |seed| {
             tokio::task::spawn_blocking(move || {
@@ -546,7 +540,7 @@ async fn fault_injection_meets_its_rates_and_repeats_with_the_seed() {
 
 #[tokio::test]
 async fn broadcast_address_setting_readdresses_the_drive() {
-    bounded(10, async {
+    bounded(Duration::from_secs(10), async {
         let handle = start(&[1], 0.0);
         let mut master = Master::open(&handle);
         master
@@ -578,7 +572,7 @@ async fn broadcast_address_setting_readdresses_the_drive() {
 
 #[tokio::test]
 async fn power_cycle_silences_the_drive_then_it_returns_with_saved_values() {
-    bounded(10, async {
+    bounded(Duration::from_secs(10), async {
         let mut config = SimConfig::for_units([1]);
         config.reboot_ms = 100.0;
         let handle = Simulator::start(config).unwrap();
@@ -637,7 +631,7 @@ async fn power_cycle_silences_the_drive_then_it_returns_with_saved_values() {
 
 #[tokio::test]
 async fn dropping_the_handle_unplugs_the_bus() {
-    bounded(10, async {
+    bounded(Duration::from_secs(10), async {
         let dir = tempfile::tempdir().unwrap();
         let link = dir.path().join("ttyDRIVES");
         std::fs::write(&link, b"not a link").unwrap();
@@ -678,7 +672,7 @@ async fn dropping_the_handle_unplugs_the_bus() {
 
 #[tokio::test]
 async fn handle_controls_show_in_the_status_on_the_wire() {
-    bounded(10, async {
+    bounded(Duration::from_secs(10), async {
         let handle = start(&[1, 2], 0.0);
         let mut master = Master::open(&handle);
         let status = |unit| frame(unit, DriveRequest::ReadStatus);

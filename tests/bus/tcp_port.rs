@@ -7,6 +7,7 @@
 
 use std::time::Duration;
 
+use crate::support::metrics::exported;
 use crate::support::{TestDaemon, eventually};
 use drivegate::bus::BusError;
 use drivegate::bus::handle::{JobOptions, PortState};
@@ -34,14 +35,6 @@ fn daemon_config(port: &str) -> String {
         ));
     }
     toml
-}
-
-fn metric(text: &str, name: &str) -> f64 {
-    text.lines()
-        .find(|l| l.starts_with(name))
-        .and_then(|l| l.rsplit(' ').next())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("{name} missing"))
 }
 
 async fn readyz(d: &TestDaemon) -> (u16, serde_json::Value) {
@@ -91,7 +84,7 @@ async fn a_bus_on_a_serial_device_server_works_and_reconnects_after_a_drop() {
     let info = format!("drivegate_bus_info{{bus=\"remote\",port=\"{port}\",baud=\"115200\"}} 1");
     assert!(text.contains(&info), "{text}");
     assert_eq!(
-        metric(&text, "drivegate_bus_port_open{bus=\"remote\"}"),
+        exported(&text, "drivegate_bus_port_open{bus=\"remote\"}"),
         1.0
     );
 
@@ -156,10 +149,10 @@ async fn a_bus_on_a_serial_device_server_works_and_reconnects_after_a_drop() {
     assert_eq!(sim.stats().connections, 2);
     let text = d.metrics.render();
     assert_eq!(
-        metric(&text, "drivegate_bus_reopens_total{bus=\"remote\"}"),
+        exported(&text, "drivegate_bus_reopens_total{bus=\"remote\"}"),
         1.0
     );
-    assert!(metric(&text, "drivegate_bus_port_errors_total{bus=\"remote\"}") >= 1.0);
+    assert!(exported(&text, "drivegate_bus_port_errors_total{bus=\"remote\"}") >= 1.0);
     assert_eq!(sim.stats().gap_violations, 0);
     let (status, _) = readyz(&d).await;
     assert_eq!(status, 200);

@@ -19,48 +19,30 @@ use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
 use drivegate::plant::Plant;
 
+use crate::support::config::ConfigBuilder;
+
 /// Token secrets, one per role.
 pub const VIEWER: &str = "viewer-2f6c81d0a9e4b357";
 pub const OPERATOR: &str = "operator-7a13c9e04d58b2f6";
 pub const ADMIN: &str = "admin-c40e7b29f8a1d653";
 
-/// `[[http.token]]` tables for the three roles (names: dashboard, panel,
-/// commissioning).
-pub fn token_tables() -> String {
-    use sha2::Digest;
-    [
-        ("dashboard", "viewer", VIEWER),
-        ("panel", "operator", OPERATOR),
-        ("commissioning", "admin", ADMIN),
-    ]
-    .iter()
-    .map(|(name, role, secret)| {
-        let hex: String = sha2::Sha256::digest(secret.as_bytes())
-            .iter()
-            .map(|b| format!("{b:02x}"))
-            .collect();
-        format!("[[http.token]]\nname = \"{name}\"\nrole = \"{role}\"\nsha256 = \"{hex}\"\n")
-    })
-    .collect()
-}
-
-/// `FOUR_DRIVES` with the role tokens (if `tokens`) and `rest` appended,
-/// and a 250 ms response timeout: a browser beside the daemon on a loaded
-/// 2-core machine can hold the simulator's thread off the CPU for longer
-/// than the 50 ms a quiet wire needs, and these tests are about the page.
+/// `FOUR_DRIVES` with the role tokens (dashboard: viewer, panel: operator,
+/// commissioning: admin) if `tokens`, `rest` (whole tables) appended, and
+/// the jog lease of [`JOG_LEASE_MS`].
 pub fn config(tokens: bool, rest: &str) -> String {
-    let anchor = "[http]\nlisten = \"127.0.0.1:0\"\n";
-    let base = crate::support::FOUR_DRIVES;
-    assert!(base.contains(anchor));
-    let (head, tail) = base.split_at(base.find(anchor).unwrap() + anchor.len());
-    let tables = if tokens {
-        token_tables()
+    let builder = ConfigBuilder::four_drives();
+    let builder = if tokens {
+        builder
+            .http_token("dashboard", "viewer", VIEWER)
+            .http_token("panel", "operator", OPERATOR)
+            .http_token("commissioning", "admin", ADMIN)
     } else {
-        String::new()
+        builder
     };
-    let tail = tail.replace("response_timeout_ms = 50", "response_timeout_ms = 250");
-    assert!(tail.contains("response_timeout_ms = 250"));
-    format!("{head}{tables}{tail}\n{rest}\n[safety]\njog_lease_ms = {JOG_LEASE_MS}\n")
+    builder
+        .section("safety", &format!("jog_lease_ms = {JOG_LEASE_MS}"))
+        .tables(rest)
+        .toml()
 }
 
 /// The console's jog lease in these tests (`[safety] jog_lease_ms`, 300 by

@@ -10,9 +10,10 @@
 use std::time::Duration;
 
 use crate::support::api::{Api, Ws, connect, messages_within, next_json, wait_for, ws_command};
+use crate::support::bus::hold_the_wire;
+use crate::support::config::ConfigBuilder;
 use crate::support::modbus_tcp::{Raw, write, writes_handled};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
-use drivegate::bus::BusHandle;
 use serde_json::json;
 
 const LIMIT: Duration = Duration::from_secs(60);
@@ -176,39 +177,14 @@ async fn a_plc_alone_brakes_and_the_brake_holds() {
     .expect("test finished in time");
 }
 
-/// Holds the wire with an emergency read of unit 30, which nobody answers,
-/// and returns once it is on the wire: what is queued meanwhile waits.
-async fn hold_the_wire(
-    bus: &BusHandle,
-) -> tokio::sync::oneshot::Receiver<drivegate::bus::job::JobResult> {
-    use drivegate::bus::handle::JobOptions;
-    use drivegate::bus::{Priority, SourceId};
-    let options = JobOptions {
-        priority: Priority::Emergency,
-        source: SourceId::new_unique(),
-        queue_timeout: None,
-        max_attempts: Some(1),
-        origin: Default::default(),
-    };
-    let pdu = drivegate::drive::DriveRequest::ReadStatus.pdu().unwrap();
-    let blocker = bus.submit(30, pdu, options).unwrap();
-    eventually(LIMIT, "the blocker on the wire", || {
-        (bus.queue_depths()[0] == 0).then_some(())
-    })
-    .await;
-    blocker
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_setpoint_the_brake_overtook_has_the_brake_applied_again() {
     tokio::time::timeout(LIMIT, async {
         // A second of response timeout: the wire can be held long enough
         // for both writes to be queued behind it.
-        let toml = crate::support::replaced(
-            FOUR_DRIVES,
-            crate::support::WIRE_TIMING,
-            "response_timeout_ms = 1000\nguard_ms = 50",
-        );
+        let toml = ConfigBuilder::four_drives()
+            .with_bus("sim", |b| b.timing(1000, 50))
+            .toml();
         let d = TestDaemon::start(&toml).await;
         let bus = d.plant.buses()[0].handle.clone();
         let mut plc = Raw::connect(d.modbus_tcp.unwrap()).await;

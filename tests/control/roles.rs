@@ -128,7 +128,7 @@ async fn read_only_still_makes_everybody_a_viewer() {
             .await
             .unwrap();
         assert_eq!(
-            crate::support::modbus_tcp::metric(
+            crate::support::metrics::metric(
                 &metrics,
                 "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"read_only\"}"
             ),

@@ -9,6 +9,7 @@
 use std::time::{Duration, Instant};
 
 use crate::support::api::{Api, connect, next_json, wait_for, ws_command};
+use crate::support::config::ConfigBuilder;
 use crate::support::modbus_tcp::{Raw, four_drives_with, mbpoll, pymodbus, write};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use serde_json::json;
@@ -233,10 +234,11 @@ async fn a_network_allowed_to_save_while_moving_is_not_refused() {
 /// once a drive answers again, nothing but a stop's own retry timer tries
 /// it, so a setpoint sent at once lands long before that.
 fn slow_offline_polls() -> String {
-    FOUR_DRIVES.replace(
-        "retries = 1\n",
-        "retries = 1\noffline_backoff_ms = 60000\noffline_backoff_max_ms = 60000\n",
-    )
+    ConfigBuilder::four_drives()
+        .with_bus("sim", |b| {
+            b.keys("offline_backoff_ms = 60000\noffline_backoff_max_ms = 60000")
+        })
+        .toml()
 }
 
 /// The attempts of `drive`'s failing stop, from the no-lease problem (the

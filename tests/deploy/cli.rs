@@ -63,3 +63,58 @@ fn serve_refuses_a_bad_config_before_starting() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("bad.toml:2:10:"), "{stderr}");
 }
+
+/// The lines `token new` prints, pasted into a configuration, make the
+/// daemon accept the printed token with the printed name and role.
+#[tokio::test]
+async fn a_token_made_by_the_tool_authenticates_once_pasted() {
+    let out = drivegate()
+        .args(["token", "new", "--name", "scada", "--role", "operator"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    // The token is the only indented line; the lines to paste start at
+    // the table's header and run to the end.
+    let token = stdout
+        .lines()
+        .find_map(|l| l.strip_prefix("    "))
+        .unwrap_or_else(|| panic!("no token in {stdout}"))
+        .to_string();
+    assert_eq!(token.len(), 64, "{stdout}");
+    assert_eq!(stdout.matches(&token).count(), 1, "printed once");
+    let lines = &stdout[stdout.find("[[http.token]]").expect("lines to paste")..];
+    assert!(!lines.contains(&token), "the lines hold no secret");
+
+    let config = format!("{}\n{lines}", crate::support::FOUR_DRIVES);
+    let daemon = crate::support::TestDaemon::start_no_wait(&config).await;
+    let api = crate::support::api::Api::new(daemon.http, Some(&token));
+    let me = api.get("/api/v1/whoami").await.expect(200);
+    assert_eq!(me["who"], "scada", "{me}");
+    assert_eq!(me["role"], "operator", "{me}");
+    api.with_token(None)
+        .get("/api/v1/drives")
+        .await
+        .expect_problem(401, "unauthorized");
+    let mut wrong = token.clone();
+    wrong.replace_range(..1, if token.starts_with('0') { "1" } else { "0" });
+    api.with_token(Some(&wrong))
+        .get("/api/v1/drives")
+        .await
+        .expect_problem(401, "unauthorized");
+    daemon.stop().await;
+
+    let out = drivegate()
+        .args(["token", "new", "--name", "scada", "--role", "root"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        String::from_utf8_lossy(&out.stderr)
+            .contains("role must be one of viewer, operator, admin")
+    );
+}

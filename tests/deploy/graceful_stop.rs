@@ -2,11 +2,12 @@
 //! truth: moving drives get the configured safe-stop action, standing ones
 //! are left alone, no frame is cut on the wire, and new work is refused.
 
-use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
-use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
+use crate::support::bounded;
+use crate::support::config::ConfigBuilder;
+use crate::support::{TestDaemon, eventually};
 use drivegate::bus::BusError;
 use drivegate::bus::handle::JobOptions;
 use drivegate::drive::{ConfigCommand, DriveRequest};
@@ -15,14 +16,10 @@ use drivegate::sim::SimHandle;
 
 const LIMIT: Duration = Duration::from_secs(30);
 
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(LIMIT, test)
-        .await
-        .expect("test did not finish in time");
-}
-
 fn with_safety(action: &str) -> String {
-    format!("{FOUR_DRIVES}\n[safety]\non_shutdown = \"{action}\"\n")
+    ConfigBuilder::four_drives()
+        .section("safety", &format!("on_shutdown = \"{action}\""))
+        .toml()
 }
 
 fn sim(plant: &Plant) -> &SimHandle {
@@ -60,7 +57,7 @@ async fn running_conveyor(toml: &str) -> (TestDaemon, Arc<Plant>) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn zero_speed_stops_moving_drives_and_refuses_new_work() {
-    bounded(async {
+    bounded(LIMIT, async {
         let (d, plant) = running_conveyor(&with_safety("zero-speed")).await;
         let lift_before = sim(&plant).drive(2).unwrap();
         d.stop().await;
@@ -100,7 +97,7 @@ async fn zero_speed_stops_moving_drives_and_refuses_new_work() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn brake_engages_the_emergency_brake() {
-    bounded(async {
+    bounded(LIMIT, async {
         let (d, plant) = running_conveyor(&with_safety("brake")).await;
         d.stop().await;
         let conveyor = sim(&plant).drive(1).unwrap();
@@ -117,7 +114,7 @@ async fn brake_engages_the_emergency_brake() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn none_leaves_the_drives_running() {
-    bounded(async {
+    bounded(LIMIT, async {
         let (d, plant) = running_conveyor(&with_safety("none")).await;
         d.stop().await;
         tokio::time::sleep(Duration::from_millis(300)).await;
@@ -135,7 +132,7 @@ async fn none_leaves_the_drives_running() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_drive_started_after_its_last_poll_is_still_stopped() {
-    bounded(async {
+    bounded(LIMIT, async {
         // Polled once an hour: the polled copy says "standing, open loop"
         // while the motor is actually running in torque mode.
         let toml = with_safety("zero-speed")

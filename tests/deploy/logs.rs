@@ -5,6 +5,7 @@
 use std::process::{ExitStatus, Stdio};
 use std::time::Duration;
 
+use crate::support::config::ConfigBuilder;
 use nix::sys::signal::{Signal, kill};
 use nix::unistd::Pid;
 use tokio::io::{AsyncBufReadExt, BufReader};
@@ -15,25 +16,10 @@ const LIMIT: Duration = Duration::from_secs(30);
 const RUNNING: &str = concat!("drivegate ", env!("CARGO_PKG_VERSION"), " running");
 
 fn config(format: &str) -> String {
-    format!(
-        r#"
-[http]
-listen = "127.0.0.1:0"
-[modbus_tcp]
-listen = "127.0.0.1:0"
-[log]
-format = "{format}"
-level = "info"
-[[bus]]
-name = "sim"
-port = "sim"
-response_timeout_ms = 250
-guard_ms = 50
-[[bus.drive]]
-unit = 1
-name = "conveyor"
-"#
-    )
+    ConfigBuilder::new()
+        .section("log", &format!("format = \"{format}\"\nlevel = \"info\""))
+        .bus("sim", |b| b.drive(1, "conveyor"))
+        .toml()
 }
 
 /// Runs `drivegate serve` with `config` until it logs that it is running,

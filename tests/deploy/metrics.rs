@@ -3,10 +3,10 @@
 //! true values, faults, flags and link state, and the bus's counters.
 
 use std::collections::BTreeMap;
-use std::future::Future;
 use std::process::Stdio;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
+use crate::support::bounded;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::handle::JobOptions;
 use drivegate::drive::{ConfigCommand, DriveRequest, Fault};
@@ -14,12 +14,6 @@ use tokio::io::AsyncWriteExt;
 
 /// Every test ends within this, whatever happens.
 const LIMIT: Duration = Duration::from_secs(30);
-
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(LIMIT, test)
-        .await
-        .expect("test did not finish in time");
-}
 
 /// One sample line of the text format.
 #[derive(Debug, Clone, PartialEq)]
@@ -137,7 +131,7 @@ async fn run_at_speed(d: &TestDaemon, drive: &str, rpm: i16) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn exposition_passes_promtool_lint() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         // Writes, a fault and the faces' counters (as the HTTP and Modbus
         // TCP faces count), so every kind of series exists.
@@ -188,7 +182,7 @@ async fn exposition_passes_promtool_lint() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn drive_series_carry_the_simulated_truth() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         run_at_speed(&d, "conveyor", 60).await;
         // Settled at speed: the exported speed, current and flags are what the
@@ -280,7 +274,7 @@ async fn drive_series_carry_the_simulated_truth() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn simulated_faults_turn_their_series_to_one() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         d.sim().inject_fault(2, Fault::OverTemperature).unwrap();
         eventually(
@@ -344,7 +338,7 @@ async fn simulated_faults_turn_their_series_to_one() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_silent_drive_goes_down_and_loses_its_values() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let l = [("unit", "4")];
         d.sim().set_silent(4, true);
@@ -374,7 +368,7 @@ async fn a_silent_drive_goes_down_and_loses_its_values() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bus_series_count_the_wire() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         run_at_speed(&d, "lift", 20).await;
         // The utilisation ratio needs half a second of samples.
@@ -512,7 +506,7 @@ name = "idle"
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn scrapes_never_touch_the_bus() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(QUIET_BUS).await;
         let sim = d.sim();
         // Let the first poll's reply settle.
@@ -568,7 +562,7 @@ name = "far"
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_missing_adapter_shows_the_bus_down() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start_no_wait(MISSING_ADAPTER).await;
         let bus = [("bus", "unplugged")];
         let s = eventually(Duration::from_secs(5), "a port error counted", || {

@@ -3,13 +3,8 @@
 
 use std::time::Duration;
 
+use crate::support::metrics::exported;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
-
-fn value(text: &str, series: &str) -> f64 {
-    text.lines()
-        .find_map(|l| l.strip_prefix(series)?.trim().parse().ok())
-        .unwrap_or_else(|| panic!("{series} missing"))
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_silence_between_frames_is_exported_and_never_below_t3_5() {
@@ -18,12 +13,12 @@ async fn the_silence_between_frames_is_exported_and_never_below_t3_5() {
     let d = TestDaemon::start(FOUR_DRIVES).await;
     let count = "drivegate_bus_interframe_idle_seconds_count{bus=\"sim\"}";
     eventually(Duration::from_secs(10), "100 silences measured", || {
-        (value(&d.metrics.render(), count) >= 100.0).then_some(())
+        (exported(&d.metrics.render(), count) >= 100.0).then_some(())
     })
     .await;
     let text = d.metrics.render();
-    let n = value(&text, count);
-    let sum = value(
+    let n = exported(&text, count);
+    let sum = exported(
         &text,
         "drivegate_bus_interframe_idle_seconds_sum{bus=\"sim\"}",
     );
@@ -33,10 +28,10 @@ async fn the_silence_between_frames_is_exported_and_never_below_t3_5() {
     for below in ["0.001", "0.0015"] {
         let bucket =
             format!("drivegate_bus_interframe_idle_seconds_bucket{{bus=\"sim\",le=\"{below}\"}}");
-        assert_eq!(value(&text, &bucket), 0.0, "{bucket}");
+        assert_eq!(exported(&text, &bucket), 0.0, "{bucket}");
     }
     let all = "drivegate_bus_interframe_idle_seconds_bucket{bus=\"sim\",le=\"+Inf\"}";
-    assert_eq!(value(&text, all), n);
+    assert_eq!(exported(&text, all), n);
     assert_eq!(d.sim().stats().gap_violations, 0);
     d.stop().await;
 }

@@ -15,18 +15,14 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use crate::support::TestDaemon;
+use crate::support::config::ConfigBuilder;
 
 fn eight_drives() -> String {
-    let mut toml = String::from(
-        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"bench\"\nport = \"sim\"\n[bus.sim]\nturnaround_ms = 0.5\n",
-    );
-    for unit in 1..=8 {
-        toml.push_str(&format!(
-            "[[bus.drive]]\nunit = {unit}\nname = \"drive{unit}\"\n"
-        ));
-    }
-    toml
+    ConfigBuilder::new()
+        .bus("bench", |b| {
+            (1..=8).fold(b, |b, unit| b.drive(unit, &format!("drive{unit}")))
+        })
+        .toml()
 }
 
 fn polls(d: &TestDaemon) -> u64 {

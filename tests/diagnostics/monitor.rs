@@ -9,23 +9,20 @@
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
-use crate::support::api::{Api, config, connect, next_json, sha256_hex, ws_command};
+use crate::support::api::{Api, connect, next_json, ws_command};
+use crate::support::bounded;
+use crate::support::config::ConfigBuilder;
+use crate::support::csv::csv_fields;
+use crate::support::modbus_tcp::Raw;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::sim::FaultRates;
 use futures_util::StreamExt;
 use serde_json::{Value, json};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
 const LIMIT: Duration = Duration::from_secs(150);
 const FRAMES: &str = "/api/v1/buses/sim/monitor/frames";
-
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(LIMIT, test)
-        .await
-        .expect("test did not finish in time");
-}
 
 fn frames(reply: &Value) -> Vec<Value> {
     reply["frames"].as_array().unwrap().clone()
@@ -45,36 +42,13 @@ fn reply_to<'a>(all: &'a [Value], request: &Value) -> &'a Value {
     reply
 }
 
-/// Sends one Modbus TCP request and returns the reply PDU.
-async fn modbus_tcp(
-    stream: &mut tokio::net::TcpStream,
-    transaction: u16,
-    unit: u8,
-    pdu: &[u8],
-) -> Vec<u8> {
-    let mut adu = Vec::new();
-    adu.extend_from_slice(&transaction.to_be_bytes());
-    adu.extend_from_slice(&[0, 0]);
-    adu.extend_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
-    adu.push(unit);
-    adu.extend_from_slice(pdu);
-    stream.write_all(&adu).await.unwrap();
-    let mut head = [0u8; 7];
-    stream.read_exact(&mut head).await.unwrap();
-    let len = u16::from_be_bytes([head[4], head[5]]) as usize;
-    let mut pdu = vec![0u8; len - 1];
-    stream.read_exact(&mut pdu).await.unwrap();
-    pdu
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_frame_says_who_caused_it() {
-    bounded(async {
-        let http = format!(
-            "[[http.token]]\nname = \"panel\"\nrole = \"operator\"\nsha256 = \"{}\"",
-            sha256_hex("panel-token")
-        );
-        let d = TestDaemon::start(&config(&http, "")).await;
+    bounded(LIMIT, async {
+        let toml = ConfigBuilder::four_drives()
+            .http_token("panel", "operator", "panel-token")
+            .toml();
+        let d = TestDaemon::start(&toml).await;
         let api = Api::new(d.http, Some("panel-token"));
 
         // REST: activate the conveyor with the token "panel".
@@ -84,11 +58,9 @@ async fn every_frame_says_who_caused_it() {
         let reply = ws_command(&mut ws, 1, "activate", "lift", json!({})).await;
         assert_eq!(reply["ok"], true, "{reply:#}");
         // Modbus TCP: activate the feeder (unit 4), transaction 0x0042.
-        let mut tcp = tokio::net::TcpStream::connect(d.modbus_tcp.unwrap())
-            .await
-            .unwrap();
-        let peer = tcp.local_addr().unwrap().to_string();
-        let echo = modbus_tcp(&mut tcp, 0x42, 4, &[0x06, 0x00, 0x02, 0x00, 0x00]).await;
+        let mut tcp = Raw::connect(d.modbus_tcp.unwrap()).await;
+        let peer = tcp.stream.local_addr().unwrap().to_string();
+        let echo = tcp.ask_as(0x42, 4, &[0x06, 0x00, 0x02, 0x00, 0x00]).await;
         assert_eq!(echo, [0x06, 0x00, 0x02, 0x00, 0x00]);
 
         let all = frames(&api.get(&format!("{FRAMES}?limit=100000")).await.expect(200));
@@ -230,7 +202,7 @@ async fn every_frame_says_who_caused_it() {
         api.put("/api/v1/drives/conveyor/setpoint", json!({"speed_rpm": 30}))
             .await
             .expect(200);
-        let monitor = d.plant.buses()[0].handle.monitor().clone();
+        let monitor = d.plant.buses()[0].monitor().clone();
         d.stop().await;
         let clock = *monitor.clock();
         let last: Vec<_> = monitor
@@ -248,25 +220,6 @@ async fn every_frame_says_who_caused_it() {
     .await;
 }
 
-/// Splits one CSV line (RFC 4180 quoting).
-fn csv_fields(line: &str) -> Vec<String> {
-    let mut fields = vec![String::new()];
-    let mut quoted = false;
-    let mut chars = line.chars().peekable();
-    while let Some(c) = chars.next() {
-        match (c, quoted) {
-            ('"', true) if chars.peek() == Some(&'"') => {
-                chars.next();
-                fields.last_mut().unwrap().push('"');
-            }
-            ('"', _) => quoted = !quoted,
-            (',', false) => fields.push(String::new()),
-            (c, _) => fields.last_mut().unwrap().push(c),
-        }
-    }
-    fields
-}
-
 async fn text(url: String) -> (String, Vec<u8>) {
     let response = reqwest::get(url).await.unwrap();
     assert_eq!(response.status(), 200);
@@ -282,7 +235,7 @@ async fn text(url: String) -> (String, Vec<u8>) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn csv_and_a_pcap_that_tshark_decodes() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         // Three function codes on the wire: polls (0x03), a command (0x06)
@@ -465,14 +418,14 @@ async fn poll_rate(api: &Api, after: u64) -> (f64, u64) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_live_client_that_never_reads_loses_frames_not_the_bus_its_pace() {
-    bounded(async {
-        let d = TestDaemon::start(&config(
-            "send_buffer_bytes = 4096",
-            "[monitor]\nring_frames = 256\n",
-        ))
-        .await;
+    bounded(LIMIT, async {
+        let toml = ConfigBuilder::four_drives()
+            .http("send_buffer_bytes = 4096")
+            .section("monitor", "ring_frames = 256")
+            .toml();
+        let d = TestDaemon::start(&toml).await;
         let api = Api::new(d.http, None);
-        let monitor = d.plant.buses()[0].handle.monitor().clone();
+        let monitor = d.plant.buses()[0].monitor().clone();
         let frames_seen = || monitor.frames();
 
         // The bus's pace with no client: one second of polls.
@@ -554,17 +507,14 @@ async fn a_live_client_that_never_reads_loses_frames_not_the_bus_its_pace() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn with_five_percent_corrupted_the_per_attempt_count_matches_the_simulator() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let bus = d.plant.buses()[0].handle.clone();
         let sim = d.sim();
         let before = (sim.stats().corrupted, bus.stats());
-        let counted = |bus: &drivegate::bus::BusHandle| -> u64 {
-            (1..=4)
-                .map(|u| bus.monitor().counters().unit(u).crc_errors)
-                .sum()
-        };
-        let counted_before = counted(&bus);
+        let monitor = d.plant.buses()[0].monitor().clone();
+        let counted = || -> u64 { (1..=4).map(|u| monitor.counters().unit(u).crc_errors).sum() };
+        let counted_before = counted();
         sim.set_fault_rates(FaultRates {
             crc_error_rate: 0.05,
             ..FaultRates::default()
@@ -585,7 +535,7 @@ async fn with_five_percent_corrupted_the_per_attempt_count_matches_the_simulator
         })
         .await;
         let injected = sim.stats().corrupted - before.0;
-        let per_attempt = counted(&bus) - counted_before;
+        let per_attempt = counted() - counted_before;
         let diff = (per_attempt as f64 - injected as f64).abs();
         assert!(
             diff <= 0.03 * injected as f64 + 2.0,
@@ -608,7 +558,7 @@ async fn with_five_percent_corrupted_the_per_attempt_count_matches_the_simulator
             })
             .map(|l| l.rsplit(' ').next().unwrap().parse::<f64>().unwrap())
             .sum();
-        assert_eq!(exported as u64, counted(&bus));
+        assert_eq!(exported as u64, counted());
         d.stop().await;
     })
     .await;

@@ -6,19 +6,16 @@
 
 use std::time::Duration;
 
-use crate::support::api::{Api, config, connect, sha256_hex, wait_for};
+use crate::support::api::{Api, connect, wait_for};
+use crate::support::bounded;
+use crate::support::config::ConfigBuilder;
+use crate::support::csv::csv_fields;
+use crate::support::modbus_tcp::Raw;
 use crate::support::{FOUR_DRIVES, TestDaemon};
 use serde_json::{Value, json};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 const LIMIT: Duration = Duration::from_secs(45);
 const SCOPE: &str = "/api/v1/buses/sim/scope";
-
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(LIMIT, test)
-        .await
-        .expect("test did not finish in time");
-}
 
 /// Waits until the capture reaches `state` (or any end if `None`) and
 /// returns its result.
@@ -63,7 +60,7 @@ fn trigger_index(trace: &Value) -> usize {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_speed_step_triggers_at_the_first_sample_through_the_level() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         api.activate_in("conveyor", "speed").await;
@@ -138,7 +135,7 @@ async fn a_speed_step_triggers_at_the_first_sample_through_the_level() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stall_triggers_with_the_time_before_it() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         // A low current limit and a short stall time, then a torque above it.
@@ -213,32 +210,9 @@ async fn a_stall_triggers_with_the_time_before_it() {
     .await;
 }
 
-/// Sends one Modbus TCP request and returns the reply PDU.
-async fn modbus_tcp(
-    stream: &mut tokio::net::TcpStream,
-    transaction: u16,
-    unit: u8,
-    pdu: &[u8],
-) -> Vec<u8> {
-    let mut adu = Vec::new();
-    adu.extend_from_slice(&transaction.to_be_bytes());
-    adu.extend_from_slice(&[0, 0]);
-    adu.extend_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
-    adu.push(unit);
-    adu.extend_from_slice(pdu);
-    stream.write_all(&adu).await.unwrap();
-    let mut head = [0u8; 7];
-    stream.read_exact(&mut head).await.unwrap();
-    assert_eq!(u16::from_be_bytes([head[0], head[1]]), transaction);
-    let len = u16::from_be_bytes([head[4], head[5]]) as usize;
-    let mut pdu = vec![0u8; len - 1];
-    stream.read_exact(&mut pdu).await.unwrap();
-    pdu
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_write_from_modbus_tcp_triggers_and_names_its_client() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         api.post(
@@ -261,18 +235,16 @@ async fn a_write_from_modbus_tcp_triggers_and_names_its_client() {
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
         // A read from Modbus TCP is no write; polls are none either.
-        let mut tcp = tokio::net::TcpStream::connect(d.modbus_tcp.unwrap())
-            .await
-            .unwrap();
-        let read = modbus_tcp(&mut tcp, 7, 4, &[0x03, 0x00, 0xC0, 0x00, 0x07]).await;
+        let mut tcp = Raw::connect(d.modbus_tcp.unwrap()).await;
+        let read = tcp.ask_as(7, 4, &[0x03, 0x00, 0xC0, 0x00, 0x07]).await;
         assert_eq!(read[..2], [0x03, 14]);
         assert_eq!(
             api.get(SCOPE).await.expect(200)["capture"]["state"],
             "armed"
         );
         // CONFIG = activate (manual 1.3), transaction 0x1234.
-        let local = tcp.local_addr().unwrap();
-        let echo = modbus_tcp(&mut tcp, 0x1234, 4, &[0x06, 0x00, 0x02, 0x00, 0x00]).await;
+        let local = tcp.stream.local_addr().unwrap();
+        let echo = tcp.ask_as(0x1234, 4, &[0x06, 0x00, 0x02, 0x00, 0x00]).await;
         assert_eq!(echo, [0x06, 0x00, 0x02, 0x00, 0x00]);
         let result = wait_state(&api, "complete").await;
         let trigger = &result["trigger"];
@@ -295,28 +267,9 @@ async fn a_write_from_modbus_tcp_triggers_and_names_its_client() {
     .await;
 }
 
-/// Splits one CSV line (RFC 4180 quoting).
-fn csv_fields(line: &str) -> Vec<String> {
-    let mut fields = vec![String::new()];
-    let mut quoted = false;
-    let mut chars = line.chars().peekable();
-    while let Some(c) = chars.next() {
-        match (c, quoted) {
-            ('"', true) if chars.peek() == Some(&'"') => {
-                chars.next();
-                fields.last_mut().unwrap().push('"');
-            }
-            ('"', _) => quoted = !quoted,
-            (',', false) => fields.push(String::new()),
-            (c, _) => fields.last_mut().unwrap().push(c),
-        }
-    }
-    fields
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn csv_result_one_capture_per_bus_and_the_stream() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let api = Api::new(d.http, None);
         let mut ws = connect(d.http, "?drives=conveyor", None).await;
@@ -454,13 +407,13 @@ async fn csv_result_one_capture_per_bus_and_the_stream() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_captures_are_refused_with_what_would_fit_and_viewers_may_not_arm() {
-    bounded(async {
-        let http = format!(
-            "[[http.token]]\nname = \"panel\"\nrole = \"viewer\"\nsha256 = \"{}\"\n[[http.token]]\nname = \"shift\"\nrole = \"operator\"\nsha256 = \"{}\"",
-            sha256_hex("view-token"),
-            sha256_hex("operate-token")
-        );
-        let d = TestDaemon::start(&config(&http, "[scope]\nmax_samples = 2000\n")).await;
+    bounded(LIMIT, async {
+        let toml = ConfigBuilder::four_drives()
+            .http_token("panel", "viewer", "view-token")
+            .http_token("shift", "operator", "operate-token")
+            .section("scope", "max_samples = 2000")
+            .toml();
+        let d = TestDaemon::start(&toml).await;
         let viewer = Api::new(d.http, Some("view-token"));
         let operator = viewer.with_token(Some("operate-token"));
         let body = json!({
@@ -523,8 +476,8 @@ async fn bad_captures_are_refused_with_what_would_fit_and_viewers_may_not_arm() 
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_other_drives_keep_their_floor_rate_and_commands_go_through() {
-    bounded(async {
-        let d = TestDaemon::start(&config("", "[scope]\nfloor_rate_hz = 20\n")).await;
+    bounded(LIMIT, async {
+        let d = TestDaemon::start(&ConfigBuilder::four_drives().section("scope", "floor_rate_hz = 20").toml()).await;
         let api = Api::new(d.http, None);
         let armed = api
             .post(

@@ -5,10 +5,10 @@
 //! after its reboot is what it holds; `/metrics` counts every unanswered
 //! attempt and shows the drive's link state.
 
-use std::future::Future;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use crate::support::bounded;
 use crate::support::faults::{
     JOB_LIMIT, PollCounter, Setting, Truth, UNITS, Wire, assert_late_replies_discarded,
     assert_polled, drive_up, eight_drives, late_by_the_machine, stop_and_scrape, traffic_on,
@@ -26,15 +26,9 @@ const ROUNDS: u32 = 24;
 const MAX_ROUNDS: u32 = 10_000;
 const BUS: &str = "line";
 
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(LIMIT, test)
-        .await
-        .expect("test did not finish in time");
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_silent_drive_goes_offline_costs_little_and_fails_only_its_own_requests() {
-    bounded(async {
+    bounded(LIMIT, async {
         const SILENT: u8 = 8;
         // Only the silent drive's replies are missing; one the machine's
         // scheduling delays past the timeout arrives in the guard time.
@@ -170,7 +164,7 @@ async fn answered_after_reboot(bus: &BusHandle, unit: u8, cut: Instant) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_power_cycled_drive_comes_back_with_what_its_flash_holds() {
-    bounded(async {
+    bounded(LIMIT, async {
         const CYCLED: u8 = 3;
         let d = TestDaemon::start(&eight_drives(
             "sim",

@@ -11,16 +11,15 @@
 //! - `/metrics` accounts for every injected fault, exactly where the RTU
 //!   model allows and with the honest bound where it does not.
 
-use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
-use crate::support::TestDaemon;
 use crate::support::faults::{
     Allowed, Injected, LONGEST_REPLY, PollCounter, Tally, Truth, UNITS, Wire,
     assert_late_replies_discarded, assert_polled, eight_drives, late_by_the_machine,
     stop_and_scrape, traffic_on,
 };
+use crate::support::{TestDaemon, bounded};
 use drivegate::sim::{FaultRates, SimStats};
 use tokio_util::sync::CancellationToken;
 
@@ -29,12 +28,6 @@ const LIMIT: Duration = Duration::from_secs(45);
 /// Write/read-back rounds per drive.
 const ROUNDS: u32 = 24;
 const BUS: &str = "line";
-
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(LIMIT, test)
-        .await
-        .expect("test did not finish in time");
-}
 
 /// What one fault run left behind.
 struct Run {
@@ -121,7 +114,7 @@ fn failures_of(tally: &Tally, kind: &str) -> u64 {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn corrupted_replies_are_retried_or_reported_and_each_is_counted() {
-    bounded(async {
+    bounded(LIMIT, async {
         // A long timeout: no reply is late unless the machine keeps the
         // simulator from running that long (rare, and checked), so every
         // other failed attempt is a corrupted reply. The whole corrupted
@@ -163,7 +156,7 @@ async fn corrupted_replies_are_retried_or_reported_and_each_is_counted() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dropped_replies_time_out_and_each_is_counted() {
-    bounded(async {
+    bounded(LIMIT, async {
         // A reply delayed by the machine's scheduling past the timeout is
         // told from a dropped one: it arrives, in the guard time.
         let r = run(
@@ -195,7 +188,7 @@ async fn dropped_replies_time_out_and_each_is_counted() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn late_replies_fall_in_the_guard_and_never_answer_the_next_request() {
-    bounded(async {
+    bounded(LIMIT, async {
         // A reply 400 ms late misses the 200 ms timeout and arrives inside
         // the 500 ms guard that follows it (the promise: a reply later than
         // timeout + guard cannot be told from an answer on RTU), with
@@ -235,7 +228,7 @@ async fn late_replies_fall_in_the_guard_and_never_answer_the_next_request() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn noise_between_frames_is_discarded_or_spoils_one_attempt() {
-    bounded(async {
+    bounded(LIMIT, async {
         // A long timeout: no reply can be late here, so a failed attempt
         // is the noise's doing.
         let r = run(
@@ -278,7 +271,7 @@ async fn noise_between_frames_is_discarded_or_spoils_one_attempt() {
 /// answered, and no attempt fails, so the failures above are the faults'.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn without_faults_everything_is_confirmed() {
-    bounded(async {
+    bounded(LIMIT, async {
         let r = run(crate::support::WIRE_TIMING, FaultRates::default(), &[]).await;
         let t = &r.tally;
         assert_eq!(t.writes_confirmed, u64::from(ROUNDS) * 8);

@@ -10,7 +10,8 @@ use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
 use crate::support::input::{Baseline, Bystander, config, writes_on_wire};
-use crate::support::modbus_tcp::{frame, metric, read, write};
+use crate::support::metrics::counter;
+use crate::support::modbus_tcp::{frame, read, write};
 use crate::support::{TestDaemon, eventually};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -24,10 +25,6 @@ const STALL_MS: u16 = 0x000E;
 
 async fn daemon(modbus: &str) -> TestDaemon {
     TestDaemon::start(&config("", modbus, false, "")).await
-}
-
-fn counter(d: &TestDaemon, series: &str) -> f64 {
-    metric(&d.metrics.render(), series)
 }
 
 /// Reads and discards until the server closes the connection; false if it

@@ -12,6 +12,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use crate::support::TestDaemon;
+use crate::support::api::{Ws, connect};
 use crate::support::input::{
     Baseline, Bystander, OPERATOR, VIEWER, config, writes_on_wire, ws_frame, ws_handshake,
 };
@@ -22,23 +23,9 @@ use proptest::test_runner::{Config, TestRunner};
 use serde_json::{Value, json};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
-use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
 const LIMIT: Duration = Duration::from_secs(60);
 const MAX_MESSAGE: usize = 4096;
-
-type Ws =
-    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
-
-async fn connect(addr: std::net::SocketAddr, query: &str, token: &str) -> Ws {
-    let mut request = format!("ws://{addr}/api/v1/stream{query}")
-        .into_client_request()
-        .unwrap();
-    request
-        .headers_mut()
-        .insert("authorization", format!("Bearer {token}").parse().unwrap());
-    tokio_tungstenite::connect_async(request).await.unwrap().0
-}
 
 /// The next message that is not a status update or a ping, within 5 s.
 async fn next_answer(ws: &mut Ws) -> Value {
@@ -146,7 +133,7 @@ async fn protocol_violations_close_only_their_stream() {
         let addr = d.http;
         let baseline = Baseline::take(&d).await;
         let bystander = Bystander::http(addr, Some(VIEWER));
-        let watcher = Watcher::start(connect(addr, "?drives=all", VIEWER).await);
+        let watcher = Watcher::start(connect(addr, "?drives=all", Some(VIEWER)).await);
         watcher.still_receiving(5).await;
         let query = format!("?drives=all&access_token={VIEWER}");
 
@@ -195,7 +182,7 @@ async fn protocol_violations_close_only_their_stream() {
         }
 
         // A binary message is answered with an error; the stream goes on.
-        let mut ws = connect(addr, "", VIEWER).await;
+        let mut ws = connect(addr, "", Some(VIEWER)).await;
         ws.send(Message::Binary(vec![0x01, 0x02, 0xFF].into()))
             .await
             .unwrap();
@@ -327,13 +314,13 @@ async fn messages_of_every_shape_get_an_answer_and_write_nothing() {
         .await;
         let addr = d.http;
         let baseline = Baseline::take(&d).await;
-        let watcher = Watcher::start(connect(addr, "?drives=all", VIEWER).await);
+        let watcher = Watcher::start(connect(addr, "?drives=all", Some(VIEWER)).await);
         watcher.still_receiving(5).await;
         let writes = writes_on_wire(&d.plant);
 
         // A viewer's stream: whatever it sends, nothing may be written; each
         // message gets one answer and the stream stays open.
-        let mut ws = connect(addr, "", VIEWER).await;
+        let mut ws = connect(addr, "", Some(VIEWER)).await;
         let mut runner = TestRunner::new(Config {
             cases: 300,
             failure_persistence: None,
@@ -382,7 +369,7 @@ async fn messages_of_every_shape_get_an_answer_and_write_nothing() {
 
         // An operator's command bodies of the wrong shape are refused with
         // the REST route's problem, and write nothing either.
-        let mut ws = connect(addr, "", OPERATOR).await;
+        let mut ws = connect(addr, "", Some(OPERATOR)).await;
         for (id, body) in [
             json!([100]),
             json!("speed_rpm=100"),

@@ -1,19 +1,17 @@
 //! One Modbus TCP listener over two simulated buses through a unit map, and
 //! status reads answered from the polled copy.
 
-use std::future::Future;
 use std::time::Duration;
 
-use crate::support::modbus_tcp::{Raw, drives, metric, pymodbus, read, registers, write};
+use crate::support::bounded;
+use crate::support::metrics::metric;
+use crate::support::modbus_tcp::{Raw, drives, pymodbus, read, registers, write};
 use crate::support::{TestDaemon, eventually};
 use drivegate::bus::stats::Outcome;
 use serde_json::json;
 
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(Duration::from_secs(60), test)
-        .await
-        .expect("test finished within 60 s");
-}
+/// Every test ends within this, whatever happens.
+const LIMIT: Duration = Duration::from_secs(60);
 
 /// STALLED_DURATION_MS: read/write, 0..60000, harmless while standing still.
 const STALL_MS: u16 = 0x000E;
@@ -65,7 +63,7 @@ name = "b2"
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_unit_map_reaches_two_buses_through_one_listener() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(TWO_BUSES).await;
         let addr = d.modbus_tcp.unwrap();
         let sim = |bus: usize| d.plant.buses()[bus].sim.as_ref().unwrap();
@@ -122,7 +120,7 @@ async fn a_unit_map_reaches_two_buses_through_one_listener() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_bus_that_is_down_is_gateway_path_unavailable() {
-    bounded(async {
+    bounded(LIMIT, async {
         let toml = TWO_BUSES.replace(
             "name = \"B\"\nport = \"sim\"\nresponse_timeout_ms = 250\nretries = 0\n[bus.sim]\nseed = 2\n",
             "name = \"B\"\nport = \"/dev/drivegate-test-no-such-adapter\"\n",
@@ -145,7 +143,7 @@ async fn a_bus_that_is_down_is_gateway_path_unavailable() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn status_reads_come_from_the_polled_copy_while_it_is_fresh() {
-    bounded(async {
+    bounded(LIMIT, async {
         let toml = drives(
             4,
             "[[modbus_tcp.polled_copy]]\nbus = \"sim\"\nmax_age_ms = 250",
@@ -199,7 +197,7 @@ async fn status_reads_come_from_the_polled_copy_while_it_is_fresh() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn without_polled_copy_every_read_uses_the_bus() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(&drives(2, "", "poll_interval_ms = 1000")).await;
         let (_, bus) = d.plant.drive("d1").unwrap();
         let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;

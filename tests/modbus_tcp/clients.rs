@@ -2,24 +2,21 @@
 //! third-party clients: pymodbus (PyPI) and mbpoll (Debian). What a SCADA
 //! system or a PLC would do, checked against the simulated drives' truth.
 
-use std::future::Future;
 use std::time::Duration;
 
-use crate::support::modbus_tcp::{Raw, drives, mbpoll, metric, pymodbus, write};
+use crate::support::bounded;
+use crate::support::metrics::metric;
+use crate::support::modbus_tcp::{Raw, drives, mbpoll, pymodbus, write};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::stats::Outcome;
 use serde_json::json;
 
-/// Every test is bounded in time.
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(Duration::from_secs(60), test)
-        .await
-        .expect("test finished within 60 s");
-}
+/// Every test ends within this, whatever happens.
+const LIMIT: Duration = Duration::from_secs(60);
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn status_block_read_with_pymodbus_and_mbpoll() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         // 7 registers from 0x00C0: the status block, the drive's own addresses.
@@ -54,7 +51,7 @@ async fn status_block_read_with_pymodbus_and_mbpoll() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn setpoint_write_and_read_back() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         // CONFIG (0x0002): activate (0x0), speed closed loop (0xA).
@@ -99,7 +96,7 @@ async fn setpoint_write_and_read_back() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn protection_block_write_with_function_16() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         // Manual 1.8: 0x000C count 3 = current limit, stall time, save flag.
@@ -134,7 +131,7 @@ async fn protection_block_write_with_function_16() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_unit_on_no_bus_is_gateway_path_unavailable() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         assert_eq!(
@@ -155,7 +152,7 @@ async fn a_unit_on_no_bus_is_gateway_path_unavailable() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_silent_unit_is_gateway_target_failed() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         d.sim().set_silent(4, true);
@@ -182,7 +179,7 @@ async fn a_silent_unit_is_gateway_target_failed() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_broadcast_reaches_every_drive_and_is_not_answered() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         let broadcasts = d.sim().stats().broadcasts;
@@ -218,7 +215,7 @@ async fn a_broadcast_reaches_every_drive_and_is_not_answered() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn thirty_two_clients_at_once_each_get_their_own_replies() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(&drives(8, "", "")).await;
         let addr = d.modbus_tcp.unwrap();
         // 32 pymodbus connections at once; each owns one register of one of

@@ -16,7 +16,8 @@ use serde_json::Value;
 
 use crate::support::api::{Api, Ws, connect, messages_within, wait_for};
 use crate::support::logs::{capture_logs, log_text};
-use crate::support::modbus_tcp::{Plc, Raw, four_drives_with, metric, write, writes_handled};
+use crate::support::metrics::metric;
+use crate::support::modbus_tcp::{Plc, Raw, four_drives_with, write, writes_handled};
 use crate::support::proxy::CutProxy;
 use crate::support::{TestDaemon, eventually};
 

@@ -3,25 +3,23 @@
 //! connection limit, allowed networks, read-only listeners, passthrough of
 //! codes the drive lacks, fairness between connections.
 
-use std::future::Future;
 use std::time::{Duration, Instant};
 
-use crate::support::modbus_tcp::{Raw, four_drives_with, metric, read, registers, write};
+use crate::support::bounded;
+use crate::support::metrics::metric;
+use crate::support::modbus_tcp::{Raw, four_drives_with, read, registers, write};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::stats::Outcome;
 
-async fn bounded(test: impl Future<Output = ()>) {
-    tokio::time::timeout(Duration::from_secs(60), test)
-        .await
-        .expect("test finished within 60 s");
-}
+/// Every test ends within this, whatever happens.
+const LIMIT: Duration = Duration::from_secs(60);
 
 /// STALLED_DURATION_MS: read/write, 0..60000, harmless while standing still.
 const STALL_MS: u16 = 0x000E;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn pipelined_requests_are_answered_in_order() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         d.sim().set_silent(4, true);
         let mut raw = Raw::connect(d.modbus_tcp.unwrap()).await;
@@ -74,7 +72,7 @@ async fn pipelined_requests_are_answered_in_order() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_that_disconnects_has_its_queued_requests_dropped_unsent() {
-    bounded(async {
+    bounded(LIMIT, async {
         // A long response timeout: whatever is on the wire when B sends stays
         // there for half a second, far longer than B takes to disconnect.
         let toml = crate::support::replaced(
@@ -130,7 +128,7 @@ async fn a_client_that_disconnects_has_its_queued_requests_dropped_unsent() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_malformed_frame_closes_only_its_connection() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         let mut good = Raw::connect(addr).await;
@@ -186,7 +184,7 @@ async fn a_malformed_frame_closes_only_its_connection() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn idle_connections_time_out() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(&four_drives_with("idle_timeout_ms = 300")).await;
         let addr = d.modbus_tcp.unwrap();
         // Each instant is taken before the step that starts the server's
@@ -220,7 +218,7 @@ async fn idle_connections_time_out() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sixty_four_connections_are_served_at_once() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         let mut clients = Vec::new();
@@ -255,7 +253,7 @@ async fn sixty_four_connections_are_served_at_once() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn connections_beyond_the_limit_are_refused() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(&four_drives_with("max_connections = 2")).await;
         let addr = d.modbus_tcp.unwrap();
         let mut one = Raw::connect(addr).await;
@@ -297,7 +295,7 @@ async fn connections_beyond_the_limit_are_refused() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn clients_outside_the_allowed_networks_are_refused() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(&four_drives_with(
             "allowed_networks = [\"10.0.0.0/8\", \"fd00::/8\"]",
         ))
@@ -329,7 +327,7 @@ async fn clients_outside_the_allowed_networks_are_refused() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_read_only_listener_refuses_writes_with_illegal_function() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(&four_drives_with("read_only = true")).await;
         let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;
         let (_, bus) = d.plant.drive("conveyor").unwrap();
@@ -376,7 +374,7 @@ async fn a_read_only_listener_refuses_writes_with_illegal_function() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn codes_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;
         let (_, bus) = d.plant.drive("conveyor").unwrap();
@@ -448,7 +446,7 @@ async fn codes_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn broadcasts_are_answered_when_configured() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(&four_drives_with("broadcast_reply = true")).await;
         let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;
         let broadcasts = d.sim().stats().broadcasts;
@@ -477,7 +475,7 @@ async fn broadcasts_are_answered_when_configured() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flooding_connection_does_not_starve_another() {
-    bounded(async {
+    bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let addr = d.modbus_tcp.unwrap();
         let mut flood = Raw::connect(addr).await;

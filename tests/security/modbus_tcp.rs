@@ -8,8 +8,10 @@
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use crate::support::input::{config, writes_on_wire};
-use crate::support::modbus_tcp::{Raw, frame, metric, read, registers, write};
+use crate::support::config::ConfigBuilder;
+use crate::support::input::writes_on_wire;
+use crate::support::metrics::counter;
+use crate::support::modbus_tcp::{Raw, frame, read, registers, write};
 use crate::support::{TestDaemon, eventually};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -18,17 +20,13 @@ const LIMIT: Duration = Duration::from_secs(60);
 /// STALLED_DURATION_MS: a harmless register to try writing.
 const STALL_MS: u16 = 0x000E;
 
-fn counter(d: &TestDaemon, series: &str) -> f64 {
-    metric(&d.metrics.render(), series)
-}
-
 /// A daemon whose Modbus TCP listener is on `listen` with `keys`.
 async fn daemon(listen: &str, keys: &str) -> TestDaemon {
-    let text = config("", keys, false, "").replace(
-        "[modbus_tcp]\nlisten = \"127.0.0.1:0\"",
-        &format!("[modbus_tcp]\nlisten = \"{listen}\""),
-    );
-    TestDaemon::start(&text).await
+    let toml = ConfigBuilder::four_drives()
+        .modbus_tcp_listen(listen)
+        .modbus_tcp(keys)
+        .toml();
+    TestDaemon::start(&toml).await
 }
 
 /// Connects and sends a write of the stall time at once: the reply (its

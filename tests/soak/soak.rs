@@ -525,9 +525,7 @@ impl Daemon {
     async fn stop(self) {
         self.shutdown.cancel();
         let _ = tokio::time::timeout(Duration::from_secs(5), self.faces.wait()).await;
-        self.plant
-            .shutdown(drivegate::safety::StopAction::None)
-            .await;
+        drivegate::control::shutdown(&self.plant, drivegate::safety::StopAction::None).await;
     }
 }
 

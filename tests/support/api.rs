@@ -1,4 +1,4 @@
-//! What the API tests share: configurations derived from `FOUR_DRIVES`, a
+//! What the API tests share: a configuration derived from `FOUR_DRIVES`, a
 //! small JSON client over real HTTP, and WebSocket send/receive functions.
 
 use std::net::SocketAddr;
@@ -11,24 +11,12 @@ use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
-use crate::support::FOUR_DRIVES;
+use crate::support::config::ConfigBuilder;
 
-/// `FOUR_DRIVES` with `http` lines added to `[http]` (keys, then any
-/// `[[http.token]]` tables) and `rest` appended (e.g. a `[safety]` section).
+/// `FOUR_DRIVES` with `http` keys added to `[http]` and `rest` (whole
+/// tables, e.g. a `[safety]` section) appended.
 pub fn config(http: &str, rest: &str) -> String {
-    let anchor = "[http]\nlisten = \"127.0.0.1:0\"\n";
-    assert!(FOUR_DRIVES.contains(anchor));
-    let with_http = FOUR_DRIVES.replace(anchor, &format!("{anchor}{http}\n"));
-    format!("{with_http}\n{rest}\n")
-}
-
-/// SHA-256 of a token, as `[[http.token]] sha256` wants it.
-pub fn sha256_hex(token: &str) -> String {
-    use sha2::Digest;
-    sha2::Sha256::digest(token.as_bytes())
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
+    ConfigBuilder::four_drives().http(http).tables(rest).toml()
 }
 
 /// A response: status, headers and the JSON body (`Null` if not JSON).

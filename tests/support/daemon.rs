@@ -152,21 +152,6 @@ impl TestDaemon {
         if let Some(faces) = self.faces.take() {
             let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
         }
-        self.plant.shutdown(self.config.safety.on_shutdown).await;
-    }
-}
-
-/// Polls `f` every 10 ms until it returns `Some`, or panics after `limit`.
-pub async fn eventually<T>(limit: Duration, what: &str, mut f: impl FnMut() -> Option<T>) -> T {
-    let start = Instant::now();
-    loop {
-        if let Some(v) = f() {
-            return v;
-        }
-        assert!(
-            start.elapsed() < limit,
-            "timed out after {limit:?} waiting for {what}"
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
+        drivegate::control::shutdown(&self.plant, self.config.safety.on_shutdown).await;
     }
 }

@@ -18,6 +18,8 @@ use drivegate::sim::{SimConfig, SimDriveView, SimHandle, SimStats, Simulator};
 use tokio::sync::Mutex;
 use tokio_util::sync::CancellationToken;
 
+use crate::support::config::ConfigBuilder;
+
 /// Longest a single job may take in these tests (queue wait, retries,
 /// guard times and a replug included): a job that takes longer was lost.
 pub const JOB_LIMIT: Duration = Duration::from_secs(10);
@@ -32,22 +34,17 @@ pub const UNITS: std::ops::RangeInclusive<u8> = 1..=8;
 /// as every face does. No safe-stop action at shutdown: stopping the
 /// daemon adds no traffic to what the accounting compares.
 pub fn eight_drives(port: &str, bus: &str, sim: &str) -> String {
-    let mut toml = format!(
-        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nenabled = false\n\
-         [safety]\non_shutdown = \"none\"\n\
-         [[bus]]\nname = \"line\"\nport = \"{port}\"\nretries = 1\n{bus}\n"
-    );
-    if port == "sim" {
-        toml.push_str(&format!(
-            "[bus.sim]\nturnaround_ms = 0.5\nseed = 11\n{sim}\n"
-        ));
-    }
-    for unit in UNITS {
-        toml.push_str(&format!(
-            "[[bus.drive]]\nunit = {unit}\nname = \"d{unit}\"\ngear_ratio = 3.75\n"
-        ));
-    }
-    toml
+    ConfigBuilder::new()
+        .modbus_tcp_off()
+        .section("safety", "on_shutdown = \"none\"")
+        .bus("line", |b| {
+            b.port(port)
+                .keys(bus)
+                .sim("seed = 11")
+                .sim(sim)
+                .drives(UNITS)
+        })
+        .toml()
 }
 
 // ---------------------------------------------------------------------------

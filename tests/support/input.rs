@@ -12,8 +12,9 @@ use tokio_util::sync::CancellationToken;
 
 use drivegate::plant::Plant;
 
+use crate::support::TestDaemon;
+use crate::support::config::ConfigBuilder;
 use crate::support::modbus_tcp::{self, Raw};
-use crate::support::{FOUR_DRIVES, TestDaemon};
 
 /// Token secrets, one per role. Long enough that a match in a log or a
 /// body cannot be a coincidence.
@@ -21,49 +22,26 @@ pub const VIEWER: &str = "viewer-5b9f2e71c4d8a036";
 pub const OPERATOR: &str = "operator-0c7e14b95fa2d368";
 pub const ADMIN: &str = "admin-e3a8d6f10b47c925";
 
-/// SHA-256 of a token, as `[[http.token]] sha256` wants it.
-pub fn sha256_hex(token: &str) -> String {
-    use sha2::Digest;
-    sha2::Sha256::digest(token.as_bytes())
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
-}
-
-/// `[[http.token]]` tables for the three roles.
-pub fn token_tables() -> String {
-    [
-        ("dashboard", "viewer", VIEWER),
-        ("scada", "operator", OPERATOR),
-        ("commissioning", "admin", ADMIN),
-    ]
-    .iter()
-    .map(|(name, role, secret)| {
-        format!(
-            "[[http.token]]\nname = \"{name}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n",
-            sha256_hex(secret)
-        )
-    })
-    .collect()
+/// `builder` with one `[[http.token]]` per role: dashboard (viewer), scada
+/// (operator), commissioning (admin).
+pub fn role_tokens(builder: ConfigBuilder) -> ConfigBuilder {
+    builder
+        .http_token("dashboard", "viewer", VIEWER)
+        .http_token("scada", "operator", OPERATOR)
+        .http_token("commissioning", "admin", ADMIN)
 }
 
 /// `FOUR_DRIVES` with `http` keys added to `[http]`, `modbus` keys to
-/// `[modbus_tcp]`, the role tokens if `tokens`, and `rest` appended.
+/// `[modbus_tcp]`, the role tokens if `tokens`, and `rest` (whole tables)
+/// appended.
 pub fn config(http: &str, modbus: &str, tokens: bool, rest: &str) -> String {
-    let http_anchor = "[http]\nlisten = \"127.0.0.1:0\"\n";
-    let tcp_anchor = "[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n";
-    assert!(FOUR_DRIVES.contains(http_anchor) && FOUR_DRIVES.contains(tcp_anchor));
-    // Tables of [[http.token]] must come after every plain [http] key, and
-    // before the next section.
-    let tables = if tokens {
-        token_tables()
+    let builder = ConfigBuilder::four_drives().http(http).modbus_tcp(modbus);
+    let builder = if tokens {
+        role_tokens(builder)
     } else {
-        String::new()
+        builder
     };
-    let text = FOUR_DRIVES
-        .replace(http_anchor, &format!("{http_anchor}{http}\n{tables}"))
-        .replace(tcp_anchor, &format!("{tcp_anchor}{modbus}\n"));
-    format!("{text}\n{rest}\n")
+    builder.tables(rest).toml()
 }
 
 /// `text` (a configuration ending with its bus's drives) with drives at

@@ -5,16 +5,23 @@
 #![allow(dead_code)]
 
 pub mod api;
+pub mod bus;
 pub mod cdp;
+pub mod config;
+pub mod csv;
 pub mod daemon;
 pub mod faults;
 pub mod input;
 pub mod logs;
+pub mod metrics;
 pub mod modbus_tcp;
 pub mod proxy;
 pub mod pty;
 pub mod tools;
 pub mod vectors;
+pub mod wait;
 
 #[allow(unused_imports)]
-pub use daemon::{FOUR_DRIVES, TestDaemon, WIRE_TIMING, eventually, replaced};
+pub use daemon::{FOUR_DRIVES, TestDaemon, WIRE_TIMING, replaced};
+#[allow(unused_imports)]
+pub use wait::{bounded, eventually};

@@ -9,32 +9,23 @@ use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
+use crate::support::config::ConfigBuilder;
+
 /// Longest any single client exchange may take in a test.
 pub(crate) const STEP: Duration = Duration::from_secs(10);
 
 /// `FOUR_DRIVES` with extra `[modbus_tcp]` keys.
 pub(crate) fn four_drives_with(modbus_tcp: &str) -> String {
-    crate::support::FOUR_DRIVES.replace(
-        "[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n",
-        &format!("[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n{modbus_tcp}\n"),
-    )
+    ConfigBuilder::four_drives().modbus_tcp(modbus_tcp).toml()
 }
 
-/// One simulated bus of `n` drives (units 1..=n), with extra `[modbus_tcp]`
-/// and `[[bus]]` keys.
+/// One simulated bus of `n` drives (units 1..=n, named `d1`...), with extra
+/// `[modbus_tcp]` and `[[bus]]` keys.
 pub(crate) fn drives(n: u8, modbus_tcp: &str, bus: &str) -> String {
-    let mut toml = format!(
-        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n{modbus_tcp}\n\
-         [[bus]]\nname = \"sim\"\nport = \"sim\"\n{timeout}\nretries = 1\n{bus}\n\
-         [bus.sim]\nturnaround_ms = 0.5\nseed = 11\n",
-        timeout = crate::support::WIRE_TIMING
-    );
-    for unit in 1..=n {
-        toml.push_str(&format!(
-            "[[bus.drive]]\nunit = {unit}\nname = \"d{unit}\"\ngear_ratio = 3.75\n"
-        ));
-    }
-    toml
+    ConfigBuilder::new()
+        .modbus_tcp(modbus_tcp)
+        .bus("sim", |b| b.keys(bus).sim("seed = 11").drives(1..=n))
+        .toml()
 }
 
 /// A Modbus TCP client that speaks raw MBAP, for checks no library allows
@@ -119,7 +110,12 @@ impl Raw {
     /// Sends one request and returns the reply PDU, checking that the reply
     /// carries the request's transaction and unit ids.
     pub(crate) async fn ask(&mut self, unit: u8, pdu: &[u8]) -> Vec<u8> {
-        let transaction = rand_transaction();
+        self.ask_as(rand_transaction(), unit, pdu).await
+    }
+
+    /// [`ask`](Self::ask) with the transaction id `transaction`, for tests
+    /// that look for it where the daemon reports the request's source.
+    pub(crate) async fn ask_as(&mut self, transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
         self.send(transaction, unit, pdu).await;
         let (t, u, reply) = self.recv().await.expect("a reply, not a close");
         assert_eq!((t, u), (transaction, unit), "reply ids for {pdu:02X?}");
@@ -166,13 +162,6 @@ pub(crate) fn registers(reply: &[u8]) -> Vec<u16> {
         .chunks(2)
         .map(|c| u16::from_be_bytes([c[0], c[1]]))
         .collect()
-}
-
-/// The value of a metric line in the `/metrics` text, 0 if absent.
-pub(crate) fn metric(text: &str, series: &str) -> f64 {
-    text.lines()
-        .find_map(|l| l.strip_prefix(series).and_then(|v| v.trim().parse().ok()))
-        .unwrap_or(0.0)
 }
 
 /// Runs the pymodbus client script with `args`; its JSON output. Fails the

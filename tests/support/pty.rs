@@ -19,3 +19,13 @@ pub fn pty() -> (SerialStream, String, OwnedFd) {
     drop(slave);
     (ptm, path, keep)
 }
+
+/// The RTU master on the pty at `path`, opened at the baud rate of
+/// `settings` with its RS-485 settings, as the bus task opens its port.
+pub async fn master(
+    path: &str,
+    settings: drivegate::bus::master::MasterSettings,
+) -> drivegate::bus::master::RtuMaster {
+    let port = drivegate::bus::port::open(path, settings.line.baud(), &settings.rs485).unwrap();
+    drivegate::bus::master::RtuMaster::new(port, settings).unwrap()
+}

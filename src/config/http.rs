@@ -5,7 +5,7 @@
 //! Values are checked while parsing (through [`RawHttpConfig`]), so a bad
 //! value is reported with the line of the `[http]` table. Token secrets are
 //! not read here: `file` and `env` are resolved when the API starts (see
-//! [`super::auth::Tokens::resolve`]), so `check-config` never needs them.
+//! `crate::api::auth::Tokens::resolve`), so `check-config` never needs them.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use serde::Deserialize;
 
-use super::roles::Role;
+use super::role::Role;
 
 /// Where a token's secret comes from.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -13,8 +13,9 @@ use serde::Deserialize;
 use serde::de::{self, Deserializer, Visitor};
 use toml::Spanned;
 
-use crate::control::{CommLoss, Role};
-use crate::safety::StopAction;
+use super::role::Role;
+use super::safety::StopAction;
+use super::values::int_in;
 
 /// The Modbus TCP listener.
 #[derive(Debug, Clone, Deserialize, PartialEq)]
@@ -86,6 +87,18 @@ pub struct ClientNetwork {
     pub comm_loss_action: Option<Spanned<StopAction>>,
 }
 
+/// A client network's communication-loss function, as configured: its
+/// setpoints and mode commands each take a lease that any request of the
+/// connection renews and `after` of silence ends with `action`. The control
+/// core's lease book runs it (`crate::control::CommLoss`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CommLossConfig {
+    /// Silence that ends its leases.
+    pub after: Duration,
+    /// What their end sends.
+    pub action: StopAction,
+}
+
 /// Shortest communication-loss time: below it, a PLC's ordinary jitter
 /// would stop the motor.
 pub const COMM_LOSS_MIN_MS: u64 = 20;
@@ -99,8 +112,8 @@ impl ClientNetwork {
     }
 
     /// Its communication-loss function, if it has a time.
-    pub fn comm_loss(&self) -> Option<CommLoss> {
-        Some(CommLoss {
+    pub fn comm_loss(&self) -> Option<CommLossConfig> {
+        Some(CommLossConfig {
             after: Duration::from_millis(self.comm_loss_ms?),
             action: self
                 .comm_loss_action
@@ -429,21 +442,6 @@ fn quoted(names: &[&str]) -> String {
         .join(", ")
 }
 
-/// An integer in `MIN..=MAX`, refused while parsing so the error carries the
-/// value's line and column.
-fn int_in<'de, D, T, const MIN: i64, const MAX: i64>(d: D) -> Result<T, D::Error>
-where
-    D: Deserializer<'de>,
-    T: TryFrom<i64>,
-{
-    let v = i64::deserialize(d)?;
-    let out_of_range = || de::Error::custom(format!("{v} is out of range: valid {MIN} to {MAX}"));
-    if !(MIN..=MAX).contains(&v) {
-        return Err(out_of_range());
-    }
-    T::try_from(v).map_err(|_| out_of_range())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -493,7 +491,7 @@ name = "b1"
         assert_eq!(tcp.clients[0].role(), Role::Operator);
         assert_eq!(
             tcp.clients[0].comm_loss(),
-            Some(CommLoss {
+            Some(CommLossConfig {
                 after: Duration::from_millis(500),
                 action: StopAction::ZeroSpeed
             })
@@ -600,21 +598,21 @@ bus_units = "40"
             "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 500\n[[modbus_tcp.clients]]\nnetwork = \"10.2.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 20\ncomm_loss_action = \"brake\"\n[[modbus_tcp.clients]]\nnetwork = \"10.3.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 60000\ncomm_loss_action = \"none\"\n[[modbus_tcp.clients]]\nnetwork = \"10.4.0.0/16\"\nrole = \"operator\"",
         )
         .unwrap();
-        let loss: Vec<Option<CommLoss>> =
+        let loss: Vec<Option<CommLossConfig>> =
             c.modbus_tcp.clients.iter().map(|c| c.comm_loss()).collect();
         let ms = Duration::from_millis;
         assert_eq!(
             loss,
             [
-                Some(CommLoss {
+                Some(CommLossConfig {
                     after: ms(500),
                     action: StopAction::ZeroSpeed
                 }),
-                Some(CommLoss {
+                Some(CommLossConfig {
                     after: ms(20),
                     action: StopAction::Brake
                 }),
-                Some(CommLoss {
+                Some(CommLossConfig {
                     after: ms(60_000),
                     action: StopAction::None
                 }),

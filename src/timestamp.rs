@@ -1,5 +1,7 @@
-//! Wall-clock times in the API: RFC 3339, UTC, milliseconds
-//! (`2026-11-22T03:39:12.345Z`), or microseconds for the wire's times.
+//! Wall-clock times as the daemon shows them: RFC 3339, UTC, milliseconds
+//! (`2026-11-22T03:39:12.345Z`), or microseconds for the wire's times. A
+//! leaf: the observers and the faces format times alike without one
+//! importing the other.
 
 use std::time::{SystemTime, UNIX_EPOCH};
 

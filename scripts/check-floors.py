@@ -1,0 +1,298 @@
+#!/usr/bin/env python3
+"""Checks that the top-level modules of src/ import each other without a cycle.
+
+Every `crate::X` path in the code (a `use crate::...` line, grouped as in
+`use crate::{a::X, b::{Y, Z}}`, or a path written inline such as
+`crate::x::f()`, or a path in an attribute's string, as serde's
+`deserialize_with = "crate::x::f"`) is an arrow from the module of its file to X. The floors
+(docs/architecture.md) want every arrow to point down; a cycle is a set of
+modules that reach one another (a strongly connected component), and it
+is printed with the file:line of each import between its members.
+
+Known cycles may be listed in an allow-list file, one per line, by their
+members separated by spaces (`#` starts a comment). The check fails on a
+cycle that is not listed exactly, and on a listed one that no longer
+exists: the list can only shrink, each time to what the code is.
+
+    scripts/check-floors.py [--src DIR] [--allow FILE]
+
+Exit status: 0 without unlisted cycles, 1 otherwise, 2 on bad usage.
+Python's standard library only.
+"""
+
+import argparse
+import os
+import re
+import sys
+
+# Files whose `crate::` is not a module of the library: the crate roots.
+ROOTS = {"lib.rs", "main.rs"}
+
+PATH_START = re.compile(r"\bcrate\s*::\s*")
+IDENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+RAW_START = re.compile(r'r(#*)"')
+CHAR = re.compile(r"'(\\u\{[0-9a-fA-F]+\}|\\.|[^\\'])'")
+STRING_PATH = re.compile(r'"crate::[A-Za-z_][A-Za-z0-9_]*(::[A-Za-z0-9_<>, ]*)*"$')
+
+
+def strip_comments_and_strings(text):
+    """`text` with comments, string and char literals blanked out (newlines
+    kept, so line numbers still hold)."""
+    out = []
+    i, n = 0, len(text)
+    while i < n:
+        c = text[i]
+        if text.startswith("//", i):
+            j = text.find("\n", i)
+            j = n if j < 0 else j
+            out.append(" " * (j - i))
+            i = j
+        elif text.startswith("/*", i):
+            depth, j = 1, i + 2
+            while j < n and depth:
+                if text.startswith("/*", j):
+                    depth, j = depth + 1, j + 2
+                elif text.startswith("*/", j):
+                    depth, j = depth - 1, j + 2
+                else:
+                    j += 1
+            out.append(re.sub(r"[^\n]", " ", text[i:j]))
+            i = j
+        elif c == "r" and RAW_START.match(text, i) and not _ident_before(text, i):
+            hashes = len(RAW_START.match(text, i).group(1))
+            end = text.find('"' + "#" * hashes, i + 2 + hashes)
+            j = n if end < 0 else end + 1 + hashes
+            out.append(re.sub(r"[^\n]", " ", text[i:j]))
+            i = j
+        elif c == '"':
+            j = i + 1
+            while j < n and text[j] != '"':
+                j += 2 if text[j] == "\\" else 1
+            j = min(j + 1, n)
+            literal = text[i:j]
+            if STRING_PATH.match(literal):
+                # A path in an attribute's string, as serde's
+                # `deserialize_with = "crate::x::f"`: a real import.
+                out.append(" " + literal[1:-1] + " ")
+            else:
+                out.append(re.sub(r"[^\n]", " ", literal))
+            i = j
+        elif c == "'":
+            # A char literal ('a', '\n', '\u{1F}'), not a lifetime ('a).
+            m = CHAR.match(text, i)
+            if m:
+                out.append(" " * len(m.group(0)))
+                i += len(m.group(0))
+            else:
+                out.append(c)
+                i += 1
+        else:
+            out.append(c)
+            i += 1
+    return "".join(out)
+
+
+def _ident_before(text, i):
+    return i > 0 and (text[i - 1].isalnum() or text[i - 1] == "_")
+
+
+def _group_heads(text, start):
+    """The first segment of each path in the `{...}` group at `start`
+    (which is the `{`), and where the group ends."""
+    heads, depth, i, expect = [], 0, start, False
+    while i < len(text):
+        c = text[i]
+        if c == "{":
+            depth += 1
+            expect = depth == 1
+        elif c == "}":
+            depth -= 1
+            if depth == 0:
+                return heads, i + 1
+        elif c == "," and depth == 1:
+            expect = True
+        elif expect and not c.isspace():
+            m = IDENT.match(text, i)
+            if m:
+                heads.append((m.group(0), i))
+                i = m.end()
+                expect = False
+                continue
+            expect = False
+        i += 1
+    return heads, i
+
+
+def references(text):
+    """(module, offset) of every `crate::module` in Rust source `text`."""
+    code = strip_comments_and_strings(text)
+    found = []
+    for m in PATH_START.finditer(code):
+        if _ident_before(code, m.start()) or code[max(0, m.start() - 1)] == "$":
+            continue
+        rest = m.end()
+        if rest < len(code) and code[rest] == "{":
+            heads, _ = _group_heads(code, rest)
+            found.extend(h for h in heads if h[0] not in ("self", "super"))
+        else:
+            ident = IDENT.match(code, rest)
+            if ident:
+                found.append((ident.group(0), m.start()))
+    return found
+
+
+def module_of(path, src):
+    """The top-level module a file under `src` belongs to, or None for a
+    crate root."""
+    rel = os.path.relpath(path, src)
+    parts = rel.split(os.sep)
+    if len(parts) == 1:
+        if parts[0] in ROOTS:
+            return None
+        return parts[0][:-3]
+    if parts[0] == "bin":
+        return None
+    return parts[0]
+
+
+def import_graph(src):
+    """{module: {imported: [(file, line), ...]}} over the .rs files of `src`."""
+    modules = set()
+    for entry in os.listdir(src):
+        full = os.path.join(src, entry)
+        if os.path.isdir(full) and entry != "bin":
+            modules.add(entry)
+        elif entry.endswith(".rs") and entry not in ROOTS:
+            modules.add(entry[:-3])
+    graph = {m: {} for m in modules}
+    for root, _, files in os.walk(src):
+        for name in sorted(files):
+            if not name.endswith(".rs"):
+                continue
+            path = os.path.join(root, name)
+            owner = module_of(path, src)
+            if owner is None:
+                continue
+            with open(path, encoding="utf-8") as f:
+                text = f.read()
+            for target, offset in references(text):
+                if target == owner or target not in modules:
+                    continue
+                line = text.count("\n", 0, offset) + 1
+                where = (os.path.relpath(path, os.path.dirname(src.rstrip(os.sep)) or "."), line)
+                graph[owner].setdefault(target, []).append(where)
+    return graph
+
+
+def cycles(graph):
+    """The strongly connected components of more than one module, each
+    sorted, in sorted order (Tarjan's algorithm)."""
+    index, low, on_stack, stack, found = {}, {}, set(), [], []
+    counter = [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(tuple(sorted(component)))
+
+    sys.setrecursionlimit(max(1000, 10 * len(graph)))
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(found)
+
+
+def read_allowed(path):
+    """The cycles of the allow-list file (a missing file lists none)."""
+    allowed = []
+    if path is None or not os.path.exists(path):
+        return allowed
+    with open(path, encoding="utf-8") as f:
+        for number, line in enumerate(f, 1):
+            members = line.split("#", 1)[0].split()
+            if members:
+                allowed.append((tuple(sorted(members)), number))
+    return allowed
+
+
+def describe(component, graph, limit=3):
+    """The imports between the members of `component`, one arrow a line."""
+    lines = []
+    members = set(component)
+    for a in component:
+        for b in sorted(graph[a]):
+            if b in members:
+                sites = graph[a][b]
+                shown = ", ".join(f"{f}:{n}" for f, n in sites[:limit])
+                more = f" (+{len(sites) - limit} more)" if len(sites) > limit else ""
+                lines.append(f"    {a} -> {b}: {shown}{more}")
+    return lines
+
+
+def check(src, allow_path, out=sys.stdout):
+    """Prints the verdict; returns the exit status."""
+    graph = import_graph(src)
+    found = cycles(graph)
+    allowed = read_allowed(allow_path)
+    allowed_sets = {members for members, _ in allowed}
+    failed = False
+    for component in found:
+        listed = component in allowed_sets
+        failed |= not listed
+        head = "allowed cycle" if listed else "IMPORT CYCLE"
+        print(f"{head} between {len(component)} modules: {' '.join(component)}", file=out)
+        for line in describe(component, graph):
+            print(line, file=out)
+    for members, number in allowed:
+        if members not in found:
+            failed = True
+            print(
+                f"{allow_path}:{number}: the cycle {' '.join(members)} no longer exists: "
+                "remove the line (or replace it with a cycle printed above)",
+                file=out,
+            )
+    if failed:
+        print(
+            "floors: FAILED. Every import must point down the floors of "
+            "docs/architecture.md; break the cycle, do not list it.",
+            file=out,
+        )
+        return 1
+    if found:
+        print(f"floors: ok, {len(found)} allowed cycle(s) still to break", file=out)
+    else:
+        print(f"floors: ok, no import cycle between the {len(graph)} top-level modules", file=out)
+    return 0
+
+
+def main(argv=None):
+    here = os.path.dirname(os.path.abspath(__file__))
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--src", default=os.path.join(here, "..", "src"))
+    parser.add_argument("--allow", default=os.path.join(here, "floors-allowed.txt"))
+    args = parser.parse_args(argv)
+    if not os.path.isdir(args.src):
+        print(f"check-floors: no directory {args.src}", file=sys.stderr)
+        return 2
+    return check(os.path.normpath(args.src), args.allow)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
