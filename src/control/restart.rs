@@ -79,7 +79,7 @@ pub async fn run(
     let index = |name: &str| plant.drives().iter().position(|d| d.name == name);
     leases.with(|book, now: Instant| {
         for d in &decisions {
-            audit(d);
+            super::audit::restart(&RestartNote::of(d, SystemTime::now()));
             let Some(drive) = index(&d.drive) else {
                 continue;
             };
@@ -149,45 +149,60 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
     }
 }
 
-fn audit(d: &Decision) {
-    let drive = d.drive.as_str();
-    let decision = kind(&d.what);
-    match &d.what {
-        Replayed::Stop {
-            owner, action, why, ..
-        } => tracing::warn!(
-            target: "drivegate::audit",
-            face = "restart",
-            drive,
-            who = owner.as_deref().unwrap_or("drivegate"),
-            decision,
-            action = leases::stop_action(*action).name(),
-            "restart: a stop is owed because {}; it is sent and tried until the drive confirms it",
-            why.words()
-        ),
-        Replayed::Keep { lease, left } => tracing::info!(
-            target: "drivegate::audit",
-            face = "restart",
-            drive,
-            who = %lease.owner,
-            decision,
-            left_ms = left.as_millis() as u64,
-            "restart: the HTTP lease goes on until its deadline; its client may renew it"
-        ),
-        Replayed::BrakeHolds { owner } => tracing::warn!(
-            target: "drivegate::audit",
-            face = "restart",
-            drive,
-            who = owner.as_deref().unwrap_or("drivegate"),
-            decision,
-            "restart: the drive's last confirmed command was a brake; no stop that would release it is sent"
-        ),
-        Replayed::NotConfigured => tracing::warn!(
-            target: "drivegate::audit",
-            face = "restart",
-            drive,
-            decision,
-            "restart: the safety journal names a drive that is not configured any more; nothing is sent"
-        ),
+/// A start-up decision in words, for the audit log and the stream's
+/// clients (who see what the daemon did to their drives when it started).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RestartNote {
+    /// The drive's name.
+    pub drive: String,
+    /// The decision's kind (the metric's label).
+    pub decision: &'static str,
+    /// Who held the lease concerned, if anyone.
+    pub who: Option<String>,
+    /// What was done and why, in words.
+    pub text: String,
+    /// When it was decided.
+    pub at: SystemTime,
+}
+
+impl RestartNote {
+    /// `d` in words, decided at `at`.
+    pub fn of(d: &Decision, at: SystemTime) -> RestartNote {
+        let (who, text) = match &d.what {
+            Replayed::Stop {
+                owner, action, why, ..
+            } => (
+                owner.clone(),
+                format!(
+                    "a stop ({}) is owed because {}; it is sent and tried until the drive confirms it",
+                    leases::stop_action(*action).name(),
+                    why.words()
+                ),
+            ),
+            Replayed::Keep { lease, left } => (
+                Some(lease.owner.to_string()),
+                format!(
+                    "the HTTP lease goes on until its deadline ({} ms left); its client may renew it",
+                    left.as_millis()
+                ),
+            ),
+            Replayed::BrakeHolds { owner } => (
+                owner.clone(),
+                "the drive's last confirmed command was a brake; no stop that would release it is sent"
+                    .to_string(),
+            ),
+            Replayed::NotConfigured => (
+                None,
+                "the safety journal names a drive that is not configured any more; nothing is sent"
+                    .to_string(),
+            ),
+        };
+        RestartNote {
+            drive: d.drive.clone(),
+            decision: kind(&d.what),
+            who,
+            text,
+            at,
+        }
     }
 }
