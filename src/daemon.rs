@@ -45,12 +45,22 @@ pub async fn serve(config: Config) -> Result<(), DaemonError> {
         .await
         .map_err(DaemonError::Listen)?;
 
-    let summary = format!(
-        "serving {} drive(s) on {} bus(es); HTTP on {}",
-        plant.drives().len(),
-        plant.buses().len(),
-        faces.http
-    );
+    let summary = if plant.buses().is_empty() {
+        // The package's configuration as shipped: `systemctl status` says
+        // what to do first.
+        tracing::warn!("{}", crate::api::health::NO_BUS);
+        format!(
+            "waiting to be configured: no bus (run drivegate probe); HTTP on {}",
+            faces.http
+        )
+    } else {
+        format!(
+            "serving {} drive(s) on {} bus(es); HTTP on {}",
+            plant.drives().len(),
+            plant.buses().len(),
+            faces.http
+        )
+    };
     notify_systemd(&[
         sd_notify::NotifyState::Ready,
         sd_notify::NotifyState::Status(&summary),

@@ -27,7 +27,10 @@
 //!   OpenAPI document checked for drift), [`modbus_tcp`] (MBAP, fuzzed),
 //!   [`console`] (its assets), [`metrics`].
 //! - Putting it together: [`config`], [`plant`], [`faces`], [`daemon`],
-//!   [`logging`], [`bench`] (`drivegate bench`).
+//!   [`logging`], [`bench`] (`drivegate bench`), [`probe`] (`drivegate probe`).
+//!
+//! `timestamp` (the one time format of every face and observer) is used
+//! only inside the daemon, so it is `pub(crate)`.
 
 pub mod api;
 pub mod bench;
@@ -39,6 +42,7 @@ pub mod control;
 pub mod daemon;
 pub mod drive;
 pub mod faces;
+pub mod listed;
 pub mod logging;
 pub mod metrics;
 pub mod modbus;
@@ -49,4 +53,4 @@ pub mod probe;
 pub mod safety;
 pub mod scope;
 pub mod sim;
-pub mod timestamp;
+pub(crate) mod timestamp;

@@ -78,6 +78,9 @@ fn check_config(file: &std::path::Path) -> ExitCode {
                 c.buses.len(),
                 c.drive_count()
             );
+            if c.buses.is_empty() {
+                println!("no bus configured: `drivegate probe --port PATH` finds the drives");
+            }
             match c.safety.state_dir() {
                 Some(dir) => match drivegate::control::journal::check_writable(&dir) {
                     Ok(()) => println!("safety journal: {} is writable", dir.display()),

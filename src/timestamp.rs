@@ -7,7 +7,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 /// Formats `t` as RFC 3339 in UTC with milliseconds; times before 1970 are
 /// shown as the epoch (a drive cannot have been seen then).
-pub fn rfc3339(t: SystemTime) -> String {
+pub(crate) fn rfc3339(t: SystemTime) -> String {
     let since = t.duration_since(UNIX_EPOCH).unwrap_or_default();
     let (date, millis) = (date_time(since.as_secs()), since.subsec_millis());
     format!("{date}.{millis:03}Z")
@@ -16,7 +16,7 @@ pub fn rfc3339(t: SystemTime) -> String {
 /// Formats `t` as RFC 3339 in UTC with microseconds
 /// (`2026-11-22T03:39:12.345678Z`): the bus monitor's and the scope's
 /// times, where a frame lasts a fraction of a millisecond.
-pub fn rfc3339_micros(t: SystemTime) -> String {
+pub(crate) fn rfc3339_micros(t: SystemTime) -> String {
     let since = t.duration_since(UNIX_EPOCH).unwrap_or_default();
     let (date, micros) = (date_time(since.as_secs()), since.subsec_micros());
     format!("{date}.{micros:06}Z")

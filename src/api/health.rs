@@ -52,7 +52,8 @@ pub struct BusReadiness {
 /// `/readyz`.
 #[derive(Debug, Clone, Serialize, ToSchema)]
 pub struct Readiness {
-    /// True when every bus port is open and at least one drive answers.
+    /// True when every bus port is open, every bus has drives configured and
+    /// at least one drive answers.
     pub ready: bool,
     /// Why not, when not.
     pub reasons: Vec<String>,
@@ -64,11 +65,21 @@ pub struct Readiness {
     pub safety_journal: Vec<String>,
 }
 
+/// The reason `/readyz` gives when the configuration has no `[[bus]]` (the
+/// package's configuration as shipped); the console says the same.
+pub const NO_BUS: &str = "no bus configured: run `drivegate probe --port /dev/ttyUSB0` \
+     (with your adapter's port) to find the drives and their baud rate, then add a [[bus]] \
+     with its [[bus.drive]] sections to the configuration and restart drivegate";
+
 /// The readiness of the plant.
 pub fn readiness(state: &ApiState) -> Readiness {
     let mut reasons = Vec::new();
     let mut buses = Vec::new();
     let mut online_total = 0;
+    let mut configured_total = 0;
+    if state.plant.buses().is_empty() {
+        reasons.push(NO_BUS.to_string());
+    }
     for bus in state.plant.buses() {
         let name = bus.handle.name().to_string();
         let port_open = matches!(bus.handle.port_state(), PortState::Up { .. });
@@ -80,6 +91,13 @@ pub fn readiness(state: &ApiState) -> Readiness {
             }
         }
         let units: Vec<u8> = bus.config.drives.iter().map(|d| d.unit()).collect();
+        if units.is_empty() {
+            reasons.push(format!(
+                "bus {name} has no drives configured: scan it (the console's commissioning \
+                 page, or POST /api/v1/buses/{name}/scan) and add its [[bus.drive]] sections"
+            ));
+        }
+        configured_total += units.len();
         let online = bus
             .handle
             .drives()
@@ -94,7 +112,7 @@ pub fn readiness(state: &ApiState) -> Readiness {
             drives: units.len(),
         });
     }
-    if online_total == 0 {
+    if online_total == 0 && configured_total > 0 {
         reasons.push("no drive answers its status polls".to_string());
     }
     Readiness {

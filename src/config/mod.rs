@@ -56,7 +56,9 @@ pub struct Config {
     /// The scope (capture limits, the floor rate of the other drives).
     #[serde(default)]
     pub scope: ScopeConfig,
-    /// The buses (serial adapters), at least one.
+    /// The buses (serial adapters). None, or a bus without drives, is a
+    /// valid configuration: the daemon waits to be told which drives to
+    /// poll, and `drivegate probe` or a bus scan finds them.
     #[serde(rename = "bus", default)]
     pub buses: Vec<BusConfig>,
 }
@@ -89,15 +91,6 @@ impl Config {
         let at = |span: std::ops::Range<usize>, message: String| {
             ConfigError::invalid(origin, text, span, message)
         };
-        if self.buses.is_empty() {
-            return Err(ConfigError::Invalid {
-                origin: origin.to_string(),
-                line: 1,
-                column: 1,
-                message: "no bus configured: add a [[bus]] section (port = \"sim\" for the built-in simulator)"
-                    .to_string(),
-            });
-        }
         let mut bus_names = BTreeSet::new();
         let mut ports = BTreeSet::new();
         let mut drive_names: BTreeMap<&str, &str> = BTreeMap::new();
@@ -126,15 +119,6 @@ impl Config {
                         ),
                     ));
                 }
-            }
-            if bus.drives.is_empty() {
-                return Err(at(
-                    bus.name.span(),
-                    format!(
-                        "bus \"{}\" has no drives: add [[bus.drive]] sections",
-                        bus.name()
-                    ),
-                ));
             }
             let mut units = BTreeSet::new();
             for drive in &bus.drives {

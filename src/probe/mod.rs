@@ -84,7 +84,14 @@ pub async fn run(args: ProbeArgs) -> Result<(), String> {
         ),
     );
     let mut scans = vec![scan(&args.port, args.baud, units, timeout, reads, &mut progress).await?];
-    if diagnosis::try_other_rates(&scans[0], args.try_bauds) {
+    let device_server = crate::bus::tcp_port::address(&args.port).is_some();
+    if device_server && diagnosis::try_other_rates(&scans[0], args.try_bauds) {
+        say(
+            &mut out,
+            "(Not trying other rates: a serial device server talks to the drives at the rate \
+             set in its own settings, whatever --baud says; check that rate there.)",
+        );
+    } else if diagnosis::try_other_rates(&scans[0], args.try_bauds) {
         for &baud in COMMON_BAUDS.iter().filter(|&&b| b != args.baud) {
             say(&mut out, &format!("Trying {baud} baud"));
             let found = scan(&args.port, baud, units, timeout, reads, &mut progress).await?;

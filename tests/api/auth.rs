@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use crate::support::TestDaemon;
 use crate::support::api::{Api, config, connect, next_json, send_json};
+use crate::support::config::ConfigBuilder;
 use crate::support::config::sha256_hex;
 use crate::support::logs::{capture_logs, log_text};
 use futures_util::StreamExt;
@@ -220,11 +221,7 @@ async fn without_tokens_the_api_listens_on_loopback_only() {
     capture_logs();
     tokio::time::timeout(LIMIT, async {
         // Asked for every interface, but no tokens: loopback, same port.
-        let text = crate::support::FOUR_DRIVES.replacen(
-            "[http]\nlisten = \"127.0.0.1:0\"",
-            "[http]\nlisten = \"0.0.0.0:0\"",
-            1,
-        );
+        let text = ConfigBuilder::four_drives().http_listen("0.0.0.0:0").toml();
         let d = TestDaemon::start(&text).await;
         assert!(d.http.ip().is_loopback(), "bound {}", d.http);
         // Every local client then has full rights, audited by its address.

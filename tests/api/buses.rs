@@ -5,6 +5,7 @@
 use std::time::Duration;
 
 use crate::support::api::Api;
+use crate::support::config::ConfigBuilder;
 use crate::support::{FOUR_DRIVES, TestDaemon};
 use serde_json::json;
 
@@ -137,11 +138,9 @@ async fn a_scan_tries_a_busy_unit_again_and_keeps_what_it_found() {
     use drivegate::drive::DriveRequest;
 
     tokio::time::timeout(LIMIT, async {
-        let toml = crate::support::replaced(
-            FOUR_DRIVES,
-            crate::support::WIRE_TIMING,
-            "response_timeout_ms = 3000\nguard_ms = 3000\nqueue_capacity = 1",
-        );
+        let toml = ConfigBuilder::four_drives()
+            .with_bus("sim", |b| b.timing(3000, 3000).keys("queue_capacity = 1"))
+            .toml();
         let d = TestDaemon::start(&toml).await;
         let api = Api::new(d.http, None);
         let bus = d.plant.buses()[0].handle.clone();
@@ -207,4 +206,84 @@ async fn a_scan_tries_a_busy_unit_again_and_keeps_what_it_found() {
     })
     .await
     .expect("test finished in time");
+}
+
+/// A configuration without a bus (the package's, as shipped) and a bus
+/// without drives (one to scan and commission) are valid: the daemon runs,
+/// every face copes, and `/readyz` says in words what to do first.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_bus_and_a_bus_without_drives_are_served() {
+    tokio::time::timeout(LIMIT, async {
+        let no_bus = "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n";
+        let d = TestDaemon::start_no_wait(no_bus).await;
+        let api = Api::new(d.http, None);
+        assert_eq!(api.get("/api/v1/buses").await.expect(200), json!([]));
+        assert_eq!(api.get("/api/v1/drives").await.expect(200), json!([]));
+        let ready = api.get("/readyz").await.expect(503);
+        assert_eq!(
+            ready["reasons"],
+            json!([drivegate::api::health::NO_BUS]),
+            "{ready}"
+        );
+        assert!(
+            ready["reasons"][0]
+                .as_str()
+                .unwrap()
+                .starts_with("no bus configured: run `drivegate probe")
+        );
+        let metrics = api.raw(|c| c.get(d.url("/metrics"))).await;
+        assert_eq!(metrics.status, 200);
+        // The console is served, and reads the empty list it shows its
+        // message for.
+        let page = reqwest::get(d.url("/")).await.unwrap();
+        assert_eq!(page.status(), 200);
+        d.stop().await;
+
+        // A simulated bus without drives: a silent line, polled by nobody.
+        let empty = format!(
+            "{no_bus}[[bus]]\nname = \"line1\"\nport = \"sim\"\n{}\n",
+            crate::support::WIRE_TIMING
+        );
+        let d = TestDaemon::start_no_wait(&empty).await;
+        let api = Api::new(d.http, None);
+        let buses = api.get("/api/v1/buses").await.expect(200);
+        assert_eq!(buses[0]["name"], "line1");
+        assert_eq!(buses[0]["drives"], 0, "{buses}");
+        let ready = api.get("/readyz").await.expect(503);
+        // (The port may not be open yet: that is a reason of its own.)
+        let reasons = ready["reasons"].as_array().unwrap();
+        assert!(
+            reasons.contains(&json!(
+                "bus line1 has no drives configured: scan it (the console's commissioning page, \
+                 or POST /api/v1/buses/line1/scan) and add its [[bus.drive]] sections"
+            )),
+            "{ready}"
+        );
+        assert!(
+            !reasons
+                .iter()
+                .any(|r| r.as_str().unwrap().contains("no drive answers")),
+            "{ready}"
+        );
+        let scan = api
+            .post("/api/v1/buses/line1/scan", json!({"from": 1, "to": 2}))
+            .await
+            .expect(200);
+        assert_eq!(scan["silent"], 2, "{scan}");
+        // The bus has its series; no drive has any.
+        let metrics = reqwest::get(d.url("/metrics"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        assert!(
+            metrics.contains("drivegate_bus_port_open{bus=\"line1\"}"),
+            "{metrics}"
+        );
+        assert!(!metrics.contains("drivegate_drive_up{"), "{metrics}");
+        d.stop().await;
+    })
+    .await
+    .expect("within the limit");
 }

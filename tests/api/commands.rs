@@ -7,6 +7,7 @@
 use std::time::{Duration, Instant};
 
 use crate::support::api::Api;
+use crate::support::config::ConfigBuilder;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::drive::{Fault, Mode};
 use drivegate::sim::model::Procedure;
@@ -346,7 +347,9 @@ async fn settings_are_written_saved_and_factory_reset() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn calibration_fine_tuning_and_the_resets() {
     tokio::time::timeout(LIMIT, async {
-        let config = FOUR_DRIVES.replace("seed = 7", "seed = 7\ncalibrated = false");
+        let config = ConfigBuilder::four_drives()
+            .with_bus("sim", |b| b.sim("calibrated = false"))
+            .toml();
         let d = TestDaemon::start(&config).await;
         let api = Api::new(d.http, None);
         let sim = d.sim();

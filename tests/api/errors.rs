@@ -4,7 +4,8 @@
 
 use std::time::Duration;
 
-use crate::support::api::{Api, config};
+use crate::support::api::Api;
+use crate::support::config::ConfigBuilder;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::cache::Link;
 use drivegate::bus::handle::JobOptions;
@@ -179,10 +180,11 @@ async fn malformed_and_out_of_range_requests_change_nothing() {
 async fn drive_state_conflicts_are_409() {
     tokio::time::timeout(LIMIT, async {
         // The feeder is polled once a minute: its cached status goes stale.
-        let config = FOUR_DRIVES.replace(
-            "name = \"feeder\"\ngear_ratio = 1.0",
-            "name = \"feeder\"\ngear_ratio = 1.0\npoll_interval_ms = 60000",
-        );
+        let config = ConfigBuilder::four_drives()
+            .with_bus("sim", |b| {
+                b.drive_keys("feeder", "poll_interval_ms = 60000")
+            })
+            .toml();
         let d = TestDaemon::start(&config).await;
         let api = Api::new(d.http, None);
         let sim = d.sim();
@@ -288,43 +290,65 @@ async fn bus_and_drive_failures_have_their_own_status() {
     tokio::time::timeout(LIMIT, async {
         // An uncalibrated simulator, a drive polled once a minute, and a
         // second bus whose adapter is not there.
-        let text = FOUR_DRIVES
-            .replace("seed = 7", "seed = 7\ncalibrated = false")
-            .replace(
-                "name = \"feeder\"\ngear_ratio = 1.0",
-                "name = \"feeder\"\ngear_ratio = 1.0\npoll_interval_ms = 60000",
-            )
-            + "\n[[bus]]\nname = \"line2\"\nport = \"/dev/drivegate-test-no-such-adapter\"\n[[bus.drive]]\nunit = 1\nname = \"press\"\n";
+        let text = ConfigBuilder::four_drives()
+            .with_bus("sim", |b| {
+                b.sim("calibrated = false")
+                    .drive_keys("feeder", "poll_interval_ms = 60000")
+            })
+            .bus("line2", |b| {
+                b.port("/dev/drivegate-test-no-such-adapter")
+                    .drive(1, "press")
+            })
+            .toml();
         let d = TestDaemon::start_no_wait(&text).await;
         let sim = d.sim();
-        eventually(Duration::from_secs(10), "the simulated drives online", || {
-            d.plant.buses()[0]
-                .handle
-                .drives()
-                .iter()
-                .all(|s| s.status.is_some())
-                .then_some(())
-        })
+        eventually(
+            Duration::from_secs(10),
+            "the simulated drives online",
+            || {
+                d.plant.buses()[0]
+                    .handle
+                    .drives()
+                    .iter()
+                    .all(|s| s.status.is_some())
+                    .then_some(())
+            },
+        )
         .await;
         let api = Api::new(d.http, None);
 
         // Bus down: 503 with Retry-After; not ready.
         let line2 = &d.plant.buses()[1].handle;
         eventually(Duration::from_secs(5), "line2 down", || {
-            matches!(line2.port_state(), drivegate::bus::handle::PortState::Down { .. }).then_some(())
+            matches!(
+                line2.port_state(),
+                drivegate::bus::handle::PortState::Down { .. }
+            )
+            .then_some(())
         })
         .await;
-        let r = api.post_empty("/api/v1/drives/press/commands/activate").await;
+        let r = api
+            .post_empty("/api/v1/drives/press/commands/activate")
+            .await;
         assert_eq!(r.headers.get("retry-after").unwrap(), "5");
         r.expect_problem(503, "bus-down");
         let bus = api.get("/api/v1/buses/line2").await.expect(200);
         assert_eq!(bus["state"], "down");
-        assert!(bus["reason"].as_str().unwrap().contains("no-such-adapter"), "{bus:#}");
+        assert!(
+            bus["reason"].as_str().unwrap().contains("no-such-adapter"),
+            "{bus:#}"
+        );
         let ready = api.get("/readyz").await;
         assert_eq!(ready.status, 503);
-        assert!(ready.body["reasons"][0].as_str().unwrap().contains("line2"), "{:#}", ready.body);
+        assert!(
+            ready.body["reasons"][0].as_str().unwrap().contains("line2"),
+            "{:#}",
+            ready.body
+        );
         // With two buses a unit number is ambiguous: names are needed.
-        api.get("/api/v1/drives/1").await.expect_problem(404, "unknown-drive");
+        api.get("/api/v1/drives/1")
+            .await
+            .expect_problem(404, "unknown-drive");
 
         // The drive refuses (fine-tuning before calibration, 0x04): 502.
         let p = api
@@ -339,7 +363,10 @@ async fn bus_and_drive_failures_have_their_own_status() {
             .post_empty("/api/v1/drives/feeder/commands/activate")
             .await
             .expect_problem(504, "drive-timeout");
-        assert!(p["detail"].as_str().unwrap().contains("did not answer"), "{p:#}");
+        assert!(
+            p["detail"].as_str().unwrap().contains("did not answer"),
+            "{p:#}"
+        );
         // A drive known to be offline: 503.
         sim.set_silent(2, true);
         eventually(Duration::from_secs(10), "the lift offline", || {
@@ -368,10 +395,11 @@ async fn bus_and_drive_failures_have_their_own_status() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_full_bus_queue_is_429_with_retry_after() {
     tokio::time::timeout(LIMIT, async {
-        let text = config("", "").replace(
-            "retries = 1",
-            "retries = 1\nqueue_capacity = 4\nqueue_per_client = 2",
-        );
+        let text = ConfigBuilder::four_drives()
+            .with_bus("sim", |b| {
+                b.keys("queue_capacity = 4\nqueue_per_client = 2")
+            })
+            .toml();
         let d = TestDaemon::start(&text).await;
         let api = Api::new(d.http, None);
         let reads = (0..24).map(|_| {

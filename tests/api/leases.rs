@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use crate::support::api::{Api, config, connect, next_json, send_json, wait_for, ws_command};
 use crate::support::bus::hold_the_wire;
+use crate::support::config::ConfigBuilder;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use serde_json::json;
 
@@ -281,12 +282,10 @@ async fn the_expiry_action_can_be_the_brake() {
 /// the brake: one emergency job, so nothing can slip in between the stop's
 /// read and its write, and a setpoint sent after it would release it.
 fn slow_bus_with_brake_on_expiry() -> String {
-    let toml = crate::support::replaced(
-        FOUR_DRIVES,
-        crate::support::WIRE_TIMING,
-        "response_timeout_ms = 1500",
-    );
-    format!("{toml}\n[safety]\non_lease_expiry = \"brake\"\n")
+    ConfigBuilder::four_drives()
+        .with_bus("sim", |b| b.keys("response_timeout_ms = 1500").auto_guard())
+        .section("safety", "on_lease_expiry = \"brake\"")
+        .toml()
 }
 
 /// Waits until the conveyor's poll shows it active, so a setpoint goes

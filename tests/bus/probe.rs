@@ -2,7 +2,7 @@
 //! with their figures, a silent line, drives at another baud rate (the
 //! simulator reads the master's rate off the pty and garbles the bits as a
 //! UART at the other rate would), an adapter that echoes, and a line that
-//! corrupts some replies.
+//! corrupts some replies; and a serial device server's `tcp://` line.
 
 use std::time::Duration;
 
@@ -19,8 +19,9 @@ async fn probe(sim: &SimConfig, args: &[&str]) -> String {
             .arg("--port")
             .arg(handle.port_path())
             // A drive answers within milliseconds; the simulator is a
-            // thread of this loaded machine (tests/README).
-            .args(["--timeout-ms", "250"])
+            // thread of a machine that may be loaded (tests/README), and a
+            // unit whose first read goes unanswered is taken for absent.
+            .args(["--timeout-ms", "1000"])
             .args(args)
             .kill_on_drop(true)
             .output(),
@@ -50,7 +51,7 @@ async fn lists_the_drives_that_answer_with_their_figures() {
     )
     .await;
     has(&out, "Probing ");
-    has(&out, "at 115200 baud 8N1, units 1-4, 250 ms timeout");
+    has(&out, "at 115200 baud 8N1, units 1-4, 1000 ms timeout");
     has(&out, "Found at 115200 baud:");
     has(
         &out,
@@ -127,4 +128,14 @@ async fn corrupted_replies_from_a_drive_that_answers_point_at_termination() {
     has(&out, "Unit 1: ");
     has(&out, " of 20 reads failed (corrupted or lost).");
     has(&out, "120 ohm across A and B at both ends");
+}
+
+#[tokio::test]
+async fn probes_a_serial_device_server_over_tcp() {
+    let mut sim = SimConfig::for_units([2]);
+    sim.listen = Some("127.0.0.1:0".parse().unwrap());
+    let out = probe(&sim, &["--units", "1-2", "--reads", "2"]).await;
+    has(&out, "Probing tcp://127.0.0.1:");
+    has(&out, "Found at 115200 baud:\n  unit   2: mode open_loop");
+    has(&out, "port = \"tcp://127.0.0.1:");
 }

@@ -119,27 +119,31 @@ async fn a_silent_drive_goes_offline_backs_off_and_comes_back() {
         bus.drive(2).filter(|s| s.link == Link::Offline)
     })
     .await;
-    // While it is offline it costs little: over half a second at most one
-    // timed-out poll (the backoff starts at 1 s), and the others keep polling.
+    // While it is offline it costs little: while the others are polled 30
+    // times, at most one timed-out probe per backoff period (2 s by default)
+    // that passed, so a loaded machine that stretches the polls is allowed
+    // the probes its extra time brings, and no more.
     let before = bus.stats();
     let mut events = bus.subscribe();
-    let window = tokio::time::Instant::now() + Duration::from_millis(500);
+    let start = tokio::time::Instant::now();
     let mut others = 0;
-    while let Ok(Ok(event)) = tokio::time::timeout_at(window, events.recv()).await {
-        if let BusEvent::Status { unit, .. } = event {
-            assert_ne!(unit, 2);
-            others += 1;
+    while others < 30 {
+        match tokio::time::timeout(LIMIT, events.recv()).await {
+            Ok(Ok(BusEvent::Status { unit, .. })) => {
+                assert_ne!(unit, 2);
+                others += 1;
+            }
+            Ok(Ok(_)) | Ok(Err(tokio::sync::broadcast::error::RecvError::Lagged(_))) => {}
+            other => panic!("the bus's events ended: {other:?}"),
         }
     }
+    let elapsed = start.elapsed();
     let after = bus.stats();
     let timeouts = after.count(Outcome::Timeout) - before.count(Outcome::Timeout);
+    let allowed = 1 + (elapsed.as_secs_f64() / 2.0) as u64;
     assert!(
-        timeouts <= 1,
-        "{timeouts} polls of an offline drive in 0.5 s"
-    );
-    assert!(
-        others >= 30,
-        "only {others} polls of the answering drives in 0.5 s"
+        timeouts <= allowed,
+        "{timeouts} probes of an offline drive while the others were polled 30 times in {elapsed:?}"
     );
     // A command to the offline drive gets one attempt and a clear error.
     let err = bus

@@ -7,6 +7,7 @@
 
 use std::time::Duration;
 
+use crate::support::config::ConfigBuilder;
 use crate::support::metrics::exported;
 use crate::support::{TestDaemon, eventually};
 use drivegate::bus::BusError;
@@ -25,16 +26,12 @@ fn sim_on(address: &str) -> SimHandle {
 }
 
 fn daemon_config(port: &str) -> String {
-    let mut toml = format!(
-        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"remote\"\nport = \"{port}\"\nresponse_timeout_ms = 100\nretries = 1\n"
-    );
-    for unit in 1..=4 {
-        toml.push_str(&format!(
-            "[[bus.drive]]\nunit = {unit}\nname = \"d{unit}\"\n"
-        ));
-    }
-    toml
+    ConfigBuilder::new()
+        .bus("remote", |b| {
+            let b = b.port(port).keys("response_timeout_ms = 100").auto_guard();
+            (1..=4).fold(b, |b, unit| b.drive(unit, &format!("d{unit}")))
+        })
+        .toml()
 }
 
 async fn readyz(d: &TestDaemon) -> (u16, serde_json::Value) {

@@ -1136,3 +1136,37 @@ async fn the_keyboard_jogs_and_a_lost_focus_releases() {
     browser.stop().await;
     daemon.stop().await;
 }
+
+/// The package's configuration as shipped has no bus: the overview says
+/// what to do first, in the words of /readyz, and nothing fails.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_a_bus_the_overview_says_to_run_probe() {
+    let daemon = TestDaemon::start_no_wait(
+        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n",
+    )
+    .await;
+    let browser = Browser::start(&[]).await;
+    let page = browser.new_page(1280, 900).await;
+    let base = daemon.url("");
+    page.goto(&format!("{base}/#/")).await;
+    page.wait_for(
+        "document.querySelector('.buses .no-bus') !== null",
+        LONG,
+        "the overview's no-bus message",
+    )
+    .await;
+    let text = page
+        .eval("document.querySelector('.buses .no-bus').textContent")
+        .await;
+    assert_eq!(
+        text,
+        json!(
+            "No bus configured: run drivegate probe --port /dev/ttyUSB0 (with your adapter's \
+             port) to find the drives and their baud rate, then add a [[bus]] with its drives \
+             to the configuration and restart drivegate."
+        )
+    );
+    assert_clean(&page, &base);
+    browser.stop().await;
+    daemon.stop().await;
+}

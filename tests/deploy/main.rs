@@ -21,4 +21,5 @@ mod metrics_bus_idle;
 mod metrics_scrape_cost;
 mod package;
 mod prometheus;
+mod reference;
 mod systemd;

@@ -126,10 +126,9 @@ async fn packaged_configuration_is_valid_and_real() {
     let config =
         std::fs::read_to_string(Path::new(ROOT).join("deploy/debian/drivegate.toml")).unwrap();
     let config: toml::Table = config.parse().unwrap();
-    // A plant's box drives real adapters: no simulated bus by default.
-    for bus in config["bus"].as_array().unwrap() {
-        assert_ne!(bus["port"].as_str(), Some("sim"), "{bus}");
-    }
+    // The package waits to be configured: no bus polls a guessed port
+    // (docs/operations.md says why).
+    assert!(config.get("bus").is_none(), "{config:?}");
     // Modbus TCP on the standard port (the unit grants the capability).
     assert!(
         config["modbus_tcp"]["listen"]
@@ -141,4 +140,36 @@ async fn packaged_configuration_is_valid_and_real() {
     // The reference file shipped as the example is valid too.
     let (ok, out) = run(bin, &["check-config", "config/drivegate.toml"]).await;
     assert!(ok, "{out}");
+}
+
+/// The daemon started with the shipped configuration serves, polls
+/// nothing, and `/readyz` (which the console's message matches) says
+/// what to do first.
+#[tokio::test]
+async fn the_shipped_configuration_waits_to_be_configured() {
+    let text =
+        std::fs::read_to_string(Path::new(ROOT).join("deploy/debian/drivegate.toml")).unwrap();
+    let text = crate::support::replaced(&text, "127.0.0.1:8080", "127.0.0.1:0");
+    let text = crate::support::replaced(&text, "127.0.0.1:502", "127.0.0.1:0");
+    let d = crate::support::TestDaemon::start_no_wait(&text).await;
+    assert!(d.plant.buses().is_empty());
+    let r = reqwest::get(d.url("/readyz")).await.unwrap();
+    assert_eq!(r.status(), 503);
+    let ready: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(
+        ready["reasons"],
+        serde_json::json!([drivegate::api::health::NO_BUS])
+    );
+    let console = reqwest::get(d.url("/console/pages/overview.js"))
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        console.contains("No bus configured: run "),
+        "the console says it too"
+    );
+    assert!(console.contains("drivegate probe --port /dev/ttyUSB0"));
+    d.stop().await;
 }

@@ -313,7 +313,19 @@ async fn csv_result_one_capture_per_bus_and_the_stream() {
             (m["id"].as_u64(), m["state"].as_str()),
             (Some(id), Some("armed"))
         );
-        tokio::time::sleep(Duration::from_millis(100)).await;
+        // Trigger once the pre-trigger buffer holds its 5 samples of each
+        // drive (polled in turn, so 10 in all).
+        loop {
+            let scope = api.get(SCOPE).await.expect(200);
+            if scope["capture"]["pre_trigger_samples"]
+                .as_u64()
+                .unwrap_or(0)
+                >= 10
+            {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
         let triggered = api
             .post_empty(&format!("{SCOPE}/trigger"))
             .await

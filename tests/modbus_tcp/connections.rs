@@ -6,6 +6,7 @@
 use std::time::{Duration, Instant};
 
 use crate::support::bounded;
+use crate::support::config::ConfigBuilder;
 use crate::support::metrics::metric;
 use crate::support::modbus_tcp::{Raw, four_drives_with, read, registers, write};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
@@ -75,11 +76,9 @@ async fn a_client_that_disconnects_has_its_queued_requests_dropped_unsent() {
     bounded(LIMIT, async {
         // A long response timeout: whatever is on the wire when B sends stays
         // there for half a second, far longer than B takes to disconnect.
-        let toml = crate::support::replaced(
-            FOUR_DRIVES,
-            crate::support::WIRE_TIMING,
-            "response_timeout_ms = 500",
-        );
+        let toml = ConfigBuilder::four_drives()
+            .with_bus("sim", |b| b.keys("response_timeout_ms = 500").auto_guard())
+            .toml();
         let d = TestDaemon::start(&toml).await;
         let addr = d.modbus_tcp.unwrap();
         let (_, bus) = d.plant.drive("lift").unwrap();

@@ -93,6 +93,13 @@ impl ConfigBuilder {
         self
     }
 
+    /// HTTP listening on `addr` instead of `127.0.0.1:0`.
+    pub fn http_listen(mut self, addr: &str) -> Self {
+        self.http.retain(|l| key_of(l) != "listen");
+        self.http.insert(0, format!("listen = \"{addr}\""));
+        self
+    }
+
     /// Modbus TCP listening on `addr` instead of `127.0.0.1:0` (turning the
     /// face on if it was off).
     pub fn modbus_tcp_listen(mut self, addr: &str) -> Self {
@@ -208,7 +215,16 @@ pub struct BusBuilder {
     keys: Vec<String>,
     sim: Vec<String>,
     sim_faults: Vec<String>,
-    drives: Vec<String>,
+    drives: Vec<Drive>,
+}
+
+/// One `[[bus.drive]]`.
+#[derive(Debug, Clone)]
+struct Drive {
+    unit: u8,
+    name: String,
+    gear_ratio: Option<f64>,
+    keys: Vec<String>,
 }
 
 impl BusBuilder {
@@ -269,18 +285,44 @@ impl BusBuilder {
         self
     }
 
+    /// No `guard_ms`: the guard time after a silent drive is the one the
+    /// daemon works out from the line.
+    pub fn auto_guard(mut self) -> Self {
+        self.keys.retain(|l| key_of(l) != "guard_ms");
+        self
+    }
+
     /// A drive at `unit` named `name`, with the default gear ratio.
     pub fn drive(mut self, unit: u8, name: &str) -> Self {
-        self.drives
-            .push(format!("[[bus.drive]]\nunit = {unit}\nname = \"{name}\"\n"));
+        self.drives.push(Drive {
+            unit,
+            name: name.to_string(),
+            gear_ratio: None,
+            keys: Vec::new(),
+        });
         self
     }
 
     /// A drive at `unit` named `name` behind a gear of `ratio`.
     pub fn geared_drive(mut self, unit: u8, name: &str, ratio: f64) -> Self {
-        self.drives.push(format!(
-            "[[bus.drive]]\nunit = {unit}\nname = \"{name}\"\ngear_ratio = {ratio:?}\n"
-        ));
+        self.drives.push(Drive {
+            unit,
+            name: name.to_string(),
+            gear_ratio: Some(ratio),
+            keys: Vec::new(),
+        });
+        self
+    }
+
+    /// Key lines added to the drive named `name` (e.g.
+    /// `"poll_interval_ms = 60000"`); panics if the bus has no such drive.
+    pub fn drive_keys(mut self, name: &str, keys: &str) -> Self {
+        let drive = self
+            .drives
+            .iter_mut()
+            .find(|d| d.name == name)
+            .unwrap_or_else(|| panic!("no drive {name:?} on bus {:?}", self.name));
+        push_lines(&mut drive.keys, keys);
         self
     }
 
@@ -306,7 +348,14 @@ impl BusBuilder {
             }
         }
         for drive in &self.drives {
-            out.push_str(drive);
+            out.push_str(&format!(
+                "[[bus.drive]]\nunit = {}\nname = \"{}\"\n",
+                drive.unit, drive.name
+            ));
+            if let Some(ratio) = drive.gear_ratio {
+                out.push_str(&format!("gear_ratio = {ratio:?}\n"));
+            }
+            push_block(out, &drive.keys);
         }
     }
 }

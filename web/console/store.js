@@ -16,6 +16,8 @@ export class Store {
     this.drives = new Map();
     this.order = [];
     this.buses = new Map();
+    /** True once the list of buses has been read (an empty one means none is configured). */
+    this.busesKnown = false;
     this.events = [];
     this.listeners = new Set();
     this.eventListeners = new Set();
@@ -76,6 +78,7 @@ export class Store {
       }
       this.buses.set(b.name, entry);
     }
+    this.busesKnown = true;
     this.changed(null);
   }
 

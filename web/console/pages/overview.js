@@ -112,11 +112,17 @@ function mount(main, _params, { store }) {
         h('h2', {}, b.name, ' ', h('span', { class: 'badge' }, down ? `port ${b.state}` : 'port up')),
         h('dl', {},
           h('dt', {}, 'Port'), h('dd', {}, `${b.port} @ ${b.baud}`),
-          h('dt', {}, 'Drives online'), h('dd', {}, `${b.drives_online} of ${b.drives}`),
+          h('dt', {}, 'Drives online'), h('dd', {}, b.drives === 0 ? 'none configured: scan the bus on the commissioning page' : `${b.drives_online} of ${b.drives}`),
           h('dt', {}, 'Utilisation'), h('dd', {}, b.utilisation === null ? '–' : `${fmt(b.utilisation * 100)} %`),
           h('dt', {}, 'Errors'), h('dd', {}, b.errorRate === null ? '–' : `${fmt(b.errorRate * 100, 2)} % of transactions`),
           h('dt', {}, 'Queue'), h('dd', {}, `${b.queue.emergency} / ${b.queue.command} / ${b.queue.poll}`, h('small', {}, ' emerg. / cmd / poll'))),
         b.reason ? h('p', { class: 'reason' }, b.reason) : null));
+    }
+    if (store.busesKnown && cards.length === 0) {
+      // The package's configuration as shipped: say what to do first.
+      cards.push(h('p', { class: 'reason no-bus' }, 'No bus configured: run ',
+        h('code', {}, 'drivegate probe --port /dev/ttyUSB0'),
+        ' (with your adapter\'s port) to find the drives and their baud rate, then add a [[bus]] with its drives to the configuration and restart drivegate.'));
     }
     buses.replaceChildren(...cards);
   }
