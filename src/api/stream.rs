@@ -372,7 +372,7 @@ fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
         .filter(|n| drives.contains(&n.drive))
         .map(|n| RestartDecision {
             drive: n.drive,
-            decision: n.decision.to_string(),
+            decision: n.decision.name().to_string(),
             who: n.who,
             text: n.text,
             at: rfc3339(n.at),

@@ -21,33 +21,62 @@ use crate::safety::{self, StopAction};
 const FIRST_STATUS: Duration = Duration::from_secs(5);
 
 /// Replayed decisions by kind, for the metrics.
-pub type Counts = BTreeMap<&'static str, u64>;
+pub type Counts = BTreeMap<DecisionKind, u64>;
 
-/// Every kind of decision, so each series exists from start-up.
-pub const KINDS: [&str; 8] = [
-    "stop-holder-gone",
-    "stop-ran-out",
-    "stop-unfinished",
-    "brake-again",
-    "stop-unknown-state",
-    "lease-kept",
-    "brake-holds",
-    "not-configured",
-];
+crate::listed::listed_enum! {
+    /// The kind of a start-up decision: the metric's label, and what the
+    /// stream and the audit log call it. Every kind has its series from
+    /// start-up (`ALL`).
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+    pub enum DecisionKind {
+        /// A stop owed: the lease's holder ended with the old process.
+        StopHolderGone,
+        /// A stop owed: the lease ran out while the daemon was down.
+        StopRanOut,
+        /// A stop that was being retried, retried again.
+        StopUnfinished,
+        /// A brake sent but not confirmed, sent again.
+        BrakeAgain,
+        /// `on_unknown_state` on a moving drive: the journal was unreadable.
+        StopUnknownState,
+        /// An HTTP lease kept to its deadline.
+        LeaseKept,
+        /// No releasing stop: the drive's last confirmed command was a brake.
+        BrakeHolds,
+        /// The journal names a drive no longer configured.
+        NotConfigured,
+    }
+}
 
-/// The metric label of a decision.
-pub fn kind(what: &Replayed) -> &'static str {
+impl DecisionKind {
+    /// The label.
+    pub fn name(self) -> &'static str {
+        match self {
+            DecisionKind::StopHolderGone => "stop-holder-gone",
+            DecisionKind::StopRanOut => "stop-ran-out",
+            DecisionKind::StopUnfinished => "stop-unfinished",
+            DecisionKind::BrakeAgain => "brake-again",
+            DecisionKind::StopUnknownState => "stop-unknown-state",
+            DecisionKind::LeaseKept => "lease-kept",
+            DecisionKind::BrakeHolds => "brake-holds",
+            DecisionKind::NotConfigured => "not-configured",
+        }
+    }
+}
+
+/// The kind of a decision.
+pub fn kind(what: &Replayed) -> DecisionKind {
     match what {
         Replayed::Stop { why, .. } => match why {
-            StopWhy::HolderGone(_) => "stop-holder-gone",
-            StopWhy::RanOut => "stop-ran-out",
-            StopWhy::Unfinished => "stop-unfinished",
-            StopWhy::BrakeUnconfirmed => "brake-again",
-            StopWhy::UnknownState => "stop-unknown-state",
+            StopWhy::HolderGone(_) => DecisionKind::StopHolderGone,
+            StopWhy::RanOut => DecisionKind::StopRanOut,
+            StopWhy::Unfinished => DecisionKind::StopUnfinished,
+            StopWhy::BrakeUnconfirmed => DecisionKind::BrakeAgain,
+            StopWhy::UnknownState => DecisionKind::StopUnknownState,
         },
-        Replayed::Keep { .. } => "lease-kept",
-        Replayed::BrakeHolds { .. } => "brake-holds",
-        Replayed::NotConfigured => "not-configured",
+        Replayed::Keep { .. } => DecisionKind::LeaseKept,
+        Replayed::BrakeHolds { .. } => DecisionKind::BrakeHolds,
+        Replayed::NotConfigured => DecisionKind::NotConfigured,
     }
 }
 
@@ -155,8 +184,8 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
 pub struct RestartNote {
     /// The drive's name.
     pub drive: String,
-    /// The decision's kind (the metric's label).
-    pub decision: &'static str,
+    /// The decision's kind.
+    pub decision: DecisionKind,
     /// Who held the lease concerned, if anyone.
     pub who: Option<String>,
     /// What was done and why, in words.
