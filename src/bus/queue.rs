@@ -97,6 +97,29 @@ impl Class {
         job
     }
 
+    /// Takes the next job, in turn, among the sources whose first job
+    /// `may_go`; a source passed over keeps its turn.
+    fn pop_first(&mut self, may_go: impl Fn(&Job) -> bool) -> Option<Job> {
+        let at = self.turn.iter().position(|source| {
+            self.jobs
+                .get(source)
+                .and_then(VecDeque::front)
+                .is_some_and(&may_go)
+        })?;
+        let source = self.turn.remove(at)?;
+        let queue = self.jobs.get_mut(&source)?;
+        let job = queue.pop_front();
+        if queue.is_empty() {
+            self.jobs.remove(&source);
+        } else {
+            self.turn.push_back(source);
+        }
+        if job.is_some() {
+            self.len -= 1;
+        }
+        job
+    }
+
     /// Takes out the jobs nobody waits for any more.
     fn take_stale(&mut self, now: Instant) -> Vec<Job> {
         let mut stale = Vec::new();
@@ -183,6 +206,12 @@ impl JobQueue {
     /// Takes the next job of `priority`, if any.
     pub fn pop(&self, priority: Priority) -> Option<Job> {
         self.lock().classes[priority.index()].pop()
+    }
+
+    /// Takes the next job of `priority` that `may_go` (in turn among the
+    /// submitters whose first job may), if any.
+    pub fn pop_first(&self, priority: Priority, may_go: impl Fn(&Job) -> bool) -> Option<Job> {
+        self.lock().classes[priority.index()].pop_first(may_go)
     }
 
     /// Jobs waiting in each class, most urgent first.
