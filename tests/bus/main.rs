@@ -16,6 +16,7 @@ mod long_replies;
 mod master_pty;
 mod master_timing;
 mod pty;
+mod reply_timeout;
 mod sim;
 mod sim_cli;
 mod sim_listen;
