@@ -478,9 +478,7 @@ impl RtuMaster {
                         (Guard::Auto, Fault::Timeout) => {
                             // Nothing came while a reply could start and end:
                             // one may still come, later, until the ceiling.
-                            if !probe {
-                                self.timeouts[slot].timed_out();
-                            }
+                            self.timeouts[slot].timed_out();
                             retried_after_timeout = true;
                             self.late[slot] = Some(LateWindow {
                                 pdu: pdu.to_vec(),

@@ -71,15 +71,16 @@ impl ReplyTimeout {
     }
 
     /// The wait for a probe of a drive not known to answer: the learned
-    /// timeout, or the floor for a drive never heard. A drive that is off
-    /// then costs little per probe; one that comes back answers within the
-    /// floor (any drive does, or it would not be worth polling that often)
-    /// and is learned from there.
+    /// timeout, or the floor for a drive never heard, doubled per silent
+    /// probe (or timeout) since the last sample, up to the ceiling. A drive
+    /// that is off costs little per probe at first; a slow drive that comes
+    /// (back) on is heard within a few probes and learned from there.
     pub fn probe_timeout(&self, bounds: &Bounds) -> Duration {
-        match self.srtt {
+        let base = match self.srtt {
             None => bounds.floor,
             Some(_) => self.learned_base(bounds),
-        }
+        };
+        self.backed_off(base, bounds)
     }
 
     /// The smoothed turnaround, once the drive has answered.
@@ -158,6 +159,26 @@ mod tests {
     }
 
     #[test]
+    fn a_silent_drives_probes_wait_longer_each_time_so_a_slow_drive_is_found() {
+        let mut t = ReplyTimeout::default();
+        let waits: Vec<_> = (0..6)
+            .map(|_| {
+                let wait = t.probe_timeout(&bounds());
+                t.timed_out();
+                wait
+            })
+            .collect();
+        assert_eq!(
+            waits,
+            [2750 * US, 5500 * US, 11 * MS, 22 * MS, 44 * MS, 50 * MS]
+        );
+        // An 8 ms drive (9.75 ms after t3.5) is heard by the third probe and
+        // learned: its timeout is then its own, not the ceiling.
+        t.sample(9750 * US);
+        assert!(t.timeout(&bounds()) < 50 * MS);
+    }
+
+    #[test]
     fn learns_a_fast_drive_down_towards_its_turnaround() {
         // 2.25 ms (t3.5 + 0.5 ms) with a few microseconds of jitter.
         let t = learned((0..40).map(|i| 2250 * US + (i % 3) * 20 * US));
@@ -205,8 +226,7 @@ mod tests {
             t.timed_out();
         }
         assert_eq!(t.timeout(&bounds()), 50 * MS, "never past the ceiling");
-        // A probe does not back off: it is not expected to answer.
-        assert_eq!(t.probe_timeout(&bounds()), base);
+        assert_eq!(t.probe_timeout(&bounds()), 50 * MS);
         t.sample(2250 * US);
         assert!(t.timeout(&bounds()) <= base, "{:?}", t.timeout(&bounds()));
     }

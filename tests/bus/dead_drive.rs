@@ -97,12 +97,14 @@ async fn a_dead_drive_is_probed_with_single_short_attempts() {
     .await;
     let stats = bus.stats();
     // A drive never heard is probed with the shortest reply timeout (t3.5 +
-    // 1 ms), not the 300 ms ceiling: no transaction reached 100 ms (one
-    // probe at the ceiling would be 300, with a retry 600).
+    // 1 ms), doubled per silent probe up to the 300 ms ceiling, with one
+    // attempt and a guard of what a status reply takes: no transaction
+    // reached 500 ms (a retry would be 600, a guard as long as the timeout
+    // 600, both 1200).
     let durations = &stats.transaction_duration;
-    let upto_100ms = durations.bounds.iter().position(|&b| b == 0.1).unwrap();
+    let upto_half_second = durations.bounds.iter().position(|&b| b == 0.5).unwrap();
     assert_eq!(
-        durations.cumulative[upto_100ms], durations.count,
+        durations.cumulative[upto_half_second], durations.count,
         "{durations:?}"
     );
     // Each still waited that floor and the time a status reply would take.
