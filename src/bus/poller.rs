@@ -312,6 +312,35 @@ mod tests {
         PollPlan::new(drives.iter().copied(), SECOND, 30 * SECOND, t0)
     }
 
+    #[test]
+    fn a_silent_drives_probe_waits_for_clients_until_the_longest_backoff() {
+        let t0 = Instant::now();
+        let mut p = plan(&[(1, SECOND), (2, SECOND)], t0);
+        // Unit 2 is never heard: backed off from its first failed probe.
+        p.polled(2, t0 + 10 * MS, PollResult::Failed { offline: false });
+        assert!(p.backing_off(2));
+        // Its next probe falls due a second later, but may wait for the
+        // clients until 30 s (the longest backoff) after the last probe...
+        let due = p.due_at(2).unwrap();
+        assert!(p.probe_may_wait(2, due));
+        assert!(p.probe_may_wait(2, t0 + 10 * MS + 30 * SECOND - MS));
+        assert!(!p.probe_may_wait(2, t0 + 10 * MS + 30 * SECOND));
+        // ...and a drive that answers is never held back.
+        assert!(!p.probe_may_wait(1, due));
+        // The other drives' polls are found past the waiting probe.
+        assert_eq!(p.due_among(due + SECOND, |u| u != 2), Some(1));
+        // Once its backoff has reached the longest, it waits no more.
+        let mut now = due;
+        for _ in 0..6 {
+            p.polled(2, now, PollResult::Failed { offline: true });
+            now = p.due_at(2).unwrap();
+        }
+        assert!(!p.probe_may_wait(2, now));
+        // A drive that answers again is polled on its phase, not held.
+        p.polled(2, now, PollResult::Answered);
+        assert!(!p.probe_may_wait(2, now));
+    }
+
     /// Runs the plan from `t0` to `until`, each poll taking `poll` on the
     /// wire, every drive answering; returns (unit, start) of each poll.
     fn run(plan: &mut PollPlan, t0: Instant, until: Instant, poll: Duration) -> Vec<(u8, Instant)> {

@@ -336,6 +336,26 @@ mod tests {
     }
 
     #[test]
+    fn a_held_job_lets_the_next_source_go_and_keeps_its_turn() {
+        let q = JobQueue::new(QueueLimits::default());
+        let mut keep = vec![];
+        for (source, tag) in [(1, 1), (2, 2), (3, 3), (1, 4)] {
+            let (j, rx) = job(Priority::Command, source, tag);
+            q.push(j).unwrap();
+            keep.push(rx);
+        }
+        // Unit 1 is held: source 1 is passed over, source 2 goes.
+        let first = q.pop_first(Priority::Command, |j| j.unit != 1).unwrap();
+        assert_eq!(first.unit, 2);
+        // Source 1 kept its turn: it goes first once its job may.
+        let order: Vec<u8> = std::iter::from_fn(|| q.pop_first(Priority::Command, |_| true))
+            .map(|j| j.unit)
+            .collect();
+        assert_eq!(order, vec![1, 3, 4]);
+        assert!(q.pop_first(Priority::Command, |_| true).is_none());
+    }
+
+    #[test]
     fn bounds_per_class_and_per_source() {
         let q = JobQueue::new(QueueLimits {
             per_class: 3,
