@@ -38,9 +38,11 @@ async fn next_answer(ws: &mut Ws) -> Value {
             .expect("a valid frame");
         if let Message::Text(t) = m {
             let v: Value = serde_json::from_str(t.as_str()).expect("JSON text");
+            // News of the drives, not answers: a refused write is news too
+            // (the core publishes every write's end, refusals included).
             if !matches!(
                 v["type"].as_str(),
-                Some("status" | "online" | "offline" | "lagged")
+                Some("status" | "online" | "offline" | "lagged" | "write")
             ) {
                 return v;
             }
