@@ -42,6 +42,7 @@ pub mod control;
 pub mod daemon;
 pub mod drive;
 pub mod faces;
+pub mod listed;
 pub mod logging;
 pub mod metrics;
 pub mod modbus;

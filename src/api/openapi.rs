@@ -12,12 +12,13 @@ use utoipa::{IntoResponses, Modify, OpenApi};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
-use super::monitor::MonitorClientMessage;
+use super::monitor_live::MonitorClientMessage;
 use super::problem::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
 use super::{
-    buses, commands, drives, health, monitor, readback, scope, setpoints, settings, stream, whoami,
+    buses, commands, drives, health, monitor, monitor_live, readback, scope, setpoints, settings,
+    stream, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -229,7 +230,7 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(monitor::get_frames))
         .routes(routes!(monitor::get_frames_csv))
         .routes(routes!(monitor::get_frames_pcap))
-        .routes(routes!(monitor::live))
+        .routes(routes!(monitor_live::live))
         .routes(routes!(
             scope::get_scope,
             scope::post_scope,

@@ -38,6 +38,7 @@ use utoipa::ToSchema;
 
 use crate::bus::BusError;
 use crate::drive::RangeError;
+use crate::listed::listed_enum;
 use crate::modbus::ExceptionCode;
 use crate::plant::LookupError;
 
@@ -47,112 +48,78 @@ pub const TYPE_PREFIX: &str = "urn:drivegate:problem:";
 /// Media type of problem documents.
 pub const CONTENT_TYPE: &str = "application/problem+json";
 
-/// The classes of failure, each with its own `type` and status.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Kind {
-    /// 400: malformed or contradictory request.
-    InvalidRequest,
-    /// 401: no token or an unknown one.
-    Unauthorized,
-    /// 403: the role does not allow it.
-    Forbidden,
-    /// 404: no drive by that name or unit.
-    UnknownDrive,
-    /// 404: no bus by that name.
-    UnknownBus,
-    /// 404: no config command by that name.
-    UnknownCommand,
-    /// 404: no such route.
-    NotFound,
-    /// 405: the route exists with other methods.
-    MethodNotAllowed,
-    /// 408: the body came too slowly.
-    RequestTimeout,
-    /// 413: body too large.
-    PayloadTooLarge,
-    /// 415: body is not JSON.
-    UnsupportedMediaType,
-    /// 422: value outside its range.
-    OutOfRange,
-    /// 409: setpoint to an inactive drive.
-    DriveNotActive,
-    /// 409: save to flash while moving.
-    DriveMoving,
-    /// 409: the drive runs a procedure (calibration).
-    DriveBusy,
-    /// 409: no lease to renew or release.
-    NoLease,
-    /// 409: a dangerous request lacks its confirmation.
-    ConfirmationRequired,
-    /// 409: a capture is running on the bus.
-    ScopeBusy,
-    /// 409: the capture is over (or not triggered yet, for some operations).
-    CaptureNotRunning,
-    /// 404: no capture was armed on the bus.
-    NoCapture,
-    /// 409: the bus monitor is off.
-    MonitorOff,
-    /// 429: bus queue full.
-    BusBusy,
-    /// 503: drive offline.
-    DriveOffline,
-    /// 503: serial port down.
-    BusDown,
-    /// 503: waited too long for the bus.
-    QueueTimeout,
-    /// 503: the daemon is stopping.
-    ShuttingDown,
-    /// 503: connection limit reached.
-    TooManyConnections,
-    /// 504: the drive did not answer.
-    DriveTimeout,
-    /// 502: the drive answered with a Modbus exception.
-    DriveRefused,
-    /// 502: the drive answered, but not with a confirmation of this request.
-    DriveUnconfirmed,
-    /// 502: only corrupted replies.
-    DriveBadReply,
-    /// 500: a fault of drivegate itself.
-    Internal,
+listed_enum! {
+    /// The classes of failure, each with its own `type` and status.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+    pub enum Kind {
+        /// 400: malformed or contradictory request.
+        InvalidRequest,
+        /// 401: no token or an unknown one.
+        Unauthorized,
+        /// 403: the role does not allow it.
+        Forbidden,
+        /// 404: no drive by that name or unit.
+        UnknownDrive,
+        /// 404: no bus by that name.
+        UnknownBus,
+        /// 404: no config command by that name.
+        UnknownCommand,
+        /// 404: no such route.
+        NotFound,
+        /// 405: the route exists with other methods.
+        MethodNotAllowed,
+        /// 408: the body came too slowly.
+        RequestTimeout,
+        /// 413: body too large.
+        PayloadTooLarge,
+        /// 415: body is not JSON.
+        UnsupportedMediaType,
+        /// 422: value outside its range.
+        OutOfRange,
+        /// 409: setpoint to an inactive drive.
+        DriveNotActive,
+        /// 409: save to flash while moving.
+        DriveMoving,
+        /// 409: the drive runs a procedure (calibration).
+        DriveBusy,
+        /// 409: no lease to renew or release.
+        NoLease,
+        /// 409: a dangerous request lacks its confirmation.
+        ConfirmationRequired,
+        /// 409: a capture is running on the bus.
+        ScopeBusy,
+        /// 409: the capture is over (or not triggered yet, for some operations).
+        CaptureNotRunning,
+        /// 404: no capture was armed on the bus.
+        NoCapture,
+        /// 409: the bus monitor is off.
+        MonitorOff,
+        /// 429: bus queue full.
+        BusBusy,
+        /// 503: drive offline.
+        DriveOffline,
+        /// 503: serial port down.
+        BusDown,
+        /// 503: waited too long for the bus.
+        QueueTimeout,
+        /// 503: the daemon is stopping.
+        ShuttingDown,
+        /// 503: connection limit reached.
+        TooManyConnections,
+        /// 504: the drive did not answer.
+        DriveTimeout,
+        /// 502: the drive answered with a Modbus exception.
+        DriveRefused,
+        /// 502: the drive answered, but not with a confirmation of this request.
+        DriveUnconfirmed,
+        /// 502: only corrupted replies.
+        DriveBadReply,
+        /// 500: a fault of drivegate itself.
+        Internal,
+    }
 }
 
 impl Kind {
-    /// Every kind, for documentation and tests.
-    pub const ALL: [Kind; 32] = [
-        Kind::InvalidRequest,
-        Kind::Unauthorized,
-        Kind::Forbidden,
-        Kind::UnknownDrive,
-        Kind::UnknownBus,
-        Kind::UnknownCommand,
-        Kind::NotFound,
-        Kind::MethodNotAllowed,
-        Kind::RequestTimeout,
-        Kind::PayloadTooLarge,
-        Kind::UnsupportedMediaType,
-        Kind::OutOfRange,
-        Kind::DriveNotActive,
-        Kind::DriveMoving,
-        Kind::DriveBusy,
-        Kind::NoLease,
-        Kind::ConfirmationRequired,
-        Kind::ScopeBusy,
-        Kind::CaptureNotRunning,
-        Kind::NoCapture,
-        Kind::MonitorOff,
-        Kind::BusBusy,
-        Kind::DriveOffline,
-        Kind::BusDown,
-        Kind::QueueTimeout,
-        Kind::ShuttingDown,
-        Kind::TooManyConnections,
-        Kind::DriveTimeout,
-        Kind::DriveRefused,
-        Kind::DriveUnconfirmed,
-        Kind::DriveBadReply,
-        Kind::Internal,
-    ];
-
     /// The last part of the `type` URI.
     pub const fn slug(self) -> &'static str {
         match self {
@@ -189,6 +156,11 @@ impl Kind {
             Kind::DriveBadReply => "drive-bad-reply",
             Kind::Internal => "internal",
         }
+    }
+
+    /// The kind whose [`slug`](Self::slug) is `slug`.
+    pub fn from_slug(slug: &str) -> Option<Kind> {
+        Kind::ALL.into_iter().find(|k| k.slug() == slug)
     }
 
     /// The HTTP status of this kind.
@@ -310,23 +282,50 @@ pub struct ProblemDetails {
     pub retry_after_s: Option<u64>,
 }
 
-/// The error every handler returns: a boxed [`ProblemDetails`], small to
-/// pass around (errors are the cold path) and serialised as the document.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(transparent)]
-pub struct Problem(Box<ProblemDetails>);
+/// The error every handler returns: its [`Kind`] and a boxed
+/// [`ProblemDetails`], small to pass around (errors are the cold path) and
+/// serialised as the document. The kind is kept as a type: the document's
+/// `type` is only read back for a document that came from elsewhere.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Problem {
+    kind: Kind,
+    details: Box<ProblemDetails>,
+}
 
 impl std::ops::Deref for Problem {
     type Target = ProblemDetails;
 
     fn deref(&self) -> &ProblemDetails {
-        &self.0
+        &self.details
     }
 }
 
 impl std::ops::DerefMut for Problem {
     fn deref_mut(&mut self) -> &mut ProblemDetails {
-        &mut self.0
+        &mut self.details
+    }
+}
+
+impl Serialize for Problem {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        self.details.serialize(serializer)
+    }
+}
+
+impl<'de> Deserialize<'de> for Problem {
+    /// A document received (a client's view): its kind from its `type`,
+    /// [`Kind::Internal`] for a `type` drivegate does not send.
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let details = ProblemDetails::deserialize(deserializer)?;
+        let kind = details
+            .type_uri
+            .strip_prefix(TYPE_PREFIX)
+            .and_then(Kind::from_slug)
+            .unwrap_or(Kind::Internal);
+        Ok(Problem {
+            kind,
+            details: Box::new(details),
+        })
     }
 }
 
@@ -346,7 +345,7 @@ pub struct BusContext<'a> {
 impl Problem {
     /// A problem of `kind` with `detail`.
     pub fn new(kind: Kind, detail: impl Into<String>) -> Self {
-        Problem(Box::new(ProblemDetails {
+        let details = Box::new(ProblemDetails {
             type_uri: kind.type_uri(),
             title: kind.title().to_string(),
             status: kind.status().as_u16(),
@@ -355,12 +354,13 @@ impl Problem {
             drive: None,
             exception_code: None,
             retry_after_s: None,
-        }))
+        });
+        Problem { kind, details }
     }
 
     /// The document.
     pub fn details(&self) -> &ProblemDetails {
-        &self.0
+        &self.details
     }
 
     /// Names the drive concerned.
@@ -375,13 +375,9 @@ impl Problem {
         self
     }
 
-    /// The class, recovered from the `type`.
+    /// The class.
     pub fn kind(&self) -> Kind {
-        let slug = self.type_uri.strip_prefix(TYPE_PREFIX).unwrap_or("");
-        Kind::ALL
-            .into_iter()
-            .find(|k| k.slug() == slug)
-            .unwrap_or(Kind::Internal)
+        self.kind
     }
 
     /// 400 with `detail`.

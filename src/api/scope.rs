@@ -24,9 +24,9 @@ use super::problem::{Kind, Problem, ProblemDetails};
 use super::state::ApiState;
 use crate::control::Operation;
 use crate::plant::{Bus, Plant};
-use crate::scope::capture::{Amount, CaptureSpec, SpecError};
 use crate::scope::field::Field;
 use crate::scope::result::{self, ScopeResult, ScopeState};
+use crate::scope::spec::{Amount, CaptureSpec, SpecError};
 use crate::scope::trigger::{Edge, Trigger};
 use crate::scope::{Scope, ScopeError};
 

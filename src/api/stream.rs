@@ -22,9 +22,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 use axum::extract::State;
 use axum::extract::ws::rejection::WebSocketUpgradeRejection;
-use axum::extract::ws::{CloseFrame, Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
+use axum::extract::ws::{Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
 use axum::response::Response;
-use futures_util::{SinkExt, StreamExt};
+use futures_util::StreamExt;
 use serde::Deserialize;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
@@ -44,6 +44,7 @@ use super::problem::{Kind, Problem};
 use super::scope;
 use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
+use super::socket::{self, Sink, Source, send};
 use super::state::ApiState;
 use crate::control::{ControlEvent, Face, SessionId};
 use crate::drive::DriveRequest;
@@ -149,12 +150,7 @@ pub async fn stream(
     Params(query): Params<StreamQuery>,
     upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, Problem> {
-    let upgrade = upgrade.map_err(|e| {
-        Problem::invalid(format!(
-            "this route is a WebSocket: connect with a WebSocket client ({})",
-            e.body_text()
-        ))
-    })?;
+    let upgrade = socket::upgrade(upgrade)?;
     let initial = match query.drives.as_deref() {
         None | Some("") => Vec::new(),
         Some("all") => resolve(&state, &DriveSelection::One("all".to_string()))?,
@@ -163,15 +159,10 @@ pub async fn stream(
             &DriveSelection::Many(list.split(',').map(|s| s.trim().to_string()).collect()),
         )?,
     };
-    let limit = state.config.max_body_bytes;
     let session_state = state.clone();
-    Ok(upgrade
-        .max_message_size(limit)
-        .max_frame_size(limit)
-        .on_upgrade(move |socket| {
-            let sessions = session_state.sessions.clone();
-            sessions.track_future(session(session_state, caller, socket, initial))
-        }))
+    Ok(socket::accept(&state, upgrade, move |socket| {
+        session(session_state, caller, socket, initial)
+    }))
 }
 
 /// Which drives a session receives: one flag per drive of the plant, read
@@ -321,9 +312,6 @@ async fn forward(
     }
 }
 
-type Sink = futures_util::stream::SplitSink<WebSocket, Message>;
-type Source = futures_util::stream::SplitStream<WebSocket>;
-
 /// Sends replies first, then news of the client's own leases, then
 /// updates (each preceded by a `lagged` notice when some were skipped), and
 /// a ping every quarter of the idle timeout, busy or not: a healthy
@@ -338,9 +326,7 @@ async fn write_loop(
     mut events: mpsc::Receiver<Utf8Bytes>,
     missed: &AtomicU64,
 ) {
-    let period = (state.config.idle_timeout / 4).max(std::time::Duration::from_millis(100));
-    let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
-    ping.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut ping = socket::pings(state);
     loop {
         let next = tokio::select! {
             biased;
@@ -351,7 +337,7 @@ async fn write_loop(
                 None => continue,
             },
             // Before updates: a stream always busy must still be pinged.
-            _ = ping.tick() => Some(Message::Ping(Default::default())),
+            _ = ping.tick() => Some(socket::ping()),
             Some(event) = events.recv() => {
                 let n = missed.swap(0, Ordering::Relaxed);
                 if n > 0 && !send(state, &mut sink, Message::Text(ServerMessage::Lagged { missed: n }.to_text())).await {
@@ -370,32 +356,7 @@ async fn write_loop(
             None => break,
         }
     }
-    if state.shutdown.is_cancelled() {
-        let close = Message::Close(Some(CloseFrame {
-            code: 1001,
-            reason: "drivegate is stopping".into(),
-        }));
-        let _ = tokio::time::timeout(std::time::Duration::from_secs(1), sink.send(close)).await;
-    }
-}
-
-/// Sends one message; false when the socket is gone, the daemon stops, or
-/// the client has not taken the message within the idle timeout: a hung
-/// client whose kernel keeps the connection open (and acknowledges, with a
-/// zero window) would otherwise hold the writer, and the session with its
-/// connection slot and leases, for ever.
-async fn send(state: &ApiState, sink: &mut Sink, message: Message) -> bool {
-    let limit = state.config.idle_timeout;
-    tokio::select! {
-        sent = tokio::time::timeout(limit, sink.send(message)) => match sent {
-            Ok(sent) => sent.is_ok(),
-            Err(_) => {
-                tracing::debug!("stream client took no message for {limit:?}: closing");
-                false
-            }
-        },
-        () = state.shutdown.cancelled() => false,
-    }
+    socket::close_if_stopping(state, &mut sink).await;
 }
 
 fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {

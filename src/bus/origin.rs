@@ -10,6 +10,8 @@ use std::fmt;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 
+use crate::listed::listed_enum;
+
 /// The cause of one bus job.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub enum Origin {
@@ -52,17 +54,56 @@ pub enum Origin {
     Shutdown,
 }
 
-/// Every origin kind, for filters, metrics and documentation.
-pub const KINDS: [&str; 8] = [
-    "internal",
-    "poller",
-    "scope",
-    "http",
-    "websocket",
-    "modbus-tcp",
-    "lease-expiry",
-    "shutdown",
-];
+listed_enum! {
+    /// What kind of cause an [`Origin`] is, without its details.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+    pub enum OriginKind {
+        /// [`Origin::Internal`].
+        Internal,
+        /// [`Origin::Poller`].
+        Poller,
+        /// [`Origin::Scope`].
+        Scope,
+        /// [`Origin::Http`].
+        Http,
+        /// [`Origin::WebSocket`].
+        WebSocket,
+        /// [`Origin::ModbusTcp`].
+        ModbusTcp,
+        /// [`Origin::LeaseExpiry`].
+        LeaseExpiry,
+        /// [`Origin::Shutdown`].
+        Shutdown,
+    }
+}
+
+impl OriginKind {
+    /// Stable name, for filters, metrics and documentation.
+    pub const fn name(self) -> &'static str {
+        match self {
+            OriginKind::Internal => "internal",
+            OriginKind::Poller => "poller",
+            OriginKind::Scope => "scope",
+            OriginKind::Http => "http",
+            OriginKind::WebSocket => "websocket",
+            OriginKind::ModbusTcp => "modbus-tcp",
+            OriginKind::LeaseExpiry => "lease-expiry",
+            OriginKind::Shutdown => "shutdown",
+        }
+    }
+}
+
+/// Every origin kind's name, for filters, metrics and documentation: made
+/// from [`OriginKind::ALL`], so none can be missing.
+pub const KINDS: [&str; OriginKind::ALL.len()] = {
+    let mut names = [""; OriginKind::ALL.len()];
+    let mut i = 0;
+    while i < names.len() {
+        names[i] = OriginKind::ALL[i].name();
+        i += 1;
+    }
+    names
+};
 
 impl Origin {
     /// A Modbus TCP request from `peer` with MBAP transaction id `transaction`.
@@ -76,15 +117,20 @@ impl Origin {
 
     /// Stable kind name (`poller`, `http`, `modbus-tcp`, ...), one of [`KINDS`].
     pub fn kind(&self) -> &'static str {
+        self.origin_kind().name()
+    }
+
+    /// Its kind, without the details.
+    pub fn origin_kind(&self) -> OriginKind {
         match self {
-            Origin::Internal => "internal",
-            Origin::Poller => "poller",
-            Origin::Scope => "scope",
-            Origin::Http { .. } => "http",
-            Origin::WebSocket { .. } => "websocket",
-            Origin::ModbusTcp { .. } => "modbus-tcp",
-            Origin::LeaseExpiry { .. } => "lease-expiry",
-            Origin::Shutdown => "shutdown",
+            Origin::Internal => OriginKind::Internal,
+            Origin::Poller => OriginKind::Poller,
+            Origin::Scope => OriginKind::Scope,
+            Origin::Http { .. } => OriginKind::Http,
+            Origin::WebSocket { .. } => OriginKind::WebSocket,
+            Origin::ModbusTcp { .. } => OriginKind::ModbusTcp,
+            Origin::LeaseExpiry { .. } => OriginKind::LeaseExpiry,
+            Origin::Shutdown => OriginKind::Shutdown,
         }
     }
 
@@ -172,5 +218,7 @@ mod tests {
         ] {
             assert!(KINDS.contains(&o.kind()), "{o:?}");
         }
+        assert_eq!(KINDS[0], "internal");
+        assert_eq!(KINDS[KINDS.len() - 1], "shutdown");
     }
 }

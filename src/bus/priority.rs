@@ -3,22 +3,23 @@
 
 use std::fmt;
 
-/// Priority classes, served strictly in this order (with a share kept for
-/// polling, see the scheduler).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Priority {
-    /// Emergency brake and safe-stop actions: next on the wire, always.
-    Emergency,
-    /// Setpoints, configuration, passthrough and fresh reads.
-    Command,
-    /// Background status polling.
-    Poll,
+use crate::listed::listed_enum;
+
+listed_enum! {
+    /// Priority classes, served strictly in this order (with a share kept for
+    /// polling, see the scheduler).
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+    pub enum Priority {
+        /// Emergency brake and safe-stop actions: next on the wire, always.
+        Emergency,
+        /// Setpoints, configuration, passthrough and fresh reads.
+        Command,
+        /// Background status polling.
+        Poll,
+    }
 }
 
 impl Priority {
-    /// All classes, most urgent first.
-    pub const ALL: [Priority; 3] = [Priority::Emergency, Priority::Command, Priority::Poll];
-
     /// Stable name for logs and metric labels.
     pub fn name(self) -> &'static str {
         match self {

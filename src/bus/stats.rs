@@ -6,38 +6,31 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, SystemTime};
 
-/// How one transaction ended (after its retries).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Outcome {
-    /// A valid reply (or a broadcast sent).
-    Ok,
-    /// The drive answered with a Modbus exception.
-    Exception,
-    /// No reply in time.
-    Timeout,
-    /// The reply's CRC was wrong.
-    CrcError,
-    /// A well-formed reply that did not answer the request (wrong unit,
-    /// function or content) or a reply with stray bytes around it.
-    BadReply,
-    /// Dropped before the wire: its caller had gone or its deadline passed.
-    Dropped,
-    /// Not sent because the port failed.
-    PortError,
+use crate::listed::listed_enum;
+
+listed_enum! {
+    /// How one transaction ended (after its retries).
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+    pub enum Outcome {
+        /// A valid reply (or a broadcast sent).
+        Ok,
+        /// The drive answered with a Modbus exception.
+        Exception,
+        /// No reply in time.
+        Timeout,
+        /// The reply's CRC was wrong.
+        CrcError,
+        /// A well-formed reply that did not answer the request (wrong unit,
+        /// function or content) or a reply with stray bytes around it.
+        BadReply,
+        /// Dropped before the wire: its caller had gone or its deadline passed.
+        Dropped,
+        /// Not sent because the port failed.
+        PortError,
+    }
 }
 
 impl Outcome {
-    /// Every outcome, for exporters that list them all.
-    pub const ALL: [Outcome; 7] = [
-        Outcome::Ok,
-        Outcome::Exception,
-        Outcome::Timeout,
-        Outcome::CrcError,
-        Outcome::BadReply,
-        Outcome::Dropped,
-        Outcome::PortError,
-    ];
-
     /// Stable name for metric labels.
     pub fn name(self) -> &'static str {
         match self {

@@ -1,51 +1,39 @@
 //! The twelve values of the CONFIG register (manual 1.3).
 
-/// A config command written to CONFIG (0x0002); the drive echoes it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum ConfigCommand {
-    /// 0x0: enable the drive; only an active drive takes setpoints. Kept over power loss.
-    Activate,
-    /// 0x1: disable the drive. Kept over power loss.
-    Deactivate,
-    /// 0x2: calibrate the encoder angle (about 4 s).
-    Calibrate,
-    /// 0x3: fine-tune the calibration (the motor turns both ways); only after 0x2.
-    FineTuneCalibration,
-    /// 0x4: make the current position zero (lost at power-off).
-    SetZero,
-    /// 0x5: emergency brake.
-    EmergencyBrake,
-    /// 0x6: factory reset of ramps, stall protection and load inertia.
-    FactoryReset,
-    /// 0x7: software reset of the drive.
-    SoftReset,
-    /// 0x8: clear a fault (a stall needs this before the drive works again).
-    FaultReset,
-    /// 0xA: speed closed loop.
-    SpeedMode,
-    /// 0xB: position closed loop.
-    PositionMode,
-    /// 0xC: torque (current) closed loop.
-    TorqueMode,
+use crate::listed::listed_enum;
+
+listed_enum! {
+    /// A config command written to CONFIG (0x0002); the drive echoes it.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+    pub enum ConfigCommand {
+        /// 0x0: enable the drive; only an active drive takes setpoints. Kept over power loss.
+        Activate,
+        /// 0x1: disable the drive. Kept over power loss.
+        Deactivate,
+        /// 0x2: calibrate the encoder angle (about 4 s).
+        Calibrate,
+        /// 0x3: fine-tune the calibration (the motor turns both ways); only after 0x2.
+        FineTuneCalibration,
+        /// 0x4: make the current position zero (lost at power-off).
+        SetZero,
+        /// 0x5: emergency brake.
+        EmergencyBrake,
+        /// 0x6: factory reset of ramps, stall protection and load inertia.
+        FactoryReset,
+        /// 0x7: software reset of the drive.
+        SoftReset,
+        /// 0x8: clear a fault (a stall needs this before the drive works again).
+        FaultReset,
+        /// 0xA: speed closed loop.
+        SpeedMode,
+        /// 0xB: position closed loop.
+        PositionMode,
+        /// 0xC: torque (current) closed loop.
+        TorqueMode,
+    }
 }
 
 impl ConfigCommand {
-    /// Every command, in code order.
-    pub const ALL: [ConfigCommand; 12] = [
-        ConfigCommand::Activate,
-        ConfigCommand::Deactivate,
-        ConfigCommand::Calibrate,
-        ConfigCommand::FineTuneCalibration,
-        ConfigCommand::SetZero,
-        ConfigCommand::EmergencyBrake,
-        ConfigCommand::FactoryReset,
-        ConfigCommand::SoftReset,
-        ConfigCommand::FaultReset,
-        ConfigCommand::SpeedMode,
-        ConfigCommand::PositionMode,
-        ConfigCommand::TorqueMode,
-    ];
-
     /// The value written to CONFIG.
     pub const fn code(self) -> u16 {
         match self {

@@ -6,6 +6,8 @@
 //! the status read is 7 registers from 0x00C0 covering 0x00C0..=0x00CC, and a
 //! one-register read at 0x00C2 is ANGLE.
 
+use crate::listed::listed_enum;
+
 /// Who may read or write a register.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Access {
@@ -38,34 +40,36 @@ pub enum ValueKind {
     I16,
 }
 
-/// One register of the drive.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-#[allow(missing_docs)] // the variants are the manual's register names
-pub enum Register {
-    SlaveAddr,
-    Config,
-    SpeedRef,
-    PositionRef,
-    IqRef,
-    StalledCurr,
-    StalledDurationMs,
-    StalledCurrSaveFlag,
-    SpeedTdRHigh,
-    SpeedTdRLow,
-    SpeedTdRSaveFlag,
-    PositionTdRHigh,
-    PositionTdRLow,
-    PositionTdRSaveFlag,
-    InertiaRatio,
-    InertiaRatioSaveFlag,
-    Use485Control,
-    CycleNum,
-    Angle,
-    Speed,
-    Iq,
-    Volt,
-    Temp,
-    Status,
+listed_enum! {
+    /// One register of the drive.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+    #[allow(missing_docs)] // the variants are the manual's register names
+    pub enum Register {
+        SlaveAddr,
+        Config,
+        SpeedRef,
+        PositionRef,
+        IqRef,
+        StalledCurr,
+        StalledDurationMs,
+        StalledCurrSaveFlag,
+        SpeedTdRHigh,
+        SpeedTdRLow,
+        SpeedTdRSaveFlag,
+        PositionTdRHigh,
+        PositionTdRLow,
+        PositionTdRSaveFlag,
+        InertiaRatio,
+        InertiaRatioSaveFlag,
+        Use485Control,
+        CycleNum,
+        Angle,
+        Speed,
+        Iq,
+        Volt,
+        Temp,
+        Status,
+    }
 }
 
 /// Address of the first status register; the status block is 7 registers.
@@ -74,34 +78,6 @@ pub(crate) const STATUS_BLOCK_START: u16 = 0x00C0;
 pub(crate) const STATUS_BLOCK_LEN: u16 = 7;
 
 impl Register {
-    /// Every register, in address order.
-    pub const ALL: [Register; 24] = [
-        Register::SlaveAddr,
-        Register::Config,
-        Register::SpeedRef,
-        Register::PositionRef,
-        Register::IqRef,
-        Register::StalledCurr,
-        Register::StalledDurationMs,
-        Register::StalledCurrSaveFlag,
-        Register::SpeedTdRHigh,
-        Register::SpeedTdRLow,
-        Register::SpeedTdRSaveFlag,
-        Register::PositionTdRHigh,
-        Register::PositionTdRLow,
-        Register::PositionTdRSaveFlag,
-        Register::InertiaRatio,
-        Register::InertiaRatioSaveFlag,
-        Register::Use485Control,
-        Register::CycleNum,
-        Register::Angle,
-        Register::Speed,
-        Register::Iq,
-        Register::Volt,
-        Register::Temp,
-        Register::Status,
-    ];
-
     /// The register's address as the manual gives it.
     pub const fn address(self) -> u16 {
         match self {

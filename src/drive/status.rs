@@ -1,18 +1,21 @@
 //! The status block (manual 1.7): seven registers from 0x00C0.
 
 use super::units;
+use crate::listed::listed_enum;
 
-/// Control mode, STATUS bits 4..3.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Mode {
-    /// 0: open-loop voltage control (power-on mode before a mode command).
-    OpenLoop,
-    /// 1: speed closed loop.
-    Speed,
-    /// 2: position closed loop.
-    Position,
-    /// 3: torque (current) closed loop.
-    Torque,
+listed_enum! {
+    /// Control mode, STATUS bits 4..3.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+    pub enum Mode {
+        /// 0: open-loop voltage control (power-on mode before a mode command).
+        OpenLoop,
+        /// 1: speed closed loop.
+        Speed,
+        /// 2: position closed loop.
+        Position,
+        /// 3: torque (current) closed loop.
+        Torque,
+    }
 }
 
 impl Mode {
@@ -47,40 +50,30 @@ impl Mode {
     }
 }
 
-/// Fault code, STATUS bits 2..0.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Fault {
-    /// 0: healthy.
-    None,
-    /// 1: current feedback signal fault.
-    CurrentSense,
-    /// 2: encoder feedback signal fault.
-    Encoder,
-    /// 3: power stage (switching devices) fault.
-    PowerStage,
-    /// 4: drive over-temperature.
-    OverTemperature,
-    /// 5: supply under-voltage.
-    UnderVoltage,
-    /// 6: supply over-voltage.
-    OverVoltage,
-    /// 7: reserved by the maker.
-    Reserved,
+listed_enum! {
+    /// Fault code, STATUS bits 2..0.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+    pub enum Fault {
+        /// 0: healthy.
+        None,
+        /// 1: current feedback signal fault.
+        CurrentSense,
+        /// 2: encoder feedback signal fault.
+        Encoder,
+        /// 3: power stage (switching devices) fault.
+        PowerStage,
+        /// 4: drive over-temperature.
+        OverTemperature,
+        /// 5: supply under-voltage.
+        UnderVoltage,
+        /// 6: supply over-voltage.
+        OverVoltage,
+        /// 7: reserved by the maker.
+        Reserved,
+    }
 }
 
 impl Fault {
-    /// All eight codes, in code order.
-    pub const ALL: [Fault; 8] = [
-        Fault::None,
-        Fault::CurrentSense,
-        Fault::Encoder,
-        Fault::PowerStage,
-        Fault::OverTemperature,
-        Fault::UnderVoltage,
-        Fault::OverVoltage,
-        Fault::Reserved,
-    ];
-
     /// Fault from its three STATUS bits.
     pub const fn from_code(code: u16) -> Self {
         match code & 0b111 {

@@ -39,7 +39,7 @@ static JOURNAL_OK: Spec = Spec {
 static JOURNAL_EVENTS: Spec = Spec {
     name: "drivegate_safety_journal_events_total",
     help: "The safety journal's life: records appended, write errors, compactions, and \
-           journals set aside at start-up because they could not be read.",
+           journals found unreadable at start-up (set aside, renamed, when they could be).",
     kind: Kind::Counter,
     labels: &["event"],
 };
@@ -97,7 +97,7 @@ impl Collector for ControlCollector {
         events.set(&["record"], c.records as f64);
         events.set(&["write-error"], c.write_errors as f64);
         events.set(&["compaction"], c.compactions as f64);
-        events.set(&["set-aside"], c.set_aside as f64);
+        events.set(&["unreadable"], c.unreadable as f64);
         let mut bytes = JOURNAL_BYTES.family();
         bytes.set(&[], c.bytes as f64);
         vec![

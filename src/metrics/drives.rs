@@ -140,18 +140,20 @@ static SPECS: [&Spec; 16] = [
     &FAULT_CODE,
 ];
 
-const MODES: [Mode; 4] = [Mode::OpenLoop, Mode::Speed, Mode::Position, Mode::Torque];
-
-/// The fault kinds with a 0/1 series of their own (code 7 is reserved by the
-/// maker and shows only in the raw code).
-const FAULT_KINDS: [Fault; 6] = [
-    Fault::CurrentSense,
-    Fault::Encoder,
-    Fault::PowerStage,
-    Fault::OverTemperature,
-    Fault::UnderVoltage,
-    Fault::OverVoltage,
-];
+/// Whether a fault kind has a 0/1 series of its own: every fault but
+/// "healthy" and code 7, which is reserved by the maker and shows only in
+/// the raw code. A match, so a new kind cannot be left out unnoticed.
+const fn has_series(fault: Fault) -> bool {
+    match fault {
+        Fault::None | Fault::Reserved => false,
+        Fault::CurrentSense
+        | Fault::Encoder
+        | Fault::PowerStage
+        | Fault::OverTemperature
+        | Fault::UnderVoltage
+        | Fault::OverVoltage => true,
+    }
+}
 
 /// Exports every configured drive from its bus's poll cache.
 pub(crate) struct DriveCollector {
@@ -219,11 +221,11 @@ impl Families {
         self.calibrated.set_bool(l, s.calibrated());
         self.stalled.set_bool(l, s.stalled());
         let [bus, unit, name] = *l;
-        for mode in MODES {
+        for mode in Mode::ALL {
             self.mode
                 .set_bool(&[bus, unit, name, mode.name()], s.mode() == mode);
         }
-        for fault in FAULT_KINDS {
+        for fault in Fault::ALL.into_iter().filter(|&f| has_series(f)) {
             self.fault
                 .set_bool(&[bus, unit, name, fault.name()], s.fault() == fault);
         }

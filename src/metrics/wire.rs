@@ -100,7 +100,7 @@ impl Collector for WireCollector {
             for (unit, c) in monitor.counters().snapshot(monitor.units()) {
                 let unit = unit.to_string();
                 attempts.set(&[name, &unit], c.attempts as f64);
-                for event in WireEvent::ERRORS {
+                for event in WireEvent::ALL.into_iter().filter(|e| e.is_error()) {
                     errors.set(&[name, &unit, event.name()], c.get(event) as f64);
                 }
                 stray.set(&[name, &unit], c.stray_bytes as f64);

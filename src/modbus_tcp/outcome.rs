@@ -12,57 +12,45 @@
 
 use crate::bus::BusError;
 use crate::control::{Failure, Role, Rule};
+use crate::listed::listed_enum;
 use crate::modbus::ExceptionCode;
 
-/// The outcome label of one request.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Outcome {
-    /// The drive answered normally.
-    Ok,
-    /// The drive answered with its own exception (passed through).
-    Exception,
-    /// Answered from the polled copy, without the bus.
-    Cached,
-    /// Sent as a broadcast (nobody answers those).
-    Broadcast,
-    /// 0x0B: no valid reply after the retries.
-    GatewayTimeout,
-    /// 0x0A: no bus for this unit, or the bus is down or stopping.
-    PathUnavailable,
-    /// 0x06: the bus queue was full or the request waited too long.
-    Busy,
-    /// 0x01: a write from a viewer (a read-only listener, or a viewer
-    /// network).
-    ReadOnly,
-    /// 0x01: a write the client's role does not allow.
-    Forbidden,
-    /// 0x06: a write that needs standstill while the motor turns.
-    Moving,
-    /// 0x01: a broadcast the gateway will not send (a read, or an address
-    /// setting on a bus of several drives).
-    Refused,
-    /// 0x03: the request's shape is not what its function code requires.
-    Invalid,
-    /// The client disconnected before the reply.
-    Cancelled,
+listed_enum! {
+    /// The outcome label of one request.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub enum Outcome {
+        /// The drive answered normally.
+        Ok,
+        /// The drive answered with its own exception (passed through).
+        Exception,
+        /// Answered from the polled copy, without the bus.
+        Cached,
+        /// Sent as a broadcast (nobody answers those).
+        Broadcast,
+        /// 0x0B: no valid reply after the retries.
+        GatewayTimeout,
+        /// 0x0A: no bus for this unit, or the bus is down or stopping.
+        PathUnavailable,
+        /// 0x06: the bus queue was full or the request waited too long.
+        Busy,
+        /// 0x01: a write from a viewer (a read-only listener, or a viewer
+        /// network).
+        ReadOnly,
+        /// 0x01: a write the client's role does not allow.
+        Forbidden,
+        /// 0x06: a write that needs standstill while the motor turns.
+        Moving,
+        /// 0x01: a broadcast the gateway will not send (a read, or an address
+        /// setting on a bus of several drives).
+        Refused,
+        /// 0x03: the request's shape is not what its function code requires.
+        Invalid,
+        /// The client disconnected before the reply.
+        Cancelled,
+    }
 }
 
 impl Outcome {
-    /// Every outcome, for the series exported from start-up.
-    pub const ALL: [Outcome; 11] = [
-        Outcome::Ok,
-        Outcome::Exception,
-        Outcome::Cached,
-        Outcome::Broadcast,
-        Outcome::GatewayTimeout,
-        Outcome::PathUnavailable,
-        Outcome::Busy,
-        Outcome::ReadOnly,
-        Outcome::Refused,
-        Outcome::Invalid,
-        Outcome::Cancelled,
-    ];
-
     /// Stable label for `drivegate_modbus_tcp_requests_total`.
     pub fn label(self) -> &'static str {
         match self {
@@ -157,6 +145,16 @@ mod tests {
     use super::*;
     use crate::bus::Priority;
     use std::time::Duration;
+
+    #[test]
+    fn every_outcome_is_listed_once_with_its_own_label() {
+        let mut labels: Vec<_> = Outcome::ALL.iter().map(|o| o.label()).collect();
+        labels.sort_unstable();
+        labels.dedup();
+        assert_eq!(labels.len(), Outcome::ALL.len());
+        assert!(Outcome::ALL.contains(&Outcome::Forbidden));
+        assert!(Outcome::ALL.contains(&Outcome::Moving));
+    }
 
     #[test]
     fn bus_failures_map_to_the_gateway_codes() {

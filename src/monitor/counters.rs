@@ -11,25 +11,35 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// What the counters count.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum WireEvent {
-    /// A request put on the wire (each attempt, broadcasts included).
-    Attempt,
-    /// A reply with a wrong CRC.
-    CrcError,
-    /// No reply within the response timeout.
-    Timeout,
-    /// A reply that does not answer the request.
-    BadReply,
-    /// A valid exception reply.
-    Exception,
+use crate::listed::listed_enum;
+
+listed_enum! {
+    /// What the counters count.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub enum WireEvent {
+        /// A request put on the wire (each attempt, broadcasts included).
+        Attempt,
+        /// A reply with a wrong CRC.
+        CrcError,
+        /// No reply within the response timeout.
+        Timeout,
+        /// A reply that does not answer the request.
+        BadReply,
+        /// A valid exception reply.
+        Exception,
+    }
 }
 
 impl WireEvent {
-    /// The error kinds, as exported in `drivegate_bus_wire_errors_total`.
-    pub const ERRORS: [WireEvent; 3] =
-        [WireEvent::CrcError, WireEvent::Timeout, WireEvent::BadReply];
+    /// Whether it is an error kind, as exported in
+    /// `drivegate_bus_wire_errors_total` (an exception is the drive's
+    /// answer, not a fault of the wire).
+    pub const fn is_error(self) -> bool {
+        match self {
+            WireEvent::CrcError | WireEvent::Timeout | WireEvent::BadReply => true,
+            WireEvent::Attempt | WireEvent::Exception => false,
+        }
+    }
 
     /// Stable name for metric labels.
     pub fn name(self) -> &'static str {
@@ -47,7 +57,7 @@ impl WireEvent {
     }
 }
 
-const EVENTS: usize = 5;
+const EVENTS: usize = WireEvent::ALL.len();
 
 #[derive(Default)]
 struct UnitCounters {

@@ -8,6 +8,7 @@ use crate::modbus::rtu_frame::MAX_FRAME;
 /// (and filtered) without its request: unit, function, address, count.
 /// The bus's tap keeps as many.
 pub use crate::bus::tap::REQUEST_HEAD;
+use crate::listed::listed_enum;
 
 /// Which way a frame went.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -32,42 +33,32 @@ impl Direction {
     }
 }
 
-/// What became of a frame.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum FrameOutcome {
-    /// A request put on the wire (its reply says how it went).
-    #[default]
-    Sent,
-    /// A broadcast put on the wire: nobody answers those.
-    Broadcast,
-    /// A valid reply.
-    Ok,
-    /// A valid exception reply.
-    Exception,
-    /// No reply within the response timeout (the record has no bytes).
-    Timeout,
-    /// A reply with a wrong CRC.
-    CrcError,
-    /// A reply that does not answer the request (wrong unit, function,
-    /// content or length).
-    BadReply,
-    /// Stray bytes.
-    Stray,
+listed_enum! {
+    /// What became of a frame.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+    pub enum FrameOutcome {
+        /// A request put on the wire (its reply says how it went).
+        #[default]
+        Sent,
+        /// A broadcast put on the wire: nobody answers those.
+        Broadcast,
+        /// A valid reply.
+        Ok,
+        /// A valid exception reply.
+        Exception,
+        /// No reply within the response timeout (the record has no bytes).
+        Timeout,
+        /// A reply with a wrong CRC.
+        CrcError,
+        /// A reply that does not answer the request (wrong unit, function,
+        /// content or length).
+        BadReply,
+        /// Stray bytes.
+        Stray,
+    }
 }
 
 impl FrameOutcome {
-    /// Every outcome, for filters and documentation.
-    pub const ALL: [FrameOutcome; 8] = [
-        FrameOutcome::Sent,
-        FrameOutcome::Broadcast,
-        FrameOutcome::Ok,
-        FrameOutcome::Exception,
-        FrameOutcome::Timeout,
-        FrameOutcome::CrcError,
-        FrameOutcome::BadReply,
-        FrameOutcome::Stray,
-    ];
-
     /// Stable name for the API, CSV and filters.
     pub fn name(self) -> &'static str {
         match self {

@@ -5,49 +5,38 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use crate::drive::Status;
+use crate::listed::listed_enum;
 
-/// One field of the status block (manual 1.7).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum Field {
-    /// Speed at the gearbox output, rpm.
-    SpeedRpm,
-    /// Angle, degrees (-180..180).
-    AngleDeg,
-    /// Whole turns counted by the drive (0..65535, wraps).
-    Turns,
-    /// Motor current, A (1 A = 128 counts).
-    CurrentA,
-    /// Supply voltage, V.
-    VoltageV,
-    /// Drive temperature, °C.
-    TemperatureC,
-    /// 1 while the drive is active.
-    Active,
-    /// 1 while the drive is stalled (until a fault reset).
-    Stalled,
-    /// Control mode: 0 open loop, 1 speed, 2 position, 3 torque.
-    Mode,
-    /// Fault code: 0 none, 1 current sense, 2 encoder, 3 power stage,
-    /// 4 over-temperature, 5 under-voltage, 6 over-voltage.
-    Fault,
+listed_enum! {
+    /// One field of the status block (manual 1.7).
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, ToSchema)]
+    #[serde(rename_all = "snake_case")]
+    pub enum Field {
+        /// Speed at the gearbox output, rpm.
+        SpeedRpm,
+        /// Angle, degrees (-180..180).
+        AngleDeg,
+        /// Whole turns counted by the drive (0..65535, wraps).
+        Turns,
+        /// Motor current, A (1 A = 128 counts).
+        CurrentA,
+        /// Supply voltage, V.
+        VoltageV,
+        /// Drive temperature, °C.
+        TemperatureC,
+        /// 1 while the drive is active.
+        Active,
+        /// 1 while the drive is stalled (until a fault reset).
+        Stalled,
+        /// Control mode: 0 open loop, 1 speed, 2 position, 3 torque.
+        Mode,
+        /// Fault code: 0 none, 1 current sense, 2 encoder, 3 power stage,
+        /// 4 over-temperature, 5 under-voltage, 6 over-voltage.
+        Fault,
+    }
 }
 
 impl Field {
-    /// Every field, in the order of the status block.
-    pub const ALL: [Field; 10] = [
-        Field::SpeedRpm,
-        Field::AngleDeg,
-        Field::Turns,
-        Field::CurrentA,
-        Field::VoltageV,
-        Field::TemperatureC,
-        Field::Active,
-        Field::Stalled,
-        Field::Mode,
-        Field::Fault,
-    ];
-
     /// The field's name, its unit in it: `speed_rpm`.
     pub fn name(self) -> &'static str {
         match self {

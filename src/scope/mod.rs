@@ -1,6 +1,7 @@
 //! The scope: captures chosen status fields of one or more drives at the
 //! highest rate the bus allows, around a trigger.
 //!
+//! - [`spec`] is what a client asks for, checked against the limits;
 //! - [`capture`] is one capture's pure state machine (time passed in):
 //!   armed with a pre-trigger buffer, triggered, ended;
 //! - [`trigger`] says what starts it and detects it in the samples;
@@ -20,6 +21,7 @@
 pub mod capture;
 pub mod field;
 pub mod result;
+pub mod spec;
 pub mod steer;
 pub mod tap;
 pub mod trigger;
@@ -35,7 +37,8 @@ use crate::bus::observers::Steer;
 use crate::drive::Status;
 use crate::drive::registers::{STATUS_BLOCK_LEN, STATUS_BLOCK_START};
 use crate::modbus::timing::LineTiming;
-use capture::{Capture, CaptureSpec, Limits, SpecError};
+use capture::Capture;
+use spec::{CaptureSpec, Limits, SpecError};
 use steer::PollSteer;
 
 /// `[scope]` settings.
@@ -374,8 +377,8 @@ impl Scope {
 mod tests {
     use super::*;
     use crate::modbus::rtu_frame::encode;
-    use capture::Amount;
     use field::Field;
+    use spec::Amount;
     use trigger::Trigger;
 
     fn scope() -> Scope {

@@ -255,8 +255,8 @@ pub fn csv(capture: &Capture, name: &dyn Fn(u8) -> String) -> String {
 mod tests {
     use super::*;
     use crate::drive::Status;
-    use crate::scope::capture::{Amount, CaptureSpec, Limits};
     use crate::scope::field::Field;
+    use crate::scope::spec::{Amount, CaptureSpec, Limits};
     use crate::scope::trigger::Trigger;
     use std::time::{Duration, Instant};
 

@@ -22,4 +22,5 @@ mod metrics_scrape_cost;
 mod package;
 mod prometheus;
 mod reference;
+mod restart;
 mod systemd;

@@ -131,6 +131,37 @@ async fn run_at_speed(d: &TestDaemon, drive: &str, rpm: i16) {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_modbus_tcp_outcome_has_its_series_from_start_up() {
+    bounded(LIMIT, async {
+        let d = TestDaemon::start(FOUR_DRIVES).await;
+        let samples = scrape(&d);
+        let zero = |function: &str, outcome: &str| {
+            value(
+                &samples,
+                "drivegate_modbus_tcp_requests_total",
+                &[("function", function), ("outcome", outcome)],
+            )
+        };
+        // The two outcomes a hand-kept list once left out, by name ...
+        for outcome in ["forbidden", "moving"] {
+            assert_eq!(zero("0x06", outcome), Some(0.0), "{outcome}");
+        }
+        // ... and every one, for each function code the drives use.
+        for outcome in drivegate::modbus_tcp::outcome::Outcome::ALL {
+            for function in ["0x03", "0x06", "0x10"] {
+                assert_eq!(
+                    zero(function, outcome.label()),
+                    Some(0.0),
+                    "{function} {}",
+                    outcome.label()
+                );
+            }
+        }
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn exposition_passes_promtool_lint() {
     bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;

@@ -79,8 +79,8 @@ pub struct Counts {
     pub write_errors: u64,
     /// Compactions done.
     pub compactions: u64,
-    /// Journals set aside as unreadable at start-up.
-    pub set_aside: u64,
+    /// Journals found unreadable at start-up (set aside when they could be).
+    pub unreadable: u64,
     /// Bytes of the file.
     pub bytes: u64,
 }
@@ -141,7 +141,7 @@ impl Journal {
                 Recovered::Read(journal.state.clone())
             }
             Err(why) => {
-                journal.counts.set_aside += 1;
+                journal.counts.unreadable += 1;
                 let aside = dir.join(format!(
                     "{FILE}.unreadable-{}",
                     format::unix_ms(SystemTime::now())
@@ -294,5 +294,106 @@ impl Journal {
         self.counts.compactions += 1;
         self.rewrite = false;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::format::{Action, HolderKind, ModeName};
+    use super::*;
+
+    fn lease(deadline_ms: u64) -> Record {
+        Record::Lease {
+            drive: "conveyor".into(),
+            owner: "scada".into(),
+            holder: HolderKind::Http,
+            deadline_ms,
+            length_ms: 1000,
+            action: Action::ZeroSpeed,
+            mode: ModeName::Speed,
+        }
+    }
+
+    #[test]
+    fn what_is_appended_is_read_back_by_the_next_process() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut j = Journal::open(Some(dir.path())).journal;
+        assert_eq!(j.health(), &Health::Ok);
+        j.append(&[lease(5)]).unwrap();
+        let state = j.state().clone();
+        drop(j);
+        let opened = Journal::open(Some(dir.path()));
+        assert_eq!(opened.recovered, Recovered::Read(state));
+        assert!(opened.news.is_empty(), "{:?}", opened.news);
+    }
+
+    #[test]
+    fn a_growing_journal_is_compacted_to_what_it_holds() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut j = Journal::open(Some(dir.path())).journal;
+        // 5000 records, ten to a sync.
+        for i in 0..500 {
+            let batch: Vec<Record> = (0..10).map(|k| lease(i * 10 + k)).collect();
+            j.append(&batch).unwrap();
+        }
+        let c = j.counts();
+        assert!(c.compactions >= 3, "{c:?}");
+        assert!(c.bytes <= COMPACT_AT + 200, "{c:?}");
+        let on_disk = fs::metadata(dir.path().join(FILE)).unwrap().len();
+        assert_eq!(on_disk, c.bytes);
+        let read = Journal::open(Some(dir.path())).recovered;
+        assert_eq!(read, Recovered::Read(JournalState::of(&[lease(4_999)])));
+        assert!(!dir.path().join(format!("{FILE}.tmp")).exists());
+    }
+
+    #[test]
+    fn a_torn_tail_is_said_and_dropped_and_garbage_is_set_aside() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut j = Journal::open(Some(dir.path())).journal;
+        j.append(&[lease(7)]).unwrap();
+        drop(j);
+        let path = dir.path().join(FILE);
+        let mut bytes = fs::read(&path).unwrap();
+        bytes.extend_from_slice(&[40, 0, 0, 0, 1, 2]);
+        fs::write(&path, &bytes).unwrap();
+        let opened = Journal::open(Some(dir.path()));
+        assert_eq!(
+            opened.recovered,
+            Recovered::Read(JournalState::of(&[lease(7)]))
+        );
+        assert!(opened.news[0].contains("cut short"), "{:?}", opened.news);
+        drop(opened);
+        // Rewritten without the tail.
+        assert!(Journal::open(Some(dir.path())).news.is_empty());
+
+        fs::write(&path, b"garbage").unwrap();
+        let opened = Journal::open(Some(dir.path()));
+        assert_eq!(opened.recovered, Recovered::Unreadable);
+        assert_eq!(opened.journal.counts().unreadable, 1);
+        assert!(opened.news[0].contains("set aside"), "{:?}", opened.news);
+        let aside = fs::read_dir(dir.path())
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .is_ok_and(|e| e.file_name().to_string_lossy().contains("unreadable"))
+            })
+            .count();
+        assert_eq!(aside, 1);
+    }
+
+    #[test]
+    fn a_directory_that_cannot_be_written_keeps_the_state_in_memory() {
+        let dir = tempfile::tempdir().unwrap();
+        let blocked = dir.path().join("a-file");
+        fs::write(&blocked, b"x").unwrap();
+        let mut opened = Journal::open(Some(&blocked));
+        assert_eq!(opened.recovered, Recovered::Unreadable);
+        assert!(matches!(opened.journal.health(), Health::Failing(_)));
+        assert!(opened.journal.append(&[lease(9)]).is_err());
+        assert_eq!(opened.journal.counts().write_errors, 1);
+        assert_eq!(opened.journal.state(), &JournalState::of(&[lease(9)]));
+        assert!(check_writable(&blocked).is_err());
+        assert!(check_writable(&dir.path().join("state")).is_ok());
     }
 }

@@ -189,8 +189,11 @@ impl LeaseBook {
     }
 
     /// At start-up: the journal says `drive`'s last confirmed command was a
-    /// brake; writes that release it are journaled as such.
+    /// brake, so a stop owed there is not sent; writes that release the
+    /// brake are journaled as such.
     pub fn restore_brake(&mut self, drive: usize) {
         self.slot(drive).brake_journal = Some(BrakeState::Confirmed);
+        // The stop it holds back is not owed any more, at any restart.
+        self.note(Note::StopEnded { drive });
     }
 }
