@@ -181,6 +181,12 @@ pub enum ServerMessage {
     Subscribed {
         /// Drive names.
         drives: Vec<String>,
+        /// What the daemon did to these drives when it started, from the
+        /// safety journal the last process left (a lease kept, a stop owed
+        /// by a lease whose holder is gone or whose time ran out, a brake
+        /// that holds); absent when it owed nothing.
+        #[serde(skip_serializing_if = "Vec::is_empty")]
+        restart: Vec<RestartDecision>,
     },
     /// The answer to a command sent on the stream, with its `id`.
     Reply {
@@ -220,6 +226,22 @@ fn json_text<T: Serialize>(value: &T) -> Utf8Bytes {
             serde_json::json!({"type": "error", "detail": e.to_string()}).to_string()
         })
         .into()
+}
+
+/// A decision of the start-up replay of the safety journal, in words.
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct RestartDecision {
+    /// Drive name.
+    pub drive: String,
+    /// `stop-holder-gone`, `stop-ran-out`, `stop-unfinished`, `brake-again`,
+    /// `stop-unknown-state`, `lease-kept`, `brake-holds` or `not-configured`.
+    pub decision: String,
+    /// Who held the lease concerned, if anyone.
+    pub who: Option<String>,
+    /// What was done and why.
+    pub text: String,
+    /// When (RFC 3339, UTC).
+    pub at: String,
 }
 
 /// One published message: the drive it concerns (`None`: every client),

@@ -38,7 +38,7 @@ use super::buses;
 use super::commands::{self, ModeBody, parse_command};
 use super::drives;
 use super::extract::Params;
-use super::hub::{HubEvent, ServerMessage, render};
+use super::hub::{HubEvent, RestartDecision, ServerMessage, render};
 use super::openapi::ReadProblems;
 use super::problem::{Kind, Problem};
 use super::scope;
@@ -48,6 +48,7 @@ use super::socket::{self, Sink, Source, send};
 use super::state::ApiState;
 use crate::control::{ControlEvent, Face, SessionId};
 use crate::drive::DriveRequest;
+use crate::timestamp::rfc3339;
 
 /// Replies (and other answers to the client's own messages) that may wait.
 const REPLY_BUFFER: usize = 64;
@@ -360,13 +361,24 @@ async fn write_loop(
 }
 
 fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
-    ServerMessage::Subscribed {
-        drives: indexes
-            .iter()
-            .filter_map(|&i| state.plant.drives().get(i).map(|d| d.name.clone()))
-            .collect(),
-    }
-    .to_text()
+    let drives: Vec<String> = indexes
+        .iter()
+        .filter_map(|&i| state.plant.drives().get(i).map(|d| d.name.clone()))
+        .collect();
+    let restart = state
+        .control
+        .restart_notes()
+        .into_iter()
+        .filter(|n| drives.contains(&n.drive))
+        .map(|n| RestartDecision {
+            drive: n.drive,
+            decision: n.decision.name().to_string(),
+            who: n.who,
+            text: n.text,
+            at: rfc3339(n.at),
+        })
+        .collect();
+    ServerMessage::Subscribed { drives, restart }.to_text()
 }
 
 /// Handles the client's messages until it closes the socket, or sends

@@ -135,3 +135,18 @@ pub fn lease(drive: &str, event: &LeaseEvent) {
         ),
     }
 }
+
+/// A decision of the start-up replay of the safety journal.
+pub fn restart(note: &super::restart::RestartNote) {
+    let (drive, decision, text) = (
+        note.drive.as_str(),
+        note.decision.name(),
+        note.text.as_str(),
+    );
+    let who = note.who.as_deref().unwrap_or("drivegate");
+    if note.decision == super::restart::DecisionKind::LeaseKept {
+        tracing::info!(target: "drivegate::audit", face = "restart", drive, who, decision, "restart: {text}")
+    } else {
+        tracing::warn!(target: "drivegate::audit", face = "restart", drive, who, decision, "restart: {text}")
+    }
+}

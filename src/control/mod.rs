@@ -95,6 +95,8 @@ struct Inner {
     journal_news: Vec<String>,
     /// Replayed decisions by kind.
     replayed: std::sync::Mutex<restart::Counts>,
+    /// The replay's decisions in words, for the stream's clients.
+    restart_notes: std::sync::Mutex<Vec<restart::RestartNote>>,
 }
 
 impl Control {
@@ -129,6 +131,7 @@ impl Control {
             on_unknown_state: safety.on_unknown_state,
             journal_news: opened.news,
             replayed: std::sync::Mutex::new(restart::Counts::new()),
+            restart_notes: std::sync::Mutex::new(Vec::new()),
         }))
     }
 
@@ -155,6 +158,25 @@ impl Control {
         for d in &decisions {
             *counts.entry(restart::kind(&d.what)).or_default() += 1;
         }
+        let at = std::time::SystemTime::now();
+        *self
+            .0
+            .restart_notes
+            .lock()
+            .unwrap_or_else(|p| p.into_inner()) = decisions
+            .iter()
+            .map(|d| restart::RestartNote::of(d, at))
+            .collect();
+    }
+
+    /// What the start-up replay did, drive by drive, in words (empty when
+    /// the last process owed nothing).
+    pub fn restart_notes(&self) -> Vec<restart::RestartNote> {
+        self.0
+            .restart_notes
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     /// Decisions of the start-up replay, by kind.

@@ -21,33 +21,62 @@ use crate::safety::{self, StopAction};
 const FIRST_STATUS: Duration = Duration::from_secs(5);
 
 /// Replayed decisions by kind, for the metrics.
-pub type Counts = BTreeMap<&'static str, u64>;
+pub type Counts = BTreeMap<DecisionKind, u64>;
 
-/// Every kind of decision, so each series exists from start-up.
-pub const KINDS: [&str; 8] = [
-    "stop-holder-gone",
-    "stop-ran-out",
-    "stop-unfinished",
-    "brake-again",
-    "stop-unknown-state",
-    "lease-kept",
-    "brake-holds",
-    "not-configured",
-];
+crate::listed::listed_enum! {
+    /// The kind of a start-up decision: the metric's label, and what the
+    /// stream and the audit log call it. Every kind has its series from
+    /// start-up (`ALL`).
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+    pub enum DecisionKind {
+        /// A stop owed: the lease's holder ended with the old process.
+        StopHolderGone,
+        /// A stop owed: the lease ran out while the daemon was down.
+        StopRanOut,
+        /// A stop that was being retried, retried again.
+        StopUnfinished,
+        /// A brake sent but not confirmed, sent again.
+        BrakeAgain,
+        /// `on_unknown_state` on a moving drive: the journal was unreadable.
+        StopUnknownState,
+        /// An HTTP lease kept to its deadline.
+        LeaseKept,
+        /// No releasing stop: the drive's last confirmed command was a brake.
+        BrakeHolds,
+        /// The journal names a drive no longer configured.
+        NotConfigured,
+    }
+}
 
-/// The metric label of a decision.
-pub fn kind(what: &Replayed) -> &'static str {
+impl DecisionKind {
+    /// The label.
+    pub fn name(self) -> &'static str {
+        match self {
+            DecisionKind::StopHolderGone => "stop-holder-gone",
+            DecisionKind::StopRanOut => "stop-ran-out",
+            DecisionKind::StopUnfinished => "stop-unfinished",
+            DecisionKind::BrakeAgain => "brake-again",
+            DecisionKind::StopUnknownState => "stop-unknown-state",
+            DecisionKind::LeaseKept => "lease-kept",
+            DecisionKind::BrakeHolds => "brake-holds",
+            DecisionKind::NotConfigured => "not-configured",
+        }
+    }
+}
+
+/// The kind of a decision.
+pub fn kind(what: &Replayed) -> DecisionKind {
     match what {
         Replayed::Stop { why, .. } => match why {
-            StopWhy::HolderGone(_) => "stop-holder-gone",
-            StopWhy::RanOut => "stop-ran-out",
-            StopWhy::Unfinished => "stop-unfinished",
-            StopWhy::BrakeUnconfirmed => "brake-again",
-            StopWhy::UnknownState => "stop-unknown-state",
+            StopWhy::HolderGone(_) => DecisionKind::StopHolderGone,
+            StopWhy::RanOut => DecisionKind::StopRanOut,
+            StopWhy::Unfinished => DecisionKind::StopUnfinished,
+            StopWhy::BrakeUnconfirmed => DecisionKind::BrakeAgain,
+            StopWhy::UnknownState => DecisionKind::StopUnknownState,
         },
-        Replayed::Keep { .. } => "lease-kept",
-        Replayed::BrakeHolds { .. } => "brake-holds",
-        Replayed::NotConfigured => "not-configured",
+        Replayed::Keep { .. } => DecisionKind::LeaseKept,
+        Replayed::BrakeHolds { .. } => DecisionKind::BrakeHolds,
+        Replayed::NotConfigured => DecisionKind::NotConfigured,
     }
 }
 
@@ -79,7 +108,7 @@ pub async fn run(
     let index = |name: &str| plant.drives().iter().position(|d| d.name == name);
     leases.with(|book, now: Instant| {
         for d in &decisions {
-            audit(d);
+            super::audit::restart(&RestartNote::of(d, SystemTime::now()));
             let Some(drive) = index(&d.drive) else {
                 continue;
             };
@@ -149,45 +178,60 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
     }
 }
 
-fn audit(d: &Decision) {
-    let drive = d.drive.as_str();
-    let decision = kind(&d.what);
-    match &d.what {
-        Replayed::Stop {
-            owner, action, why, ..
-        } => tracing::warn!(
-            target: "drivegate::audit",
-            face = "restart",
-            drive,
-            who = owner.as_deref().unwrap_or("drivegate"),
-            decision,
-            action = leases::stop_action(*action).name(),
-            "restart: a stop is owed because {}; it is sent and tried until the drive confirms it",
-            why.words()
-        ),
-        Replayed::Keep { lease, left } => tracing::info!(
-            target: "drivegate::audit",
-            face = "restart",
-            drive,
-            who = %lease.owner,
-            decision,
-            left_ms = left.as_millis() as u64,
-            "restart: the HTTP lease goes on until its deadline; its client may renew it"
-        ),
-        Replayed::BrakeHolds { owner } => tracing::warn!(
-            target: "drivegate::audit",
-            face = "restart",
-            drive,
-            who = owner.as_deref().unwrap_or("drivegate"),
-            decision,
-            "restart: the drive's last confirmed command was a brake; no stop that would release it is sent"
-        ),
-        Replayed::NotConfigured => tracing::warn!(
-            target: "drivegate::audit",
-            face = "restart",
-            drive,
-            decision,
-            "restart: the safety journal names a drive that is not configured any more; nothing is sent"
-        ),
+/// A start-up decision in words, for the audit log and the stream's
+/// clients (who see what the daemon did to their drives when it started).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RestartNote {
+    /// The drive's name.
+    pub drive: String,
+    /// The decision's kind.
+    pub decision: DecisionKind,
+    /// Who held the lease concerned, if anyone.
+    pub who: Option<String>,
+    /// What was done and why, in words.
+    pub text: String,
+    /// When it was decided.
+    pub at: SystemTime,
+}
+
+impl RestartNote {
+    /// `d` in words, decided at `at`.
+    pub fn of(d: &Decision, at: SystemTime) -> RestartNote {
+        let (who, text) = match &d.what {
+            Replayed::Stop {
+                owner, action, why, ..
+            } => (
+                owner.clone(),
+                format!(
+                    "a stop ({}) is owed because {}; it is sent and tried until the drive confirms it",
+                    leases::stop_action(*action).name(),
+                    why.words()
+                ),
+            ),
+            Replayed::Keep { lease, left } => (
+                Some(lease.owner.to_string()),
+                format!(
+                    "the HTTP lease goes on until its deadline ({} ms left); its client may renew it",
+                    left.as_millis()
+                ),
+            ),
+            Replayed::BrakeHolds { owner } => (
+                owner.clone(),
+                "the drive's last confirmed command was a brake; no stop that would release it is sent"
+                    .to_string(),
+            ),
+            Replayed::NotConfigured => (
+                None,
+                "the safety journal names a drive that is not configured any more; nothing is sent"
+                    .to_string(),
+            ),
+        };
+        RestartNote {
+            drive: d.drive.clone(),
+            decision: kind(&d.what),
+            who,
+            text,
+            at,
+        }
     }
 }

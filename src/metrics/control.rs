@@ -87,8 +87,11 @@ impl Collector for ControlCollector {
         }
         let mut replayed = REPLAYED.family();
         let counts = self.control.replayed();
-        for kind in crate::control::restart::KINDS {
-            replayed.set(&[kind], counts.get(kind).copied().unwrap_or(0) as f64);
+        for kind in crate::control::restart::DecisionKind::ALL {
+            replayed.set(
+                &[kind.name()],
+                counts.get(&kind).copied().unwrap_or(0) as f64,
+            );
         }
         let (health, c) = self.control.journal();
         let mut ok = JOURNAL_OK.family();

@@ -16,7 +16,7 @@ use serde_json::{Value, json};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 
-use crate::support::api::{Api, connect, ws_command};
+use crate::support::api::{Api, connect, wait_for, ws_command};
 
 const LIMIT: Duration = Duration::from_secs(120);
 /// Longest wait for an event the design says must come.
@@ -323,6 +323,30 @@ async fn an_http_lease_that_ran_out_while_down_stops_the_motor_and_an_unleased_s
             d.replayed()
         );
         d.until_speed("conveyor", "stop", |s| s.abs() <= 2).await;
+        // A stream client that subscribes after the restart is told what
+        // the daemon did to its drives when it started, and why.
+        let mut ws = connect(d.http, "?drives=all", None).await;
+        let told = wait_for(&mut ws, Duration::from_secs(10), "the subscription", |m| {
+            m["type"] == "subscribed"
+        })
+        .await;
+        let restart = told["restart"].as_array().cloned().unwrap_or_default();
+        assert_eq!(restart.len(), 1, "{told:#}");
+        assert_eq!(
+            (
+                restart[0]["drive"].as_str(),
+                restart[0]["decision"].as_str()
+            ),
+            (Some("conveyor"), Some("stop-ran-out")),
+            "{told:#}"
+        );
+        assert!(
+            restart[0]["text"]
+                .as_str()
+                .unwrap_or("")
+                .contains("ran out"),
+            "{told:#}"
+        );
         // Nothing was promised about the lift.
         assert_eq!(d.decision("lift"), None);
         assert!(d.writes_to(2).await.is_empty());

@@ -284,3 +284,52 @@ async fn without_faults_everything_is_confirmed() {
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lost_and_corrupted_replies_under_learned_timeouts_never_reach_the_wrong_request() {
+    bounded(LIMIT, async {
+        // The default guard: each drive's reply timeout is learned (a few
+        // ms against the 250 ms ceiling) and the line is kept after a
+        // timeout only as long as a reply that started by then takes. 5 %
+        // of replies lost and 2 % corrupted, unique writes read back on
+        // every drive: every read carries the drive's own value for that
+        // register, every write is confirmed (and true) or reported.
+        let d = TestDaemon::start(&eight_drives("sim", "response_timeout_ms = 250", "")).await;
+        let bus = d.plant.buses()[0].handle.clone();
+        let truth = Arc::new(Truth::of_plant(d.plant.clone()));
+        d.sim()
+            .set_fault_rates(FaultRates {
+                drop_rate: 0.05,
+                crc_error_rate: 0.02,
+                ..FaultRates::default()
+            })
+            .unwrap();
+        let (tally, _) = traffic_on(
+            &bus,
+            &truth,
+            UNITS,
+            ROUNDS,
+            &["timeout", "bad_reply"],
+            &CancellationToken::new(),
+        )
+        .await;
+        let stats = bus.stats();
+        let sim = d.sim().stats();
+        eprintln!("{tally:?}\n{sim}");
+        assert!(sim.dropped >= 5 && sim.corrupted >= 1, "{sim}");
+        tally.assert_nothing_lost();
+        assert_eq!(tally.writes_refused + tally.reads_refused, 0, "{tally:?}");
+        // The timeouts were learned, not the ceiling.
+        let learned = UNITS
+            .filter(|u| {
+                stats
+                    .drives
+                    .get(u)
+                    .is_some_and(|t| t.reply_timeout < Duration::from_millis(250))
+            })
+            .count();
+        assert!(learned >= 1, "{:?}", stats.drives);
+        d.stop().await;
+    })
+    .await;
+}
