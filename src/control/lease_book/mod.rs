@@ -267,7 +267,7 @@ impl LeaseBook {
                 });
             }
         }
-        self.note_lease(drive);
+        self.note_lease_by(drive, Some(now + ask.length));
         (Grant { id, replaced }, effects)
     }
 

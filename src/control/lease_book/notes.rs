@@ -88,25 +88,36 @@ impl LeaseBook {
 
     /// Journals `drive`'s lease if the horizon rule asks for it.
     pub(super) fn note_lease(&mut self, drive: usize) {
+        self.note_lease_by(drive, None);
+    }
+
+    /// Journals `drive`'s lease if the horizon rule asks for it, with a
+    /// deadline no later than `earliest`. A new lease is journaled with its
+    /// length from the grant, not with the allowance for the bus queue: the
+    /// deadline its confirmation sets (the length from then) is later by
+    /// the queue's wait, within the horizon, so a new lease costs one
+    /// synced record, not two.
+    pub(super) fn note_lease_by(&mut self, drive: usize, earliest: Option<Instant>) {
         let Some(lease) = self.slots.get_mut(&drive).and_then(|s| s.lease.as_mut()) else {
             return;
         };
+        let deadline = earliest.map_or(lease.deadline, |e| e.min(lease.deadline));
         let due = match lease.journaled {
             None => true,
             // A session's lease ends at a restart whatever its deadline.
             Some(_) if lease.holder != Holder::Request => false,
-            Some(at) => lease.deadline < at || lease.deadline > at + lease.length / 2,
+            Some(at) => deadline < at || deadline > at + lease.length / 2,
         };
         if !due {
             return;
         }
-        lease.journaled = Some(lease.deadline);
+        lease.journaled = Some(deadline);
         let note = Note::Lease {
             drive,
             owner: lease.owner.clone(),
             holder: lease.holder,
             comm_loss: lease.comm_loss,
-            deadline: lease.deadline,
+            deadline,
             length: lease.length,
             action: lease.action,
             mode: lease.mode,

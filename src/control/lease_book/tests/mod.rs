@@ -292,3 +292,42 @@ fn a_lease_may_carry_its_own_stop_action() {
         StopAction::ZeroSpeed
     );
 }
+
+/// A new lease costs the journal one record: it is journaled with its
+/// length from the grant, and its confirmation a bus wait later moves the
+/// deadline by that wait only, within the horizon.
+#[test]
+fn a_new_lease_is_journaled_once_with_its_length_from_the_grant() {
+    let mut book = LeaseBook::new(StopAction::ZeroSpeed);
+    let t0 = Instant::now();
+    let lease_notes = |notes: Vec<notes::Note>| -> Vec<Instant> {
+        notes
+            .into_iter()
+            .filter_map(|n| match n {
+                notes::Note::Lease { deadline, .. } => Some(deadline),
+                _ => None,
+            })
+            .collect()
+    };
+    let (_, ticket) = leased_write(
+        &mut book,
+        CONVEYOR,
+        ask("token:scada", Holder::Request, Mode::Speed, SECOND),
+        t0,
+    );
+    // Journaled at the grant without the queue's allowance: never later
+    // than the deadline the confirmation will promise.
+    assert_eq!(lease_notes(book.take_notes()), [t0 + SECOND]);
+    book.end_write(&ticket, Applied::Yes, t0 + 20 * MS);
+    assert_eq!(lease_notes(book.take_notes()), Vec::<Instant>::new());
+    // A confirmation later than half the length writes the new deadline.
+    let (_, ticket) = leased_write(
+        &mut book,
+        LIFT,
+        ask("token:scada", Holder::Request, Mode::Speed, SECOND),
+        t0,
+    );
+    book.take_notes();
+    book.end_write(&ticket, Applied::Yes, t0 + 600 * MS);
+    assert_eq!(lease_notes(book.take_notes()), [t0 + 1600 * MS]);
+}
