@@ -72,6 +72,15 @@ pub struct HttpConfig {
     pub lease_max: Duration,
     /// Lease given to setpoints that ask for none (`None`: no lease).
     pub lease_default: Option<Duration>,
+    /// Host names and addresses the API answers to besides loopback and
+    /// the listen address (see [`super::guard`]), normalised.
+    pub allowed_hosts: Vec<String>,
+    /// Browser origins whose pages may change things and open streams
+    /// besides the daemon's own, normalised.
+    pub allowed_origins: Vec<String>,
+    /// Unknown tokens from one address within a minute that pause it for
+    /// a minute (see [`super::throttle`]).
+    pub token_guesses: u32,
 }
 
 impl Default for HttpConfig {
@@ -91,6 +100,9 @@ impl Default for HttpConfig {
                 lease_min: Duration::from_millis(100),
                 lease_max: Duration::from_millis(60_000),
                 lease_default: None,
+                allowed_hosts: Vec::new(),
+                allowed_origins: Vec::new(),
+                token_guesses: 10,
             },
         }
     }
@@ -115,6 +127,9 @@ pub struct RawHttpConfig {
     lease_min_ms: i64,
     lease_max_ms: i64,
     lease_default_ms: i64,
+    allowed_hosts: Vec<String>,
+    allowed_origins: Vec<String>,
+    token_guesses: i64,
 }
 
 impl Default for RawHttpConfig {
@@ -131,6 +146,9 @@ impl Default for RawHttpConfig {
             lease_min_ms: 100,
             lease_max_ms: 60_000,
             lease_default_ms: 0,
+            allowed_hosts: Vec::new(),
+            allowed_origins: Vec::new(),
+            token_guesses: 10,
         }
     }
 }
@@ -217,6 +235,23 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
             lease_min: ms(lease_min_ms),
             lease_max: ms(lease_max_ms),
             lease_default,
+            allowed_hosts: raw
+                .allowed_hosts
+                .iter()
+                .map(|h| super::guard::parse_allowed_host(h))
+                .collect::<Result<_, _>>()?,
+            allowed_origins: raw
+                .allowed_origins
+                .iter()
+                .map(|o| super::guard::parse_allowed_origin(o))
+                .collect::<Result<_, _>>()?,
+            token_guesses: u32::try_from(in_range(
+                "token_guesses",
+                raw.token_guesses,
+                1,
+                1_000_000,
+            )?)
+            .unwrap_or(10),
         })
     }
 }

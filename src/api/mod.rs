@@ -4,8 +4,10 @@
 //! core, and renders what it decided.
 //!
 //! - [`listener`] binds (loopback only without tokens) and limits connections,
-//!   [`server`] serves them with a deadline on every request,
-//! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
+//!   [`server`] serves them with a deadline on every request, [`guard`]
+//!   refuses foreign hosts and foreign browser pages before any route runs,
+//! - [`auth`] checks bearer tokens, [`throttle`] pauses addresses that
+//!   guess them; [`roles`] says which role may do what,
 //! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`readback`],
 //!   [`buses`], [`monitor`] (every frame on the wire), [`scope`]
 //!   (triggered captures), [`whoami`] and [`health`] are the routes, all
@@ -28,6 +30,7 @@ pub mod config;
 pub mod control;
 pub mod drives;
 pub mod extract;
+pub mod guard;
 pub mod health;
 pub mod hub;
 pub mod integers;
@@ -44,6 +47,7 @@ pub mod setpoints;
 pub mod settings;
 pub mod state;
 pub mod stream;
+pub mod throttle;
 pub mod timestamp;
 pub mod whoami;
 
@@ -76,7 +80,7 @@ pub async fn start(
     shutdown: CancellationToken,
 ) -> Result<Listening, String> {
     let http = config.http.clone();
-    let tokens = Tokens::resolve(&http.tokens).map_err(|e| e.to_string())?;
+    let tokens = Tokens::resolve(&http.tokens, http.token_guesses).map_err(|e| e.to_string())?;
     let bind = listener::bind_address(http.listen, !tokens.is_empty());
     let tcp = tokio::net::TcpListener::bind(bind)
         .await
@@ -153,6 +157,18 @@ pub fn app(state: ApiState) -> Router {
         .layer(middleware::from_fn_with_state(
             state.clone(),
             request_metrics::count,
+        ))
+        .layer(middleware::from_fn_with_state(
+            guard::GuardState {
+                guard: Arc::new(guard::BrowserGuard::new(
+                    state.config.listen.ip(),
+                    false,
+                    &state.config.allowed_hosts,
+                    &state.config.allowed_origins,
+                )),
+                metrics: state.metrics.clone(),
+            },
+            guard::guard,
         ))
         .with_state(state)
 }

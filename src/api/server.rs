@@ -24,7 +24,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tower::ServiceExt;
 
-use super::listener::{ClientAddr, LimitedListener};
+use super::listener::{ClientAddr, LimitedListener, ServedAt};
 
 /// Serves `app` on the connections of `listener` until `shutdown` fires,
 /// then lets the requests in progress finish and waits for their
@@ -45,12 +45,15 @@ pub async fn serve(
             () = shutdown.cancelled() => break,
             accepted = listener.accept() => accepted,
         };
+        let local = stream.local_addr().ok();
         let service = app
             .clone()
             .map_request(move |mut request: axum::http::Request<Incoming>| {
-                request
-                    .extensions_mut()
-                    .insert(ConnectInfo(ClientAddr(addr)));
+                let extensions = request.extensions_mut();
+                extensions.insert(ConnectInfo(ClientAddr(addr)));
+                if let Some(local) = local {
+                    extensions.insert(ServedAt(local));
+                }
                 request
             });
         let connection = http

@@ -782,7 +782,7 @@ async fn odd_headers_and_bearer_formats() {
         let big_body_header = "Content-Length: 99999999999999999999";
         let a = raw_http(
             addr,
-            &format!("PUT /api/v1/drives/lift/inertia HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{big_body_header}\r\nContent-Type: application/json\r\nAuthorization: Bearer {ADMIN}\r\n\r\n{{}}").into_bytes(),
+            &format!("PUT /api/v1/drives/lift/inertia HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n{big_body_header}\r\nContent-Type: application/json\r\nAuthorization: Bearer {ADMIN}\r\n\r\n{{}}").into_bytes(),
         )
         .await
         .unwrap();
@@ -794,7 +794,7 @@ async fn odd_headers_and_bearer_formats() {
             b"GET / HTTP/9.9\r\n\r\n",
             b"GET /healthz HTTP/1.1\r\nHost x\r\n\r\n",
             b"GET /healthz HTTP/1.1\r\nContent-Length: -1\r\n\r\n",
-            b"POST /api/v1/buses/sim/scan HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\nContent-Length: 3\r\n\r\nzz\r\n",
+            b"POST /api/v1/buses/sim/scan HTTP/1.1\r\nHost: localhost\r\nTransfer-Encoding: chunked\r\nContent-Length: 3\r\n\r\nzz\r\n",
         ] {
             if let Ok(a) = raw_http(addr, garbage).await {
                 check_answer(&a)
@@ -843,7 +843,7 @@ async fn odd_headers_and_bearer_formats() {
         .await;
         // Bytes that are not text in the header, two headers, a token in
         // the query string of a REST route: all refused.
-        let mut odd = format!("POST /api/v1/drives/lift/commands/fault-reset HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Length: 0\r\nAuthorization: Bearer {OPERATOR}").into_bytes();
+        let mut odd = format!("POST /api/v1/drives/lift/commands/fault-reset HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nContent-Length: 0\r\nAuthorization: Bearer {OPERATOR}").into_bytes();
         odd.extend_from_slice(b"\xff\xfe\r\n\r\n");
         let a = raw_http(addr, &odd).await.unwrap();
         check_answer(&a).unwrap();

@@ -12,4 +12,6 @@ mod support;
 
 mod limits;
 mod modbus_tcp;
+mod origin;
 mod routes;
+mod tokens;
