@@ -43,6 +43,17 @@ impl Faces {
     }
 }
 
+/// Loads the certificates, keys and client CAs of every configured TLS
+/// listener, as a start would (for `check-config`): an error names the
+/// file and what is wrong with it.
+pub fn check_tls(config: &Config) -> Result<(), String> {
+    if let Some(files) = &config.http.tls {
+        crate::tls::server_config(files, crate::tls::ClientAuth::IfConfigured, &[])
+            .map_err(|e| format!("[http.tls]: {e}"))?;
+    }
+    Ok(())
+}
+
 /// Starts the control core, binds every configured listener (so a taken
 /// port fails the start) and serves them until `shutdown` fires.
 pub async fn start(

@@ -22,3 +22,4 @@ pub mod plant;
 pub mod safety;
 pub mod scope;
 pub mod sim;
+pub mod tls;

@@ -81,6 +81,8 @@ pub struct HttpConfig {
     /// Unknown tokens from one address within a minute that pause it for
     /// a minute (see [`super::throttle`]).
     pub token_guesses: u32,
+    /// `[http.tls]`: serve HTTPS only, with these files.
+    pub tls: Option<crate::tls::TlsFiles>,
 }
 
 impl Default for HttpConfig {
@@ -103,6 +105,7 @@ impl Default for HttpConfig {
                 allowed_hosts: Vec::new(),
                 allowed_origins: Vec::new(),
                 token_guesses: 10,
+                tls: None,
             },
         }
     }
@@ -130,6 +133,7 @@ pub struct RawHttpConfig {
     allowed_hosts: Vec<String>,
     allowed_origins: Vec<String>,
     token_guesses: i64,
+    tls: Option<crate::tls::TlsFiles>,
 }
 
 impl Default for RawHttpConfig {
@@ -149,6 +153,7 @@ impl Default for RawHttpConfig {
             allowed_hosts: Vec::new(),
             allowed_origins: Vec::new(),
             token_guesses: 10,
+            tls: None,
         }
     }
 }
@@ -252,6 +257,7 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
                 1_000_000,
             )?)
             .unwrap_or(10),
+            tls: raw.tls,
         })
     }
 }

@@ -103,6 +103,35 @@ pub async fn start(
         tracing::info!(tokens = tokens.len(), "API tokens loaded");
     }
 
+    let tls = match &http.tls {
+        None => None,
+        Some(files) => {
+            let config = crate::tls::Reloadable::load(
+                files.clone(),
+                crate::tls::ClientAuth::IfConfigured,
+                &[b"http/1.1"],
+            )
+            .map(Arc::new)
+            .map_err(|e| format!("[http.tls]: {e}"))?;
+            let counter = metrics.clone();
+            crate::tls::reload_on_hangup(
+                config.clone(),
+                "http",
+                move |ok| counter.security().tls_reload("http", ok),
+                shutdown.clone(),
+            )
+            .map_err(|e| format!("cannot watch for SIGHUP (certificate reloads): {e}"))?;
+            tracing::info!(
+                listening = %addr,
+                mutual = files.client_ca.is_some(),
+                "HTTPS only on this listener"
+            );
+            Some(server::Tls {
+                config,
+                metrics: metrics.clone(),
+            })
+        }
+    };
     let hub = Hub::start(&plant, &control, &shutdown);
     scope::publish_progress(&plant, &hub, &shutdown);
     let state = ApiState::new(
@@ -123,7 +152,7 @@ pub async fn start(
     );
     let read_timeout = http.read_timeout;
     let task = tokio::spawn(async move {
-        server::serve(listener, app, read_timeout, shutdown).await;
+        server::serve(listener, app, read_timeout, tls, shutdown).await;
         // Upgraded connections are not the server's any more: the sessions
         // close themselves on shutdown, and are waited for here.
         state.sessions.close();
@@ -162,7 +191,7 @@ pub fn app(state: ApiState) -> Router {
             guard::GuardState {
                 guard: Arc::new(guard::BrowserGuard::new(
                     state.config.listen.ip(),
-                    false,
+                    state.config.tls.is_some(),
                     &state.config.allowed_hosts,
                     &state.config.allowed_origins,
                 )),

@@ -11,7 +11,14 @@
 //! request, the first as the later ones on a kept-alive connection, must
 //! arrive within it (so a kept-alive connection left unused that long is
 //! closed too); the body then has as long again (see [`super::extract`]).
+//!
+//! Under `[http.tls]` every connection is TLS: the handshake runs in the
+//! connection's own task (a slow one holds up nobody else) within the same
+//! deadline, with the configuration current when it starts, so a reloaded
+//! certificate serves new connections while the open ones carry on. A
+//! client that speaks plain HTTP fails the handshake and gets no answer.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use axum::Router;
@@ -25,6 +32,17 @@ use tokio_util::task::TaskTracker;
 use tower::ServiceExt;
 
 use super::listener::{ClientAddr, LimitedListener, ServedAt};
+use crate::metrics::Metrics;
+use crate::tls::Reloadable;
+
+/// The listener's TLS, when `[http.tls]` is set.
+#[derive(Clone)]
+pub struct Tls {
+    /// The server configuration, reloadable.
+    pub config: Arc<Reloadable>,
+    /// Where failed handshakes are counted.
+    pub metrics: Arc<Metrics>,
+}
 
 /// Serves `app` on the connections of `listener` until `shutdown` fires,
 /// then lets the requests in progress finish and waits for their
@@ -34,6 +52,7 @@ pub async fn serve(
     mut listener: LimitedListener,
     app: Router,
     read_timeout: Duration,
+    tls: Option<Tls>,
     shutdown: CancellationToken,
 ) {
     let mut http = hyper::server::conn::http1::Builder::new();
@@ -56,17 +75,32 @@ pub async fn serve(
                 }
                 request
             });
-        let connection = http
-            .serve_connection(TokioIo::new(stream), TowerToHyperService::new(service))
-            .with_upgrades();
+        let http = http.clone();
         let shutdown = shutdown.clone();
+        let tls = tls.clone();
         connections.spawn(async move {
-            tokio::pin!(connection);
-            let served = tokio::select! {
-                served = connection.as_mut() => served,
-                () = shutdown.cancelled() => {
-                    connection.as_mut().graceful_shutdown();
-                    connection.await
+            let service = TowerToHyperService::new(service);
+            let served = match tls {
+                None => serve_one(&http, stream, service, &shutdown).await,
+                Some(tls) => {
+                    let acceptor = tokio_rustls::TlsAcceptor::from(tls.config.current());
+                    let handshake = tokio::select! {
+                        h = tokio::time::timeout(read_timeout, acceptor.accept(stream)) => h,
+                        () = shutdown.cancelled() => return,
+                    };
+                    match handshake {
+                        Ok(Ok(stream)) => serve_one(&http, stream, service, &shutdown).await,
+                        Ok(Err(e)) => {
+                            tls.metrics.security().tls_handshake_failed("http");
+                            tracing::debug!(client = %addr, "TLS handshake failed: {e}");
+                            return;
+                        }
+                        Err(_) => {
+                            tls.metrics.security().tls_handshake_failed("http");
+                            tracing::debug!(client = %addr, "TLS handshake not done within {read_timeout:?}");
+                            return;
+                        }
+                    }
                 }
             };
             if let Err(e) = served {
@@ -78,4 +112,35 @@ pub async fn serve(
     drop(listener);
     connections.close();
     connections.wait().await;
+}
+
+/// Serves the requests of one connection (plain or TLS) until it closes,
+/// or gracefully once `shutdown` fires.
+async fn serve_one<I, S>(
+    http: &hyper::server::conn::http1::Builder,
+    io: I,
+    service: S,
+    shutdown: &CancellationToken,
+) -> Result<(), hyper::Error>
+where
+    I: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
+    S: hyper::service::Service<
+            axum::http::Request<Incoming>,
+            Response = axum::response::Response,
+            Error = std::convert::Infallible,
+        > + Send
+        + 'static,
+    S::Future: Send + 'static,
+{
+    let connection = http
+        .serve_connection(TokioIo::new(io), service)
+        .with_upgrades();
+    tokio::pin!(connection);
+    tokio::select! {
+        served = connection.as_mut() => served,
+        () = shutdown.cancelled() => {
+            connection.as_mut().graceful_shutdown();
+            connection.await
+        }
+    }
 }

@@ -10,6 +10,8 @@
 #[path = "../support/mod.rs"]
 mod support;
 
+mod certs;
+mod https;
 mod limits;
 mod modbus_tcp;
 mod origin;
