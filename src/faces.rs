@@ -26,6 +26,8 @@ pub struct Faces {
     pub http: SocketAddr,
     /// Where Modbus TCP listens, if enabled.
     pub modbus_tcp: Option<SocketAddr>,
+    /// Where Modbus/TCP Security listens, if configured.
+    pub modbus_tls: Option<SocketAddr>,
     /// The control core every face writes through.
     pub control: Control,
     tasks: Vec<JoinHandle<()>>,
@@ -51,6 +53,10 @@ pub fn check_tls(config: &Config) -> Result<(), String> {
         crate::tls::server_config(files, crate::tls::ClientAuth::IfConfigured, &[])
             .map_err(|e| format!("[http.tls]: {e}"))?;
     }
+    if let Some(section) = &config.modbus_tcp.tls {
+        crate::tls::server_config(&section.files(), crate::tls::ClientAuth::Required, &[])
+            .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
+    }
     Ok(())
 }
 
@@ -74,6 +80,22 @@ pub async fn start(
     .await?;
     tracing::info!(addr = %http.addr, "HTTP API listening");
     let mut tasks = vec![http.task];
+    let modbus_tls = match crate::modbus_tcp::start_tls(
+        config,
+        plant.clone(),
+        metrics.clone(),
+        control.clone(),
+        shutdown.clone(),
+    )
+    .await?
+    {
+        Some(tls) => {
+            tracing::info!(addr = %tls.addr, "Modbus/TCP Security listening");
+            tasks.push(tls.task);
+            Some(tls.addr)
+        }
+        None => None,
+    };
     let modbus_tcp = if config.modbus_tcp.enabled {
         let tcp =
             crate::modbus_tcp::start(config, plant, metrics, control.clone(), shutdown).await?;
@@ -86,6 +108,7 @@ pub async fn start(
     Ok(Faces {
         http: http.addr,
         modbus_tcp,
+        modbus_tls,
         control,
         tasks,
     })

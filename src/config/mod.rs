@@ -9,6 +9,7 @@
 mod bus;
 mod diagnostics;
 mod error;
+mod modbus_tls;
 pub(crate) mod values;
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -19,6 +20,7 @@ use serde::Deserialize;
 pub use bus::{BusConfig, DriveConfig, SimSection};
 pub use diagnostics::{MonitorConfig, ScopeConfig};
 pub use error::ConfigError;
+pub use modbus_tls::ModbusTlsConfig;
 
 use crate::api::config::HttpConfig;
 use crate::logging::LogConfig;

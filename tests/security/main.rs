@@ -14,6 +14,7 @@ mod certs;
 mod https;
 mod limits;
 mod modbus_tcp;
+mod modbus_tls;
 mod origin;
 mod routes;
 mod tokens;
