@@ -53,7 +53,7 @@ async fn daemon() -> TestDaemon {
 /// units.
 async fn daemon_with_every_scanned_unit() -> TestDaemon {
     let text = crate::support::input::drives_up_to_32(&config(
-        &format!("max_body_bytes = {MAX_BODY}"),
+        &format!("max_body_bytes = {MAX_BODY}\ntoken_guesses = 1000000"),
         "",
         true,
         "",
