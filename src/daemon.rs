@@ -130,10 +130,14 @@ fn spawn_watchdog(stop: CancellationToken) -> Option<tokio::task::JoinHandle<()>
     }))
 }
 
-/// SIGTERM (systemd's stop) and SIGINT (Ctrl-C).
+/// SIGTERM (systemd's stop) and SIGINT (Ctrl-C); SIGHUP (systemd's
+/// reload) is taken here too, so that it never ends the daemon: the TLS
+/// listeners watch it themselves and reload their certificates
+/// ([`crate::tls::reload_on_hangup`]).
 struct StopSignals {
     term: tokio::signal::unix::Signal,
     int: tokio::signal::unix::Signal,
+    hup: tokio::signal::unix::Signal,
 }
 
 impl StopSignals {
@@ -142,13 +146,17 @@ impl StopSignals {
         Ok(Self {
             term: signal(SignalKind::terminate())?,
             int: signal(SignalKind::interrupt())?,
+            hup: signal(SignalKind::hangup())?,
         })
     }
 
     async fn recv(&mut self) {
-        tokio::select! {
-            _ = self.term.recv() => info!("SIGTERM received"),
-            _ = self.int.recv() => info!("SIGINT received"),
+        loop {
+            tokio::select! {
+                _ = self.term.recv() => return info!("SIGTERM received"),
+                _ = self.int.recv() => return info!("SIGINT received"),
+                _ = self.hup.recv() => info!("SIGHUP received: TLS listeners reload their certificates"),
+            }
         }
     }
 }

@@ -18,6 +18,8 @@ pub struct Faces {
     pub http: SocketAddr,
     /// Where Modbus TCP listens, if enabled.
     pub modbus_tcp: Option<SocketAddr>,
+    /// Where Modbus/TCP Security listens, if configured.
+    pub modbus_tls: Option<SocketAddr>,
     /// The control core every face writes through.
     pub control: Control,
     tasks: Vec<JoinHandle<()>>,
@@ -33,6 +35,21 @@ impl Faces {
         // follows).
         let _ = tokio::time::timeout(std::time::Duration::from_secs(2), self.control.wait()).await;
     }
+}
+
+/// Loads the certificates, keys and client CAs of every configured TLS
+/// listener, as a start would (for `check-config`): an error names the
+/// file and what is wrong with it.
+pub fn check_tls(config: &Config) -> Result<(), String> {
+    if let Some(files) = &config.http.tls {
+        crate::tls::server_config(files, crate::tls::ClientAuth::IfConfigured, &[])
+            .map_err(|e| format!("[http.tls]: {e}"))?;
+    }
+    if let Some(section) = &config.modbus_tcp.tls {
+        crate::tls::server_config(&section.files(), crate::tls::ClientAuth::Required, &[])
+            .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
+    }
+    Ok(())
 }
 
 /// Starts the control core, binds every configured listener (so a taken
@@ -63,6 +80,22 @@ pub async fn start(
     .await?;
     tracing::info!(addr = %http, "HTTP API listening");
     let mut tasks = vec![task];
+    let modbus_tls = match crate::modbus_tcp::start_tls(
+        config,
+        plant.clone(),
+        metrics.clone(),
+        control.clone(),
+        shutdown.clone(),
+    )
+    .await?
+    {
+        Some((addr, task)) => {
+            tracing::info!(addr = %addr, "Modbus/TCP Security listening");
+            tasks.push(task);
+            Some(addr)
+        }
+        None => None,
+    };
     let modbus_tcp = if config.modbus_tcp.enabled {
         let (addr, task) =
             crate::modbus_tcp::start(config, plant, metrics, control.clone(), shutdown).await?;
@@ -75,6 +108,7 @@ pub async fn start(
     Ok(Faces {
         http,
         modbus_tcp,
+        modbus_tls,
         control,
         tasks,
     })

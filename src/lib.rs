@@ -54,3 +54,4 @@ pub mod safety;
 pub mod scope;
 pub mod sim;
 pub(crate) mod timestamp;
+pub mod tls;

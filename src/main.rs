@@ -70,7 +70,11 @@ fn main() -> ExitCode {
 }
 
 fn check_config(file: &std::path::Path) -> ExitCode {
-    match Config::load(file) {
+    let loaded = Config::load(file).map_err(|e| e.to_string()).and_then(|c| {
+        drivegate::faces::check_tls(&c).map_err(|e| format!("{}: {e}", file.display()))?;
+        Ok(c)
+    });
+    match loaded {
         Ok(c) => {
             println!(
                 "{}: valid ({} bus(es), {} drive(s))",

@@ -4,21 +4,38 @@
 //!
 //! Only SHA-256 digests are kept in memory after start; a presented token is
 //! hashed and compared with every configured digest without an early exit,
-//! so the time taken says nothing about how close a guess was.
+//! so the time taken says nothing about how close a guess was. An address
+//! that presents too many unknown tokens is paused ([`super::throttle`]).
+//!
+//! Where a token may be: `Authorization: Bearer <token>` on every route;
+//! on the WebSocket routes also the subprotocol
+//! `drivegate.bearer.<base64url of the token>`
+//! (offered beside [`SUBPROTOCOL`], the only one answered, so the token is
+//! never echoed) and, discouraged, `?access_token=` in the URL.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use axum::extract::{ConnectInfo, FromRequestParts};
-use axum::http::header::AUTHORIZATION;
+use axum::http::header::{AUTHORIZATION, SEC_WEBSOCKET_PROTOCOL};
 use axum::http::request::Parts;
 use sha2::{Digest, Sha256};
 
 use super::listener::ClientAddr;
 use super::problem::{Kind, Problem};
 use super::state::ApiState;
+use super::throttle::{Failure, Policy, Throttle};
 use crate::config::http::{TokenConfig, TokenSource};
 use crate::control::Face;
 use crate::control::Role;
+
+/// The WebSocket subprotocol of drivegate's streams: the one the daemon
+/// answers when a client offers it.
+pub const SUBPROTOCOL: &str = "drivegate";
+
+/// Prefix of the subprotocol that carries a token (browsers cannot set
+/// headers on a WebSocket, but they can offer subprotocols).
+pub const BEARER_PROTOCOL_PREFIX: &str = "drivegate.bearer.";
 
 /// One usable token.
 #[derive(Clone)]
@@ -28,10 +45,11 @@ struct Entry {
     digest: [u8; 32],
 }
 
-/// The configured tokens, as digests.
+/// The configured tokens, as digests, and the failures of each address.
 #[derive(Clone, Default)]
 pub struct Tokens {
     entries: Vec<Entry>,
+    throttle: Arc<Mutex<Throttle>>,
 }
 
 impl std::fmt::Debug for Tokens {
@@ -76,8 +94,9 @@ pub enum TokenError {
 }
 
 impl Tokens {
-    /// Reads every token's secret and keeps its digest.
-    pub fn resolve(configs: &[TokenConfig]) -> Result<Tokens, TokenError> {
+    /// Reads every token's secret and keeps its digest; an address is paused
+    /// after `guesses` unknown tokens within a minute.
+    pub fn resolve(configs: &[TokenConfig], guesses: u32) -> Result<Tokens, TokenError> {
         let mut entries = Vec::with_capacity(configs.len());
         for t in configs {
             let digest = match &t.source {
@@ -106,7 +125,17 @@ impl Tokens {
                 digest,
             });
         }
-        Ok(Tokens { entries })
+        Ok(Tokens {
+            entries,
+            throttle: Arc::new(Mutex::new(Throttle::new(Policy {
+                burst: guesses,
+                ..Policy::default()
+            }))),
+        })
+    }
+
+    fn throttle(&self) -> std::sync::MutexGuard<'_, Throttle> {
+        self.throttle.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     /// True when no token is configured (no authentication, loopback only).
@@ -183,9 +212,10 @@ pub fn forbidden(caller: &Caller, needed: Role) -> Problem {
     )
 }
 
-/// Identifies the caller of a request. `allow_query` also accepts the
-/// token as `?access_token=` (browsers cannot set headers on WebSockets).
-pub fn identify(parts: &Parts, state: &ApiState, allow_query: bool) -> Result<Caller, Problem> {
+/// Identifies the caller of a request. `websocket` also accepts the token
+/// as a subprotocol or as `?access_token=` (browsers cannot set headers on
+/// WebSockets). Never logs the token, nor the URL that may hold it.
+pub fn identify(parts: &Parts, state: &ApiState, websocket: bool) -> Result<Caller, Problem> {
     let peer = parts
         .extensions
         .get::<ConnectInfo<ClientAddr>>()
@@ -201,15 +231,31 @@ pub fn identify(parts: &Parts, state: &ApiState, allow_query: bool) -> Result<Ca
             state.source_for(&key),
         ));
     }
+    let ip = peer.map(|a| a.ip());
+    if let Some(ip) = ip
+        && let Err(wait) = state.tokens.throttle().check(ip, Instant::now())
+    {
+        state.metrics.security().auth_throttled();
+        let seconds = wait.as_secs().max(1);
+        return Err(Problem::new(
+            Kind::TooManyFailures,
+            format!("too many invalid API tokens came from this address: retry in {seconds} s"),
+        )
+        .retry_after(seconds));
+    }
     let presented = bearer(parts).or_else(|| {
-        allow_query
-            .then(|| query_token(parts.uri.query().unwrap_or("")))
+        websocket
+            .then(|| protocol_token(parts).or_else(|| query_token(parts.uri.query().unwrap_or(""))))
             .flatten()
     });
     let Some(presented) = presented else {
         return Err(Problem::new(
             Kind::Unauthorized,
-            "send an API token in the header Authorization: Bearer <token>",
+            if websocket {
+                "send an API token in the header Authorization: Bearer <token>, or offer the WebSocket subprotocols \"drivegate\" and \"drivegate.bearer.<token>\""
+            } else {
+                "send an API token in the header Authorization: Bearer <token>"
+            },
         ));
     };
     match state.tokens.check(&presented) {
@@ -220,16 +266,79 @@ pub fn identify(parts: &Parts, state: &ApiState, allow_query: bool) -> Result<Ca
             state.source_for(&name),
         )),
         None => {
-            tracing::warn!(
-                client = %peer.map_or_else(|| "unknown".to_string(), |a| a.to_string()),
-                "refused a request with an unknown API token"
-            );
+            state.metrics.security().auth_failure();
+            let client = peer.map_or_else(|| "unknown".to_string(), |a| a.to_string());
+            match ip.map(|ip| state.tokens.throttle().failure(ip, Instant::now())) {
+                Some(Failure::First) | None => tracing::warn!(
+                    client,
+                    "refused a request with an unknown API token (more from this address are counted, and logged if they pause it)"
+                ),
+                Some(Failure::Paused { failures, pause }) => tracing::warn!(
+                    client,
+                    failures,
+                    "{failures} unknown API tokens from this address in a short time: it is refused (429) for {} s",
+                    pause.as_secs()
+                ),
+                Some(Failure::Again) => {}
+            }
             Err(Problem::new(
                 Kind::Unauthorized,
                 "the API token is not valid",
             ))
         }
     }
+}
+
+/// The token in a `drivegate.bearer.<base64url of the token>` subprotocol
+/// (subprotocol names allow only a few characters, tokens may have any).
+fn protocol_token(parts: &Parts) -> Option<String> {
+    parts
+        .headers
+        .get_all(SEC_WEBSOCKET_PROTOCOL)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .find_map(|p| p.trim().strip_prefix(BEARER_PROTOCOL_PREFIX))
+        .and_then(base64url_decode)
+        .and_then(|bytes| String::from_utf8(bytes).ok())
+        .filter(|t| !t.is_empty())
+}
+
+/// Decodes unpadded (or padded) base64url.
+fn base64url_decode(text: &str) -> Option<Vec<u8>> {
+    let text = text.trim_end_matches('=');
+    let mut out = Vec::with_capacity(text.len() * 3 / 4);
+    let mut acc = 0u32;
+    let mut bits = 0u32;
+    for c in text.bytes() {
+        let v = match c {
+            b'A'..=b'Z' => c - b'A',
+            b'a'..=b'z' => c - b'a' + 26,
+            b'0'..=b'9' => c - b'0' + 52,
+            b'-' => 62,
+            b'_' => 63,
+            _ => return None,
+        };
+        acc = (acc << 6) | u32::from(v);
+        bits += 6;
+        if bits >= 8 {
+            bits -= 8;
+            out.push((acc >> bits) as u8);
+            acc &= (1 << bits) - 1;
+        }
+    }
+    // Leftover bits must be zero padding (and fewer than a character).
+    (bits < 6 && acc == 0).then_some(out)
+}
+
+/// True when a request's offered subprotocols include [`SUBPROTOCOL`].
+pub fn offers_subprotocol(headers: &axum::http::HeaderMap) -> bool {
+    headers
+        .get_all(SEC_WEBSOCKET_PROTOCOL)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|p| p.trim() == SUBPROTOCOL)
 }
 
 fn bearer(parts: &Parts) -> Option<String> {
@@ -283,8 +392,9 @@ impl FromRequestParts<ApiState> for Caller {
     }
 }
 
-/// A [`Caller`] that may also present its token as `?access_token=`: only
-/// for the WebSocket stream, since browsers cannot set its headers.
+/// A [`Caller`] that may also present its token as a subprotocol or as
+/// `?access_token=`: only for the WebSocket routes, since browsers cannot
+/// set their headers.
 #[derive(Debug, Clone)]
 pub struct StreamCaller(pub Caller);
 
@@ -313,14 +423,17 @@ mod tests {
         let mut file = tempfile::NamedTempFile::new().unwrap();
         std::io::Write::write_all(&mut file, b"s3cret-admin\n").unwrap();
         let hash: [u8; 32] = Sha256::digest(b"op-token").into();
-        let tokens = Tokens::resolve(&[
-            token("scada", Role::Operator, TokenSource::Sha256(hash)),
-            token(
-                "admin",
-                Role::Admin,
-                TokenSource::File(file.path().to_path_buf()),
-            ),
-        ])
+        let tokens = Tokens::resolve(
+            &[
+                token("scada", Role::Operator, TokenSource::Sha256(hash)),
+                token(
+                    "admin",
+                    Role::Admin,
+                    TokenSource::File(file.path().to_path_buf()),
+                ),
+            ],
+            10,
+        )
         .unwrap();
         assert_eq!(tokens.len(), 2);
         let (name, role) = tokens.check("op-token").unwrap();
@@ -334,30 +447,39 @@ mod tests {
 
     #[test]
     fn unusable_tokens_stop_the_start() {
-        let missing = Tokens::resolve(&[token(
-            "x",
-            Role::Viewer,
-            TokenSource::File("/nonexistent/drivegate.token".into()),
-        )])
+        let missing = Tokens::resolve(
+            &[token(
+                "x",
+                Role::Viewer,
+                TokenSource::File("/nonexistent/drivegate.token".into()),
+            )],
+            10,
+        )
         .unwrap_err();
         assert!(
             missing
                 .to_string()
                 .contains("cannot read /nonexistent/drivegate.token")
         );
-        let unset = Tokens::resolve(&[token(
-            "x",
-            Role::Viewer,
-            TokenSource::Env("DRIVEGATE_SURELY_UNSET_VARIABLE".into()),
-        )])
+        let unset = Tokens::resolve(
+            &[token(
+                "x",
+                Role::Viewer,
+                TokenSource::Env("DRIVEGATE_SURELY_UNSET_VARIABLE".into()),
+            )],
+            10,
+        )
         .unwrap_err();
         assert!(unset.to_string().contains("is not set"));
         let empty = tempfile::NamedTempFile::new().unwrap();
-        let e = Tokens::resolve(&[token(
-            "x",
-            Role::Viewer,
-            TokenSource::File(empty.path().to_path_buf()),
-        )])
+        let e = Tokens::resolve(
+            &[token(
+                "x",
+                Role::Viewer,
+                TokenSource::File(empty.path().to_path_buf()),
+            )],
+            10,
+        )
         .unwrap_err();
         assert!(e.to_string().contains("is empty"));
     }
@@ -371,6 +493,35 @@ mod tests {
         assert_eq!(query_token("access_token="), None);
         assert_eq!(query_token("access_token=%zz"), None);
         assert_eq!(query_token("x=1"), None);
+    }
+
+    #[test]
+    fn subprotocol_tokens_are_found() {
+        let request = |value: &str| {
+            let (parts, ()) = axum::http::Request::builder()
+                .header(SEC_WEBSOCKET_PROTOCOL, value)
+                .body(())
+                .unwrap()
+                .into_parts();
+            parts
+        };
+        // base64url("s3cret/+é") without padding.
+        let p = request("drivegate, drivegate.bearer.czNjcmV0LyvDqQ");
+        assert_eq!(protocol_token(&p).as_deref(), Some("s3cret/+é"));
+        assert_eq!(base64url_decode("YWI").unwrap(), b"ab");
+        assert_eq!(base64url_decode("YWJj").unwrap(), b"abc");
+        assert_eq!(base64url_decode("YQ==").unwrap(), b"a");
+        assert_eq!(base64url_decode("YR"), None);
+        assert_eq!(base64url_decode("a+b/"), None);
+        assert!(offers_subprotocol(&p.headers));
+        let p = request("drivegate.bearer.");
+        assert_eq!(protocol_token(&p), None);
+        assert_eq!(
+            protocol_token(&request("drivegate.bearer.not base64")),
+            None
+        );
+        assert!(!offers_subprotocol(&p.headers));
+        assert_eq!(protocol_token(&request("chat, superchat")), None);
     }
 
     #[test]

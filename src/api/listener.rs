@@ -188,6 +188,11 @@ pub struct LimitedStream {
 }
 
 impl LimitedStream {
+    /// The address the connection arrived at.
+    pub fn local_addr(&self) -> io::Result<SocketAddr> {
+        self.stream.local_addr()
+    }
+
     fn new(stream: TcpStream, permit: OwnedSemaphorePermit, idle_timeout: Duration) -> Self {
         let now = Instant::now();
         LimitedStream {
@@ -282,6 +287,11 @@ impl AsyncWrite for LimitedStream {
 /// The client's address, as handlers see it (`ConnectInfo<ClientAddr>`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ClientAddr(pub SocketAddr);
+
+/// The address a connection arrived at (a request extension): on a
+/// listener bound to every interface, the one the client used.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ServedAt(pub SocketAddr);
 
 #[cfg(test)]
 mod tests {

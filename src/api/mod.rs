@@ -4,8 +4,10 @@
 //! core, and renders what it decided.
 //!
 //! - [`listener`] binds (loopback only without tokens) and limits connections,
-//!   [`server`] serves them with a deadline on every request,
-//! - [`auth`] checks bearer tokens; [`roles`] says which role may do what,
+//!   [`server`] serves them with a deadline on every request, [`guard`]
+//!   refuses foreign hosts and foreign browser pages before any route runs,
+//! - [`auth`] checks bearer tokens, [`throttle`] pauses addresses that
+//!   guess them; [`roles`] says which role may do what,
 //! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`readback`],
 //!   [`buses`], [`monitor`] (every frame on the wire), [`scope`]
 //!   (triggered captures), [`whoami`] and [`health`] are the routes, all
@@ -27,6 +29,7 @@ pub mod commands;
 pub mod control;
 pub mod drives;
 pub mod extract;
+pub mod guard;
 pub mod health;
 pub mod hub;
 pub mod integers;
@@ -45,6 +48,7 @@ pub mod settings;
 pub mod socket;
 pub mod state;
 pub mod stream;
+pub mod throttle;
 pub mod whoami;
 
 use std::net::SocketAddr;
@@ -81,7 +85,7 @@ pub async fn start(
     shutdown: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
     let http = config.http.clone();
-    let tokens = Tokens::resolve(&http.tokens).map_err(|e| e.to_string())?;
+    let tokens = Tokens::resolve(&http.tokens, http.token_guesses).map_err(|e| e.to_string())?;
     let bind = listener::bind_address(http.listen, !tokens.is_empty());
     let tcp = tokio::net::TcpListener::bind(bind)
         .await
@@ -104,6 +108,35 @@ pub async fn start(
         tracing::info!(tokens = tokens.len(), "API tokens loaded");
     }
 
+    let tls = match &http.tls {
+        None => None,
+        Some(files) => {
+            let config = crate::tls::Reloadable::load(
+                files.clone(),
+                crate::tls::ClientAuth::IfConfigured,
+                &[b"http/1.1"],
+            )
+            .map(Arc::new)
+            .map_err(|e| format!("[http.tls]: {e}"))?;
+            let counter = metrics.clone();
+            crate::tls::reload_on_hangup(
+                config.clone(),
+                "http",
+                move |ok| counter.security().tls_reload("http", ok),
+                shutdown.clone(),
+            )
+            .map_err(|e| format!("cannot watch for SIGHUP (certificate reloads): {e}"))?;
+            tracing::info!(
+                listening = %addr,
+                mutual = files.client_ca.is_some(),
+                "HTTPS only on this listener"
+            );
+            Some(server::Tls {
+                config,
+                metrics: metrics.clone(),
+            })
+        }
+    };
     let hub = Hub::start(&plant, &control, &shutdown);
     scope::publish_progress(&plant, &hub, &shutdown);
     let state = ApiState::new(
@@ -124,7 +157,7 @@ pub async fn start(
     );
     let read_timeout = http.read_timeout;
     let task = tokio::spawn(async move {
-        server::serve(listener, app, read_timeout, shutdown).await;
+        server::serve(listener, app, read_timeout, tls, shutdown).await;
         // Upgraded connections are not the server's any more: the sessions
         // close themselves on shutdown, and are waited for here.
         state.sessions.close();
@@ -158,6 +191,18 @@ pub fn app(state: ApiState, pages: Router<ApiState>) -> Router {
         .layer(middleware::from_fn_with_state(
             state.clone(),
             request_metrics::count,
+        ))
+        .layer(middleware::from_fn_with_state(
+            guard::GuardState {
+                guard: Arc::new(guard::BrowserGuard::new(
+                    state.config.listen.ip(),
+                    state.config.tls.is_some(),
+                    &state.config.allowed_hosts,
+                    &state.config.allowed_origins,
+                )),
+                metrics: state.metrics.clone(),
+            },
+            guard::guard,
         ))
         .with_state(state)
 }

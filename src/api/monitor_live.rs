@@ -53,7 +53,9 @@ pub struct LiveQuery {
     /// Frames from before the connection to send first (default 100, at
     /// most the ring).
     pub backlog: Option<usize>,
-    /// The API token, for browsers (which cannot set headers on a WebSocket).
+    /// The API token in the URL: discouraged (proxies and logs keep URLs),
+    /// kept for old scripts; offer the subprotocols `drivegate` and
+    /// `drivegate.bearer.<base64url token>` instead.
     pub access_token: Option<String>,
 }
 
@@ -156,8 +158,10 @@ pub enum MonitorClientMessage {
 
 /// Every frame on the wire of a bus, live (WebSocket).
 ///
-/// Connect with a WebSocket client (the token in the Authorization header
-/// or `?access_token=`); the server sends `state`, then `frames` messages
+/// Connect with a WebSocket client (the token in the Authorization header,
+/// or from a browser as the subprotocol `drivegate.bearer.<base64url
+/// token>` offered beside `drivegate`); the server sends `state`, then
+/// `frames` messages
 /// (every 50 ms while there are new frames), each with `lost`: frames this
 /// client lost by reading too slowly. Send `filter`, `pause`, `resume`.
 #[utoipa::path(

@@ -9,6 +9,9 @@
 //! | `invalid-request` | 400 | malformed JSON, wrong types, unknown fields, contradictory fields |
 //! | `unauthorized` | 401 | no token, or an unknown one |
 //! | `forbidden` | 403 | the token's role does not allow this |
+//! | `foreign-origin` | 403 | a browser page from another site tried to change something or open a stream |
+//! | `unknown-host` | 421 | the `Host` is not a name drivegate answers to (`[http] allowed_hosts`) |
+//! | `too-many-failures` | 429 | too many bad tokens from this address; `Retry-After` says when to retry |
 //! | `unknown-drive`, `unknown-bus`, `unknown-command`, `not-found` | 404 | no such thing |
 //! | `method-not-allowed` | 405 | the route exists with other methods |
 //! | `request-timeout` | 408 | the body did not arrive within `[http] read_timeout_s` |
@@ -58,6 +61,12 @@ listed_enum! {
         Unauthorized,
         /// 403: the role does not allow it.
         Forbidden,
+        /// 403: a state-changing request or a stream from a foreign browser origin.
+        ForeignOrigin,
+        /// 421: the `Host` is not one the daemon answers to.
+        UnknownHost,
+        /// 429: too many failed token checks from one address.
+        TooManyFailures,
         /// 404: no drive by that name or unit.
         UnknownDrive,
         /// 404: no bus by that name.
@@ -126,6 +135,9 @@ impl Kind {
             Kind::InvalidRequest => "invalid-request",
             Kind::Unauthorized => "unauthorized",
             Kind::Forbidden => "forbidden",
+            Kind::ForeignOrigin => "foreign-origin",
+            Kind::UnknownHost => "unknown-host",
+            Kind::TooManyFailures => "too-many-failures",
             Kind::UnknownDrive => "unknown-drive",
             Kind::UnknownBus => "unknown-bus",
             Kind::UnknownCommand => "unknown-command",
@@ -168,7 +180,9 @@ impl Kind {
         match self {
             Kind::InvalidRequest => StatusCode::BAD_REQUEST,
             Kind::Unauthorized => StatusCode::UNAUTHORIZED,
-            Kind::Forbidden => StatusCode::FORBIDDEN,
+            Kind::Forbidden | Kind::ForeignOrigin => StatusCode::FORBIDDEN,
+            Kind::UnknownHost => StatusCode::MISDIRECTED_REQUEST,
+            Kind::TooManyFailures => StatusCode::TOO_MANY_REQUESTS,
             Kind::UnknownDrive
             | Kind::UnknownBus
             | Kind::UnknownCommand
@@ -207,6 +221,9 @@ impl Kind {
             Kind::InvalidRequest => "The request is malformed",
             Kind::Unauthorized => "A valid API token is required",
             Kind::Forbidden => "The token's role does not allow this",
+            Kind::ForeignOrigin => "Requests from another site's page are refused",
+            Kind::UnknownHost => "drivegate does not answer to this host name",
+            Kind::TooManyFailures => "Too many invalid tokens from this address",
             Kind::UnknownDrive => "No such drive",
             Kind::UnknownBus => "No such bus",
             Kind::UnknownCommand => "No such command",

@@ -11,7 +11,14 @@
 //! request, the first as the later ones on a kept-alive connection, must
 //! arrive within it (so a kept-alive connection left unused that long is
 //! closed too); the body then has as long again (see [`super::extract`]).
+//!
+//! Under `[http.tls]` every connection is TLS: the handshake runs in the
+//! connection's own task (a slow one holds up nobody else) within the same
+//! deadline, with the configuration current when it starts, so a reloaded
+//! certificate serves new connections while the open ones carry on. A
+//! client that speaks plain HTTP fails the handshake and gets no answer.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use axum::Router;
@@ -24,7 +31,18 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tower::ServiceExt;
 
-use super::listener::{ClientAddr, LimitedListener};
+use super::listener::{ClientAddr, LimitedListener, ServedAt};
+use crate::metrics::Metrics;
+use crate::tls::Reloadable;
+
+/// The listener's TLS, when `[http.tls]` is set.
+#[derive(Clone)]
+pub struct Tls {
+    /// The server configuration, reloadable.
+    pub config: Arc<Reloadable>,
+    /// Where failed handshakes are counted.
+    pub metrics: Arc<Metrics>,
+}
 
 /// Serves `app` on the connections of `listener` until `shutdown` fires,
 /// then lets the requests in progress finish and waits for their
@@ -34,6 +52,7 @@ pub async fn serve(
     mut listener: LimitedListener,
     app: Router,
     read_timeout: Duration,
+    tls: Option<Tls>,
     shutdown: CancellationToken,
 ) {
     let mut http = hyper::server::conn::http1::Builder::new();
@@ -45,25 +64,43 @@ pub async fn serve(
             () = shutdown.cancelled() => break,
             accepted = listener.accept() => accepted,
         };
+        let local = stream.local_addr().ok();
         let service = app
             .clone()
             .map_request(move |mut request: axum::http::Request<Incoming>| {
-                request
-                    .extensions_mut()
-                    .insert(ConnectInfo(ClientAddr(addr)));
+                let extensions = request.extensions_mut();
+                extensions.insert(ConnectInfo(ClientAddr(addr)));
+                if let Some(local) = local {
+                    extensions.insert(ServedAt(local));
+                }
                 request
             });
-        let connection = http
-            .serve_connection(TokioIo::new(stream), TowerToHyperService::new(service))
-            .with_upgrades();
+        let http = http.clone();
         let shutdown = shutdown.clone();
+        let tls = tls.clone();
         connections.spawn(async move {
-            tokio::pin!(connection);
-            let served = tokio::select! {
-                served = connection.as_mut() => served,
-                () = shutdown.cancelled() => {
-                    connection.as_mut().graceful_shutdown();
-                    connection.await
+            let service = TowerToHyperService::new(service);
+            let served = match tls {
+                None => serve_one(&http, stream, service, &shutdown).await,
+                Some(tls) => {
+                    let acceptor = tokio_rustls::TlsAcceptor::from(tls.config.current());
+                    let handshake = tokio::select! {
+                        h = tokio::time::timeout(read_timeout, acceptor.accept(stream)) => h,
+                        () = shutdown.cancelled() => return,
+                    };
+                    match handshake {
+                        Ok(Ok(stream)) => serve_one(&http, stream, service, &shutdown).await,
+                        Ok(Err(e)) => {
+                            tls.metrics.security().tls_handshake_failed("http");
+                            tracing::debug!(client = %addr, "TLS handshake failed: {e}");
+                            return;
+                        }
+                        Err(_) => {
+                            tls.metrics.security().tls_handshake_failed("http");
+                            tracing::debug!(client = %addr, "TLS handshake not done within {read_timeout:?}");
+                            return;
+                        }
+                    }
                 }
             };
             if let Err(e) = served {
@@ -75,4 +112,35 @@ pub async fn serve(
     drop(listener);
     connections.close();
     connections.wait().await;
+}
+
+/// Serves the requests of one connection (plain or TLS) until it closes,
+/// or gracefully once `shutdown` fires.
+async fn serve_one<I, S>(
+    http: &hyper::server::conn::http1::Builder,
+    io: I,
+    service: S,
+    shutdown: &CancellationToken,
+) -> Result<(), hyper::Error>
+where
+    I: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
+    S: hyper::service::Service<
+            axum::http::Request<Incoming>,
+            Response = axum::response::Response,
+            Error = std::convert::Infallible,
+        > + Send
+        + 'static,
+    S::Future: Send + 'static,
+{
+    let connection = http
+        .serve_connection(TokioIo::new(io), service)
+        .with_upgrades();
+    tokio::pin!(connection);
+    tokio::select! {
+        served = connection.as_mut() => served,
+        () = shutdown.cancelled() => {
+            connection.as_mut().graceful_shutdown();
+            connection.await
+        }
+    }
 }

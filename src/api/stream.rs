@@ -109,8 +109,9 @@ pub enum ClientMessage {
 pub struct StreamQuery {
     /// Subscribe at once: `all`, or drive names separated by commas.
     pub drives: Option<String>,
-    /// The API token, for browsers (which cannot set headers on a
-    /// WebSocket); prefer the Authorization header elsewhere.
+    /// The API token in the URL: discouraged (proxies and logs keep URLs),
+    /// kept for old scripts; offer the subprotocols `drivegate` and
+    /// `drivegate.bearer.<base64url token>` instead.
     pub access_token: Option<String>,
 }
 
@@ -131,7 +132,8 @@ fn resolve(state: &ApiState, selection: &DriveSelection) -> Result<Vec<usize>, P
 /// Streams statuses, online/offline and lease events; takes commands.
 ///
 /// Connect with a WebSocket client (the token in the Authorization header,
-/// or `?access_token=` from a browser), then send
+/// or from a browser as the subprotocol `drivegate.bearer.<base64url
+/// token>` offered beside `drivegate`, which is answered), then send
 /// `{"type":"subscribe","drives":"all"}` (or pass `?drives=all`). Messages
 /// from the server are `ServerMessage`s; messages to it `ClientMessage`s.
 #[utoipa::path(

@@ -44,6 +44,9 @@ pub enum Origin {
         port: u16,
         /// The request's MBAP transaction id.
         transaction: u16,
+        /// The client's name, when it has one: the CN of its certificate
+        /// (Modbus/TCP Security). A thin pointer, so jobs stay small.
+        name: Option<Arc<String>>,
     },
     /// The stop sent when a motor-safety lease ended.
     LeaseExpiry {
@@ -112,6 +115,18 @@ impl Origin {
             ip: peer.ip(),
             port: peer.port(),
             transaction,
+            name: None,
+        }
+    }
+
+    /// A Modbus TCP request from the client `name` (its certificate's CN)
+    /// at `peer`.
+    pub fn modbus_tcp_named(peer: SocketAddr, name: Option<Arc<String>>, transaction: u16) -> Self {
+        Origin::ModbusTcp {
+            ip: peer.ip(),
+            port: peer.port(),
+            transaction,
+            name,
         }
     }
 
@@ -139,7 +154,18 @@ impl Origin {
     pub fn who(&self) -> Option<String> {
         match self {
             Origin::Http { who } | Origin::WebSocket { who, .. } => Some(who.to_string()),
-            Origin::ModbusTcp { ip, port, .. } => Some(SocketAddr::new(*ip, *port).to_string()),
+            Origin::ModbusTcp {
+                ip,
+                port,
+                name: None,
+                ..
+            } => Some(SocketAddr::new(*ip, *port).to_string()),
+            Origin::ModbusTcp {
+                ip,
+                port,
+                name: Some(name),
+                ..
+            } => Some(format!("{name} ({})", SocketAddr::new(*ip, *port))),
             Origin::LeaseExpiry { owner } => Some(owner.to_string()),
             _ => None,
         }
@@ -173,11 +199,19 @@ impl fmt::Display for Origin {
                 ip,
                 port,
                 transaction,
-            } => write!(
-                f,
-                "Modbus TCP {} (transaction {transaction})",
-                SocketAddr::new(*ip, *port)
-            ),
+                name,
+            } => match name {
+                None => write!(
+                    f,
+                    "Modbus TCP {} (transaction {transaction})",
+                    SocketAddr::new(*ip, *port)
+                ),
+                Some(name) => write!(
+                    f,
+                    "Modbus TCP {name} ({}) (transaction {transaction})",
+                    SocketAddr::new(*ip, *port)
+                ),
+            },
             Origin::LeaseExpiry { owner } => write!(f, "lease expiry ({owner}'s lease)"),
             Origin::Shutdown => f.write_str("shutdown"),
         }

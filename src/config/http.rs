@@ -71,6 +71,17 @@ pub struct HttpConfig {
     /// Lease given to setpoints that ask for none (`None`: no lease);
     /// within `[safety] lease_min_ms` to `lease_max_ms`.
     pub lease_default: Option<Duration>,
+    /// Host names and addresses the API answers to besides loopback and
+    /// the listen address (see [`super::guard`]), normalised.
+    pub allowed_hosts: Vec<String>,
+    /// Browser origins whose pages may change things and open streams
+    /// besides the daemon's own, normalised.
+    pub allowed_origins: Vec<String>,
+    /// Unknown tokens from one address within a minute that pause it for
+    /// a minute (see [`super::throttle`]).
+    pub token_guesses: u32,
+    /// `[http.tls]`: serve HTTPS only, with these files.
+    pub tls: Option<crate::tls::TlsFiles>,
 }
 
 impl Default for HttpConfig {
@@ -88,6 +99,10 @@ impl Default for HttpConfig {
                 send_buffer_bytes: 65_536,
                 stream_buffer: 256,
                 lease_default: None,
+                allowed_hosts: Vec::new(),
+                allowed_origins: Vec::new(),
+                token_guesses: 10,
+                tls: None,
             },
         }
     }
@@ -114,6 +129,10 @@ pub struct RawHttpConfig {
     /// Moved to `[safety]`: refused here with where it went.
     lease_max_ms: Option<i64>,
     lease_default_ms: i64,
+    allowed_hosts: Vec<String>,
+    allowed_origins: Vec<String>,
+    token_guesses: i64,
+    tls: Option<crate::tls::TlsFiles>,
 }
 
 impl Default for RawHttpConfig {
@@ -130,6 +149,10 @@ impl Default for RawHttpConfig {
             lease_min_ms: None,
             lease_max_ms: None,
             lease_default_ms: 0,
+            allowed_hosts: Vec::new(),
+            allowed_origins: Vec::new(),
+            token_guesses: 10,
+            tls: None,
         }
     }
 }
@@ -218,6 +241,24 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
             send_buffer_bytes,
             stream_buffer,
             lease_default,
+            allowed_hosts: raw
+                .allowed_hosts
+                .iter()
+                .map(|h| super::origins::parse_allowed_host(h))
+                .collect::<Result<_, _>>()?,
+            allowed_origins: raw
+                .allowed_origins
+                .iter()
+                .map(|o| super::origins::parse_allowed_origin(o))
+                .collect::<Result<_, _>>()?,
+            token_guesses: u32::try_from(in_range(
+                "token_guesses",
+                raw.token_guesses,
+                1,
+                1_000_000,
+            )?)
+            .unwrap_or(10),
+            tls: raw.tls,
         })
     }
 }

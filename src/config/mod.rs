@@ -11,6 +11,8 @@ mod diagnostics;
 mod error;
 pub mod http;
 pub mod modbus_tcp;
+mod modbus_tls;
+pub mod origins;
 mod role;
 mod safety;
 pub(crate) mod values;
@@ -25,6 +27,7 @@ pub use diagnostics::{MonitorConfig, ScopeConfig};
 pub use error::ConfigError;
 pub use http::HttpConfig;
 pub use modbus_tcp::ModbusTcpConfig;
+pub use modbus_tls::ModbusTlsConfig;
 pub use role::Role;
 pub use safety::{SafetyConfig, StopAction};
 

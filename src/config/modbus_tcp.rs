@@ -55,6 +55,8 @@ pub struct ModbusTcpConfig {
     pub unit_map: Vec<UnitMapEntry>,
     /// Buses whose status reads are answered from the latest poll.
     pub polled_copy: Vec<PolledCopy>,
+    /// `[modbus_tcp.tls]`: the Modbus/TCP Security listener beside this one.
+    pub tls: Option<crate::config::ModbusTlsConfig>,
 }
 
 /// A client network and what its clients may do, with its
@@ -331,6 +333,7 @@ impl Default for ModbusTcpConfig {
             broadcast_reply: false,
             unit_map: Vec::new(),
             polled_copy: Vec::new(),
+            tls: None,
         }
     }
 }

@@ -1,6 +1,7 @@
 //! Prometheus metrics (`GET /metrics`).
 //!
 //! - [`faces`]: counters the HTTP, WebSocket and Modbus TCP faces update,
+//! - `security`: the browser-origin guards, token failures and TLS,
 //! - `drives`: per-drive series read from the poll cache at scrape time,
 //! - `buses`: per-bus series read from the bus counters, queues and port
 //!   state (and the simulator's wire counters) at scrape time,
@@ -20,6 +21,7 @@ mod drives;
 mod faces;
 mod family;
 mod process;
+mod security;
 mod utilisation;
 mod wire;
 
@@ -28,6 +30,7 @@ use std::sync::{Arc, Weak};
 use prometheus::{Encoder, Registry, TextEncoder};
 
 pub use faces::{FaceMetrics, WsClientGuard};
+pub use security::SecurityMetrics;
 pub use utilisation::{SAMPLE_PERIOD, WINDOW as UTILISATION_WINDOW};
 
 use crate::plant::Plant;
@@ -37,6 +40,7 @@ use utilisation::Utilisation;
 pub struct Metrics {
     registry: Registry,
     faces: FaceMetrics,
+    security: SecurityMetrics,
     plant: Arc<Plant>,
     utilisation: Arc<Utilisation>,
 }
@@ -48,6 +52,7 @@ impl Metrics {
     pub fn new(plant: Arc<Plant>) -> Arc<Self> {
         let registry = Registry::new();
         let faces = FaceMetrics::register(&registry);
+        let security = SecurityMetrics::register(&registry);
         let utilisation = Arc::new(Utilisation::new(&plant));
         let collectors: [Box<dyn prometheus::core::Collector>; 3] = [
             Box::new(drives::DriveCollector::new(plant.clone())),
@@ -63,6 +68,7 @@ impl Metrics {
         let metrics = Arc::new(Self {
             registry,
             faces,
+            security,
             plant,
             utilisation,
         });
@@ -86,6 +92,11 @@ impl Metrics {
     /// The faces' counters, for the HTTP and Modbus TCP code to update.
     pub fn faces(&self) -> &FaceMetrics {
         &self.faces
+    }
+
+    /// The transport's defences' counters (guards, tokens, TLS).
+    pub fn security(&self) -> &SecurityMetrics {
+        &self.security
     }
 
     /// The plant the drive and bus metrics are read from.

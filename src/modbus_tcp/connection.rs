@@ -30,8 +30,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::{Buf, BytesMut};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
@@ -91,9 +90,10 @@ enum End {
     Shutdown,
 }
 
-/// Serves one connection until it ends.
-pub async fn serve(
-    stream: TcpStream,
+/// Serves one connection (plain TCP, or TLS for Modbus/TCP Security)
+/// until it ends.
+pub async fn serve<S: AsyncRead + AsyncWrite + Send + 'static>(
+    stream: S,
     client: Client,
     session: SessionGuard,
     gateway: Arc<Gateway>,
@@ -101,7 +101,7 @@ pub async fn serve(
     shutdown: CancellationToken,
 ) {
     let metrics = gateway.metrics().clone();
-    let (mut rd, mut wr) = stream.into_split();
+    let (mut rd, mut wr) = tokio::io::split(stream);
     let mut buf = BytesMut::with_capacity(2 * MAX_FRAME);
     let mut queue: VecDeque<InFlight> = VecDeque::new();
     let mut out = Vec::with_capacity(MAX_FRAME);
@@ -222,7 +222,7 @@ pub async fn serve(
 /// Reads and discards what the client still sends, briefly, after our side
 /// was shut down: closing a socket with unread input makes the kernel send
 /// a reset, which can destroy replies the client has not read yet.
-async fn drain(rd: &mut tokio::net::tcp::OwnedReadHalf) {
+async fn drain<R: AsyncRead + Unpin>(rd: &mut R) {
     let mut sink = [0u8; 1024];
     let mut left: usize = 64 * 1024;
     let until = Instant::now() + Duration::from_millis(500);

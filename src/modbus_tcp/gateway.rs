@@ -46,24 +46,42 @@ pub struct Client {
     pub caller: Caller,
     /// Writes that need standstill go even while the motor turns.
     pub allow_saves_while_moving: bool,
+    /// Its name, if it has one: the CN of its certificate.
+    pub name: Option<Arc<String>>,
 }
 
 impl Client {
     /// A new client at `peer` with `rights` in `session` (its connection),
     /// with a source id of its own.
     pub fn new(peer: SocketAddr, rights: Rights, session: SessionId) -> Self {
+        Self::named(peer, None, rights, session)
+    }
+
+    /// A new client called `name` (the CN of its certificate), which the
+    /// audit log and the bus monitor show with its address.
+    pub fn named(
+        peer: SocketAddr,
+        name: Option<Arc<String>>,
+        rights: Rights,
+        session: SessionId,
+    ) -> Self {
+        let who = match &name {
+            Some(name) => format!("{name} ({peer})"),
+            None => peer.to_string(),
+        };
         Self {
             peer,
-            caller: Caller::new(
-                Face::ModbusTcp,
-                peer.to_string(),
-                rights.role,
-                SourceId::new_unique(),
-            )
-            .in_session(Face::ModbusTcp, session)
-            .with_origin(Origin::modbus_tcp(peer, 0)),
+            caller: Caller::new(Face::ModbusTcp, who, rights.role, SourceId::new_unique())
+                .in_session(Face::ModbusTcp, session)
+                .with_origin(Origin::modbus_tcp_named(peer, name.clone(), 0)),
             allow_saves_while_moving: rights.allow_saves_while_moving,
+            name,
         }
+    }
+
+    /// The origin of its request `transaction`, for the bus monitor.
+    fn origin(&self, transaction: u16) -> Origin {
+        Origin::modbus_tcp_named(self.peer, self.name.clone(), transaction)
     }
 }
 
@@ -184,9 +202,7 @@ impl Gateway {
         }
         // The bus monitor shows this request's frames as the client's,
         // with its transaction id.
-        let caller = client
-            .caller
-            .with_origin(Origin::modbus_tcp(client.peer, transaction));
+        let caller = client.caller.with_origin(client.origin(transaction));
         if !request::reads_only(&pdu) {
             let target = self.control.unit_target(route.bus, route.unit);
             let write = if target.drive.is_some() {
@@ -253,9 +269,7 @@ impl Gateway {
             let answer = self.refuse(client, ("all", 0), &pdu, code, outcome, why.to_string());
             return self.reply_to_broadcast(answer);
         }
-        let caller = client
-            .caller
-            .with_origin(Origin::modbus_tcp(client.peer, transaction));
+        let caller = client.caller.with_origin(client.origin(transaction));
         let mut writes = Vec::new();
         for &bus in self.routes.broadcast_buses() {
             let target = self.control.unit_target(bus, 0);

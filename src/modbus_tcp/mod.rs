@@ -78,3 +78,63 @@ pub async fn start(
     let task = tokio::spawn(server::run(listener, gateway, settings, shutdown));
     Ok((addr, task))
 }
+
+/// Binds the Modbus/TCP Security listener of `[modbus_tcp.tls]` (if any)
+/// and serves it until `shutdown` fires; its certificate is reloaded on
+/// SIGHUP.
+pub async fn start_tls(
+    config: &Config,
+    plant: Arc<Plant>,
+    metrics: Arc<Metrics>,
+    control: Control,
+    shutdown: CancellationToken,
+) -> Result<Option<(SocketAddr, JoinHandle<()>)>, String> {
+    let tcp = &config.modbus_tcp;
+    let Some(section) = tcp.tls.clone() else {
+        return Ok(None);
+    };
+    let reloadable =
+        crate::tls::Reloadable::load(section.files(), crate::tls::ClientAuth::Required, &[])
+            .map(Arc::new)
+            .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
+    let listener = tokio::net::TcpListener::bind(section.listen)
+        .await
+        .map_err(|e| {
+            let hint = if section.listen.port() < 1024
+                && e.kind() == std::io::ErrorKind::PermissionDenied
+            {
+                " (ports below 1024 need CAP_NET_BIND_SERVICE: see docs/modbus-tcp.md)"
+            } else {
+                ""
+            };
+            format!(
+                "cannot listen for Modbus/TCP Security on {}: {e}{hint}",
+                section.listen
+            )
+        })?;
+    let addr = listener.local_addr().map_err(|e| e.to_string())?;
+    let counter = metrics.clone();
+    crate::tls::reload_on_hangup(
+        reloadable.clone(),
+        "modbus_tcp",
+        move |ok| counter.security().tls_reload("modbus_tcp", ok),
+        shutdown.clone(),
+    )
+    .map_err(|e| format!("cannot watch for SIGHUP (certificate reloads): {e}"))?;
+    let gateway = Arc::new(Gateway::new(tcp, plant, control, metrics));
+    let settings = ServerSettings {
+        access: Access::from_config(tcp),
+        max_connections: tcp.max_connections,
+        connection: ConnectionSettings {
+            idle_timeout: tcp.idle_timeout(),
+            max_pipelined: tcp.max_pipelined,
+        },
+    };
+    let tls = server::TlsSettings {
+        config: reloadable,
+        section,
+        read_only: tcp.read_only,
+    };
+    let task = tokio::spawn(server::run_tls(listener, gateway, settings, tls, shutdown));
+    Ok(Some((addr, task)))
+}

@@ -17,3 +17,4 @@ mod browser;
 mod comm_loss;
 mod diagnostics;
 mod harness;
+mod https;

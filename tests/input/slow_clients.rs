@@ -88,7 +88,7 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         // Seven clients take the other seven slots, each sending a request
         // head one byte every 100 ms (it would take seconds to finish).
         let head = format!(
-            "GET /api/v1/drives/conveyor/status HTTP/1.1\r\nHost: drivegate\r\nAuthorization: Bearer {VIEWER}\r\nX-Padding: {}\r\n\r\n",
+            "GET /api/v1/drives/conveyor/status HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {VIEWER}\r\nX-Padding: {}\r\n\r\n",
             "p".repeat(40)
         );
         let (connected_tx, mut connected) = tokio::sync::mpsc::channel(7);
@@ -151,7 +151,7 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         // too; one request on it is answered first.
         let mut kept = TcpStream::connect(addr).await.unwrap();
         let opened = Instant::now();
-        kept.write_all(b"GET /healthz HTTP/1.1\r\nHost: drivegate\r\n\r\n")
+        kept.write_all(b"GET /healthz HTTP/1.1\r\nHost: localhost\r\n\r\n")
             .await
             .unwrap();
         let answer = read_until_closed(&mut kept, Duration::from_secs(10))
@@ -191,7 +191,7 @@ async fn bodies_that_never_complete_are_answered_408_and_write_nothing() {
         let body = br#"{"ratio": 3, "save": false, "force": false}"#;
         let head = |path: &str| {
             format!(
-                "PUT {path} HTTP/1.1\r\nHost: drivegate\r\nConnection: close\r\nAuthorization: Bearer {ADMIN}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+                "PUT {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nAuthorization: Bearer {ADMIN}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
                 body.len()
             )
         };

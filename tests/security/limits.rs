@@ -27,7 +27,7 @@ fn object_of(n: usize) -> Vec<u8> {
 
 fn put(body_header: &str, body: &[u8]) -> Vec<u8> {
     let mut bytes = format!(
-        "PUT /api/v1/drives/lift/setpoint HTTP/1.1\r\nHost: drivegate\r\nConnection: close\r\nAuthorization: Bearer {ADMIN}\r\nContent-Type: application/json\r\n{body_header}\r\n\r\n"
+        "PUT /api/v1/drives/lift/setpoint HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nAuthorization: Bearer {ADMIN}\r\nContent-Type: application/json\r\n{body_header}\r\n\r\n"
     )
     .into_bytes();
     bytes.extend_from_slice(body);
@@ -138,7 +138,7 @@ async fn body_limits_hold_however_the_body_comes() {
 
 /// Sends a GET on an open keep-alive connection and reads its answer.
 async fn ask(s: &mut TcpStream) -> u16 {
-    s.write_all(format!("GET /api/v1/drives/lift HTTP/1.1\r\nHost: drivegate\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes())
+    s.write_all(format!("GET /api/v1/drives/lift HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes())
         .await
         .unwrap();
     let mut got = Vec::new();
@@ -178,7 +178,7 @@ async fn a_flood_of_connections_is_refused_and_the_open_ones_kept() {
                 tokio::spawn(async move {
                     raw_http(
                         addr,
-                        format!("GET /api/v1/drives HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes(),
+                        format!("GET /api/v1/drives HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes(),
                     )
                     .await
                 })
@@ -206,7 +206,7 @@ async fn a_flood_of_connections_is_refused_and_the_open_ones_kept() {
         drop(held);
         let mut served = false;
         for _ in 0..50 {
-            let a = raw_http(addr, format!("GET /api/v1/drives HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes()).await;
+            let a = raw_http(addr, format!("GET /api/v1/drives HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nAuthorization: Bearer {VIEWER}\r\n\r\n").as_bytes()).await;
             if a.is_ok_and(|a| a.status == 200) {
                 served = true;
                 break;

@@ -10,6 +10,11 @@
 #[path = "../support/mod.rs"]
 mod support;
 
+mod certs;
+mod https;
 mod limits;
 mod modbus_tcp;
+mod modbus_tls;
+mod origin;
 mod routes;
+mod tokens;

@@ -72,6 +72,8 @@ pub struct TestDaemon {
     pub metrics: Arc<Metrics>,
     pub http: SocketAddr,
     pub modbus_tcp: Option<SocketAddr>,
+    /// Where Modbus/TCP Security listens, if configured.
+    pub modbus_tls: Option<SocketAddr>,
     shutdown: CancellationToken,
     faces: Option<Faces>,
 }
@@ -102,6 +104,7 @@ impl TestDaemon {
             metrics,
             http: faces.http,
             modbus_tcp: faces.modbus_tcp,
+            modbus_tls: faces.modbus_tls,
             shutdown,
             faces: Some(faces),
         }

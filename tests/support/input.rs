@@ -525,7 +525,7 @@ pub fn request(
     body: &[u8],
 ) -> Vec<u8> {
     let mut head =
-        format!("{method} {target} HTTP/1.1\r\nHost: drivegate\r\nConnection: close\r\n");
+        format!("{method} {target} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n");
     if let Some(t) = token {
         head.push_str(&format!("Authorization: Bearer {t}\r\n"));
     }
@@ -559,7 +559,7 @@ pub async fn ws_handshake_small_buffer(addr: SocketAddr, query: &str) -> tokio::
 async fn ws_upgrade(mut stream: tokio::net::TcpStream, query: &str) -> tokio::net::TcpStream {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let request = format!(
-        "GET /api/v1/stream{query} HTTP/1.1\r\nHost: drivegate\r\nUpgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        "GET /api/v1/stream{query} HTTP/1.1\r\nHost: localhost\r\nUpgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
     );
     stream.write_all(request.as_bytes()).await.unwrap();
     // Byte by byte up to the end of the answer head, so no frame after it

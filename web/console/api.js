@@ -18,6 +18,19 @@ export function token() {
   return sessionStorage.getItem(TOKEN_KEY);
 }
 
+// The WebSocket subprotocols a stream offers: "drivegate", and the token
+// as "drivegate.bearer.<base64url of the token>" (a header, so it stays out
+// of the URL, where proxies and logs would keep it). The daemon answers
+// "drivegate" only.
+export function streamProtocols() {
+  const t = token();
+  if (!t) return ['drivegate'];
+  let bytes = '';
+  for (const b of new TextEncoder().encode(t)) bytes += String.fromCharCode(b);
+  const b64 = btoa(bytes).replace(/\+/g, '-').replace(/\//g, '_').replace(/=+$/, '');
+  return ['drivegate', `drivegate.bearer.${b64}`];
+}
+
 export function setToken(value) {
   if (value) sessionStorage.setItem(TOKEN_KEY, value);
   else sessionStorage.removeItem(TOKEN_KEY);

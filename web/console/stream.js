@@ -7,7 +7,7 @@
 // socket closes: that is what makes hold-to-jog safe when the tab closes
 // or the network is cut (see jog.js).
 
-import { ApiError, token } from './api.js';
+import { ApiError, streamProtocols } from './api.js';
 
 export class Stream {
   constructor() {
@@ -40,9 +40,7 @@ export class Stream {
     this.stopped = false;
     clearTimeout(this.timer);
     const scheme = location.protocol === 'https:' ? 'wss' : 'ws';
-    const t = token();
-    const query = `drives=all${t ? `&access_token=${encodeURIComponent(t)}` : ''}`;
-    const ws = new WebSocket(`${scheme}://${location.host}/api/v1/stream?${query}`);
+    const ws = new WebSocket(`${scheme}://${location.host}/api/v1/stream?drives=all`, streamProtocols());
     this.ws = ws;
     this.setState('connecting');
     ws.onopen = () => {

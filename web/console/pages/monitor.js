@@ -5,7 +5,7 @@
 // downloads are the API's CSV and PCAP. The list keeps the newest ROWS
 // rows, so a page left open for days does not grow.
 
-import { ApiError, busPath, download, get, token } from '../api.js';
+import { ApiError, busPath, download, get, streamProtocols } from '../api.js';
 import { h, fmt, clock, Note, run } from '../ui.js';
 import { busesOf } from '../store.js';
 
@@ -242,9 +242,8 @@ function mount(main, params, ctx) {
     let next = initial.next;
     take(initial.frames);
     const scheme = location.protocol === 'https:' ? 'wss' : 'ws';
-    const t = token();
-    const q = `backlog=${BACKLOG}${query('&')}${t ? `&access_token=${encodeURIComponent(t)}` : ''}`;
-    const socket = new WebSocket(`${scheme}://${location.host}${busPath(bus, '/monitor/live')}?${q}`);
+    const q = `backlog=${BACKLOG}${query('&')}`;
+    const socket = new WebSocket(`${scheme}://${location.host}${busPath(bus, '/monitor/live')}?${q}`, streamProtocols());
     ws = socket;
     socket.onopen = () => {
       delay = 500;

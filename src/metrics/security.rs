@@ -1,0 +1,107 @@
+//! Counters of the transport's defences: requests the browser-origin
+//! guards refused, failed and throttled token checks, TLS handshakes that
+//! failed, and certificate reloads.
+
+use prometheus::{IntCounter, IntCounterVec, Opts, Registry};
+
+/// The security counters.
+#[derive(Clone)]
+pub struct SecurityMetrics {
+    guard_refused: IntCounterVec,
+    auth_failures: IntCounter,
+    auth_throttled: IntCounter,
+    tls_handshake_failures: IntCounterVec,
+    tls_reloads: IntCounterVec,
+    tls_refused_clients: IntCounterVec,
+}
+
+fn counter_vec(registry: &Registry, name: &str, help: &str, labels: &[&str]) -> IntCounterVec {
+    let c = IntCounterVec::new(Opts::new(name, help), labels)
+        .unwrap_or_else(|e| panic!("invalid metric definition {name}: {e}"));
+    let _ = registry.register(Box::new(c.clone()));
+    c
+}
+
+fn counter(registry: &Registry, name: &str, help: &str) -> IntCounter {
+    let c = IntCounter::new(name, help)
+        .unwrap_or_else(|e| panic!("invalid metric definition {name}: {e}"));
+    let _ = registry.register(Box::new(c.clone()));
+    c
+}
+
+impl SecurityMetrics {
+    /// Creates the counters and registers them in `registry`.
+    pub fn register(registry: &Registry) -> Self {
+        let metrics = Self {
+            guard_refused: counter_vec(
+                registry,
+                "drivegate_http_guard_refused_total",
+                "HTTP requests refused by the browser-origin guards, by reason (host, origin, cross-site).",
+                &["reason"],
+            ),
+            auth_failures: counter(
+                registry,
+                "drivegate_http_auth_failures_total",
+                "HTTP requests and stream upgrades with an unknown API token.",
+            ),
+            auth_throttled: counter(
+                registry,
+                "drivegate_http_auth_throttled_total",
+                "HTTP requests answered 429 because their address sent too many unknown tokens.",
+            ),
+            tls_handshake_failures: counter_vec(
+                registry,
+                "drivegate_tls_handshake_failures_total",
+                "TLS handshakes that failed, by face (http, modbus_tcp).",
+                &["face"],
+            ),
+            tls_reloads: counter_vec(
+                registry,
+                "drivegate_tls_reloads_total",
+                "Certificate reloads (SIGHUP), by face and result (ok, failed: the previous certificate stays).",
+                &["face", "result"],
+            ),
+            tls_refused_clients: counter_vec(
+                registry,
+                "drivegate_modbus_tcp_tls_refused_total",
+                "Modbus/TCP Security clients refused after the handshake, by reason (role).",
+                &["reason"],
+            ),
+        };
+        for reason in ["host", "origin", "cross-site"] {
+            metrics.guard_refused.with_label_values(&[reason]);
+        }
+        metrics
+    }
+
+    /// A request refused by a browser-origin guard.
+    pub fn guard_refused(&self, reason: &str) {
+        self.guard_refused.with_label_values(&[reason]).inc();
+    }
+
+    /// An unknown token.
+    pub fn auth_failure(&self) {
+        self.auth_failures.inc();
+    }
+
+    /// A request answered 429 for its address's failures.
+    pub fn auth_throttled(&self) {
+        self.auth_throttled.inc();
+    }
+
+    /// A failed TLS handshake on `face`.
+    pub fn tls_handshake_failed(&self, face: &str) {
+        self.tls_handshake_failures.with_label_values(&[face]).inc();
+    }
+
+    /// A certificate reload on `face`, `ok` or not.
+    pub fn tls_reload(&self, face: &str, ok: bool) {
+        let result = if ok { "ok" } else { "failed" };
+        self.tls_reloads.with_label_values(&[face, result]).inc();
+    }
+
+    /// A Modbus/TCP Security client refused after its handshake.
+    pub fn tls_client_refused(&self, reason: &str) {
+        self.tls_refused_clients.with_label_values(&[reason]).inc();
+    }
+}
