@@ -17,7 +17,6 @@
 
 use std::net::SocketAddr;
 use std::path::Path;
-use std::process::Command;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -28,6 +27,15 @@ use drivegate::plant::Plant;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio_util::sync::CancellationToken;
+
+// The tests' certificate maker, and the tool lookup it reports through
+// (its `super::tools`).
+#[allow(dead_code, unreachable_pub)]
+#[path = "../tests/support/certs.rs"]
+mod certs;
+#[allow(dead_code, unreachable_pub)]
+#[path = "../tests/support/tools.rs"]
+mod tools;
 
 const DRIVES: &str = r#"
 [[modbus_tcp.polled_copy]]
@@ -66,100 +74,6 @@ fn env(name: &str, default: u64) -> u64 {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
-}
-
-fn openssl(dir: &Path, args: &[&str]) {
-    let ok = Command::new("openssl")
-        .current_dir(dir)
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        ok.status.success(),
-        "openssl {args:?}: {}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
-}
-
-fn signed(dir: &Path, name: &str, cn: &str, ext: &str) {
-    std::fs::write(dir.join(format!("{name}.ext")), ext).unwrap();
-    openssl(
-        dir,
-        &[
-            "req",
-            "-new",
-            "-newkey",
-            "ec",
-            "-pkeyopt",
-            "ec_paramgen_curve:prime256v1",
-            "-nodes",
-            "-keyout",
-            &format!("{name}.key"),
-            "-out",
-            &format!("{name}.csr"),
-            "-subj",
-            &format!("/CN={cn}"),
-        ],
-    );
-    openssl(
-        dir,
-        &[
-            "x509",
-            "-req",
-            "-in",
-            &format!("{name}.csr"),
-            "-CA",
-            "ca.pem",
-            "-CAkey",
-            "ca.key",
-            "-CAcreateserial",
-            "-out",
-            &format!("{name}.pem"),
-            "-days",
-            "2",
-            "-extfile",
-            &format!("{name}.ext"),
-        ],
-    );
-}
-
-fn pki(dir: &Path) {
-    openssl(
-        dir,
-        &[
-            "req",
-            "-x509",
-            "-newkey",
-            "ec",
-            "-pkeyopt",
-            "ec_paramgen_curve:prime256v1",
-            "-nodes",
-            "-keyout",
-            "ca.key",
-            "-out",
-            "ca.pem",
-            "-days",
-            "2",
-            "-subj",
-            "/CN=bench CA",
-            "-addext",
-            "basicConstraints=critical,CA:TRUE",
-            "-addext",
-            "keyUsage=critical,keyCertSign,cRLSign",
-        ],
-    );
-    signed(
-        dir,
-        "server",
-        "127.0.0.1",
-        "basicConstraints=CA:FALSE\nextendedKeyUsage=serverAuth\nsubjectAltName=IP:127.0.0.1\n",
-    );
-    signed(
-        dir,
-        "plc",
-        "plc",
-        "basicConstraints=CA:FALSE\nextendedKeyUsage=clientAuth\n1.3.6.1.4.1.50316.802.1=ASN1:UTF8String:viewer\n",
-    );
 }
 
 fn client_config(dir: &Path, with_cert: bool) -> Arc<rustls::ClientConfig> {
@@ -293,8 +207,11 @@ async fn load(
 async fn main() {
     let seconds = env("BENCH_SECONDS", 5);
     let clients = env("BENCH_CLIENTS", 16);
-    let dir = tempfile::tempdir().unwrap();
-    pki(dir.path());
+    // The tests' certificates: a CA, a server certificate for 127.0.0.1,
+    // and a PLC's client certificate with the viewer role.
+    let pki = certs::Pki::new();
+    pki.client("plc", "ca", Some("ASN1:UTF8String:viewer"));
+    let dir = &pki.dir;
     let p = |n: &str| dir.path().join(n).display().to_string();
     let faces = |tls: bool| {
         let http_tls = if tls {

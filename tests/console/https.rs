@@ -5,9 +5,6 @@
 
 use std::process::Command;
 
-#[path = "../security/certs.rs"]
-mod certs;
-
 use crate::browser::{LONG, assert_no_errors, open};
 use crate::harness::{ADMIN, config};
 use crate::support::TestDaemon;
@@ -32,7 +29,7 @@ fn spki_hash(cert: &std::path::Path) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_console_works_over_https_with_its_stream_on_wss() {
     crate::support::tools::require("openssl");
-    let pki = certs::Pki::new();
+    let pki = crate::support::certs::Pki::new();
     let tls = format!(
         "[http.tls]\ncert = \"{}\"\nkey = \"{}\"\n",
         pki.path("server.pem").display(),

@@ -14,7 +14,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio_rustls::client::TlsStream;
 
-use super::certs::Pki;
+use crate::support::certs::Pki;
 use crate::support::eventually;
 use crate::support::{FOUR_DRIVES, TestDaemon, tools};
 

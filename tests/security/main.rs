@@ -10,7 +10,6 @@
 #[path = "../support/mod.rs"]
 mod support;
 
-mod certs;
 mod https;
 mod limits;
 mod modbus_tcp;

@@ -9,7 +9,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use super::certs::Pki;
+use crate::support::certs::Pki;
 use crate::support::eventually;
 use crate::support::logs::{capture_logs, log_text};
 use crate::support::{FOUR_DRIVES, TestDaemon, tools};

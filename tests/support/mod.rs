@@ -7,6 +7,7 @@
 pub mod api;
 pub mod bus;
 pub mod cdp;
+pub mod certs;
 pub mod config;
 pub mod csv;
 pub mod daemon;

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use crate::support::tools;
+use super::tools;
 
 /// The role extension of Modbus/TCP Security.
 pub const ROLE_OID: &str = "1.3.6.1.4.1.50316.802.1";
