@@ -550,6 +550,12 @@ impl IntoResponse for Problem {
                 HeaderValue::from_static("Bearer realm=\"drivegate\""),
             );
         }
+        if matches!(kind, Kind::PayloadTooLarge | Kind::RequestTimeout) {
+            // The rest of the body is not read, so the connection cannot
+            // carry another request: say so, or a client that reuses it
+            // sees its next request fail with a broken pipe.
+            headers.insert(header::CONNECTION, HeaderValue::from_static("close"));
+        }
         response
     }
 }
@@ -557,6 +563,23 @@ impl IntoResponse for Problem {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_refused_body_closes_its_connection_and_says_so() {
+        for kind in [Kind::PayloadTooLarge, Kind::RequestTimeout] {
+            let response = Problem::new(kind, "x").into_response();
+            assert_eq!(
+                response
+                    .headers()
+                    .get(header::CONNECTION)
+                    .map(|v| v.as_bytes()),
+                Some(&b"close"[..]),
+                "{kind:?}"
+            );
+        }
+        let response = Problem::new(Kind::UnknownDrive, "x").into_response();
+        assert_eq!(response.headers().get(header::CONNECTION), None);
+    }
 
     #[test]
     fn every_kind_round_trips_through_its_type() {
