@@ -453,30 +453,11 @@ mod tests {
     use super::*;
     use crate::drive::status::FLAG_STALLED;
     use crate::scope::field::Field;
-    use crate::scope::spec::Limits;
+    use crate::scope::spec::fixtures::{limits, spec};
     use crate::scope::trigger::Edge;
 
     const MS: Duration = Duration::from_millis(1);
     const POLL: Duration = Duration::from_micros(5844);
-
-    fn limits() -> Limits {
-        Limits {
-            max_samples: 10_000,
-            wire_rate: 171.1,
-            max_wait: Duration::from_secs(3600),
-        }
-    }
-
-    fn spec(units: &[u8], trigger: Trigger, pre: Amount, length: Amount) -> CaptureSpec {
-        CaptureSpec {
-            units: units.to_vec(),
-            fields: vec![Field::SpeedRpm],
-            trigger,
-            pre_trigger: pre,
-            length,
-            wait: Duration::from_secs(10),
-        }
-    }
 
     fn arm(spec: CaptureSpec, now: Instant) -> Capture {
         let caps = spec.check(&limits()).unwrap();

@@ -166,11 +166,14 @@ impl CaptureSpec {
     }
 }
 
+/// Limits and specs for the scope's unit tests (this module's and the
+/// capture's).
 #[cfg(test)]
-mod tests {
+pub(crate) mod fixtures {
     use super::*;
 
-    fn limits() -> Limits {
+    /// A 10,000-sample, 171.1 polls/s, one-hour limit.
+    pub(crate) fn limits() -> Limits {
         Limits {
             max_samples: 10_000,
             wire_rate: 171.1,
@@ -178,7 +181,8 @@ mod tests {
         }
     }
 
-    fn spec(units: &[u8], trigger: Trigger, pre: Amount, length: Amount) -> CaptureSpec {
+    /// The speed of `units`, with `trigger`, `pre` and `length`.
+    pub(crate) fn spec(units: &[u8], trigger: Trigger, pre: Amount, length: Amount) -> CaptureSpec {
         CaptureSpec {
             units: units.to_vec(),
             fields: vec![Field::SpeedRpm],
@@ -188,6 +192,12 @@ mod tests {
             wait: Duration::from_secs(10),
         }
     }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::fixtures::{limits, spec};
+    use super::*;
 
     #[test]
     fn memory_is_bounded_and_the_refusal_says_what_fits() {

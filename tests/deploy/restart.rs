@@ -244,6 +244,24 @@ impl Daemon {
         r
     }
 
+    /// Activates `drive` in speed mode and sets it to `rpm` over a stream
+    /// with a 60 s lease held by that stream; the socket, which holds the
+    /// lease, is returned open.
+    async fn stream_leased(&self, drive: &str, rpm: i64) -> crate::support::api::Ws {
+        self.api.activate_in(drive, "speed").await;
+        let mut ws = connect(self.http, "", None).await;
+        let reply = ws_command(
+            &mut ws,
+            1,
+            "setpoint",
+            drive,
+            json!({"speed_rpm": rpm, "lease_ms": 60000}),
+        )
+        .await;
+        assert_eq!(reply["ok"], true, "{reply:#}");
+        ws
+    }
+
     /// The audit lines of the start-up replay.
     fn replayed(&self) -> Vec<Value> {
         self.log
@@ -396,17 +414,7 @@ async fn a_stream_lease_and_a_modbus_comm_loss_lease_stop_at_start_up() {
         let bench = Bench::new().await;
         let d = bench.serve().await;
         // The conveyor over the stream, with a long lease.
-        d.api.activate_in("conveyor", "speed").await;
-        let mut ws = connect(d.http, "", None).await;
-        let reply = ws_command(
-            &mut ws,
-            1,
-            "setpoint",
-            "conveyor",
-            json!({"speed_rpm": 150, "lease_ms": 60000}),
-        )
-        .await;
-        assert_eq!(reply["ok"], true, "{reply:#}");
+        let ws = d.stream_leased("conveyor", 150).await;
         // The lift by a PLC whose network has a 60 s communication-loss
         // time: activate, speed mode, 300 rpm (the drive's registers).
         let mut plc = tokio_modbus::client::tcp::connect_slave(d.tcp, tokio_modbus::Slave(2))
@@ -446,17 +454,7 @@ async fn a_brake_confirmed_before_the_crash_gets_no_write_after_it() {
     tokio::time::timeout(LIMIT, async {
         let bench = Bench::new().await;
         let d = bench.serve().await;
-        d.api.activate_in("belt", "speed").await;
-        let mut ws = connect(d.http, "", None).await;
-        let reply = ws_command(
-            &mut ws,
-            1,
-            "setpoint",
-            "belt",
-            json!({"speed_rpm": 150, "lease_ms": 60000}),
-        )
-        .await;
-        assert_eq!(reply["ok"], true, "{reply:#}");
+        let ws = d.stream_leased("belt", 150).await;
         d.until_speed("belt", "motor at speed", |s| (s - 150).abs() <= 5)
             .await;
         d.api.command("belt", "brake").await;
