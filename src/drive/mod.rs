@@ -6,9 +6,10 @@ pub(crate) mod command;
 pub(crate) mod message;
 pub(crate) mod range;
 pub(crate) mod registers;
-pub(crate) mod settings;
+pub mod settings;
 pub(crate) mod status;
 pub mod units;
+pub mod wanted;
 pub(crate) mod writes;
 
 pub use command::ConfigCommand;
