@@ -179,6 +179,15 @@ impl SimHandle {
         self.with_drive(unit, DriveModel::power_cycle)
     }
 
+    /// Replaces the drive at `unit` with a new one at the same address,
+    /// fresh from the factory (factory settings, inactive): silent for the
+    /// reboot time, then back. Keep it silent meanwhile
+    /// ([`set_silent`](Self::set_silent)) for a replacement the poller
+    /// sees as offline, then online.
+    pub fn replace(&self, unit: u8) -> Result<(), SimError> {
+        self.with_drive(unit, DriveModel::replace)
+    }
+
     /// Load torque at the gearbox output of the drive at `unit`, N·m
     /// (positive opposes forward motion).
     pub fn set_load_torque(&self, unit: u8, newton_metres: f64) -> Result<(), SimError> {
