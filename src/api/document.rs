@@ -211,6 +211,10 @@ pub struct SettingsDocument {
     #[serde(default)]
     #[schema(value_type = Option<String>)]
     pub read_at: Option<IgnoredAny>,
+    /// Read-only (of a declaration, `GET .../settings/declared`): ignored.
+    #[serde(default)]
+    #[schema(value_type = Option<String>)]
+    pub apply_settings: Option<IgnoredAny>,
     /// The setpoint registers are commands, not settings: ignored.
     #[serde(default)]
     #[schema(value_type = Option<Object>)]
@@ -489,7 +493,9 @@ pub fn declared_state(state: &ApiState, target: Target<'_>) -> Option<DeclaredSt
 }
 
 /// A drive's declared settings as a document: `PUT .../settings` takes it
-/// as it is.
+/// as it is (`save` then saves to flash, as drivegate's own writes of
+/// them do). Whether the drive holds them is its `declared_settings`
+/// (`GET /api/v1/drives/{drive}`).
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
 pub struct DeclaredDocument {
     /// Drive name.
@@ -513,11 +519,9 @@ pub struct DeclaredDocument {
     /// RS-485 control, if declared.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub rs485_control: Option<bool>,
-    /// Where the drive stands with them.
-    pub state: DeclaredState,
 }
 
-fn declared_document(name: &str, declared: &Declared, state: DeclaredState) -> DeclaredDocument {
+fn declared_document(name: &str, declared: &Declared) -> DeclaredDocument {
     let w: &Wanted = &declared.wanted;
     let int = |s: Setting| w.get(s).map(i64::from);
     let protection = (w.limit_counts.is_some() || w.stall_ms.is_some()).then(|| ProtectionDoc {
@@ -540,12 +544,11 @@ fn declared_document(name: &str, declared: &Declared, state: DeclaredState) -> D
         }),
         inertia_ratio: int(Setting::InertiaRatio),
         rs485_control: w.rs485_control,
-        state,
     }
 }
 
-/// The drive's declared settings (`[bus.drive.settings]`) as a document,
-/// with whether it holds them; 404 when none are declared.
+/// The drive's declared settings (`[bus.drive.settings]`) as a document
+/// `PUT .../settings` takes as it is; 404 when none are declared.
 #[utoipa::path(
     get,
     path = "/api/v1/drives/{drive}/settings/declared",
@@ -563,10 +566,7 @@ pub async fn get_declared(
     PathParams(key): PathParams<String>,
 ) -> Result<Json<DeclaredDocument>, Problem> {
     let target = state.target(&key)?;
-    let (Some(declared), Some(drift)) = (
-        target.drive.declared.as_ref(),
-        declared_state(&state, target),
-    ) else {
+    let Some(declared) = target.drive.declared.as_ref() else {
         return Err(Problem::new(
             Kind::NotFound,
             format!(
@@ -576,5 +576,5 @@ pub async fn get_declared(
         )
         .for_drive(&target.drive.name));
     };
-    Ok(Json(declared_document(&target.drive.name, declared, drift)))
+    Ok(Json(declared_document(&target.drive.name, declared)))
 }

@@ -353,9 +353,6 @@ impl Control {
         }
         report.settings = outcomes;
         audit::settings_applied(caller.face.name(), &caller.who, &drive_name, &report);
-        if let (Some(index), Some(after)) = (target.drive, after) {
-            self.drift().after_apply(self, index, &after);
-        }
         self.events().publish(
             Arc::new(ControlEvent::Settings(SettingsApplied {
                 at: SystemTime::now(),
@@ -365,6 +362,10 @@ impl Control {
             })),
             None,
         );
+        // Then, for a drive with a declaration, what it holds now.
+        if let (Some(index), Some(after)) = (target.drive, after) {
+            self.drift().after_apply(self, index, &after);
+        }
         Ok(report)
     }
 }

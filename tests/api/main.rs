@@ -18,4 +18,5 @@ mod drives;
 mod errors;
 mod leases;
 mod openapi;
+mod settings;
 mod stream;
