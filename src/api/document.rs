@@ -242,6 +242,10 @@ pub struct SettingsDocument {
     /// Save even while the motor turns (audited).
     #[serde(default)]
     pub force: bool,
+    /// Only compare and check, as `?dry_run=true` (the way to ask for it
+    /// on the stream, whose `settings` op takes this body).
+    #[serde(default)]
+    pub dry_run: bool,
 }
 
 impl SettingsDocument {
@@ -322,6 +326,7 @@ pub async fn apply(
     body: &SettingsDocument,
     dry_run: bool,
 ) -> Result<SettingsDiff, Problem> {
+    let dry_run = dry_run || body.dry_run;
     let target = state.target(key)?;
     let offline = control::is_offline(target);
     let options = ApplyOptions {

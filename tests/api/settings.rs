@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
 
-use crate::support::api::{Api, Ws, connect, wait_for};
+use crate::support::api::{Api, Ws, connect, wait_for, ws_command};
 use crate::support::config::ConfigBuilder;
 use crate::support::metrics::exported;
 use crate::support::{FOUR_DRIVES, TestDaemon, bounded, eventually};
@@ -144,6 +144,21 @@ async fn a_dry_run_or_a_refused_value_writes_nothing() {
             (&json!(1.0), &json!(9.0), &json!("would-write"))
         );
         assert_eq!(setting(&dry, "speed_ramp.alpha")["result"], "unchanged");
+        // The stream's op runs the same code.
+        let mut ws = connect(d.http, "", None).await;
+        let reply = ws_command(
+            &mut ws,
+            1,
+            "settings",
+            "feeder",
+            json!({"inertia_ratio": 9, "dry_run": true}),
+        )
+        .await;
+        assert_eq!(reply["ok"], true, "{reply:#}");
+        assert_eq!(
+            reply["result"]["settings"],
+            json!([setting(&dry, "inertia_ratio")])
+        );
         assert_eq!(sim.drive(4).unwrap().settings.inertia_ratio, 1);
         let after = api.get("/api/v1/drives/feeder/settings").await.expect(200);
         assert_eq!(writable(&after), writable(&before));
