@@ -152,6 +152,14 @@ impl SimHandle {
         lock(&self.bus).set_silent(unit, silent);
     }
 
+    /// Makes `unit` stop answering once it has carried out `writes` more
+    /// writes (reads do not count): a drive that stops answering part-way
+    /// through a sequence of writes. [`set_silent`](Self::set_silent)
+    /// lets it answer again.
+    pub fn silence_after_writes(&self, unit: u8, writes: u32) {
+        lock(&self.bus).silence_after_writes(unit, writes);
+    }
+
     /// A snapshot of the drive at `unit` (its address now).
     pub fn drive(&self, unit: u8) -> Option<SimDriveView> {
         self.with_drive(unit, |d| d.view()).ok()

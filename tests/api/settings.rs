@@ -274,6 +274,60 @@ async fn a_save_is_refused_while_the_motor_turns() {
     .await;
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drive_that_stops_answering_part_way_is_reported_setting_by_setting() {
+    bounded(LIMIT, async {
+        let d = TestDaemon::start(FOUR_DRIVES).await;
+        let api = Api::new(d.http, None);
+        let sim = d.sim();
+        // The feeder carries out the first write (protection), then is
+        // silent.
+        sim.silence_after_writes(4, 1);
+        let p = api
+            .put(
+                "/api/v1/drives/feeder/settings",
+                json!({
+                    "protection": {"stall_ms": 500},
+                    "speed_ramp": {"alpha": 5000},
+                    "inertia_ratio": 5,
+                }),
+            )
+            .await
+            .expect_problem(504, "drive-timeout");
+        assert!(
+            p["detail"].as_str().unwrap().contains("only in part"),
+            "{p:#}"
+        );
+        let report = &p["settings_report"];
+        assert_eq!(report["complete"], false);
+        let result = |key| setting(report, key)["result"].clone();
+        assert_eq!(result("protection.stall_ms"), "written");
+        assert_eq!(result("speed_ramp.alpha"), "failed");
+        assert!(
+            setting(report, "speed_ramp.alpha")["detail"]
+                .as_str()
+                .unwrap()
+                .contains("did not answer"),
+            "{report:#}"
+        );
+        assert_eq!(result("inertia_ratio"), "not-sent");
+        // The read-back failed too, and says so.
+        assert!(report["read_back_error"].is_string(), "{report:#}");
+        sim.set_silent(4, false);
+        let feeder = sim.drive(4).unwrap();
+        assert_eq!(
+            (
+                feeder.settings.stall_duration_ms,
+                feeder.settings.speed_alpha,
+                feeder.settings.inertia_ratio
+            ),
+            (500, 500_000, 1)
+        );
+        d.stop().await;
+    })
+    .await;
+}
+
 /// The lift declares its inertia and speed ramp; offline drives are
 /// probed often, so a replacement is seen soon.
 fn declared(apply: &str) -> String {
