@@ -99,6 +99,10 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
             (Some(json!({"enabled": true})), Some("rs485-control")),
         ),
         (
+            "put_settings",
+            (Some(json!({"inertia_ratio": 1})), Some("settings")),
+        ),
+        (
             "post_scan",
             (Some(json!({"from": 1, "to": 2})), Some("scan")),
         ),
