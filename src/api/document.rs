@@ -26,7 +26,7 @@ use super::state::{ApiState, Target};
 use crate::config::Declared;
 use crate::control::drift::DriftView;
 use crate::control::settings::{ApplyOptions, SettingOutcome, SettingsError, SettingsReport};
-use crate::drive::wanted::{Difference, Document, Setting, Value, Wanted};
+use crate::drive::wanted::{self, Difference, Document, Setting, Wanted};
 use crate::timestamp::rfc3339;
 
 /// A setting's value in engineering units: a number, or on/off.
@@ -39,11 +39,11 @@ pub enum SettingValue {
     Flag(bool),
 }
 
-impl From<Value> for SettingValue {
-    fn from(v: Value) -> Self {
+impl From<wanted::Value> for SettingValue {
+    fn from(v: wanted::Value) -> Self {
         match v {
-            Value::Number(n) => SettingValue::Number(n),
-            Value::Flag(f) => SettingValue::Flag(f),
+            wanted::Value::Number(n) => SettingValue::Number(n),
+            wanted::Value::Flag(f) => SettingValue::Flag(f),
         }
     }
 }
@@ -154,8 +154,9 @@ impl SettingsDiff {
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ProtectionDoc {
-    /// Current limit, amps (0..15.99).
+    /// Current limit, amps (0..15.99; what rounds to a count in 0..2047).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(minimum = -0.00390625, maximum = 15.99609375)]
     pub limit_a: Option<f64>,
     /// Current limit, counts (0..2047; 1 A = 128).
     #[serde(
@@ -163,6 +164,7 @@ pub struct ProtectionDoc {
         deserialize_with = "integers::optional",
         skip_serializing_if = "Option::is_none"
     )]
+    #[schema(minimum = 0, maximum = 2047)]
     pub limit_counts: Option<i64>,
     /// Stall time, ms (0..60000).
     #[serde(
@@ -170,6 +172,7 @@ pub struct ProtectionDoc {
         deserialize_with = "integers::optional",
         skip_serializing_if = "Option::is_none"
     )]
+    #[schema(minimum = 0, maximum = 60000)]
     pub stall_ms: Option<i64>,
 }
 
@@ -183,6 +186,7 @@ pub struct RampDoc {
         deserialize_with = "integers::optional",
         skip_serializing_if = "Option::is_none"
     )]
+    #[schema(minimum = 0, maximum = 4294967295_i64)]
     pub alpha: Option<i64>,
 }
 
@@ -193,43 +197,44 @@ pub struct RampDoc {
 pub struct SettingsDocument {
     /// Read-only: ignored.
     #[serde(default)]
-    #[schema(value_type = Option<String>)]
+    #[schema(value_type = Option<Value>)]
     pub drive: Option<IgnoredAny>,
     /// Read-only: ignored.
     #[serde(default)]
-    #[schema(value_type = Option<String>)]
+    #[schema(value_type = Option<Value>)]
     pub bus: Option<IgnoredAny>,
     /// Read-only: ignored.
     #[serde(default)]
-    #[schema(value_type = Option<u8>)]
+    #[schema(value_type = Option<Value>)]
     pub unit: Option<IgnoredAny>,
     /// Read-only (configuration): ignored.
     #[serde(default)]
-    #[schema(value_type = Option<f64>)]
+    #[schema(value_type = Option<Value>)]
     pub gear_ratio: Option<IgnoredAny>,
     /// Read-only: ignored.
     #[serde(default)]
-    #[schema(value_type = Option<String>)]
+    #[schema(value_type = Option<Value>)]
     pub read_at: Option<IgnoredAny>,
     /// Read-only (of a declaration, `GET .../settings/declared`): ignored.
     #[serde(default)]
-    #[schema(value_type = Option<String>)]
+    #[schema(value_type = Option<Value>)]
     pub apply_settings: Option<IgnoredAny>,
     /// The setpoint registers are commands, not settings: ignored.
     #[serde(default)]
-    #[schema(value_type = Option<Object>)]
+    #[schema(value_type = Option<Value>)]
     pub setpoints: Option<IgnoredAny>,
     /// Over-current protection.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "object")]
     pub protection: Option<ProtectionDoc>,
     /// Speed ramp.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "object")]
     pub speed_ramp: Option<RampDoc>,
     /// Position ramp.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "object")]
     pub position_ramp: Option<RampDoc>,
     /// Load inertia, times the rotor's (1..65535).
     #[serde(default, deserialize_with = "integers::optional")]
+    #[schema(minimum = 1, maximum = 65535)]
     pub inertia_ratio: Option<i64>,
     /// True: RS-485 controls the motor; false: CAN.
     #[serde(default)]
@@ -246,6 +251,21 @@ pub struct SettingsDocument {
     /// on the stream, whose `settings` op takes this body).
     #[serde(default)]
     pub dry_run: bool,
+}
+
+/// A part of a document that must be a JSON object (or null): serde would
+/// read a struct from an array too, field by field.
+fn object<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: serde::de::DeserializeOwned,
+{
+    let Some(map) = Option::<serde_json::Map<String, serde_json::Value>>::deserialize(d)? else {
+        return Ok(None);
+    };
+    serde_json::from_value(serde_json::Value::Object(map))
+        .map(Some)
+        .map_err(serde::de::Error::custom)
 }
 
 impl SettingsDocument {

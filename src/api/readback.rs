@@ -147,19 +147,31 @@ pub struct DownloadQuery {
     /// `1` (or `true`): answer as a file to save (`Content-Disposition:
     /// attachment; filename="<drive>-settings.json"`), which `PUT
     /// .../settings` takes back as it is.
-    #[serde(default, deserialize_with = "flag")]
-    #[param(value_type = Option<String>)]
-    pub download: bool,
+    #[serde(default)]
+    pub download: Option<DownloadFlag>,
 }
 
-/// `1`/`true` or `0`/`false`.
-fn flag<'de, D: serde::Deserializer<'de>>(d: D) -> Result<bool, D::Error> {
-    match String::deserialize(d)?.as_str() {
-        "1" | "true" => Ok(true),
-        "0" | "false" => Ok(false),
-        other => Err(serde::de::Error::custom(format!(
-            "download={other}: use 1 or true (0 or false for none)"
-        ))),
+/// A yes or no in a query: `1` or `true`, `0` or `false`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, ToSchema)]
+pub enum DownloadFlag {
+    /// Yes.
+    #[serde(rename = "1")]
+    One,
+    /// Yes.
+    #[serde(rename = "true")]
+    True,
+    /// No.
+    #[serde(rename = "0")]
+    Zero,
+    /// No.
+    #[serde(rename = "false")]
+    False,
+}
+
+impl DownloadFlag {
+    /// True for yes.
+    pub fn on(flag: Option<DownloadFlag>) -> bool {
+        matches!(flag, Some(DownloadFlag::One | DownloadFlag::True))
     }
 }
 
@@ -187,7 +199,7 @@ pub async fn get_settings(
     Params(query): Params<DownloadQuery>,
 ) -> Result<Response, Problem> {
     let view = read(&state, &caller, &key).await?;
-    if !query.download {
+    if !DownloadFlag::on(query.download) {
         return Ok(Json(view).into_response());
     }
     // Drive names are letters, digits, '-', '_' and '.': safe in a header.
