@@ -102,6 +102,17 @@ pub enum ControlEvent {
     Lease(LeaseEvent),
     /// A write, settled.
     Write(WriteEvent),
+    /// A Modbus TCP client's communication-loss function ended its lease
+    /// on `drive` (its stop follows as lease news): by silence, or
+    /// `closed` by its connection closing.
+    CommLoss {
+        /// Drive index.
+        drive: usize,
+        /// True when its connection closed.
+        closed: bool,
+    },
+    /// An alarm raised, cleared or acknowledged.
+    Alarm(super::alarms::AlarmNews),
 }
 
 impl ControlEvent {
@@ -110,6 +121,9 @@ impl ControlEvent {
         match self {
             ControlEvent::Lease(e) => Some(e.drive()),
             ControlEvent::Write(w) => w.drive,
+            ControlEvent::CommLoss { drive, .. } => Some(*drive),
+            // Every client's business: the console's banner shows them all.
+            ControlEvent::Alarm(_) => None,
         }
     }
 }
