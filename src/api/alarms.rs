@@ -220,10 +220,24 @@ pub async fn post_ack(
     caller: Caller,
     PathParams(id): PathParams<u64>,
 ) -> Result<Json<AlarmView>, Problem> {
-    match state.control.acknowledge_alarm(&caller, id).await {
-        Ok(alarm) => Ok(Json(AlarmView::from(&alarm))),
+    acknowledge(&state, &caller, id).await.map(Json)
+}
+
+/// The stream's `alarm-ack` body: `{"alarm": id}`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AckBody {
+    /// The alarm's number.
+    pub alarm: u64,
+}
+
+/// Acknowledges alarm `id` for `caller` through the core (the REST route
+/// and the stream's `alarm-ack`).
+pub async fn acknowledge(state: &ApiState, caller: &Caller, id: u64) -> Result<AlarmView, Problem> {
+    match state.control.acknowledge_alarm(caller, id).await {
+        Ok(alarm) => Ok(AlarmView::from(&alarm)),
         Err(AlarmError::Refused(refusal)) => match refusal.rule {
-            Rule::Role { needed, .. } => Err(forbidden(&caller, needed)),
+            Rule::Role { needed, .. } => Err(forbidden(caller, needed)),
             _ => Err(Problem::new(Kind::Forbidden, refusal.detail)),
         },
         Err(AlarmError::Unknown(e)) => Err(Problem::new(Kind::NotFound, e.to_string())),

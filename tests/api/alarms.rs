@@ -275,6 +275,21 @@ async fn a_save_refused_while_the_motor_turns_is_an_alarm_that_counts_repeats() 
             .filter(|a| a["kind"] == "refused-write")
             .collect();
         assert_eq!(refused.len(), 1, "{list:#}");
+
+        // Acknowledged on the stream, as over REST.
+        let id = alarm["id"].as_u64().unwrap();
+        send_json(
+            &mut ws,
+            json!({"type": "command", "id": 7, "op": "alarm-ack", "body": {"alarm": id}}),
+        )
+        .await;
+        let reply = wait_for(&mut ws, EVENT, "the reply", |m| {
+            m["type"] == "reply" && m["id"] == 7
+        })
+        .await;
+        assert_eq!(reply["ok"], true, "{reply:#}");
+        assert_eq!(reply["result"]["acknowledged_by"], "panel");
+        assert_eq!(reply["result"]["count"], 2);
         d.stop().await;
     })
     .await;

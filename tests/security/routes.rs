@@ -120,8 +120,8 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
         ("delete_scope", (None, Some("scope-cancel"))),
         ("post_trigger", (None, Some("scope-trigger"))),
         // An acknowledgement is the operator's (alarm 1 may not exist yet:
-        // a right role then meets 404).
-        ("post_ack", (None, None)),
+        // a right role then meets 404); on the stream the id is the body's.
+        ("post_ack", (None, Some("alarm-ack"))),
     ])
 }
 
@@ -166,6 +166,9 @@ fn writes(doc: &Value) -> Vec<Write> {
                 }
                 if let Some(b) = body {
                     m["body"] = b.clone();
+                }
+                if path.contains("{id}") {
+                    m["body"] = json!({"alarm": 1});
                 }
                 m
             };
