@@ -120,6 +120,7 @@ impl Control {
         let events = Arc::new(Events::default());
         let state_dir = safety.state_dir();
         let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
+        alarms.reconcile(&plant);
         alarms.watch(&plant, events.subscribe(), &shutdown);
         let opened = Journal::open(state_dir.as_deref());
         for news in &opened.news {

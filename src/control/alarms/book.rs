@@ -306,6 +306,19 @@ impl AlarmBook {
         keys.iter().flat_map(|k| self.clear(k, now_ms)).collect()
     }
 
+    /// Clears every active condition `stale` says no one will ever clear
+    /// (at start-up: a drive no longer configured, a stop the restart
+    /// owns now).
+    pub fn clear_where(&mut self, stale: impl Fn(&Alarm) -> bool, now_ms: u64) -> Vec<Change> {
+        let keys: Vec<AlarmKey> = self
+            .alarms
+            .values()
+            .filter(|a| a.kind.is_condition() && a.active() && stale(a))
+            .map(Alarm::key)
+            .collect();
+        keys.iter().flat_map(|k| self.clear(k, now_ms)).collect()
+    }
+
     /// Acknowledges alarm `id` for `by` at `now_ms`. An alarm already
     /// acknowledged keeps its first acknowledgement (and no change is
     /// made): `Ok(None)`.
@@ -498,6 +511,20 @@ mod tests {
         assert_eq!(changes.last(), Some(&Change::Dropped(c.id)));
         assert_eq!(book.len(), 3);
         assert!(book.clear(&key(AlarmKind::Offline, "c", 0), 10).is_empty());
+    }
+
+    #[test]
+    fn conditions_nobody_will_clear_are_cleared_on_request() {
+        let mut book = AlarmBook::new(10);
+        raised(&book.raise(raise(AlarmKind::Offline, "gone", 0), 1));
+        raised(&book.raise(raise(AlarmKind::Offline, "kept", 0), 2));
+        raised(&book.raise(raise(AlarmKind::RefusedWrite, "gone", 0), 3));
+        let changes = book.clear_where(|a| a.drive.as_deref() == Some("gone"), 4);
+        // Only the active condition: the event was never active.
+        assert!(
+            matches!(&changes[..], [Change::Cleared(a)] if a.drive.as_deref() == Some("gone") && a.kind == AlarmKind::Offline)
+        );
+        assert_eq!(book.alarms().filter(|a| a.active()).count(), 1);
     }
 
     #[test]

@@ -264,6 +264,26 @@ impl Alarms {
         }
     }
 
+    /// Clears, at start-up, the active conditions of the last process that
+    /// no event will clear: those of drives and buses no longer
+    /// configured, and stops not confirmed (the restart's replay of the
+    /// safety journal owns those stops now, and says what it did).
+    pub(crate) fn reconcile(&self, plant: &Plant) {
+        self.apply(|book, now| {
+            book.clear_where(
+                |a| {
+                    let bus = plant.bus(&a.bus);
+                    let drive_gone = a
+                        .drive
+                        .as_ref()
+                        .is_some_and(|name| !plant.drives().iter().any(|d| &d.name == name));
+                    bus.is_none() || drive_gone || a.kind == AlarmKind::StopFailed
+                },
+                now,
+            )
+        });
+    }
+
     /// Follows every bus of `plant` and the core's `events` until
     /// `shutdown` fires.
     pub(crate) fn watch(
