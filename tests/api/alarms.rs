@@ -4,7 +4,9 @@
 //! does (audited, on the stream), and the alarm, acknowledged, is still
 //! there after the daemon restarts on the same `[safety] state_dir`, where
 //! the drive answering again clears it; a save refused while the motor
-//! turns becomes a `refused-write` alarm, and repeats count on it.
+//! turns becomes a `refused-write` alarm, repeats count on it, and the
+//! stream's `alarm-ack` acknowledges it; a drive's fault is an alarm with
+//! the manual's help, cleared by a fault reset.
 
 use std::time::{Duration, Instant};
 
@@ -290,6 +292,52 @@ async fn a_save_refused_while_the_motor_turns_is_an_alarm_that_counts_repeats() 
         assert_eq!(reply["ok"], true, "{reply:#}");
         assert_eq!(reply["result"]["acknowledged_by"], "panel");
         assert_eq!(reply["result"]["count"], 2);
+        d.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drive_fault_raises_an_alarm_with_the_manuals_help_cleared_by_a_fault_reset() {
+    bounded(LIMIT, async {
+        let d = TestDaemon::start(&ConfigBuilder::four_drives().toml()).await;
+        let api = Api::new(d.http, None);
+        let mut ws = connect(d.http, "?drives=feeder", None).await;
+        d.sim()
+            .inject_fault(4, drivegate::drive::Fault::OverTemperature)
+            .unwrap();
+        let raised = wait_for(&mut ws, EVENT, "the feeder's fault alarm", |m| {
+            m["type"] == "alarm-raised" && m["alarm"]["kind"] == "fault"
+        })
+        .await;
+        let alarm = &raised["alarm"];
+        assert_eq!(
+            (alarm["drive"].as_str(), alarm["code"].as_u64()),
+            (Some("feeder"), Some(4))
+        );
+        assert!(
+            alarm["text"].as_str().unwrap().contains("over-temperature"),
+            "{alarm:#}"
+        );
+        let help = alarm["help"].as_str().unwrap();
+        assert!(
+            help.contains("manual 1.7") && help.contains("CONFIG 0x8"),
+            "{help}"
+        );
+        assert_eq!(alarm["active"], true);
+
+        // The cause removed and the fault reset: the alarm clears.
+        d.sim().clear_fault(4).unwrap();
+        api.post_empty("/api/v1/drives/feeder/commands/fault-reset")
+            .await
+            .expect(200);
+        let cleared = wait_for(&mut ws, EVENT, "the fault alarm cleared", |m| {
+            m["type"] == "alarm-cleared" && m["alarm"]["id"] == alarm["id"]
+        })
+        .await;
+        assert_eq!(cleared["alarm"]["active"], false);
+        let list = api.get("/api/v1/alarms?active=true").await.expect(200);
+        assert_eq!(list["active"], 0, "{list:#}");
         d.stop().await;
     })
     .await;
