@@ -342,3 +342,48 @@ async fn a_drive_fault_raises_an_alarm_with_the_manuals_help_cleared_by_a_fault_
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bus_whose_adapter_is_missing_is_an_alarm() {
+    bounded(LIMIT, async {
+        let toml = ConfigBuilder::new()
+            .bus("unplugged", |b| {
+                b.port("/dev/ttyUSB-drivegate-alarm-test-missing")
+                    .drive(1, "far")
+            })
+            .toml();
+        let d = TestDaemon::start_no_wait(&toml).await;
+        let api = Api::new(d.http, None);
+        let start = Instant::now();
+        let alarm = loop {
+            let list = api.get("/api/v1/alarms?active=true").await.expect(200);
+            if let Some(a) = list["alarms"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|a| a["kind"] == "bus-down")
+            {
+                break a.clone();
+            }
+            assert!(start.elapsed() < EVENT, "no bus-down alarm: {list:#}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        assert_eq!(
+            (alarm["bus"].as_str(), alarm["drive"].as_str()),
+            (Some("unplugged"), None)
+        );
+        assert!(
+            alarm["text"]
+                .as_str()
+                .unwrap()
+                .contains("ttyUSB-drivegate-alarm-test-missing"),
+            "{alarm:#}"
+        );
+        assert!(
+            alarm["help"].as_str().unwrap().contains("dialout"),
+            "{alarm:#}"
+        );
+        d.stop().await;
+    })
+    .await;
+}

@@ -31,6 +31,8 @@ use super::journal::format::unix_ms;
 use super::lease_book::LeaseEvent;
 use super::outcome::{Failure, Rule};
 use crate::bus::BusEvent;
+use crate::bus::cache::Link;
+use crate::bus::handle::PortState;
 use crate::drive::help;
 use crate::plant::Plant;
 
@@ -298,6 +300,9 @@ impl Alarms {
         for (index, bus) in plant.buses().iter().enumerate() {
             let (alarms, plant, shutdown) = (self.clone(), plant.clone(), shutdown.clone());
             let mut rx = bus.handle.subscribe();
+            // What happened before this subscription (a port that failed
+            // to open at start) is read from the bus's state, after it.
+            alarms.seed(&plant, index);
             tokio::spawn(async move {
                 loop {
                     let event = tokio::select! {
@@ -331,6 +336,41 @@ impl Alarms {
                 }
             }
         });
+    }
+
+    /// Raises or clears what bus `index`'s state says now: its port, and
+    /// its drives' links (the same as the events that led there would).
+    fn seed(&self, plant: &Plant, index: usize) {
+        let Some(bus) = plant.buses().get(index) else {
+            return;
+        };
+        let name: Arc<str> = bus.handle.name_arc();
+        let port = match bus.handle.port_state() {
+            PortState::Up { .. } => Some(BusEvent::BusUp { bus: name.clone() }),
+            PortState::Down { reason, .. } => Some(BusEvent::BusDown {
+                bus: name.clone(),
+                reason,
+            }),
+            PortState::Opening => None,
+        };
+        if let Some(event) = port {
+            self.bus_event(plant, index, &event);
+        }
+        for d in bus.handle.drives() {
+            let event = match d.link {
+                Link::Online => BusEvent::Online {
+                    bus: name.clone(),
+                    unit: d.unit,
+                },
+                Link::Offline => BusEvent::Offline {
+                    bus: name.clone(),
+                    unit: d.unit,
+                    reason: "it did not answer its polls".into(),
+                },
+                Link::Unknown => continue,
+            };
+            self.bus_event(plant, index, &event);
+        }
     }
 
     /// Raises or clears what a bus event says.
