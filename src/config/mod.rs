@@ -8,6 +8,7 @@
 
 mod bus;
 mod diagnostics;
+pub mod diff;
 mod error;
 pub mod http;
 pub mod modbus_tcp;
@@ -38,7 +39,7 @@ use crate::logging::LogConfig;
 pub const DEFAULT_CONFIG: &str = include_str!("../../config/default.toml");
 
 /// The whole configuration.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     /// REST, WebSocket and metrics listener.
