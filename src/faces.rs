@@ -61,6 +61,8 @@ pub async fn start(
     shutdown: CancellationToken,
 ) -> Result<Faces, String> {
     let control = Control::start(plant.clone(), &config.safety, shutdown.clone());
+    // The running configuration, which the faces follow for their sections.
+    control.set_config(Arc::new(config.clone()));
     metrics.faces().tcp_outcomes(
         crate::modbus_tcp::outcome::Outcome::ALL
             .iter()

@@ -46,9 +46,11 @@ struct Entry {
 }
 
 /// The configured tokens, as digests, and the failures of each address.
+/// A reload replaces the tokens ([`Tokens::replace`]) of every clone at
+/// once; the failures are kept.
 #[derive(Clone, Default)]
 pub struct Tokens {
-    entries: Vec<Entry>,
+    entries: Arc<std::sync::RwLock<Arc<Vec<Entry>>>>,
     throttle: Arc<Mutex<Throttle>>,
 }
 
@@ -56,7 +58,7 @@ impl std::fmt::Debug for Tokens {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         // Names and roles only: never the digests.
         f.debug_list()
-            .entries(self.entries.iter().map(|e| (&*e.name, e.role.name())))
+            .entries(self.entries().iter().map(|e| (&*e.name, e.role.name())))
             .finish()
     }
 }
@@ -126,12 +128,26 @@ impl Tokens {
             });
         }
         Ok(Tokens {
-            entries,
+            entries: Arc::new(std::sync::RwLock::new(Arc::new(entries))),
             throttle: Arc::new(Mutex::new(Throttle::new(Policy {
                 burst: guesses,
                 ..Policy::default()
             }))),
         })
+    }
+
+    fn entries(&self) -> Arc<Vec<Entry>> {
+        self.entries
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Takes the tokens of `other` (a reload): the next request is checked
+    /// against them.
+    pub fn replace(&self, other: &Tokens) {
+        let entries = other.entries();
+        *self.entries.write().unwrap_or_else(|p| p.into_inner()) = entries;
     }
 
     fn throttle(&self) -> std::sync::MutexGuard<'_, Throttle> {
@@ -140,19 +156,19 @@ impl Tokens {
 
     /// True when no token is configured (no authentication, loopback only).
     pub fn is_empty(&self) -> bool {
-        self.entries.is_empty()
+        self.entries().is_empty()
     }
 
     /// Number of tokens.
     pub fn len(&self) -> usize {
-        self.entries.len()
+        self.entries().len()
     }
 
     /// The name and role of the token `presented`, if it is one of ours.
     pub fn check(&self, presented: &str) -> Option<(Arc<str>, Role)> {
         let digest: [u8; 32] = Sha256::digest(presented.as_bytes()).into();
         let mut found = None;
-        for entry in &self.entries {
+        for entry in self.entries().iter() {
             if constant_time_eq(&entry.digest, &digest) {
                 found = Some((entry.name.clone(), entry.role));
             }

@@ -26,6 +26,7 @@ pub mod auth;
 pub mod body_schemas;
 pub mod buses;
 pub mod commands;
+pub mod config;
 pub mod control;
 pub mod drives;
 pub mod extract;
@@ -137,6 +138,7 @@ pub async fn start(
             })
         }
     };
+    follow_tokens(&control, &tokens, &shutdown);
     let hub = Hub::start(&plant, &control, &shutdown);
     scope::publish_progress(&plant, &hub, &shutdown);
     let state = ApiState::new(
@@ -169,6 +171,39 @@ pub async fn start(
         }
     });
     Ok((addr, task))
+}
+
+/// Takes the tokens of each configuration a reload applies (the reloader
+/// checked that they resolve), until `shutdown`.
+fn follow_tokens(control: &Control, tokens: &Tokens, shutdown: &CancellationToken) {
+    let mut running = control.follow_config();
+    running.mark_unchanged();
+    let (tokens, shutdown) = (tokens.clone(), shutdown.clone());
+    tokio::spawn(async move {
+        loop {
+            tokio::select! {
+                () = shutdown.cancelled() => return,
+                changed = running.changed() => if changed.is_err() { return },
+            }
+            let Some(config) = running.borrow_and_update().clone() else {
+                continue;
+            };
+            match Tokens::resolve(&config.http.tokens, config.http.token_guesses) {
+                Ok(new) if new.is_empty() && !tokens.is_empty() => {
+                    // Without tokens every client is admin: safe only on
+                    // loopback, where the listener goes at the next start.
+                    tracing::warn!(
+                        "every API token was removed: the old ones stay until drivegate restarts (then the API listens on loopback only)"
+                    );
+                }
+                Ok(new) => {
+                    tokens.replace(&new);
+                    tracing::info!(tokens = tokens.len(), "API tokens reloaded");
+                }
+                Err(e) => tracing::warn!("API tokens not reloaded, the old ones stay: {e}"),
+            }
+        }
+    });
 }
 
 /// The whole HTTP application: the documented routes, `/openapi.json`,

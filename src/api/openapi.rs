@@ -17,8 +17,8 @@ use super::problem::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
 use super::{
-    buses, commands, drives, health, monitor, monitor_live, readback, scope, setpoints, settings,
-    stream, whoami,
+    buses, commands, config, drives, health, monitor, monitor_live, readback, scope, setpoints,
+    settings, stream, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -52,6 +52,7 @@ pub const DOCS_PATH: &str = "/docs";
         (name = "stream", description = "The WebSocket stream of statuses and events, with commands"),
         (name = "monitor", description = "Every frame on the wire of a bus: decoded, with its outcome and who caused it; live, and as CSV or PCAP"),
         (name = "scope", description = "Triggered captures of status fields at the bus's full rate"),
+        (name = "config", description = "The configuration file: reload it without a restart"),
         (name = "health", description = "Liveness, readiness and Prometheus metrics (no token needed)"),
     )
 )]
@@ -225,6 +226,7 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(buses::get_bus))
         .routes(routes!(buses::post_scan))
         .routes(routes!(buses::post_address))
+        .routes(routes!(config::post_reload))
         .routes(routes!(stream::stream))
         .routes(routes!(monitor::get_monitor))
         .routes(routes!(monitor::get_frames))

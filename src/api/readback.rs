@@ -122,7 +122,7 @@ pub async fn read(
     let unit = target.drive.unit;
     let context = || BusContext {
         drive: Some(&target.drive.name),
-        offline: control::is_offline(target),
+        offline: control::is_offline(&target),
         setpoint: false,
     };
     let options = JobOptions {

@@ -150,3 +150,22 @@ pub fn restart(note: &super::restart::RestartNote) {
         tracing::warn!(target: "drivegate::audit", face = "restart", drive, who, decision, "restart: {text}")
     }
 }
+
+/// Logs a reload of the configuration: who asked, and what it changed or
+/// why it was refused.
+pub fn reload(by: &str, result: &super::reload::ReloadResult) {
+    match result {
+        Ok(applied) => tracing::info!(
+            target: "drivegate::audit",
+            who = by,
+            changes = %applied.changes.join("; "),
+            "configuration reloaded"
+        ),
+        Err(refused) => tracing::warn!(
+            target: "drivegate::audit",
+            who = by,
+            why = %refused,
+            "configuration reload refused"
+        ),
+    }
+}

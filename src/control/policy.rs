@@ -28,6 +28,9 @@ pub enum Operation {
     /// Arming, triggering or cancelling a scope capture: it changes how the
     /// bus polls (its drives get every poll, the others the floor rate).
     Capture,
+    /// Reloading the configuration file (drives and buses added or
+    /// removed, tokens, roles of networks): commissioning work.
+    Reload,
 }
 
 impl Operation {
@@ -38,6 +41,7 @@ impl Operation {
             Operation::Lease => Role::Operator,
             Operation::Scan => Role::Admin,
             Operation::Capture => Role::Operator,
+            Operation::Reload => Role::Admin,
         }
     }
 }

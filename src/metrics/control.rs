@@ -51,6 +51,31 @@ static JOURNAL_BYTES: Spec = Spec {
     labels: &[],
 };
 
+static RELOADS: Spec = Spec {
+    name: "drivegate_config_reload_total",
+    help: "Reloads of the configuration file (SIGHUP or POST /api/v1/config/reload), by \
+           result: applied, or invalid (the file did not pass the check; the running \
+           configuration stayed).",
+    kind: Kind::Counter,
+    labels: &["result"],
+};
+
+static RELOAD_OK: Spec = Spec {
+    name: "drivegate_config_last_reload_ok",
+    help: "0 while the last reload of the configuration file was refused (the file on disk is \
+           not the one running: /readyz says why, with file:line:column); 1 otherwise.",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
+static LOADED_AT: Spec = Spec {
+    name: "drivegate_config_last_reload_success_timestamp_seconds",
+    help: "When the running configuration was loaded: at start-up or by the last reload \
+           applied (Unix time).",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
 /// Exports the control core's counters.
 pub(crate) struct ControlCollector {
     control: Control,
@@ -67,6 +92,9 @@ impl ControlCollector {
                 JOURNAL_OK.desc(),
                 JOURNAL_EVENTS.desc(),
                 JOURNAL_BYTES.desc(),
+                RELOADS.desc(),
+                RELOAD_OK.desc(),
+                LOADED_AT.desc(),
             ],
         }
     }
@@ -79,7 +107,7 @@ impl Collector for ControlCollector {
 
     fn collect(&self) -> Vec<MetricFamily> {
         let mut comm_loss = COMM_LOSS.family();
-        for (i, bus) in self.control.plant().buses().iter().enumerate() {
+        for (i, bus) in self.control.plant().now().indexed_buses() {
             let name = bus.handle.name();
             let (timeout, closed) = self.control.comm_loss_ends(i);
             comm_loss.set(&[name, "timeout"], timeout as f64);
@@ -103,7 +131,23 @@ impl Collector for ControlCollector {
         events.set(&["unreadable"], c.unreadable as f64);
         let mut bytes = JOURNAL_BYTES.family();
         bytes.set(&[], c.bytes as f64);
+        let status = self.control.reload_status();
+        let mut reloads = RELOADS.family();
+        reloads.set(&["applied"], status.applied as f64);
+        reloads.set(&["invalid"], status.invalid as f64);
+        let mut reload_ok = RELOAD_OK.family();
+        reload_ok.set(&[], f64::from(u8::from(status.last_ok)));
+        let mut loaded_at = LOADED_AT.family();
+        if let Some(at) = status
+            .last_good_at
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+        {
+            loaded_at.set(&[], at.as_secs_f64());
+        }
         vec![
+            reloads.finish(),
+            reload_ok.finish(),
+            loaded_at.finish(),
             comm_loss.finish(),
             replayed.finish(),
             ok.finish(),

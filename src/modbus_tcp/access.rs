@@ -25,6 +25,28 @@ pub struct Rights {
     pub comm_loss: Option<CommLoss>,
 }
 
+/// A listener's [`Access`], which a reload replaces: clients that connect
+/// from then on get the new networks and roles.
+#[derive(Debug, Clone)]
+pub struct SharedAccess(std::sync::Arc<std::sync::RwLock<Access>>);
+
+impl SharedAccess {
+    /// Shares `access`.
+    pub fn new(access: Access) -> Self {
+        SharedAccess(std::sync::Arc::new(std::sync::RwLock::new(access)))
+    }
+
+    /// What a client from `ip` may do, if it may connect at all.
+    pub fn rights(&self, ip: std::net::IpAddr) -> Option<Rights> {
+        self.0.read().unwrap_or_else(|p| p.into_inner()).rights(ip)
+    }
+
+    /// Takes `access` for the next clients.
+    pub fn replace(&self, access: Access) {
+        *self.0.write().unwrap_or_else(|p| p.into_inner()) = access;
+    }
+}
+
 /// The allowed client networks of a listener, with their rights.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Access {

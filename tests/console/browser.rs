@@ -1163,7 +1163,7 @@ async fn without_a_bus_the_overview_says_to_run_probe() {
         json!(
             "No bus configured: run drivegate probe --port /dev/ttyUSB0 (with your adapter's \
              port) to find the drives and their baud rate, then add a [[bus]] with its drives \
-             to the configuration and restart drivegate."
+             to the configuration and reload it (systemctl reload drivegate)."
         )
     );
     assert_clean(&page, &base);

@@ -8,8 +8,8 @@ use std::time::{Duration, Instant};
 use drivegate::config::Config;
 use drivegate::faces::{self, Faces};
 use drivegate::metrics::Metrics;
-use drivegate::plant::Plant;
-use drivegate::sim::SimHandle;
+use drivegate::plant::{Plant, SimRef};
+
 use tokio_util::sync::CancellationToken;
 
 /// The response timeout and guard time of the test buses. The simulator
@@ -121,11 +121,11 @@ impl TestDaemon {
     }
 
     /// The simulator of the first (or named) simulated bus.
-    pub fn sim(&self) -> &SimHandle {
+    pub fn sim(&self) -> SimRef {
         self.plant
             .buses()
-            .iter()
-            .find_map(|b| b.sim.as_ref())
+            .into_iter()
+            .find_map(SimRef::of)
             .expect("a simulated bus")
     }
 
