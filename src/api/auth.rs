@@ -51,6 +51,9 @@ struct Entry {
 #[derive(Clone, Default)]
 pub struct Tokens {
     entries: Arc<std::sync::RwLock<Arc<Vec<Entry>>>>,
+    /// The running configuration, whose tokens replace these when a
+    /// reload changes it.
+    follower: Option<Arc<crate::control::reload::ConfigFollower>>,
     throttle: Arc<Mutex<Throttle>>,
 }
 
@@ -129,6 +132,7 @@ impl Tokens {
         }
         Ok(Tokens {
             entries: Arc::new(std::sync::RwLock::new(Arc::new(entries))),
+            follower: None,
             throttle: Arc::new(Mutex::new(Throttle::new(Policy {
                 burst: guesses,
                 ..Policy::default()
@@ -136,18 +140,47 @@ impl Tokens {
         })
     }
 
+    /// From now on, the tokens of each configuration a reload applies
+    /// replace these, from the next request on.
+    pub fn follow(mut self, control: &crate::control::Control) -> Self {
+        self.follower = Some(Arc::new(crate::control::reload::ConfigFollower::new(
+            control,
+        )));
+        self
+    }
+
     fn entries(&self) -> Arc<Vec<Entry>> {
+        if let Some(config) = self.follower.as_ref().and_then(|f| f.changed()) {
+            self.reloaded(&config);
+        }
         self.entries
             .read()
             .unwrap_or_else(|p| p.into_inner())
             .clone()
     }
 
-    /// Takes the tokens of `other` (a reload): the next request is checked
-    /// against them.
-    pub fn replace(&self, other: &Tokens) {
-        let entries = other.entries();
-        *self.entries.write().unwrap_or_else(|p| p.into_inner()) = entries;
+    /// Takes the tokens of a reloaded configuration (the reloader checked
+    /// that they resolve).
+    fn reloaded(&self, config: &crate::config::Config) {
+        let new = match Tokens::resolve(&config.http.tokens, config.http.token_guesses) {
+            Ok(new) => new,
+            Err(e) => {
+                tracing::warn!("API tokens not reloaded, the old ones stay: {e}");
+                return;
+            }
+        };
+        let mut entries = self.entries.write().unwrap_or_else(|p| p.into_inner());
+        let fresh = new.entries();
+        if fresh.is_empty() && !entries.is_empty() {
+            // Without tokens every client is admin: safe only on loopback,
+            // where the listener goes at the next start.
+            tracing::warn!(
+                "every API token was removed: the old ones stay until drivegate restarts (then the API listens on loopback only)"
+            );
+            return;
+        }
+        *entries = fresh;
+        tracing::info!(tokens = entries.len(), "API tokens reloaded");
     }
 
     fn throttle(&self) -> std::sync::MutexGuard<'_, Throttle> {

@@ -86,7 +86,9 @@ pub async fn start(
     shutdown: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
     let http = config.http.clone();
-    let tokens = Tokens::resolve(&http.tokens, http.token_guesses).map_err(|e| e.to_string())?;
+    let tokens = Tokens::resolve(&http.tokens, http.token_guesses)
+        .map_err(|e| e.to_string())?
+        .follow(&control);
     let bind = listener::bind_address(http.listen, !tokens.is_empty());
     let tcp = tokio::net::TcpListener::bind(bind)
         .await
@@ -138,7 +140,6 @@ pub async fn start(
             })
         }
     };
-    follow_tokens(&control, &tokens, &shutdown);
     let hub = Hub::start(&plant, &control, &shutdown);
     scope::publish_progress(&plant, &hub, &shutdown);
     let state = ApiState::new(
@@ -171,39 +172,6 @@ pub async fn start(
         }
     });
     Ok((addr, task))
-}
-
-/// Takes the tokens of each configuration a reload applies (the reloader
-/// checked that they resolve), until `shutdown`.
-fn follow_tokens(control: &Control, tokens: &Tokens, shutdown: &CancellationToken) {
-    let mut running = control.follow_config();
-    running.mark_unchanged();
-    let (tokens, shutdown) = (tokens.clone(), shutdown.clone());
-    tokio::spawn(async move {
-        loop {
-            tokio::select! {
-                () = shutdown.cancelled() => return,
-                changed = running.changed() => if changed.is_err() { return },
-            }
-            let Some(config) = running.borrow_and_update().clone() else {
-                continue;
-            };
-            match Tokens::resolve(&config.http.tokens, config.http.token_guesses) {
-                Ok(new) if new.is_empty() && !tokens.is_empty() => {
-                    // Without tokens every client is admin: safe only on
-                    // loopback, where the listener goes at the next start.
-                    tracing::warn!(
-                        "every API token was removed: the old ones stay until drivegate restarts (then the API listens on loopback only)"
-                    );
-                }
-                Ok(new) => {
-                    tokens.replace(&new);
-                    tracing::info!(tokens = tokens.len(), "API tokens reloaded");
-                }
-                Err(e) => tracing::warn!("API tokens not reloaded, the old ones stay: {e}"),
-            }
-        }
-    });
 }
 
 /// The whole HTTP application: the documented routes, `/openapi.json`,

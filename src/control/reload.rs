@@ -94,6 +94,31 @@ pub struct ReloadStatus {
     pub last_good_at: Option<SystemTime>,
 }
 
+/// A face's view of the running configuration, asked on its request path:
+/// [`changed`](Self::changed) answers each new configuration once, so
+/// what a reload changes applies from the very next request (the reloader
+/// publishes before it answers).
+pub struct ConfigFollower(std::sync::Mutex<watch::Receiver<Option<Arc<Config>>>>);
+
+impl ConfigFollower {
+    /// Follows `control`'s running configuration from now on.
+    pub fn new(control: &Control) -> Self {
+        let mut rx = control.follow_config();
+        rx.mark_unchanged();
+        ConfigFollower(std::sync::Mutex::new(rx))
+    }
+
+    /// The running configuration, if it changed since the last call.
+    pub fn changed(&self) -> Option<Arc<Config>> {
+        let mut rx = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        if rx.has_changed().unwrap_or(false) {
+            rx.borrow_and_update().clone()
+        } else {
+            None
+        }
+    }
+}
+
 /// The core's part of reloads: the reloader's channel, the running
 /// configuration, the status.
 pub(super) struct Reloads {

@@ -25,25 +25,39 @@ pub struct Rights {
     pub comm_loss: Option<CommLoss>,
 }
 
-/// A listener's [`Access`], which a reload replaces: clients that connect
-/// from then on get the new networks and roles.
-#[derive(Debug, Clone)]
-pub struct SharedAccess(std::sync::Arc<std::sync::RwLock<Access>>);
+/// A listener's [`Access`], which follows the running configuration:
+/// clients that connect after a reload get its networks and roles.
+#[derive(Clone)]
+pub struct SharedAccess {
+    access: std::sync::Arc<std::sync::RwLock<Access>>,
+    follower: std::sync::Arc<crate::control::reload::ConfigFollower>,
+}
+
+impl std::fmt::Debug for SharedAccess {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("SharedAccess").field(&self.access).finish()
+    }
+}
 
 impl SharedAccess {
-    /// Shares `access`.
-    pub fn new(access: Access) -> Self {
-        SharedAccess(std::sync::Arc::new(std::sync::RwLock::new(access)))
+    /// `access` until a reload of `control`'s configuration replaces it.
+    pub fn new(access: Access, control: &crate::control::Control) -> Self {
+        SharedAccess {
+            access: std::sync::Arc::new(std::sync::RwLock::new(access)),
+            follower: std::sync::Arc::new(crate::control::reload::ConfigFollower::new(control)),
+        }
     }
 
     /// What a client from `ip` may do, if it may connect at all.
     pub fn rights(&self, ip: std::net::IpAddr) -> Option<Rights> {
-        self.0.read().unwrap_or_else(|p| p.into_inner()).rights(ip)
-    }
-
-    /// Takes `access` for the next clients.
-    pub fn replace(&self, access: Access) {
-        *self.0.write().unwrap_or_else(|p| p.into_inner()) = access;
+        if let Some(config) = self.follower.changed() {
+            *self.access.write().unwrap_or_else(|p| p.into_inner()) =
+                Access::from_config(&config.modbus_tcp);
+        }
+        self.access
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .rights(ip)
     }
 }
 

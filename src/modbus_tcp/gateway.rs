@@ -105,6 +105,9 @@ pub struct Gateway {
     config: std::sync::RwLock<ModbusTcpConfig>,
     /// The tables of the plant as it was when they were built.
     tables: std::sync::RwLock<Arc<Tables>>,
+    /// The running configuration: a reload's `[modbus_tcp]` applies from
+    /// the next request on.
+    follower: crate::control::reload::ConfigFollower,
 }
 
 /// What the unit map and the polled copy make of the plant: built again
@@ -171,6 +174,7 @@ impl Gateway {
         }
         Self {
             plant,
+            follower: crate::control::reload::ConfigFollower::new(&control),
             control,
             metrics,
             config: std::sync::RwLock::new(config.clone()),
@@ -198,6 +202,9 @@ impl Gateway {
 
     /// The tables for the plant as it is now.
     fn tables(&self) -> Arc<Tables> {
+        if let Some(config) = self.follower.changed() {
+            self.set_config(&config.modbus_tcp);
+        }
         let tables = self
             .tables
             .read()

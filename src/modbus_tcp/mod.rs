@@ -67,10 +67,8 @@ pub async fn start(
         })?;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
     let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
-    let access = SharedAccess::new(Access::from_config(tcp));
-    follow_config(&control, &gateway, &access, &shutdown);
     let settings = ServerSettings {
-        access,
+        access: SharedAccess::new(Access::from_config(tcp), &control),
         max_connections: tcp.max_connections,
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),
@@ -124,10 +122,8 @@ pub async fn start_tls(
     )
     .map_err(|e| format!("cannot watch for SIGHUP (certificate reloads): {e}"))?;
     let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
-    let access = SharedAccess::new(Access::from_config(tcp));
-    follow_config(&control, &gateway, &access, &shutdown);
     let settings = ServerSettings {
-        access,
+        access: SharedAccess::new(Access::from_config(tcp), &control),
         max_connections: tcp.max_connections,
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),
@@ -143,30 +139,3 @@ pub async fn start_tls(
     Ok(Some((addr, task)))
 }
 
-/// Takes the `[modbus_tcp]` of each configuration a reload applies: the
-/// unit map, polled copies and broadcast replies from the next request on,
-/// the networks and their roles for the clients that connect from then on.
-/// Until `shutdown`.
-fn follow_config(
-    control: &Control,
-    gateway: &Arc<Gateway>,
-    access: &SharedAccess,
-    shutdown: &CancellationToken,
-) {
-    let mut running = control.follow_config();
-    running.mark_unchanged();
-    let (gateway, access, shutdown) = (gateway.clone(), access.clone(), shutdown.clone());
-    tokio::spawn(async move {
-        loop {
-            tokio::select! {
-                () = shutdown.cancelled() => return,
-                changed = running.changed() => if changed.is_err() { return },
-            }
-            let Some(config) = running.borrow_and_update().clone() else {
-                continue;
-            };
-            gateway.set_config(&config.modbus_tcp);
-            access.replace(Access::from_config(&config.modbus_tcp));
-        }
-    });
-}
