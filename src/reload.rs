@@ -15,13 +15,13 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use sha2::{Digest, Sha256};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::config::Config;
 use crate::config::diff::{Changes, diff};
+use crate::config::edit::sha256_hex;
 use crate::control::Control;
 use crate::control::reload::{Applied, NewText, Refused, ReloadRequest, ReloadResult};
 use crate::plant::{Plant, Rebuild};
@@ -48,7 +48,7 @@ impl Reloader {
         shutdown: CancellationToken,
     ) -> tokio::task::JoinHandle<()> {
         let (tx, rx) = mpsc::channel(QUEUE);
-        control.attach_reloader(tx);
+        control.attach_reloader(tx, path);
         let reloader = Reloader {
             path: path.to_path_buf(),
             running: config,
@@ -177,15 +177,6 @@ fn check(text: &str, origin: &str) -> Result<Config, Refused> {
     crate::api::auth::Tokens::resolve(&config.http.tokens, config.http.token_guesses)
         .map_err(|e| Refused::Invalid(format!("{origin}: [http]: {e}")))?;
     Ok(config)
-}
-
-/// SHA-256 of a file's text, in hex: what a client that read it sends
-/// back with its change.
-pub fn sha256_hex(text: &str) -> String {
-    Sha256::digest(text.as_bytes())
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
 }
 
 /// Writes `text` into `path` whole or not at all: a new file beside it,

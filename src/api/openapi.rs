@@ -227,6 +227,7 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(buses::post_scan))
         .routes(routes!(buses::post_address))
         .routes(routes!(config::post_reload))
+        .routes(routes!(config::post_drives))
         .routes(routes!(stream::stream))
         .routes(routes!(monitor::get_monitor))
         .routes(routes!(monitor::get_frames))

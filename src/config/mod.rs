@@ -9,6 +9,7 @@
 mod bus;
 mod diagnostics;
 pub mod diff;
+pub mod edit;
 mod error;
 pub mod http;
 pub mod modbus_tcp;

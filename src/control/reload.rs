@@ -123,6 +123,8 @@ impl ConfigFollower {
 /// configuration, the status.
 pub(super) struct Reloads {
     reloader: std::sync::Mutex<Option<mpsc::Sender<ReloadRequest>>>,
+    /// The file the reloader reads.
+    file: std::sync::Mutex<Option<std::path::PathBuf>>,
     running: watch::Sender<Option<Arc<Config>>>,
     status: std::sync::Mutex<ReloadStatus>,
 }
@@ -131,6 +133,7 @@ impl Default for Reloads {
     fn default() -> Self {
         Reloads {
             reloader: std::sync::Mutex::new(None),
+            file: std::sync::Mutex::new(None),
             running: watch::channel(None).0,
             status: std::sync::Mutex::new(ReloadStatus {
                 last_ok: true,
@@ -146,8 +149,14 @@ impl Default for Reloads {
 const RETIRE_LIMIT: Duration = Duration::from_secs(3);
 
 impl Control {
-    /// The daemon's reloader takes reloads from here on.
-    pub fn attach_reloader(&self, reloader: mpsc::Sender<ReloadRequest>) {
+    /// The daemon's reloader of `file` takes reloads from here on.
+    pub fn attach_reloader(&self, reloader: mpsc::Sender<ReloadRequest>, file: &std::path::Path) {
+        *self
+            .0
+            .reloads
+            .file
+            .lock()
+            .unwrap_or_else(|p| p.into_inner()) = Some(file.to_path_buf());
         *self
             .0
             .reloads
@@ -190,6 +199,17 @@ impl Control {
         let gone = || Refused::Unavailable("drivegate is stopping".to_string());
         reloader.send(request).await.map_err(|_| gone())?;
         answer.await.map_err(|_| gone())?
+    }
+
+    /// The configuration file a reload reads, if drivegate was started
+    /// with one.
+    pub fn config_file(&self) -> Option<std::path::PathBuf> {
+        self.0
+            .reloads
+            .file
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     /// What became of reloads since start-up.

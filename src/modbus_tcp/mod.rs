@@ -138,4 +138,3 @@ pub async fn start_tls(
     let task = tokio::spawn(server::run_tls(listener, gateway, settings, tls, shutdown));
     Ok(Some((addr, task)))
 }
-
