@@ -30,6 +30,9 @@ pub enum Operation {
     Capture,
     /// Acknowledging an alarm: the operator on duty says they saw it.
     AcknowledgeAlarm,
+    /// Reloading the configuration file (drives and buses added or
+    /// removed, tokens, roles of networks): commissioning work.
+    Reload,
 }
 
 impl Operation {
@@ -41,6 +44,7 @@ impl Operation {
             Operation::Scan => Role::Admin,
             Operation::Capture => Role::Operator,
             Operation::AcknowledgeAlarm => Role::Operator,
+            Operation::Reload => Role::Admin,
         }
     }
 }
