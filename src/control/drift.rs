@@ -5,7 +5,7 @@
 //! reported: an event for the stream, the audit log, the drive's state
 //! for the API and the metric. With `apply_settings = "on-drift"` the
 //! declaration is then put on the drive through the core's one write path
-//! ([`Control::apply_wanted`]), never while the motor turns (the core
+//! (`Control::apply_wanted`), never while the motor turns (the core
 //! refuses it; this waits for a status at standstill and tries again) and
 //! never to flash unless `save = true` is declared; the read-back after
 //! it says whether the drift is gone.
