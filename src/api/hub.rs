@@ -17,9 +17,11 @@ use tokio_util::sync::CancellationToken;
 use utoipa::ToSchema;
 
 use super::document::{DeclaredState, SettingsDiff};
+use super::alarms::AlarmView;
 use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
 use crate::bus::BusEvent;
+use crate::control::alarms::AlarmNews;
 use crate::control::{Control, ControlEvent, LeaseEvent, Published, SessionId};
 use crate::plant::Plant;
 use crate::scope::result::ScopeState;
@@ -198,6 +200,24 @@ pub enum ServerMessage {
         /// When (RFC 3339, UTC).
         at: String,
     },
+    /// An alarm was raised (a fault, a stall, a drive offline, a bus down,
+    /// a stop not confirmed, a communication-loss stop, a write refused by
+    /// a safety rule), or an event came again before it was acknowledged
+    /// (same `id`, `count` up). Sent to every client.
+    AlarmRaised {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
+    },
+    /// An alarm's condition ended. Sent to every client.
+    AlarmCleared {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
+    },
+    /// An operator acknowledged an alarm. Sent to every client.
+    AlarmAcknowledged {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
+    },
     /// A scope capture was armed, triggered, ended, or filled some more
     /// (every 100 ms while it runs): its state, as `GET
     /// /api/v1/buses/{bus}/scope` shows it. Sent to every client
@@ -352,8 +372,8 @@ impl Hub {
     }
 }
 
-/// A control event as a stream message: lease news, and every write the
-/// core settled (from any face, and the daemon's own stops).
+/// A control event as a stream message: lease news, every write the
+/// core settled (from any face, and the daemon's own stops), and alarms.
 pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
     let lease = match event {
         ControlEvent::Lease(lease) => lease,
@@ -380,6 +400,17 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
                     &applied.report,
                 ),
                 at: rfc3339(applied.at),
+            };
+            return Some(message.to_text());
+        }
+        // Its stop follows as lease news; the alarm it raises as an alarm.
+        ControlEvent::CommLoss { .. } => return None,
+        ControlEvent::Alarm(news) => {
+            let alarm = AlarmView::from(news.alarm());
+            let message = match news {
+                AlarmNews::Raised(_) => ServerMessage::AlarmRaised { alarm },
+                AlarmNews::Cleared(_) => ServerMessage::AlarmCleared { alarm },
+                AlarmNews::Acknowledged(_) => ServerMessage::AlarmAcknowledged { alarm },
             };
             return Some(message.to_text());
         }

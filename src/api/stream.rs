@@ -33,6 +33,7 @@ use tokio::task::JoinSet;
 use tokio_util::task::TaskTracker;
 use utoipa::{IntoParams, ToSchema};
 
+use super::alarms;
 use super::auth::{Caller, StreamCaller};
 use super::buses;
 use super::commands::{self, ModeBody, parse_command};
@@ -86,8 +87,9 @@ pub enum ClientMessage {
     /// `inertia`, `rs485-control`, `settings` (a settings document, with
     /// `"dry_run": true` for a dry run) with the body of the REST route; `scan`,
     /// `set-address`, `scope-arm`, `scope-trigger` and `scope-cancel` take
-    /// `bus` instead of `drive`. A setpoint's lease also ends when this
-    /// socket closes.
+    /// `bus` instead of `drive`; `alarm-ack` takes neither, its body is
+    /// `{"alarm": id}`. A setpoint's lease also ends when this socket
+    /// closes.
     Command {
         /// Any JSON value; echoed in the reply.
         id: Value,
@@ -543,7 +545,7 @@ struct FreshBody {
     fresh: bool,
 }
 
-const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, settings, scan, set-address, scope-arm, scope-trigger, scope-cancel";
+const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, settings, scan, set-address, scope-arm, scope-trigger, scope-cancel, alarm-ack";
 
 /// Runs one stream command through the same code as its REST route.
 async fn dispatch(
@@ -554,6 +556,10 @@ async fn dispatch(
     bus: Option<String>,
     body: Option<Value>,
 ) -> Result<Value, Problem> {
+    if op == "alarm-ack" {
+        let b: alarms::AckBody = body_as(op, body)?;
+        return json(alarms::acknowledge(state, caller, b.alarm).await?);
+    }
     if matches!(
         op,
         "scan" | "set-address" | "scope-arm" | "scope-trigger" | "scope-cancel"

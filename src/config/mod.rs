@@ -2,7 +2,7 @@
 //! at the line and column to fix.
 //!
 //! Sections: `[http]`, `[modbus_tcp]`, `[log]`, `[safety]`, `[monitor]`,
-//! `[scope]` and one `[[bus]]`
+//! `[scope]`, `[history]` and one `[[bus]]`
 //! per serial adapter, each with its `[[bus.drive]]` list (and optional
 //! `[bus.rs485]`, `[bus.sim]`). `config/drivegate.toml` documents every key.
 
@@ -10,6 +10,7 @@ mod bus;
 mod declared;
 mod diagnostics;
 mod error;
+mod history;
 pub mod http;
 pub mod modbus_tcp;
 mod modbus_tls;
@@ -27,6 +28,7 @@ pub use bus::{BusConfig, DriveConfig, SimSection};
 pub use declared::{ApplySettings, Declared, DeclaredKeys};
 pub use diagnostics::{MonitorConfig, ScopeConfig};
 pub use error::ConfigError;
+pub use history::HistoryConfig;
 pub use http::HttpConfig;
 pub use modbus_tcp::ModbusTcpConfig;
 pub use modbus_tls::ModbusTlsConfig;
@@ -61,6 +63,9 @@ pub struct Config {
     /// The scope (capture limits, the floor rate of the other drives).
     #[serde(default)]
     pub scope: ScopeConfig,
+    /// The trends: how long each drive's status is kept.
+    #[serde(default)]
+    pub history: HistoryConfig,
     /// The buses (serial adapters). None, or a bus without drives, is a
     /// valid configuration: the daemon waits to be told which drives to
     /// poll, and `drivegate probe` or a bus scan finds them.

@@ -71,6 +71,20 @@ pub fn released(face: &str, who: &str, drive: &str) {
     );
 }
 
+/// Logs an alarm acknowledged by `who` (the alarm's own raising and
+/// clearing are logged under `drivegate::alarms`).
+pub fn alarm_acknowledged(face: &str, who: &str, id: u64, kind: &str, drive: &str, text: &str) {
+    tracing::info!(
+        target: "drivegate::audit",
+        face,
+        who,
+        alarm = id,
+        kind,
+        drive,
+        "alarm acknowledged: {text}"
+    );
+}
+
 /// Logs news of a lease on drive `drive`: its end (why, and what its stop
 /// did), or how a stop that failed at first ended. `who` is its holder.
 pub fn lease(drive: &str, event: &LeaseEvent) {

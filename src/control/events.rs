@@ -108,6 +108,17 @@ pub enum ControlEvent {
     Settings(SettingsApplied),
     /// A drive compared with its declared settings.
     Drift(DriftChecked),
+    /// A Modbus TCP client's communication-loss function ended its lease
+    /// on `drive` (its stop follows as lease news): by silence, or
+    /// `closed` by its connection closing.
+    CommLoss {
+        /// Drive index.
+        drive: usize,
+        /// True when its connection closed.
+        closed: bool,
+    },
+    /// An alarm raised, cleared or acknowledged.
+    Alarm(super::alarms::AlarmNews),
 }
 
 impl ControlEvent {
@@ -118,6 +129,9 @@ impl ControlEvent {
             ControlEvent::Write(w) => w.drive,
             ControlEvent::Settings(s) => Some(s.report.drive),
             ControlEvent::Drift(d) => Some(d.drive),
+            ControlEvent::CommLoss { drive, .. } => Some(*drive),
+            // Every client's business: the console's banner shows them all.
+            ControlEvent::Alarm(_) => None,
         }
     }
 }

@@ -17,8 +17,12 @@
 //!   their stops, and the rule that a brake holds;
 //! - [`outcome`]: what became of a write, typed from the bus up;
 //! - [`audit`] and [`events`]: one wording in the log, one broadcast of
-//!   lease news and writes for whoever listens.
+//!   lease news and writes for whoever listens;
+//! - [`alarms`]: what needs an operator's attention, raised from the
+//!   buses' and the core's events, kept across restarts, acknowledged
+//!   through [`Control::acknowledge_alarm`].
 
+pub mod alarms;
 pub mod audit;
 pub mod caller;
 pub mod drift;
@@ -71,6 +75,15 @@ pub struct Target {
     pub drive: Option<usize>,
 }
 
+/// Why an alarm could not be acknowledged.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum AlarmError {
+    /// The caller may not.
+    Refused(Refusal),
+    /// There is no such alarm.
+    Unknown(alarms::AckError),
+}
+
 /// Why a lease could not be renewed or released.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum LeaseError {
@@ -87,6 +100,7 @@ pub struct Control(Arc<Inner>);
 struct Inner {
     plant: Arc<Plant>,
     leases: Arc<Leases>,
+    alarms: Arc<alarms::Alarms>,
     events: Arc<Events>,
     jog_lease: Duration,
     lease_bounds: LeaseBounds,
@@ -108,7 +122,11 @@ impl Control {
     /// lease driver stops when `shutdown` fires.
     pub fn start(plant: Arc<Plant>, safety: &SafetyConfig, shutdown: CancellationToken) -> Self {
         let events = Arc::new(Events::default());
-        let opened = Journal::open(safety.state_dir().as_deref());
+        let state_dir = safety.state_dir();
+        let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
+        alarms.reconcile(&plant);
+        alarms.watch(&plant, events.subscribe(), &shutdown);
+        let opened = Journal::open(state_dir.as_deref());
         for news in &opened.news {
             match opened.journal.health() {
                 journal::Health::Off(_) => tracing::info!("{news}"),
@@ -125,6 +143,7 @@ impl Control {
         let control = Control(Arc::new(Inner {
             plant,
             leases,
+            alarms,
             events,
             jog_lease: Duration::from_millis(safety.jog_lease_ms),
             lease_bounds: LeaseBounds {
@@ -241,6 +260,39 @@ impl Control {
     /// Every future event of the core.
     pub fn subscribe(&self) -> broadcast::Receiver<Published> {
         self.0.events.subscribe()
+    }
+
+    /// The alarm list.
+    pub fn alarms(&self) -> &Arc<alarms::Alarms> {
+        &self.0.alarms
+    }
+
+    /// Acknowledges alarm `id` for `caller` (an operator's work), audited;
+    /// answered once the acknowledgement is on the disk.
+    pub async fn acknowledge_alarm(
+        &self,
+        caller: &Caller,
+        id: u64,
+    ) -> Result<alarms::Alarm, AlarmError> {
+        rules::role(caller, Operation::AcknowledgeAlarm.needs()).map_err(AlarmError::Refused)?;
+        let before = self.0.alarms.get(id).and_then(|a| a.ack);
+        let alarm = self
+            .0
+            .alarms
+            .acknowledge(id, &caller.who)
+            .await
+            .map_err(AlarmError::Unknown)?;
+        if before.is_none() {
+            audit::alarm_acknowledged(
+                caller.face.name(),
+                &caller.who,
+                id,
+                alarm.kind.name(),
+                alarm.drive.as_deref().unwrap_or(""),
+                &alarm.text,
+            );
+        }
+        Ok(alarm)
     }
 
     pub(crate) fn leases(&self) -> &Arc<Leases> {
@@ -367,6 +419,9 @@ impl Control {
     /// Waits for the lease driver and its stops to finish (after shutdown).
     pub async fn wait(&self) {
         self.0.leases.wait().await;
+        // The alarm file gets what the stop raised, and is closed.
+        let alarms = self.0.alarms.clone();
+        let _ = tokio::task::spawn_blocking(move || alarms.close()).await;
     }
 
     fn drive_name(&self, drive: usize) -> String {

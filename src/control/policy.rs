@@ -28,6 +28,8 @@ pub enum Operation {
     /// Arming, triggering or cancelling a scope capture: it changes how the
     /// bus polls (its drives get every poll, the others the floor rate).
     Capture,
+    /// Acknowledging an alarm: the operator on duty says they saw it.
+    AcknowledgeAlarm,
 }
 
 impl Operation {
@@ -38,6 +40,7 @@ impl Operation {
             Operation::Lease => Role::Operator,
             Operation::Scan => Role::Admin,
             Operation::Capture => Role::Operator,
+            Operation::AcknowledgeAlarm => Role::Operator,
         }
     }
 }

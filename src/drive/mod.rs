@@ -3,6 +3,7 @@
 //! ranges and unit conversions, and typed requests and replies. No I/O here.
 
 pub(crate) mod command;
+pub mod help;
 pub(crate) mod message;
 pub(crate) mod range;
 pub(crate) mod registers;

@@ -62,6 +62,34 @@ static DRIFT: Spec = Spec {
     labels: &["bus", "unit", "name"],
 };
 
+static ALARMS_ACTIVE: Spec = Spec {
+    name: "drivegate_alarms_active",
+    help: "Active alarms by kind: fault, stall, offline, bus-down, stop-failed (conditions that            last), comm-loss and refused-write (events: never active, see            drivegate_alarms_unacknowledged).",
+    kind: Kind::Gauge,
+    labels: &["kind"],
+};
+
+static ALARMS_UNACKED: Spec = Spec {
+    name: "drivegate_alarms_unacknowledged",
+    help: "Alarms no operator has acknowledged yet, active or not (GET /api/v1/alarms).",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
+static ALARM_FILE_BYTES: Spec = Spec {
+    name: "drivegate_alarm_file_bytes",
+    help: "Size of the alarm file (alarms.journal in [safety] state_dir); 0 without one.",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
+static ALARM_FILE_OK: Spec = Spec {
+    name: "drivegate_alarm_file_ok",
+    help: "1 when the alarm file is written and synced (or there is no state directory); 0            when it cannot be written (alarms are then kept in memory until it can).",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
 /// Exports the control core's counters.
 pub(crate) struct ControlCollector {
     control: Control,
@@ -79,6 +107,10 @@ impl ControlCollector {
                 JOURNAL_EVENTS.desc(),
                 JOURNAL_BYTES.desc(),
                 DRIFT.desc(),
+                ALARMS_ACTIVE.desc(),
+                ALARMS_UNACKED.desc(),
+                ALARM_FILE_BYTES.desc(),
+                ALARM_FILE_OK.desc(),
             ],
         }
     }
@@ -124,6 +156,18 @@ impl Collector for ControlCollector {
                 drift.set_bool(&[bus, unit.as_str(), d.name.as_str()], view.drifted());
             }
         }
+        let summary = self.control.alarms().summary();
+        let mut active = ALARMS_ACTIVE.family();
+        for (kind, n) in &summary.active {
+            active.set(&[kind.name()], *n as f64);
+        }
+        let mut unacked = ALARMS_UNACKED.family();
+        unacked.set(&[], summary.unacknowledged as f64);
+        let file = self.control.alarms().file_state();
+        let mut file_bytes = ALARM_FILE_BYTES.family();
+        file_bytes.set(&[], file.bytes as f64);
+        let mut file_ok = ALARM_FILE_OK.family();
+        file_ok.set(&[], f64::from(u8::from(file.failing.is_none())));
         vec![
             comm_loss.finish(),
             drift.finish(),
@@ -131,6 +175,10 @@ impl Collector for ControlCollector {
             ok.finish(),
             events.finish(),
             bytes.finish(),
+            active.finish(),
+            unacked.finish(),
+            file_bytes.finish(),
+            file_ok.finish(),
         ]
     }
 }

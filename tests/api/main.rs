@@ -11,11 +11,13 @@
 #[path = "../support/mod.rs"]
 mod support;
 
+mod alarms;
 mod auth;
 mod buses;
 mod commands;
 mod drives;
 mod errors;
+mod history;
 mod leases;
 mod openapi;
 mod settings;

@@ -123,6 +123,9 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
         ),
         ("delete_scope", (None, Some("scope-cancel"))),
         ("post_trigger", (None, Some("scope-trigger"))),
+        // An acknowledgement is the operator's (alarm 1 may not exist yet:
+        // a right role then meets 404); on the stream the id is the body's.
+        ("post_ack", (None, Some("alarm-ack"))),
     ])
 }
 
@@ -154,7 +157,10 @@ fn writes(doc: &Value) -> Vec<Write> {
             let (body, op_name) = bodies.get(id).cloned().unwrap_or_else(|| {
                 panic!("{method} {path} ({id}) is new: give it a body in bodies()")
             });
-            let target = path.replace("{drive}", "lift").replace("{bus}", "sim");
+            let target = path
+                .replace("{drive}", "lift")
+                .replace("{bus}", "sim")
+                .replace("{id}", "1");
             let in_stream = |name: &str, body: &Option<Value>| {
                 let mut m = json!({"type": "command", "op": name});
                 if path.contains("{bus}") {
@@ -164,6 +170,9 @@ fn writes(doc: &Value) -> Vec<Write> {
                 }
                 if let Some(b) = body {
                     m["body"] = b.clone();
+                }
+                if path.contains("{id}") {
+                    m["body"] = json!({"alarm": 1});
                 }
                 m
             };
