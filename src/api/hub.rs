@@ -16,8 +16,8 @@ use tokio::sync::broadcast;
 use tokio_util::sync::CancellationToken;
 use utoipa::ToSchema;
 
-use super::document::{DeclaredState, SettingsDiff};
 use super::alarms::AlarmView;
+use super::document::{DeclaredState, SettingsDiff};
 use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
 use crate::bus::BusEvent;
