@@ -129,6 +129,8 @@ pub struct DriftBook {
     /// Drives being checked; true when another check was asked for
     /// meanwhile (it runs after).
     running: Mutex<HashMap<usize, bool>>,
+    /// The daemon's shutdown, once the buses are followed.
+    shutdown: std::sync::OnceLock<CancellationToken>,
 }
 
 impl DriftBook {
@@ -214,6 +216,21 @@ impl DriftBook {
                 apply,
             },
         );
+    }
+
+    /// Compares drive `drive` with its declaration again now (and applies
+    /// it under `on-drift`), as when it comes online: for a declaration
+    /// that changed while the drive was online. Nothing before the buses
+    /// are followed, nor for a drive without a declaration.
+    pub fn recheck(self: &Arc<Self>, control: &Control, drive: usize) {
+        let declared = control
+            .plant()
+            .drives()
+            .get(drive)
+            .is_some_and(|d| d.declared.is_some());
+        if let (true, Some(shutdown)) = (declared, self.shutdown.get()) {
+            self.request(control, drive, shutdown);
+        }
     }
 
     /// Checks drive `drive` now, or once the check running for it ends.
@@ -358,6 +375,7 @@ pub(crate) fn start(control: &Control, shutdown: &CancellationToken) {
         return;
     }
     let book = control.drift().clone();
+    let _ = book.shutdown.set(shutdown.clone());
     for (index, bus) in control.plant().buses().iter().enumerate() {
         let mut rx = bus.handle.subscribe();
         let (book, control, shutdown) = (book.clone(), control.clone(), shutdown.clone());
