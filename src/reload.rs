@@ -158,6 +158,13 @@ impl Reloader {
                 .collect(),
         };
         let problems = self.plant.apply(&new, &rebuild).await;
+        // A drive whose declared settings changed is compared with them again.
+        let after = self.plant.now();
+        for (i, d) in after.indexed_drives() {
+            if d.declared.is_some() && now.drive_at(i).map(|o| o.declared) != Some(d.declared) {
+                self.control.drift().recheck(&self.control, i);
+            }
+        }
         let new = Arc::new(new);
         self.control.set_config(new.clone());
         self.running = new;

@@ -5,7 +5,7 @@
 //! reported: an event for the stream, the audit log, the drive's state
 //! for the API and the metric. With `apply_settings = "on-drift"` the
 //! declaration is then put on the drive through the core's one write path
-//! ([`Control::apply_wanted`]), never while the motor turns (the core
+//! (`Control::apply_wanted`), never while the motor turns (the core
 //! refuses it; this waits for a status at standstill and tries again) and
 //! never to flash unless `save = true` is declared; the read-back after
 //! it says whether the drift is gone.
@@ -129,6 +129,8 @@ pub struct DriftBook {
     /// Drives being checked; true when another check was asked for
     /// meanwhile (it runs after).
     running: Mutex<HashMap<usize, bool>>,
+    /// The daemon's shutdown, once the buses are followed.
+    shutdown: std::sync::OnceLock<CancellationToken>,
 }
 
 impl DriftBook {
@@ -224,6 +226,21 @@ impl DriftBook {
                 apply,
             },
         );
+    }
+
+    /// Compares drive `drive` with its declaration again now (and applies
+    /// it under `on-drift`), as when it comes online: for a declaration
+    /// that changed while the drive was online. Nothing before the buses
+    /// are followed, nor for a drive without a declaration.
+    pub fn recheck(self: &Arc<Self>, control: &Control, drive: usize) {
+        let declared = control
+            .plant()
+            .now()
+            .drive_at(drive)
+            .is_some_and(|d| d.declared.is_some());
+        if let (true, Some(shutdown)) = (declared, self.shutdown.get()) {
+            self.request(control, drive, shutdown);
+        }
     }
 
     /// Checks drive `drive` now, or once the check running for it ends.
@@ -370,6 +387,7 @@ pub(crate) fn start(control: &Control, shutdown: &CancellationToken) {
         return;
     }
     let book = control.drift().clone();
+    let _ = book.shutdown.set(shutdown.clone());
     let (directory, stop, books) = (control.clone(), shutdown.clone(), book.clone());
     control
         .plant()
