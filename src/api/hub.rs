@@ -17,6 +17,7 @@ use tokio_util::sync::CancellationToken;
 use utoipa::ToSchema;
 
 use super::alarms::AlarmView;
+use super::document::{DeclaredState, SettingsDiff};
 use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
 use crate::bus::BusEvent;
@@ -166,6 +167,36 @@ pub enum ServerMessage {
         ok: bool,
         /// The drive's answer, or why the write failed.
         answer: String,
+        /// When (RFC 3339, UTC).
+        at: String,
+    },
+    /// A drive with declared settings (`[bus.drive.settings]`) was
+    /// compared with them: when it came online (start, a power cycle, a
+    /// replaced drive), after a settings document was put on it, or while
+    /// drivegate applies them (`on-drift`).
+    SettingsDrift {
+        /// Drive name.
+        drive: String,
+        /// Its bus.
+        bus: String,
+        /// Its unit address.
+        unit: u8,
+        /// The declaration's state, as in the drive's `declared_settings`
+        /// (`drift`: true when it does not hold them).
+        #[serde(flatten)]
+        declared: DeclaredState,
+        /// When (RFC 3339, UTC).
+        at: String,
+    },
+    /// A settings document was put on a drive (from any face, or by
+    /// drivegate for a declaration): what each setting was and is. Its
+    /// writes come as `write` messages too.
+    SettingsApplied {
+        /// Who sent it (`declared-settings`: drivegate itself).
+        who: String,
+        /// The diff, as `PUT .../settings` answers it.
+        #[serde(flatten)]
+        diff: SettingsDiff,
         /// When (RFC 3339, UTC).
         at: String,
     },
@@ -346,6 +377,32 @@ impl Hub {
 pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
     let lease = match event {
         ControlEvent::Lease(lease) => lease,
+        ControlEvent::Drift(d) => {
+            let drive = plant.drives().get(d.drive)?;
+            let declared = drive.declared.as_ref()?;
+            let message = ServerMessage::SettingsDrift {
+                drive: drive.name.clone(),
+                bus: plant.handle_of(drive).name().to_string(),
+                unit: drive.unit,
+                declared: DeclaredState::new(declared, Some(&d.view)),
+                at: rfc3339(d.view.checked_at),
+            };
+            return Some(message.to_text());
+        }
+        ControlEvent::Settings(applied) => {
+            let drive = plant.drives().get(applied.report.drive)?;
+            let message = ServerMessage::SettingsApplied {
+                who: applied.who.to_string(),
+                diff: SettingsDiff::of(
+                    drive.name.clone(),
+                    plant.handle_of(drive).name().to_string(),
+                    drive.unit,
+                    &applied.report,
+                ),
+                at: rfc3339(applied.at),
+            };
+            return Some(message.to_text());
+        }
         // Its stop follows as lease news; the alarm it raises as an alarm.
         ControlEvent::CommLoss { .. } => return None,
         ControlEvent::Alarm(news) => {

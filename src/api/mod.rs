@@ -29,6 +29,7 @@ pub mod body_schemas;
 pub mod buses;
 pub mod commands;
 pub mod control;
+pub mod document;
 pub mod drives;
 pub mod extract;
 pub mod guard;

@@ -17,8 +17,8 @@ use super::problem::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
 use super::{
-    alarms, buses, commands, drives, health, history, monitor, monitor_live, readback, scope,
-    setpoints, settings, stream, whoami,
+    alarms, buses, commands, document, drives, health, history, monitor, monitor_live, readback,
+    scope, setpoints, settings, stream, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -210,7 +210,8 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(drives::list_drives))
         .routes(routes!(drives::get_drive))
         .routes(routes!(drives::get_status))
-        .routes(routes!(readback::get_settings))
+        .routes(routes!(readback::get_settings, document::put_settings))
+        .routes(routes!(document::get_declared))
         .routes(routes!(whoami::whoami))
         .routes(routes!(commands::post_command))
         .routes(routes!(commands::put_mode))

@@ -7,6 +7,7 @@
 //! `[bus.rs485]`, `[bus.sim]`). `config/drivegate.toml` documents every key.
 
 mod bus;
+mod declared;
 mod diagnostics;
 mod error;
 mod history;
@@ -24,6 +25,7 @@ use std::path::Path;
 use serde::Deserialize;
 
 pub use bus::{BusConfig, DriveConfig, SimSection};
+pub use declared::{ApplySettings, Declared, DeclaredKeys};
 pub use diagnostics::{MonitorConfig, ScopeConfig};
 pub use error::ConfigError;
 pub use history::HistoryConfig;
@@ -139,6 +141,14 @@ impl Config {
                             bus.name()
                         ),
                     ));
+                }
+                if let Some(keys) = &drive.settings {
+                    keys.get_ref().declared().map_err(|message| {
+                        at(
+                            keys.span(),
+                            format!("drive \"{}\": {message}", drive.name()),
+                        )
+                    })?;
                 }
                 if let Some(other) = drive_names.insert(drive.name(), bus.name()) {
                     return Err(at(

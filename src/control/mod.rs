@@ -25,6 +25,7 @@
 pub mod alarms;
 pub mod audit;
 pub mod caller;
+pub mod drift;
 pub mod events;
 pub mod journal;
 pub mod lease_book;
@@ -34,6 +35,7 @@ pub mod policy;
 pub mod request;
 pub mod restart;
 pub mod rules;
+pub mod settings;
 pub mod shutdown;
 pub mod write;
 pub mod written;
@@ -111,6 +113,8 @@ struct Inner {
     replayed: std::sync::Mutex<restart::Counts>,
     /// The replay's decisions in words, for the stream's clients.
     restart_notes: std::sync::Mutex<Vec<restart::RestartNote>>,
+    /// Drives compared with their declared settings.
+    drift: Arc<drift::DriftBook>,
 }
 
 impl Control {
@@ -134,9 +138,9 @@ impl Control {
             safety.on_lease_expiry,
             events.clone(),
             opened.journal,
-            shutdown,
+            shutdown.clone(),
         );
-        Control(Arc::new(Inner {
+        let control = Control(Arc::new(Inner {
             plant,
             leases,
             alarms,
@@ -151,7 +155,15 @@ impl Control {
             journal_news: opened.news,
             replayed: std::sync::Mutex::new(restart::Counts::new()),
             restart_notes: std::sync::Mutex::new(Vec::new()),
-        }))
+            drift: Arc::new(drift::DriftBook::default()),
+        }));
+        drift::start(&control, &shutdown);
+        control
+    }
+
+    /// Drives compared with their declared settings.
+    pub fn drift(&self) -> &Arc<drift::DriftBook> {
+        &self.0.drift
     }
 
     /// Replays the safety journal (once): what the last process owed the

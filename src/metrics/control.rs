@@ -1,5 +1,7 @@
 //! The control core's own counters, read at scrape time: the ends of the
-//! leases of Modbus TCP clients' communication-loss function, per bus.
+//! leases of Modbus TCP clients' communication-loss function, per bus,
+//! the safety journal, and the drift of drives from their declared
+//! settings.
 //! Every bus's series exist from start-up, at 0, so an alert on
 //! `increase(...) > 0` needs no `absent()`.
 
@@ -51,6 +53,15 @@ static JOURNAL_BYTES: Spec = Spec {
     labels: &[],
 };
 
+static DRIFT: Spec = Spec {
+    name: "drivegate_drive_settings_drift",
+    help: "1 while a drive with declared settings ([bus.drive.settings]) is known not to hold \
+           them, 0 once it was compared and holds them; no series before its first comparison \
+           (it compares when the drive comes online) nor for drives without a declaration.",
+    kind: Kind::Gauge,
+    labels: &["bus", "unit", "name"],
+};
+
 static ALARMS_ACTIVE: Spec = Spec {
     name: "drivegate_alarms_active",
     help: "Active alarms by kind: fault, stall, offline, bus-down, stop-failed (conditions that            last), comm-loss and refused-write (events: never active, see            drivegate_alarms_unacknowledged).",
@@ -95,6 +106,7 @@ impl ControlCollector {
                 JOURNAL_OK.desc(),
                 JOURNAL_EVENTS.desc(),
                 JOURNAL_BYTES.desc(),
+                DRIFT.desc(),
                 ALARMS_ACTIVE.desc(),
                 ALARMS_UNACKED.desc(),
                 ALARM_FILE_BYTES.desc(),
@@ -135,6 +147,15 @@ impl Collector for ControlCollector {
         events.set(&["unreadable"], c.unreadable as f64);
         let mut bytes = JOURNAL_BYTES.family();
         bytes.set(&[], c.bytes as f64);
+        let mut drift = DRIFT.family();
+        let plant = self.control.plant();
+        for d in plant.drives().iter().filter(|d| d.declared.is_some()) {
+            if let Some(view) = self.control.drift().view(&d.name) {
+                let unit = d.unit.to_string();
+                let bus = plant.handle_of(d).name();
+                drift.set_bool(&[bus, unit.as_str(), d.name.as_str()], view.drifted());
+            }
+        }
         let summary = self.control.alarms().summary();
         let mut active = ALARMS_ACTIVE.family();
         for (kind, n) in &summary.active {
@@ -149,6 +170,7 @@ impl Collector for ControlCollector {
         file_ok.set(&[], f64::from(u8::from(file.failing.is_none())));
         vec![
             comm_loss.finish(),
+            drift.finish(),
             replayed.finish(),
             ok.finish(),
             events.finish(),

@@ -20,4 +20,5 @@ mod errors;
 mod history;
 mod leases;
 mod openapi;
+mod settings;
 mod stream;

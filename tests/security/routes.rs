@@ -9,11 +9,11 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use crate::support::TestDaemon;
 use crate::support::input::{
     ADMIN, OPERATOR, RawAnswer, VIEWER, check_answer, config, raw_http, request, writes_on_wire,
 };
 use crate::support::logs::{capture_logs, log_text};
+use crate::support::{TestDaemon, replaced};
 use drivegate::control::policy::{self, Role};
 use drivegate::drive::ConfigCommand;
 use futures_util::{SinkExt, StreamExt};
@@ -97,6 +97,10 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
         (
             "put_rs485_control",
             (Some(json!({"enabled": true})), Some("rs485-control")),
+        ),
+        (
+            "put_settings",
+            (Some(json!({"inertia_ratio": 1})), Some("settings")),
         ),
         (
             "post_scan",
@@ -255,8 +259,14 @@ fn problem_type(a: &RawAnswer) -> String {
 
 /// Every route is tried with wrong tokens: more than the pause after
 /// token guesses would let through (tests/security/tokens.rs tests it).
+/// The lift declares a setting, so its declaration can be read too.
 async fn daemon() -> TestDaemon {
-    TestDaemon::start(&config("token_guesses = 1000000", "", true, "")).await
+    let text = replaced(
+        &config("token_guesses = 1000000", "", true, ""),
+        "name = \"lift\"\ngear_ratio = 10.0\n",
+        "name = \"lift\"\ngear_ratio = 10.0\nsettings = { inertia_ratio = 1 }\n",
+    );
+    TestDaemon::start(&text).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

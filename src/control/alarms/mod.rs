@@ -539,7 +539,10 @@ impl Alarms {
                 };
                 self.apply(|book, now| book.clear(&k, now));
             }
-            ControlEvent::Lease(_) | ControlEvent::Alarm(_) => {}
+            ControlEvent::Lease(_)
+            | ControlEvent::Alarm(_)
+            | ControlEvent::Settings(_)
+            | ControlEvent::Drift(_) => {}
             ControlEvent::CommLoss { drive: i, closed } => {
                 let Some((name, bus, unit)) = drive(*i) else {
                     return;
