@@ -400,6 +400,14 @@ impl Alarms {
                 // A scan reads units that are not configured: not alarms.
                 let Some(drive) = drive_of(*unit) else { return };
                 let fault = status.fault();
+                // The common case, a healthy drive with nothing open: no
+                // change to make, nothing to allocate.
+                if fault.code() == 0
+                    && !status.stalled()
+                    && !self.lock().has_open_for(&bus_name, &drive)
+                {
+                    return;
+                }
                 self.apply(|book, now| {
                     let mut changes = book.clear(&key(AlarmKind::Offline, &drive, 0), now);
                     let code = fault.code();
