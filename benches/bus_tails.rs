@@ -42,7 +42,7 @@ use drivegate::config::Config;
 use drivegate::metrics::Metrics;
 use drivegate::modbus::timing::LineTiming;
 use drivegate::plant::Plant;
-use drivegate::sim::{Delivery, SimConfig, SimHandle, Simulator};
+use drivegate::sim::{Delivery, FaultRates, SimConfig, SimHandle, Simulator};
 use tokio_modbus::client::Reader;
 use tokio_modbus::{Slave, client::tcp};
 use tokio_util::sync::CancellationToken;
@@ -60,16 +60,24 @@ enum Transport {
     Pty,
     Usb,
     Tcp,
+    /// An external `drivegate sim --link` process on a pty.
+    Link,
 }
 
 impl Transport {
-    const ALL: [Transport; 3] = [Transport::Pty, Transport::Usb, Transport::Tcp];
+    const ALL: [Transport; 4] = [
+        Transport::Pty,
+        Transport::Usb,
+        Transport::Tcp,
+        Transport::Link,
+    ];
 
     fn name(self) -> &'static str {
         match self {
             Transport::Pty => "pty",
             Transport::Usb => "usb",
             Transport::Tcp => "tcp",
+            Transport::Link => "link",
         }
     }
 
@@ -87,14 +95,26 @@ enum Scenario {
     Polling1Hz,
     DeadDrive,
     DeadSteady,
+    /// 5 % of replies lost, 2 % corrupted, `retries = 3`.
+    Lossy,
+    /// Polling 1 Hz, retries 3: the clean line beside `lossy`.
+    Clean3,
+    /// Drives answering in 8 ms.
+    Slow8,
+    /// Drives slowing from 0.5 ms to 20 ms in the middle of the run.
+    Slowdown,
 }
 
 impl Scenario {
-    const ALL: [Scenario; 4] = [
+    const ALL: [Scenario; 8] = [
         Scenario::PollingOff,
         Scenario::Polling1Hz,
         Scenario::DeadDrive,
         Scenario::DeadSteady,
+        Scenario::Clean3,
+        Scenario::Lossy,
+        Scenario::Slow8,
+        Scenario::Slowdown,
     ];
 
     fn name(self) -> &'static str {
@@ -103,6 +123,10 @@ impl Scenario {
             Scenario::Polling1Hz => "polling 1 Hz",
             Scenario::DeadDrive => "1 Hz + dead drive",
             Scenario::DeadSteady => "dead, steady",
+            Scenario::Clean3 => "clean, retries 3",
+            Scenario::Lossy => "5% lost + 2% bad",
+            Scenario::Slow8 => "8 ms drives",
+            Scenario::Slowdown => "0.5 -> 20 ms",
         }
     }
 
@@ -112,7 +136,38 @@ impl Scenario {
             Scenario::Polling1Hz => "1hz",
             Scenario::DeadDrive => "dead",
             Scenario::DeadSteady => "dead-steady",
+            Scenario::Clean3 => "clean",
+            Scenario::Lossy => "lossy",
+            Scenario::Slow8 => "slow8",
+            Scenario::Slowdown => "slowdown",
         }
+    }
+
+    fn retries(self) -> u8 {
+        match self {
+            Scenario::Clean3 | Scenario::Lossy | Scenario::Slow8 | Scenario::Slowdown => 3,
+            _ => 1,
+        }
+    }
+
+    fn turnaround_ms(self) -> f64 {
+        match self {
+            Scenario::Slow8 => 8.0,
+            _ => TURNAROUND_MS,
+        }
+    }
+
+    fn faults(self) -> FaultRates {
+        let mut f = FaultRates::default();
+        match self {
+            Scenario::DeadDrive | Scenario::DeadSteady => f.silent_units = vec![DEAD_UNIT],
+            Scenario::Lossy => {
+                f.drop_rate = 0.05;
+                f.crc_error_rate = 0.02;
+            }
+            _ => {}
+        }
+        f
     }
 
     fn poll_interval_ms(self) -> u64 {
@@ -150,6 +205,8 @@ struct Figures {
     /// Background polls made.
     polls: u64,
     errors: usize,
+    /// Client reads delivered as a share of the limit, %.
+    reads_share: f64,
 }
 
 /// Figures measured before phased polling, cheap dead drives, the overhead
@@ -206,7 +263,8 @@ fn daemon_config(port: &str, scenario: Scenario) -> String {
     let mut toml = format!(
         "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n\
          [[bus]]\nname = \"bench\"\nport = \"{port}\"\nbaud = {BAUD}\nresponse_timeout_ms = 50\n\
-         retries = 1\npoll_interval_ms = {}\n",
+         retries = {}\npoll_interval_ms = {}\n",
+        scenario.retries(),
         scenario.poll_interval_ms()
     );
     if scenario == Scenario::DeadSteady {
@@ -223,15 +281,59 @@ fn daemon_config(port: &str, scenario: Scenario) -> String {
 fn start_sim(transport: Transport, scenario: Scenario) -> SimHandle {
     let mut config = SimConfig::for_units(scenario.units());
     config.baud = BAUD;
-    config.turnaround_ms = TURNAROUND_MS;
+    config.turnaround_ms = scenario.turnaround_ms();
     config.delivery = transport.delivery();
     if transport == Transport::Tcp {
         config.listen = Some("127.0.0.1:0".parse().unwrap());
     }
-    if matches!(scenario, Scenario::DeadDrive | Scenario::DeadSteady) {
-        config.faults.silent_units = vec![DEAD_UNIT];
-    }
+    config.faults = scenario.faults();
     Simulator::start(config).unwrap()
+}
+
+/// An external simulator, `drivegate sim --link`, for `scenario`: the
+/// process and the pty's link.
+fn start_external_sim(scenario: Scenario) -> (std::process::Child, String) {
+    use std::io::BufRead;
+    let link = std::env::temp_dir().join(format!("drivegate-bench-{}", std::process::id()));
+    let _ = std::fs::remove_file(&link);
+    let f = scenario.faults();
+    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_drivegate"));
+    cmd.arg("sim")
+        .arg("--link")
+        .arg(&link)
+        .arg("--units")
+        .arg(if scenario.units().len() > usize::from(DRIVES) {
+            format!("1-{DEAD_UNIT}")
+        } else {
+            format!("1-{DRIVES}")
+        })
+        .arg("--turnaround-ms")
+        .arg(scenario.turnaround_ms().to_string())
+        .arg("--drop-rate")
+        .arg(f.drop_rate.to_string())
+        .arg("--crc-error-rate")
+        .arg(f.crc_error_rate.to_string());
+    if !f.silent_units.is_empty() {
+        cmd.arg("--silent-units").arg(DEAD_UNIT.to_string());
+    }
+    let mut child = cmd.stdout(std::process::Stdio::piped()).spawn().unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    assert!(!line.is_empty(), "the simulator did not start");
+    (child, link.display().to_string())
+}
+
+/// The learned reply timeout of `unit` in a scrape, ms (`None` where the
+/// daemon does not learn it).
+fn reply_timeout_ms(metrics: &Metrics, unit: u8) -> Option<f64> {
+    let text = metrics.render();
+    let key = format!("drivegate_bus_reply_timeout_seconds{{bus=\"bench\",unit=\"{unit}\"}} ");
+    text.lines()
+        .find_map(|l| l.strip_prefix(&key))
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .map(|s| s * 1e3)
 }
 
 /// Quantile `p` of a bucketed histogram's difference `after - before`,
@@ -307,9 +409,15 @@ async fn clients(addr: SocketAddr, secs: u64) -> (Vec<Duration>, usize, f64) {
 }
 
 fn limit_per_s() -> f64 {
+    limit_at(TURNAROUND_MS)
+}
+
+/// The wire's limit of status reads per second with drives answering in
+/// `turnaround_ms`.
+fn limit_at(turnaround_ms: f64) -> f64 {
     let line = LineTiming::new_8n1(BAUD);
     1.0 / line
-        .transaction_time(8, 19, Duration::from_secs_f64(TURNAROUND_MS / 1e3))
+        .transaction_time(8, 19, Duration::from_secs_f64(turnaround_ms / 1e3))
         .as_secs_f64()
 }
 
@@ -318,19 +426,28 @@ fn ms(d: Option<Duration>) -> f64 {
 }
 
 async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
-    let sim = start_sim(transport, scenario);
-    let port = sim.port_path().display().to_string();
+    let (sim, external) = if transport == Transport::Link {
+        (None, Some(start_external_sim(scenario)))
+    } else {
+        (Some(start_sim(transport, scenario)), None)
+    };
+    let port = match (&sim, &external) {
+        (Some(sim), _) => sim.port_path().display().to_string(),
+        (_, Some((_, link))) => link.clone(),
+        _ => unreachable!(),
+    };
     let config = Config::parse(&daemon_config(&port, scenario), "bench").unwrap();
     let plant = Arc::new(Plant::start(&config).unwrap());
     let metrics = Metrics::new(plant.clone());
     let shutdown = CancellationToken::new();
-    let faces = drivegate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
+    let faces = drivegate::faces::start(&config, plant.clone(), metrics.clone(), shutdown.clone())
         .await
         .unwrap();
     let addr = faces.modbus_tcp.unwrap();
     let bus = plant.buses()[0].handle.clone();
 
-    // Every live drive has answered once.
+    // Every live drive has answered once (a drive never heard is probed
+    // from the shortest timeout, doubling: slow drives take a few probes).
     let warm = Instant::now();
     while bus
         .drives()
@@ -338,7 +455,7 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
         .filter(|d| d.unit <= DRIVES)
         .any(|d| d.status.is_none())
     {
-        assert!(warm.elapsed() < Duration::from_secs(10), "drives silent");
+        assert!(warm.elapsed() < Duration::from_secs(30), "drives silent");
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
     // Steady: the dead drive is offline and its backoff has reached the
@@ -354,26 +471,81 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     }
 
     let stats_before = bus.stats();
-    let sim_before = sim.stats();
-    let gaps_before = sim.gaps();
-    let (latencies, errors, elapsed) = clients(addr, secs).await;
+    let sim_before = sim.as_ref().map(|s| s.stats());
+    let gaps_before = sim.as_ref().map(|s| s.gaps());
+    // Halfway through the slowdown every drive takes 20 ms instead of
+    // 0.5 ms; the learned timeout of unit 1 is traced meanwhile.
+    let tracing = async {
+        let (Scenario::Slowdown, Some(sim)) = (scenario, &sim) else {
+            return Vec::new();
+        };
+        let start = Instant::now();
+        let mut trace = Vec::new();
+        let mut slowed = false;
+        while start.elapsed() < Duration::from_secs(secs) {
+            let t = start.elapsed().as_secs_f64();
+            if !slowed && t >= secs as f64 / 2.0 {
+                sim.set_fault_rates(FaultRates {
+                    late_rate: 1.0,
+                    late_ms: 19.5,
+                    ..FaultRates::default()
+                })
+                .unwrap();
+                slowed = true;
+            }
+            trace.push((t, reply_timeout_ms(&metrics, 1)));
+            let step = if (t - secs as f64 / 2.0).abs() < 0.5 {
+                10
+            } else {
+                250
+            };
+            tokio::time::sleep(Duration::from_millis(step)).await;
+        }
+        trace
+    };
+    let ((latencies, errors, elapsed), trace) = tokio::join!(clients(addr, secs), tracing);
     let stats_after = bus.stats();
-    let sim_after = sim.stats();
-    let gaps = sim.gaps().since(&gaps_before);
+    let sim_after = sim.as_ref().map(|s| s.stats());
+    let gaps = match (&sim, &gaps_before) {
+        (Some(sim), Some(before)) => Some(sim.gaps().since(before)),
+        _ => None,
+    };
     shutdown.cancel();
     faces.wait().await;
     drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     drop(sim);
+    if let Some((mut child, _)) = external {
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+    if !trace.is_empty() {
+        println!(
+            "  learned reply timeout of unit 1 (s into the run: ms), drives slowed at {:.1} s:",
+            secs as f64 / 2.0
+        );
+        let mut line = String::from("   ");
+        for (t, ms) in &trace {
+            line.push_str(&format!(
+                " {t:.1}:{}",
+                ms.map_or("-".to_string(), |m| format!("{m:.1}"))
+            ));
+        }
+        println!("{line}");
+    }
 
+    let limit = limit_at(scenario.turnaround_ms());
+    let replies = match (&sim_before, &sim_after) {
+        (Some(b), Some(a)) => (a.replies - b.replies) as f64,
+        _ => latencies.len() as f64,
+    };
     Figures {
-        bus_share: 100.0 * (sim_after.replies - sim_before.replies) as f64
-            / elapsed
-            / limit_per_s(),
+        bus_share: 100.0 * replies / elapsed / limit,
+        reads_share: 100.0 * latencies.len() as f64 / elapsed / limit,
         p50_ms: percentile(&latencies, 0.50),
         p99_ms: percentile(&latencies, 0.99),
         max_ms: percentile(&latencies, 1.0),
-        wire_idle_p50_ms: ms(gaps.quantile(0.50)),
-        wire_idle_p99_ms: ms(gaps.quantile(0.99)),
+        wire_idle_p50_ms: ms(gaps.as_ref().and_then(|g| g.quantile(0.50))),
+        wire_idle_p99_ms: ms(gaps.as_ref().and_then(|g| g.quantile(0.99))),
         master_idle_p50_ms: histogram_quantile(
             &stats_before.interframe_idle,
             &stats_after.interframe_idle,
@@ -384,7 +556,10 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
             &stats_after.interframe_idle,
             0.99,
         ),
-        violations: sim_after.gap_violations - sim_before.gap_violations,
+        violations: match (&sim_before, &sim_after) {
+            (Some(b), Some(a)) => a.gap_violations - b.gap_violations,
+            _ => 0,
+        },
         timeouts: stats_after.count(Outcome::Timeout) - stats_before.count(Outcome::Timeout),
         polls: stats_after.polls - stats_before.polls,
         errors,
@@ -438,15 +613,17 @@ async fn run_mbusd(mbusd: &str, transport: Transport, secs: u64) -> Figures {
         timeouts: 0,
         polls: 0,
         errors,
+        reads_share: 100.0 * latencies.len() as f64 / elapsed / limit_per_s(),
     }
 }
 
 fn print_row(port: &str, scenario: &str, f: &Figures, before: String) {
     println!(
-        "{:<5} {:<18} {:>6.1}% {:>5.1} ms {:>5.1} ms {:>5.1} ms {:>6.2}/{:.2} ms {:>6.2}/{:.2} ms {:>5} {:>5} {:>5} {:>4}   {}",
+        "{:<5} {:<18} {:>6.1}% {:>6.1}% {:>5.1} ms {:>5.1} ms {:>5.1} ms {:>6.2}/{:.2} ms {:>6.2}/{:.2} ms {:>5} {:>5} {:>5} {:>4}   {}",
         port,
         scenario,
         f.bus_share,
+        f.reads_share,
         f.p50_ms,
         f.p99_ms,
         f.max_ms,
@@ -489,10 +666,11 @@ fn main() {
         line.t3_5().as_secs_f64() * 1e3
     );
     println!(
-        "{:<5} {:<18} {:>7} {:>8} {:>8} {:>8} {:>15} {:>15} {:>5} {:>5} {:>5} {:>4}   before: bus p50 p99 max, wire idle p50/99",
+        "{:<5} {:<18} {:>7} {:>7} {:>8} {:>8} {:>8} {:>15} {:>15} {:>5} {:>5} {:>5} {:>4}   before: bus p50 p99 max, wire idle p50/99",
         "port",
         "scenario",
         "bus",
+        "reads",
         "p50",
         "p99",
         "max",

@@ -7,6 +7,7 @@
 //! - [`master`] is the RTU master: one frame in flight, t3.5 silences, reply
 //!   framing and checks, retries, guard time and input flush after faults,
 //! - [`queue`] holds waiting jobs by priority, fair between submitters,
+//! - [`reply_timeout`] learns how long each drive takes to answer,
 //! - [`poller`] decides which drive's status is due next,
 //! - [`scheduler`] is the task's loop tying them together,
 //! - [`cache`] keeps each drive's latest status and publishes changes,
@@ -31,6 +32,7 @@ pub mod poller;
 pub mod port;
 pub mod priority;
 pub mod queue;
+pub mod reply_timeout;
 pub mod rs485;
 pub mod scheduler;
 pub mod stats;

@@ -43,6 +43,8 @@ struct Drive {
     phase_origin: Instant,
     next_due: Instant,
     backoff: Option<Duration>,
+    /// When its last failed probe ended, while it is backed off.
+    probed_at: Option<Instant>,
     /// It has answered since start: a drive never heard is backed off from
     /// its first failed probe, one that answered only once it is offline.
     heard: bool,
@@ -132,6 +134,7 @@ impl PollPlan {
                     phase_origin: now + phase,
                     next_due: now,
                     backoff: None,
+                    probed_at: None,
                     heard: false,
                 }
             })
@@ -154,6 +157,39 @@ impl PollPlan {
             .filter(|d| d.next_due <= now)
             .min_by_key(|d| d.next_due)
             .map(|d| d.unit)
+    }
+
+    /// The most overdue drive among those `may_go`, if any is due at `now`.
+    pub fn due_among(&self, now: Instant, may_go: impl Fn(u8) -> bool) -> Option<u8> {
+        self.drives
+            .iter()
+            .filter(|d| d.next_due <= now && may_go(d.unit))
+            .min_by_key(|d| d.next_due)
+            .map(|d| d.unit)
+    }
+
+    /// True when `unit`'s probe may wait for the clients: it is probed with
+    /// backoff, the backoff has not reached the longest, and its last probe
+    /// was less than the longest backoff ago. A silent drive then costs the
+    /// waiting clients one probe per longest backoff at most, and is probed
+    /// on its phase whenever the bus has time.
+    pub fn probe_may_wait(&self, unit: u8, now: Instant) -> bool {
+        let max = self.backoff_max;
+        self.drives.iter().any(|d| {
+            d.unit == unit
+                && d.backoff.is_some_and(|b| b < max)
+                && d.probed_at.is_some_and(|t| now < t + max)
+        })
+    }
+
+    /// When the first probe that waits for the clients at `now` stops
+    /// waiting (its last probe is the longest backoff ago), if one waits.
+    pub fn waiting_probe_goes_at(&self, now: Instant) -> Option<Instant> {
+        self.drives
+            .iter()
+            .filter(|d| d.next_due <= now && self.probe_may_wait(d.unit, now))
+            .filter_map(|d| d.probed_at.map(|t| t + self.backoff_max))
+            .min()
     }
 
     /// When `unit`'s next poll falls (or fell) due.
@@ -183,6 +219,15 @@ impl PollPlan {
         self.drives.iter().map(|d| d.next_due).min()
     }
 
+    /// When the next poll falls due after `now`, `None` if none does.
+    pub fn next_due_after(&self, now: Instant) -> Option<Instant> {
+        self.drives
+            .iter()
+            .map(|d| d.next_due)
+            .filter(|&due| due > now)
+            .min()
+    }
+
     /// Records a poll of `unit` finished at `now`.
     pub fn polled(&mut self, unit: u8, now: Instant, result: PollResult) {
         let (min, max) = (self.backoff_min, self.backoff_max);
@@ -193,6 +238,7 @@ impl PollPlan {
             PollResult::Answered => {
                 d.heard = true;
                 d.backoff = None;
+                d.probed_at = None;
                 d.next_due = d.next_in_phase(now);
             }
             // Offline, or never heard: a drive that is off (or absent)
@@ -200,6 +246,7 @@ impl PollPlan {
             PollResult::Failed { offline } if offline || !d.heard => {
                 let backoff = d.backoff.map_or(min, |b| (b * 2).min(max));
                 d.backoff = Some(backoff);
+                d.probed_at = Some(now);
                 // From when the probe fell due, so a backoff of whole
                 // periods keeps the phase exactly; but never sooner than
                 // the backoff from now (a probe longer than the backoff).
@@ -222,6 +269,7 @@ impl PollPlan {
             return;
         };
         d.heard = true;
+        d.probed_at = None;
         if d.backoff.take().is_some() {
             d.next_due = d.next_in_phase(now);
         } else if d.interval.is_zero() {
@@ -242,6 +290,7 @@ impl PollPlan {
             return;
         };
         d.heard = true;
+        d.probed_at = None;
         if d.backoff.take().is_some() {
             d.next_due = d.next_due.min(now);
         }
@@ -271,6 +320,39 @@ mod tests {
 
     fn plan(drives: &[(u8, Duration)], t0: Instant) -> PollPlan {
         PollPlan::new(drives.iter().copied(), SECOND, 30 * SECOND, t0)
+    }
+
+    #[test]
+    fn a_silent_drives_probe_waits_for_clients_until_the_longest_backoff() {
+        let t0 = Instant::now();
+        let mut p = plan(&[(1, SECOND), (2, SECOND)], t0);
+        // Unit 2 is never heard: backed off from its first failed probe.
+        p.polled(2, t0 + 10 * MS, PollResult::Failed { offline: false });
+        assert!(p.backing_off(2));
+        // Its next probe falls due a second later, but may wait for the
+        // clients until 30 s (the longest backoff) after the last probe...
+        let due = p.due_at(2).unwrap();
+        assert!(p.probe_may_wait(2, due));
+        assert!(p.probe_may_wait(2, t0 + 10 * MS + 30 * SECOND - MS));
+        assert!(!p.probe_may_wait(2, t0 + 10 * MS + 30 * SECOND));
+        assert_eq!(
+            p.waiting_probe_goes_at(due),
+            Some(t0 + 10 * MS + 30 * SECOND)
+        );
+        // ...and a drive that answers is never held back.
+        assert!(!p.probe_may_wait(1, due));
+        // The other drives' polls are found past the waiting probe.
+        assert_eq!(p.due_among(due + SECOND, |u| u != 2), Some(1));
+        // Once its backoff has reached the longest, it waits no more.
+        let mut now = due;
+        for _ in 0..6 {
+            p.polled(2, now, PollResult::Failed { offline: true });
+            now = p.due_at(2).unwrap();
+        }
+        assert!(!p.probe_may_wait(2, now));
+        // A drive that answers again is polled on its phase, not held.
+        p.polled(2, now, PollResult::Answered);
+        assert!(!p.probe_may_wait(2, now));
     }
 
     /// Runs the plan from `t0` to `until`, each poll taking `poll` on the

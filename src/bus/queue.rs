@@ -97,6 +97,29 @@ impl Class {
         job
     }
 
+    /// Takes the next job, in turn, among the sources whose first job
+    /// `may_go`; a source passed over keeps its turn.
+    fn pop_first(&mut self, may_go: impl Fn(&Job) -> bool) -> Option<Job> {
+        let at = self.turn.iter().position(|source| {
+            self.jobs
+                .get(source)
+                .and_then(VecDeque::front)
+                .is_some_and(&may_go)
+        })?;
+        let source = self.turn.remove(at)?;
+        let queue = self.jobs.get_mut(&source)?;
+        let job = queue.pop_front();
+        if queue.is_empty() {
+            self.jobs.remove(&source);
+        } else {
+            self.turn.push_back(source);
+        }
+        if job.is_some() {
+            self.len -= 1;
+        }
+        job
+    }
+
     /// Takes out the jobs nobody waits for any more.
     fn take_stale(&mut self, now: Instant) -> Vec<Job> {
         let mut stale = Vec::new();
@@ -183,6 +206,12 @@ impl JobQueue {
     /// Takes the next job of `priority`, if any.
     pub fn pop(&self, priority: Priority) -> Option<Job> {
         self.lock().classes[priority.index()].pop()
+    }
+
+    /// Takes the next job of `priority` that `may_go` (in turn among the
+    /// submitters whose first job may), if any.
+    pub fn pop_first(&self, priority: Priority, may_go: impl Fn(&Job) -> bool) -> Option<Job> {
+        self.lock().classes[priority.index()].pop_first(may_go)
     }
 
     /// Jobs waiting in each class, most urgent first.
@@ -304,6 +333,26 @@ mod tests {
             std::iter::from_fn(|| q.pop(Priority::Command).map(|j| j.unit)).collect();
         assert_eq!(order, vec![0, 10, 20, 1, 2, 3, 4]);
         assert_eq!(q.depths(), [0, 0, 0]);
+    }
+
+    #[test]
+    fn a_held_job_lets_the_next_source_go_and_keeps_its_turn() {
+        let q = JobQueue::new(QueueLimits::default());
+        let mut keep = vec![];
+        for (source, tag) in [(1, 1), (2, 2), (3, 3), (1, 4)] {
+            let (j, rx) = job(Priority::Command, source, tag);
+            q.push(j).unwrap();
+            keep.push(rx);
+        }
+        // Unit 1 is held: source 1 is passed over, source 2 goes.
+        let first = q.pop_first(Priority::Command, |j| j.unit != 1).unwrap();
+        assert_eq!(first.unit, 2);
+        // Source 1 kept its turn: it goes first once its job may.
+        let order: Vec<u8> = std::iter::from_fn(|| q.pop_first(Priority::Command, |_| true))
+            .map(|j| j.unit)
+            .collect();
+        assert_eq!(order, vec![1, 3, 4]);
+        assert!(q.pop_first(Priority::Command, |_| true).is_none());
     }
 
     #[test]

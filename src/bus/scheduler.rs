@@ -304,7 +304,7 @@ impl Scheduler {
                         self.stats().add_stray_bytes(stray);
                     }
                     self.line_free_at = m.line_free_at();
-                    match self.next_work(Instant::now()) {
+                    match self.next_work(Instant::now(), m) {
                         Work::Job(job) => self.run_job(m, job).await,
                         Work::Poll(unit) => self.run_poll(m, unit).await,
                         Work::Idle(until) => {
@@ -417,11 +417,19 @@ impl Scheduler {
         }
     }
 
-    fn next_work(&mut self, now: Instant) -> Work {
+    /// The next thing to do on the line. A job or poll whose reply a late
+    /// reply could pass for waits until that reply cannot come any more
+    /// ([`RtuMaster::held_until`]); the others go meanwhile. A silent
+    /// drive's probe waits while clients' requests do, unless it has waited
+    /// its longest backoff ([`PollPlan::probe_may_wait`]).
+    fn next_work(&mut self, now: Instant, master: &RtuMaster) -> Work {
         let queue = &self.shared.queue;
         if let Some(job) = queue.pop(Priority::Emergency) {
             return Work::Job(job);
         }
+        let may_go = |job: &Job| master.held_until(job.unit, &job.pdu, now).is_none();
+        let [_, commands, client_polls] = queue.depths();
+        let clients_wait = commands + client_polls > 0;
         // While a capture runs the scope says which drive's poll is due.
         let (plan, cache) = (&self.plan, &self.shared.cache);
         let steer = self.settings.observers.steering.as_ref().and_then(|s| {
@@ -432,7 +440,10 @@ impl Scheduler {
         let poll_due = match steer {
             Some(Steer::Poll(unit)) => Some(unit),
             Some(Steer::Wait(_)) => None,
-            None => self.plan.due(now),
+            None => self.plan.due_among(now, |unit| {
+                !(clients_wait && plan.probe_may_wait(unit, now))
+                    && master.held_until(unit, &STATUS_PDU, now).is_none()
+            }),
         };
         if let Some(unit) = poll_due
             && self.commands_in_a_row >= self.settings.poll_share
@@ -440,7 +451,7 @@ impl Scheduler {
             self.commands_in_a_row = 0;
             return Work::Poll(unit);
         }
-        if let Some(job) = queue.pop(Priority::Command) {
+        if let Some(job) = queue.pop_first(Priority::Command, may_go) {
             if poll_due.is_some() {
                 self.commands_in_a_row += 1;
             }
@@ -450,22 +461,46 @@ impl Scheduler {
             self.commands_in_a_row = 0;
             return Work::Poll(unit);
         }
-        if let Some(job) = queue.pop(Priority::Poll) {
+        if let Some(job) = queue.pop_first(Priority::Poll, may_go) {
             return Work::Job(job);
         }
-        match steer {
-            Some(Steer::Wait(until)) => Work::Idle(Some(until)),
-            _ => Work::Idle(self.plan.next_due()),
-        }
+        // Whatever waits for a late reply's time to pass goes when it has,
+        // and a probe that waited for the clients when its wait is over.
+        let released = match (
+            master.next_release(now),
+            self.plan.waiting_probe_goes_at(now),
+        ) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        let until = match steer {
+            Some(Steer::Wait(until)) => Some(until),
+            // A poll overdue now is one that waits (a probe behind the
+            // clients, a held one): nothing to wake for before a release.
+            _ => match self.plan.next_due() {
+                Some(due) if due <= now => self.plan.next_due_after(now),
+                due => due,
+            },
+        };
+        Work::Idle(match (until, released) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        })
     }
 
     /// Counts a transaction that went through the port (whatever the drive
     /// answered): the port works. `waiting_since` is when its work was ready
     /// (submitted, or due): if that was before the line became free, the
     /// silence before it is the master's doing and is measured.
-    fn account(&mut self, function: u8, report: &Report, waiting_since: Instant) {
+    fn account(&mut self, unit: u8, function: u8, report: &Report, waiting_since: Instant) {
         self.reopen.worked();
         let stats = self.stats();
+        stats.record_timing(
+            unit,
+            report.reply_timeout,
+            report.turnaround,
+            report.late_replies,
+        );
         if waiting_since <= self.line_free_at {
             stats.interframe_idle.observe(report.idle_before);
         }
@@ -489,11 +524,12 @@ impl Scheduler {
             return Ok(());
         }
         // An offline drive is probed: one try and a short guard; its retries
-        // would cost everybody.
+        // would cost everybody. A job that asks for one attempt itself (a
+        // scan of the line) gets the full response timeout instead.
         let offline = job.unit != 0 && self.cache().is_offline(job.unit);
         let queued = now - job.submitted;
         master.tap().cause(job.origin.clone());
-        let sent = if offline && job.max_attempts.is_none_or(|n| n <= 1) {
+        let sent = if offline && job.max_attempts.is_none() {
             master.probe(job.unit, &job.pdu).await
         } else {
             master
@@ -522,7 +558,7 @@ impl Scheduler {
                 return Err(failure.into_io());
             }
         };
-        self.account(function, &report, job.submitted);
+        self.account(job.unit, function, &report, job.submitted);
         let result = match (report.outcome, report.reply) {
             (Outcome::Ok | Outcome::Exception, Some(reply)) => {
                 // A client's read of a drive's status is as good as a poll
@@ -579,7 +615,7 @@ impl Scheduler {
             master.probe(unit, pdu).await
         }
         .map_err(PortFailure::into_io)?;
-        self.account(pdu[0], &report, due);
+        self.account(unit, pdu[0], &report, due);
         let status =
             report
                 .reply

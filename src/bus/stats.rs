@@ -52,6 +52,35 @@ pub const IDLE_BOUNDS: &[f64] = &[
     0.0030, 0.0035, 0.0040, 0.0045, 0.0050, 0.0075, 0.010, 0.020, 0.050,
 ];
 
+/// Bounds for a drive's turnaround (end of request to first reply byte):
+/// t3.5 at 115200 baud and up is 1.75 ms, slow drives take tens of ms.
+pub const TURNAROUND_BOUNDS: &[f64] = &[
+    0.0015, 0.002, 0.0025, 0.003, 0.004, 0.005, 0.0075, 0.010, 0.015, 0.020, 0.030, 0.050, 0.100,
+    0.250,
+];
+
+/// The reply timing of one drive, as the master learned it.
+#[derive(Debug)]
+pub struct DriveTiming {
+    /// The drive's reply timeout now (learned, or the ceiling).
+    reply_timeout_ns: AtomicU64,
+    /// Replies taken after the learned timeout.
+    late_replies: AtomicU64,
+    /// Each reply's turnaround.
+    pub turnaround: Histogram,
+}
+
+/// A copy of one drive's [`DriveTiming`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct DriveTimingSnapshot {
+    /// The drive's reply timeout now.
+    pub reply_timeout: Duration,
+    /// Replies taken after the learned timeout.
+    pub late_replies: u64,
+    /// Turnarounds of its replies.
+    pub turnaround: HistogramSnapshot,
+}
+
 /// A histogram with fixed bucket bounds in seconds.
 #[derive(Debug)]
 pub struct Histogram {
@@ -146,6 +175,7 @@ pub struct BusStats {
     reopens: AtomicU64,
     port_errors: AtomicU64,
     last_port_error: Mutex<Option<(SystemTime, String)>>,
+    drives: Mutex<BTreeMap<u8, std::sync::Arc<DriveTiming>>>,
 }
 
 /// A copy of a bus's counters.
@@ -179,6 +209,8 @@ pub struct BusStatsSnapshot {
     pub job_latency: HistogramSnapshot,
     /// Silences between frames while work was waiting.
     pub interframe_idle: HistogramSnapshot,
+    /// Reply timing by unit, for units that were sent a request.
+    pub drives: BTreeMap<u8, DriveTimingSnapshot>,
 }
 
 impl Default for BusStats {
@@ -205,6 +237,45 @@ impl BusStats {
             reopens: AtomicU64::new(0),
             port_errors: AtomicU64::new(0),
             last_port_error: Mutex::new(None),
+            drives: Mutex::new(BTreeMap::new()),
+        }
+    }
+
+    /// Records what a transaction to `unit` says about its timing: the
+    /// reply timeout it has now, the turnaround of the reply taken, and the
+    /// replies taken after the learned timeout.
+    pub fn record_timing(
+        &self,
+        unit: u8,
+        reply_timeout: Duration,
+        turnaround: Option<Duration>,
+        late_replies: u8,
+    ) {
+        if unit == 0 {
+            return;
+        }
+        let timing = {
+            let mut drives = self.drives.lock().unwrap_or_else(|p| p.into_inner());
+            drives
+                .entry(unit)
+                .or_insert_with(|| {
+                    std::sync::Arc::new(DriveTiming {
+                        reply_timeout_ns: AtomicU64::new(0),
+                        late_replies: AtomicU64::new(0),
+                        turnaround: Histogram::new(TURNAROUND_BOUNDS),
+                    })
+                })
+                .clone()
+        };
+        timing.reply_timeout_ns.store(
+            u64::try_from(reply_timeout.as_nanos()).unwrap_or(u64::MAX),
+            Ordering::Relaxed,
+        );
+        timing
+            .late_replies
+            .fetch_add(u64::from(late_replies), Ordering::Relaxed);
+        if let Some(t) = turnaround {
+            timing.turnaround.observe(t);
         }
     }
 
@@ -290,6 +361,24 @@ impl BusStats {
             transaction_duration: self.transaction_duration.snapshot(),
             job_latency: self.job_latency.snapshot(),
             interframe_idle: self.interframe_idle.snapshot(),
+            drives: self
+                .drives
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .iter()
+                .map(|(&unit, t)| {
+                    (
+                        unit,
+                        DriveTimingSnapshot {
+                            reply_timeout: Duration::from_nanos(
+                                t.reply_timeout_ns.load(Ordering::Relaxed),
+                            ),
+                            late_replies: t.late_replies.load(Ordering::Relaxed),
+                            turnaround: t.turnaround.snapshot(),
+                        },
+                    )
+                })
+                .collect(),
         }
     }
 }

@@ -35,6 +35,13 @@ pub struct BusConfig {
         deserialize_with = "values::int_in::<_, _, 1, 10000>"
     )]
     pub response_timeout_ms: u64,
+    /// The least wait for a reply's first byte once a drive's own wait is
+    /// learned (it is never more than `response_timeout_ms`).
+    #[serde(
+        default = "default_reply_timeout_floor",
+        deserialize_with = "values::int_in::<_, _, 1, 10000>"
+    )]
+    pub reply_timeout_floor_ms: u64,
     /// Attempts after the first on a timeout or a corrupted reply.
     #[serde(
         default = "default_retries",
@@ -45,8 +52,9 @@ pub struct BusConfig {
     #[serde(default, deserialize_with = "values::int_in::<_, _, 0, 3600000>")]
     pub poll_interval_ms: u64,
     /// Silence kept after a timeout or bad reply, discarding late bytes
-    /// (default: the response timeout after a bad reply; after a timeout in
-    /// which nothing arrived, what a reply starting at the timeout needs).
+    /// (default: sized by the wire, with each drive's reply timeout learned;
+    /// set, the full response timeout for every reply and this guard after
+    /// every fault, nothing learned).
     #[serde(default, deserialize_with = "values::opt_int_in::<_, _, 0, 10000>")]
     pub guard_ms: Option<u64>,
     /// Time the drives get after a broadcast before the next request.
@@ -241,6 +249,7 @@ impl BusConfig {
         master.guard = self
             .guard_ms
             .map_or(Guard::Auto, |ms| Guard::Fixed(Duration::from_millis(ms)));
+        master.reply_timeout_floor = Duration::from_millis(self.reply_timeout_floor_ms);
         master.broadcast_delay = Duration::from_millis(self.broadcast_delay_ms);
         master.rs485 = self.rs485;
         let mut settings = BusSettings::new(
@@ -276,6 +285,9 @@ fn default_baud() -> u32 {
 }
 fn default_timeout() -> u64 {
     50
+}
+fn default_reply_timeout_floor() -> u64 {
+    crate::bus::master::DEFAULT_REPLY_TIMEOUT_FLOOR.as_millis() as u64
 }
 fn default_retries() -> u8 {
     1

@@ -116,6 +116,30 @@ static PORT_ERRORS: Spec = Spec {
     kind: Kind::Counter,
     labels: BUS,
 };
+static REPLY_TIMEOUT: Spec = Spec {
+    name: "drivegate_bus_reply_timeout_seconds",
+    help: "How long the bus waits now for the first byte of a drive's reply: learned from its \
+           turnarounds (smoothed + 4 x variation + margin, at least reply_timeout_floor_ms), \
+           doubled after each timeout, never more than response_timeout_ms, which it is until \
+           the drive has answered. A reply that starts in the guard after it is still taken.",
+    kind: Kind::Gauge,
+    labels: &["bus", "unit"],
+};
+static TURNAROUND: Spec = Spec {
+    name: "drivegate_bus_turnaround_seconds",
+    help: "Each drive's turnaround: from the end of a request on the wire to the first byte of \
+           the reply taken (t3.5 + the drive's processing time + the adapter's latency).",
+    kind: Kind::Histogram,
+    labels: &["bus", "unit"],
+};
+static LATE_REPLIES: Spec = Spec {
+    name: "drivegate_bus_late_replies_total",
+    help: "Replies that came after the drive's learned reply timeout but before anything else \
+           was sent to it (in the guard after the timeout, or answering its retry): taken, and \
+           each raises the drive's timeout.",
+    kind: Kind::Counter,
+    labels: &["bus", "unit"],
+};
 static SIM_REQUESTS: Spec = Spec {
     name: "drivegate_sim_requests_total",
     help: "Simulated bus only: requests the simulated drives received with a good CRC.",
@@ -145,7 +169,7 @@ static SIM_INJECTED: Spec = Spec {
     labels: &["bus", "kind"],
 };
 
-static SPECS: [&Spec; 19] = [
+static SPECS: [&Spec; 22] = [
     &INFO,
     &PORT_OPEN,
     &TRANSACTIONS,
@@ -162,6 +186,9 @@ static SPECS: [&Spec; 19] = [
     &QUEUE,
     &REOPENS,
     &PORT_ERRORS,
+    &REPLY_TIMEOUT,
+    &TURNAROUND,
+    &LATE_REPLIES,
     &SIM_REQUESTS,
     &SIM_GAPS,
     &SIM_INJECTED,
@@ -208,6 +235,9 @@ struct Families {
     queue: Family,
     reopens: Family,
     port_errors: Family,
+    reply_timeout: Family,
+    turnaround: Family,
+    late_replies: Family,
     sim_requests: Family,
     sim_gaps: Family,
     sim_stalled: Family,
@@ -233,6 +263,9 @@ impl Families {
             queue: QUEUE.family(),
             reopens: REOPENS.family(),
             port_errors: PORT_ERRORS.family(),
+            reply_timeout: REPLY_TIMEOUT.family(),
+            turnaround: TURNAROUND.family(),
+            late_replies: LATE_REPLIES.family(),
             sim_requests: SIM_REQUESTS.family(),
             sim_gaps: SIM_GAPS.family(),
             sim_stalled: SIM_STALLED.family(),
@@ -267,6 +300,14 @@ impl Families {
         }
         self.reopens.set(&l, stats.reopens as f64);
         self.port_errors.set(&l, stats.port_errors as f64);
+        for (unit, timing) in &stats.drives {
+            let unit = unit.to_string();
+            let l = [name, unit.as_str()];
+            self.reply_timeout
+                .set(&l, timing.reply_timeout.as_secs_f64());
+            self.turnaround.set_histogram(&l, &timing.turnaround);
+            self.late_replies.set(&l, timing.late_replies as f64);
+        }
         if let Some(sim) = &bus.sim {
             let s = sim.stats();
             self.sim_requests.set(&l, s.requests as f64);
@@ -320,6 +361,9 @@ impl Families {
             self.queue,
             self.reopens,
             self.port_errors,
+            self.reply_timeout,
+            self.turnaround,
+            self.late_replies,
             self.sim_requests,
             self.sim_gaps,
             self.sim_stalled,

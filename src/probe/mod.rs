@@ -228,7 +228,7 @@ async fn scan(
     let opened = transport::open(port, baud, &rs485)
         .await
         .map_err(|e| e.to_string())?;
-    // One attempt per read, and the guard of the bus's own probes.
+    // One attempt per read, with the full timeout (see `read`).
     let settings = MasterSettings::new(baud, timeout, 0);
     let line = LineTiming::new_8n1(baud);
     let mut master = RtuMaster::new(opened, settings)
@@ -279,8 +279,10 @@ async fn read(
     let pdu = DriveRequest::ReadStatus
         .pdu()
         .map_err(|e| format!("the status read cannot be built: {e}"))?;
+    // A scan: the full timeout the user gave, whatever the line answered
+    // before; nothing is learned about units that may not exist.
     let report = master
-        .probe(unit, &pdu)
+        .scan(unit, &pdu)
         .await
         .map_err(|e| format!("the port failed: {e}"))?;
     // Every byte the master read after the request: the reply it framed,

@@ -56,6 +56,10 @@ pub struct SimConfig {
     /// A reply the simulator could only start this much later than its time
     /// (the machine kept its thread from running) is not sent: the master
     /// has given up on it, and it would cross the next request on the line.
+    /// With a limit set, a reply is not sent either once the master has
+    /// begun another frame before its first byte (the master's wait, learned
+    /// per drive, can be far shorter than the limit); replies made late on
+    /// purpose (`late_rate`) are the exception, sent as a late drive's are.
     /// `None`: sent however late. The daemon's own simulator uses the bus's
     /// response timeout.
     pub max_lag: Option<Duration>,

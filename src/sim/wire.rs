@@ -78,6 +78,31 @@ impl Rx {
     }
 }
 
+/// When a reply is given up instead of sent.
+#[derive(Debug, Clone, Copy)]
+enum GiveUp {
+    /// Sent however late.
+    Never,
+    /// Not sent when its first byte would go out more than this late.
+    Late(Duration),
+    /// As `Late`, and not sent when the master has begun another frame
+    /// before the reply's first byte: the master gave up waiting for it
+    /// (its own timeout, possibly learned and shorter than the simulator's
+    /// lag), so sending it would only cross that frame.
+    LateOrOvertaken(Duration),
+}
+
+/// What became of a paced reply.
+#[derive(Debug, Clone, Copy)]
+enum Paced {
+    /// Sent; the scheduled end of its last byte on the wire.
+    Sent(Instant),
+    /// Not sent: the simulator fell too far behind.
+    Late,
+    /// Not sent: the master had begun another frame.
+    Overtaken,
+}
+
 /// Where the master is.
 enum Line {
     /// Behind a pty, as on a serial adapter.
@@ -264,33 +289,46 @@ impl Wire {
             self.tx = read;
         }
         let reply_start = wire_end + t3_5 + self.turnaround + outcome.late;
-        let Some(reply_end) = self.send_paced(reply_start, self.max_lag).await? else {
-            let mut bus = lock(&self.bus);
-            let stats = bus.stats_mut();
-            stats.replies -= 1;
-            stats.stalled += 1;
-            self.quiet_from = Some(wire_end);
-            return Ok(());
+        // The daemon's own simulator gives a reply up once the master has
+        // (see `SimConfig::max_lag`); a reply made late on purpose is sent
+        // however late, as a late drive's is.
+        let give_up = match self.max_lag {
+            Some(max_lag) if outcome.late.is_zero() => GiveUp::LateOrOvertaken(max_lag),
+            Some(max_lag) => GiveUp::Late(max_lag),
+            None => GiveUp::Never,
+        };
+        let reply_end = match self.send_paced(reply_start, give_up).await? {
+            Paced::Sent(end) => end,
+            unsent => {
+                let mut bus = lock(&self.bus);
+                let stats = bus.stats_mut();
+                stats.replies -= 1;
+                stats.stalled += 1;
+                // Overtaken: the master gave up on the reply and spoke; this
+                // thread was behind the wire (kept from running when the
+                // request came, or since), so the time it noted for the
+                // request's end says nothing of the master's silence.
+                self.quiet_from = match unsent {
+                    Paced::Overtaken => None,
+                    _ => Some(wire_end),
+                };
+                return Ok(());
+            }
         };
         self.quiet_from = Some(reply_end);
         if let Some(noise) = outcome.noise {
             // Noise is not a frame: it does not move the end of activity.
             self.tx.clear();
             self.tx.extend_from_slice(noise.bytes());
-            self.send_paced(reply_end + t3_5, None).await?;
+            self.send_paced(reply_end + t3_5, GiveUp::Never).await?;
         }
         Ok(())
     }
 
     /// Writes `tx` one character time per byte from `start`, handed over as
     /// the delivery says; returns the scheduled end of the last byte on the
-    /// wire, or `None` when its first byte would have gone out more than
-    /// `max_lag` late: then nothing is sent.
-    async fn send_paced(
-        &mut self,
-        start: Instant,
-        max_lag: Option<Duration>,
-    ) -> io::Result<Option<Instant>> {
+    /// wire, or why nothing was sent (`give_up`).
+    async fn send_paced(&mut self, start: Instant, give_up: GiveUp) -> io::Result<Paced> {
         let len = self.tx.len();
         self.delivery
             .schedule(&self.line, start, len, &mut self.rng, &mut self.release);
@@ -298,15 +336,24 @@ impl Wire {
         let mut sent = 0;
         while sent < len {
             let now = Instant::now();
-            if sent == 0
-                && let Some(max_lag) = max_lag
-                && now > self.release[0] + max_lag
-            {
-                tracing::info!(
-                    behind_ms = (now - self.release[0]).as_millis() as u64,
-                    "the simulator fell behind (the machine kept it from running): reply not sent"
-                );
-                return Ok(None);
+            if sent == 0 {
+                if let GiveUp::Late(max_lag) | GiveUp::LateOrOvertaken(max_lag) = give_up
+                    && now > self.release[0] + max_lag
+                {
+                    tracing::info!(
+                        behind_ms = (now - self.release[0]).as_millis() as u64,
+                        "the simulator fell behind (the machine kept it from running): reply not sent"
+                    );
+                    return Ok(Paced::Late);
+                }
+                if let GiveUp::LateOrOvertaken(_) = give_up
+                    && self.master_spoke().await?
+                {
+                    tracing::debug!(
+                        "the master spoke before the reply began (it gave up waiting): reply not sent"
+                    );
+                    return Ok(Paced::Overtaken);
+                }
             }
             let due = sent + self.release[sent..].partition_point(|&t| t <= now);
             if due > sent {
@@ -319,7 +366,21 @@ impl Wire {
                 self.read_until(Some(next), next == last).await?;
             }
         }
-        Ok(Some(start + self.line.wire_time(len)))
+        Ok(Paced::Sent(start + self.line.wire_time(len)))
+    }
+
+    /// True when the master has sent bytes since the request being answered
+    /// (read now, without waiting, what has arrived and not been read).
+    async fn master_spoke(&mut self) -> io::Result<bool> {
+        use futures_util::FutureExt;
+        let mut buf = [0u8; 256];
+        if let Some(read) = self.line_io.read(&mut buf).now_or_never() {
+            let n = read?;
+            if n > 0 {
+                self.heard(&buf[..n], Instant::now()).await?;
+            }
+        }
+        Ok(!self.rx.bytes.is_empty())
     }
 
     /// Reads what arrives until `deadline` (forever if `None`); true when
@@ -352,18 +413,24 @@ impl Wire {
             tokio::time::sleep(Duration::from_millis(10)).await;
             return Ok(false);
         }
-        let at = Instant::now();
+        self.heard(&buf[..n], Instant::now()).await?;
+        Ok(true)
+    }
+
+    /// Takes bytes the master sent, read at `at`: echoed if the adapter
+    /// echoes, heard at the wire's rate, kept for framing.
+    async fn heard(&mut self, bytes: &[u8], at: Instant) -> io::Result<()> {
         if self.echo {
-            self.line_io.write_all(&buf[..n]).await?;
+            self.line_io.write_all(bytes).await?;
         }
         match self.master_baud_if_other() {
             Some(master_baud) => {
-                let heard = super::uart::resample(&buf[..n], master_baud, self.line.baud());
+                let heard = super::uart::resample(bytes, master_baud, self.line.baud());
                 self.push_received(&heard, at);
             }
-            None => self.push_received(&buf[..n], at),
+            None => self.push_received(bytes, at),
         }
-        Ok(true)
+        Ok(())
     }
 
     /// With [`SimConfig::check_master_baud`], the master's rate when it is

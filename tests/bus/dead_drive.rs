@@ -1,7 +1,7 @@
 //! A configured drive that never answers, on the simulator through a real
-//! pty: it is probed with one attempt at a time, each costing its timeout
-//! and a guard as short as a late status reply needs, never a retry and a
-//! guard as long as the timeout; the other drives' clients never fail.
+//! pty: it is probed with one attempt at a time, each costing the shortest
+//! reply timeout and the time a status reply would take, never a retry and
+//! never the configured timeout; the other drives' clients never fail.
 
 use std::time::Duration;
 
@@ -96,16 +96,28 @@ async fn a_dead_drive_is_probed_with_single_short_attempts() {
     )
     .await;
     let stats = bus.stats();
-    // Each probe took its 300 ms timeout and a guard of a few ms: none
-    // reached 500 ms (a retry would be 600, a guard as long as the
-    // timeout 600, both 1200).
+    // A drive never heard is probed with the shortest reply timeout (the
+    // floor), doubled per silent probe up to the 300 ms ceiling, with one
+    // attempt and a guard of what a status reply takes: no transaction
+    // reached 500 ms (a retry would be 600, a guard as long as the timeout
+    // 600, both 1200).
     let durations = &stats.transaction_duration;
     let upto_half_second = durations.bounds.iter().position(|&b| b == 0.5).unwrap();
     assert_eq!(
         durations.cumulative[upto_half_second], durations.count,
         "{durations:?}"
     );
-    assert!(durations.sum >= 0.3 * f64::from(probes));
+    // Each still waited that floor and the time a status reply would take.
+    let line = drivegate::modbus::timing::LineTiming::new_8n1(115_200);
+    let floor = drivegate::bus::master::DEFAULT_REPLY_TIMEOUT_FLOOR + line.wire_time(8 + 19);
+    assert!(durations.sum >= floor.as_secs_f64() * f64::from(probes));
+    // Its probes never waited as long as the ceiling: the gauge says so.
+    let timeout = stats.drives[&5].reply_timeout;
+    assert_eq!(
+        timeout,
+        Duration::from_millis(300),
+        "not learned: never answered"
+    );
     // The other drives answer.
     for unit in 1..=4 {
         assert_eq!(bus.drive(unit).unwrap().link, Link::Online);

@@ -17,6 +17,7 @@ mod master_pty;
 mod master_timing;
 mod probe;
 mod pty;
+mod reply_timeout;
 mod sim;
 mod sim_cli;
 mod sim_listen;

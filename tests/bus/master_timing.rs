@@ -102,27 +102,36 @@ async fn a_silent_drive_is_probed_once_with_a_short_guard() {
     let first = arrived.recv().await.unwrap();
     let second = arrived.recv().await.unwrap();
     let gap = second - first;
-    // The next request waits the timeout and the guard a 19-byte reply
-    // starting at the timeout would need (1.65 ms + t3.5)...
+    // A drive never heard is probed with the shortest timeout (the floor),
+    // then the guard: as long as a 19-byte reply starting then would take
+    // (1.65 ms), t3.5 and the timeout again; then t3.5 before the next...
     let line = LineTiming::new_8n1(115_200);
-    let least = Duration::from_millis(200) + line.wire_time(19) + line.t3_5();
-    assert!(gap >= least - Duration::from_millis(1), "{gap:?}");
-    // ...not a guard as long as the timeout (400 ms between the two).
-    assert!(gap < Duration::from_millis(350), "{gap:?}");
+    let floor = drivegate::bus::master::DEFAULT_REPLY_TIMEOUT_FLOOR;
+    let least = line.wire_time(8) + floor + line.wire_time(19) + line.t3_5() + floor + line.t3_5();
+    assert!(gap >= least - Duration::from_micros(200), "{gap:?}");
+    // ...not the 200 ms response timeout.
+    assert!(gap < Duration::from_millis(200), "{gap:?}");
 }
 
 #[tokio::test]
-async fn a_drive_that_answers_keeps_the_whole_guard_for_a_late_reply() {
-    // Not a probe: the first reply comes 20 ms after the 50 ms timeout,
-    // inside the guard of a whole timeout, and is discarded; the retry's
-    // reply (values + 1) is the one returned, and nothing spills over.
+async fn a_late_reply_answers_the_retry_of_its_request_and_nothing_shifts() {
+    // The drive answers in 2 ms once, and its timeout is learned; then a
+    // reply comes 600 ms after its request, past that timeout and its
+    // guard but before the 2 s ceiling. It is the answer to the same
+    // request, which the retry repeats: taken (values + 0). The retry's own
+    // reply (values + 1) comes after it and is discarded before the next
+    // request, whose reply (values + 2) is its own.
     let (ptm, path, _keep) = pty();
     let line = LineTiming::new_8n1(115_200);
     let (_, _) = peer(
         ptm,
         vec![
             Step::Write {
-                delay: line.wire_time(8) + Duration::from_millis(70),
+                delay: line.wire_time(8) + Duration::from_millis(2),
+                bytes: reply(7, 9),
+            },
+            Step::Write {
+                delay: line.wire_time(8) + Duration::from_millis(600),
                 bytes: reply(7, 0),
             },
             Step::Write {
@@ -135,12 +144,27 @@ async fn a_drive_that_answers_keeps_the_whole_guard_for_a_late_reply() {
             },
         ],
     );
-    let mut m = master(&path, settings(115_200, 50, 1)).await;
+    let mut m = master(&path, settings(115_200, 2000, 1)).await;
+    let r = m.transact(100, &read(7), None).await.unwrap();
+    assert_eq!((r.outcome, r.attempts), (Outcome::Ok, 1));
+    // Learned from one reply: three times its turnaround and the margin,
+    // with its guard (twice that and 3.4 ms) far below 600 ms.
+    let learned = m.reply_timeout(100);
+    assert!(learned < Duration::from_millis(250), "{learned:?}");
     let r = m.transact(100, &read(7), None).await.unwrap();
     assert_eq!((r.outcome, r.attempts), (Outcome::Ok, 2));
-    assert_eq!(&r.reply.unwrap()[2..4], &[0x00, 0x01]);
-    assert!(r.stray_bytes >= 19, "{}", r.stray_bytes);
+    assert_eq!(&r.reply.unwrap()[2..4], &[0x00, 0x00]);
+    // A different read of the same length is held until the first
+    // attempt's reply could no longer come; the same one may go.
+    let now = Instant::now();
+    assert!(m.held_until(100, &read(7), now).is_none());
+    let other = [0x03, 0x00, 0x10, 0x00, 0x07];
+    assert!(m.held_until(100, &other, now).is_some());
+    assert!(m.held_until(101, &other, now).is_none(), "another unit");
+    // The late reply raised the timeout.
+    assert!(m.reply_timeout(100) > learned, "{:?}", m.reply_timeout(100));
     let r = m.transact(100, &read(7), None).await.unwrap();
+    assert!(r.stray_bytes >= 19, "{}", r.stray_bytes);
     assert_eq!(
         (r.attempts, &r.reply.unwrap()[2..4]),
         (1, &[0x00, 0x02][..])
@@ -170,14 +194,15 @@ async fn a_fixed_guard_is_kept_after_a_silent_timeout() {
 }
 
 #[tokio::test]
-async fn a_reply_that_starts_in_a_probes_short_guard_is_discarded_whole() {
-    // 9600 baud: the guard after a probe's silent timeout is the 255-byte
-    // reply's 266 ms + t3.5. The reply starts 20 ms after the timeout,
-    // inside it, and is discarded whole; the next request's reply (values
-    // + 1) is the next request's.
+async fn a_reply_that_starts_while_a_probe_keeps_the_line_is_taken_whole() {
+    // 9600 baud: after a probe's short timeout (t3.5 + 1 ms) the line is
+    // kept as long as the 255-byte reply takes (266 ms). The reply starts
+    // 70 ms after the request, late but inside that time: it is read whole
+    // and taken, as the drive's answer, and counted late; the next
+    // request's reply (values + 1) is the next request's.
     let (ptm, path, _keep) = pty();
     let line = LineTiming::new_8n1(9600);
-    let late = line.wire_time(8) + Duration::from_millis(50 + 20);
+    let late = line.wire_time(8) + Duration::from_millis(70);
     let (_, _) = peer(
         ptm,
         vec![
@@ -193,8 +218,12 @@ async fn a_reply_that_starts_in_a_probes_short_guard_is_discarded_whole() {
     );
     let mut m = master(&path, settings(9600, 50, 1)).await;
     let r = m.probe(100, &read(125)).await.unwrap();
-    assert_eq!((r.outcome, r.attempts), (Outcome::Timeout, 1));
-    assert_eq!(r.stray_bytes, 255, "the late reply was discarded whole");
+    assert_eq!((r.outcome, r.attempts, r.late_replies), (Outcome::Ok, 1, 1));
+    assert_eq!(&r.reply.unwrap()[2..4], &[0x00, 0x00]);
+    assert_eq!(r.stray_bytes, 0);
+    // Its turnaround (~70 ms) is learned: past the 50 ms ceiling, so the
+    // ceiling it is.
+    assert_eq!(m.reply_timeout(100), Duration::from_millis(50));
     let r = m.probe(100, &read(125)).await.unwrap();
     assert_eq!(r.outcome, Outcome::Ok);
     assert_eq!(&r.reply.unwrap()[2..4], &[0x00, 0x01], "its own reply");
@@ -272,6 +301,12 @@ async fn a_long_reply_whose_first_byte_is_late_is_a_timeout() {
         (r.outcome, r.fault),
         (Outcome::Timeout, Some(Fault::Timeout))
     );
-    // The late reply came during the guard and was discarded whole.
-    assert_eq!(r.stray_bytes, 255);
+    // The reply starts after the ceiling: a different read of the same
+    // length waits until it has passed; the same read may go (the late
+    // reply is its answer).
+    let now = Instant::now();
+    assert!(m.held_until(100, &read(125), now).is_none());
+    let mut other = read(125);
+    other[2] = 0x10;
+    assert!(m.held_until(100, &other, now).is_some());
 }

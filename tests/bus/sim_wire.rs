@@ -743,3 +743,40 @@ async fn handle_controls_show_in_the_status_on_the_wire() {
     })
     .await;
 }
+
+#[tokio::test]
+async fn the_daemons_simulator_gives_up_a_reply_once_the_master_has_spoken_again() {
+    bounded(Duration::from_secs(20), async {
+        // Drives answering in 300 ms, and the limit of the daemon's own
+        // simulator: a master that gave up waiting (as a learned timeout
+        // does, far sooner than the simulator's limit) and sent another
+        // request must not get the first reply across it.
+        let mut config = SimConfig::for_units([1, 2]);
+        config.turnaround_ms = 300.0;
+        config.max_lag = Some(Duration::from_millis(250));
+        let handle = Simulator::start(config).unwrap();
+        let mut master = Master::open(&handle);
+        master.send(&frame(1, DriveRequest::ReadStatus)).await;
+        // Well after the first request's end and t3.5, long before its
+        // reply is due.
+        tokio::time::sleep(Duration::from_millis(30)).await;
+        master.send(&frame(2, DriveRequest::ReadStatus)).await;
+        // The one reply is the second request's.
+        let reply = master.reply(Duration::from_secs(3)).await.unwrap();
+        assert_eq!(reply.frame[0], 2, "{:02x?}", reply.frame);
+        master.silence_after(&reply).await;
+        assert!(master.reply(Duration::from_millis(500)).await.is_none());
+        let stats = handle.stats();
+        assert_eq!(
+            (
+                stats.requests,
+                stats.replies,
+                stats.stalled,
+                stats.gap_violations
+            ),
+            (2, 1, 1, 0),
+            "{stats}"
+        );
+    })
+    .await;
+}

@@ -14,6 +14,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use crate::support::config::ConfigBuilder;
 use crate::support::faults::{
     Allowed, Injected, LONGEST_REPLY, PollCounter, Tally, Truth, UNITS, Wire,
     assert_late_replies_discarded, assert_polled, eight_drives, late_by_the_machine,
@@ -281,6 +282,72 @@ async fn without_faults_everything_is_confirmed() {
         let late = late_by_the_machine(&r.wire, &r.sim);
         assert_eq!(r.wire.failed_attempts(), late);
         assert_late_replies_discarded(&r.wire, &r.sim, late);
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lost_and_corrupted_replies_under_learned_timeouts_never_reach_the_wrong_request() {
+    bounded(LIMIT, async {
+        // The default guard: each drive's reply timeout is learned (a few
+        // ms against the 250 ms ceiling) and the line is kept after a
+        // timeout only as long as a reply that started by then takes. 5 %
+        // of replies lost, 2 % corrupted and 2 % sent 30 ms late (after the
+        // learned timeout and its guard: they cross the retry), unique
+        // writes read back on every drive: every read carries the drive's
+        // own value for that register, every write is confirmed (and true)
+        // or reported. No reply is handed to the wrong request.
+        let toml = ConfigBuilder::new()
+            .modbus_tcp_off()
+            .section("safety", "on_shutdown = \"none\"")
+            .bus("line", |b| {
+                b.auto_guard()
+                    .keys("response_timeout_ms = 250")
+                    .sim("seed = 11")
+                    .drives(UNITS)
+            })
+            .toml();
+        let d = TestDaemon::start(&toml).await;
+        let bus = d.plant.buses()[0].handle.clone();
+        let truth = Arc::new(Truth::of_plant(d.plant.clone()));
+        d.sim()
+            .set_fault_rates(FaultRates {
+                drop_rate: 0.05,
+                crc_error_rate: 0.02,
+                late_rate: 0.02,
+                late_ms: 30.0,
+                ..FaultRates::default()
+            })
+            .unwrap();
+        let (tally, _) = traffic_on(
+            &bus,
+            &truth,
+            UNITS,
+            ROUNDS,
+            &["timeout", "bad_reply"],
+            &CancellationToken::new(),
+        )
+        .await;
+        let stats = bus.stats();
+        let sim = d.sim().stats();
+        eprintln!("{tally:?}\n{sim}");
+        assert!(
+            sim.dropped >= 5 && sim.corrupted >= 1 && sim.late >= 1,
+            "{sim}"
+        );
+        tally.assert_nothing_lost();
+        assert_eq!(tally.writes_refused + tally.reads_refused, 0, "{tally:?}");
+        // The timeouts were learned, not the ceiling.
+        let learned = UNITS
+            .filter(|u| {
+                stats
+                    .drives
+                    .get(u)
+                    .is_some_and(|t| t.reply_timeout < Duration::from_millis(250))
+            })
+            .count();
+        assert!(learned >= 1, "{:?}", stats.drives);
+        d.stop().await;
     })
     .await;
 }
