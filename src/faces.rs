@@ -69,6 +69,18 @@ pub async fn start(
             .map(|o| o.label()),
     );
     metrics.watch_control(&control);
+    let history = crate::history::History::new(config.history.settings());
+    let following = (history.clone(), plant.clone());
+    plant.for_each_bus(&shutdown, move |index, bus, stop| {
+        // Asked at each status: drives a reload adds are kept too.
+        let directory = following.1.clone();
+        following.0.follow(
+            &bus.handle,
+            move |unit| directory.now().drive_on(index, unit).is_some(),
+            stop,
+        );
+    });
+    metrics.watch_history(&history);
     // What the last process owed the motors, before any client is taken.
     control.replay().await;
     let (http, task) = crate::api::start(
@@ -76,6 +88,7 @@ pub async fn start(
         plant.clone(),
         metrics.clone(),
         control.clone(),
+        history,
         crate::console::router(),
         shutdown.clone(),
     )

@@ -7,10 +7,11 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::bus::{BusHandle, Observers};
-use crate::config::{BusConfig, Config};
+use crate::config::{BusConfig, Config, Declared};
 use crate::monitor::BusMonitor;
 use crate::scope::Scope;
 use crate::sim::{SimHandle, Simulator};
@@ -137,6 +138,8 @@ pub struct Drive {
     pub unit: u8,
     /// Its gearbox ratio.
     pub gear_ratio: f64,
+    /// The settings it must hold (`[bus.drive.settings]`), if declared.
+    pub declared: Option<Declared>,
 }
 
 /// Why the plant could not start.
@@ -292,6 +295,10 @@ pub struct Plant {
     changing: tokio::sync::Mutex<()>,
 }
 
+/// A bus a part follows: its slot, the bus (not kept alive for it), the
+/// token that ends what was started for it.
+type Running = (usize, std::sync::Weak<Bus>, CancellationToken);
+
 /// What a reload asks of the plant, bus by bus.
 #[derive(Debug, Default)]
 pub struct Rebuild {
@@ -312,6 +319,7 @@ impl Plant {
                     bus: index,
                     unit: d.unit(),
                     gear_ratio: d.gear_ratio,
+                    declared: d.declared(),
                 }));
             }
         }
@@ -348,6 +356,56 @@ impl Plant {
     /// a drive's index is its slot, [`Directory::indexed_drives`]).
     pub fn drives(&self) -> Vec<Drive> {
         self.now().drives().cloned().collect()
+    }
+
+    /// Calls `start` for every running bus (its slot, the bus, a token)
+    /// and, from a task, for each bus a reload adds or reopens later; a
+    /// bus's token is cancelled when it leaves the plant (removed, or
+    /// reopened: the new one is another call) or `shutdown` fires. What a
+    /// part keeps per bus (a subscription to its events) starts there.
+    pub fn for_each_bus(
+        self: &Arc<Self>,
+        shutdown: &CancellationToken,
+        start: impl Fn(usize, &Arc<Bus>, CancellationToken) + Send + 'static,
+    ) {
+        let mut follow = self.follow();
+        let ended = shutdown.clone();
+        let shutdown = shutdown.clone();
+        let mut running: Vec<Running> = Vec::new();
+        let step = move |now: &Directory, running: &mut Vec<Running>| {
+            running.retain(|(i, bus, stop)| {
+                let same = now
+                    .bus_at(*i)
+                    .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()));
+                if !same {
+                    stop.cancel();
+                }
+                same
+            });
+            for (index, bus) in now.indexed_buses() {
+                if running.iter().any(|(i, _, _)| *i == index) {
+                    continue;
+                }
+                let stop = shutdown.child_token();
+                running.push((index, Arc::downgrade(bus), stop.clone()));
+                start(index, bus, stop);
+            }
+        };
+        let now = follow.borrow_and_update().clone();
+        step(&now, &mut running);
+        if tokio::runtime::Handle::try_current().is_err() {
+            return;
+        }
+        tokio::spawn(async move {
+            loop {
+                tokio::select! {
+                    () = ended.cancelled() => return,
+                    changed = follow.changed() => if changed.is_err() { return },
+                }
+                let now = follow.borrow_and_update().clone();
+                step(&now, &mut running);
+            }
+        });
     }
 
     /// A drive by name or, with a single bus, by unit number, with its bus.
@@ -442,6 +500,7 @@ impl Plant {
                     bus,
                     unit: d.unit(),
                     gear_ratio: d.gear_ratio,
+                    declared: d.declared(),
                 };
                 let kept = old.drives.iter().position(|o| {
                     o.as_ref().is_some_and(|o| {

@@ -205,6 +205,8 @@ impl Leases {
                 }
                 Effect::Event(event) => self.announce(event),
                 Effect::CommLoss { drive, closed } => {
+                    self.events
+                        .publish(Arc::new(ControlEvent::CommLoss { drive, closed }), None);
                     let bus = self.plant.now().drive_at(drive).map(|d| d.bus);
                     if let Some(bus) = bus {
                         let count = self
