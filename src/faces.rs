@@ -70,23 +70,16 @@ pub async fn start(
     );
     metrics.watch_control(&control);
     let history = crate::history::History::new(config.history.settings());
-    {
-        let (history, directory, stop) = (history.clone(), plant.clone(), shutdown.clone());
-        plant.each_bus(shutdown.clone(), move |index, bus| {
-            // Asked at each status: drives configured later are kept too.
-            let directory = directory.clone();
-            history.follow(
-                &bus.handle,
-                move |unit| {
-                    directory
-                        .now()
-                        .drives()
-                        .any(|d| d.bus == index && d.unit == unit)
-                },
-                stop.clone(),
-            );
-        });
-    }
+    let following = (history.clone(), plant.clone());
+    plant.for_each_bus(&shutdown, move |index, bus, stop| {
+        // Asked at each status: drives a reload adds are kept too.
+        let directory = following.1.clone();
+        following.0.follow(
+            &bus.handle,
+            move |unit| directory.now().drive_on(index, unit).is_some(),
+            stop,
+        );
+    });
     metrics.watch_history(&history);
     // What the last process owed the motors, before any client is taken.
     control.replay().await;

@@ -7,6 +7,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::bus::{BusHandle, Observers};
@@ -294,6 +295,10 @@ pub struct Plant {
     changing: tokio::sync::Mutex<()>,
 }
 
+/// A bus a part follows: its slot, the bus (not kept alive for it), the
+/// token that ends what was started for it.
+type Running = (usize, std::sync::Weak<Bus>, CancellationToken);
+
 /// What a reload asks of the plant, bus by bus.
 #[derive(Debug, Default)]
 pub struct Rebuild {
@@ -341,47 +346,6 @@ impl Plant {
         self.directory.subscribe()
     }
 
-    /// Calls `start(slot, bus)` for every bus now, before it returns, and
-    /// for each bus a reload adds or reopens later (a reopened bus is
-    /// another `Bus`), until `shutdown`. For the parts kept per bus that
-    /// follow its events: what `start` spawns ends when the bus's events
-    /// close, as a removed bus's do.
-    pub fn each_bus<F>(&self, shutdown: tokio_util::sync::CancellationToken, mut start: F)
-    where
-        F: FnMut(usize, &Arc<Bus>) + Send + 'static,
-    {
-        fn visit<F: FnMut(usize, &Arc<Bus>)>(
-            now: &Directory,
-            seen: &mut Vec<(usize, Arc<Bus>)>,
-            start: &mut F,
-        ) {
-            seen.retain(|(i, b)| now.bus_at(*i).is_some_and(|n| Arc::ptr_eq(n, b)));
-            for (index, bus) in now.indexed_buses() {
-                if !seen.iter().any(|(i, _)| *i == index) {
-                    seen.push((index, bus.clone()));
-                    start(index, bus);
-                }
-            }
-        }
-        let mut follow = self.follow();
-        let mut seen = Vec::new();
-        let now = follow.borrow_and_update().clone();
-        visit(&now, &mut seen, &mut start);
-        if tokio::runtime::Handle::try_current().is_err() {
-            return;
-        }
-        tokio::spawn(async move {
-            loop {
-                tokio::select! {
-                    () = shutdown.cancelled() => return,
-                    changed = follow.changed() => if changed.is_err() { return },
-                }
-                let now = follow.borrow_and_update().clone();
-                visit(&now, &mut seen, &mut start);
-            }
-        });
-    }
-
     /// The running buses now, in slot order (a copy: for a quick look; a
     /// bus's index in the plant is its slot, [`Directory::indexed_buses`]).
     pub fn buses(&self) -> Vec<Arc<Bus>> {
@@ -392,6 +356,56 @@ impl Plant {
     /// a drive's index is its slot, [`Directory::indexed_drives`]).
     pub fn drives(&self) -> Vec<Drive> {
         self.now().drives().cloned().collect()
+    }
+
+    /// Calls `start` for every running bus (its slot, the bus, a token)
+    /// and, from a task, for each bus a reload adds or reopens later; a
+    /// bus's token is cancelled when it leaves the plant (removed, or
+    /// reopened: the new one is another call) or `shutdown` fires. What a
+    /// part keeps per bus (a subscription to its events) starts there.
+    pub fn for_each_bus(
+        self: &Arc<Self>,
+        shutdown: &CancellationToken,
+        start: impl Fn(usize, &Arc<Bus>, CancellationToken) + Send + 'static,
+    ) {
+        let mut follow = self.follow();
+        let ended = shutdown.clone();
+        let shutdown = shutdown.clone();
+        let mut running: Vec<Running> = Vec::new();
+        let step = move |now: &Directory, running: &mut Vec<Running>| {
+            running.retain(|(i, bus, stop)| {
+                let same = now
+                    .bus_at(*i)
+                    .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()));
+                if !same {
+                    stop.cancel();
+                }
+                same
+            });
+            for (index, bus) in now.indexed_buses() {
+                if running.iter().any(|(i, _, _)| *i == index) {
+                    continue;
+                }
+                let stop = shutdown.child_token();
+                running.push((index, Arc::downgrade(bus), stop.clone()));
+                start(index, bus, stop);
+            }
+        };
+        let now = follow.borrow_and_update().clone();
+        step(&now, &mut running);
+        if tokio::runtime::Handle::try_current().is_err() {
+            return;
+        }
+        tokio::spawn(async move {
+            loop {
+                tokio::select! {
+                    () = ended.cancelled() => return,
+                    changed = follow.changed() => if changed.is_err() { return },
+                }
+                let now = follow.borrow_and_update().clone();
+                step(&now, &mut running);
+            }
+        });
     }
 
     /// A drive by name or, with a single bus, by unit number, with its bus.

@@ -124,7 +124,7 @@ pub struct SettingsDiff {
 }
 
 impl SettingsDiff {
-    fn new(target: &Target, report: &SettingsReport) -> Self {
+    fn new(target: Target, report: &SettingsReport) -> Self {
         Self::of(
             target.drive.name.clone(),
             target.bus.name().to_string(),
@@ -371,7 +371,7 @@ pub async fn apply(
                 },
             ),
         })?;
-    let diff = SettingsDiff::new(&target, &report);
+    let diff = SettingsDiff::new(target.clone(), &report);
     if let Some(failure) = &report.failure {
         let mut p = control::problem(
             caller,
@@ -511,7 +511,7 @@ impl DeclaredState {
 }
 
 /// The state of drive `target`'s declared settings, if it has any.
-pub fn declared_state(state: &ApiState, target: &Target) -> Option<DeclaredState> {
+pub fn declared_state(state: &ApiState, target: Target) -> Option<DeclaredState> {
     let declared = target.drive.declared.as_ref()?;
     let view = state.control.drift().view(&target.drive.name);
     Some(DeclaredState::new(declared, view.as_ref()))

@@ -248,7 +248,7 @@ fn view(state: &ApiState, target: Target) -> DriveView {
             .and_then(|s| s.status.as_ref())
             .map(StatusView::from),
         lease: lease_of(state, target.index),
-        declared_settings: declared_state(state, &target),
+        declared_settings: declared_state(state, target),
     }
 }
 

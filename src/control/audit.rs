@@ -167,6 +167,24 @@ pub fn restart(note: &super::restart::RestartNote) {
     }
 }
 
+/// Logs a reload of the configuration: who asked, and what it changed or
+/// why it was refused.
+pub fn reload(by: &str, result: &super::reload::ReloadResult) {
+    match result {
+        Ok(applied) => tracing::info!(
+            target: "drivegate::audit",
+            who = by,
+            changes = %applied.changes.join("; "),
+            "configuration reloaded"
+        ),
+        Err(refused) => tracing::warn!(
+            target: "drivegate::audit",
+            who = by,
+            why = %refused,
+            "configuration reload refused"
+        ),
+    }
+}
 /// Logs a settings document refused whole: nothing was written.
 pub fn settings_refused(face: &str, who: &str, drive: &str, error: &SettingsError) {
     let why = match error {
@@ -210,23 +228,4 @@ pub fn settings_checked(drive: &str, drift: &[Difference], apply: &str) {
 /// Logs why a drive's settings could not be compared or applied.
 pub fn settings_trouble(drive: &str, why: &str) {
     tracing::warn!(target: "drivegate::audit", face = "internal", who = "declared-settings", drive, error = why, "declared settings");
-}
-
-/// Logs a reload of the configuration: who asked, and what it changed or
-/// why it was refused.
-pub fn reload(by: &str, result: &super::reload::ReloadResult) {
-    match result {
-        Ok(applied) => tracing::info!(
-            target: "drivegate::audit",
-            who = by,
-            changes = %applied.changes.join("; "),
-            "configuration reloaded"
-        ),
-        Err(refused) => tracing::warn!(
-            target: "drivegate::audit",
-            who = by,
-            why = %refused,
-            "configuration reload refused"
-        ),
-    }
 }

@@ -281,7 +281,6 @@ impl DriftBook {
         let Some(bus) = now.bus_at(d.bus).cloned() else {
             return;
         };
-        drop(now);
         // Subscribed before anything is read, so a standstill that comes
         // while the core refuses the writes is not missed.
         let mut events = bus.handle.subscribe();
@@ -388,48 +387,94 @@ pub(crate) fn start(control: &Control, shutdown: &CancellationToken) {
     }
     let book = control.drift().clone();
     let _ = book.shutdown.set(shutdown.clone());
-    let (directory, stop, books) = (control.clone(), shutdown.clone(), book.clone());
-    control
-        .plant()
-        .each_bus(shutdown.clone(), move |index, bus| {
-            let mut rx = bus.handle.subscribe();
-            let (book, control, shutdown) = (books.clone(), directory.clone(), stop.clone());
-            tokio::spawn(async move {
-                loop {
-                    let event = tokio::select! {
-                        () = shutdown.cancelled() => return,
-                        event = rx.recv() => event,
-                    };
-                    match event {
-                        Ok(BusEvent::Online { unit, .. }) => {
-                            let drive =
-                                control.plant().now().indexed_drives().find_map(|(i, d)| {
-                                    (d.bus == index && d.unit == unit && d.declared.is_some())
-                                        .then_some(i)
-                                });
-                            if let Some(drive) = drive {
-                                book.request(&control, drive, &shutdown);
-                            }
-                        }
-                        Ok(_) => {}
-                        Err(broadcast::error::RecvError::Lagged(n)) => {
-                            tracing::warn!("declared settings: fell {n} bus events behind");
-                        }
-                        Err(broadcast::error::RecvError::Closed) => return,
-                    }
+    // Follows the plant: each bus a reload adds or reopens gets its
+    // watcher, one it removes or reopens loses its own.
+    let (follower_book, follower_control, follower_shutdown) =
+        (book.clone(), control.clone(), shutdown.clone());
+    tokio::spawn(async move {
+        let mut follow = follower_control.plant().follow();
+        let mut watching: Vec<(usize, std::sync::Weak<crate::plant::Bus>, CancellationToken)> =
+            Vec::new();
+        loop {
+            let now = follow.borrow_and_update().clone();
+            watching.retain(|(i, bus, stop)| {
+                let same = now
+                    .bus_at(*i)
+                    .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()));
+                if !same {
+                    stop.cancel();
                 }
+                same
             });
-        });
+            for (index, bus) in now.indexed_buses() {
+                if watching.iter().any(|(i, _, _)| *i == index) {
+                    continue;
+                }
+                let stop = follower_shutdown.child_token();
+                watching.push((index, Arc::downgrade(bus), stop.clone()));
+                watch_bus(
+                    follower_book.clone(),
+                    follower_control.clone(),
+                    index,
+                    bus.handle.subscribe(),
+                    stop,
+                );
+            }
+            tokio::select! {
+                () = follower_shutdown.cancelled() => return,
+                changed = follow.changed() => if changed.is_err() { return },
+            }
+        }
+    });
     // Online before the buses were followed.
     let now = control.plant().now();
     for (drive, d) in now.indexed_drives() {
         let online = now
-            .handle_of(d)
-            .and_then(|b| b.drive(d.unit))
+            .bus_at(d.bus)
+            .and_then(|b| b.handle.drive(d.unit))
             .is_some_and(|s| s.link == Link::Online);
         if d.declared.is_some() && online {
             book.request(control, drive, shutdown);
         }
+    }
+}
+
+/// Asks for a comparison of each declared drive of bus `index` that comes
+/// online, until `shutdown`.
+fn watch_bus(
+    book: Arc<DriftBook>,
+    control: Control,
+    index: usize,
+    mut rx: broadcast::Receiver<BusEvent>,
+    shutdown: CancellationToken,
+) {
+    {
+        tokio::spawn(async move {
+            loop {
+                let event = tokio::select! {
+                    () = shutdown.cancelled() => return,
+                    event = rx.recv() => event,
+                };
+                match event {
+                    Ok(BusEvent::Online { unit, .. }) => {
+                        let drive = control
+                            .plant()
+                            .now()
+                            .indexed_drives()
+                            .find(|(_, d)| d.bus == index && d.unit == unit && d.declared.is_some())
+                            .map(|(i, _)| i);
+                        if let Some(drive) = drive {
+                            book.request(&control, drive, &shutdown);
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                        tracing::warn!("declared settings: fell {n} bus events behind");
+                    }
+                    Err(broadcast::error::RecvError::Closed) => return,
+                }
+            }
+        });
     }
 }
 

@@ -53,6 +53,23 @@ static JOURNAL_BYTES: Spec = Spec {
     labels: &[],
 };
 
+static RELOADS: Spec = Spec {
+    name: "drivegate_config_reload_total",
+    help: "Reloads of the configuration file (SIGHUP or POST /api/v1/config/reload), by \
+           result: applied, or invalid (the file did not pass the check; the running \
+           configuration stayed).",
+    kind: Kind::Counter,
+    labels: &["result"],
+};
+
+static RELOAD_OK: Spec = Spec {
+    name: "drivegate_config_last_reload_ok",
+    help: "0 while the last reload of the configuration file was refused (the file on disk is \
+           not the one running: /readyz says why, with file:line:column); 1 otherwise.",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
 static DRIFT: Spec = Spec {
     name: "drivegate_drive_settings_drift",
     help: "1 while a drive with declared settings ([bus.drive.settings]) is known not to hold \
@@ -78,19 +95,10 @@ static ALARMS_UNACKED: Spec = Spec {
     labels: &[],
 };
 
-static RELOADS: Spec = Spec {
-    name: "drivegate_config_reload_total",
-    help: "Reloads of the configuration file (SIGHUP or POST /api/v1/config/reload), by \
-           result: applied, or invalid (the file did not pass the check; the running \
-           configuration stayed).",
-    kind: Kind::Counter,
-    labels: &["result"],
-};
-
-static RELOAD_OK: Spec = Spec {
-    name: "drivegate_config_last_reload_ok",
-    help: "0 while the last reload of the configuration file was refused (the file on disk is \
-           not the one running: /readyz says why, with file:line:column); 1 otherwise.",
+static LOADED_AT: Spec = Spec {
+    name: "drivegate_config_last_reload_success_timestamp_seconds",
+    help: "When the running configuration was loaded: at start-up or by the last reload \
+           applied (Unix time).",
     kind: Kind::Gauge,
     labels: &[],
 };
@@ -104,16 +112,7 @@ static ALARM_FILE_BYTES: Spec = Spec {
 
 static ALARM_FILE_OK: Spec = Spec {
     name: "drivegate_alarm_file_ok",
-    help: "1 when the alarm file is written and synced (or there is no state directory); 0 \
-           when it cannot be written (alarms are then kept in memory until it can).",
-    kind: Kind::Gauge,
-    labels: &[],
-};
-
-static LOADED_AT: Spec = Spec {
-    name: "drivegate_config_last_reload_success_timestamp_seconds",
-    help: "When the running configuration was loaded: at start-up or by the last reload \
-           applied (Unix time).",
+    help: "1 when the alarm file is written and synced (or there is no state directory); 0            when it cannot be written (alarms are then kept in memory until it can).",
     kind: Kind::Gauge,
     labels: &[],
 };
@@ -134,14 +133,14 @@ impl ControlCollector {
                 JOURNAL_OK.desc(),
                 JOURNAL_EVENTS.desc(),
                 JOURNAL_BYTES.desc(),
+                RELOADS.desc(),
+                RELOAD_OK.desc(),
+                LOADED_AT.desc(),
                 DRIFT.desc(),
                 ALARMS_ACTIVE.desc(),
                 ALARMS_UNACKED.desc(),
                 ALARM_FILE_BYTES.desc(),
                 ALARM_FILE_OK.desc(),
-                RELOADS.desc(),
-                RELOAD_OK.desc(),
-                LOADED_AT.desc(),
             ],
         }
     }
@@ -178,14 +177,27 @@ impl Collector for ControlCollector {
         events.set(&["unreadable"], c.unreadable as f64);
         let mut bytes = JOURNAL_BYTES.family();
         bytes.set(&[], c.bytes as f64);
+        let status = self.control.reload_status();
+        let mut reloads = RELOADS.family();
+        reloads.set(&["applied"], status.applied as f64);
+        reloads.set(&["invalid"], status.invalid as f64);
+        let mut reload_ok = RELOAD_OK.family();
+        reload_ok.set(&[], f64::from(u8::from(status.last_ok)));
+        let mut loaded_at = LOADED_AT.family();
+        if let Some(at) = status
+            .last_good_at
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+        {
+            loaded_at.set(&[], at.as_secs_f64());
+        }
         let mut drift = DRIFT.family();
-        let now = self.control.plant().now();
-        for d in now.drives().filter(|d| d.declared.is_some()) {
-            if let (Some(view), Some(handle)) =
-                (self.control.drift().view(&d.name), now.handle_of(d))
-            {
+        let plant = self.control.plant().now();
+        for d in plant.drives().filter(|d| d.declared.is_some()) {
+            if let Some(view) = self.control.drift().view(&d.name) {
                 let unit = d.unit.to_string();
-                let bus = handle.name();
+                let Some(bus) = plant.handle_of(d).map(|h| h.name()) else {
+                    continue;
+                };
                 drift.set_bool(&[bus, unit.as_str(), d.name.as_str()], view.drifted());
             }
         }
@@ -201,19 +213,6 @@ impl Collector for ControlCollector {
         file_bytes.set(&[], file.bytes as f64);
         let mut file_ok = ALARM_FILE_OK.family();
         file_ok.set(&[], f64::from(u8::from(file.failing.is_none())));
-        let status = self.control.reload_status();
-        let mut reloads = RELOADS.family();
-        reloads.set(&["applied"], status.applied as f64);
-        reloads.set(&["invalid"], status.invalid as f64);
-        let mut reload_ok = RELOAD_OK.family();
-        reload_ok.set(&[], f64::from(u8::from(status.last_ok)));
-        let mut loaded_at = LOADED_AT.family();
-        if let Some(at) = status
-            .last_good_at
-            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-        {
-            loaded_at.set(&[], at.as_secs_f64());
-        }
         vec![
             reloads.finish(),
             reload_ok.finish(),

@@ -298,9 +298,9 @@ impl Alarms {
         if tokio::runtime::Handle::try_current().is_err() {
             return;
         }
-        let (alarms, directory, stop) = (self.clone(), plant.clone(), shutdown.clone());
-        plant.each_bus(shutdown.clone(), move |index, bus| {
-            let (alarms, plant, shutdown) = (alarms.clone(), directory.clone(), stop.clone());
+        let following = (self.clone(), plant.clone());
+        plant.for_each_bus(shutdown, move |index, bus, shutdown| {
+            let (alarms, plant) = (following.0.clone(), following.1.clone());
             let mut rx = bus.handle.subscribe();
             // What happened before this subscription (a port that failed
             // to open at start) is read from the bus's state, after it.
@@ -343,8 +343,7 @@ impl Alarms {
     /// Raises or clears what bus `index`'s state says now: its port, and
     /// its drives' links (the same as the events that led there would).
     fn seed(&self, plant: &Plant, index: usize) {
-        let now = plant.now();
-        let Some(bus) = now.bus_at(index) else {
+        let Some(bus) = plant.now().bus_at(index).cloned() else {
             return;
         };
         let name: Arc<str> = bus.handle.name_arc();
@@ -378,14 +377,13 @@ impl Alarms {
 
     /// Raises or clears what a bus event says.
     pub(crate) fn bus_event(&self, plant: &Plant, bus_index: usize, event: &BusEvent) {
-        let directory = plant.now();
-        let Some(bus) = directory.bus_at(bus_index) else {
+        let now = plant.now();
+        let Some(bus) = now.bus_at(bus_index) else {
             return;
         };
         let bus_name = bus.handle.name().to_string();
         let drive_of = |unit: u8| {
-            directory
-                .drives()
+            now.drives()
                 .find(|d| d.bus == bus_index && d.unit == unit)
                 .map(|d| d.name.clone())
         };
@@ -502,8 +500,8 @@ impl Alarms {
 
     /// Raises or clears what an event of the core says.
     pub(crate) fn control_event(&self, plant: &Plant, event: &ControlEvent) {
+        let now = plant.now();
         let drive = |i: usize| {
-            let now = plant.now();
             let d = now.drive_at(i)?;
             let bus = now.bus_at(d.bus)?.handle.name().to_string();
             Some((d.name.clone(), bus, d.unit))
@@ -593,7 +591,8 @@ impl Alarms {
                 };
                 let name = w
                     .drive
-                    .and_then(|i| plant.now().drive_at(i).map(|d| d.name.clone()));
+                    .and_then(|i| now.drive_at(i))
+                    .map(|d| d.name.clone());
                 let target = match &name {
                     Some(n) => format!("drive {n} (bus {}, unit {})", w.bus, w.unit),
                     None => format!("bus {} unit {}", w.bus, w.unit),
