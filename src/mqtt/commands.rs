@@ -66,7 +66,7 @@ pub fn parse(m: &Metric) -> Result<Option<Command>, Malformed> {
             let Some(v) = metric::as_f64(m) else {
                 return Err(Malformed(format!("{name} takes a number")));
             };
-            let range = |e: crate::drive::RangeError| Malformed(e.to_string());
+            let range = |e: crate::drive::RangeError| Malformed(format!("{name}: {e}"));
             match writable {
                 Writable::SpeedRpm => DriveRequest::Speed {
                     rpm: units::speed_setpoint(v).map_err(range)?,
