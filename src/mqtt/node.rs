@@ -124,6 +124,8 @@ struct Node {
     results_tx: mpsc::UnboundedSender<CommandResult>,
     bus_tx: mpsc::Sender<BusEvent>,
     forwarders: Vec<JoinHandle<()>>,
+    /// The commands on their way through the core, in the current session.
+    commands: tokio::task::JoinSet<()>,
 }
 
 /// Starts the edge node's task; it ends after `shutdown` fired.
@@ -175,6 +177,7 @@ impl Node {
             results_tx,
             bus_tx,
             forwarders: Vec::new(),
+            commands: tokio::task::JoinSet::new(),
             config,
             control,
             metrics,
@@ -452,7 +455,10 @@ impl Node {
                             host,
                             "MQTT: the primary host went offline: the leases of its commands end, the node disconnects"
                         );
-                        // Its commands' leases end now, with their stop.
+                        // Its commands still queued are dropped first, so
+                        // none lands after the stop; then its leases end
+                        // now, with their stop.
+                        self.commands.abort_all();
                         self.session = open_session(&self.control, &self.config);
                         let _ = c.client.try_publish(
                             self.topics.node_topic(Kind::NDeath),
@@ -537,7 +543,10 @@ impl Node {
         self.session.active();
         let control = self.control.clone();
         let results = self.results_tx.clone();
-        tokio::spawn(async move {
+        // Finished commands' handles go; the others stay to be aborted
+        // with their session.
+        while self.commands.try_join_next().is_some() {}
+        self.commands.spawn(async move {
             for cmd in run {
                 let outcome = commands::run(&control, &caller, target, &cmd)
                     .await
