@@ -156,10 +156,11 @@ impl Node {
         bus_tx: mpsc::Sender<BusEvent>,
     ) -> Self {
         let topics = NodeTopics::new(&config.group_id, &node_id);
+        // The primary host, or without one whoever uses the broker.
         let who: Arc<str> = config
             .primary_host_id
             .clone()
-            .unwrap_or_else(|| config.broker.to_string())
+            .unwrap_or_else(|| format!("{}:{}", config.broker.host, config.broker.port))
             .into();
         let session = open_session(&control, &config);
         Node {
