@@ -8,15 +8,18 @@
 //! - [`exception`] decides what of a new status is published (deadbands,
 //!   pure), [`host`] follows the primary host's `STATE` (pure),
 //! - [`commands`] turns DCMD metrics into requests for the control core,
-//! - `node` is the edge node's task: the connection (rumqttc), births and
-//!   deaths, data, commands and the session's motor-safety lease.
+//! - `node` is the edge node's task: births and deaths, data, commands and
+//!   the session's motor-safety lease, over a `connection` (rumqttc) with
+//!   its `bd_seq` (kept across restarts in `[safety] state_dir`).
 //!
 //! Like every face it decides nothing about the motors: commands go to
 //! [`crate::control`] as face `mqtt` with the role of `[mqtt] commands`, in
 //! a session whose communication-loss function holds their leases. See
 //! `docs/mqtt.md`.
 
+mod bd_seq;
 pub mod commands;
+mod connection;
 pub mod exception;
 pub mod host;
 pub mod metric;
@@ -117,6 +120,7 @@ pub fn start(
         control,
         metrics,
         outbox,
+        config.safety.state_dir(),
         shutdown,
     )))
 }
