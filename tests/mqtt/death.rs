@@ -52,6 +52,13 @@ async fn kill_9_delivers_the_ndeath() {
             Some(bd_seq),
             "the NDEATH ends that NBIRTH"
         );
+        // The next process: the next bdSeq, so a late will of the last one
+        // could not be taken for this one's death.
+        let mut child = serve();
+        let nbirth = host.next(WAIT, "NBIRTH", |m| m.is("NBIRTH", None)).await;
+        assert_eq!(nbirth.value("bdSeq"), Some(Value::Int((first + 1) % 256)));
+        child.start_kill().unwrap();
+        child.wait().await.unwrap();
     })
     .await;
 }
