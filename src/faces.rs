@@ -1,4 +1,4 @@
-//! Starts the network faces (HTTP API with metrics, Modbus TCP) and waits
+//! Starts the network faces (HTTP API with metrics, Modbus TCP, MQTT) and waits
 //! for them to finish after shutdown.
 
 use std::net::SocketAddr;
@@ -38,7 +38,7 @@ impl Faces {
 }
 
 /// Loads the certificates, keys and client CAs of every configured TLS
-/// listener, as a start would (for `check-config`): an error names the
+/// listener (and the MQTT face's CA and client certificate), as a start would (for `check-config`): an error names the
 /// file and what is wrong with it.
 pub fn check_tls(config: &Config) -> Result<(), String> {
     if let Some(files) = &config.http.tls {
@@ -48,6 +48,16 @@ pub fn check_tls(config: &Config) -> Result<(), String> {
     if let Some(section) = &config.modbus_tcp.tls {
         crate::tls::server_config(&section.files(), crate::tls::ClientAuth::Required, &[])
             .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
+    }
+    if let Some(mqtt) = &config.mqtt
+        && mqtt.broker.tls
+    {
+        let identity = match (&mqtt.client_cert, &mqtt.client_key) {
+            (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
+            _ => None,
+        };
+        crate::tls::client_config(mqtt.ca.as_deref(), identity)
+            .map_err(|e| format!("[mqtt]: {e}"))?;
     }
     Ok(())
 }
@@ -111,6 +121,16 @@ pub async fn start(
         }
         None => None,
     };
+    if let Some(task) = crate::mqtt::start(
+        config,
+        control.clone(),
+        metrics.clone(),
+        Box::new(crate::mqtt::Discard),
+        shutdown.clone(),
+    )? {
+        tracing::info!("MQTT face started");
+        tasks.push(task);
+    }
     let modbus_tcp = if config.modbus_tcp.enabled {
         let (addr, task) =
             crate::modbus_tcp::start(config, plant, metrics, control.clone(), shutdown).await?;

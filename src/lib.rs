@@ -25,6 +25,7 @@
 //! - The control core, [`control`], with [`safety`]'s stop actions.
 //! - The faces: [`api`] (the request bodies and stream messages fuzzed, the
 //!   OpenAPI document checked for drift), [`modbus_tcp`] (MBAP, fuzzed),
+//!   [`mqtt`] (Sparkplug B; its payload types for the tests' host),
 //!   [`console`] (its assets), [`metrics`].
 //! - Putting it together: [`config`], [`plant`], [`faces`], [`daemon`],
 //!   [`logging`], [`bench`] (`drivegate bench`), [`probe`] (`drivegate probe`).
@@ -49,6 +50,7 @@ pub mod metrics;
 pub mod modbus;
 pub mod modbus_tcp;
 pub mod monitor;
+pub mod mqtt;
 pub mod plant;
 pub mod probe;
 pub mod reload;
