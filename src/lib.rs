@@ -48,6 +48,7 @@ pub mod metrics;
 pub mod modbus;
 pub mod modbus_tcp;
 pub mod monitor;
+pub mod mqtt;
 pub mod plant;
 pub mod probe;
 pub mod safety;

@@ -1,0 +1,3 @@
+//! The MQTT face.
+
+pub mod store;
