@@ -1,4 +1,4 @@
-//! Starts the network faces (HTTP API with metrics, Modbus TCP) and waits
+//! Starts the network faces (HTTP API with metrics, Modbus TCP, MQTT) and waits
 //! for them to finish after shutdown.
 
 use std::net::SocketAddr;
@@ -96,6 +96,16 @@ pub async fn start(
         }
         None => None,
     };
+    if let Some(task) = crate::mqtt::start(
+        config,
+        control.clone(),
+        metrics.clone(),
+        Box::new(crate::mqtt::Discard),
+        shutdown.clone(),
+    )? {
+        tracing::info!("MQTT face started");
+        tasks.push(task);
+    }
     let modbus_tcp = if config.modbus_tcp.enabled {
         let (addr, task) =
             crate::modbus_tcp::start(config, plant, metrics, control.clone(), shutdown).await?;

@@ -25,6 +25,7 @@
 //! - The control core, [`control`], with [`safety`]'s stop actions.
 //! - The faces: [`api`] (the request bodies and stream messages fuzzed, the
 //!   OpenAPI document checked for drift), [`modbus_tcp`] (MBAP, fuzzed),
+//!   [`mqtt`] (Sparkplug B; its payload types for the tests' host),
 //!   [`console`] (its assets), [`metrics`].
 //! - Putting it together: [`config`], [`plant`], [`faces`], [`daemon`],
 //!   [`logging`], [`bench`] (`drivegate bench`), [`probe`] (`drivegate probe`).

@@ -1,4 +1,5 @@
-//! TLS for the faces (HTTPS and Modbus/TCP Security): certificate chains,
+//! TLS for the faces (HTTPS and Modbus/TCP Security, and the MQTT face's
+//! connection to its broker): certificate chains,
 //! keys and client CAs read from PEM files, server configurations built
 //! with rustls (ring, TLS 1.2 and 1.3, no OpenSSL), and reloading them
 //! without touching the connections already open.
@@ -175,6 +176,50 @@ pub fn server_config(
             },
         })?;
     config.alpn_protocols = alpn.iter().map(|p| p.to_vec()).collect();
+    Ok(Arc::new(config))
+}
+
+/// Where Debian keeps the system's trusted CAs, for a client configured
+/// without a CA of its own.
+pub const SYSTEM_CAS: &str = "/etc/ssl/certs/ca-certificates.crt";
+
+/// Builds a client configuration (the MQTT face's to its broker): the
+/// server is trusted when signed by `ca` (absent: the system's CAs), and
+/// `identity` (certificate chain, key) is shown when the server asks.
+pub fn client_config(
+    ca: Option<&Path>,
+    identity: Option<(&Path, &Path)>,
+) -> Result<Arc<rustls::ClientConfig>, TlsError> {
+    let ca_path = ca.unwrap_or(Path::new(SYSTEM_CAS));
+    let mut roots = RootCertStore::empty();
+    for cert in load_certificates(ca_path, "CA")? {
+        roots
+            .add(cert)
+            .map_err(|e| file_error("CA", ca_path, format!("not a usable CA: {e}")))?;
+    }
+    let builder = rustls::ClientConfig::builder_with_provider(provider())
+        .with_protocol_versions(&[&rustls::version::TLS13, &rustls::version::TLS12])
+        .map_err(|e| TlsError::Missing(format!("TLS versions: {e}")))?
+        .with_root_certificates(roots);
+    let config = match identity {
+        None => builder.with_no_client_auth(),
+        Some((cert, key)) => {
+            let chain = load_certificates(cert, "client certificate")?;
+            let private = load_key(key)?;
+            builder
+                .with_client_auth_cert(chain, private)
+                .map_err(|e| TlsError::Pair {
+                    cert: cert.display().to_string(),
+                    key: key.display().to_string(),
+                    reason: match e {
+                        rustls::Error::InconsistentKeys(_) => {
+                            "the private key does not belong to the certificate".to_string()
+                        }
+                        other => other.to_string(),
+                    },
+                })?
+        }
+    };
     Ok(Arc::new(config))
 }
 

@@ -48,6 +48,12 @@ pub enum Origin {
         /// (Modbus/TCP Security). A thin pointer, so jobs stay small.
         name: Option<Arc<String>>,
     },
+    /// A command from the MQTT face (a Sparkplug DCMD): the host it is
+    /// taken to come from (the primary host, or the broker).
+    Mqtt {
+        /// The primary host's id, or the broker's address.
+        who: Arc<str>,
+    },
     /// The stop sent when a motor-safety lease ended.
     LeaseExpiry {
         /// Who held the lease.
@@ -73,6 +79,8 @@ listed_enum! {
         WebSocket,
         /// [`Origin::ModbusTcp`].
         ModbusTcp,
+        /// [`Origin::Mqtt`].
+        Mqtt,
         /// [`Origin::LeaseExpiry`].
         LeaseExpiry,
         /// [`Origin::Shutdown`].
@@ -90,6 +98,7 @@ impl OriginKind {
             OriginKind::Http => "http",
             OriginKind::WebSocket => "websocket",
             OriginKind::ModbusTcp => "modbus-tcp",
+            OriginKind::Mqtt => "mqtt",
             OriginKind::LeaseExpiry => "lease-expiry",
             OriginKind::Shutdown => "shutdown",
         }
@@ -144,6 +153,7 @@ impl Origin {
             Origin::Http { .. } => OriginKind::Http,
             Origin::WebSocket { .. } => OriginKind::WebSocket,
             Origin::ModbusTcp { .. } => OriginKind::ModbusTcp,
+            Origin::Mqtt { .. } => OriginKind::Mqtt,
             Origin::LeaseExpiry { .. } => OriginKind::LeaseExpiry,
             Origin::Shutdown => OriginKind::Shutdown,
         }
@@ -153,7 +163,9 @@ impl Origin {
     /// Modbus TCP peer, a lease's owner.
     pub fn who(&self) -> Option<String> {
         match self {
-            Origin::Http { who } | Origin::WebSocket { who, .. } => Some(who.to_string()),
+            Origin::Http { who } | Origin::WebSocket { who, .. } | Origin::Mqtt { who } => {
+                Some(who.to_string())
+            }
             Origin::ModbusTcp {
                 ip,
                 port,
@@ -212,6 +224,7 @@ impl fmt::Display for Origin {
                     SocketAddr::new(*ip, *port)
                 ),
             },
+            Origin::Mqtt { who } => write!(f, "MQTT {who}"),
             Origin::LeaseExpiry { owner } => write!(f, "lease expiry ({owner}'s lease)"),
             Origin::Shutdown => f.write_str("shutdown"),
         }
@@ -247,6 +260,9 @@ mod tests {
                 who: "a".into(),
             },
             tcp,
+            Origin::Mqtt {
+                who: "scada".into(),
+            },
             Origin::LeaseExpiry { owner: "a".into() },
             Origin::Shutdown,
         ] {

@@ -1,7 +1,7 @@
 //! The daemon's configuration: a TOML file, validated with errors that point
 //! at the line and column to fix.
 //!
-//! Sections: `[http]`, `[modbus_tcp]`, `[log]`, `[safety]`, `[monitor]`,
+//! Sections: `[http]`, `[modbus_tcp]`, `[mqtt]`, `[log]`, `[safety]`, `[monitor]`,
 //! `[scope]` and one `[[bus]]`
 //! per serial adapter, each with its `[[bus.drive]]` list (and optional
 //! `[bus.rs485]`, `[bus.sim]`). `config/drivegate.toml` documents every key.
@@ -12,6 +12,7 @@ mod error;
 pub mod http;
 pub mod modbus_tcp;
 mod modbus_tls;
+pub mod mqtt;
 pub mod origins;
 mod role;
 mod safety;
@@ -28,6 +29,7 @@ pub use error::ConfigError;
 pub use http::HttpConfig;
 pub use modbus_tcp::ModbusTcpConfig;
 pub use modbus_tls::ModbusTlsConfig;
+pub use mqtt::MqttConfig;
 pub use role::Role;
 pub use safety::{SafetyConfig, StopAction};
 
@@ -47,6 +49,9 @@ pub struct Config {
     /// Modbus TCP passthrough listener.
     #[serde(default)]
     pub modbus_tcp: ModbusTcpConfig,
+    /// The MQTT face (Sparkplug B); absent: off.
+    #[serde(default)]
+    pub mqtt: Option<MqttConfig>,
     /// Logging.
     #[serde(default)]
     pub log: LogConfig,
@@ -156,6 +161,10 @@ impl Config {
         self.modbus_tcp
             .validate(self)
             .map_err(|(span, message)| at(span, message))?;
+        if let Some(mqtt) = &self.mqtt {
+            mqtt.validate()
+                .map_err(|(span, message)| at(span, message))?;
+        }
         Ok(())
     }
 

@@ -17,6 +17,8 @@ pub enum Face {
     WebSocket,
     /// A Modbus TCP client.
     ModbusTcp,
+    /// A command from the MQTT broker (a Sparkplug DCMD).
+    Mqtt,
     /// drivegate itself (safe stops, a brake applied again).
     Internal,
 }
@@ -28,6 +30,7 @@ impl Face {
             Face::Http => "http",
             Face::WebSocket => "websocket",
             Face::ModbusTcp => "modbus-tcp",
+            Face::Mqtt => "mqtt",
             Face::Internal => "internal",
         }
     }
@@ -38,6 +41,7 @@ impl Face {
             Face::Http => "over HTTP",
             Face::WebSocket => "over the WebSocket stream",
             Face::ModbusTcp => "over Modbus TCP",
+            Face::Mqtt => "over MQTT",
             Face::Internal => "by drivegate",
         }
     }
@@ -66,6 +70,7 @@ fn origin_of(face: Face, who: &Arc<str>, session: Option<SessionId>) -> Origin {
             who: who.clone(),
         },
         (Face::WebSocket, None) => Origin::Http { who: who.clone() },
+        (Face::Mqtt, _) => Origin::Mqtt { who: who.clone() },
         (Face::ModbusTcp | Face::Internal, _) => Origin::Internal,
     }
 }
@@ -131,10 +136,10 @@ impl Caller {
     /// Who holds a lease this caller takes, as lease views and the stream
     /// show it: a token's name, or for a Modbus TCP client its face and
     /// address ("modbus-tcp 10.1.2.3:50412"), since an address alone does
-    /// not say what it is.
+    /// not say what it is (and for MQTT, "mqtt" and the host: "mqtt scada").
     pub fn owner(&self) -> Arc<str> {
         match self.face {
-            Face::ModbusTcp => format!("{} {}", self.face.name(), self.who).into(),
+            Face::ModbusTcp | Face::Mqtt => format!("{} {}", self.face.name(), self.who).into(),
             Face::Http | Face::WebSocket | Face::Internal => self.who.clone(),
         }
     }

@@ -2,6 +2,7 @@
 //!
 //! - [`faces`]: counters the HTTP, WebSocket and Modbus TCP faces update,
 //! - `security`: the browser-origin guards, token failures and TLS,
+//! - `mqtt`: the MQTT face's messages, commands and broker link,
 //! - `drives`: per-drive series read from the poll cache at scrape time,
 //! - `buses`: per-bus series read from the bus counters, queues and port
 //!   state (and the simulator's wire counters) at scrape time,
@@ -20,6 +21,7 @@ mod control;
 mod drives;
 mod faces;
 mod family;
+mod mqtt;
 mod process;
 mod security;
 mod utilisation;
@@ -30,6 +32,7 @@ use std::sync::{Arc, Weak};
 use prometheus::{Encoder, Registry, TextEncoder};
 
 pub use faces::{FaceMetrics, WsClientGuard};
+pub use mqtt::{LinkState as MqttLink, MqttMetrics};
 pub use security::SecurityMetrics;
 pub use utilisation::{SAMPLE_PERIOD, WINDOW as UTILISATION_WINDOW};
 
@@ -41,6 +44,7 @@ pub struct Metrics {
     registry: Registry,
     faces: FaceMetrics,
     security: SecurityMetrics,
+    mqtt: MqttMetrics,
     plant: Arc<Plant>,
     utilisation: Arc<Utilisation>,
 }
@@ -53,6 +57,7 @@ impl Metrics {
         let registry = Registry::new();
         let faces = FaceMetrics::register(&registry);
         let security = SecurityMetrics::register(&registry);
+        let mqtt = MqttMetrics::register(&registry);
         let utilisation = Arc::new(Utilisation::new(&plant));
         let collectors: [Box<dyn prometheus::core::Collector>; 3] = [
             Box::new(drives::DriveCollector::new(plant.clone())),
@@ -69,6 +74,7 @@ impl Metrics {
             registry,
             faces,
             security,
+            mqtt,
             plant,
             utilisation,
         });
@@ -97,6 +103,11 @@ impl Metrics {
     /// The transport's defences' counters (guards, tokens, TLS).
     pub fn security(&self) -> &SecurityMetrics {
         &self.security
+    }
+
+    /// The MQTT face's counters and the state of its link.
+    pub fn mqtt(&self) -> &MqttMetrics {
+        &self.mqtt
     }
 
     /// The plant the drive and bus metrics are read from.

@@ -1,3 +1,125 @@
-//! The MQTT face.
+//! The MQTT face: the plant's drives on a broker as an Eclipse Sparkplug B
+//! 3.0 edge node, for SCADA hosts that discover them without configuration.
+//!
+//! - [`topic`] names the topics and tells incoming ones apart (pure),
+//! - [`metric`] is a drive as a Sparkplug device: its metrics, units and
+//!   protobuf form (pure), over the types of [`sparkplug_b`] (generated
+//!   from the vendored `proto/sparkplug_b.proto`, checked in),
+//! - [`exception`] decides what of a new status is published (deadbands,
+//!   pure), [`host`] follows the primary host's `STATE` (pure),
+//! - [`commands`] turns DCMD metrics into requests for the control core,
+//! - `node` is the edge node's task: the connection (rumqttc), births and
+//!   deaths, data, commands and the session's motor-safety lease,
+//! - [`store`] keeps on disk what cannot be published (store and forward:
+//!   the node's [`Outbox`] when there is a state directory).
+//!
+//! Like every face it decides nothing about the motors: commands go to
+//! [`crate::control`] as face `mqtt` with the role of `[mqtt] commands`, in
+//! a session whose communication-loss function holds their leases. See
+//! `docs/mqtt.md`.
 
+pub mod commands;
+pub mod exception;
+pub mod host;
+pub mod metric;
+mod node;
 pub mod store;
+#[rustfmt::skip]
+pub mod sparkplug_b;
+pub mod topic;
+
+use std::sync::Arc;
+
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+
+use crate::config::mqtt::Format;
+use crate::config::{Config, MqttConfig};
+use crate::control::Control;
+use crate::metrics::Metrics;
+use sparkplug_b::payload::Metric;
+
+/// Where device data goes while it cannot be published (no broker, or the
+/// primary host offline), and where it comes back from once the births
+/// are out: the node replays it a little at a time, marked historical,
+/// each message with the seq of when it is sent.
+///
+/// The node calls [`keep`](Outbox::keep) for each DDATA it could not send,
+/// in order, and [`next`](Outbox::next) while connected and born, a few
+/// times per tick, until it returns `None`.
+pub trait Outbox: Send {
+    /// Keeps the metrics of one DDATA of `device` (each with its own
+    /// timestamp) for later.
+    fn keep(&mut self, device: &str, metrics: Vec<Metric>);
+    /// The oldest kept DDATA, taken out; `None` when nothing is kept.
+    fn next(&mut self) -> Option<(String, Vec<Metric>)>;
+}
+
+/// The outbox without a store: what cannot be published is dropped (the
+/// births republish every value when the link is back).
+#[derive(Debug, Default)]
+pub struct Discard;
+
+impl Outbox for Discard {
+    fn keep(&mut self, _device: &str, _metrics: Vec<Metric>) {}
+
+    fn next(&mut self) -> Option<(String, Vec<Metric>)> {
+        None
+    }
+}
+
+/// The node id of `config`: its `node_id`, else the host's name (with any
+/// character a topic level cannot hold replaced by `-`).
+pub fn node_id(config: &MqttConfig) -> String {
+    if let Some(id) = &config.node_id {
+        return id.clone();
+    }
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|s| s.trim().to_string())
+        .unwrap_or_default();
+    let id: String = host
+        .chars()
+        .map(|c| {
+            if matches!(c, '/' | '+' | '#') || c.is_control() {
+                '-'
+            } else {
+                c
+            }
+        })
+        .collect();
+    if id.is_empty() {
+        "drivegate".to_string()
+    } else {
+        id
+    }
+}
+
+/// Starts the MQTT face of `config` (if it has an `[mqtt]` section): it
+/// connects, and reconnects, on its own, and stops when `shutdown` fires
+/// (after its NDEATH). `outbox` keeps what cannot be published meanwhile.
+pub fn start(
+    config: &Config,
+    control: Control,
+    metrics: Arc<Metrics>,
+    outbox: Box<dyn Outbox>,
+    shutdown: CancellationToken,
+) -> Result<Option<JoinHandle<()>>, String> {
+    let Some(section) = config.mqtt.clone() else {
+        return Ok(None);
+    };
+    if section.format != Format::Sparkplug {
+        return Err(
+            "[mqtt] format = \"json\" is not available in this build: use \"sparkplug\""
+                .to_string(),
+        );
+    }
+    let node_id = node_id(&section);
+    Ok(Some(node::spawn(
+        Arc::new(section),
+        node_id,
+        control,
+        metrics,
+        outbox,
+        shutdown,
+    )))
+}

@@ -214,3 +214,75 @@ fn the_reference_parses_with_the_daemons_loader() {
     let config = Config::load(&Path::new(ROOT).join("config/drivegate.toml")).unwrap();
     assert_eq!(config.buses.len(), 2);
 }
+
+/// The `[mqtt]` section, shown commented out (MQTT is off unless
+/// configured), uncommented.
+fn mqtt_section(text: &str) -> String {
+    let start = text.find("# [mqtt]\n").expect("the reference shows [mqtt]");
+    text[start..]
+        .lines()
+        .take_while(|l| l.starts_with('#'))
+        .map(|l| l.trim_start_matches('#').trim())
+        // Tables and keys; the lines that only explain are left out.
+        .filter(|l| {
+            l.starts_with('[')
+                || l.split_once(" =")
+                    .is_some_and(|(k, _)| k.chars().all(|c| c.is_ascii_alphanumeric() || c == '_'))
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[test]
+fn the_mqtt_section_shows_every_key_and_its_defaults() {
+    let (text, doc) = reference();
+    let section = mqtt_section(&text);
+    let mut full = doc.clone();
+    let mqtt: toml::Table = section.parse().unwrap_or_else(|e| panic!("{e}\n{section}"));
+    full.insert("mqtt".to_string(), mqtt["mqtt"].clone());
+    let mut missing = Vec::new();
+    for path in [&["mqtt"][..], &["mqtt", "deadbands"]] {
+        for key in accepted_keys(&full, path) {
+            if !shown(&text, path, &key) {
+                missing.push([path, &[key.as_str()]].concat().join("."));
+            }
+        }
+    }
+    assert!(
+        missing.is_empty(),
+        "config/drivegate.toml does not show: {missing:?}"
+    );
+    // Examples, not defaults: where the broker is, who the node and its
+    // host are, the credentials and certificates.
+    let examples = [
+        "broker",
+        "node_id",
+        "primary_host_id",
+        "username",
+        "password_file",
+        "ca",
+        "client_cert",
+        "client_key",
+    ];
+    let broker = "[mqtt]\nbroker = \"mqtt://127.0.0.1:1883\"\n";
+    let plain = with(broker);
+    let mut differ = Vec::new();
+    for (key, value) in mqtt["mqtt"].as_table().unwrap() {
+        if examples.contains(&key.as_str()) {
+            continue;
+        }
+        if let Some(table) = value.as_table() {
+            for (k, v) in table {
+                if with(&format!("{broker}[mqtt.{key}]\n{k} = {v}\n")) != plain {
+                    differ.push(format!("[mqtt.{key}] {k} = {v}"));
+                }
+            }
+        } else if with(&format!("{broker}{key} = {value}\n")) != plain {
+            differ.push(format!("[mqtt] {key} = {value}"));
+        }
+    }
+    assert!(
+        differ.is_empty(),
+        "config/drivegate.toml shows [mqtt] values that are not the defaults: {differ:?}"
+    );
+}

@@ -11,4 +11,5 @@ mod support;
 
 mod fuzz_corpus;
 mod properties;
+mod sparkplug_proto;
 mod vectors;

@@ -14,6 +14,7 @@ pub fn how_to_get(tool: &str) -> String {
     let python_package = match tool {
         "st" | "schemathesis" => Some("schemathesis"),
         "pymodbus" => Some("pymodbus"),
+        "pysparkplug" => Some("pysparkplug"),
         _ => None,
     };
     if let Some(package) = python_package {

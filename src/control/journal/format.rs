@@ -41,7 +41,7 @@ pub enum HolderKind {
     /// A session (a WebSocket): it ends with the process.
     Session,
     /// A session's communication-loss function (a Modbus TCP client's
-    /// network): it ends with the process.
+    /// network, the MQTT session): it ends with the process.
     CommLoss,
 }
 
@@ -51,7 +51,9 @@ impl HolderKind {
         match self {
             HolderKind::Http => "an HTTP client",
             HolderKind::Session => "a WebSocket stream session",
-            HolderKind::CommLoss => "a Modbus TCP connection with a communication-loss time",
+            HolderKind::CommLoss => {
+                "a Modbus TCP connection or the MQTT session, with a communication-loss time"
+            }
         }
     }
 }

@@ -1,0 +1,363 @@
+//! `[mqtt]` section: the MQTT face's broker, its Sparkplug B identity, the
+//! role of commands that come over it, and its motor-safety lease. Plain
+//! data; `crate::mqtt` reads it. Absent: no MQTT.
+
+use std::fmt;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use serde::Deserialize;
+use serde::de::{self, Deserializer};
+use toml::Spanned;
+
+use super::role::Role;
+use super::safety::StopAction;
+use super::values::int_in;
+
+/// The MQTT face.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MqttConfig {
+    /// The broker: `mqtt://host:port` (1883 by default) or
+    /// `mqtts://host:port` (TLS, 8883 by default).
+    #[serde(deserialize_with = "broker")]
+    pub broker: Broker,
+    /// What the messages look like: Sparkplug B (the default) or JSON.
+    #[serde(default)]
+    pub format: Format,
+    /// The Sparkplug group the node is in.
+    #[serde(default = "default_group", deserialize_with = "sparkplug_id")]
+    pub group_id: String,
+    /// The Sparkplug edge node id (and the MQTT client id's base);
+    /// absent: the host's name.
+    #[serde(default, deserialize_with = "opt_sparkplug_id")]
+    pub node_id: Option<String>,
+    /// The Sparkplug primary host: births wait for its `STATE` online, and
+    /// its `STATE` offline ends the leases of commands from MQTT.
+    #[serde(default, deserialize_with = "opt_sparkplug_id")]
+    pub primary_host_id: Option<String>,
+    /// The role of commands from MQTT, or `none` (the default): no command
+    /// is taken, the face only publishes.
+    #[serde(default)]
+    pub commands: Commands,
+    /// The user name given to the broker.
+    #[serde(default)]
+    pub username: Option<String>,
+    /// A file holding the password given to the broker (its first line),
+    /// so it is not in the configuration.
+    #[serde(default)]
+    pub password_file: Option<PathBuf>,
+    /// The CA(s), PEM, that signed the broker's certificate (`mqtts://`);
+    /// absent: the system's CAs.
+    #[serde(default)]
+    pub ca: Option<PathBuf>,
+    /// A client certificate chain, PEM, for brokers that ask for one
+    /// (with `client_key`).
+    #[serde(default)]
+    pub client_cert: Option<Spanned<PathBuf>>,
+    /// Its private key, PEM.
+    #[serde(default)]
+    pub client_key: Option<PathBuf>,
+    /// MQTT keepalive, seconds: a connection cut without a close is
+    /// noticed within one and a half of it.
+    #[serde(
+        default = "default_keepalive",
+        deserialize_with = "int_in::<_, _, 2, 3600>"
+    )]
+    pub keepalive_s: u64,
+    /// A setpoint or mode command from MQTT takes a lease held by the MQTT
+    /// session; the broker connection lost for this long ends it, ms.
+    #[serde(
+        default = "default_comm_loss",
+        deserialize_with = "int_in::<_, _, 100, 60_000>"
+    )]
+    pub comm_loss_ms: u64,
+    /// What the end of such a lease sends: `zero-speed` (the default),
+    /// `brake` or `none`.
+    #[serde(default)]
+    pub comm_loss_action: StopAction,
+    /// Data kept on disk while the broker or the primary host is away, MB
+    /// (in `[safety] state_dir`); the oldest goes first.
+    #[serde(
+        default = "default_store_max_mb",
+        deserialize_with = "int_in::<_, _, 0, 65_536>"
+    )]
+    pub store_max_mb: u64,
+    /// Every metric of every drive is published this often, seconds, even
+    /// without change; 0: only changes (report by exception).
+    #[serde(default, deserialize_with = "int_in::<_, _, 0, 86_400>")]
+    pub full_publish_s: u64,
+    /// How much a value must change before it is published again.
+    #[serde(default)]
+    pub deadbands: Deadbands,
+}
+
+/// `[mqtt.deadbands]`: a value is published again only once it moved
+/// further than this from the value last published. Booleans, the mode,
+/// the fault and the turn count are published on every change.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Deadbands {
+    /// Speed, rpm.
+    #[serde(deserialize_with = "deadband")]
+    pub speed_rpm: f64,
+    /// Angle within the turn, degrees.
+    #[serde(deserialize_with = "deadband")]
+    pub angle_deg: f64,
+    /// Motor current, amps.
+    #[serde(deserialize_with = "deadband")]
+    pub current_a: f64,
+    /// Supply voltage, volts.
+    #[serde(deserialize_with = "deadband")]
+    pub voltage_v: f64,
+    /// Temperature, degrees Celsius.
+    #[serde(deserialize_with = "deadband")]
+    pub temperature_c: f64,
+}
+
+impl Default for Deadbands {
+    fn default() -> Self {
+        Deadbands {
+            speed_rpm: 1.0,
+            angle_deg: 0.5,
+            current_a: 0.05,
+            voltage_v: 0.5,
+            temperature_c: 1.0,
+        }
+    }
+}
+
+/// The broker's address.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Broker {
+    /// TLS (`mqtts://`).
+    pub tls: bool,
+    /// Host name or address.
+    pub host: String,
+    /// TCP port.
+    pub port: u16,
+}
+
+impl fmt::Display for Broker {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let scheme = if self.tls { "mqtts" } else { "mqtt" };
+        if self.host.contains(':') {
+            write!(f, "{scheme}://[{}]:{}", self.host, self.port)
+        } else {
+            write!(f, "{scheme}://{}:{}", self.host, self.port)
+        }
+    }
+}
+
+impl Broker {
+    /// Parses `mqtt://host[:port]` or `mqtts://host[:port]`.
+    pub fn parse(text: &str) -> Result<Broker, String> {
+        let (tls, rest) = if let Some(rest) = text.strip_prefix("mqtts://") {
+            (true, rest)
+        } else if let Some(rest) = text.strip_prefix("mqtt://") {
+            (false, rest)
+        } else {
+            return Err(format!(
+                "broker \"{text}\" must start with mqtt:// (plain) or mqtts:// (TLS)"
+            ));
+        };
+        let rest = rest.strip_suffix('/').unwrap_or(rest);
+        let default_port = if tls { 8883 } else { 1883 };
+        let (host, port) = if let Some(v6) = rest.strip_prefix('[') {
+            let (host, after) = v6
+                .split_once(']')
+                .ok_or_else(|| format!("broker \"{text}\": an IPv6 address needs its ]"))?;
+            match after.strip_prefix(':') {
+                Some(port) => (host, Some(port)),
+                None if after.is_empty() => (host, None),
+                None => return Err(format!("broker \"{text}\": expected :port after ]")),
+            }
+        } else {
+            match rest.split_once(':') {
+                Some((host, port)) => (host, Some(port)),
+                None => (rest, None),
+            }
+        };
+        if host.is_empty() || host.contains(['/', '@', '?', '#', ' ']) {
+            return Err(format!(
+                "broker \"{text}\": expected mqtt://host:port, e.g. mqtt://127.0.0.1:1883"
+            ));
+        }
+        let port = match port {
+            None => default_port,
+            Some(p) => match p.parse::<u16>() {
+                Ok(p) if p > 0 => p,
+                _ => {
+                    return Err(format!(
+                        "broker \"{text}\": port \"{p}\" is out of range: valid 1 to 65535"
+                    ));
+                }
+            },
+        };
+        Ok(Broker {
+            tls,
+            host: host.to_string(),
+            port,
+        })
+    }
+}
+
+/// The payload format.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    /// Eclipse Sparkplug B 3.0 (protobuf payloads, births, deaths).
+    #[default]
+    Sparkplug,
+    /// Plain JSON topics for IT tools.
+    Json,
+}
+
+/// The role of commands from MQTT.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Commands {
+    /// Read only: commands are refused.
+    #[default]
+    None,
+    /// Commands are refused as a viewer's (the core says why).
+    Viewer,
+    /// Setpoints, modes, brake and resets.
+    Operator,
+    /// Also what needs the admin role.
+    Admin,
+}
+
+impl Commands {
+    /// The role commands have, if any are taken.
+    pub fn role(self) -> Option<Role> {
+        match self {
+            Commands::None => None,
+            Commands::Viewer => Some(Role::Viewer),
+            Commands::Operator => Some(Role::Operator),
+            Commands::Admin => Some(Role::Admin),
+        }
+    }
+}
+
+impl MqttConfig {
+    /// Checks across keys: a client certificate comes with its key.
+    pub(super) fn validate(&self) -> Result<(), (std::ops::Range<usize>, String)> {
+        if let Some(cert) = &self.client_cert
+            && self.client_key.is_none()
+        {
+            return Err((
+                cert.span(),
+                "[mqtt] client_cert needs client_key (its private key)".to_string(),
+            ));
+        }
+        if self.client_key.is_some() && self.client_cert.is_none() {
+            return Err((0..0, "[mqtt] client_key needs client_cert".to_string()));
+        }
+        Ok(())
+    }
+
+    /// The communication-loss time of the MQTT session's leases.
+    pub fn comm_loss(&self) -> Duration {
+        Duration::from_millis(self.comm_loss_ms)
+    }
+
+    /// The keepalive interval.
+    pub fn keepalive(&self) -> Duration {
+        Duration::from_secs(self.keepalive_s)
+    }
+
+    /// The largest the store may grow, bytes.
+    pub fn store_max_bytes(&self) -> u64 {
+        self.store_max_mb.saturating_mul(1024 * 1024)
+    }
+}
+
+fn default_group() -> String {
+    "drivegate".to_string()
+}
+
+fn default_keepalive() -> u64 {
+    10
+}
+
+fn default_comm_loss() -> u64 {
+    5000
+}
+
+fn default_store_max_mb() -> u64 {
+    64
+}
+
+fn broker<'de, D: Deserializer<'de>>(d: D) -> Result<Broker, D::Error> {
+    let text = String::deserialize(d)?;
+    Broker::parse(&text).map_err(de::Error::custom)
+}
+
+/// A Sparkplug id: not empty, none of `/ + #` (topic levels and wildcards).
+pub fn check_sparkplug_id(id: &str) -> Result<(), String> {
+    if id.is_empty() {
+        return Err("a Sparkplug id cannot be empty".to_string());
+    }
+    if let Some(c) = id
+        .chars()
+        .find(|c| matches!(c, '/' | '+' | '#') || c.is_control())
+    {
+        return Err(format!(
+            "\"{id}\" cannot be a Sparkplug id: it contains '{}' (no /, + or # in a topic level)",
+            c.escape_default()
+        ));
+    }
+    Ok(())
+}
+
+fn sparkplug_id<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+    let id = String::deserialize(d)?;
+    check_sparkplug_id(&id).map_err(de::Error::custom)?;
+    Ok(id)
+}
+
+fn opt_sparkplug_id<'de, D: Deserializer<'de>>(d: D) -> Result<Option<String>, D::Error> {
+    sparkplug_id(d).map(Some)
+}
+
+fn deadband<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    let v = f64::deserialize(d)?;
+    if !(v.is_finite() && (0.0..=10_000.0).contains(&v)) {
+        return Err(de::Error::custom(format!(
+            "deadband {v} is out of range: valid 0 to 10000"
+        )));
+    }
+    Ok(v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn brokers() {
+        let b = Broker::parse("mqtt://127.0.0.1:1883").unwrap();
+        assert_eq!((b.tls, b.host.as_str(), b.port), (false, "127.0.0.1", 1883));
+        let b = Broker::parse("mqtts://broker.plant").unwrap();
+        assert_eq!((b.tls, b.port), (true, 8883));
+        let b = Broker::parse("mqtt://[::1]:1999").unwrap();
+        assert_eq!((b.host.as_str(), b.port), ("::1", 1999));
+        assert_eq!(b.to_string(), "mqtt://[::1]:1999");
+        assert!(Broker::parse("tcp://x:1").unwrap_err().contains("mqtt://"));
+        assert!(
+            Broker::parse("mqtt://x:70000")
+                .unwrap_err()
+                .contains("valid 1 to 65535")
+        );
+        assert!(Broker::parse("mqtt://:1").is_err());
+    }
+
+    #[test]
+    fn sparkplug_ids() {
+        assert!(check_sparkplug_id("gw-1.plant").is_ok());
+        assert!(check_sparkplug_id("a/b").unwrap_err().contains("'/'"));
+        assert!(check_sparkplug_id("a+").is_err());
+        assert!(check_sparkplug_id("").is_err());
+    }
+}

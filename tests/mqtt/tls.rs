@@ -1,0 +1,52 @@
+//! The broker over TLS, trusted by its CA (certificates made by openssl).
+
+use std::time::Duration;
+
+use super::config;
+use crate::support::certs::Pki;
+use crate::support::mosquitto::Mosquitto;
+use crate::support::sparkplug::Host;
+use crate::support::{TestDaemon, bounded, eventually};
+
+const WAIT: Duration = Duration::from_secs(20);
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn births_over_tls_with_the_brokers_ca() {
+    bounded(Duration::from_secs(60), async {
+        let pki = Pki::new();
+        let broker = Mosquitto::start_tls(&pki);
+        // The host on the plain listener, the daemon on the TLS one.
+        let mut host = Host::connect(broker.port, "tls-host", None).await;
+        let ca = pki.path("ca.pem");
+        let d = TestDaemon::start(&config(
+            &broker.tls_url(),
+            &format!("ca = \"{}\"", ca.display()),
+        ))
+        .await;
+        host.next(WAIT, "NBIRTH", |m| m.is("NBIRTH", None)).await;
+        d.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_broker_signed_by_another_ca_is_refused() {
+    bounded(Duration::from_secs(60), async {
+        let pki = Pki::new();
+        pki.ca("other");
+        let broker = Mosquitto::start_tls(&pki);
+        let other = pki.path("other.pem");
+        let d = TestDaemon::start(&config(
+            &broker.tls_url(),
+            &format!("ca = \"{}\"", other.display()),
+        ))
+        .await;
+        let why = eventually(WAIT, "a TLS error", || d.metrics.mqtt().link().last_error)
+            .await
+            .1;
+        assert!(why.contains("TLS"), "{why}");
+        assert!(!d.metrics.mqtt().link().connected);
+        d.stop().await;
+    })
+    .await;
+}
