@@ -38,7 +38,7 @@ impl Faces {
 }
 
 /// Loads the certificates, keys and client CAs of every configured TLS
-/// listener, as a start would (for `check-config`): an error names the
+/// listener (and the MQTT face's CA and client certificate), as a start would (for `check-config`): an error names the
 /// file and what is wrong with it.
 pub fn check_tls(config: &Config) -> Result<(), String> {
     if let Some(files) = &config.http.tls {
@@ -48,6 +48,16 @@ pub fn check_tls(config: &Config) -> Result<(), String> {
     if let Some(section) = &config.modbus_tcp.tls {
         crate::tls::server_config(&section.files(), crate::tls::ClientAuth::Required, &[])
             .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
+    }
+    if let Some(mqtt) = &config.mqtt
+        && mqtt.broker.tls
+    {
+        let identity = match (&mqtt.client_cert, &mqtt.client_key) {
+            (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
+            _ => None,
+        };
+        crate::tls::client_config(mqtt.ca.as_deref(), identity)
+            .map_err(|e| format!("[mqtt]: {e}"))?;
     }
     Ok(())
 }

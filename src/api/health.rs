@@ -63,6 +63,48 @@ pub struct Readiness {
     /// at start-up (set aside), or not writable (leases then work in
     /// memory only). It does not make drivegate unready.
     pub safety_journal: Vec<String>,
+    /// The MQTT face's link to its broker, when `[mqtt]` is configured.
+    /// It does not make drivegate unready: the drives work without it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mqtt: Option<MqttReadiness>,
+}
+
+/// The MQTT link in `/readyz`.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+pub struct MqttReadiness {
+    /// The broker, as configured.
+    pub broker: String,
+    /// Connected to it.
+    pub connected: bool,
+    /// The Sparkplug primary host's `STATE` says online; absent without
+    /// a primary host (or before its `STATE` was heard).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub primary_host_online: Option<bool>,
+    /// The births are out: data flows to the hosts.
+    pub publishing: bool,
+    /// The last connection error, in words.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_error: Option<String>,
+    /// When it happened (RFC 3339).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_error_at: Option<String>,
+}
+
+/// The MQTT link as `/readyz` and the console show it.
+pub fn mqtt_readiness(state: &ApiState) -> Option<MqttReadiness> {
+    let link = state.metrics.mqtt().link();
+    let broker = link.broker?;
+    Some(MqttReadiness {
+        broker,
+        connected: link.connected,
+        primary_host_online: link.host_online,
+        publishing: link.born,
+        last_error_at: link
+            .last_error
+            .as_ref()
+            .map(|(at, _)| crate::timestamp::rfc3339(*at)),
+        last_error: link.last_error.map(|(_, why)| why),
+    })
 }
 
 /// The reason `/readyz` gives when the configuration has no `[[bus]]` (the
@@ -120,6 +162,7 @@ pub fn readiness(state: &ApiState) -> Readiness {
         reasons,
         buses,
         safety_journal: state.control.journal_warnings(),
+        mqtt: mqtt_readiness(state),
     }
 }
 

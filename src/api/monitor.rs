@@ -43,7 +43,7 @@ pub struct FrameQuery {
     /// retry.
     pub outcome: Option<String>,
     /// Who caused it: `poller`, `scope`, `http`, `websocket`, `modbus-tcp`,
-    /// `lease-expiry`, `shutdown`, `internal`.
+    /// `mqtt`, `lease-expiry`, `shutdown`, `internal`.
     pub source: Option<String>,
     /// The client: a token name (or client address), a Modbus TCP peer
     /// `address:port`, a lease's owner.

@@ -54,7 +54,7 @@ pub struct FrameView {
     /// µs the frame took on the wire at the line's baud rate.
     pub wire_us: u32,
     /// Who caused the transaction: `poller`, `scope`, `http`, `websocket`,
-    /// `modbus-tcp`, `lease-expiry`, `shutdown`, `internal`.
+    /// `modbus-tcp`, `mqtt`, `lease-expiry`, `shutdown`, `internal`.
     pub source: &'static str,
     /// The client: token name (or client address), Modbus TCP peer, lease
     /// owner.

@@ -9,6 +9,12 @@
 //! 127.0.0.3 (operator), 127.0.0.1 (admin, the default allowed network) or
 //! 127.0.0.4 (admin, allowed to save while moving: the face's override,
 //! which HTTP and the stream give with `"force": true`).
+//!
+//! MQTT has one role per daemon (`[mqtt] commands`), here `operator`: the
+//! operator's rows that MQTT can say (setpoints, the brake) go through it
+//! too, as a host's DCMD, and its answer is the drive's
+//! `command/last_result` (the viewer's refusals over MQTT:
+//! `tests/mqtt/commands.rs`).
 
 use std::net::{Ipv4Addr, SocketAddr};
 use std::time::Duration;
@@ -18,7 +24,10 @@ use serde_json::{Value, json};
 use crate::support::api::{Api, Ws, connect, send_json, wait_for};
 use crate::support::input::{ADMIN, OPERATOR, VIEWER, config};
 use crate::support::modbus_tcp::{Raw, write};
+use crate::support::mosquitto::Mosquitto;
+use crate::support::sparkplug::{self, Host};
 use crate::support::{TestDaemon, eventually};
+use drivegate::mqtt::sparkplug_b::payload::Metric;
 
 const LIMIT: Duration = Duration::from_secs(120);
 const CONFIG: u16 = 0x0002;
@@ -64,6 +73,18 @@ impl Decision {
             Decision::LeaseLength => unreachable!("a Modbus TCP client asks for no lease length"),
         }
     }
+
+    /// MQTT: what `command/last_result` says (empty: confirmed).
+    fn mqtt(self) -> &'static str {
+        match self {
+            Decision::Done => "",
+            Decision::Role => "needs the operator role",
+            Decision::NotActive => "is not active",
+            Decision::Moving | Decision::Address | Decision::LeaseLength => {
+                unreachable!("MQTT has no such request")
+            }
+        }
+    }
 }
 
 /// Who asks: a role, and whether the face's override of the still-check
@@ -106,6 +127,9 @@ struct Case {
     stream: (&'static str, (&'static str, &'static str), Value),
     /// Unit and PDU over Modbus TCP (`None`: the face has no such request).
     modbus: Option<(u8, Vec<u8>)>,
+    /// Device and DCMD metric over MQTT (`None`: the face has no such
+    /// request).
+    mqtt: Option<(&'static str, Metric)>,
     expect: Decision,
 }
 
@@ -131,6 +155,10 @@ fn cases() -> Vec<Case> {
         ),
         stream: ("setpoint", ("drive", drive), json!({"speed_rpm": speed})),
         modbus: Some((unit, write(0x0006, u16::try_from(speed).unwrap()))),
+        mqtt: Some((
+            drive,
+            sparkplug::double_metric("setpoint/speed_rpm", speed as f64),
+        )),
         expect,
     };
     let save = |who, drive: &'static str, unit: u8, expect| {
@@ -152,6 +180,7 @@ fn cases() -> Vec<Case> {
                 json!({"ratio": 3, "save": true, "force": force}),
             ),
             modbus: Some((unit, inertia_saved(3))),
+            mqtt: None,
             expect,
         }
     };
@@ -161,6 +190,7 @@ fn cases() -> Vec<Case> {
         http: ("POST", "/api/v1/buses/sim/address", json!({"address": 9})),
         stream: ("set-address", ("bus", "sim"), json!({"address": 9})),
         modbus: Some((0, write(0x0000, 9))),
+        mqtt: None,
         expect,
     };
     let brake = |who, expect| Case {
@@ -169,6 +199,7 @@ fn cases() -> Vec<Case> {
         http: ("POST", "/api/v1/drives/lift/commands/brake", Value::Null),
         stream: ("brake", ("drive", "lift"), json!({})),
         modbus: Some((2, write(CONFIG, 5))),
+        mqtt: Some(("lift", sparkplug::bool_metric("command/brake", true))),
         expect,
     };
     vec![
@@ -199,6 +230,7 @@ fn cases() -> Vec<Case> {
                 json!({"speed_rpm": 0, "lease_ms": 5}),
             ),
             modbus: None,
+            mqtt: None,
             expect: Decision::LeaseLength,
         },
         // A setpoint only to an active drive.
@@ -249,7 +281,15 @@ async fn every_rule_decides_the_same_through_every_face() {
             [[modbus_tcp.clients]]\nnetwork = \"127.0.0.2/32\"\nrole = \"viewer\"\n\
             [[modbus_tcp.clients]]\nnetwork = \"127.0.0.3/32\"\nrole = \"operator\"\n\
             [[modbus_tcp.clients]]\nnetwork = \"127.0.0.4/32\"\nrole = \"admin\"\nallow_saves_while_moving = true\n";
-        let d = TestDaemon::start(&config("", networks, true, "")).await;
+        let broker = Mosquitto::start();
+        let mut host = Host::connect(broker.port, "every-face-host", None).await;
+        let mqtt = format!(
+            "[mqtt]\nbroker = \"{}\"\ngroup_id = \"plant\"\nnode_id = \"gw1\"\ncommands = \"operator\"\n",
+            broker.url()
+        );
+        let d = TestDaemon::start(&config("", networks, true, &mqtt)).await;
+        host.next(LIMIT, "the node's births", |m| m.is("DBIRTH", Some("feeder")))
+            .await;
         let admin = Api::new(d.http, Some(ADMIN));
         let tcp = d.modbus_tcp.unwrap();
 
@@ -282,6 +322,7 @@ async fn every_rule_decides_the_same_through_every_face() {
             streams.push((who, connect(d.http, "", Some(who.token())).await));
         }
         let mut id = 0;
+        let mut over_mqtt = 0;
         for case in cases() {
             let label = format!("{} by {:?}", case.what, case.who);
             let (status, kind) = case.expect.http();
@@ -331,7 +372,31 @@ async fn every_rule_decides_the_same_through_every_face() {
                     None => assert_eq!(answer.as_slice(), &pdu[..5], "Modbus TCP: {label}"),
                 }
             }
+
+            // MQTT, whose role is the operator's.
+            if let Some((device, metric)) = &case.mqtt
+                && case.who == Who::Operator
+            {
+                over_mqtt += 1;
+                host.dcmd("plant", "gw1", device, vec![metric.clone()]).await;
+                let m = host
+                    .next(Duration::from_secs(20), "the command's result", |m| {
+                        m.is("DDATA", Some(device)) && m.metric("command/last_result").is_some()
+                    })
+                    .await;
+                let Some(drivegate::mqtt::metric::Value::Text(words)) =
+                    m.value("command/last_result")
+                else {
+                    panic!("MQTT: {label}: {:?}", m.names());
+                };
+                match case.expect.mqtt() {
+                    "" => assert_eq!(words, "", "MQTT: {label}"),
+                    part => assert!(words.contains(part), "MQTT: {label}: {words}"),
+                }
+            }
         }
+
+        assert_eq!(over_mqtt, 3, "the operator's setpoints and brake over MQTT");
 
         // What the table did to the drives: a setpoint without a lease left
         // none; the forced saves (one per face) reached flash while the

@@ -27,6 +27,8 @@ struct Bench {
     dir: tempfile::TempDir,
     link: PathBuf,
     _sim: Child,
+    /// Tables appended to the configuration (`[mqtt]`).
+    extra: Mutex<String>,
 }
 
 impl Bench {
@@ -50,6 +52,7 @@ impl Bench {
             dir,
             link,
             _sim: sim,
+            extra: Mutex::new(String::new()),
         }
     }
 
@@ -96,9 +99,11 @@ name = "lift"
 [[bus.drive]]
 unit = 3
 name = "belt"
+{}
 "#,
             state_dir,
-            self.link.display()
+            self.link.display(),
+            self.extra.lock().unwrap()
         );
         let path = self.dir.path().join("drivegate.toml");
         std::fs::write(&path, toml).unwrap();
@@ -596,6 +601,49 @@ async fn the_journal_goes_to_systemds_state_directory() {
                 .unwrap()
                 .is_empty()
         );
+        d.kill9().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// The lease of an MQTT host's setpoint is the MQTT session's: it cannot
+/// outlive the process, so the next one stops the motor.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_mqtt_commands_lease_stops_at_start_up() {
+    use crate::support::mosquitto::Mosquitto;
+    use crate::support::sparkplug::{Host, bool_metric, double_metric, string_metric};
+    tokio::time::timeout(LIMIT, async {
+        let broker = Mosquitto::start();
+        let mut host = Host::connect(broker.port, "restart-host", None).await;
+        let bench = Bench::new().await;
+        *bench.extra.lock().unwrap() = format!(
+            "[mqtt]\nbroker = \"{}\"\ngroup_id = \"plant\"\nnode_id = \"gw1\"\ncommands = \"operator\"\ncomm_loss_ms = 60000\n",
+            broker.url()
+        );
+        let d = bench.serve().await;
+        host.next(EVENT, "the conveyor's DBIRTH", |m| {
+            m.is("DBIRTH", Some("conveyor"))
+        })
+        .await;
+        host.dcmd(
+            "plant",
+            "gw1",
+            "conveyor",
+            vec![
+                bool_metric("command/activate", true),
+                string_metric("mode", "speed"),
+                double_metric("setpoint/speed_rpm", 150.0),
+            ],
+        )
+        .await;
+        d.until_speed("conveyor", "motor at speed", |s| (s - 150).abs() <= 5)
+            .await;
+        d.kill9().await;
+
+        let d = bench.serve().await;
+        assert_eq!(d.decision("conveyor").as_deref(), Some("stop-holder-gone"));
+        d.until_speed("conveyor", "stop", |s| s.abs() <= 2).await;
         d.kill9().await;
     })
     .await

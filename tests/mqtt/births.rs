@@ -106,6 +106,14 @@ async fn births_carry_bdseq_every_drive_and_units() {
             1.0,
             "/metrics says connected"
         );
+        let ready: serde_json::Value = reqwest::get(d.url("/readyz"))
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        assert_eq!(ready["mqtt"]["publishing"], true, "{ready:#}");
+        assert_eq!(ready["mqtt"]["broker"], broker.url(), "{ready:#}");
         d.stop().await;
         // A graceful stop says goodbye with the same bdSeq.
         let ndeath = host.next(WAIT, "NDEATH", |m| m.is("NDEATH", None)).await;

@@ -46,6 +46,22 @@ async fn a_broker_signed_by_another_ca_is_refused() {
             .1;
         assert!(why.contains("TLS"), "{why}");
         assert!(!d.metrics.mqtt().link().connected);
+        // /readyz says what is wrong, without making the daemon unready.
+        let ready: serde_json::Value = reqwest::get(d.url("/readyz"))
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        assert_eq!(ready["mqtt"]["connected"], false, "{ready:#}");
+        assert!(
+            ready["mqtt"]["last_error"]
+                .as_str()
+                .unwrap()
+                .contains("TLS"),
+            "{ready:#}"
+        );
+        assert_eq!(ready["ready"], true, "{ready:#}");
         d.stop().await;
     })
     .await;

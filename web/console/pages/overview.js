@@ -45,8 +45,11 @@ function mount(main, _params, { store }) {
     h('caption', { class: 'sr-only' }, 'Drives, live'),
     h('thead', {}, h('tr', {}, COLUMNS.map(([label, , cls]) => h('th', { scope: 'col', class: cls }, label)))),
     tbody);
+  // The MQTT link (docs/mqtt.md), from /readyz; shown only with [mqtt].
+  const mqtt = h('p', { class: 'summary mqtt', role: 'status' });
+  mqtt.hidden = true;
   main.append(
-    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses),
+    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, mqtt),
     h('section', { class: 'panel', 'aria-labelledby': 'drives-h' }, h('h1', { id: 'drives-h' }, 'Drives'), summary,
       h('div', { class: 'scroll' }, table)));
 
@@ -167,6 +170,27 @@ function mount(main, _params, { store }) {
     }
   }
 
+  function showMqtt(m) {
+    mqtt.hidden = !m;
+    if (!m) return;
+    let text;
+    if (!m.connected) text = `MQTT: not connected to ${m.broker}${m.last_error ? ` (${m.last_error})` : ''}`;
+    else if (!m.publishing) text = `MQTT: connected to ${m.broker}, waiting for the primary host to be online`;
+    else text = `MQTT: publishing to ${m.broker}`;
+    if (mqtt.textContent !== text) mqtt.textContent = text;
+    mqtt.className = `summary mqtt ${m.connected && m.publishing ? 'good' : 'bad'}`;
+  }
+  async function pollMqtt() {
+    try {
+      const r = await fetch('/readyz', { cache: 'no-store', headers: { Accept: 'application/json' } });
+      showMqtt((await r.json()).mqtt);
+    } catch {
+      // The stream's state already says when drivegate cannot be reached.
+    }
+  }
+  const mqttTimer = setInterval(pollMqtt, 5000);
+  pollMqtt();
+
   let last = 0;
   let timer = 0;
   function schedule() {
@@ -191,6 +215,7 @@ function mount(main, _params, { store }) {
   return () => {
     off();
     clearInterval(ages);
+    clearInterval(mqttTimer);
     clearTimeout(timer);
     if (frame) cancelAnimationFrame(frame);
   };
