@@ -20,6 +20,7 @@
 //! sends them again (at least once), never loses them.
 
 pub mod frame;
+pub mod outbox;
 pub mod pacing;
 
 use std::collections::VecDeque;
