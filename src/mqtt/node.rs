@@ -62,6 +62,9 @@ const REQUEST_CAPACITY: usize = 4096;
 /// The first wait before reconnecting; it doubles up to [`BACKOFF_MAX`].
 const BACKOFF_MIN: Duration = Duration::from_millis(250);
 const BACKOFF_MAX: Duration = Duration::from_secs(15);
+/// How often the outbox is asked for data to replay (at most 32 messages
+/// each time): 1600 a second at most, under the outbox's own pace.
+const REPLAY_EVERY: Duration = Duration::from_millis(20);
 
 /// How the session's closing reads in lease news and the audit log.
 const SESSION_CLOSING: &str =
@@ -202,6 +205,10 @@ impl Node {
         let renew_every = (self.config.comm_loss() / 4).max(Duration::from_millis(20));
         let mut renew = tokio::time::interval(renew_every);
         renew.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        // The outbox's replay is taken a few messages at a time, often: its
+        // own pace (the store's token bucket) decides how many go.
+        let mut replay = tokio::time::interval(REPLAY_EVERY);
+        replay.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         let full_every = Duration::from_secs(self.config.full_publish_s.max(1));
         let mut full = tokio::time::interval_at(Instant::now() + full_every, full_every);
         full.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -273,9 +280,9 @@ impl Node {
                     if connected && self.host_ok() {
                         self.session.active();
                     }
-                    if self.born {
-                        self.replay(conn.as_ref());
-                    }
+                }
+                _ = replay.tick(), if self.born => {
+                    self.replay(conn.as_ref());
                 }
                 _ = full.tick(), if self.config.full_publish_s > 0 => {
                     if let Some(c) = conn.as_ref() && self.born {
