@@ -162,7 +162,7 @@ impl Daemon {
             .args(["serve", "--config"])
             .arg(&file)
             .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
+            .stderr(std::fs::File::create(dir.join(format!("{node}.log"))).unwrap())
             .spawn()
             .unwrap();
         Daemon { http, child }
@@ -303,7 +303,7 @@ async fn host(port: u16, seen: Arc<Mutex<Seen>>) {
 async fn turn(client: &reqwest::Client, d: &Daemon) {
     for unit in 1..=DRIVES {
         let base = format!("http://127.0.0.1:{}/api/v1/drives/d{unit}", d.http);
-        for _ in 0..50 {
+        for attempt in 0..50 {
             let ok = async {
                 let a = client
                     .post(format!("{base}/commands/activate"))
@@ -311,7 +311,16 @@ async fn turn(client: &reqwest::Client, d: &Daemon) {
                     .await
                     .ok()?;
                 if !a.status().is_success() {
-                    return None;
+                    return Some(Err(format!("activate: {}", a.text().await.ok()?)));
+                }
+                let m = client
+                    .put(format!("{base}/mode"))
+                    .json(&serde_json::json!({ "mode": "speed" }))
+                    .send()
+                    .await
+                    .ok()?;
+                if !m.status().is_success() {
+                    return Some(Err(format!("mode: {}", m.text().await.ok()?)));
                 }
                 let s = client
                     .put(format!("{base}/setpoint"))
@@ -319,11 +328,16 @@ async fn turn(client: &reqwest::Client, d: &Daemon) {
                     .send()
                     .await
                     .ok()?;
-                s.status().is_success().then_some(())
+                if !s.status().is_success() {
+                    return Some(Err(format!("setpoint: {}", s.text().await.ok()?)));
+                }
+                Some(Ok(()))
             }
             .await;
-            if ok.is_some() {
-                break;
+            match ok {
+                Some(Ok(())) => break,
+                Some(Err(e)) if attempt == 49 => panic!("d{unit} does not turn: {e}"),
+                _ => {}
             }
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
@@ -592,7 +606,7 @@ fn plot(s: &Seen, outage_start: u64, outage_end: u64, n: usize) -> String {
     let from = outage_start.saturating_sub(3000);
     let to = outage_end + 3000;
     let cell = 100u64;
-    let cells = ((to - from) / cell) as usize;
+    let cells = (to - from).div_ceil(cell) as usize;
     let mut rows: BTreeMap<String, Vec<(u32, u32)>> = BTreeMap::new();
     for ((node, _), v) in &s.samples {
         let row = rows
@@ -609,13 +623,14 @@ fn plot(s: &Seen, outage_start: u64, outage_end: u64, n: usize) -> String {
             }
         }
     }
-    let (left, top, w, h) = (60.0, 30.0, 6.0, 14.0);
+    let (left, top, w, h) = (60.0, 36.0, 6.0, 14.0);
     let width = left + cells as f64 * w + 20.0;
     let height = top + n.max(rows.len()) as f64 * h + 50.0;
     let mut svg = format!(
         "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{width:.0}\" height=\"{height:.0}\" font-family=\"sans-serif\" font-size=\"11\">\n\
          <rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n\
-         <text x=\"{left}\" y=\"18\">A Sparkplug host's view of {n} gateways x {DRIVES} drives: data by its timestamp, 100 ms cells (blue: live, orange: historical, replayed from the store)</text>\n"
+         <text x=\"4\" y=\"14\">A Sparkplug host's view of {n} gateways x {DRIVES} drives around a broker outage</text>\n\
+         <text x=\"4\" y=\"26\" font-size=\"10\">each drive's data by its own timestamp, 100 ms cells: blue live, orange historical (replayed from the gateways' stores)</text>\n"
     );
     for (i, (node, row)) in rows.iter().enumerate() {
         let y = top + i as f64 * h;
