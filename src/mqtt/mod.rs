@@ -8,8 +8,9 @@
 //! - [`exception`] decides what of a new status is published (deadbands,
 //!   pure), [`host`] follows the primary host's `STATE` (pure),
 //! - [`commands`] turns DCMD metrics into requests for the control core,
-//! - `node` is the edge node's task: the connection (rumqttc), births and
-//!   deaths, data, commands and the session's motor-safety lease,
+//! - `node` is the edge node's task: births and deaths, data, commands and
+//!   the session's motor-safety lease, over a `connection` (rumqttc) with
+//!   its `bd_seq` (kept across restarts in `[safety] state_dir`),
 //! - [`store`] keeps on disk what cannot be published (store and forward:
 //!   the node's [`Outbox`] when there is a state directory).
 //!
@@ -18,7 +19,9 @@
 //! a session whose communication-loss function holds their leases. See
 //! `docs/mqtt.md`.
 
+mod bd_seq;
 pub mod commands;
+mod connection;
 pub mod exception;
 pub mod host;
 pub mod metric;
@@ -120,6 +123,7 @@ pub fn start(
         control,
         metrics,
         outbox,
+        config.safety.state_dir(),
         shutdown,
     )))
 }

@@ -34,14 +34,16 @@ use std::sync::Arc;
 use std::time::{Duration, SystemTime};
 
 use prost::Message;
-use rumqttc::{AsyncClient, Event, LastWill, MqttOptions, Packet, QoS, Transport};
+use rumqttc::{Event, LastWill, Packet, QoS};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio::time::{Instant, sleep_until};
 use tokio_util::sync::CancellationToken;
 
 use super::Outbox;
+use super::bd_seq::BdSeq;
 use super::commands::{self, Command};
+use super::connection::{Connection, next_event};
 use super::exception::Reported;
 use super::host::{Host, HostChange, HostState};
 use super::metric::{self, BD_SEQ, Field, LAST_RESULT, REBIRTH, Setpoints, Value, Writable};
@@ -55,16 +57,17 @@ use crate::config::MqttConfig;
 use crate::control::{Caller, CommLoss, Control, Face, SessionGuard};
 use crate::metrics::Metrics;
 
-/// How long a connection's requests may queue in the client before the
-/// node counts the connection as stuck.
-const REQUEST_CAPACITY: usize = 4096;
+/// The QoS of births and data (Sparkplug: 0); the NDEATH, as the will
+/// and at a clean stop, goes with 1.
+const DATA_QOS: QoS = QoS::AtMostOnce;
+
+/// How often kept data is replayed, and how many messages at a time.
+const REPLAY_EVERY: Duration = Duration::from_millis(20);
+const REPLAY_BATCH: usize = 8;
 
 /// The first wait before reconnecting; it doubles up to [`BACKOFF_MAX`].
 const BACKOFF_MIN: Duration = Duration::from_millis(250);
 const BACKOFF_MAX: Duration = Duration::from_secs(15);
-/// How often the outbox is asked for data to replay (at most 32 messages
-/// each time): 1600 a second at most, under the outbox's own pace.
-const REPLAY_EVERY: Duration = Duration::from_millis(20);
 
 /// How the session's closing reads in lease news and the audit log.
 const SESSION_CLOSING: &str =
@@ -76,21 +79,6 @@ struct CommandResult {
     metric: Writable,
     /// The value the drive confirmed, or the failure in words.
     outcome: Result<Value, String>,
-}
-
-/// One connection to the broker.
-struct Connection {
-    client: AsyncClient,
-    events: mpsc::Receiver<Result<Event, String>>,
-    poller: JoinHandle<()>,
-    /// The broker accepted it (CONNACK).
-    accepted: bool,
-}
-
-impl Drop for Connection {
-    fn drop(&mut self) {
-        self.poller.abort();
-    }
 }
 
 /// What the node knows of one drive (device).
@@ -116,7 +104,7 @@ struct Node {
     who: Arc<str>,
     source: SourceId,
     outbox: Box<dyn Outbox>,
-    bd_seq: u8,
+    bd_seq: BdSeq,
     seq: u8,
     /// Births are out on the current connection.
     born: bool,
@@ -127,6 +115,8 @@ struct Node {
     results_tx: mpsc::UnboundedSender<CommandResult>,
     bus_tx: mpsc::Sender<BusEvent>,
     forwarders: Vec<JoinHandle<()>>,
+    /// The commands on their way through the core, in the current session.
+    commands: tokio::task::JoinSet<()>,
 }
 
 /// Starts the edge node's task; it ends after `shutdown` fired.
@@ -136,54 +126,43 @@ pub(super) fn spawn(
     control: Control,
     metrics: Arc<Metrics>,
     outbox: Box<dyn Outbox>,
+    state_dir: Option<std::path::PathBuf>,
     shutdown: CancellationToken,
 ) -> JoinHandle<()> {
     let (results_tx, results_rx) = mpsc::unbounded_channel();
     let (bus_tx, bus_rx) = mpsc::channel(4096);
-    let node = Node::new(
-        config, node_id, control, metrics, outbox, results_tx, bus_tx,
-    );
+    let topics = NodeTopics::new(&config.group_id, &node_id);
+    // The primary host, or without one whoever uses the broker.
+    let who: Arc<str> = config
+        .primary_host_id
+        .clone()
+        .unwrap_or_else(|| format!("{}:{}", config.broker.host, config.broker.port))
+        .into();
+    let session = open_session(&control, &config);
+    let node = Node {
+        topics,
+        who,
+        source: SourceId::new_unique(),
+        outbox,
+        bd_seq: BdSeq::load(state_dir.as_deref()),
+        seq: 0,
+        born: false,
+        devices: BTreeMap::new(),
+        host: Host::default(),
+        session,
+        connections: 0,
+        results_tx,
+        bus_tx,
+        forwarders: Vec::new(),
+        commands: tokio::task::JoinSet::new(),
+        config,
+        control,
+        metrics,
+    };
     tokio::spawn(node.run(bus_rx, results_rx, shutdown))
 }
 
 impl Node {
-    fn new(
-        config: Arc<MqttConfig>,
-        node_id: String,
-        control: Control,
-        metrics: Arc<Metrics>,
-        outbox: Box<dyn Outbox>,
-        results_tx: mpsc::UnboundedSender<CommandResult>,
-        bus_tx: mpsc::Sender<BusEvent>,
-    ) -> Self {
-        let topics = NodeTopics::new(&config.group_id, &node_id);
-        let who: Arc<str> = config
-            .primary_host_id
-            .clone()
-            .unwrap_or_else(|| config.broker.to_string())
-            .into();
-        let session = open_session(&control, &config);
-        Node {
-            topics,
-            who,
-            source: SourceId::new_unique(),
-            outbox,
-            bd_seq: 0,
-            seq: 0,
-            born: false,
-            devices: BTreeMap::new(),
-            host: Host::default(),
-            session,
-            connections: 0,
-            results_tx,
-            bus_tx,
-            forwarders: Vec::new(),
-            config,
-            control,
-            metrics,
-        }
-    }
-
     /// Runs the node until `shutdown` fires, then publishes its NDEATH and
     /// disconnects.
     async fn run(
@@ -205,11 +184,9 @@ impl Node {
         let renew_every = (self.config.comm_loss() / 4).max(Duration::from_millis(20));
         let mut renew = tokio::time::interval(renew_every);
         renew.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        // The outbox's replay is taken a few messages at a time, often: its
-        // own pace (the store's token bucket) decides how many go.
+        let full_every = Duration::from_secs(self.config.full_publish_s.max(1));
         let mut replay = tokio::time::interval(REPLAY_EVERY);
         replay.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        let full_every = Duration::from_secs(self.config.full_publish_s.max(1));
         let mut full = tokio::time::interval_at(Instant::now() + full_every, full_every);
         full.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -246,7 +223,7 @@ impl Node {
                                         backoff = (backoff * 2).min(BACKOFF_MAX);
                                     }
                                 }
-                                self.bd_seq = self.bd_seq.wrapping_add(1);
+                                self.bd_seq.next();
                             } else if c.accepted {
                                 backoff = BACKOFF_MIN;
                             }
@@ -257,7 +234,7 @@ impl Node {
                             self.failed(&why);
                             reconnect_at = Instant::now() + backoff;
                             backoff = (backoff * 2).min(BACKOFF_MAX);
-                            self.bd_seq = self.bd_seq.wrapping_add(1);
+                            self.bd_seq.next();
                         }
                         None => {
                             conn = None;
@@ -265,7 +242,7 @@ impl Node {
                             self.failed("the connection's event loop ended");
                             reconnect_at = Instant::now() + backoff;
                             backoff = (backoff * 2).min(BACKOFF_MAX);
-                            self.bd_seq = self.bd_seq.wrapping_add(1);
+                            self.bd_seq.next();
                         }
                     }
                 }
@@ -280,9 +257,12 @@ impl Node {
                     if connected && self.host_ok() {
                         self.session.active();
                     }
+                    self.reconcile(conn.as_ref());
                 }
-                _ = replay.tick(), if self.born => {
-                    self.replay(conn.as_ref());
+                _ = replay.tick() => {
+                    if let Some(c) = conn.as_ref() && self.born {
+                        self.replay(c);
+                    }
                 }
                 _ = full.tick(), if self.config.full_publish_s > 0 => {
                     if let Some(c) = conn.as_ref() && self.born {
@@ -330,59 +310,22 @@ impl Node {
 
     /// Starts a connection with the current bdSeq's NDEATH as its will.
     fn connect(&mut self) -> Result<Connection, String> {
-        let mut options = MqttOptions::new(
-            format!("drivegate-{}-{}", self.config.group_id, self.topics.node()),
-            self.config.broker.host.clone(),
-            self.config.broker.port,
-        );
-        options.set_keep_alive(self.config.keepalive());
-        options.set_clean_session(true);
-        options.set_max_packet_size(256 * 1024, 256 * 1024);
-        options.set_last_will(LastWill::new(
-            self.topics.node_topic(Kind::NDeath),
-            self.ndeath(),
-            QoS::AtLeastOnce,
-            false,
-        ));
-        if let Some(user) = &self.config.username {
-            let password = match &self.config.password_file {
-                Some(path) => read_password(path)?,
-                None => String::new(),
-            };
-            options.set_credentials(user.clone(), password);
-        }
-        if self.config.broker.tls {
-            let identity = match (&self.config.client_cert, &self.config.client_key) {
-                (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
-                _ => None,
-            };
-            let tls = crate::tls::client_config(self.config.ca.as_deref(), identity)
-                .map_err(|e| format!("[mqtt] TLS: {e}"))?;
-            options.set_transport(Transport::tls_with_config(
-                rumqttc::TlsConfiguration::Rustls(tls),
-            ));
-        }
-        let (client, mut eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
-        let (tx, events) = mpsc::channel(256);
-        let poller = tokio::spawn(async move {
-            loop {
-                let event = eventloop.poll().await.map_err(|e| describe(&e));
-                let end = event.is_err();
-                if tx.send(event).await.is_err() || end {
-                    break;
-                }
-            }
-        });
+        self.bd_seq.connecting();
+        let conn = Connection::open(
+            &self.config,
+            &format!("drivegate-{}-{}", self.config.group_id, self.topics.node()),
+            LastWill::new(
+                self.topics.node_topic(Kind::NDeath),
+                self.ndeath(),
+                QoS::AtLeastOnce,
+                false,
+            ),
+        )?;
         self.born = false;
         self.metrics.mqtt().born(false);
         // The host's retained STATE comes again on this connection.
         self.host = Host::default();
-        Ok(Connection {
-            client,
-            events,
-            poller,
-            accepted: false,
-        })
+        Ok(conn)
     }
 
     /// The connection is gone (error, or closed by the node).
@@ -411,7 +354,7 @@ impl Node {
                 c.accepted = true;
                 self.metrics.mqtt().connected(self.connections == 0);
                 self.connections += 1;
-                tracing::info!(broker = %self.config.broker, bd_seq = self.bd_seq, "MQTT connected");
+                tracing::info!(broker = %self.config.broker, bd_seq = self.bd_seq.get(), "MQTT connected");
                 let mut filters: Vec<String> = self.topics.command_filters().to_vec();
                 if let Some(host) = &self.config.primary_host_id {
                     filters.push(state_topic(host));
@@ -459,7 +402,10 @@ impl Node {
                             host,
                             "MQTT: the primary host went offline: the leases of its commands end, the node disconnects"
                         );
-                        // Its commands' leases end now, with their stop.
+                        // Its commands still queued are dropped first, so
+                        // none lands after the stop; then its leases end
+                        // now, with their stop.
+                        self.commands.abort_all();
                         self.session = open_session(&self.control, &self.config);
                         let _ = c.client.try_publish(
                             self.topics.node_topic(Kind::NDeath),
@@ -544,7 +490,10 @@ impl Node {
         self.session.active();
         let control = self.control.clone();
         let results = self.results_tx.clone();
-        tokio::spawn(async move {
+        // Finished commands' handles go; the others stay to be aborted
+        // with their session.
+        while self.commands.try_join_next().is_some() {}
+        self.commands.spawn(async move {
             for cmd in run {
                 let outcome = commands::run(&control, &caller, target, &cmd)
                     .await
@@ -640,12 +589,10 @@ impl Node {
         match c {
             Some(c) if self.born && born => {
                 let payload = self.payload(metrics);
-                self.publish(
-                    c,
-                    self.topics.device_topic(Kind::DData, device),
-                    payload,
-                    Kind::DData,
-                );
+                let topic = self.topics.device_topic(Kind::DData, device);
+                if let Err(metrics) = self.publish(c, topic, payload, Kind::DData) {
+                    self.outbox.keep(device, metrics);
+                }
             }
             _ => self.outbox.keep(device, metrics),
         }
@@ -688,12 +635,8 @@ impl Node {
                     && self.devices.get(&name).is_some_and(|d| d.born)
                 {
                     let payload = self.payload(Vec::new());
-                    self.publish(
-                        c,
-                        self.topics.device_topic(Kind::DDeath, &name),
-                        payload,
-                        Kind::DDeath,
-                    );
+                    let topic = self.topics.device_topic(Kind::DDeath, &name);
+                    let _ = self.publish(c, topic, payload, Kind::DDeath);
                 }
                 if let Some(d) = self.devices.get_mut(&name) {
                     d.born = false;
@@ -711,7 +654,8 @@ impl Node {
                         Value::Text(state),
                         now,
                     )]);
-                    self.publish(c, self.topics.node_topic(Kind::NData), payload, Kind::NData);
+                    let topic = self.topics.node_topic(Kind::NData);
+                    let _ = self.publish(c, topic, payload, Kind::NData);
                 }
             }
             BusEvent::Online { .. } => {}
@@ -751,7 +695,7 @@ impl Node {
             metric::metric(
                 BD_SEQ,
                 DataType::Int64,
-                Value::Int(i64::from(self.bd_seq)),
+                Value::Int(i64::from(self.bd_seq.get())),
                 now,
             ),
             metric::metric(REBIRTH, DataType::Boolean, Value::Bool(false), now),
@@ -798,7 +742,7 @@ impl Node {
         self.born = true;
         self.metrics.mqtt().born(true);
         tracing::info!(
-            bd_seq = self.bd_seq,
+            bd_seq = self.bd_seq.get(),
             devices = self.devices.values().filter(|d| d.born).count(),
             "MQTT: births published"
         );
@@ -812,12 +756,13 @@ impl Node {
         device.born = true;
         let metrics = metric::birth_metrics(status, &device.setpoints, &device.last_result, now);
         let payload = self.payload(metrics);
-        self.publish(
-            c,
-            self.topics.device_topic(Kind::DBirth, name),
-            payload,
-            Kind::DBirth,
-        );
+        let topic = self.topics.device_topic(Kind::DBirth, name);
+        if self.publish(c, topic, payload, Kind::DBirth).is_err()
+            && let Some(d) = self.devices.get_mut(name)
+        {
+            // Born at its next status.
+            d.born = false;
+        }
     }
 
     /// Every field of every born drive, whatever its deadband.
@@ -845,20 +790,15 @@ impl Node {
                 .map(|(f, v): (Field, Value)| metric::metric(f.name(), f.datatype(), v, now))
                 .collect();
             let payload = self.payload(metrics);
-            self.publish(
-                c,
-                self.topics.device_topic(Kind::DData, &drive.name),
-                payload,
-                Kind::DData,
-            );
+            let topic = self.topics.device_topic(Kind::DData, &drive.name);
+            let _ = self.publish(c, topic, payload, Kind::DData);
         }
     }
 
-    /// Replays what the outbox kept, marked historical, a little per tick
-    /// so live data keeps its pace.
-    fn replay(&mut self, c: Option<&Connection>) {
-        let Some(c) = c else { return };
-        for _ in 0..32 {
+    /// Replays what the outbox kept, marked historical, [`REPLAY_BATCH`]
+    /// messages per [`REPLAY_EVERY`], so live data keeps its pace.
+    fn replay(&mut self, c: &Connection) {
+        for _ in 0..REPLAY_BATCH {
             let Some((device, mut metrics)) = self.outbox.next() else {
                 return;
             };
@@ -869,12 +809,38 @@ impl Node {
                 m.is_historical = Some(true);
             }
             let payload = self.payload(metrics);
-            self.publish(
-                c,
-                self.topics.device_topic(Kind::DData, &device),
-                payload,
-                Kind::DData,
-            );
+            let topic = self.topics.device_topic(Kind::DData, &device);
+            if let Err(metrics) = self.publish(c, topic, payload, Kind::DData) {
+                // Back in later; the client's queue is full now.
+                self.outbox.keep(&device, metrics);
+                return;
+            }
+        }
+    }
+
+    /// Follows the plant's changes (a configuration reload): a bus added
+    /// is followed, a drive no longer configured dies (DDEATH).
+    fn reconcile(&mut self, c: Option<&Connection>) {
+        let plant = self.control.plant().clone();
+        if plant.buses().len() != self.forwarders.len() {
+            self.follow_buses();
+        }
+        let gone: Vec<String> = self
+            .devices
+            .keys()
+            .filter(|name| !plant.drives().iter().any(|d| &d.name == *name))
+            .cloned()
+            .collect();
+        for name in gone {
+            let born = self.devices.remove(&name).is_some_and(|d| d.born);
+            if let Some(c) = c
+                && self.born
+                && born
+            {
+                let payload = self.payload(Vec::new());
+                let topic = self.topics.device_topic(Kind::DDeath, &name);
+                let _ = self.publish(c, topic, payload, Kind::DDeath);
+            }
         }
     }
 
@@ -890,13 +856,29 @@ impl Node {
         }
     }
 
-    fn publish(&self, c: &Connection, topic: String, payload: Payload, kind: Kind) {
+    /// Hands `payload` (just made, with the last seq) to the client; when
+    /// its queue is full it is not sent, its seq is given back, and its
+    /// metrics come back for the outbox.
+    fn publish(
+        &mut self,
+        c: &Connection,
+        topic: String,
+        payload: Payload,
+        kind: Kind,
+    ) -> Result<(), Vec<Metric>> {
         match c
             .client
-            .try_publish(topic, QoS::AtMostOnce, false, payload.encode_to_vec())
+            .try_publish(topic, DATA_QOS, false, payload.encode_to_vec())
         {
-            Ok(()) => self.metrics.mqtt().sent(kind.label()),
-            Err(e) => tracing::warn!("MQTT: a {} was not sent: {e}", kind.level()),
+            Ok(()) => {
+                self.metrics.mqtt().sent(kind.label());
+                Ok(())
+            }
+            Err(e) => {
+                tracing::warn!("MQTT: a {} was not sent: {e}", kind.level());
+                self.seq = self.seq.wrapping_sub(1);
+                Err(payload.metrics)
+            }
         }
     }
 
@@ -907,7 +889,7 @@ impl Node {
             metrics: vec![metric::metric(
                 BD_SEQ,
                 DataType::Int64,
-                Value::Int(i64::from(self.bd_seq)),
+                Value::Int(i64::from(self.bd_seq.get())),
                 now_ms(),
             )],
             ..Default::default()
@@ -960,34 +942,6 @@ fn open_session(control: &Control, config: &MqttConfig) -> SessionGuard {
             }),
         )
         .0
-}
-
-async fn next_event(conn: &mut Option<Connection>) -> Option<Result<Event, String>> {
-    match conn {
-        Some(c) => c.events.recv().await,
-        None => std::future::pending().await,
-    }
-}
-
-fn read_password(path: &std::path::Path) -> Result<String, String> {
-    std::fs::read_to_string(path)
-        .map(|s| s.lines().next().unwrap_or("").to_string())
-        .map_err(|e| format!("[mqtt] password_file {}: {e}", path.display()))
-}
-
-/// A connection error in words a plant engineer can act on.
-fn describe(e: &rumqttc::ConnectionError) -> String {
-    use rumqttc::ConnectionError as E;
-    match e {
-        E::Io(io) if io.kind() == std::io::ErrorKind::ConnectionRefused => {
-            "the broker refused the TCP connection (is it running, on this port?)".to_string()
-        }
-        E::Io(io) => format!("connection to the broker: {io}"),
-        E::ConnectionRefused(code) => format!("the broker refused the connection: {code:?}"),
-        E::Tls(tls) => format!("TLS with the broker: {tls}"),
-        E::NetworkTimeout => "the broker did not answer in time".to_string(),
-        other => other.to_string(),
-    }
 }
 
 fn now_ms() -> u64 {

@@ -224,3 +224,38 @@ async fn ddata_carries_only_what_moved_past_its_deadband() {
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drive_that_stops_answering_dies_and_is_born_again() {
+    bounded(Duration::from_secs(60), async {
+        let broker = Mosquitto::start();
+        let mut host = Host::connect(broker.port, "ddeath-host", None).await;
+        let toml = crate::support::config::ConfigBuilder::four_drives()
+            .modbus_tcp_off()
+            .with_bus("sim", |b| b.keys("offline_backoff_max_ms = 300"))
+            .section(
+                "mqtt",
+                &format!(
+                    "broker = \"{}\"\ngroup_id = \"{GROUP}\"\nnode_id = \"{NODE}\"",
+                    broker.url()
+                ),
+            )
+            .toml();
+        let d = TestDaemon::start(&toml).await;
+        births(&mut host).await;
+        d.sim().set_silent(2, true);
+        let ddeath = host
+            .next(WAIT, "the lift's DDEATH", |m| m.is("DDEATH", Some("lift")))
+            .await;
+        assert!(ddeath.seq().is_some(), "a DDEATH has a seq");
+        d.sim().set_silent(2, false);
+        let dbirth = host
+            .next(WAIT, "the lift's DBIRTH again", |m| {
+                m.is("DBIRTH", Some("lift"))
+            })
+            .await;
+        assert!(matches!(dbirth.value("status/voltage_v"), Some(Value::UInt(v)) if v > 0));
+        d.stop().await;
+    })
+    .await;
+}

@@ -56,6 +56,7 @@ async fn a_dcmd_setpoint_runs_the_drive_and_is_confirmed() {
     bounded(Duration::from_secs(60), async {
         let broker = Mosquitto::start();
         let mut host = Host::connect(broker.port, "dcmd-host", None).await;
+        crate::support::logs::capture_logs();
         let d = TestDaemon::start(&config(&broker.url(), "commands = \"operator\"")).await;
         born(&mut host).await;
         run(&host, "conveyor", 120.0).await;
@@ -90,7 +91,18 @@ async fn a_dcmd_setpoint_runs_the_drive_and_is_confirmed() {
             .unwrap();
         let lease = d.control().lease(index).expect("a lease on the conveyor");
         assert!(lease.comm_loss, "{lease:?}");
-        assert!(lease.owner.starts_with("mqtt "), "{}", lease.owner);
+        // Without a primary host, the broker's address says who.
+        let who = format!("127.0.0.1:{}", broker.port);
+        assert_eq!(&*lease.owner, format!("mqtt {who}"));
+        // Audited as every face's writes are.
+        let log = crate::support::logs::log_text();
+        assert!(
+            log.lines().any(|l| l.contains("drivegate::audit")
+                && l.contains("write confirmed")
+                && l.contains("mqtt")
+                && l.contains(&who)),
+            "no audit line of the MQTT face's write"
+        );
         // The bus monitor shows MQTT as the frames' source.
         let api = Api::new(d.http, None);
         let frames = api

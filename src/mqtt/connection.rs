@@ -1,0 +1,116 @@
+//! One connection to the broker: rumqttc's client with options built from
+//! `[mqtt]` (keepalive, credentials, TLS, the will), and its event loop
+//! polled in a task of its own, whose events (or its error, in words) come
+//! to the node over a channel. The event loop is never asked to reconnect:
+//! each connection has its own will (its bdSeq), so the node opens a new
+//! one instead.
+
+use rumqttc::{AsyncClient, Event, LastWill, MqttOptions, Transport};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+
+use crate::config::MqttConfig;
+
+/// How many requests (publishes, subscriptions) may wait in the client
+/// for the event loop.
+const REQUEST_CAPACITY: usize = 4096;
+
+/// One connection to the broker.
+pub(super) struct Connection {
+    /// Publishes and subscribes.
+    pub(super) client: AsyncClient,
+    /// The event loop's events; an error ends them.
+    pub(super) events: mpsc::Receiver<Result<Event, String>>,
+    poller: JoinHandle<()>,
+    /// The broker accepted it (CONNACK).
+    pub(super) accepted: bool,
+}
+
+impl Drop for Connection {
+    fn drop(&mut self) {
+        self.poller.abort();
+    }
+}
+
+impl Connection {
+    /// Starts connecting to `config`'s broker as `client_id` with `will`.
+    /// Fails only on what is wrong before any network traffic (the
+    /// password file, the TLS files).
+    pub(super) fn open(
+        config: &MqttConfig,
+        client_id: &str,
+        will: LastWill,
+    ) -> Result<Connection, String> {
+        let mut options =
+            MqttOptions::new(client_id, config.broker.host.clone(), config.broker.port);
+        options.set_keep_alive(config.keepalive());
+        // Sparkplug: a clean session each time, nothing left from before.
+        options.set_clean_session(true);
+        options.set_max_packet_size(256 * 1024, 256 * 1024);
+        options.set_last_will(will);
+        if let Some(user) = &config.username {
+            let password = match &config.password_file {
+                Some(path) => read_password(path)?,
+                None => String::new(),
+            };
+            options.set_credentials(user.clone(), password);
+        }
+        if config.broker.tls {
+            let identity = match (&config.client_cert, &config.client_key) {
+                (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
+                _ => None,
+            };
+            let tls = crate::tls::client_config(config.ca.as_deref(), identity)
+                .map_err(|e| format!("[mqtt] TLS: {e}"))?;
+            options.set_transport(Transport::tls_with_config(
+                rumqttc::TlsConfiguration::Rustls(tls),
+            ));
+        }
+        let (client, mut eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
+        let (tx, events) = mpsc::channel(256);
+        let poller = tokio::spawn(async move {
+            loop {
+                let event = eventloop.poll().await.map_err(|e| describe(&e));
+                let end = event.is_err();
+                if tx.send(event).await.is_err() || end {
+                    break;
+                }
+            }
+        });
+        Ok(Connection {
+            client,
+            events,
+            poller,
+            accepted: false,
+        })
+    }
+}
+
+/// The next event of `conn`; never, without a connection.
+pub(super) async fn next_event(conn: &mut Option<Connection>) -> Option<Result<Event, String>> {
+    match conn {
+        Some(c) => c.events.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+fn read_password(path: &std::path::Path) -> Result<String, String> {
+    std::fs::read_to_string(path)
+        .map(|s| s.lines().next().unwrap_or("").to_string())
+        .map_err(|e| format!("[mqtt] password_file {}: {e}", path.display()))
+}
+
+/// A connection error in words a plant engineer can act on.
+fn describe(e: &rumqttc::ConnectionError) -> String {
+    use rumqttc::ConnectionError as E;
+    match e {
+        E::Io(io) if io.kind() == std::io::ErrorKind::ConnectionRefused => {
+            "the broker refused the TCP connection (is it running, on this port?)".to_string()
+        }
+        E::Io(io) => format!("connection to the broker: {io}"),
+        E::ConnectionRefused(code) => format!("the broker refused the connection: {code:?}"),
+        E::Tls(tls) => format!("TLS with the broker: {tls}"),
+        E::NetworkTimeout => "the broker did not answer in time".to_string(),
+        other => other.to_string(),
+    }
+}
