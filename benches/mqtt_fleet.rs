@@ -635,20 +635,26 @@ fn plot(s: &Seen, outage_start: u64, outage_end: u64, n: usize) -> String {
     for (i, (node, row)) in rows.iter().enumerate() {
         let y = top + i as f64 * h;
         let _ = writeln!(svg, "<text x=\"4\" y=\"{:.0}\">{node}</text>", y + h - 4.0);
-        for (c, &(live, hist)) in row.iter().enumerate() {
-            let colour = if hist > 0 {
-                "#f28e2b"
-            } else if live > 0 {
-                "#4e79a7"
-            } else {
-                continue;
-            };
-            let _ = writeln!(
-                svg,
-                "<rect x=\"{:.0}\" y=\"{y:.0}\" width=\"{w}\" height=\"{:.0}\" fill=\"{colour}\"/>",
-                left + c as f64 * w,
-                h - 2.0
-            );
+        // Runs of cells of one colour are one rectangle each.
+        let colour = |&(live, hist): &(u32, u32)| match (live, hist) {
+            (_, 1..) => Some("#f28e2b"),
+            (1.., 0) => Some("#4e79a7"),
+            _ => None,
+        };
+        let mut c = 0;
+        while c < row.len() {
+            let this = colour(&row[c]);
+            let run = row[c..].iter().take_while(|x| colour(x) == this).count();
+            if let Some(fill) = this {
+                let _ = writeln!(
+                    svg,
+                    "<rect x=\"{:.0}\" y=\"{y:.0}\" width=\"{:.0}\" height=\"{:.0}\" fill=\"{fill}\"/>",
+                    left + c as f64 * w,
+                    run as f64 * w,
+                    h - 2.0
+                );
+            }
+            c += run;
         }
     }
     let axis = top + rows.len() as f64 * h + 14.0;
