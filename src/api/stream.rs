@@ -33,9 +33,11 @@ use tokio::task::JoinSet;
 use tokio_util::task::TaskTracker;
 use utoipa::{IntoParams, ToSchema};
 
+use super::alarms;
 use super::auth::{Caller, StreamCaller};
 use super::buses;
 use super::commands::{self, ModeBody, parse_command};
+use super::document;
 use super::drives;
 use super::extract::Params;
 use super::hub::{HubEvent, RestartDecision, ServerMessage, render};
@@ -82,10 +84,12 @@ pub enum ClientMessage {
     /// `POST .../commands/{command}`, body `{"force": bool}`), or `mode`,
     /// `setpoint`, `lease-renew`, `lease-release`, `status` (body
     /// `{"fresh": bool}`), `protection`, `speed-ramp`, `position-ramp`,
-    /// `inertia`, `rs485-control` with the body of the REST route; `scan`,
+    /// `inertia`, `rs485-control`, `settings` (a settings document, with
+    /// `"dry_run": true` for a dry run) with the body of the REST route; `scan`,
     /// `set-address`, `scope-arm`, `scope-trigger` and `scope-cancel` take
-    /// `bus` instead of `drive`. A setpoint's lease also ends when this
-    /// socket closes.
+    /// `bus` instead of `drive`; `alarm-ack` takes neither, its body is
+    /// `{"alarm": id}`. A setpoint's lease also ends when this socket
+    /// closes.
     Command {
         /// Any JSON value; echoed in the reply.
         id: Value,
@@ -541,7 +545,7 @@ struct FreshBody {
     fresh: bool,
 }
 
-const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, scan, set-address, scope-arm, scope-trigger, scope-cancel";
+const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, settings, scan, set-address, scope-arm, scope-trigger, scope-cancel, alarm-ack";
 
 /// Runs one stream command through the same code as its REST route.
 async fn dispatch(
@@ -552,6 +556,10 @@ async fn dispatch(
     bus: Option<String>,
     body: Option<Value>,
 ) -> Result<Value, Problem> {
+    if op == "alarm-ack" {
+        let b: alarms::AckBody = body_as(op, body)?;
+        return json(alarms::acknowledge(state, caller, b.alarm).await?);
+    }
     if matches!(
         op,
         "scan" | "set-address" | "scope-arm" | "scope-trigger" | "scope-cancel"
@@ -577,6 +585,7 @@ async fn dispatch(
             | "position-ramp"
             | "inertia"
             | "rs485-control"
+            | "settings"
     );
     if !known && parse_command(op).is_err() {
         return Err(Problem::invalid(format!("unknown op \"{op}\": use {OPS}")));
@@ -610,6 +619,7 @@ async fn dispatch(
         "rs485-control" => {
             json(settings::rs485_control(state, caller, key, &body_as(op, body)?).await?)
         }
+        "settings" => json(document::apply(state, caller, key, &body_as(op, body)?, false).await?),
         name => {
             let command = parse_command(name)?;
             let b: ForceBody = body_as(op, body)?;

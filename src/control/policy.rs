@@ -28,6 +28,8 @@ pub enum Operation {
     /// Arming, triggering or cancelling a scope capture: it changes how the
     /// bus polls (its drives get every poll, the others the floor rate).
     Capture,
+    /// Acknowledging an alarm: the operator on duty says they saw it.
+    AcknowledgeAlarm,
 }
 
 impl Operation {
@@ -38,6 +40,7 @@ impl Operation {
             Operation::Lease => Role::Operator,
             Operation::Scan => Role::Admin,
             Operation::Capture => Role::Operator,
+            Operation::AcknowledgeAlarm => Role::Operator,
         }
     }
 }
@@ -73,6 +76,9 @@ pub enum StillReason {
     Address,
     /// Calibration and fine-tuning move the motor on their own.
     Calibration,
+    /// drivegate writes a drive's declared settings on its own
+    /// (`apply_settings = "on-drift"`): nobody is watching the machine.
+    Unattended,
 }
 
 impl StillReason {
@@ -83,6 +89,7 @@ impl StillReason {
             StillReason::FactoryReset => "a factory reset",
             StillReason::Address => "address setting",
             StillReason::Calibration => "calibration",
+            StillReason::Unattended => "applying the declared settings",
         }
     }
 
@@ -96,6 +103,9 @@ impl StillReason {
                 "a drive that takes a new address stops answering at the old one mid-motion"
             }
             StillReason::Calibration => "calibration turns the motor on its own",
+            StillReason::Unattended => {
+                "drivegate changes a drive's settings on its own only at standstill"
+            }
         }
     }
 }
@@ -216,8 +226,13 @@ fn setpoint(mode: Mode) -> Meaning {
     m
 }
 
+/// The role a drive's settings (1.8 to 1.12) need: commissioning work.
+pub fn for_settings() -> Role {
+    Role::Admin
+}
+
 fn settings(save: bool) -> Meaning {
-    let mut m = Meaning::new(Role::Admin);
+    let mut m = Meaning::new(for_settings());
     if save {
         m.still = Some(StillReason::Save);
     }
