@@ -125,7 +125,7 @@ pub async fn start(
         config,
         control.clone(),
         metrics.clone(),
-        Box::new(crate::mqtt::Discard),
+        crate::mqtt::store::outbox::for_config(config, &metrics),
         shutdown.clone(),
     )? {
         tracing::info!("MQTT face started");

@@ -41,6 +41,9 @@ pub struct MqttMetrics {
     errors: IntCounter,
     last_error: IntGauge,
     commands: IntCounterVec,
+    store_bytes: IntGauge,
+    store_messages: IntGauge,
+    store_dropped: IntCounter,
     link: Mutex<LinkState>,
 }
 
@@ -106,6 +109,18 @@ impl MqttMetrics {
                 "Commands received over MQTT (DCMD metrics), by result: confirmed by the drive, refused by the control core, failed on the bus, malformed.",
                 "result",
                 COMMAND_RESULTS,
+            ),
+            store_bytes: gauge(
+                "drivegate_mqtt_store_bytes",
+                "Bytes of device data kept on disk while the broker or the primary host is away, not yet replayed.",
+            ),
+            store_messages: gauge(
+                "drivegate_mqtt_store_messages",
+                "Messages of device data kept on disk, not yet replayed.",
+            ),
+            store_dropped: counter(
+                "drivegate_mqtt_store_dropped_total",
+                "Stored messages dropped unsent, the oldest first, to keep [mqtt] store_max_mb.",
             ),
             link: Mutex::new(LinkState::default()),
         }
@@ -174,6 +189,19 @@ impl MqttMetrics {
     /// A command's result (one of [`COMMAND_RESULTS`]).
     pub fn command(&self, result: &str) {
         self.commands.with_label_values(&[result]).inc();
+    }
+
+    /// The store's figures now: bytes and messages waiting, messages
+    /// dropped since start-up.
+    pub fn store(&self, bytes: u64, messages: u64, dropped: u64) {
+        self.store_bytes
+            .set(i64::try_from(bytes).unwrap_or(i64::MAX));
+        self.store_messages
+            .set(i64::try_from(messages).unwrap_or(i64::MAX));
+        let counted = self.store_dropped.get();
+        if dropped > counted {
+            self.store_dropped.inc_by(dropped - counted);
+        }
     }
 
     /// The link now.

@@ -10,7 +10,9 @@
 //! - [`commands`] turns DCMD metrics into requests for the control core,
 //! - `node` is the edge node's task: births and deaths, data, commands and
 //!   the session's motor-safety lease, over a `connection` (rumqttc) with
-//!   its `bd_seq` (kept across restarts in `[safety] state_dir`).
+//!   its `bd_seq` (kept across restarts in `[safety] state_dir`),
+//! - [`store`] keeps on disk what cannot be published (store and forward:
+//!   the node's [`Outbox`] when there is a state directory).
 //!
 //! Like every face it decides nothing about the motors: commands go to
 //! [`crate::control`] as face `mqtt` with the role of `[mqtt] commands`, in
@@ -24,6 +26,7 @@ pub mod exception;
 pub mod host;
 pub mod metric;
 mod node;
+pub mod store;
 #[rustfmt::skip]
 pub mod sparkplug_b;
 pub mod topic;

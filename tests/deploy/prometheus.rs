@@ -45,7 +45,7 @@ async fn config_and_rules_pass_promtool() {
     let (ok, out) = promtool(&["check", "config", "prometheus.yml"], &dir).await;
     assert!(ok, "{out}");
     let (ok, out) = promtool(&["check", "rules", "alerts.yml"], &dir).await;
-    assert!(ok && out.contains("SUCCESS: 15 rules found"), "{out}");
+    assert!(ok && out.contains("SUCCESS: 17 rules found"), "{out}");
     let (ok, out) = promtool(&["test", "rules", "alerts_test.yml"], &dir).await;
     assert!(ok && out.contains("SUCCESS"), "{out}");
 
@@ -66,6 +66,17 @@ async fn config_and_rules_pass_promtool() {
     .unwrap();
     let (ok, out) = promtool(&["test", "rules", "alerts_test.yml"], tmp.path()).await;
     assert!(!ok && out.contains("DriveOverTemperature"), "{out}");
+
+    // Without its second half, the broker rule fires for a daemon that has
+    // no [mqtt] at all: the unit test sees it.
+    let loose = rules.replace(
+        "drivegate_mqtt_connected == 0 and drivegate_mqtt_connection_errors_total > 0",
+        "drivegate_mqtt_connected == 0",
+    );
+    assert_ne!(loose, rules);
+    std::fs::write(tmp.path().join("alerts.yml"), loose).unwrap();
+    let (ok, out) = promtool(&["test", "rules", "alerts_test.yml"], tmp.path()).await;
+    assert!(!ok && out.contains("MqttBrokerUnreachable"), "{out}");
 }
 
 /// Serves `GET /metrics` from the daemon's registry on a loopback port.

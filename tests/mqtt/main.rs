@@ -16,6 +16,7 @@ mod commands;
 mod death;
 mod python;
 mod safety;
+mod store;
 mod tls;
 
 use support::config::ConfigBuilder;

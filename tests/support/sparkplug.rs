@@ -129,9 +129,14 @@ impl Host {
             .subscribe("spBv1.0/#", QoS::AtLeastOnce)
             .await
             .unwrap();
+        let again = client.clone();
         tokio::spawn(async move {
             loop {
                 match eventloop.poll().await {
+                    // A broker that restarted forgot the subscription.
+                    Ok(Event::Incoming(Packet::ConnAck(ack))) if !ack.session_present => {
+                        let _ = again.try_subscribe("spBv1.0/#", QoS::AtLeastOnce);
+                    }
                     Ok(Event::Incoming(Packet::Publish(p))) => {
                         if tx.send(decode(&p.topic, &p.payload)).is_err() {
                             break;
