@@ -70,6 +70,8 @@ pub const ASSETS: &[Asset] = &[
     asset!("ui.js", "console/ui.js", JS),
     asset!("jog.js", "console/jog.js", JS),
     asset!("ramps.js", "console/ramps.js", JS),
+    asset!("setpoint.js", "console/setpoint.js", JS),
+    asset!("alarms.js", "console/alarms.js", JS),
     asset!("pages/overview.js", "console/pages/overview.js", JS),
     asset!("pages/drive.js", "console/pages/drive.js", JS),
     asset!("pages/settings.js", "console/pages/settings.js", JS),

@@ -18,3 +18,4 @@ mod comm_loss;
 mod diagnostics;
 mod harness;
 mod https;
+mod plain;

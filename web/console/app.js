@@ -96,7 +96,14 @@ const brakeNote = new Note();
 
 function buildHeader() {
   const who = document.getElementById('who');
-  who.replaceChildren(h('span', { class: `role ${store.me.role}` }, store.me.role), ' ', store.me.who);
+  // "Token" and "role" in words: a token named "commissioning" or
+  // "settings" must not read as the name of a page.
+  const tokenWord = store.me.tokens_required ? 'token' : 'client';
+  who.replaceChildren(
+    h('span', { class: 'who-label' }, `${tokenWord} `),
+    h('q', { class: 'token-name', title: store.me.tokens_required ? 'The name of the API token in use' : 'No tokens are configured: this local client is known by its address' }, store.me.who),
+    h('span', { class: 'who-label' }, ' · role '),
+    h('span', { class: `role ${store.me.role}`, title: 'What this token may do' }, store.me.role));
   if (store.me.tokens_required) {
     who.append(' ', h('button', { class: 'link', onclick: () => { setToken(null); location.reload(); } }, 'Forget token'));
   }

@@ -54,6 +54,7 @@ export class Store {
       if (v.status && (!d.status || d.receivedAt === undefined)) {
         d.status = v.status;
         d.receivedAt = now - (v.age_ms ?? 0);
+        d.seenAt = v.last_seen;
       }
       this.drives.set(v.name, d);
     }

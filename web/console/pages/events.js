@@ -2,7 +2,7 @@
 // and every write (who, what, the drive's answer) since this page was
 // opened, newest first, filterable by drive, kind and text.
 
-import { h, clock } from '../ui.js';
+import { h, timeEl } from '../ui.js';
 
 export const page = {
   id: 'events',
@@ -38,7 +38,7 @@ function mount(main, _params, { store }) {
     && (!kind.value || e.kind === kind.value)
     && (!text.value || `${e.who || ''} ${e.text} ${e.drive || ''}`.toLowerCase().includes(text.value.toLowerCase()));
   const row = (e) => h('tr', { class: e.severity, dataset: { kind: e.kind } },
-    h('td', {}, h('time', { datetime: new Date(e.at).toISOString() }, clock(e.at))),
+    h('td', {}, timeEl(e.at)),
     h('td', {}, e.kind), h('td', {}, e.drive || e.bus || '–'), h('td', {}, e.who || '–'), h('td', {}, e.text));
   let shown = 0;
   const render = () => {
