@@ -239,6 +239,7 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
         ("/settings/lift", "[data-field=limit_a]"),
         ("/commissioning", "[data-action=scan]"),
         ("/events", "table.log"),
+        ("/alarms", "table.alarms"),
         ("/scope", "[data-action=arm]"),
         ("/monitor", ".frame-rows [data-seq]"),
         ("/", "table.drives"),
@@ -446,6 +447,7 @@ async fn a_viewer_token_sees_no_control() {
     for hash in [
         "/",
         "/drive/conveyor",
+        "/alarms",
         "/events",
         "/commissioning",
         "/settings/conveyor",
@@ -468,7 +470,7 @@ async fn a_viewer_token_sees_no_control() {
         let controls = page
             .eval(
                 "[...document.querySelectorAll('button, input, select')].filter((el) => el.offsetParent !== null \
-                 && !el.closest('header, dialog, .filters') && !el.dataset.read).map((el) => el.outerHTML.slice(0, 80))",
+                 && !el.closest('header, dialog, .filters, .zoom') && !el.dataset.read).map((el) => el.outerHTML.slice(0, 80))",
             )
             .await;
         assert_eq!(controls, json!([]), "controls shown to a viewer on {hash}");

@@ -5,6 +5,7 @@
 // keeps everything since the page was opened.
 
 import { get } from './api.js';
+import { Alarms, alarmOf, kindWords } from './alarms.js';
 
 const MAX_EVENTS = 5000;
 const BUS_PERIOD_MS = 2000;
@@ -23,6 +24,8 @@ export class Store {
     this.eventListeners = new Set();
     this.stats = { statusReceived: 0, firstValueAt: null };
     this.busTimer = null;
+    /** drivegate's alarms (GET /api/v1/alarms), kept by the daemon. */
+    this.alarms = new Alarms(stream);
     stream.on('*', (m) => this.onMessage(m));
     stream.on('state', (s) => {
       if (s.state === 'open') this.refreshDrives().catch(() => {});
@@ -129,6 +132,16 @@ export class Store {
         this.log({ kind: 'write', severity: m.ok ? 'info' : 'bad', drive: m.drive, who: m.who, bus: m.bus,
           at: Date.parse(m.at), text: `${m.what} → ${m.answer}` });
         break;
+      case 'alarm-raised':
+      case 'alarm-cleared':
+      case 'alarm-acknowledged': {
+        const a = alarmOf(m);
+        const what = m.type === 'alarm-raised' ? 'raised' : m.type === 'alarm-cleared' ? 'cleared' : `acknowledged by ${a.acknowledged_by || 'an operator'}`;
+        this.log({ kind: 'alarm', severity: m.type === 'alarm-raised' ? 'bad' : 'info', drive: a.drive || null, bus: a.bus || null,
+          who: m.type === 'alarm-acknowledged' ? a.acknowledged_by : null,
+          text: `alarm ${what}: ${kindWords(a.kind)}${a.text ? `: ${a.text}` : ''}` });
+        break;
+      }
       case 'lagged':
         this.log({ kind: 'link', severity: 'warn', drive: null, text: `this page fell behind: ${m.missed} updates skipped` });
         break;
@@ -197,6 +210,11 @@ export class Store {
   subscribe(fn) {
     this.listeners.add(fn);
     return () => this.listeners.delete(fn);
+  }
+
+  /** `fn(alarm)` for every alarm raised, cleared or acknowledged. */
+  onAlarm(fn) {
+    return this.alarms.onNews((_type, a) => fn(a));
   }
 
   onEvent(fn) {

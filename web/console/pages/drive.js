@@ -7,6 +7,7 @@ import { History, positionTurns } from '../store.js';
 import { Jog, DEFAULT_LEASE_MS } from '../jog.js';
 import { SpeedSetpoint } from '../setpoint.js';
 import { activeAlarmsOf } from '../alarms.js';
+import { Trends } from '../trends.js';
 import { h, fmt, age, ago, words, Note, run, numberField, parseNumber, clock, dateTime, timeEl } from '../ui.js';
 import { condition } from './overview.js';
 import { speedRampTime, positionRampTime } from '../ramps.js';
@@ -21,13 +22,6 @@ export const page = {
   },
   mount,
 };
-
-const PLOTS = [
-  ['speed', 'Speed', 'rpm', '#1d4ed8'],
-  ['position', 'Position', 'turns', '#047857'],
-  ['current', 'Current', 'A', '#b45309'],
-  ['temperature', 'Temperature', '°C', '#b91c1c'],
-];
 
 function mount(main, { name }, ctx) {
   const { store, stream } = ctx;
@@ -101,37 +95,10 @@ function mount(main, { name }, ctx) {
     });
   }
 
-  // Plots.
-  const plotBox = h('div', { class: 'plots' });
-  main.append(h('section', { class: 'panel', 'aria-labelledby': 'plots-h' },
-    h('h2', { id: 'plots-h' }, 'Last 30 seconds'), plotBox));
-  const plots = [];
-  if (window.uPlot) {
-    for (const [key, label, unit, colour] of PLOTS) {
-      const box = h('figure', { class: 'plot', dataset: { plot: key } }, h('figcaption', {}, `${label} (${unit})`));
-      plotBox.append(box);
-      const width = Math.max(240, box.clientWidth || 400);
-      const u = new window.uPlot({
-        width, height: 160,
-        legend: { show: false },
-        cursor: { drag: { x: false, y: false } },
-        scales: { x: { time: true } },
-        axes: [
-          { stroke: '#444', grid: { stroke: '#e5e7eb' }, values: (_, ticks) => ticks.map(timeOfDay) },
-          { stroke: '#444', grid: { stroke: '#e5e7eb' }, size: 56 },
-        ],
-        series: [{}, { label, stroke: colour, width: 2, points: { show: false } }],
-      }, [[], []], box);
-      plots.push({ key, u, box });
-    }
-    const resize = new ResizeObserver(() => {
-      for (const p of plots) p.u.setSize({ width: Math.max(240, p.box.clientWidth), height: 160 });
-    });
-    for (const p of plots) resize.observe(p.box);
-    cleanups.push(() => resize.disconnect(), () => plots.forEach((p) => p.u.destroy()));
-  } else {
-    plotBox.append(h('p', { role: 'alert' }, 'The plotting library did not load.'));
-  }
+  // Trends: the last 30 s live, or up to the hour from the history.
+  const trends = new Trends(name, d, store);
+  main.append(trends.section);
+  cleanups.push(() => trends.dispose());
 
   // What the drive holds.
   const held = h('div', { class: 'held' });
@@ -171,7 +138,6 @@ function mount(main, { name }, ctx) {
 
   // Drawing, at most once per frame.
   let frame = 0;
-  let lastPlot = 0;
   function draw() {
     frame = 0;
     const now = performance.now();
@@ -209,13 +175,7 @@ function mount(main, { name }, ctx) {
     set('seen_at', d.seenAt ? dateTime(d.seenAt) : '–');
     help.show(s);
     if (controls) controls.show(s);
-    // Plots at most 30 times a second.
-    if (plots.length && now - lastPlot > 33) {
-      lastPlot = now;
-      const hist = d.history;
-      for (const p of plots) p.u.setData([hist.t, hist[p.key]]);
-      store.stats.plotsDrawn = (store.stats.plotsDrawn || 0) + plots.length;
-    }
+    trends.draw(now);
   }
   const schedule = () => { if (!frame) frame = requestAnimationFrame(draw); };
   cleanups.push(store.subscribe((n) => { if (n === name || n === null) schedule(); }));
@@ -272,11 +232,6 @@ function faultHelpView(name, el, store) {
     },
     dispose: () => offAlarm(),
   };
-}
-
-/** 24-hour time of day for the plots' axis. */
-function timeOfDay(seconds) {
-  return new Date(seconds * 1000).toLocaleTimeString([], { hour12: false });
 }
 
 function settingsTable(r) {

@@ -14,7 +14,7 @@ export const page = {
 
 const KINDS = [
   ['', 'all kinds'], ['fault', 'faults'], ['stall', 'stalls'], ['link', 'online / offline'],
-  ['lease', 'lease ends'], ['write', 'writes'], ['bus', 'bus'], ['state', 'activation and mode'], ['brake', 'brake'],
+  ['alarm', 'alarms'], ['lease', 'lease ends'], ['write', 'writes'], ['bus', 'bus'], ['state', 'activation and mode'], ['brake', 'brake'],
 ];
 const SHOWN = 500;
 
@@ -27,7 +27,8 @@ function mount(main, _params, { store }) {
   const tbody = h('tbody');
   main.append(h('section', { class: 'panel' },
     h('h1', {}, 'Events'),
-    h('p', { class: 'hint' }, 'Since this page was opened. Writes come from every client and face (REST, stream, Modbus TCP) and from drivegate itself (lease stops, shutdown).'),
+    h('p', { class: 'hint' }, 'Since this page was opened. Writes come from every client and face (REST, stream, Modbus TCP) and from drivegate itself (lease stops, shutdown). Faults, stalls, drives offline and the other alarms are kept by drivegate across restarts: ',
+      h('a', { href: '#/alarms' }, 'see Alarms'), '.'),
     h('div', { class: 'row filters' }, drive, kind, text, count),
     h('div', { class: 'scroll' }, h('table', { class: 'log' },
       h('thead', {}, h('tr', {}, h('th', { scope: 'col' }, 'Time'), h('th', { scope: 'col' }, 'Kind'), h('th', { scope: 'col' }, 'Drive'),
