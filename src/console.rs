@@ -73,6 +73,7 @@ pub const ASSETS: &[Asset] = &[
     asset!("setpoint.js", "console/setpoint.js", JS),
     asset!("alarms.js", "console/alarms.js", JS),
     asset!("trends.js", "console/trends.js", JS),
+    asset!("scan.js", "console/scan.js", JS),
     asset!("pages/overview.js", "console/pages/overview.js", JS),
     asset!("pages/drive.js", "console/pages/drive.js", JS),
     asset!("pages/settings.js", "console/pages/settings.js", JS),
