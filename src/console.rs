@@ -82,6 +82,7 @@ pub const ASSETS: &[Asset] = &[
         "console/pages/commissioning.js",
         JS
     ),
+    asset!("pages/replace.js", "console/pages/replace.js", JS),
     asset!("pages/events.js", "console/pages/events.js", JS),
     asset!("pages/alarms.js", "console/pages/alarms.js", JS),
     asset!("pages/scope.js", "console/pages/scope.js", JS),

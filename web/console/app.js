@@ -14,12 +14,13 @@ import { page as overview } from './pages/overview.js';
 import { page as drive } from './pages/drive.js';
 import { page as settings } from './pages/settings.js';
 import { page as commissioning } from './pages/commissioning.js';
+import { page as replace } from './pages/replace.js';
 import { page as events } from './pages/events.js';
 import { page as alarms } from './pages/alarms.js';
 import { page as scope } from './pages/scope.js';
 import { page as monitor } from './pages/monitor.js';
 
-const PAGES = [overview, alarms, drive, settings, commissioning, events, scope, monitor];
+const PAGES = [overview, alarms, drive, settings, commissioning, replace, events, scope, monitor];
 
 const stream = new Stream();
 const store = new Store(stream);
@@ -157,7 +158,7 @@ function shortcuts(e) {
     return;
   }
   if (document.querySelector('dialog[open]')) return;
-  const keys = { o: '/', a: '/alarms', e: '/events', c: '/commissioning', s: '/settings', p: '/scope', m: '/monitor' };
+  const keys = { o: '/', a: '/alarms', e: '/events', c: '/commissioning', r: '/replace', s: '/settings', p: '/scope', m: '/monitor' };
   if (keys[e.key] && !e.shiftKey) {
     e.preventDefault();
     navigate(keys[e.key]);

@@ -5,6 +5,7 @@
 // reply (two drives at one address), nothing left unread.
 
 import { busPath, post } from './api.js';
+import { h } from './ui.js';
 
 /** Units per scan request: the progress moves after each. */
 export const SCAN_CHUNK = 8;
@@ -76,4 +77,16 @@ export function followProcedure(store, name, expectedS, tick = () => {}) {
     const timer = setInterval(check, 100);
     check();
   });
+}
+
+/** What a scan found, as a table: who answered, garbled replies, units not read. */
+export function scanTable(found) {
+  const rows = found.answered.map((a) => h('tr', {},
+    h('td', {}, a.unit), h('td', {}, a.configured_as || 'not configured'),
+    h('td', {}, a.status ? `${a.status.active ? 'active' : 'inactive'}, ${a.status.mode.replaceAll('_', ' ')}, ${a.status.voltage_v} V` : `exception ${a.exception_code}`)));
+  for (const u of found.garbled) rows.push(h('tr', { class: 'fault' }, h('td', {}, u), h('td', {}, 'garbled reply'), h('td', {}, 'two drives with one address?')));
+  for (const n of found.not_scanned) rows.push(h('tr', { class: 'stalled' }, h('td', {}, n.unit), h('td', {}, 'not read'), h('td', {}, n.reason)));
+  return h('div', {},
+    found.missing.length ? h('p', { class: 'note fail' }, `Configured but silent: ${found.missing.join(', ')}`) : null,
+    h('table', { class: 'kv' }, h('thead', {}, h('tr', {}, h('th', {}, 'Unit'), h('th', {}, 'Drive'), h('th', {}, 'Status'))), h('tbody', {}, rows)));
 }

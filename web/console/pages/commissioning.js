@@ -6,7 +6,7 @@
 
 import { drivePath, post } from '../api.js';
 import { h, Note, run, numberField, confirmDialog, fmt } from '../ui.js';
-import { scanBus, broadcastVerdict, followProcedure } from '../scan.js';
+import { scanBus, broadcastVerdict, followProcedure, scanTable } from '../scan.js';
 
 export const page = {
   id: 'commissioning',
@@ -77,16 +77,6 @@ function scanSection(buses, state) {
     progress, note.el, result);
 }
 
-export function scanTable(found) {
-  const rows = found.answered.map((a) => h('tr', {},
-    h('td', {}, a.unit), h('td', {}, a.configured_as || 'not configured'),
-    h('td', {}, a.status ? `${a.status.active ? 'active' : 'inactive'}, ${a.status.mode.replaceAll('_', ' ')}, ${a.status.voltage_v} V` : `exception ${a.exception_code}`)));
-  for (const u of found.garbled) rows.push(h('tr', { class: 'fault' }, h('td', {}, u), h('td', {}, 'garbled reply'), h('td', {}, 'two drives with one address?')));
-  for (const n of found.not_scanned) rows.push(h('tr', { class: 'stalled' }, h('td', {}, n.unit), h('td', {}, 'not read'), h('td', {}, n.reason)));
-  return h('div', {},
-    found.missing.length ? h('p', { class: 'note fail' }, `Configured but silent: ${found.missing.join(', ')}`) : null,
-    h('table', { class: 'kv' }, h('thead', {}, h('tr', {}, h('th', {}, 'Unit'), h('th', {}, 'Drive'), h('th', {}, 'Status'))), h('tbody', {}, rows)));
-}
 
 function addressSection(buses, state) {
   const bus = busPicker(buses, 'address-bus');

@@ -2,7 +2,7 @@
 // mode, hold-to-jog, go to a position, torque, fault reset, brake), what it
 // holds (read from it), and its events.
 
-import { drivePath, get, post, put } from '../api.js';
+import { download, drivePath, get, post, put } from '../api.js';
 import { History, positionTurns } from '../store.js';
 import { Jog, DEFAULT_LEASE_MS } from '../jog.js';
 import { SpeedSetpoint } from '../setpoint.js';
@@ -112,8 +112,14 @@ function mount(main, { name }, ctx) {
     return `read at ${clock(r.read_at)}`;
   });
   refresh.addEventListener('click', readHeld);
+  // The same document as a file, which PUT .../settings (and the
+  // replace-a-drive page) takes back as it is.
+  const saveFile = h('button', { type: 'button', dataset: { read: 'file' } }, 'Save to a file');
+  saveFile.addEventListener('click', () => run(saveFile, heldNote, 'reading the drive…',
+    () => download(drivePath(name, '/settings?download=1'), `${name}-settings.json`),
+    (r) => `saved as ${r.name}: the settings read from the drive now, for the replace-a-drive page or PUT .../settings`));
   main.append(h('section', { class: 'panel', 'aria-labelledby': 'held-h' },
-    h('h2', { id: 'held-h' }, 'Settings held by the drive'), held, h('div', { class: 'row' }, refresh, heldNote.el)));
+    h('h2', { id: 'held-h' }, 'Settings held by the drive'), held, h('div', { class: 'row' }, refresh, saveFile, heldNote.el)));
   readHeld();
 
   // Events of this drive.
