@@ -17,8 +17,8 @@ use super::problem::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
 use super::{
-    buses, commands, drives, health, monitor, monitor_live, readback, scope, setpoints, settings,
-    stream, whoami,
+    buses, commands, drives, health, monitor, monitor_live, readback, replacement, scope,
+    setpoints, settings, stream, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -210,6 +210,7 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(drives::get_drive))
         .routes(routes!(drives::get_status))
         .routes(routes!(readback::get_settings))
+        .routes(routes!(replacement::post_replacement))
         .routes(routes!(whoami::whoami))
         .routes(routes!(commands::post_command))
         .routes(routes!(commands::put_mode))

@@ -41,6 +41,7 @@ use super::extract::Params;
 use super::hub::{HubEvent, RestartDecision, ServerMessage, render};
 use super::openapi::ReadProblems;
 use super::problem::{Kind, Problem};
+use super::replacement;
 use super::scope;
 use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
@@ -82,7 +83,8 @@ pub enum ClientMessage {
     /// `POST .../commands/{command}`, body `{"force": bool}`), or `mode`,
     /// `setpoint`, `lease-renew`, `lease-release`, `status` (body
     /// `{"fresh": bool}`), `protection`, `speed-ramp`, `position-ramp`,
-    /// `inertia`, `rs485-control` with the body of the REST route; `scan`,
+    /// `inertia`, `rs485-control`, `replacement` with the body of the REST
+    /// route; `scan`,
     /// `set-address`, `scope-arm`, `scope-trigger` and `scope-cancel` take
     /// `bus` instead of `drive`. A setpoint's lease also ends when this
     /// socket closes.
@@ -541,7 +543,7 @@ struct FreshBody {
     fresh: bool,
 }
 
-const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, scan, set-address, scope-arm, scope-trigger, scope-cancel";
+const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, replacement, scan, set-address, scope-arm, scope-trigger, scope-cancel";
 
 /// Runs one stream command through the same code as its REST route.
 async fn dispatch(
@@ -577,6 +579,7 @@ async fn dispatch(
             | "position-ramp"
             | "inertia"
             | "rs485-control"
+            | "replacement"
     );
     if !known && parse_command(op).is_err() {
         return Err(Problem::invalid(format!("unknown op \"{op}\": use {OPS}")));
@@ -610,6 +613,7 @@ async fn dispatch(
         "rs485-control" => {
             json(settings::rs485_control(state, caller, key, &body_as(op, body)?).await?)
         }
+        "replacement" => json(replacement::record(state, caller, key, body_as(op, body)?)?),
         name => {
             let command = parse_command(name)?;
             let b: ForceBody = body_as(op, body)?;

@@ -27,6 +27,7 @@ pub mod lease_book;
 pub mod leases;
 pub mod outcome;
 pub mod policy;
+pub mod replacement;
 pub mod request;
 pub mod restart;
 pub mod rules;

@@ -28,6 +28,9 @@ pub enum Operation {
     /// Arming, triggering or cancelling a scope capture: it changes how the
     /// bus polls (its drives get every poll, the others the floor rate).
     Capture,
+    /// Noting the start or end of a drive replacement in the audit log
+    /// (commissioning work).
+    Replacement,
 }
 
 impl Operation {
@@ -38,6 +41,7 @@ impl Operation {
             Operation::Lease => Role::Operator,
             Operation::Scan => Role::Admin,
             Operation::Capture => Role::Operator,
+            Operation::Replacement => Role::Admin,
         }
     }
 }

@@ -119,6 +119,10 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
         ),
         ("delete_scope", (None, Some("scope-cancel"))),
         ("post_trigger", (None, Some("scope-trigger"))),
+        (
+            "post_replacement",
+            (Some(json!({"event": "started"})), Some("replacement")),
+        ),
     ])
 }
 

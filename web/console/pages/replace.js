@@ -193,6 +193,7 @@ function mount(main, { name }, { store }) {
     state.calibrate = calibrate.checked;
     state.save = save.checked;
     for (const el of [drive, fromDeclared, fromFile, file, calibrate, save]) el.disabled = true;
+    audit('started', `settings from ${state.source}; ${state.save ? 'saved to flash' : 'not saved to flash'}; ${state.calibrate ? 'calibration asked' : 'no calibration'}`);
     mark('choose', 'done', `Replacing ${n} (bus ${d.bus}, unit ${d.unit}) with settings from ${state.source}; `
       + `${state.save ? 'saved to flash' : 'not saved to flash'}; ${state.calibrate ? 'calibration asked' : 'no calibration'}. Started at ${dateTime(state.startedAt)}.`);
     connectStep();
@@ -419,7 +420,23 @@ function mount(main, { name }, { store }) {
     show('done', h('p', {}, others.length ? `Reconnect ${others.join(', ')}: drivegate finds them again by itself within 30 s.` : ''),
       h('p', {}, h('a', { href: `#/drive/${encodeURIComponent(state.drive)}` }, `Open ${state.drive}`)));
     mark('done', 'done', `${state.drive} replaced in ${duration(took)}, from ${dateTime(state.startedAt)} to ${dateTime(Date.now())}.`);
+    state.finished = true;
+    audit('finished', `replaced in ${duration(took)}; the drive holds the settings of ${state.source.split(' (')[0]}`);
   };
 
-  return () => { state.left = true; };
+  /**
+   * The procedure's start and end in drivegate's audit log, around the
+   * writes it makes (each audited as it happens). Said in the page's
+   * event log when the daemon cannot note it; the procedure goes on.
+   */
+  const audit = (event, detail) => {
+    post(drivePath(state.drive, '/replacement'), { event, detail: detail.slice(0, 500) })
+      .catch((e) => store.log({ kind: 'write', severity: 'warn', drive: state.drive,
+        text: `the replacement's ${event} could not be noted in the audit log: ${e.message}` }));
+  };
+
+  return () => {
+    state.left = true;
+    if (state.started !== null && !state.finished) audit('abandoned', 'the page was left before the end');
+  };
 }
