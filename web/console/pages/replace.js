@@ -108,6 +108,9 @@ function mount(main, { name }, { store }) {
   /** Marks step `id`: state and result in words; an active step shows its body. */
   const mark = (id, st, text, cls = st) => {
     const step = steps.get(id);
+    // How long each step took, for whoever plans the next replacement.
+    if (st === 'active' && step.li.dataset.state !== 'active') step.since = performance.now();
+    if (st !== 'active' && step.since !== undefined) step.li.dataset.ms = String(Math.round(performance.now() - step.since));
     step.li.dataset.state = st;
     step.li.className = `step ${cls}`;
     if (text !== undefined) step.result.textContent = text;
