@@ -54,6 +54,9 @@ export class Store {
       d.gearRatio = v.gear_ratio;
       d.link = v.link;
       d.lease = v.lease;
+      // Its declared settings and whether it holds them (absent when none
+      // is declared).
+      d.declared = v.declared_settings || null;
       if (v.status && (!d.status || d.receivedAt === undefined)) {
         d.status = v.status;
         d.receivedAt = now - (v.age_ms ?? 0);
@@ -142,6 +145,21 @@ export class Store {
           text: `alarm ${what}: ${kindWords(a.kind)}${a.text ? `: ${a.text}` : ''}` });
         break;
       }
+      case 'settings-drift': {
+        const d = this.drives.get(m.drive);
+        if (d) {
+          d.declared = { apply_settings: m.apply_settings, save: m.save, state: m.state, drift: m.drift,
+            differences: m.differences || [], checked_at: m.checked_at, detail: m.detail };
+          this.changed(m.drive);
+        }
+        this.log({ kind: 'settings', severity: m.drift ? 'warn' : 'info', drive: m.drive,
+          text: m.drift ? `settings differ from the declaration: ${driftWords(m.differences)}` : 'holds its declared settings' });
+        break;
+      }
+      case 'settings-applied':
+        this.log({ kind: 'settings', severity: m.complete ? 'info' : 'bad', drive: m.drive, who: m.who,
+          text: `settings document ${m.dry_run ? 'compared (dry run)' : 'applied'}: ${m.changed} changed${m.save ? ', saved to flash' : ''}${m.complete ? '' : '; not every write was confirmed'}` });
+        break;
       case 'lagged':
         this.log({ kind: 'link', severity: 'warn', drive: null, text: `this page fell behind: ${m.missed} updates skipped` });
         break;
@@ -225,6 +243,12 @@ export class Store {
   changed(name) {
     for (const fn of this.listeners) fn(name);
   }
+}
+
+/** A drive's differences from its declared settings, in words. */
+export function driftWords(differences) {
+  const v = (x, unit) => (typeof x === 'boolean' ? (x ? 'on' : 'off') : `${Number.isInteger(x) ? x : Number(Number(x).toFixed(3))}${unit ? ` ${unit}` : ''}`);
+  return (differences || []).map((d) => `${d.quantity} ${v(d.drive, d.unit)} (declared ${v(d.declared, d.unit)})`).join(', ') || 'see the drive page';
 }
 
 /** The buses of the configured drives, in the drives' order. */

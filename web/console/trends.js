@@ -97,6 +97,8 @@ export class Trends {
         series: live ? [{}, line] : [{}, line, { ...edge, label: 'minimum' }, { ...edge, label: 'maximum' }],
         bands: live ? undefined : [{ series: [3, 2], fill: `${spec.colour}22` }],
       }, live ? [[], []] : [[], [], [], []], box);
+      // For the tests: the plot a figure holds.
+      box.plot = u;
       this.plots.push({ spec, u, box });
       this.resize.observe(box);
     }

@@ -3,7 +3,7 @@
 // holds (read from it), and its events.
 
 import { download, drivePath, get, post, put } from '../api.js';
-import { History, positionTurns } from '../store.js';
+import { History, positionTurns, driftWords } from '../store.js';
 import { Jog, DEFAULT_LEASE_MS } from '../jog.js';
 import { SpeedSetpoint } from '../setpoint.js';
 import { activeAlarmsOf } from '../alarms.js';
@@ -37,6 +37,8 @@ function mount(main, { name }, ctx) {
   // Header and live values: plain ones in view, the raw registers
   // (STATUS flags, counts) in a details view closed by default.
   const badge = h('span', { class: 'badge' });
+  // Whether it holds its declared settings ([bus.drive.settings]).
+  const drift = h('span', { class: 'badge drift', hidden: true, dataset: { drift: '' } });
   const values = h('dl', { class: 'values' });
   const valueCells = {};
   for (const [key, label] of [['state', 'State'], ['mode', 'Mode'], ['speed', 'Speed'], ['position', 'Position'],
@@ -57,7 +59,7 @@ function mount(main, { name }, ctx) {
   // A fault: what it means and what to check, from drivegate's alarms.
   const faultHelp = h('div', { class: 'fault-help', role: 'alert', hidden: true });
   const head = h('section', { class: 'panel drive-head' },
-    h('h1', {}, name, ' ', badge),
+    h('h1', {}, name, ' ', badge, ' ', drift),
     h('p', { class: 'where' }, `bus ${d.bus}, unit ${d.unit}, gear ratio ${d.gearRatio}`,
       store.can('admin') ? [' · ', h('a', { href: `#/settings/${encodeURIComponent(name)}` }, 'Settings')] : null),
     lastSeen, faultHelp, values, details);
@@ -180,6 +182,17 @@ function mount(main, { name }, ctx) {
     set('current_counts', s && s.current_counts !== undefined ? String(s.current_counts) : '–');
     set('seen_at', d.seenAt ? dateTime(d.seenAt) : '–');
     help.show(s);
+    const dec = d.declared;
+    drift.hidden = !dec || !dec.checked_at;
+    if (dec && dec.checked_at) {
+      const text = dec.drift ? 'settings differ from the declaration' : 'declared settings held';
+      if (drift.textContent !== text) {
+        drift.textContent = text;
+        drift.className = `badge drift ${dec.drift ? 'stalled' : 'ok'}`;
+        drift.dataset.drift = String(!!dec.drift);
+        drift.title = dec.drift ? `${driftWords(dec.differences)} (checked ${dateTime(dec.checked_at)})` : `checked ${dateTime(dec.checked_at)}`;
+      }
+    }
     if (controls) controls.show(s);
     trends.draw(now);
   }

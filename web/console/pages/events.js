@@ -14,7 +14,7 @@ export const page = {
 
 const KINDS = [
   ['', 'all kinds'], ['fault', 'faults'], ['stall', 'stalls'], ['link', 'online / offline'],
-  ['alarm', 'alarms'], ['lease', 'lease ends'], ['write', 'writes'], ['bus', 'bus'], ['state', 'activation and mode'], ['brake', 'brake'],
+  ['alarm', 'alarms'], ['settings', 'settings'], ['lease', 'lease ends'], ['write', 'writes'], ['bus', 'bus'], ['state', 'activation and mode'], ['brake', 'brake'],
 ];
 const SHOWN = 500;
 
