@@ -762,6 +762,24 @@ async fn the_event_log_shows_every_write_live_and_the_ramp_time_follows_the_manu
     daemon.stop().await;
 }
 
+/// With `DRIVEGATE_SCREENSHOTS` set (a directory, relative to the
+/// repository or absolute: `docs`), saves a PNG of `page` there as
+/// `name`: the tests of the newer pages take their pictures for the docs
+/// at the moment they have checked what the picture shows. Without it,
+/// nothing.
+pub(crate) async fn picture(page: &Page, name: &str, full: bool) {
+    let Some(dir) = std::env::var_os("DRIVEGATE_SCREENSHOTS") else {
+        return;
+    };
+    let dir = std::path::PathBuf::from(dir);
+    let dir = if dir.is_absolute() {
+        dir
+    } else {
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(dir)
+    };
+    page.screenshot(&dir.join(name), full).await;
+}
+
 /// Not a test: writes the screenshots in docs/ (run with
 /// `DRIVEGATE_SCREENSHOTS=docs cargo test --test console_browser -- --ignored screenshots`).
 /// A small plant scene: one drive running, one positioning, one in fault,

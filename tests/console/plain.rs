@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use serde_json::json;
 
-use crate::browser::{LONG, assert_clean, open, rest, rest_ok, text};
+use crate::browser::{LONG, assert_clean, open, picture, rest, rest_ok, text};
 use crate::harness::cdp::{Browser, Page};
 use crate::harness::{ADMIN, JOG_LEASE_MS, OPERATOR, Watcher, config, speed, until};
 use crate::support::TestDaemon;
@@ -109,6 +109,8 @@ async fn an_offline_drive_is_greyed_with_its_age_and_raw_values_wait_in_closed_d
         "the age of the last status counting up",
     )
     .await;
+
+    picture(&page, "console-drive-offline.png", false).await;
 
     // The overview says the same in the feeder's row.
     page.eval("location.hash = '#/'").await;
@@ -273,6 +275,9 @@ async fn the_setpoint_field_sets_a_speed_held_while_the_page_is_open_or_for_a_ti
     page.click("[data-action=set-speed]").await;
     let timed = setpoint_state(&page, "timed", "the timed speed").await;
     assert!(timed.starts_with("-70 rpm until "), "{timed}");
+    page.eval("document.querySelector('[data-group=setpoint]').scrollIntoView({block: 'center'})")
+        .await;
+    picture(&page, "console-setpoint.png", false).await;
     until(LONG, "the motor turning backward", || {
         speed(&daemon.plant, 1).is_some_and(|s| s < -50)
     })
