@@ -67,6 +67,22 @@ pub async fn start(
             .map(|o| o.label()),
     );
     metrics.watch_control(&control);
+    let history = crate::history::History::new(config.history.settings());
+    for (index, bus) in plant.buses().iter().enumerate() {
+        // Asked at each status: drives configured later are kept too.
+        let directory = plant.clone();
+        history.follow(
+            &bus.handle,
+            move |unit| {
+                directory
+                    .drives()
+                    .iter()
+                    .any(|d| d.bus == index && d.unit == unit)
+            },
+            shutdown.clone(),
+        );
+    }
+    metrics.watch_history(&history);
     // What the last process owed the motors, before any client is taken.
     control.replay().await;
     let (http, task) = crate::api::start(
@@ -74,6 +90,7 @@ pub async fn start(
         plant.clone(),
         metrics.clone(),
         control.clone(),
+        history,
         crate::console::router(),
         shutdown.clone(),
     )

@@ -21,7 +21,7 @@
 //!   and procedures, which tests read back) and `pty`.
 //! - The bus and its observers: [`bus`] (the handle every face uses, and the
 //!   RTU master and port the pty tests drive directly), [`monitor`],
-//!   [`scope`], [`clock`].
+//!   [`scope`], [`history`] (the trends), [`clock`].
 //! - The control core, [`control`], with [`safety`]'s stop actions.
 //! - The faces: [`api`] (the request bodies and stream messages fuzzed, the
 //!   OpenAPI document checked for drift), [`modbus_tcp`] (MBAP, fuzzed),
@@ -42,6 +42,7 @@ pub mod control;
 pub mod daemon;
 pub mod drive;
 pub mod faces;
+pub mod history;
 pub mod listed;
 pub mod logging;
 pub mod metrics;

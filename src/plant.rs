@@ -9,7 +9,7 @@ use std::time::Duration;
 use tracing::{info, warn};
 
 use crate::bus::{BusHandle, Observers};
-use crate::config::{BusConfig, Config};
+use crate::config::{BusConfig, Config, Declared};
 use crate::monitor::BusMonitor;
 use crate::scope::Scope;
 use crate::sim::{SimHandle, Simulator};
@@ -51,6 +51,8 @@ pub struct Drive {
     pub unit: u8,
     /// Its gearbox ratio.
     pub gear_ratio: f64,
+    /// The settings it must hold (`[bus.drive.settings]`), if declared.
+    pub declared: Option<Declared>,
 }
 
 /// Why the plant could not start.
@@ -138,6 +140,7 @@ impl Plant {
                     bus: index,
                     unit: d.unit(),
                     gear_ratio: d.gear_ratio,
+                    declared: d.declared(),
                 });
             }
             buses.push(Bus {

@@ -35,6 +35,79 @@ fn date_time(secs: u64) -> String {
     )
 }
 
+/// Reads an RFC 3339 time (`2026-11-22T03:39:12.345Z`, or with an offset
+/// `+01:00`; `t` or a space for `T`), or a number of milliseconds since
+/// the Unix epoch. `None`: neither.
+pub(crate) fn parse_time(text: &str) -> Option<SystemTime> {
+    use std::time::Duration;
+    let text = text.trim();
+    if !text.is_empty() && text.bytes().all(|b| b.is_ascii_digit()) {
+        return UNIX_EPOCH.checked_add(Duration::from_millis(text.parse().ok()?));
+    }
+    let b = text.as_bytes();
+    let num = |from: usize, len: usize| -> Option<i64> {
+        let part = text.get(from..from + len)?;
+        part.bytes()
+            .all(|c| c.is_ascii_digit())
+            .then(|| part.parse().ok())?
+    };
+    if b.len() < 20 || b[4] != b'-' || b[7] != b'-' || !matches!(b[10], b'T' | b't' | b' ') {
+        return None;
+    }
+    if b[13] != b':' || b[16] != b':' {
+        return None;
+    }
+    let (y, mo, d) = (num(0, 4)?, num(5, 2)?, num(8, 2)?);
+    let (h, mi, sec) = (num(11, 2)?, num(14, 2)?, num(17, 2)?);
+    if !(1..=12).contains(&mo) || !(1..=31).contains(&d) || h > 23 || mi > 59 || sec > 60 {
+        return None;
+    }
+    let mut at = 19;
+    let mut nanos = 0i64;
+    if b.get(at) == Some(&b'.') {
+        let digits = b
+            .get(at + 1..)?
+            .iter()
+            .take_while(|c| c.is_ascii_digit())
+            .count();
+        if digits == 0 {
+            return None;
+        }
+        let frac = text.get(at + 1..at + 1 + digits.min(9))?;
+        nanos = frac.parse::<i64>().ok()? * 10i64.pow(9 - frac.len() as u32);
+        at += 1 + digits;
+    }
+    let offset_s = match text.get(at..)? {
+        "Z" | "z" => 0,
+        rest if rest.len() == 6
+            && matches!(rest.as_bytes()[0], b'+' | b'-')
+            && rest.as_bytes()[3] == b':' =>
+        {
+            let (oh, om) = (num(at + 1, 2)?, num(at + 4, 2)?);
+            let sign = if rest.starts_with('-') { -1 } else { 1 };
+            sign * (oh * 3600 + om * 60)
+        }
+        _ => return None,
+    };
+    let secs =
+        days_from_civil(y, mo as u32, d as u32) * 86_400 + h * 3600 + mi * 60 + sec - offset_s;
+    let total = Duration::from_nanos(u64::try_from(nanos).ok()?);
+    UNIX_EPOCH
+        .checked_add(Duration::from_secs(u64::try_from(secs).ok()?))?
+        .checked_add(total)
+}
+
+/// (year, month, day) to days since 1970-01-01 (H. Hinnant's algorithm).
+fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = y.div_euclid(400);
+    let yoe = y.rem_euclid(400);
+    let mp = i64::from((m + 9) % 12);
+    let doy = (153 * mp + 2) / 5 + i64::from(d) - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146_097 + doe - 719_468
+}
+
 /// Days since 1970-01-01 to (year, month, day) in the proleptic Gregorian
 /// calendar (H. Hinnant's algorithm).
 fn civil_from_days(days: i64) -> (i64, u32, u32) {
@@ -66,5 +139,33 @@ mod tests {
         assert_eq!(rfc3339(t), "2026-11-22T03:39:12.000Z");
         let t = UNIX_EPOCH + Duration::from_secs(4_107_542_399);
         assert_eq!(rfc3339(t), "2100-02-28T23:59:59.000Z");
+    }
+
+    #[test]
+    fn reads_back_what_it_writes_and_offsets_and_milliseconds() {
+        for ms in [0u64, 951_782_400_123, 1_795_318_752_000, 4_107_542_399_999] {
+            let t = UNIX_EPOCH + Duration::from_millis(ms);
+            assert_eq!(parse_time(&rfc3339(t)), Some(t), "{ms}");
+            assert_eq!(parse_time(&ms.to_string()), Some(t));
+        }
+        assert_eq!(
+            parse_time("2026-11-22T04:39:12+01:00"),
+            parse_time("2026-11-22T03:39:12Z")
+        );
+        assert_eq!(
+            parse_time("2026-11-22 03:39:12.5z"),
+            Some(UNIX_EPOCH + Duration::from_millis(1_795_318_752_500))
+        );
+        for bad in [
+            "",
+            "yesterday",
+            "2026-11-22",
+            "2026-13-01T00:00:00Z",
+            "2026-11-22T03:39:12",
+            "-5",
+            "2026-11-22T03:39:12.Z",
+        ] {
+            assert_eq!(parse_time(bad), None, "{bad}");
+        }
     }
 }

@@ -10,6 +10,7 @@ use utoipa::{IntoParams, ToSchema};
 
 use super::auth::Caller;
 use super::control;
+use super::document::{DeclaredState, declared_state};
 use super::extract::{Params, PathParams};
 use super::openapi::{FreshReadProblems, ReadProblems};
 use super::problem::{Kind, Problem};
@@ -215,6 +216,10 @@ pub struct DriveView {
     pub status: Option<StatusView>,
     /// The motor-safety lease on it, if any.
     pub lease: Option<LeaseInfo>,
+    /// Its declared settings (`[bus.drive.settings]`) and whether it holds
+    /// them (the console's drift badge); absent without a declaration.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub declared_settings: Option<DeclaredState>,
 }
 
 fn millis(d: std::time::Duration) -> u64 {
@@ -243,6 +248,7 @@ fn view(state: &ApiState, target: Target<'_>) -> DriveView {
             .and_then(|s| s.status.as_ref())
             .map(StatusView::from),
         lease: lease_of(state, target.index),
+        declared_settings: declared_state(state, target),
     }
 }
 

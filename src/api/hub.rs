@@ -16,9 +16,12 @@ use tokio::sync::broadcast;
 use tokio_util::sync::CancellationToken;
 use utoipa::ToSchema;
 
+use super::alarms::AlarmView;
+use super::document::{DeclaredState, SettingsDiff};
 use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
 use crate::bus::BusEvent;
+use crate::control::alarms::AlarmNews;
 use crate::control::{Control, ControlEvent, LeaseEvent, Published, SessionId};
 use crate::plant::Plant;
 use crate::scope::result::ScopeState;
@@ -166,6 +169,54 @@ pub enum ServerMessage {
         answer: String,
         /// When (RFC 3339, UTC).
         at: String,
+    },
+    /// A drive with declared settings (`[bus.drive.settings]`) was
+    /// compared with them: when it came online (start, a power cycle, a
+    /// replaced drive), after a settings document was put on it, or while
+    /// drivegate applies them (`on-drift`).
+    SettingsDrift {
+        /// Drive name.
+        drive: String,
+        /// Its bus.
+        bus: String,
+        /// Its unit address.
+        unit: u8,
+        /// The declaration's state, as in the drive's `declared_settings`
+        /// (`drift`: true when it does not hold them).
+        #[serde(flatten)]
+        declared: DeclaredState,
+        /// When (RFC 3339, UTC).
+        at: String,
+    },
+    /// A settings document was put on a drive (from any face, or by
+    /// drivegate for a declaration): what each setting was and is. Its
+    /// writes come as `write` messages too.
+    SettingsApplied {
+        /// Who sent it (`declared-settings`: drivegate itself).
+        who: String,
+        /// The diff, as `PUT .../settings` answers it.
+        #[serde(flatten)]
+        diff: SettingsDiff,
+        /// When (RFC 3339, UTC).
+        at: String,
+    },
+    /// An alarm was raised (a fault, a stall, a drive offline, a bus down,
+    /// a stop not confirmed, a communication-loss stop, a write refused by
+    /// a safety rule), or an event came again before it was acknowledged
+    /// (same `id`, `count` up). Sent to every client.
+    AlarmRaised {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
+    },
+    /// An alarm's condition ended. Sent to every client.
+    AlarmCleared {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
+    },
+    /// An operator acknowledged an alarm. Sent to every client.
+    AlarmAcknowledged {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
     },
     /// A scope capture was armed, triggered, ended, or filled some more
     /// (every 100 ms while it runs): its state, as `GET
@@ -321,11 +372,48 @@ impl Hub {
     }
 }
 
-/// A control event as a stream message: lease news, and every write the
-/// core settled (from any face, and the daemon's own stops).
+/// A control event as a stream message: lease news, every write the
+/// core settled (from any face, and the daemon's own stops), and alarms.
 pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
     let lease = match event {
         ControlEvent::Lease(lease) => lease,
+        ControlEvent::Drift(d) => {
+            let drive = plant.drives().get(d.drive)?;
+            let declared = drive.declared.as_ref()?;
+            let message = ServerMessage::SettingsDrift {
+                drive: drive.name.clone(),
+                bus: plant.handle_of(drive).name().to_string(),
+                unit: drive.unit,
+                declared: DeclaredState::new(declared, Some(&d.view)),
+                at: rfc3339(d.view.checked_at),
+            };
+            return Some(message.to_text());
+        }
+        ControlEvent::Settings(applied) => {
+            let drive = plant.drives().get(applied.report.drive)?;
+            let message = ServerMessage::SettingsApplied {
+                who: applied.who.to_string(),
+                diff: SettingsDiff::of(
+                    drive.name.clone(),
+                    plant.handle_of(drive).name().to_string(),
+                    drive.unit,
+                    &applied.report,
+                ),
+                at: rfc3339(applied.at),
+            };
+            return Some(message.to_text());
+        }
+        // Its stop follows as lease news; the alarm it raises as an alarm.
+        ControlEvent::CommLoss { .. } => return None,
+        ControlEvent::Alarm(news) => {
+            let alarm = AlarmView::from(news.alarm());
+            let message = match news {
+                AlarmNews::Raised(_) => ServerMessage::AlarmRaised { alarm },
+                AlarmNews::Cleared(_) => ServerMessage::AlarmCleared { alarm },
+                AlarmNews::Acknowledged(_) => ServerMessage::AlarmAcknowledged { alarm },
+            };
+            return Some(message.to_text());
+        }
         ControlEvent::Write(w) => {
             let message = ServerMessage::Write {
                 drive: w

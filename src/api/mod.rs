@@ -10,7 +10,8 @@
 //!   guess them; [`roles`] says which role may do what,
 //! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`readback`],
 //!   [`buses`], [`monitor`] (every frame on the wire), [`scope`]
-//!   (triggered captures), [`whoami`] and [`health`] are the routes, all
+//!   (triggered captures), [`alarms`], [`history`] (trends), [`whoami`]
+//!   and [`health`] are the routes, all
 //!   documented in [`openapi`] (the body
 //!   schemas a derive cannot write are in [`body_schemas`]),
 //! - [`extract`] and [`integers`] read requests, refusing bad ones with a
@@ -22,15 +23,18 @@
 //! Handlers never touch a serial port: they submit jobs through the bus
 //! handles of the [`Plant`] and wait for the drive's confirmation.
 
+pub mod alarms;
 pub mod auth;
 pub mod body_schemas;
 pub mod buses;
 pub mod commands;
 pub mod control;
+pub mod document;
 pub mod drives;
 pub mod extract;
 pub mod guard;
 pub mod health;
+pub mod history;
 pub mod hub;
 pub mod integers;
 pub mod listener;
@@ -65,6 +69,7 @@ use utoipa_swagger_ui::SwaggerUi;
 
 use crate::config::Config;
 use crate::control::Control;
+use crate::history::History;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 use auth::Tokens;
@@ -82,6 +87,7 @@ pub async fn start(
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
     control: Control,
+    history: Arc<History>,
     pages: Router<ApiState>,
     shutdown: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
@@ -146,6 +152,7 @@ pub async fn start(
         http.clone(),
         tokens,
         control,
+        history,
         hub,
         shutdown.clone(),
     );

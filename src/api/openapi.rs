@@ -17,8 +17,8 @@ use super::problem::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
 use super::{
-    buses, commands, drives, health, monitor, monitor_live, readback, replacement, scope,
-    setpoints, settings, stream, whoami,
+    alarms, buses, commands, document, drives, health, history, monitor, monitor_live, readback,
+    replacement, scope, setpoints, settings, stream, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -52,6 +52,7 @@ pub const DOCS_PATH: &str = "/docs";
         (name = "stream", description = "The WebSocket stream of statuses and events, with commands"),
         (name = "monitor", description = "Every frame on the wire of a bus: decoded, with its outcome and who caused it; live, and as CSV or PCAP"),
         (name = "scope", description = "Triggered captures of status fields at the bus's full rate"),
+        (name = "alarms", description = "Faults, stalls, drives offline, buses down, communication-loss stops, stops not confirmed and refused safety writes: kept across restarts until acknowledged"),
         (name = "health", description = "Liveness, readiness and Prometheus metrics (no token needed)"),
     )
 )]
@@ -209,7 +210,8 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(drives::list_drives))
         .routes(routes!(drives::get_drive))
         .routes(routes!(drives::get_status))
-        .routes(routes!(readback::get_settings))
+        .routes(routes!(readback::get_settings, document::put_settings))
+        .routes(routes!(document::get_declared))
         .routes(routes!(replacement::post_replacement))
         .routes(routes!(whoami::whoami))
         .routes(routes!(commands::post_command))
@@ -240,6 +242,9 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(scope::post_trigger))
         .routes(routes!(scope::get_result))
         .routes(routes!(scope::get_result_csv))
+        .routes(routes!(alarms::list_alarms))
+        .routes(routes!(alarms::post_ack))
+        .routes(routes!(history::get_history))
 }
 
 /// Sets what the derive cannot: the version and the licence.

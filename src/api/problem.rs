@@ -297,6 +297,27 @@ pub struct ProblemDetails {
     /// Seconds after which a retry makes sense (also sent as `Retry-After`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub retry_after_s: Option<u64>,
+    /// For a settings document refused whole: every value refused, each
+    /// with its valid range.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub invalid_settings: Vec<InvalidSetting>,
+    /// For a settings document that failed part-way: what became of each
+    /// setting (the `SettingsDiff` of a success, `complete` false).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Object>)]
+    pub settings_report: Option<serde_json::Value>,
+}
+
+/// A value of a settings document that was refused.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct InvalidSetting {
+    /// Its path in the document (`protection.stall_ms`).
+    pub setting: String,
+    /// What is wrong.
+    pub detail: String,
+    /// Its valid range, when it is out of range.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub valid_range: Option<ValidRange>,
 }
 
 /// The error every handler returns: its [`Kind`] and a boxed
@@ -371,6 +392,8 @@ impl Problem {
             drive: None,
             exception_code: None,
             retry_after_s: None,
+            invalid_settings: Vec::new(),
+            settings_report: None,
         });
         Problem { kind, details }
     }

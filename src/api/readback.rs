@@ -2,23 +2,25 @@
 //! it (its setpoints, protection, ramps, inertia and RS-485 control), so a
 //! settings form starts from the drive's values and not from a guess.
 //!
-//! Six reads at command priority (see `drive::settings::BLOCKS`);
-//! a read changes nothing, so it is not audited.
+//! Six reads at command priority (see `drive::settings::BLOCKS`), by the
+//! core (`Control::read_settings`, which declared settings use too); a
+//! read changes nothing, so it is not audited. The same document is what
+//! `PUT` takes ([`super::document`]).
 
 use axum::Json;
 use axum::extract::State;
-use serde::Serialize;
-use utoipa::ToSchema;
+use axum::http::{HeaderValue, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
 
 use super::auth::Caller;
 use super::control;
-use super::extract::PathParams;
+use super::extract::{Params, PathParams};
 use super::openapi::FreshReadProblems;
 use super::problem::{BusContext, Problem};
 use super::state::ApiState;
-use crate::bus::handle::JobOptions;
-use crate::bus::{BusError, Priority};
-use crate::drive::settings::{self, BLOCKS, DriveSettings, REGISTERS};
+use crate::drive::settings::DriveSettings;
 use crate::drive::units::{self, COUNTS_PER_AMP};
 use crate::timestamp::rfc3339;
 
@@ -112,50 +114,79 @@ impl DriveSettingsView {
     }
 }
 
-/// Reads the settings of `key` from the drive.
+/// Reads the settings of `key` from the drive, through the core.
 pub async fn read(
     state: &ApiState,
     caller: &Caller,
     key: &str,
 ) -> Result<DriveSettingsView, Problem> {
     let target = state.target(key)?;
-    let unit = target.drive.unit;
-    let context = || BusContext {
-        drive: Some(&target.drive.name),
-        offline: control::is_offline(target),
-        setpoint: false,
-    };
-    let options = JobOptions {
-        priority: Priority::Command,
-        source: caller.source,
-        queue_timeout: None,
-        max_attempts: None,
-        origin: caller.origin.clone(),
-    };
-    let mut values = [0u16; REGISTERS];
-    let mut at = 0;
-    for (start, count) in BLOCKS {
-        let exchange = target
-            .bus
-            .transact(unit, settings::read_pdu(start, count), options.clone())
-            .await
-            .map_err(|e| Problem::bus(&e, context()))?;
-        let block = settings::parse_read_reply(&exchange.reply, count)
-            .map_err(|e| Problem::bus(&BusError::from_reply(unit, e), context()))?;
-        values[at..at + block.len()].copy_from_slice(&block);
-        at += block.len();
+    let offline = control::is_offline(target);
+    let held = state
+        .control
+        .read_settings(caller, target.control())
+        .await
+        .map_err(|e| {
+            Problem::bus(
+                &e,
+                BusContext {
+                    drive: Some(&target.drive.name),
+                    offline,
+                    setpoint: false,
+                },
+            )
+        })?;
+    DriveSettingsView::new(state, key, &held)
+}
+
+/// `?download=`.
+#[derive(Debug, Clone, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+#[serde(deny_unknown_fields)]
+pub struct DownloadQuery {
+    /// `1` (or `true`): answer as a file to save (`Content-Disposition:
+    /// attachment; filename="<drive>-settings.json"`), which `PUT
+    /// .../settings` takes back as it is.
+    #[serde(default)]
+    pub download: Option<DownloadFlag>,
+}
+
+/// A yes or no in a query: `1` or `true`, `0` or `false`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, ToSchema)]
+pub enum DownloadFlag {
+    /// Yes.
+    #[serde(rename = "1")]
+    One,
+    /// Yes.
+    #[serde(rename = "true")]
+    True,
+    /// No.
+    #[serde(rename = "0")]
+    Zero,
+    /// No.
+    #[serde(rename = "false")]
+    False,
+}
+
+impl DownloadFlag {
+    /// True for yes.
+    pub fn on(flag: Option<DownloadFlag>) -> bool {
+        matches!(flag, Some(DownloadFlag::One | DownloadFlag::True))
     }
-    DriveSettingsView::new(state, key, &DriveSettings::from_registers(&values))
 }
 
 /// The drive's setpoints and settings, read from it now (six reads at
-/// command priority).
+/// command priority): the settings document `PUT .../settings` takes.
+/// `?download=1` answers it as a file to save.
 #[utoipa::path(
     get,
     path = "/api/v1/drives/{drive}/settings",
     tag = "settings",
     security(("bearer" = ["viewer"])),
-    params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
+    params(
+        ("drive" = String, Path, description = "Drive name, or its unit number on a single bus"),
+        DownloadQuery,
+    ),
     responses(
         (status = 200, description = "The values the drive holds", body = DriveSettingsView),
         FreshReadProblems,
@@ -165,6 +196,19 @@ pub async fn get_settings(
     State(state): State<ApiState>,
     caller: Caller,
     PathParams(key): PathParams<String>,
-) -> Result<Json<DriveSettingsView>, Problem> {
-    read(&state, &caller, &key).await.map(Json)
+    Params(query): Params<DownloadQuery>,
+) -> Result<Response, Problem> {
+    let view = read(&state, &caller, &key).await?;
+    if !DownloadFlag::on(query.download) {
+        return Ok(Json(view).into_response());
+    }
+    // Drive names are letters, digits, '-', '_' and '.': safe in a header.
+    let disposition = format!("attachment; filename=\"{}-settings.json\"", view.drive);
+    let mut response = Json(view).into_response();
+    if let Ok(value) = HeaderValue::from_str(&disposition) {
+        response
+            .headers_mut()
+            .insert(header::CONTENT_DISPOSITION, value);
+    }
+    Ok(response)
 }

@@ -14,6 +14,7 @@ use super::problem::{Kind, Problem};
 use crate::bus::{BusHandle, SourceId};
 use crate::config::HttpConfig;
 use crate::control::{self, Control};
+use crate::history::History;
 use crate::metrics::Metrics;
 use crate::plant::{Drive, Plant};
 
@@ -33,6 +34,8 @@ pub struct Shared {
     pub tokens: Tokens,
     /// The control core: every write goes through it.
     pub control: Control,
+    /// Every drive's status over the last minutes (the trends).
+    pub history: Arc<History>,
     /// The stream's fan-out of bus and lease events.
     pub hub: Arc<Hub>,
     /// Fires when the daemon stops.
@@ -74,12 +77,14 @@ impl Target<'_> {
 
 impl ApiState {
     /// The state of a starting API.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         plant: Arc<Plant>,
         metrics: Arc<Metrics>,
         config: HttpConfig,
         tokens: Tokens,
         control: Control,
+        history: Arc<History>,
         hub: Arc<Hub>,
         shutdown: CancellationToken,
     ) -> Self {
@@ -89,6 +94,7 @@ impl ApiState {
             config,
             tokens,
             control,
+            history,
             hub,
             shutdown,
             sessions: TaskTracker::new(),

@@ -33,9 +33,11 @@ use tokio::task::JoinSet;
 use tokio_util::task::TaskTracker;
 use utoipa::{IntoParams, ToSchema};
 
+use super::alarms;
 use super::auth::{Caller, StreamCaller};
 use super::buses;
 use super::commands::{self, ModeBody, parse_command};
+use super::document;
 use super::drives;
 use super::extract::Params;
 use super::hub::{HubEvent, RestartDecision, ServerMessage, render};
@@ -83,11 +85,13 @@ pub enum ClientMessage {
     /// `POST .../commands/{command}`, body `{"force": bool}`), or `mode`,
     /// `setpoint`, `lease-renew`, `lease-release`, `status` (body
     /// `{"fresh": bool}`), `protection`, `speed-ramp`, `position-ramp`,
-    /// `inertia`, `rs485-control`, `replacement` with the body of the REST
-    /// route; `scan`,
+    /// `inertia`, `rs485-control`, `replacement`, `settings` (a settings
+    /// document, with `"dry_run": true` for a dry run) with the body of the
+    /// REST route; `scan`,
     /// `set-address`, `scope-arm`, `scope-trigger` and `scope-cancel` take
-    /// `bus` instead of `drive`. A setpoint's lease also ends when this
-    /// socket closes.
+    /// `bus` instead of `drive`; `alarm-ack` takes neither, its body is
+    /// `{"alarm": id}`. A setpoint's lease also ends when this socket
+    /// closes.
     Command {
         /// Any JSON value; echoed in the reply.
         id: Value,
@@ -543,7 +547,7 @@ struct FreshBody {
     fresh: bool,
 }
 
-const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, replacement, scan, set-address, scope-arm, scope-trigger, scope-cancel";
+const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, replacement, settings, scan, set-address, scope-arm, scope-trigger, scope-cancel, alarm-ack";
 
 /// Runs one stream command through the same code as its REST route.
 async fn dispatch(
@@ -554,6 +558,10 @@ async fn dispatch(
     bus: Option<String>,
     body: Option<Value>,
 ) -> Result<Value, Problem> {
+    if op == "alarm-ack" {
+        let b: alarms::AckBody = body_as(op, body)?;
+        return json(alarms::acknowledge(state, caller, b.alarm).await?);
+    }
     if matches!(
         op,
         "scan" | "set-address" | "scope-arm" | "scope-trigger" | "scope-cancel"
@@ -580,6 +588,7 @@ async fn dispatch(
             | "inertia"
             | "rs485-control"
             | "replacement"
+            | "settings"
     );
     if !known && parse_command(op).is_err() {
         return Err(Problem::invalid(format!("unknown op \"{op}\": use {OPS}")));
@@ -614,6 +623,7 @@ async fn dispatch(
             json(settings::rs485_control(state, caller, key, &body_as(op, body)?).await?)
         }
         "replacement" => json(replacement::record(state, caller, key, body_as(op, body)?)?),
+        "settings" => json(document::apply(state, caller, key, &body_as(op, body)?, false).await?),
         name => {
             let command = parse_command(name)?;
             let b: ForceBody = body_as(op, body)?;

@@ -5,6 +5,7 @@ use std::time::Duration;
 use serde::Deserialize;
 use toml::Spanned;
 
+use super::declared::{Declared, DeclaredKeys};
 use super::values::{self, Name, UnitAddress};
 use crate::bus::master::{Guard, MasterSettings};
 use crate::bus::port::Rs485Settings;
@@ -168,6 +169,10 @@ pub struct DriveConfig {
     /// Poll interval of this drive, overriding the bus's.
     #[serde(default, deserialize_with = "values::opt_int_in::<_, _, 0, 3600000>")]
     pub poll_interval_ms: Option<u64>,
+    /// `[bus.drive.settings]`: the settings the drive must hold, compared
+    /// with it whenever it comes online.
+    #[serde(default)]
+    pub settings: Option<Spanned<DeclaredKeys>>,
 }
 
 impl DriveConfig {
@@ -179,6 +184,12 @@ impl DriveConfig {
     /// The drive's name.
     pub fn name(&self) -> &str {
         self.name.get_ref().as_str()
+    }
+
+    /// Its declared settings, if it has any that hold (checked when the
+    /// configuration is loaded).
+    pub fn declared(&self) -> Option<Declared> {
+        self.settings.as_ref()?.get_ref().declared().ok()
     }
 }
 

@@ -2,13 +2,15 @@
 //! at the line and column to fix.
 //!
 //! Sections: `[http]`, `[modbus_tcp]`, `[log]`, `[safety]`, `[monitor]`,
-//! `[scope]` and one `[[bus]]`
+//! `[scope]`, `[history]` and one `[[bus]]`
 //! per serial adapter, each with its `[[bus.drive]]` list (and optional
 //! `[bus.rs485]`, `[bus.sim]`). `config/drivegate.toml` documents every key.
 
 mod bus;
+mod declared;
 mod diagnostics;
 mod error;
+mod history;
 pub mod http;
 pub mod modbus_tcp;
 mod modbus_tls;
@@ -23,8 +25,10 @@ use std::path::Path;
 use serde::Deserialize;
 
 pub use bus::{BusConfig, DriveConfig, SimSection};
+pub use declared::{ApplySettings, Declared, DeclaredKeys};
 pub use diagnostics::{MonitorConfig, ScopeConfig};
 pub use error::ConfigError;
+pub use history::HistoryConfig;
 pub use http::HttpConfig;
 pub use modbus_tcp::ModbusTcpConfig;
 pub use modbus_tls::ModbusTlsConfig;
@@ -59,6 +63,9 @@ pub struct Config {
     /// The scope (capture limits, the floor rate of the other drives).
     #[serde(default)]
     pub scope: ScopeConfig,
+    /// The trends: how long each drive's status is kept.
+    #[serde(default)]
+    pub history: HistoryConfig,
     /// The buses (serial adapters). None, or a bus without drives, is a
     /// valid configuration: the daemon waits to be told which drives to
     /// poll, and `drivegate probe` or a bus scan finds them.
@@ -134,6 +141,14 @@ impl Config {
                             bus.name()
                         ),
                     ));
+                }
+                if let Some(keys) = &drive.settings {
+                    keys.get_ref().declared().map_err(|message| {
+                        at(
+                            keys.span(),
+                            format!("drive \"{}\": {message}", drive.name()),
+                        )
+                    })?;
                 }
                 if let Some(other) = drive_names.insert(drive.name(), bus.name()) {
                     return Err(at(

@@ -60,6 +60,10 @@ pub struct SafetyConfig {
     /// Applied at start-up to every drive found moving when the safety
     /// journal could not be read: who asked for what is unknown.
     pub on_unknown_state: StopAction,
+    /// Alarms kept (in memory and in `state_dir`'s `alarms.journal`): past
+    /// it the oldest cleared and acknowledged ones go first.
+    #[serde(deserialize_with = "int_in::<_, _, 10, 100_000>")]
+    pub alarms_kept: usize,
 }
 
 impl SafetyConfig {
@@ -84,6 +88,7 @@ impl Default for SafetyConfig {
             lease_max_ms: 60_000,
             state_dir: None,
             on_unknown_state: StopAction::ZeroSpeed,
+            alarms_kept: 500,
         }
     }
 }

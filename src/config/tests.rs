@@ -286,3 +286,48 @@ fn lease_bounds_are_the_cores_and_bound_the_default_lease() {
     let e = err(&format!("[http]\nlease_min_ms = 100\n{MINIMAL}"));
     assert!(e.contains("moved to [safety] lease_min_ms"), "{e}");
 }
+
+#[test]
+fn declared_settings_are_checked_at_load() {
+    let text = format!(
+        "{MINIMAL}\n[bus.drive.settings]\napply_settings = \"on-drift\"\ninertia_ratio = 5\n[bus.drive.settings.speed_ramp]\nalpha = 5000\n[bus.drive.settings.protection]\nlimit_a = 12.0\nstall_ms = 500\n"
+    );
+    let c = parse(&text).unwrap();
+    let declared = c.buses[0].drives[0].declared().unwrap();
+    assert_eq!(declared.apply, ApplySettings::OnDrift);
+    assert!(!declared.save);
+    assert_eq!(declared.wanted.inertia_ratio, Some(5));
+    assert_eq!(declared.wanted.speed_alpha, Some(5000));
+    assert_eq!(declared.wanted.limit_counts, Some(1536));
+    assert_eq!(declared.wanted.position_alpha, None);
+    // Without apply_settings it only reports.
+    let c = parse(&format!(
+        "{MINIMAL}\n[bus.drive.settings]\ninertia_ratio = 2\n"
+    ))
+    .unwrap();
+    assert_eq!(
+        c.buses[0].drives[0].declared().unwrap().apply,
+        ApplySettings::Never
+    );
+    // Every value out of range is named, with its range and position.
+    let e = err(&format!(
+        "{MINIMAL}\n[bus.drive.settings]\ninertia_ratio = 0\n[bus.drive.settings.protection]\nstall_ms = 70000\n"
+    ));
+    assert!(
+        e.contains("protection.stall_ms: stall time 70000 ms is out of range: valid 0 to 60000 ms"),
+        "{e}"
+    );
+    assert!(
+        e.contains("inertia_ratio: load inertia ratio 0 is out of range: valid 1 to 65535"),
+        "{e}"
+    );
+    assert!(e.contains("test.toml:"), "{e}");
+    let e = err(&format!("{MINIMAL}\n[bus.drive.settings]\nsave = true\n"));
+    assert!(e.contains("declares no setting"), "{e}");
+    let e = err(&format!(
+        "{MINIMAL}\n[bus.drive.settings]\napply_settings = \"always\"\n"
+    ));
+    assert!(e.contains("never") && e.contains("on-drift"), "{e}");
+    let e = err(&format!("{MINIMAL}\n[bus.drive.settings]\ninertia = 2\n"));
+    assert!(e.contains("inertia"), "{e}");
+}

@@ -7,6 +7,8 @@
 use super::events::WriteEnd;
 use super::lease_book::LeaseEvent;
 use super::request::Write;
+use super::settings::{SettingsError, SettingsReport};
+use crate::drive::wanted::Difference;
 
 /// Logs one write: `who` is a token name or a client address, `what` the
 /// request in words, `result` the drive's answer or why it failed.
@@ -79,6 +81,20 @@ pub fn released(face: &str, who: &str, drive: &str) {
         who,
         drive,
         "lease released: the motor keeps its setpoint without a lease"
+    );
+}
+
+/// Logs an alarm acknowledged by `who` (the alarm's own raising and
+/// clearing are logged under `drivegate::alarms`).
+pub fn alarm_acknowledged(face: &str, who: &str, id: u64, kind: &str, drive: &str, text: &str) {
+    tracing::info!(
+        target: "drivegate::audit",
+        face,
+        who,
+        alarm = id,
+        kind,
+        drive,
+        "alarm acknowledged: {text}"
     );
 }
 
@@ -162,4 +178,49 @@ pub fn restart(note: &super::restart::RestartNote) {
     } else {
         tracing::warn!(target: "drivegate::audit", face = "restart", drive, who, decision, "restart: {text}")
     }
+}
+
+/// Logs a settings document refused whole: nothing was written.
+pub fn settings_refused(face: &str, who: &str, drive: &str, error: &SettingsError) {
+    let why = match error {
+        SettingsError::Invalid(refused) => refused
+            .iter()
+            .map(|r| format!("{}: {}", r.setting.key(), r.detail))
+            .collect::<Vec<_>>()
+            .join("; "),
+        SettingsError::Failed(failure) => failure.to_string(),
+    };
+    tracing::warn!(target: "drivegate::audit", face, who, drive, error = %why, "settings document refused; nothing was written");
+}
+
+/// Logs a settings document put on a drive: every setting that changed
+/// (or failed), in one line beside the lines of its writes.
+pub fn settings_applied(face: &str, who: &str, drive: &str, report: &SettingsReport) {
+    let what = report.words();
+    if report.complete() && report.read_back_error.is_none() {
+        tracing::info!(target: "drivegate::audit", face, who, drive, what, "settings document applied");
+    } else {
+        let read_back = report.read_back_error.as_deref().unwrap_or("done");
+        tracing::warn!(target: "drivegate::audit", face, who, drive, what, read_back, "settings document failed part-way");
+    }
+}
+
+/// Logs the comparison of a drive that came online with its declared
+/// settings.
+pub fn settings_checked(drive: &str, drift: &[Difference], apply: &str) {
+    if drift.is_empty() {
+        tracing::info!(target: "drivegate::audit", face = "internal", who = "declared-settings", drive, "the drive holds its declared settings");
+    } else {
+        let what = drift
+            .iter()
+            .map(Difference::words)
+            .collect::<Vec<_>>()
+            .join(", ");
+        tracing::warn!(target: "drivegate::audit", face = "internal", who = "declared-settings", drive, what, apply_settings = apply, "settings drift: the drive does not hold its declared settings");
+    }
+}
+
+/// Logs why a drive's settings could not be compared or applied.
+pub fn settings_trouble(drive: &str, why: &str) {
+    tracing::warn!(target: "drivegate::audit", face = "internal", who = "declared-settings", drive, error = why, "declared settings");
 }

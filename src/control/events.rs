@@ -13,8 +13,10 @@ use std::time::SystemTime;
 use tokio::sync::broadcast;
 
 use super::caller::{Face, SessionId};
+use super::drift::DriftChecked;
 use super::lease_book::LeaseEvent;
 use super::outcome::{Failure, Outcome, WriteResult};
+use super::settings::SettingsApplied;
 use crate::bus::BusError;
 
 /// Events held for subscribers that fall behind.
@@ -102,6 +104,21 @@ pub enum ControlEvent {
     Lease(LeaseEvent),
     /// A write, settled.
     Write(WriteEvent),
+    /// A settings document put on a drive (its writes are events too).
+    Settings(SettingsApplied),
+    /// A drive compared with its declared settings.
+    Drift(DriftChecked),
+    /// A Modbus TCP client's communication-loss function ended its lease
+    /// on `drive` (its stop follows as lease news): by silence, or
+    /// `closed` by its connection closing.
+    CommLoss {
+        /// Drive index.
+        drive: usize,
+        /// True when its connection closed.
+        closed: bool,
+    },
+    /// An alarm raised, cleared or acknowledged.
+    Alarm(super::alarms::AlarmNews),
 }
 
 impl ControlEvent {
@@ -110,6 +127,11 @@ impl ControlEvent {
         match self {
             ControlEvent::Lease(e) => Some(e.drive()),
             ControlEvent::Write(w) => w.drive,
+            ControlEvent::Settings(s) => Some(s.report.drive),
+            ControlEvent::Drift(d) => Some(d.drive),
+            ControlEvent::CommLoss { drive, .. } => Some(*drive),
+            // Every client's business: the console's banner shows them all.
+            ControlEvent::Alarm(_) => None,
         }
     }
 }

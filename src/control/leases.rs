@@ -211,6 +211,8 @@ impl Leases {
                 }
                 Effect::Event(event) => self.announce(event),
                 Effect::CommLoss { drive, closed } => {
+                    self.events
+                        .publish(Arc::new(ControlEvent::CommLoss { drive, closed }), None);
                     let count = self
                         .plant
                         .drives()

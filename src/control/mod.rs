@@ -17,10 +17,15 @@
 //!   their stops, and the rule that a brake holds;
 //! - [`outcome`]: what became of a write, typed from the bus up;
 //! - [`audit`] and [`events`]: one wording in the log, one broadcast of
-//!   lease news and writes for whoever listens.
+//!   lease news and writes for whoever listens;
+//! - [`alarms`]: what needs an operator's attention, raised from the
+//!   buses' and the core's events, kept across restarts, acknowledged
+//!   through [`Control::acknowledge_alarm`].
 
+pub mod alarms;
 pub mod audit;
 pub mod caller;
+pub mod drift;
 pub mod events;
 pub mod journal;
 pub mod lease_book;
@@ -31,6 +36,7 @@ pub mod replacement;
 pub mod request;
 pub mod restart;
 pub mod rules;
+pub mod settings;
 pub mod shutdown;
 pub mod write;
 pub mod written;
@@ -70,6 +76,15 @@ pub struct Target {
     pub drive: Option<usize>,
 }
 
+/// Why an alarm could not be acknowledged.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum AlarmError {
+    /// The caller may not.
+    Refused(Refusal),
+    /// There is no such alarm.
+    Unknown(alarms::AckError),
+}
+
 /// Why a lease could not be renewed or released.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum LeaseError {
@@ -86,6 +101,7 @@ pub struct Control(Arc<Inner>);
 struct Inner {
     plant: Arc<Plant>,
     leases: Arc<Leases>,
+    alarms: Arc<alarms::Alarms>,
     events: Arc<Events>,
     jog_lease: Duration,
     lease_bounds: LeaseBounds,
@@ -98,6 +114,8 @@ struct Inner {
     replayed: std::sync::Mutex<restart::Counts>,
     /// The replay's decisions in words, for the stream's clients.
     restart_notes: std::sync::Mutex<Vec<restart::RestartNote>>,
+    /// Drives compared with their declared settings.
+    drift: Arc<drift::DriftBook>,
 }
 
 impl Control {
@@ -105,7 +123,11 @@ impl Control {
     /// lease driver stops when `shutdown` fires.
     pub fn start(plant: Arc<Plant>, safety: &SafetyConfig, shutdown: CancellationToken) -> Self {
         let events = Arc::new(Events::default());
-        let opened = Journal::open(safety.state_dir().as_deref());
+        let state_dir = safety.state_dir();
+        let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
+        alarms.reconcile(&plant);
+        alarms.watch(&plant, events.subscribe(), &shutdown);
+        let opened = Journal::open(state_dir.as_deref());
         for news in &opened.news {
             match opened.journal.health() {
                 journal::Health::Off(_) => tracing::info!("{news}"),
@@ -117,11 +139,12 @@ impl Control {
             safety.on_lease_expiry,
             events.clone(),
             opened.journal,
-            shutdown,
+            shutdown.clone(),
         );
-        Control(Arc::new(Inner {
+        let control = Control(Arc::new(Inner {
             plant,
             leases,
+            alarms,
             events,
             jog_lease: Duration::from_millis(safety.jog_lease_ms),
             lease_bounds: LeaseBounds {
@@ -133,7 +156,15 @@ impl Control {
             journal_news: opened.news,
             replayed: std::sync::Mutex::new(restart::Counts::new()),
             restart_notes: std::sync::Mutex::new(Vec::new()),
-        }))
+            drift: Arc::new(drift::DriftBook::default()),
+        }));
+        drift::start(&control, &shutdown);
+        control
+    }
+
+    /// Drives compared with their declared settings.
+    pub fn drift(&self) -> &Arc<drift::DriftBook> {
+        &self.0.drift
     }
 
     /// Replays the safety journal (once): what the last process owed the
@@ -230,6 +261,39 @@ impl Control {
     /// Every future event of the core.
     pub fn subscribe(&self) -> broadcast::Receiver<Published> {
         self.0.events.subscribe()
+    }
+
+    /// The alarm list.
+    pub fn alarms(&self) -> &Arc<alarms::Alarms> {
+        &self.0.alarms
+    }
+
+    /// Acknowledges alarm `id` for `caller` (an operator's work), audited;
+    /// answered once the acknowledgement is on the disk.
+    pub async fn acknowledge_alarm(
+        &self,
+        caller: &Caller,
+        id: u64,
+    ) -> Result<alarms::Alarm, AlarmError> {
+        rules::role(caller, Operation::AcknowledgeAlarm.needs()).map_err(AlarmError::Refused)?;
+        let before = self.0.alarms.get(id).and_then(|a| a.ack);
+        let alarm = self
+            .0
+            .alarms
+            .acknowledge(id, &caller.who)
+            .await
+            .map_err(AlarmError::Unknown)?;
+        if before.is_none() {
+            audit::alarm_acknowledged(
+                caller.face.name(),
+                &caller.who,
+                id,
+                alarm.kind.name(),
+                alarm.drive.as_deref().unwrap_or(""),
+                &alarm.text,
+            );
+        }
+        Ok(alarm)
     }
 
     pub(crate) fn leases(&self) -> &Arc<Leases> {
@@ -356,6 +420,9 @@ impl Control {
     /// Waits for the lease driver and its stops to finish (after shutdown).
     pub async fn wait(&self) {
         self.0.leases.wait().await;
+        // The alarm file gets what the stop raised, and is closed.
+        let alarms = self.0.alarms.clone();
+        let _ = tokio::task::spawn_blocking(move || alarms.close()).await;
     }
 
     fn drive_name(&self, drive: usize) -> String {

@@ -31,6 +31,8 @@ pub enum Operation {
     /// Noting the start or end of a drive replacement in the audit log
     /// (commissioning work).
     Replacement,
+    /// Acknowledging an alarm: the operator on duty says they saw it.
+    AcknowledgeAlarm,
 }
 
 impl Operation {
@@ -42,6 +44,7 @@ impl Operation {
             Operation::Scan => Role::Admin,
             Operation::Capture => Role::Operator,
             Operation::Replacement => Role::Admin,
+            Operation::AcknowledgeAlarm => Role::Operator,
         }
     }
 }
@@ -77,6 +80,9 @@ pub enum StillReason {
     Address,
     /// Calibration and fine-tuning move the motor on their own.
     Calibration,
+    /// drivegate writes a drive's declared settings on its own
+    /// (`apply_settings = "on-drift"`): nobody is watching the machine.
+    Unattended,
 }
 
 impl StillReason {
@@ -87,6 +93,7 @@ impl StillReason {
             StillReason::FactoryReset => "a factory reset",
             StillReason::Address => "address setting",
             StillReason::Calibration => "calibration",
+            StillReason::Unattended => "applying the declared settings",
         }
     }
 
@@ -100,6 +107,9 @@ impl StillReason {
                 "a drive that takes a new address stops answering at the old one mid-motion"
             }
             StillReason::Calibration => "calibration turns the motor on its own",
+            StillReason::Unattended => {
+                "drivegate changes a drive's settings on its own only at standstill"
+            }
         }
     }
 }
@@ -220,8 +230,13 @@ fn setpoint(mode: Mode) -> Meaning {
     m
 }
 
+/// The role a drive's settings (1.8 to 1.12) need: commissioning work.
+pub fn for_settings() -> Role {
+    Role::Admin
+}
+
 fn settings(save: bool) -> Meaning {
-    let mut m = Meaning::new(Role::Admin);
+    let mut m = Meaning::new(for_settings());
     if save {
         m.still = Some(StillReason::Save);
     }

@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use super::policy::{self, Meaning};
+use super::policy::{self, Meaning, StillReason};
 use super::written::{describe, describe_pdu};
 use crate::drive::writes::{self, PduMeaning};
 use crate::drive::{DriveRequest, RangeError};
@@ -97,6 +97,9 @@ pub struct ControlRequest {
     /// For an address broadcast: the caller confirmed that only one drive
     /// is connected to the bus.
     pub single_drive: bool,
+    /// The caller's own reason for the write to need standstill, beside
+    /// what the write means (drivegate applying declared settings).
+    pub still: Option<StillReason>,
 }
 
 impl ControlRequest {
@@ -108,7 +111,21 @@ impl ControlRequest {
             lease_action: None,
             force: false,
             single_drive: false,
+            still: None,
         }
+    }
+
+    /// What the write means, with the caller's own need for standstill.
+    pub fn meaning(&self) -> Meaning {
+        let mut meaning = self.write.meaning();
+        meaning.still = meaning.still.or(self.still);
+        meaning
+    }
+
+    /// Refused while the motor turns, for `reason`, whatever it writes.
+    pub fn at_standstill(mut self, reason: StillReason) -> Self {
+        self.still = Some(reason);
+        self
     }
 
     /// One of the manual's messages.

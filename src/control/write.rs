@@ -44,7 +44,7 @@ impl Control {
         target: Target,
         request: ControlRequest,
     ) -> Result<Pending, Failure> {
-        let meaning = request.write.meaning();
+        let meaning = request.meaning();
         let mut settle = Settle::new(self, caller, target, &request.write);
         if let Err(refusal) = self.check(caller, target, &request, &meaning).await {
             return Err(settle.failed(refusal));
@@ -100,7 +100,7 @@ impl Control {
         read(&bus, caller, target.unit).await
     }
 
-    fn bus(&self, target: Target) -> Result<BusHandle, BusError> {
+    pub(crate) fn bus(&self, target: Target) -> Result<BusHandle, BusError> {
         self.plant()
             .buses()
             .get(target.bus)
@@ -120,19 +120,7 @@ impl Control {
         // The role first: a caller it refuses costs no bus time.
         rules::role(caller, meaning.needs).map_err(Failure::Refused)?;
         let bus = self.bus(target).map_err(Failure::NotSent)?;
-        let mut facts = Facts {
-            name: self.name(target),
-            bus: bus.name().to_string(),
-            drives_on_bus: self
-                .plant()
-                .drives()
-                .iter()
-                .filter(|d| d.bus == target.bus)
-                .count(),
-            lease_bounds: self.lease_bounds(),
-            active: None,
-            speeds: None,
-        };
+        let mut facts = self.facts(target, &bus);
         loop {
             match rules::decide(caller, meaning, request, target, &facts) {
                 Err(refusal) => return Err(Failure::Refused(refusal)),
@@ -157,6 +145,56 @@ impl Control {
                     facts.speeds = Some(self.speeds(&bus, caller, target, request.force).await?);
                 }
             }
+        }
+    }
+
+    /// The rules of every write of `requests` to `target`, decided before
+    /// any of them is sent, with the facts gathered once: several writes
+    /// that make one operation (a settings document) are refused whole,
+    /// before the first goes out. Nothing is audited here: each write is
+    /// checked again, and audited, when it is sent.
+    pub(crate) async fn check_all(
+        &self,
+        caller: &Caller,
+        target: Target,
+        requests: &[ControlRequest],
+    ) -> Result<(), Failure> {
+        let bus = self.bus(target).map_err(Failure::NotSent)?;
+        let mut facts = self.facts(target, &bus);
+        for request in requests {
+            let meaning = request.meaning();
+            rules::role(caller, meaning.needs).map_err(Failure::Refused)?;
+            loop {
+                match rules::decide(caller, &meaning, request, target, &facts) {
+                    Err(refusal) => return Err(Failure::Refused(refusal)),
+                    Ok(Decision::Send { .. }) => break,
+                    Ok(Decision::Read(Need::Active)) => {
+                        facts.active = Some(self.activity(&bus, caller, target).await?);
+                    }
+                    Ok(Decision::Read(Need::Speeds)) => {
+                        facts.speeds =
+                            Some(self.speeds(&bus, caller, target, request.force).await?);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// What the rules know of `target` before anything is read.
+    fn facts(&self, target: Target, bus: &BusHandle) -> Facts {
+        Facts {
+            name: self.name(target),
+            bus: bus.name().to_string(),
+            drives_on_bus: self
+                .plant()
+                .drives()
+                .iter()
+                .filter(|d| d.bus == target.bus)
+                .count(),
+            lease_bounds: self.lease_bounds(),
+            active: None,
+            speeds: None,
         }
     }
 
@@ -228,7 +266,7 @@ impl Control {
     }
 
     /// The drive at `target` in words: `drive "lift"` or `unit 7 on bus line1`.
-    fn name(&self, target: Target) -> String {
+    pub(crate) fn name(&self, target: Target) -> String {
         match target.drive.and_then(|d| self.plant().drives().get(d)) {
             Some(d) => format!("drive \"{}\"", d.name),
             None => {

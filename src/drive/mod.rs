@@ -3,12 +3,14 @@
 //! ranges and unit conversions, and typed requests and replies. No I/O here.
 
 pub(crate) mod command;
+pub mod help;
 pub(crate) mod message;
 pub(crate) mod range;
 pub(crate) mod registers;
-pub(crate) mod settings;
+pub mod settings;
 pub(crate) mod status;
 pub mod units;
+pub mod wanted;
 pub(crate) mod writes;
 
 pub use command::ConfigCommand;

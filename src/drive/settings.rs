@@ -26,7 +26,7 @@ pub(crate) const REGISTERS: usize = 11;
 
 /// What a drive holds, in its own units.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct DriveSettings {
+pub struct DriveSettings {
     /// SPEED_REF, rpm at the output.
     pub speed_rpm: i16,
     /// POSITION_REF, 0.01 degree at the output.
@@ -77,7 +77,7 @@ pub(crate) fn parse_read_reply(reply: &[u8], count: u16) -> Result<Vec<u16>, Rep
 
 impl DriveSettings {
     /// Decodes the values of [`BLOCKS`], in order.
-    pub(crate) fn from_registers(v: &[u16; REGISTERS]) -> Self {
+    pub fn from_registers(v: &[u16; REGISTERS]) -> Self {
         let alpha = |high: u16, low: u16| (u32::from(high) << 16) | u32::from(low);
         DriveSettings {
             speed_rpm: v[0] as i16,

@@ -1,5 +1,7 @@
 //! The control core's own counters, read at scrape time: the ends of the
-//! leases of Modbus TCP clients' communication-loss function, per bus.
+//! leases of Modbus TCP clients' communication-loss function, per bus,
+//! the safety journal, and the drift of drives from their declared
+//! settings.
 //! Every bus's series exist from start-up, at 0, so an alert on
 //! `increase(...) > 0` needs no `absent()`.
 
@@ -51,6 +53,43 @@ static JOURNAL_BYTES: Spec = Spec {
     labels: &[],
 };
 
+static DRIFT: Spec = Spec {
+    name: "drivegate_drive_settings_drift",
+    help: "1 while a drive with declared settings ([bus.drive.settings]) is known not to hold \
+           them, 0 once it was compared and holds them; no series before its first comparison \
+           (it compares when the drive comes online) nor for drives without a declaration.",
+    kind: Kind::Gauge,
+    labels: &["bus", "unit", "name"],
+};
+
+static ALARMS_ACTIVE: Spec = Spec {
+    name: "drivegate_alarms_active",
+    help: "Active alarms by kind: fault, stall, offline, bus-down, stop-failed (conditions that            last), comm-loss and refused-write (events: never active, see            drivegate_alarms_unacknowledged).",
+    kind: Kind::Gauge,
+    labels: &["kind"],
+};
+
+static ALARMS_UNACKED: Spec = Spec {
+    name: "drivegate_alarms_unacknowledged",
+    help: "Alarms no operator has acknowledged yet, active or not (GET /api/v1/alarms).",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
+static ALARM_FILE_BYTES: Spec = Spec {
+    name: "drivegate_alarm_file_bytes",
+    help: "Size of the alarm file (alarms.journal in [safety] state_dir); 0 without one.",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
+static ALARM_FILE_OK: Spec = Spec {
+    name: "drivegate_alarm_file_ok",
+    help: "1 when the alarm file is written and synced (or there is no state directory); 0            when it cannot be written (alarms are then kept in memory until it can).",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
 /// Exports the control core's counters.
 pub(crate) struct ControlCollector {
     control: Control,
@@ -67,6 +106,11 @@ impl ControlCollector {
                 JOURNAL_OK.desc(),
                 JOURNAL_EVENTS.desc(),
                 JOURNAL_BYTES.desc(),
+                DRIFT.desc(),
+                ALARMS_ACTIVE.desc(),
+                ALARMS_UNACKED.desc(),
+                ALARM_FILE_BYTES.desc(),
+                ALARM_FILE_OK.desc(),
             ],
         }
     }
@@ -103,12 +147,38 @@ impl Collector for ControlCollector {
         events.set(&["unreadable"], c.unreadable as f64);
         let mut bytes = JOURNAL_BYTES.family();
         bytes.set(&[], c.bytes as f64);
+        let mut drift = DRIFT.family();
+        let plant = self.control.plant();
+        for d in plant.drives().iter().filter(|d| d.declared.is_some()) {
+            if let Some(view) = self.control.drift().view(&d.name) {
+                let unit = d.unit.to_string();
+                let bus = plant.handle_of(d).name();
+                drift.set_bool(&[bus, unit.as_str(), d.name.as_str()], view.drifted());
+            }
+        }
+        let summary = self.control.alarms().summary();
+        let mut active = ALARMS_ACTIVE.family();
+        for (kind, n) in &summary.active {
+            active.set(&[kind.name()], *n as f64);
+        }
+        let mut unacked = ALARMS_UNACKED.family();
+        unacked.set(&[], summary.unacknowledged as f64);
+        let file = self.control.alarms().file_state();
+        let mut file_bytes = ALARM_FILE_BYTES.family();
+        file_bytes.set(&[], file.bytes as f64);
+        let mut file_ok = ALARM_FILE_OK.family();
+        file_ok.set(&[], f64::from(u8::from(file.failing.is_none())));
         vec![
             comm_loss.finish(),
+            drift.finish(),
             replayed.finish(),
             ok.finish(),
             events.finish(),
             bytes.finish(),
+            active.finish(),
+            unacked.finish(),
+            file_bytes.finish(),
+            file_ok.finish(),
         ]
     }
 }

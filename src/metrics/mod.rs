@@ -7,7 +7,9 @@
 //!   state (and the simulator's wire counters) at scrape time,
 //! - `wire`: per-attempt wire errors per bus and unit, the bus monitor's
 //!   and the scope's figures,
-//! - `control`: the control core's counters (communication-loss lease ends),
+//! - `control`: the control core's counters (communication-loss lease ends,
+//!   the safety journal, the alarms),
+//! - `history`: the memory the trends take,
 //! - `utilisation`: the sampler behind `drivegate_bus_utilisation_ratio`,
 //! - `process`: build information and the process's own resources,
 //! - `family`: the plumbing that turns those values into families.
@@ -20,6 +22,7 @@ mod control;
 mod drives;
 mod faces;
 mod family;
+mod history;
 mod process;
 mod security;
 mod utilisation;
@@ -86,6 +89,16 @@ impl Metrics {
             .register(Box::new(control::ControlCollector::new(control.clone())))
         {
             tracing::warn!("the control core's metrics are not exported: {e}");
+        }
+    }
+
+    /// Exports the memory the trends take.
+    pub fn watch_history(&self, history: &Arc<crate::history::History>) {
+        if let Err(e) = self
+            .registry
+            .register(Box::new(history::HistoryCollector::new(history.clone())))
+        {
+            tracing::warn!("the history's metrics are not exported: {e}");
         }
     }
 

@@ -14,6 +14,7 @@ use super::model::{DriveModel, SimDriveView};
 use super::slave;
 use super::stats::{GapHistogram, SimStats};
 use crate::modbus::crc::crc_bytes;
+use crate::modbus::function::{WRITE_MULTIPLE_REGISTERS, WRITE_SINGLE_REGISTER};
 use crate::modbus::rtu_frame;
 
 /// A drive and the time its model was last advanced to.
@@ -53,6 +54,9 @@ pub struct Bus {
     gaps: GapHistogram,
     pdu: Vec<u8>,
     scratch: Vec<u8>,
+    /// Units that go silent once they have carried out this many more
+    /// writes (a drive that stops answering part-way through a sequence).
+    silent_after_writes: Vec<(u8, u32)>,
 }
 
 impl Bus {
@@ -78,6 +82,7 @@ impl Bus {
             gaps: GapHistogram::default(),
             pdu: Vec::with_capacity(256),
             scratch: Vec::with_capacity(256),
+            silent_after_writes: Vec::new(),
         }
     }
 
@@ -114,6 +119,34 @@ impl Bus {
     /// Makes `unit` silent or lets it answer again.
     pub fn set_silent(&mut self, unit: u8, silent: bool) {
         self.faults.set_silent(unit, silent);
+    }
+
+    /// Makes `unit` silent once it has carried out `writes` more writes
+    /// (function 0x06 or 0x10): reads do not count, so a sequence of writes
+    /// can be cut after its first whatever the polls between them.
+    pub fn silence_after_writes(&mut self, unit: u8, writes: u32) {
+        self.silent_after_writes.retain(|&(u, _)| u != unit);
+        if writes == 0 {
+            self.set_silent(unit, true);
+        } else {
+            self.silent_after_writes.push((unit, writes));
+        }
+    }
+
+    /// Counts a write `unit` carried out, silencing it after its last.
+    fn count_write(&mut self, unit: u8) {
+        let Some(entry) = self
+            .silent_after_writes
+            .iter_mut()
+            .find(|(u, _)| *u == unit)
+        else {
+            return;
+        };
+        entry.1 = entry.1.saturating_sub(1);
+        if entry.1 == 0 {
+            self.silent_after_writes.retain(|&(u, _)| u != unit);
+            self.set_silent(unit, true);
+        }
     }
 
     /// The drive answering to `unit` (its address now), advanced to `now`.
@@ -203,6 +236,12 @@ impl Bus {
         }
         if answering > 1 {
             self.stats.collisions += 1;
+        }
+        if matches!(
+            pdu.first(),
+            Some(&(WRITE_SINGLE_REGISTER | WRITE_MULTIPLE_REGISTERS))
+        ) {
+            self.count_write(unit);
         }
         let fate = self.faults.decide();
         if fate.drop {
@@ -331,6 +370,22 @@ mod tests {
         let later = now + Duration::from_millis(301);
         assert!(send(&mut bus, 1, DriveRequest::ReadStatus, later).is_some());
         assert_eq!(bus.stats().unanswered, 2);
+    }
+
+    #[test]
+    fn a_unit_can_go_silent_after_some_writes() {
+        let (mut bus, now) = bus(&[1]);
+        bus.silence_after_writes(1, 2);
+        let inertia = |ratio| DriveRequest::LoadInertia { ratio, save: false };
+        assert!(send(&mut bus, 1, inertia(2), now).is_some());
+        // Reads do not count.
+        assert!(send(&mut bus, 1, DriveRequest::ReadStatus, now).is_some());
+        assert!(send(&mut bus, 1, inertia(3), now).is_some());
+        assert_eq!(send(&mut bus, 1, DriveRequest::ReadStatus, now), None);
+        assert_eq!(send(&mut bus, 1, inertia(4), now), None);
+        assert_eq!(bus.drive(1, now).unwrap().view().settings.inertia_ratio, 3);
+        bus.set_silent(1, false);
+        assert!(send(&mut bus, 1, DriveRequest::ReadStatus, now).is_some());
     }
 
     #[test]

@@ -152,6 +152,14 @@ impl SimHandle {
         lock(&self.bus).set_silent(unit, silent);
     }
 
+    /// Makes `unit` stop answering once it has carried out `writes` more
+    /// writes (reads do not count): a drive that stops answering part-way
+    /// through a sequence of writes. [`set_silent`](Self::set_silent)
+    /// lets it answer again.
+    pub fn silence_after_writes(&self, unit: u8, writes: u32) {
+        lock(&self.bus).silence_after_writes(unit, writes);
+    }
+
     /// A snapshot of the drive at `unit` (its address now).
     pub fn drive(&self, unit: u8) -> Option<SimDriveView> {
         self.with_drive(unit, |d| d.view()).ok()
@@ -177,6 +185,15 @@ impl SimHandle {
     /// time, then comes back with what its flash holds.
     pub fn power_cycle(&self, unit: u8) -> Result<(), SimError> {
         self.with_drive(unit, DriveModel::power_cycle)
+    }
+
+    /// Replaces the drive at `unit` with a new one at the same address,
+    /// fresh from the factory (factory settings, inactive): silent for the
+    /// reboot time, then back. Keep it silent meanwhile
+    /// ([`set_silent`](Self::set_silent)) for a replacement the poller
+    /// sees as offline, then online.
+    pub fn replace(&self, unit: u8) -> Result<(), SimError> {
+        self.with_drive(unit, DriveModel::replace)
     }
 
     /// Load torque at the gearbox output of the drive at `unit`, N·m

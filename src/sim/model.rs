@@ -339,6 +339,17 @@ impl DriveModel {
         }
     }
 
+    /// Swaps the drive for a new one of the same kind, fresh from the
+    /// factory and given this one's address (as a technician does before
+    /// fitting it): silent for its reboot time, then back with the factory
+    /// settings, inactive. Its encoder calibration is as this one's.
+    pub fn replace(&mut self) {
+        self.flash.settings = Settings::FACTORY;
+        self.flash.active = false;
+        self.saves_while_moving = 0;
+        self.power_cycle();
+    }
+
     /// Sets the load, supply and ambient around the drive.
     pub fn set_environment(&mut self, env: Environment) {
         self.motor.set_environment(env);

@@ -11,11 +11,14 @@
 #[path = "../support/mod.rs"]
 mod support;
 
+mod alarms;
 mod auth;
 mod buses;
 mod commands;
 mod drives;
 mod errors;
+mod history;
 mod leases;
 mod openapi;
+mod settings;
 mod stream;

@@ -164,10 +164,22 @@ async fn every_modbus_tcp_outcome_has_its_series_from_start_up() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn exposition_passes_promtool_lint() {
     bounded(LIMIT, async {
-        let d = TestDaemon::start(FOUR_DRIVES).await;
+        // The feeder declares settings, so its drift is exported too.
+        let d = TestDaemon::start(
+            &ConfigBuilder::four_drives()
+                .with_bus("sim", |b| {
+                    b.drive_keys("feeder", "settings = { inertia_ratio = 2 }")
+                })
+                .toml(),
+        )
+        .await;
         // Writes, a fault and the faces' counters (as the HTTP and Modbus
         // TCP faces count), so every kind of series exists.
         run_at_speed(&d, "conveyor", 50).await;
+        eventually(Duration::from_secs(10), "the feeder's drift", || {
+            d.control().drift().view("feeder")
+        })
+        .await;
         let faces = d.metrics.faces();
         faces.http_request(
             "/api/v1/drives/{drive}",

@@ -45,7 +45,7 @@ async fn config_and_rules_pass_promtool() {
     let (ok, out) = promtool(&["check", "config", "prometheus.yml"], &dir).await;
     assert!(ok, "{out}");
     let (ok, out) = promtool(&["check", "rules", "alerts.yml"], &dir).await;
-    assert!(ok && out.contains("SUCCESS: 14 rules found"), "{out}");
+    assert!(ok && out.contains("SUCCESS: 15 rules found"), "{out}");
     let (ok, out) = promtool(&["test", "rules", "alerts_test.yml"], &dir).await;
     assert!(ok && out.contains("SUCCESS"), "{out}");
 

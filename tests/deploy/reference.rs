@@ -100,6 +100,7 @@ max_age_ms = 250
         &["safety"],
         &["monitor"],
         &["scope"],
+        &["history"],
         &["bus"],
         &["bus", "rs485"],
         &["bus", "drive"],
@@ -168,7 +169,15 @@ fn every_value_the_reference_shows_is_the_default() {
             differ.push(format!("[{table}] {key} = {value}"));
         }
     };
-    for section in ["http", "modbus_tcp", "log", "safety", "monitor", "scope"] {
+    for section in [
+        "http",
+        "modbus_tcp",
+        "log",
+        "safety",
+        "monitor",
+        "scope",
+        "history",
+    ] {
         for (key, value) in doc[section].as_table().unwrap() {
             check(section, key, value);
         }

@@ -666,7 +666,8 @@ async fn unknown_routes_are_404_and_wrong_methods_405_with_allow() {
             let target = path
                 .replace("{drive}", "lift")
                 .replace("{bus}", "sim")
-                .replace("{command}", "activate");
+                .replace("{command}", "activate")
+                .replace("{id}", "1");
             let allowed: Vec<String> = ops
                 .as_object()
                 .unwrap()

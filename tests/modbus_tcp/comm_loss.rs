@@ -506,3 +506,56 @@ async fn action_none_shows_and_counts_the_loss_and_leaves_the_motor_turning() {
     .await
     .expect("test finished in time");
 }
+
+/// A communication-loss stop is an alarm (kind `comm-loss`) that waits for
+/// an operator's acknowledgement, whatever the PLC does next; here a raw
+/// MBAP client that closes its connection.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_communication_loss_stop_raises_an_alarm() {
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config("comm_loss_ms = 60000")).await;
+        let api = Api::new(d.http, None);
+        let mut ws = connect(d.http, "?drives=conveyor", None).await;
+        let mut plc = Raw::connect(d.modbus_tcp.unwrap()).await;
+        plc.ask(CONVEYOR, &write(CONFIG, ACTIVATE)).await;
+        plc.ask(CONVEYOR, &write(CONFIG, SPEED_MODE)).await;
+        plc.ask(CONVEYOR, &write(SPEED_REF, RPM)).await;
+        eventually(EVENT, "the conveyor's lease", || {
+            d.control().lease(0).map(|_| ())
+        })
+        .await;
+        drop(plc);
+        let raised = wait_for(&mut ws, EVENT, "the comm-loss alarm", |v| {
+            v["type"] == "alarm-raised" && v["alarm"]["kind"] == "comm-loss"
+        })
+        .await;
+        let alarm = &raised["alarm"];
+        assert_eq!(alarm["drive"], "conveyor", "{alarm:#}");
+        assert!(
+            alarm["text"]
+                .as_str()
+                .unwrap()
+                .contains("its connection closed"),
+            "{alarm:#}"
+        );
+        assert!(
+            alarm["help"].as_str().unwrap().contains("comm_loss_ms"),
+            "{alarm:#}"
+        );
+        let list = api
+            .get("/api/v1/alarms?unacknowledged=true")
+            .await
+            .expect(200);
+        assert!(
+            list["alarms"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|a| a["id"] == alarm["id"]),
+            "{list:#}"
+        );
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}

@@ -9,11 +9,11 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use crate::support::TestDaemon;
 use crate::support::input::{
     ADMIN, OPERATOR, RawAnswer, VIEWER, check_answer, config, raw_http, request, writes_on_wire,
 };
 use crate::support::logs::{capture_logs, log_text};
+use crate::support::{TestDaemon, replaced};
 use drivegate::control::policy::{self, Role};
 use drivegate::drive::ConfigCommand;
 use futures_util::{SinkExt, StreamExt};
@@ -99,6 +99,10 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
             (Some(json!({"enabled": true})), Some("rs485-control")),
         ),
         (
+            "put_settings",
+            (Some(json!({"inertia_ratio": 1})), Some("settings")),
+        ),
+        (
             "post_scan",
             (Some(json!({"from": 1, "to": 2})), Some("scan")),
         ),
@@ -123,6 +127,9 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
             "post_replacement",
             (Some(json!({"event": "started"})), Some("replacement")),
         ),
+        // An acknowledgement is the operator's (alarm 1 may not exist yet:
+        // a right role then meets 404); on the stream the id is the body's.
+        ("post_ack", (None, Some("alarm-ack"))),
     ])
 }
 
@@ -154,7 +161,10 @@ fn writes(doc: &Value) -> Vec<Write> {
             let (body, op_name) = bodies.get(id).cloned().unwrap_or_else(|| {
                 panic!("{method} {path} ({id}) is new: give it a body in bodies()")
             });
-            let target = path.replace("{drive}", "lift").replace("{bus}", "sim");
+            let target = path
+                .replace("{drive}", "lift")
+                .replace("{bus}", "sim")
+                .replace("{id}", "1");
             let in_stream = |name: &str, body: &Option<Value>| {
                 let mut m = json!({"type": "command", "op": name});
                 if path.contains("{bus}") {
@@ -164,6 +174,9 @@ fn writes(doc: &Value) -> Vec<Write> {
                 }
                 if let Some(b) = body {
                     m["body"] = b.clone();
+                }
+                if path.contains("{id}") {
+                    m["body"] = json!({"alarm": 1});
                 }
                 m
             };
@@ -250,8 +263,14 @@ fn problem_type(a: &RawAnswer) -> String {
 
 /// Every route is tried with wrong tokens: more than the pause after
 /// token guesses would let through (tests/security/tokens.rs tests it).
+/// The lift declares a setting, so its declaration can be read too.
 async fn daemon() -> TestDaemon {
-    TestDaemon::start(&config("token_guesses = 1000000", "", true, "")).await
+    let text = replaced(
+        &config("token_guesses = 1000000", "", true, ""),
+        "name = \"lift\"\ngear_ratio = 10.0\n",
+        "name = \"lift\"\ngear_ratio = 10.0\nsettings = { inertia_ratio = 1 }\n",
+    );
+    TestDaemon::start(&text).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -15,6 +15,10 @@
 //! of a newer drivegate, readable as "not mine" rather than as garbage.
 //! The payload is JSON so an engineer can read a journal with a few lines
 //! of script, and a field added later is ignored by an older reader.
+//!
+//! The framing is not the safety journal's alone: [`Kind`] names a file's
+//! magic and version, and [`header_of`], [`frame`] and [`decode_as`] read
+//! and write any record type in it (the alarm book's file uses them).
 
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -22,6 +26,25 @@ use serde::{Deserialize, Serialize};
 
 /// The first 8 bytes of a journal.
 pub const MAGIC: &[u8; 8] = b"DRVGJRNL";
+
+/// A kind of framed file: its magic, its format version, and its name in
+/// words (for the errors).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Kind {
+    /// The first 8 bytes.
+    pub magic: &'static [u8; 8],
+    /// The format version this drivegate writes and reads.
+    pub version: u32,
+    /// What it is, as in "it is not a drivegate ...".
+    pub what: &'static str,
+}
+
+/// The safety journal.
+pub const SAFETY_JOURNAL: Kind = Kind {
+    magic: MAGIC,
+    version: VERSION,
+    what: "safety journal",
+};
 /// The format this drivegate writes and reads.
 pub const VERSION: u32 = 1;
 /// Header length: the magic and the version.
@@ -168,14 +191,24 @@ pub fn from_unix_ms(ms: u64) -> SystemTime {
 
 /// The header of a new journal.
 pub fn header() -> Vec<u8> {
+    header_of(SAFETY_JOURNAL)
+}
+
+/// The header of a new file of `kind`.
+pub fn header_of(kind: Kind) -> Vec<u8> {
     let mut out = Vec::with_capacity(HEADER_LEN);
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(kind.magic);
+    out.extend_from_slice(&kind.version.to_le_bytes());
     out
 }
 
 /// One record, framed.
 pub fn encode(record: &Record) -> Vec<u8> {
+    frame(record)
+}
+
+/// Any record, as JSON, framed (its length and CRC-32 before it).
+pub fn frame<T: Serialize>(record: &T) -> Vec<u8> {
     // A record of strings and numbers always serializes.
     let payload = serde_json::to_vec(record).unwrap_or_default();
     let mut out = Vec::with_capacity(FRAME_LEN + payload.len());
@@ -189,11 +222,16 @@ pub fn encode(record: &Record) -> Vec<u8> {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum Unreadable {
     /// The file does not start with the magic.
-    #[error("it is not a drivegate safety journal (its first bytes are not \"DRVGJRNL\")")]
-    NotAJournal,
+    #[error("it is not a drivegate {} (its first bytes are not \"{}\")", .0.what, String::from_utf8_lossy(.0.magic))]
+    NotAJournal(Kind),
     /// Another version of the format.
-    #[error("it is in format version {0}; this drivegate reads version {VERSION}")]
-    Version(u32),
+    #[error("it is in format version {found}; this drivegate reads version {reads}")]
+    Version {
+        /// The file's.
+        found: u32,
+        /// This drivegate's.
+        reads: u32,
+    },
     /// A bad record with more after it: not a torn append.
     #[error("record {index} at byte {offset} is damaged ({why}) and more follows it")]
     Damaged {
@@ -210,10 +248,13 @@ pub enum Unreadable {
 }
 
 /// A journal read back.
+pub type Decoded = DecodedAs<Record>;
+
+/// A framed file read back.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Decoded {
+pub struct DecodedAs<T> {
     /// Its records, in order.
-    pub records: Vec<Record>,
+    pub records: Vec<T>,
     /// Bytes of good records, header included: where the next append goes.
     pub good_len: usize,
     /// Bytes of a torn last record ignored (0: none).
@@ -223,8 +264,18 @@ pub struct Decoded {
 /// Reads a journal's bytes. An empty file is an empty journal (a crash
 /// while creating it); a torn last record is left out and counted.
 pub fn decode(bytes: &[u8]) -> Result<Decoded, Unreadable> {
+    decode_as(SAFETY_JOURNAL, bytes)
+}
+
+/// Reads the bytes of a file of `kind` with records of type `T`, as
+/// [`decode`] reads a journal.
+pub fn decode_as<T: serde::de::DeserializeOwned>(
+    kind: Kind,
+    bytes: &[u8],
+) -> Result<DecodedAs<T>, Unreadable> {
+    let magic = kind.magic;
     if bytes.is_empty() {
-        return Ok(Decoded {
+        return Ok(DecodedAs {
             records: Vec::new(),
             good_len: 0,
             torn: 0,
@@ -233,28 +284,31 @@ pub fn decode(bytes: &[u8]) -> Result<Decoded, Unreadable> {
     if bytes.len() < HEADER_LEN {
         // A header cut short is a journal torn while it was created, if
         // what there is matches.
-        let n = bytes.len().min(MAGIC.len());
-        if bytes[..n] == MAGIC[..n] {
-            return Ok(Decoded {
+        let n = bytes.len().min(magic.len());
+        if bytes[..n] == magic[..n] {
+            return Ok(DecodedAs {
                 records: Vec::new(),
                 good_len: 0,
                 torn: bytes.len(),
             });
         }
-        return Err(Unreadable::NotAJournal);
+        return Err(Unreadable::NotAJournal(kind));
     }
-    if &bytes[..8] != MAGIC {
-        return Err(Unreadable::NotAJournal);
+    if &bytes[..8] != magic {
+        return Err(Unreadable::NotAJournal(kind));
     }
     let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
-    if version != VERSION {
-        return Err(Unreadable::Version(version));
+    if version != kind.version {
+        return Err(Unreadable::Version {
+            found: version,
+            reads: kind.version,
+        });
     }
     let mut records = Vec::new();
     let mut at = HEADER_LEN;
     while at < bytes.len() {
         let rest = &bytes[at..];
-        let torn = |why| -> Result<Decoded, Unreadable> {
+        let torn = |why| -> Result<DecodedAs<T>, Unreadable> {
             Err(Unreadable::Damaged {
                 index: records.len(),
                 offset: at,
@@ -279,13 +333,13 @@ pub fn decode(bytes: &[u8]) -> Result<Decoded, Unreadable> {
             }
             return torn("its CRC does not match");
         }
-        match serde_json::from_slice::<Record>(payload) {
+        match serde_json::from_slice::<T>(payload) {
             Ok(record) => records.push(record),
             Err(_) => return torn("its CRC matches but its content is not a known record"),
         }
         at += FRAME_LEN + len;
     }
-    Ok(Decoded {
+    Ok(DecodedAs {
         records,
         good_len: at,
         torn: bytes.len() - at,
@@ -396,13 +450,15 @@ mod tests {
 
     #[test]
     fn other_files_and_versions_are_not_read() {
+        let not = decode(b"hello, this is not a journal");
+        assert_eq!(not, Err(Unreadable::NotAJournal(SAFETY_JOURNAL)));
         assert_eq!(
-            decode(b"hello, this is not a journal"),
-            Err(Unreadable::NotAJournal)
+            not.unwrap_err().to_string(),
+            "it is not a drivegate safety journal (its first bytes are not \"DRVGJRNL\")"
         );
         let mut v2 = journal(&[]);
         v2[8] = 2;
-        assert_eq!(decode(&v2), Err(Unreadable::Version(2)));
+        assert_eq!(decode(&v2), Err(Unreadable::Version { found: 2, reads: 1 }));
         // An impossible length.
         let mut long = journal(&[]);
         long.extend_from_slice(&u32::MAX.to_le_bytes());

@@ -115,6 +115,22 @@ fn activation_is_kept_over_power_loss() {
 }
 
 #[test]
+fn a_replaced_drive_comes_back_from_the_factory_at_the_same_address() {
+    let mut d = drive();
+    command(&mut d, ConfigCommand::Activate);
+    d.write(Register::InertiaRatio, 7).unwrap();
+    d.write(Register::InertiaRatioSaveFlag, 1).unwrap();
+    d.replace();
+    assert!(!d.online());
+    d.advance(0.31);
+    assert!(d.online());
+    assert_eq!(d.address(), 1);
+    assert!(!d.status().active());
+    assert_eq!(d.read(Register::InertiaRatio), 1);
+    assert_eq!(d.view().flash.settings, Settings::FACTORY);
+}
+
+#[test]
 fn mode_commands_set_the_mode_bits() {
     let mut d = drive();
     for (c, mode) in [

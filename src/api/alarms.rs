@@ -1,0 +1,245 @@
+//! `GET /api/v1/alarms` and `POST /api/v1/alarms/{id}/ack`: the alarm list
+//! the core keeps ([`crate::control::alarms`]), and its acknowledgement,
+//! which the core authorises (an operator's work) and audits. The same
+//! alarm shape goes on the stream (`alarm-raised`, `alarm-cleared`,
+//! `alarm-acknowledged`).
+
+use axum::Json;
+use axum::extract::State;
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+
+use super::auth::{Caller, forbidden};
+use super::extract::{Params, PathParams};
+use super::openapi::ReadProblems;
+use super::problem::{Kind, Problem, ProblemDetails};
+use super::state::ApiState;
+use crate::control::alarms::Alarm;
+use crate::control::journal::format::from_unix_ms;
+use crate::control::{AlarmError, Rule};
+use crate::timestamp::{parse_time, rfc3339};
+
+/// One alarm.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct AlarmView {
+    /// Its number (for the acknowledgement), unique for the life of the
+    /// state directory.
+    pub id: u64,
+    /// What it is about: `fault`, `stall`, `offline`, `bus-down`,
+    /// `comm-loss` (a Modbus TCP client's communication-loss stop),
+    /// `stop-failed` (a lease's stop not confirmed) or `refused-write` (a
+    /// write refused by a safety rule).
+    pub kind: String,
+    /// The bus.
+    pub bus: String,
+    /// The drive; `null` for a bus-wide alarm (`bus-down`, a refused
+    /// broadcast).
+    pub drive: Option<String>,
+    /// The drive's fault code 1..7 for a `fault` (manual 1.7), else 0.
+    pub code: u16,
+    /// What happened, in words.
+    pub text: String,
+    /// What it means and what to check, from the drive's manual.
+    pub help: String,
+    /// When it was raised (RFC 3339, UTC).
+    pub raised_at: String,
+    /// True while its condition lasts (a fault, a stall, an offline drive,
+    /// a bus down, a stop not confirmed). An event (`comm-loss`,
+    /// `refused-write`) is never active: it is over when it is raised.
+    pub active: bool,
+    /// When its condition ended (for an event: when it was raised);
+    /// `null` while active.
+    pub cleared_at: Option<String>,
+    /// True once an operator acknowledged it.
+    pub acknowledged: bool,
+    /// Who acknowledged it (token name, or client address without tokens).
+    pub acknowledged_by: Option<String>,
+    /// When (RFC 3339, UTC).
+    pub acknowledged_at: Option<String>,
+    /// Times it happened: an event that came again before it was
+    /// acknowledged counts up here instead of raising a new alarm.
+    pub count: u32,
+    /// When it last happened (RFC 3339, UTC).
+    pub last_at: String,
+}
+
+impl From<&Alarm> for AlarmView {
+    fn from(a: &Alarm) -> Self {
+        let at = |ms: u64| rfc3339(from_unix_ms(ms));
+        AlarmView {
+            id: a.id,
+            kind: a.kind.name().to_string(),
+            bus: a.bus.clone(),
+            drive: a.drive.clone(),
+            code: a.code,
+            text: a.text.clone(),
+            help: a.help.clone(),
+            raised_at: at(a.raised_ms),
+            active: a.active(),
+            cleared_at: a.cleared_ms.map(at),
+            acknowledged: a.ack.is_some(),
+            acknowledged_by: a.ack.as_ref().map(|k| k.by.clone()),
+            acknowledged_at: a.ack.as_ref().map(|k| at(k.at_ms)),
+            count: a.count,
+            last_at: at(a.last_ms),
+        }
+    }
+}
+
+/// Which alarms; every filter is optional.
+#[derive(Debug, Clone, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct AlarmQuery {
+    /// `true`: only active ones; `false`: only cleared ones.
+    pub active: Option<bool>,
+    /// `true`: only those not acknowledged yet; `false`: only acknowledged
+    /// ones.
+    pub unacknowledged: Option<bool>,
+    /// Only this drive's (its name).
+    pub drive: Option<String>,
+    /// Only those raised, repeated, cleared or acknowledged at or after
+    /// this time: RFC 3339 (`2026-11-25T01:00:00Z`) or Unix milliseconds.
+    pub since: Option<String>,
+}
+
+/// The alarm list.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct AlarmList {
+    /// The alarms the filters let through, newest first.
+    pub alarms: Vec<AlarmView>,
+    /// Active alarms in the whole list (whatever the filters).
+    pub active: u64,
+    /// Alarms not acknowledged in the whole list (whatever the filters):
+    /// the console shows its banner while this is not 0.
+    pub unacknowledged: u64,
+    /// Alarms kept at most (`[safety] alarms_kept`): past it the oldest
+    /// cleared and acknowledged ones are dropped first.
+    pub kept_at_most: usize,
+}
+
+/// The alarms, newest first: faults, stalls, drives offline, buses down,
+/// communication-loss stops, stops not confirmed and writes refused by a
+/// safety rule, with what they mean and what to check; kept across
+/// restarts in `[safety] state_dir`.
+#[utoipa::path(
+    get,
+    path = "/api/v1/alarms",
+    tag = "alarms",
+    security(("bearer" = ["viewer"])),
+    params(AlarmQuery),
+    responses(
+        (status = 200, description = "The alarms, newest first, and the counts of the whole list", body = AlarmList),
+        ReadProblems,
+    )
+)]
+pub async fn list_alarms(
+    State(state): State<ApiState>,
+    _caller: Caller,
+    Params(query): Params<AlarmQuery>,
+) -> Result<Json<AlarmList>, Problem> {
+    let since = match &query.since {
+        None => None,
+        Some(text) => Some(
+            parse_time(text)
+                .map(crate::control::journal::format::unix_ms)
+                .ok_or_else(|| {
+                    Problem::invalid(format!(
+                        "since = {text:?} is not a time: give RFC 3339 (2026-11-25T01:00:00Z) or Unix milliseconds"
+                    ))
+                })?,
+        ),
+    };
+    if let Some(drive) = &query.drive {
+        // A drive that is not configured (any more) may still have alarms.
+        let known = state.plant.drives().iter().any(|d| &d.name == drive)
+            || state
+                .control
+                .alarms()
+                .list()
+                .iter()
+                .any(|a| a.drive.as_ref() == Some(drive));
+        if !known {
+            return Err(Problem::new(
+                Kind::UnknownDrive,
+                format!("no drive named \"{drive}\" is configured or has alarms"),
+            ));
+        }
+    }
+    let alarms = state.control.alarms();
+    let summary = alarms.summary();
+    let list = alarms
+        .list()
+        .iter()
+        .rev()
+        .filter(|a| query.active.is_none_or(|want| a.active() == want))
+        .filter(|a| {
+            query
+                .unacknowledged
+                .is_none_or(|want| a.ack.is_none() == want)
+        })
+        .filter(|a| query.drive.is_none() || a.drive == query.drive)
+        .filter(|a| {
+            since.is_none_or(|s| {
+                a.raised_ms >= s
+                    || a.last_ms >= s
+                    || a.cleared_ms.is_some_and(|c| c >= s)
+                    || a.ack.as_ref().is_some_and(|k| k.at_ms >= s)
+            })
+        })
+        .map(AlarmView::from)
+        .collect();
+    Ok(Json(AlarmList {
+        alarms: list,
+        active: summary.active.values().sum(),
+        unacknowledged: summary.unacknowledged,
+        kept_at_most: alarms.kept_at_most(),
+    }))
+}
+
+/// Acknowledges an alarm (operator): the alarm says who and when, the
+/// audit log has a line, and the stream an `alarm-acknowledged` message.
+/// Acknowledging an alarm already acknowledged keeps the first
+/// acknowledgement and answers it. An active alarm stays active until its
+/// condition ends.
+#[utoipa::path(
+    post,
+    path = "/api/v1/alarms/{id}/ack",
+    tag = "alarms",
+    security(("bearer" = ["operator"])),
+    params(("id" = u64, Path, description = "The alarm's number")),
+    responses(
+        (status = 200, description = "The alarm, acknowledged", body = AlarmView),
+        (status = 400, description = "`invalid-request`: the id is not a number", body = ProblemDetails, content_type = "application/problem+json"),
+        (status = 401, description = "`unauthorized`", body = ProblemDetails, content_type = "application/problem+json"),
+        (status = 403, description = "`forbidden`: needs the operator role", body = ProblemDetails, content_type = "application/problem+json"),
+        (status = 404, description = "`not-found`: no such alarm (or it was dropped to keep the list within its bound)", body = ProblemDetails, content_type = "application/problem+json"),
+    )
+)]
+pub async fn post_ack(
+    State(state): State<ApiState>,
+    caller: Caller,
+    PathParams(id): PathParams<u64>,
+) -> Result<Json<AlarmView>, Problem> {
+    acknowledge(&state, &caller, id).await.map(Json)
+}
+
+/// The stream's `alarm-ack` body: `{"alarm": id}`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AckBody {
+    /// The alarm's number.
+    pub alarm: u64,
+}
+
+/// Acknowledges alarm `id` for `caller` through the core (the REST route
+/// and the stream's `alarm-ack`).
+pub async fn acknowledge(state: &ApiState, caller: &Caller, id: u64) -> Result<AlarmView, Problem> {
+    match state.control.acknowledge_alarm(caller, id).await {
+        Ok(alarm) => Ok(AlarmView::from(&alarm)),
+        Err(AlarmError::Refused(refusal)) => match refusal.rule {
+            Rule::Role { needed, .. } => Err(forbidden(caller, needed)),
+            _ => Err(Problem::new(Kind::Forbidden, refusal.detail)),
+        },
+        Err(AlarmError::Unknown(e)) => Err(Problem::new(Kind::NotFound, e.to_string())),
+    }
+}

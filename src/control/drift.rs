@@ -1,0 +1,425 @@
+//! Declared settings (`[bus.drive.settings]`) and their drift: whenever a
+//! drive with a declaration comes online (at start, after a power cycle
+//! the poller noticed, a replaced drive), its settings are read and
+//! compared with the declaration ([`wanted::drift`], pure). A drift is
+//! reported: an event for the stream, the audit log, the drive's state
+//! for the API and the metric. With `apply_settings = "on-drift"` the
+//! declaration is then put on the drive through the core's one write path
+//! ([`Control::apply_wanted`]), never while the motor turns (the core
+//! refuses it; this waits for a status at standstill and tries again) and
+//! never to flash unless `save = true` is declared; the read-back after
+//! it says whether the drift is gone.
+//!
+//! The set of drives is read from the plant at each event, never kept.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::SystemTime;
+
+use tokio::sync::broadcast;
+use tokio_util::sync::CancellationToken;
+
+use super::audit;
+use super::caller::Caller;
+use super::events::ControlEvent;
+use super::outcome::{Failure, Refusal, Rule};
+use super::settings::{ApplyOptions, SettingsError};
+use super::{Control, Target};
+use crate::bus::BusEvent;
+use crate::bus::cache::Link;
+use crate::config::{ApplySettings, Declared};
+use crate::drive::settings::DriveSettings;
+use crate::drive::wanted::{self, Difference};
+
+/// Who the audit log and the events name for drivegate's own checks and
+/// writes of declared settings.
+pub const WHO: &str = "declared-settings";
+
+/// Where a drive stands with its declared settings.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum DriftState {
+    /// It holds them.
+    Matches,
+    /// It holds other values (the drift says which); nothing is done
+    /// (`apply_settings = "never"`).
+    Drifted,
+    /// It holds other values, and they are written once the motor stands
+    /// still (`on-drift`).
+    WaitingForStandstill,
+    /// Writing them failed (why); tried again when the drive next comes
+    /// online.
+    ApplyFailed(String),
+    /// Its settings could not be read (why); compared when it next comes
+    /// online.
+    ReadFailed(String),
+}
+
+impl DriftState {
+    /// Stable name for the API, events and metrics.
+    pub fn name(&self) -> &'static str {
+        match self {
+            DriftState::Matches => "match",
+            DriftState::Drifted => "drift",
+            DriftState::WaitingForStandstill => "waiting-for-standstill",
+            DriftState::ApplyFailed(_) => "apply-failed",
+            DriftState::ReadFailed(_) => "read-failed",
+        }
+    }
+
+    /// Why, for the failed states.
+    pub fn detail(&self) -> Option<&str> {
+        match self {
+            DriftState::ApplyFailed(why) | DriftState::ReadFailed(why) => Some(why),
+            _ => None,
+        }
+    }
+}
+
+/// The latest comparison of a drive with its declared settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DriftView {
+    /// Where it stands.
+    pub state: DriftState,
+    /// The declared settings it does not hold (empty: none, or not
+    /// known after a failed read).
+    pub drift: Vec<Difference>,
+    /// When it was compared (or the comparison failed).
+    pub checked_at: SystemTime,
+    /// What drivegate does about a drift.
+    pub apply: ApplySettings,
+}
+
+impl DriftView {
+    /// True when the drive is known not to hold its declared settings.
+    pub fn drifted(&self) -> bool {
+        !self.drift.is_empty()
+    }
+}
+
+/// A drive's comparison with its declared settings, for the stream.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DriftChecked {
+    /// The drive, by index in the plant.
+    pub drive: usize,
+    /// Its new state.
+    pub view: DriftView,
+}
+
+/// What drivegate does once a drive was compared with its declaration.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Next {
+    /// Nothing more: it holds them, or the declaration only reports.
+    Report,
+    /// Write the declaration.
+    Apply,
+}
+
+/// Pure: what follows a comparison that found `drift` under `apply`.
+pub fn next(apply: ApplySettings, drift: &[Difference]) -> Next {
+    match apply {
+        ApplySettings::OnDrift if !drift.is_empty() => Next::Apply,
+        ApplySettings::OnDrift | ApplySettings::Never => Next::Report,
+    }
+}
+
+/// Every drive's latest comparison, by drive name, and the checks running.
+#[derive(Default)]
+pub struct DriftBook {
+    views: Mutex<HashMap<String, DriftView>>,
+    /// Drives being checked; true when another check was asked for
+    /// meanwhile (it runs after).
+    running: Mutex<HashMap<usize, bool>>,
+}
+
+impl DriftBook {
+    /// The latest comparison of drive `name`; `None` before the first
+    /// (or for a drive without a declaration).
+    pub fn view(&self, name: &str) -> Option<DriftView> {
+        lock(&self.views).get(name).cloned()
+    }
+
+    /// Records drive `drive`'s new state and tells the stream and the log.
+    fn set(&self, control: &Control, drive: usize, view: DriftView) {
+        let Some(name) = control.plant().drives().get(drive).map(|d| d.name.clone()) else {
+            return;
+        };
+        match &view.state {
+            DriftState::ReadFailed(why) | DriftState::ApplyFailed(why) => {
+                audit::settings_trouble(&name, why);
+            }
+            DriftState::WaitingForStandstill => {}
+            DriftState::Matches | DriftState::Drifted => {
+                audit::settings_checked(&name, &view.drift, view.apply.name());
+            }
+        }
+        lock(&self.views).insert(name, view.clone());
+        control.events().publish(
+            Arc::new(ControlEvent::Drift(DriftChecked { drive, view })),
+            None,
+        );
+    }
+
+    /// After a settings document was put on drive `drive` (from any face,
+    /// or by drivegate), with `held` read back: a drive with a declaration
+    /// is compared with it again, so its state follows what it holds now.
+    pub(crate) fn after_apply(&self, control: &Control, drive: usize, held: &DriveSettings) {
+        let Some(declared) = control.plant().drives().get(drive).and_then(|d| d.declared) else {
+            return;
+        };
+        self.compared(control, drive, &declared, held);
+    }
+
+    fn compared(
+        &self,
+        control: &Control,
+        drive: usize,
+        declared: &Declared,
+        held: &DriveSettings,
+    ) -> Vec<Difference> {
+        let drift = wanted::drift(&declared.wanted, held);
+        let state = if drift.is_empty() {
+            DriftState::Matches
+        } else {
+            DriftState::Drifted
+        };
+        self.set(
+            control,
+            drive,
+            DriftView {
+                state,
+                drift: drift.clone(),
+                checked_at: SystemTime::now(),
+                apply: declared.apply,
+            },
+        );
+        drift
+    }
+
+    /// Keeps the known drift, with a new state.
+    fn restate(&self, control: &Control, drive: usize, apply: ApplySettings, state: DriftState) {
+        let drift = control
+            .plant()
+            .drives()
+            .get(drive)
+            .and_then(|d| self.view(&d.name))
+            .map(|v| v.drift)
+            .unwrap_or_default();
+        self.set(
+            control,
+            drive,
+            DriftView {
+                state,
+                drift,
+                checked_at: SystemTime::now(),
+                apply,
+            },
+        );
+    }
+
+    /// Checks drive `drive` now, or once the check running for it ends.
+    fn request(self: &Arc<Self>, control: &Control, drive: usize, shutdown: &CancellationToken) {
+        {
+            let mut running = lock(&self.running);
+            if let Some(again) = running.get_mut(&drive) {
+                *again = true;
+                return;
+            }
+            running.insert(drive, false);
+        }
+        let (book, control, shutdown) = (self.clone(), control.clone(), shutdown.clone());
+        tokio::spawn(async move {
+            loop {
+                book.check(&control, drive, &shutdown).await;
+                let mut running = lock(&book.running);
+                if running.get(&drive) == Some(&true) && !shutdown.is_cancelled() {
+                    running.insert(drive, false);
+                    continue;
+                }
+                running.remove(&drive);
+                return;
+            }
+        });
+    }
+
+    /// Compares drive `drive` with its declaration and, with `on-drift`,
+    /// applies it.
+    async fn check(&self, control: &Control, drive: usize, shutdown: &CancellationToken) {
+        let Some(d) = control.plant().drives().get(drive).cloned() else {
+            return;
+        };
+        let Some(declared) = d.declared else {
+            return;
+        };
+        let Some(bus) = control.plant().buses().get(d.bus) else {
+            return;
+        };
+        // Subscribed before anything is read, so a standstill that comes
+        // while the core refuses the writes is not missed.
+        let mut events = bus.handle.subscribe();
+        let target = Target {
+            bus: d.bus,
+            unit: d.unit,
+            drive: Some(drive),
+        };
+        let caller = Caller::internal(WHO);
+        let held = match control.read_settings(&caller, target).await {
+            Ok(held) => held,
+            Err(e) => {
+                let why = format!("its settings could not be read: {e}");
+                self.restate(control, drive, declared.apply, DriftState::ReadFailed(why));
+                return;
+            }
+        };
+        let drift = self.compared(control, drive, &declared, &held);
+        if next(declared.apply, &drift) == Next::Report {
+            return;
+        }
+        let options = ApplyOptions {
+            save: declared.save,
+            force: false,
+            dry_run: false,
+            unattended: true,
+        };
+        loop {
+            match control
+                .apply_wanted(&caller, target, &declared.wanted, options)
+                .await
+            {
+                // The read-back compared it again (`after_apply`).
+                Ok(report) if report.complete() => return,
+                Ok(report) => {
+                    let why = report
+                        .failure
+                        .map_or_else(|| "unknown".to_string(), |f| f.to_string());
+                    let why = format!("writing the declared settings failed: {why}");
+                    self.restate(control, drive, declared.apply, DriftState::ApplyFailed(why));
+                    return;
+                }
+                Err(SettingsError::Failed(Failure::Refused(Refusal {
+                    rule: Rule::Moving { .. },
+                    ..
+                }))) => {
+                    self.restate(
+                        control,
+                        drive,
+                        declared.apply,
+                        DriftState::WaitingForStandstill,
+                    );
+                    if !standstill(&mut events, d.unit, shutdown).await {
+                        return;
+                    }
+                }
+                Err(e) => {
+                    let why = match e {
+                        SettingsError::Invalid(r) => format!("{r:?}"),
+                        SettingsError::Failed(f) => f.to_string(),
+                    };
+                    let why = format!("the declared settings were not written: {why}");
+                    self.restate(control, drive, declared.apply, DriftState::ApplyFailed(why));
+                    return;
+                }
+            }
+        }
+    }
+}
+
+/// Waits for a status of `unit` at standstill: true; false when it goes
+/// offline (it is compared again when it comes back) or drivegate stops.
+async fn standstill(
+    events: &mut broadcast::Receiver<BusEvent>,
+    unit: u8,
+    shutdown: &CancellationToken,
+) -> bool {
+    loop {
+        let event = tokio::select! {
+            () = shutdown.cancelled() => return false,
+            event = events.recv() => event,
+        };
+        match event {
+            Ok(BusEvent::Status {
+                unit: u, status, ..
+            }) if u == unit && status.speed_rpm == 0 => {
+                return true;
+            }
+            Ok(BusEvent::Offline { unit: u, .. }) if u == unit => return false,
+            Ok(_) => {}
+            // Fell behind: look again at once (the core reads the speed).
+            Err(broadcast::error::RecvError::Lagged(_)) => return true,
+            Err(broadcast::error::RecvError::Closed) => return false,
+        }
+    }
+}
+
+/// Follows every bus: each drive with a declaration is compared with it
+/// when it comes online, and those online already now. Ends with
+/// `shutdown`.
+pub(crate) fn start(control: &Control, shutdown: &CancellationToken) {
+    if tokio::runtime::Handle::try_current().is_err() {
+        return;
+    }
+    let book = control.drift().clone();
+    for (index, bus) in control.plant().buses().iter().enumerate() {
+        let mut rx = bus.handle.subscribe();
+        let (book, control, shutdown) = (book.clone(), control.clone(), shutdown.clone());
+        tokio::spawn(async move {
+            loop {
+                let event = tokio::select! {
+                    () = shutdown.cancelled() => return,
+                    event = rx.recv() => event,
+                };
+                match event {
+                    Ok(BusEvent::Online { unit, .. }) => {
+                        let drive =
+                            control.plant().drives().iter().position(|d| {
+                                d.bus == index && d.unit == unit && d.declared.is_some()
+                            });
+                        if let Some(drive) = drive {
+                            book.request(&control, drive, &shutdown);
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                        tracing::warn!("declared settings: fell {n} bus events behind");
+                    }
+                    Err(broadcast::error::RecvError::Closed) => return,
+                }
+            }
+        });
+    }
+    // Online before the buses were followed.
+    for (drive, d) in control.plant().drives().iter().enumerate() {
+        let online = control
+            .plant()
+            .buses()
+            .get(d.bus)
+            .and_then(|b| b.handle.drive(d.unit))
+            .is_some_and(|s| s.link == Link::Online);
+        if d.declared.is_some() && online {
+            book.request(control, drive, shutdown);
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drive::wanted::Setting;
+
+    #[test]
+    fn only_a_drift_under_on_drift_is_applied() {
+        let drift = [Difference {
+            setting: Setting::InertiaRatio,
+            before: 1,
+            after: 5,
+        }];
+        assert_eq!(next(ApplySettings::OnDrift, &drift), Next::Apply);
+        assert_eq!(next(ApplySettings::Never, &drift), Next::Report);
+        assert_eq!(next(ApplySettings::OnDrift, &[]), Next::Report);
+        assert_eq!(next(ApplySettings::Never, &[]), Next::Report);
+        assert_eq!(ApplySettings::default(), ApplySettings::Never);
+    }
+}
