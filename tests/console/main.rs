@@ -11,6 +11,7 @@
 #[path = "../support/mod.rs"]
 mod support;
 
+mod alarms;
 mod api;
 mod assets;
 mod browser;
@@ -19,3 +20,5 @@ mod diagnostics;
 mod harness;
 mod https;
 mod plain;
+mod replace;
+mod trends;
