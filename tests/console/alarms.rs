@@ -138,7 +138,7 @@ async fn an_alarm_shows_a_banner_until_an_operator_acknowledges_it() {
     picture(&page, "console-alarms.png", false).await;
     // Still active: the drive is still silent.
     assert_eq!(acked[0]["active"], true);
-    assert!(text(&page, &format!("{row}")).await.contains("active"));
+    assert!(text(&page, &row).await.contains("active"));
 
     // A fault: the drive page says what to do, in its alarm's words.
     daemon
