@@ -218,6 +218,7 @@ function mount(main, { name }, { store }) {
     go.addEventListener('click', () => {
       if (!alone.checked) { n.fail(new Error(`tick the box once the new drive is the only one connected to bus ${state.bus}`)); return; }
       alone.disabled = true; go.disabled = true;
+      n.clear();
       mark('connect', 'done', `Only the new drive is connected to bus ${state.bus} (confirmed by you${others.length ? `: ${others.join(', ')} unplugged` : ''}).`);
       scanStep();
     });
