@@ -103,7 +103,7 @@ async fn run_phase(
         .unwrap();
     let addr = faces.modbus_tcp.unwrap();
     let bus = plant.buses()[0].handle.clone();
-    let sim = plant.buses()[0].sim.as_ref().unwrap();
+    let sim = drivegate::plant::SimRef::of(plant.buses()[0].clone()).unwrap();
 
     // Every drive turning at a constant speed.
     for unit in 1..=DRIVES {
@@ -128,7 +128,7 @@ async fn run_phase(
         let unit = (client % usize::from(DRIVES)) as u8 + 1;
         let plant = plant.clone();
         tasks.push(tokio::spawn(async move {
-            let sim = plant.buses()[0].sim.as_ref().unwrap();
+            let sim = drivegate::plant::SimRef::of(plant.buses()[0].clone()).unwrap();
             let mut ctx = tcp::connect_slave(addr, Slave(unit)).await.unwrap();
             let mut samples = Vec::new();
             let mut errors = 0;

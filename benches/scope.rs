@@ -119,7 +119,8 @@ struct ScopeRun {
 async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> ScopeRun {
     let plant = start(&config(drives, true, turnaround)).await;
     let bus = plant.buses()[0].handle.clone();
-    let (scope, monitor) = (plant.buses()[0].scope(), plant.buses()[0].monitor());
+    let first = plant.buses()[0].clone();
+    let (scope, monitor) = (first.scope(), first.monitor());
     // The same bus's plain polling, just before: the machine's pace now.
     let (p0, t0) = (bus.stats().polls, Instant::now());
     tokio::time::sleep(Duration::from_secs_f64(secs.min(3.0))).await;

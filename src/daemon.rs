@@ -1,6 +1,7 @@
 //! `drivegate serve`: start the plant and the faces, tell systemd, wait for
 //! a signal, stop gracefully.
 
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -27,15 +28,17 @@ pub enum DaemonError {
     Signals(std::io::Error),
 }
 
-/// Runs the daemon with `config` until SIGINT or SIGTERM.
-pub async fn serve(config: Config) -> Result<(), DaemonError> {
+/// Runs the daemon with `config` (read from `path`, if given: then
+/// SIGHUP and `POST /api/v1/config/reload` apply its changes) until SIGINT
+/// or SIGTERM.
+pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonError> {
     // Catch the signals from the start: a stop asked for while the buses open
     // is then a graceful stop right after, not an abrupt kill.
     let mut signals = StopSignals::new().map_err(DaemonError::Signals)?;
     let plant = Arc::new(Plant::start(&config)?);
     info!(
-        buses = plant.buses().len(),
-        drives = plant.drives().len(),
+        buses = plant.now().bus_count(),
+        drives = plant.now().drive_count(),
         "drivegate {} running",
         env!("CARGO_PKG_VERSION")
     );
@@ -44,8 +47,18 @@ pub async fn serve(config: Config) -> Result<(), DaemonError> {
     let faces = crate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
         .await
         .map_err(DaemonError::Listen)?;
+    let reloader = path.as_deref().map(|path| {
+        crate::reload::Reloader::start(
+            path,
+            Arc::new(config.clone()),
+            plant.clone(),
+            faces.control.clone(),
+            shutdown.clone(),
+        )
+    });
+    signals.reload_with(faces.control.clone());
 
-    let summary = if plant.buses().is_empty() {
+    let summary = if plant.now().bus_count() == 0 {
         // The package's configuration as shipped: `systemctl status` says
         // what to do first.
         tracing::warn!("{}", crate::api::health::NO_BUS);
@@ -56,8 +69,8 @@ pub async fn serve(config: Config) -> Result<(), DaemonError> {
     } else {
         format!(
             "serving {} drive(s) on {} bus(es); HTTP on {}",
-            plant.drives().len(),
-            plant.buses().len(),
+            plant.now().drive_count(),
+            plant.now().bus_count(),
             faces.http
         )
     };
@@ -80,6 +93,10 @@ pub async fn serve(config: Config) -> Result<(), DaemonError> {
         sd_notify::NotifyState::Status("stopping: applying the safe-stop action"),
     ]);
     shutdown.cancel();
+    if let Some(reloader) = reloader {
+        // A reload under way finishes first: the plant is whole for the stop.
+        let _ = reloader.await;
+    }
     if tokio::time::timeout(FACES_STOP_LIMIT, faces.wait())
         .await
         .is_err()
@@ -131,13 +148,15 @@ fn spawn_watchdog(stop: CancellationToken) -> Option<tokio::task::JoinHandle<()>
 }
 
 /// SIGTERM (systemd's stop) and SIGINT (Ctrl-C); SIGHUP (systemd's
-/// reload) is taken here too, so that it never ends the daemon: the TLS
+/// reload) is taken here too, so that it never ends the daemon: it reloads
+/// the configuration file through the core (`crate::reload`), and the TLS
 /// listeners watch it themselves and reload their certificates
 /// ([`crate::tls::reload_on_hangup`]).
 struct StopSignals {
     term: tokio::signal::unix::Signal,
     int: tokio::signal::unix::Signal,
     hup: tokio::signal::unix::Signal,
+    control: Option<crate::control::Control>,
 }
 
 impl StopSignals {
@@ -147,7 +166,13 @@ impl StopSignals {
             term: signal(SignalKind::terminate())?,
             int: signal(SignalKind::interrupt())?,
             hup: signal(SignalKind::hangup())?,
+            control: None,
         })
+    }
+
+    /// From now on SIGHUP reloads the configuration through `control`.
+    fn reload_with(&mut self, control: crate::control::Control) {
+        self.control = Some(control);
     }
 
     async fn recv(&mut self) {
@@ -155,7 +180,17 @@ impl StopSignals {
             tokio::select! {
                 _ = self.term.recv() => return info!("SIGTERM received"),
                 _ = self.int.recv() => return info!("SIGINT received"),
-                _ = self.hup.recv() => info!("SIGHUP received: TLS listeners reload their certificates"),
+                _ = self.hup.recv() => {
+                    info!("SIGHUP received: reloading the configuration; TLS listeners reload their certificates");
+                    if let Some(control) = self.control.clone() {
+                        // Its result is logged and audited by the reloader;
+                        // a stop signal meanwhile is not kept waiting.
+                        tokio::spawn(async move {
+                            let result = control.reload_as("SIGHUP".to_string(), None).await;
+                            crate::control::audit::reload("SIGHUP", &result);
+                        });
+                    }
+                }
             }
         }
     }

@@ -61,6 +61,8 @@ pub async fn start(
     shutdown: CancellationToken,
 ) -> Result<Faces, String> {
     let control = Control::start(plant.clone(), &config.safety, shutdown.clone());
+    // The running configuration, which the faces follow for their sections.
+    control.set_config(Arc::new(config.clone()));
     metrics.faces().tcp_outcomes(
         crate::modbus_tcp::outcome::Outcome::ALL
             .iter()
@@ -68,19 +70,22 @@ pub async fn start(
     );
     metrics.watch_control(&control);
     let history = crate::history::History::new(config.history.settings());
-    for (index, bus) in plant.buses().iter().enumerate() {
-        // Asked at each status: drives configured later are kept too.
-        let directory = plant.clone();
-        history.follow(
-            &bus.handle,
-            move |unit| {
-                directory
-                    .drives()
-                    .iter()
-                    .any(|d| d.bus == index && d.unit == unit)
-            },
-            shutdown.clone(),
-        );
+    {
+        let (history, directory, stop) = (history.clone(), plant.clone(), shutdown.clone());
+        plant.each_bus(shutdown.clone(), move |index, bus| {
+            // Asked at each status: drives configured later are kept too.
+            let directory = directory.clone();
+            history.follow(
+                &bus.handle,
+                move |unit| {
+                    directory
+                        .now()
+                        .drives()
+                        .any(|d| d.bus == index && d.unit == unit)
+                },
+                stop.clone(),
+            );
+        });
     }
     metrics.watch_history(&history);
     // What the last process owed the motors, before any client is taken.

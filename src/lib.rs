@@ -51,6 +51,7 @@ pub mod modbus_tcp;
 pub mod monitor;
 pub mod plant;
 pub mod probe;
+pub mod reload;
 pub mod safety;
 pub mod scope;
 pub mod sim;

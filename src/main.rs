@@ -114,7 +114,7 @@ fn new_token(name: &str, role: &str) -> ExitCode {
             println!("    {}", made.token);
             println!();
             println!("Add these lines to the configuration (they hold only the token's SHA-256),");
-            println!("then restart drivegate:");
+            println!("then reload drivegate (systemctl reload drivegate):");
             println!();
             print!("{}", made.config);
             ExitCode::SUCCESS
@@ -152,7 +152,7 @@ fn serve(path: Option<PathBuf>) -> ExitCode {
         );
     }
     run(|| async move {
-        drivegate::daemon::serve(config)
+        drivegate::daemon::serve(config, path)
             .await
             .map_err(|e| e.to_string())
     })

@@ -6,6 +6,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
+use tokio::sync::watch;
 use tracing::{info, warn};
 
 use crate::bus::{BusHandle, Observers};
@@ -20,7 +21,8 @@ pub struct Bus {
     pub config: BusConfig,
     /// Its handle.
     pub handle: BusHandle,
-    /// The built-in simulator behind it, for `port = "sim"`.
+    /// The built-in simulator behind it, for `port = "sim"` (it stops when
+    /// the last holder of a bus a reload removed lets it go).
     pub sim: Option<SimHandle>,
     monitor: Arc<BusMonitor>,
     scope: Arc<Scope>,
@@ -28,6 +30,67 @@ pub struct Bus {
 }
 
 impl Bus {
+    /// Starts the bus of `bus_config` (and its simulator), with its monitor
+    /// and scope sized by `config`.
+    fn start(config: &Config, bus_config: &BusConfig) -> Result<Bus, PlantError> {
+        let name = bus_config.name().to_string();
+        let sim = if bus_config.is_simulated() {
+            let sim = Simulator::start(bus_config.sim_config()).map_err(|source| {
+                PlantError::Simulator {
+                    bus: name.clone(),
+                    source,
+                }
+            })?;
+            info!(bus = %name, pty = %sim.port_path().display(), "built-in simulator running");
+            Some(sim)
+        } else {
+            None
+        };
+        let port = match &sim {
+            Some(sim) => sim.port_path().display().to_string(),
+            None => bus_config.port.get_ref().clone(),
+        };
+        let mut settings = bus_config.settings(&port);
+        let units: Vec<u8> = bus_config.drives.iter().map(|d| d.unit()).collect();
+        let line = settings.master.line;
+        let monitor = Arc::new(BusMonitor::new(
+            config.monitor.settings(),
+            line,
+            units.clone(),
+        ));
+        let scope = Arc::new(Scope::new(config.scope.settings(), line, units));
+        settings.observers = Observers {
+            wire: vec![monitor.clone(), scope.clone()],
+            steering: Some(scope.clone()),
+        };
+        let (handle, thread) =
+            crate::bus::scheduler::spawn(settings).map_err(|source| PlantError::Bus {
+                bus: name.clone(),
+                source,
+            })?;
+        Ok(Bus {
+            config: bus_config.clone(),
+            handle,
+            sim,
+            monitor,
+            scope,
+            thread: Mutex::new(Some(thread)),
+        })
+    }
+
+    /// Waits (at most 5 s) for the bus's thread after a stop.
+    async fn join(&self) {
+        let thread = self.thread.lock().unwrap_or_else(|p| p.into_inner()).take();
+        if let Some(thread) = thread {
+            let name = self.handle.name().to_string();
+            let joined = tokio::task::spawn_blocking(move || thread.join());
+            match tokio::time::timeout(Duration::from_secs(5), joined).await {
+                Ok(Ok(Ok(()))) => {}
+                _ => warn!(bus = %name, "bus thread did not stop cleanly"),
+            }
+        }
+    }
+
     /// Its monitor: the last frames on the wire, the per-attempt counters.
     pub fn monitor(&self) -> &Arc<BusMonitor> {
         &self.monitor
@@ -37,6 +100,29 @@ impl Bus {
     /// [`wake`](BusHandle::wake) the bus so its polling follows at once.
     pub fn scope(&self) -> &Arc<Scope> {
         &self.scope
+    }
+}
+
+/// A bus's simulator, held with its bus: a reload may take the bus out of
+/// the plant, and the simulator stops only when the last holder lets go.
+pub struct SimRef(Arc<Bus>);
+
+impl SimRef {
+    /// The simulator of `bus`, if it is simulated.
+    pub fn of(bus: Arc<Bus>) -> Option<SimRef> {
+        bus.sim.is_some().then_some(SimRef(bus))
+    }
+}
+
+impl std::ops::Deref for SimRef {
+    type Target = SimHandle;
+
+    fn deref(&self) -> &SimHandle {
+        match &self.0.sim {
+            Some(sim) => sim,
+            // `of` makes a SimRef only of a simulated bus.
+            None => unreachable!("a SimRef of a bus without a simulator"),
+        }
     }
 }
 
@@ -87,10 +173,132 @@ pub enum LookupError {
     Ambiguous(String),
 }
 
-/// All buses and drives of the daemon.
+/// The plant as it is at one moment: every bus and every drive, each in
+/// its slot. A slot's index never changes and is never reused: it is the
+/// key of leases, stream subscriptions and Modbus TCP routes, so a drive
+/// removed by a reload leaves its slot empty rather than shifting the
+/// others, and one added takes a new slot.
+pub struct Directory {
+    buses: Vec<Option<Arc<Bus>>>,
+    drives: Vec<Option<Drive>>,
+    /// Counts the changes since start-up (0: as started).
+    version: u64,
+}
+
+impl Directory {
+    /// Every running bus, in slot order.
+    pub fn buses(&self) -> impl Iterator<Item = &Arc<Bus>> {
+        self.buses.iter().flatten()
+    }
+
+    /// Every running bus with its slot index.
+    pub fn indexed_buses(&self) -> impl Iterator<Item = (usize, &Arc<Bus>)> {
+        self.buses
+            .iter()
+            .enumerate()
+            .filter_map(|(i, b)| Some((i, b.as_ref()?)))
+    }
+
+    /// The bus in slot `index`, if it is still configured.
+    pub fn bus_at(&self, index: usize) -> Option<&Arc<Bus>> {
+        self.buses.get(index)?.as_ref()
+    }
+
+    /// The bus with this name.
+    pub fn bus(&self, name: &str) -> Option<&Arc<Bus>> {
+        self.buses().find(|b| b.handle.name() == name)
+    }
+
+    /// Running buses.
+    pub fn bus_count(&self) -> usize {
+        self.buses().count()
+    }
+
+    /// Slots of buses, past ones included (an upper bound of bus indices).
+    pub fn bus_slots(&self) -> usize {
+        self.buses.len()
+    }
+
+    /// Every configured drive, in slot order.
+    pub fn drives(&self) -> impl Iterator<Item = &Drive> {
+        self.drives.iter().flatten()
+    }
+
+    /// Every configured drive with its slot index.
+    pub fn indexed_drives(&self) -> impl Iterator<Item = (usize, &Drive)> {
+        self.drives
+            .iter()
+            .enumerate()
+            .filter_map(|(i, d)| Some((i, d.as_ref()?)))
+    }
+
+    /// The drive in slot `index`, if it is still configured.
+    pub fn drive_at(&self, index: usize) -> Option<&Drive> {
+        self.drives.get(index)?.as_ref()
+    }
+
+    /// Configured drives.
+    pub fn drive_count(&self) -> usize {
+        self.drives().count()
+    }
+
+    /// Slots of drives, past ones included (an upper bound of drive indices).
+    pub fn drive_slots(&self) -> usize {
+        self.drives.len()
+    }
+
+    /// How many times the plant changed since start-up.
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+
+    /// A drive by name or, with a single bus, by unit number.
+    pub fn drive(&self, key: &str) -> Result<(&Drive, &BusHandle), LookupError> {
+        let found = match self.drives().find(|d| d.name == key) {
+            Some(d) => Some(d),
+            None => match key.parse::<u8>() {
+                Ok(unit) => {
+                    if self.bus_count() > 1 {
+                        return Err(LookupError::Ambiguous(key.to_string()));
+                    }
+                    self.drives().find(|d| d.unit == unit)
+                }
+                Err(_) => None,
+            },
+        };
+        let drive = found.ok_or_else(|| LookupError::Unknown(key.to_string()))?;
+        let bus = self
+            .bus_at(drive.bus)
+            .ok_or_else(|| LookupError::Unknown(key.to_string()))?;
+        Ok((drive, &bus.handle))
+    }
+
+    /// The handle of a drive's bus (a drive's bus is always running: the
+    /// two change together).
+    pub fn handle_of(&self, drive: &Drive) -> Option<&BusHandle> {
+        self.bus_at(drive.bus).map(|b| &b.handle)
+    }
+
+    /// The configured drive at `unit` on bus `bus`.
+    pub fn drive_on(&self, bus: usize, unit: u8) -> Option<&Drive> {
+        self.drives().find(|d| d.bus == bus && d.unit == unit)
+    }
+}
+
+/// All buses and drives of the daemon. What it holds changes only by a
+/// reload ([`Plant::apply`]); who needs to follow it (a face's list of
+/// drives, a per-drive task) [`follow`](Plant::follow)s it.
 pub struct Plant {
-    buses: Vec<Bus>,
-    drives: Vec<Drive>,
+    directory: watch::Sender<Arc<Directory>>,
+    /// One change at a time.
+    changing: tokio::sync::Mutex<()>,
+}
+
+/// What a reload asks of the plant, bus by bus.
+#[derive(Debug, Default)]
+pub struct Rebuild {
+    /// Buses to stop and start again with their new section, by name.
+    pub reopen: Vec<String>,
 }
 
 impl Plant {
@@ -99,102 +307,211 @@ impl Plant {
         let mut buses = Vec::new();
         let mut drives = Vec::new();
         for (index, bus_config) in config.buses.iter().enumerate() {
-            let name = bus_config.name().to_string();
-            let sim = if bus_config.is_simulated() {
-                let sim = Simulator::start(bus_config.sim_config()).map_err(|source| {
-                    PlantError::Simulator {
-                        bus: name.clone(),
-                        source,
-                    }
-                })?;
-                info!(bus = %name, pty = %sim.port_path().display(), "built-in simulator running");
-                Some(sim)
-            } else {
-                None
-            };
-            let port = match &sim {
-                Some(sim) => sim.port_path().display().to_string(),
-                None => bus_config.port.get_ref().clone(),
-            };
-            let mut settings = bus_config.settings(&port);
-            let units: Vec<u8> = bus_config.drives.iter().map(|d| d.unit()).collect();
-            let line = settings.master.line;
-            let monitor = Arc::new(BusMonitor::new(
-                config.monitor.settings(),
-                line,
-                units.clone(),
-            ));
-            let scope = Arc::new(Scope::new(config.scope.settings(), line, units));
-            settings.observers = Observers {
-                wire: vec![monitor.clone(), scope.clone()],
-                steering: Some(scope.clone()),
-            };
-            let (handle, thread) =
-                crate::bus::scheduler::spawn(settings).map_err(|source| PlantError::Bus {
-                    bus: name.clone(),
-                    source,
-                })?;
+            buses.push(Some(Arc::new(Bus::start(config, bus_config)?)));
             for d in &bus_config.drives {
-                drives.push(Drive {
+                drives.push(Some(Drive {
                     name: d.name().to_string(),
                     bus: index,
                     unit: d.unit(),
                     gear_ratio: d.gear_ratio,
                     declared: d.declared(),
-                });
+                }));
             }
-            buses.push(Bus {
-                config: bus_config.clone(),
-                handle,
-                sim,
-                monitor,
-                scope,
-                thread: Mutex::new(Some(thread)),
-            });
         }
-        Ok(Plant { buses, drives })
+        let (directory, _) = watch::channel(Arc::new(Directory {
+            buses,
+            drives,
+            version: 0,
+        }));
+        Ok(Plant {
+            directory,
+            changing: tokio::sync::Mutex::new(()),
+        })
     }
 
-    /// Every bus, in configuration order.
-    pub fn buses(&self) -> &[Bus] {
-        &self.buses
+    /// The plant as it is now; hold it for the length of one answer, not
+    /// forever (a reload may change it).
+    pub fn now(&self) -> Arc<Directory> {
+        self.directory.borrow().clone()
+    }
+
+    /// Follows the plant: the receiver sees each new directory as a reload
+    /// applies it (`changed().await`, then `borrow_and_update()`).
+    pub fn follow(&self) -> watch::Receiver<Arc<Directory>> {
+        self.directory.subscribe()
+    }
+
+    /// Calls `start(slot, bus)` for every bus now, before it returns, and
+    /// for each bus a reload adds or reopens later (a reopened bus is
+    /// another `Bus`), until `shutdown`. For the parts kept per bus that
+    /// follow its events: what `start` spawns ends when the bus's events
+    /// close, as a removed bus's do.
+    pub fn each_bus<F>(&self, shutdown: tokio_util::sync::CancellationToken, mut start: F)
+    where
+        F: FnMut(usize, &Arc<Bus>) + Send + 'static,
+    {
+        fn visit<F: FnMut(usize, &Arc<Bus>)>(
+            now: &Directory,
+            seen: &mut Vec<(usize, Arc<Bus>)>,
+            start: &mut F,
+        ) {
+            seen.retain(|(i, b)| now.bus_at(*i).is_some_and(|n| Arc::ptr_eq(n, b)));
+            for (index, bus) in now.indexed_buses() {
+                if !seen.iter().any(|(i, _)| *i == index) {
+                    seen.push((index, bus.clone()));
+                    start(index, bus);
+                }
+            }
+        }
+        let mut follow = self.follow();
+        let mut seen = Vec::new();
+        let now = follow.borrow_and_update().clone();
+        visit(&now, &mut seen, &mut start);
+        if tokio::runtime::Handle::try_current().is_err() {
+            return;
+        }
+        tokio::spawn(async move {
+            loop {
+                tokio::select! {
+                    () = shutdown.cancelled() => return,
+                    changed = follow.changed() => if changed.is_err() { return },
+                }
+                let now = follow.borrow_and_update().clone();
+                visit(&now, &mut seen, &mut start);
+            }
+        });
+    }
+
+    /// The running buses now, in slot order (a copy: for a quick look; a
+    /// bus's index in the plant is its slot, [`Directory::indexed_buses`]).
+    pub fn buses(&self) -> Vec<Arc<Bus>> {
+        self.now().buses().cloned().collect()
+    }
+
+    /// The configured drives now, in slot order (a copy: for a quick look;
+    /// a drive's index is its slot, [`Directory::indexed_drives`]).
+    pub fn drives(&self) -> Vec<Drive> {
+        self.now().drives().cloned().collect()
+    }
+
+    /// A drive by name or, with a single bus, by unit number, with its bus.
+    pub fn drive(&self, key: &str) -> Result<(Drive, BusHandle), LookupError> {
+        self.find(key).map(|(_, drive, bus)| (drive, bus))
+    }
+
+    /// A drive by name or, with a single bus, by unit number, with its
+    /// slot index and its bus.
+    pub fn find(&self, key: &str) -> Result<(usize, Drive, BusHandle), LookupError> {
+        let now = self.now();
+        let (drive, bus) = now.drive(key)?;
+        let index = now
+            .drives
+            .iter()
+            .position(|d| d.as_ref() == Some(drive))
+            .ok_or_else(|| LookupError::Unknown(key.to_string()))?;
+        Ok((index, drive.clone(), bus.clone()))
     }
 
     /// The bus with this name.
-    pub fn bus(&self, name: &str) -> Option<&Bus> {
-        self.buses.iter().find(|b| b.handle.name() == name)
+    pub fn bus(&self, name: &str) -> Option<Arc<Bus>> {
+        self.now().bus(name).cloned()
     }
 
-    /// Every drive, in configuration order.
-    pub fn drives(&self) -> &[Drive] {
-        &self.drives
-    }
-
-    /// A drive by name or, with a single bus, by unit number.
-    pub fn drive(&self, key: &str) -> Result<(&Drive, &BusHandle), LookupError> {
-        if let Some(d) = self.drives.iter().find(|d| d.name == key) {
-            return Ok((d, &self.buses[d.bus].handle));
-        }
-        if let Ok(unit) = key.parse::<u8>() {
-            if self.buses.len() > 1 {
-                return Err(LookupError::Ambiguous(key.to_string()));
+    /// Applies `config` to the running plant: buses gone are stopped,
+    /// buses in `rebuild.reopen` stopped and started again, new buses
+    /// started; drives keep their slot while their name, bus and unit stay
+    /// the same. Every drive that leaves must have been stopped before
+    /// (the control core's `retire`). Buses that do not change are not
+    /// touched. Returns the problems of buses that did not start (their
+    /// slot stays empty, their drives unconfigured until the next reload).
+    pub async fn apply(&self, config: &Config, rebuild: &Rebuild) -> Vec<String> {
+        let _one = self.changing.lock().await;
+        let old = self.now();
+        let mut buses = old.buses.clone();
+        let mut failed = Vec::new();
+        // Stop what goes or reopens, first: a reopened port must be free.
+        let mut stopping = Vec::new();
+        for (slot, bus) in old.buses.iter().enumerate() {
+            let Some(bus) = bus else { continue };
+            let name = bus.handle.name();
+            let gone = !config.buses.iter().any(|b| b.name() == name);
+            if gone || rebuild.reopen.iter().any(|r| r == name) {
+                stopping.push(bus.clone());
+                buses[slot] = None;
             }
-            if let Some(d) = self.drives.iter().find(|d| d.unit == unit) {
-                return Ok((d, &self.buses[d.bus].handle));
+        }
+        for bus in &stopping {
+            bus.handle.stop();
+        }
+        for bus in stopping {
+            bus.join().await;
+        }
+        // Start what is new or reopens, each in its slot.
+        for bus_config in &config.buses {
+            let name = bus_config.name();
+            let slot = old
+                .buses
+                .iter()
+                .position(|b| b.as_ref().is_some_and(|b| b.handle.name() == name));
+            if slot.is_some_and(|s| buses[s].is_some()) {
+                continue;
+            }
+            let bus = match Bus::start(config, bus_config) {
+                Ok(bus) => Some(Arc::new(bus)),
+                Err(e) => {
+                    warn!("{e}");
+                    failed.push(e.to_string());
+                    None
+                }
+            };
+            match slot {
+                Some(s) => buses[s] = bus,
+                None => buses.push(bus),
             }
         }
-        Err(LookupError::Unknown(key.to_string()))
-    }
-
-    /// The handle of a drive's bus.
-    pub fn handle_of(&self, drive: &Drive) -> &BusHandle {
-        &self.buses[drive.bus].handle
+        // Drives: the same name, bus and unit keep their slot.
+        let slot_of_bus = |name: &str| {
+            buses
+                .iter()
+                .position(|b| b.as_ref().is_some_and(|b| b.handle.name() == name))
+        };
+        let mut drives: Vec<Option<Drive>> = vec![None; old.drives.len()];
+        for bus_config in &config.buses {
+            let Some(bus) = slot_of_bus(bus_config.name()) else {
+                continue;
+            };
+            for d in &bus_config.drives {
+                let drive = Drive {
+                    name: d.name().to_string(),
+                    bus,
+                    unit: d.unit(),
+                    gear_ratio: d.gear_ratio,
+                    declared: d.declared(),
+                };
+                let kept = old.drives.iter().position(|o| {
+                    o.as_ref().is_some_and(|o| {
+                        o.name == drive.name && o.bus == bus && o.unit == drive.unit
+                    })
+                });
+                match kept {
+                    Some(i) => drives[i] = Some(drive),
+                    None => drives.push(Some(drive)),
+                }
+            }
+        }
+        let version = old.version + 1;
+        self.directory.send_replace(Arc::new(Directory {
+            buses,
+            drives,
+            version,
+        }));
+        failed
     }
 
     /// Takes no new work on any bus (the first step of the shutdown stop,
     /// `crate::control::shutdown`).
     pub fn close(&self) {
-        for bus in &self.buses {
+        for bus in self.now().buses() {
             bus.handle.close();
         }
     }
@@ -202,19 +519,13 @@ impl Plant {
     /// Stops every bus once it finished the frame on the wire, and waits
     /// (at most 5 s a bus) for its thread.
     pub async fn stop(&self) {
-        for bus in &self.buses {
+        let _one = self.changing.lock().await;
+        let now = self.now();
+        for bus in now.buses() {
             bus.handle.stop();
         }
-        for bus in &self.buses {
-            let thread = bus.thread.lock().unwrap_or_else(|p| p.into_inner()).take();
-            if let Some(thread) = thread {
-                let name = bus.handle.name().to_string();
-                let joined = tokio::task::spawn_blocking(move || thread.join());
-                match tokio::time::timeout(Duration::from_secs(5), joined).await {
-                    Ok(Ok(Ok(()))) => {}
-                    _ => warn!(bus = %name, "bus thread did not stop cleanly"),
-                }
-            }
+        for bus in now.buses() {
+            bus.join().await;
         }
     }
 }

@@ -151,7 +151,7 @@ pub async fn list_alarms(
     };
     if let Some(drive) = &query.drive {
         // A drive that is not configured (any more) may still have alarms.
-        let known = state.plant.drives().iter().any(|d| &d.name == drive)
+        let known = state.plant.now().drives().any(|d| &d.name == drive)
             || state
                 .control
                 .alarms()

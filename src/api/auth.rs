@@ -46,9 +46,14 @@ struct Entry {
 }
 
 /// The configured tokens, as digests, and the failures of each address.
+/// A reload replaces the tokens ([`Tokens::replace`]) of every clone at
+/// once; the failures are kept.
 #[derive(Clone, Default)]
 pub struct Tokens {
-    entries: Vec<Entry>,
+    entries: Arc<std::sync::RwLock<Arc<Vec<Entry>>>>,
+    /// The running configuration, whose tokens replace these when a
+    /// reload changes it.
+    follower: Option<Arc<crate::control::reload::ConfigFollower>>,
     throttle: Arc<Mutex<Throttle>>,
 }
 
@@ -56,7 +61,7 @@ impl std::fmt::Debug for Tokens {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         // Names and roles only: never the digests.
         f.debug_list()
-            .entries(self.entries.iter().map(|e| (&*e.name, e.role.name())))
+            .entries(self.entries().iter().map(|e| (&*e.name, e.role.name())))
             .finish()
     }
 }
@@ -126,12 +131,56 @@ impl Tokens {
             });
         }
         Ok(Tokens {
-            entries,
+            entries: Arc::new(std::sync::RwLock::new(Arc::new(entries))),
+            follower: None,
             throttle: Arc::new(Mutex::new(Throttle::new(Policy {
                 burst: guesses,
                 ..Policy::default()
             }))),
         })
+    }
+
+    /// From now on, the tokens of each configuration a reload applies
+    /// replace these, from the next request on.
+    pub fn follow(mut self, control: &crate::control::Control) -> Self {
+        self.follower = Some(Arc::new(crate::control::reload::ConfigFollower::new(
+            control,
+        )));
+        self
+    }
+
+    fn entries(&self) -> Arc<Vec<Entry>> {
+        if let Some(config) = self.follower.as_ref().and_then(|f| f.changed()) {
+            self.reloaded(&config);
+        }
+        self.entries
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Takes the tokens of a reloaded configuration (the reloader checked
+    /// that they resolve).
+    fn reloaded(&self, config: &crate::config::Config) {
+        let new = match Tokens::resolve(&config.http.tokens, config.http.token_guesses) {
+            Ok(new) => new,
+            Err(e) => {
+                tracing::warn!("API tokens not reloaded, the old ones stay: {e}");
+                return;
+            }
+        };
+        let mut entries = self.entries.write().unwrap_or_else(|p| p.into_inner());
+        let fresh = new.entries();
+        if fresh.is_empty() && !entries.is_empty() {
+            // Without tokens every client is admin: safe only on loopback,
+            // where the listener goes at the next start.
+            tracing::warn!(
+                "every API token was removed: the old ones stay until drivegate restarts (then the API listens on loopback only)"
+            );
+            return;
+        }
+        *entries = fresh;
+        tracing::info!(tokens = entries.len(), "API tokens reloaded");
     }
 
     fn throttle(&self) -> std::sync::MutexGuard<'_, Throttle> {
@@ -140,19 +189,19 @@ impl Tokens {
 
     /// True when no token is configured (no authentication, loopback only).
     pub fn is_empty(&self) -> bool {
-        self.entries.is_empty()
+        self.entries().is_empty()
     }
 
     /// Number of tokens.
     pub fn len(&self) -> usize {
-        self.entries.len()
+        self.entries().len()
     }
 
     /// The name and role of the token `presented`, if it is one of ours.
     pub fn check(&self, presented: &str) -> Option<(Arc<str>, Role)> {
         let digest: [u8; 32] = Sha256::digest(presented.as_bytes()).into();
         let mut found = None;
-        for entry in &self.entries {
+        for entry in self.entries().iter() {
             if constant_time_eq(&entry.digest, &digest) {
                 found = Some((entry.name.clone(), entry.role));
             }

@@ -2,6 +2,7 @@
 //! answer, and address setting (manual 1.2: a broadcast that every drive
 //! on the bus obeys, so only with one drive connected).
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use axum::Json;
@@ -147,14 +148,10 @@ fn bus_view(bus: &Bus) -> BusView {
 }
 
 /// The bus named `name`, or an `unknown-bus` problem listing the buses.
-pub fn find_bus<'a>(state: &'a ApiState, name: &str) -> Result<&'a Bus, Problem> {
-    state.plant.bus(name).ok_or_else(|| {
-        let names: Vec<&str> = state
-            .plant
-            .buses()
-            .iter()
-            .map(|b| b.handle.name())
-            .collect();
+pub fn find_bus(state: &ApiState, name: &str) -> Result<Arc<Bus>, Problem> {
+    let now = state.plant.now();
+    now.bus(name).cloned().ok_or_else(|| {
+        let names: Vec<&str> = now.buses().map(|b| b.handle.name()).collect();
         Problem::new(
             Kind::UnknownBus,
             format!(
@@ -180,7 +177,9 @@ pub async fn list_buses(
     State(state): State<ApiState>,
     _caller: Caller,
 ) -> Result<Json<Vec<BusView>>, Problem> {
-    Ok(Json(state.plant.buses().iter().map(bus_view).collect()))
+    Ok(Json(
+        state.plant.now().buses().map(|b| bus_view(b)).collect(),
+    ))
 }
 
 /// One bus with its port state, queues and counters.
@@ -200,7 +199,7 @@ pub async fn get_bus(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<BusView>, Problem> {
-    find_bus(&state, &name).map(|b| Json(bus_view(b)))
+    find_bus(&state, &name).map(|b| Json(bus_view(&b)))
 }
 
 /// `POST .../scan` body (optional).
@@ -349,7 +348,7 @@ pub async fn scan(
     body: &ScanBody,
 ) -> Result<ScanReply, Problem> {
     control::authorize(state, caller, Operation::Scan)?;
-    let bus = find_bus(state, name)?;
+    let bus = &*find_bus(state, name)?;
     let from = unit_in("first unit", body.from)?;
     let to = unit_in("last unit", body.to)?;
     if from > to {
@@ -505,14 +504,15 @@ pub async fn set_address(
     name: &str,
     body: &AddressBody,
 ) -> Result<AddressReply, Problem> {
-    let bus = find_bus(state, name)?;
+    let bus = &*find_bus(state, name)?;
     let address = unit_in("drive address", body.address)?;
     let handle: &BusHandle = &bus.handle;
     let index = state
         .plant
-        .buses()
-        .iter()
-        .position(|b| b.handle.name() == handle.name())
+        .now()
+        .indexed_buses()
+        .find(|(_, b)| b.handle.name() == handle.name())
+        .map(|(i, _)| i)
         .ok_or_else(|| Problem::new(Kind::Internal, "bus directory inconsistent"))?;
     let request = ControlRequest::drive(DriveRequest::SetAddress { address })
         .single_drive(body.only_drive_on_bus)

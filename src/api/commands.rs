@@ -86,7 +86,7 @@ pub async fn run(
     control::send(
         state,
         caller,
-        target,
+        target.clone(),
         ControlRequest::drive(request).forced(force),
     )
     .await?;

@@ -15,7 +15,7 @@ use crate::drive::{DriveReply, RangeError, Status};
 pub use crate::control::written::{Written, describe, written};
 
 /// True when the drive's polls have stopped getting answers.
-pub fn is_offline(target: Target<'_>) -> bool {
+pub fn is_offline(target: &Target) -> bool {
     target
         .bus
         .drive(target.drive.unit)
@@ -27,10 +27,10 @@ pub fn is_offline(target: Target<'_>) -> bool {
 pub async fn send(
     state: &ApiState,
     caller: &Caller,
-    target: Target<'_>,
+    target: Target,
     request: ControlRequest,
 ) -> Result<DriveReply, Problem> {
-    let offline = is_offline(target);
+    let offline = is_offline(&target);
     let setpoint = request.write.meaning().setpoint.is_some();
     match state.control.write(caller, target.control(), request).await {
         Ok(Outcome::Confirmed { typed, .. }) => Ok(typed.unwrap_or(DriveReply::Confirmed)),
@@ -105,9 +105,9 @@ pub fn lease_problem(refusal: &Refusal) -> Problem {
 pub async fn read_status(
     state: &ApiState,
     caller: &Caller,
-    target: Target<'_>,
+    target: Target,
 ) -> Result<Status, Problem> {
-    let offline = is_offline(target);
+    let offline = is_offline(&target);
     state
         .control
         .read_status(caller, target.control())

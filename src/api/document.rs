@@ -124,7 +124,7 @@ pub struct SettingsDiff {
 }
 
 impl SettingsDiff {
-    fn new(target: Target<'_>, report: &SettingsReport) -> Self {
+    fn new(target: &Target, report: &SettingsReport) -> Self {
         Self::of(
             target.drive.name.clone(),
             target.bus.name().to_string(),
@@ -348,7 +348,7 @@ pub async fn apply(
 ) -> Result<SettingsDiff, Problem> {
     let dry_run = dry_run || body.dry_run;
     let target = state.target(key)?;
-    let offline = control::is_offline(target);
+    let offline = control::is_offline(&target);
     let options = ApplyOptions {
         save: body.save,
         force: body.force,
@@ -371,7 +371,7 @@ pub async fn apply(
                 },
             ),
         })?;
-    let diff = SettingsDiff::new(target, &report);
+    let diff = SettingsDiff::new(&target, &report);
     if let Some(failure) = &report.failure {
         let mut p = control::problem(
             caller,
@@ -511,7 +511,7 @@ impl DeclaredState {
 }
 
 /// The state of drive `target`'s declared settings, if it has any.
-pub fn declared_state(state: &ApiState, target: Target<'_>) -> Option<DeclaredState> {
+pub fn declared_state(state: &ApiState, target: &Target) -> Option<DeclaredState> {
     let declared = target.drive.declared.as_ref()?;
     let view = state.control.drift().view(&target.drive.name);
     Some(DeclaredState::new(declared, view.as_ref()))

@@ -226,12 +226,12 @@ fn millis(d: std::time::Duration) -> u64 {
     u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
 }
 
-fn snapshot(target: Target<'_>) -> Option<DriveSnapshot> {
+fn snapshot(target: Target) -> Option<DriveSnapshot> {
     target.bus.drive(target.drive.unit)
 }
 
-fn view(state: &ApiState, target: Target<'_>) -> DriveView {
-    let snap = snapshot(target);
+fn view(state: &ApiState, target: Target) -> DriveView {
+    let snap = snapshot(target.clone());
     let link = snap.as_ref().map_or(Link::Unknown, |s| s.link);
     DriveView {
         name: target.drive.name.clone(),
@@ -248,7 +248,7 @@ fn view(state: &ApiState, target: Target<'_>) -> DriveView {
             .and_then(|s| s.status.as_ref())
             .map(StatusView::from),
         lease: lease_of(state, target.index),
-        declared_settings: declared_state(state, target),
+        declared_settings: declared_state(state, &target),
     }
 }
 
@@ -267,7 +267,7 @@ pub async fn list_drives(
     State(state): State<ApiState>,
     _caller: Caller,
 ) -> Result<Json<Vec<DriveView>>, Problem> {
-    let views = (0..state.plant.drives().len())
+    let views = (0..state.plant.now().drive_slots())
         .filter_map(|i| state.target_at(i))
         .map(|t| view(&state, t))
         .collect();
@@ -315,10 +315,10 @@ pub async fn status(
 ) -> Result<StatusReply, Problem> {
     let target = state.target(key)?;
     let (status, source, seen_at, age_ms) = if fresh {
-        let status = control::read_status(state, caller, target).await?;
+        let status = control::read_status(state, caller, target.clone()).await?;
         (status, StatusSource::Bus, SystemTime::now(), 0)
     } else {
-        let snap = snapshot(target);
+        let snap = snapshot(target.clone());
         let cached = snap
             .as_ref()
             .and_then(|s| Some((s.status?, s.seen_at?, s.age()?)));
@@ -336,7 +336,7 @@ pub async fn status(
         (status, StatusSource::Cache, seen_at, millis(age))
     };
     // Read after the status: a fresh read may just have brought it online.
-    let link = snapshot(target).map_or(Link::Unknown, |s| s.link);
+    let link = snapshot(target.clone()).map_or(Link::Unknown, |s| s.link);
     Ok(StatusReply {
         drive: target.drive.name.clone(),
         bus: target.bus.name().to_string(),

@@ -63,13 +63,32 @@ pub struct Readiness {
     /// at start-up (set aside), or not writable (leases then work in
     /// memory only). It does not make drivegate unready.
     pub safety_journal: Vec<String>,
+    /// The configuration file's last reload. A refused one does not make
+    /// drivegate unready: the configuration it runs stays.
+    pub configuration: ConfigReadiness,
+}
+
+/// The configuration in `/readyz`.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+pub struct ConfigReadiness {
+    /// False when the last reload was refused (the file on disk is not the
+    /// one running).
+    pub last_reload_ok: bool,
+    /// Why the last reload was refused, with `file:line:column`.
+    pub last_reload_error: Option<String>,
+    /// When the running configuration was loaded (start-up or the last
+    /// reload), RFC 3339.
+    pub loaded_at: Option<String>,
+    /// Reloads applied since start-up.
+    pub reloads: u64,
 }
 
 /// The reason `/readyz` gives when the configuration has no `[[bus]]` (the
 /// package's configuration as shipped); the console says the same.
 pub const NO_BUS: &str = "no bus configured: run `drivegate probe --port /dev/ttyUSB0` \
      (with your adapter's port) to find the drives and their baud rate, then add a [[bus]] \
-     with its [[bus.drive]] sections to the configuration and restart drivegate";
+     with its [[bus.drive]] sections to the configuration and reload it \
+     (`systemctl reload drivegate`)";
 
 /// The readiness of the plant.
 pub fn readiness(state: &ApiState) -> Readiness {
@@ -77,10 +96,11 @@ pub fn readiness(state: &ApiState) -> Readiness {
     let mut buses = Vec::new();
     let mut online_total = 0;
     let mut configured_total = 0;
-    if state.plant.buses().is_empty() {
+    let plant = state.plant.now();
+    if plant.bus_count() == 0 {
         reasons.push(NO_BUS.to_string());
     }
-    for bus in state.plant.buses() {
+    for bus in plant.buses() {
         let name = bus.handle.name().to_string();
         let port_open = matches!(bus.handle.port_state(), PortState::Up { .. });
         match bus.handle.port_state() {
@@ -120,6 +140,15 @@ pub fn readiness(state: &ApiState) -> Readiness {
         reasons,
         buses,
         safety_journal: state.control.journal_warnings(),
+        configuration: {
+            let status = state.control.reload_status();
+            ConfigReadiness {
+                last_reload_ok: status.last_ok,
+                last_reload_error: status.last_error,
+                loaded_at: status.last_good_at.map(crate::timestamp::rfc3339),
+                reloads: status.applied,
+            }
+        },
     }
 }
 

@@ -325,23 +325,7 @@ impl Hub {
             control.subscribe(),
             shutdown.clone(),
         ));
-        for (bus_index, bus) in plant.buses().iter().enumerate() {
-            let units: HashMap<u8, usize> = plant
-                .drives()
-                .iter()
-                .enumerate()
-                .filter(|(_, d)| d.bus == bus_index)
-                .map(|(i, d)| (d.unit, i))
-                .collect();
-            let rx = bus.handle.subscribe();
-            tokio::spawn(forward(
-                hub.clone(),
-                plant.clone(),
-                units,
-                rx,
-                shutdown.clone(),
-            ));
-        }
+        tokio::spawn(follow_buses(hub.clone(), plant.clone(), shutdown.clone()));
         hub
     }
 
@@ -378,11 +362,12 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
     let lease = match event {
         ControlEvent::Lease(lease) => lease,
         ControlEvent::Drift(d) => {
-            let drive = plant.drives().get(d.drive)?;
+            let now = plant.now();
+            let drive = now.drive_at(d.drive)?;
             let declared = drive.declared.as_ref()?;
             let message = ServerMessage::SettingsDrift {
                 drive: drive.name.clone(),
-                bus: plant.handle_of(drive).name().to_string(),
+                bus: now.handle_of(drive)?.name().to_string(),
                 unit: drive.unit,
                 declared: DeclaredState::new(declared, Some(&d.view)),
                 at: rfc3339(d.view.checked_at),
@@ -390,12 +375,13 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
             return Some(message.to_text());
         }
         ControlEvent::Settings(applied) => {
-            let drive = plant.drives().get(applied.report.drive)?;
+            let now = plant.now();
+            let drive = now.drive_at(applied.report.drive)?;
             let message = ServerMessage::SettingsApplied {
                 who: applied.who.to_string(),
                 diff: SettingsDiff::of(
                     drive.name.clone(),
-                    plant.handle_of(drive).name().to_string(),
+                    now.handle_of(drive)?.name().to_string(),
                     drive.unit,
                     &applied.report,
                 ),
@@ -418,8 +404,7 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
             let message = ServerMessage::Write {
                 drive: w
                     .drive
-                    .and_then(|i| plant.drives().get(i))
-                    .map(|d| d.name.clone()),
+                    .and_then(|i| plant.now().drive_at(i).map(|d| d.name.clone())),
                 bus: w.bus.to_string(),
                 unit: w.unit,
                 who: w.who.to_string(),
@@ -431,10 +416,11 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
             return Some(message.to_text());
         }
     };
-    let drive = plant.drives().get(lease.drive())?;
+    let now = plant.now();
+    let drive = now.drive_at(lease.drive())?;
     let (name, bus, unit) = (
         drive.name.clone(),
-        plant.handle_of(drive).name().to_string(),
+        now.handle_of(drive)?.name().to_string(),
         drive.unit,
     );
     let message = match lease.clone() {
@@ -516,6 +502,50 @@ async fn forward_control(
     }
 }
 
+/// Forwards the events of every bus, following the plant: a bus a reload
+/// adds or reopens gets its forwarder (with the units of its drives), one
+/// it removes or reopens loses its own.
+async fn follow_buses(hub: Arc<Hub>, plant: Arc<Plant>, shutdown: CancellationToken) {
+    let mut follow = plant.follow();
+    let mut forwarding: Vec<(usize, std::sync::Weak<crate::plant::Bus>, CancellationToken)> =
+        Vec::new();
+    loop {
+        let now = follow.borrow_and_update().clone();
+        forwarding.retain(|(i, bus, stop)| {
+            let same = now
+                .bus_at(*i)
+                .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()));
+            if !same {
+                stop.cancel();
+            }
+            same
+        });
+        for (bus_index, bus) in now.indexed_buses() {
+            if forwarding.iter().any(|(i, _, _)| *i == bus_index) {
+                continue;
+            }
+            let units: HashMap<u8, usize> = now
+                .indexed_drives()
+                .filter(|(_, d)| d.bus == bus_index)
+                .map(|(i, d)| (d.unit, i))
+                .collect();
+            let stop = shutdown.child_token();
+            forwarding.push((bus_index, Arc::downgrade(bus), stop.clone()));
+            tokio::spawn(forward(
+                hub.clone(),
+                plant.clone(),
+                units,
+                bus.handle.subscribe(),
+                stop,
+            ));
+        }
+        tokio::select! {
+            () = shutdown.cancelled() => return,
+            changed = follow.changed() => if changed.is_err() { return },
+        }
+    }
+}
+
 async fn forward(
     hub: Arc<Hub>,
     plant: Arc<Plant>,
@@ -525,8 +555,8 @@ async fn forward(
 ) {
     let name = |i: usize| {
         plant
-            .drives()
-            .get(i)
+            .now()
+            .drive_at(i)
             .map_or_else(String::new, |d| d.name.clone())
     };
     loop {

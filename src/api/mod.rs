@@ -28,6 +28,7 @@ pub mod auth;
 pub mod body_schemas;
 pub mod buses;
 pub mod commands;
+pub mod config;
 pub mod control;
 pub mod document;
 pub mod drives;
@@ -92,7 +93,9 @@ pub async fn start(
     shutdown: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
     let http = config.http.clone();
-    let tokens = Tokens::resolve(&http.tokens, http.token_guesses).map_err(|e| e.to_string())?;
+    let tokens = Tokens::resolve(&http.tokens, http.token_guesses)
+        .map_err(|e| e.to_string())?
+        .follow(&control);
     let bind = listener::bind_address(http.listen, !tokens.is_empty());
     let tcp = tokio::net::TcpListener::bind(bind)
         .await

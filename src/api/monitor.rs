@@ -234,7 +234,7 @@ pub async fn get_monitor(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<MonitorView>, Problem> {
-    let bus = find_bus(&state, &name)?;
+    let bus = &*find_bus(&state, &name)?;
     let monitor = bus.monitor();
     let units = monitor
         .counters()
@@ -284,7 +284,7 @@ pub async fn get_frames(
     PathParams(name): PathParams<String>,
     Params(query): Params<FrameQuery>,
 ) -> Result<Json<FramesReply>, Problem> {
-    let bus = find_bus(&state, &name)?;
+    let bus = &*find_bus(&state, &name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
     let limit = query.limit(DEFAULT_LIMIT)?;
@@ -329,7 +329,7 @@ pub async fn get_frames_csv(
     PathParams(name): PathParams<String>,
     Params(query): Params<FrameQuery>,
 ) -> Result<Response, Problem> {
-    let bus = find_bus(&state, &name)?;
+    let bus = &*find_bus(&state, &name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
     let limit = query.limit(monitor.capacity())?;
@@ -371,7 +371,7 @@ pub async fn get_frames_pcap(
     PathParams(name): PathParams<String>,
     Params(query): Params<FrameQuery>,
 ) -> Result<Response, Problem> {
-    let bus = find_bus(&state, &name)?;
+    let bus = &*find_bus(&state, &name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
     let limit = query.limit(monitor.capacity())?;

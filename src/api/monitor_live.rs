@@ -184,7 +184,7 @@ pub async fn live(
     upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, Problem> {
     let upgrade = socket::upgrade(upgrade)?;
-    let bus = find_bus(&state, &name)?;
+    let bus = &*find_bus(&state, &name)?;
     let monitor = monitor_of(bus)?.clone();
     let filter = FrameFilter::parse(&FilterText {
         units: query.unit.as_deref(),

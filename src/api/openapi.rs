@@ -17,8 +17,8 @@ use super::problem::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
 use super::{
-    alarms, buses, commands, document, drives, health, history, monitor, monitor_live, readback,
-    replacement, scope, setpoints, settings, stream, whoami,
+    alarms, buses, commands, config, document, drives, health, history, monitor, monitor_live,
+    readback, replacement, scope, setpoints, settings, stream, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -53,6 +53,7 @@ pub const DOCS_PATH: &str = "/docs";
         (name = "monitor", description = "Every frame on the wire of a bus: decoded, with its outcome and who caused it; live, and as CSV or PCAP"),
         (name = "scope", description = "Triggered captures of status fields at the bus's full rate"),
         (name = "alarms", description = "Faults, stalls, drives offline, buses down, communication-loss stops, stops not confirmed and refused safety writes: kept across restarts until acknowledged"),
+        (name = "config", description = "The configuration file: reload it without a restart"),
         (name = "health", description = "Liveness, readiness and Prometheus metrics (no token needed)"),
     )
 )]
@@ -228,6 +229,8 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(buses::get_bus))
         .routes(routes!(buses::post_scan))
         .routes(routes!(buses::post_address))
+        .routes(routes!(config::post_reload))
+        .routes(routes!(config::post_drives))
         .routes(routes!(stream::stream))
         .routes(routes!(monitor::get_monitor))
         .routes(routes!(monitor::get_frames))

@@ -31,6 +31,8 @@
 //! | `drive-offline`, `bus-down`, `queue-timeout`, `shutting-down`, `too-many-connections` | 503 | the drive or bus cannot be reached now |
 //! | `drive-timeout` | 504 | the drive did not answer |
 //! | `drive-refused`, `drive-unconfirmed`, `drive-bad-reply` | 502 | the drive answered with an exception, with something else, or garbage |
+//! | `config-invalid` | 422 | a reload's file does not pass the check (`file:line:column`) |
+//! | `config-changed`, `no-config-file` | 409 | the file changed since it was read; no file to reload |
 //! | `internal` | 500 | a fault of drivegate itself |
 
 use axum::extract::rejection::{JsonRejection, PathRejection, QueryRejection};
@@ -103,6 +105,12 @@ listed_enum! {
         NoCapture,
         /// 409: the bus monitor is off.
         MonitorOff,
+        /// 422: the configuration file does not pass the check.
+        ConfigInvalid,
+        /// 409: the configuration file changed on disk since it was read.
+        ConfigChanged,
+        /// 409: there is no configuration file to reload.
+        NoConfigFile,
         /// 429: bus queue full.
         BusBusy,
         /// 503: drive offline.
@@ -156,6 +164,9 @@ impl Kind {
             Kind::CaptureNotRunning => "capture-not-running",
             Kind::NoCapture => "no-capture",
             Kind::MonitorOff => "monitor-off",
+            Kind::ConfigInvalid => "config-invalid",
+            Kind::ConfigChanged => "config-changed",
+            Kind::NoConfigFile => "no-config-file",
             Kind::BusBusy => "bus-busy",
             Kind::DriveOffline => "drive-offline",
             Kind::BusDown => "bus-down",
@@ -200,7 +211,10 @@ impl Kind {
             | Kind::ConfirmationRequired
             | Kind::ScopeBusy
             | Kind::CaptureNotRunning
-            | Kind::MonitorOff => StatusCode::CONFLICT,
+            | Kind::MonitorOff
+            | Kind::ConfigChanged
+            | Kind::NoConfigFile => StatusCode::CONFLICT,
+            Kind::ConfigInvalid => StatusCode::UNPROCESSABLE_ENTITY,
             Kind::BusBusy => StatusCode::TOO_MANY_REQUESTS,
             Kind::DriveOffline
             | Kind::BusDown
@@ -242,6 +256,9 @@ impl Kind {
             Kind::CaptureNotRunning => "The capture is not running",
             Kind::NoCapture => "No capture yet",
             Kind::MonitorOff => "The bus monitor is off",
+            Kind::ConfigInvalid => "The configuration file does not pass the check",
+            Kind::ConfigChanged => "The configuration file changed since it was read",
+            Kind::NoConfigFile => "There is no configuration file to reload",
             Kind::BusBusy => "The bus is busy",
             Kind::DriveOffline => "The drive is offline",
             Kind::BusDown => "The bus is down",

@@ -121,7 +121,7 @@ pub async fn read(
     key: &str,
 ) -> Result<DriveSettingsView, Problem> {
     let target = state.target(key)?;
-    let offline = control::is_offline(target);
+    let offline = control::is_offline(&target);
     let held = state
         .control
         .read_settings(caller, target.control())

@@ -306,7 +306,7 @@ pub async fn get_scope(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<ScopeView>, Problem> {
-    let bus = find_bus(&state, &name)?;
+    let bus = &*find_bus(&state, &name)?;
     let scope = bus.scope();
     scope.tick(Instant::now());
     let limits = scope.limits();
@@ -368,7 +368,7 @@ pub fn arm(
     body: &ArmBody,
 ) -> Result<ScopeState, Problem> {
     control::authorize(state, caller, Operation::Capture)?;
-    let bus = find_bus(state, name)?;
+    let bus = &*find_bus(state, name)?;
     let spec = spec(state, bus, body)?;
     let scope = bus.scope();
     let id = scope.arm(spec, Instant::now()).map_err(scope_problem)?;
@@ -403,7 +403,7 @@ pub async fn delete_scope(
 /// stream's `scope-cancel`).
 pub fn cancel(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
     control::authorize(state, caller, Operation::Capture)?;
-    let bus = find_bus(state, name)?;
+    let bus = &*find_bus(state, name)?;
     let id = bus.scope().cancel(Instant::now()).map_err(scope_problem)?;
     tracing::info!(who = %caller.who, bus = %bus.handle.name(), capture = id, "scope capture cancelled");
     current_state(bus).ok_or_else(|| Problem::new(Kind::Internal, "the capture is gone"))
@@ -435,7 +435,7 @@ pub async fn post_trigger(
 /// stream's `scope-trigger`).
 pub fn trigger(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
     control::authorize(state, caller, Operation::Capture)?;
-    let bus = find_bus(state, name)?;
+    let bus = &*find_bus(state, name)?;
     bus.scope()
         .trigger(Instant::now(), caller.origin.clone())
         .map_err(scope_problem)?;
@@ -461,7 +461,7 @@ pub async fn get_result(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<ScopeResult>, Problem> {
-    let bus = find_bus(&state, &name)?;
+    let bus = &*find_bus(&state, &name)?;
     let scope = bus.scope();
     scope.tick(Instant::now());
     let name = namer(bus);
@@ -490,7 +490,7 @@ pub async fn get_result_csv(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Response, Problem> {
-    let bus = find_bus(&state, &name)?;
+    let bus = &*find_bus(&state, &name)?;
     let scope = bus.scope();
     scope.tick(Instant::now());
     let name = namer(bus);
@@ -517,14 +517,44 @@ const PROGRESS_PERIOD: Duration = Duration::from_millis(100);
 /// Publishes every bus's capture on the stream: a `scope` message when a
 /// capture is armed, when it triggers and when it ends, and its progress
 /// every 100 ms while it fills. Also lets time pass for it, so a wait runs
-/// out even while its bus is down. Ends with `shutdown`.
+/// out even while its bus is down. Follows the plant: a bus a reload adds
+/// or reopens gets its publisher, one it removes loses it. Ends with
+/// `shutdown`.
 pub fn publish_progress(plant: &Arc<Plant>, hub: &Arc<Hub>, shutdown: &CancellationToken) {
-    for index in 0..plant.buses().len() {
-        let (plant, hub, shutdown) = (plant.clone(), hub.clone(), shutdown.clone());
+    let (plant, hub, shutdown) = (plant.clone(), hub.clone(), shutdown.clone());
+    tokio::spawn(async move {
+        let mut follow = plant.follow();
+        let mut publishing: Vec<(Arc<Bus>, CancellationToken)> = Vec::new();
+        loop {
+            let now = follow.borrow_and_update().clone();
+            publishing.retain(|(bus, stop)| {
+                let kept = now.buses().any(|b| Arc::ptr_eq(b, bus));
+                if !kept {
+                    stop.cancel();
+                }
+                kept
+            });
+            for bus in now.buses() {
+                if publishing.iter().any(|(b, _)| Arc::ptr_eq(b, bus)) {
+                    continue;
+                }
+                let stop = shutdown.child_token();
+                publishing.push((bus.clone(), stop.clone()));
+                publish_bus(bus.clone(), hub.clone(), stop);
+            }
+            tokio::select! {
+                () = shutdown.cancelled() => return,
+                changed = follow.changed() => if changed.is_err() { return },
+            }
+        }
+    });
+}
+
+/// The publisher of one bus's captures, until `shutdown`.
+fn publish_bus(bus: Arc<Bus>, hub: Arc<Hub>, shutdown: CancellationToken) {
+    {
         tokio::spawn(async move {
-            let Some(bus) = plant.buses().get(index) else {
-                return;
-            };
+            let bus: &Bus = &bus;
             let scope: &Scope = bus.scope();
             let mut last: Option<(u64, &'static str, usize)> = None;
             loop {

@@ -65,7 +65,7 @@ fn millis_u64(d: Duration) -> u64 {
 /// The lease on drive `index` of the plant, as clients see it.
 pub fn lease_of(state: &ApiState, index: usize) -> Option<LeaseInfo> {
     let view = state.control.lease(index)?;
-    let name = state.plant.drives().get(index)?.name.clone();
+    let name = state.plant.now().drive_at(index)?.name.clone();
     Some(LeaseInfo::new(&name, &view))
 }
 
@@ -179,7 +179,7 @@ pub async fn apply(
     let sent = control::send(
         state,
         caller,
-        target,
+        target.clone(),
         ControlRequest::drive(request).with_lease(lease),
     )
     .await;

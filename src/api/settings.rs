@@ -39,15 +39,15 @@ async fn write_settings(
     key: &str,
     save: bool,
     force: bool,
-    build: impl FnOnce(Target<'_>) -> Result<DriveRequest, Problem>,
+    build: impl FnOnce(Target) -> Result<DriveRequest, Problem>,
 ) -> Result<SettingsReply, Problem> {
     let target = state.target(key)?;
-    let request = build(target)?;
+    let request = build(target.clone())?;
     request.validate()?;
     control::send(
         state,
         caller,
-        target,
+        target.clone(),
         ControlRequest::drive(request).forced(force),
     )
     .await?;
@@ -89,7 +89,7 @@ pub async fn protection(
     key: &str,
     body: &ProtectionBody,
 ) -> Result<SettingsReply, Problem> {
-    let build = |_: Target<'_>| {
+    let build = |_: Target| {
         let limit_counts = match (body.limit_a, body.limit_counts) {
             (Some(a), None) => units::current_limit(a)?,
             (None, Some(c)) => units::current_limit_counts(c)?,
@@ -233,7 +233,7 @@ pub async fn speed_ramp(
 ) -> Result<RampReply, Problem> {
     let mut alpha = 0;
     let mut gear = 1.0;
-    let build = |t: Target<'_>| {
+    let build = |t: Target| {
         gear = t.drive.gear_ratio;
         alpha = solve(
             body.alpha,
@@ -307,7 +307,7 @@ pub async fn position_ramp(
 ) -> Result<RampReply, Problem> {
     let mut alpha = 0;
     let mut gear = 1.0;
-    let build = |t: Target<'_>| {
+    let build = |t: Target| {
         gear = t.drive.gear_ratio;
         alpha = solve(
             body.alpha,
@@ -387,7 +387,7 @@ pub async fn inertia(
     key: &str,
     body: &InertiaBody,
 ) -> Result<SettingsReply, Problem> {
-    let build = |_: Target<'_>| {
+    let build = |_: Target| {
         Ok(DriveRequest::LoadInertia {
             ratio: units::inertia_ratio(body.ratio)?,
             save: body.save,
@@ -434,7 +434,7 @@ pub async fn rs485_control(
     key: &str,
     body: &Rs485Body,
 ) -> Result<SettingsReply, Problem> {
-    let build = |_: Target<'_>| {
+    let build = |_: Target| {
         Ok(DriveRequest::Rs485Control {
             enabled: body.enabled,
         })

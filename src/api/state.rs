@@ -10,7 +10,7 @@ use tokio_util::task::TaskTracker;
 
 use super::auth::Tokens;
 use super::hub::Hub;
-use super::problem::{Kind, Problem};
+use super::problem::Problem;
 use crate::bus::{BusHandle, SourceId};
 use crate::config::HttpConfig;
 use crate::control::{self, Control};
@@ -53,18 +53,19 @@ impl Deref for ApiState {
     }
 }
 
-/// A drive resolved from a path: its place in the plant and its bus.
-#[derive(Clone, Copy)]
-pub struct Target<'a> {
-    /// Index in [`Plant::drives`] (the key of leases and subscriptions).
+/// A drive resolved from a path: its slot in the plant and its bus.
+#[derive(Clone)]
+pub struct Target {
+    /// Its slot in the plant's directory (the key of leases and
+    /// subscriptions).
     pub index: usize,
     /// The drive.
-    pub drive: &'a Drive,
+    pub drive: Drive,
     /// Its bus.
-    pub bus: &'a BusHandle,
+    pub bus: BusHandle,
 }
 
-impl Target<'_> {
+impl Target {
     /// Where the control core sends its writes.
     pub fn control(&self) -> control::Target {
         control::Target {
@@ -112,24 +113,19 @@ impl ApiState {
     }
 
     /// The drive named `key` (or, on a single bus, with that unit number).
-    pub fn target(&self, key: &str) -> Result<Target<'_>, Problem> {
-        let (drive, bus) = self.plant.drive(key).map_err(|e| Problem::lookup(&e))?;
-        let index = self
-            .plant
-            .drives()
-            .iter()
-            .position(|d| d.name == drive.name)
-            .ok_or_else(|| Problem::new(Kind::Internal, "drive directory inconsistent"))?;
+    pub fn target(&self, key: &str) -> Result<Target, Problem> {
+        let (index, drive, bus) = self.plant.find(key).map_err(|e| Problem::lookup(&e))?;
         Ok(Target { index, drive, bus })
     }
 
-    /// The drive at `index` in the plant.
-    pub fn target_at(&self, index: usize) -> Option<Target<'_>> {
-        let drive = self.plant.drives().get(index)?;
+    /// The drive in slot `index` of the plant, if it is still configured.
+    pub fn target_at(&self, index: usize) -> Option<Target> {
+        let now = self.plant.now();
+        let drive = now.drive_at(index)?;
         Some(Target {
             index,
-            drive,
-            bus: self.plant.handle_of(drive),
+            bus: now.handle_of(drive)?.clone(),
+            drive: drive.clone(),
         })
     }
 }

@@ -125,7 +125,7 @@ pub struct StreamQuery {
 fn resolve(state: &ApiState, selection: &DriveSelection) -> Result<Vec<usize>, Problem> {
     let keys: Vec<&str> = match selection {
         DriveSelection::One(s) if s == "all" => {
-            return Ok((0..state.plant.drives().len()).collect());
+            return Ok(state.plant.now().indexed_drives().map(|(i, _)| i).collect());
         }
         DriveSelection::One(s) => vec![s.as_str()],
         DriveSelection::Many(list) => list.iter().map(String::as_str).collect(),
@@ -160,6 +160,7 @@ pub async fn stream(
     upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, Problem> {
     let upgrade = socket::upgrade(upgrade)?;
+    let all = query.drives.as_deref() == Some("all");
     let initial = match query.drives.as_deref() {
         None | Some("") => Vec::new(),
         Some("all") => resolve(&state, &DriveSelection::One("all".to_string()))?,
@@ -170,34 +171,44 @@ pub async fn stream(
     };
     let session_state = state.clone();
     Ok(socket::accept(&state, upgrade, move |socket| {
-        session(session_state, caller, socket, initial)
+        session(session_state, caller, socket, (initial, all))
     }))
 }
 
 /// Which drives a session receives: one flag per drive of the plant, read
 /// by the forwarder for every message without locking.
-struct Selection(Vec<AtomicBool>);
+/// With `all`, drives a reload adds are in it too.
+#[derive(Default)]
+struct Selection {
+    all: AtomicBool,
+    drives: std::sync::RwLock<std::collections::BTreeSet<usize>>,
+}
 
 impl Selection {
-    fn new(drives: usize) -> Self {
-        Selection((0..drives).map(|_| AtomicBool::new(false)).collect())
-    }
-
-    fn set(&self, indexes: &[usize]) {
-        for (i, flag) in self.0.iter().enumerate() {
-            flag.store(indexes.contains(&i), Ordering::Relaxed);
-        }
+    fn set(&self, indexes: &[usize], all: bool) {
+        let mut drives = self.drives.write().unwrap_or_else(|p| p.into_inner());
+        *drives = indexes.iter().copied().collect();
+        self.all.store(all, Ordering::Relaxed);
     }
 
     fn wants(&self, drive: Option<usize>) -> bool {
+        if self.all.load(Ordering::Relaxed) {
+            return true;
+        }
+        let drives = self.drives.read().unwrap_or_else(|p| p.into_inner());
         match drive {
-            Some(i) => self.0.get(i).is_some_and(|f| f.load(Ordering::Relaxed)),
-            None => self.0.iter().any(|f| f.load(Ordering::Relaxed)),
+            Some(i) => drives.contains(&i),
+            None => !drives.is_empty(),
         }
     }
 }
 
-async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Vec<usize>) {
+async fn session(
+    state: ApiState,
+    caller: Caller,
+    socket: WebSocket,
+    (initial, all): (Vec<usize>, bool),
+) {
     let _counted = state.metrics.faces().ws_client();
     // Its leases end when it closes. News of their end comes on an
     // unbounded channel, but only a lease of this client's own adds to it.
@@ -206,8 +217,8 @@ async fn session(state: ApiState, caller: Caller, socket: WebSocket, initial: Ve
     let caller = caller.in_session(Face::WebSocket, connection);
     tracing::debug!(who = %caller.who, connection = connection.0, "stream client connected");
 
-    let selection = Arc::new(Selection::new(state.plant.drives().len()));
-    selection.set(&initial);
+    let selection = Arc::new(Selection::default());
+    selection.set(&initial, all);
     let missed = Arc::new(AtomicU64::new(0));
     let (events_tx, events_rx) = mpsc::channel(state.config.stream_buffer);
     let (replies_tx, replies_rx) = mpsc::channel(REPLY_BUFFER);
@@ -371,7 +382,7 @@ async fn write_loop(
 fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
     let drives: Vec<String> = indexes
         .iter()
-        .filter_map(|&i| state.plant.drives().get(i).map(|d| d.name.clone()))
+        .filter_map(|&i| state.plant.now().drive_at(i).map(|d| d.name.clone()))
         .collect();
     let restart = state
         .control
@@ -446,7 +457,8 @@ async fn read_loop(
             .to_text(),
             Ok(ClientMessage::Subscribe { drives }) => match resolve(state, &drives) {
                 Ok(indexes) => {
-                    selection.set(&indexes);
+                    let all = matches!(&drives, DriveSelection::One(s) if s == "all");
+                    selection.set(&indexes, all);
                     subscribed(state, &indexes)
                 }
                 Err(problem) => ServerMessage::Error { problem }.to_text(),
@@ -660,10 +672,13 @@ mod tests {
 
     #[test]
     fn selection_flags() {
-        let s = Selection::new(3);
+        let s = Selection::default();
         assert!(!s.wants(None));
-        s.set(&[1]);
+        s.set(&[1], false);
         assert!(s.wants(Some(1)) && !s.wants(Some(0)) && s.wants(None));
         assert!(!s.wants(Some(7)));
+        // "all" takes the drives a reload adds too.
+        s.set(&[0, 1], true);
+        assert!(s.wants(Some(7)));
     }
 }

@@ -14,7 +14,7 @@ use crate::bus::scheduler::BusSettings;
 use crate::sim::{Delivery, FaultRates, SimConfig, SimDriveConfig};
 
 /// One serial adapter and the drives on it.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct BusConfig {
     /// Name in logs, metrics and the API.
@@ -153,7 +153,7 @@ impl Default for SimSection {
 }
 
 /// One drive on a bus.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct DriveConfig {
     /// Its address on the bus, 1 to 255.

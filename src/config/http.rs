@@ -113,7 +113,7 @@ fn default_listen() -> SocketAddr {
 }
 
 /// `[http]` as written, before its values are checked.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct RawHttpConfig {
     listen: SocketAddr,
@@ -158,7 +158,7 @@ impl Default for RawHttpConfig {
 }
 
 /// `[[http.token]]` as written.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 struct RawToken {
     name: String,

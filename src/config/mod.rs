@@ -9,6 +9,8 @@
 mod bus;
 mod declared;
 mod diagnostics;
+pub mod diff;
+pub mod edit;
 mod error;
 mod history;
 pub mod http;
@@ -42,7 +44,7 @@ use crate::logging::LogConfig;
 pub const DEFAULT_CONFIG: &str = include_str!("../../config/default.toml");
 
 /// The whole configuration.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     /// REST, WebSocket and metrics listener.

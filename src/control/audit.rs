@@ -224,3 +224,22 @@ pub fn settings_checked(drive: &str, drift: &[Difference], apply: &str) {
 pub fn settings_trouble(drive: &str, why: &str) {
     tracing::warn!(target: "drivegate::audit", face = "internal", who = "declared-settings", drive, error = why, "declared settings");
 }
+
+/// Logs a reload of the configuration: who asked, and what it changed or
+/// why it was refused.
+pub fn reload(by: &str, result: &super::reload::ReloadResult) {
+    match result {
+        Ok(applied) => tracing::info!(
+            target: "drivegate::audit",
+            who = by,
+            changes = %applied.changes.join("; "),
+            "configuration reloaded"
+        ),
+        Err(refused) => tracing::warn!(
+            target: "drivegate::audit",
+            who = by,
+            why = %refused,
+            "configuration reload refused"
+        ),
+    }
+}

@@ -5,7 +5,7 @@
 //! reported: an event for the stream, the audit log, the drive's state
 //! for the API and the metric. With `apply_settings = "on-drift"` the
 //! declaration is then put on the drive through the core's one write path
-//! ([`Control::apply_wanted`]), never while the motor turns (the core
+//! (`Control::apply_wanted`), never while the motor turns (the core
 //! refuses it; this waits for a status at standstill and tries again) and
 //! never to flash unless `save = true` is declared; the read-back after
 //! it says whether the drift is gone.
@@ -129,6 +129,8 @@ pub struct DriftBook {
     /// Drives being checked; true when another check was asked for
     /// meanwhile (it runs after).
     running: Mutex<HashMap<usize, bool>>,
+    /// The daemon's shutdown, once the buses are followed.
+    shutdown: std::sync::OnceLock<CancellationToken>,
 }
 
 impl DriftBook {
@@ -140,7 +142,12 @@ impl DriftBook {
 
     /// Records drive `drive`'s new state and tells the stream and the log.
     fn set(&self, control: &Control, drive: usize, view: DriftView) {
-        let Some(name) = control.plant().drives().get(drive).map(|d| d.name.clone()) else {
+        let Some(name) = control
+            .plant()
+            .now()
+            .drive_at(drive)
+            .map(|d| d.name.clone())
+        else {
             return;
         };
         match &view.state {
@@ -163,7 +170,12 @@ impl DriftBook {
     /// or by drivegate), with `held` read back: a drive with a declaration
     /// is compared with it again, so its state follows what it holds now.
     pub(crate) fn after_apply(&self, control: &Control, drive: usize, held: &DriveSettings) {
-        let Some(declared) = control.plant().drives().get(drive).and_then(|d| d.declared) else {
+        let Some(declared) = control
+            .plant()
+            .now()
+            .drive_at(drive)
+            .and_then(|d| d.declared)
+        else {
             return;
         };
         self.compared(control, drive, &declared, held);
@@ -216,6 +228,21 @@ impl DriftBook {
         );
     }
 
+    /// Compares drive `drive` with its declaration again now (and applies
+    /// it under `on-drift`), as when it comes online: for a declaration
+    /// that changed while the drive was online. Nothing before the buses
+    /// are followed, nor for a drive without a declaration.
+    pub fn recheck(self: &Arc<Self>, control: &Control, drive: usize) {
+        let declared = control
+            .plant()
+            .now()
+            .drive_at(drive)
+            .is_some_and(|d| d.declared.is_some());
+        if let (true, Some(shutdown)) = (declared, self.shutdown.get()) {
+            self.request(control, drive, shutdown);
+        }
+    }
+
     /// Checks drive `drive` now, or once the check running for it ends.
     fn request(self: &Arc<Self>, control: &Control, drive: usize, shutdown: &CancellationToken) {
         {
@@ -244,15 +271,17 @@ impl DriftBook {
     /// Compares drive `drive` with its declaration and, with `on-drift`,
     /// applies it.
     async fn check(&self, control: &Control, drive: usize, shutdown: &CancellationToken) {
-        let Some(d) = control.plant().drives().get(drive).cloned() else {
+        let now = control.plant().now();
+        let Some(d) = now.drive_at(drive).cloned() else {
             return;
         };
         let Some(declared) = d.declared else {
             return;
         };
-        let Some(bus) = control.plant().buses().get(d.bus) else {
+        let Some(bus) = now.bus_at(d.bus).cloned() else {
             return;
         };
+        drop(now);
         // Subscribed before anything is read, so a standstill that comes
         // while the core refuses the writes is not missed.
         let mut events = bus.handle.subscribe();
@@ -358,41 +387,45 @@ pub(crate) fn start(control: &Control, shutdown: &CancellationToken) {
         return;
     }
     let book = control.drift().clone();
-    for (index, bus) in control.plant().buses().iter().enumerate() {
-        let mut rx = bus.handle.subscribe();
-        let (book, control, shutdown) = (book.clone(), control.clone(), shutdown.clone());
-        tokio::spawn(async move {
-            loop {
-                let event = tokio::select! {
-                    () = shutdown.cancelled() => return,
-                    event = rx.recv() => event,
-                };
-                match event {
-                    Ok(BusEvent::Online { unit, .. }) => {
-                        let drive =
-                            control.plant().drives().iter().position(|d| {
-                                d.bus == index && d.unit == unit && d.declared.is_some()
-                            });
-                        if let Some(drive) = drive {
-                            book.request(&control, drive, &shutdown);
+    let _ = book.shutdown.set(shutdown.clone());
+    let (directory, stop, books) = (control.clone(), shutdown.clone(), book.clone());
+    control
+        .plant()
+        .each_bus(shutdown.clone(), move |index, bus| {
+            let mut rx = bus.handle.subscribe();
+            let (book, control, shutdown) = (books.clone(), directory.clone(), stop.clone());
+            tokio::spawn(async move {
+                loop {
+                    let event = tokio::select! {
+                        () = shutdown.cancelled() => return,
+                        event = rx.recv() => event,
+                    };
+                    match event {
+                        Ok(BusEvent::Online { unit, .. }) => {
+                            let drive =
+                                control.plant().now().indexed_drives().find_map(|(i, d)| {
+                                    (d.bus == index && d.unit == unit && d.declared.is_some())
+                                        .then_some(i)
+                                });
+                            if let Some(drive) = drive {
+                                book.request(&control, drive, &shutdown);
+                            }
                         }
+                        Ok(_) => {}
+                        Err(broadcast::error::RecvError::Lagged(n)) => {
+                            tracing::warn!("declared settings: fell {n} bus events behind");
+                        }
+                        Err(broadcast::error::RecvError::Closed) => return,
                     }
-                    Ok(_) => {}
-                    Err(broadcast::error::RecvError::Lagged(n)) => {
-                        tracing::warn!("declared settings: fell {n} bus events behind");
-                    }
-                    Err(broadcast::error::RecvError::Closed) => return,
                 }
-            }
+            });
         });
-    }
     // Online before the buses were followed.
-    for (drive, d) in control.plant().drives().iter().enumerate() {
-        let online = control
-            .plant()
-            .buses()
-            .get(d.bus)
-            .and_then(|b| b.handle.drive(d.unit))
+    let now = control.plant().now();
+    for (drive, d) in now.indexed_drives() {
+        let online = now
+            .handle_of(d)
+            .and_then(|b| b.drive(d.unit))
             .is_some_and(|s| s.link == Link::Online);
         if d.declared.is_some() && online {
             book.request(control, drive, shutdown);

@@ -46,7 +46,7 @@ pub struct Leases {
     /// Open sessions, with the way to tell them of their leases' ends.
     sessions: Mutex<HashMap<SessionId, mpsc::UnboundedSender<Arc<ControlEvent>>>>,
     /// Communication-loss lease ends per bus: by silence, by a close.
-    comm_loss: Vec<CommLossCount>,
+    comm_loss: Mutex<HashMap<usize, Arc<CommLossCount>>>,
     shutdown: CancellationToken,
     tasks: TaskTracker,
     /// The safety journal: what a restart must know.
@@ -70,24 +70,17 @@ impl Leases {
             wake: Notify::new(),
             events,
             sessions: Mutex::new(HashMap::new()),
-            comm_loss: plant
-                .buses()
-                .iter()
-                .map(|_| CommLossCount::default())
-                .collect(),
+            comm_loss: Mutex::new(HashMap::new()),
             shutdown,
             tasks: TaskTracker::new(),
             journal: Mutex::new(journal),
         });
         let driver = leases.clone();
         leases.tasks.spawn(async move { driver.run().await });
-        for (bus_index, bus) in plant.buses().iter().enumerate() {
-            let watcher = leases.clone();
-            let rx = bus.handle.subscribe();
-            leases
-                .tasks
-                .spawn(async move { watcher.watch_links(bus_index, rx).await });
-        }
+        let follower = leases.clone();
+        leases
+            .tasks
+            .spawn(async move { follower.follow_buses().await });
         leases
     }
 
@@ -132,7 +125,8 @@ impl Leases {
 
     /// A note of the book as a journal record.
     fn record(&self, note: &Note) -> Option<Record> {
-        let name = |drive: usize| self.plant.drives().get(drive).map(|d| d.name.clone());
+        let now = self.plant.now();
+        let name = |drive: usize| now.drive_at(drive).map(|d| d.name.clone());
         Some(match note {
             Note::Lease {
                 drive,
@@ -213,12 +207,15 @@ impl Leases {
                 Effect::CommLoss { drive, closed } => {
                     self.events
                         .publish(Arc::new(ControlEvent::CommLoss { drive, closed }), None);
-                    let count = self
-                        .plant
-                        .drives()
-                        .get(drive)
-                        .and_then(|d| self.comm_loss.get(d.bus));
-                    if let Some(count) = count {
+                    let bus = self.plant.now().drive_at(drive).map(|d| d.bus);
+                    if let Some(bus) = bus {
+                        let count = self
+                            .comm_loss
+                            .lock()
+                            .unwrap_or_else(|p| p.into_inner())
+                            .entry(bus)
+                            .or_default()
+                            .clone();
                         let counter = if closed {
                             &count.closed
                         } else {
@@ -234,7 +231,7 @@ impl Leases {
     /// Publishes lease news, and sends it directly to the session that
     /// held the lease, if it is still open (which then skips the copy).
     fn announce(&self, event: LeaseEvent) {
-        if let Some(drive) = self.plant.drives().get(event.drive()) {
+        if let Some(drive) = self.plant.now().drive_at(event.drive()) {
             audit::lease(&drive.name, &event);
         }
         let session = event.holder().session();
@@ -279,7 +276,8 @@ impl Leases {
     /// Communication-loss leases of bus `bus` that ended since start-up:
     /// by silence, and by their session closing.
     pub fn comm_loss_ends(&self, bus: usize) -> (u64, u64) {
-        self.comm_loss.get(bus).map_or((0, 0), |c| {
+        let counts = self.comm_loss.lock().unwrap_or_else(|p| p.into_inner());
+        counts.get(&bus).map_or((0, 0), |c| {
             (
                 c.timed_out.load(Ordering::Relaxed),
                 c.closed.load(Ordering::Relaxed),
@@ -335,9 +333,8 @@ impl Leases {
     async fn watch_links(self: Arc<Self>, bus: usize, mut rx: broadcast::Receiver<BusEvent>) {
         let drives_of = |unit: Option<u8>| -> Vec<usize> {
             self.plant
-                .drives()
-                .iter()
-                .enumerate()
+                .now()
+                .indexed_drives()
                 .filter(|(_, d)| d.bus == bus && unit.is_none_or(|u| u == d.unit))
                 .map(|(i, _)| i)
                 .collect()
@@ -357,12 +354,41 @@ impl Leases {
         }
     }
 
+    /// Watches the events of every bus, and of each bus a reload adds or
+    /// reopens, until shutdown.
+    async fn follow_buses(self: Arc<Self>) {
+        let mut plant = self.plant.follow();
+        // The buses watched, by slot: a bus reopened is another `Bus`.
+        let mut watched: Vec<(usize, Arc<crate::plant::Bus>)> = Vec::new();
+        loop {
+            let now = plant.borrow_and_update().clone();
+            watched.retain(|(i, b)| now.bus_at(*i).is_some_and(|n| Arc::ptr_eq(n, b)));
+            for (index, bus) in now.indexed_buses() {
+                if watched.iter().any(|(i, _)| *i == index) {
+                    continue;
+                }
+                watched.push((index, bus.clone()));
+                let watcher = self.clone();
+                let rx = bus.handle.subscribe();
+                self.tasks
+                    .spawn(async move { watcher.watch_links(index, rx).await });
+            }
+            tokio::select! {
+                () = self.shutdown.cancelled() => return,
+                changed = plant.changed() => if changed.is_err() { return },
+            }
+        }
+    }
+
     /// Sends one stop and reports how it went.
     async fn stop(self: Arc<Self>, order: StopOrder) {
-        let Some(drive) = self.plant.drives().get(order.drive) else {
+        let now = self.plant.now();
+        let Some(drive) = now.drive_at(order.drive) else {
             return;
         };
-        let bus = self.plant.handle_of(drive);
+        let Some(bus) = now.handle_of(drive) else {
+            return;
+        };
         // A brake applied again has no lease behind it: drivegate's own.
         let origin = order
             .owner

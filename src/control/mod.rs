@@ -32,6 +32,7 @@ pub mod lease_book;
 pub mod leases;
 pub mod outcome;
 pub mod policy;
+pub mod reload;
 pub mod replacement;
 pub mod request;
 pub mod restart;
@@ -94,6 +95,25 @@ pub enum LeaseError {
     NoLease(NoLease),
 }
 
+/// `[safety]`'s settings of leases, which a reload may change.
+#[derive(Debug, Clone, Copy)]
+struct Settings {
+    jog_lease: Duration,
+    lease_bounds: LeaseBounds,
+}
+
+impl Settings {
+    fn of(safety: &SafetyConfig) -> Self {
+        Settings {
+            jog_lease: Duration::from_millis(safety.jog_lease_ms),
+            lease_bounds: LeaseBounds {
+                min: Duration::from_millis(safety.lease_min_ms),
+                max: Duration::from_millis(safety.lease_max_ms),
+            },
+        }
+    }
+}
+
 /// The handle every face holds; cheap to clone.
 #[derive(Clone)]
 pub struct Control(Arc<Inner>);
@@ -103,8 +123,10 @@ struct Inner {
     leases: Arc<Leases>,
     alarms: Arc<alarms::Alarms>,
     events: Arc<Events>,
-    jog_lease: Duration,
-    lease_bounds: LeaseBounds,
+    /// `[safety]`'s lease settings, as last loaded.
+    settings: std::sync::RwLock<Settings>,
+    /// Reloads of the configuration.
+    reloads: reload::Reloads,
     /// What the journal held at start-up, until it is replayed.
     recovered: std::sync::Mutex<Option<Recovered>>,
     on_unknown_state: StopAction,
@@ -146,11 +168,8 @@ impl Control {
             leases,
             alarms,
             events,
-            jog_lease: Duration::from_millis(safety.jog_lease_ms),
-            lease_bounds: LeaseBounds {
-                min: Duration::from_millis(safety.lease_min_ms),
-                max: Duration::from_millis(safety.lease_max_ms),
-            },
+            settings: std::sync::RwLock::new(Settings::of(safety)),
+            reloads: reload::Reloads::default(),
             recovered: std::sync::Mutex::new(Some(opened.recovered)),
             on_unknown_state: safety.on_unknown_state,
             journal_news: opened.news,
@@ -244,13 +263,17 @@ impl Control {
 
     /// The lease a console jog asks for (`[safety] jog_lease_ms`).
     pub fn jog_lease(&self) -> Duration {
-        self.0.jog_lease
+        self.settings().jog_lease
     }
 
     /// The shortest and longest lease a setpoint may ask for (`[safety]
     /// lease_min_ms`, `lease_max_ms`), from any face.
     pub fn lease_bounds(&self) -> LeaseBounds {
-        self.0.lease_bounds
+        self.settings().lease_bounds
+    }
+
+    fn settings(&self) -> Settings {
+        *self.0.settings.read().unwrap_or_else(|p| p.into_inner())
     }
 
     /// Buses and drives.
@@ -307,14 +330,7 @@ impl Control {
     /// The configured drive named `key` (or, on a single bus, with that
     /// unit number).
     pub fn target(&self, key: &str) -> Result<Target, LookupError> {
-        let (drive, _) = self.0.plant.drive(key)?;
-        let index = self
-            .0
-            .plant
-            .drives()
-            .iter()
-            .position(|d| d.name == drive.name)
-            .ok_or_else(|| LookupError::Unknown(key.to_string()))?;
+        let (index, drive, _) = self.0.plant.find(key)?;
         Ok(Target {
             bus: drive.bus,
             unit: drive.unit,
@@ -328,9 +344,10 @@ impl Control {
             .then(|| {
                 self.0
                     .plant
-                    .drives()
-                    .iter()
-                    .position(|d| d.bus == bus && d.unit == unit)
+                    .now()
+                    .indexed_drives()
+                    .find(|(_, d)| d.bus == bus && d.unit == unit)
+                    .map(|(i, _)| i)
             })
             .flatten();
         Target { bus, unit, drive }
@@ -358,8 +375,7 @@ impl Control {
     ) -> Result<LeaseView, LeaseError> {
         rules::role(caller, Operation::Lease.needs()).map_err(LeaseError::Refused)?;
         if let Some(length) = length {
-            self.0
-                .lease_bounds
+            self.lease_bounds()
                 .check(length)
                 .map_err(LeaseError::Refused)?;
         }
@@ -428,8 +444,8 @@ impl Control {
     fn drive_name(&self, drive: usize) -> String {
         self.0
             .plant
-            .drives()
-            .get(drive)
+            .now()
+            .drive_at(drive)
             .map_or_else(String::new, |d| d.name.clone())
     }
 }

@@ -33,6 +33,9 @@ pub enum Operation {
     Replacement,
     /// Acknowledging an alarm: the operator on duty says they saw it.
     AcknowledgeAlarm,
+    /// Reloading the configuration file (drives and buses added or
+    /// removed, tokens, roles of networks): commissioning work.
+    Reload,
 }
 
 impl Operation {
@@ -45,6 +48,7 @@ impl Operation {
             Operation::Capture => Role::Operator,
             Operation::Replacement => Role::Admin,
             Operation::AcknowledgeAlarm => Role::Operator,
+            Operation::Reload => Role::Admin,
         }
     }
 }

@@ -91,8 +91,8 @@ pub async fn run(
         first_statuses(plant).await
     } else {
         plant
+            .now()
             .drives()
-            .iter()
             .map(|d| DriveAtStart {
                 name: d.name.clone(),
                 moving: None,
@@ -105,7 +105,13 @@ pub async fn run(
         StopAction::None => Action::None,
     };
     let decisions = replay::replay(recovered, SystemTime::now(), &statuses, on_unknown);
-    let index = |name: &str| plant.drives().iter().position(|d| d.name == name);
+    let directory = plant.now();
+    let index = |name: &str| {
+        directory
+            .indexed_drives()
+            .find(|(_, d)| d.name == name)
+            .map(|(i, _)| i)
+    };
     leases.with(|book, now: Instant| {
         for d in &decisions {
             super::audit::restart(&RestartNote::of(d, SystemTime::now()));
@@ -149,11 +155,11 @@ pub async fn run(
 async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
     let deadline = tokio::time::Instant::now() + FIRST_STATUS;
     loop {
-        let seen: Vec<DriveAtStart> = plant
+        let now = plant.now();
+        let seen: Vec<DriveAtStart> = now
             .drives()
-            .iter()
             .map(|d| {
-                let state = plant.handle_of(d).drive(d.unit);
+                let state = now.handle_of(d).and_then(|h| h.drive(d.unit));
                 let known = state.as_ref().is_some_and(|s| s.link != Link::Unknown);
                 DriveAtStart {
                     name: d.name.clone(),
@@ -164,10 +170,9 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
                 }
             })
             .collect();
-        let all = plant.drives().iter().all(|d| {
-            plant
-                .handle_of(d)
-                .drive(d.unit)
+        let all = now.drives().all(|d| {
+            now.handle_of(d)
+                .and_then(|h| h.drive(d.unit))
                 .is_some_and(|s| s.link != Link::Unknown)
         });
         if all || tokio::time::Instant::now() >= deadline {

@@ -383,3 +383,84 @@ fn outcomes(wanted: &Wanted, held: &DriveSettings) -> Vec<SettingOutcome> {
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bus::BusError;
+
+    fn outcome(
+        setting: Setting,
+        before: u32,
+        wanted: u32,
+        result: SettingResult,
+    ) -> SettingOutcome {
+        SettingOutcome {
+            setting,
+            before,
+            wanted,
+            read_back: None,
+            result,
+        }
+    }
+
+    #[test]
+    fn a_report_says_what_changed_and_what_failed() {
+        let timeout = BusError::Timeout {
+            unit: 2,
+            attempts: 2,
+            timeout_ms: 250,
+        };
+        let report = SettingsReport {
+            drive: 1,
+            settings: vec![
+                outcome(Setting::StallTime, 3000, 500, SettingResult::Written),
+                outcome(
+                    Setting::SpeedRamp,
+                    500_000,
+                    5000,
+                    SettingResult::Failed("no answer".to_string()),
+                ),
+                outcome(
+                    Setting::InertiaRatio,
+                    1,
+                    5,
+                    SettingResult::NotSent("earlier".to_string()),
+                ),
+                outcome(Setting::Rs485Control, 1, 1, SettingResult::Unchanged),
+            ],
+            dry_run: false,
+            save: false,
+            failure: Some(Failure::Unknown {
+                error: timeout,
+                reply: None,
+            }),
+            read_back_error: None,
+        };
+        assert!(!report.complete());
+        // Written: the value asked for; failed or not sent: as before.
+        assert_eq!(report.changed(), 1);
+        assert_eq!(
+            report.words(),
+            "protection.stall_ms 3000 ms -> 500 ms, speed_ramp.alpha 500000 -> 5000 FAILED: no answer, inertia_ratio 1 x rotor -> 5 x rotor not sent"
+        );
+        // A read-back decides the value after.
+        let mut read = outcome(Setting::InertiaRatio, 1, 5, SettingResult::Written);
+        read.read_back = Some(4);
+        assert_eq!((read.after(), read.changed()), (4, true));
+        let dry = outcome(Setting::InertiaRatio, 1, 5, SettingResult::WouldWrite);
+        assert_eq!(dry.after(), 5);
+        let nothing = SettingsReport {
+            settings: vec![outcome(
+                Setting::InertiaRatio,
+                1,
+                1,
+                SettingResult::Unchanged,
+            )],
+            failure: None,
+            save: true,
+            ..report
+        };
+        assert_eq!(nothing.words(), "nothing to change; saved to flash");
+    }
+}

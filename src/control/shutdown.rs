@@ -18,10 +18,11 @@ pub async fn shutdown(plant: &Plant, action: StopAction) {
     plant.close();
     // Every drive is asked, not only those the polled copy shows moving:
     // the copy may be older than the last command.
-    let stops = plant.drives().iter().map(|drive| {
-        let handle = plant.handle_of(drive).clone();
+    let now = plant.now();
+    let stops = now.drives().filter_map(|drive| {
+        let handle = now.handle_of(drive)?.clone();
         let (name, unit) = (drive.name.clone(), drive.unit);
-        async move {
+        Some(async move {
             match safety::stop_drive(&handle, unit, action, true, None, Origin::Shutdown).await {
                 Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
                     // One line per write: with the mode unknown,
@@ -51,7 +52,7 @@ pub async fn shutdown(plant: &Plant, action: StopAction) {
                     warn!(drive = %name, action = action.name(), "safe stop failed: {e}")
                 }
             }
-        }
+        })
     });
     let all = futures_util::future::join_all(stops);
     if tokio::time::timeout(Duration::from_secs(5), all)

@@ -102,8 +102,8 @@ impl Control {
 
     pub(crate) fn bus(&self, target: Target) -> Result<BusHandle, BusError> {
         self.plant()
-            .buses()
-            .get(target.bus)
+            .now()
+            .bus_at(target.bus)
             .map(|b| b.handle.clone())
             .ok_or_else(|| BusError::Invalid(format!("no bus at index {}", target.bus)))
     }
@@ -236,8 +236,8 @@ impl Control {
     ) -> Result<Vec<Speed>, Failure> {
         let units: Vec<u8> = if target.unit == 0 {
             self.plant()
+                .now()
                 .drives()
-                .iter()
                 .filter(|d| d.bus == target.bus)
                 .filter(|d| bus.drive(d.unit).is_none_or(|s| s.link != Link::Offline))
                 .map(|d| d.unit)
@@ -267,14 +267,11 @@ impl Control {
 
     /// The drive at `target` in words: `drive "lift"` or `unit 7 on bus line1`.
     pub(crate) fn name(&self, target: Target) -> String {
-        match target.drive.and_then(|d| self.plant().drives().get(d)) {
+        let now = self.plant().now();
+        match target.drive.and_then(|d| now.drive_at(d)) {
             Some(d) => format!("drive \"{}\"", d.name),
             None => {
-                let bus = self
-                    .plant()
-                    .buses()
-                    .get(target.bus)
-                    .map_or("?", |b| b.handle.name());
+                let bus = now.bus_at(target.bus).map_or("?", |b| b.handle.name());
                 format!("unit {} on bus {bus}", target.unit)
             }
         }
@@ -292,9 +289,8 @@ impl Control {
     ) -> Vec<Ticket> {
         let drives: Vec<usize> = if target.unit == 0 {
             self.plant()
-                .drives()
-                .iter()
-                .enumerate()
+                .now()
+                .indexed_drives()
                 .filter(|(_, d)| d.bus == target.bus)
                 .map(|(i, _)| i)
                 .collect()
@@ -317,15 +313,14 @@ impl Control {
         // A broadcast setpoint moves only the drives that are active: the
         // others refuse it, and would refuse the stop of a lease too.
         // Read before the book is locked: the poll cache has its own lock.
+        let now = self.plant().now();
         let active: Vec<usize> = drives
             .iter()
             .copied()
             .filter(|_| target.unit == 0)
             .filter(|&drive| {
-                self.plant()
-                    .drives()
-                    .get(drive)
-                    .and_then(|d| self.plant().buses().get(d.bus)?.handle.drive(d.unit))
+                now.drive_at(drive)
+                    .and_then(|d| now.handle_of(d)?.drive(d.unit))
                     .and_then(|s| s.status)
                     .is_some_and(|s| s.active())
             })
@@ -394,8 +389,8 @@ impl Control {
     /// wait and every attempt's timeout, with a margin.
     fn allowance(&self, bus: usize) -> Duration {
         self.plant()
-            .buses()
-            .get(bus)
+            .now()
+            .bus_at(bus)
             .map_or(Duration::from_secs(10), |b| {
                 let c = &b.config;
                 let per_attempt =
@@ -443,8 +438,8 @@ impl Settle {
     fn new(control: &Control, caller: &Caller, target: Target, write: &Write) -> Self {
         let bus = control
             .plant()
-            .buses()
-            .get(target.bus)
+            .now()
+            .bus_at(target.bus)
             .map_or_else(|| "?".into(), |b| b.handle.name_arc());
         Settle {
             control: control.clone(),

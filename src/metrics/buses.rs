@@ -339,7 +339,7 @@ impl Collector for BusCollector {
     fn collect(&self) -> Vec<MetricFamily> {
         let mut f = Families::new();
         let now = Instant::now();
-        for (index, bus) in self.plant.buses().iter().enumerate() {
+        for (index, bus) in self.plant.now().indexed_buses() {
             let stats = bus.handle.stats();
             let utilisation = self.utilisation.window(index).and_then(|w| {
                 let ratio = w.ratio(now, stats.busy_seconds);

@@ -64,7 +64,9 @@ static DRIFT: Spec = Spec {
 
 static ALARMS_ACTIVE: Spec = Spec {
     name: "drivegate_alarms_active",
-    help: "Active alarms by kind: fault, stall, offline, bus-down, stop-failed (conditions that            last), comm-loss and refused-write (events: never active, see            drivegate_alarms_unacknowledged).",
+    help: "Active alarms by kind: fault, stall, offline, bus-down, stop-failed (conditions that \
+           last), comm-loss and refused-write (events: never active, see \
+           drivegate_alarms_unacknowledged).",
     kind: Kind::Gauge,
     labels: &["kind"],
 };
@@ -72,6 +74,23 @@ static ALARMS_ACTIVE: Spec = Spec {
 static ALARMS_UNACKED: Spec = Spec {
     name: "drivegate_alarms_unacknowledged",
     help: "Alarms no operator has acknowledged yet, active or not (GET /api/v1/alarms).",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
+static RELOADS: Spec = Spec {
+    name: "drivegate_config_reload_total",
+    help: "Reloads of the configuration file (SIGHUP or POST /api/v1/config/reload), by \
+           result: applied, or invalid (the file did not pass the check; the running \
+           configuration stayed).",
+    kind: Kind::Counter,
+    labels: &["result"],
+};
+
+static RELOAD_OK: Spec = Spec {
+    name: "drivegate_config_last_reload_ok",
+    help: "0 while the last reload of the configuration file was refused (the file on disk is \
+           not the one running: /readyz says why, with file:line:column); 1 otherwise.",
     kind: Kind::Gauge,
     labels: &[],
 };
@@ -85,7 +104,16 @@ static ALARM_FILE_BYTES: Spec = Spec {
 
 static ALARM_FILE_OK: Spec = Spec {
     name: "drivegate_alarm_file_ok",
-    help: "1 when the alarm file is written and synced (or there is no state directory); 0            when it cannot be written (alarms are then kept in memory until it can).",
+    help: "1 when the alarm file is written and synced (or there is no state directory); 0 \
+           when it cannot be written (alarms are then kept in memory until it can).",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
+static LOADED_AT: Spec = Spec {
+    name: "drivegate_config_last_reload_success_timestamp_seconds",
+    help: "When the running configuration was loaded: at start-up or by the last reload \
+           applied (Unix time).",
     kind: Kind::Gauge,
     labels: &[],
 };
@@ -111,6 +139,9 @@ impl ControlCollector {
                 ALARMS_UNACKED.desc(),
                 ALARM_FILE_BYTES.desc(),
                 ALARM_FILE_OK.desc(),
+                RELOADS.desc(),
+                RELOAD_OK.desc(),
+                LOADED_AT.desc(),
             ],
         }
     }
@@ -123,7 +154,7 @@ impl Collector for ControlCollector {
 
     fn collect(&self) -> Vec<MetricFamily> {
         let mut comm_loss = COMM_LOSS.family();
-        for (i, bus) in self.control.plant().buses().iter().enumerate() {
+        for (i, bus) in self.control.plant().now().indexed_buses() {
             let name = bus.handle.name();
             let (timeout, closed) = self.control.comm_loss_ends(i);
             comm_loss.set(&[name, "timeout"], timeout as f64);
@@ -148,11 +179,13 @@ impl Collector for ControlCollector {
         let mut bytes = JOURNAL_BYTES.family();
         bytes.set(&[], c.bytes as f64);
         let mut drift = DRIFT.family();
-        let plant = self.control.plant();
-        for d in plant.drives().iter().filter(|d| d.declared.is_some()) {
-            if let Some(view) = self.control.drift().view(&d.name) {
+        let now = self.control.plant().now();
+        for d in now.drives().filter(|d| d.declared.is_some()) {
+            if let (Some(view), Some(handle)) =
+                (self.control.drift().view(&d.name), now.handle_of(d))
+            {
                 let unit = d.unit.to_string();
-                let bus = plant.handle_of(d).name();
+                let bus = handle.name();
                 drift.set_bool(&[bus, unit.as_str(), d.name.as_str()], view.drifted());
             }
         }
@@ -168,7 +201,23 @@ impl Collector for ControlCollector {
         file_bytes.set(&[], file.bytes as f64);
         let mut file_ok = ALARM_FILE_OK.family();
         file_ok.set(&[], f64::from(u8::from(file.failing.is_none())));
+        let status = self.control.reload_status();
+        let mut reloads = RELOADS.family();
+        reloads.set(&["applied"], status.applied as f64);
+        reloads.set(&["invalid"], status.invalid as f64);
+        let mut reload_ok = RELOAD_OK.family();
+        reload_ok.set(&[], f64::from(u8::from(status.last_ok)));
+        let mut loaded_at = LOADED_AT.family();
+        if let Some(at) = status
+            .last_good_at
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+        {
+            loaded_at.set(&[], at.as_secs_f64());
+        }
         vec![
+            reloads.finish(),
+            reload_ok.finish(),
+            loaded_at.finish(),
             comm_loss.finish(),
             drift.finish(),
             replayed.finish(),

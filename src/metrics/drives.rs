@@ -264,10 +264,11 @@ impl Collector for DriveCollector {
 
     fn collect(&self) -> Vec<MetricFamily> {
         let mut f = Families::new();
-        for (index, bus) in self.plant.buses().iter().enumerate() {
+        let plant = self.plant.now();
+        for (index, bus) in plant.indexed_buses() {
             let port_up = bus.handle.stats().port_open;
             let snapshots = bus.handle.drives();
-            for drive in self.plant.drives().iter().filter(|d| d.bus == index) {
+            for drive in plant.drives().filter(|d| d.bus == index) {
                 let unit = drive.unit.to_string();
                 let l = [bus.handle.name(), unit.as_str(), drive.name.as_str()];
                 let snap = snapshots.iter().find(|s| s.unit == drive.unit);

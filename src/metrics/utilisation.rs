@@ -10,7 +10,7 @@
 //! runtime, unit tests).
 
 use std::collections::VecDeque;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::plant::Plant;
@@ -55,36 +55,48 @@ impl BusyWindow {
     }
 }
 
-/// The utilisation windows of every bus of the plant.
-#[derive(Debug)]
+/// The utilisation windows of every bus of the plant, following it: a bus
+/// a reload adds gets a window, one it reopens a new one (its counters
+/// start again), one it removes loses its own.
+#[derive(Debug, Default)]
 pub(crate) struct Utilisation {
-    /// One per bus, in [`Plant::buses`] order.
-    windows: Vec<BusyWindow>,
+    /// By bus slot: the bus it measures and its window.
+    windows: Mutex<std::collections::HashMap<usize, Measured>>,
 }
 
+/// A bus (not kept alive for it) and its window.
+type Measured = (std::sync::Weak<crate::plant::Bus>, Arc<BusyWindow>);
+
 impl Utilisation {
-    /// Windows for every bus of `plant`.
+    /// Windows for the buses of `plant`.
     pub(crate) fn new(plant: &Plant) -> Self {
-        Self {
-            windows: plant
-                .buses()
-                .iter()
-                .map(|_| BusyWindow::default())
-                .collect(),
-        }
+        let u = Self::default();
+        u.sample(plant);
+        u
     }
 
     /// Reads every bus's busy counter (never the wire) into its window.
     pub(crate) fn sample(&self, plant: &Plant) {
         let now = Instant::now();
-        for (bus, window) in plant.buses().iter().zip(&self.windows) {
+        let directory = plant.now();
+        let mut windows = self.windows.lock().unwrap_or_else(|p| p.into_inner());
+        windows.retain(|i, (bus, _)| {
+            directory
+                .bus_at(*i)
+                .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()))
+        });
+        for (index, bus) in directory.indexed_buses() {
+            let (_, window) = windows
+                .entry(index)
+                .or_insert_with(|| (Arc::downgrade(bus), Arc::new(BusyWindow::default())));
             window.record(now, bus.handle.stats().busy_seconds);
         }
     }
 
-    /// The window of the bus at `index` in [`Plant::buses`].
-    pub(crate) fn window(&self, index: usize) -> Option<&BusyWindow> {
-        self.windows.get(index)
+    /// The window of the bus in slot `index`.
+    pub(crate) fn window(&self, index: usize) -> Option<Arc<BusyWindow>> {
+        let windows = self.windows.lock().unwrap_or_else(|p| p.into_inner());
+        windows.get(&index).map(|(_, w)| w.clone())
     }
 }
 

@@ -94,7 +94,7 @@ impl Collector for WireCollector {
         let mut lost = LOST.family();
         let mut clients = CLIENTS.family();
         let mut scope = SCOPE.family();
-        for bus in self.plant.buses() {
+        for bus in self.plant.now().buses() {
             let name = bus.handle.name();
             let monitor = bus.monitor();
             for (unit, c) in monitor.counters().snapshot(monitor.units()) {

@@ -25,6 +25,42 @@ pub struct Rights {
     pub comm_loss: Option<CommLoss>,
 }
 
+/// A listener's [`Access`], which follows the running configuration:
+/// clients that connect after a reload get its networks and roles.
+#[derive(Clone)]
+pub struct SharedAccess {
+    access: std::sync::Arc<std::sync::RwLock<Access>>,
+    follower: std::sync::Arc<crate::control::reload::ConfigFollower>,
+}
+
+impl std::fmt::Debug for SharedAccess {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("SharedAccess").field(&self.access).finish()
+    }
+}
+
+impl SharedAccess {
+    /// `access` until a reload of `control`'s configuration replaces it.
+    pub fn new(access: Access, control: &crate::control::Control) -> Self {
+        SharedAccess {
+            access: std::sync::Arc::new(std::sync::RwLock::new(access)),
+            follower: std::sync::Arc::new(crate::control::reload::ConfigFollower::new(control)),
+        }
+    }
+
+    /// What a client from `ip` may do, if it may connect at all.
+    pub fn rights(&self, ip: std::net::IpAddr) -> Option<Rights> {
+        if let Some(config) = self.follower.changed() {
+            *self.access.write().unwrap_or_else(|p| p.into_inner()) =
+                Access::from_config(&config.modbus_tcp);
+        }
+        self.access
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .rights(ip)
+    }
+}
+
 /// The allowed client networks of a listener, with their rights.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Access {

@@ -101,10 +101,62 @@ pub struct Gateway {
     plant: Arc<Plant>,
     control: Control,
     metrics: Arc<Metrics>,
+    /// `[modbus_tcp]` as last applied (a reload replaces it).
+    config: std::sync::RwLock<ModbusTcpConfig>,
+    /// The tables of the plant as it was when they were built.
+    tables: std::sync::RwLock<Arc<Tables>>,
+    /// The running configuration: a reload's `[modbus_tcp]` applies from
+    /// the next request on.
+    follower: crate::control::reload::ConfigFollower,
+}
+
+/// What the unit map and the polled copy make of the plant: built again
+/// when the plant or `[modbus_tcp]` changes, so a drive a reload adds is
+/// reachable at once and one it removes is not.
+struct Tables {
+    /// The plant's version these are for.
+    version: u64,
     routes: UnitRoutes,
-    /// Maximum age of the polled copy per bus index (`None`: strict passthrough).
+    /// Maximum age of the polled copy per bus slot (`None`: strict passthrough).
     polled_copy: Vec<Option<Duration>>,
     broadcast_reply: bool,
+}
+
+impl Tables {
+    fn build(config: &ModbusTcpConfig, plant: &Plant) -> (Tables, Vec<String>) {
+        let now = plant.now();
+        // One entry per bus slot, a removed bus as one with no name.
+        let buses: Vec<BusUnits> = (0..now.bus_slots())
+            .map(|i| match now.bus_at(i) {
+                Some(b) => BusUnits {
+                    name: b.handle.name().to_string(),
+                    units: b.config.drives.iter().map(|d| d.unit()).collect(),
+                },
+                None => BusUnits {
+                    name: String::new(),
+                    units: Vec::new(),
+                },
+            })
+            .collect();
+        let (routes, warnings) = UnitRoutes::build(&config.unit_map, &buses);
+        let polled_copy = buses
+            .iter()
+            .map(|b| {
+                config
+                    .polled_copy
+                    .iter()
+                    .find(|p| p.bus.get_ref() == &b.name)
+                    .map(|p| p.max_age())
+            })
+            .collect();
+        let tables = Tables {
+            version: now.version(),
+            routes,
+            polled_copy,
+            broadcast_reply: config.broadcast_reply,
+        };
+        (tables, warnings)
+    }
 }
 
 impl Gateway {
@@ -116,35 +168,52 @@ impl Gateway {
         control: Control,
         metrics: Arc<Metrics>,
     ) -> Self {
-        let buses: Vec<BusUnits> = plant
-            .buses()
-            .iter()
-            .map(|b| BusUnits {
-                name: b.handle.name().to_string(),
-                units: b.config.drives.iter().map(|d| d.unit()).collect(),
-            })
-            .collect();
-        let (routes, warnings) = UnitRoutes::build(&config.unit_map, &buses);
+        let (tables, warnings) = Tables::build(config, &plant);
         for w in warnings {
             warn!("{w}");
         }
-        let polled_copy = buses
-            .iter()
-            .map(|b| {
-                config
-                    .polled_copy
-                    .iter()
-                    .find(|p| p.bus.get_ref() == &b.name)
-                    .map(|p| p.max_age())
-            })
-            .collect();
         Self {
             plant,
+            follower: crate::control::reload::ConfigFollower::new(&control),
             control,
             metrics,
-            routes,
-            polled_copy,
-            broadcast_reply: config.broadcast_reply,
+            config: std::sync::RwLock::new(config.clone()),
+            tables: std::sync::RwLock::new(Arc::new(tables)),
+        }
+    }
+
+    /// Applies a reloaded `[modbus_tcp]`: its unit map, polled copies and
+    /// broadcast replies from the next request on.
+    pub fn set_config(&self, config: &ModbusTcpConfig) {
+        *self.config.write().unwrap_or_else(|p| p.into_inner()) = config.clone();
+        self.rebuild();
+    }
+
+    fn rebuild(&self) -> Arc<Tables> {
+        let config = self.config.read().unwrap_or_else(|p| p.into_inner());
+        let (tables, warnings) = Tables::build(&config, &self.plant);
+        for w in warnings {
+            warn!("{w}");
+        }
+        let tables = Arc::new(tables);
+        *self.tables.write().unwrap_or_else(|p| p.into_inner()) = tables.clone();
+        tables
+    }
+
+    /// The tables for the plant as it is now.
+    fn tables(&self) -> Arc<Tables> {
+        if let Some(config) = self.follower.changed() {
+            self.set_config(&config.modbus_tcp);
+        }
+        let tables = self
+            .tables
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
+        if tables.version == self.plant.now().version() {
+            tables
+        } else {
+            self.rebuild()
         }
     }
 
@@ -177,7 +246,8 @@ impl Gateway {
         if unit == 0 {
             return self.broadcast(client, transaction, pdu).await;
         }
-        let Some(route) = self.routes.route(unit) else {
+        let tables = self.tables();
+        let Some(route) = tables.routes.route(unit) else {
             return self.refuse(
                 client,
                 ("-", unit),
@@ -188,7 +258,17 @@ impl Gateway {
             );
         };
         let function = pdu[0];
-        let bus = &self.plant.buses()[route.bus].handle;
+        let Some(bus) = self.plant.now().bus_at(route.bus).map(|b| b.handle.clone()) else {
+            return self.refuse(
+                client,
+                ("-", unit),
+                &pdu,
+                ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
+                Outcome::PathUnavailable,
+                format!("unit {unit} is on a bus that is no longer configured"),
+            );
+        };
+        let bus = &bus;
         if let Err(code) = request::check_shape(&pdu) {
             return self.refuse(
                 client,
@@ -220,7 +300,7 @@ impl Gateway {
                 }
             };
         }
-        if let Some(max_age) = self.polled_copy[route.bus]
+        if let Some(max_age) = tables.polled_copy.get(route.bus).copied().flatten()
             && let Some(snapshot) = bus.drive(route.unit)
             && let Some(reply) = polled_copy::answer(&pdu, &snapshot, max_age)
         {
@@ -244,6 +324,7 @@ impl Gateway {
     /// Unit 0: every bus the listener reaches, no reply waited for.
     async fn broadcast(&self, client: &Client, transaction: u16, pdu: Vec<u8>) -> Answer {
         let function = pdu[0];
+        let tables = self.tables();
         let refusal = if !request::broadcastable(&pdu) {
             Some((
                 ExceptionCode::ILLEGAL_FUNCTION,
@@ -256,7 +337,7 @@ impl Gateway {
                 Outcome::Invalid,
                 "refused: the request's length or quantity does not fit its function",
             ))
-        } else if self.routes.broadcast_buses().is_empty() {
+        } else if tables.routes.broadcast_buses().is_empty() {
             Some((
                 ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
                 Outcome::PathUnavailable,
@@ -271,7 +352,7 @@ impl Gateway {
         }
         let caller = client.caller.with_origin(client.origin(transaction));
         let mut writes = Vec::new();
-        for &bus in self.routes.broadcast_buses() {
+        for &bus in tables.routes.broadcast_buses() {
             let target = self.control.unit_target(bus, 0);
             let request = ControlRequest::new(Write::pdu(pdu.clone()))
                 .forced(client.allow_saves_while_moving);
@@ -287,7 +368,7 @@ impl Gateway {
             }
         }
         let mut pending = Pending::writes(&pdu, true, writes);
-        if self.broadcast_reply {
+        if tables.broadcast_reply {
             return Answer::Pending(pending);
         }
         // Nobody waits for a broadcast: it goes out even if the client
@@ -302,7 +383,7 @@ impl Gateway {
 
     /// A broadcast is answered only when the listener is set to.
     fn reply_to_broadcast(&self, answer: Answer) -> Answer {
-        if self.broadcast_reply {
+        if self.tables().broadcast_reply {
             answer
         } else {
             Answer::Silent

@@ -39,7 +39,7 @@ use crate::control::Control;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 
-use access::Access;
+use access::{Access, SharedAccess};
 use connection::ConnectionSettings;
 use gateway::Gateway;
 use server::ServerSettings;
@@ -66,9 +66,9 @@ pub async fn start(
             format!("cannot listen for Modbus TCP on {}: {e}{hint}", tcp.listen)
         })?;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
-    let gateway = Arc::new(Gateway::new(tcp, plant, control, metrics));
+    let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
     let settings = ServerSettings {
-        access: Access::from_config(tcp),
+        access: SharedAccess::new(Access::from_config(tcp), &control),
         max_connections: tcp.max_connections,
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),
@@ -121,9 +121,9 @@ pub async fn start_tls(
         shutdown.clone(),
     )
     .map_err(|e| format!("cannot watch for SIGHUP (certificate reloads): {e}"))?;
-    let gateway = Arc::new(Gateway::new(tcp, plant, control, metrics));
+    let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
     let settings = ServerSettings {
-        access: Access::from_config(tcp),
+        access: SharedAccess::new(Access::from_config(tcp), &control),
         max_connections: tcp.max_connections,
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),

@@ -17,7 +17,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
-use super::access::{Access, Rights};
+use super::access::{Rights, SharedAccess};
 use super::connection::{self, ConnectionSettings};
 use super::gateway::{Client, Gateway};
 
@@ -25,7 +25,7 @@ use super::gateway::{Client, Gateway};
 #[derive(Debug, Clone)]
 pub struct ServerSettings {
     /// Allowed client networks, with their rights.
-    pub access: Access,
+    pub access: SharedAccess,
     /// Connections served at once.
     pub max_connections: usize,
     /// Limits of each connection.

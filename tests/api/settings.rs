@@ -411,6 +411,9 @@ async fn drift_is_reported_when_a_drive_comes_back_with_factory_settings() {
         // Drives without a declaration have no state.
         let conveyor = api.get("/api/v1/drives/conveyor").await.expect(200);
         assert!(conveyor.get("declared_settings").is_none(), "{conveyor:#}");
+        api.get("/api/v1/drives/conveyor/settings/declared")
+            .await
+            .expect_problem(404, "not-found");
 
         // The declaration, put on the drive as a document: no drift.
         let declaration = api

@@ -12,6 +12,7 @@ use drivegate::bus::handle::{JobOptions, PortState};
 use drivegate::bus::stats::Outcome;
 use drivegate::bus::{BusError, BusEvent, SourceId};
 use drivegate::drive::{ConfigCommand, DriveReply, DriveRequest};
+use drivegate::plant::SimRef;
 use drivegate::sim::{SimConfig, Simulator};
 
 const LIMIT: Duration = Duration::from_secs(10);
@@ -464,7 +465,7 @@ async fn several_buses_each_have_their_own_scheduler() {
         )
         .await
         .unwrap();
-    let second_sim = d.plant.buses()[1].sim.as_ref().unwrap();
+    let second_sim = SimRef::of(d.plant.buses()[1].clone()).unwrap();
     assert!(second_sim.drive(1).unwrap().active);
     assert!(
         !d.sim().drive(1).unwrap().active,
@@ -510,7 +511,7 @@ async fn shutdown_stops_every_drive_even_beyond_the_queue_limits() {
     }
     let plant = d.plant.clone();
     d.stop().await;
-    let sim = plant.buses()[0].sim.as_ref().unwrap();
+    let sim = SimRef::of(plant.buses()[0].clone()).unwrap();
     for unit in 1..=4 {
         let drive = sim.drive(unit).unwrap();
         assert_eq!(

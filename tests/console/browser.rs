@@ -1185,9 +1185,88 @@ async fn without_a_bus_the_overview_says_to_run_probe() {
         json!(
             "No bus configured: run drivegate probe --port /dev/ttyUSB0 (with your adapter's \
              port) to find the drives and their baud rate, then add a [[bus]] with its drives \
-             to the configuration and restart drivegate."
+             to the configuration and reload it (systemctl reload drivegate)."
         )
     );
+    assert_clean(&page, &base);
+    browser.stop().await;
+    daemon.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scan_offers_the_drives_it_found_and_an_admin_adds_them_to_the_configuration() {
+    // An external simulator with six drives on a pty; the file knows four.
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("ttyLINE");
+    let mut sim = tokio::process::Command::new(env!("CARGO_BIN_EXE_drivegate"))
+        .args(["sim", "--units", "1-6", "--link"])
+        .arg(&link)
+        .stdout(std::process::Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    let mut stdout =
+        tokio::io::AsyncBufReadExt::lines(tokio::io::BufReader::new(sim.stdout.take().unwrap()));
+    tokio::time::timeout(LONG, stdout.next_line())
+        .await
+        .expect("the simulator printed its pty")
+        .unwrap();
+    let toml = format!(
+        "# The line, by hand: keep this comment.\n{}",
+        crate::support::config::ConfigBuilder::four_drives()
+            .with_bus("sim", |b| b.port(link.to_str().unwrap()))
+            .http_token("commissioning", "admin", ADMIN)
+            .toml()
+    );
+    let daemon = TestDaemon::reloadable(&toml).await;
+    let browser = Browser::start(&[]).await;
+    let base = daemon.url("");
+    let page = open(&browser, &base, "/commissioning", Some(ADMIN)).await;
+    page.wait_for(
+        "!!document.querySelector('[data-action=scan]')",
+        LONG,
+        "the page",
+    )
+    .await;
+    page.fill("[data-field=scan-to]", "8").await;
+    page.click("[data-action=scan]").await;
+    let button = "document.querySelector('[data-action=add-to-config]')";
+    page.wait_for(
+        &format!("{button} && !{button}.disabled"),
+        LONG,
+        "the offer to add the drives found",
+    )
+    .await;
+    assert_eq!(
+        page.eval("document.querySelector('[data-field=new-drives]').textContent")
+            .await,
+        json!(
+            "[[bus.drive]]\nunit = 5\nname = \"sim-5\"\n\n[[bus.drive]]\nunit = 6\nname = \"sim-6\"\n"
+        )
+    );
+    page.click("[data-action=add-to-config]").await;
+    page.wait_for(
+        "drivegate.store.order.length === 6",
+        LONG,
+        "the two drives added to the page",
+    )
+    .await;
+    let note = page
+        .eval("document.querySelector('.scan-add output.note').textContent")
+        .await;
+    assert_eq!(
+        note,
+        json!(
+            "written and reloaded: drives added: sim-5, sim-6; bus sim reopened (drives changed)"
+        )
+    );
+    let written = std::fs::read_to_string(daemon.config_path()).unwrap();
+    assert!(written.starts_with("# The line, by hand: keep this comment.\n"));
+    assert!(
+        written.contains("[[bus.drive]]\nunit = 6\nname = \"sim-6\"\n"),
+        "{written}"
+    );
+    assert_eq!(daemon.plant.now().drive_count(), 6);
     assert_clean(&page, &base);
     browser.stop().await;
     daemon.stop().await;

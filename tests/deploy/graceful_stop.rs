@@ -11,8 +11,7 @@ use crate::support::{TestDaemon, eventually};
 use drivegate::bus::BusError;
 use drivegate::bus::handle::JobOptions;
 use drivegate::drive::{ConfigCommand, DriveRequest};
-use drivegate::plant::Plant;
-use drivegate::sim::SimHandle;
+use drivegate::plant::{Plant, SimRef};
 
 const LIMIT: Duration = Duration::from_secs(30);
 
@@ -22,8 +21,8 @@ fn with_safety(action: &str) -> String {
         .toml()
 }
 
-fn sim(plant: &Plant) -> &SimHandle {
-    plant.buses()[0].sim.as_ref().unwrap()
+fn sim(plant: &Plant) -> SimRef {
+    SimRef::of(plant.buses()[0].clone()).unwrap()
 }
 
 /// Starts the daemon, runs the conveyor (unit 1) at 100 rpm until the

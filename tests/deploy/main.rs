@@ -22,5 +22,6 @@ mod metrics_scrape_cost;
 mod package;
 mod prometheus;
 mod reference;
+mod reload;
 mod restart;
 mod systemd;

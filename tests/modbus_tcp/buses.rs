@@ -8,6 +8,7 @@ use crate::support::metrics::metric;
 use crate::support::modbus_tcp::{Raw, drives, pymodbus, read, registers, write};
 use crate::support::{TestDaemon, eventually};
 use drivegate::bus::stats::Outcome;
+use drivegate::plant::SimRef;
 use serde_json::json;
 
 /// Every test ends within this, whatever happens.
@@ -66,7 +67,7 @@ async fn a_unit_map_reaches_two_buses_through_one_listener() {
     bounded(LIMIT, async {
         let d = TestDaemon::start(TWO_BUSES).await;
         let addr = d.modbus_tcp.unwrap();
-        let sim = |bus: usize| d.plant.buses()[bus].sim.as_ref().unwrap();
+        let sim = |bus: usize| SimRef::of(d.plant.buses()[bus].clone()).unwrap();
         // Unit 1 is A's drive 1, unit 101 is B's drive 1, unit 102 B's drive 2.
         assert_eq!(
             pymodbus(addr, &["write", "1", "0x000E", "1001"]).await,

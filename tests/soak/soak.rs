@@ -466,8 +466,8 @@ impl Daemon {
         }
     }
 
-    fn sim(&self, bus: usize) -> &drivegate::sim::SimHandle {
-        self.plant.buses()[bus].sim.as_ref().expect("simulated")
+    fn sim(&self, bus: usize) -> drivegate::plant::SimRef {
+        drivegate::plant::SimRef::of(self.plant.buses()[bus].clone()).expect("simulated")
     }
 
     /// Activates every drive in position mode at its signature angle and

@@ -8,8 +8,8 @@ use std::time::{Duration, Instant};
 use drivegate::config::Config;
 use drivegate::faces::{self, Faces};
 use drivegate::metrics::Metrics;
-use drivegate::plant::Plant;
-use drivegate::sim::SimHandle;
+use drivegate::plant::{Plant, SimRef};
+
 use tokio_util::sync::CancellationToken;
 
 /// The response timeout and guard time of the test buses. The simulator
@@ -76,6 +76,8 @@ pub struct TestDaemon {
     pub modbus_tls: Option<SocketAddr>,
     shutdown: CancellationToken,
     faces: Option<Faces>,
+    /// The configuration file a reload reads ([`TestDaemon::reloadable`]).
+    file: Option<tempfile::NamedTempFile>,
 }
 
 impl TestDaemon {
@@ -107,7 +109,39 @@ impl TestDaemon {
             modbus_tls: faces.modbus_tls,
             shutdown,
             faces: Some(faces),
+            file: None,
         }
+    }
+
+    /// Starts the daemon from a configuration file holding `toml`, which
+    /// `POST /api/v1/config/reload` (or [`reload`](Self::reload)) reloads
+    /// after [`rewrite`](Self::rewrite); waits for every drive.
+    pub async fn reloadable(toml: &str) -> TestDaemon {
+        let file = tempfile::Builder::new()
+            .suffix(".toml")
+            .tempfile()
+            .expect("a configuration file");
+        std::fs::write(file.path(), toml).expect("the configuration written");
+        let mut daemon = Self::start(toml).await;
+        drivegate::reload::Reloader::start(
+            file.path(),
+            Arc::new(daemon.config.clone()),
+            daemon.plant.clone(),
+            daemon.control().clone(),
+            daemon.shutdown.clone(),
+        );
+        daemon.file = Some(file);
+        daemon
+    }
+
+    /// The configuration file of a [`reloadable`](Self::reloadable) daemon.
+    pub fn config_path(&self) -> &std::path::Path {
+        self.file.as_ref().expect("a reloadable daemon").path()
+    }
+
+    /// Writes `toml` into the configuration file (not reloaded yet).
+    pub fn rewrite(&self, toml: &str) {
+        std::fs::write(self.config_path(), toml).expect("the configuration written");
     }
 
     /// The control core every face writes through.
@@ -121,11 +155,11 @@ impl TestDaemon {
     }
 
     /// The simulator of the first (or named) simulated bus.
-    pub fn sim(&self) -> &SimHandle {
+    pub fn sim(&self) -> SimRef {
         self.plant
             .buses()
-            .iter()
-            .find_map(|b| b.sim.as_ref())
+            .into_iter()
+            .find_map(SimRef::of)
             .expect("a simulated bus")
     }
 

@@ -12,7 +12,7 @@ use std::time::Duration;
 use drivegate::bus::handle::JobOptions;
 use drivegate::bus::{BusError, BusEvent, BusHandle, SourceId};
 use drivegate::drive::{DriveReply, DriveRequest};
-use drivegate::plant::Plant;
+use drivegate::plant::{Plant, SimRef};
 use drivegate::sim::model::Settings;
 use drivegate::sim::{SimConfig, SimDriveView, SimHandle, SimStats, Simulator};
 use tokio::sync::Mutex;
@@ -59,10 +59,31 @@ enum Live {
 }
 
 impl Live {
-    fn sim(&self) -> &SimHandle {
+    fn sim(&self) -> LiveSim<'_> {
         match self {
-            Live::Plant(plant) => plant.buses()[0].sim.as_ref().expect("a simulated bus"),
-            Live::Linked(linked) => linked.sim.as_ref().expect("the adapter is plugged in"),
+            Live::Plant(plant) => {
+                LiveSim::Plant(SimRef::of(plant.buses()[0].clone()).expect("a simulated bus"))
+            }
+            Live::Linked(linked) => {
+                LiveSim::Linked(linked.sim.as_ref().expect("the adapter is plugged in"))
+            }
+        }
+    }
+}
+
+/// The simulator of a [`Live`] bus.
+enum LiveSim<'a> {
+    Plant(SimRef),
+    Linked(&'a SimHandle),
+}
+
+impl std::ops::Deref for LiveSim<'_> {
+    type Target = SimHandle;
+
+    fn deref(&self) -> &SimHandle {
+        match self {
+            LiveSim::Plant(sim) => sim,
+            LiveSim::Linked(sim) => sim,
         }
     }
 }
@@ -128,7 +149,7 @@ impl Truth {
 
     /// Runs `f` on the live simulator.
     pub async fn with_sim<T>(&self, f: impl FnOnce(&SimHandle) -> T) -> T {
-        f(self.state.lock().await.live.sim())
+        f(&self.state.lock().await.live.sim())
     }
 
     /// Every settings state `unit` had from epoch `since` to now.

@@ -374,6 +374,14 @@ impl AlarmBook {
         self.alarms.get(&id)
     }
 
+    /// True when an alarm of `drive` on `bus` is open (a condition
+    /// active, or an event waiting for its acknowledgement).
+    pub fn has_open_for(&self, bus: &str, drive: &str) -> bool {
+        self.open
+            .keys()
+            .any(|k| k.bus == bus && k.drive.as_deref() == Some(drive))
+    }
+
     /// The most it keeps.
     pub fn keep(&self) -> usize {
         self.keep

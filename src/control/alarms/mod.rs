@@ -271,6 +271,7 @@ impl Alarms {
     /// configured, and stops not confirmed (the restart's replay of the
     /// safety journal owns those stops now, and says what it did).
     pub(crate) fn reconcile(&self, plant: &Plant) {
+        let directory = plant.now();
         self.apply(|book, now| {
             book.clear_where(
                 |a| {
@@ -278,7 +279,7 @@ impl Alarms {
                     let drive_gone = a
                         .drive
                         .as_ref()
-                        .is_some_and(|name| !plant.drives().iter().any(|d| &d.name == name));
+                        .is_some_and(|name| !directory.drives().any(|d| &d.name == name));
                     bus.is_none() || drive_gone || a.kind == AlarmKind::StopFailed
                 },
                 now,
@@ -297,8 +298,9 @@ impl Alarms {
         if tokio::runtime::Handle::try_current().is_err() {
             return;
         }
-        for (index, bus) in plant.buses().iter().enumerate() {
-            let (alarms, plant, shutdown) = (self.clone(), plant.clone(), shutdown.clone());
+        let (alarms, directory, stop) = (self.clone(), plant.clone(), shutdown.clone());
+        plant.each_bus(shutdown.clone(), move |index, bus| {
+            let (alarms, plant, shutdown) = (alarms.clone(), directory.clone(), stop.clone());
             let mut rx = bus.handle.subscribe();
             // What happened before this subscription (a port that failed
             // to open at start) is read from the bus's state, after it.
@@ -318,7 +320,7 @@ impl Alarms {
                     }
                 }
             });
-        }
+        });
         let (alarms, plant, shutdown) = (self.clone(), plant.clone(), shutdown.clone());
         let mut rx = events;
         tokio::spawn(async move {
@@ -341,7 +343,8 @@ impl Alarms {
     /// Raises or clears what bus `index`'s state says now: its port, and
     /// its drives' links (the same as the events that led there would).
     fn seed(&self, plant: &Plant, index: usize) {
-        let Some(bus) = plant.buses().get(index) else {
+        let now = plant.now();
+        let Some(bus) = now.bus_at(index) else {
             return;
         };
         let name: Arc<str> = bus.handle.name_arc();
@@ -375,14 +378,14 @@ impl Alarms {
 
     /// Raises or clears what a bus event says.
     pub(crate) fn bus_event(&self, plant: &Plant, bus_index: usize, event: &BusEvent) {
-        let Some(bus) = plant.buses().get(bus_index) else {
+        let directory = plant.now();
+        let Some(bus) = directory.bus_at(bus_index) else {
             return;
         };
         let bus_name = bus.handle.name().to_string();
         let drive_of = |unit: u8| {
-            plant
+            directory
                 .drives()
-                .iter()
                 .find(|d| d.bus == bus_index && d.unit == unit)
                 .map(|d| d.name.clone())
         };
@@ -397,6 +400,14 @@ impl Alarms {
                 // A scan reads units that are not configured: not alarms.
                 let Some(drive) = drive_of(*unit) else { return };
                 let fault = status.fault();
+                // The common case, a healthy drive with nothing open: no
+                // change to make, nothing to allocate.
+                if fault.code() == 0
+                    && !status.stalled()
+                    && !self.lock().has_open_for(&bus_name, &drive)
+                {
+                    return;
+                }
                 self.apply(|book, now| {
                     let mut changes = book.clear(&key(AlarmKind::Offline, &drive, 0), now);
                     let code = fault.code();
@@ -492,8 +503,9 @@ impl Alarms {
     /// Raises or clears what an event of the core says.
     pub(crate) fn control_event(&self, plant: &Plant, event: &ControlEvent) {
         let drive = |i: usize| {
-            let d = plant.drives().get(i)?;
-            let bus = plant.buses().get(d.bus)?.handle.name().to_string();
+            let now = plant.now();
+            let d = now.drive_at(i)?;
+            let bus = now.bus_at(d.bus)?.handle.name().to_string();
             Some((d.name.clone(), bus, d.unit))
         };
         match event {
@@ -581,8 +593,7 @@ impl Alarms {
                 };
                 let name = w
                     .drive
-                    .and_then(|i| plant.drives().get(i))
-                    .map(|d| d.name.clone());
+                    .and_then(|i| plant.now().drive_at(i).map(|d| d.name.clone()));
                 let target = match &name {
                     Some(n) => format!("drive {n} (bus {}, unit {})", w.bus, w.unit),
                     None => format!("bus {} unit {}", w.bus, w.unit),

@@ -198,6 +198,13 @@ impl LeaseBook {
         self.action
     }
 
+    /// Leases granted from now on end with `action` (a reload of
+    /// `[safety] on_lease_expiry`); a lease keeps the action it was
+    /// granted with.
+    pub fn set_action(&mut self, action: StopAction) {
+        self.action = action;
+    }
+
     fn next(&mut self) -> u64 {
         let id = self.next_id;
         self.next_id += 1;

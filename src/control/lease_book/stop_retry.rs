@@ -66,6 +66,17 @@ impl LeaseBook {
     }
 
     /// Ends `drive`'s lease now with the stop action.
+    /// A reload removes `drive`: its lease (if any) ends now with its
+    /// stop. True when there was one (the stop is among the effects).
+    pub fn retire(&mut self, drive: usize, now: Instant) -> (bool, Vec<Effect>) {
+        let leased = self.slots.get(&drive).is_some_and(|s| s.lease.is_some());
+        if !leased {
+            return (false, Vec::new());
+        }
+        self.end_with_stop(drive, StopReason::Removed, now);
+        (true, self.tick(now))
+    }
+
     pub(super) fn end_with_stop(&mut self, drive: usize, reason: StopReason, now: Instant) {
         let slot = self.slot(drive);
         let action = slot.lease.as_ref().map_or(StopAction::None, |l| l.action);

@@ -166,6 +166,8 @@ pub enum StopReason {
     BrakeReleased(Arc<str>),
     /// drivegate restarted owing this stop (why, in words).
     Restarted(Arc<str>),
+    /// A reload removed the drive from the configuration.
+    Removed,
 }
 
 impl StopReason {
@@ -185,6 +187,9 @@ impl StopReason {
                 format!("{by}, sent before a brake, reached the drive after it")
             }
             StopReason::Restarted(why) => why.to_string(),
+            StopReason::Removed => {
+                "the drive was removed from the configuration by a reload".to_string()
+            }
         }
     }
 }

@@ -2,7 +2,9 @@
 // progress), the guarded address assignment (the manual's broadcast to
 // unit 0, only after a scan found exactly one drive on the bus),
 // calibration and fine-tuning with progress, set zero, soft reset and
-// factory reset, each behind a confirmation that says what happens.
+// factory reset, each behind a confirmation that says what happens. A
+// scan's drives that are not configured can be added to the configuration
+// file (its comments kept) and reloaded, without a restart.
 
 import { drivePath, post } from '../api.js';
 import { h, Note, run, numberField, confirmDialog, fmt } from '../ui.js';
@@ -26,7 +28,7 @@ function mount(main, _params, ctx) {
   for (const b of store.buses.keys()) if (!buses.includes(b)) buses.push(b);
   const state = { lastScan: null, cancelled: false };
   main.append(
-    scanSection(buses, state),
+    scanSection(buses, state, store),
     addressSection(buses, state),
     procedureSection(ctx));
   return () => { state.cancelled = true; };
@@ -36,7 +38,7 @@ function busPicker(buses, id) {
   return h('select', { id, 'aria-label': 'Bus' }, buses.map((b) => h('option', { value: b }, b)));
 }
 
-function scanSection(buses, state) {
+function scanSection(buses, state, store) {
   const bus = busPicker(buses, 'scan-bus');
   const from = numberField('From unit', { value: '1', size: 4, dataset: { field: 'scan-from' } });
   const to = numberField('To unit', { value: '32', size: 4, dataset: { field: 'scan-to' } });
@@ -44,6 +46,7 @@ function scanSection(buses, state) {
   const stop = h('button', { type: 'button', disabled: true }, 'Stop');
   const progress = h('progress', { max: 1, value: 0, 'aria-label': 'Scan progress' });
   const result = h('div', { class: 'scan-result', 'aria-live': 'polite' });
+  const adding = h('div', { class: 'scan-add' });
   const note = new Note();
   let stopping = false;
   stop.addEventListener('click', () => { stopping = true; });
@@ -67,6 +70,7 @@ function scanSection(buses, state) {
     } finally {
       start.disabled = false; stop.disabled = true;
       result.replaceChildren(scanTable(found));
+      adding.replaceChildren(...addToConfiguration(found, store));
       document.dispatchEvent(new CustomEvent('drivegate-scan'));
     }
   });
@@ -74,7 +78,47 @@ function scanSection(buses, state) {
     h('h1', { id: 'scan-h' }, 'Bus scan'),
     h('p', { class: 'hint' }, 'Reads the status of every unit in the range, between the polls of the configured drives.'),
     h('div', { class: 'row' }, h('label', { class: 'field' }, h('span', {}, 'Bus'), bus), from.wrap, to.wrap, start, stop),
-    progress, note.el, result);
+    progress, note.el, result, adding);
+}
+
+/**
+ * "Add to configuration": the [[bus.drive]] tables of the drives a scan
+ * found that are not configured, with suggested names, and a button that
+ * writes them into the configuration file and reloads it. The daemon
+ * refuses the write if the file changed since it was shown here.
+ */
+function addToConfiguration(found, store) {
+  const news = found.answered.filter((a) => !a.configured_as && a.status);
+  if (!news.length) return [];
+  const drives = news.map((a) => ({ unit: a.unit, name: `${found.bus}-${a.unit}` }));
+  const tables = h('pre', { class: 'toml', dataset: { field: 'new-drives' } },
+    drives.map((d) => `[[bus.drive]]\nunit = ${d.unit}\nname = "${d.name}"\n`).join('\n'));
+  const note = new Note();
+  const write = h('button', { type: 'button', class: 'primary', disabled: true, dataset: { action: 'add-to-config' } },
+    'Write into the configuration and reload');
+  let sha256 = null;
+  post('/api/v1/config/drives', { bus: found.bus, drives, dry_run: true })
+    .then((r) => {
+      tables.textContent = r.tables;
+      sha256 = r.sha256;
+      write.disabled = false;
+      note.ok(`to be added to bus ${found.bus} in ${r.file}`);
+    })
+    .catch((e) => note.fail(e));
+  write.addEventListener('click', async () => {
+    const r = await run(write, note, 'writing the configuration and reloading',
+      () => post('/api/v1/config/drives', { bus: found.bus, drives, base_sha256: sha256 }),
+      (r) => `written and reloaded: ${r.reload.changes.join('; ')}`);
+    if (r) {
+      write.disabled = true;
+      await store.refreshDrives().catch(() => {});
+    }
+  });
+  return [
+    h('h2', {}, 'Add to configuration'),
+    h('p', { class: 'hint' }, `Drives that answered but are not configured, as [[bus.drive]] sections of bus ${found.bus}; rename them in the file later if you like.`),
+    tables, h('div', { class: 'row' }, write), note.el,
+  ];
 }
 
 

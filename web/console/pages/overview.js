@@ -128,7 +128,7 @@ function mount(main, _params, { store }) {
       // The package's configuration as shipped: say what to do first.
       cards.push(h('p', { class: 'reason no-bus' }, 'No bus configured: run ',
         h('code', {}, 'drivegate probe --port /dev/ttyUSB0'),
-        ' (with your adapter\'s port) to find the drives and their baud rate, then add a [[bus]] with its drives to the configuration and restart drivegate.'));
+        ' (with your adapter\'s port) to find the drives and their baud rate, then add a [[bus]] with its drives to the configuration and reload it (systemctl reload drivegate).'));
     }
     buses.replaceChildren(...cards);
   }

@@ -1,0 +1,209 @@
+//! The reloader: applies a changed configuration file without a restart.
+//!
+//! One task takes reloads one at a time, from `systemctl reload` (SIGHUP,
+//! through `crate::daemon`) and from any face (through the control core,
+//! which checks the caller's role and audits: `Control::reload`). Each
+//! reload reads the file, checks it as `drivegate check-config` would (a
+//! file that does not pass leaves everything as it was, and says why with
+//! `file:line:column`), compares it with the running configuration
+//! (`config::diff`, pure), stops the drives it removes while their bus
+//! still runs (`Control::retire`), has the plant reopen only the buses that
+//! changed (`Plant::apply`), and publishes the new configuration, which
+//! the faces follow for their own sections (tokens, Modbus TCP clients and
+//! units) and the core for `[safety]`.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use crate::config::Config;
+use crate::config::diff::{Changes, diff};
+use crate::config::edit::sha256_hex;
+use crate::control::Control;
+use crate::control::reload::{Applied, NewText, Refused, ReloadRequest, ReloadResult};
+use crate::plant::{Plant, Rebuild};
+
+/// Reloads waiting for the reloader.
+const QUEUE: usize = 8;
+
+/// The reloader of the file at `path`, running `config` now.
+pub struct Reloader {
+    path: PathBuf,
+    running: Arc<Config>,
+    plant: Arc<Plant>,
+    control: Control,
+}
+
+impl Reloader {
+    /// Starts the reloader of `path` (whose text `config` is) and attaches
+    /// it to the core; it ends with `shutdown`.
+    pub fn start(
+        path: &Path,
+        config: Arc<Config>,
+        plant: Arc<Plant>,
+        control: Control,
+        shutdown: CancellationToken,
+    ) -> tokio::task::JoinHandle<()> {
+        let (tx, rx) = mpsc::channel(QUEUE);
+        control.attach_reloader(tx, path);
+        let reloader = Reloader {
+            path: path.to_path_buf(),
+            running: config,
+            plant,
+            control,
+        };
+        tokio::spawn(reloader.run(rx, shutdown))
+    }
+
+    async fn run(
+        mut self,
+        mut requests: mpsc::Receiver<ReloadRequest>,
+        shutdown: CancellationToken,
+    ) {
+        loop {
+            let request = tokio::select! {
+                () = shutdown.cancelled() => return,
+                request = requests.recv() => match request {
+                    Some(r) => r,
+                    None => return,
+                },
+            };
+            let result = self.reload(&request.by, request.write).await;
+            self.control.record_reload(&result);
+            match &result {
+                Ok(applied) => info!(
+                    by = %request.by,
+                    "configuration reloaded from {}: {}",
+                    self.path.display(),
+                    applied.changes.join("; ")
+                ),
+                Err(refused) => warn!(
+                    by = %request.by,
+                    "configuration reload refused, the running configuration stays: {refused}"
+                ),
+            }
+            // The one who asked may have gone; the reload stands.
+            let _ = request.reply.send(result);
+        }
+    }
+
+    async fn reload(&mut self, by: &str, write: Option<NewText>) -> ReloadResult {
+        let origin = self.path.display().to_string();
+        let mut text = std::fs::read_to_string(&self.path)
+            .map_err(|e| Refused::Invalid(format!("cannot read {origin}: {e}")))?;
+        if let Some(write) = write {
+            let on_disk = sha256_hex(&text);
+            if on_disk != write.base_sha256 {
+                return Err(Refused::Changed(format!(
+                    "{origin} changed on disk since it was read (its SHA-256 is now {on_disk}): read it again and redo the change"
+                )));
+            }
+            check(&write.text, &origin)?;
+            write_file(&self.path, &write.text)
+                .map_err(|e| Refused::Invalid(format!("cannot write {origin}: {e}")))?;
+            info!(by, "configuration file {origin} rewritten");
+            text = write.text;
+        }
+        let new = check(&text, &origin)?;
+        let changes = diff(&self.running, &new);
+        Ok(self.apply(new, changes).await)
+    }
+
+    async fn apply(&mut self, new: Config, mut changes: Changes) -> Applied {
+        // Listeners keep their socket until the next start.
+        for listener in std::mem::take(&mut changes.listeners_reopened) {
+            changes.at_restart.push(match listener {
+                "http" => "[http] listen, tls and connection limits",
+                "modbus_tcp" => "[modbus_tcp] listen and connection limits",
+                _ => "[modbus_tcp.tls]",
+            });
+        }
+        if new.http.tokens.is_empty() && !self.running.http.tokens.is_empty() {
+            // Without tokens every client is admin: only on loopback.
+            changes.tokens_changed = 0;
+            changes
+                .at_restart
+                .push("[[http.token]] all removed (the API then listens on loopback only)");
+        }
+        // Drives that leave (or move): stopped while their bus still runs.
+        let now = self.plant.now();
+        let leaving: Vec<usize> = now
+            .indexed_drives()
+            .filter(|(_, d)| {
+                let Some(bus) = now.bus_at(d.bus) else {
+                    return true;
+                };
+                !new.buses.iter().any(|b| {
+                    b.name() == bus.handle.name()
+                        && b.drives
+                            .iter()
+                            .any(|n| n.name() == d.name && n.unit() == d.unit)
+                })
+            })
+            .map(|(i, _)| i)
+            .collect();
+        let stopped = if leaving.is_empty() {
+            Vec::new()
+        } else {
+            self.control.retire(&leaving, new.safety.on_shutdown).await
+        };
+        let rebuild = Rebuild {
+            reopen: changes
+                .buses_reopened
+                .iter()
+                .map(|(name, _)| name.clone())
+                .collect(),
+        };
+        let problems = self.plant.apply(&new, &rebuild).await;
+        // A drive whose declared settings changed is compared with them again.
+        let after = self.plant.now();
+        for (i, d) in after.indexed_drives() {
+            if d.declared.is_some() && now.drive_at(i).map(|o| o.declared) != Some(d.declared) {
+                self.control.drift().recheck(&self.control, i);
+            }
+        }
+        let new = Arc::new(new);
+        self.control.set_config(new.clone());
+        self.running = new;
+        Applied {
+            changes: changes.lines(),
+            problems,
+            stopped,
+        }
+    }
+}
+
+/// The checks of `drivegate check-config`: the file parses and holds
+/// together, its certificates load and its tokens resolve.
+fn check(text: &str, origin: &str) -> Result<Config, Refused> {
+    let config = Config::parse(text, origin).map_err(|e| Refused::Invalid(e.to_string()))?;
+    crate::faces::check_tls(&config).map_err(|e| Refused::Invalid(format!("{origin}: {e}")))?;
+    crate::api::auth::Tokens::resolve(&config.http.tokens, config.http.token_guesses)
+        .map_err(|e| Refused::Invalid(format!("{origin}: [http]: {e}")))?;
+    Ok(config)
+}
+
+/// Writes `text` into `path` whole or not at all: a new file beside it,
+/// synced, renamed over it, keeping its permissions.
+fn write_file(path: &Path, text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    let dir = path.parent().unwrap_or_else(|| Path::new("."));
+    let name = path.file_name().map_or_else(
+        || "drivegate.toml".into(),
+        |n| n.to_string_lossy().into_owned(),
+    );
+    let temporary = dir.join(format!(".{name}.new"));
+    let permissions = std::fs::metadata(path)?.permissions();
+    let mut file = std::fs::File::create(&temporary)?;
+    file.write_all(text.as_bytes())?;
+    file.sync_all()?;
+    std::fs::set_permissions(&temporary, permissions)?;
+    std::fs::rename(&temporary, path)?;
+    if let Ok(dir) = std::fs::File::open(dir) {
+        let _ = dir.sync_all();
+    }
+    Ok(())
+}
