@@ -70,6 +70,10 @@ pub const ASSETS: &[Asset] = &[
     asset!("ui.js", "console/ui.js", JS),
     asset!("jog.js", "console/jog.js", JS),
     asset!("ramps.js", "console/ramps.js", JS),
+    asset!("setpoint.js", "console/setpoint.js", JS),
+    asset!("alarms.js", "console/alarms.js", JS),
+    asset!("trends.js", "console/trends.js", JS),
+    asset!("scan.js", "console/scan.js", JS),
     asset!("pages/overview.js", "console/pages/overview.js", JS),
     asset!("pages/drive.js", "console/pages/drive.js", JS),
     asset!("pages/settings.js", "console/pages/settings.js", JS),
@@ -78,7 +82,9 @@ pub const ASSETS: &[Asset] = &[
         "console/pages/commissioning.js",
         JS
     ),
+    asset!("pages/replace.js", "console/pages/replace.js", JS),
     asset!("pages/events.js", "console/pages/events.js", JS),
+    asset!("pages/alarms.js", "console/pages/alarms.js", JS),
     asset!("pages/scope.js", "console/pages/scope.js", JS),
     asset!("pages/monitor.js", "console/pages/monitor.js", JS),
     asset!(

@@ -45,6 +45,7 @@ pub mod new_token;
 pub mod openapi;
 pub mod problem;
 pub mod readback;
+pub mod replacement;
 pub mod request_metrics;
 pub mod scope;
 pub mod server;

@@ -18,7 +18,7 @@ use super::state::ApiState;
 use super::stream::{ClientMessage, DriveSelection};
 use super::{
     alarms, buses, commands, config, document, drives, health, history, monitor, monitor_live,
-    readback, scope, setpoints, settings, stream, whoami,
+    readback, replacement, scope, setpoints, settings, stream, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -213,6 +213,7 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(drives::get_status))
         .routes(routes!(readback::get_settings, document::put_settings))
         .routes(routes!(document::get_declared))
+        .routes(routes!(replacement::post_replacement))
         .routes(routes!(whoami::whoami))
         .routes(routes!(commands::post_command))
         .routes(routes!(commands::put_mode))

@@ -43,6 +43,7 @@ use super::extract::Params;
 use super::hub::{HubEvent, RestartDecision, ServerMessage, render};
 use super::openapi::ReadProblems;
 use super::problem::{Kind, Problem};
+use super::replacement;
 use super::scope;
 use super::setpoints::{self, RenewBody, SetpointBody};
 use super::settings;
@@ -84,8 +85,9 @@ pub enum ClientMessage {
     /// `POST .../commands/{command}`, body `{"force": bool}`), or `mode`,
     /// `setpoint`, `lease-renew`, `lease-release`, `status` (body
     /// `{"fresh": bool}`), `protection`, `speed-ramp`, `position-ramp`,
-    /// `inertia`, `rs485-control`, `settings` (a settings document, with
-    /// `"dry_run": true` for a dry run) with the body of the REST route; `scan`,
+    /// `inertia`, `rs485-control`, `replacement`, `settings` (a settings
+    /// document, with `"dry_run": true` for a dry run) with the body of the
+    /// REST route; `scan`,
     /// `set-address`, `scope-arm`, `scope-trigger` and `scope-cancel` take
     /// `bus` instead of `drive`; `alarm-ack` takes neither, its body is
     /// `{"alarm": id}`. A setpoint's lease also ends when this socket
@@ -557,7 +559,7 @@ struct FreshBody {
     fresh: bool,
 }
 
-const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, settings, scan, set-address, scope-arm, scope-trigger, scope-cancel, alarm-ack";
+const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, replacement, settings, scan, set-address, scope-arm, scope-trigger, scope-cancel, alarm-ack";
 
 /// Runs one stream command through the same code as its REST route.
 async fn dispatch(
@@ -597,6 +599,7 @@ async fn dispatch(
             | "position-ramp"
             | "inertia"
             | "rs485-control"
+            | "replacement"
             | "settings"
     );
     if !known && parse_command(op).is_err() {
@@ -631,6 +634,7 @@ async fn dispatch(
         "rs485-control" => {
             json(settings::rs485_control(state, caller, key, &body_as(op, body)?).await?)
         }
+        "replacement" => json(replacement::record(state, caller, key, body_as(op, body)?)?),
         "settings" => json(document::apply(state, caller, key, &body_as(op, body)?, false).await?),
         name => {
             let command = parse_command(name)?;

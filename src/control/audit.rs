@@ -60,6 +60,19 @@ pub fn address_verified(face: &str, who: &str, bus: &str, address: u8) {
     );
 }
 
+/// Logs the start, end or abandonment of a drive replacement (its writes
+/// are logged by [`write`] as they happen).
+pub fn replacement(face: &str, who: &str, drive: &str, event: &str, detail: &str) {
+    tracing::info!(
+        target: "drivegate::audit",
+        face,
+        who,
+        drive,
+        detail,
+        "drive replacement {event}"
+    );
+}
+
 /// Logs a lease released without a stop.
 pub fn released(face: &str, who: &str, drive: &str) {
     tracing::info!(

@@ -33,6 +33,7 @@ pub mod leases;
 pub mod outcome;
 pub mod policy;
 pub mod reload;
+pub mod replacement;
 pub mod request;
 pub mod restart;
 pub mod rules;

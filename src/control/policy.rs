@@ -28,11 +28,14 @@ pub enum Operation {
     /// Arming, triggering or cancelling a scope capture: it changes how the
     /// bus polls (its drives get every poll, the others the floor rate).
     Capture,
+    /// Noting the start or end of a drive replacement in the audit log
+    /// (commissioning work).
+    Replacement,
+    /// Acknowledging an alarm: the operator on duty says they saw it.
+    AcknowledgeAlarm,
     /// Reloading the configuration file (drives and buses added or
     /// removed, tokens, roles of networks): commissioning work.
     Reload,
-    /// Acknowledging an alarm: the operator on duty says they saw it.
-    AcknowledgeAlarm,
 }
 
 impl Operation {
@@ -43,8 +46,9 @@ impl Operation {
             Operation::Lease => Role::Operator,
             Operation::Scan => Role::Admin,
             Operation::Capture => Role::Operator,
-            Operation::Reload => Role::Admin,
+            Operation::Replacement => Role::Admin,
             Operation::AcknowledgeAlarm => Role::Operator,
+            Operation::Reload => Role::Admin,
         }
     }
 }

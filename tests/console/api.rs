@@ -266,3 +266,96 @@ async fn every_write_of_every_face_is_on_the_stream() {
     assert_eq!(w["ok"], true, "{w}");
     d.stop().await;
 }
+
+/// `POST .../replacement`: the replace-a-drive page's start and end in
+/// the audit log, with who and the detail; an admin's work, refused to an
+/// operator; a detail that is not one short line is refused in words.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_replacement_is_noted_in_the_audit_log_by_an_admin_only() {
+    crate::support::logs::capture_logs();
+    let d = TestDaemon::start(&config(true, "")).await;
+    let path = "/api/v1/drives/lift/replacement";
+    let detail = "settings from lift-settings-7f3a.json; calibration asked";
+    let (status, noted) = call(
+        &d,
+        Some(ADMIN),
+        "POST",
+        path,
+        Some(json!({"event": "started", "detail": detail})),
+    )
+    .await;
+    assert_eq!(status, 200, "{noted}");
+    assert_eq!(noted["drive"], "lift");
+    assert_eq!(noted["event"], "started");
+    assert_eq!(noted["who"], "commissioning");
+    let (status, _) = call(
+        &d,
+        Some(ADMIN),
+        "POST",
+        path,
+        Some(json!({"event": "finished", "detail": "lift-7f3a replaced in 95 s"})),
+    )
+    .await;
+    assert_eq!(status, 200);
+    let logs = crate::support::logs::log_text();
+    let started = logs
+        .lines()
+        .find(|l| l.contains("drive replacement started") && l.contains("lift-settings-7f3a"))
+        .unwrap_or_else(|| panic!("no start line in the audit log:\n{logs}"));
+    for field in [
+        "drivegate::audit",
+        "face=\"http\"",
+        "who=\"commissioning\"",
+        "drive=\"lift\"",
+    ] {
+        assert!(started.contains(field), "{started} lacks {field}");
+    }
+    assert!(
+        logs.lines()
+            .any(|l| l.contains("drive replacement finished") && l.contains("lift-7f3a replaced")),
+        "no end line:\n{logs}"
+    );
+
+    let (status, p) = call(
+        &d,
+        Some(OPERATOR),
+        "POST",
+        path,
+        Some(json!({"event": "started"})),
+    )
+    .await;
+    assert_eq!(
+        (status, p["type"].as_str()),
+        (403, Some("urn:drivegate:problem:forbidden")),
+        "{p}"
+    );
+    let (status, p) = call(
+        &d,
+        Some(ADMIN),
+        "POST",
+        path,
+        Some(json!({"event": "started", "detail": "two\nlines"})),
+    )
+    .await;
+    assert_eq!(status, 400, "{p}");
+    assert!(p["detail"].as_str().unwrap().contains("one line"), "{p}");
+    let (status, p) = call(
+        &d,
+        Some(ADMIN),
+        "POST",
+        path,
+        Some(json!({"event": "begun"})),
+    )
+    .await;
+    assert_eq!(status, 400, "{p}");
+    let (status, _) = call(
+        &d,
+        Some(ADMIN),
+        "POST",
+        "/api/v1/drives/nope/replacement",
+        Some(json!({"event": "started"})),
+    )
+    .await;
+    assert_eq!(status, 404);
+    d.stop().await;
+}

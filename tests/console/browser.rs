@@ -239,6 +239,8 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
         ("/settings/lift", "[data-field=limit_a]"),
         ("/commissioning", "[data-action=scan]"),
         ("/events", "table.log"),
+        ("/alarms", "table.alarms"),
+        ("/replace", "[data-action=start]"),
         ("/scope", "[data-action=arm]"),
         ("/monitor", ".frame-rows [data-seq]"),
         ("/", "table.drives"),
@@ -446,8 +448,10 @@ async fn a_viewer_token_sees_no_control() {
     for hash in [
         "/",
         "/drive/conveyor",
+        "/alarms",
         "/events",
         "/commissioning",
+        "/replace",
         "/settings/conveyor",
         "/scope",
         "/monitor",
@@ -468,7 +472,7 @@ async fn a_viewer_token_sees_no_control() {
         let controls = page
             .eval(
                 "[...document.querySelectorAll('button, input, select')].filter((el) => el.offsetParent !== null \
-                 && !el.closest('header, dialog, .filters') && !el.dataset.read).map((el) => el.outerHTML.slice(0, 80))",
+                 && !el.closest('header, dialog, .filters, .zoom') && !el.dataset.read).map((el) => el.outerHTML.slice(0, 80))",
             )
             .await;
         assert_eq!(controls, json!([]), "controls shown to a viewer on {hash}");
@@ -756,6 +760,24 @@ async fn the_event_log_shows_every_write_live_and_the_ramp_time_follows_the_manu
     assert_clean(&page, &daemon.url(""));
     browser.stop().await;
     daemon.stop().await;
+}
+
+/// With `DRIVEGATE_SCREENSHOTS` set (a directory, relative to the
+/// repository or absolute: `docs`), saves a PNG of `page` there as
+/// `name`: the tests of the newer pages take their pictures for the docs
+/// at the moment they have checked what the picture shows. Without it,
+/// nothing.
+pub(crate) async fn picture(page: &Page, name: &str, full: bool) {
+    let Some(dir) = std::env::var_os("DRIVEGATE_SCREENSHOTS") else {
+        return;
+    };
+    let dir = std::path::PathBuf::from(dir);
+    let dir = if dir.is_absolute() {
+        dir
+    } else {
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(dir)
+    };
+    page.screenshot(&dir.join(name), full).await;
 }
 
 /// Not a test: writes the screenshots in docs/ (run with

@@ -11,6 +11,7 @@
 #[path = "../support/mod.rs"]
 mod support;
 
+mod alarms;
 mod api;
 mod assets;
 mod browser;
@@ -18,3 +19,6 @@ mod comm_loss;
 mod diagnostics;
 mod harness;
 mod https;
+mod plain;
+mod replace;
+mod trends;

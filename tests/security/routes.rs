@@ -123,6 +123,10 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
         ),
         ("delete_scope", (None, Some("scope-cancel"))),
         ("post_trigger", (None, Some("scope-trigger"))),
+        (
+            "post_replacement",
+            (Some(json!({"event": "started"})), Some("replacement")),
+        ),
         // An acknowledgement is the operator's (alarm 1 may not exist yet:
         // a right role then meets 404); on the stream the id is the body's.
         ("post_ack", (None, Some("alarm-ack"))),

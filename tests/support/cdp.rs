@@ -512,6 +512,27 @@ impl Page {
         self.call("Input.insertText", json!({"text": text})).await;
     }
 
+    /// Chooses `files` in the file input matching `selector`, as a user
+    /// picking them in the file dialog would (the input fires `change`).
+    pub async fn set_files(&self, selector: &str, files: &[&Path]) {
+        let r = self
+            .call(
+                "Runtime.evaluate",
+                json!({"expression": format!("document.querySelector({})", serde_json::to_string(selector).unwrap())}),
+            )
+            .await;
+        let object = r["result"]["objectId"]
+            .as_str()
+            .unwrap_or_else(|| panic!("no element {selector} on the page"))
+            .to_string();
+        let files: Vec<String> = files.iter().map(|f| f.display().to_string()).collect();
+        self.call(
+            "DOM.setFileInputFiles",
+            json!({"files": files, "objectId": object}),
+        )
+        .await;
+    }
+
     /// A PNG of the viewport (or the whole page with `full`).
     pub async fn screenshot(&self, path: &Path, full: bool) {
         let mut params = json!({"format": "png"});

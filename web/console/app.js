@@ -8,16 +8,19 @@
 import { ApiError, drivePath, get, post, setToken, token } from './api.js';
 import { Stream } from './stream.js';
 import { Store } from './store.js';
-import { h, Note } from './ui.js';
+import { h, Note, run, dateTime } from './ui.js';
+import { kindWords } from './alarms.js';
 import { page as overview } from './pages/overview.js';
 import { page as drive } from './pages/drive.js';
 import { page as settings } from './pages/settings.js';
 import { page as commissioning } from './pages/commissioning.js';
+import { page as replace } from './pages/replace.js';
 import { page as events } from './pages/events.js';
+import { page as alarms } from './pages/alarms.js';
 import { page as scope } from './pages/scope.js';
 import { page as monitor } from './pages/monitor.js';
 
-const PAGES = [overview, drive, settings, commissioning, events, scope, monitor];
+const PAGES = [overview, alarms, drive, settings, commissioning, replace, events, scope, monitor];
 
 const stream = new Stream();
 const store = new Store(stream);
@@ -96,7 +99,14 @@ const brakeNote = new Note();
 
 function buildHeader() {
   const who = document.getElementById('who');
-  who.replaceChildren(h('span', { class: `role ${store.me.role}` }, store.me.role), ' ', store.me.who);
+  // "Token" and "role" in words: a token named "commissioning" or
+  // "settings" must not read as the name of a page.
+  const tokenWord = store.me.tokens_required ? 'token' : 'client';
+  who.replaceChildren(
+    h('span', { class: 'who-label' }, `${tokenWord} `),
+    h('q', { class: 'token-name', title: store.me.tokens_required ? 'The name of the API token in use' : 'No tokens are configured: this local client is known by its address' }, store.me.who),
+    h('span', { class: 'who-label' }, ' · role '),
+    h('span', { class: `role ${store.me.role}`, title: 'What this token may do' }, store.me.role));
   if (store.me.tokens_required) {
     who.append(' ', h('button', { class: 'link', onclick: () => { setToken(null); location.reload(); } }, 'Forget token'));
   }
@@ -105,6 +115,36 @@ function buildHeader() {
   brake.addEventListener('click', () => brakeAll());
   document.getElementById('brake-note').replaceWith(brakeNote.el);
   brakeNote.el.id = 'brake-note';
+}
+
+/**
+ * The banner under the header, on every page, while any alarm is not
+ * acknowledged: how many, the newest in words, the way to the list and
+ * (operator) its acknowledgement.
+ */
+function alarmBanner() {
+  const el = document.getElementById('alarm-banner');
+  const note = new Note();
+  const draw = () => {
+    const a = store.alarms;
+    const newest = a.list.find((x) => !x.acknowledged);
+    el.hidden = !a.available || a.unacknowledged === 0 || !newest;
+    if (el.hidden) { el.replaceChildren(); return; }
+    const ack = store.can('operator')
+      ? h('button', { type: 'button', dataset: { ack: String(newest.id) } }, 'Acknowledge')
+      : null;
+    if (ack) {
+      ack.addEventListener('click', () => run(ack, note, 'acknowledging…', () => a.acknowledge(newest.id),
+        (r) => `acknowledged by ${r.acknowledged_by}`));
+    }
+    el.dataset.count = String(a.unacknowledged);
+    el.replaceChildren(
+      h('strong', {}, a.unacknowledged === 1 ? '1 alarm not acknowledged' : `${a.unacknowledged} alarms not acknowledged`),
+      ': ', h('span', { class: 'newest' }, `${dateTime(newest.raised_at)} ${newest.drive || `bus ${newest.bus}`}: ${kindWords(newest.kind)}, ${newest.text}${newest.active ? '' : ' (cleared since)'}`),
+      ' ', ack, ' ', h('a', { href: '#/alarms' }, 'All alarms'), ' ', note.el);
+  };
+  store.alarms.subscribe(draw);
+  store.alarms.refresh();
 }
 
 function shortcuts(e) {
@@ -118,7 +158,7 @@ function shortcuts(e) {
     return;
   }
   if (document.querySelector('dialog[open]')) return;
-  const keys = { o: '/', e: '/events', c: '/commissioning', s: '/settings', p: '/scope', m: '/monitor' };
+  const keys = { o: '/', a: '/alarms', e: '/events', c: '/commissioning', r: '/replace', s: '/settings', p: '/scope', m: '/monitor' };
   if (keys[e.key] && !e.shiftKey) {
     e.preventDefault();
     navigate(keys[e.key]);
@@ -169,6 +209,7 @@ async function start() {
   document.body.dataset.role = store.me.role;
   buildHeader();
   buildNav();
+  alarmBanner();
   stream.on('state', showConnection);
   await store.refreshDrives().catch(() => {});
   stream.connect();

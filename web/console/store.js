@@ -5,6 +5,7 @@
 // keeps everything since the page was opened.
 
 import { get } from './api.js';
+import { Alarms, alarmOf, kindWords } from './alarms.js';
 
 const MAX_EVENTS = 5000;
 const BUS_PERIOD_MS = 2000;
@@ -23,6 +24,8 @@ export class Store {
     this.eventListeners = new Set();
     this.stats = { statusReceived: 0, firstValueAt: null };
     this.busTimer = null;
+    /** drivegate's alarms (GET /api/v1/alarms), kept by the daemon. */
+    this.alarms = new Alarms(stream);
     stream.on('*', (m) => this.onMessage(m));
     stream.on('state', (s) => {
       if (s.state === 'open') this.refreshDrives().catch(() => {});
@@ -51,9 +54,13 @@ export class Store {
       d.gearRatio = v.gear_ratio;
       d.link = v.link;
       d.lease = v.lease;
+      // Its declared settings and whether it holds them (absent when none
+      // is declared).
+      d.declared = v.declared_settings || null;
       if (v.status && (!d.status || d.receivedAt === undefined)) {
         d.status = v.status;
         d.receivedAt = now - (v.age_ms ?? 0);
+        d.seenAt = v.last_seen;
       }
       this.drives.set(v.name, d);
     }
@@ -128,6 +135,31 @@ export class Store {
         this.log({ kind: 'write', severity: m.ok ? 'info' : 'bad', drive: m.drive, who: m.who, bus: m.bus,
           at: Date.parse(m.at), text: `${m.what} → ${m.answer}` });
         break;
+      case 'alarm-raised':
+      case 'alarm-cleared':
+      case 'alarm-acknowledged': {
+        const a = alarmOf(m);
+        const what = m.type === 'alarm-raised' ? 'raised' : m.type === 'alarm-cleared' ? 'cleared' : `acknowledged by ${a.acknowledged_by || 'an operator'}`;
+        this.log({ kind: 'alarm', severity: m.type === 'alarm-raised' ? 'bad' : 'info', drive: a.drive || null, bus: a.bus || null,
+          who: m.type === 'alarm-acknowledged' ? a.acknowledged_by : null,
+          text: `alarm ${what}: ${kindWords(a.kind)}${a.text ? `: ${a.text}` : ''}` });
+        break;
+      }
+      case 'settings-drift': {
+        const d = this.drives.get(m.drive);
+        if (d) {
+          d.declared = { apply_settings: m.apply_settings, save: m.save, state: m.state, drift: m.drift,
+            differences: m.differences || [], checked_at: m.checked_at, detail: m.detail };
+          this.changed(m.drive);
+        }
+        this.log({ kind: 'settings', severity: m.drift ? 'warn' : 'info', drive: m.drive,
+          text: m.drift ? `settings differ from the declaration: ${driftWords(m.differences)}` : 'holds its declared settings' });
+        break;
+      }
+      case 'settings-applied':
+        this.log({ kind: 'settings', severity: m.complete ? 'info' : 'bad', drive: m.drive, who: m.who,
+          text: `settings document ${m.dry_run ? 'compared (dry run)' : 'applied'}: ${m.changed} changed${m.save ? ', saved to flash' : ''}${m.complete ? '' : '; not every write was confirmed'}` });
+        break;
       case 'lagged':
         this.log({ kind: 'link', severity: 'warn', drive: null, text: `this page fell behind: ${m.missed} updates skipped` });
         break;
@@ -198,6 +230,11 @@ export class Store {
     return () => this.listeners.delete(fn);
   }
 
+  /** `fn(alarm)` for every alarm raised, cleared or acknowledged. */
+  onAlarm(fn) {
+    return this.alarms.onNews((_type, a) => fn(a));
+  }
+
   onEvent(fn) {
     this.eventListeners.add(fn);
     return () => this.eventListeners.delete(fn);
@@ -206,6 +243,12 @@ export class Store {
   changed(name) {
     for (const fn of this.listeners) fn(name);
   }
+}
+
+/** A drive's differences from its declared settings, in words. */
+export function driftWords(differences) {
+  const v = (x, unit) => (typeof x === 'boolean' ? (x ? 'on' : 'off') : `${Number.isInteger(x) ? x : Number(Number(x).toFixed(3))}${unit ? ` ${unit}` : ''}`);
+  return (differences || []).map((d) => `${d.quantity} ${v(d.drive, d.unit)} (declared ${v(d.declared, d.unit)})`).join(', ') || 'see the drive page';
 }
 
 /** The buses of the configured drives, in the drives' order. */

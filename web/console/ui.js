@@ -37,10 +37,40 @@ export function age(ms) {
 /** Words for the API's snake_case names (over_temperature -> over-temperature). */
 export const words = (name) => String(name ?? '–').replaceAll('_', ' ');
 
+/** How long ago, in words a person reads at a glance ("2 min ago"). */
+export function ago(ms) {
+  if (ms === undefined || ms === null || Number.isNaN(ms)) return 'never';
+  if (ms < 2000) return 'just now';
+  if (ms < 60_000) return `${Math.floor(ms / 1000)} s ago`;
+  if (ms < 3_600_000) return `${Math.floor(ms / 60_000)} min ago`;
+  if (ms < 172_800_000) return `${Math.floor(ms / 3_600_000)} h ago`;
+  return `${Math.floor(ms / 86_400_000)} days ago`;
+}
+
 /** A time of day with milliseconds, for the event log. */
 export function clock(date) {
   const d = date instanceof Date ? date : new Date(date);
   return d.toLocaleTimeString([], { hour12: false }) + '.' + String(d.getMilliseconds()).padStart(3, '0');
+}
+
+const pad2 = (n) => String(n).padStart(2, '0');
+
+/**
+ * Date and time of day, local, to the second ("2026-11-25 14:02:31"): an
+ * event, an alarm or a last-seen time read the next morning still says
+ * which day it was. ISO order, so it sorts and reads the same everywhere.
+ */
+export function dateTime(date) {
+  const d = date instanceof Date ? date : new Date(date);
+  if (Number.isNaN(d.getTime())) return '–';
+  return `${d.getFullYear()}-${pad2(d.getMonth() + 1)}-${pad2(d.getDate())} `
+    + `${pad2(d.getHours())}:${pad2(d.getMinutes())}:${pad2(d.getSeconds())}`;
+}
+
+/** A `<time>` element showing `dateTime(at)`, machine-readable too. */
+export function timeEl(at) {
+  const d = new Date(at);
+  return h('time', { datetime: Number.isNaN(d.getTime()) ? null : d.toISOString() }, dateTime(d));
 }
 
 /**

@@ -8,6 +8,7 @@
 
 import { drivePath, post } from '../api.js';
 import { h, Note, run, numberField, confirmDialog, fmt } from '../ui.js';
+import { scanBus, broadcastVerdict, followProcedure, scanTable } from '../scan.js';
 
 export const page = {
   id: 'commissioning',
@@ -18,8 +19,6 @@ export const page = {
   mount,
 };
 
-/** Units per scan request: the progress bar moves after each. */
-const SCAN_CHUNK = 8;
 /** Calibration takes "about 4 s" (manual 1.3). */
 const CALIBRATION_S = 4;
 
@@ -56,21 +55,16 @@ function scanSection(buses, state, store) {
     if (!Number.isInteger(a) || !Number.isInteger(b)) { note.fail(new Error('type whole unit numbers, 1 to 255')); return; }
     stopping = false;
     start.disabled = true; stop.disabled = false;
-    const found = { bus: bus.value, from: a, to: b, answered: [], garbled: [], missing: [], silent: 0, not_scanned: [], complete: false };
+    let found = { bus: bus.value, from: a, to: b, answered: [], garbled: [], missing: [], silent: 0, not_scanned: [], complete: false };
     progress.max = Math.max(1, b - a + 1); progress.value = 0;
     note.pending(`scanning units ${a} to ${b} of bus ${bus.value}; each silent unit costs one response timeout`);
     try {
-      for (let u = a; u <= b && !stopping && !state.cancelled; u += SCAN_CHUNK) {
-        const last = Math.min(b, u + SCAN_CHUNK - 1);
-        const r = await post(`/api/v1/buses/${encodeURIComponent(bus.value)}/scan`, { from: u, to: last });
-        found.answered.push(...r.answered); found.garbled.push(...r.garbled); found.missing.push(...r.missing);
-        found.silent += r.silent; found.not_scanned.push(...r.not_scanned);
-        progress.value = last - a + 1;
-        result.replaceChildren(scanTable(found));
-      }
-      found.complete = !stopping;
+      found = await scanBus(bus.value, a, b, {
+        progress: (f, done) => { progress.value = done; result.replaceChildren(scanTable(f)); found = f; },
+        stop: () => stopping || state.cancelled,
+      });
       state.lastScan = found;
-      note.ok(`${stopping ? 'stopped' : 'scanned'}: ${found.answered.length} answered, ${found.garbled.length} garbled, ${found.silent} silent${found.not_scanned.length ? `, ${found.not_scanned.length} not read (bus busy: scan again)` : ''}`);
+      note.ok(`${found.complete ? 'scanned' : 'stopped'}: ${found.answered.length} answered, ${found.garbled.length} garbled, ${found.silent} silent${found.not_scanned.length ? `, ${found.not_scanned.length} not read (bus busy: scan again)` : ''}`);
     } catch (e) {
       note.fail(e);
     } finally {
@@ -127,16 +121,6 @@ function addToConfiguration(found, store) {
   ];
 }
 
-function scanTable(found) {
-  const rows = found.answered.map((a) => h('tr', {},
-    h('td', {}, a.unit), h('td', {}, a.configured_as || 'not configured'),
-    h('td', {}, a.status ? `${a.status.active ? 'active' : 'inactive'}, ${a.status.mode.replaceAll('_', ' ')}, ${a.status.voltage_v} V` : `exception ${a.exception_code}`)));
-  for (const u of found.garbled) rows.push(h('tr', { class: 'fault' }, h('td', {}, u), h('td', {}, 'garbled reply'), h('td', {}, 'two drives with one address?')));
-  for (const n of found.not_scanned) rows.push(h('tr', { class: 'stalled' }, h('td', {}, n.unit), h('td', {}, 'not read'), h('td', {}, n.reason)));
-  return h('div', {},
-    found.missing.length ? h('p', { class: 'note fail' }, `Configured but silent: ${found.missing.join(', ')}`) : null,
-    h('table', { class: 'kv' }, h('thead', {}, h('tr', {}, h('th', {}, 'Unit'), h('th', {}, 'Drive'), h('th', {}, 'Status'))), h('tbody', {}, rows)));
-}
 
 function addressSection(buses, state) {
   const bus = busPicker(buses, 'address-bus');
@@ -145,15 +129,7 @@ function addressSection(buses, state) {
   const go = h('button', { type: 'button', class: 'danger', dataset: { action: 'set-address' } }, 'Set address…');
   const check = h('p', { class: 'check', role: 'status' });
   const note = new Note();
-  const verdict = () => {
-    const s = state.lastScan;
-    if (!s || s.bus !== bus.value) return { ok: false, text: `First scan bus ${bus.value} over units 1 to 255 with only the new drive connected.` };
-    if (!s.complete || s.from !== 1 || s.to !== 255) return { ok: false, text: 'The last scan did not cover units 1 to 255: scan the whole range so no other drive can hide.' };
-    if (s.garbled.length) return { ok: false, text: `Garbled replies at ${s.garbled.join(', ')}: two drives share an address. Disconnect all but one.` };
-    if (s.not_scanned.length) return { ok: false, text: 'Some units could not be read (bus busy): scan again.' };
-    if (s.answered.length !== 1) return { ok: false, text: `The scan found ${s.answered.length} drives answering; the broadcast would re-address all of them. Leave exactly one drive connected.` };
-    return { ok: true, text: `The scan found exactly one drive, at unit ${s.answered[0].unit}.` };
-  };
+  const verdict = () => broadcastVerdict(state.lastScan, bus.value);
   const refresh = () => {
     const v = verdict();
     check.textContent = v.text;
@@ -197,27 +173,12 @@ function procedureSection({ store }) {
   const note = new Note();
   const send = (cmd, force = false) => post(drivePath(drive.value, `/commands/${cmd}${force ? '?force=true' : ''}`));
 
-  /** Follows a procedure the drive runs by itself, from its statuses. */
-  const follow = (name, label, expectedS) => new Promise((resolve) => {
-    const started = performance.now();
-    let moved = false; let stillSince = null;
-    const tick = () => {
-      const d = store.drives.get(name);
-      const s = d && d.status;
-      const t = (performance.now() - started) / 1000;
-      if (s && s.speed_rpm !== 0) { moved = true; stillSince = null; } else if (stillSince === null) stillSince = t;
-      const done = t >= (expectedS || 1) * 0.75 && stillSince !== null && t - stillSince > 0.5 && (moved || t > (expectedS || 8));
-      progress.max = expectedS || 1;
-      progress.value = expectedS ? Math.min(t, expectedS) : 0;
-      if (!expectedS) progress.removeAttribute('value');
-      progressText.textContent = `${label}: ${fmt(t, 1)} s${expectedS ? ` of about ${expectedS} s` : ''}${s && s.speed_rpm !== 0 ? ', motor turning' : ''}`;
-      if (done || t > 60 || (s && (s.fault !== 'none' || s.stalled))) {
-        clearInterval(timer);
-        resolve({ t, s });
-      }
-    };
-    const timer = setInterval(tick, 100);
-    tick();
+  /** Follows a procedure the drive runs by itself, with its progress shown. */
+  const follow = (name, label, expectedS) => followProcedure(store, name, expectedS, ({ t, s }) => {
+    progress.max = expectedS || 1;
+    progress.value = expectedS ? Math.min(t, expectedS) : 0;
+    if (!expectedS) progress.removeAttribute('value');
+    progressText.textContent = `${label}: ${fmt(t, 1)} s${expectedS ? ` of about ${expectedS} s` : ''}${s && s.speed_rpm !== 0 ? ', motor turning' : ''}`;
   });
 
   const procedure = (cmd, label, expectedS, body) => async () => {

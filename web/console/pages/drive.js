@@ -2,10 +2,13 @@
 // mode, hold-to-jog, go to a position, torque, fault reset, brake), what it
 // holds (read from it), and its events.
 
-import { drivePath, get, post, put } from '../api.js';
-import { History, positionTurns } from '../store.js';
+import { download, drivePath, get, post, put } from '../api.js';
+import { History, positionTurns, driftWords } from '../store.js';
 import { Jog, DEFAULT_LEASE_MS } from '../jog.js';
-import { h, fmt, age, words, Note, run, numberField, clock } from '../ui.js';
+import { SpeedSetpoint } from '../setpoint.js';
+import { activeAlarmsOf } from '../alarms.js';
+import { Trends } from '../trends.js';
+import { h, fmt, age, ago, words, Note, run, numberField, parseNumber, clock, dateTime, timeEl } from '../ui.js';
 import { condition } from './overview.js';
 import { speedRampTime, positionRampTime } from '../ramps.js';
 
@@ -20,13 +23,6 @@ export const page = {
   mount,
 };
 
-const PLOTS = [
-  ['speed', 'Speed', 'rpm', '#1d4ed8'],
-  ['position', 'Position', 'turns', '#047857'],
-  ['current', 'Current', 'A', '#b45309'],
-  ['temperature', 'Temperature', '°C', '#b91c1c'],
-];
-
 function mount(main, { name }, ctx) {
   const { store, stream } = ctx;
   const d = store.drives.get(name);
@@ -38,21 +34,38 @@ function mount(main, { name }, ctx) {
   if (!d.history) d.history = new History(30);
   const cleanups = [];
 
-  // Header and live values.
+  // Header and live values: plain ones in view, the raw registers
+  // (STATUS flags, counts) in a details view closed by default.
   const badge = h('span', { class: 'badge' });
+  // Whether it holds its declared settings ([bus.drive.settings]).
+  const drift = h('span', { class: 'badge drift', hidden: true, dataset: { drift: '' } });
   const values = h('dl', { class: 'values' });
   const valueCells = {};
   for (const [key, label] of [['state', 'State'], ['mode', 'Mode'], ['speed', 'Speed'], ['position', 'Position'],
-    ['current', 'Current'], ['voltage', 'Voltage'], ['temperature', 'Temperature'], ['flags', 'Flags'], ['age', 'Last status']]) {
+    ['current', 'Current'], ['voltage', 'Voltage'], ['temperature', 'Temperature'], ['calibration', 'Encoder'], ['age', 'Last status']]) {
     valueCells[key] = h('dd', { dataset: { value: key } });
     values.append(h('div', {}, h('dt', {}, label), valueCells[key]));
   }
+  const rawValues = h('dl', { class: 'values raw' });
+  for (const [key, label] of [['flags', 'STATUS register'], ['fault_code', 'Fault code'], ['turns', 'Turns counter'],
+    ['angle', 'Angle in the turn'], ['current_counts', 'Current (counts, 1 A = 128)'], ['seen_at', 'Status read at']]) {
+    valueCells[key] = h('dd', { dataset: { value: key } });
+    rawValues.append(h('div', {}, h('dt', {}, label), valueCells[key]));
+  }
+  const details = h('details', { class: 'raw', dataset: { details: 'status' } },
+    h('summary', {}, 'Details: raw status registers'), rawValues);
+  // Offline: the values below are the last ones the drive sent, not live.
+  const lastSeen = h('p', { class: 'last-seen', role: 'status', hidden: true });
+  // A fault: what it means and what to check, from drivegate's alarms.
+  const faultHelp = h('div', { class: 'fault-help', role: 'alert', hidden: true });
   const head = h('section', { class: 'panel drive-head' },
-    h('h1', {}, name, ' ', badge),
+    h('h1', {}, name, ' ', badge, ' ', drift),
     h('p', { class: 'where' }, `bus ${d.bus}, unit ${d.unit}, gear ratio ${d.gearRatio}`,
       store.can('admin') ? [' · ', h('a', { href: `#/settings/${encodeURIComponent(name)}` }, 'Settings')] : null),
-    values);
+    lastSeen, faultHelp, values, details);
   main.append(head);
+  const help = faultHelpView(name, faultHelp, store);
+  cleanups.push(() => help.dispose());
 
   // Controls.
   let jog = null;
@@ -61,7 +74,7 @@ function mount(main, { name }, ctx) {
     controls = buildControls(name, d, ctx);
     jog = controls.jog;
     main.append(controls.section);
-    cleanups.push(() => controls.jog.dispose(), () => controls.torqueJog.dispose());
+    cleanups.push(() => controls.jog.dispose(), () => controls.torqueJog.dispose(), () => controls.speed.dispose());
     const keys = (e) => {
       if (e.ctrlKey || e.metaKey || e.altKey) return;
       if (e.target.closest('input, textarea, select, [contenteditable]') || document.querySelector('dialog[open]')) return;
@@ -84,37 +97,10 @@ function mount(main, { name }, ctx) {
     });
   }
 
-  // Plots.
-  const plotBox = h('div', { class: 'plots' });
-  main.append(h('section', { class: 'panel', 'aria-labelledby': 'plots-h' },
-    h('h2', { id: 'plots-h' }, 'Last 30 seconds'), plotBox));
-  const plots = [];
-  if (window.uPlot) {
-    for (const [key, label, unit, colour] of PLOTS) {
-      const box = h('figure', { class: 'plot', dataset: { plot: key } }, h('figcaption', {}, `${label} (${unit})`));
-      plotBox.append(box);
-      const width = Math.max(240, box.clientWidth || 400);
-      const u = new window.uPlot({
-        width, height: 160,
-        legend: { show: false },
-        cursor: { drag: { x: false, y: false } },
-        scales: { x: { time: true } },
-        axes: [
-          { stroke: '#444', grid: { stroke: '#e5e7eb' }, values: (_, ticks) => ticks.map(timeOfDay) },
-          { stroke: '#444', grid: { stroke: '#e5e7eb' }, size: 56 },
-        ],
-        series: [{}, { label, stroke: colour, width: 2, points: { show: false } }],
-      }, [[], []], box);
-      plots.push({ key, u, box });
-    }
-    const resize = new ResizeObserver(() => {
-      for (const p of plots) p.u.setSize({ width: Math.max(240, p.box.clientWidth), height: 160 });
-    });
-    for (const p of plots) resize.observe(p.box);
-    cleanups.push(() => resize.disconnect(), () => plots.forEach((p) => p.u.destroy()));
-  } else {
-    plotBox.append(h('p', { role: 'alert' }, 'The plotting library did not load.'));
-  }
+  // Trends: the last 30 s live, or up to the hour from the history.
+  const trends = new Trends(name, d, store);
+  main.append(trends.section);
+  cleanups.push(() => trends.dispose());
 
   // What the drive holds.
   const held = h('div', { class: 'held' });
@@ -128,15 +114,21 @@ function mount(main, { name }, ctx) {
     return `read at ${clock(r.read_at)}`;
   });
   refresh.addEventListener('click', readHeld);
+  // The same document as a file, which PUT .../settings (and the
+  // replace-a-drive page) takes back as it is.
+  const saveFile = h('button', { type: 'button', dataset: { read: 'file' } }, 'Save to a file');
+  saveFile.addEventListener('click', () => run(saveFile, heldNote, 'reading the drive…',
+    () => download(drivePath(name, '/settings?download=1'), `${name}-settings.json`),
+    (r) => `saved as ${r.name}: the settings read from the drive now, for the replace-a-drive page or PUT .../settings`));
   main.append(h('section', { class: 'panel', 'aria-labelledby': 'held-h' },
-    h('h2', { id: 'held-h' }, 'Settings held by the drive'), held, h('div', { class: 'row' }, refresh, heldNote.el)));
+    h('h2', { id: 'held-h' }, 'Settings held by the drive'), held, h('div', { class: 'row' }, refresh, saveFile, heldNote.el)));
   readHeld();
 
   // Events of this drive.
   const eventList = h('ol', { class: 'events compact', reversed: true });
   main.append(h('section', { class: 'panel', 'aria-labelledby': 'ev-h' },
     h('h2', { id: 'ev-h' }, 'Events of this drive ', h('a', { href: '#/events', class: 'small' }, 'all events')), eventList));
-  const eventItem = (e) => h('li', { class: e.severity }, h('time', {}, clock(e.at)), ' ', h('span', { class: 'kind' }, e.kind), ' ',
+  const eventItem = (e) => h('li', { class: e.severity }, timeEl(e.at), ' ', h('span', { class: 'kind' }, e.kind), ' ',
     e.who ? h('span', { class: 'who' }, e.who) : null, ' ', e.text);
   const mine = store.events.filter((e) => e.drive === name).slice(-50).reverse();
   eventList.replaceChildren(...mine.map(eventItem));
@@ -154,7 +146,6 @@ function mount(main, { name }, ctx) {
 
   // Drawing, at most once per frame.
   let frame = 0;
-  let lastPlot = 0;
   function draw() {
     frame = 0;
     const now = performance.now();
@@ -164,23 +155,46 @@ function mount(main, { name }, ctx) {
     badge.className = `badge ${c.cls}`;
     head.className = `panel drive-head ${c.cls}`;
     const set = (k, t) => { if (valueCells[k].textContent !== t) valueCells[k].textContent = t; };
+    const offline = d.link === 'offline';
+    const seen = d.receivedAt !== undefined ? ago(now - d.receivedAt) : 'never';
+    values.classList.toggle('not-live', offline);
+    head.dataset.link = d.link || 'unknown';
+    lastSeen.hidden = !offline;
+    if (offline) {
+      const text = s
+        ? `Offline: drivegate gets no answer from this drive. The values below are the last it sent, ${seen}${d.seenAt ? ` (${dateTime(d.seenAt)})` : ''}; they are not live.`
+        : 'Offline: drivegate has had no answer from this drive since it started.';
+      if (lastSeen.textContent !== text) lastSeen.textContent = text;
+    }
     set('state', s ? `${s.active ? 'active' : 'inactive'}${s.fault !== 'none' ? `, fault ${words(s.fault)}` : ''}${s.stalled ? ', stalled' : ''}` : d.link);
     set('mode', s ? words(s.mode) : '–');
     set('speed', s ? `${fmt(s.speed_rpm)} rpm` : '–');
-    set('position', s ? `${fmt(positionTurns(s), 3)} turns (${fmt(s.turns)} t, ${fmt(s.angle_deg, 2)}°)` : '–');
+    set('position', s ? `${fmt(positionTurns(s), 2)} turns` : '–');
     set('current', s ? `${fmt(s.current_a, 2)} A` : '–');
     set('voltage', s ? `${fmt(s.voltage_v)} V` : '–');
     set('temperature', s ? `${fmt(s.temperature_c)} °C` : '–');
-    set('flags', s ? `${s.calibrated ? 'calibrated' : 'not calibrated'}, STATUS 0x${s.flags.toString(16).padStart(4, '0')}` : '–');
-    set('age', d.receivedAt !== undefined ? `${age(now - d.receivedAt)} ago` : '–');
-    if (controls) controls.show(s);
-    // Plots at most 30 times a second.
-    if (plots.length && now - lastPlot > 33) {
-      lastPlot = now;
-      const hist = d.history;
-      for (const p of plots) p.u.setData([hist.t, hist[p.key]]);
-      store.stats.plotsDrawn = (store.stats.plotsDrawn || 0) + plots.length;
+    set('calibration', s ? (s.calibrated ? 'calibrated' : 'not calibrated') : '–');
+    set('age', offline ? `last seen ${seen}` : d.receivedAt !== undefined ? `${age(now - d.receivedAt)} ago` : '–');
+    set('flags', s ? `0x${s.flags.toString(16).padStart(4, '0')}` : '–');
+    set('fault_code', s ? `${s.fault_code} (${words(s.fault)})` : '–');
+    set('turns', s ? String(s.turns) : '–');
+    set('angle', s ? `${fmt(s.angle_deg, 2)}°` : '–');
+    set('current_counts', s && s.current_counts !== undefined ? String(s.current_counts) : '–');
+    set('seen_at', d.seenAt ? dateTime(d.seenAt) : '–');
+    help.show(s);
+    const dec = d.declared;
+    drift.hidden = !dec || !dec.checked_at;
+    if (dec && dec.checked_at) {
+      const text = dec.drift ? 'settings differ from the declaration' : 'declared settings held';
+      if (drift.textContent !== text) {
+        drift.textContent = text;
+        drift.className = `badge drift ${dec.drift ? 'stalled' : 'ok'}`;
+        drift.dataset.drift = String(!!dec.drift);
+        drift.title = dec.drift ? `${driftWords(dec.differences)} (checked ${dateTime(dec.checked_at)})` : `checked ${dateTime(dec.checked_at)}`;
+      }
     }
+    if (controls) controls.show(s);
+    trends.draw(now);
   }
   const schedule = () => { if (!frame) frame = requestAnimationFrame(draw); };
   cleanups.push(store.subscribe((n) => { if (n === name || n === null) schedule(); }));
@@ -190,25 +204,78 @@ function mount(main, { name }, ctx) {
   return () => cleanups.forEach((f) => f());
 }
 
-/** 24-hour time of day for the plots' axis. */
-function timeOfDay(seconds) {
-  return new Date(seconds * 1000).toLocaleTimeString([], { hour12: false });
+/**
+ * What a fault or a stall means and what to check: the help text of the
+ * drive's active alarm, from drivegate's alarms (written from the maker's
+ * manual), never a copy kept in the page.
+ */
+function faultHelpView(name, el, store) {
+  let shownFor = 'none';
+  let asked = 0;
+  const render = (s, alarm, unavailable) => {
+    const what = s.stalled && s.fault === 'none' ? 'Stalled' : `Fault: ${words(s.fault)}`;
+    const parts = [h('strong', {}, what), '. '];
+    if (alarm && alarm.help) {
+      parts.push(h('span', { class: 'help-label' }, 'What to do: '), h('span', { dataset: { help: alarm.kind || '' } }, alarm.help));
+    } else if (unavailable) {
+      parts.push(`No help text for it from this drivegate (${unavailable}). Remove the cause, then press Fault reset.`);
+    } else {
+      parts.push('Looking up what to do…');
+    }
+    el.replaceChildren(...parts);
+  };
+  const lookUp = (s) => {
+    const ticket = ++asked;
+    render(s, null, null);
+    activeAlarmsOf(name).then((alarms) => {
+      if (ticket !== asked) return;
+      if (alarms === null) { render(s, null, 'its alarms API is not available'); return; }
+      const kind = s.fault !== 'none' ? 'fault' : 'stall';
+      const alarm = alarms.find((a) => a.kind === kind) || alarms.find((a) => a.help);
+      render(s, alarm, alarm ? null : 'no active alarm names it yet');
+    }).catch((e) => { if (ticket === asked) render(s, null, e.message); });
+  };
+  const offAlarm = store.onAlarm ? store.onAlarm((a) => {
+    if (a.drive === name && shownFor !== 'none') {
+      const d = store.drives.get(name);
+      if (d && d.status) lookUp(d.status);
+    }
+  }) : () => {};
+  return {
+    show(s) {
+      const key = s && (s.fault !== 'none' || s.stalled) ? `${s.fault}/${s.stalled}` : 'none';
+      if (key === shownFor) return;
+      shownFor = key;
+      el.hidden = key === 'none';
+      if (key !== 'none') lookUp(s);
+    },
+    dispose: () => offAlarm(),
+  };
 }
 
 function settingsTable(r) {
   const rows = [
     ['Speed setpoint', `${r.setpoints.speed_rpm} rpm`],
     ['Position setpoint', `${fmt(r.setpoints.position_deg, 2)}°`],
-    ['Torque setpoint', `${fmt(r.setpoints.torque_a, 3)} A (${r.setpoints.torque_counts} counts)`],
-    ['Over-current limit', `${fmt(r.protection.limit_a, 2)} A (${r.protection.limit_counts} counts) for ${r.protection.stall_ms} ms`],
-    ['Speed ramp', r.speed_ramp.alpha === 0 ? 'off (alpha 0)'
-      : `alpha ${r.speed_ramp.alpha}: 0 to 1000 rpm in ${fmt(speedRampTime(r.speed_ramp.alpha, 1000, r.gear_ratio), 3)} s`],
-    ['Position ramp', r.position_ramp.alpha === 0 ? 'off (alpha 0)'
-      : `alpha ${r.position_ramp.alpha}: 180° in ${fmt(positionRampTime(r.position_ramp.alpha, 180), 3)} s`],
+    ['Torque setpoint', `${fmt(r.setpoints.torque_a, 3)} A`],
+    ['Over-current limit', `${fmt(r.protection.limit_a, 2)} A for ${r.protection.stall_ms} ms`],
+    ['Speed ramp', r.speed_ramp.alpha === 0 ? 'off: speed changes at once'
+      : `0 to 1000 rpm in ${fmt(speedRampTime(r.speed_ramp.alpha, 1000, r.gear_ratio), 3)} s`],
+    ['Position ramp', r.position_ramp.alpha === 0 ? 'off: moves at once'
+      : `180° in ${fmt(positionRampTime(r.position_ramp.alpha, 180), 3)} s`],
     ['Load inertia', `${r.inertia_ratio} × rotor`],
     ['Controlled by', r.rs485_control ? 'RS-485 (this gateway)' : 'CAN (RS-485 setpoints are ignored)'],
   ];
-  return h('table', { class: 'kv' }, h('tbody', {}, rows.map(([k, v]) => h('tr', {}, h('th', { scope: 'row' }, k), h('td', {}, v)))));
+  // The registers' own numbers, for whoever compares with the manual.
+  const raw = [
+    ['Torque setpoint', `${r.setpoints.torque_counts} counts`],
+    ['Over-current limit', `${r.protection.limit_counts} counts`],
+    ['Speed ramp', `alpha ${r.speed_ramp.alpha}`],
+    ['Position ramp', `alpha ${r.position_ramp.alpha}`],
+  ];
+  const table = (list) => h('table', { class: 'kv' }, h('tbody', {}, list.map(([k, v]) => h('tr', {}, h('th', { scope: 'row' }, k), h('td', {}, v)))));
+  return h('div', {}, table(rows),
+    h('details', { class: 'raw', dataset: { details: 'settings' } }, h('summary', {}, 'Details: raw register values'), table(raw)));
 }
 
 function buildControls(name, d, { store, stream, brakeDrive }) {
@@ -219,7 +286,11 @@ function buildControls(name, d, { store, stream, brakeDrive }) {
   const brake = h('button', { type: 'button', class: 'estop', 'aria-keyshortcuts': 'b' }, `BRAKE ${name.toUpperCase()} `, h('kbd', {}, 'b'));
   brake.addEventListener('click', () => run(null, brakeNote, 'braking…', () => brakeDrive(name),
     () => 'brake confirmed by the drive; its lease (if any) has ended'));
-  section.append(h('div', { class: 'group brake-group' }, brake, brakeNote.el));
+  section.append(h('div', { class: 'group brake-group' }, brake,
+    h('p', { class: 'not-estop', dataset: { note: 'not-estop' } },
+      'This brake is a command sent over the network: it is not a safety-rated emergency stop. ',
+      'The machine\'s hard-wired emergency stop is what protects people.'),
+    brakeNote.el));
 
   // Activation, fault reset.
   const stateNote = new Note();
@@ -271,6 +342,9 @@ function buildControls(name, d, { store, stream, brakeDrive }) {
     h('p', { class: 'hint' }, `Hold a button (or ← / →). The setpoint carries a ${leaseMs} ms lease renewed while held; on release, lost focus, a closed tab or a cut network drivegate stops the motor when the lease runs out.`),
     h('div', { class: 'row' }, rpm.wrap, back, fwd), jogState, jogNote.el));
 
+  const speed = speedSetpointGroup(name, d, stream, store, leaseMs);
+  section.append(speed.group);
+
   // Go to a position.
   const posNote = new Note();
   const deg = numberField('Position (°, −180 to 180)', { value: '0', size: 7, dataset: { field: 'position' } });
@@ -308,5 +382,94 @@ function buildControls(name, d, { store, stream, brakeDrive }) {
       b.setAttribute('aria-pressed', String(!!on));
     }
   };
-  return { section, jog, torqueJog, brake, show };
+  return { section, jog, torqueJog, brake, show, speed };
+}
+
+/**
+ * A speed typed in and kept (speed mode), with the lease chosen: held
+ * while this page is open, or for a number of seconds (see setpoint.js).
+ */
+function speedSetpointGroup(name, d, stream, store, leaseMs) {
+  const note = new Note();
+  const rpm = numberField('Speed (rpm)', { value: '100', size: 6, dataset: { field: 'setpoint-rpm' } });
+  const radio = (value, checked) => h('input', { type: 'radio', name: `lease-${name}`, value, checked, dataset: { lease: value } });
+  const whileOpen = radio('page', true);
+  const forTime = radio('timed', false);
+  const seconds = h('input', { type: 'text', inputmode: 'decimal', size: 4, value: '30', 'aria-label': 'Lease in seconds', dataset: { field: 'lease-s' } });
+  const set = h('button', { type: 'button', class: 'primary', dataset: { action: 'set-speed' } }, 'Set speed');
+  const stop = h('button', { type: 'button', dataset: { action: 'stop-speed' } }, 'Stop');
+  const state = h('span', { class: 'jog-state', role: 'status', dataset: { setpoint: 'idle' } }, 'no setpoint from this field');
+  let countdown = null;
+  const showState = (key, text) => { state.dataset.setpoint = key; state.textContent = text; };
+  const report = ({ state: st, rpm: v, until, why, error, result }) => {
+    clearInterval(countdown);
+    countdown = null;
+    if (error) note.fail(error);
+    const confirmed = result && result.written ? ` (confirmed by the drive: ${result.written.map((w) => `${w.quantity} ${w.value}${w.unit ? ` ${w.unit}` : ''}`).join(', ')})` : '';
+    if (st === 'sending') { note.pending(`sending ${v} rpm…`); showState('sending', 'sending…'); }
+    else if (st === 'held') {
+      note.ok(`${v} rpm${confirmed}`);
+      showState('held', `${v} rpm, held while this page is open: closing or hiding it, or a cut network, stops the motor within ${leaseMs} ms`);
+    } else if (st === 'timed') {
+      note.ok(`${v} rpm${confirmed}`);
+      const tick = () => {
+        const left = Math.max(0, until - Date.now());
+        showState('timed', `${v} rpm until ${dateTime(until)} (${Math.ceil(left / 1000)} s left): drivegate then stops the motor, page open or not`);
+        if (left === 0) { clearInterval(countdown); countdown = null; }
+      };
+      tick();
+      countdown = setInterval(tick, 1000);
+    } else if (st === 'released') showState('released', `released (${why}): drivegate stops the motor when the ${leaseMs} ms lease runs out`);
+    else if (st === 'stopping') { note.pending('stopping…'); showState('stopping', 'stopping…'); }
+    else if (st === 'stopped') { note.ok(`stopped: zero speed${confirmed}; lease given back`); showState('stopped', 'stopped'); }
+    else showState('idle', 'no setpoint from this field');
+  };
+  const setpoint = new SpeedSetpoint(stream, name, report, leaseMs);
+  const send = () => {
+    const v = rpm.value();
+    if (!Number.isFinite(v)) { note.fail(new Error('type a speed in rpm')); return; }
+    if (d.status && d.status.mode !== 'speed') {
+      note.fail(new Error(`a speed setpoint moves the motor in speed mode; the drive is in ${words(d.status.mode)} mode: switch to speed mode first`));
+      return;
+    }
+    const value = Math.round(v);
+    if (whileOpen.checked) {
+      setpoint.hold(value).catch(() => {});
+    } else {
+      const t = parseNumber(seconds.value);
+      if (!Number.isFinite(t) || t <= 0) { note.fail(new Error('type how many seconds the speed is kept')); return; }
+      setpoint.timed(value, t).catch(() => {});
+    }
+  };
+  set.addEventListener('click', send);
+  rpm.input.addEventListener('keydown', (e) => { if (e.key === 'Enter') { e.preventDefault(); send(); } });
+  stop.addEventListener('click', () => setpoint.stop().catch(() => {}));
+  // A lease that ended elsewhere (brake, deactivation, a newer setpoint,
+  // its time) ends what this field shows.
+  // The daemon's lease is the truth: on any lease news of this drive the
+  // page asks whether its own lease is still there (one replaced by this
+  // field's newer setpoint is).
+  const off = store.onEvent((e) => {
+    if (e.drive !== name || e.kind !== 'lease') return;
+    const shown = state.dataset.setpoint;
+    if (!['held', 'timed', 'released'].includes(shown)) return;
+    get(drivePath(name)).then((r) => {
+      const mine = r.lease && r.lease.owner === store.me.who && r.lease.websocket === (shown !== 'timed');
+      if (mine || state.dataset.setpoint !== shown) return;
+      setpoint.ended();
+      clearInterval(countdown);
+      countdown = null;
+      showState('ended', `lease ended: ${e.text}`);
+    }).catch(() => {});
+  });
+  const group = h('div', { class: 'group', dataset: { group: 'setpoint' } }, h('h3', {}, 'Speed setpoint (speed mode)'),
+    h('div', { class: 'row' }, rpm.wrap, set, stop),
+    h('fieldset', { class: 'row lease-choice' }, h('legend', {}, 'Keep it'),
+      h('label', {}, whileOpen, ' while this page is open'),
+      h('label', {}, forTime, ' for ', seconds, ' s')),
+    state, note.el);
+  return {
+    group,
+    dispose: () => { off(); clearInterval(countdown); setpoint.dispose(); },
+  };
 }

@@ -2,7 +2,7 @@
 // and every write (who, what, the drive's answer) since this page was
 // opened, newest first, filterable by drive, kind and text.
 
-import { h, clock } from '../ui.js';
+import { h, timeEl } from '../ui.js';
 
 export const page = {
   id: 'events',
@@ -14,7 +14,7 @@ export const page = {
 
 const KINDS = [
   ['', 'all kinds'], ['fault', 'faults'], ['stall', 'stalls'], ['link', 'online / offline'],
-  ['lease', 'lease ends'], ['write', 'writes'], ['bus', 'bus'], ['state', 'activation and mode'], ['brake', 'brake'],
+  ['alarm', 'alarms'], ['settings', 'settings'], ['lease', 'lease ends'], ['write', 'writes'], ['bus', 'bus'], ['state', 'activation and mode'], ['brake', 'brake'],
 ];
 const SHOWN = 500;
 
@@ -27,7 +27,8 @@ function mount(main, _params, { store }) {
   const tbody = h('tbody');
   main.append(h('section', { class: 'panel' },
     h('h1', {}, 'Events'),
-    h('p', { class: 'hint' }, 'Since this page was opened. Writes come from every client and face (REST, stream, Modbus TCP) and from drivegate itself (lease stops, shutdown).'),
+    h('p', { class: 'hint' }, 'Since this page was opened. Writes come from every client and face (REST, stream, Modbus TCP) and from drivegate itself (lease stops, shutdown). Faults, stalls, drives offline and the other alarms are kept by drivegate across restarts: ',
+      h('a', { href: '#/alarms' }, 'see Alarms'), '.'),
     h('div', { class: 'row filters' }, drive, kind, text, count),
     h('div', { class: 'scroll' }, h('table', { class: 'log' },
       h('thead', {}, h('tr', {}, h('th', { scope: 'col' }, 'Time'), h('th', { scope: 'col' }, 'Kind'), h('th', { scope: 'col' }, 'Drive'),
@@ -38,7 +39,7 @@ function mount(main, _params, { store }) {
     && (!kind.value || e.kind === kind.value)
     && (!text.value || `${e.who || ''} ${e.text} ${e.drive || ''}`.toLowerCase().includes(text.value.toLowerCase()));
   const row = (e) => h('tr', { class: e.severity, dataset: { kind: e.kind } },
-    h('td', {}, h('time', { datetime: new Date(e.at).toISOString() }, clock(e.at))),
+    h('td', {}, timeEl(e.at)),
     h('td', {}, e.kind), h('td', {}, e.drive || e.bus || '–'), h('td', {}, e.who || '–'), h('td', {}, e.text));
   let shown = 0;
   const render = () => {

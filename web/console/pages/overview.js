@@ -5,7 +5,7 @@
 // drawing every frame), so a hundred drives at the bus's full rate cost the
 // browser little.
 
-import { h, fmt, age, words } from '../ui.js';
+import { h, fmt, age, ago, words } from '../ui.js';
 import { positionTurns } from '../store.js';
 
 export const page = {
@@ -90,7 +90,13 @@ function mount(main, _params, { store }) {
     const c = condition(d, stale);
     if (r.tr.className !== c.cls) r.tr.className = c.cls;
     set(r, 'where', `${d.bus} / ${d.unit}`);
-    set(r, 'state', c.text + (s && s.active && c.cls !== 'ok' ? ', active' : ''));
+    // An offline drive's values are its last ones, not live: the row is
+    // greyed (CSS) and its state says how old they are.
+    const offline = d.link === 'offline';
+    if (r.tr.dataset.link !== (d.link || 'unknown')) r.tr.dataset.link = d.link || 'unknown';
+    set(r, 'state', offline
+      ? `offline, last seen ${d.receivedAt !== undefined ? ago(now - d.receivedAt) : 'never'}`
+      : c.text + (s && s.active && c.cls !== 'ok' ? ', active' : ''));
     set(r, 'mode', s ? words(s.mode) : '–');
     set(r, 'speed', s ? fmt(s.speed_rpm) : '–');
     set(r, 'position', s ? `${fmt(Math.trunc(positionTurns(s)))} t ${fmt(s.angle_deg, 1)}°` : '–');
@@ -150,7 +156,10 @@ function mount(main, _params, { store }) {
     if (agesDue) {
       for (const name of store.order) {
         const d = store.drives.get(name);
-        if (d && d.receivedAt !== undefined) set(row(name), 'age', age(now - d.receivedAt));
+        if (d && d.receivedAt !== undefined) {
+          set(row(name), 'age', age(now - d.receivedAt));
+          if (d.link === 'offline') drawDrive(d, now, store.stream.state !== 'open');
+        }
       }
       agesDue = false;
     }

@@ -1,0 +1,160 @@
+//! The drive page's trends zoomed from the last 30 s (live, from the
+//! stream) out to the hour, read from the daemon's history: the plots
+//! span the hour, hold exactly the points the history API answers for
+//! that range, and show the speed the drive ran at; back at 30 s they are
+//! live again.
+
+use serde_json::{Value, json};
+
+use crate::browser::{LONG, assert_clean, open, picture, rest, rest_ok};
+use crate::harness::cdp::Browser;
+use crate::harness::{ADMIN, OPERATOR, config, speed, until};
+use crate::support::TestDaemon;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_drive_page_zooms_from_30_seconds_to_the_hour_from_the_history() {
+    let daemon = TestDaemon::start(&config(true, "")).await;
+    let a = Some(ADMIN);
+    rest_ok(
+        &daemon,
+        a,
+        "POST",
+        "/api/v1/drives/conveyor/commands/activate",
+        None,
+    )
+    .await;
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/conveyor/mode",
+        Some(json!({"mode": "speed"})),
+    )
+    .await;
+    rest_ok(
+        &daemon,
+        a,
+        "PUT",
+        "/api/v1/drives/conveyor/setpoint",
+        Some(json!({"speed_rpm": 90})),
+    )
+    .await;
+    until(LONG, "the conveyor at speed", || {
+        speed(&daemon.plant, 1).is_some_and(|s| s > 80)
+    })
+    .await;
+    let browser = Browser::start(&[]).await;
+    let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(OPERATOR)).await;
+    page.wait_for(
+        "document.querySelector('.plots').dataset.source === 'live' \
+         && Number(document.querySelector('.plots').dataset.points) > 5",
+        LONG,
+        "the live plots",
+    )
+    .await;
+    assert_eq!(
+        page.eval("document.querySelector('[data-zoom=\"30\"]').getAttribute('aria-pressed')")
+            .await,
+        json!("true")
+    );
+
+    page.click("[data-zoom=\"3600\"]").await;
+    let read = page
+        .wait_for(
+            "(() => { const b = document.querySelector('.plots'); \
+             return b.dataset.source === 'history' && b.dataset.points \
+             ? [Number(b.dataset.from), Number(b.dataset.until), Number(b.dataset.points)] : null; })()",
+            LONG,
+            "the hour from the history",
+        )
+        .await;
+    let (from, until_ms, points) = (
+        read[0].as_i64().unwrap(),
+        read[1].as_i64().unwrap(),
+        read[2].as_u64().unwrap(),
+    );
+    assert_eq!(until_ms - from, 3_600_000);
+    assert!(points > 0);
+    let title = page
+        .eval("document.getElementById('plots-h').textContent")
+        .await;
+    assert_eq!(title, json!("Last 1 h, from drivegate's history"));
+    // The x axis spans the hour, whatever the history holds so far.
+    let span = page
+        .eval("(() => { const x = document.querySelector('[data-plot=speed]').plot.scales.x; return x.max - x.min; })()")
+        .await;
+    assert_eq!(span.as_f64().unwrap().round(), 3600.0);
+
+    page.eval("document.getElementById('plots-h').scrollIntoView()")
+        .await;
+    picture(&page, "console-trends-hour.png", false).await;
+
+    // The same range asked of the API: the same points, plotted as mean
+    // with its minimum and maximum.
+    let (status, history) = rest(
+        &daemon,
+        Some(OPERATOR),
+        "GET",
+        &format!(
+            "/api/v1/drives/conveyor/history?fields=speed_rpm&since={from}&until={until_ms}&max_points=1500"
+        ),
+        None,
+    )
+    .await;
+    assert_eq!(status, 200, "{history}");
+    let plotted = page
+        .eval("(() => { const p = document.querySelector('[data-plot=speed]').plot; return [p.data[0], p.data[1], p.data[2], p.data[3]]; })()")
+        .await;
+    let times: Vec<i64> = history["t_ms"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_i64().unwrap())
+        .collect();
+    let plotted_times: Vec<i64> = plotted[0]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| (t.as_f64().unwrap() * 1000.0).round() as i64)
+        .collect();
+    assert_eq!(plotted_times, times, "the page plots the history's points");
+    let column = &history["fields"]["speed_rpm"];
+    let numbers = |v: &Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    for (i, key) in [(1, "mean"), (2, "min"), (3, "max")] {
+        assert_eq!(numbers(&plotted[i]), numbers(&column[key]), "{key}");
+    }
+    let top = column["max"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(Value::as_f64)
+        .fold(f64::MIN, f64::max);
+    assert!(top > 80.0, "the speed in the hour's plot: {top}");
+
+    // Back to 30 s: live again.
+    page.click("[data-zoom=\"30\"]").await;
+    page.wait_for(
+        "document.querySelector('.plots').dataset.source === 'live' \
+         && Number(document.querySelector('.plots').dataset.points) > 5",
+        LONG,
+        "the live plots again",
+    )
+    .await;
+    rest_ok(
+        &daemon,
+        a,
+        "POST",
+        "/api/v1/drives/conveyor/commands/brake",
+        None,
+    )
+    .await;
+    assert_clean(&page, &daemon.url(""));
+    browser.stop().await;
+    daemon.stop().await;
+}
