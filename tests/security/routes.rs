@@ -127,6 +127,17 @@ fn bodies() -> BTreeMap<&'static str, (Option<Value>, Option<&'static str>)> {
             "post_replacement",
             (Some(json!({"event": "started"})), Some("replacement")),
         ),
+        // The configuration file is commissioning work; not on the stream.
+        ("post_reload", (None, None)),
+        (
+            "post_drives",
+            (
+                Some(
+                    json!({"bus": "sim", "drives": [{"unit": 5, "name": "press"}], "dry_run": true}),
+                ),
+                None,
+            ),
+        ),
         // An acknowledgement is the operator's (alarm 1 may not exist yet:
         // a right role then meets 404); on the stream the id is the body's.
         ("post_ack", (None, Some("alarm-ack"))),
@@ -441,10 +452,17 @@ async fn the_stream_needs_a_token_and_its_commands_the_same_roles() {
         // Refusals first (nothing may be written), then the right roles.
         for pass in [false, true] {
             for w in &writes {
-                let message = w
-                    .stream
-                    .clone()
-                    .unwrap_or_else(|| panic!("{} {} has no stream command", w.method, w.target));
+                // The configuration file's routes are the only writes the
+                // stream does not carry: they edit a file, not a drive.
+                let Some(message) = w.stream.clone() else {
+                    assert!(
+                        w.target.starts_with("/api/v1/config/"),
+                        "{} {} has no stream command",
+                        w.method,
+                        w.target
+                    );
+                    continue;
+                };
                 for (role, ws) in &mut streams {
                     if (*role >= w.role) != pass {
                         continue;
