@@ -135,8 +135,11 @@ pub struct AlarmList {
 pub async fn list_alarms(
     State(state): State<ApiState>,
     _caller: Caller,
-    Params(query): Params<AlarmQuery>,
+    Params(mut query): Params<AlarmQuery>,
 ) -> Result<Json<AlarmList>, Problem> {
+    // An empty filter (`?drive=`, as a form sends it) is no filter.
+    query.drive = query.drive.filter(|d| !d.is_empty());
+    query.since = query.since.filter(|t| !t.is_empty());
     let since = match &query.since {
         None => None,
         Some(text) => Some(

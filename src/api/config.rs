@@ -114,6 +114,7 @@ pub fn render(caller: &Caller, result: ReloadResult) -> Result<Json<ReloadReply>
 pub struct DriveToAdd {
     /// Its unit address, 1 to 255.
     #[schema(minimum = 1, maximum = 255)]
+    #[serde(deserialize_with = "super::integers::integer")]
     pub unit: i64,
     /// Its name, unique over all buses: 1 to 64 letters, digits, `-`,
     /// `_` or `.`.
@@ -166,6 +167,7 @@ pub struct AddDrivesReply {
     responses(
         (status = 200, description = "What was (or would be) written, and the reload", body = AddDrivesReply),
         ReloadProblems,
+        (status = 415, description = "`unsupported-media-type`: send `Content-Type: application/json`", body = ProblemDetails, content_type = "application/problem+json"),
     )
 )]
 pub async fn post_drives(

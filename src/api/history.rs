@@ -144,9 +144,16 @@ pub async fn get_history(
     State(state): State<ApiState>,
     _caller: Caller,
     PathParams(key): PathParams<String>,
-    Params(query): Params<HistoryQuery>,
+    Params(mut query): Params<HistoryQuery>,
 ) -> Result<Json<HistoryReply>, Problem> {
     let target = state.target(&key)?;
+    // An empty parameter (`?since=`, as a form sends it) is one not given.
+    let given = |p: &Option<String>| p.clone().filter(|t| !t.is_empty());
+    (query.fields, query.since, query.until) = (
+        given(&query.fields),
+        given(&query.since),
+        given(&query.until),
+    );
     let fields = fields_param(query.fields.as_deref())?;
     let now = unix_ms(SystemTime::now());
     let settings = state.history.settings();

@@ -481,10 +481,12 @@ name = "b1"
                 "# bus = \"line1\"\n# max_age_ms",
                 "bus = \"line1\"\nmax_age_ms",
             )
-            .replace("# comm_loss_ms = 500", "comm_loss_ms = 500")
-            .replace(
+            // The first of each: the [mqtt] section shows these keys too.
+            .replacen("# comm_loss_ms = 500", "comm_loss_ms = 500", 1)
+            .replacen(
                 "# comm_loss_action = \"zero-speed\"",
                 "comm_loss_action = \"zero-speed\"",
+                1,
             );
         let c = Config::parse(&text, "drivegate.toml").unwrap();
         let tcp = &c.modbus_tcp;
