@@ -37,6 +37,10 @@ name = "slow"
 port = "sim"
 baud = {baud}
 response_timeout_ms = 120
+# A fixed guard keeps the 120 ms timeout for every read (nothing learned):
+# this test is about long replies' framing, and must not see a retry that
+# a starved simulator causes under a learned timeout on a loaded machine.
+guard_ms = 150
 retries = 1
 poll_interval_ms = 500
 [bus.sim]

@@ -163,8 +163,10 @@ async fn a_late_reply_answers_the_retry_of_its_request_and_nothing_shifts() {
     assert!(m.held_until(101, &other, now).is_none(), "another unit");
     // The late reply raised the timeout.
     assert!(m.reply_timeout(100) > learned, "{:?}", m.reply_timeout(100));
+    // The retry's own reply (values + 1) was discarded, by this
+    // transaction's flush or the last one's guard, whichever the machine's
+    // timing gave: nothing shifts, this read gets its own (values + 2).
     let r = m.transact(100, &read(7), None).await.unwrap();
-    assert!(r.stray_bytes >= 19, "{}", r.stray_bytes);
     assert_eq!(
         (r.attempts, &r.reply.unwrap()[2..4]),
         (1, &[0x00, 0x02][..])
