@@ -163,13 +163,18 @@ async fn a_late_reply_answers_the_retry_of_its_request_and_nothing_shifts() {
     assert!(m.held_until(101, &other, now).is_none(), "another unit");
     // The late reply raised the timeout.
     assert!(m.reply_timeout(100) > learned, "{:?}", m.reply_timeout(100));
-    // The retry's own reply (values + 1) was discarded, by this
-    // transaction's flush or the last one's guard, whichever the machine's
-    // timing gave: nothing shifts, this read gets its own (values + 2).
+    // The same read may go at once (above): the retry's own reply (values
+    // + 1) answers an identical request, so when a busy machine delivers it
+    // after the flush it is this read's answer, a few milliseconds old; else
+    // it was discarded and this read gets its own (values + 2). Either way
+    // in one attempt, and never a reply to another request.
     let r = m.transact(100, &read(7), None).await.unwrap();
-    assert_eq!(
-        (r.attempts, &r.reply.unwrap()[2..4]),
-        (1, &[0x00, 0x02][..])
+    let reply = r.reply.unwrap();
+    assert_eq!(r.attempts, 1);
+    assert!(
+        matches!(reply[2..4], [0x00, 0x01 | 0x02]),
+        "{:02x?}",
+        &reply[2..4]
     );
 }
 
