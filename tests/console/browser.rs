@@ -113,6 +113,22 @@ pub(crate) async fn rest_ok(
     panic!("{method} {path}: {} {:#}", last.0, last.1);
 }
 
+/// Activates `drive` and puts it in speed mode over REST, as an admin.
+pub(crate) async fn in_speed_mode(daemon: &TestDaemon, drive: &str) {
+    let a = Some(ADMIN);
+    let activate = format!("/api/v1/drives/{drive}/commands/activate");
+    rest_ok(daemon, a, "POST", &activate, None).await;
+    let mode = Some(json!({"mode": "speed"}));
+    rest_ok(
+        daemon,
+        a,
+        "PUT",
+        &format!("/api/v1/drives/{drive}/mode"),
+        mode,
+    )
+    .await;
+}
+
 pub(crate) async fn rest(
     daemon: &TestDaemon,
     token: Option<&str>,

@@ -91,22 +91,7 @@ async fn the_scope_page_arms_on_a_level_fills_plots_exports_and_shows_a_refusal(
 
     // A speed step from the API (another client) makes it trigger.
     let a = Some(ADMIN);
-    rest_ok(
-        &daemon,
-        a,
-        "POST",
-        "/api/v1/drives/conveyor/commands/activate",
-        None,
-    )
-    .await;
-    rest_ok(
-        &daemon,
-        a,
-        "PUT",
-        "/api/v1/drives/conveyor/mode",
-        Some(json!({"mode": "speed"})),
-    )
-    .await;
+    crate::browser::in_speed_mode(&daemon, "conveyor").await;
     rest_ok(
         &daemon,
         a,

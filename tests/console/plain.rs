@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use serde_json::json;
 
-use crate::browser::{LONG, assert_clean, open, picture, rest, rest_ok, text};
+use crate::browser::{LONG, assert_clean, open, picture, rest, text};
 use crate::harness::cdp::{Browser, Page};
 use crate::harness::{ADMIN, JOG_LEASE_MS, OPERATOR, Watcher, config, speed, until};
 use crate::support::TestDaemon;
@@ -155,26 +155,6 @@ async fn an_offline_drive_is_greyed_with_its_age_and_raw_values_wait_in_closed_d
     daemon.stop().await;
 }
 
-/// Activates the conveyor and puts it in speed mode over REST.
-async fn conveyor_in_speed_mode(daemon: &TestDaemon) {
-    rest_ok(
-        daemon,
-        Some(ADMIN),
-        "POST",
-        "/api/v1/drives/conveyor/commands/activate",
-        None,
-    )
-    .await;
-    rest_ok(
-        daemon,
-        Some(ADMIN),
-        "PUT",
-        "/api/v1/drives/conveyor/mode",
-        Some(json!({"mode": "speed"})),
-    )
-    .await;
-}
-
 async fn setpoint_state(page: &Page, state: &str, what: &str) -> String {
     page.wait_for(
         &format!(
@@ -194,7 +174,7 @@ async fn setpoint_state(page: &Page, state: &str, what: &str) -> String {
 async fn the_setpoint_field_sets_a_speed_held_while_the_page_is_open_or_for_a_time() {
     let daemon = TestDaemon::start(&config(true, "")).await;
     let watcher = Watcher::start(daemon.http, Some(ADMIN)).await;
-    conveyor_in_speed_mode(&daemon).await;
+    crate::browser::in_speed_mode(&daemon, "conveyor").await;
     let browser = Browser::start(&[]).await;
     let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(OPERATOR)).await;
     page.wait_for(

@@ -15,22 +15,7 @@ use crate::support::TestDaemon;
 async fn the_drive_page_zooms_from_30_seconds_to_the_hour_from_the_history() {
     let daemon = TestDaemon::start(&config(true, "")).await;
     let a = Some(ADMIN);
-    rest_ok(
-        &daemon,
-        a,
-        "POST",
-        "/api/v1/drives/conveyor/commands/activate",
-        None,
-    )
-    .await;
-    rest_ok(
-        &daemon,
-        a,
-        "PUT",
-        "/api/v1/drives/conveyor/mode",
-        Some(json!({"mode": "speed"})),
-    )
-    .await;
+    crate::browser::in_speed_mode(&daemon, "conveyor").await;
     rest_ok(
         &daemon,
         a,
