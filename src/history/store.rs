@@ -336,7 +336,15 @@ impl DriveHistory {
         max_points: usize,
     ) -> Vec<Point> {
         let since = since_ms.max(now_ms - self.limits.window_ms());
-        let full_from = self.samples.items.front().map_or(i64::MAX, |s| s.t_ms);
+        // Buckets end and samples begin at the oldest sample, or, once the
+        // ring has let older samples go, at the first bucket boundary after
+        // it: that bucket holds the reads the ring let go, so every read is
+        // counted once, in its bucket or as a sample.
+        let full_from = match self.samples.items.front() {
+            None => i64::MAX,
+            Some(s) if self.samples.items.len() < self.samples.cap => s.t_ms,
+            Some(s) => (s.t_ms + BUCKET_MS - 1).div_euclid(BUCKET_MS) * BUCKET_MS,
+        };
         let mut points: Vec<Point> = self
             .buckets
             .items
@@ -350,7 +358,7 @@ impl DriveHistory {
             self.samples
                 .items
                 .iter()
-                .filter(|s| s.t_ms >= since && s.t_ms <= until_ms)
+                .filter(|s| s.t_ms >= since.max(full_from) && s.t_ms <= until_ms)
                 .map(Point::of_sample),
         );
         merge_to(points, max_points)
@@ -492,6 +500,32 @@ mod tests {
         assert!((merged[0].mean[s] - 649.5).abs() < 0.6);
         // Outside what is kept: nothing.
         assert!(h.query(0, start - 1, now, 10).is_empty());
+    }
+
+    #[test]
+    fn every_read_is_counted_once_as_the_full_rate_ring_moves_on() {
+        // 1.5 s at full rate: the ring's oldest sample is mostly inside a
+        // bucket, whose other reads the ring has let go.
+        let mut h = DriveHistory::new(Limits {
+            full_rate_samples: 15,
+            buckets: 600,
+        });
+        let start = 1_000_050;
+        let mut counted = 0;
+        for i in 0..80 {
+            let now = start + i * 100;
+            h.push(now, status(i as i16, 40, 0));
+            let points = h.query(i64::MIN, i64::MAX, now, usize::MAX);
+            let n: u32 = points.iter().map(|p| p.n).sum();
+            assert_eq!(i64::from(n), i + 1, "after read {i}: {points:?}");
+            assert!(
+                points
+                    .windows(2)
+                    .all(|w| w[0].t_ms + w[0].span_ms <= w[1].t_ms)
+            );
+            counted = n;
+        }
+        assert_eq!(counted, 80);
     }
 
     #[test]
