@@ -9,6 +9,7 @@
 
 pub mod commands;
 pub mod integers;
+pub mod messages;
 pub mod problem;
 pub mod status;
 pub mod target;
