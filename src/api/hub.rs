@@ -21,7 +21,6 @@ use super::document::{DeclaredState, SettingsDiff};
 use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
 use crate::bus::BusEvent;
-use crate::control::alarms::AlarmNews;
 use crate::control::{Control, ControlEvent, Published, SessionId};
 use crate::ops::messages::DriveMessage;
 use crate::plant::Plant;
@@ -393,13 +392,8 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
         // Its stop follows as lease news; the alarm it raises as an alarm.
         ControlEvent::CommLoss { .. } => return None,
         ControlEvent::Alarm(news) => {
-            let alarm = AlarmView::from(news.alarm());
-            let message = match news {
-                AlarmNews::Raised(_) => ServerMessage::AlarmRaised { alarm },
-                AlarmNews::Cleared(_) => ServerMessage::AlarmCleared { alarm },
-                AlarmNews::Acknowledged(_) => ServerMessage::AlarmAcknowledged { alarm },
-            };
-            return Some(message.to_text());
+            let (_, message) = crate::ops::messages::of_alarm(news);
+            return Some(ServerMessage::from(message).to_text());
         }
         ControlEvent::Write(w) => {
             let message = ServerMessage::Write {
@@ -494,6 +488,9 @@ impl From<DriveMessage> for ServerMessage {
                 owner,
                 reason,
             },
+            DriveMessage::AlarmRaised { alarm } => ServerMessage::AlarmRaised { alarm },
+            DriveMessage::AlarmCleared { alarm } => ServerMessage::AlarmCleared { alarm },
+            DriveMessage::AlarmAcknowledged { alarm } => ServerMessage::AlarmAcknowledged { alarm },
             DriveMessage::Reply {
                 id,
                 ok,

@@ -1,6 +1,6 @@
 //! The JSON messages about one drive that a face sends beside its
-//! replies: the drive answering again or not, and the news of the
-//! motor-safety lease on it, in the shape the WebSocket stream gives them
+//! replies: the drive answering again or not, the news of the
+//! motor-safety lease on it and its alarms, in the shape the WebSocket stream gives them
 //! (`{"type": "online", ...}`, `{"type": "lease-expired", ...}`), and the
 //! reply to a command message. The MQTT face publishes them on a drive's
 //! `event` and `reply` topics; the stream's own `ServerMessage` carries
@@ -9,8 +9,10 @@
 use serde::Serialize;
 use serde_json::Value;
 
+use super::alarms::AlarmView;
 use super::problem::Problem;
 use crate::control::LeaseEvent;
+use crate::control::alarms::AlarmNews;
 use crate::plant::Plant;
 
 /// A message about one drive.
@@ -96,6 +98,22 @@ pub enum DriveMessage {
         owner: String,
         /// Why it ended.
         reason: String,
+    },
+    /// An alarm was raised (or an event came again: same `id`, `count`
+    /// up).
+    AlarmRaised {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
+    },
+    /// An alarm's condition ended.
+    AlarmCleared {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
+    },
+    /// An operator acknowledged an alarm.
+    AlarmAcknowledged {
+        /// The alarm, as `GET /api/v1/alarms` shows it.
+        alarm: AlarmView,
     },
     /// The answer to a command message.
     Reply {
@@ -199,4 +217,17 @@ pub fn of_lease(plant: &Plant, lease: &LeaseEvent) -> Option<(String, DriveMessa
         },
     };
     Some((name, message))
+}
+
+/// Alarm news as a message: the drive it concerns (`None`: bus-wide) and
+/// the message.
+pub fn of_alarm(news: &AlarmNews) -> (Option<String>, DriveMessage) {
+    let alarm = AlarmView::from(news.alarm());
+    let drive = alarm.drive.clone();
+    let message = match news {
+        AlarmNews::Raised(_) => DriveMessage::AlarmRaised { alarm },
+        AlarmNews::Cleared(_) => DriveMessage::AlarmCleared { alarm },
+        AlarmNews::Acknowledged(_) => DriveMessage::AlarmAcknowledged { alarm },
+    };
+    (drive, message)
 }

@@ -95,12 +95,16 @@ async fn retained_state_and_status_and_a_command_that_turns_a_drive() {
         // from the broker (retained), in the API's status JSON.
         let status_topic = topic("conveyor/status");
         let mut sub = subscribed(&broker, &[&status_topic, &topic("conveyor/reply")]).await;
-        let status = sub
-            .next(WAIT, "the conveyor's retained status", |m| {
-                m.topic == status_topic && m.retained
-            })
+        sub.next(WAIT, "the conveyor's status", |m| m.topic == status_topic)
+            .await;
+        // Published once at least: a client that comes now gets it from
+        // the broker at once, retained.
+        let mut late = Sub::start(broker.port, &[&status_topic]);
+        let status = late
+            .next(WAIT, "the conveyor's retained status", |m| m.retained)
             .await
             .json();
+        late.stop().await;
         assert_eq!(
             (&status["drive"], &status["bus"], &status["unit"]),
             (&json!("conveyor"), &json!("sim"), &json!(1))
@@ -337,6 +341,61 @@ async fn kill_9_leaves_the_state_offline() {
             .await;
         assert_eq!((m.payload.as_str(), m.retained), ("offline", true));
         late.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn events_tell_of_a_lease_ending_and_of_a_drive_offline_and_back() {
+    bounded(Duration::from_secs(90), async {
+        let broker = Mosquitto::start();
+        let d = daemon(&broker, "commands = \"operator\"").await;
+        let event_topic = topic("conveyor/event");
+        let mut sub = subscribed(&broker, &[&event_topic, &topic("conveyor/reply")]).await;
+        command(&broker, json!(1), "activate", json!({})).await;
+        reply(&mut sub, json!(1)).await;
+        command(&broker, json!(2), "mode", json!({"mode": "speed"})).await;
+        reply(&mut sub, json!(2)).await;
+        // A setpoint with a lease of its own that nobody renews: its end
+        // and its stop are news on the drive's event topic.
+        command(
+            &broker,
+            json!(3),
+            "setpoint",
+            json!({"speed_rpm": 100, "lease_ms": 300}),
+        )
+        .await;
+        assert_eq!(reply(&mut sub, json!(3)).await["ok"], true);
+        let m = sub
+            .next(WAIT, "the lease's end", |m| {
+                m.topic == event_topic && m.json()["type"] == "lease-expired"
+            })
+            .await;
+        let v = m.json();
+        assert_eq!(
+            (&v["drive"], &v["action"]),
+            (&json!("conveyor"), &json!("zero-speed")),
+            "{v}"
+        );
+        // The drive stops answering: offline, with its alarm; then back.
+        d.sim().set_silent(1, true);
+        sub.next(WAIT, "the conveyor offline", |m| {
+            m.topic == event_topic && m.json()["type"] == "offline"
+        })
+        .await;
+        let m = sub
+            .next(WAIT, "the offline alarm", |m| {
+                m.topic == event_topic && m.json()["type"] == "alarm-raised"
+            })
+            .await;
+        assert_eq!(m.json()["alarm"]["kind"], "offline", "{}", m.payload);
+        d.sim().set_silent(1, false);
+        sub.next(WAIT, "the conveyor online again", |m| {
+            m.topic == event_topic && m.json()["type"] == "online"
+        })
+        .await;
+        sub.stop().await;
+        d.stop().await;
     })
     .await;
 }

@@ -224,11 +224,12 @@ impl Sub {
             let line = tokio::time::timeout_at(deadline, self.lines.next_line())
                 .await
                 .unwrap_or_else(|_| {
+                    let last = &self.seen[self.seen.len().saturating_sub(5)..];
                     panic!(
-                        "no {what} within {limit:?}; seen: {:?}",
-                        self.seen
-                            .iter()
-                            .map(|m| (&m.topic, &m.payload))
+                        "no {what} within {limit:?}; {} messages seen, the last: {:?}",
+                        self.seen.len(),
+                        last.iter()
+                            .map(|m| (&m.topic, m.retained, &m.payload))
                             .collect::<Vec<_>>()
                     )
                 })

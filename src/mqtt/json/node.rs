@@ -7,8 +7,9 @@
 //! - **Status.** Each polled status of a drive is published, retained, on
 //!   `<prefix>/<drive>/status` as the API's status JSON; at each connection
 //!   every drive's latest status is published again.
-//! - **Events.** A drive answering again or not, and the news of the lease
-//!   on it, on `<prefix>/<drive>/event`, as the stream sends them.
+//! - **Events.** A drive answering again or not, the news of the lease on
+//!   it and its alarms, on `<prefix>/<drive>/event`, as the stream sends
+//!   them (a bus-wide alarm on `<prefix>/event`).
 //! - **Commands** on `<prefix>/<drive>/command` are the stream's command
 //!   messages; each runs through the control core (face `mqtt`, the role of
 //!   `[mqtt] commands`) in a task of its own and its reply (the result, or
@@ -377,7 +378,7 @@ impl JsonNode {
                     bus: bus.to_string(),
                     unit,
                 };
-                self.publish_event(&c.client, &target.drive.name, &message);
+                self.publish_event(&c.client, Some(&target.drive.name), &message);
             }
             BusEvent::Offline { bus, unit, reason } => {
                 let Some(target) = self.drive_at(&bus, unit) else {
@@ -389,7 +390,7 @@ impl JsonNode {
                     unit,
                     reason,
                 };
-                self.publish_event(&c.client, &target.drive.name, &message);
+                self.publish_event(&c.client, Some(&target.drive.name), &message);
             }
             BusEvent::BusUp { .. } | BusEvent::BusDown { .. } => {}
         }
@@ -399,10 +400,17 @@ impl JsonNode {
         let Some(c) = c.filter(|c| c.accepted) else {
             return;
         };
-        if let ControlEvent::Lease(lease) = published.event.as_ref()
-            && let Some((drive, message)) = messages::of_lease(self.control.plant(), lease)
-        {
-            self.publish_event(&c.client, &drive, &message);
+        match published.event.as_ref() {
+            ControlEvent::Lease(lease) => {
+                if let Some((drive, message)) = messages::of_lease(self.control.plant(), lease) {
+                    self.publish_event(&c.client, Some(&drive), &message);
+                }
+            }
+            ControlEvent::Alarm(news) => {
+                let (drive, message) = messages::of_alarm(news);
+                self.publish_event(&c.client, drive.as_deref(), &message);
+            }
+            _ => {}
         }
     }
 
@@ -424,13 +432,12 @@ impl JsonNode {
         }
     }
 
-    fn publish_event(&self, client: &AsyncClient, drive: &str, message: &DriveMessage) {
-        match client.try_publish(
-            self.topics.event(drive),
-            QoS::AtLeastOnce,
-            false,
-            message.to_json(),
-        ) {
+    /// `message` on `drive`'s event topic, or the gateway's (`None`: a
+    /// bus-wide alarm).
+    fn publish_event(&self, client: &AsyncClient, drive: Option<&str>, message: &DriveMessage) {
+        let topic = drive.map_or_else(|| self.topics.gateway_event(), |d| self.topics.event(d));
+        let drive = drive.unwrap_or("the gateway");
+        match client.try_publish(topic, QoS::AtLeastOnce, false, message.to_json()) {
             Ok(()) => self.metrics.mqtt().sent("event"),
             Err(e) => tracing::warn!("MQTT: an event of {drive} was not sent: {e}"),
         }

@@ -42,6 +42,11 @@ impl JsonTopics {
         format!("{}/{drive}/event", self.prefix)
     }
 
+    /// The gateway's own events: bus-wide alarms.
+    pub fn gateway_event(&self) -> String {
+        format!("{}/event", self.prefix)
+    }
+
     /// Replies to commands without a response topic.
     pub fn reply(&self, drive: &str) -> String {
         format!("{}/{drive}/reply", self.prefix)
@@ -75,6 +80,7 @@ mod tests {
         assert_eq!(t.event("conveyor"), "drivegate/gw1/conveyor/event");
         assert_eq!(t.reply("conveyor"), "drivegate/gw1/conveyor/reply");
         assert_eq!(t.command_filter(), "drivegate/gw1/+/command");
+        assert_eq!(t.gateway_event(), "drivegate/gw1/event");
     }
 
     #[test]
