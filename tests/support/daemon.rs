@@ -128,6 +128,7 @@ impl TestDaemon {
             Arc::new(daemon.config.clone()),
             daemon.plant.clone(),
             daemon.control().clone(),
+            daemon.faces.as_ref().expect("running").running(),
             daemon.shutdown.clone(),
         );
         daemon.file = Some(file);
