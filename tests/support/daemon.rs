@@ -145,6 +145,16 @@ impl TestDaemon {
         std::fs::write(self.config_path(), toml).expect("the configuration written");
     }
 
+    /// Where the listeners are now (a reload may have moved them).
+    pub async fn faces_addresses(&self) -> drivegate::faces::Addresses {
+        self.faces
+            .as_ref()
+            .expect("running")
+            .running()
+            .addresses()
+            .await
+    }
+
     /// The control core every face writes through.
     pub fn control(&self) -> &drivegate::control::Control {
         &self.faces.as_ref().expect("running").control
