@@ -118,12 +118,13 @@ struct Started {
 }
 
 impl Started {
-    fn slot(&mut self, face: Face) -> &mut Option<Listening> {
+    /// The listener of `face`; `None` for the MQTT face, a client.
+    fn slot(&mut self, face: Face) -> Option<&mut Option<Listening>> {
         match face {
-            Face::Http => &mut self.http,
-            Face::ModbusTcp => &mut self.modbus_tcp,
-            // Not a listener: never asked for.
-            Face::ModbusTls | Face::Mqtt => &mut self.modbus_tls,
+            Face::Http => Some(&mut self.http),
+            Face::ModbusTcp => Some(&mut self.modbus_tcp),
+            Face::ModbusTls => Some(&mut self.modbus_tls),
+            Face::Mqtt => None,
         }
     }
 }
@@ -238,7 +239,10 @@ pub async fn start(
     for face in [Face::Http, Face::ModbusTls] {
         if let Some(address) = bind_address(face, &config) {
             let listener = bind(face, address).await?;
-            *started.slot(face) = Some(running.serve(face, &config, address, listener).await?);
+            let serving = running.serve(face, &config, address, listener).await?;
+            if let Some(slot) = started.slot(face) {
+                *slot = Some(serving);
+            }
         }
     }
     running.start_mqtt(&config, &mut started)?;
@@ -354,7 +358,9 @@ impl Running {
         followed: &mut Followed,
     ) {
         let wanted = bind_address(face, config);
-        let slot = started.slot(face);
+        let Some(slot) = started.slot(face) else {
+            return;
+        };
         if slot
             .as_ref()
             .is_some_and(|old| !face.changed(&old.config, config))
@@ -431,6 +437,7 @@ impl Running {
         // two cannot be held at once.
         let overlapping = overlaps(old.bind, address);
         if overlapping {
+            old.stop.cancel();
             let _ = socket2::SockRef::from(&old.socket).shutdown(std::net::Shutdown::Read);
         }
         let moved = match bind(face, address).await {
