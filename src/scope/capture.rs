@@ -94,16 +94,23 @@ pub struct Capture {
     post_capacity: usize,
     /// Post-trigger samples per captured drive (in `spec.units` order).
     per_unit: Vec<u32>,
+    /// When each captured drive last gave a sample after the trigger (the
+    /// trigger's time before its first).
+    last_at: Vec<Option<Instant>>,
     detector: Detector,
     fired: Option<Fired>,
-    /// After this, a samples-length capture ends as incomplete.
+    /// After this, a capture ends as incomplete once a drive it still
+    /// needs has given no sample for [`GRACE`].
     post_deadline: Option<Instant>,
     /// One status read's time on the wire.
     transaction: Duration,
 }
 
 /// Longest gap between two samples of a drive before a triggered capture
-/// gives up on it (on top of its expected duration).
+/// that has outlasted its expected duration gives up on it. A capture
+/// that is slower than expected but still gets samples (a busy host, a
+/// retry) goes on: only a drive that stopped answering makes it
+/// incomplete.
 const GRACE: Duration = Duration::from_millis(500);
 
 impl Capture {
@@ -121,6 +128,7 @@ impl Capture {
         let mut capture = Self {
             id,
             per_unit: vec![0; spec.units.len()],
+            last_at: vec![None; spec.units.len()],
             phase: Phase::Armed,
             armed_at: now,
             armed_wall: wall,
@@ -204,6 +212,7 @@ impl Capture {
         Capture {
             spec: self.spec.clone(),
             per_unit: self.per_unit.clone(),
+            last_at: self.last_at.clone(),
             pre: self.pre.clone(),
             post: Vec::new(),
             detector: self.detector.clone(),
@@ -292,12 +301,30 @@ impl Capture {
             Phase::Triggered => {
                 if let Some(deadline) = self.post_deadline
                     && now >= deadline
+                    && self.a_needed_drive_is_silent(now)
                 {
                     self.end(End::Incomplete, now);
                 }
             }
             _ => {}
         }
+    }
+
+    /// Whether a drive the capture still needs samples of has given none
+    /// for [`GRACE`] (since the trigger, before its first).
+    fn a_needed_drive_is_silent(&self, now: Instant) -> bool {
+        let since_trigger = self.fired.as_ref().map(|f| f.at);
+        self.per_unit
+            .iter()
+            .zip(&self.last_at)
+            .filter(|(count, _)| match self.spec.length {
+                Amount::Samples(n) => **count < n,
+                Amount::Seconds(_) => true,
+            })
+            .any(|(_, last)| {
+                last.or(since_trigger)
+                    .is_none_or(|t| now.saturating_duration_since(t) >= GRACE)
+            })
     }
 
     /// A client cancels it.
@@ -378,6 +405,9 @@ impl Capture {
             // its reply was on the wire: it belongs before the trigger.
             self.keep_late_before_trigger(sample);
             return;
+        }
+        if let Some(last) = self.last_at.get_mut(index) {
+            *last = Some(sample.at);
         }
         match self.spec.length {
             Amount::Samples(n) => {
@@ -660,6 +690,34 @@ mod tests {
         c.tick(t0 + Duration::from_secs(3));
         assert_eq!(c.phase(), Phase::Ended(End::Incomplete));
         assert_eq!(c.counts(), (2, 1));
+    }
+
+    #[test]
+    fn a_capture_slower_than_expected_goes_on_while_its_drive_answers() {
+        let t0 = Instant::now();
+        let mut c = arm(
+            spec(
+                &[1],
+                Trigger::Manual,
+                Amount::Samples(0),
+                Amount::Samples(100),
+            ),
+            t0,
+        );
+        c.trigger_now(t0, Origin::Internal).unwrap();
+        // A sample every 100 ms: ten times slower than the wire allows (a
+        // starved host), far past the expected duration, never silent for
+        // the grace.
+        for i in 1..100 {
+            let at = t0 + 100 * MS * i;
+            c.tick(at);
+            assert!(c.is_running(), "sample {i}");
+            c.on_sample(1, &speed(1), at);
+        }
+        c.tick(t0 + 100 * MS * 100);
+        c.on_sample(1, &speed(1), t0 + 100 * MS * 100);
+        assert_eq!(c.phase(), Phase::Ended(End::Complete));
+        assert_eq!(c.counts(), (0, 100));
     }
 
     #[test]
