@@ -598,6 +598,9 @@ impl Running {
                 );
             }
         }
+        if config.mqtt.is_none() {
+            self.shared.metrics.mqtt().unconfigured();
+        }
         match self.start_mqtt(config, started) {
             Ok(()) => followed.changes.push(match (&was, &started.mqtt) {
                 (Some(_), Some(_)) => format!("{name} restarted with the new [mqtt]"),

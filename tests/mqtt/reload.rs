@@ -2,7 +2,7 @@
 //! section (`src/faces.rs`): the old node says goodbye (its NDEATH), its
 //! session's leases end with `comm_loss_action` at once, as for a lost
 //! broker, and the new node is born under its new name; the HTTP API and
-//! the drives run on.
+//! the drives run on. `[mqtt]` removed stops the face for good.
 
 use std::time::Duration;
 
@@ -89,6 +89,25 @@ async fn a_changed_mqtt_section_restarts_the_face_and_ends_its_leases_with_their
                     .is_some_and(|s| s > 100.0)
         })
         .await;
+
+        // [mqtt] removed: the face says goodbye and is gone from /readyz.
+        let api = Api::new(d.http, None);
+        let without = crate::support::config::ConfigBuilder::four_drives()
+            .modbus_tcp_off()
+            .toml();
+        d.rewrite(&without);
+        let reply = api.post_empty("/api/v1/config/reload").await.expect(200);
+        assert_eq!(
+            reply["changes"],
+            serde_json::json!(["MQTT face stopped ([mqtt] removed)"]),
+            "{reply}"
+        );
+        let ndeath = host
+            .next(WAIT, "the new node's NDEATH", |m| m.is("NDEATH", None))
+            .await;
+        assert!(ndeath.topic.ends_with("/NDEATH/gw2"), "{}", ndeath.topic);
+        let ready = api.get("/readyz").await.expect(200);
+        assert!(ready.get("mqtt").is_none(), "{ready}");
         d.stop().await;
     })
     .await;
