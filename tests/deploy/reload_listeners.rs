@@ -488,3 +488,64 @@ async fn a_bus_port_changed_reopens_that_bus_only() {
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn new_limits_keep_the_listener_socket_and_a_disabled_listener_closes_then_opens_again() {
+    bounded(LIMIT, async {
+        let d = TestDaemon::reloadable(&plant("127.0.0.1:0", "127.0.0.1:0")).await;
+        let api = Api::new(d.http, Some(ADMIN));
+        let at = d.modbus_tcp.unwrap();
+        let mut before = Raw::connect(at).await;
+        assert_eq!(before.ask(1, &read(0xC0, 7)).await[0], 0x03);
+
+        // New limits, same address: the same socket, served with them; the
+        // client connected under the old ones is closed and connects again.
+        let limits = plant("127.0.0.1:0", "127.0.0.1:0")
+            .replace("[modbus_tcp]\n", "[modbus_tcp]\nmax_connections = 5\n");
+        assert_ne!(limits, plant("127.0.0.1:0", "127.0.0.1:0"));
+        d.rewrite(&limits);
+        let reply = reload(&api).await.expect(200);
+        assert_eq!(
+            lines(&reply, "changes"),
+            vec![format!(
+                "Modbus TCP listener reopened on {at} with the new [modbus_tcp]"
+            )],
+            "{reply}"
+        );
+        assert!(before.closed_by_server().await, "the old connection stayed");
+        let mut after = Raw::connect(at).await;
+        assert_eq!(after.ask(1, &read(0xC0, 7)).await[0], 0x03);
+        assert_eq!(d.faces_addresses().await.modbus_tcp, Some(at));
+
+        // Turned off: closed, the port refuses.
+        let off = plant("127.0.0.1:0", "127.0.0.1:0")
+            .replace("[modbus_tcp]\n", "[modbus_tcp]\nenabled = false\n");
+        d.rewrite(&off);
+        let reply = reload(&api).await.expect(200);
+        assert_eq!(
+            lines(&reply, "changes"),
+            vec![format!("Modbus TCP listener closed (it was on {at})")],
+            "{reply}"
+        );
+        assert!(refused(at).await, "{at} still takes connections");
+        assert!(after.closed_by_server().await);
+        assert_eq!(d.faces_addresses().await.modbus_tcp, None);
+
+        // On again, where the system chooses.
+        d.rewrite(&plant("127.0.0.1:0", "127.0.0.1:0"));
+        let reply = reload(&api).await.expect(200);
+        let now = d
+            .faces_addresses()
+            .await
+            .modbus_tcp
+            .expect("listening again");
+        let changes = lines(&reply, "changes");
+        assert!(
+            changes.contains(&format!("Modbus TCP listener opened on {now}")),
+            "{reply}"
+        );
+        assert_eq!(status_by_pymodbus(now).await.len(), 7);
+        d.stop().await;
+    })
+    .await;
+}
