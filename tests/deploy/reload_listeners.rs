@@ -59,6 +59,30 @@ fn free_port() -> SocketAddr {
     probe.local_addr().unwrap()
 }
 
+/// Moves a listener to a free loopback port: writes `file(port)` and
+/// reloads through `api`; the port and the answer. A port another process
+/// took in between (the system hands out the same free ports to everyone)
+/// is a problem of the answer, and another port is tried.
+async fn reload_to_free_port(
+    d: &TestDaemon,
+    api: &Api,
+    file: impl Fn(SocketAddr) -> String,
+) -> (SocketAddr, Value) {
+    for _ in 0..5 {
+        let new = free_port();
+        d.rewrite(&file(new));
+        let reply = reload(api).await.expect(200);
+        let taken = reply["problems"].as_array().is_some_and(|p| {
+            p.iter()
+                .any(|p| p.as_str().is_some_and(|p| p.contains("in use")))
+        });
+        if !taken {
+            return (new, reply);
+        }
+    }
+    panic!("no free loopback port in five tries");
+}
+
 /// Turns the belt at 100 rpm with a lease of ten minutes, and waits for it.
 async fn belt_turning(api: &Api, line1: &SimRef) -> Value {
     api.activate_in("lsn_belt", "speed").await;
@@ -153,9 +177,8 @@ async fn a_moved_modbus_tcp_listener_closes_its_port_and_its_clients_while_a_dri
         let press = api.get("/api/v1/drives/lsn_press").await.expect(200)["lease"].clone();
         let plc_owner = press["owner"].as_str().unwrap().to_string();
 
-        let new = free_port();
-        d.rewrite(&plant(&new.to_string(), "127.0.0.1:0"));
-        let reply = reload(&api).await.expect(200);
+        let (new, reply) =
+            reload_to_free_port(&d, &api, |new| plant(&new.to_string(), "127.0.0.1:0")).await;
         assert_eq!(
             lines(&reply, "changes"),
             vec![format!(
@@ -248,9 +271,8 @@ async fn a_moved_http_listener_answers_the_reload_that_moves_it_then_serves_only
 
         // Asked on the old address, answered there: the request in
         // progress finishes before its connection closes.
-        let new = free_port();
-        d.rewrite(&plant("127.0.0.1:0", &new.to_string()));
-        let reply = reload(&api).await.expect(200);
+        let (new, reply) =
+            reload_to_free_port(&d, &api, |new| plant("127.0.0.1:0", &new.to_string())).await;
         assert_eq!(
             lines(&reply, "changes"),
             vec![format!(
