@@ -15,6 +15,7 @@ mod births;
 mod commands;
 mod death;
 mod python;
+mod reload;
 mod safety;
 mod store;
 mod tls;
