@@ -51,6 +51,7 @@ pub mod modbus;
 pub mod modbus_tcp;
 pub mod monitor;
 pub mod mqtt;
+pub mod ops;
 pub mod plant;
 pub mod probe;
 pub mod reload;

@@ -249,18 +249,7 @@ fn constant_time_eq(a: &[u8; 32], b: &[u8; 32]) -> bool {
 
 pub use crate::control::Caller;
 
-/// The 403 for `caller`, whose role lacks `needed`.
-pub fn forbidden(caller: &Caller, needed: Role) -> Problem {
-    Problem::new(
-        Kind::Forbidden,
-        format!(
-            "this needs the {} role; the token \"{}\" has the {} role",
-            needed.name(),
-            caller.who,
-            caller.role.name()
-        ),
-    )
-}
+pub use crate::ops::writes::forbidden;
 
 /// Identifies the caller of a request. `websocket` also accepts the token
 /// as a subprotocol or as `?access_token=` (browsers cannot set headers on

@@ -3,38 +3,16 @@
 
 use axum::Json;
 use axum::extract::State;
-use serde::{Deserialize, Serialize};
-use utoipa::{IntoParams, ToSchema};
+use serde::Deserialize;
+use utoipa::IntoParams;
 
 use super::auth::Caller;
-use super::control::{self, Written};
 use super::extract::{JsonBody, Params, PathParams};
 use super::openapi::WriteProblems;
-use super::problem::{Kind, Problem};
+use super::problem::Problem;
 use super::state::ApiState;
-use crate::control::ControlRequest;
-use crate::control::policy::of_request as request_meaning;
-use crate::drive::{ConfigCommand, DriveRequest};
-
-/// What a command did.
-#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
-pub struct CommandReply {
-    /// Drive name.
-    pub drive: String,
-    /// Its bus.
-    pub bus: String,
-    /// Its unit address.
-    pub unit: u8,
-    /// The command's name.
-    pub command: String,
-    /// What was written; the drive echoed it.
-    pub written: Vec<Written>,
-    /// Bus priority it went with: `emergency` for the brake, else `command`.
-    pub priority: String,
-    /// What to expect next, when there is something to know.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub note: Option<String>,
-}
+use crate::drive::ConfigCommand;
+pub use crate::ops::commands::{CommandReply, ModeBody, ModeChoice, parse_command};
 
 /// `?force=`.
 #[derive(Debug, Clone, Default, Deserialize, IntoParams)]
@@ -48,31 +26,6 @@ pub struct CommandQuery {
     pub force: bool,
 }
 
-fn note(command: ConfigCommand) -> Option<&'static str> {
-    Some(match command {
-        ConfigCommand::Activate => "activation is kept over power loss",
-        ConfigCommand::Deactivate => "the drive no longer takes setpoints; any lease on it ended",
-        ConfigCommand::Calibrate => {
-            "calibration takes about 4 s and nudges the motor; the status's calibrated flag is set when it is done"
-        }
-        ConfigCommand::FineTuneCalibration => {
-            "fine-tuning takes about 2 s and turns the motor both ways"
-        }
-        ConfigCommand::SetZero => "the new zero is lost when the drive loses power",
-        ConfigCommand::EmergencyBrake => {
-            "the motor is held; any setpoint or mode command releases the brake; any lease on it ended"
-        }
-        ConfigCommand::FactoryReset => {
-            "ramps, stall protection and load inertia are back to factory values, in flash too"
-        }
-        ConfigCommand::SoftReset => "the drive restarts and does not answer for a moment",
-        ConfigCommand::FaultReset => "a stall is cleared; a fault whose cause remains comes back",
-        ConfigCommand::SpeedMode | ConfigCommand::PositionMode | ConfigCommand::TorqueMode => {
-            return None;
-        }
-    })
-}
-
 /// Sends config command `command` to drive `key` for `caller`.
 pub async fn run(
     state: &ApiState,
@@ -82,42 +35,7 @@ pub async fn run(
     force: bool,
 ) -> Result<CommandReply, Problem> {
     let target = state.target(key)?;
-    let request = DriveRequest::Config(command);
-    control::send(
-        state,
-        caller,
-        target.clone(),
-        ControlRequest::drive(request).forced(force),
-    )
-    .await?;
-    Ok(CommandReply {
-        drive: target.drive.name.clone(),
-        bus: target.bus.name().to_string(),
-        unit: target.drive.unit,
-        command: command.name().to_string(),
-        written: control::written(&request),
-        priority: if request_meaning(&request).emergency {
-            "emergency"
-        } else {
-            "command"
-        }
-        .to_string(),
-        note: note(command).map(str::to_string),
-    })
-}
-
-/// The command named `name`, or 404 listing the valid names.
-pub fn parse_command(name: &str) -> Result<ConfigCommand, Problem> {
-    ConfigCommand::from_name(name).ok_or_else(|| {
-        let names: Vec<&str> = ConfigCommand::ALL.iter().map(|c| c.name()).collect();
-        Problem::new(
-            Kind::UnknownCommand,
-            format!(
-                "no command named \"{name}\": valid commands are {}",
-                names.join(", ")
-            ),
-        )
-    })
+    crate::ops::commands::run(&state.control, caller, &target, command, force).await
 }
 
 /// Sends a config command; it returns once the drive echoed it.
@@ -151,37 +69,6 @@ pub async fn post_command(
     run(&state, &caller, &key, command, query.force)
         .await
         .map(Json)
-}
-
-/// A closed-loop mode the drive can be put in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum ModeChoice {
-    /// Speed closed loop (setpoint `speed_rpm`).
-    Speed,
-    /// Position closed loop (setpoint `position_deg`).
-    Position,
-    /// Torque closed loop (setpoint `torque_a` or `torque_counts`).
-    Torque,
-}
-
-/// `PUT .../mode` body.
-#[derive(Debug, Clone, Deserialize, ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct ModeBody {
-    /// The mode.
-    pub mode: ModeChoice,
-}
-
-impl ModeChoice {
-    /// The config command that selects it.
-    pub fn command(self) -> ConfigCommand {
-        match self {
-            ModeChoice::Speed => ConfigCommand::SpeedMode,
-            ModeChoice::Position => ConfigCommand::PositionMode,
-            ModeChoice::Torque => ConfigCommand::TorqueMode,
-        }
-    }
 }
 
 /// Puts the drive in speed, position or torque mode (operator).

@@ -37,7 +37,7 @@ pub mod guard;
 pub mod health;
 pub mod history;
 pub mod hub;
-pub mod integers;
+pub use crate::ops::integers;
 pub mod listener;
 pub mod monitor;
 pub mod monitor_live;

@@ -5,155 +5,18 @@ use std::time::Duration;
 
 use axum::Json;
 use axum::extract::State;
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 use utoipa::ToSchema;
 
 use super::auth::{Caller, forbidden};
-use super::control::{self, Written};
+use super::control::{self};
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
 use super::integers;
 use super::openapi::{LeaseProblems, WriteProblems};
 use super::problem::{Kind, Problem};
 use super::state::ApiState;
-use crate::control::lease_book::Holder;
-use crate::control::{ControlRequest, LeaseError, LeaseView, Refusal, Rule};
-use crate::drive::{DriveRequest, units};
-
-/// A lease as clients see it.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, ToSchema)]
-pub struct LeaseInfo {
-    /// The drive it covers.
-    pub drive: String,
-    /// Who holds it: a token's name, or a Modbus TCP client's face and
-    /// address ("modbus-tcp 10.1.2.3:50412").
-    pub owner: String,
-    /// Its length: each renewal pushes the deadline this far ahead.
-    pub lease_ms: u64,
-    /// Time left before the stop action, ms.
-    pub expires_in_ms: u64,
-    /// What its end sends: `zero-speed`, `brake`, or `none`.
-    pub action: String,
-    /// True when it also ends as soon as its WebSocket closes.
-    pub websocket: bool,
-    /// True for a lease of a Modbus TCP client's communication-loss
-    /// function (`comm_loss_ms` of its network): any request on its
-    /// connection renews it; `lease_ms` without one, or the connection
-    /// closing, ends it with `action`.
-    pub comm_loss: bool,
-}
-
-impl LeaseInfo {
-    /// The core's view of a lease on drive `drive`.
-    pub fn new(drive: &str, view: &LeaseView) -> Self {
-        let session = matches!(view.holder, Holder::Session(_));
-        LeaseInfo {
-            drive: drive.to_string(),
-            owner: view.owner.to_string(),
-            lease_ms: millis_u64(view.length),
-            expires_in_ms: millis_u64(view.expires_in),
-            action: view.action.name().to_string(),
-            websocket: session && !view.comm_loss,
-            comm_loss: view.comm_loss,
-        }
-    }
-}
-
-fn millis_u64(d: Duration) -> u64 {
-    u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
-}
-
-/// The lease on drive `index` of the plant, as clients see it.
-pub fn lease_of(state: &ApiState, index: usize) -> Option<LeaseInfo> {
-    let view = state.control.lease(index)?;
-    let name = state.plant.now().drive_at(index)?.name.clone();
-    Some(LeaseInfo::new(&name, &view))
-}
-
-/// `PUT .../setpoint` body: exactly one setpoint, and optionally a lease.
-/// Its OpenAPI schema is in [`super::body_schemas`].
-#[derive(Debug, Clone, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SetpointBody {
-    /// Speed at the gearbox output, rpm (-2048..2047, rounded to 1 rpm).
-    pub speed_rpm: Option<f64>,
-    /// Position at the gearbox output, degrees (-180..180, rounded to 0.01).
-    pub position_deg: Option<f64>,
-    /// Motor current, amps (-16..15.99, rounded to 1/128 A).
-    pub torque_a: Option<f64>,
-    /// Motor current, raw counts (-2048..2047; 1 A = 128).
-    #[serde(default, deserialize_with = "integers::optional")]
-    pub torque_counts: Option<i64>,
-    /// Stop the motor (`[safety] on_lease_expiry`) unless the setpoint is
-    /// repeated or the lease renewed within this many ms.
-    #[serde(default, deserialize_with = "integers::optional")]
-    pub lease_ms: Option<i64>,
-}
-
-impl SetpointBody {
-    /// The drive request, with values checked against the manual's ranges.
-    pub fn request(&self) -> Result<DriveRequest, Problem> {
-        let given: Vec<&str> = [
-            self.speed_rpm.map(|_| "speed_rpm"),
-            self.position_deg.map(|_| "position_deg"),
-            self.torque_a.map(|_| "torque_a"),
-            self.torque_counts.map(|_| "torque_counts"),
-        ]
-        .into_iter()
-        .flatten()
-        .collect();
-        if given.len() != 1 {
-            return Err(Problem::invalid(format!(
-                "give exactly one of speed_rpm, position_deg, torque_a or torque_counts (found {})",
-                if given.is_empty() {
-                    "none".to_string()
-                } else {
-                    given.join(" and ")
-                }
-            )));
-        }
-        Ok(match self {
-            SetpointBody {
-                speed_rpm: Some(rpm),
-                ..
-            } => DriveRequest::Speed {
-                rpm: units::speed_setpoint(*rpm)?,
-            },
-            SetpointBody {
-                position_deg: Some(deg),
-                ..
-            } => DriveRequest::Position {
-                centideg: units::position_setpoint(*deg)?,
-            },
-            SetpointBody {
-                torque_a: Some(a), ..
-            } => DriveRequest::Torque {
-                counts: units::torque_setpoint(*a)?,
-            },
-            SetpointBody {
-                torque_counts: Some(c),
-                ..
-            } => DriveRequest::Torque {
-                counts: units::torque_setpoint_counts(*c)?,
-            },
-            _ => return Err(Problem::invalid("no setpoint given")),
-        })
-    }
-}
-
-/// What a setpoint did.
-#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
-pub struct SetpointReply {
-    /// Drive name.
-    pub drive: String,
-    /// Its bus.
-    pub bus: String,
-    /// Its unit address.
-    pub unit: u8,
-    /// What was written (engineering units and raw); the drive echoed it.
-    pub written: Vec<Written>,
-    /// The lease now covering the motor, if any.
-    pub lease: Option<LeaseInfo>,
-}
+use crate::control::{LeaseError, Refusal, Rule};
+pub use crate::ops::commands::{LeaseInfo, SetpointBody, SetpointReply};
 
 /// The lease length asked for (or `[http] lease_default_ms`); the core
 /// checks it against its bounds. A negative length asks for 0 ms, which
@@ -165,6 +28,11 @@ fn lease_length(state: &ApiState, asked: Option<i64>) -> Option<Duration> {
     }
 }
 
+/// The lease on drive `index` of the plant, as clients see it.
+pub fn lease_of(state: &ApiState, index: usize) -> Option<LeaseInfo> {
+    crate::ops::commands::lease_of(&state.control, index)
+}
+
 /// Sends a setpoint to drive `key` for `caller`; a lease taken over the
 /// stream ends with its session too.
 pub async fn apply(
@@ -174,24 +42,14 @@ pub async fn apply(
     body: &SetpointBody,
 ) -> Result<SetpointReply, Problem> {
     let target = state.target(key)?;
-    let request = body.request()?;
-    let lease = lease_length(state, body.lease_ms);
-    let sent = control::send(
-        state,
+    crate::ops::commands::apply(
+        &state.control,
         caller,
-        target.clone(),
-        ControlRequest::drive(request).with_lease(lease),
+        &target,
+        body,
+        state.config.lease_default,
     )
-    .await;
-    let lease = lease_of(state, target.index);
-    sent?;
-    Ok(SetpointReply {
-        drive: target.drive.name.clone(),
-        bus: target.bus.name().to_string(),
-        unit: target.drive.unit,
-        written: control::written(&request),
-        lease,
-    })
+    .await
 }
 
 /// The problem for a lease that cannot be renewed or released.
@@ -330,6 +188,7 @@ pub async fn delete_lease(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::drive::DriveRequest;
 
     #[test]
     fn exactly_one_setpoint() {

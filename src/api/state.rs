@@ -11,12 +11,12 @@ use tokio_util::task::TaskTracker;
 use super::auth::Tokens;
 use super::hub::Hub;
 use super::problem::Problem;
-use crate::bus::{BusHandle, SourceId};
+use crate::bus::SourceId;
 use crate::config::HttpConfig;
-use crate::control::{self, Control};
+use crate::control::Control;
 use crate::history::History;
 use crate::metrics::Metrics;
-use crate::plant::{Drive, Plant};
+use crate::plant::Plant;
 
 /// The handlers' state; cheap to clone.
 #[derive(Clone)]
@@ -53,28 +53,7 @@ impl Deref for ApiState {
     }
 }
 
-/// A drive resolved from a path: its slot in the plant and its bus.
-#[derive(Clone)]
-pub struct Target {
-    /// Its slot in the plant's directory (the key of leases and
-    /// subscriptions).
-    pub index: usize,
-    /// The drive.
-    pub drive: Drive,
-    /// Its bus.
-    pub bus: BusHandle,
-}
-
-impl Target {
-    /// Where the control core sends its writes.
-    pub fn control(&self) -> control::Target {
-        control::Target {
-            bus: self.drive.bus,
-            unit: self.drive.unit,
-            drive: Some(self.index),
-        }
-    }
-}
+pub use crate::ops::target::Target;
 
 impl ApiState {
     /// The state of a starting API.
@@ -114,18 +93,11 @@ impl ApiState {
 
     /// The drive named `key` (or, on a single bus, with that unit number).
     pub fn target(&self, key: &str) -> Result<Target, Problem> {
-        let (index, drive, bus) = self.plant.find(key).map_err(|e| Problem::lookup(&e))?;
-        Ok(Target { index, drive, bus })
+        Target::find(&self.plant, key)
     }
 
     /// The drive in slot `index` of the plant, if it is still configured.
     pub fn target_at(&self, index: usize) -> Option<Target> {
-        let now = self.plant.now();
-        let drive = now.drive_at(index)?;
-        Some(Target {
-            index,
-            bus: now.handle_of(drive)?.clone(),
-            drive: drive.clone(),
-        })
+        Target::at(&self.plant, index)
     }
 }

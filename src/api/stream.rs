@@ -26,7 +26,6 @@ use axum::extract::ws::{Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
 use axum::response::Response;
 use futures_util::StreamExt;
 use serde::Deserialize;
-use serde::de::DeserializeOwned;
 use serde_json::Value;
 use tokio::sync::{Semaphore, broadcast, mpsc};
 use tokio::task::JoinSet;
@@ -36,16 +35,15 @@ use utoipa::{IntoParams, ToSchema};
 use super::alarms;
 use super::auth::{Caller, StreamCaller};
 use super::buses;
-use super::commands::{self, ModeBody, parse_command};
+use super::commands::parse_command;
 use super::document;
-use super::drives;
 use super::extract::Params;
 use super::hub::{HubEvent, RestartDecision, ServerMessage, render};
 use super::openapi::ReadProblems;
-use super::problem::{Kind, Problem};
+use super::problem::Problem;
 use super::replacement;
 use super::scope;
-use super::setpoints::{self, RenewBody, SetpointBody};
+use super::setpoints::{self, RenewBody};
 use super::settings;
 use super::socket::{self, Sink, Source, send};
 use super::state::ApiState;
@@ -523,41 +521,7 @@ async fn read_loop(
     }
 }
 
-fn body_as<T: DeserializeOwned>(op: &str, body: Option<Value>) -> Result<T, Problem> {
-    let body = match body {
-        None => Value::Object(Default::default()),
-        // serde would read a struct from an array, field by field.
-        Some(object @ Value::Object(_)) => object,
-        Some(_) => {
-            return Err(Problem::invalid(format!(
-                "the body of \"{op}\" must be a JSON object ({{...}})"
-            )));
-        }
-    };
-    serde_json::from_value(body)
-        .map_err(|e| Problem::invalid(format!("the body of \"{op}\" is not valid: {e}")))
-}
-
-fn json<T: serde::Serialize>(value: T) -> Result<Value, Problem> {
-    serde_json::to_value(value)
-        .map_err(|e| Problem::new(Kind::Internal, format!("cannot encode the reply: {e}")))
-}
-
-/// `{"force": bool}`.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct ForceBody {
-    #[serde(default)]
-    force: bool,
-}
-
-/// `{"fresh": bool}`.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct FreshBody {
-    #[serde(default)]
-    fresh: bool,
-}
+use crate::ops::commands::{body_as, json};
 
 const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, replacement, settings, scan, set-address, scope-arm, scope-trigger, scope-cancel, alarm-ack";
 
@@ -607,24 +571,24 @@ async fn dispatch(
     }
     let key = drive.ok_or_else(|| Problem::invalid(format!("\"{op}\" needs \"drive\"")))?;
     let key = key.as_str();
+    if crate::ops::commands::is_drive_op(op) {
+        // The operations every face with command messages offers.
+        return crate::ops::commands::run_drive_op(
+            &state.control,
+            caller,
+            key,
+            op,
+            body,
+            state.config.lease_default,
+        )
+        .await;
+    }
     match op {
-        "mode" => {
-            let b: ModeBody = body_as(op, body)?;
-            json(commands::run(state, caller, key, b.mode.command(), false).await?)
-        }
-        "setpoint" => {
-            let b: SetpointBody = body_as(op, body)?;
-            json(setpoints::apply(state, caller, key, &b).await?)
-        }
         "lease-renew" => {
             let b: RenewBody = body_as(op, body)?;
             json(setpoints::renew(state, caller, key, &b).await?)
         }
         "lease-release" => json(setpoints::release(state, caller, key).await?),
-        "status" => {
-            let b: FreshBody = body_as(op, body)?;
-            json(drives::status(state, caller, key, b.fresh).await?)
-        }
         "protection" => json(settings::protection(state, caller, key, &body_as(op, body)?).await?),
         "speed-ramp" => json(settings::speed_ramp(state, caller, key, &body_as(op, body)?).await?),
         "position-ramp" => {
@@ -636,11 +600,7 @@ async fn dispatch(
         }
         "replacement" => json(replacement::record(state, caller, key, body_as(op, body)?)?),
         "settings" => json(document::apply(state, caller, key, &body_as(op, body)?, false).await?),
-        name => {
-            let command = parse_command(name)?;
-            let b: ForceBody = body_as(op, body)?;
-            json(commands::run(state, caller, key, command, b.force).await?)
-        }
+        _ => Err(Problem::invalid(format!("unknown op \"{op}\": use {OPS}"))),
     }
 }
 

@@ -45,8 +45,9 @@ pub struct Leases {
     events: Arc<Events>,
     /// Open sessions, with the way to tell them of their leases' ends.
     sessions: Mutex<HashMap<SessionId, mpsc::UnboundedSender<Arc<ControlEvent>>>>,
-    /// Communication-loss lease ends per bus: by silence, by a close.
-    comm_loss: Mutex<HashMap<usize, Arc<CommLossCount>>>,
+    /// Communication-loss lease ends per bus and face: by silence, by a
+    /// close.
+    comm_loss: Mutex<HashMap<(usize, Face), Arc<CommLossCount>>>,
     shutdown: CancellationToken,
     tasks: TaskTracker,
     /// The safety journal: what a restart must know.
@@ -204,7 +205,11 @@ impl Leases {
                     self.tasks.spawn(async move { leases.stop(order).await });
                 }
                 Effect::Event(event) => self.announce(event),
-                Effect::CommLoss { drive, closed } => {
+                Effect::CommLoss {
+                    drive,
+                    closed,
+                    face,
+                } => {
                     self.events
                         .publish(Arc::new(ControlEvent::CommLoss { drive, closed }), None);
                     let bus = self.plant.now().drive_at(drive).map(|d| d.bus);
@@ -213,7 +218,7 @@ impl Leases {
                             .comm_loss
                             .lock()
                             .unwrap_or_else(|p| p.into_inner())
-                            .entry(bus)
+                            .entry((bus, face))
                             .or_default()
                             .clone();
                         let counter = if closed {
@@ -273,11 +278,12 @@ impl Leases {
         self.journaled(|book, now| book.session_active(id, now));
     }
 
-    /// Communication-loss leases of bus `bus` that ended since start-up:
-    /// by silence, and by their session closing.
-    pub fn comm_loss_ends(&self, bus: usize) -> (u64, u64) {
+    /// Communication-loss leases of bus `bus` held by sessions of `face`
+    /// that ended since start-up: by silence, and by their session
+    /// closing.
+    pub fn comm_loss_ends(&self, bus: usize, face: Face) -> (u64, u64) {
         let counts = self.comm_loss.lock().unwrap_or_else(|p| p.into_inner());
-        counts.get(&bus).map_or((0, 0), |c| {
+        counts.get(&(bus, face)).map_or((0, 0), |c| {
             (
                 c.timed_out.load(Ordering::Relaxed),
                 c.closed.load(Ordering::Relaxed),

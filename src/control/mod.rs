@@ -426,11 +426,12 @@ impl Control {
         )
     }
 
-    /// Communication-loss leases of bus `bus` that ended since start-up:
-    /// by silence (no request within the time), and by their connection
-    /// closing. Each was followed by its action.
-    pub fn comm_loss_ends(&self, bus: usize) -> (u64, u64) {
-        self.0.leases.comm_loss_ends(bus)
+    /// Communication-loss leases of bus `bus` held by sessions of `face`
+    /// that ended since start-up: by silence (no request within the time,
+    /// or for MQTT no broker), and by their session closing. Each was
+    /// followed by its action.
+    pub fn comm_loss_ends(&self, bus: usize, face: Face) -> (u64, u64) {
+        self.0.leases.comm_loss_ends(bus, face)
     }
 
     /// Waits for the lease driver and its stops to finish (after shutdown).

@@ -1,5 +1,6 @@
 //! The control core's own counters, read at scrape time: the ends of the
-//! leases of Modbus TCP clients' communication-loss function, per bus,
+//! leases of Modbus TCP clients' and of the MQTT session's
+//! communication-loss function, per bus,
 //! the safety journal, and the drift of drives from their declared
 //! settings.
 //! Every bus's series exist from start-up, at 0, so an alert on
@@ -9,14 +10,23 @@ use prometheus::core::{Collector, Desc};
 use prometheus::proto::MetricFamily;
 
 use super::family::{Kind, Spec};
-use crate::control::Control;
 use crate::control::journal::Health;
+use crate::control::{Control, Face};
 
 static COMM_LOSS: Spec = Spec {
     name: "drivegate_modbus_tcp_comm_loss_stops_total",
     help: "Leases of Modbus TCP clients' communication-loss function that ended, each followed \
            by the network's comm_loss_action (none: nothing sent), by reason: timeout (no \
            request within comm_loss_ms) or closed (the connection closed).",
+    kind: Kind::Counter,
+    labels: &["bus", "reason"],
+};
+
+static MQTT_COMM_LOSS: Spec = Spec {
+    name: "drivegate_mqtt_comm_loss_stops_total",
+    help: "Leases of commands from MQTT that ended with the MQTT session's comm_loss_action \
+           (none: nothing sent), by reason: timeout (the broker lost for longer than \
+           comm_loss_ms) or closed (the session ended: the primary host's STATE went offline).",
     kind: Kind::Counter,
     labels: &["bus", "reason"],
 };
@@ -131,6 +141,7 @@ impl ControlCollector {
             control,
             descs: vec![
                 COMM_LOSS.desc(),
+                MQTT_COMM_LOSS.desc(),
                 REPLAYED.desc(),
                 JOURNAL_OK.desc(),
                 JOURNAL_EVENTS.desc(),
@@ -155,11 +166,17 @@ impl Collector for ControlCollector {
 
     fn collect(&self) -> Vec<MetricFamily> {
         let mut comm_loss = COMM_LOSS.family();
+        let mut mqtt_comm_loss = MQTT_COMM_LOSS.family();
         for (i, bus) in self.control.plant().now().indexed_buses() {
             let name = bus.handle.name();
-            let (timeout, closed) = self.control.comm_loss_ends(i);
-            comm_loss.set(&[name, "timeout"], timeout as f64);
-            comm_loss.set(&[name, "closed"], closed as f64);
+            for (family, face) in [
+                (&mut comm_loss, Face::ModbusTcp),
+                (&mut mqtt_comm_loss, Face::Mqtt),
+            ] {
+                let (timeout, closed) = self.control.comm_loss_ends(i, face);
+                family.set(&[name, "timeout"], timeout as f64);
+                family.set(&[name, "closed"], closed as f64);
+            }
         }
         let mut replayed = REPLAYED.family();
         let counts = self.control.replayed();
@@ -221,6 +238,7 @@ impl Collector for ControlCollector {
             reload_ok.finish(),
             loaded_at.finish(),
             comm_loss.finish(),
+            mqtt_comm_loss.finish(),
             drift.finish(),
             replayed.finish(),
             ok.finish(),

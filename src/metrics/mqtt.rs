@@ -44,6 +44,7 @@ pub struct MqttMetrics {
     store_bytes: IntGauge,
     store_messages: IntGauge,
     store_dropped: IntCounter,
+    replay_dropped: IntCounter,
     link: Mutex<LinkState>,
 }
 
@@ -121,6 +122,10 @@ impl MqttMetrics {
             store_dropped: counter(
                 "drivegate_mqtt_store_dropped_total",
                 "Stored messages dropped unsent, the oldest first, to keep [mqtt] store_max_mb.",
+            ),
+            replay_dropped: counter(
+                "drivegate_mqtt_replay_dropped_total",
+                "Stored messages dropped at replay because their drive is no longer configured (it will never be born again).",
             ),
             link: Mutex::new(LinkState::default()),
         }
@@ -209,6 +214,12 @@ impl MqttMetrics {
         if dropped > counted {
             self.store_dropped.inc_by(dropped - counted);
         }
+    }
+
+    /// `n` kept messages were dropped at replay: their drive is no
+    /// longer configured.
+    pub fn replay_dropped(&self, n: u64) {
+        self.replay_dropped.inc_by(n);
     }
 
     /// The link now.

@@ -105,6 +105,7 @@ impl Access {
                     comm_loss: c.comm_loss().map(|l| CommLoss {
                         after: l.after,
                         action: l.action,
+                        face: crate::control::Face::ModbusTcp,
                     }),
                 },
             )

@@ -140,6 +140,7 @@ fn identify(
             comm_loss: tls.section.comm_loss().map(|l| crate::control::CommLoss {
                 after: l.after,
                 action: l.action,
+                face: crate::control::Face::ModbusTcp,
             }),
         },
         identity.common_name.map(Arc::new),

@@ -12,7 +12,8 @@
 //!   the session's motor-safety lease, over a `connection` (rumqttc) with
 //!   its `bd_seq` (kept across restarts in `[safety] state_dir`),
 //! - [`store`] keeps on disk what cannot be published (store and forward:
-//!   the node's [`Outbox`] when there is a state directory).
+//!   the node's [`Outbox`] when there is a state directory); [`replay`]
+//!   holds what comes back out until its drive's DBIRTH is out (pure).
 //!
 //! Like every face it decides nothing about the motors: commands go to
 //! [`crate::control`] as face `mqtt` with the role of `[mqtt] commands`, in
@@ -26,6 +27,7 @@ pub mod exception;
 pub mod host;
 pub mod metric;
 mod node;
+pub mod replay;
 pub mod store;
 #[rustfmt::skip]
 pub mod sparkplug_b;

@@ -47,6 +47,7 @@ use super::connection::{Connection, next_event};
 use super::exception::Reported;
 use super::host::{Host, HostChange, HostState};
 use super::metric::{self, BD_SEQ, Field, LAST_RESULT, REBIRTH, Setpoints, Value, Writable};
+use super::replay::{self, Held};
 use super::sparkplug_b::payload::Metric;
 use super::sparkplug_b::{DataType, Payload};
 use super::topic::{Incoming, Kind, NodeTopics, state_topic};
@@ -104,6 +105,8 @@ struct Node {
     who: Arc<str>,
     source: SourceId,
     outbox: Box<dyn Outbox>,
+    /// Kept data taken from the outbox, waiting for its drive's birth.
+    held: Held,
     bd_seq: BdSeq,
     seq: u8,
     /// Births are out on the current connection.
@@ -146,6 +149,7 @@ pub(super) fn spawn(
         who,
         source: SourceId::new_unique(),
         outbox,
+        held: Held::default(),
         bd_seq: BdSeq::load(state_dir.as_deref()),
         seq: 0,
         born: false,
@@ -301,6 +305,11 @@ impl Node {
             }
         }
         self.metrics.mqtt().disconnected();
+        // Data still waiting for its drive's birth goes back to the store,
+        // for the next process.
+        for (device, metrics) in self.held.drain() {
+            self.outbox.keep(&device, metrics);
+        }
         for f in self.forwarders.drain(..) {
             f.abort();
         }
@@ -798,15 +807,52 @@ impl Node {
     }
 
     /// Replays what the outbox kept, marked historical, [`REPLAY_BATCH`]
-    /// messages per [`REPLAY_EVERY`], so live data keeps its pace.
+    /// messages per [`REPLAY_EVERY`], so live data keeps its pace. A
+    /// drive's data goes only after its DBIRTH (it waits in `held` until
+    /// then); a drive no longer configured has its data dropped, counted.
     fn replay(&mut self, c: &Connection) {
-        for _ in 0..REPLAY_BATCH {
-            let Some((device, mut metrics)) = self.outbox.next() else {
-                return;
+        let mut sent = 0;
+        while sent < REPLAY_BATCH {
+            let plant = self.control.plant().now();
+            let devices = &self.devices;
+            let state = |name: &str| {
+                if !plant.drives().any(|d| d.name == name) {
+                    replay::Device::Gone
+                } else if devices.get(name).is_some_and(|d| d.born) {
+                    replay::Device::Born
+                } else {
+                    replay::Device::Unborn
+                }
             };
-            if !self.devices.get(&device).is_some_and(|d| d.born) {
-                continue;
-            }
+            let (device, mut metrics) = match self.held.next_born(state) {
+                Some(next) => next,
+                None => {
+                    if self.held.full() {
+                        return;
+                    }
+                    let Some((device, metrics)) = self.outbox.next() else {
+                        return;
+                    };
+                    let now = state(&device);
+                    match self.held.offer(device, metrics, now) {
+                        replay::Verdict::Send(device, metrics) => (device, metrics),
+                        replay::Verdict::Held => {
+                            if self.held.full() {
+                                tracing::warn!(
+                                    held = self.held.len(),
+                                    "MQTT store: the replay waits for drives not born yet; the rest of the store stays on disk meanwhile"
+                                );
+                            }
+                            continue;
+                        }
+                        replay::Verdict::Dropped => {
+                            self.metrics.mqtt().replay_dropped(1);
+                            continue;
+                        }
+                    }
+                }
+            };
+            sent += 1;
             for m in &mut metrics {
                 m.is_historical = Some(true);
             }
@@ -834,6 +880,16 @@ impl Node {
             .filter(|name| !plant.drives().any(|d| &d.name == *name))
             .cloned()
             .collect();
+        let dropped = self.held.drop_gone(|name| {
+            if plant.drives().any(|d| d.name == name) {
+                replay::Device::Unborn
+            } else {
+                replay::Device::Gone
+            }
+        });
+        if dropped > 0 {
+            self.metrics.mqtt().replay_dropped(dropped as u64);
+        }
         for name in gone {
             let born = self.devices.remove(&name).is_some_and(|d| d.born);
             if let Some(c) = c
@@ -944,6 +1000,7 @@ fn open_session(control: &Control, config: &MqttConfig) -> SessionGuard {
             Some(CommLoss {
                 after: config.comm_loss(),
                 action: config.comm_loss_action,
+                face: Face::Mqtt,
             }),
         )
         .0

@@ -9,11 +9,16 @@ use drivegate::mqtt::metric::Value;
 
 use super::commands::{born, run};
 use super::config;
+use crate::support::metrics::counter;
 use crate::support::mosquitto::Mosquitto;
 use crate::support::sparkplug::{Host, number};
 use crate::support::{TestDaemon, bounded, eventually};
 
 const WAIT: Duration = Duration::from_secs(20);
+
+/// The ends of the MQTT session's leases on bus `sim`, by reason.
+const MQTT_CLOSED: &str = "drivegate_mqtt_comm_loss_stops_total{bus=\"sim\",reason=\"closed\"}";
+const MQTT_TIMEOUT: &str = "drivegate_mqtt_comm_loss_stops_total{bus=\"sim\",reason=\"timeout\"}";
 
 /// Waits until the conveyor's DDATA says it turns faster than 100 rpm.
 async fn turning(host: &mut Host) {
@@ -47,11 +52,29 @@ async fn the_primary_host_offline_stops_the_motor_it_commanded() {
         ))
         .await;
         born(&mut host).await;
+        assert_eq!(
+            counter(&d, MQTT_CLOSED),
+            0.0,
+            "not counted before the host went offline"
+        );
         run(&host, "conveyor", 200.0).await;
         turning(&mut host).await;
         host.announce(false).await;
         // At once, not after comm_loss_ms (a minute here).
         stopped(&d, "the conveyor stopped after the host went offline").await;
+        // Counted as MQTT's, not as a Modbus TCP client's.
+        eventually(WAIT, "the end of the MQTT lease counted", || {
+            (counter(&d, MQTT_CLOSED) == 1.0).then_some(())
+        })
+        .await;
+        assert_eq!(counter(&d, MQTT_TIMEOUT), 0.0);
+        assert_eq!(
+            counter(
+                &d,
+                "drivegate_modbus_tcp_comm_loss_stops_total{bus=\"sim\",reason=\"closed\"}"
+            ),
+            0.0
+        );
         // The node says goodbye, and comes back with the next bdSeq once
         // the host is online again.
         let ndeath = host.next(WAIT, "NDEATH", |m| m.is("NDEATH", None)).await;
@@ -100,6 +123,11 @@ async fn losing_the_broker_stops_the_motor_after_comm_loss_ms() {
         turning(&mut host).await;
         broker.stop();
         stopped(&d, "the conveyor stopped after the broker was lost").await;
+        eventually(WAIT, "the end of the MQTT lease counted", || {
+            (counter(&d, MQTT_TIMEOUT) == 1.0).then_some(())
+        })
+        .await;
+        assert_eq!(counter(&d, MQTT_CLOSED), 0.0);
         d.stop().await;
     })
     .await;

@@ -1,7 +1,8 @@
 //! Store and forward through a real broker: mosquitto stopped for 5 s
 //! while a drive turns; the data of those seconds reaches the host after
 //! the births, marked historical, and the drive's data has no gap. Then
-//! the store across a restart of the daemon.
+//! the store across a restart of the daemon, and a drive offline at the
+//! reconnect whose kept data waits for its birth.
 
 use std::collections::BTreeMap;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
@@ -186,6 +187,84 @@ async fn data_kept_while_the_broker_was_away_survives_a_restart_of_the_daemon() 
             (counter(&d, "drivegate_mqtt_store_messages") == 0.0).then_some(())
         })
         .await;
+        d.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drives_kept_data_waits_for_its_birth_when_it_is_offline_at_the_reconnect() {
+    bounded(Duration::from_secs(120), async {
+        let mut broker = Mosquitto::start();
+        let state = tempfile::tempdir().unwrap();
+        let mut host = Host::connect(broker.port, "wait-host", None).await;
+        let d = TestDaemon::start(&with_store(&broker, state.path())).await;
+        turn(&d).await;
+        host.next(WAIT, "the conveyor's live DDATA", |m| !angles(m).is_empty())
+            .await;
+        broker.stop();
+        let cut = unix_ms();
+        eventually(WAIT, "the conveyor's data kept in the store", || {
+            (counter(&d, "drivegate_mqtt_store_messages") >= 20.0).then_some(())
+        })
+        .await;
+        // The conveyor stops answering before the broker is back: it is
+        // not born at the reconnect.
+        d.sim().set_silent(1, true);
+        eventually(WAIT, "the conveyor offline", || {
+            let link = d.plant.buses()[0].handle.drive(1)?.link;
+            (link == drivegate::bus::cache::Link::Offline).then_some(())
+        })
+        .await;
+        let silenced = unix_ms();
+        let kept = counter(&d, "drivegate_mqtt_store_messages");
+        broker.resume();
+        host.next(WAIT, "the NBIRTH after the outage", |m| {
+            m.is("NBIRTH", None)
+        })
+        .await;
+        // The store is read while the conveyor is still offline: its data
+        // waits for the birth instead of being dropped.
+        eventually(WAIT, "the store read for the replay", || {
+            (counter(&d, "drivegate_mqtt_store_messages") == 0.0).then_some(())
+        })
+        .await;
+        d.sim().set_silent(1, false);
+        let birth = host
+            .next(WAIT, "the conveyor's DBIRTH", |m| {
+                m.is("DBIRTH", Some("conveyor"))
+            })
+            .await;
+        let birth_at = host.seen.len() - 1;
+        let mut historical = 0;
+        while (historical as f64) < kept.min(20.0) {
+            let m = host
+                .next(WAIT, "the conveyor's kept data, replayed", |m| {
+                    angles(m).iter().any(|(_, h)| *h)
+                })
+                .await;
+            for (t, h) in angles(&m) {
+                if h {
+                    assert!(
+                        (cut - 1000..=silenced).contains(&t),
+                        "historical data from {t}, outside the outage {cut}..{silenced}"
+                    );
+                    historical += 1;
+                }
+            }
+        }
+        // None of it reached the host before the conveyor's birth.
+        let first = host
+            .seen
+            .iter()
+            .position(|m| angles(m).iter().any(|(_, h)| *h))
+            .unwrap();
+        assert!(
+            first > birth_at,
+            "historical data of the conveyor at {first}, before its DBIRTH at {birth_at} ({})",
+            birth.topic
+        );
+        assert_eq!(counter(&d, "drivegate_mqtt_replay_dropped_total"), 0.0);
         d.stop().await;
     })
     .await;

@@ -47,7 +47,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::caller::SessionId;
+use super::caller::{Face, SessionId};
 use super::outcome::Applied;
 use crate::control::journal::format::BrakeState;
 use crate::drive::Mode;
@@ -62,6 +62,8 @@ struct Lease {
     mode: Mode,
     action: StopAction,
     comm_loss: bool,
+    /// The face of the session whose communication-loss function it is.
+    face: Option<Face>,
     length: Duration,
     deadline: Instant,
     /// False until its setpoint was settled: the deadline then still
@@ -219,6 +221,12 @@ impl LeaseBook {
     /// its setpoint is settled it runs for `length + allowance`.
     pub fn grant(&mut self, drive: usize, ask: LeaseAsk, now: Instant) -> (Grant, Vec<Effect>) {
         let id = LeaseId(self.next());
+        let face = ask
+            .holder
+            .session()
+            .and_then(|s| self.sessions.get(&s))
+            .and_then(|s| s.comm_loss)
+            .map(|c| c.face);
         let lease = Lease {
             id,
             owner: ask.owner.clone(),
@@ -226,6 +234,7 @@ impl LeaseBook {
             mode: ask.mode,
             action: ask.action.unwrap_or(self.action),
             comm_loss: ask.comm_loss,
+            face,
             length: ask.length,
             deadline: now + ask.length + ask.allowance,
             confirmed: false,
@@ -322,10 +331,13 @@ impl LeaseBook {
             .is_some_and(|s| !self.sessions.contains_key(&s));
         if closed {
             // Its session closed while the setpoint was on its way.
-            if lease.is_some_and(|l| l.comm_loss) && !self.shut_down {
+            if let Some(l) = lease.filter(|l| l.comm_loss)
+                && !self.shut_down
+            {
                 effects.push(Effect::CommLoss {
                     drive,
                     closed: true,
+                    face: l.face.unwrap_or(Face::ModbusTcp),
                 });
             }
             self.end_with_stop(drive, StopReason::SessionClosed(SESSION_CLOSED), now);
@@ -421,21 +433,23 @@ impl LeaseBook {
         if self.shut_down {
             return Vec::new();
         }
-        let expired: Vec<(usize, Option<Duration>)> = self
+        let expired: Vec<(usize, Option<(Duration, Face)>)> = self
             .slots
             .iter()
             .filter_map(|(d, s)| {
                 let lease = s.lease.as_ref().filter(|l| l.deadline <= now)?;
-                Some((*d, lease.comm_loss.then_some(lease.length)))
+                let face = lease.face.unwrap_or(Face::ModbusTcp);
+                Some((*d, lease.comm_loss.then_some((lease.length, face))))
             })
             .collect();
         let mut effects = Vec::new();
         for (drive, comm_loss) in expired {
             let reason = match comm_loss {
-                Some(after) => {
+                Some((after, face)) => {
                     effects.push(Effect::CommLoss {
                         drive,
                         closed: false,
+                        face,
                     });
                     StopReason::CommLost(after)
                 }

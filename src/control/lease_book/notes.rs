@@ -158,6 +158,7 @@ impl LeaseBook {
             mode,
             action,
             comm_loss: false,
+            face: None,
             length,
             deadline: now + left,
             confirmed: true,

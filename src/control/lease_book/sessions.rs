@@ -5,7 +5,7 @@
 use std::time::{Duration, Instant};
 
 use super::{CommLoss, Effect, Holder, LeaseBook, Session, StopReason, Terms};
-use crate::control::caller::SessionId;
+use crate::control::caller::{Face, SessionId};
 use crate::safety::StopAction;
 
 /// How the end of a session reads when nothing more precise is known.
@@ -31,20 +31,28 @@ impl LeaseBook {
             .sessions
             .remove(&session)
             .map_or(SESSION_CLOSED, |s| s.closing);
-        let drives: Vec<(usize, bool)> = self
+        let drives: Vec<(usize, Option<Face>)> = self
             .slots
             .iter()
             .filter_map(|(d, s)| {
                 let lease = s.lease.as_ref()?;
-                (lease.holder == Holder::Session(session)).then_some((*d, lease.comm_loss))
+                (lease.holder == Holder::Session(session)).then_some((
+                    *d,
+                    lease
+                        .comm_loss
+                        .then_some(lease.face.unwrap_or(Face::ModbusTcp)),
+                ))
             })
             .collect();
         let mut effects = Vec::new();
         for (drive, comm_loss) in drives {
-            if comm_loss && !self.shut_down {
+            if let Some(face) = comm_loss
+                && !self.shut_down
+            {
                 effects.push(Effect::CommLoss {
                     drive,
                     closed: true,
+                    face,
                 });
             }
             self.end_with_stop(drive, StopReason::SessionClosed(closing), now);

@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use crate::bus::BusError;
-use crate::control::caller::SessionId;
+use crate::control::caller::{Face, SessionId};
 use crate::drive::Mode;
 use crate::safety::StopAction;
 
@@ -46,6 +46,8 @@ pub struct CommLoss {
     pub after: Duration,
     /// What their end sends (`None`: nothing; the end is still shown).
     pub action: StopAction,
+    /// The face whose session it is: the ends are counted per face.
+    pub face: Face,
 }
 
 /// The lease a write takes: its length, its stop, and whether its
@@ -357,6 +359,8 @@ pub enum Effect {
         drive: usize,
         /// True when its session closed.
         closed: bool,
+        /// The face of the session that held it.
+        face: Face,
     },
 }
 

@@ -86,7 +86,11 @@ fn plc_book(after: Duration, action: StopAction) -> LeaseBook {
     book.session_opened(
         PLC,
         "its Modbus TCP connection closed",
-        Some(CommLoss { after, action }),
+        Some(CommLoss {
+            after,
+            action,
+            face: Face::ModbusTcp,
+        }),
     );
     book
 }
@@ -135,7 +139,7 @@ fn comm_losses(effects: &[Effect]) -> Vec<(usize, bool)> {
     effects
         .iter()
         .filter_map(|e| match e {
-            Effect::CommLoss { drive, closed } => Some((*drive, *closed)),
+            Effect::CommLoss { drive, closed, .. } => Some((*drive, *closed)),
             _ => None,
         })
         .collect()
@@ -430,4 +434,67 @@ fn a_broadcast_setpoint_settled_after_the_close_ends_its_lease_and_counts() {
     let effects = book.end_write(&ticket, Applied::Maybe, t0 + 3 * MS);
     assert_eq!(stops(&effects).len(), 1);
     assert!(comm_losses(&effects).is_empty());
+}
+
+#[test]
+fn a_comm_loss_end_names_the_face_of_the_session_that_held_the_lease() {
+    let t0 = Instant::now();
+    // The PLC's session is Modbus TCP's; an MQTT session beside it.
+    let mut book = plc_book(500 * MS, StopAction::ZeroSpeed);
+    let mqtt = SessionId(22);
+    book.session_opened(
+        mqtt,
+        "the MQTT session ended",
+        Some(CommLoss {
+            after: 500 * MS,
+            action: StopAction::ZeroSpeed,
+            face: Face::Mqtt,
+        }),
+    );
+    plc_write(&mut book, CONVEYOR, Mode::Speed, true, Applied::Yes, t0);
+    let terms = book.terms(Some(mqtt), None, None).unwrap();
+    let (grant, _) = book.grant(
+        LIFT,
+        LeaseAsk {
+            action: terms.action,
+            comm_loss: terms.comm_loss,
+            ..ask(
+                "mqtt scada",
+                Holder::Session(mqtt),
+                Mode::Speed,
+                terms.length,
+            )
+        },
+        t0,
+    );
+    let ticket = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint { lease: Some(grant) },
+        "a write from MQTT".into(),
+    );
+    book.end_write(&ticket, Applied::Yes, t0);
+    let faces = |effects: &[Effect]| -> Vec<(usize, bool, Face)> {
+        effects
+            .iter()
+            .filter_map(|e| match e {
+                Effect::CommLoss {
+                    drive,
+                    closed,
+                    face,
+                } => Some((*drive, *closed, *face)),
+                _ => None,
+            })
+            .collect()
+    };
+    // The MQTT session ends (its primary host went offline): its lease
+    // ends, counted as MQTT's.
+    assert_eq!(
+        faces(&book.session_closed(mqtt, t0 + 100 * MS)),
+        [(LIFT, true, Face::Mqtt)]
+    );
+    // The PLC falls silent: its lease ends, counted as Modbus TCP's.
+    assert_eq!(
+        faces(&book.tick(t0 + 600 * MS)),
+        [(CONVEYOR, false, Face::ModbusTcp)]
+    );
 }

@@ -1,0 +1,396 @@
+//! The stream's command messages translated once for every face that
+//! takes them (the WebSocket stream, MQTT's JSON format): an operation's
+//! name and body into a request for the control core, and the reply it
+//! gets (what was written, the lease now covering the motor, a status).
+//! The refusals are [`Problem`]s, worded as the REST API words them.
+
+use std::time::Duration;
+
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use utoipa::ToSchema;
+
+use super::integers;
+use super::problem::{Kind, Problem};
+use super::status;
+use super::target::Target;
+use super::writes;
+use crate::control::lease_book::Holder;
+use crate::control::policy::of_request as request_meaning;
+use crate::control::written::{Written, written};
+use crate::control::{Caller, Control, ControlRequest, LeaseView};
+use crate::drive::{ConfigCommand, DriveRequest, units};
+
+/// What a command did.
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct CommandReply {
+    /// Drive name.
+    pub drive: String,
+    /// Its bus.
+    pub bus: String,
+    /// Its unit address.
+    pub unit: u8,
+    /// The command's name.
+    pub command: String,
+    /// What was written; the drive echoed it.
+    pub written: Vec<Written>,
+    /// Bus priority it went with: `emergency` for the brake, else `command`.
+    pub priority: String,
+    /// What to expect next, when there is something to know.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
+}
+
+fn note(command: ConfigCommand) -> Option<&'static str> {
+    Some(match command {
+        ConfigCommand::Activate => "activation is kept over power loss",
+        ConfigCommand::Deactivate => "the drive no longer takes setpoints; any lease on it ended",
+        ConfigCommand::Calibrate => {
+            "calibration takes about 4 s and nudges the motor; the status's calibrated flag is set when it is done"
+        }
+        ConfigCommand::FineTuneCalibration => {
+            "fine-tuning takes about 2 s and turns the motor both ways"
+        }
+        ConfigCommand::SetZero => "the new zero is lost when the drive loses power",
+        ConfigCommand::EmergencyBrake => {
+            "the motor is held; any setpoint or mode command releases the brake; any lease on it ended"
+        }
+        ConfigCommand::FactoryReset => {
+            "ramps, stall protection and load inertia are back to factory values, in flash too"
+        }
+        ConfigCommand::SoftReset => "the drive restarts and does not answer for a moment",
+        ConfigCommand::FaultReset => "a stall is cleared; a fault whose cause remains comes back",
+        ConfigCommand::SpeedMode | ConfigCommand::PositionMode | ConfigCommand::TorqueMode => {
+            return None;
+        }
+    })
+}
+
+/// Sends config command `command` to `target` for `caller`.
+pub async fn run(
+    control: &Control,
+    caller: &Caller,
+    target: &Target,
+    command: ConfigCommand,
+    force: bool,
+) -> Result<CommandReply, Problem> {
+    let request = DriveRequest::Config(command);
+    writes::send(
+        control,
+        caller,
+        target.clone(),
+        ControlRequest::drive(request).forced(force),
+    )
+    .await?;
+    Ok(CommandReply {
+        drive: target.drive.name.clone(),
+        bus: target.bus.name().to_string(),
+        unit: target.drive.unit,
+        command: command.name().to_string(),
+        written: written(&request),
+        priority: if request_meaning(&request).emergency {
+            "emergency"
+        } else {
+            "command"
+        }
+        .to_string(),
+        note: note(command).map(str::to_string),
+    })
+}
+
+/// The command named `name`, or 404 listing the valid names.
+pub fn parse_command(name: &str) -> Result<ConfigCommand, Problem> {
+    ConfigCommand::from_name(name).ok_or_else(|| {
+        let names: Vec<&str> = ConfigCommand::ALL.iter().map(|c| c.name()).collect();
+        Problem::new(
+            Kind::UnknownCommand,
+            format!(
+                "no command named \"{name}\": valid commands are {}",
+                names.join(", ")
+            ),
+        )
+    })
+}
+
+/// A closed-loop mode the drive can be put in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ModeChoice {
+    /// Speed closed loop (setpoint `speed_rpm`).
+    Speed,
+    /// Position closed loop (setpoint `position_deg`).
+    Position,
+    /// Torque closed loop (setpoint `torque_a` or `torque_counts`).
+    Torque,
+}
+
+/// `PUT .../mode` body.
+#[derive(Debug, Clone, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ModeBody {
+    /// The mode.
+    pub mode: ModeChoice,
+}
+
+impl ModeChoice {
+    /// The config command that selects it.
+    pub fn command(self) -> ConfigCommand {
+        match self {
+            ModeChoice::Speed => ConfigCommand::SpeedMode,
+            ModeChoice::Position => ConfigCommand::PositionMode,
+            ModeChoice::Torque => ConfigCommand::TorqueMode,
+        }
+    }
+}
+
+/// A lease as clients see it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, ToSchema)]
+pub struct LeaseInfo {
+    /// The drive it covers.
+    pub drive: String,
+    /// Who holds it: a token's name, or a Modbus TCP client's face and
+    /// address ("modbus-tcp 10.1.2.3:50412").
+    pub owner: String,
+    /// Its length: each renewal pushes the deadline this far ahead.
+    pub lease_ms: u64,
+    /// Time left before the stop action, ms.
+    pub expires_in_ms: u64,
+    /// What its end sends: `zero-speed`, `brake`, or `none`.
+    pub action: String,
+    /// True when it also ends as soon as its WebSocket closes.
+    pub websocket: bool,
+    /// True for a lease of a Modbus TCP client's communication-loss
+    /// function (`comm_loss_ms` of its network): any request on its
+    /// connection renews it; `lease_ms` without one, or the connection
+    /// closing, ends it with `action`.
+    pub comm_loss: bool,
+}
+
+impl LeaseInfo {
+    /// The core's view of a lease on drive `drive`.
+    pub fn new(drive: &str, view: &LeaseView) -> Self {
+        let session = matches!(view.holder, Holder::Session(_));
+        LeaseInfo {
+            drive: drive.to_string(),
+            owner: view.owner.to_string(),
+            lease_ms: millis_u64(view.length),
+            expires_in_ms: millis_u64(view.expires_in),
+            action: view.action.name().to_string(),
+            websocket: session && !view.comm_loss,
+            comm_loss: view.comm_loss,
+        }
+    }
+}
+
+/// `PUT .../setpoint` body: exactly one setpoint, and optionally a lease.
+/// Its OpenAPI schema is in `api::body_schemas`.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SetpointBody {
+    /// Speed at the gearbox output, rpm (-2048..2047, rounded to 1 rpm).
+    pub speed_rpm: Option<f64>,
+    /// Position at the gearbox output, degrees (-180..180, rounded to 0.01).
+    pub position_deg: Option<f64>,
+    /// Motor current, amps (-16..15.99, rounded to 1/128 A).
+    pub torque_a: Option<f64>,
+    /// Motor current, raw counts (-2048..2047; 1 A = 128).
+    #[serde(default, deserialize_with = "integers::optional")]
+    pub torque_counts: Option<i64>,
+    /// Stop the motor (`[safety] on_lease_expiry`) unless the setpoint is
+    /// repeated or the lease renewed within this many ms.
+    #[serde(default, deserialize_with = "integers::optional")]
+    pub lease_ms: Option<i64>,
+}
+
+impl SetpointBody {
+    /// The drive request, with values checked against the manual's ranges.
+    pub fn request(&self) -> Result<DriveRequest, Problem> {
+        let given: Vec<&str> = [
+            self.speed_rpm.map(|_| "speed_rpm"),
+            self.position_deg.map(|_| "position_deg"),
+            self.torque_a.map(|_| "torque_a"),
+            self.torque_counts.map(|_| "torque_counts"),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        if given.len() != 1 {
+            return Err(Problem::invalid(format!(
+                "give exactly one of speed_rpm, position_deg, torque_a or torque_counts (found {})",
+                if given.is_empty() {
+                    "none".to_string()
+                } else {
+                    given.join(" and ")
+                }
+            )));
+        }
+        Ok(match self {
+            SetpointBody {
+                speed_rpm: Some(rpm),
+                ..
+            } => DriveRequest::Speed {
+                rpm: units::speed_setpoint(*rpm)?,
+            },
+            SetpointBody {
+                position_deg: Some(deg),
+                ..
+            } => DriveRequest::Position {
+                centideg: units::position_setpoint(*deg)?,
+            },
+            SetpointBody {
+                torque_a: Some(a), ..
+            } => DriveRequest::Torque {
+                counts: units::torque_setpoint(*a)?,
+            },
+            SetpointBody {
+                torque_counts: Some(c),
+                ..
+            } => DriveRequest::Torque {
+                counts: units::torque_setpoint_counts(*c)?,
+            },
+            _ => return Err(Problem::invalid("no setpoint given")),
+        })
+    }
+}
+
+/// What a setpoint did.
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct SetpointReply {
+    /// Drive name.
+    pub drive: String,
+    /// Its bus.
+    pub bus: String,
+    /// Its unit address.
+    pub unit: u8,
+    /// What was written (engineering units and raw); the drive echoed it.
+    pub written: Vec<Written>,
+    /// The lease now covering the motor, if any.
+    pub lease: Option<LeaseInfo>,
+}
+
+/// Sends a setpoint to `target` for `caller`, with a lease of `lease_ms`
+/// (or `lease_default`) when one is asked for; a lease taken in a session
+/// (a WebSocket, MQTT) ends with its session too.
+pub async fn apply(
+    control: &Control,
+    caller: &Caller,
+    target: &Target,
+    body: &SetpointBody,
+    lease_default: Option<Duration>,
+) -> Result<SetpointReply, Problem> {
+    let request = body.request()?;
+    let lease = match body.lease_ms {
+        // A negative length asks for 0 ms, which no bound allows.
+        Some(ms) => Some(Duration::from_millis(u64::try_from(ms).unwrap_or(0))),
+        None => lease_default,
+    };
+    let sent = writes::send(
+        control,
+        caller,
+        target.clone(),
+        ControlRequest::drive(request).with_lease(lease),
+    )
+    .await;
+    let lease = lease_of(control, target.index);
+    sent?;
+    Ok(SetpointReply {
+        drive: target.drive.name.clone(),
+        bus: target.bus.name().to_string(),
+        unit: target.drive.unit,
+        written: written(&request),
+        lease,
+    })
+}
+
+/// The lease on drive `index` of the plant, as clients see it.
+pub fn lease_of(control: &Control, index: usize) -> Option<LeaseInfo> {
+    let view = control.lease(index)?;
+    let name = control.plant().now().drive_at(index)?.name.clone();
+    Some(LeaseInfo::new(&name, &view))
+}
+
+fn millis_u64(d: Duration) -> u64 {
+    u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
+}
+
+/// `{"force": bool}`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ForceBody {
+    #[serde(default)]
+    force: bool,
+}
+
+/// `{"fresh": bool}`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FreshBody {
+    #[serde(default)]
+    fresh: bool,
+}
+
+/// The body of a command message as `T`: none is `{}`, anything but an
+/// object is refused.
+pub fn body_as<T: DeserializeOwned>(op: &str, body: Option<Value>) -> Result<T, Problem> {
+    let body = match body {
+        None => Value::Object(Default::default()),
+        // serde would read a struct from an array, field by field.
+        Some(object @ Value::Object(_)) => object,
+        Some(_) => {
+            return Err(Problem::invalid(format!(
+                "the body of \"{op}\" must be a JSON object ({{...}})"
+            )));
+        }
+    };
+    serde_json::from_value(body)
+        .map_err(|e| Problem::invalid(format!("the body of \"{op}\" is not valid: {e}")))
+}
+
+/// `value` as a reply's JSON.
+pub fn json<T: serde::Serialize>(value: T) -> Result<Value, Problem> {
+    serde_json::to_value(value)
+        .map_err(|e| Problem::new(Kind::Internal, format!("cannot encode the reply: {e}")))
+}
+
+/// The operations on one drive that every face with command messages
+/// offers (the stream, MQTT's JSON format).
+pub const DRIVE_OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, status";
+
+/// Whether `op` is one of [`DRIVE_OPS`].
+pub fn is_drive_op(op: &str) -> bool {
+    matches!(op, "mode" | "setpoint" | "status") || ConfigCommand::from_name(op).is_some()
+}
+
+/// Runs drive operation `op` (one of [`DRIVE_OPS`]) with `body` on the
+/// drive named `key` for `caller`: its reply as JSON, or the problem. The
+/// body is read before the drive is looked up, as the REST routes do.
+pub async fn run_drive_op(
+    control: &Control,
+    caller: &Caller,
+    key: &str,
+    op: &str,
+    body: Option<Value>,
+    lease_default: Option<Duration>,
+) -> Result<Value, Problem> {
+    let target = || Target::find(control.plant(), key);
+    match op {
+        "mode" => {
+            let b: ModeBody = body_as(op, body)?;
+            json(run(control, caller, &target()?, b.mode.command(), false).await?)
+        }
+        "setpoint" => {
+            let b: SetpointBody = body_as(op, body)?;
+            json(apply(control, caller, &target()?, &b, lease_default).await?)
+        }
+        "status" => {
+            let b: FreshBody = body_as(op, body)?;
+            json(status::status(control, caller, &target()?, b.fresh).await?)
+        }
+        name => {
+            let command = parse_command(name)?;
+            let b: ForceBody = body_as(op, body)?;
+            json(run(control, caller, &target()?, command, b.force).await?)
+        }
+    }
+}
