@@ -53,6 +53,7 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
             Arc::new(config.clone()),
             plant.clone(),
             faces.control.clone(),
+            faces.running(),
             shutdown.clone(),
         )
     });
@@ -84,9 +85,16 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
     let watchdog = spawn_watchdog(watchdog_stop.clone());
 
     signals.recv().await;
+    // `[safety] on_shutdown` as the last reload left it.
+    let on_shutdown = faces
+        .control
+        .follow_config()
+        .borrow()
+        .as_ref()
+        .map_or(config.safety.on_shutdown, |c| c.safety.on_shutdown);
     info!(
         "stopping: no new work; finishing the frame on the wire and applying the safe-stop action ({})",
-        config.safety.on_shutdown.name()
+        on_shutdown.name()
     );
     notify_systemd(&[
         sd_notify::NotifyState::Stopping,
@@ -106,7 +114,7 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
             FACES_STOP_LIMIT.as_secs()
         );
     }
-    crate::control::shutdown(&plant, config.safety.on_shutdown).await;
+    crate::control::shutdown(&plant, on_shutdown).await;
     watchdog_stop.cancel();
     if let Some(w) = watchdog {
         let _ = w.await;

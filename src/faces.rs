@@ -1,41 +1,171 @@
-//! Starts the network faces (HTTP API with metrics, Modbus TCP, MQTT) and waits
-//! for them to finish after shutdown.
+//! Starts the network faces (HTTP API with metrics, Modbus TCP, Modbus/TCP
+//! Security, MQTT), restarts one of them when a reload changes its section,
+//! and waits for them to finish after shutdown.
+//!
+//! Each face runs under a stop token of its own (a child of the daemon's
+//! shutdown), so a reload closes that one listener (or the MQTT client) and
+//! starts it again with its new section while the buses, the drives and the
+//! other faces run on ([`Running::follow`]). The rules, for a plant engineer:
+//!
+//! - a listener whose address stays keeps its socket: the new one is served
+//!   on the same descriptor, so there is no moment without a listener and
+//!   nothing can fail to bind;
+//! - a listener that moves binds its new address first, and only then closes
+//!   the old one: an address that cannot be bound (in use, no permission)
+//!   leaves the face where it was, with its settings, and the reload says
+//!   so (a problem in its answer, `/readyz`, the log, the reload metric);
+//!   the next reload tries again. Addresses that overlap (the same port on
+//!   the wildcard and on one interface) cannot be held at once: the old one
+//!   is closed first and opened again if the new one cannot be bound;
+//! - a restarted face closes the connections it held, as a stop does: a
+//!   client is never kept on a port the file no longer names, nor served
+//!   with limits, certificates or roles the file no longer gives. Each
+//!   closed connection ends as any disconnect does: its session's leases
+//!   (a Modbus TCP client's communication-loss function, a WebSocket's
+//!   jog) end with their stop, audited; HTTP requests in progress finish
+//!   and get their answers first (the reload's own included).
 
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::time::Duration;
 
+use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 
 use crate::config::Config;
+use crate::config::diff::Face;
 use crate::control::Control;
+use crate::history::History;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
 
 /// The running faces.
 pub struct Faces {
-    /// Where the HTTP API (REST, WebSocket, metrics) listens.
+    /// Where the HTTP API (REST, WebSocket, metrics) listened at start-up
+    /// ([`Running::addresses`] after a reload).
     pub http: SocketAddr,
-    /// Where Modbus TCP listens, if enabled.
+    /// Where Modbus TCP listened at start-up, if enabled.
     pub modbus_tcp: Option<SocketAddr>,
-    /// Where Modbus/TCP Security listens, if configured.
+    /// Where Modbus/TCP Security listened at start-up, if configured.
     pub modbus_tls: Option<SocketAddr>,
     /// The control core every face writes through.
     pub control: Control,
-    tasks: Vec<JoinHandle<()>>,
+    running: Arc<Running>,
 }
 
 impl Faces {
+    /// The faces as they run now, for the reloader.
+    pub fn running(&self) -> Arc<Running> {
+        self.running.clone()
+    }
+
     /// Waits until every face has stopped (after the shutdown token fired).
     pub async fn wait(self) {
-        for task in self.tasks {
-            let _ = task.await;
-        }
+        self.running.wait().await;
         // Stops of leases still on the wire finish (the daemon's safe stop
         // follows).
-        let _ = tokio::time::timeout(std::time::Duration::from_secs(2), self.control.wait()).await;
+        let _ = tokio::time::timeout(Duration::from_secs(2), self.control.wait()).await;
     }
 }
+
+/// Where the listeners are now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Addresses {
+    /// The HTTP API.
+    pub http: Option<SocketAddr>,
+    /// Modbus TCP.
+    pub modbus_tcp: Option<SocketAddr>,
+    /// Modbus/TCP Security.
+    pub modbus_tls: Option<SocketAddr>,
+}
+
+/// What a reload did to the faces, in words.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Followed {
+    /// What was restarted, opened or closed, one line each.
+    pub changes: Vec<String>,
+    /// What could not be done, and where the face stays.
+    pub problems: Vec<String>,
+}
+
+/// The faces as they run now, each with its own stop; shared by the daemon
+/// and the reloader.
+pub struct Running {
+    shared: Shared,
+    started: tokio::sync::Mutex<Started>,
+    /// Every listener's task, the ones a reload closed included: a stop
+    /// waits for their connections too.
+    tasks: TaskTracker,
+}
+
+/// What every face is started with.
+struct Shared {
+    plant: Arc<Plant>,
+    metrics: Arc<Metrics>,
+    control: Control,
+    history: Arc<History>,
+    shutdown: CancellationToken,
+}
+
+#[derive(Default)]
+struct Started {
+    http: Option<Listening>,
+    modbus_tcp: Option<Listening>,
+    modbus_tls: Option<Listening>,
+    mqtt: Option<Client>,
+}
+
+impl Started {
+    /// The listener of `face`; `None` for the MQTT face, a client.
+    fn slot(&mut self, face: Face) -> Option<&mut Option<Listening>> {
+        match face {
+            Face::Http => Some(&mut self.http),
+            Face::ModbusTcp => Some(&mut self.modbus_tcp),
+            Face::ModbusTls => Some(&mut self.modbus_tls),
+            Face::Mqtt => None,
+        }
+    }
+}
+
+/// A listener serving.
+struct Listening {
+    /// The configuration it was started with.
+    config: Arc<Config>,
+    /// The address it was asked to bind (port 0 stays 0).
+    bind: SocketAddr,
+    /// The address it is bound to.
+    addr: SocketAddr,
+    /// A second descriptor of its socket: served again by a restart at the
+    /// same address, and shut to stop listening at once when it closes
+    /// (its accept loop notices its stop a moment later).
+    socket: std::net::TcpListener,
+    stop: CancellationToken,
+}
+
+impl Listening {
+    /// Stops the face: its accept loop ends and its connections close.
+    /// With `shut`, the socket stops listening now (the port then refuses
+    /// connections); without, another accept loop serves it on.
+    fn close(self, shut: bool) {
+        self.stop.cancel();
+        if shut {
+            let _ = socket2::SockRef::from(&self.socket).shutdown(std::net::Shutdown::Read);
+        }
+    }
+}
+
+/// The MQTT face running.
+struct Client {
+    config: Arc<Config>,
+    stop: CancellationToken,
+    task: JoinHandle<()>,
+}
+
+/// How long the MQTT face may take to say goodbye to its broker (its
+/// NDEATH) before a restart starts the new one anyway.
+const MQTT_STOP_LIMIT: Duration = Duration::from_secs(5);
 
 /// Loads the certificates, keys and client CAs of every configured TLS
 /// listener (and the MQTT face's CA and client certificate), as a start would (for `check-config`): an error names the
@@ -93,58 +223,419 @@ pub async fn start(
     metrics.watch_history(&history);
     // What the last process owed the motors, before any client is taken.
     control.replay().await;
-    let (http, task) = crate::api::start(
-        config,
-        plant.clone(),
-        metrics.clone(),
-        control.clone(),
-        history,
-        crate::console::router(),
-        shutdown.clone(),
-    )
-    .await?;
-    tracing::info!(addr = %http, "HTTP API listening");
-    let mut tasks = vec![task];
-    let modbus_tls = match crate::modbus_tcp::start_tls(
-        config,
-        plant.clone(),
-        metrics.clone(),
-        control.clone(),
-        shutdown.clone(),
-    )
-    .await?
-    {
-        Some((addr, task)) => {
-            tracing::info!(addr = %addr, "Modbus/TCP Security listening");
-            tasks.push(task);
-            Some(addr)
+    let running = Arc::new(Running {
+        shared: Shared {
+            plant,
+            metrics,
+            control: control.clone(),
+            history,
+            shutdown,
+        },
+        started: tokio::sync::Mutex::new(Started::default()),
+        tasks: TaskTracker::new(),
+    });
+    let config = Arc::new(config.clone());
+    let mut started = Started::default();
+    for face in [Face::Http, Face::ModbusTls] {
+        if let Some(address) = bind_address(face, &config) {
+            let listener = bind(face, address).await?;
+            let serving = running.serve(face, &config, address, listener).await?;
+            if let Some(slot) = started.slot(face) {
+                *slot = Some(serving);
+            }
         }
-        None => None,
-    };
-    if let Some(task) = crate::mqtt::start(
-        config,
-        control.clone(),
-        metrics.clone(),
-        crate::mqtt::store::outbox::for_config(config, &metrics),
-        shutdown.clone(),
-    )? {
-        tracing::info!("MQTT face started");
-        tasks.push(task);
     }
-    let modbus_tcp = if config.modbus_tcp.enabled {
-        let (addr, task) =
-            crate::modbus_tcp::start(config, plant, metrics, control.clone(), shutdown).await?;
-        tracing::info!(addr = %addr, "Modbus TCP listening");
-        tasks.push(task);
-        Some(addr)
-    } else {
-        None
-    };
+    running.start_mqtt(&config, &mut started)?;
+    // Modbus TCP last: a PLC that connects finds the others up.
+    if let Some(address) = bind_address(Face::ModbusTcp, &config) {
+        let listener = bind(Face::ModbusTcp, address).await?;
+        started.modbus_tcp = Some(
+            running
+                .serve(Face::ModbusTcp, &config, address, listener)
+                .await?,
+        );
+    }
+    let addr = |l: &Option<Listening>| l.as_ref().map(|l| l.addr);
+    let (http, modbus_tcp, modbus_tls) = (
+        addr(&started.http).ok_or("the HTTP API did not start")?,
+        addr(&started.modbus_tcp),
+        addr(&started.modbus_tls),
+    );
+    *running.started.lock().await = started;
     Ok(Faces {
         http,
         modbus_tcp,
         modbus_tls,
         control,
-        tasks,
+        running,
     })
+}
+
+/// Where `face` is to listen with `config`, if at all. Without a token the
+/// API listens on the loopback address of the same port, whatever `listen`
+/// says (`api::listener::bind_address`).
+fn bind_address(face: Face, config: &Config) -> Option<SocketAddr> {
+    match face {
+        Face::Http => Some(crate::api::listener::bind_address(
+            config.http.listen,
+            !config.http.tokens.is_empty(),
+        )),
+        Face::ModbusTcp => config
+            .modbus_tcp
+            .enabled
+            .then_some(config.modbus_tcp.listen),
+        Face::ModbusTls => config.modbus_tcp.tls.as_ref().map(|t| t.listen),
+        Face::Mqtt => None,
+    }
+}
+
+/// Binds `address` for `face`; the error says where and why.
+async fn bind(face: Face, address: SocketAddr) -> Result<TcpListener, String> {
+    TcpListener::bind(address).await.map_err(|e| {
+        let hint = if address.port() < 1024 && e.kind() == std::io::ErrorKind::PermissionDenied {
+            " (ports below 1024 need CAP_NET_BIND_SERVICE: see docs/modbus-tcp.md)"
+        } else {
+            ""
+        };
+        format!(
+            "cannot listen for {} on {address}: {e}{hint}",
+            protocol(face)
+        )
+    })
+}
+
+/// What `face` serves, in the log's words ("HTTP API listening").
+fn protocol(face: Face) -> &'static str {
+    match face {
+        Face::Http => "HTTP API",
+        Face::ModbusTcp => "Modbus TCP",
+        Face::ModbusTls => "Modbus/TCP Security",
+        Face::Mqtt => "MQTT",
+    }
+}
+
+/// True when a socket listening on `a` keeps another from listening on
+/// `b` (the same port, and the same or a wildcard address).
+fn overlaps(a: SocketAddr, b: SocketAddr) -> bool {
+    a.port() == b.port()
+        && a.port() != 0
+        && (a.ip() == b.ip() || a.ip().is_unspecified() || b.ip().is_unspecified())
+}
+
+impl Running {
+    /// Where the listeners are now.
+    pub async fn addresses(&self) -> Addresses {
+        let started = self.started.lock().await;
+        let addr = |l: &Option<Listening>| l.as_ref().map(|l| l.addr);
+        Addresses {
+            http: addr(&started.http),
+            modbus_tcp: addr(&started.modbus_tcp),
+            modbus_tls: addr(&started.modbus_tls),
+        }
+    }
+
+    /// Restarts each face whose section changed between what it runs with
+    /// and `config` (`Face::changed`), opens the ones `config` adds and
+    /// closes the ones it removes; the others are not touched. A face that
+    /// could not follow stays as it was and is tried again at the next
+    /// reload.
+    pub async fn follow(&self, config: &Arc<Config>) -> Followed {
+        let mut started = self.started.lock().await;
+        let mut followed = Followed::default();
+        for face in [Face::Http, Face::ModbusTls, Face::ModbusTcp] {
+            self.follow_listener(face, config, &mut started, &mut followed)
+                .await;
+        }
+        self.follow_mqtt(config, &mut started, &mut followed).await;
+        followed
+    }
+
+    async fn follow_listener(
+        &self,
+        face: Face,
+        config: &Arc<Config>,
+        started: &mut Started,
+        followed: &mut Followed,
+    ) {
+        let wanted = bind_address(face, config);
+        let Some(slot) = started.slot(face) else {
+            return;
+        };
+        if slot
+            .as_ref()
+            .is_some_and(|old| !face.changed(&old.config, config))
+        {
+            return;
+        }
+        let name = face.name();
+        let (old, address) = match (slot.take(), wanted) {
+            (None, None) => return,
+            (Some(old), None) => {
+                followed
+                    .changes
+                    .push(format!("{name} closed (it was on {})", old.addr));
+                tracing::info!(addr = %old.addr, "{name} closed by a reload");
+                old.close(true);
+                return;
+            }
+            (None, Some(address)) => match bind(face, address).await {
+                Ok(listener) => match self.serve(face, config, address, listener).await {
+                    Ok(new) => {
+                        followed
+                            .changes
+                            .push(format!("{name} opened on {}", new.addr));
+                        *slot = Some(new);
+                        return;
+                    }
+                    Err(why) => return followed.problems.push(format!("{name} not opened: {why}")),
+                },
+                Err(why) => {
+                    return followed.problems.push(format!(
+                        "{name} not opened: {why}; the next reload tries again"
+                    ));
+                }
+            },
+            (Some(old), Some(address)) => (old, address),
+        };
+        // The same address: the same socket, served with the new settings.
+        if address == old.bind {
+            let listener = old
+                .socket
+                .try_clone()
+                .and_then(TcpListener::from_std)
+                .map_err(|e| format!("cannot take over its socket: {e}"));
+            match listener {
+                Ok(listener) => match self.serve(face, config, address, listener).await {
+                    Ok(new) => {
+                        followed.changes.push(format!(
+                            "{name} reopened on {} with the new {}",
+                            new.addr,
+                            face.section()
+                        ));
+                        old.close(false);
+                        *slot = Some(new);
+                    }
+                    Err(why) => {
+                        followed.problems.push(format!(
+                            "{name} not reopened: {why}; it stays on {} with its previous settings",
+                            old.addr
+                        ));
+                        *slot = Some(old);
+                    }
+                },
+                Err(why) => {
+                    followed.problems.push(format!(
+                        "{name} not reopened: {why}; it stays on {} with its previous settings",
+                        old.addr
+                    ));
+                    *slot = Some(old);
+                }
+            }
+            return;
+        }
+        // Another address: bound before the old one closes, unless the
+        // two cannot be held at once.
+        let overlapping = overlaps(old.bind, address);
+        if overlapping {
+            old.stop.cancel();
+            let _ = socket2::SockRef::from(&old.socket).shutdown(std::net::Shutdown::Read);
+        }
+        let moved = match bind(face, address).await {
+            Ok(listener) => self.serve(face, config, address, listener).await,
+            Err(why) => Err(why),
+        };
+        match moved {
+            Ok(new) => {
+                followed.changes.push(format!(
+                    "{name} moved to {} (it was on {})",
+                    new.addr, old.addr
+                ));
+                tracing::info!(addr = %new.addr, was = %old.addr, "{name} moved by a reload");
+                old.close(true);
+                *slot = Some(new);
+            }
+            Err(why) if overlapping => {
+                // Listening again where it was, as it was.
+                let back = socket2::SockRef::from(&old.socket)
+                    .listen(1024)
+                    .and_then(|()| old.socket.try_clone())
+                    .and_then(TcpListener::from_std)
+                    .map_err(|e| e.to_string());
+                let previous = old.config.clone();
+                let (bind, addr) = (old.bind, old.addr);
+                old.close(false);
+                match back {
+                    Ok(listener) => match self.serve(face, &previous, bind, listener).await {
+                        Ok(again) => {
+                            followed.problems.push(format!(
+                                "{name} not moved: {why}; it stays on {addr} with its previous settings, and the next reload tries again"
+                            ));
+                            *slot = Some(again);
+                        }
+                        Err(e) => followed.problems.push(format!(
+                            "{name} not moved: {why}; and not opened again on {addr}: {e}"
+                        )),
+                    },
+                    Err(e) => followed.problems.push(format!(
+                        "{name} not moved: {why}; and not opened again on {addr}: {e}"
+                    )),
+                }
+            }
+            Err(why) => {
+                followed.problems.push(format!(
+                    "{name} not moved: {why}; it stays on {} with its previous settings, and the next reload tries again",
+                    old.addr
+                ));
+                *slot = Some(old);
+            }
+        }
+    }
+
+    /// Starts `face` with `config` on `listener`, under a stop of its own.
+    async fn serve(
+        &self,
+        face: Face,
+        config: &Arc<Config>,
+        bind: SocketAddr,
+        listener: TcpListener,
+    ) -> Result<Listening, String> {
+        let std = listener.into_std().map_err(|e| e.to_string())?;
+        let socket = std.try_clone().map_err(|e| e.to_string())?;
+        let listener = TcpListener::from_std(std).map_err(|e| e.to_string())?;
+        let stop = self.shared.shutdown.child_token();
+        let s = &self.shared;
+        let (addr, task) = match face {
+            Face::Http => {
+                crate::api::start(
+                    config,
+                    listener,
+                    s.plant.clone(),
+                    s.metrics.clone(),
+                    s.control.clone(),
+                    s.history.clone(),
+                    crate::console::router(),
+                    stop.clone(),
+                )
+                .await?
+            }
+            Face::ModbusTcp => crate::modbus_tcp::start(
+                config,
+                listener,
+                s.plant.clone(),
+                s.metrics.clone(),
+                s.control.clone(),
+                stop.clone(),
+            )?,
+            Face::ModbusTls | Face::Mqtt => crate::modbus_tcp::start_tls(
+                config,
+                listener,
+                s.plant.clone(),
+                s.metrics.clone(),
+                s.control.clone(),
+                stop.clone(),
+            )?,
+        };
+        tracing::info!(addr = %addr, "{} listening", protocol(face));
+        self.tasks.spawn(async move {
+            let _ = task.await;
+        });
+        Ok(Listening {
+            config: config.clone(),
+            bind,
+            addr,
+            socket,
+            stop,
+        })
+    }
+
+    /// Starts the MQTT face of `config`, if it has one.
+    fn start_mqtt(&self, config: &Arc<Config>, started: &mut Started) -> Result<(), String> {
+        let s = &self.shared;
+        let stop = s.shutdown.child_token();
+        if let Some(task) = crate::mqtt::start(
+            config,
+            s.control.clone(),
+            s.metrics.clone(),
+            crate::mqtt::store::outbox::for_config(config, &s.metrics),
+            stop.clone(),
+        )? {
+            tracing::info!("MQTT face started");
+            started.mqtt = Some(Client {
+                config: config.clone(),
+                stop,
+                task,
+            });
+        }
+        Ok(())
+    }
+
+    /// Restarts the MQTT face when `[mqtt]` changed: the old one says
+    /// goodbye to its broker (its session's leases end with
+    /// `comm_loss_action`, as for a lost broker) before the new one
+    /// connects with the same node id and store.
+    async fn follow_mqtt(
+        &self,
+        config: &Arc<Config>,
+        started: &mut Started,
+        followed: &mut Followed,
+    ) {
+        let name = Face::Mqtt.name();
+        let was = started.mqtt.as_ref().map(|c| c.config.clone());
+        match &was {
+            Some(old) if !Face::Mqtt.changed(old, config) => return,
+            None if config.mqtt.is_none() => return,
+            _ => {}
+        }
+        if let Some(old) = started.mqtt.take() {
+            old.stop.cancel();
+            if tokio::time::timeout(MQTT_STOP_LIMIT, old.task)
+                .await
+                .is_err()
+            {
+                tracing::warn!(
+                    "the MQTT face did not stop within {} s; the new one starts anyway",
+                    MQTT_STOP_LIMIT.as_secs()
+                );
+            }
+        }
+        if config.mqtt.is_none() {
+            self.shared.metrics.mqtt().unconfigured();
+        }
+        match self.start_mqtt(config, started) {
+            Ok(()) => followed.changes.push(match (&was, &started.mqtt) {
+                (Some(_), Some(_)) => format!("{name} restarted with the new [mqtt]"),
+                (None, Some(_)) => format!("{name} started"),
+                _ => format!("{name} stopped ([mqtt] removed)"),
+            }),
+            Err(why) => followed.problems.push(format!(
+                "{name} not started: {why}; the next reload tries again"
+            )),
+        }
+    }
+
+    /// Waits for every face to end (once the shutdown fired).
+    async fn wait(&self) {
+        let mqtt = self.started.lock().await.mqtt.take();
+        self.tasks.close();
+        self.tasks.wait().await;
+        if let Some(mqtt) = mqtt {
+            let _ = mqtt.task.await;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::overlaps;
+
+    #[test]
+    fn the_wildcard_overlaps_every_address_of_its_port() {
+        let a = |s: &str| s.parse().unwrap_or_else(|e| panic!("{s}: {e}"));
+        assert!(overlaps(a("0.0.0.0:502"), a("192.168.1.5:502")));
+        assert!(overlaps(a("192.168.1.5:502"), a("[::]:502")));
+        assert!(overlaps(a("127.0.0.1:502"), a("127.0.0.1:502")));
+        assert!(!overlaps(a("127.0.0.1:502"), a("192.168.1.5:502")));
+        assert!(!overlaps(a("0.0.0.0:502"), a("0.0.0.0:5020")));
+        assert!(!overlaps(a("0.0.0.0:0"), a("127.0.0.1:0")));
+    }
 }

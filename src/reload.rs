@@ -8,9 +8,11 @@
 //! `file:line:column`), compares it with the running configuration
 //! (`config::diff`, pure), stops the drives it removes while their bus
 //! still runs (`Control::retire`), has the plant reopen only the buses that
-//! changed (`Plant::apply`), and publishes the new configuration, which
-//! the faces follow for their own sections (tokens, Modbus TCP clients and
-//! units) and the core for `[safety]`.
+//! changed (`Plant::apply`), publishes the new configuration, which the
+//! faces follow for their own sections (tokens, Modbus TCP clients and
+//! units) and the core for `[safety]`, and restarts only the faces whose
+//! listener or client section changed (`faces::Running::follow`: a
+//! listen address, TLS files, connection limits, `[mqtt]`).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -24,6 +26,7 @@ use crate::config::diff::{Changes, diff};
 use crate::config::edit::sha256_hex;
 use crate::control::Control;
 use crate::control::reload::{Applied, NewText, Refused, ReloadRequest, ReloadResult};
+use crate::faces::Running;
 use crate::plant::{Plant, Rebuild};
 
 /// Reloads waiting for the reloader.
@@ -35,16 +38,19 @@ pub struct Reloader {
     running: Arc<Config>,
     plant: Arc<Plant>,
     control: Control,
+    faces: Arc<Running>,
 }
 
 impl Reloader {
     /// Starts the reloader of `path` (whose text `config` is) and attaches
-    /// it to the core; it ends with `shutdown`.
+    /// it to the core; it restarts `faces` as their sections change, and
+    /// ends with `shutdown`.
     pub fn start(
         path: &Path,
         config: Arc<Config>,
         plant: Arc<Plant>,
         control: Control,
+        faces: Arc<Running>,
         shutdown: CancellationToken,
     ) -> tokio::task::JoinHandle<()> {
         let (tx, rx) = mpsc::channel(QUEUE);
@@ -54,6 +60,7 @@ impl Reloader {
             running: config,
             plant,
             control,
+            faces,
         };
         tokio::spawn(reloader.run(rx, shutdown))
     }
@@ -74,11 +81,18 @@ impl Reloader {
             let result = self.reload(&request.by, request.write).await;
             self.control.record_reload(&result);
             match &result {
-                Ok(applied) => info!(
+                Ok(applied) if applied.problems.is_empty() => info!(
                     by = %request.by,
                     "configuration reloaded from {}: {}",
                     self.path.display(),
                     applied.changes.join("; ")
+                ),
+                Ok(applied) => warn!(
+                    by = %request.by,
+                    "configuration reloaded in part from {}: {}; not done: {}",
+                    self.path.display(),
+                    applied.changes.join("; "),
+                    applied.problems.join("; ")
                 ),
                 Err(refused) => warn!(
                     by = %request.by,
@@ -113,21 +127,9 @@ impl Reloader {
     }
 
     async fn apply(&mut self, new: Config, mut changes: Changes) -> Applied {
-        // Listeners keep their socket until the next start.
-        for listener in std::mem::take(&mut changes.listeners_reopened) {
-            changes.at_restart.push(match listener {
-                "http" => "[http] listen, tls and connection limits",
-                "modbus_tcp" => "[modbus_tcp] listen and connection limits",
-                _ => "[modbus_tcp.tls]",
-            });
-        }
-        if new.http.tokens.is_empty() && !self.running.http.tokens.is_empty() {
-            // Without tokens every client is admin: only on loopback.
-            changes.tokens_changed = 0;
-            changes
-                .at_restart
-                .push("[[http.token]] all removed (the API then listens on loopback only)");
-        }
+        // The faces say themselves what they did (compared with what each
+        // runs with: one that could not follow the last reload tries again).
+        changes.faces_restarted.clear();
         // Drives that leave (or move): stopped while their bus still runs.
         let now = self.plant.now();
         let leaving: Vec<usize> = now
@@ -167,9 +169,20 @@ impl Reloader {
         }
         let new = Arc::new(new);
         self.control.set_config(new.clone());
+        // After the configuration is published: a face started now reads
+        // the one it runs with. A listener that moves closes its old socket
+        // before this answers, so the old address refuses from then on.
+        let faces = self.faces.follow(&new).await;
         self.running = new;
+        let mut lines = changes.lines();
+        if changes.is_empty() && !faces.changes.is_empty() {
+            lines.clear();
+        }
+        lines.extend(faces.changes);
+        let mut problems = problems;
+        problems.extend(faces.problems);
         Applied {
-            changes: changes.lines(),
+            changes: lines,
             problems,
             stopped,
         }

@@ -173,9 +173,10 @@ impl Tokens {
         let fresh = new.entries();
         if fresh.is_empty() && !entries.is_empty() {
             // Without tokens every client is admin: safe only on loopback,
-            // where the listener goes at the next start.
-            tracing::warn!(
-                "every API token was removed: the old ones stay until drivegate restarts (then the API listens on loopback only)"
+            // where the reload reopens the listener (`crate::faces`); this
+            // one keeps its tokens until it closes.
+            tracing::info!(
+                "every API token was removed: this listener keeps the old ones until the reload has reopened the API on loopback"
             );
             return;
         }

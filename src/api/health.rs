@@ -75,15 +75,17 @@ pub struct Readiness {
 /// The configuration in `/readyz`.
 #[derive(Debug, Clone, Serialize, ToSchema)]
 pub struct ConfigReadiness {
-    /// False when the last reload was refused (the file on disk is not the
-    /// one running).
+    /// False when the last reload was refused or applied only in part (the
+    /// file on disk is not the one running).
     pub last_reload_ok: bool,
-    /// Why the last reload was refused, with `file:line:column`.
+    /// Why the last reload was refused, with `file:line:column`; or what
+    /// of it was not done (a bus's port that did not open, a listener that
+    /// could not move and where it stays).
     pub last_reload_error: Option<String>,
     /// When the running configuration was loaded (start-up or the last
     /// reload), RFC 3339.
     pub loaded_at: Option<String>,
-    /// Reloads applied since start-up.
+    /// Reloads applied since start-up, whole or in part.
     pub reloads: u64,
 }
 
@@ -188,7 +190,7 @@ pub fn readiness(state: &ApiState) -> Readiness {
                 last_reload_ok: status.last_ok,
                 last_reload_error: status.last_error,
                 loaded_at: status.last_good_at.map(crate::timestamp::rfc3339),
-                reloads: status.applied,
+                reloads: status.applied + status.partial,
             }
         },
         mqtt: mqtt_readiness(state),

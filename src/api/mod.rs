@@ -79,12 +79,15 @@ use listener::LimitedListener;
 use problem::{Kind, Problem};
 use state::ApiState;
 
-/// Binds the HTTP listener and serves the API, with `pages` (the web
-/// console, a face of its own above this one) beside its routes, until
-/// `shutdown` fires. Returns the bound address (the real port when the
-/// config said port 0) and the task serving it.
+/// Serves the API on `tcp` (bound by the caller where
+/// [`listener::bind_address`] says), with `pages` (the web console, a face
+/// of its own above this one) beside its routes, until `shutdown` fires.
+/// Returns the bound address (the real port when the config said port 0)
+/// and the task serving it.
+#[allow(clippy::too_many_arguments)]
 pub async fn start(
     config: &Config,
+    tcp: tokio::net::TcpListener,
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
     control: Control,
@@ -96,13 +99,9 @@ pub async fn start(
     let tokens = Tokens::resolve(&http.tokens, http.token_guesses)
         .map_err(|e| e.to_string())?
         .follow(&control);
-    let bind = listener::bind_address(http.listen, !tokens.is_empty());
-    let tcp = tokio::net::TcpListener::bind(bind)
-        .await
-        .map_err(|e| format!("cannot listen for HTTP on {bind}: {e}"))?;
     let addr = tcp.local_addr().map_err(|e| e.to_string())?;
     if tokens.is_empty() {
-        if bind != http.listen {
+        if addr.ip() != http.listen.ip() {
             tracing::warn!(
                 configured = %http.listen,
                 listening = %addr,

@@ -61,6 +61,8 @@ pub async fn serve(
     let connections = TaskTracker::new();
     loop {
         let (stream, addr) = tokio::select! {
+            // A closed listener's socket fails its accepts: the stop first.
+            biased;
             () = shutdown.cancelled() => break,
             accepted = listener.accept() => accepted,
         };

@@ -84,13 +84,14 @@ pub fn ping() -> Message {
     Message::Ping(Default::default())
 }
 
-/// Closes the socket with 1001 "going away" if the daemon is stopping
-/// (waiting at most a second for a client that does not read).
+/// Closes the socket with 1001 "going away" if its listener is closing
+/// (the daemon stops, or a reload reopens the listener), waiting at most a
+/// second for a client that does not read.
 pub async fn close_if_stopping(state: &ApiState, sink: &mut Sink) {
     if state.shutdown.is_cancelled() {
         let close = Message::Close(Some(CloseFrame {
             code: 1001,
-            reason: "drivegate is stopping".into(),
+            reason: "drivegate is stopping or reopening this listener".into(),
         }));
         let _ = tokio::time::timeout(Duration::from_secs(1), sink.send(close)).await;
     }

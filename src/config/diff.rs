@@ -9,10 +9,108 @@
 //! long as its name, its bus and its unit stay the same; a drive renamed,
 //! moved to another bus or given another unit is one drive removed and
 //! one added, so a lease never follows a name to another motor.
+//!
+//! A face is restarted on its own when its section changes ([`Face`]): a
+//! listener at its new address or with its new limits, the MQTT face with
+//! its new broker. Every section of the file is compared ([`diff`] takes
+//! the configuration apart field by field, so a section added to
+//! [`Config`] does not compile until it is compared): a change is either
+//! applied or reported as applying at the next start, never ignored.
 
 use std::collections::BTreeSet;
 
-use super::{BusConfig, Config, DriveConfig};
+use super::{BusConfig, Config, DriveConfig, ModbusTcpConfig, SafetyConfig};
+use crate::listed::listed_enum;
+
+listed_enum! {
+    /// A face a reload restarts by itself when what it was started with
+    /// changes; the buses, the drives and the other faces keep running.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub enum Face {
+        /// The HTTP listener (REST, WebSocket, metrics, the console).
+        Http,
+        /// The Modbus TCP listener.
+        ModbusTcp,
+        /// The Modbus/TCP Security listener (`[modbus_tcp.tls]`).
+        ModbusTls,
+        /// The MQTT face, a client of its broker.
+        Mqtt,
+    }
+}
+
+impl Face {
+    /// Its name in words, as the log and a reload's answer say it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Face::Http => "HTTP API listener",
+            Face::ModbusTcp => "Modbus TCP listener",
+            Face::ModbusTls => "Modbus/TCP Security listener",
+            Face::Mqtt => "MQTT face",
+        }
+    }
+
+    /// The section it is started from.
+    pub fn section(self) -> &'static str {
+        match self {
+            Face::Http => "[http]",
+            Face::ModbusTcp => "[modbus_tcp]",
+            Face::ModbusTls => "[modbus_tcp.tls]",
+            Face::Mqtt => "[mqtt]",
+        }
+    }
+
+    /// True when what this face is started with differs between `old`
+    /// and `new`, so that it must be restarted to follow the file.
+    pub fn changed(self, old: &Config, new: &Config) -> bool {
+        match self {
+            // Everything of [http] but the tokens, which the listener
+            // follows request by request; but with no token at all it
+            // listens on loopback only, so their coming or going counts.
+            Face::Http => {
+                let http = |c: &Config| {
+                    let mut h = c.http.clone();
+                    h.tokens.clear();
+                    (h, c.http.tokens.is_empty())
+                };
+                http(old) != http(new)
+            }
+            Face::ModbusTcp => {
+                let tcp = |c: &ModbusTcpConfig| {
+                    (
+                        c.enabled,
+                        c.listen,
+                        c.max_connections,
+                        c.idle_timeout_ms,
+                        c.max_pipelined,
+                    )
+                };
+                tcp(&old.modbus_tcp) != tcp(&new.modbus_tcp)
+            }
+            // Its limits are the plain listener's; `read_only` makes every
+            // client of it a viewer when it connects.
+            Face::ModbusTls if old.modbus_tcp.tls.is_none() && new.modbus_tcp.tls.is_none() => {
+                false
+            }
+            Face::ModbusTls => {
+                let tls = |c: &ModbusTcpConfig| {
+                    (
+                        c.tls.clone(),
+                        c.max_connections,
+                        c.idle_timeout_ms,
+                        c.max_pipelined,
+                        c.read_only,
+                    )
+                };
+                tls(&old.modbus_tcp) != tls(&new.modbus_tcp)
+            }
+            // Its store of unpublished data is in the state directory.
+            Face::Mqtt => {
+                old.mqtt != new.mqtt
+                    || (new.mqtt.is_some() && old.safety.state_dir != new.safety.state_dir)
+            }
+        }
+    }
+}
 
 /// The changes from one configuration to the next, in the plant's terms.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -33,8 +131,8 @@ pub struct Changes {
     pub drives_changed: Vec<String>,
     /// Tokens added, removed or changed (role or secret).
     pub tokens_changed: usize,
-    /// Listeners to reopen: `http`, `modbus_tcp`, `modbus_tls`.
-    pub listeners_reopened: Vec<&'static str>,
+    /// Faces to restart: listeners to reopen, the MQTT face.
+    pub faces_restarted: Vec<Face>,
     /// Other sections whose new values apply at once, e.g. `[safety]`,
     /// `[modbus_tcp] clients`.
     pub sections: Vec<&'static str>,
@@ -67,8 +165,8 @@ impl Changes {
         if self.tokens_changed > 0 {
             out.push(format!("tokens changed: {}", self.tokens_changed));
         }
-        for listener in &self.listeners_reopened {
-            out.push(format!("listener reopened: {listener}"));
+        for face in &self.faces_restarted {
+            out.push(format!("restarted: {}", face.name()));
         }
         for section in &self.sections {
             out.push(format!("applied: {section}"));
@@ -85,37 +183,110 @@ impl Changes {
 
 /// What changed from `old` to `new` (both already checked).
 pub fn diff(old: &Config, new: &Config) -> Changes {
+    // Every section, by name: a new one must be compared here to compile.
+    let Config {
+        http: _,
+        modbus_tcp,
+        mqtt: _,
+        log,
+        safety,
+        monitor,
+        scope,
+        history,
+        buses: _,
+    } = new;
     let mut changes = Changes::default();
     buses(old, new, &mut changes);
     drives(old, new, &mut changes);
     changes.tokens_changed = tokens_changed(old, new);
-    listeners(old, new, &mut changes);
-    if old.safety != new.safety {
-        changes.sections.push("[safety]");
-    }
-    let clients = |c: &Config| {
-        (
-            c.modbus_tcp.allowed_networks.clone(),
-            c.modbus_tcp.clients.clone(),
-            c.modbus_tcp.read_only,
-            c.modbus_tcp.broadcast_reply,
-            c.modbus_tcp.unit_map.clone(),
-            c.modbus_tcp.polled_copy.clone(),
-        )
-    };
-    if clients(old) != clients(new) {
+    changes.faces_restarted = Face::ALL
+        .into_iter()
+        .filter(|face| face.changed(old, new))
+        .collect();
+    self::safety(&old.safety, safety, &mut changes);
+    if clients(&old.modbus_tcp) != clients(modbus_tcp) {
         changes.sections.push("[modbus_tcp] clients and units");
     }
-    if old.scope != new.scope {
+    if old.scope != *scope {
         changes.sections.push("[scope]");
     }
-    if old.monitor != new.monitor {
+    if old.monitor != *monitor {
         changes.sections.push("[monitor]");
     }
-    if old.log != new.log {
+    if old.history != *history {
+        // Each drive's rings are sized once, at start-up.
+        changes.at_restart.push("[history]");
+    }
+    if old.log != *log {
         changes.at_restart.push("[log]");
     }
     changes
+}
+
+/// What of `[modbus_tcp]` the Modbus TCP faces follow request by request
+/// and connection by connection; the rest is their listeners' (`Face`).
+fn clients(c: &ModbusTcpConfig) -> impl PartialEq + use<> {
+    let ModbusTcpConfig {
+        enabled: _,
+        listen: _,
+        max_connections: _,
+        idle_timeout_ms: _,
+        max_pipelined: _,
+        tls: _,
+        allowed_networks,
+        clients,
+        read_only,
+        broadcast_reply,
+        unit_map,
+        polled_copy,
+    } = c.clone();
+    (
+        allowed_networks,
+        clients,
+        read_only,
+        broadcast_reply,
+        unit_map,
+        polled_copy,
+    )
+}
+
+/// `[safety]`: the lease settings and the stop actions apply at once (the
+/// core reads them at each lease and at the stop); where the journal is
+/// kept, the size of the alarm list and what a start does with an
+/// unreadable journal are read once, at start-up.
+fn safety(old: &SafetyConfig, new: &SafetyConfig, changes: &mut Changes) {
+    let SafetyConfig {
+        on_shutdown,
+        on_lease_expiry,
+        jog_lease_ms,
+        lease_min_ms,
+        lease_max_ms,
+        state_dir,
+        on_unknown_state,
+        alarms_kept,
+    } = new.clone();
+    if (
+        old.on_shutdown,
+        old.on_lease_expiry,
+        old.jog_lease_ms,
+        old.lease_min_ms,
+        old.lease_max_ms,
+    ) != (
+        on_shutdown,
+        on_lease_expiry,
+        jog_lease_ms,
+        lease_min_ms,
+        lease_max_ms,
+    ) {
+        changes.sections.push("[safety]");
+    }
+    if (&old.state_dir, old.on_unknown_state, old.alarms_kept)
+        != (&state_dir, on_unknown_state, alarms_kept)
+    {
+        changes
+            .at_restart
+            .push("[safety] state_dir, on_unknown_state and alarms_kept");
+    }
 }
 
 /// Buses added, removed, and reopened with why. A change of `[scope]` or
@@ -255,35 +426,6 @@ fn tokens_changed(old: &Config, new: &Config) -> usize {
         .count()
 }
 
-/// Listeners whose address or certificates changed. The HTTP listener is
-/// also reopened when tokens appear or all go (without tokens it listens on
-/// loopback only), and for its connection limits.
-fn listeners(old: &Config, new: &Config, changes: &mut Changes) {
-    let http = |c: &Config| {
-        let mut h = c.http.clone();
-        h.tokens.clear();
-        (h, c.http.tokens.is_empty())
-    };
-    if http(old) != http(new) {
-        changes.listeners_reopened.push("http");
-    }
-    let tcp = |c: &Config| {
-        (
-            c.modbus_tcp.enabled,
-            c.modbus_tcp.listen,
-            c.modbus_tcp.max_connections,
-            c.modbus_tcp.idle_timeout_ms,
-            c.modbus_tcp.max_pipelined,
-        )
-    };
-    if tcp(old) != tcp(new) {
-        changes.listeners_reopened.push("modbus_tcp");
-    }
-    if old.modbus_tcp.tls != new.modbus_tcp.tls {
-        changes.listeners_reopened.push("modbus_tls");
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -354,7 +496,7 @@ name = "press"
             vec![("line2".to_string(), vec!["drives".to_string()])]
         );
         assert!(c.buses_added.is_empty() && c.buses_removed.is_empty());
-        assert!(c.listeners_reopened.is_empty() && c.sections.is_empty());
+        assert!(c.faces_restarted.is_empty() && c.sections.is_empty());
         assert_eq!(
             c.lines(),
             vec!["drives added: saw", "bus line2 reopened (drives changed)"]
@@ -440,7 +582,7 @@ name = "press"
             "[[http.token]]\nname = \"scada\"\nrole = \"viewer\"\nsha256 = \"1111111111111111111111111111111111111111111111111111111111111111\"\n[modbus_tcp]",
         );
         assert_eq!(c.tokens_changed, 1);
-        assert!(c.listeners_reopened.is_empty(), "{c:?}");
+        assert!(c.faces_restarted.is_empty(), "{c:?}");
         let c = changed("role = \"operator\"", "role = \"admin\"");
         assert_eq!(c.tokens_changed, 1);
         assert_eq!(c.lines(), vec!["tokens changed: 1"]);
@@ -456,15 +598,16 @@ name = "press"
             )),
         );
         assert_eq!(c.tokens_changed, 1);
-        assert_eq!(c.listeners_reopened, vec!["http"]);
+        assert_eq!(c.faces_restarted, vec![Face::Http]);
     }
 
     #[test]
     fn listen_addresses_reopen_their_listener() {
         let c = changed("127.0.0.1:8080", "127.0.0.1:8081");
-        assert_eq!(c.listeners_reopened, vec!["http"]);
+        assert_eq!(c.faces_restarted, vec![Face::Http]);
+        assert_eq!(c.lines(), vec!["restarted: HTTP API listener"]);
         let c = changed("127.0.0.1:5020", "127.0.0.1:5021");
-        assert_eq!(c.listeners_reopened, vec!["modbus_tcp"]);
+        assert_eq!(c.faces_restarted, vec![Face::ModbusTcp]);
         assert!(c.buses_reopened.is_empty());
     }
 
@@ -478,7 +621,11 @@ name = "press"
             "listen = \"127.0.0.1:5020\"\nread_only = true",
         );
         assert_eq!(c.sections, vec!["[modbus_tcp] clients and units"]);
-        assert!(c.listeners_reopened.is_empty());
+        assert_eq!(
+            c.faces_restarted,
+            vec![],
+            "no Modbus/TCP Security listener to follow it"
+        );
         let c = changed("[http]", "[scope]\nmax_samples = 1000\n[http]");
         assert_eq!(c.sections, vec!["[scope]"]);
         assert_eq!(
@@ -488,5 +635,207 @@ name = "press"
         );
         let c = changed("[http]", "[log]\nformat = \"json\"\n[http]");
         assert_eq!(c.at_restart, vec!["[log]"]);
+    }
+
+    /// The reference configuration (`config/drivegate.toml`), every key at
+    /// its default.
+    fn reference() -> Config {
+        parse(include_str!("../../config/drivegate.toml"))
+    }
+
+    /// `change` applied to the reference configuration.
+    fn changed_by(change: impl FnOnce(&mut Config)) -> Changes {
+        let old = reference();
+        let mut new = old.clone();
+        change(&mut new);
+        assert_ne!(old, new, "the change changes nothing");
+        diff(&old, &new)
+    }
+
+    /// The reference configuration with `text` added at its end.
+    fn with(text: &str) -> Config {
+        parse(&format!(
+            "{}\n{text}",
+            include_str!("../../config/drivegate.toml")
+        ))
+    }
+
+    #[test]
+    fn a_change_of_any_section_is_applied_or_said_to_wait_for_the_next_start() {
+        use std::time::Duration;
+        // (what, the change, what the diff must say)
+        type Change = Box<dyn FnOnce(&mut Config)>;
+        let cases: Vec<(&str, Change, Vec<&str>)> = vec![
+            (
+                "[http] listen",
+                Box::new(|c| c.http.listen.set_port(18080)),
+                vec!["restarted: HTTP API listener"],
+            ),
+            (
+                "[http] a limit",
+                Box::new(|c| c.http.idle_timeout += Duration::from_secs(1)),
+                vec!["restarted: HTTP API listener"],
+            ),
+            (
+                "[http] allowed_hosts",
+                Box::new(|c| c.http.allowed_hosts.push("gateway.plant".into())),
+                vec!["restarted: HTTP API listener"],
+            ),
+            (
+                "[[http.token]]",
+                Box::new(|c| {
+                    c.http.tokens = with(
+                        "[[http.token]]\nname = \"panel\"\nrole = \"viewer\"\nsha256 = \"2222222222222222222222222222222222222222222222222222222222222222\"",
+                    )
+                    .http
+                    .tokens;
+                }),
+                vec!["tokens changed: 1"],
+            ),
+            (
+                "[modbus_tcp] listen",
+                Box::new(|c| c.modbus_tcp.listen.set_port(15020)),
+                vec!["restarted: Modbus TCP listener"],
+            ),
+            (
+                "[modbus_tcp] enabled",
+                Box::new(|c| c.modbus_tcp.enabled = false),
+                vec!["restarted: Modbus TCP listener"],
+            ),
+            (
+                "[modbus_tcp] max_pipelined",
+                Box::new(|c| c.modbus_tcp.max_pipelined += 1),
+                vec!["restarted: Modbus TCP listener"],
+            ),
+            (
+                "[modbus_tcp] read_only",
+                Box::new(|c| c.modbus_tcp.read_only = !c.modbus_tcp.read_only),
+                vec!["applied: [modbus_tcp] clients and units"],
+            ),
+            (
+                "[modbus_tcp] broadcast_reply",
+                Box::new(|c| c.modbus_tcp.broadcast_reply = !c.modbus_tcp.broadcast_reply),
+                vec!["applied: [modbus_tcp] clients and units"],
+            ),
+            (
+                "[[modbus_tcp.clients]]",
+                Box::new(|c| {
+                    c.modbus_tcp.clients.pop();
+                }),
+                vec!["applied: [modbus_tcp] clients and units"],
+            ),
+            (
+                "[[modbus_tcp.unit_map]]",
+                Box::new(|c| {
+                    c.modbus_tcp.unit_map.pop();
+                }),
+                vec!["applied: [modbus_tcp] clients and units"],
+            ),
+            (
+                "[mqtt] added",
+                Box::new(|c| {
+                    c.mqtt = with("[mqtt]\nbroker = \"mqtt://127.0.0.1:1883\"").mqtt;
+                }),
+                vec!["restarted: MQTT face"],
+            ),
+            (
+                "[log]",
+                Box::new(|c| c.log.level = "debug".into()),
+                vec!["applies at the next start: [log]"],
+            ),
+            (
+                "[safety] on_shutdown",
+                Box::new(|c| c.safety.on_shutdown = crate::config::StopAction::Brake),
+                vec!["applied: [safety]"],
+            ),
+            (
+                "[safety] lease_max_ms",
+                Box::new(|c| c.safety.lease_max_ms += 1),
+                vec!["applied: [safety]"],
+            ),
+            (
+                "[safety] alarms_kept",
+                Box::new(|c| c.safety.alarms_kept += 1),
+                vec![
+                    "applies at the next start: [safety] state_dir, on_unknown_state and alarms_kept",
+                ],
+            ),
+            (
+                "[safety] state_dir",
+                Box::new(|c| c.safety.state_dir = Some("/var/lib/elsewhere".into())),
+                vec![
+                    "applies at the next start: [safety] state_dir, on_unknown_state and alarms_kept",
+                ],
+            ),
+            (
+                "[monitor]",
+                Box::new(|c| c.monitor.ring_frames += 1),
+                vec!["applied: [monitor]"],
+            ),
+            (
+                "[scope]",
+                Box::new(|c| c.scope.max_samples += 1),
+                vec!["applied: [scope]"],
+            ),
+            (
+                "[history]",
+                Box::new(|c| c.history.minutes = 30),
+                vec!["applies at the next start: [history]"],
+            ),
+            (
+                "[[bus]] baud",
+                Box::new(|c| c.buses[0].baud = 57600),
+                vec!["bus "],
+            ),
+            (
+                "[[bus]] added",
+                Box::new(|c| {
+                    c.buses = with("[[bus]]\nname = \"another\"\nport = \"sim\"").buses;
+                }),
+                vec!["buses added: another"],
+            ),
+            (
+                "[[bus.drive]]",
+                Box::new(|c| {
+                    c.buses[0].drives.pop();
+                }),
+                vec!["drives removed: "],
+            ),
+        ];
+        for (what, change, says) in cases {
+            let c = changed_by(change);
+            let lines = c.lines();
+            for said in says {
+                assert!(
+                    lines.iter().any(|l| l.starts_with(said)),
+                    "a change of {what} is not reported as {said:?}: {lines:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn tls_and_mqtt_changes_restart_only_their_face() {
+        let tls = "[modbus_tcp.tls]\nlisten = \"127.0.0.1:802\"\ncert = \"/x/gw.pem\"\nkey = \"/x/gw.key\"\nclient_ca = \"/x/ca.pem\"\n";
+        let (old, new) = (reference(), with(tls));
+        assert_eq!(diff(&old, &new).faces_restarted, vec![Face::ModbusTls]);
+        assert_eq!(diff(&new, &old).faces_restarted, vec![Face::ModbusTls]);
+        // The plain listener's limits are the secure one's too.
+        let mut limits = new.clone();
+        limits.modbus_tcp.max_connections += 1;
+        assert_eq!(
+            diff(&new, &limits).faces_restarted,
+            vec![Face::ModbusTcp, Face::ModbusTls]
+        );
+        let mqtt = "[mqtt]\nbroker = \"mqtt://127.0.0.1:1883\"\n";
+        let (a, b) = (with(mqtt), with(&mqtt.replace("1883", "1884")));
+        let c = diff(&a, &b);
+        assert_eq!(c.faces_restarted, vec![Face::Mqtt]);
+        assert_eq!(c.lines(), vec!["restarted: MQTT face"]);
+        // Its store is in the state directory.
+        let mut moved = a.clone();
+        moved.safety.state_dir = Some("/var/lib/elsewhere".into());
+        assert_eq!(diff(&a, &moved).faces_restarted, vec![Face::Mqtt]);
+        assert_eq!(diff(&a, &reference()).faces_restarted, vec![Face::Mqtt]);
     }
 }

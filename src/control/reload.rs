@@ -46,8 +46,10 @@ pub type ReloadResult = Result<Applied, Refused>;
 pub struct Applied {
     /// What changed, in words, one line each.
     pub changes: Vec<String>,
-    /// What could not be done (a bus whose port did not open stays out of
-    /// the plant until the next reload), in words.
+    /// What could not be done, in words: a bus whose port did not open
+    /// (it stays out of the plant until the next reload), a listener that
+    /// could not move (it stays where it was, with its previous settings,
+    /// until the next reload). A reload with problems was applied in part.
     pub problems: Vec<String>,
     /// Drives that were moving when removed, and what stopped them.
     pub stopped: Vec<String>,
@@ -80,14 +82,18 @@ impl std::fmt::Display for Refused {
 /// What became of reloads since start-up.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct ReloadStatus {
-    /// Reloads applied.
+    /// Reloads applied whole.
     pub applied: u64,
+    /// Reloads applied in part: something could not be done (a port that
+    /// did not open, a listener that could not move).
+    pub partial: u64,
     /// Reloads refused because the file did not pass the check.
     pub invalid: u64,
-    /// False while the file on disk is one the last reload refused.
+    /// False while the file on disk is one the last reload refused, or
+    /// applied only in part.
     pub last_ok: bool,
-    /// Why the last reload was refused (`file:line:column: why`), while it
-    /// is the last one.
+    /// Why the last reload was refused (`file:line:column: why`), or what
+    /// of it could not be done, while it is the last one.
     pub last_error: Option<String>,
     /// When the running configuration was last loaded (start-up or a
     /// reload).
@@ -231,6 +237,15 @@ impl Control {
             .lock()
             .unwrap_or_else(|p| p.into_inner());
         match result {
+            Ok(applied) if !applied.problems.is_empty() => {
+                status.partial += 1;
+                status.last_ok = false;
+                status.last_error = Some(format!(
+                    "applied in part; not done: {}",
+                    applied.problems.join("; ")
+                ));
+                status.last_good_at = Some(SystemTime::now());
+            }
             Ok(_) => {
                 status.applied += 1;
                 status.last_ok = true;

@@ -66,16 +66,18 @@ static JOURNAL_BYTES: Spec = Spec {
 static RELOADS: Spec = Spec {
     name: "drivegate_config_reload_total",
     help: "Reloads of the configuration file (SIGHUP or POST /api/v1/config/reload), by \
-           result: applied, or invalid (the file did not pass the check; the running \
-           configuration stayed).",
+           result: applied, partial (applied, but a bus's port did not open or a listener \
+           could not move: /readyz says what) or invalid (the file did not pass the check; the \
+           running configuration stayed).",
     kind: Kind::Counter,
     labels: &["result"],
 };
 
 static RELOAD_OK: Spec = Spec {
     name: "drivegate_config_last_reload_ok",
-    help: "0 while the last reload of the configuration file was refused (the file on disk is \
-           not the one running: /readyz says why, with file:line:column); 1 otherwise.",
+    help: "0 while the last reload of the configuration file was refused or applied only in \
+           part (the file on disk is not the one running: /readyz says why, with \
+           file:line:column, or what was not done); 1 otherwise.",
     kind: Kind::Gauge,
     labels: &[],
 };
@@ -197,6 +199,7 @@ impl Collector for ControlCollector {
         let status = self.control.reload_status();
         let mut reloads = RELOADS.family();
         reloads.set(&["applied"], status.applied as f64);
+        reloads.set(&["partial"], status.partial as f64);
         reloads.set(&["invalid"], status.invalid as f64);
         let mut reload_ok = RELOAD_OK.family();
         reload_ok.set(&[], f64::from(u8::from(status.last_ok)));

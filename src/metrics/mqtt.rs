@@ -138,6 +138,13 @@ impl MqttMetrics {
         self.with_link(|l| l.broker = Some(broker));
     }
 
+    /// The face stopped for good (a reload removed `[mqtt]`): `/readyz`
+    /// and the console no longer show a link.
+    pub fn unconfigured(&self) {
+        self.connected.set(0);
+        self.with_link(|l| *l = LinkState::default());
+    }
+
     /// The broker accepted a connection (`first`: the first since start).
     pub fn connected(&self, first: bool) {
         if !first {

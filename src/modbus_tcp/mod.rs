@@ -44,27 +44,18 @@ use connection::ConnectionSettings;
 use gateway::Gateway;
 use server::ServerSettings;
 
-/// Binds the Modbus TCP listener and serves it until `shutdown` fires.
-/// Returns the bound address and the task serving it.
-pub async fn start(
+/// Serves Modbus TCP on `listener` (bound by the caller at `[modbus_tcp]
+/// listen`) until `shutdown` fires. Returns the bound address and the task
+/// serving it.
+pub fn start(
     config: &Config,
+    listener: tokio::net::TcpListener,
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
     control: Control,
     shutdown: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
     let tcp = &config.modbus_tcp;
-    let listener = tokio::net::TcpListener::bind(tcp.listen)
-        .await
-        .map_err(|e| {
-            let hint =
-                if tcp.listen.port() < 1024 && e.kind() == std::io::ErrorKind::PermissionDenied {
-                    " (ports below 1024 need CAP_NET_BIND_SERVICE: see docs/modbus-tcp.md)"
-                } else {
-                    ""
-                };
-            format!("cannot listen for Modbus TCP on {}: {e}{hint}", tcp.listen)
-        })?;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
     let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
     let settings = ServerSettings {
@@ -79,39 +70,25 @@ pub async fn start(
     Ok((addr, task))
 }
 
-/// Binds the Modbus/TCP Security listener of `[modbus_tcp.tls]` (if any)
-/// and serves it until `shutdown` fires; its certificate is reloaded on
-/// SIGHUP.
-pub async fn start_tls(
+/// Serves Modbus/TCP Security on `listener` (bound by the caller at
+/// `[modbus_tcp.tls] listen`) until `shutdown` fires; its certificate is
+/// reloaded on SIGHUP. Refused without a `[modbus_tcp.tls]` section.
+pub fn start_tls(
     config: &Config,
+    listener: tokio::net::TcpListener,
     plant: Arc<Plant>,
     metrics: Arc<Metrics>,
     control: Control,
     shutdown: CancellationToken,
-) -> Result<Option<(SocketAddr, JoinHandle<()>)>, String> {
+) -> Result<(SocketAddr, JoinHandle<()>), String> {
     let tcp = &config.modbus_tcp;
     let Some(section) = tcp.tls.clone() else {
-        return Ok(None);
+        return Err("no [modbus_tcp.tls] section".to_string());
     };
     let reloadable =
         crate::tls::Reloadable::load(section.files(), crate::tls::ClientAuth::Required, &[])
             .map(Arc::new)
             .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
-    let listener = tokio::net::TcpListener::bind(section.listen)
-        .await
-        .map_err(|e| {
-            let hint = if section.listen.port() < 1024
-                && e.kind() == std::io::ErrorKind::PermissionDenied
-            {
-                " (ports below 1024 need CAP_NET_BIND_SERVICE: see docs/modbus-tcp.md)"
-            } else {
-                ""
-            };
-            format!(
-                "cannot listen for Modbus/TCP Security on {}: {e}{hint}",
-                section.listen
-            )
-        })?;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
     let counter = metrics.clone();
     crate::tls::reload_on_hangup(
@@ -136,5 +113,5 @@ pub async fn start_tls(
         read_only: tcp.read_only,
     };
     let task = tokio::spawn(server::run_tls(listener, gateway, settings, tls, shutdown));
-    Ok(Some((addr, task)))
+    Ok((addr, task))
 }

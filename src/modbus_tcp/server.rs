@@ -45,6 +45,8 @@ pub async fn run(
     let tracker = TaskTracker::new();
     loop {
         let accepted = tokio::select! {
+            // A closed listener's socket fails its accepts: the stop first.
+            biased;
             () = shutdown.cancelled() => break,
             accepted = listener.accept() => accepted,
         };
@@ -163,6 +165,8 @@ pub async fn run_tls(
     let tls = Arc::new(tls);
     loop {
         let accepted = tokio::select! {
+            // A closed listener's socket fails its accepts: the stop first.
+            biased;
             () = shutdown.cancelled() => break,
             accepted = listener.accept() => accepted,
         };

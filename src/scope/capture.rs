@@ -94,17 +94,28 @@ pub struct Capture {
     post_capacity: usize,
     /// Post-trigger samples per captured drive (in `spec.units` order).
     per_unit: Vec<u32>,
+    /// When each captured drive last gave a sample after the trigger (the
+    /// trigger's time before its first).
+    last_at: Vec<Option<Instant>>,
     detector: Detector,
     fired: Option<Fired>,
-    /// After this, a samples-length capture ends as incomplete.
+    /// After this, a capture ends as incomplete once a drive it still
+    /// needs has given no sample for [`SILENT`].
     post_deadline: Option<Instant>,
     /// One status read's time on the wire.
     transaction: Duration,
 }
 
-/// Longest gap between two samples of a drive before a triggered capture
-/// gives up on it (on top of its expected duration).
+/// Added to a triggered capture's expected duration before it may end
+/// incomplete.
 const GRACE: Duration = Duration::from_millis(500);
+
+/// Longest a drive that the bus still counts as online may go without a
+/// sample before a capture that has outlasted its expected duration gives
+/// up on it (the bus itself stopped: its port failed). A capture that is
+/// only slower than expected (a busy host, a retry) goes on; a drive that
+/// stopped answering, which the bus takes offline, ends it at once.
+const SILENT: Duration = Duration::from_secs(5);
 
 impl Capture {
     /// Arms a capture of `spec`, checked to need `pre` and `post` samples at
@@ -121,6 +132,7 @@ impl Capture {
         let mut capture = Self {
             id,
             per_unit: vec![0; spec.units.len()],
+            last_at: vec![None; spec.units.len()],
             phase: Phase::Armed,
             armed_at: now,
             armed_wall: wall,
@@ -204,6 +216,7 @@ impl Capture {
         Capture {
             spec: self.spec.clone(),
             per_unit: self.per_unit.clone(),
+            last_at: self.last_at.clone(),
             pre: self.pre.clone(),
             post: Vec::new(),
             detector: self.detector.clone(),
@@ -283,21 +296,48 @@ impl Capture {
         }
     }
 
-    /// Time passes: a wait or a length may run out.
-    pub fn tick(&mut self, now: Instant) {
+    /// Time passes: a wait or a length may run out. `offline(unit)` is
+    /// the bus's view of a captured drive (no view: `|_| false`).
+    pub fn tick(&mut self, now: Instant, offline: impl Fn(u8) -> bool) {
         match self.phase {
             Phase::Armed if now >= self.armed_at + self.spec.wait => {
                 self.end(End::TimedOut, now);
             }
             Phase::Triggered => {
-                if let Some(deadline) = self.post_deadline
-                    && now >= deadline
-                {
+                let late = self.post_deadline.is_some_and(|d| now >= d);
+                if self.a_needed_drive_stopped(now, late, offline) {
                     self.end(End::Incomplete, now);
                 }
             }
             _ => {}
         }
+    }
+
+    /// Whether a drive the capture still needs samples of is offline, or,
+    /// `late` past the expected duration, has given none for [`SILENT`]
+    /// (since the trigger, before its first).
+    fn a_needed_drive_stopped(
+        &self,
+        now: Instant,
+        late: bool,
+        offline: impl Fn(u8) -> bool,
+    ) -> bool {
+        let since_trigger = self.fired.as_ref().map(|f| f.at);
+        self.spec
+            .units
+            .iter()
+            .zip(self.per_unit.iter().zip(&self.last_at))
+            .filter(|(_, (count, _))| match self.spec.length {
+                Amount::Samples(n) => **count < n,
+                Amount::Seconds(_) => true,
+            })
+            .any(|(&unit, (_, last))| {
+                offline(unit)
+                    || late
+                        && last
+                            .or(since_trigger)
+                            .is_none_or(|t| now.saturating_duration_since(t) >= SILENT)
+            })
     }
 
     /// A client cancels it.
@@ -378,6 +418,9 @@ impl Capture {
             // its reply was on the wire: it belongs before the trigger.
             self.keep_late_before_trigger(sample);
             return;
+        }
+        if let Some(last) = self.last_at.get_mut(index) {
+            *last = Some(sample.at);
         }
         match self.spec.length {
             Amount::Samples(n) => {
@@ -632,9 +675,9 @@ mod tests {
             t0,
         );
         c.on_sample(1, &speed(1), t0 + MS);
-        c.tick(t0 + Duration::from_secs(9));
+        c.tick(t0 + Duration::from_secs(9), |_| false);
         assert!(c.is_running());
-        c.tick(t0 + Duration::from_secs(10));
+        c.tick(t0 + Duration::from_secs(10), |_| false);
         assert_eq!(c.phase(), Phase::Ended(End::TimedOut));
         assert_eq!(c.counts(), (1, 0));
 
@@ -655,11 +698,46 @@ mod tests {
         c.on_sample(1, &speed(1), t0 + MS);
         assert_eq!(c.counts(), (2, 0));
         c.on_sample(1, &speed(1), t0 + 3 * MS);
-        c.tick(t0 + Duration::from_secs(1));
+        c.tick(t0 + Duration::from_secs(1), |_| false);
         assert!(c.is_running(), "100 samples take 0.6 s at full rate");
-        c.tick(t0 + Duration::from_secs(3));
+        // Past 3 times that: still online, silent for 3 s, it goes on...
+        let mut copy = c.clone();
+        copy.tick(t0 + Duration::from_secs(3), |_| false);
+        assert!(copy.is_running());
+        // ...silent for 5 s, it ends;
+        copy.tick(t0 + Duration::from_secs(6), |_| false);
+        assert_eq!(copy.phase(), Phase::Ended(End::Incomplete));
+        // the bus took it offline: it ends at once.
+        c.tick(t0 + Duration::from_millis(1500), |unit| unit == 1);
         assert_eq!(c.phase(), Phase::Ended(End::Incomplete));
         assert_eq!(c.counts(), (2, 1));
+    }
+
+    #[test]
+    fn a_capture_slower_than_expected_goes_on_while_its_drive_is_online() {
+        let t0 = Instant::now();
+        let mut c = arm(
+            spec(
+                &[1],
+                Trigger::Manual,
+                Amount::Samples(0),
+                Amount::Samples(100),
+            ),
+            t0,
+        );
+        c.trigger_now(t0, Origin::Internal).unwrap();
+        // A sample every 100 ms: ten times slower than the wire allows (a
+        // starved host), far past the expected duration.
+        for i in 1..100 {
+            let at = t0 + 100 * MS * i;
+            c.tick(at, |_| false);
+            assert!(c.is_running(), "sample {i}");
+            c.on_sample(1, &speed(1), at);
+        }
+        c.tick(t0 + 100 * MS * 100, |_| false);
+        c.on_sample(1, &speed(1), t0 + 100 * MS * 100);
+        assert_eq!(c.phase(), Phase::Ended(End::Complete));
+        assert_eq!(c.counts(), (0, 100));
     }
 
     #[test]

@@ -235,7 +235,7 @@ impl Scope {
         }
         let mut inner = self.lock();
         if let Some(c) = inner.capture.as_mut() {
-            c.tick(now);
+            c.tick(now, |_| false);
         }
         self.settle(&mut inner);
     }
@@ -340,7 +340,7 @@ impl Scope {
         }
         let mut inner = self.lock();
         if let Some(c) = inner.capture.as_mut() {
-            c.tick(now);
+            c.tick(now, &offline);
         }
         self.settle(&mut inner);
         inner.steer.as_mut().map(|s| s.next(now, plan_due, offline))

@@ -158,10 +158,12 @@ async fn a_bus_on_a_serial_device_server_works_and_reconnects_after_a_drop() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_refused_connection_is_reported_and_retried_until_the_server_is_there() {
-    // A loopback port with nobody listening (yet).
-    let free = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let address = free.local_addr().unwrap().to_string();
-    drop(free);
+    // A loopback port with nobody listening (yet): bound but not
+    // listening, it refuses connections and no other program can take it
+    // until the device server comes up.
+    let held = tokio::net::TcpSocket::new_v4().unwrap();
+    held.bind("127.0.0.1:0".parse().unwrap()).unwrap();
+    let address = held.local_addr().unwrap().to_string();
     let d = TestDaemon::start_no_wait(&daemon_config(&format!("tcp://{address}"))).await;
     let bus = d.plant.buses()[0].handle.clone();
     let reason = eventually(LIMIT, "the bus down", || match bus.port_state() {
@@ -188,6 +190,7 @@ async fn a_refused_connection_is_reported_and_retried_until_the_server_is_there(
         .unwrap_err();
     assert!(e.not_sent(), "{e}");
     // The device server comes up: the daemon connects on its next try.
+    drop(held);
     let sim = sim_on(&address);
     d.wait_all_online(LIMIT).await;
     let (status, ready) = readyz(&d).await;

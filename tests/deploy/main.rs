@@ -23,5 +23,6 @@ mod package;
 mod prometheus;
 mod reference;
 mod reload;
+mod reload_listeners;
 mod restart;
 mod systemd;

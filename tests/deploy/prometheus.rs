@@ -3,7 +3,7 @@
 //! daemon running on the simulator, fires DriveFault when a fault is
 //! injected into a simulated drive, and answers every dashboard query.
 
-use std::net::{Ipv4Addr, SocketAddr, TcpListener as StdListener};
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
@@ -79,15 +79,6 @@ async fn config_and_rules_pass_promtool() {
     assert!(!ok && out.contains("MqttBrokerUnreachable"), "{out}");
 }
 
-/// Serves `GET /metrics` from the daemon's registry on a loopback port.
-fn free_port() -> u16 {
-    StdListener::bind((Ipv4Addr::LOCALHOST, 0))
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 /// A Prometheus server on loopback with the project's alert rules, scraping
 /// `target` every second and evaluating rules every second.
 async fn start_prometheus(dir: &Path, target: SocketAddr) -> (Child, String) {
@@ -106,7 +97,7 @@ scrape_configs:
 "#
     );
     std::fs::write(dir.join("prometheus.yml"), config).unwrap();
-    let port = free_port();
+    let port = crate::support::ports::free_port();
     let child = Command::new("prometheus")
         .arg(format!(
             "--config.file={}",

@@ -489,12 +489,12 @@ async fn bad_captures_are_refused_with_what_would_fit_and_viewers_may_not_arm() 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_other_drives_keep_their_floor_rate_and_commands_go_through() {
     bounded(LIMIT, async {
-        let d = TestDaemon::start(&ConfigBuilder::four_drives().section("scope", "floor_rate_hz = 20").toml()).await;
+        let d = TestDaemon::start(&ConfigBuilder::four_drives().section("scope", "floor_rate_hz = 5").toml()).await;
         let api = Api::new(d.http, None);
         let armed = api
             .post(
                 SCOPE,
-                json!({"drives": ["conveyor"], "trigger": {"type": "immediate"}, "length": {"seconds": 2.0}}),
+                json!({"drives": ["conveyor"], "trigger": {"type": "immediate"}, "length": {"seconds": 3.0}}),
             )
             .await
             .expect(201);
@@ -538,8 +538,10 @@ async fn the_other_drives_keep_their_floor_rate_and_commands_go_through() {
         // The floor, in bus work rather than in time (which a loaded
         // machine stretches): between two polls of another drive, the
         // captured drive gets at most about one floor period's worth of
-        // reads (50 ms / 5.8 ms, less the other drives' turns), never the
-        // whole bus for longer.
+        // reads (200 ms / 5.8 ms, less the other drives' turns), never the
+        // whole bus for longer. (A low floor, so that the captured drive
+        // still has most of the bus on a machine that slows the wire's
+        // work several times over.)
         let captured = reads.iter().filter(|(u, _, _)| *u == 1).count();
         for unit in [2, 3, 4] {
             let positions: Vec<usize> = reads
@@ -554,16 +556,16 @@ async fn the_other_drives_keep_their_floor_rate_and_commands_go_through() {
                 .map(|w| reads[w[0] + 1..w[1]].iter().filter(|(u, _, _)| *u == 1).count())
                 .max()
                 .unwrap();
-            assert!(longest <= 12, "unit {unit} waited for {longest} reads of the captured drive");
+            assert!(longest <= 40, "unit {unit} waited for {longest} reads of the captured drive");
             // ...and no more often than the floor needs: one read per
-            // 50 ms on average by the bus's own clock, which a loaded
+            // 200 ms on average by the bus's own clock, which a loaded
             // machine slows but does not speed up (a command's own read
-            // may come between); the captured drive has the rest.
+            // may come between: 15 % off); the captured drive has the rest.
             let times: Vec<u64> = positions.iter().map(|&i| reads[i].2).collect();
             let mean = (times[times.len() - 1] - times[0]) / (times.len() as u64 - 1);
             assert!(
-                mean >= 47_500,
-                "unit {unit} polled every {mean} us on average: more often than the 50 ms floor"
+                mean >= 170_000,
+                "unit {unit} polled every {mean} us on average: more often than the 200 ms floor"
             );
             assert!(
                 positions.len() < captured,

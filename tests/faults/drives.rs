@@ -190,7 +190,14 @@ async fn a_power_cycled_drive_comes_back_with_what_its_flash_holds() {
                     truth.power_cycle(CYCLED).await;
                     answered_after_reboot(&bus, CYCLED, Instant::now()).await;
                 }
-                tokio::time::sleep(Duration::from_millis(300)).await;
+                // Then at least the bus work of 8 more rounds of the
+                // others (a write and a read each), however slow the
+                // machine.
+                let requests = |s: &drivegate::sim::SimHandle| s.stats().requests;
+                let after = truth.with_sim(requests).await + 8 * 2 * (UNITS.len() as u64 - 1);
+                while truth.with_sim(requests).await < after {
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
                 stop.cancel();
             }
         });

@@ -16,6 +16,7 @@ mod commands;
 mod death;
 mod json;
 mod python;
+mod reload;
 mod safety;
 mod store;
 mod tls;

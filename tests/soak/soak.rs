@@ -25,6 +25,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use drivegate::bus::BusError;
 use drivegate::bus::handle::JobOptions;
 use drivegate::config::Config;
 use drivegate::drive::{ConfigCommand, DriveRequest};
@@ -482,10 +483,24 @@ impl Daemon {
                         centideg: signature(bus, unit),
                     },
                 ] {
-                    b.handle
-                        .execute(unit, &request, JobOptions::default())
-                        .await
-                        .expect("set-up command confirmed");
+                    // The set-up is not what the soak measures: a command
+                    // whose attempts all timed out because the machine held
+                    // the simulator past the 50 ms timeout is sent again.
+                    let mut tries = 0;
+                    loop {
+                        tries += 1;
+                        match b
+                            .handle
+                            .execute(unit, &request, JobOptions::default())
+                            .await
+                        {
+                            Ok(_) => break,
+                            Err(BusError::Timeout { .. }) if tries < 5 => continue,
+                            Err(e) => {
+                                panic!("set-up command not confirmed after {tries} tries: {e}")
+                            }
+                        }
+                    }
                 }
             }
         }

@@ -128,6 +128,7 @@ impl TestDaemon {
             Arc::new(daemon.config.clone()),
             daemon.plant.clone(),
             daemon.control().clone(),
+            daemon.faces.as_ref().expect("running").running(),
             daemon.shutdown.clone(),
         );
         daemon.file = Some(file);
@@ -142,6 +143,16 @@ impl TestDaemon {
     /// Writes `toml` into the configuration file (not reloaded yet).
     pub fn rewrite(&self, toml: &str) {
         std::fs::write(self.config_path(), toml).expect("the configuration written");
+    }
+
+    /// Where the listeners are now (a reload may have moved them).
+    pub async fn faces_addresses(&self) -> drivegate::faces::Addresses {
+        self.faces
+            .as_ref()
+            .expect("running")
+            .running()
+            .addresses()
+            .await
     }
 
     /// The control core every face writes through.

@@ -26,12 +26,6 @@ fn is_root() -> bool {
     std::fs::metadata("/proc/self").is_ok_and(|m| m.uid() == 0)
 }
 
-/// A loopback port nobody listens on now.
-fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().port()
-}
-
 impl Mosquitto {
     /// A broker with a plain listener.
     pub fn start() -> Mosquitto {
@@ -46,8 +40,8 @@ impl Mosquitto {
 
     fn with(pki: Option<&Pki>) -> Mosquitto {
         let dir = tempfile::tempdir().unwrap();
-        let port = free_port();
-        let tls_port = pki.map(|_| free_port());
+        let port = super::ports::free_port();
+        let tls_port = pki.map(|_| super::ports::free_port());
         // As root, mosquitto drops to the user `mosquitto`, which could
         // not read the test's files: it stays who it is.
         let mut conf = String::new();

@@ -133,8 +133,14 @@ export class Trends {
       const r = await get(drivePath(this.name, `/history?fields=${fields}&since=${since}&until=${until}&max_points=${MAX_POINTS}`));
       if (ticket !== this.asked) return;
       this.history = r;
-      this.range = [since / 1000, until / 1000];
       const t = r.t_ms.map((ms) => ms / 1000);
+      // While drivegate has kept less than the window (a daemon started a
+      // few minutes ago), the axis starts at the oldest point it kept (10 s
+      // at least, for whole-second ticks), so the data fills the plot; the
+      // note says how much there is.
+      const kept = t.length ? t[t.length - 1] - t[0] : 0;
+      const start = t.length && kept < w.s - 5 ? Math.min(t[0], until / 1000 - 10) : since / 1000;
+      this.range = [start, until / 1000];
       for (const p of this.plots) {
         const c = r.fields[p.spec.field];
         p.u.setData(c ? [t, c.mean, c.min, c.max] : [t, [], [], []]);
@@ -143,9 +149,8 @@ export class Trends {
       this.box.dataset.from = String(since);
       this.box.dataset.until = String(until);
       this.store.stats.historyReads = (this.store.stats.historyReads || 0) + 1;
-      const span = t.length ? t[t.length - 1] - t[0] : 0;
       this.note.set('', t.length === 0 ? 'drivegate has kept nothing of this drive yet'
-        : span < w.s - 5 ? `drivegate has kept ${Math.round(span)} s of this drive so far (it keeps ${r.minutes} min)` : '');
+        : kept < w.s - 5 ? `drivegate has kept ${Math.round(kept)} s of this drive so far (it keeps ${r.minutes} min): the plot starts there` : '');
     } catch (e) {
       if (ticket !== this.asked) return;
       if (e instanceof ApiError && e.status === 404 && !(e.problem && e.problem.drive)) {
