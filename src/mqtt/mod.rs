@@ -118,6 +118,11 @@ pub fn start(
     };
     let node_id = node_id(&section);
     if section.format == Format::Json {
+        if section.primary_host_id.is_some() {
+            tracing::warn!(
+                "[mqtt] primary_host_id is Sparkplug's: the JSON format does not follow a primary host"
+            );
+        }
         return Ok(Some(json::node::spawn(
             Arc::new(section),
             node_id,

@@ -2,7 +2,8 @@
 //! `mosquitto_sub` and `mosquitto_pub` over MQTT 5: the retained state
 //! and statuses, a command that turns a drive and its reply, refusals in
 //! the API's words, the MQTT 5 response topic with its correlation data,
-//! malformed messages, and `kill -9` leaving the will `offline`.
+//! malformed messages, events, the session's lease ended by losing the
+//! broker, and `kill -9` leaving the will `offline`.
 
 use std::process::Stdio;
 use std::time::Duration;
@@ -402,6 +403,48 @@ async fn events_tell_of_a_lease_ending_and_of_a_drive_offline_and_back() {
         })
         .await;
         sub.stop().await;
+        d.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn losing_the_broker_stops_what_json_commands_started() {
+    bounded(Duration::from_secs(90), async {
+        let mut broker = Mosquitto::start();
+        let d = daemon(&broker, "commands = \"operator\"\ncomm_loss_ms = 500").await;
+        let mut sub = subscribed(&broker, &[&topic("conveyor/reply")]).await;
+        command(&broker, json!(1), "activate", json!({})).await;
+        reply(&mut sub, json!(1)).await;
+        command(&broker, json!(2), "mode", json!({"mode": "speed"})).await;
+        reply(&mut sub, json!(2)).await;
+        command(&broker, json!(3), "setpoint", json!({"speed_rpm": 200})).await;
+        assert_eq!(reply(&mut sub, json!(3)).await["ok"], true);
+        eventually(WAIT, "the conveyor turning", || {
+            let s = d.plant.buses()[0].handle.drive(1)?.status?;
+            (s.speed_rpm > 100).then_some(())
+        })
+        .await;
+        sub.stop().await;
+        broker.stop();
+        // The session's communication-loss lease ends after comm_loss_ms.
+        eventually(
+            WAIT,
+            "the conveyor stopped after the broker was lost",
+            || {
+                let s = d.plant.buses()[0].handle.drive(1)?.status?;
+                (s.speed_rpm.abs() <= 2 && d.control().lease(0).is_none()).then_some(())
+            },
+        )
+        .await;
+        eventually(WAIT, "the end counted as MQTT's", || {
+            (counter(
+                &d,
+                "drivegate_mqtt_comm_loss_stops_total{bus=\"sim\",reason=\"timeout\"}",
+            ) == 1.0)
+                .then_some(())
+        })
+        .await;
         d.stop().await;
     })
     .await;
