@@ -303,7 +303,7 @@ impl JsonNode {
         let control = self.control.clone();
         let metrics = self.metrics.clone();
         let replies = self.replies_tx.clone();
-        let reply = reply(DriveMessage::reply(Value::Null, Ok(Value::Null)));
+        // Finished commands' handles go; the others run on.
         while self.commands.try_join_next().is_some() {}
         self.commands.spawn(async move {
             let result = commands::run_drive_op(&control, &caller, &drive, &op, body, None).await;
@@ -313,8 +313,9 @@ impl JsonNode {
                 Err(_) => "failed",
             });
             let _ = replies.send(Reply {
+                topic,
+                correlation,
                 message: DriveMessage::reply(id, result),
-                ..reply
             });
         });
     }
