@@ -177,7 +177,7 @@ impl LeaseInfo {
             lease_ms: millis_u64(view.length),
             expires_in_ms: millis_u64(view.expires_in),
             action: view.action.name().to_string(),
-            websocket: session && !view.comm_loss,
+            websocket: session && !view.comm_loss && view.comm_loss_face.is_none(),
             comm_loss: view.comm_loss,
         }
     }

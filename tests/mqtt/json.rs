@@ -366,7 +366,16 @@ async fn events_tell_of_a_lease_ending_and_of_a_drive_offline_and_back() {
             json!({"speed_rpm": 100, "lease_ms": 300}),
         )
         .await;
-        assert_eq!(reply(&mut sub, json!(3)).await["ok"], true);
+        let v = reply(&mut sub, json!(3)).await;
+        assert_eq!(v["ok"], true, "{v}");
+        // Held by the MQTT session, not a WebSocket, and not its
+        // communication-loss lease: the one asked for.
+        let lease = &v["result"]["lease"];
+        assert_eq!(
+            (&lease["lease_ms"], &lease["comm_loss"], &lease["websocket"]),
+            (&json!(300), &json!(false), &json!(false)),
+            "{v}"
+        );
         let m = sub
             .next(WAIT, "the lease's end", |m| {
                 m.topic == event_topic && m.json()["type"] == "lease-expired"
