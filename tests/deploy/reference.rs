@@ -262,10 +262,12 @@ fn the_mqtt_section_shows_every_key_and_its_defaults() {
         "config/drivegate.toml does not show: {missing:?}"
     );
     // Examples, not defaults: where the broker is, who the node and its
-    // host are, the credentials and certificates.
+    // host are (and the JSON topics' prefix, which follows the node), the
+    // credentials and certificates.
     let examples = [
         "broker",
         "node_id",
+        "topic_prefix",
         "primary_host_id",
         "username",
         "password_file",
