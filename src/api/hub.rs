@@ -21,8 +21,8 @@ use super::document::{DeclaredState, SettingsDiff};
 use super::drives::StatusView;
 use super::problem::{Problem, ProblemDetails};
 use crate::bus::BusEvent;
-use crate::control::alarms::AlarmNews;
-use crate::control::{Control, ControlEvent, LeaseEvent, Published, SessionId};
+use crate::control::{Control, ControlEvent, Published, SessionId};
+use crate::ops::messages::DriveMessage;
 use crate::plant::Plant;
 use crate::scope::result::ScopeState;
 use crate::timestamp::rfc3339;
@@ -392,13 +392,8 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
         // Its stop follows as lease news; the alarm it raises as an alarm.
         ControlEvent::CommLoss { .. } => return None,
         ControlEvent::Alarm(news) => {
-            let alarm = AlarmView::from(news.alarm());
-            let message = match news {
-                AlarmNews::Raised(_) => ServerMessage::AlarmRaised { alarm },
-                AlarmNews::Cleared(_) => ServerMessage::AlarmCleared { alarm },
-                AlarmNews::Acknowledged(_) => ServerMessage::AlarmAcknowledged { alarm },
-            };
-            return Some(message.to_text());
+            let (_, message) = crate::ops::messages::of_alarm(news);
+            return Some(ServerMessage::from(message).to_text());
         }
         ControlEvent::Write(w) => {
             let message = ServerMessage::Write {
@@ -416,63 +411,99 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
             return Some(message.to_text());
         }
     };
-    let now = plant.now();
-    let drive = now.drive_at(lease.drive())?;
-    let (name, bus, unit) = (
-        drive.name.clone(),
-        now.handle_of(drive)?.name().to_string(),
-        drive.unit,
-    );
-    let message = match lease.clone() {
-        LeaseEvent::Ended { owner, reason, .. } => ServerMessage::LeaseEnded {
-            drive: name,
-            bus,
-            unit,
-            owner: owner.to_string(),
-            reason,
-        },
-        LeaseEvent::Expired {
-            owner,
-            reason,
-            action,
-            sent,
-            ok,
-            result,
-            retrying,
-            ..
-        } => ServerMessage::LeaseExpired {
-            drive: name,
-            bus,
-            unit,
-            owner: owner.to_string(),
-            reason,
-            action: action.name().to_string(),
-            sent,
-            ok,
-            result,
-            retrying,
-        },
-        LeaseEvent::StopSettled {
-            owner,
-            action,
-            sent,
-            stopped,
-            attempts,
-            result,
-            ..
-        } => ServerMessage::LeaseStop {
-            drive: name,
-            bus,
-            unit,
-            owner: owner.to_string(),
-            action: action.name().to_string(),
-            sent,
-            stopped,
-            attempts,
-            result,
-        },
-    };
-    Some(message.to_text())
+    let (_, message) = crate::ops::messages::of_lease(plant, lease)?;
+    Some(ServerMessage::from(message).to_text())
+}
+
+impl From<DriveMessage> for ServerMessage {
+    /// The stream's message of the same type and fields.
+    fn from(m: DriveMessage) -> Self {
+        match m {
+            DriveMessage::Online { drive, bus, unit } => ServerMessage::Online { drive, bus, unit },
+            DriveMessage::Offline {
+                drive,
+                bus,
+                unit,
+                reason,
+            } => ServerMessage::Offline {
+                drive,
+                bus,
+                unit,
+                reason,
+            },
+            DriveMessage::LeaseExpired {
+                drive,
+                bus,
+                unit,
+                owner,
+                reason,
+                action,
+                sent,
+                ok,
+                result,
+                retrying,
+            } => ServerMessage::LeaseExpired {
+                drive,
+                bus,
+                unit,
+                owner,
+                reason,
+                action,
+                sent,
+                ok,
+                result,
+                retrying,
+            },
+            DriveMessage::LeaseStop {
+                drive,
+                bus,
+                unit,
+                owner,
+                action,
+                sent,
+                stopped,
+                attempts,
+                result,
+            } => ServerMessage::LeaseStop {
+                drive,
+                bus,
+                unit,
+                owner,
+                action,
+                sent,
+                stopped,
+                attempts,
+                result,
+            },
+            DriveMessage::LeaseEnded {
+                drive,
+                bus,
+                unit,
+                owner,
+                reason,
+            } => ServerMessage::LeaseEnded {
+                drive,
+                bus,
+                unit,
+                owner,
+                reason,
+            },
+            DriveMessage::AlarmRaised { alarm } => ServerMessage::AlarmRaised { alarm },
+            DriveMessage::AlarmCleared { alarm } => ServerMessage::AlarmCleared { alarm },
+            DriveMessage::AlarmAcknowledged { alarm } => ServerMessage::AlarmAcknowledged { alarm },
+            DriveMessage::Reply {
+                id,
+                ok,
+                result,
+                problem,
+            } => ServerMessage::Reply {
+                id,
+                ok,
+                result,
+                problem,
+            },
+        }
+    }
 }
 
 /// Publishes the control core's lease news.
@@ -634,6 +665,66 @@ async fn forward(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_drive_message_reads_as_the_streams_message_of_its_type() {
+        let (drive, bus) = ("conveyor".to_string(), "sim".to_string());
+        let messages = [
+            DriveMessage::Online {
+                drive: drive.clone(),
+                bus: bus.clone(),
+                unit: 1,
+            },
+            DriveMessage::Offline {
+                drive: drive.clone(),
+                bus: bus.clone(),
+                unit: 1,
+                reason: "timeout".into(),
+            },
+            DriveMessage::LeaseExpired {
+                drive: drive.clone(),
+                bus: bus.clone(),
+                unit: 1,
+                owner: "mqtt scada".into(),
+                reason: "communication was lost".into(),
+                action: "zero-speed".into(),
+                sent: Some("speed 0 rpm".into()),
+                ok: true,
+                result: "confirmed".into(),
+                retrying: false,
+            },
+            DriveMessage::LeaseStop {
+                drive: drive.clone(),
+                bus: bus.clone(),
+                unit: 1,
+                owner: "mqtt scada".into(),
+                action: "brake".into(),
+                sent: None,
+                stopped: true,
+                attempts: 2,
+                result: "confirmed".into(),
+            },
+            DriveMessage::LeaseEnded {
+                drive: drive.clone(),
+                bus: bus.clone(),
+                unit: 1,
+                owner: "op".into(),
+                reason: "released".into(),
+            },
+            DriveMessage::reply(serde_json::json!(7), Ok(serde_json::json!({"a": 1}))),
+            DriveMessage::reply(
+                serde_json::json!("x"),
+                Err(Problem::invalid("no such thing")),
+            ),
+        ];
+        for m in messages {
+            let stream = ServerMessage::from(m.clone());
+            assert_eq!(
+                serde_json::to_value(&m).unwrap(),
+                serde_json::to_value(&stream).unwrap()
+            );
+        }
+    }
 
     /// A value whose serialisation fails with quotes in the message.
     struct Unserialisable;

@@ -25,6 +25,10 @@ pub struct MqttConfig {
     /// What the messages look like: Sparkplug B (the default) or JSON.
     #[serde(default)]
     pub format: Format,
+    /// The JSON format's topics start with this (`<prefix>/<drive>/status`
+    /// ...); absent: `drivegate/<node_id>`.
+    #[serde(default, deserialize_with = "opt_topic_prefix")]
+    pub topic_prefix: Option<String>,
     /// The Sparkplug group the node is in.
     #[serde(default = "default_group", deserialize_with = "sparkplug_id")]
     pub group_id: String,
@@ -321,6 +325,35 @@ fn opt_sparkplug_id<'de, D: Deserializer<'de>>(d: D) -> Result<Option<String>, D
     sparkplug_id(d).map(Some)
 }
 
+/// A topic prefix: topic levels without wildcards, not empty, no empty
+/// level (so `<prefix>/<drive>/command` subscribes exactly).
+pub fn check_topic_prefix(prefix: &str) -> Result<(), String> {
+    if prefix.is_empty() {
+        return Err("topic_prefix cannot be empty".to_string());
+    }
+    if let Some(c) = prefix
+        .chars()
+        .find(|c| matches!(c, '+' | '#') || c.is_control())
+    {
+        return Err(format!(
+            "topic_prefix \"{prefix}\" contains '{}': no wildcard (+, #) in a topic",
+            c.escape_default()
+        ));
+    }
+    if prefix.split('/').any(str::is_empty) {
+        return Err(format!(
+            "topic_prefix \"{prefix}\" has an empty level: no leading, trailing or double /"
+        ));
+    }
+    Ok(())
+}
+
+fn opt_topic_prefix<'de, D: Deserializer<'de>>(d: D) -> Result<Option<String>, D::Error> {
+    let prefix = String::deserialize(d)?;
+    check_topic_prefix(&prefix).map_err(de::Error::custom)?;
+    Ok(Some(prefix))
+}
+
 fn deadband<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
     let v = f64::deserialize(d)?;
     if !(v.is_finite() && (0.0..=10_000.0).contains(&v)) {
@@ -334,6 +367,15 @@ fn deadband<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn topic_prefixes() {
+        assert!(check_topic_prefix("drivegate/gw1").is_ok());
+        assert!(check_topic_prefix("plant").is_ok());
+        for bad in ["", "a/+/b", "a/#", "/a", "a/", "a//b"] {
+            assert!(check_topic_prefix(bad).is_err(), "{bad:?}");
+        }
+    }
 
     #[test]
     fn brokers() {

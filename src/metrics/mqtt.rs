@@ -9,9 +9,11 @@ use std::time::SystemTime;
 use prometheus::{IntCounter, IntCounterVec, IntGauge, Opts, Registry};
 
 /// What a message is, for the counters' `type` label.
-const SENT_TYPES: &[&str] = &["nbirth", "ndeath", "ndata", "dbirth", "ddeath", "ddata"];
+const SENT_TYPES: &[&str] = &[
+    "nbirth", "ndeath", "ndata", "dbirth", "ddeath", "ddata", "state", "status", "event", "reply",
+];
 /// What a received message is.
-const RECEIVED_TYPES: &[&str] = &["ncmd", "dcmd", "state", "other"];
+const RECEIVED_TYPES: &[&str] = &["ncmd", "dcmd", "state", "command", "other"];
 /// What became of a command from MQTT.
 const COMMAND_RESULTS: &[&str] = &["confirmed", "refused", "failed", "malformed"];
 
@@ -83,13 +85,13 @@ impl MqttMetrics {
             ),
             sent: counter_vec(
                 "drivegate_mqtt_messages_sent_total",
-                "MQTT messages published, by Sparkplug type.",
+                "MQTT messages published, by type: Sparkplug's, or the JSON format's state, status, event, reply.",
                 "type",
                 SENT_TYPES,
             ),
             received: counter_vec(
                 "drivegate_mqtt_messages_received_total",
-                "MQTT messages received, by Sparkplug type (other: on no topic the face serves).",
+                "MQTT messages received, by type: Sparkplug's, or the JSON format's command (other: on no topic the face serves).",
                 "type",
                 RECEIVED_TYPES,
             ),

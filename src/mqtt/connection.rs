@@ -94,7 +94,7 @@ pub(super) async fn next_event(conn: &mut Option<Connection>) -> Option<Result<E
     }
 }
 
-fn read_password(path: &std::path::Path) -> Result<String, String> {
+pub(super) fn read_password(path: &std::path::Path) -> Result<String, String> {
     std::fs::read_to_string(path)
         .map(|s| s.lines().next().unwrap_or("").to_string())
         .map_err(|e| format!("[mqtt] password_file {}: {e}", path.display()))

@@ -15,6 +15,9 @@
 //!   the node's [`Outbox`] when there is a state directory); [`replay`]
 //!   holds what comes back out until its drive's DBIRTH is out (pure).
 //!
+//! With `format = "json"`, [`json`] publishes plain JSON instead (the
+//! API's status, the stream's command messages, replies and events).
+//!
 //! Like every face it decides nothing about the motors: commands go to
 //! [`crate::control`] as face `mqtt` with the role of `[mqtt] commands`, in
 //! a session whose communication-loss function holds their leases. See
@@ -25,6 +28,7 @@ pub mod commands;
 mod connection;
 pub mod exception;
 pub mod host;
+pub mod json;
 pub mod metric;
 mod node;
 pub mod replay;
@@ -112,13 +116,21 @@ pub fn start(
     let Some(section) = config.mqtt.clone() else {
         return Ok(None);
     };
-    if section.format != Format::Sparkplug {
-        return Err(
-            "[mqtt] format = \"json\" is not available in this build: use \"sparkplug\""
-                .to_string(),
-        );
-    }
     let node_id = node_id(&section);
+    if section.format == Format::Json {
+        if section.primary_host_id.is_some() {
+            tracing::warn!(
+                "[mqtt] primary_host_id is Sparkplug's: the JSON format does not follow a primary host"
+            );
+        }
+        return Ok(Some(json::node::spawn(
+            Arc::new(section),
+            node_id,
+            control,
+            metrics,
+            shutdown,
+        )));
+    }
     Ok(Some(node::spawn(
         Arc::new(section),
         node_id,

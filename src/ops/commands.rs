@@ -177,7 +177,7 @@ impl LeaseInfo {
             lease_ms: millis_u64(view.length),
             expires_in_ms: millis_u64(view.expires_in),
             action: view.action.name().to_string(),
-            websocket: session && !view.comm_loss,
+            websocket: session && !view.comm_loss && view.comm_loss_face.is_none(),
             comm_loss: view.comm_loss,
         }
     }
@@ -312,6 +312,29 @@ pub fn lease_of(control: &Control, index: usize) -> Option<LeaseInfo> {
 
 fn millis_u64(d: Duration) -> u64 {
     u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
+}
+
+/// A command message, as the WebSocket stream takes it:
+/// `{"type": "command", "id": 1, "op": "setpoint", "drive": "conveyor",
+/// "body": {"speed_rpm": 100}}` (the MQTT face takes the drive from the
+/// topic, so `drive` may be left out there).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(tag = "type", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum CommandMessage {
+    /// Run an operation; answered with a reply carrying the same `id`.
+    Command {
+        /// Any JSON value; echoed in the reply.
+        #[serde(default)]
+        id: Value,
+        /// The operation.
+        op: String,
+        /// The drive.
+        #[serde(default)]
+        drive: Option<String>,
+        /// The operation's body, as for the REST route.
+        #[serde(default)]
+        body: Option<Value>,
+    },
 }
 
 /// `{"force": bool}`.

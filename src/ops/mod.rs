@@ -1,14 +1,16 @@
 //! What the faces share of the drives' operations, below them all: the
 //! problem documents that word a refusal or a failure
-//! ([`problem`]), request bodies' integers ([`integers`]), the status of
+//! ([`problem`]), alarms as JSON ([`alarms`]), request bodies' integers ([`integers`]), the status of
 //! a drive as JSON ([`status`]), and the translation of the stream's
 //! command messages into requests for the control core with the replies
 //! they get ([`commands`]). The REST API and the WebSocket stream use it,
 //! and the MQTT face's JSON format: one wording, one shape, whatever the
 //! face; the faces do not import each other.
 
+pub mod alarms;
 pub mod commands;
 pub mod integers;
+pub mod messages;
 pub mod problem;
 pub mod status;
 pub mod target;

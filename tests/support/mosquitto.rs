@@ -138,3 +138,147 @@ impl Drop for Mosquitto {
         self.stop();
     }
 }
+
+/// One message as `mosquitto_sub` printed it.
+#[derive(Debug, Clone)]
+pub struct Received {
+    /// Its topic.
+    pub topic: String,
+    /// The retained flag.
+    pub retained: bool,
+    /// The MQTT 5 correlation data, as text (empty: none).
+    pub correlation: String,
+    /// The payload, as text.
+    pub payload: String,
+}
+
+impl Received {
+    /// The payload as JSON (`Null` when it is not JSON).
+    pub fn json(&self) -> serde_json::Value {
+        serde_json::from_str(&self.payload).unwrap_or(serde_json::Value::Null)
+    }
+}
+
+/// Debian's `mosquitto_sub`, an MQTT 5 client of the broker on `port`,
+/// subscribed to some topics, each message read as it comes. Killed when
+/// dropped.
+pub struct Sub {
+    child: tokio::process::Child,
+    lines: tokio::io::Lines<tokio::io::BufReader<tokio::process::ChildStdout>>,
+    /// Every message read so far.
+    pub seen: Vec<Received>,
+}
+
+impl Sub {
+    /// Subscribes to `topics` on the broker on `port` (MQTT 5, QoS 1).
+    pub fn start(port: u16, topics: &[&str]) -> Sub {
+        use tokio::io::AsyncBufReadExt;
+        let mut cmd = tokio::process::Command::new("mosquitto_sub");
+        cmd.args([
+            "-h",
+            "127.0.0.1",
+            "-p",
+            &port.to_string(),
+            "-V",
+            "mqttv5",
+            "-q",
+            "1",
+        ])
+        // One line per message: topic, retained flag, correlation
+        // data, payload (the payloads here are one-line JSON).
+        .args(["-F", "%t\t%r\t%D\t%p"]);
+        for t in topics {
+            cmd.args(["-t", t]);
+        }
+        let mut child = cmd
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .kill_on_drop(true)
+            .spawn()
+            .unwrap_or_else(|e| panic!("{}", tools::cannot_run("mosquitto_sub", &e)));
+        let stdout = child.stdout.take().expect("mosquitto_sub's output");
+        Sub {
+            child,
+            lines: tokio::io::BufReader::new(stdout).lines(),
+            seen: Vec::new(),
+        }
+    }
+
+    /// The next message that `pred` accepts, within `limit`; fails the
+    /// test naming `what` and the messages seen.
+    pub async fn next(
+        &mut self,
+        limit: Duration,
+        what: &str,
+        pred: impl Fn(&Received) -> bool,
+    ) -> Received {
+        let deadline = tokio::time::Instant::now() + limit;
+        loop {
+            let line = tokio::time::timeout_at(deadline, self.lines.next_line())
+                .await
+                .unwrap_or_else(|_| {
+                    let last = &self.seen[self.seen.len().saturating_sub(5)..];
+                    panic!(
+                        "no {what} within {limit:?}; {} messages seen, the last: {:?}",
+                        self.seen.len(),
+                        last.iter()
+                            .map(|m| (&m.topic, m.retained, &m.payload))
+                            .collect::<Vec<_>>()
+                    )
+                })
+                .expect("mosquitto_sub's output")
+                .unwrap_or_else(|| panic!("mosquitto_sub ended before {what}"));
+            let mut parts = line.splitn(4, '\t');
+            let mut part = || parts.next().unwrap_or("").to_string();
+            let m = Received {
+                topic: part(),
+                retained: part() == "1",
+                correlation: part(),
+                payload: part(),
+            };
+            self.seen.push(m.clone());
+            if pred(&m) {
+                return m;
+            }
+        }
+    }
+
+    /// Stops the client.
+    pub async fn stop(mut self) {
+        let _ = self.child.start_kill();
+        let _ = self.child.wait().await;
+    }
+}
+
+/// Publishes `payload` on `topic` with Debian's `mosquitto_pub` (MQTT 5,
+/// QoS 1) and `properties` (`["response-topic", "t", "correlation-data",
+/// "c"]` pairs for `-D publish`); waits until it is delivered to the
+/// broker.
+pub async fn publish(port: u16, topic: &str, payload: &str, properties: &[(&str, &str)]) {
+    let mut cmd = tokio::process::Command::new("mosquitto_pub");
+    cmd.args([
+        "-h",
+        "127.0.0.1",
+        "-p",
+        &port.to_string(),
+        "-V",
+        "mqttv5",
+        "-q",
+        "1",
+    ])
+    .args(["-t", topic, "-m", payload]);
+    for (name, value) in properties {
+        cmd.args(["-D", "publish", name, value]);
+    }
+    let out = cmd
+        .stdin(Stdio::null())
+        .output()
+        .await
+        .unwrap_or_else(|e| panic!("{}", tools::cannot_run("mosquitto_pub", &e)));
+    assert!(
+        out.status.success(),
+        "mosquitto_pub failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}

@@ -62,7 +62,9 @@ struct Lease {
     mode: Mode,
     action: StopAction,
     comm_loss: bool,
-    /// The face of the session whose communication-loss function it is.
+    /// The face of its session's communication-loss function, if its
+    /// session has one (whether this lease is a communication-loss one or
+    /// asked for explicitly in that session).
     face: Option<Face>,
     length: Duration,
     deadline: Instant,
@@ -590,6 +592,7 @@ fn view(lease: &Lease, now: Instant) -> LeaseView {
         expires_in: lease.deadline.saturating_duration_since(now),
         action: lease.action,
         comm_loss: lease.comm_loss,
+        comm_loss_face: lease.face,
     }
 }
 

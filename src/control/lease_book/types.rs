@@ -101,6 +101,10 @@ pub struct LeaseView {
     pub action: StopAction,
     /// A communication-loss lease (renewed by any request of its session).
     pub comm_loss: bool,
+    /// The face of its session's communication-loss function, when its
+    /// session has one (an MQTT session, a Modbus TCP client's network):
+    /// such a session is no WebSocket, whichever lease it holds.
+    pub comm_loss_face: Option<Face>,
 }
 
 /// What [`LeaseBook::grant`] did.

@@ -1,0 +1,118 @@
+//! One MQTT 5 connection to the broker for the JSON format: rumqttc's
+//! `v5` client with options built from `[mqtt]` (keepalive, credentials,
+//! TLS) and `<prefix>/state` = `offline` (retained) as its will, its event
+//! loop polled in a task of its own whose events come to the node. MQTT 5
+//! gives a command its response topic and correlation data.
+
+use rumqttc::Transport;
+use rumqttc::v5::mqttbytes::QoS;
+use rumqttc::v5::mqttbytes::v5::LastWill;
+use rumqttc::v5::{AsyncClient, Event, MqttOptions};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+
+use crate::config::MqttConfig;
+
+/// How many requests (publishes, subscriptions) may wait in the client.
+const REQUEST_CAPACITY: usize = 4096;
+
+/// The largest packet either way.
+const MAX_PACKET: u32 = 256 * 1024;
+
+/// One connection to the broker.
+pub(super) struct Connection {
+    /// Publishes and subscribes.
+    pub(super) client: AsyncClient,
+    /// The event loop's events; an error ends them.
+    pub(super) events: mpsc::Receiver<Result<Event, String>>,
+    poller: JoinHandle<()>,
+    /// The broker accepted it (CONNACK).
+    pub(super) accepted: bool,
+}
+
+impl Drop for Connection {
+    fn drop(&mut self) {
+        self.poller.abort();
+    }
+}
+
+impl Connection {
+    /// Starts connecting as `client_id`, with `will_topic` = `offline`
+    /// (retained) as the will. Fails only on what is wrong before any
+    /// network traffic (the password file, the TLS files).
+    pub(super) fn open(
+        config: &MqttConfig,
+        client_id: &str,
+        will_topic: &str,
+    ) -> Result<Connection, String> {
+        let mut options =
+            MqttOptions::new(client_id, config.broker.host.clone(), config.broker.port);
+        options.set_keep_alive(config.keepalive());
+        options.set_clean_start(true);
+        options.set_max_packet_size(Some(MAX_PACKET));
+        options.set_last_will(LastWill::new(
+            will_topic,
+            "offline",
+            QoS::AtLeastOnce,
+            true,
+            None,
+        ));
+        if let Some(user) = &config.username {
+            let password = match &config.password_file {
+                Some(path) => super::super::connection::read_password(path)?,
+                None => String::new(),
+            };
+            options.set_credentials(user.clone(), password);
+        }
+        if config.broker.tls {
+            let identity = match (&config.client_cert, &config.client_key) {
+                (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
+                _ => None,
+            };
+            let tls = crate::tls::client_config(config.ca.as_deref(), identity)
+                .map_err(|e| format!("[mqtt] TLS: {e}"))?;
+            options.set_transport(Transport::tls_with_config(
+                rumqttc::TlsConfiguration::Rustls(tls),
+            ));
+        }
+        let (client, mut eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
+        let (tx, events) = mpsc::channel(256);
+        let poller = tokio::spawn(async move {
+            loop {
+                let event = eventloop.poll().await.map_err(|e| describe(&e));
+                let end = event.is_err();
+                if tx.send(event).await.is_err() || end {
+                    break;
+                }
+            }
+        });
+        Ok(Connection {
+            client,
+            events,
+            poller,
+            accepted: false,
+        })
+    }
+}
+
+/// The next event of `conn`; never, without a connection.
+pub(super) async fn next_event(conn: &mut Option<Connection>) -> Option<Result<Event, String>> {
+    match conn {
+        Some(c) => c.events.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// A connection error in words a plant engineer can act on.
+fn describe(e: &rumqttc::v5::ConnectionError) -> String {
+    use rumqttc::v5::ConnectionError as E;
+    match e {
+        E::Io(io) if io.kind() == std::io::ErrorKind::ConnectionRefused => {
+            "the broker refused the TCP connection (is it running, on this port?)".to_string()
+        }
+        E::Io(io) => format!("connection to the broker: {io}"),
+        E::ConnectionRefused(code) => format!("the broker refused the connection: {code:?}"),
+        E::Tls(tls) => format!("TLS with the broker: {tls}"),
+        other => other.to_string(),
+    }
+}
