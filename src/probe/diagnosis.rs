@@ -509,7 +509,7 @@ mod tests {
         let mut late = rtu_frame::encode(4, &pdu);
         late.extend_from_slice(&request);
         assert_eq!(
-            classify(5, None, Some(&Fault::Mismatch("unit 4".into())), &late),
+            classify(5, None, Some(&Fault::Mismatch("unit 4")), &late),
             Heard::Echo(None)
         );
     }
