@@ -67,7 +67,7 @@ pub fn classify(unit: u8, reply: Option<&[u8]>, fault: Option<&Fault>, received:
         };
     }
     if let Ok(frame) = request.frame(unit)
-        && let Some(echoed) = echo_length(&frame, received)
+        && let Some(echoed) = echo_end(&frame, received)
     {
         // The master frames what comes first as the reply and may drop the
         // rest of the echo with it: look for the drive's answer anywhere
@@ -85,17 +85,25 @@ pub fn classify(unit: u8, reply: Option<&[u8]>, fault: Option<&Fault>, received:
     Heard::Garbage { crc: crc_error }
 }
 
-/// Bytes of our own request that `received` begins with, when they are an
-/// echo: the whole request, or at least its first four bytes (unit,
-/// function and address: no drive's answer and no wrong rate's garbage
-/// starts so).
-fn echo_length(request: &[u8], received: &[u8]) -> Option<usize> {
+/// Where the echo of our own request ends in `received`, when there is
+/// one: `received` begins with the whole request or at least its first
+/// four bytes (unit, function and address: no drive's answer and no wrong
+/// rate's garbage starts so), or holds the whole request, CRC included,
+/// further on (behind the late answer to the request before, which a
+/// starved or slow line delivers after its attempt ended).
+fn echo_end(request: &[u8], received: &[u8]) -> Option<usize> {
     let same = request
         .iter()
         .zip(received)
         .take_while(|(a, b)| a == b)
         .count();
-    (same >= 4.min(request.len())).then_some(same)
+    if same >= 4.min(request.len()) {
+        return Some(same);
+    }
+    received
+        .windows(request.len())
+        .position(|w| w == request)
+        .map(|at| at + request.len())
 }
 
 /// What one unit answered over all its reads at one rate.
@@ -495,6 +503,14 @@ mod tests {
         assert_eq!(
             classify(5, None, Some(&Fault::Crc), &request[..2]),
             Heard::Garbage { crc: true }
+        );
+        // The late answer to the read of unit 4 before it, then our
+        // echo: still an echo.
+        let mut late = rtu_frame::encode(4, &pdu);
+        late.extend_from_slice(&request);
+        assert_eq!(
+            classify(5, None, Some(&Fault::Mismatch("unit 4")), &late),
+            Heard::Echo(None)
         );
     }
 
