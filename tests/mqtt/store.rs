@@ -223,6 +223,9 @@ async fn a_drives_kept_data_waits_for_its_birth_when_it_is_offline_at_the_reconn
             m.is("NBIRTH", None)
         })
         .await;
+        // (What came before, the start-up's own kept data included, is not
+        // this outage's.)
+        let reborn_at = host.seen.len() - 1;
         // The store is read while the conveyor is still offline: its data
         // waits for the birth instead of being dropped.
         eventually(WAIT, "the store read for the replay", || {
@@ -254,11 +257,11 @@ async fn a_drives_kept_data_waits_for_its_birth_when_it_is_offline_at_the_reconn
             }
         }
         // None of it reached the host before the conveyor's birth.
-        let first = host
-            .seen
-            .iter()
-            .position(|m| angles(m).iter().any(|(_, h)| *h))
-            .unwrap();
+        let first = reborn_at
+            + host.seen[reborn_at..]
+                .iter()
+                .position(|m| angles(m).iter().any(|(_, h)| *h))
+                .unwrap();
         assert!(
             first > birth_at,
             "historical data of the conveyor at {first}, before its DBIRTH at {birth_at} ({})",
