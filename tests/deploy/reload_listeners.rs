@@ -53,10 +53,10 @@ fn plant(modbus_tcp: &str, http: &str) -> String {
         .toml()
 }
 
-/// A loopback port nobody listens on (the system's choice, let go).
+/// A loopback address nobody listens on, outside the range the system
+/// hands out for `:0` and outgoing connections.
 fn free_port() -> SocketAddr {
-    let probe = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    probe.local_addr().unwrap()
+    SocketAddr::from(([127, 0, 0, 1], crate::support::ports::free_port()))
 }
 
 /// Moves a listener to a free loopback port: writes `file(port)` and
