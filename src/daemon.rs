@@ -59,22 +59,12 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
     });
     signals.reload_with(faces.control.clone());
 
-    let summary = if plant.now().bus_count() == 0 {
+    if plant.now().bus_count() == 0 {
         // The package's configuration as shipped: `systemctl status` says
         // what to do first.
         tracing::warn!("{}", crate::api::health::NO_BUS);
-        format!(
-            "waiting to be configured: no bus (run drivegate probe); HTTP on {}",
-            faces.http
-        )
-    } else {
-        format!(
-            "serving {} drive(s) on {} bus(es); HTTP on {}",
-            plant.now().drive_count(),
-            plant.now().bus_count(),
-            faces.http
-        )
-    };
+    }
+    let summary = crate::systemd::status_line(&plant, Some(faces.http));
     notify_systemd(&[
         sd_notify::NotifyState::Ready,
         sd_notify::NotifyState::Status(&summary),
@@ -128,11 +118,7 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
 /// step is bounded to 5 s in [`crate::control::shutdown`]).
 const FACES_STOP_LIMIT: Duration = Duration::from_secs(5);
 
-fn notify_systemd(states: &[sd_notify::NotifyState<'_>]) {
-    if let Err(e) = sd_notify::notify(states) {
-        warn!("cannot notify systemd: {e}");
-    }
-}
+use crate::systemd::notify as notify_systemd;
 
 /// Pings systemd's watchdog (`WatchdogSec=`) at half its interval until
 /// `stop` fires. The pings come from the runtime that serves the faces and

@@ -28,7 +28,8 @@
 //!   [`mqtt`] (Sparkplug B; its payload types for the tests' host),
 //!   [`console`] (its assets), [`metrics`].
 //! - Putting it together: [`config`], [`plant`], [`faces`], [`daemon`],
-//!   [`logging`], [`bench`] (`drivegate bench`), [`probe`] (`drivegate probe`).
+//!   [`reload`], [`systemd`], [`logging`], [`bench`] (`drivegate bench`),
+//!   [`probe`] (`drivegate probe`).
 //!
 //! `timestamp` (the one time format of every face and observer) is used
 //! only inside the daemon, so it is `pub(crate)`.
@@ -58,5 +59,6 @@ pub mod reload;
 pub mod safety;
 pub mod scope;
 pub mod sim;
+pub mod systemd;
 pub(crate) mod timestamp;
 pub mod tls;

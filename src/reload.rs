@@ -174,6 +174,8 @@ impl Reloader {
         // before this answers, so the old address refuses from then on.
         let faces = self.faces.follow(&new).await;
         self.running = new;
+        // `systemctl status` shows the drives and the API's address now.
+        crate::systemd::status(&self.plant, self.faces.addresses().await.http);
         let mut lines = changes.lines();
         if changes.is_empty() && !faces.changes.is_empty() {
             lines.clear();

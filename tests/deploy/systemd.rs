@@ -202,7 +202,22 @@ async fn binary_notifies_systemd_and_exits_zero_on_sigterm() {
             "{seen:?}"
         );
 
+        // A reload that adds a drive: `systemctl status` says so.
         let pid = Pid::from_raw(i32::try_from(child.id().unwrap()).unwrap());
+        let more = format!("{CONFIG}[[bus.drive]]\nunit = 2\nname = \"lift\"\n");
+        std::fs::write(&config, more).unwrap();
+        kill(pid, Signal::SIGHUP).unwrap();
+        let mut status = String::new();
+        while !status.starts_with("STATUS=serving 2 drive(s) on 1 bus(es); HTTP on 127.0.0.1:") {
+            let mut buf = vec![0u8; 4096];
+            let n = socket.recv(&mut buf).await.unwrap();
+            let msg = String::from_utf8_lossy(&buf[..n]).into_owned();
+            if let Some(line) = msg.lines().find(|l| l.starts_with("STATUS=")) {
+                status = line.to_string();
+            }
+            seen.push(msg);
+        }
+
         let asked = Instant::now();
         kill(pid, Signal::SIGTERM).unwrap();
         until(&socket, "STOPPING=1", &mut seen).await;
