@@ -48,23 +48,11 @@ impl Connection {
         options.set_clean_session(true);
         options.set_max_packet_size(256 * 1024, 256 * 1024);
         options.set_last_will(will);
-        if let Some(user) = &config.username {
-            let password = match &config.password_file {
-                Some(path) => read_password(path)?,
-                None => String::new(),
-            };
-            options.set_credentials(user.clone(), password);
+        if let Some((user, password)) = credentials(config)? {
+            options.set_credentials(user, password);
         }
-        if config.broker.tls {
-            let identity = match (&config.client_cert, &config.client_key) {
-                (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
-                _ => None,
-            };
-            let tls = crate::tls::client_config(config.ca.as_deref(), identity)
-                .map_err(|e| format!("[mqtt] TLS: {e}"))?;
-            options.set_transport(Transport::tls_with_config(
-                rumqttc::TlsConfiguration::Rustls(tls),
-            ));
+        if let Some(tls) = tls_transport(config)? {
+            options.set_transport(tls);
         }
         let (client, mut eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
         let (tx, events) = mpsc::channel(256);
@@ -94,7 +82,37 @@ pub(super) async fn next_event(conn: &mut Option<Connection>) -> Option<Result<E
     }
 }
 
-pub(super) fn read_password(path: &std::path::Path) -> Result<String, String> {
+/// `[mqtt] username` and the first line of its `password_file`, if a user
+/// is configured (both the Sparkplug and the JSON connection use them).
+pub(super) fn credentials(config: &MqttConfig) -> Result<Option<(String, String)>, String> {
+    let Some(user) = &config.username else {
+        return Ok(None);
+    };
+    let password = match &config.password_file {
+        Some(path) => read_password(path)?,
+        None => String::new(),
+    };
+    Ok(Some((user.clone(), password)))
+}
+
+/// The TLS transport to an `mqtts://` broker: its CA (or the system's
+/// roots) and the client's certificate, if configured.
+pub(super) fn tls_transport(config: &MqttConfig) -> Result<Option<Transport>, String> {
+    if !config.broker.tls {
+        return Ok(None);
+    }
+    let identity = match (&config.client_cert, &config.client_key) {
+        (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
+        _ => None,
+    };
+    let tls = crate::tls::client_config(config.ca.as_deref(), identity)
+        .map_err(|e| format!("[mqtt] TLS: {e}"))?;
+    Ok(Some(Transport::tls_with_config(
+        rumqttc::TlsConfiguration::Rustls(tls),
+    )))
+}
+
+fn read_password(path: &std::path::Path) -> Result<String, String> {
     std::fs::read_to_string(path)
         .map(|s| s.lines().next().unwrap_or("").to_string())
         .map_err(|e| format!("[mqtt] password_file {}: {e}", path.display()))

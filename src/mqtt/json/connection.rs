@@ -4,7 +4,6 @@
 //! loop polled in a task of its own whose events come to the node. MQTT 5
 //! gives a command its response topic and correlation data.
 
-use rumqttc::Transport;
 use rumqttc::v5::mqttbytes::QoS;
 use rumqttc::v5::mqttbytes::v5::LastWill;
 use rumqttc::v5::{AsyncClient, Event, MqttOptions};
@@ -57,23 +56,11 @@ impl Connection {
             true,
             None,
         ));
-        if let Some(user) = &config.username {
-            let password = match &config.password_file {
-                Some(path) => super::super::connection::read_password(path)?,
-                None => String::new(),
-            };
-            options.set_credentials(user.clone(), password);
+        if let Some((user, password)) = crate::mqtt::connection::credentials(config)? {
+            options.set_credentials(user, password);
         }
-        if config.broker.tls {
-            let identity = match (&config.client_cert, &config.client_key) {
-                (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
-                _ => None,
-            };
-            let tls = crate::tls::client_config(config.ca.as_deref(), identity)
-                .map_err(|e| format!("[mqtt] TLS: {e}"))?;
-            options.set_transport(Transport::tls_with_config(
-                rumqttc::TlsConfiguration::Rustls(tls),
-            ));
+        if let Some(tls) = crate::mqtt::connection::tls_transport(config)? {
+            options.set_transport(tls);
         }
         let (client, mut eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
         let (tx, events) = mpsc::channel(256);
