@@ -388,44 +388,21 @@ pub(crate) fn start(control: &Control, shutdown: &CancellationToken) {
     let book = control.drift().clone();
     let _ = book.shutdown.set(shutdown.clone());
     // Follows the plant: each bus a reload adds or reopens gets its
-    // watcher, one it removes or reopens loses its own.
-    let (follower_book, follower_control, follower_shutdown) =
-        (book.clone(), control.clone(), shutdown.clone());
-    tokio::spawn(async move {
-        let mut follow = follower_control.plant().follow();
-        let mut watching: Vec<(usize, std::sync::Weak<crate::plant::Bus>, CancellationToken)> =
-            Vec::new();
-        loop {
-            let now = follow.borrow_and_update().clone();
-            watching.retain(|(i, bus, stop)| {
-                let same = now
-                    .bus_at(*i)
-                    .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()));
-                if !same {
-                    stop.cancel();
-                }
-                same
-            });
-            for (index, bus) in now.indexed_buses() {
-                if watching.iter().any(|(i, _, _)| *i == index) {
-                    continue;
-                }
-                let stop = follower_shutdown.child_token();
-                watching.push((index, Arc::downgrade(bus), stop.clone()));
-                watch_bus(
-                    follower_book.clone(),
-                    follower_control.clone(),
-                    index,
-                    bus.handle.subscribe(),
-                    stop,
-                );
-            }
-            tokio::select! {
-                () = follower_shutdown.cancelled() => return,
-                changed = follow.changed() => if changed.is_err() { return },
-            }
-        }
-    });
+    // watcher, one it removes or reopens loses its own. The buses of now
+    // are subscribed to at once, before the drives online already are
+    // asked for below: a drive that comes online in between is not missed.
+    let (watcher_book, watcher_control) = (book.clone(), control.clone());
+    control
+        .plant()
+        .for_each_bus(shutdown, move |index, bus, stop| {
+            watch_bus(
+                watcher_book.clone(),
+                watcher_control.clone(),
+                index,
+                bus.handle.subscribe(),
+                stop,
+            );
+        });
     // Online before the buses were followed.
     let now = control.plant().now();
     for (drive, d) in now.indexed_drives() {
