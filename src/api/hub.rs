@@ -325,7 +325,7 @@ impl Hub {
             control.subscribe(),
             shutdown.clone(),
         ));
-        tokio::spawn(follow_buses(hub.clone(), plant.clone(), shutdown.clone()));
+        follow_buses(&hub, plant, shutdown);
         hub
     }
 
@@ -536,45 +536,23 @@ async fn forward_control(
 /// Forwards the events of every bus, following the plant: a bus a reload
 /// adds or reopens gets its forwarder (with the units of its drives), one
 /// it removes or reopens loses its own.
-async fn follow_buses(hub: Arc<Hub>, plant: Arc<Plant>, shutdown: CancellationToken) {
-    let mut follow = plant.follow();
-    let mut forwarding: Vec<(usize, std::sync::Weak<crate::plant::Bus>, CancellationToken)> =
-        Vec::new();
-    loop {
-        let now = follow.borrow_and_update().clone();
-        forwarding.retain(|(i, bus, stop)| {
-            let same = now
-                .bus_at(*i)
-                .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()));
-            if !same {
-                stop.cancel();
-            }
-            same
-        });
-        for (bus_index, bus) in now.indexed_buses() {
-            if forwarding.iter().any(|(i, _, _)| *i == bus_index) {
-                continue;
-            }
-            let units: HashMap<u8, usize> = now
-                .indexed_drives()
-                .filter(|(_, d)| d.bus == bus_index)
-                .map(|(i, d)| (d.unit, i))
-                .collect();
-            let stop = shutdown.child_token();
-            forwarding.push((bus_index, Arc::downgrade(bus), stop.clone()));
-            tokio::spawn(forward(
-                hub.clone(),
-                plant.clone(),
-                units,
-                bus.handle.subscribe(),
-                stop,
-            ));
-        }
-        tokio::select! {
-            () = shutdown.cancelled() => return,
-            changed = follow.changed() => if changed.is_err() { return },
-        }
-    }
+fn follow_buses(hub: &Arc<Hub>, plant: &Arc<Plant>, shutdown: &CancellationToken) {
+    let (hub, forwarded) = (hub.clone(), plant.clone());
+    plant.for_each_bus(shutdown, move |bus_index, bus, stop| {
+        let units: HashMap<u8, usize> = forwarded
+            .now()
+            .indexed_drives()
+            .filter(|(_, d)| d.bus == bus_index)
+            .map(|(i, d)| (d.unit, i))
+            .collect();
+        tokio::spawn(forward(
+            hub.clone(),
+            forwarded.clone(),
+            units,
+            bus.handle.subscribe(),
+            stop,
+        ));
+    });
 }
 
 async fn forward(

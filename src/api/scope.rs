@@ -521,32 +521,9 @@ const PROGRESS_PERIOD: Duration = Duration::from_millis(100);
 /// or reopens gets its publisher, one it removes loses it. Ends with
 /// `shutdown`.
 pub fn publish_progress(plant: &Arc<Plant>, hub: &Arc<Hub>, shutdown: &CancellationToken) {
-    let (plant, hub, shutdown) = (plant.clone(), hub.clone(), shutdown.clone());
-    tokio::spawn(async move {
-        let mut follow = plant.follow();
-        let mut publishing: Vec<(Arc<Bus>, CancellationToken)> = Vec::new();
-        loop {
-            let now = follow.borrow_and_update().clone();
-            publishing.retain(|(bus, stop)| {
-                let kept = now.buses().any(|b| Arc::ptr_eq(b, bus));
-                if !kept {
-                    stop.cancel();
-                }
-                kept
-            });
-            for bus in now.buses() {
-                if publishing.iter().any(|(b, _)| Arc::ptr_eq(b, bus)) {
-                    continue;
-                }
-                let stop = shutdown.child_token();
-                publishing.push((bus.clone(), stop.clone()));
-                publish_bus(bus.clone(), hub.clone(), stop);
-            }
-            tokio::select! {
-                () = shutdown.cancelled() => return,
-                changed = follow.changed() => if changed.is_err() { return },
-            }
-        }
+    let hub = hub.clone();
+    plant.for_each_bus(shutdown, move |_, bus, stop| {
+        publish_bus(bus.clone(), hub.clone(), stop);
     });
 }
 
