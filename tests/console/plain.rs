@@ -198,10 +198,30 @@ async fn the_setpoint_field_sets_a_speed_held_while_the_page_is_open_or_for_a_ti
         note.contains("confirmed by the drive: speed setpoint 80 rpm"),
         "{note}"
     );
-    until(LONG, "the motor at the set speed", || {
-        speed(&daemon.plant, 1).is_some_and(|s| s > 60)
+    let turning = tokio::time::timeout(LONG, async {
+        while speed(&daemon.plant, 1).is_none_or(|s| s <= 60) {
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
     })
     .await;
+    if turning.is_err() {
+        // What the daemon and the stream knew, to tell why.
+        let (_, drive) = rest(
+            &daemon,
+            Some(OPERATOR),
+            "GET",
+            "/api/v1/drives/conveyor",
+            None,
+        )
+        .await;
+        let news: Vec<serde_json::Value> = watcher
+            .all()
+            .into_iter()
+            .map(|(_, v)| v)
+            .filter(|v| v["type"] != "status")
+            .collect();
+        panic!("the motor not at the set speed within {LONG:?}: {drive}\nstream: {news:?}");
+    }
     let (_, drive) = rest(
         &daemon,
         Some(OPERATOR),
