@@ -15,22 +15,74 @@ use crate::config::MqttConfig;
 /// for the event loop.
 const REQUEST_CAPACITY: usize = 4096;
 
-/// One connection to the broker.
-pub(super) struct Connection {
+/// One connection to the broker, of either client (MQTT 3.1.1 for
+/// Sparkplug, MQTT 5 for the JSON format).
+pub(in crate::mqtt) struct Link<C, E> {
     /// Publishes and subscribes.
-    pub(super) client: AsyncClient,
+    pub(in crate::mqtt) client: C,
     /// The event loop's events; an error ends them.
-    pub(super) events: mpsc::Receiver<Result<Event, String>>,
+    pub(in crate::mqtt) events: mpsc::Receiver<Result<E, String>>,
     poller: JoinHandle<()>,
     /// The broker accepted it (CONNACK).
-    pub(super) accepted: bool,
+    pub(in crate::mqtt) accepted: bool,
 }
 
-impl Drop for Connection {
+impl<C, E> Drop for Link<C, E> {
     fn drop(&mut self) {
         self.poller.abort();
     }
 }
+
+/// An event loop polled in the link's task: its next event, or its error
+/// in words.
+pub(in crate::mqtt) trait EventLoop: Send + 'static {
+    /// What it yields.
+    type Event: Send + 'static;
+    /// The next event.
+    fn next(&mut self) -> impl std::future::Future<Output = Result<Self::Event, String>> + Send;
+}
+
+impl EventLoop for rumqttc::EventLoop {
+    type Event = Event;
+    async fn next(&mut self) -> Result<Event, String> {
+        self.poll().await.map_err(|e| describe(&e))
+    }
+}
+
+impl<C, E: Send + 'static> Link<C, E> {
+    /// `client` with its event loop polled in a task of its own.
+    pub(in crate::mqtt) fn new<L: EventLoop<Event = E>>(client: C, mut eventloop: L) -> Self {
+        let (tx, events) = mpsc::channel(256);
+        let poller = tokio::spawn(async move {
+            loop {
+                let event = eventloop.next().await;
+                let end = event.is_err();
+                if tx.send(event).await.is_err() || end {
+                    break;
+                }
+            }
+        });
+        Link {
+            client,
+            events,
+            poller,
+            accepted: false,
+        }
+    }
+}
+
+/// The next event of `link`; never, without a connection.
+pub(in crate::mqtt) async fn next_event<C, E>(
+    link: &mut Option<Link<C, E>>,
+) -> Option<Result<E, String>> {
+    match link {
+        Some(l) => l.events.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// One Sparkplug connection to the broker.
+pub(super) type Connection = Link<AsyncClient, Event>;
 
 impl Connection {
     /// Starts connecting to `config`'s broker as `client_id` with `will`.
@@ -54,31 +106,8 @@ impl Connection {
         if let Some(tls) = tls_transport(config)? {
             options.set_transport(tls);
         }
-        let (client, mut eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
-        let (tx, events) = mpsc::channel(256);
-        let poller = tokio::spawn(async move {
-            loop {
-                let event = eventloop.poll().await.map_err(|e| describe(&e));
-                let end = event.is_err();
-                if tx.send(event).await.is_err() || end {
-                    break;
-                }
-            }
-        });
-        Ok(Connection {
-            client,
-            events,
-            poller,
-            accepted: false,
-        })
-    }
-}
-
-/// The next event of `conn`; never, without a connection.
-pub(super) async fn next_event(conn: &mut Option<Connection>) -> Option<Result<Event, String>> {
-    match conn {
-        Some(c) => c.events.recv().await,
-        None => std::future::pending().await,
+        let (client, eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
+        Ok(Link::new(client, eventloop))
     }
 }
 

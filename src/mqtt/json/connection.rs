@@ -4,13 +4,11 @@
 //! loop polled in a task of its own whose events come to the node. MQTT 5
 //! gives a command its response topic and correlation data.
 
+use crate::config::MqttConfig;
+use crate::mqtt::connection::{EventLoop, Link};
 use rumqttc::v5::mqttbytes::QoS;
 use rumqttc::v5::mqttbytes::v5::LastWill;
 use rumqttc::v5::{AsyncClient, Event, MqttOptions};
-use tokio::sync::mpsc;
-use tokio::task::JoinHandle;
-
-use crate::config::MqttConfig;
 
 /// How many requests (publishes, subscriptions) may wait in the client.
 const REQUEST_CAPACITY: usize = 4096;
@@ -18,20 +16,13 @@ const REQUEST_CAPACITY: usize = 4096;
 /// The largest packet either way.
 const MAX_PACKET: u32 = 256 * 1024;
 
-/// One connection to the broker.
-pub(super) struct Connection {
-    /// Publishes and subscribes.
-    pub(super) client: AsyncClient,
-    /// The event loop's events; an error ends them.
-    pub(super) events: mpsc::Receiver<Result<Event, String>>,
-    poller: JoinHandle<()>,
-    /// The broker accepted it (CONNACK).
-    pub(super) accepted: bool,
-}
+/// One MQTT 5 connection to the broker.
+pub(super) type Connection = Link<AsyncClient, Event>;
 
-impl Drop for Connection {
-    fn drop(&mut self) {
-        self.poller.abort();
+impl EventLoop for rumqttc::v5::EventLoop {
+    type Event = Event;
+    async fn next(&mut self) -> Result<Event, String> {
+        self.poll().await.map_err(|e| describe(&e))
     }
 }
 
@@ -62,31 +53,8 @@ impl Connection {
         if let Some(tls) = crate::mqtt::connection::tls_transport(config)? {
             options.set_transport(tls);
         }
-        let (client, mut eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
-        let (tx, events) = mpsc::channel(256);
-        let poller = tokio::spawn(async move {
-            loop {
-                let event = eventloop.poll().await.map_err(|e| describe(&e));
-                let end = event.is_err();
-                if tx.send(event).await.is_err() || end {
-                    break;
-                }
-            }
-        });
-        Ok(Connection {
-            client,
-            events,
-            poller,
-            accepted: false,
-        })
-    }
-}
-
-/// The next event of `conn`; never, without a connection.
-pub(super) async fn next_event(conn: &mut Option<Connection>) -> Option<Result<Event, String>> {
-    match conn {
-        Some(c) => c.events.recv().await,
-        None => std::future::pending().await,
+        let (client, eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
+        Ok(Link::new(client, eventloop))
     }
 }
 

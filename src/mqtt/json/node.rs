@@ -33,13 +33,14 @@ use tokio::task::JoinHandle;
 use tokio::time::{Instant, sleep_until};
 use tokio_util::sync::CancellationToken;
 
-use super::connection::{Connection, next_event};
+use super::connection::Connection;
 use super::topics::JsonTopics;
 use crate::bus::SourceId;
 use crate::bus::cache::BusEvent;
 use crate::config::MqttConfig;
 use crate::control::{Caller, CommLoss, Control, ControlEvent, Face, Published, SessionGuard};
 use crate::metrics::Metrics;
+use crate::mqtt::connection::next_event;
 use crate::ops::commands::{self, CommandMessage, DRIVE_OPS};
 use crate::ops::messages::{self, DriveMessage};
 use crate::ops::problem::{Kind, Problem};
