@@ -231,39 +231,27 @@ async fn refusals_and_malformed_messages_are_replied_in_the_apis_words() {
 async fn a_viewer_role_and_no_role_refuse_commands_with_words() {
     bounded(Duration::from_secs(90), async {
         let broker = Mosquitto::start();
-        let d = daemon(&broker, "commands = \"viewer\"").await;
-        let mut sub = subscribed(&broker, &[&topic("conveyor/reply")]).await;
-        command(&broker, json!(1), "activate", json!({})).await;
-        let v = reply(&mut sub, json!(1)).await;
-        let p = problem(&v);
-        assert_eq!(p["type"], "urn:drivegate:problem:forbidden", "{v}");
-        assert!(
-            p["detail"]
-                .as_str()
-                .unwrap()
-                .contains("commands over MQTT have the viewer role"),
-            "{v}"
-        );
-        assert!(!d.sim().drive(1).unwrap().status.active());
-        sub.stop().await;
-        d.stop().await;
-
-        let d = daemon(&broker, "").await;
-        let mut sub = subscribed(&broker, &[&topic("conveyor/reply")]).await;
-        command(&broker, json!(2), "activate", json!({})).await;
-        let v = reply(&mut sub, json!(2)).await;
-        let p = problem(&v);
-        assert_eq!(p["type"], "urn:drivegate:problem:forbidden", "{v}");
-        assert!(
-            p["detail"]
-                .as_str()
-                .unwrap()
-                .contains("commands over MQTT are off"),
-            "{v}"
-        );
-        assert!(!d.sim().drive(1).unwrap().status.active());
-        sub.stop().await;
-        d.stop().await;
+        // A viewer role, then none (the default): refused in words, the
+        // drive untouched.
+        for (id, keys, words) in [
+            (
+                1,
+                "commands = \"viewer\"",
+                "commands over MQTT have the viewer role",
+            ),
+            (2, "", "commands over MQTT are off"),
+        ] {
+            let d = daemon(&broker, keys).await;
+            let mut sub = subscribed(&broker, &[&topic("conveyor/reply")]).await;
+            command(&broker, json!(id), "activate", json!({})).await;
+            let v = reply(&mut sub, json!(id)).await;
+            let p = problem(&v);
+            assert_eq!(p["type"], "urn:drivegate:problem:forbidden", "{v}");
+            assert!(p["detail"].as_str().unwrap().contains(words), "{v}");
+            assert!(!d.sim().drive(1).unwrap().status.active());
+            sub.stop().await;
+            d.stop().await;
+        }
     })
     .await;
 }
