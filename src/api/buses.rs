@@ -87,7 +87,8 @@ pub struct BusView {
     pub reason: Option<String>,
     /// Configured drives.
     pub drives: usize,
-    /// Drives answering their polls.
+    /// Drives whose data is live (answering within their poll period;
+    /// none while the port is down).
     pub drives_online: usize,
     /// Jobs waiting.
     pub queue: QueueDepths,
@@ -104,7 +105,7 @@ fn bus_view(bus: &Bus) -> BusView {
     };
     let stats = handle.stats();
     let [emergency, command, poll] = handle.queue_depths();
-    let drives = handle.drives();
+    let live = handle.freshness_all(std::time::Instant::now());
     BusView {
         name: handle.name().to_string(),
         port: bus.config.port.get_ref().clone(),
@@ -118,9 +119,8 @@ fn bus_view(bus: &Bus) -> BusView {
             .drives
             .iter()
             .filter(|d| {
-                drives
-                    .iter()
-                    .any(|s| s.unit == d.unit() && s.link == crate::bus::cache::Link::Online)
+                live.iter()
+                    .any(|(unit, v)| *unit == d.unit() && v.freshness.is_live())
             })
             .count(),
         queue: QueueDepths {

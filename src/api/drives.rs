@@ -14,9 +14,9 @@ use super::problem::Problem;
 use super::setpoints::{LeaseInfo, lease_of};
 use super::state::{ApiState, Target};
 use crate::bus::DriveSnapshot;
-use crate::bus::cache::Link;
 pub use crate::ops::status::{
-    FaultName, LinkName, ModeName, StatusReply, StatusSource, StatusView,
+    FaultName, FreshnessName, FreshnessView, LinkName, ModeName, StatusReply, StatusSource,
+    StatusView,
 };
 use crate::timestamp::rfc3339;
 
@@ -31,10 +31,14 @@ pub struct DriveView {
     pub unit: u8,
     /// Its gearbox ratio (motor turns per output turn).
     pub gear_ratio: f64,
-    /// Whether it answers its polls.
+    /// Whether it answers its polls (`offline` too while its bus is
+    /// down).
     pub link: LinkName,
     /// Same as `link == "online"`.
     pub online: bool,
+    /// How fresh its status is: only a `live` one is current.
+    #[serde(flatten)]
+    pub freshness: FreshnessView,
     /// When it last answered (RFC 3339, UTC).
     pub last_seen: Option<String>,
     /// Age of its latest status, ms.
@@ -61,14 +65,21 @@ fn snapshot(target: Target) -> Option<DriveSnapshot> {
 
 fn view(state: &ApiState, target: Target) -> DriveView {
     let snap = snapshot(target.clone());
-    let link = snap.as_ref().map_or(Link::Unknown, |s| s.link);
+    let verdict = crate::ops::status::verdict(&target);
+    let link = crate::ops::status::link_of(snap.as_ref(), &verdict);
     DriveView {
         name: target.drive.name.clone(),
         bus: target.bus.name().to_string(),
         unit: target.drive.unit,
         gear_ratio: target.drive.gear_ratio,
-        link: link.into(),
-        online: link == Link::Online,
+        link,
+        online: link == LinkName::Online,
+        freshness: FreshnessView::of(
+            &verdict,
+            target.bus.name(),
+            target.drive.unit,
+            target.bus.line().baud(),
+        ),
         last_seen: snap.as_ref().and_then(|s| s.seen_at).map(rfc3339),
         age_ms: snap.as_ref().and_then(DriveSnapshot::age).map(millis),
         consecutive_failures: snap.as_ref().map_or(0, |s| s.consecutive_failures),

@@ -10,7 +10,6 @@ use serde::Serialize;
 use utoipa::ToSchema;
 
 use super::state::ApiState;
-use crate::bus::cache::Link;
 use crate::bus::handle::PortState;
 
 /// `/healthz`.
@@ -43,7 +42,9 @@ pub struct BusReadiness {
     pub bus: String,
     /// The serial port is open.
     pub port_open: bool,
-    /// Drives answering.
+    /// Drives whose data is live (polled within their expected period):
+    /// a drive stale, offline, never heard or on a bus that is down does
+    /// not count.
     pub drives_online: usize,
     /// Drives configured.
     pub drives: usize,
@@ -164,9 +165,9 @@ pub fn readiness(state: &ApiState) -> Readiness {
         configured_total += units.len();
         let online = bus
             .handle
-            .drives()
+            .freshness_all(std::time::Instant::now())
             .iter()
-            .filter(|s| units.contains(&s.unit) && s.link == Link::Online)
+            .filter(|(unit, v)| units.contains(unit) && v.freshness.is_live())
             .count();
         online_total += online;
         buses.push(BusReadiness {
@@ -177,7 +178,7 @@ pub fn readiness(state: &ApiState) -> Readiness {
         });
     }
     if online_total == 0 && configured_total > 0 {
-        reasons.push("no drive answers its status polls".to_string());
+        reasons.push("no drive's data is live: none answers its status polls".to_string());
     }
     Readiness {
         ready: reasons.is_empty(),

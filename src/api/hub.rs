@@ -18,7 +18,7 @@ use utoipa::ToSchema;
 
 use super::alarms::AlarmView;
 use super::document::{DeclaredState, SettingsDiff};
-use super::drives::StatusView;
+use super::drives::{FreshnessView, StatusView};
 use super::problem::{Problem, ProblemDetails};
 use crate::bus::BusEvent;
 use crate::control::{Control, ControlEvent, Published, SessionId};
@@ -67,6 +67,24 @@ pub enum ServerMessage {
         unit: u8,
         /// The last failure.
         reason: String,
+    },
+    /// A drive's data changed freshness: `live` again, or not live
+    /// (`stale`: polls missing; `offline`: it stopped answering; `never`:
+    /// not answered since its bus opened; `bus-down`: its bus's port is
+    /// gone), with why and since when. Values received before are the
+    /// drive's current ones only while it is `live`.
+    Freshness {
+        /// Drive name.
+        drive: String,
+        /// Its bus.
+        bus: String,
+        /// Its unit address.
+        unit: u8,
+        /// The new freshness, why and since when.
+        #[serde(flatten)]
+        freshness: FreshnessView,
+        /// Age of its last value, ms (`null`: it never answered).
+        age_ms: Option<u64>,
     },
     /// A bus's serial port opened.
     BusUp {
@@ -391,6 +409,10 @@ pub fn render(plant: &Plant, event: &ControlEvent) -> Option<Utf8Bytes> {
         }
         // Its stop follows as lease news; the alarm it raises as an alarm.
         ControlEvent::CommLoss { .. } => return None,
+        ControlEvent::Freshness(news) => {
+            let (_, message) = crate::ops::messages::of_freshness(plant, news)?;
+            return Some(ServerMessage::from(message).to_text());
+        }
         ControlEvent::Alarm(news) => {
             let (_, message) = crate::ops::messages::of_alarm(news);
             return Some(ServerMessage::from(message).to_text());
@@ -430,6 +452,19 @@ impl From<DriveMessage> for ServerMessage {
                 bus,
                 unit,
                 reason,
+            },
+            DriveMessage::Freshness {
+                drive,
+                bus,
+                unit,
+                freshness,
+                age_ms,
+            } => ServerMessage::Freshness {
+                drive,
+                bus,
+                unit,
+                freshness,
+                age_ms,
             },
             DriveMessage::LeaseExpired {
                 drive,
@@ -688,6 +723,17 @@ mod tests {
                 unit: 1,
                 owner: "op".into(),
                 reason: "released".into(),
+            },
+            DriveMessage::Freshness {
+                drive: drive.clone(),
+                bus: bus.clone(),
+                unit: 1,
+                freshness: FreshnessView {
+                    freshness: crate::ops::status::FreshnessName::BusDown,
+                    freshness_since: Some("2026-01-01T00:00:00.000Z".into()),
+                    freshness_reason: Some("bus sim is down: gone".into()),
+                },
+                age_ms: Some(1200),
             },
             DriveMessage::reply(serde_json::json!(7), Ok(serde_json::json!({"a": 1}))),
             DriveMessage::reply(

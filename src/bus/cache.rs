@@ -10,6 +10,7 @@ use std::time::{Instant, SystemTime};
 
 use tokio::sync::broadcast;
 
+use super::freshness::{Expected, Facts};
 use crate::drive::Status;
 
 /// Whether a drive answers its polls.
@@ -117,12 +118,44 @@ pub enum BusEvent {
 /// told how many events it missed rather than slowing the bus.
 pub const EVENT_CAPACITY: usize = 1024;
 
+/// One drive in the cache: its snapshot, and what its freshness needs
+/// beside it (when it went offline, why its last poll failed).
+#[derive(Debug, Clone)]
+struct Entry {
+    snapshot: DriveSnapshot,
+    offline_since: Option<SystemTime>,
+    last_failure: Option<String>,
+}
+
+impl Entry {
+    fn new(unit: u8) -> Self {
+        Entry {
+            snapshot: DriveSnapshot::new(unit),
+            offline_since: None,
+            last_failure: None,
+        }
+    }
+
+    fn facts(&self) -> Facts {
+        Facts {
+            seen_at: self.snapshot.seen_at,
+            seen_instant: self.snapshot.seen_instant,
+            link: self.snapshot.link,
+            failures: self.snapshot.consecutive_failures,
+            offline_since: self.offline_since,
+            last_failure: self.last_failure.clone(),
+        }
+    }
+}
+
 /// The cache of one bus.
 pub struct StatusCache {
     bus: Arc<str>,
-    drives: Mutex<BTreeMap<u8, DriveSnapshot>>,
+    drives: Mutex<BTreeMap<u8, Entry>>,
     events: broadcast::Sender<BusEvent>,
     offline_after: u32,
+    /// How often each drive is polled, for its freshness.
+    expected: BTreeMap<u8, Expected>,
 }
 
 impl StatusCache {
@@ -132,18 +165,30 @@ impl StatusCache {
         let (events, _) = broadcast::channel(EVENT_CAPACITY);
         Self {
             bus,
-            drives: Mutex::new(
-                units
-                    .into_iter()
-                    .map(|u| (u, DriveSnapshot::new(u)))
-                    .collect(),
-            ),
+            drives: Mutex::new(units.into_iter().map(|u| (u, Entry::new(u))).collect()),
             events,
             offline_after: offline_after.max(1),
+            expected: BTreeMap::new(),
         }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u8, DriveSnapshot>> {
+    /// The same cache, told how often each drive is polled (what its
+    /// data's age is measured against); a drive not named here is
+    /// expected at the full rate.
+    pub fn expecting(mut self, expected: impl IntoIterator<Item = (u8, Expected)>) -> Self {
+        self.expected = expected.into_iter().collect();
+        self
+    }
+
+    /// How often `unit` is polled, as its freshness measures it.
+    pub fn expected(&self, unit: u8) -> Expected {
+        self.expected.get(&unit).copied().unwrap_or(Expected {
+            period: std::time::Duration::ZERO,
+            slack: super::freshness::GRACE,
+        })
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u8, Entry>> {
         self.drives.lock().unwrap_or_else(|p| p.into_inner())
     }
 
@@ -157,9 +202,10 @@ impl StatusCache {
         let now = SystemTime::now();
         let came_online = {
             let mut drives = self.lock();
-            let entry = drives
-                .entry(unit)
-                .or_insert_with(|| DriveSnapshot::new(unit));
+            let entry = drives.entry(unit).or_insert_with(|| Entry::new(unit));
+            entry.offline_since = None;
+            entry.last_failure = None;
+            let entry = &mut entry.snapshot;
             let came_online = entry.link != Link::Online;
             entry.status = Some(status);
             entry.seen_at = Some(now);
@@ -186,14 +232,15 @@ impl StatusCache {
     pub fn record_failure(&self, unit: u8, reason: &str) -> bool {
         let went_offline = {
             let mut drives = self.lock();
-            let entry = drives
-                .entry(unit)
-                .or_insert_with(|| DriveSnapshot::new(unit));
-            entry.consecutive_failures = entry.consecutive_failures.saturating_add(1);
+            let entry = drives.entry(unit).or_insert_with(|| Entry::new(unit));
+            entry.last_failure = Some(reason.to_string());
+            let snap = &mut entry.snapshot;
+            snap.consecutive_failures = snap.consecutive_failures.saturating_add(1);
             let offline =
-                entry.consecutive_failures >= self.offline_after && entry.link != Link::Offline;
+                snap.consecutive_failures >= self.offline_after && snap.link != Link::Offline;
             if offline {
-                entry.link = Link::Offline;
+                snap.link = Link::Offline;
+                entry.offline_since = Some(SystemTime::now());
             }
             offline
         };
@@ -225,7 +272,7 @@ impl StatusCache {
     pub fn is_offline(&self, unit: u8) -> bool {
         self.lock()
             .get(&unit)
-            .is_some_and(|d| d.link == Link::Offline)
+            .is_some_and(|d| d.snapshot.link == Link::Offline)
     }
 
     /// True when `unit` answered its last poll: only then are its polls worth
@@ -233,17 +280,29 @@ impl StatusCache {
     pub fn answering(&self, unit: u8) -> bool {
         self.lock()
             .get(&unit)
-            .is_some_and(|d| d.link == Link::Online && d.consecutive_failures == 0)
+            .is_some_and(|d| {
+                d.snapshot.link == Link::Online && d.snapshot.consecutive_failures == 0
+            })
     }
 
     /// The snapshot of one drive.
     pub fn get(&self, unit: u8) -> Option<DriveSnapshot> {
-        self.lock().get(&unit).cloned()
+        self.lock().get(&unit).map(|e| e.snapshot.clone())
     }
 
     /// Snapshots of every drive, by unit.
     pub fn all(&self) -> Vec<DriveSnapshot> {
-        self.lock().values().cloned().collect()
+        self.lock().values().map(|e| e.snapshot.clone()).collect()
+    }
+
+    /// What the freshness of `unit`'s data is judged from.
+    pub fn facts(&self, unit: u8) -> Option<Facts> {
+        self.lock().get(&unit).map(Entry::facts)
+    }
+
+    /// The same for every drive, by unit.
+    pub fn all_facts(&self) -> Vec<(u8, Facts)> {
+        self.lock().iter().map(|(u, e)| (*u, e.facts())).collect()
     }
 
     /// A receiver of every future event.
@@ -287,5 +346,27 @@ mod tests {
         assert_eq!(cache.get(2).map(|d| d.link), Some(Link::Unknown));
         // Its last good status is kept, with its age.
         assert!(cache.get(1).unwrap().status.is_some());
+    }
+
+    #[test]
+    fn the_facts_of_freshness_follow_the_polls() {
+        let cache = StatusCache::new("line1".into(), [1], 2);
+        let facts = cache.facts(1).unwrap();
+        assert_eq!((facts.link, facts.seen_at), (Link::Unknown, None));
+        cache.record_failure(1, "no reply within 50 ms");
+        let facts = cache.facts(1).unwrap();
+        assert_eq!(facts.last_failure.as_deref(), Some("no reply within 50 ms"));
+        assert_eq!(facts.offline_since, None);
+        cache.record_failure(1, "no reply within 50 ms");
+        let facts = cache.facts(1).unwrap();
+        assert_eq!((facts.link, facts.failures), (Link::Offline, 2));
+        assert!(facts.offline_since.is_some());
+        // An answer clears the failure and the time it went offline.
+        cache.record_status(1, Status::default());
+        let facts = cache.facts(1).unwrap();
+        assert_eq!((facts.link, facts.failures), (Link::Online, 0));
+        assert_eq!((facts.offline_since, facts.last_failure), (None, None));
+        assert!(facts.seen_instant.is_some());
+        assert_eq!(cache.all_facts().len(), 1);
     }
 }

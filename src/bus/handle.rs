@@ -9,6 +9,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::cache::{BusEvent, DriveSnapshot, StatusCache};
 use super::error::BusError;
+use super::freshness::{self, Verdict};
 use super::job::{Exchange, Job, Priority, SourceId};
 use super::origin::Origin;
 use super::queue::{JobQueue, Refused};
@@ -258,6 +259,37 @@ impl BusHandle {
     /// What is known of every configured drive.
     pub fn drives(&self) -> Vec<DriveSnapshot> {
         self.shared.cache.all()
+    }
+
+    /// How fresh `unit`'s data is now (`None`: not a drive of this bus).
+    pub fn freshness(&self, unit: u8) -> Option<Verdict> {
+        self.freshness_at(unit, Instant::now())
+    }
+
+    /// How fresh `unit`'s data is at `now`.
+    pub fn freshness_at(&self, unit: u8, now: Instant) -> Option<Verdict> {
+        let port = self.shared.state();
+        let facts = self.shared.cache.facts(unit)?;
+        Some(freshness::judge(
+            &port,
+            &facts,
+            self.shared.cache.expected(unit),
+            now,
+        ))
+    }
+
+    /// How fresh every drive's data is at `now`, by unit.
+    pub fn freshness_all(&self, now: Instant) -> Vec<(u8, Verdict)> {
+        let port = self.shared.state();
+        self.shared
+            .cache
+            .all_facts()
+            .into_iter()
+            .map(|(unit, facts)| {
+                let expected = self.shared.cache.expected(unit);
+                (unit, freshness::judge(&port, &facts, expected, now))
+            })
+            .collect()
     }
 
     /// Every future status, online/offline and bus event of this bus.

@@ -11,6 +11,8 @@
 //! - [`poller`] decides which drive's status is due next,
 //! - [`scheduler`] is the task's loop tying them together,
 //! - [`cache`] keeps each drive's latest status and publishes changes,
+//! - [`freshness`] says how fresh a drive's data is (live, stale, offline,
+//!   never, bus-down), the one answer every face shows,
 //! - [`stats`] counts what happened on the wire, for health and metrics,
 //! - [`handle`] is what the faces (HTTP, Modbus TCP, metrics) hold,
 //! - [`origin`] says who caused each job (for the monitor and the scope),
@@ -23,6 +25,7 @@
 pub mod cache;
 pub mod error;
 pub mod fault;
+pub mod freshness;
 pub mod handle;
 pub mod job;
 pub mod master;

@@ -111,7 +111,8 @@ fn new_shared(settings: &BusSettings) -> Arc<Shared> {
             name.clone(),
             settings.drives.iter().map(|d| d.0),
             settings.offline_after,
-        ),
+        )
+        .expecting(super::freshness::expected_of(settings)),
         stats: BusStats::new(),
         state: Mutex::new(PortState::Opening),
         line: settings.master.line,
@@ -370,14 +371,21 @@ impl Scheduler {
     /// for a bus that may not come back soon.
     fn mark_down(&self, cause: PortCause) {
         let reason = cause.detail.clone();
-        if !matches!(self.shared.state(), PortState::Down { .. }) {
+        // Down since it first failed, not since the last attempt to reopen
+        // it; the state is set before the news, so whoever the news sends
+        // to look finds the port down.
+        let (since, news) = match self.shared.state() {
+            PortState::Down { since, .. } => (since, false),
+            _ => (SystemTime::now(), true),
+        };
+        self.shared.set_state(PortState::Down {
+            since,
+            reason: reason.clone(),
+        });
+        if news {
             self.stats().set_port_open(false, false);
             self.cache().record_port(false, &reason);
         }
-        self.shared.set_state(PortState::Down {
-            since: SystemTime::now(),
-            reason: reason.clone(),
-        });
         for job in self.shared.queue.drain() {
             self.stats()
                 .record_transaction(job.pdu[0], Outcome::PortError, 0);

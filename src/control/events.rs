@@ -119,6 +119,9 @@ pub enum ControlEvent {
     },
     /// An alarm raised, cleared or acknowledged.
     Alarm(super::alarms::AlarmNews),
+    /// A drive's data changed freshness (live, stale, offline, never,
+    /// bus-down).
+    Freshness(super::freshness::FreshnessNews),
 }
 
 impl ControlEvent {
@@ -130,6 +133,7 @@ impl ControlEvent {
             ControlEvent::Settings(s) => Some(s.report.drive),
             ControlEvent::Drift(d) => Some(d.drive),
             ControlEvent::CommLoss { drive, .. } => Some(*drive),
+            ControlEvent::Freshness(news) => Some(news.drive),
             // Every client's business: the console's banner shows them all.
             ControlEvent::Alarm(_) => None,
         }

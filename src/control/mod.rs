@@ -20,13 +20,16 @@
 //!   lease news and writes for whoever listens;
 //! - [`alarms`]: what needs an operator's attention, raised from the
 //!   buses' and the core's events, kept across restarts, acknowledged
-//!   through [`Control::acknowledge_alarm`].
+//!   through [`Control::acknowledge_alarm`];
+//! - [`freshness`]: each change of a drive's data's freshness, told on
+//!   the events for the faces that show it.
 
 pub mod alarms;
 pub mod audit;
 pub mod caller;
 pub mod drift;
 pub mod events;
+pub mod freshness;
 pub mod journal;
 pub mod lease_book;
 pub mod leases;
@@ -149,6 +152,7 @@ impl Control {
         let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
         alarms.reconcile(&plant);
         alarms.watch(&plant, events.subscribe(), &shutdown);
+        freshness::watch(&plant, events.clone(), &shutdown);
         let opened = Journal::open(state_dir.as_deref());
         for news in &opened.news {
             match opened.journal.health() {

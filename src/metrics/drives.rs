@@ -2,10 +2,12 @@
 //!
 //! Every series carries `bus`, `unit` and `name`. The values of a status
 //! (temperature, voltage, flags, faults...) are exported only while the
-//! drive is up: when it stops answering, or its bus's port is down, they
-//! vanish and `drivegate_drive_up` turns 0, so a dashboard shows a gap and
-//! an alert on a value resolves into the "offline" alert instead of holding
-//! on to a value nobody has read for a while.
+//! drive's data is live (`crate::bus::freshness`, the answer every face
+//! shows): when its polls go missing, it stops answering, or its bus's
+//! port is down, they vanish and `drivegate_drive_up` turns 0, so a
+//! dashboard shows a gap and an alert on a value resolves into the
+//! "offline" alert instead of holding on to a value nobody has read for a
+//! while. `drivegate_drive_freshness` says which of those it is.
 
 use std::sync::Arc;
 use std::time::UNIX_EPOCH;
@@ -14,7 +16,7 @@ use prometheus::core::{Collector, Desc};
 use prometheus::proto::MetricFamily;
 
 use super::family::{Family, Kind, Spec};
-use crate::bus::cache::Link;
+use crate::bus::freshness::Freshness;
 use crate::drive::{Fault, Mode, Status};
 use crate::plant::Plant;
 
@@ -22,10 +24,18 @@ const LABELS: &[&str] = &["bus", "unit", "name"];
 
 static UP: Spec = Spec {
     name: "drivegate_drive_up",
-    help: "1 while the drive answers its status polls on a working bus, 0 when it is offline, \
-           its bus is down or it has not answered yet.",
+    help: "1 while the drive's data is live (it answers its status polls within its poll \
+           period, on a working bus), 0 when it is stale, offline, its bus is down or it has \
+           not answered yet.",
     kind: Kind::Gauge,
     labels: LABELS,
+};
+static FRESHNESS: Spec = Spec {
+    name: "drivegate_drive_freshness",
+    help: "How fresh the drive's data is: 1 on the series of its state (live, stale, offline, \
+           never, bus-down), 0 on the others.",
+    kind: Kind::Gauge,
+    labels: &["bus", "unit", "name", "freshness"],
 };
 static LAST_POLL: Spec = Spec {
     name: "drivegate_drive_last_status_timestamp_seconds",
@@ -121,8 +131,9 @@ static FAULT_CODE: Spec = Spec {
     labels: LABELS,
 };
 
-static SPECS: [&Spec; 16] = [
+static SPECS: [&Spec; 17] = [
     &UP,
+    &FRESHNESS,
     &LAST_POLL,
     &FAILURES,
     &POLL_INTERVAL,
@@ -171,6 +182,7 @@ impl DriveCollector {
 /// The families of one scrape.
 struct Families {
     up: Family,
+    freshness: Family,
     last_poll: Family,
     failures: Family,
     poll_interval: Family,
@@ -192,6 +204,7 @@ impl Families {
     fn new() -> Self {
         Self {
             up: UP.family(),
+            freshness: FRESHNESS.family(),
             last_poll: LAST_POLL.family(),
             failures: FAILURES.family(),
             poll_interval: POLL_INTERVAL.family(),
@@ -235,6 +248,7 @@ impl Families {
     fn finish(self) -> Vec<MetricFamily> {
         [
             self.up,
+            self.freshness,
             self.last_poll,
             self.failures,
             self.poll_interval,
@@ -265,16 +279,26 @@ impl Collector for DriveCollector {
     fn collect(&self) -> Vec<MetricFamily> {
         let mut f = Families::new();
         let plant = self.plant.now();
+        let now = std::time::Instant::now();
         for (index, bus) in plant.indexed_buses() {
-            let port_up = bus.handle.stats().port_open;
             let snapshots = bus.handle.drives();
+            let verdicts = bus.handle.freshness_all(now);
             for drive in plant.drives().filter(|d| d.bus == index) {
                 let unit = drive.unit.to_string();
                 let l = [bus.handle.name(), unit.as_str(), drive.name.as_str()];
                 let snap = snapshots.iter().find(|s| s.unit == drive.unit);
                 let status = snap.and_then(|s| s.status.as_ref());
-                let up = port_up && snap.is_some_and(|s| s.link == Link::Online);
+                let freshness = verdicts
+                    .iter()
+                    .find(|(u, _)| *u == drive.unit)
+                    .map_or(Freshness::Never, |(_, v)| v.freshness);
+                let up = freshness.is_live();
                 f.up.set_bool(&l, up && status.is_some());
+                let [b, u, n] = l;
+                for state in Freshness::ALL {
+                    f.freshness
+                        .set_bool(&[b, u, n, state.name()], state == freshness);
+                }
                 if let Some(seen) = snap
                     .and_then(|s| s.seen_at)
                     .and_then(|t| t.duration_since(UNIX_EPOCH).ok())

@@ -1,15 +1,28 @@
 //! Report by exception: of each new status of a drive, only the fields
 //! that moved further than their deadband from the value last published
-//! (booleans, names and counts: on any change). Pure: no I/O.
+//! (booleans, names and counts: on any change). A value that settles
+//! within the deadband of the last published one (a ramp to 120 rpm whose
+//! last poll caught 119) is published once it has held for
+//! [`SETTLE_POLLS`] polls, so the host's value ends equal to the drive's
+//! after every change. Pure: no I/O.
 
 use super::metric::{Field, Value};
 use crate::config::mqtt::Deadbands;
 use crate::drive::Status;
 
+/// Polls in a row a value within its deadband must be read unchanged
+/// before it is published: long enough that noise is not reported, short
+/// enough that a settled value reaches the host within a second at any
+/// usual poll rate.
+pub const SETTLE_POLLS: u32 = 3;
+
 /// What was last published of one drive's status fields.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Reported {
     last: Vec<Option<Value>>,
+    /// Per field, a value within the band of the last published one but
+    /// not equal to it, and the polls in a row it has been read.
+    settling: Vec<Option<(Value, u32)>>,
 }
 
 impl Reported {
@@ -20,6 +33,7 @@ impl Reported {
                 .iter()
                 .map(|f| status.map(|s| f.value(s)))
                 .collect(),
+            settling: vec![None; Field::ALL.len()],
         }
     }
 
@@ -35,22 +49,46 @@ impl Reported {
         if self.last.len() != Field::ALL.len() {
             self.last = vec![None; Field::ALL.len()];
         }
+        if self.settling.len() != Field::ALL.len() {
+            self.settling = vec![None; Field::ALL.len()];
+        }
         let mut out = Vec::new();
         for (i, field) in Field::ALL.iter().enumerate() {
             let now = field.value(status);
             let publish = full
                 || match (&self.last[i], field.deadband(deadbands)) {
                     (None, _) => true,
-                    (Some(last), Some(band)) => moved(last, &now) > band,
+                    (Some(last), Some(band)) => {
+                        moved(last, &now) > band || settled(&mut self.settling[i], last, &now)
+                    }
                     (Some(last), None) => *last != now,
                 };
             if publish {
                 self.last[i] = Some(now.clone());
+                self.settling[i] = None;
                 out.push((*field, now));
             }
         }
         out
     }
+}
+
+/// True when `now`, within the band of `last` but not equal to it, has
+/// now been read [`SETTLE_POLLS`] times in a row (`settling` counts them).
+fn settled(settling: &mut Option<(Value, u32)>, last: &Value, now: &Value) -> bool {
+    if now == last {
+        *settling = None;
+        return false;
+    }
+    let held = match settling.take() {
+        Some((value, polls)) if value == *now => polls + 1,
+        _ => 1,
+    };
+    if held >= SETTLE_POLLS {
+        return true;
+    }
+    *settling = Some((now.clone(), held));
+    false
 }
 
 /// How far `now` is from `last` (numbers; other kinds: 0 when equal, else
@@ -102,6 +140,56 @@ mod tests {
         // Counts have no band.
         let c = r.changes(&status(104, 30, 6), &bands, false);
         assert_eq!(c, vec![(Field::Turns, Value::UInt(6))]);
+    }
+
+    /// Speeds a poll catches of a ramp from 0 to `to` in steps of `step`.
+    fn ramp(to: i16, step: i16) -> Vec<i16> {
+        (0..=to / step).map(|k| k * step).collect()
+    }
+
+    #[test]
+    fn a_ramp_that_ends_within_the_band_is_published_once_it_held() {
+        let bands = Deadbands::default(); // speed 1 rpm
+        let mut r = Reported::born(Some(&status(0, 30, 0)));
+        let mut host = 0_i64;
+        let mut publish = |r: &mut Reported, rpm: i16| {
+            for (f, v) in r.changes(&status(rpm, 30, 0), &bands, false) {
+                if let (Field::SpeedRpm, Value::Int(v)) = (f, v) {
+                    host = v;
+                }
+            }
+            host
+        };
+        // The polls caught the ramp up to 119 rpm in steps of 7: the last
+        // published value is 119, the drive settles at 120, 1 rpm away.
+        for rpm in ramp(119, 7) {
+            publish(&mut r, rpm);
+        }
+        assert_eq!(publish(&mut r, 119), 119);
+        // 120 is within the band: not at once, and not while it may be
+        // noise, but once it held for SETTLE_POLLS polls.
+        for _ in 1..SETTLE_POLLS {
+            assert_eq!(publish(&mut r, 120), 119);
+        }
+        assert_eq!(publish(&mut r, 120), 120);
+        // Published once: no more while it holds.
+        for _ in 0..10 {
+            assert!(r.changes(&status(120, 30, 0), &bands, false).is_empty());
+        }
+        // A value that wobbles within the band never holds: not published.
+        for rpm in [121, 120, 121, 120, 121, 120] {
+            assert_eq!(publish(&mut r, rpm), 120);
+        }
+        // Back down a ramp that ends 1 rpm above the last published value.
+        let mut seen = 0;
+        for rpm in [100, 80, 61] {
+            seen = publish(&mut r, rpm);
+        }
+        assert_eq!(seen, 61);
+        for _ in 0..SETTLE_POLLS {
+            seen = publish(&mut r, 60);
+        }
+        assert_eq!(seen, 60);
     }
 
     #[test]

@@ -16,9 +16,12 @@
 //!   connection and, with a primary host, once its `STATE` says online. An
 //!   NCMD `Node Control/Rebirth` publishes them again, same bdSeq.
 //! - **Data.** Each status of a drive publishes the fields that moved past
-//!   their deadbands (one DDATA per poll); a drive that stops answering
-//!   gets a DDEATH, and a DBIRTH when it answers again. While nothing can be
-//!   published, the changes go to the [`Outbox`](super::Outbox).
+//!   their deadbands (one DDATA per poll), and a value that settled within
+//!   its deadband once it held ([`super::exception`]). Births and deaths
+//!   follow the core's freshness ([`freshness`]): a drive that stops
+//!   answering, or whose bus goes down, gets a DDEATH, and a DBIRTH once
+//!   its data is live again. While nothing can be published, the changes
+//!   go to the [`Outbox`](super::Outbox).
 //! - **Commands** go to the control core in a task per DCMD (its metrics in
 //!   order), with a caller in the MQTT session; the result comes back here
 //!   and is published.
@@ -28,6 +31,8 @@
 //!   `comm_loss_action`. The host's `STATE` offline ends them at once (the
 //!   session closes), and the node publishes its NDEATH and reconnects, as
 //!   Sparkplug 3.0 asks of an edge node whose primary host went away.
+
+mod freshness;
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -52,7 +57,7 @@ use super::sparkplug_b::payload::Metric;
 use super::sparkplug_b::{DataType, Payload};
 use super::topic::{Incoming, Kind, NodeTopics, state_topic};
 use crate::bus::SourceId;
-use crate::bus::cache::{BusEvent, Link};
+use crate::bus::cache::BusEvent;
 use crate::bus::handle::PortState;
 use crate::config::MqttConfig;
 use crate::control::{Caller, CommLoss, Control, Face, SessionGuard};
@@ -196,6 +201,7 @@ impl Node {
         replay.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         let mut full = tokio::time::interval_at(Instant::now() + full_every, full_every);
         full.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut control_rx = self.control.subscribe();
         loop {
             tokio::select! {
                 _ = shutdown.cancelled() => break,
@@ -258,6 +264,9 @@ impl Node {
                 }
                 Some(result) = results_rx.recv() => {
                     self.on_result(conn.as_ref(), result);
+                }
+                published = control_rx.recv() => {
+                    self.on_control(conn.as_ref(), published);
                 }
                 _ = renew.tick() => {
                     let connected = conn.as_ref().is_some_and(|c| c.accepted);
@@ -624,7 +633,11 @@ impl Node {
                 let ts = ms_of(at);
                 let device = self.devices.entry(name.clone()).or_default();
                 if self.born && !device.born {
-                    if let Some(c) = c {
+                    // Born only while its data is live: a status queued
+                    // here before its bus went down is no birth.
+                    if let Some(c) = c
+                        && self.is_live(&bus, unit)
+                    {
                         self.device_birth(c, &name, Some(&status));
                     }
                     return;
@@ -637,22 +650,6 @@ impl Node {
                     .map(|(f, v)| metric::metric(f.name(), f.datatype(), v, ts))
                     .collect();
                 self.device_data(c, &name, metrics);
-            }
-            BusEvent::Offline { bus, unit, .. } => {
-                let Some(name) = self.drive_at(&bus, unit) else {
-                    return;
-                };
-                if let Some(c) = c
-                    && self.born
-                    && self.devices.get(&name).is_some_and(|d| d.born)
-                {
-                    let payload = self.payload(Vec::new());
-                    let topic = self.topics.device_topic(Kind::DDeath, &name);
-                    let _ = self.publish(c, topic, payload, Kind::DDeath);
-                }
-                if let Some(d) = self.devices.get_mut(&name) {
-                    d.born = false;
-                }
             }
             BusEvent::BusUp { bus } | BusEvent::BusDown { bus, .. } => {
                 if let Some(c) = c
@@ -670,7 +667,8 @@ impl Node {
                     let _ = self.publish(c, topic, payload, Kind::NData);
                 }
             }
-            BusEvent::Online { .. } => {}
+            // Deaths and births follow the core's freshness news.
+            BusEvent::Online { .. } | BusEvent::Offline { .. } => {}
         }
     }
 
@@ -741,12 +739,13 @@ impl Node {
             d.born = false;
         }
         for drive in plant.drives() {
-            let Some(snapshot) = plant.handle_of(drive).and_then(|h| h.drive(drive.unit)) else {
+            let Some(handle) = plant.handle_of(drive) else {
                 continue;
             };
-            if snapshot.link == Link::Online
-                && let Some(status) = snapshot.status
-            {
+            let live = handle
+                .freshness(drive.unit)
+                .is_some_and(|v| v.freshness.is_live());
+            if live && let Some(status) = handle.drive(drive.unit).and_then(|s| s.status) {
                 self.device_birth(c, &drive.name, Some(&status));
             }
         }

@@ -1,6 +1,6 @@
 //! The JSON messages about one drive that a face sends beside its
 //! replies: the drive answering again or not, the news of the
-//! motor-safety lease on it and its alarms, in the shape the WebSocket stream gives them
+//! motor-safety lease on it and its alarms, how fresh its data is, in the shape the WebSocket stream gives them
 //! (`{"type": "online", ...}`, `{"type": "lease-expired", ...}`), and the
 //! reply to a command message. The MQTT face publishes them on a drive's
 //! `event` and `reply` topics; the stream's own `ServerMessage` carries
@@ -11,8 +11,10 @@ use serde_json::Value;
 
 use super::alarms::AlarmView;
 use super::problem::Problem;
+use super::status::FreshnessView;
 use crate::control::LeaseEvent;
 use crate::control::alarms::AlarmNews;
+use crate::control::freshness::FreshnessNews;
 use crate::plant::Plant;
 
 /// A message about one drive.
@@ -38,6 +40,21 @@ pub enum DriveMessage {
         unit: u8,
         /// The last failure.
         reason: String,
+    },
+    /// The drive's data changed freshness: `live` again, or not live
+    /// (`stale`, `offline`, `never`, `bus-down`) with why and since when.
+    Freshness {
+        /// Drive name.
+        drive: String,
+        /// Its bus.
+        bus: String,
+        /// Its unit address.
+        unit: u8,
+        /// The new freshness, why and since when.
+        #[serde(flatten)]
+        freshness: FreshnessView,
+        /// Age of its last value, ms (`null`: it never answered).
+        age_ms: Option<u64>,
     },
     /// A motor-safety lease ended without renewal (or its session ended)
     /// and the stop action was tried.
@@ -217,6 +234,30 @@ pub fn of_lease(plant: &Plant, lease: &LeaseEvent) -> Option<(String, DriveMessa
         },
     };
     Some((name, message))
+}
+
+/// Freshness news as a message about its drive: the drive's name and the
+/// message, if the drive is still configured.
+pub fn of_freshness(plant: &Plant, news: &FreshnessNews) -> Option<(String, DriveMessage)> {
+    let now = plant.now();
+    let drive = now.drive_at(news.drive)?;
+    let handle = now.handle_of(drive)?;
+    let message = DriveMessage::Freshness {
+        drive: drive.name.clone(),
+        bus: news.bus.to_string(),
+        unit: news.unit,
+        freshness: FreshnessView::of(
+            &news.verdict,
+            &news.bus,
+            news.unit,
+            handle.line().baud(),
+        ),
+        age_ms: news
+            .verdict
+            .age
+            .map(|a| u64::try_from(a.as_millis()).unwrap_or(u64::MAX)),
+    };
+    Some((drive.name.clone(), message))
 }
 
 /// Alarm news as a message: the drive it concerns (`None`: bus-wide) and

@@ -3,7 +3,7 @@
 //! face's retained `<prefix>/<drive>/status`), and where and when it was
 //! read.
 
-use std::time::SystemTime;
+use std::time::{Instant, SystemTime};
 
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
@@ -13,6 +13,7 @@ use super::target::Target;
 use super::writes;
 use crate::bus::DriveSnapshot;
 use crate::bus::cache::Link;
+use crate::bus::freshness::{Cause, Freshness, Verdict};
 use crate::control::{Caller, Control};
 use crate::drive::{Fault, Mode, Status};
 use crate::timestamp::rfc3339;
@@ -101,6 +102,95 @@ impl From<Link> for LinkName {
     }
 }
 
+/// How fresh a drive's data is (the same answer on every face).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum FreshnessName {
+    /// Polled within its expected period.
+    Live,
+    /// Polls missing for longer than its poll period allows; not yet
+    /// offline.
+    Stale,
+    /// The drive stopped answering its polls.
+    Offline,
+    /// The drive has not answered once since its bus opened.
+    Never,
+    /// Its bus's port is gone (adapter unplugged, device server
+    /// unreachable).
+    BusDown,
+}
+
+impl From<Freshness> for FreshnessName {
+    fn from(f: Freshness) -> Self {
+        match f {
+            Freshness::Live => FreshnessName::Live,
+            Freshness::Stale => FreshnessName::Stale,
+            Freshness::Offline => FreshnessName::Offline,
+            Freshness::Never => FreshnessName::Never,
+            Freshness::BusDown => FreshnessName::BusDown,
+        }
+    }
+}
+
+/// A drive's freshness as the API, the stream and MQTT's JSON show it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct FreshnessView {
+    /// `live`, `stale`, `offline`, `never` or `bus-down`: only `live`
+    /// values are current; the others are the last the drive sent.
+    pub freshness: FreshnessName,
+    /// Since when the data has not been live (for `never`: since the bus
+    /// opened), RFC 3339; `null` when live.
+    pub freshness_since: Option<String>,
+    /// Why it is not live, in words; `null` when live.
+    pub freshness_reason: Option<String>,
+}
+
+impl FreshnessView {
+    /// `verdict` of drive `unit` on bus `bus` at `baud`, in words.
+    pub fn of(verdict: &Verdict, bus: &str, unit: u8, baud: u32) -> Self {
+        FreshnessView {
+            freshness: verdict.freshness.into(),
+            freshness_since: verdict.since.map(rfc3339),
+            freshness_reason: verdict.words(bus, unit, baud),
+        }
+    }
+
+    /// The freshness of `target`'s data now.
+    pub fn now(target: &Target) -> Self {
+        let verdict = verdict(target);
+        Self::of(
+            &verdict,
+            target.bus.name(),
+            target.drive.unit,
+            target.bus.line().baud(),
+        )
+    }
+}
+
+/// The freshness of `target`'s data now (a drive the bus does not know
+/// counts as never heard).
+pub fn verdict(target: &Target) -> Verdict {
+    target
+        .bus
+        .freshness_at(target.drive.unit, Instant::now())
+        .unwrap_or(Verdict {
+            freshness: Freshness::Never,
+            since: None,
+            age: None,
+            cause: Cause::NotPolledYet,
+            stale_at: None,
+        })
+}
+
+/// The link as the API shows it: the cache's, except that no drive
+/// answers on a bus whose port is gone.
+pub fn link_of(snapshot: Option<&DriveSnapshot>, verdict: &Verdict) -> LinkName {
+    if verdict.freshness == Freshness::BusDown {
+        return LinkName::Offline;
+    }
+    snapshot.map_or(Link::Unknown, |s| s.link).into()
+}
+
 /// A decoded status block (manual 1.7).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct StatusView {
@@ -174,8 +264,11 @@ pub struct StatusReply {
     pub bus: String,
     /// Its unit address.
     pub unit: u8,
-    /// Whether it answers its polls.
+    /// Whether it answers its polls (`offline` too while its bus is down).
     pub link: LinkName,
+    /// How fresh the status is: only a `live` one is current.
+    #[serde(flatten)]
+    pub freshness: FreshnessView,
     /// Cache or bus.
     pub source: StatusSource,
     /// When the status was read (RFC 3339, UTC).
@@ -196,22 +289,23 @@ fn snapshot(target: &Target) -> Option<DriveSnapshot> {
 }
 
 /// The latest polled status of `target` as a reply (`source: cache`), or
-/// the problem saying it has not answered yet.
+/// the problem saying it has not answered yet (with what to check, and
+/// how to find the drive with `drivegate probe` on `port`).
 pub fn cached(target: &Target) -> Result<StatusReply, Problem> {
+    cached_on(target, None)
+}
+
+/// [`cached`], naming the bus's `port` in the hint for a drive that never
+/// answered.
+pub fn cached_on(target: &Target, port: Option<&str>) -> Result<StatusReply, Problem> {
     let snap = snapshot(target);
     let cached = snap
         .as_ref()
         .and_then(|s| Some((s.status?, s.seen_at?, s.age()?)));
     let Some((status, seen_at, age)) = cached else {
-        return Err(Problem::new(
-            Kind::DriveOffline,
-            format!(
-                "drive \"{}\" has not answered a status poll yet; check its power, wiring and unit address ({})",
-                target.drive.name, target.drive.unit
-            ),
-        )
-        .for_drive(&target.drive.name)
-        .retry_after(1));
+        return Err(Problem::new(Kind::DriveOffline, no_status_yet(target, port))
+            .for_drive(&target.drive.name)
+            .retry_after(1));
     };
     Ok(reply(
         target,
@@ -220,6 +314,35 @@ pub fn cached(target: &Target) -> Result<StatusReply, Problem> {
         seen_at,
         millis(age),
     ))
+}
+
+/// Why `target` has no status yet, and what to do about it: a drive that
+/// was polled and never answered is most often at another baud rate or
+/// address than the configuration says.
+fn no_status_yet(target: &Target, port: Option<&str>) -> String {
+    let (name, unit) = (&target.drive.name, target.drive.unit);
+    let (bus, baud) = (target.bus.name(), target.bus.line().baud());
+    let verdict = verdict(target);
+    match &verdict.cause {
+        Cause::NeverAnswered { failures, .. } => {
+            let polls = if *failures == 1 { "poll" } else { "polls" };
+            let probe = format!(
+                "drivegate probe --port {} --try-bauds",
+                port.unwrap_or("<the bus's port>")
+            );
+            format!(
+                "drive \"{name}\" has not answered once since bus {bus} opened ({failures} {polls} \
+                 failed): check the baud rate (bus {bus} runs at {baud} baud; the drives leave \
+                 the factory at 115200) and the unit address ({unit}); `{probe}` (with the \
+                 daemon stopped) finds the drives on the line and their rate; then the drive's \
+                 power and wiring"
+            )
+        }
+        _ => match verdict.words(bus, unit, baud) {
+            Some(why) => format!("drive \"{name}\" has no status yet: {why}"),
+            None => format!("drive \"{name}\" has no status yet"),
+        },
+    }
 }
 
 /// `status` of `target`, read at `seen_at`, as a reply.
@@ -231,12 +354,19 @@ pub fn reply(
     age_ms: u64,
 ) -> StatusReply {
     // Read after the status: a fresh read may just have brought it online.
-    let link = snapshot(target).map_or(Link::Unknown, |s| s.link);
+    let verdict = verdict(target);
+    let link = link_of(snapshot(target).as_ref(), &verdict);
     StatusReply {
         drive: target.drive.name.clone(),
         bus: target.bus.name().to_string(),
         unit: target.drive.unit,
-        link: link.into(),
+        link,
+        freshness: FreshnessView::of(
+            &verdict,
+            target.bus.name(),
+            target.drive.unit,
+            target.bus.line().baud(),
+        ),
         source,
         seen_at: rfc3339(seen_at),
         age_ms,
@@ -262,6 +392,11 @@ pub async fn status(
             0,
         ))
     } else {
-        cached(target)
+        let plant = control.plant().bus(target.bus.name());
+        let port = plant
+            .as_ref()
+            .filter(|b| !b.config.is_simulated())
+            .map(|b| b.config.port.get_ref().as_str());
+        cached_on(target, port)
     }
 }

@@ -552,6 +552,7 @@ impl Alarms {
             ControlEvent::Lease(_)
             | ControlEvent::Alarm(_)
             | ControlEvent::Settings(_)
+            | ControlEvent::Freshness(_)
             | ControlEvent::Drift(_) => {}
             ControlEvent::CommLoss { drive: i, closed } => {
                 let Some((name, bus, unit)) = drive(*i) else {

@@ -5,11 +5,13 @@
 //!   accepted the connection, and `offline` (retained) as the will and at
 //!   a clean stop.
 //! - **Status.** Each polled status of a drive is published, retained, on
-//!   `<prefix>/<drive>/status` as the API's status JSON; at each connection
-//!   every drive's latest status is published again.
-//! - **Events.** A drive answering again or not, the news of the lease on
-//!   it and its alarms, on `<prefix>/<drive>/event`, as the stream sends
-//!   them (a bus-wide alarm on `<prefix>/event`).
+//!   `<prefix>/<drive>/status` as the API's status JSON (with its
+//!   `freshness`); at each connection every drive's latest status is
+//!   published again, and again whenever its freshness changes (the bus
+//!   down, the drive offline), so the retained copy never passes for live.
+//! - **Events.** A drive answering again or not, its data's freshness, the
+//!   news of the lease on it and its alarms, on `<prefix>/<drive>/event`,
+//!   as the stream sends them (a bus-wide alarm on `<prefix>/event`).
 //! - **Commands** on `<prefix>/<drive>/command` are the stream's command
 //!   messages; each runs through the control core (face `mqtt`, the role of
 //!   `[mqtt] commands`) in a task of its own and its reply (the result, or
@@ -411,6 +413,20 @@ impl JsonNode {
             ControlEvent::Alarm(news) => {
                 let (drive, message) = messages::of_alarm(news);
                 self.publish_event(&c.client, drive.as_deref(), &message);
+            }
+            ControlEvent::Freshness(news) => {
+                let plant = self.control.plant().clone();
+                let Some((drive, message)) = messages::of_freshness(&plant, news) else {
+                    return;
+                };
+                self.publish_event(&c.client, Some(&drive), &message);
+                // The retained status says it too: a client that comes
+                // later must not take the last value for a live one.
+                if let Some(target) = Target::at(&plant, news.drive)
+                    && let Ok(reply) = status::cached(&target)
+                {
+                    self.publish_status(&c.client, &drive, &reply);
+                }
             }
             _ => {}
         }

@@ -1,0 +1,188 @@
+//! The core follows how fresh each drive's data is and tells of every
+//! change on its events ([`ControlEvent::Freshness`]): the stream, MQTT's
+//! births and deaths and its retained statuses follow these, never a rule
+//! of their own. What a state is, the bus decides
+//! ([`crate::bus::freshness`]); here it is only watched: at every event of
+//! a bus (a status, a drive offline, the port down or up) and at the
+//! moment a live value would turn stale if nothing new came, since no
+//! event announces a poll that does not happen.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tokio::sync::broadcast::error::RecvError;
+use tokio_util::sync::CancellationToken;
+
+use super::events::{ControlEvent, Events};
+use crate::bus::BusHandle;
+use crate::bus::freshness::{Freshness, Verdict};
+use crate::plant::Plant;
+
+/// A drive's data changed freshness.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FreshnessNews {
+    /// The drive, by index in the plant.
+    pub drive: usize,
+    /// Its bus.
+    pub bus: Arc<str>,
+    /// Its unit address.
+    pub unit: u8,
+    /// What it was.
+    pub was: Freshness,
+    /// What it is now, why and since when.
+    pub verdict: Verdict,
+}
+
+/// Watches every bus of `plant` (and those a reload adds) until
+/// `shutdown`, publishing each change on `events`.
+pub(super) fn watch(plant: &Arc<Plant>, events: Arc<Events>, shutdown: &CancellationToken) {
+    let watched = plant.clone();
+    plant.for_each_bus(shutdown, move |slot, bus, stop| {
+        tokio::spawn(follow(
+            watched.clone(),
+            slot,
+            bus.handle.clone(),
+            events.clone(),
+            stop,
+        ));
+    });
+}
+
+/// The changes between `known` and `now`'s verdicts (updating `known`),
+/// and the earliest moment a live value turns stale.
+fn changes(
+    known: &mut BTreeMap<u8, Freshness>,
+    now: Vec<(u8, Verdict)>,
+) -> (Vec<(u8, Freshness, Verdict)>, Option<Instant>) {
+    let mut changed = Vec::new();
+    let mut next = None::<Instant>;
+    for (unit, verdict) in now {
+        if let Some(at) = verdict.stale_at {
+            next = Some(next.map_or(at, |n| n.min(at)));
+        }
+        let was = known.insert(unit, verdict.freshness);
+        if let Some(was) = was
+            && was != verdict.freshness
+        {
+            changed.push((unit, was, verdict));
+        }
+    }
+    (changed, next)
+}
+
+async fn follow(
+    plant: Arc<Plant>,
+    slot: usize,
+    handle: BusHandle,
+    events: Arc<Events>,
+    stop: CancellationToken,
+) {
+    let mut rx = handle.subscribe();
+    let mut known = BTreeMap::new();
+    let (_, mut next) = changes(&mut known, handle.freshness_all(Instant::now()));
+    loop {
+        // Just after the moment: at it, the value is still live.
+        let wake = next.map(|t| tokio::time::Instant::from_std(t + Duration::from_millis(1)));
+        tokio::select! {
+            () = stop.cancelled() => return,
+            event = rx.recv() => if let Err(RecvError::Closed) = event { return },
+            () = async {
+                match wake {
+                    Some(at) => tokio::time::sleep_until(at).await,
+                    None => std::future::pending().await,
+                }
+            } => {}
+        }
+        let (changed, soonest) = changes(&mut known, handle.freshness_all(Instant::now()));
+        next = soonest;
+        if changed.is_empty() {
+            continue;
+        }
+        let directory = plant.now();
+        for (unit, was, verdict) in changed {
+            let Some(drive) = directory
+                .indexed_drives()
+                .find(|(_, d)| d.bus == slot && d.unit == unit)
+                .map(|(i, _)| i)
+            else {
+                continue;
+            };
+            let news = FreshnessNews {
+                drive,
+                bus: handle.name_arc(),
+                unit,
+                was,
+                verdict,
+            };
+            events.publish(Arc::new(ControlEvent::Freshness(news)), None);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bus::freshness::Cause;
+
+    fn verdict(freshness: Freshness, stale_at: Option<Instant>) -> Verdict {
+        Verdict {
+            freshness,
+            since: None,
+            age: None,
+            cause: Cause::Polled,
+            stale_at,
+        }
+    }
+
+    #[test]
+    fn only_changes_are_news_and_the_next_wake_is_the_soonest_stale() {
+        let t = Instant::now();
+        let mut known = BTreeMap::new();
+        // The first look is no news: nothing was known before.
+        let (c, next) = changes(
+            &mut known,
+            vec![
+                (1, verdict(Freshness::Never, None)),
+                (2, verdict(Freshness::Never, None)),
+            ],
+        );
+        assert!(c.is_empty());
+        assert_eq!(next, None);
+        let later = t + Duration::from_secs(1);
+        let (c, next) = changes(
+            &mut known,
+            vec![
+                (1, verdict(Freshness::Live, Some(later))),
+                (2, verdict(Freshness::Live, Some(t))),
+            ],
+        );
+        assert_eq!(
+            c.iter().map(|(u, was, v)| (*u, *was, v.freshness)).collect::<Vec<_>>(),
+            vec![
+                (1, Freshness::Never, Freshness::Live),
+                (2, Freshness::Never, Freshness::Live)
+            ]
+        );
+        assert_eq!(next, Some(t));
+        // Only what changed is news.
+        let (c, _) = changes(
+            &mut known,
+            vec![
+                (1, verdict(Freshness::Live, Some(later))),
+                (2, verdict(Freshness::Stale, None)),
+            ],
+        );
+        assert_eq!(c.len(), 1);
+        assert_eq!((c[0].0, c[0].1), (2, Freshness::Live));
+        let (c, next) = changes(
+            &mut known,
+            vec![
+                (1, verdict(Freshness::BusDown, None)),
+                (2, verdict(Freshness::BusDown, None)),
+            ],
+        );
+        assert_eq!(c.len(), 2);
+        assert_eq!(next, None);
+    }
+}
