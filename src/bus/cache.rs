@@ -278,11 +278,9 @@ impl StatusCache {
     /// True when `unit` answered its last poll: only then are its polls worth
     /// a retry (a drive that is off would cost a timeout each time).
     pub fn answering(&self, unit: u8) -> bool {
-        self.lock()
-            .get(&unit)
-            .is_some_and(|d| {
-                d.snapshot.link == Link::Online && d.snapshot.consecutive_failures == 0
-            })
+        self.lock().get(&unit).is_some_and(|d| {
+            d.snapshot.link == Link::Online && d.snapshot.consecutive_failures == 0
+        })
     }
 
     /// The snapshot of one drive.

@@ -204,9 +204,7 @@ pub struct Verdict {
 /// The freshness of a drive's data at `now`, from its bus's port state,
 /// what the bus knows of it, and how often it is polled.
 pub fn judge(port: &PortState, facts: &Facts, expected: Expected, now: Instant) -> Verdict {
-    let age = facts
-        .seen_instant
-        .map(|t| now.saturating_duration_since(t));
+    let age = facts.seen_instant.map(|t| now.saturating_duration_since(t));
     let verdict = |freshness, since, cause| Verdict {
         freshness,
         since,
@@ -370,7 +368,12 @@ mod tests {
     fn a_value_is_live_within_its_period_and_slack_then_stale() {
         let (t0, wall) = (Instant::now(), SystemTime::now());
         let facts = answered(t0, wall);
-        let live = judge(&up(wall), &facts, EXPECTED, t0 + Duration::from_millis(1600));
+        let live = judge(
+            &up(wall),
+            &facts,
+            EXPECTED,
+            t0 + Duration::from_millis(1600),
+        );
         assert_eq!(live.freshness, Freshness::Live);
         assert_eq!(live.age, Some(Duration::from_millis(1600)));
         assert_eq!(live.since, None);
@@ -382,10 +385,20 @@ mod tests {
             failures: 1,
             ..facts.clone()
         };
-        let still = judge(&up(wall), &one_failure, EXPECTED, t0 + Duration::from_secs(1));
+        let still = judge(
+            &up(wall),
+            &one_failure,
+            EXPECTED,
+            t0 + Duration::from_secs(1),
+        );
         assert_eq!(still.freshness, Freshness::Live);
 
-        let stale = judge(&up(wall), &one_failure, EXPECTED, t0 + Duration::from_millis(2500));
+        let stale = judge(
+            &up(wall),
+            &one_failure,
+            EXPECTED,
+            t0 + Duration::from_millis(2500),
+        );
         assert_eq!(stale.freshness, Freshness::Stale);
         assert_eq!(stale.since, Some(wall + Duration::from_millis(1600)));
         assert_eq!(stale.age, Some(Duration::from_millis(2500)));
@@ -411,7 +424,12 @@ mod tests {
             ..answered(t0, wall)
         };
         // Offline wins over the age: it is not merely late.
-        let v = judge(&up(wall), &offline, EXPECTED, t0 + Duration::from_millis(100));
+        let v = judge(
+            &up(wall),
+            &offline,
+            EXPECTED,
+            t0 + Duration::from_millis(100),
+        );
         assert_eq!(v.freshness, Freshness::Offline);
         assert_eq!(v.since, Some(went));
         assert_eq!(v.age, Some(Duration::from_millis(100)));
@@ -442,7 +460,10 @@ mod tests {
     fn a_drive_that_never_answered_is_never_whatever_its_link() {
         let (t0, wall) = (Instant::now(), SystemTime::now());
         let v = judge(&up(wall), &never(), EXPECTED, t0);
-        assert_eq!((v.freshness, &v.cause), (Freshness::Never, &Cause::NotPolledYet));
+        assert_eq!(
+            (v.freshness, &v.cause),
+            (Freshness::Never, &Cause::NotPolledYet)
+        );
         assert_eq!(v.since, Some(wall));
         assert_eq!(v.age, None);
 

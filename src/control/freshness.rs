@@ -158,7 +158,9 @@ mod tests {
             ],
         );
         assert_eq!(
-            c.iter().map(|(u, was, v)| (*u, *was, v.freshness)).collect::<Vec<_>>(),
+            c.iter()
+                .map(|(u, was, v)| (*u, *was, v.freshness))
+                .collect::<Vec<_>>(),
             vec![
                 (1, Freshness::Never, Freshness::Live),
                 (2, Freshness::Never, Freshness::Live)

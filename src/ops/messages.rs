@@ -246,12 +246,7 @@ pub fn of_freshness(plant: &Plant, news: &FreshnessNews) -> Option<(String, Driv
         drive: drive.name.clone(),
         bus: news.bus.to_string(),
         unit: news.unit,
-        freshness: FreshnessView::of(
-            &news.verdict,
-            &news.bus,
-            news.unit,
-            handle.line().baud(),
-        ),
+        freshness: FreshnessView::of(&news.verdict, &news.bus, news.unit, handle.line().baud()),
         age_ms: news
             .verdict
             .age

@@ -303,9 +303,11 @@ pub fn cached_on(target: &Target, port: Option<&str>) -> Result<StatusReply, Pro
         .as_ref()
         .and_then(|s| Some((s.status?, s.seen_at?, s.age()?)));
     let Some((status, seen_at, age)) = cached else {
-        return Err(Problem::new(Kind::DriveOffline, no_status_yet(target, port))
-            .for_drive(&target.drive.name)
-            .retry_after(1));
+        return Err(
+            Problem::new(Kind::DriveOffline, no_status_yet(target, port))
+                .for_drive(&target.drive.name)
+                .retry_after(1),
+        );
     };
     Ok(reply(
         target,

@@ -17,6 +17,7 @@ mod buses;
 mod commands;
 mod drives;
 mod errors;
+mod freshness;
 mod history;
 mod leases;
 mod openapi;

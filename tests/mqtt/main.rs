@@ -4,7 +4,8 @@
 //! third-party `pysparkplug`: births and bdSeq, rebirth, DDATA by
 //! exception, commands through the control core and their refusals, the
 //! motor-safety lease of MQTT's commands, the NDEATH of a killed daemon,
-//! TLS with the broker's CA.
+//! TLS with the broker's CA; and the adapter unplugged under a daemon with
+//! every face on, each face timed showing it (`wire_gone`).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
@@ -20,6 +21,7 @@ mod reload;
 mod safety;
 mod store;
 mod tls;
+mod wire_gone;
 
 use support::config::ConfigBuilder;
 

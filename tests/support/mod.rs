@@ -20,6 +20,7 @@ pub mod mosquitto;
 pub mod ports;
 pub mod proxy;
 pub mod pty;
+pub mod sim_process;
 pub mod sparkplug;
 pub mod tools;
 pub mod vectors;
