@@ -81,8 +81,6 @@ pub enum Cause {
     Late {
         /// How often it is polled (0: as fast as the bus allows).
         period: Duration,
-        /// Failed polls in a row since the last answer.
-        failures: u32,
     },
     /// Offline after failed polls.
     NoAnswer {
@@ -255,7 +253,6 @@ pub fn judge(port: &PortState, facts: &Facts, expected: Expected, now: Instant) 
             facts.seen_at.map(|t| t + allowance),
             Cause::Late {
                 period: expected.period,
-                failures: facts.failures,
             },
         );
     }
@@ -278,21 +275,18 @@ impl Verdict {
         };
         Some(match &self.cause {
             Cause::Polled => return None,
-            Cause::Late { period, failures } => {
+            // No age: it grows, and the words are told once, when the
+            // data turns stale (the age is a field of its own).
+            Cause::Late { period } => {
                 let every = if period.is_zero() {
                     "as often as the bus allows".to_string()
                 } else {
                     format!("every {}", seconds(*period))
                 };
-                let age = self.age.map_or_else(String::new, |a| {
-                    format!("the last status is {} old", seconds(a))
-                });
-                let failed = if *failures > 0 {
-                    format!(", {}", failed(*failures, &None))
-                } else {
-                    String::new()
-                };
-                format!("polls missing: {age}, the drive is polled {every}{failed}")
+                format!(
+                    "polls missing: the drive is polled {every}, and its last status is \
+                     older than that and a poll's own time allow"
+                )
             }
             Cause::NoAnswer {
                 failures,
@@ -302,15 +296,18 @@ impl Verdict {
                 failed(*failures, last_failure)
             ),
             Cause::NotPolledYet => "not polled yet".to_string(),
-            Cause::NeverAnswered {
-                failures,
-                last_failure,
-            } => format!(
-                "no answer since bus {bus} opened ({}): check the baud rate (the bus \
-                 runs at {baud} baud) and the unit address ({unit}), then the drive's \
-                 power and wiring",
-                failed(*failures, last_failure)
-            ),
+            // No count: it grows with every poll, and the words are
+            // told once, when the drive is first polled in vain.
+            Cause::NeverAnswered { last_failure, .. } => {
+                let last = last_failure
+                    .as_ref()
+                    .map_or_else(String::new, |why| format!(" (the last poll: {why})"));
+                format!(
+                    "no answer since bus {bus} opened{last}: check the baud rate (the bus \
+                     runs at {baud} baud) and the unit address ({unit}), then the drive's \
+                     power and wiring"
+                )
+            }
             Cause::PortNotOpen => format!("bus {bus}'s port is not open yet"),
             Cause::PortDown { reason } => format!("bus {bus} is down: {reason}"),
         })
@@ -406,8 +403,8 @@ mod tests {
         assert_eq!(
             stale.words("line1", 1, 115_200).as_deref(),
             Some(
-                "polls missing: the last status is 2.5 s old, the drive is polled every 1.0 s, \
-                 1 poll failed"
+                "polls missing: the drive is polled every 1.0 s, and its last status is older \
+                 than that and a poll's own time allow"
             )
         );
     }
@@ -481,8 +478,9 @@ mod tests {
         assert_eq!(v.since, Some(wall));
         let words = v.words("line1", 3, 11_520).unwrap();
         assert!(
-            words.starts_with("no answer since bus line1 opened (3 polls failed")
-                && words.contains("the baud rate (the bus runs at 11520 baud)")
+            words.starts_with(
+                "no answer since bus line1 opened (the last poll: no reply within 50 ms): "
+            ) && words.contains("the baud rate (the bus runs at 11520 baud)")
                 && words.contains("the unit address (3)"),
             "{words}"
         );

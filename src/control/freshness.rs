@@ -16,7 +16,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::events::{ControlEvent, Events};
 use crate::bus::BusHandle;
-use crate::bus::freshness::{Freshness, Verdict};
+use crate::bus::freshness::{Cause, Freshness, Verdict};
 use crate::plant::Plant;
 
 /// A drive's data changed freshness.
@@ -49,10 +49,14 @@ pub(super) fn watch(plant: &Arc<Plant>, events: Arc<Events>, shutdown: &Cancella
     });
 }
 
+/// What makes news: the state, and the kind of its cause (a drive first
+/// polled in vain stays `never`, but now with a reason worth telling).
+type Known = (Freshness, std::mem::Discriminant<Cause>);
+
 /// The changes between `known` and `now`'s verdicts (updating `known`),
 /// and the earliest moment a live value turns stale.
 fn changes(
-    known: &mut BTreeMap<u8, Freshness>,
+    known: &mut BTreeMap<u8, Known>,
     now: Vec<(u8, Verdict)>,
 ) -> (Vec<(u8, Freshness, Verdict)>, Option<Instant>) {
     let mut changed = Vec::new();
@@ -61,11 +65,12 @@ fn changes(
         if let Some(at) = verdict.stale_at {
             next = Some(next.map_or(at, |n| n.min(at)));
         }
-        let was = known.insert(unit, verdict.freshness);
+        let key = (verdict.freshness, std::mem::discriminant(&verdict.cause));
+        let was = known.insert(unit, key);
         if let Some(was) = was
-            && was != verdict.freshness
+            && was != key
         {
-            changed.push((unit, was, verdict));
+            changed.push((unit, was.0, verdict));
         }
     }
     (changed, next)
@@ -123,14 +128,17 @@ async fn follow(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bus::freshness::Cause;
 
     fn verdict(freshness: Freshness, stale_at: Option<Instant>) -> Verdict {
+        let cause = match freshness {
+            Freshness::Never => Cause::NotPolledYet,
+            _ => Cause::Polled,
+        };
         Verdict {
             freshness,
             since: None,
             age: None,
-            cause: Cause::Polled,
+            cause,
             stale_at,
         }
     }
@@ -186,5 +194,30 @@ mod tests {
         );
         assert_eq!(c.len(), 2);
         assert_eq!(next, None);
+        // Still never, but polled in vain now: news, with the reason.
+        let mut known = BTreeMap::new();
+        changes(&mut known, vec![(1, verdict(Freshness::Never, None))]);
+        let polled = Verdict {
+            cause: Cause::NeverAnswered {
+                failures: 1,
+                last_failure: None,
+            },
+            ..verdict(Freshness::Never, None)
+        };
+        let (c, _) = changes(&mut known, vec![(1, polled.clone())]);
+        assert_eq!(c.len(), 1);
+        assert_eq!(
+            (c[0].1, c[0].2.freshness),
+            (Freshness::Never, Freshness::Never)
+        );
+        // More failures are no news.
+        let more = Verdict {
+            cause: Cause::NeverAnswered {
+                failures: 5,
+                last_failure: Some("no reply".into()),
+            },
+            ..polled
+        };
+        assert!(changes(&mut known, vec![(1, more)]).0.is_empty());
     }
 }

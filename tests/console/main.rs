@@ -17,6 +17,7 @@ mod assets;
 mod browser;
 mod comm_loss;
 mod diagnostics;
+mod freshness;
 mod harness;
 mod https;
 mod plain;

@@ -6,6 +6,7 @@
 
 import { get } from './api.js';
 import { Alarms, alarmOf, kindWords } from './alarms.js';
+import { ago, dateTime } from './ui.js';
 
 const MAX_EVENTS = 5000;
 const BUS_PERIOD_MS = 2000;
@@ -53,6 +54,11 @@ export class Store {
       d.unit = v.unit;
       d.gearRatio = v.gear_ratio;
       d.link = v.link;
+      // How fresh its data is, as drivegate decides it: only `live`
+      // values are current (see freshnessOf).
+      d.freshness = v.freshness || 'live';
+      d.freshnessSince = v.freshness_since || null;
+      d.freshnessReason = v.freshness_reason || null;
       d.lease = v.lease;
       // Its declared settings and whether it holds them (absent when none
       // is declared).
@@ -110,6 +116,7 @@ export class Store {
         this.setLink(m.drive, 'offline');
         this.log({ kind: 'link', severity: 'bad', drive: m.drive, text: `offline: ${m.reason}` });
         break;
+      case 'freshness': this.onFreshness(m); break;
       case 'bus-up':
         this.log({ kind: 'bus', severity: 'info', drive: null, bus: m.bus, text: `bus ${m.bus}: port open` });
         this.refreshBuses().catch(() => {});
@@ -162,6 +169,8 @@ export class Store {
         break;
       case 'lagged':
         this.log({ kind: 'link', severity: 'warn', drive: null, text: `this page fell behind: ${m.missed} updates skipped` });
+        // What was skipped may be a change of freshness: read it again.
+        this.refreshDrives().catch(() => {});
         break;
       default:
         break;
@@ -201,6 +210,26 @@ export class Store {
       if (prev.mode !== s.mode) {
         this.log({ kind: 'state', severity: 'info', drive: m.drive, text: `mode: ${s.mode.replaceAll('_', ' ')}` });
       }
+    }
+    this.changed(m.drive);
+  }
+
+  /** A drive's data changed freshness (drivegate's `freshness` message). */
+  onFreshness(m) {
+    const d = this.drives.get(m.drive);
+    if (!d) return;
+    const was = d.freshness;
+    d.freshness = m.freshness;
+    d.freshnessSince = m.freshness_since || null;
+    d.freshnessReason = m.freshness_reason || null;
+    // The `offline` message says it already, and a bus down is the bus's
+    // own entry: the log gets what no other message tells.
+    if (m.freshness === 'stale') {
+      this.log({ kind: 'link', severity: 'warn', drive: m.drive, text: `stale: ${m.freshness_reason}` });
+    } else if (m.freshness === 'never') {
+      this.log({ kind: 'link', severity: 'bad', drive: m.drive, text: `never answered: ${m.freshness_reason}` });
+    } else if (m.freshness === 'live' && was === 'stale') {
+      this.log({ kind: 'link', severity: 'info', drive: m.drive, text: 'live again: its polls are answered on time' });
     }
     this.changed(m.drive);
   }
@@ -249,6 +278,60 @@ export class Store {
 export function driftWords(differences) {
   const v = (x, unit) => (typeof x === 'boolean' ? (x ? 'on' : 'off') : `${Number.isInteger(x) ? x : Number(Number(x).toFixed(3))}${unit ? ` ${unit}` : ''}`);
   return (differences || []).map((d) => `${d.quantity} ${v(d.drive, d.unit)} (declared ${v(d.declared, d.unit)})`).join(', ') || 'see the drive page';
+}
+
+/**
+ * Whether a drive's values are current, as drivegate decides it (its
+ * `freshness`), and if not what to show: a short state for a table cell,
+ * and a sentence that says why and since when. `now` is performance.now();
+ * `bus`, the drive's bus from GET /api/v1/buses if known, names its port.
+ */
+export function freshnessOf(d, now, bus = null) {
+  const f = d.freshness || (d.link === 'offline' ? 'offline' : 'live');
+  if (f === 'live') return { live: true, freshness: f };
+  const seen = d.receivedAt !== undefined ? ago(now - d.receivedAt) : 'never';
+  const since = d.freshnessSince ? sinceWords(d.freshnessSince) : null;
+  const last = d.status
+    ? `The values below are the last it sent, ${seen}${d.seenAt ? ` (${dateTime(d.seenAt)})` : ''}; they are not live.`
+    : '';
+  const why = d.freshnessReason || '';
+  switch (f) {
+    case 'bus-down':
+      return { live: false, freshness: f, cls: 'offline', short: `bus down${since ? ` since ${since}` : ''}`,
+        text: `Bus ${d.bus} is down${since ? ` since ${since}` : ''}: drivegate cannot reach this drive. ${last}`.trim(),
+        why };
+    case 'offline':
+      return { live: false, freshness: f, cls: 'offline', short: `offline, last seen ${seen}`,
+        text: d.status
+          ? `Offline: drivegate gets no answer from this drive${since ? ` (since ${since})` : ''}. ${last}`
+          : 'Offline: drivegate has had no answer from this drive since it started.',
+        why };
+    case 'stale':
+      return { live: false, freshness: f, cls: 'unknown', short: `stale, last status ${seen}`,
+        text: `Stale${since ? ` since ${since}` : ''}: ${why || 'its polls are missing'}. ${last}`.trim(),
+        why };
+    default: {
+      // drivegate's words begin "no answer since bus X opened": said here
+      // with the time it opened.
+      const rest = why.replace(/^no answer since bus \S+ opened ?/, '');
+      const port = bus && bus.port && bus.port !== 'sim' ? bus.port : '<the bus\'s port>';
+      return { live: false, freshness: 'never', cls: 'unknown', short: 'never answered',
+        text: rest !== why
+          ? `Never answered since bus ${d.bus} opened${since ? ` at ${since}` : ''} ${rest}.`
+          : `Never answered${since ? ` (bus ${d.bus} open since ${since})` : ''}: ${why || 'no status yet'}.`,
+        command: `drivegate probe --port ${port} --try-bauds`,
+        after: '(with drivegate stopped) finds the drives on the line and their baud rate.',
+        // Said whole in the text already.
+        why: rest !== why ? '' : why };
+    }
+  }
+}
+
+/** A time the data stopped being live: the time of day today, else the date too. */
+function sinceWords(at) {
+  const t = new Date(at);
+  if (Number.isNaN(t.getTime())) return null;
+  return t.toDateString() === new Date().toDateString() ? t.toLocaleTimeString([], { hour12: false }) : dateTime(t);
 }
 
 /** The buses of the configured drives, in the drives' order. */

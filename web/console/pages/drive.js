@@ -3,7 +3,7 @@
 // holds (read from it), and its events.
 
 import { download, drivePath, get, post, put } from '../api.js';
-import { History, positionTurns, driftWords } from '../store.js';
+import { History, positionTurns, driftWords, freshnessOf } from '../store.js';
 import { Jog, DEFAULT_LEASE_MS } from '../jog.js';
 import { SpeedSetpoint } from '../setpoint.js';
 import { activeAlarmsOf } from '../alarms.js';
@@ -56,13 +56,15 @@ function mount(main, { name }, ctx) {
     h('summary', {}, 'Details: raw status registers'), rawValues);
   // Offline: the values below are the last ones the drive sent, not live.
   const lastSeen = h('p', { class: 'last-seen', role: 'status', hidden: true });
+  // What drivegate says of why (the port's error, the last failed poll).
+  const lastSeenWhy = h('p', { class: 'last-seen-why', hidden: true });
   // A fault: what it means and what to check, from drivegate's alarms.
   const faultHelp = h('div', { class: 'fault-help', role: 'alert', hidden: true });
   const head = h('section', { class: 'panel drive-head' },
     h('h1', {}, name, ' ', badge, ' ', drift),
     h('p', { class: 'where' }, `bus ${d.bus}, unit ${d.unit}, gear ratio ${d.gearRatio}`,
       store.can('admin') ? [' · ', h('a', { href: `#/settings/${encodeURIComponent(name)}` }, 'Settings')] : null),
-    lastSeen, faultHelp, values, details);
+    lastSeen, lastSeenWhy, faultHelp, values, details);
   main.append(head);
   const help = faultHelpView(name, faultHelp, store);
   cleanups.push(() => help.dispose());
@@ -155,18 +157,26 @@ function mount(main, { name }, ctx) {
     badge.className = `badge ${c.cls}`;
     head.className = `panel drive-head ${c.cls}`;
     const set = (k, t) => { if (valueCells[k].textContent !== t) valueCells[k].textContent = t; };
-    const offline = d.link === 'offline';
+    // Values that are not live (drivegate's freshness) are the last the
+    // drive sent: greyed, with why and since when above them.
+    const f = freshnessOf(d, now, store.buses.get(d.bus));
     const seen = d.receivedAt !== undefined ? ago(now - d.receivedAt) : 'never';
-    values.classList.toggle('not-live', offline);
+    values.classList.toggle('not-live', !f.live);
     head.dataset.link = d.link || 'unknown';
-    lastSeen.hidden = !offline;
-    if (offline) {
-      const text = s
-        ? `Offline: drivegate gets no answer from this drive. The values below are the last it sent, ${seen}${d.seenAt ? ` (${dateTime(d.seenAt)})` : ''}; they are not live.`
-        : 'Offline: drivegate has had no answer from this drive since it started.';
-      if (lastSeen.textContent !== text) lastSeen.textContent = text;
+    head.dataset.freshness = f.freshness;
+    lastSeen.hidden = f.live;
+    if (f.live) lastSeenWhy.hidden = true;
+    else {
+      const text = f.text;
+      const whole = f.command ? `${text} ${f.command} ${f.after}` : text;
+      if (lastSeen.textContent !== whole) {
+        lastSeen.replaceChildren(text, ...(f.command ? [' ', h('code', {}, f.command), ` ${f.after}`] : []));
+      }
+      const why = f.why && !text.includes(f.why) ? f.why : '';
+      if (lastSeenWhy.textContent !== why) lastSeenWhy.textContent = why;
+      lastSeenWhy.hidden = !why;
     }
-    set('state', s ? `${s.active ? 'active' : 'inactive'}${s.fault !== 'none' ? `, fault ${words(s.fault)}` : ''}${s.stalled ? ', stalled' : ''}` : d.link);
+    set('state', s ? `${s.active ? 'active' : 'inactive'}${s.fault !== 'none' ? `, fault ${words(s.fault)}` : ''}${s.stalled ? ', stalled' : ''}` : f.short || '–');
     set('mode', s ? words(s.mode) : '–');
     set('speed', s ? `${fmt(s.speed_rpm)} rpm` : '–');
     set('position', s ? `${fmt(positionTurns(s), 2)} turns` : '–');
@@ -174,7 +184,7 @@ function mount(main, { name }, ctx) {
     set('voltage', s ? `${fmt(s.voltage_v)} V` : '–');
     set('temperature', s ? `${fmt(s.temperature_c)} °C` : '–');
     set('calibration', s ? (s.calibrated ? 'calibrated' : 'not calibrated') : '–');
-    set('age', offline ? `last seen ${seen}` : d.receivedAt !== undefined ? `${age(now - d.receivedAt)} ago` : '–');
+    set('age', d.receivedAt === undefined ? '–' : !f.live ? `last seen ${seen}` : `${age(now - d.receivedAt)} ago`);
     set('flags', s ? `0x${s.flags.toString(16).padStart(4, '0')}` : '–');
     set('fault_code', s ? `${s.fault_code} (${words(s.fault)})` : '–');
     set('turns', s ? String(s.turns) : '–');

@@ -1,12 +1,14 @@
 // Overview: every bus and every drive at a glance, live. A drive in fault,
-// stalled or offline stands out (colour, and a word, never colour alone);
+// stalled, or whose data is not live (stale, offline, never answered, its
+// bus down: drivegate's freshness) stands out (colour, and a word, never
+// colour alone), its last values greyed;
 // rows update in place, only the cells that changed, at most 20 times a
 // second (faster than anyone reads, and a quarter of the layout work of
 // drawing every frame), so a hundred drives at the bus's full rate cost the
 // browser little.
 
 import { h, fmt, age, ago, words } from '../ui.js';
-import { positionTurns } from '../store.js';
+import { positionTurns, freshnessOf } from '../store.js';
 
 export const page = {
   id: 'overview',
@@ -16,16 +18,47 @@ export const page = {
   mount,
 };
 
-/** What stands out about a drive, worst first. */
+/** What stands out about a drive, worst first: values that are not live first of all. */
 export function condition(d, stale) {
   const s = d.status;
-  if (d.link === 'offline') return { cls: 'offline', text: 'offline' };
+  const f = freshnessOf(d, performance.now());
+  if (!f.live) return { cls: f.cls, text: f.freshness === 'bus-down' ? 'bus down' : f.freshness === 'never' ? 'never answered' : f.freshness };
   if (!s) return { cls: 'unknown', text: 'no status yet' };
   if (s.fault !== 'none') return { cls: 'fault', text: `fault: ${words(s.fault)}` };
   if (s.stalled) return { cls: 'stalled', text: 'stalled' };
   if (stale) return { cls: 'unknown', text: 'stale' };
   if (!s.active) return { cls: 'inactive', text: 'inactive' };
   return { cls: 'ok', text: s.speed_rpm !== 0 ? 'running' : 'ready' };
+}
+
+/**
+ * The drives in one line: how many are online (their data live) and what
+ * is wrong with the others, a bus down first ("0 of 2 online: bus line1
+ * is down"); faults and stalls of live drives after.
+ */
+export function summaryText(store) {
+  let live = 0; let offline = 0; let stale = 0; let never = 0; let faults = 0; let stalls = 0;
+  const down = [];
+  for (const d of store.drives.values()) {
+    const f = freshnessOf(d, performance.now()).freshness;
+    if (f === 'live') live += 1;
+    else if (f === 'bus-down') { if (!down.includes(d.bus)) down.push(d.bus); }
+    else if (f === 'offline') offline += 1;
+    else if (f === 'stale') stale += 1;
+    else never += 1;
+    if (f === 'live' && d.status && d.status.fault !== 'none') faults += 1;
+    if (f === 'live' && d.status && d.status.stalled) stalls += 1;
+  }
+  const parts = [];
+  if (down.length === 1) parts.push(`bus ${down[0]} is down`);
+  else if (down.length > 1) parts.push(`buses ${down.join(', ')} are down`);
+  if (offline) parts.push(`${offline} offline`);
+  if (stale) parts.push(`${stale} stale`);
+  if (never) parts.push(`${never} never answered (check the bus's baud rate and the drives' unit addresses)`);
+  if (faults) parts.push(`${faults} in fault`);
+  if (stalls) parts.push(`${stalls} stalled`);
+  const head = `${live} of ${store.drives.size} online`;
+  return { text: parts.length ? `${head}: ${parts.join(', ')}` : head, bad: parts.length > 0 };
 }
 
 /** Shortest time between two draws, ms. */
@@ -90,13 +123,15 @@ function mount(main, _params, { store }) {
     const c = condition(d, stale);
     if (r.tr.className !== c.cls) r.tr.className = c.cls;
     set(r, 'where', `${d.bus} / ${d.unit}`);
-    // An offline drive's values are its last ones, not live: the row is
-    // greyed (CSS) and its state says how old they are.
-    const offline = d.link === 'offline';
+    // Values that are not live are the drive's last ones: the row is
+    // greyed (CSS) and its state says why and since when (the whole
+    // reason on hover).
+    const f = freshnessOf(d, now);
     if (r.tr.dataset.link !== (d.link || 'unknown')) r.tr.dataset.link = d.link || 'unknown';
-    set(r, 'state', offline
-      ? `offline, last seen ${d.receivedAt !== undefined ? ago(now - d.receivedAt) : 'never'}`
-      : c.text + (s && s.active && c.cls !== 'ok' ? ', active' : ''));
+    if (r.tr.dataset.freshness !== f.freshness) r.tr.dataset.freshness = f.freshness;
+    set(r, 'state', !f.live ? f.short : c.text + (s && s.active && c.cls !== 'ok' ? ', active' : ''));
+    const why = f.live ? '' : f.text + (f.why && !f.text.includes(f.why) ? ` (${f.why})` : '');
+    if (r.cells.state.title !== (why || r.text.state)) r.cells.state.title = why || r.text.state;
     set(r, 'mode', s ? words(s.mode) : '–');
     set(r, 'speed', s ? fmt(s.speed_rpm) : '–');
     set(r, 'position', s ? `${fmt(Math.trunc(positionTurns(s)))} t ${fmt(s.angle_deg, 1)}°` : '–');
@@ -158,24 +193,17 @@ function mount(main, _params, { store }) {
         const d = store.drives.get(name);
         if (d && d.receivedAt !== undefined) {
           set(row(name), 'age', age(now - d.receivedAt));
-          if (d.link === 'offline') drawDrive(d, now, store.stream.state !== 'open');
+          if (!freshnessOf(d, now).live) drawDrive(d, now, store.stream.state !== 'open');
         }
       }
       agesDue = false;
     }
     all = false;
     dirty.clear();
-    let online = 0; let faults = 0; let stalls = 0; let offline = 0;
-    for (const d of store.drives.values()) {
-      if (d.link === 'online') online += 1;
-      if (d.link === 'offline') offline += 1;
-      if (d.status && d.status.fault !== 'none') faults += 1;
-      if (d.status && d.status.stalled) stalls += 1;
-    }
-    const text = `${store.drives.size} drives: ${online} online, ${offline} offline, ${faults} in fault, ${stalls} stalled`;
-    if (summary.textContent !== text) {
-      summary.textContent = text;
-      summary.className = `summary ${faults || stalls || offline ? 'bad' : 'good'}`;
+    const text = summaryText(store);
+    if (summary.textContent !== text.text) {
+      summary.textContent = text.text;
+      summary.className = `summary ${text.bad ? 'bad' : 'good'}`;
     }
   }
 
