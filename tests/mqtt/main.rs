@@ -14,6 +14,7 @@ mod support;
 
 mod births;
 mod commands;
+mod convergence;
 mod death;
 mod json;
 mod python;
