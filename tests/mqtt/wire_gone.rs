@@ -301,15 +301,16 @@ async fn json_face(sub: &mut Sub, t0: Instant, phase: Phase) -> Duration {
             .await;
         let v = m.json();
         let drive = v["drive"].as_str().unwrap_or("").to_string();
-        if m.topic.ends_with("/status") && m.retained == false {
+        if m.topic.ends_with("/status") && !m.retained {
             assert!(v["speed_rpm"].is_i64(), "{v}");
             if !status.contains(&drive) {
                 status.push(drive);
             }
-        } else if m.topic.ends_with("/event") && v["type"] == "freshness" {
-            if !events.contains(&drive) {
-                events.push(drive);
-            }
+        } else if m.topic.ends_with("/event")
+            && v["type"] == "freshness"
+            && !events.contains(&drive)
+        {
+            events.push(drive);
         }
     }
     t0.elapsed()
