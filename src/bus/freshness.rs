@@ -25,8 +25,8 @@ use crate::modbus::timing::LineTiming;
 
 /// Room beyond a drive's poll period and a poll's own worst case before
 /// its data counts as stale: a loaded machine may hold the bus thread back
-/// for a while, and a value 0.2 s late is no news to anyone.
-pub const GRACE: Duration = Duration::from_millis(500);
+/// for a while, and a value half a second late is no news to anyone.
+pub const GRACE: Duration = Duration::from_secs(1);
 
 /// The freshness of a drive's data.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
@@ -121,19 +121,22 @@ pub struct Expected {
 
 impl Expected {
     /// For a drive polled every `interval` (zero: round robin at full
-    /// rate) on a bus of `drives` drives at `line`, with `attempts` of
+    /// rate) on a bus of `drives` drives at `line`, where commands may
+    /// take `poll_share` transactions for each poll, with `attempts` of
     /// `response_timeout` each per poll.
     pub fn new(
         interval: Duration,
-        drives: usize,
+        (drives, poll_share): (usize, u32),
         line: LineTiming,
         attempts: u32,
         response_timeout: Duration,
     ) -> Self {
         // A status poll: 8 bytes out, 19 back, the silences and a
-        // drive's millisecond to think.
+        // drive's millisecond to think; a round of the bus's drives, each
+        // poll after as many commands as the poll share lets go first.
         let one = line.transaction_time(8, 19, Duration::from_millis(1));
-        let round = one * u32::try_from(drives.max(1)).unwrap_or(u32::MAX);
+        let polls = u32::try_from(drives.max(1)).unwrap_or(u32::MAX);
+        let round = one * polls * poll_share.saturating_add(1);
         Expected {
             period: interval.max(round),
             slack: response_timeout * attempts.max(1) + GRACE,
@@ -155,7 +158,7 @@ pub fn expected_of(settings: &BusSettings) -> Vec<(u8, Expected)> {
         .map(|&(unit, interval)| {
             let expected = Expected::new(
                 interval,
-                settings.drives.len(),
+                (settings.drives.len(), settings.poll_share),
                 master.line,
                 u32::from(master.retries) + 1,
                 master.response_timeout,
@@ -498,19 +501,20 @@ mod tests {
     fn the_period_is_the_interval_or_a_round_of_the_bus() {
         let line = LineTiming::new_8n1(115_200);
         let timeout = Duration::from_millis(50);
-        let slow = Expected::new(Duration::from_secs(1), 8, line, 2, timeout);
+        let slow = Expected::new(Duration::from_secs(1), (8, 4), line, 2, timeout);
         assert_eq!(slow.period, Duration::from_secs(1));
-        assert_eq!(slow.slack, Duration::from_millis(600));
-        // At full rate: one round of eight status polls, about 55 ms.
-        let fast = Expected::new(Duration::ZERO, 8, line, 2, timeout);
+        assert_eq!(slow.slack, Duration::from_millis(1100));
+        // At full rate: one round of eight status polls, each after four
+        // commands at most, about 275 ms.
+        let fast = Expected::new(Duration::ZERO, (8, 4), line, 2, timeout);
         assert!(
-            fast.period > Duration::from_millis(45) && fast.period < Duration::from_millis(65),
+            fast.period > Duration::from_millis(230) && fast.period < Duration::from_millis(320),
             "{:?}",
             fast.period
         );
-        // At 9600 baud a round of thirty drives takes over a second.
-        let long = Expected::new(Duration::ZERO, 30, LineTiming::new_8n1(9600), 1, timeout);
-        assert!(long.period > Duration::from_secs(1), "{:?}", long.period);
+        // At 9600 baud a round of thirty drives takes seconds.
+        let long = Expected::new(Duration::ZERO, (30, 4), LineTiming::new_8n1(9600), 1, timeout);
+        assert!(long.period > Duration::from_secs(5), "{:?}", long.period);
     }
 
     #[test]

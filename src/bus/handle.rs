@@ -96,6 +96,9 @@ pub(crate) struct Shared {
     /// Set once the bus has stopped for good (shut down, or never started):
     /// the answer to every later submission.
     pub(crate) ended: OnceLock<BusError>,
+    /// The port's state and the moment the bus stopped at a shutdown: the
+    /// drives' freshness stays what it was then, as the counters do.
+    pub(crate) stopped: OnceLock<(PortState, Instant)>,
 }
 
 impl Shared {
@@ -105,6 +108,15 @@ impl Shared {
 
     pub(crate) fn state(&self) -> PortState {
         self.state.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// The port's state and the time to judge freshness at, for `now`:
+    /// after a shutdown's stop, those of the stop.
+    fn judged_at(&self, now: Instant) -> (PortState, Instant) {
+        match self.stopped.get() {
+            Some((port, at)) => (port.clone(), now.min(*at)),
+            None => (self.state(), now),
+        }
     }
 }
 
@@ -268,7 +280,7 @@ impl BusHandle {
 
     /// How fresh `unit`'s data is at `now`.
     pub fn freshness_at(&self, unit: u8, now: Instant) -> Option<Verdict> {
-        let port = self.shared.state();
+        let (port, now) = self.shared.judged_at(now);
         let facts = self.shared.cache.facts(unit)?;
         Some(freshness::judge(
             &port,
@@ -280,7 +292,7 @@ impl BusHandle {
 
     /// How fresh every drive's data is at `now`, by unit.
     pub fn freshness_all(&self, now: Instant) -> Vec<(u8, Verdict)> {
-        let port = self.shared.state();
+        let (port, now) = self.shared.judged_at(now);
         self.shared
             .cache
             .all_facts()

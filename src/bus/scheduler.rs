@@ -120,6 +120,7 @@ fn new_shared(settings: &BusSettings) -> Arc<Shared> {
         queue_timeout: settings.queue_timeout,
         stop: CancellationToken::new(),
         ended: OnceLock::new(),
+        stopped: OnceLock::new(),
     })
 }
 
@@ -340,8 +341,13 @@ impl Scheduler {
             }
         }
         // The port is closed now. The counters (port_open included) keep
-        // the last state of the run: a scrape after the stop describes it.
+        // the last state of the run: a scrape after the stop describes it,
+        // and so does the drives' freshness.
         drop(master);
+        let _ = self
+            .shared
+            .stopped
+            .set((self.shared.state(), Instant::now()));
         self.shared.set_state(PortState::Down {
             since: SystemTime::now(),
             reason: "the bus has stopped: drivegate is shutting down".to_string(),

@@ -851,7 +851,7 @@ fn ws_message(world: &World, v: &Value, pending: &mut Option<Pending>) {
                 );
             }
         }
-        Some("subscribed" | "online" | "offline" | "lagged") => {}
+        Some("subscribed" | "online" | "offline" | "freshness" | "lagged") => {}
         // Every client's writes, as the audit log has them.
         Some("write") if v["who"].is_string() && v["what"].is_string() && v["ok"].is_boolean() => {}
         _ => c.wrong(&c.ws, format!("unexpected message {v}")),

@@ -12,6 +12,7 @@ use tokio::io::{AsyncBufReadExt, BufReader};
 /// The simulator's process.
 pub struct ExternalSim {
     child: tokio::process::Child,
+    link: std::path::PathBuf,
 }
 
 impl ExternalSim {
@@ -35,12 +36,18 @@ impl ExternalSim {
             .expect("its output")
             .expect("a line");
         assert!(first.starts_with("/dev/pts/"), "{first}");
-        ExternalSim { child }
+        ExternalSim {
+            child,
+            link: link.to_path_buf(),
+        }
     }
 
-    /// `kill -9`: the pty goes with the process and the link stays,
-    /// dangling, as an unplugged adapter's by-id link goes.
+    /// The adapter unplugged: its link goes (as udev removes a by-id
+    /// link), then `kill -9` takes the pty with the process. The link goes
+    /// first: a pty number the kernel hands out again (to another test's
+    /// simulator) must not be reached through it.
     pub async fn kill(mut self) {
+        std::fs::remove_file(&self.link).expect("the link removed");
         self.child.start_kill().expect("kill -9");
         let _ = self.child.wait().await;
     }
