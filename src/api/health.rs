@@ -178,9 +178,7 @@ pub fn readiness(state: &ApiState) -> Readiness {
         });
     }
     if online_total == 0 && configured_total > 0 {
-        reasons.push(
-            "no drive answers its status polls (no drive's data is live)".to_string(),
-        );
+        reasons.push("no drive answers its status polls (no drive's data is live)".to_string());
     }
     Readiness {
         ready: reasons.is_empty(),

@@ -513,7 +513,13 @@ mod tests {
             fast.period
         );
         // At 9600 baud a round of thirty drives takes seconds.
-        let long = Expected::new(Duration::ZERO, (30, 4), LineTiming::new_8n1(9600), 1, timeout);
+        let long = Expected::new(
+            Duration::ZERO,
+            (30, 4),
+            LineTiming::new_8n1(9600),
+            1,
+            timeout,
+        );
         assert!(long.period > Duration::from_secs(5), "{:?}", long.period);
     }
 
