@@ -80,6 +80,7 @@ impl Face {
                         c.enabled,
                         c.listen,
                         c.max_connections,
+                        c.per_address_limit(),
                         c.idle_timeout_ms,
                         c.max_pipelined,
                     )
@@ -96,6 +97,7 @@ impl Face {
                     (
                         c.tls.clone(),
                         c.max_connections,
+                        c.per_address_limit(),
                         c.idle_timeout_ms,
                         c.max_pipelined,
                         c.read_only,
@@ -230,6 +232,7 @@ fn clients(c: &ModbusTcpConfig) -> impl PartialEq + use<> {
         enabled: _,
         listen: _,
         max_connections: _,
+        max_connections_per_address: _,
         idle_timeout_ms: _,
         max_pipelined: _,
         tls: _,
@@ -239,6 +242,7 @@ fn clients(c: &ModbusTcpConfig) -> impl PartialEq + use<> {
         broadcast_reply,
         unit_map,
         polled_copy,
+        raw_functions,
     } = c.clone();
     (
         allowed_networks,
@@ -247,6 +251,7 @@ fn clients(c: &ModbusTcpConfig) -> impl PartialEq + use<> {
         broadcast_reply,
         unit_map,
         polled_copy,
+        raw_functions,
     )
 }
 

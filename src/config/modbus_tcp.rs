@@ -28,6 +28,10 @@ pub struct ModbusTcpConfig {
     /// Connections served at once; more are closed as they arrive.
     #[serde(deserialize_with = "int_in::<_, _, 1, 4096>")]
     pub max_connections: usize,
+    /// Connections one client address (an IPv6 client by its /64) may
+    /// hold at once, so that one host cannot take every slot; absent: a
+    /// quarter of `max_connections` ([`Self::per_address_limit`]).
+    pub max_connections_per_address: Option<Spanned<ConnectionCount>>,
     /// A connection with nothing pending that sends no complete request for
     /// this long is closed, so dead peers do not hold connection slots.
     #[serde(deserialize_with = "int_in::<_, _, 100, 86_400_000>")]
@@ -38,8 +42,9 @@ pub struct ModbusTcpConfig {
     #[serde(deserialize_with = "int_in::<_, _, 1, 64>")]
     pub max_pipelined: usize,
     /// Client networks allowed to connect, with the admin role (viewer
-    /// with `read_only`); others are closed at once.
-    pub allowed_networks: Vec<IpNet>,
+    /// with `read_only`); others are closed at once. Absent: loopback only
+    /// ([`Self::allowed`]).
+    pub allowed_networks: Option<Vec<IpNet>>,
     /// Client networks allowed to connect with a role of their own (and
     /// the still-check override); the most specific entry a client is in,
     /// here or in `allowed_networks`, decides.
@@ -55,6 +60,11 @@ pub struct ModbusTcpConfig {
     pub unit_map: Vec<UnitMapEntry>,
     /// Buses whose status reads are answered from the latest poll.
     pub polled_copy: Vec<PolledCopy>,
+    /// Function codes the control core cannot decode (coils, file records,
+    /// diagnostics that restart or clear, vendor codes) that admins may
+    /// send, unchecked and audited as such, to one unit (never unit 0);
+    /// refused with exception 0x01 for everyone otherwise.
+    pub raw_functions: Vec<Spanned<RawFunction>>,
     /// `[modbus_tcp.tls]`: the Modbus/TCP Security listener beside this one.
     pub tls: Option<crate::config::ModbusTlsConfig>,
 }
@@ -133,6 +143,48 @@ fn comm_loss_ms<'de, D: Deserializer<'de>>(d: D) -> Result<Option<u64>, D::Error
         _ => Err(de::Error::custom(format!(
             "comm_loss_ms = {v} is out of range: valid {COMM_LOSS_MIN_MS} to {COMM_LOSS_MAX_MS} ms"
         ))),
+    }
+}
+
+/// A number of connections, 1 to 4096.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(try_from = "i64")]
+pub struct ConnectionCount(pub usize);
+
+impl TryFrom<i64> for ConnectionCount {
+    type Error = String;
+
+    fn try_from(v: i64) -> Result<Self, String> {
+        match usize::try_from(v) {
+            Ok(n) if (1..=4096).contains(&n) => Ok(ConnectionCount(n)),
+            _ => Err(format!("{v} is out of range: valid 1 to 4096")),
+        }
+    }
+}
+
+/// A Modbus function code listed in `raw_functions`, 1 to 127 (the codes
+/// from 0x80 up are exception replies).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(try_from = "i64")]
+pub struct RawFunction(u8);
+
+impl RawFunction {
+    /// The function code.
+    pub fn code(self) -> u8 {
+        self.0
+    }
+}
+
+impl TryFrom<i64> for RawFunction {
+    type Error = String;
+
+    fn try_from(v: i64) -> Result<Self, String> {
+        match u8::try_from(v) {
+            Ok(code @ 1..=127) => Ok(RawFunction(code)),
+            _ => Err(format!(
+                "function code {v} is out of range: valid 1 to 127 (0x01 to 0x7F; from 0x80 up are exception replies)"
+            )),
+        }
     }
 }
 
@@ -300,23 +352,25 @@ impl<'de> Deserialize<'de> for UnitRange {
     }
 }
 
-/// The networks allowed by default: loopback, the private ranges plants use
-/// (RFC 1918, IPv6 unique local) and link-local (a PLC cabled straight to
-/// the gateway). Never the open internet.
+/// The networks allowed without `allowed_networks`: loopback only, the
+/// gateway's own processes. A plant network is opened with a role of its
+/// own (`[[modbus_tcp.clients]]`): plain Modbus TCP has no authentication,
+/// so no network gets the admin role by default.
 pub fn default_allowed_networks() -> Vec<IpNet> {
-    [
-        "127.0.0.0/8",
-        "10.0.0.0/8",
-        "172.16.0.0/12",
-        "192.168.0.0/16",
-        "169.254.0.0/16",
-        "::1/128",
-        "fc00::/7",
-        "fe80::/10",
-    ]
-    .iter()
-    .filter_map(|n| n.parse().ok())
-    .collect()
+    ["127.0.0.0/8", "::1/128"]
+        .iter()
+        .filter_map(|n| n.parse().ok())
+        .collect()
+}
+
+/// The networks `allowed_networks` defaulted to before it became loopback
+/// only, named in the start-up message of a file that relied on them.
+pub const OLD_DEFAULT_NETWORKS: &str =
+    "10.0.0.0/8, 172.16.0.0/12, 192.168.0.0/16, 169.254.0.0/16, fc00::/7, fe80::/10";
+
+/// True when every address of `net` is a loopback address.
+fn loopback_only(net: &IpNet) -> bool {
+    default_allowed_networks().iter().any(|l| l.contains(net))
 }
 
 impl Default for ModbusTcpConfig {
@@ -325,14 +379,16 @@ impl Default for ModbusTcpConfig {
             enabled: true,
             listen: SocketAddr::from(([127, 0, 0, 1], 5020)),
             max_connections: 64,
+            max_connections_per_address: None,
             idle_timeout_ms: 60_000,
             max_pipelined: 16,
-            allowed_networks: default_allowed_networks(),
+            allowed_networks: None,
             clients: Vec::new(),
             read_only: false,
             broadcast_reply: false,
             unit_map: Vec::new(),
             polled_copy: Vec::new(),
+            raw_functions: Vec::new(),
             tls: None,
         }
     }
@@ -342,6 +398,70 @@ impl ModbusTcpConfig {
     /// The idle timeout as a duration.
     pub fn idle_timeout(&self) -> Duration {
         Duration::from_millis(self.idle_timeout_ms)
+    }
+
+    /// The admin networks: `allowed_networks`, or loopback only.
+    pub fn allowed(&self) -> Vec<IpNet> {
+        self.allowed_networks
+            .clone()
+            .unwrap_or_else(default_allowed_networks)
+    }
+
+    /// Connections one address may hold: `max_connections_per_address`,
+    /// or a quarter of `max_connections` (at least one).
+    pub fn per_address_limit(&self) -> usize {
+        self.max_connections_per_address
+            .as_ref()
+            .map_or((self.max_connections / 4).max(1), |n| n.get_ref().0)
+    }
+
+    /// What `check-config` and the listener's start say about this section
+    /// beyond errors: a non-loopback network with the admin role over
+    /// plain Modbus TCP (which has no authentication), and a listener on
+    /// the plant network that admits loopback only because
+    /// `allowed_networks` is not set (it once defaulted to the private
+    /// ranges). Each as `(warning, text)`: a note that is not a warning
+    /// describes a configuration that works as written.
+    pub fn notices(&self) -> Vec<(bool, String)> {
+        if !self.enabled || self.listen.ip().is_loopback() {
+            return Vec::new();
+        }
+        let mut out = Vec::new();
+        if !self.read_only {
+            let admins = self
+                .allowed()
+                .into_iter()
+                .filter(|n| !loopback_only(n))
+                .map(|n| (n, "allowed_networks"))
+                .chain(
+                    self.clients
+                        .iter()
+                        .filter(|c| c.role() == Role::Admin && !loopback_only(&c.network))
+                        .map(|c| (c.network, "[[modbus_tcp.clients]]")),
+                );
+            for (network, key) in admins {
+                out.push((true, format!(
+                    "[modbus_tcp] {key} gives {network} the admin role over plain Modbus TCP, which has no authentication: any host there, or one that takes an address there, may save to flash, factory-reset and re-address the drives. Give that network a lesser role with [[modbus_tcp.clients]] (operator or viewer), and commission over Modbus/TCP Security ([modbus_tcp.tls]: client certificates with the role admin; docs/security.md)"
+                )));
+            }
+        }
+        if self.allowed_networks.is_none() {
+            let clients: Vec<String> = self
+                .clients
+                .iter()
+                .map(|c| format!("{} ({})", c.network, c.role().name()))
+                .collect();
+            let (warning, admitted) = if clients.is_empty() {
+                (true, "loopback only".to_string())
+            } else {
+                (false, format!("loopback and {}", clients.join(", ")))
+            };
+            out.push((warning, format!(
+                "Modbus TCP listens on {} but admits {admitted}; other addresses are refused at connect. [modbus_tcp] allowed_networks is not set, and no longer defaults to the private networks ({OLD_DEFAULT_NETWORKS}) with the admin role. To let a plant network in, give it a role: [[modbus_tcp.clients]] network = \"10.0.5.0/24\" role = \"operator\" (README, Upgrading)",
+                self.listen
+            )));
+        }
+        out
     }
 
     /// Checks against the rest of the configuration: the unit map and the
@@ -421,6 +541,21 @@ impl ModbusTcpConfig {
                 ),
             ));
         }
+        if let Some(per) = &self.max_connections_per_address
+            && per.get_ref().0 > self.max_connections
+        {
+            return Err((
+                per.span(),
+                format!(
+                    "[modbus_tcp] max_connections_per_address = {} is out of range: valid 1 to {} (max_connections)",
+                    per.get_ref().0,
+                    self.max_connections
+                ),
+            ));
+        }
+        for raw in &self.raw_functions {
+            check_raw(raw)?;
+        }
         if self.read_only
             && let Some(client) = self.clients.iter().find(|c| c.role() > Role::Viewer)
         {
@@ -435,6 +570,28 @@ impl ModbusTcpConfig {
         }
         Ok(())
     }
+}
+
+/// A `raw_functions` entry must be a code the control core cannot decode:
+/// a read passes anyway, and a register write is always decided by the
+/// core, which no list may turn off.
+fn check_raw(raw: &Spanned<RawFunction>) -> Result<(), (Range<usize>, String)> {
+    use crate::modbus::function::{Effect, effect, name};
+    let code = raw.get_ref().code();
+    let why = match effect(&[code]) {
+        Effect::Other => return Ok(()),
+        Effect::Read => "a read, which passes without being listed",
+        Effect::RegisterWrite => {
+            "a register write, which the control core decodes and always checks (roles, standstill, leases)"
+        }
+    };
+    Err((
+        raw.span(),
+        format!(
+            "[modbus_tcp] raw_functions lists 0x{code:02X} ({}): {why}; list only function codes drivegate cannot decode (e.g. 0x05, 0x0F, 0x15, 0x08, or a vendor's 0x41)",
+            name(code)
+        ),
+    ))
 }
 
 fn quoted(names: &[&str]) -> String {
@@ -490,7 +647,8 @@ name = "b1"
             );
         let c = Config::parse(&text, "drivegate.toml").unwrap();
         let tcp = &c.modbus_tcp;
-        assert_eq!(tcp.allowed_networks, default_allowed_networks());
+        assert_eq!(tcp.allowed_networks, None);
+        assert_eq!(tcp.allowed(), default_allowed_networks());
         assert_eq!(tcp.unit_map[1].bus_unit(101), Some(1));
         assert_eq!(tcp.polled_copy[0].max_age(), Duration::from_millis(250));
         assert_eq!(tcp.clients[0].role(), Role::Operator);
@@ -516,7 +674,122 @@ name = "b1"
         assert_eq!(c.idle_timeout(), Duration::from_secs(60));
         assert!(!c.read_only && !c.broadcast_reply);
         assert!(c.unit_map.is_empty() && c.polled_copy.is_empty() && c.clients.is_empty());
-        assert_eq!(c.allowed_networks.len(), 8);
+        assert_eq!(c.allowed_networks, None);
+        assert_eq!(
+            c.allowed()
+                .iter()
+                .map(|n| n.to_string())
+                .collect::<Vec<_>>(),
+            ["127.0.0.0/8", "::1/128"],
+            "loopback only"
+        );
+        assert_eq!(c.per_address_limit(), 16, "a quarter of max_connections");
+        assert!(c.raw_functions.is_empty());
+    }
+
+    #[test]
+    fn the_per_address_cap_is_within_max_connections() {
+        let c = parse("max_connections = 6").unwrap();
+        assert_eq!(c.modbus_tcp.per_address_limit(), 1);
+        let c = parse("max_connections = 2\nmax_connections_per_address = 2").unwrap();
+        assert_eq!(c.modbus_tcp.per_address_limit(), 2);
+        let e = parse("max_connections = 8\nmax_connections_per_address = 9").unwrap_err();
+        assert!(
+            e.starts_with("t.toml:3:31:")
+                && e.contains("max_connections_per_address = 9 is out of range: valid 1 to 8 (max_connections)"),
+            "{e}"
+        );
+        let e = parse("max_connections_per_address = 0").unwrap_err();
+        assert!(e.contains("0 is out of range: valid 1 to 4096"), "{e}");
+    }
+
+    #[test]
+    fn raw_functions_lists_only_codes_the_core_cannot_decode() {
+        let c = parse("raw_functions = [0x05, 0x0F, 0x41, 8, 0x2B]").unwrap();
+        let codes: Vec<u8> = c
+            .modbus_tcp
+            .raw_functions
+            .iter()
+            .map(|f| f.get_ref().code())
+            .collect();
+        assert_eq!(codes, [0x05, 0x0F, 0x41, 0x08, 0x2B]);
+        let e = parse("raw_functions = [0x41, 0x06]").unwrap_err();
+        assert!(
+            e.starts_with("t.toml:2:24:")
+                && e.contains("lists 0x06 (Write Single Register): a register write, which the control core decodes and always checks"),
+            "{e}"
+        );
+        let e = parse("raw_functions = [0x03]").unwrap_err();
+        assert!(e.contains("0x03 (Read Holding Registers): a read"), "{e}");
+        for bad in ["0", "128", "-1"] {
+            let e = parse(&format!("raw_functions = [{bad}]")).unwrap_err();
+            assert!(
+                e.contains(&format!(
+                    "function code {bad} is out of range: valid 1 to 127"
+                )),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn plain_admin_networks_and_the_old_default_are_noticed() {
+        let warnings = |text: &str| -> Vec<String> {
+            let c = parse(text).unwrap();
+            c.modbus_tcp.notices().into_iter().map(|(_, t)| t).collect()
+        };
+        // On loopback nothing is said: nobody else reaches the listener.
+        assert!(warnings("allowed_networks = [\"10.0.0.0/8\"]").is_empty());
+        let w = warnings(
+            "listen = \"0.0.0.0:502\"\nallowed_networks = [\"127.0.0.1/32\", \"10.0.0.0/8\"]",
+        );
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].contains("allowed_networks gives 10.0.0.0/8 the admin role over plain Modbus TCP")
+                && w[0].contains("Modbus/TCP Security"),
+            "{w:?}"
+        );
+        let w = warnings(
+            "listen = \"0.0.0.0:502\"\nallowed_networks = []\n[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"admin\"\n[[modbus_tcp.clients]]\nnetwork = \"10.2.0.0/16\"\nrole = \"operator\"",
+        );
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].contains("[[modbus_tcp.clients]] gives 10.1.0.0/16 the admin role"),
+            "{w:?}"
+        );
+        // read_only: nobody is admin.
+        assert!(
+            warnings(
+                "listen = \"0.0.0.0:502\"\nallowed_networks = [\"10.0.0.0/8\"]\nread_only = true"
+            )
+            .is_empty()
+        );
+        // A file that relied on the private ranges being admitted.
+        let c = parse("listen = \"0.0.0.0:502\"").unwrap();
+        let notices = c.modbus_tcp.notices();
+        assert_eq!(notices.len(), 1);
+        let (warning, text) = &notices[0];
+        assert!(*warning);
+        assert!(
+            text.contains("listens on 0.0.0.0:502 but admits loopback only")
+                && text.contains("no longer defaults to the private networks (10.0.0.0/8")
+                && text.contains("[[modbus_tcp.clients]]"),
+            "{text}"
+        );
+        let c = parse("listen = \"0.0.0.0:502\"\n[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"").unwrap();
+        let notices = c.modbus_tcp.notices();
+        assert_eq!(notices.len(), 1);
+        assert!(
+            !notices[0].0,
+            "a file with a client network works as written"
+        );
+        assert!(
+            notices[0]
+                .1
+                .contains("admits loopback and 10.1.0.0/16 (operator)"),
+            "{}",
+            notices[0].1
+        );
     }
 
     #[test]
