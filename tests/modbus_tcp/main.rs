@@ -15,3 +15,4 @@ mod buses;
 mod clients;
 mod comm_loss;
 mod connections;
+mod functions;
