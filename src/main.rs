@@ -85,7 +85,7 @@ fn check_config(file: &std::path::Path) -> ExitCode {
             if c.buses.is_empty() {
                 println!("no bus configured: `drivegate probe --port PATH` finds the drives");
             }
-            for (warning, text) in c.modbus_tcp.notices() {
+            for (warning, text) in c.modbus_tcp.notices(c.modbus_tcp.listen) {
                 println!("{}{text}", if warning { "warning: " } else { "note: " });
             }
             match c.safety.state_dir() {

@@ -65,7 +65,7 @@ pub fn start(
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
     // Said at every start: a plain admin network, a listener on the plant
     // network that admits loopback only since allowed_networks is unset.
-    for (warning, text) in tcp.notices() {
+    for (warning, text) in tcp.notices(addr) {
         if warning {
             tracing::warn!("{text}");
         } else {

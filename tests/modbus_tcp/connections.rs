@@ -1,12 +1,14 @@
 //! Modbus TCP connections under stress, byte by byte: pipelining and reply
 //! order, disconnects while queued, malformed frames, idle timeout,
-//! connection limit, allowed networks, read-only listeners, passthrough of
-//! codes the drive lacks, fairness between connections.
+//! connection limit, the per-address cap under 500 idle sockets, allowed
+//! networks, read-only listeners, passthrough of reads the drive lacks,
+//! fairness between connections.
 
 use std::time::{Duration, Instant};
 
 use crate::support::bounded;
 use crate::support::config::ConfigBuilder;
+use crate::support::logs::{capture_logs, log_text};
 use crate::support::metrics::metric;
 use crate::support::modbus_tcp::{Raw, four_drives_with, read, registers, write};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
@@ -291,6 +293,92 @@ async fn connections_beyond_the_limit_are_refused() {
             7
         );
         assert_eq!(registers(&two.ask(1, &read(0xC0, 7)).await).len(), 7);
+        d.stop().await;
+    })
+    .await;
+}
+
+/// A connection from `source` to `addr`, without waiting for anything.
+async fn connect_from(source: &str, addr: std::net::SocketAddr) -> tokio::net::TcpStream {
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.bind(format!("{source}:0").parse().unwrap()).unwrap();
+    tokio::time::timeout(Duration::from_secs(10), socket.connect(addr))
+        .await
+        .expect("connect in time")
+        .expect("connect")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn five_hundred_idle_connections_from_one_address_leave_room_for_the_others() {
+    capture_logs();
+    bounded(Duration::from_secs(120), async {
+        // The defaults: 64 connections, 16 per address; idle ones closed
+        // after 3 s.
+        let d = TestDaemon::start(&four_drives_with("idle_timeout_ms = 3000")).await;
+        let addr = d.modbus_tcp.unwrap();
+        // 500 sockets from one address (this test's own), that send nothing.
+        let flood = "127.0.0.77";
+        let mut idle = Vec::new();
+        for _ in 0..500 {
+            idle.push(connect_from(flood, addr).await);
+        }
+        let per_address = "drivegate_modbus_tcp_connections_rejected_total{reason=\"per_address\"}";
+        eventually(
+            Duration::from_secs(20),
+            "484 refused for the address",
+            || (metric(&d.metrics.render(), per_address) == 484.0).then_some(()),
+        )
+        .await;
+        // Another address is served at once, and the listener's limit was
+        // never reached.
+        let started = Instant::now();
+        let mut other = Raw::from_stream(connect_from("127.0.0.78", addr).await);
+        assert_eq!(registers(&other.ask(1, &read(0xC0, 7)).await).len(), 7);
+        let served_in = started.elapsed();
+        let text = d.metrics.render();
+        assert_eq!(metric(&text, "drivegate_modbus_tcp_connections"), 17.0);
+        assert_eq!(
+            metric(
+                &text,
+                "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}"
+            ),
+            0.0
+        );
+        // One warning for the burst, naming the key.
+        let lines: Vec<String> = log_text()
+            .lines()
+            .filter(|l| l.contains("WARN") && l.contains(&format!("{flood}:")))
+            .map(str::to_string)
+            .collect();
+        assert_eq!(lines.len(), 1, "{lines:#?}");
+        assert!(
+            lines[0].contains("max_connections_per_address")
+                && lines[0].contains("holds 16 connections"),
+            "{}",
+            lines[0]
+        );
+        // Its idle sockets time out; the address is served again within
+        // the idle timeout.
+        let mut again = None;
+        for _ in 0..100 {
+            let mut c = Raw::from_stream(connect_from(flood, addr).await);
+            c.send(5, 1, &read(0xC0, 7)).await;
+            if let Some((5, 1, pdu)) = c.recv().await {
+                again = Some(pdu);
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        assert_eq!(
+            registers(&again.expect("served after the idle timeout")).len(),
+            7
+        );
+        eprintln!(
+            "500 idle connections from {flood}: 16 held, 484 refused, {} warning line(s); \
+             another address served in {served_in:?}",
+            lines.len()
+        );
+        drop(idle);
         d.stop().await;
     })
     .await;

@@ -16,3 +16,4 @@ mod clients;
 mod comm_loss;
 mod connections;
 mod functions;
+mod networks;
