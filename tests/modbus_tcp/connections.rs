@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use crate::support::bounded;
 use crate::support::config::ConfigBuilder;
 use crate::support::logs::{capture_logs, log_text};
-use crate::support::metrics::metric;
+use crate::support::metrics::{exported, metric};
 use crate::support::modbus_tcp::{Raw, four_drives_with, read, registers, write};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::stats::Outcome;
@@ -316,6 +316,21 @@ async fn five_hundred_idle_connections_from_one_address_leave_room_for_the_other
         // after 3 s.
         let d = TestDaemon::start(&four_drives_with("idle_timeout_ms = 3000")).await;
         let addr = d.modbus_tcp.unwrap();
+        // A fresh /metrics has every refusal's series, and the outcome of
+        // what the core cannot decode, at 0.
+        let fresh = d.metrics.render();
+        for reason in ["not_allowed", "per_address", "limit"] {
+            let series =
+                format!("drivegate_modbus_tcp_connections_rejected_total{{reason=\"{reason}\"}}");
+            assert_eq!(exported(&fresh, &series), 0.0);
+        }
+        assert_eq!(
+            exported(
+                &fresh,
+                "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"not_decoded\"}"
+            ),
+            0.0
+        );
         // 500 sockets from one address (this test's own), that send nothing.
         let flood = "127.0.0.77";
         let mut idle = Vec::new();
