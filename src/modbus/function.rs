@@ -197,4 +197,35 @@ mod tests {
         assert_eq!(effect(&[0x7B]), Effect::Other);
         assert_eq!(name(0x16), "Mask Write Register");
     }
+
+    /// The table of `docs/modbus-tcp.md` says for each function code what
+    /// this module decides: a row whose text begins "read" is a read, one
+    /// that begins "decided" a register write, "not decoded" anything else.
+    #[test]
+    fn the_guide_table_says_what_the_code_does() {
+        let guide = include_str!("../../docs/modbus-tcp.md");
+        let table = guide
+            .split("## Every function code")
+            .nth(1)
+            .and_then(|t| t.split("\n## ").next())
+            .expect("the guide's table of function codes");
+        let mut rows = 0;
+        for line in table.lines().filter(|l| l.starts_with("| 0x")) {
+            let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+            let Ok(code) = u8::from_str_radix(cells[1].trim_start_matches("0x"), 16) else {
+                continue;
+            };
+            assert_eq!(cells[2], name(code), "{line}");
+            let said = match cells[3] {
+                t if t.starts_with("read") => Effect::Read,
+                t if t.starts_with("decided") => Effect::RegisterWrite,
+                t if t.starts_with("not decoded") => Effect::Other,
+                // 0x08 and 0x2B: by sub-function, tested above.
+                _ => continue,
+            };
+            assert_eq!(effect(&[code, 0, 1, 0, 0]), said, "{line}");
+            rows += 1;
+        }
+        assert_eq!(rows, 17, "the rows of one effect (all but 0x08 and 0x2B)");
+    }
 }

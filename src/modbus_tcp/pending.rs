@@ -92,6 +92,21 @@ impl ReadState {
     }
 }
 
+/// The write of a read/write multiple, and its read to come.
+#[derive(Debug)]
+pub struct Writing {
+    /// The write.
+    write: control::Pending,
+    /// Where the read goes after it.
+    bus: BusHandle,
+    /// The unit.
+    unit: u8,
+    /// The read (0x03).
+    read: Vec<u8>,
+    /// The read's job options (the client's source and origin).
+    options: JobOptions,
+}
+
 /// A read/write multiple (0x17) on a drive, which has no such function:
 /// its write goes through the control core as a 0x10, then, once the
 /// drive confirmed it, its read goes to the bus as a 0x03, as the
@@ -99,18 +114,7 @@ impl ReadState {
 #[derive(Debug)]
 pub enum WriteThenRead {
     /// The write, through the core.
-    Writing {
-        /// The write.
-        write: control::Pending,
-        /// Where the read goes after it.
-        bus: BusHandle,
-        /// The unit.
-        unit: u8,
-        /// The read (0x03).
-        read: Vec<u8>,
-        /// The read's job options (the client's source and origin).
-        options: JobOptions,
-    },
+    Writing(Box<Writing>),
     /// The read, once the write was confirmed.
     Reading(ReadState),
     /// The write failed: this is the reply.
@@ -123,16 +127,16 @@ impl WriteThenRead {
     /// The write is in: settles it, and queues the read if it was
     /// confirmed.
     fn written(&mut self) {
-        let WriteThenRead::Writing {
+        let WriteThenRead::Writing(writing) = std::mem::replace(self, WriteThenRead::Gone) else {
+            return;
+        };
+        let Writing {
             write,
             bus,
             unit,
             read,
             options,
-        } = std::mem::replace(self, WriteThenRead::Gone)
-        else {
-            return;
-        };
+        } = *writing;
         *self = match write.finish() {
             Ok(_) => WriteThenRead::Reading(ReadState::submit(&bus, unit, read, options)),
             Err(failure) => {
@@ -146,8 +150,8 @@ impl WriteThenRead {
     }
 
     async fn wait(&mut self) {
-        if let WriteThenRead::Writing { write, .. } = self {
-            write.wait().await;
+        if let WriteThenRead::Writing(writing) = self {
+            writing.write.wait().await;
             self.written();
         }
         if let WriteThenRead::Reading(read) = self {
@@ -156,8 +160,8 @@ impl WriteThenRead {
     }
 
     fn try_ready(&mut self) -> bool {
-        if let WriteThenRead::Writing { write, .. } = self {
-            if !write.try_ready() {
+        if let WriteThenRead::Writing(writing) = self {
+            if !writing.write.try_ready() {
                 return false;
             }
             self.written();
@@ -176,7 +180,7 @@ impl WriteThenRead {
             WriteThenRead::Failed(reply, outcome) => (reply, outcome),
             // Given up on before the write's result: the core settles it
             // as a write whose client went away.
-            WriteThenRead::Writing { .. } | WriteThenRead::Gone => (
+            WriteThenRead::Writing(_) | WriteThenRead::Gone => (
                 exception_pdu(
                     crate::modbus::function::READ_WRITE_MULTIPLE_REGISTERS,
                     ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
@@ -235,13 +239,13 @@ impl Pending {
         read: Vec<u8>,
         options: JobOptions,
     ) -> Self {
-        Pending::WriteThenRead(WriteThenRead::Writing {
+        Pending::WriteThenRead(WriteThenRead::Writing(Box::new(Writing {
             write,
             bus,
             unit,
             read,
             options,
-        })
+        })))
     }
 
     /// Waits until every job has a result. Cancel-safe: results already

@@ -304,6 +304,23 @@ async fn stream_command(ws: &mut Ws, id: u64, case: &Case) -> Value {
     .await
 }
 
+/// `case` over Modbus TCP, from the network of its role, in every framing
+/// of its write `manual` to `unit`.
+async fn modbus_case(tcp: SocketAddr, case: &Case, unit: u8, manual: &[u8], label: &str) {
+    let mut plc = modbus_from(tcp, case.who.source()).await;
+    for pdu in framings(unit, manual) {
+        let answer = plc.ask(unit, &pdu).await;
+        let label = format!("{label} as 0x{:02X}", pdu[0]);
+        match case.expect.modbus() {
+            Some(code) => assert_eq!(answer, [pdu[0] | 0x80, code], "Modbus TCP: {label}"),
+            None => {
+                let want = done(&pdu);
+                assert_eq!(&answer[..want.len()], want, "Modbus TCP: {label}")
+            }
+        }
+    }
+}
+
 async fn http_request(api: &Api, case: &Case) -> crate::support::api::Reply {
     let (method, path, body) = &case.http;
     match (*method, body) {
@@ -400,20 +417,7 @@ async fn every_rule_decides_the_same_through_every_face() {
 
             // Modbus TCP, from the network of the same role, in every framing.
             if let Some((unit, manual)) = &case.modbus {
-                let mut plc = modbus_from(tcp, case.who.source()).await;
-                for pdu in framings(*unit, manual) {
-                    let answer = plc.ask(*unit, &pdu).await;
-                    let label = format!("{label} as 0x{:02X}", pdu[0]);
-                    match case.expect.modbus() {
-                        Some(code) => {
-                            assert_eq!(answer, [pdu[0] | 0x80, code], "Modbus TCP: {label}")
-                        }
-                        None => {
-                            let want = done(&pdu);
-                            assert_eq!(&answer[..want.len()], want, "Modbus TCP: {label}")
-                        }
-                    }
-                }
+                modbus_case(tcp, &case, *unit, manual, &label).await;
             }
 
             // MQTT, whose role is the operator's.
@@ -482,10 +486,6 @@ enum Fate {
 /// setting's value is `STALL` + its row, so each write can be told on the
 /// drive.
 fn function_codes() -> Vec<(String, Vec<u8>, Fate)> {
-    let diag = |sub: u16| {
-        let [hi, lo] = sub.to_be_bytes();
-        vec![0x08, hi, lo, 0x00, 0x00]
-    };
     let mut rows: Vec<(String, Vec<u8>, Fate)> = vec![
         (
             "0x01".into(),
@@ -568,6 +568,20 @@ fn function_codes() -> Vec<(String, Vec<u8>, Fate)> {
         ),
         ("0x41 listed".into(), vec![0x41, 0x12, 0x34], Fate::Raw),
     ];
+    rows.extend(diagnostics_and_others());
+    rows
+}
+
+/// The rows of diagnostics' sub-functions (those that return data are
+/// reads; restart, delimiter, listen only, the clears and the reserved
+/// ones are not), the user-defined codes (but 0x41, listed), the reserved
+/// ones, and codes the specification does not define.
+fn diagnostics_and_others() -> Vec<(String, Vec<u8>, Fate)> {
+    let diag = |sub: u16| {
+        let [hi, lo] = sub.to_be_bytes();
+        vec![0x08, hi, lo, 0x00, 0x00]
+    };
+    let mut rows = Vec::new();
     // Diagnostics: the sub-functions that return data are reads; restart,
     // delimiter, listen only, the clears and the reserved ones are not.
     for sub in [0x02, 0x0B, 0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12] {

@@ -126,6 +126,66 @@ fn inertia(ratio: u16) -> Vec<u8> {
     pdu
 }
 
+/// pymodbus's own requests at `tcp`: the factory reset and what cannot be
+/// decoded, to the turning conveyor (unit 1), refused; the same framings
+/// at work on the standing lift (unit 2), and a read the drive lacks,
+/// which reaches it (the counters' control).
+async fn pymodbus_attacks(tcp: std::net::SocketAddr) {
+    // pymodbus's own requests.
+    let names = [
+        "mask-write-reset",
+        "read-write-reset",
+        "mask-write-keeping-bits",
+        "write-coil",
+        "write-coils",
+        "write-file-record",
+        "diag-restart",
+        "diag-listen-only",
+        "diag-clear-counters",
+    ];
+    let mut args = vec!["calls", "1"];
+    args.extend(names);
+    let out = pymodbus(tcp, &args).await;
+    let expected = json!({
+        "mask-write-reset": {"exception": 6},
+        "read-write-reset": {"exception": 6},
+        "mask-write-keeping-bits": {"exception": 1},
+        "write-coil": {"exception": 1},
+        "write-coils": {"exception": 1},
+        "write-file-record": {"exception": 1},
+        "diag-restart": {"exception": 1},
+        "diag-listen-only": {"exception": 1},
+        "diag-clear-counters": {"exception": 1},
+    });
+    assert_eq!(out, expected, "{out:#}");
+
+    // On the lift, standing, the same framings do their work; a read
+    // the drive lacks reaches it (and is its exception: the counter's
+    // control).
+    let out = pymodbus(
+        tcp,
+        &[
+            "calls",
+            "2",
+            "read-write-inertia-5",
+            "mask-write-inertia-9",
+            "read-input-registers",
+        ],
+    )
+    .await;
+    assert_eq!(
+        out["read-write-inertia-5"],
+        json!({"ok": true, "registers": [5]}),
+        "{out:#}"
+    );
+    assert_eq!(out["mask-write-inertia-9"]["ok"], true, "{out:#}");
+    assert_eq!(
+        out["read-input-registers"],
+        json!({"exception": 1}),
+        "{out:#}"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_turning_drive_cannot_be_reset_or_readdressed_by_another_function_code() {
     bounded(LIMIT, async {
@@ -190,61 +250,8 @@ async fn a_turning_drive_cannot_be_reset_or_readdressed_by_another_function_code
             assert_eq!(c.ask(1, &pdu).await, [pdu[0] | 0x80, 0x01], "{pdu:02X?}");
         }
 
-        // pymodbus's own requests.
-        let names = [
-            "mask-write-reset",
-            "read-write-reset",
-            "mask-write-keeping-bits",
-            "write-coil",
-            "write-coils",
-            "write-file-record",
-            "diag-restart",
-            "diag-listen-only",
-            "diag-clear-counters",
-        ];
-        let mut args = vec!["calls", "1"];
-        args.extend(names);
-        let out = pymodbus(tcp, &args).await;
-        let expected = json!({
-            "mask-write-reset": {"exception": 6},
-            "read-write-reset": {"exception": 6},
-            "mask-write-keeping-bits": {"exception": 1},
-            "write-coil": {"exception": 1},
-            "write-coils": {"exception": 1},
-            "write-file-record": {"exception": 1},
-            "diag-restart": {"exception": 1},
-            "diag-listen-only": {"exception": 1},
-            "diag-clear-counters": {"exception": 1},
-        });
-        assert_eq!(out, expected, "{out:#}");
-
-        // On the lift, standing, the same framings do their work; a read
-        // the drive lacks reaches it (and is its exception: the counter's
-        // control).
-        let out = pymodbus(
-            tcp,
-            &[
-                "calls",
-                "2",
-                "read-write-inertia-5",
-                "mask-write-inertia-9",
-                "read-input-registers",
-            ],
-        )
-        .await;
-        assert_eq!(
-            out["read-write-inertia-5"],
-            json!({"ok": true, "registers": [5]}),
-            "{out:#}"
-        );
-        assert_eq!(out["mask-write-inertia-9"]["ok"], true, "{out:#}");
-        assert_eq!(
-            out["read-input-registers"],
-            json!({"exception": 1}),
-            "{out:#}"
-        );
+        pymodbus_attacks(tcp).await;
         assert_eq!(registers(&c.ask(2, &read(INERTIA, 1)).await), [9]);
-
         // The conveyor still turns, with its inertia of 7: no reset reached it.
         assert_eq!(registers(&c.ask(1, &read(INERTIA, 1)).await), [7]);
         assert!(bus.drive(1).unwrap().status.unwrap().speed_rpm > 100);
