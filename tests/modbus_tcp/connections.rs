@@ -265,7 +265,8 @@ async fn connections_beyond_the_limit_are_refused() {
         let mut two = Raw::connect(addr).await;
         assert_eq!(registers(&one.ask(1, &read(0xC0, 7)).await).len(), 7);
         assert_eq!(registers(&two.ask(1, &read(0xC0, 7)).await).len(), 7);
-        let mut three = Raw::connect(addr).await;
+        // From another address, whose own cap is far: the listener's limit.
+        let mut three = Raw::from_stream(connect_from("127.0.0.2", addr).await);
         three.send(1, 1, &read(0xC0, 7)).await;
         assert!(three.closed_by_server().await);
         let text = d.metrics.render();
