@@ -136,10 +136,10 @@ impl PlantPeer {
              closed = 0\n\
              for i in range({count}):\n\
              \x20   s = socket.create_connection(('{}', {port}), timeout=10)\n\
-             \x20   s.sendall(bytes([0, i % 256, 0, 0, 0, 6, 1, 3, 0, 0xC0, 0, 7]))\n\
              \x20   try:\n\
+             \x20       s.sendall(bytes([0, i % 256, 0, 0, 0, 6, 1, 3, 0, 0xC0, 0, 7]))\n\
              \x20       closed += s.recv(64) == b''\n\
-             \x20   except ConnectionResetError:\n\
+             \x20   except (ConnectionResetError, BrokenPipeError):\n\
              \x20       closed += 1\n\
              \x20   s.close()\n\
              print(closed)\n",

@@ -88,7 +88,7 @@ CALLS = {
 def outcome(call, client, unit):
     try:
         rr = call(client, unit)
-    except ModbusException as e:
+    except (ModbusException, OSError) as e:
         return {"error": str(e)}
     if rr.isError():
         return {"exception": getattr(rr, "exception_code", None)}
@@ -121,7 +121,9 @@ def single(host, port, command, args):
             client.write_register(address, value, device_id=0, no_response_expected=True)
             return {"sent": True}
         return {"error": f"unknown command {command}"}
-    except ModbusException as e:
+    except (ModbusException, OSError) as e:
+        # A server that refuses the connection closes it, reset when the
+        # request was already in: either way, no answer.
         return {"error": str(e)}
     finally:
         client.close()
