@@ -713,8 +713,32 @@ name = "press"
                 vec!["restarted: Modbus TCP listener"],
             ),
             (
+                "[modbus_tcp] max_connections_per_address",
+                Box::new(|c| {
+                    let three = crate::config::modbus_tcp::ConnectionCount(3);
+                    c.modbus_tcp.max_connections_per_address =
+                        Some(toml::Spanned::new(0..0, three));
+                }),
+                vec!["restarted: Modbus TCP listener"],
+            ),
+            (
                 "[modbus_tcp] read_only",
                 Box::new(|c| c.modbus_tcp.read_only = !c.modbus_tcp.read_only),
+                vec!["applied: [modbus_tcp] clients and units"],
+            ),
+            (
+                "[modbus_tcp] allowed_networks",
+                Box::new(|c| c.modbus_tcp.allowed_networks = Some(Vec::new())),
+                vec!["applied: [modbus_tcp] clients and units"],
+            ),
+            (
+                "[modbus_tcp] raw_functions",
+                Box::new(|c| {
+                    let vendor = crate::config::modbus_tcp::RawFunction::try_from(0x41);
+                    c.modbus_tcp.raw_functions = vendor
+                        .map(|f| vec![toml::Spanned::new(0..0, f)])
+                        .unwrap_or_default();
+                }),
                 vec!["applied: [modbus_tcp] clients and units"],
             ),
             (
