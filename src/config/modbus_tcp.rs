@@ -78,8 +78,8 @@ pub struct ClientNetwork {
     pub network: IpNet,
     /// What its clients may do: `viewer` (reads), `operator` (setpoints,
     /// modes, brake, resets) or `admin` (also protection, ramps, inertia,
-    /// saves, calibration, address, factory reset and writes drivegate
-    /// cannot decode).
+    /// saves, calibration, address, factory reset, writes to registers
+    /// outside the drive's table, and the codes of `raw_functions`).
     pub role: Spanned<Role>,
     /// Send saves to flash, factory reset, address setting and calibration
     /// even while the motor turns (refused with exception 0x06 otherwise).

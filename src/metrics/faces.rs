@@ -162,7 +162,8 @@ impl FaceMetrics {
     /// A Modbus TCP request was answered with `outcome`: `ok`, `exception`
     /// (the drive's), `gateway_timeout` (0x0B), `path_unavailable` (0x0A),
     /// `busy` (0x06), `read_only`, `cached` (from the polled copy),
-    /// `broadcast`, `invalid` (malformed request shape), `refused` or
+    /// `broadcast`, `invalid` (malformed request shape), `refused`,
+    /// `not_decoded` (a function code the control core cannot decode) or
     /// `cancelled` (its client left before it reached the wire).
     pub fn tcp_request(&self, function: u8, outcome: &str) {
         self.tcp_requests
