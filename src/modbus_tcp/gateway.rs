@@ -304,13 +304,16 @@ impl Gateway {
             self.count(function, Outcome::Cached);
             return Answer::Now(reply);
         }
-        Answer::Pending(Pending::read(bus, route.unit, pdu, job_options(&caller)))
+        let state = ReadState::submit(bus, route.unit, pdu.clone(), job_options(&caller));
+        Answer::Pending(Pending::Read { pdu, state })
     }
 
     /// A write to one unit, handed to the control core: decoded with the
     /// drive's register table when the unit is a configured drive, else as
     /// a device's. A read/write multiple to a drive is its write through
-    /// the core, then its read.
+    /// the core, then its read: the read is queued once the drive confirmed
+    /// the write, before this returns, so a request the client pipelined
+    /// after it cannot come between the two.
     async fn write(
         &self,
         client: &Client,
@@ -329,23 +332,25 @@ impl Gateway {
         let request = ControlRequest::new(write)
             .forced(client.allow_saves_while_moving)
             .unchecked(unchecked);
-        match self.control.submit(caller, target, request).await {
-            Ok(pending) => Answer::Pending(match then_read {
-                Some(read) => Pending::write_then_read(
-                    pending,
-                    bus.clone(),
-                    target.unit,
-                    read,
-                    job_options(caller),
-                ),
-                None => Pending::writes(&pdu, false, vec![pending]),
-            }),
-            Err(failure) => {
-                let (reply, outcome) = failure_reply(function, &failure);
-                self.count(function, outcome);
-                Answer::Now(reply)
+        let failure = match self.control.submit(caller, target, request).await {
+            Ok(pending) => {
+                let Some(read) = then_read else {
+                    return Answer::Pending(Pending::writes(&pdu, false, vec![pending]));
+                };
+                match written(pending).await {
+                    // The reply is the read's, under the client's function.
+                    Ok(()) => {
+                        let state = ReadState::submit(bus, target.unit, read, job_options(caller));
+                        return Answer::Pending(Pending::Read { pdu, state });
+                    }
+                    Err(failure) => failure,
+                }
             }
-        }
+            Err(failure) => failure,
+        };
+        let (reply, outcome) = failure_reply(function, &failure);
+        self.count(function, outcome);
+        Answer::Now(reply)
     }
 
     /// Unit 0: every bus the listener reaches, no reply waited for.
@@ -449,6 +454,12 @@ impl Gateway {
     fn count(&self, function: u8, outcome: Outcome) {
         self.metrics.faces().tcp_request(function, outcome.label());
     }
+}
+
+/// Waits for a write and settles it: `Ok` once the drive confirmed it.
+async fn written(mut pending: control::Pending) -> Result<(), control::Failure> {
+    pending.wait().await;
+    pending.finish().map(|_| ())
 }
 
 /// The bus job options of a client's request: its turn in the queue, its

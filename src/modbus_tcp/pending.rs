@@ -1,7 +1,7 @@
 //! A request waiting for the bus, and the reply it becomes: a read's bus
-//! job, the control core's writes (one for a unit, one per bus for a
-//! broadcast), or a read/write multiple (0x17) carried out on a drive as
-//! its write through the core, then its read.
+//! job (also the read of a read/write multiple, whose write the core has
+//! carried out: its reply goes back under 0x17), or the control core's
+//! writes (one for a unit, one per bus for a broadcast).
 //!
 //! Holding a [`Pending`] keeps its jobs alive; dropping or cancelling it
 //! makes the bus drop those still queued before they reach the wire (a
@@ -31,7 +31,7 @@ pub enum ReadState {
 
 impl ReadState {
     /// The job for `pdu` to `unit`, queued now.
-    fn submit(bus: &BusHandle, unit: u8, pdu: Vec<u8>, options: JobOptions) -> Self {
+    pub fn submit(bus: &BusHandle, unit: u8, pdu: Vec<u8>, options: JobOptions) -> Self {
         match bus.submit(unit, pdu, options) {
             Ok(rx) => ReadState::Waiting(rx),
             Err(e) => ReadState::Done(Err(e)),
@@ -92,111 +92,12 @@ impl ReadState {
     }
 }
 
-/// The write of a read/write multiple, and its read to come.
-#[derive(Debug)]
-pub struct Writing {
-    /// The write.
-    write: control::Pending,
-    /// Where the read goes after it.
-    bus: BusHandle,
-    /// The unit.
-    unit: u8,
-    /// The read (0x03).
-    read: Vec<u8>,
-    /// The read's job options (the client's source and origin).
-    options: JobOptions,
-}
-
-/// A read/write multiple (0x17) on a drive, which has no such function:
-/// its write goes through the control core as a 0x10, then, once the
-/// drive confirmed it, its read goes to the bus as a 0x03, as the
-/// specification orders them (the write first).
-#[derive(Debug)]
-pub enum WriteThenRead {
-    /// The write, through the core.
-    Writing(Box<Writing>),
-    /// The read, once the write was confirmed.
-    Reading(ReadState),
-    /// The write failed: this is the reply.
-    Failed(Vec<u8>, Outcome),
-    /// Between states.
-    Gone,
-}
-
-impl WriteThenRead {
-    /// The write is in: settles it, and queues the read if it was
-    /// confirmed.
-    fn written(&mut self) {
-        let WriteThenRead::Writing(writing) = std::mem::replace(self, WriteThenRead::Gone) else {
-            return;
-        };
-        let Writing {
-            write,
-            bus,
-            unit,
-            read,
-            options,
-        } = *writing;
-        *self = match write.finish() {
-            Ok(_) => WriteThenRead::Reading(ReadState::submit(&bus, unit, read, options)),
-            Err(failure) => {
-                let (reply, outcome) = failure_reply(
-                    crate::modbus::function::READ_WRITE_MULTIPLE_REGISTERS,
-                    &failure,
-                );
-                WriteThenRead::Failed(reply, outcome)
-            }
-        };
-    }
-
-    async fn wait(&mut self) {
-        if let WriteThenRead::Writing(writing) = self {
-            writing.write.wait().await;
-            self.written();
-        }
-        if let WriteThenRead::Reading(read) = self {
-            read.wait().await;
-        }
-    }
-
-    fn try_ready(&mut self) -> bool {
-        if let WriteThenRead::Writing(writing) = self {
-            if !writing.write.try_ready() {
-                return false;
-            }
-            self.written();
-        }
-        match self {
-            WriteThenRead::Reading(read) => read.try_ready(),
-            _ => true,
-        }
-    }
-
-    fn reply(self) -> (Vec<u8>, Outcome) {
-        match self {
-            WriteThenRead::Reading(read) => {
-                read.reply(crate::modbus::function::READ_WRITE_MULTIPLE_REGISTERS)
-            }
-            WriteThenRead::Failed(reply, outcome) => (reply, outcome),
-            // Given up on before the write's result: the core settles it
-            // as a write whose client went away.
-            WriteThenRead::Writing(_) | WriteThenRead::Gone => (
-                exception_pdu(
-                    crate::modbus::function::READ_WRITE_MULTIPLE_REGISTERS,
-                    ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
-                ),
-                Outcome::PathUnavailable,
-            ),
-        }
-    }
-}
-
 /// A request waiting for the bus.
 #[derive(Debug)]
 pub enum Pending {
     /// A read, passed through.
     Read {
-        /// The request.
+        /// The client's request (a read/write multiple's, for its read).
         pdu: Vec<u8>,
         /// Its job.
         state: ReadState,
@@ -210,17 +111,9 @@ pub enum Pending {
         /// One per bus.
         writes: Vec<control::Pending>,
     },
-    /// A read/write multiple on a drive.
-    WriteThenRead(WriteThenRead),
 }
 
 impl Pending {
-    /// A read of `pdu`, queued on `bus` for `unit`.
-    pub fn read(bus: &BusHandle, unit: u8, pdu: Vec<u8>, options: JobOptions) -> Self {
-        let state = ReadState::submit(bus, unit, pdu.clone(), options);
-        Pending::Read { pdu, state }
-    }
-
     /// The core's `writes` of `pdu` (one per bus for a broadcast).
     pub fn writes(pdu: &[u8], broadcast: bool, writes: Vec<control::Pending>) -> Self {
         Pending::Writes {
@@ -228,24 +121,6 @@ impl Pending {
             broadcast,
             writes,
         }
-    }
-
-    /// A read/write multiple: `write` through the core, then `read` (a
-    /// 0x03) to `unit` on `bus` once the drive confirmed the write.
-    pub fn write_then_read(
-        write: control::Pending,
-        bus: BusHandle,
-        unit: u8,
-        read: Vec<u8>,
-        options: JobOptions,
-    ) -> Self {
-        Pending::WriteThenRead(WriteThenRead::Writing(Box::new(Writing {
-            write,
-            bus,
-            unit,
-            read,
-            options,
-        })))
     }
 
     /// Waits until every job has a result. Cancel-safe: results already
@@ -258,7 +133,6 @@ impl Pending {
                     w.wait().await;
                 }
             }
-            Pending::WriteThenRead(rw) => rw.wait().await,
         }
     }
 
@@ -267,7 +141,6 @@ impl Pending {
         match self {
             Pending::Read { state, .. } => state.try_ready(),
             Pending::Writes { writes, .. } => writes.iter_mut().all(control::Pending::try_ready),
-            Pending::WriteThenRead(rw) => rw.try_ready(),
         }
     }
 
@@ -277,7 +150,6 @@ impl Pending {
             Pending::Read { pdu, .. } | Pending::Writes { pdu, .. } => {
                 pdu.first().copied().unwrap_or(0)
             }
-            Pending::WriteThenRead(_) => crate::modbus::function::READ_WRITE_MULTIPLE_REGISTERS,
         }
     }
 
@@ -292,7 +164,6 @@ impl Pending {
                 broadcast,
                 writes,
             } => writes_reply(&pdu, broadcast, writes),
-            Pending::WriteThenRead(rw) => rw.reply(),
         };
         metrics.faces().tcp_request(function, outcome.label());
         reply

@@ -419,3 +419,30 @@ async fn raw_functions_let_an_admin_send_a_listed_code_unchecked_to_one_unit() {
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_request_pipelined_after_a_read_write_multiple_does_not_come_between() {
+    bounded(LIMIT, async {
+        let d = TestDaemon::start(&ConfigBuilder::four_drives().toml()).await;
+        let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;
+        const STALL_MS: u16 = 0x000E;
+        // In one segment: write 1111 and read it back (0x17), then write
+        // 2222 (0x06). The read is the 0x17's own: 1111.
+        let mut both =
+            crate::support::modbus_tcp::frame(1, 2, &read_write(STALL_MS, 1, STALL_MS, &[1111]));
+        both.extend(crate::support::modbus_tcp::frame(
+            2,
+            2,
+            &crate::support::modbus_tcp::write(STALL_MS, 2222),
+        ));
+        c.send_bytes(&both).await;
+        let (t, _, first) = c.recv().await.unwrap();
+        assert_eq!((t, first), (1, vec![0x17, 2, 0x04, 0x57]), "1111 read back");
+        let (t, _, second) = c.recv().await.unwrap();
+        assert_eq!(t, 2);
+        assert_eq!(second, crate::support::modbus_tcp::write(STALL_MS, 2222));
+        assert_eq!(d.sim().drive(2).unwrap().settings.stall_duration_ms, 2222);
+        d.stop().await;
+    })
+    .await;
+}
