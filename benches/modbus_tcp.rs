@@ -49,7 +49,8 @@ const SPEED_RPM: i16 = 60;
 
 fn config(poll_interval_ms: u64, polled_copy: &str) -> String {
     let mut toml = format!(
-        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n{polled_copy}\n\
+        "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nlisten = \"127.0.0.1:0\"\n\
+         max_connections_per_address = 64\n{polled_copy}\n\
          [[bus]]\nname = \"bench\"\nport = \"sim\"\nbaud = {BAUD}\nresponse_timeout_ms = 50\nretries = 1\n\
          poll_interval_ms = {poll_interval_ms}\n[bus.sim]\nturnaround_ms = {TURNAROUND_MS}\nseed = 3\n"
     );

@@ -97,6 +97,10 @@ pub fn mbap(data: &[u8]) {
         let write = drivegate::control::Write::pdu(frame.pdu.clone());
         let _ = write.meaning();
         let _ = write.describe();
+        // What goes to the drive for it, and the client's reply from that.
+        if let Ok(sent) = write.encode() {
+            let _ = request::reply_to(&frame.pdu, sent);
+        }
         let _ = polled_copy::status_registers(&frame.pdu);
         let snapshot = DriveSnapshot {
             unit: frame.unit,

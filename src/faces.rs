@@ -208,6 +208,11 @@ pub async fn start(
             .iter()
             .map(|o| o.label()),
     );
+    metrics.faces().tcp_rejections(
+        crate::modbus_tcp::refusals::Refused::ALL
+            .iter()
+            .map(|r| r.label()),
+    );
     metrics.watch_control(&control);
     let history = crate::history::History::new(config.history.settings());
     let following = (history.clone(), plant.clone());

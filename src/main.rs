@@ -85,6 +85,9 @@ fn check_config(file: &std::path::Path) -> ExitCode {
             if c.buses.is_empty() {
                 println!("no bus configured: `drivegate probe --port PATH` finds the drives");
             }
+            for (warning, text) in c.modbus_tcp.notices(c.modbus_tcp.listen) {
+                println!("{}{text}", if warning { "warning: " } else { "note: " });
+            }
             match c.safety.state_dir() {
                 Some(dir) => match drivegate::control::journal::check_writable(&dir) {
                     Ok(()) => println!("safety journal: {} is writable", dir.display()),

@@ -80,6 +80,7 @@ impl Face {
                         c.enabled,
                         c.listen,
                         c.max_connections,
+                        c.per_address_limit(),
                         c.idle_timeout_ms,
                         c.max_pipelined,
                     )
@@ -96,6 +97,7 @@ impl Face {
                     (
                         c.tls.clone(),
                         c.max_connections,
+                        c.per_address_limit(),
                         c.idle_timeout_ms,
                         c.max_pipelined,
                         c.read_only,
@@ -230,6 +232,7 @@ fn clients(c: &ModbusTcpConfig) -> impl PartialEq + use<> {
         enabled: _,
         listen: _,
         max_connections: _,
+        max_connections_per_address: _,
         idle_timeout_ms: _,
         max_pipelined: _,
         tls: _,
@@ -239,6 +242,7 @@ fn clients(c: &ModbusTcpConfig) -> impl PartialEq + use<> {
         broadcast_reply,
         unit_map,
         polled_copy,
+        raw_functions,
     } = c.clone();
     (
         allowed_networks,
@@ -247,6 +251,7 @@ fn clients(c: &ModbusTcpConfig) -> impl PartialEq + use<> {
         broadcast_reply,
         unit_map,
         polled_copy,
+        raw_functions,
     )
 }
 
@@ -708,8 +713,32 @@ name = "press"
                 vec!["restarted: Modbus TCP listener"],
             ),
             (
+                "[modbus_tcp] max_connections_per_address",
+                Box::new(|c| {
+                    let three = crate::config::modbus_tcp::ConnectionCount(3);
+                    c.modbus_tcp.max_connections_per_address =
+                        Some(toml::Spanned::new(0..0, three));
+                }),
+                vec!["restarted: Modbus TCP listener"],
+            ),
+            (
                 "[modbus_tcp] read_only",
                 Box::new(|c| c.modbus_tcp.read_only = !c.modbus_tcp.read_only),
+                vec!["applied: [modbus_tcp] clients and units"],
+            ),
+            (
+                "[modbus_tcp] allowed_networks",
+                Box::new(|c| c.modbus_tcp.allowed_networks = Some(Vec::new())),
+                vec!["applied: [modbus_tcp] clients and units"],
+            ),
+            (
+                "[modbus_tcp] raw_functions",
+                Box::new(|c| {
+                    let vendor = crate::config::modbus_tcp::RawFunction::try_from(0x41);
+                    c.modbus_tcp.raw_functions = vendor
+                        .map(|f| vec![toml::Spanned::new(0..0, f)])
+                        .unwrap_or_default();
+                }),
                 vec!["applied: [modbus_tcp] clients and units"],
             ),
             (

@@ -28,6 +28,10 @@ pub struct ModbusTcpConfig {
     /// Connections served at once; more are closed as they arrive.
     #[serde(deserialize_with = "int_in::<_, _, 1, 4096>")]
     pub max_connections: usize,
+    /// Connections one client address (an IPv6 client by its /64) may
+    /// hold at once, so that one host cannot take every slot; absent: a
+    /// quarter of `max_connections` ([`Self::per_address_limit`]).
+    pub max_connections_per_address: Option<Spanned<ConnectionCount>>,
     /// A connection with nothing pending that sends no complete request for
     /// this long is closed, so dead peers do not hold connection slots.
     #[serde(deserialize_with = "int_in::<_, _, 100, 86_400_000>")]
@@ -38,8 +42,9 @@ pub struct ModbusTcpConfig {
     #[serde(deserialize_with = "int_in::<_, _, 1, 64>")]
     pub max_pipelined: usize,
     /// Client networks allowed to connect, with the admin role (viewer
-    /// with `read_only`); others are closed at once.
-    pub allowed_networks: Vec<IpNet>,
+    /// with `read_only`); others are closed at once. Absent: loopback only
+    /// ([`Self::allowed`]).
+    pub allowed_networks: Option<Vec<IpNet>>,
     /// Client networks allowed to connect with a role of their own (and
     /// the still-check override); the most specific entry a client is in,
     /// here or in `allowed_networks`, decides.
@@ -55,6 +60,11 @@ pub struct ModbusTcpConfig {
     pub unit_map: Vec<UnitMapEntry>,
     /// Buses whose status reads are answered from the latest poll.
     pub polled_copy: Vec<PolledCopy>,
+    /// Function codes the control core cannot decode (coils, file records,
+    /// diagnostics that restart or clear, vendor codes) that admins may
+    /// send, unchecked and audited as such, to one unit (never unit 0);
+    /// refused with exception 0x01 for everyone otherwise.
+    pub raw_functions: Vec<Spanned<RawFunction>>,
     /// `[modbus_tcp.tls]`: the Modbus/TCP Security listener beside this one.
     pub tls: Option<crate::config::ModbusTlsConfig>,
 }
@@ -68,8 +78,8 @@ pub struct ClientNetwork {
     pub network: IpNet,
     /// What its clients may do: `viewer` (reads), `operator` (setpoints,
     /// modes, brake, resets) or `admin` (also protection, ramps, inertia,
-    /// saves, calibration, address, factory reset and writes drivegate
-    /// cannot decode).
+    /// saves, calibration, address, factory reset, writes to registers
+    /// outside the drive's table, and the codes of `raw_functions`).
     pub role: Spanned<Role>,
     /// Send saves to flash, factory reset, address setting and calibration
     /// even while the motor turns (refused with exception 0x06 otherwise).
@@ -133,6 +143,48 @@ fn comm_loss_ms<'de, D: Deserializer<'de>>(d: D) -> Result<Option<u64>, D::Error
         _ => Err(de::Error::custom(format!(
             "comm_loss_ms = {v} is out of range: valid {COMM_LOSS_MIN_MS} to {COMM_LOSS_MAX_MS} ms"
         ))),
+    }
+}
+
+/// A number of connections, 1 to 4096.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(try_from = "i64")]
+pub struct ConnectionCount(pub usize);
+
+impl TryFrom<i64> for ConnectionCount {
+    type Error = String;
+
+    fn try_from(v: i64) -> Result<Self, String> {
+        match usize::try_from(v) {
+            Ok(n) if (1..=4096).contains(&n) => Ok(ConnectionCount(n)),
+            _ => Err(format!("{v} is out of range: valid 1 to 4096")),
+        }
+    }
+}
+
+/// A Modbus function code listed in `raw_functions`, 1 to 127 (the codes
+/// from 0x80 up are exception replies).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(try_from = "i64")]
+pub struct RawFunction(u8);
+
+impl RawFunction {
+    /// The function code.
+    pub fn code(self) -> u8 {
+        self.0
+    }
+}
+
+impl TryFrom<i64> for RawFunction {
+    type Error = String;
+
+    fn try_from(v: i64) -> Result<Self, String> {
+        match u8::try_from(v) {
+            Ok(code @ 1..=127) => Ok(RawFunction(code)),
+            _ => Err(format!(
+                "function code {v} is out of range: valid 1 to 127 (0x01 to 0x7F; from 0x80 up are exception replies)"
+            )),
+        }
     }
 }
 
@@ -300,23 +352,25 @@ impl<'de> Deserialize<'de> for UnitRange {
     }
 }
 
-/// The networks allowed by default: loopback, the private ranges plants use
-/// (RFC 1918, IPv6 unique local) and link-local (a PLC cabled straight to
-/// the gateway). Never the open internet.
+/// The networks allowed without `allowed_networks`: loopback only, the
+/// gateway's own processes. A plant network is opened with a role of its
+/// own (`[[modbus_tcp.clients]]`): plain Modbus TCP has no authentication,
+/// so no network gets the admin role by default.
 pub fn default_allowed_networks() -> Vec<IpNet> {
-    [
-        "127.0.0.0/8",
-        "10.0.0.0/8",
-        "172.16.0.0/12",
-        "192.168.0.0/16",
-        "169.254.0.0/16",
-        "::1/128",
-        "fc00::/7",
-        "fe80::/10",
-    ]
-    .iter()
-    .filter_map(|n| n.parse().ok())
-    .collect()
+    ["127.0.0.0/8", "::1/128"]
+        .iter()
+        .filter_map(|n| n.parse().ok())
+        .collect()
+}
+
+/// The networks `allowed_networks` defaulted to before it became loopback
+/// only, named in the start-up message of a file that relied on them.
+pub const OLD_DEFAULT_NETWORKS: &str =
+    "10.0.0.0/8, 172.16.0.0/12, 192.168.0.0/16, 169.254.0.0/16, fc00::/7, fe80::/10";
+
+/// True when every address of `net` is a loopback address.
+fn loopback_only(net: &IpNet) -> bool {
+    default_allowed_networks().iter().any(|l| l.contains(net))
 }
 
 impl Default for ModbusTcpConfig {
@@ -325,14 +379,16 @@ impl Default for ModbusTcpConfig {
             enabled: true,
             listen: SocketAddr::from(([127, 0, 0, 1], 5020)),
             max_connections: 64,
+            max_connections_per_address: None,
             idle_timeout_ms: 60_000,
             max_pipelined: 16,
-            allowed_networks: default_allowed_networks(),
+            allowed_networks: None,
             clients: Vec::new(),
             read_only: false,
             broadcast_reply: false,
             unit_map: Vec::new(),
             polled_copy: Vec::new(),
+            raw_functions: Vec::new(),
             tls: None,
         }
     }
@@ -342,6 +398,70 @@ impl ModbusTcpConfig {
     /// The idle timeout as a duration.
     pub fn idle_timeout(&self) -> Duration {
         Duration::from_millis(self.idle_timeout_ms)
+    }
+
+    /// The admin networks: `allowed_networks`, or loopback only.
+    pub fn allowed(&self) -> Vec<IpNet> {
+        self.allowed_networks
+            .clone()
+            .unwrap_or_else(default_allowed_networks)
+    }
+
+    /// Connections one address may hold: `max_connections_per_address`,
+    /// or a quarter of `max_connections` (at least one).
+    pub fn per_address_limit(&self) -> usize {
+        self.max_connections_per_address
+            .as_ref()
+            .map_or((self.max_connections / 4).max(1), |n| n.get_ref().0)
+    }
+
+    /// What `check-config` and the listener's start say about this section
+    /// beyond errors: a non-loopback network with the admin role over
+    /// plain Modbus TCP (which has no authentication), and a listener on
+    /// the plant network that admits loopback only because
+    /// `allowed_networks` is not set (it once defaulted to the private
+    /// ranges). Each as `(warning, text)`: a note that is not a warning
+    /// describes a configuration that works as written. `listening`: where
+    /// the listener is bound (`listen`, or the port the system chose).
+    pub fn notices(&self, listening: SocketAddr) -> Vec<(bool, String)> {
+        if !self.enabled || listening.ip().is_loopback() {
+            return Vec::new();
+        }
+        let mut out = Vec::new();
+        if !self.read_only {
+            let admins = self
+                .allowed()
+                .into_iter()
+                .filter(|n| !loopback_only(n))
+                .map(|n| (n, "allowed_networks"))
+                .chain(
+                    self.clients
+                        .iter()
+                        .filter(|c| c.role() == Role::Admin && !loopback_only(&c.network))
+                        .map(|c| (c.network, "[[modbus_tcp.clients]]")),
+                );
+            for (network, key) in admins {
+                out.push((true, format!(
+                    "[modbus_tcp] {key} gives {network} the admin role over plain Modbus TCP, which has no authentication: any host there, or one that takes an address there, may save to flash, factory-reset and re-address the drives. Give that network a lesser role with [[modbus_tcp.clients]] (operator or viewer), and commission over Modbus/TCP Security ([modbus_tcp.tls]: client certificates with the role admin; docs/security.md)"
+                )));
+            }
+        }
+        if self.allowed_networks.is_none() {
+            let clients: Vec<String> = self
+                .clients
+                .iter()
+                .map(|c| format!("{} ({})", c.network, c.role().name()))
+                .collect();
+            let (warning, admitted) = if clients.is_empty() {
+                (true, "loopback only".to_string())
+            } else {
+                (false, format!("loopback and {}", clients.join(", ")))
+            };
+            out.push((warning, format!(
+                "Modbus TCP listens on {listening} but admits {admitted}; other addresses are refused at connect. [modbus_tcp] allowed_networks is not set, and no longer defaults to the private networks ({OLD_DEFAULT_NETWORKS}) with the admin role. To let a plant network in, give it a role: [[modbus_tcp.clients]] network = \"10.0.5.0/24\" role = \"operator\" (README, Upgrading)"
+            )));
+        }
+        out
     }
 
     /// Checks against the rest of the configuration: the unit map and the
@@ -421,6 +541,21 @@ impl ModbusTcpConfig {
                 ),
             ));
         }
+        if let Some(per) = &self.max_connections_per_address
+            && per.get_ref().0 > self.max_connections
+        {
+            return Err((
+                per.span(),
+                format!(
+                    "[modbus_tcp] max_connections_per_address = {} is out of range: valid 1 to {} (max_connections)",
+                    per.get_ref().0,
+                    self.max_connections
+                ),
+            ));
+        }
+        for raw in &self.raw_functions {
+            check_raw(raw)?;
+        }
         if self.read_only
             && let Some(client) = self.clients.iter().find(|c| c.role() > Role::Viewer)
         {
@@ -437,6 +572,28 @@ impl ModbusTcpConfig {
     }
 }
 
+/// A `raw_functions` entry must be a code the control core cannot decode:
+/// a read passes anyway, and a register write is always decided by the
+/// core, which no list may turn off.
+fn check_raw(raw: &Spanned<RawFunction>) -> Result<(), (Range<usize>, String)> {
+    use crate::modbus::function::{Effect, effect, name};
+    let code = raw.get_ref().code();
+    let why = match effect(&[code]) {
+        Effect::Other => return Ok(()),
+        Effect::Read => "a read, which passes without being listed",
+        Effect::RegisterWrite => {
+            "a register write, which the control core decodes and always checks (roles, standstill, leases)"
+        }
+    };
+    Err((
+        raw.span(),
+        format!(
+            "[modbus_tcp] raw_functions lists 0x{code:02X} ({}): {why}; list only function codes drivegate cannot decode (e.g. 0x05, 0x0F, 0x15, 0x08, or a vendor's 0x41)",
+            name(code)
+        ),
+    ))
+}
+
 fn quoted(names: &[&str]) -> String {
     names
         .iter()
@@ -446,262 +603,4 @@ fn quoted(names: &[&str]) -> String {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::config::Config;
-
-    const TWO_BUSES: &str = r#"
-[[bus]]
-name = "A"
-port = "sim"
-[[bus.drive]]
-unit = 1
-name = "a1"
-[[bus]]
-name = "B"
-port = "sim"
-[[bus.drive]]
-unit = 1
-name = "b1"
-"#;
-
-    fn parse(modbus_tcp: &str) -> Result<Config, String> {
-        Config::parse(
-            &format!("[modbus_tcp]\n{modbus_tcp}\n{TWO_BUSES}"),
-            "t.toml",
-        )
-        .map_err(|e| e.to_string())
-    }
-
-    #[test]
-    fn the_reference_config_documents_working_examples() {
-        let text = include_str!("../../config/drivegate.toml")
-            .replace("# [[modbus_tcp.polled_copy]]", "[[modbus_tcp.polled_copy]]")
-            .replace(
-                "# bus = \"line1\"\n# max_age_ms",
-                "bus = \"line1\"\nmax_age_ms",
-            )
-            // The first of each: the [mqtt] section shows these keys too.
-            .replacen("# comm_loss_ms = 500", "comm_loss_ms = 500", 1)
-            .replacen(
-                "# comm_loss_action = \"zero-speed\"",
-                "comm_loss_action = \"zero-speed\"",
-                1,
-            );
-        let c = Config::parse(&text, "drivegate.toml").unwrap();
-        let tcp = &c.modbus_tcp;
-        assert_eq!(tcp.allowed_networks, default_allowed_networks());
-        assert_eq!(tcp.unit_map[1].bus_unit(101), Some(1));
-        assert_eq!(tcp.polled_copy[0].max_age(), Duration::from_millis(250));
-        assert_eq!(tcp.clients[0].role(), Role::Operator);
-        assert_eq!(
-            tcp.clients[0].comm_loss(),
-            Some(CommLossConfig {
-                after: Duration::from_millis(500),
-                action: StopAction::ZeroSpeed
-            })
-        );
-        assert_eq!(tcp.clients[1].role(), Role::Viewer);
-        let mut defaults = tcp.clone();
-        defaults.unit_map.clear();
-        defaults.polled_copy.clear();
-        defaults.clients.clear();
-        assert_eq!(defaults, ModbusTcpConfig::default());
-    }
-
-    #[test]
-    fn defaults() {
-        let c = ModbusTcpConfig::default();
-        assert_eq!(c.max_connections, 64);
-        assert_eq!(c.idle_timeout(), Duration::from_secs(60));
-        assert!(!c.read_only && !c.broadcast_reply);
-        assert!(c.unit_map.is_empty() && c.polled_copy.is_empty() && c.clients.is_empty());
-        assert_eq!(c.allowed_networks.len(), 8);
-    }
-
-    #[test]
-    fn unit_map_ranges_and_offsets() {
-        let c = parse(
-            r#"
-[[modbus_tcp.unit_map]]
-units = "1-32"
-bus = "A"
-[[modbus_tcp.unit_map]]
-units = "101-132"
-bus = "B"
-bus_units = "1-32"
-[[modbus_tcp.unit_map]]
-units = 200
-bus = "B"
-bus_units = "40"
-"#,
-        )
-        .unwrap();
-        let map = &c.modbus_tcp.unit_map;
-        assert_eq!(map[0].bus_unit(1), Some(1));
-        assert_eq!(map[0].bus_unit(32), Some(32));
-        assert_eq!(map[0].bus_unit(33), None);
-        assert_eq!(map[1].bus_unit(101), Some(1));
-        assert_eq!(map[1].bus_unit(132), Some(32));
-        assert_eq!(map[2].bus_unit(200), Some(40));
-    }
-
-    #[test]
-    fn bad_ranges_name_the_valid_range_and_position() {
-        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"0-4\"\nbus = \"A\"").unwrap_err();
-        assert!(
-            e.contains("t.toml:3:9") && e.contains("valid 1 to 255"),
-            "{e}"
-        );
-        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"9-3\"\nbus = \"A\"").unwrap_err();
-        assert!(e.contains("runs backwards"), "{e}");
-        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"one\"\nbus = \"A\"").unwrap_err();
-        assert!(e.contains("is not a unit range"), "{e}");
-        let e = parse("max_connections = 0").unwrap_err();
-        assert!(
-            e.contains("t.toml:2:19") && e.contains("valid 1 to 4096"),
-            "{e}"
-        );
-        let e = parse("allowed_networks = [\"10.0.0.0/33\"]").unwrap_err();
-        assert!(e.contains("t.toml:2:"), "{e}");
-    }
-
-    #[test]
-    fn client_networks_carry_a_role_and_the_override() {
-        let c = parse(
-            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\n[[modbus_tcp.clients]]\nnetwork = \"10.1.9.0/24\"\nrole = \"admin\"\nallow_saves_while_moving = true",
-        )
-        .unwrap();
-        let clients = &c.modbus_tcp.clients;
-        assert_eq!(clients[0].role(), Role::Operator);
-        assert!(!clients[0].allow_saves_while_moving);
-        assert!(clients[1].allow_saves_while_moving);
-        let e = parse("[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"boss\"")
-            .unwrap_err();
-        assert!(
-            e.contains("t.toml:4:8") && e.contains("unknown variant `boss`"),
-            "{e}"
-        );
-        let e = parse("[[modbus_tcp.clients]]\nrole = \"viewer\"").unwrap_err();
-        assert!(e.contains("missing field `network`"), "{e}");
-        // read_only makes everybody a viewer: a higher role contradicts it.
-        let e = parse(
-            "read_only = true\n[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"",
-        )
-        .unwrap_err();
-        assert!(
-            e.contains("t.toml:5:8") && e.contains("read_only = true makes every client a viewer"),
-            "{e}"
-        );
-        parse("read_only = true\n[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"viewer\"")
-            .unwrap();
-    }
-
-    #[test]
-    fn client_networks_may_have_a_comm_loss_time_and_action() {
-        let c = parse(
-            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 500\n[[modbus_tcp.clients]]\nnetwork = \"10.2.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 20\ncomm_loss_action = \"brake\"\n[[modbus_tcp.clients]]\nnetwork = \"10.3.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = 60000\ncomm_loss_action = \"none\"\n[[modbus_tcp.clients]]\nnetwork = \"10.4.0.0/16\"\nrole = \"operator\"",
-        )
-        .unwrap();
-        let loss: Vec<Option<CommLossConfig>> =
-            c.modbus_tcp.clients.iter().map(|c| c.comm_loss()).collect();
-        let ms = Duration::from_millis;
-        assert_eq!(
-            loss,
-            [
-                Some(CommLossConfig {
-                    after: ms(500),
-                    action: StopAction::ZeroSpeed
-                }),
-                Some(CommLossConfig {
-                    after: ms(20),
-                    action: StopAction::Brake
-                }),
-                Some(CommLossConfig {
-                    after: ms(60_000),
-                    action: StopAction::None
-                }),
-                None,
-            ],
-            "zero-speed by default; off without a time"
-        );
-        for bad in ["19", "60001", "0", "-5"] {
-            let e = parse(&format!(
-                "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_ms = {bad}"
-            ))
-            .unwrap_err();
-            assert!(
-                e.contains("t.toml:5:16")
-                    && e.contains(&format!(
-                        "comm_loss_ms = {bad} is out of range: valid 20 to 60000 ms"
-                    )),
-                "{e}"
-            );
-        }
-        let e = parse(
-            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_action = \"stop\"",
-        )
-        .unwrap_err();
-        assert!(
-            e.contains("t.toml:5:20") && e.contains("unknown variant `stop`"),
-            "{e}"
-        );
-        let e = parse(
-            "[[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\ncomm_loss_action = \"brake\"",
-        )
-        .unwrap_err();
-        assert!(
-            e.starts_with("t.toml:5:20:") && e.contains("has comm_loss_action but no comm_loss_ms"),
-            "{e}"
-        );
-    }
-
-    #[test]
-    fn errors_point_at_the_value_to_fix() {
-        // line 1 is [modbus_tcp]; the bus name is on line 4, column 7.
-        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"C\"").unwrap_err();
-        assert!(e.starts_with("t.toml:4:7:"), "{e}");
-        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"A\"\nbus_units = \"1-3\"")
-            .unwrap_err();
-        assert!(e.starts_with("t.toml:5:13:"), "{e}");
-        let e = parse(
-            "[[modbus_tcp.unit_map]]\nunits = \"1-10\"\nbus = \"A\"\n[[modbus_tcp.unit_map]]\nunits = \"10-20\"\nbus = \"B\"",
-        )
-        .unwrap_err();
-        assert!(e.starts_with("t.toml:6:9:"), "{e}");
-        let e = parse(
-            "[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 100\n[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 50",
-        )
-        .unwrap_err();
-        assert!(e.starts_with("t.toml:6:7:"), "{e}");
-    }
-
-    #[test]
-    fn the_map_is_checked_against_the_buses() {
-        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"C\"").unwrap_err();
-        assert!(
-            e.contains("unit_map entry 1 (units 1-4) names bus \"C\", which is not configured (buses: \"A\", \"B\")"),
-            "{e}"
-        );
-        let e = parse("[[modbus_tcp.unit_map]]\nunits = \"1-4\"\nbus = \"A\"\nbus_units = \"1-3\"")
-            .unwrap_err();
-        assert!(e.contains("has 3 units but units 1-4 has 4"), "{e}");
-        let e = parse(
-            "[[modbus_tcp.unit_map]]\nunits = \"1-10\"\nbus = \"A\"\n[[modbus_tcp.unit_map]]\nunits = \"10-20\"\nbus = \"B\"",
-        )
-        .unwrap_err();
-        assert!(
-            e.contains("unit_map entry 2 (units 10-20) overlaps unit_map entry 1 (units 1-10)"),
-            "{e}"
-        );
-        let e = parse("[[modbus_tcp.polled_copy]]\nbus = \"X\"\nmax_age_ms = 100").unwrap_err();
-        assert!(e.contains("polled_copy entry 1 names bus \"X\""), "{e}");
-        let e = parse(
-            "[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 100\n[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 50",
-        )
-        .unwrap_err();
-        assert!(e.contains("lists bus \"A\" twice"), "{e}");
-        let e = parse("[[modbus_tcp.polled_copy]]\nbus = \"A\"\nmax_age_ms = 0").unwrap_err();
-        assert!(e.contains("valid 1 to 60000"), "{e}");
-    }
-}
+mod tests;

@@ -65,6 +65,12 @@ pub enum Rule {
     /// A setpoint to a drive that is not active (the drive would refuse
     /// it itself).
     NotActive,
+    /// A write whose effect the core cannot decode (a function code no
+    /// register table describes, a mask write keeping bits of a value
+    /// nobody read): no rule can be checked on it, so it is refused for
+    /// every role, unless the face lets an admin send the function code
+    /// unchecked (never as a broadcast).
+    NotDecoded,
 }
 
 impl Rule {
@@ -76,6 +82,7 @@ impl Rule {
             Rule::SharedBusAddress => "shared-bus-address",
             Rule::NotActive => "not-active",
             Rule::LeaseLength { .. } => "lease-length",
+            Rule::NotDecoded => "not-decoded",
         }
     }
 }

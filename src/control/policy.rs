@@ -9,7 +9,11 @@
 //!   leases, the brake, set-zero and the resets that do not touch flash,
 //! - `admin` commissions it: protection, ramps, inertia, saves to flash,
 //!   calibration, factory reset, RS-485 control, bus scans, addresses, and
-//!   Modbus writes the core cannot decode.
+//!   Modbus writes of registers the drive's table cannot explain.
+//!
+//! A write whose effect the core cannot decode at all (a function code no
+//! register table describes, a mask write keeping bits of a value nobody
+//! read) has no role that allows it: see [`Undecoded`].
 
 pub use crate::config::Role;
 use crate::drive::registers::Register;
@@ -118,6 +122,47 @@ impl StillReason {
     }
 }
 
+/// Why the core cannot tell what a write does, so that no rule can be
+/// checked on it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Undecoded {
+    /// A function code whose effect no register table describes (coils,
+    /// file records, diagnostics that restart, silence or clear a device,
+    /// vendor codes, codes the specification does not define). Refused,
+    /// unless the face lets an admin send it unchecked, never as a
+    /// broadcast.
+    Function {
+        /// The function code.
+        code: u8,
+    },
+    /// A mask write (0x16) whose AND mask keeps bits of the register's
+    /// current value: what it writes depends on a value nobody read (the
+    /// command and save-flag registers cannot be read at all), and the
+    /// drive has no mask write of its own to do it in one transaction.
+    /// Refused: the same write with an AND mask of 0, or as a 0x06, is
+    /// decided like any other.
+    MaskedValue {
+        /// The register.
+        register: Register,
+    },
+}
+
+impl Undecoded {
+    /// In words, for the refusal.
+    pub fn what(self) -> String {
+        match self {
+            Undecoded::Function { code } => format!(
+                "Modbus function 0x{code:02X} ({}) is not decoded by drivegate: it may change the device in ways no rule can check",
+                crate::modbus::function::name(code)
+            ),
+            Undecoded::MaskedValue { register } => format!(
+                "a mask write of {} keeps bits of its current value, which drivegate has not read, so what it writes is unknown; write the whole value (0x06, or an AND mask of 0)",
+                register.name()
+            ),
+        }
+    }
+}
+
 /// A write that stops the motor itself.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stopper {
@@ -156,6 +201,8 @@ pub struct Meaning {
     pub emergency: bool,
     /// True when it sets a drive's address.
     pub address: bool,
+    /// Set when the core cannot tell what it does.
+    pub undecoded: Option<Undecoded>,
 }
 
 impl Meaning {
@@ -177,6 +224,7 @@ impl Meaning {
             releases_brake: false,
             emergency: false,
             address: false,
+            undecoded: None,
         }
     }
 
@@ -190,6 +238,7 @@ impl Meaning {
         self.releases_brake |= other.releases_brake;
         self.emergency |= other.emergency;
         self.address |= other.address;
+        self.undecoded = self.undecoded.or(other.undecoded);
         self
     }
 }
@@ -292,7 +341,8 @@ pub fn of_register(register: Register, value: u16) -> Meaning {
 }
 
 /// What a Modbus write PDU means, as the drive would read it; a write the
-/// register table cannot explain needs the admin role.
+/// register table cannot explain needs the admin role; one the core cannot
+/// decode at all is [`Undecoded`].
 pub fn of_pdu(meaning: &PduMeaning) -> Meaning {
     match meaning {
         PduMeaning::Message(request) => of_request(request),
@@ -302,7 +352,17 @@ pub fn of_pdu(meaning: &PduMeaning) -> Meaning {
             .reduce(Meaning::and)
             .unwrap_or(Meaning::new(Role::Admin)),
         PduMeaning::Unknown => Meaning::new(Role::Admin),
+        &PduMeaning::Masked { register, .. } => undecoded(Undecoded::MaskedValue { register }),
+        &PduMeaning::NotDecoded { function } => undecoded(Undecoded::Function { code: function }),
     }
+}
+
+/// A write nobody can decode: if it goes at all, it goes unchecked, for an
+/// admin.
+fn undecoded(why: Undecoded) -> Meaning {
+    let mut m = Meaning::new(Role::Admin);
+    m.undecoded = Some(why);
+    m
 }
 
 #[cfg(test)]
@@ -414,5 +474,32 @@ mod tests {
         let m = of_pdu(&block);
         assert_eq!((m.needs, m.setpoint), (Role::Admin, Some(Mode::Speed)));
         assert_eq!(of_pdu(&PduMeaning::Unknown).needs, Role::Admin);
+        assert_eq!(of_pdu(&PduMeaning::Unknown).undecoded, None);
+    }
+
+    #[test]
+    fn what_cannot_be_decoded_says_why() {
+        let coil = of_pdu(&PduMeaning::NotDecoded { function: 0x05 });
+        assert_eq!(coil.needs, Role::Admin);
+        let why = coil.undecoded.unwrap();
+        assert_eq!(why, Undecoded::Function { code: 0x05 });
+        assert!(
+            why.what()
+                .starts_with("Modbus function 0x05 (Write Single Coil) is not decoded"),
+            "{}",
+            why.what()
+        );
+        let masked = of_pdu(&PduMeaning::Masked {
+            register: Register::Config,
+            and: 0xFFF0,
+            or: 6,
+        });
+        assert_eq!(
+            masked.undecoded,
+            Some(Undecoded::MaskedValue {
+                register: Register::Config
+            })
+        );
+        assert!(masked.undecoded.unwrap().what().contains("CONFIG"));
     }
 }

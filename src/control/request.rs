@@ -16,29 +16,38 @@ use crate::safety::StopAction;
 pub enum Write {
     /// One of the manual's messages.
     Drive(DriveRequest),
-    /// A Modbus write PDU, sent as it came; its reply goes back as it came.
+    /// A Modbus write PDU; the drive's reply goes back as it came.
     Pdu {
-        /// Function code and data.
+        /// Function code and data, as the client sent them.
         pdu: Vec<u8>,
         /// What the drive will make of it.
         meaning: PduMeaning,
+        /// What is sent, when not `pdu` itself: the drives have 0x06 and
+        /// 0x10 only, so a mask write with an AND mask of 0 goes as a 0x06
+        /// and a read/write multiple's write as a 0x10
+        /// ([`writes::carried`]).
+        sent: Option<Vec<u8>>,
     },
 }
 
 impl Write {
-    /// A raw write PDU, decoded.
+    /// A write PDU to a drive (or a broadcast), decoded with the drive's
+    /// register table.
     pub fn pdu(pdu: Vec<u8>) -> Self {
         let meaning = writes::decode(&pdu);
-        Write::Pdu { pdu, meaning }
+        let sent = writes::carried(&pdu);
+        Write::Pdu { pdu, meaning, sent }
     }
 
     /// A write PDU to a unit that is not a configured drive (another
     /// device on the bus): the drive's register table says nothing about
-    /// it, so it is a raw write, whatever its addresses.
+    /// it, so it is sent as it came and its meaning is unknown, whatever
+    /// its addresses (or not decoded at all, for other function codes).
     pub fn device_pdu(pdu: Vec<u8>) -> Self {
         Write::Pdu {
+            meaning: writes::decode_for_device(&pdu),
             pdu,
-            meaning: PduMeaning::Unknown,
+            sent: None,
         }
     }
 
@@ -67,7 +76,7 @@ impl Write {
     pub fn describe(&self) -> String {
         match self {
             Write::Drive(r) => describe(r),
-            Write::Pdu { pdu, meaning } => describe_pdu(pdu, meaning),
+            Write::Pdu { pdu, meaning, sent } => describe_pdu(pdu, meaning, sent.as_deref()),
         }
     }
 
@@ -75,7 +84,7 @@ impl Write {
     pub fn encode(&self) -> Result<Vec<u8>, RangeError> {
         match self {
             Write::Drive(r) => r.pdu(),
-            Write::Pdu { pdu, .. } => Ok(pdu.clone()),
+            Write::Pdu { pdu, sent, .. } => Ok(sent.as_ref().unwrap_or(pdu).clone()),
         }
     }
 }
@@ -97,6 +106,10 @@ pub struct ControlRequest {
     /// For an address broadcast: the caller confirmed that only one drive
     /// is connected to the bus.
     pub single_drive: bool,
+    /// For a function code the core cannot decode: the face's
+    /// configuration lets it through unchecked for an admin (`[modbus_tcp]
+    /// raw_functions`); refused for everyone otherwise.
+    pub unchecked: bool,
     /// The caller's own reason for the write to need standstill, beside
     /// what the write means (drivegate applying declared settings).
     pub still: Option<StillReason>,
@@ -111,6 +124,7 @@ impl ControlRequest {
             lease_action: None,
             force: false,
             single_drive: false,
+            unchecked: false,
             still: None,
         }
     }
@@ -148,6 +162,13 @@ impl ControlRequest {
     /// With the still-check overridden (or not).
     pub fn forced(mut self, force: bool) -> Self {
         self.force = force;
+        self
+    }
+
+    /// With the face's leave (or not) to send a function code the core
+    /// cannot decode, unchecked, for an admin.
+    pub fn unchecked(mut self, allowed: bool) -> Self {
+        self.unchecked = allowed;
         self
     }
 

@@ -6,6 +6,12 @@
 //! it, and never for a caller the role already refuses).
 //!
 //! In order:
+//! 0. what the write does is known: a write the core cannot decode (a
+//!    function code no register table describes, a mask write keeping bits
+//!    of a value nobody read) is refused for every role, unless the face
+//!    lets an admin send its function code unchecked (`[modbus_tcp]
+//!    raw_functions`), and then never to unit 0, where every device on the
+//!    bus would take it;
 //! 1. the role: the caller's role includes the one the write needs;
 //! 2. the lease: a lease asked for is within `[safety] lease_min_ms` to
 //!    `lease_max_ms`;
@@ -24,7 +30,7 @@ use std::time::Duration;
 use super::Target;
 use super::caller::Caller;
 use super::outcome::{Refusal, Rule};
-use super::policy::{Meaning, Role};
+use super::policy::{Meaning, Role, Undecoded};
 use super::request::ControlRequest;
 
 /// The shortest and longest lease a setpoint may ask for.
@@ -125,7 +131,7 @@ pub fn decide(
     target: Target,
     facts: &Facts,
 ) -> Result<Decision, Refusal> {
-    role(caller, meaning.needs)?;
+    admit(caller, meaning, request, target)?;
     if meaning.setpoint.is_some()
         && let Some(length) = request.lease
     {
@@ -184,6 +190,45 @@ pub fn decide(
         }
     }
     Ok(Decision::Send { forced })
+}
+
+/// The checks that cost nothing: a write the core cannot decode, then the
+/// role. Run first, so that a caller they refuse costs no bus time.
+pub fn admit(
+    caller: &Caller,
+    meaning: &Meaning,
+    request: &ControlRequest,
+    target: Target,
+) -> Result<(), Refusal> {
+    match meaning.undecoded {
+        None => {}
+        Some(why @ Undecoded::MaskedValue { .. }) => {
+            return Err(Refusal {
+                rule: Rule::NotDecoded,
+                detail: why.what(),
+            });
+        }
+        Some(why @ Undecoded::Function { .. }) if !request.unchecked => {
+            return Err(Refusal {
+                rule: Rule::NotDecoded,
+                detail: format!(
+                    "{}; it is refused for every role unless the listener lets admins send it unchecked (Modbus TCP: [modbus_tcp] raw_functions)",
+                    why.what()
+                ),
+            });
+        }
+        Some(why @ Undecoded::Function { .. }) if target.unit == 0 => {
+            return Err(Refusal {
+                rule: Rule::NotDecoded,
+                detail: format!(
+                    "{}; sent unchecked only to one unit, never as a broadcast (unit 0), which every device on the bus would take",
+                    why.what()
+                ),
+            });
+        }
+        Some(Undecoded::Function { .. }) => {}
+    }
+    role(caller, meaning.needs)
 }
 
 /// Refuses `caller` unless its role includes `needed`.
@@ -368,6 +413,7 @@ mod tests {
         assert_eq!(ask(Role::Operator, &setpoint, unit(0), &facts()), SEND);
         let half = ControlRequest::new(Write::Pdu {
             pdu: Vec::new(),
+            sent: None,
             meaning: PduMeaning::Registers(vec![
                 (Register::SpeedRef, 16),
                 (Register::PositionRef, 0),
@@ -418,6 +464,42 @@ mod tests {
             save: false,
         });
         assert_eq!(ask(Role::Admin, &no_save, unit(2), &facts()), SEND);
+    }
+
+    #[test]
+    fn what_the_core_cannot_decode_is_refused_for_every_role() {
+        let coil = ControlRequest::new(Write::Pdu {
+            pdu: vec![0x05, 0x00, 0x01, 0xFF, 0x00],
+            meaning: PduMeaning::NotDecoded { function: 0x05 },
+            sent: None,
+        });
+        for role in [Role::Viewer, Role::Operator, Role::Admin] {
+            let r = ask(role, &coil, unit(2), &facts()).unwrap_err();
+            assert_eq!(r.rule, Rule::NotDecoded, "{role:?}");
+            assert!(r.detail.contains("raw_functions"), "{}", r.detail);
+        }
+        // Let through by the face: an admin's, to one unit only.
+        let unchecked = coil.clone().unchecked(true);
+        assert_eq!(ask(Role::Admin, &unchecked, unit(2), &facts()), SEND);
+        let r = ask(Role::Operator, &unchecked, unit(2), &facts()).unwrap_err();
+        assert!(matches!(r.rule, Rule::Role { .. }));
+        let r = ask(Role::Admin, &unchecked, unit(0), &facts()).unwrap_err();
+        assert_eq!(r.rule, Rule::NotDecoded);
+        assert!(r.detail.contains("never as a broadcast"), "{}", r.detail);
+        // A mask write keeping bits of a value nobody read: never.
+        let masked = ControlRequest::new(Write::Pdu {
+            pdu: vec![0x16, 0x00, 0x02, 0xFF, 0xF0, 0x00, 0x06],
+            meaning: PduMeaning::Masked {
+                register: Register::Config,
+                and: 0xFFF0,
+                or: 6,
+            },
+            sent: None,
+        })
+        .unchecked(true);
+        let r = ask(Role::Admin, &masked, unit(2), &facts()).unwrap_err();
+        assert_eq!(r.rule, Rule::NotDecoded);
+        assert!(r.detail.contains("mask write of CONFIG"), "{}", r.detail);
     }
 
     #[test]

@@ -117,8 +117,9 @@ impl Control {
         request: &ControlRequest,
         meaning: &Meaning,
     ) -> Result<(), Failure> {
-        // The role first: a caller it refuses costs no bus time.
-        rules::role(caller, meaning.needs).map_err(Failure::Refused)?;
+        // What costs nothing first (a write nobody can decode, the role):
+        // a caller they refuse costs no bus time.
+        rules::admit(caller, meaning, request, target).map_err(Failure::Refused)?;
         let bus = self.bus(target).map_err(Failure::NotSent)?;
         let mut facts = self.facts(target, &bus);
         loop {
@@ -163,7 +164,7 @@ impl Control {
         let mut facts = self.facts(target, &bus);
         for request in requests {
             let meaning = request.meaning();
-            rules::role(caller, meaning.needs).map_err(Failure::Refused)?;
+            rules::admit(caller, &meaning, request, target).map_err(Failure::Refused)?;
             loop {
                 match rules::decide(caller, &meaning, request, target, &facts) {
                     Err(refusal) => return Err(Failure::Refused(refusal)),

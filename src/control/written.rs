@@ -194,10 +194,16 @@ pub fn describe(request: &DriveRequest) -> String {
 }
 
 /// A Modbus write PDU in words: the manual's message or the registers it
-/// writes, when the register table explains it, and always the raw PDU.
-pub fn describe_pdu(pdu: &[u8], meaning: &PduMeaning) -> String {
+/// writes, when the register table explains it, and always the raw PDU as
+/// the client sent it, with what was sent instead when the drive has not
+/// its function (`sent`). A function code the core cannot decode is
+/// "not checked": if it goes at all, it goes as it came.
+pub fn describe_pdu(pdu: &[u8], meaning: &PduMeaning, sent: Option<&[u8]>) -> String {
     let function = pdu.first().copied().unwrap_or(0);
-    let raw = hex(pdu);
+    let raw = match sent {
+        Some(sent) => format!("{}, sent as {}", hex(pdu), hex(sent)),
+        None => hex(pdu),
+    };
     match meaning {
         PduMeaning::Message(request) => format!("{} [{raw}]", describe(request)),
         PduMeaning::Registers(writes) => {
@@ -207,7 +213,14 @@ pub fn describe_pdu(pdu: &[u8], meaning: &PduMeaning) -> String {
                 .collect();
             format!("{} [{raw}]", parts.join(", "))
         }
+        PduMeaning::Masked { register, and, or } => {
+            format!("{} AND 0x{and:04X} OR 0x{or:04X} [{raw}]", register.name())
+        }
         PduMeaning::Unknown => format!("Modbus 0x{function:02X} {} [{raw}]", label(function)),
+        PduMeaning::NotDecoded { .. } => format!(
+            "Modbus 0x{function:02X} {}, not checked [{raw}]",
+            crate::modbus::function::name(function)
+        ),
     }
 }
 
@@ -253,18 +266,32 @@ mod tests {
     fn pdus_in_words() {
         let brake = [0x06, 0x00, 0x02, 0x00, 0x05];
         assert_eq!(
-            describe_pdu(&brake, &crate::drive::writes::decode(&brake)),
+            describe_pdu(&brake, &crate::drive::writes::decode(&brake), None),
             "config command brake 5 (CONFIG=5) [06 00 02 00 05]"
         );
         let save = [0x06, 0x00, 0x1C, 0x00, 0x01];
         assert_eq!(
-            describe_pdu(&save, &crate::drive::writes::decode(&save)),
+            describe_pdu(&save, &crate::drive::writes::decode(&save), None),
             "SPEED_TD_R_SAVE_FLAG=1 [06 00 1C 00 01]"
+        );
+        let meter = [0x06, 0x00, 0x01, 0x00, 0x02];
+        assert_eq!(
+            describe_pdu(&meter, &PduMeaning::Unknown, None),
+            "Modbus 0x06 write_single_register [06 00 01 00 02]"
         );
         let coil = [0x05, 0x00, 0x01, 0xFF, 0x00];
         assert_eq!(
-            describe_pdu(&coil, &PduMeaning::Unknown),
-            "Modbus 0x05 write_single_coil [05 00 01 FF 00]"
+            describe_pdu(&coil, &PduMeaning::NotDecoded { function: 5 }, None),
+            "Modbus 0x05 Write Single Coil, not checked [05 00 01 FF 00]"
+        );
+        let reset = [0x16, 0x00, 0x02, 0x00, 0x00, 0x00, 0x06];
+        assert_eq!(
+            describe_pdu(
+                &reset,
+                &crate::drive::writes::decode(&reset),
+                Some(&[0x06, 0x00, 0x02, 0x00, 0x06])
+            ),
+            "config command factory-reset 6 (CONFIG=6) [16 00 02 00 00 00 06, sent as 06 00 02 00 06]"
         );
     }
 }

@@ -90,7 +90,7 @@ impl FaceMetrics {
             tcp_rejected: counter_vec(
                 registry,
                 "drivegate_modbus_tcp_connections_rejected_total",
-                "Modbus TCP connections refused, by reason (not_allowed, limit).",
+                "Modbus TCP connections refused, by reason (not_allowed, per_address, limit).",
                 &["reason"],
             ),
             tcp_requests: counter_vec(
@@ -121,6 +121,14 @@ impl FaceMetrics {
         }
     }
 
+    /// Creates the Modbus TCP refusal series of each of `reasons` at 0
+    /// (the face names them, as its outcomes).
+    pub fn tcp_rejections<'a>(&self, reasons: impl IntoIterator<Item = &'a str>) {
+        for reason in reasons {
+            self.tcp_rejected.with_label_values(&[reason]);
+        }
+    }
+
     /// Counts one HTTP request; `route` is the route template (`/api/v1/drives/{drive}`),
     /// never the raw path, so the label set stays bounded.
     pub fn http_request(&self, route: &str, method: &str, status: u16, elapsed: Duration) {
@@ -145,7 +153,8 @@ impl FaceMetrics {
         WsClientGuard(self.tcp_open.clone())
     }
 
-    /// A Modbus TCP connection was refused (`not_allowed`, `limit`).
+    /// A Modbus TCP connection was refused (`not_allowed`, `per_address`,
+    /// `limit`).
     pub fn tcp_rejected(&self, reason: &str) {
         self.tcp_rejected.with_label_values(&[reason]).inc();
     }
@@ -153,7 +162,8 @@ impl FaceMetrics {
     /// A Modbus TCP request was answered with `outcome`: `ok`, `exception`
     /// (the drive's), `gateway_timeout` (0x0B), `path_unavailable` (0x0A),
     /// `busy` (0x06), `read_only`, `cached` (from the polled copy),
-    /// `broadcast`, `invalid` (malformed request shape), `refused` or
+    /// `broadcast`, `invalid` (malformed request shape), `refused`,
+    /// `not_decoded` (a function code the control core cannot decode) or
     /// `cancelled` (its client left before it reached the wire).
     pub fn tcp_request(&self, function: u8, outcome: &str) {
         self.tcp_requests

@@ -73,9 +73,9 @@ impl Access {
         Self { networks }
     }
 
-    /// The access `config` describes: `allowed_networks` with the admin
-    /// role (viewer when `read_only`), and each `clients` entry with its
-    /// own.
+    /// The access `config` describes: `allowed_networks` (loopback when
+    /// not set) with the admin role (viewer when `read_only`), and each
+    /// `clients` entry with its own.
     pub fn from_config(config: &ModbusTcpConfig) -> Self {
         let plain = Rights {
             role: if config.read_only {
@@ -86,11 +86,8 @@ impl Access {
             allow_saves_while_moving: false,
             comm_loss: None,
         };
-        let mut networks: Vec<(IpNet, Rights)> = config
-            .allowed_networks
-            .iter()
-            .map(|n| (*n, plain))
-            .collect();
+        let mut networks: Vec<(IpNet, Rights)> =
+            config.allowed().into_iter().map(|n| (n, plain)).collect();
         networks.extend(config.clients.iter().map(|c| {
             let role = if config.read_only {
                 Role::Viewer
@@ -185,24 +182,39 @@ mod tests {
     }
 
     #[test]
-    fn the_default_allows_plant_networks_not_the_internet() {
+    fn the_default_allows_loopback_only() {
         let list = Access::from_config(&ModbusTcpConfig::default());
-        for ok in [
-            "127.0.0.1",
+        for ok in ["127.0.0.1", "127.0.0.2", "::1", "::ffff:127.0.0.1"] {
+            assert_eq!(list.rights(ip(ok)), Some(admin()), "{ok}");
+        }
+        // The private ranges and link-local, once admin by default, and
+        // the internet.
+        for refused in [
             "10.1.2.3",
             "172.20.0.9",
             "192.168.0.10",
             "169.254.3.4",
-            "::1",
             "fd00::5",
             "fe80::1",
+            "8.8.8.8",
+            "2001:db8::1",
         ] {
-            assert_eq!(list.rights(ip(ok)), Some(admin()), "{ok}");
-        }
-        for refused in ["8.8.8.8", "172.32.0.1", "2001:db8::1", "100.64.0.1"] {
             assert!(!list.allows(ip(refused)), "{refused}");
         }
-        assert_eq!(default_allowed_networks().len(), 8);
+        assert_eq!(default_allowed_networks().len(), 2);
+        // A plant network comes in with the role it is given.
+        let config: ModbusTcpConfig =
+            toml::from_str("[[clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"").unwrap();
+        let access = Access::from_config(&config);
+        assert_eq!(
+            access.rights(ip("10.1.2.3")).map(|r| r.role),
+            Some(Role::Operator)
+        );
+        assert_eq!(
+            access.rights(ip("127.0.0.1")).map(|r| r.role),
+            Some(Role::Admin)
+        );
+        assert!(!access.allows(ip("10.2.0.1")));
     }
 
     #[test]

@@ -16,20 +16,19 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use tokio::sync::oneshot;
-use tokio::sync::oneshot::error::TryRecvError;
 use tracing::{debug, warn};
 
 use super::access::Rights;
-use super::outcome::{Outcome, exception_pdu, failure_reply, gateway_exception};
+use super::outcome::{Outcome, exception_pdu, failure_reply};
+pub use super::pending::{Pending, ReadState};
 use super::polled_copy;
 use super::request;
 use super::routing::{BusUnits, UnitRoutes};
 use crate::bus::handle::JobOptions;
-use crate::bus::job::JobResult;
-use crate::bus::{BusError, Origin, Priority, SourceId};
+use crate::bus::{BusHandle, Origin, Priority, SourceId};
 use crate::config::ModbusTcpConfig;
-use crate::control::{self, Caller, Control, ControlRequest, Face, SessionId, Write};
+use crate::control::{self, Caller, Control, ControlRequest, Face, SessionId, Target, Write};
+use crate::drive::writes;
 use crate::metrics::Metrics;
 use crate::modbus::ExceptionCode;
 use crate::plant::Plant;
@@ -120,6 +119,9 @@ struct Tables {
     /// Maximum age of the polled copy per bus slot (`None`: strict passthrough).
     polled_copy: Vec<Option<Duration>>,
     broadcast_reply: bool,
+    /// Function codes the core cannot decode that admins may send
+    /// unchecked (`raw_functions`).
+    raw_functions: Vec<u8>,
 }
 
 impl Tables {
@@ -154,6 +156,11 @@ impl Tables {
             routes,
             polled_copy,
             broadcast_reply: config.broadcast_reply,
+            raw_functions: config
+                .raw_functions
+                .iter()
+                .map(|f| f.get_ref().code())
+                .collect(),
         };
         (tables, warnings)
     }
@@ -285,20 +292,10 @@ impl Gateway {
         let caller = client.caller.with_origin(client.origin(transaction));
         if !request::reads_only(&pdu) {
             let target = self.control.unit_target(route.bus, route.unit);
-            let write = if target.drive.is_some() {
-                Write::pdu(pdu.clone())
-            } else {
-                Write::device_pdu(pdu.clone())
-            };
-            let request = ControlRequest::new(write).forced(client.allow_saves_while_moving);
-            return match self.control.submit(&caller, target, request).await {
-                Ok(pending) => Answer::Pending(Pending::writes(&pdu, false, vec![pending])),
-                Err(failure) => {
-                    let (reply, outcome) = failure_reply(function, &failure);
-                    self.count(function, outcome);
-                    Answer::Now(reply)
-                }
-            };
+            let unchecked = tables.raw_functions.contains(&function);
+            return self
+                .write(client, &caller, target, bus, pdu, unchecked)
+                .await;
         }
         if let Some(max_age) = tables.polled_copy.get(route.bus).copied().flatten()
             && let Some(snapshot) = bus.drive(route.unit)
@@ -307,18 +304,53 @@ impl Gateway {
             self.count(function, Outcome::Cached);
             return Answer::Now(reply);
         }
-        let options = JobOptions {
-            priority: Priority::Command,
-            source: caller.source,
-            queue_timeout: None,
-            max_attempts: None,
-            origin: caller.origin,
-        };
-        let state = match bus.submit(route.unit, pdu.clone(), options) {
-            Ok(rx) => ReadState::Waiting(rx),
-            Err(e) => ReadState::Done(Err(e)),
-        };
+        let state = ReadState::submit(bus, route.unit, pdu.clone(), job_options(&caller));
         Answer::Pending(Pending::Read { pdu, state })
+    }
+
+    /// A write to one unit, handed to the control core: decoded with the
+    /// drive's register table when the unit is a configured drive, else as
+    /// a device's. A read/write multiple to a drive is its write through
+    /// the core, then its read: the read is queued once the drive confirmed
+    /// the write, before this returns, so a request the client pipelined
+    /// after it cannot come between the two.
+    async fn write(
+        &self,
+        client: &Client,
+        caller: &Caller,
+        target: Target,
+        bus: &BusHandle,
+        pdu: Vec<u8>,
+        unchecked: bool,
+    ) -> Answer {
+        let function = pdu[0];
+        let (write, then_read) = if target.drive.is_some() {
+            (Write::pdu(pdu.clone()), writes::read_after(&pdu))
+        } else {
+            (Write::device_pdu(pdu.clone()), None)
+        };
+        let request = ControlRequest::new(write)
+            .forced(client.allow_saves_while_moving)
+            .unchecked(unchecked);
+        let failure = match self.control.submit(caller, target, request).await {
+            Ok(pending) => {
+                let Some(read) = then_read else {
+                    return Answer::Pending(Pending::writes(&pdu, false, vec![pending]));
+                };
+                match written(pending).await {
+                    // The reply is the read's, under the client's function.
+                    Ok(()) => {
+                        let state = ReadState::submit(bus, target.unit, read, job_options(caller));
+                        return Answer::Pending(Pending::Read { pdu, state });
+                    }
+                    Err(failure) => failure,
+                }
+            }
+            Err(failure) => failure,
+        };
+        let (reply, outcome) = failure_reply(function, &failure);
+        self.count(function, outcome);
+        Answer::Now(reply)
     }
 
     /// Unit 0: every bus the listener reaches, no reply waited for.
@@ -329,7 +361,7 @@ impl Gateway {
             Some((
                 ExceptionCode::ILLEGAL_FUNCTION,
                 Outcome::Refused,
-                "refused: only writes (0x05, 0x06, 0x0F, 0x10, 0x16) can be broadcast",
+                "refused: a read (and read/write multiple, which reads) cannot be broadcast: nobody would answer it",
             ))
         } else if let Err(code) = request::check_shape(&pdu) {
             Some((
@@ -355,7 +387,8 @@ impl Gateway {
         for &bus in tables.routes.broadcast_buses() {
             let target = self.control.unit_target(bus, 0);
             let request = ControlRequest::new(Write::pdu(pdu.clone()))
-                .forced(client.allow_saves_while_moving);
+                .forced(client.allow_saves_while_moving)
+                .unchecked(tables.raw_functions.contains(&function));
             match self.control.submit(&caller, target, request).await {
                 Ok(pending) => writes.push(pending),
                 Err(failure) => {
@@ -423,168 +456,22 @@ impl Gateway {
     }
 }
 
-/// A read's bus job.
-#[derive(Debug)]
-pub enum ReadState {
-    /// On the queue or the wire.
-    Waiting(oneshot::Receiver<JobResult>),
-    /// Done.
-    Done(JobResult),
+/// Waits for a write and settles it: `Ok` once the drive confirmed it.
+async fn written(mut pending: control::Pending) -> Result<(), control::Failure> {
+    pending.wait().await;
+    pending.finish().map(|_| ())
 }
 
-/// A request waiting for the bus: a read's job, or the control core's
-/// pending writes (one for a unit, one per bus for a broadcast). Holding it
-/// keeps them alive; dropping or cancelling it makes the bus drop those
-/// still queued before they reach the wire (a brake excepted: the core
-/// follows it to its end).
-#[derive(Debug)]
-pub enum Pending {
-    /// A read, passed through.
-    Read {
-        /// The request.
-        pdu: Vec<u8>,
-        /// Its job.
-        state: ReadState,
-    },
-    /// Writes through the control core.
-    Writes {
-        /// The request.
-        pdu: Vec<u8>,
-        /// True for a broadcast.
-        broadcast: bool,
-        /// One per bus.
-        writes: Vec<control::Pending>,
-    },
-}
-
-impl Pending {
-    fn writes(pdu: &[u8], broadcast: bool, writes: Vec<control::Pending>) -> Self {
-        Pending::Writes {
-            pdu: pdu.to_vec(),
-            broadcast,
-            writes,
-        }
+/// The bus job options of a client's request: its turn in the queue, its
+/// origin on the bus monitor.
+fn job_options(caller: &Caller) -> JobOptions {
+    JobOptions {
+        priority: Priority::Command,
+        source: caller.source,
+        queue_timeout: None,
+        max_attempts: None,
+        origin: caller.origin.clone(),
     }
-
-    /// Waits until every job has a result. Cancel-safe: results already
-    /// in stay in.
-    pub async fn wait(&mut self) {
-        match self {
-            Pending::Read { state, .. } => {
-                if let ReadState::Waiting(rx) = state {
-                    let result = rx.await.unwrap_or(Err(BusError::ShuttingDown));
-                    *state = ReadState::Done(result);
-                }
-            }
-            Pending::Writes { writes, .. } => {
-                for w in writes {
-                    w.wait().await;
-                }
-            }
-        }
-    }
-
-    /// True when every job has a result (without waiting).
-    pub fn try_ready(&mut self) -> bool {
-        match self {
-            Pending::Read { state, .. } => match state {
-                ReadState::Done(_) => true,
-                ReadState::Waiting(rx) => match rx.try_recv() {
-                    Ok(result) => {
-                        *state = ReadState::Done(result);
-                        true
-                    }
-                    Err(TryRecvError::Closed) => {
-                        *state = ReadState::Done(Err(BusError::ShuttingDown));
-                        true
-                    }
-                    Err(TryRecvError::Empty) => false,
-                },
-            },
-            Pending::Writes { writes, .. } => writes.iter_mut().all(control::Pending::try_ready),
-        }
-    }
-
-    /// The reply PDU once every job is done (for a broadcast, the write's
-    /// confirmation or the first failure); counts it.
-    pub fn finish(self, metrics: &Metrics) -> Vec<u8> {
-        let (function, reply, outcome) = match self {
-            Pending::Read { pdu, state } => {
-                let function = pdu.first().copied().unwrap_or(0);
-                let result = match state {
-                    ReadState::Done(result) => result,
-                    ReadState::Waiting(_) => Err(BusError::ShuttingDown),
-                };
-                match result {
-                    Ok(exchange) => {
-                        let outcome = if exchange
-                            .reply
-                            .first()
-                            .is_some_and(|f| f & crate::modbus::function::EXCEPTION_BIT != 0)
-                        {
-                            Outcome::Exception
-                        } else {
-                            Outcome::Ok
-                        };
-                        (function, exchange.reply, outcome)
-                    }
-                    Err(e) => {
-                        let (code, outcome) = gateway_exception(&e);
-                        (function, exception_pdu(function, code), outcome)
-                    }
-                }
-            }
-            Pending::Writes {
-                pdu,
-                broadcast,
-                writes,
-            } => {
-                let function = pdu.first().copied().unwrap_or(0);
-                let mut answer = None;
-                for w in writes {
-                    let result = w.finish();
-                    // The first failure is what the client hears about.
-                    if answer.is_none() || (broadcast && result.is_err() && answer_ok(&answer)) {
-                        answer = Some(match result {
-                            Ok(control::Outcome::Confirmed { reply, .. }) => (reply, Outcome::Ok),
-                            Ok(control::Outcome::Broadcast) => {
-                                (request::write_confirmation(&pdu), Outcome::Broadcast)
-                            }
-                            Err(failure) => failure_reply(function, &failure),
-                        });
-                    }
-                }
-                let (reply, outcome) = answer.unwrap_or_else(|| {
-                    (
-                        exception_pdu(function, ExceptionCode::GATEWAY_PATH_UNAVAILABLE),
-                        Outcome::PathUnavailable,
-                    )
-                });
-                (function, reply, outcome)
-            }
-        };
-        metrics.faces().tcp_request(function, outcome.label());
-        reply
-    }
-
-    /// The client has gone: the bus drops the jobs still queued before they
-    /// reach the wire. A write already on the wire finishes there; the
-    /// control core audits it.
-    pub fn cancel(self, metrics: &Metrics) {
-        let function = match &self {
-            Pending::Read { pdu, .. } | Pending::Writes { pdu, .. } => {
-                pdu.first().copied().unwrap_or(0)
-            }
-        };
-        metrics
-            .faces()
-            .tcp_request(function, Outcome::Cancelled.label());
-        drop(self);
-    }
-}
-
-fn answer_ok(answer: &Option<(Vec<u8>, Outcome)>) -> bool {
-    matches!(answer, Some((_, Outcome::Ok | Outcome::Broadcast)))
 }
 
 #[cfg(test)]
@@ -600,10 +487,12 @@ mod tests {
     use tokio_util::sync::CancellationToken;
 
     use super::*;
-    use crate::bus::job::Exchange;
+    use crate::bus::BusError;
+    use crate::bus::job::{Exchange, JobResult};
     use crate::config::Config;
     use crate::control::Role;
     use crate::modbus_tcp::access::Rights;
+    use crate::modbus_tcp::pending::answer_ok;
 
     fn gateway(broadcast_reply: bool) -> Gateway {
         let mut config = Config::embedded_default().expect("the built-in config");

@@ -11,19 +11,25 @@
 //! - [`gateway`] passes reads to the bus and hands writes to the control
 //!   core ([`crate::control`]), which decides on them as for every face,
 //! - [`outcome`] names outcomes and maps bus failures and the core's
-//!   refusals to exceptions,
+//!   refusals to exceptions, [`pending`] turns what the bus and the core
+//!   did into the reply,
 //! - [`connection`] serves one client in order, [`server`] accepts them,
-//!   [`access`] checks where they come from and gives them their role.
+//!   [`access`] checks where they come from and gives them their role,
+//!   [`addresses`] caps the connections of one address, [`refusals`]
+//!   says when a refusal is logged (once per address and burst).
 //!
 //! `docs/modbus-tcp.md` says why the MBAP framing is the daemon's own
 //! rather than tokio-modbus's server.
 
 pub mod access;
+pub mod addresses;
 pub mod connection;
 pub mod gateway;
 pub mod mbap;
 pub mod outcome;
+pub mod pending;
 pub mod polled_copy;
+pub mod refusals;
 pub mod request;
 pub mod routing;
 pub mod server;
@@ -57,10 +63,20 @@ pub fn start(
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
     let tcp = &config.modbus_tcp;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
+    // Said at every start: a plain admin network, a listener on the plant
+    // network that admits loopback only since allowed_networks is unset.
+    for (warning, text) in tcp.notices(addr) {
+        if warning {
+            tracing::warn!("{text}");
+        } else {
+            tracing::info!("{text}");
+        }
+    }
     let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
     let settings = ServerSettings {
         access: SharedAccess::new(Access::from_config(tcp), &control),
         max_connections: tcp.max_connections,
+        max_connections_per_address: tcp.per_address_limit(),
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),
             max_pipelined: tcp.max_pipelined,
@@ -102,6 +118,7 @@ pub fn start_tls(
     let settings = ServerSettings {
         access: SharedAccess::new(Access::from_config(tcp), &control),
         max_connections: tcp.max_connections,
+        max_connections_per_address: tcp.per_address_limit(),
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),
             max_pipelined: tcp.max_pipelined,

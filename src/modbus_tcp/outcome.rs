@@ -9,6 +9,7 @@
 //! | an address broadcast to a bus of several drives | 0x01 illegal function |
 //! | a save, factory reset, address setting or calibration while the motor turns | 0x06 server device busy |
 //! | a setpoint to a drive that is not active | 0x04 server device failure, as the drive answers it |
+//! | a function code the core cannot decode (not in `raw_functions`, or to unit 0), a mask write keeping bits of the current value | 0x01 illegal function |
 
 use crate::bus::BusError;
 use crate::control::{Failure, Role, Rule};
@@ -45,6 +46,10 @@ listed_enum! {
         Refused,
         /// 0x03: the request's shape is not what its function code requires.
         Invalid,
+        /// 0x01: a write the control core cannot decode (a function code
+        /// not listed in `raw_functions`, or sent to unit 0; a mask write
+        /// keeping bits of the register's current value).
+        NotDecoded,
         /// The client disconnected before the reply.
         Cancelled,
     }
@@ -66,6 +71,7 @@ impl Outcome {
             Outcome::Moving => "moving",
             Outcome::Refused => "refused",
             Outcome::Invalid => "invalid",
+            Outcome::NotDecoded => "not_decoded",
             Outcome::Cancelled => "cancelled",
         }
     }
@@ -121,10 +127,13 @@ pub fn failure_reply(function: u8, failure: &Failure) -> (Vec<u8>, Outcome) {
                 Rule::Moving { .. } => (ExceptionCode::SERVER_DEVICE_BUSY, Outcome::Moving),
                 // What the drive itself answers.
                 Rule::NotActive => (ExceptionCode::SERVER_DEVICE_FAILURE, Outcome::Exception),
+                Rule::NotDecoded => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::NotDecoded),
             };
             (exception_pdu(function, code), outcome)
         }
-        Failure::DriveRefused { reply, .. } => (reply.clone(), Outcome::Exception),
+        // The drive's own code, under the client's function (a mask write
+        // went to the drive as a 0x06, a read/write multiple as a 0x10).
+        Failure::DriveRefused { code, .. } => (exception_pdu(function, *code), Outcome::Exception),
         Failure::Unknown {
             reply: Some(reply), ..
         } => (reply.clone(), Outcome::Ok),

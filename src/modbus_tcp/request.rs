@@ -1,16 +1,21 @@
 //! What the gateway knows about a request PDU without asking a drive: whether
 //! its shape is what the Modbus application protocol specifies for its
-//! function code, whether it only reads, whether it may be broadcast.
+//! function code, whether it only reads, whether it may be broadcast, and
+//! the reply a client gets when the drive was sent another function.
 //!
 //! The shape check protects the bus: an RTU slave frames a request by the
 //! length its function code implies, so a request of the wrong length would
 //! be misframed by every drive, cost a timeout and its retries, and be
 //! answered 0x0B. The specification has the server answer such a request
 //! with exception 0x03 instead, which the gateway does at once. Function
-//! codes it does not know pass unchecked: the drive answers those itself.
+//! codes it does not know are not checked here: they are not reads, so
+//! the control core refuses them unless `raw_functions` lists them.
 
 use crate::modbus::ExceptionCode;
-use crate::modbus::function::be_u16;
+use crate::modbus::function::{
+    EXCEPTION_BIT, Effect, MASK_WRITE_REGISTER, READ_DEVICE_IDENTIFICATION,
+    READ_WRITE_MULTIPLE_REGISTERS, WRITE_SINGLE_REGISTER, be_u16, effect,
+};
 
 /// Checks the request's length and quantities against the Modbus
 /// application protocol (V1.1b3, section 6) for the function codes it
@@ -65,6 +70,18 @@ pub fn check_shape(pdu: &[u8]) -> Result<(), ExceptionCode> {
         }
         // mask write register: address, and-mask, or-mask
         0x16 if pdu.len() != 7 => bad,
+        // read file record: byte count 7..=245, sub-requests of 7 bytes
+        0x14 => file_records(pdu, false),
+        // write file record: byte count 9..=251, each sub-request with its data
+        0x15 => file_records(pdu, true),
+        // read FIFO queue: its pointer address
+        0x18 if pdu.len() != 3 => bad,
+        // read device identification: MEI type, read code 1..=4, object id
+        0x2B if pdu.get(1) == Some(&READ_DEVICE_IDENTIFICATION)
+            && (pdu.len() != 4 || !(1..=4).contains(&pdu[2])) =>
+        {
+            bad
+        }
         // read/write multiple registers: read 1..=125, write 1..=121
         0x17 => {
             let (rq, wq) = (word(3), word(7));
@@ -78,23 +95,59 @@ pub fn check_shape(pdu: &[u8]) -> Result<(), ExceptionCode> {
     }
 }
 
-/// True when the request only reads: the function codes the specification
-/// defines as reads (and the device identification read of 0x2B). Anything
-/// else, unknown codes included, may change a drive: it is refused on a
-/// read-only listener and written to the audit log.
-pub fn reads_only(pdu: &[u8]) -> bool {
-    match pdu.first() {
-        Some(0x01 | 0x02 | 0x03 | 0x04 | 0x07 | 0x0B | 0x0C | 0x11 | 0x14 | 0x18) => true,
-        // Encapsulated interface transport, MEI 0x0E: read device identification.
-        Some(0x2B) => pdu.get(1) == Some(&0x0E),
-        _ => false,
+/// A file record request (0x14 read, 0x15 write): a byte count, then
+/// sub-requests of reference type 6, file, record and length (and, for a
+/// write, the record's data), which must fill the byte count exactly.
+fn file_records(pdu: &[u8], write: bool) -> Result<(), ExceptionCode> {
+    let bad = Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+    let Some(&count) = pdu.get(1) else {
+        return bad;
+    };
+    let (min, max) = if write { (9, 0xFB) } else { (7, 0xF5) };
+    if !(min..=max).contains(&count) || pdu.len() != 2 + usize::from(count) {
+        return bad;
     }
+    let mut at = 2;
+    while at < pdu.len() {
+        let (Some(6), Some(length)) = (pdu.get(at), be_u16(pdu, at + 5)) else {
+            return bad;
+        };
+        at += 7 + if write { 2 * usize::from(length) } else { 0 };
+    }
+    if at == pdu.len() { Ok(()) } else { bad }
 }
 
-/// True for the write function codes the specification allows as a
-/// broadcast (unit 0); a read broadcast has nobody to answer it.
+/// True when the request only reads: the function codes the specification
+/// defines as reads, diagnostics' sub-functions that return data, and the
+/// device identification read of 0x2B. Anything else, unknown codes
+/// included, may change a drive: it goes to the control core, which
+/// decides on it (and audits it).
+pub fn reads_only(pdu: &[u8]) -> bool {
+    effect(pdu) == Effect::Read
+}
+
+/// True for a request that may be broadcast (unit 0): anything that is
+/// not a read, whose reply nobody would send (read/write multiple reads
+/// too). Whether it goes is the control core's to decide.
 pub fn broadcastable(pdu: &[u8]) -> bool {
-    matches!(pdu.first(), Some(0x05 | 0x06 | 0x0F | 0x10 | 0x16))
+    !reads_only(pdu) && pdu.first() != Some(&READ_WRITE_MULTIPLE_REGISTERS)
+}
+
+/// The reply a client gets for its write `pdu` when the drive confirmed
+/// it with `reply`: as it came, except for a mask write, which went to the
+/// drive as a 0x06 and is answered, as the specification says, with the
+/// request echoed. An exception reply goes back under the client's
+/// function code.
+pub fn reply_to(pdu: &[u8], mut reply: Vec<u8>) -> Vec<u8> {
+    let function = pdu.first().copied().unwrap_or(0);
+    match reply.first().copied() {
+        Some(f) if f & EXCEPTION_BIT != 0 => {
+            reply[0] = function | EXCEPTION_BIT;
+            reply
+        }
+        Some(WRITE_SINGLE_REGISTER) if function == MASK_WRITE_REGISTER => pdu.to_vec(),
+        _ => reply,
+    }
 }
 
 /// The reply a device gives to a write it carried out, built from the
@@ -145,6 +198,41 @@ mod tests {
         // codes the specification leaves open pass unchecked
         assert_eq!(check_shape(&[0x41, 1, 2, 3]), Ok(()));
         assert_eq!(check_shape(&[0x2B, 0x0E, 0x01, 0x00]), Ok(()));
+        assert_eq!(check_shape(&[0x2B, 0x0D, 0x00, 0x01]), Ok(()));
+        // read file record: file 4, record 1, 2 registers; FIFO at 0x04DE
+        assert_eq!(check_shape(&[0x14, 7, 6, 0, 4, 0, 1, 0, 2]), Ok(()));
+        assert_eq!(check_shape(&[0x18, 0x04, 0xDE]), Ok(()));
+        // write file record: file 4, record 7, one register 0x06AF
+        assert_eq!(
+            check_shape(&[0x15, 9, 6, 0, 4, 0, 7, 0, 1, 0x06, 0xAF]),
+            Ok(())
+        );
+    }
+
+    #[test]
+    fn file_fifo_and_identification_requests_must_fit_their_layout() {
+        // byte count that does not match, reference type other than 6
+        assert_eq!(check_shape(&[0x14, 8, 6, 0, 4, 0, 1, 0, 2]), VALUE);
+        assert_eq!(check_shape(&[0x14, 7, 5, 0, 4, 0, 1, 0, 2]), VALUE);
+        assert_eq!(check_shape(&[0x14]), VALUE);
+        // write file record whose length says 2 registers but carries 1
+        assert_eq!(
+            check_shape(&[0x15, 9, 6, 0, 4, 0, 7, 0, 2, 0x06, 0xAF]),
+            VALUE
+        );
+        assert_eq!(check_shape(&[0x18, 0x04]), VALUE);
+        assert_eq!(check_shape(&[0x2B, 0x0E, 0x05, 0x00]), VALUE);
+        assert_eq!(check_shape(&[0x2B, 0x0E, 0x01]), VALUE);
+    }
+
+    #[test]
+    fn a_mask_write_sent_as_0x06_is_answered_with_its_echo() {
+        let mask = [0x16, 0x00, 0x06, 0x00, 0x00, 0x00, 0x64];
+        assert_eq!(reply_to(&mask, vec![0x06, 0x00, 0x06, 0x00, 0x64]), mask);
+        assert_eq!(reply_to(&mask, vec![0x86, 0x03]), [0x96, 0x03]);
+        let single = [0x06, 0x00, 0x06, 0x00, 0x64];
+        assert_eq!(reply_to(&single, single.to_vec()), single);
+        assert_eq!(reply_to(&single, vec![0x86, 0x04]), [0x86, 0x04]);
     }
 
     #[test]
@@ -189,10 +277,15 @@ mod tests {
         assert!(reads_only(&[0x2B, 0x0E, 0x01, 0x00]));
         assert!(!reads_only(&[0x2B, 0x0D, 0x00]));
         for write in [0x05, 0x06, 0x0F, 0x10, 0x15, 0x16, 0x17, 0x08, 0x41] {
-            assert!(!reads_only(&[write, 0, 0, 0, 0]), "0x{write:02X}");
+            assert!(!reads_only(&[write, 0, 1, 0, 0]), "0x{write:02X}");
         }
+        // Diagnostics that only return data are reads; a restart is not.
+        assert!(reads_only(&[0x08, 0x00, 0x0B, 0x00, 0x00]));
+        assert!(!reads_only(&[0x08, 0x00, 0x01, 0x00, 0x00]));
         assert!(broadcastable(&[0x06, 0, 2, 0, 0]));
+        assert!(broadcastable(&[0x41, 0, 2]));
         assert!(!broadcastable(&[0x03, 0, 0xC0, 0, 7]));
+        assert!(!broadcastable(&[0x17, 0, 0xC0, 0, 7, 0, 6, 0, 1, 2, 0, 0]));
     }
 
     #[test]

@@ -1,25 +1,32 @@
-//! The accept loop: checks each new client's network and the connection
-//! limit, then gives it a task of its own.
+//! The accept loop: checks each new client's network, the per-address cap
+//! and the connection limit, then gives it a task of its own.
 //!
 //! The limit is a semaphore of `max_connections` permits, each connection
 //! task holding one: a client beyond the limit is closed at once rather than
 //! left waiting in the backlog, so a SCADA system retrying sees the refusal
-//! and the gateway never holds more sockets than it was sized for.
-//! Connection tasks are tracked, so a stop waits for every one of them to
-//! close (each watches the same shutdown token).
+//! and the gateway never holds more sockets than it was sized for. One
+//! address holds at most `max_connections_per_address` of them
+//! ([`Addresses`]), so idle sockets from one host cannot lock the others
+//! out. Refusals are counted, and logged once per address and burst
+//! ([`RefusalLog`]). Connection tasks are tracked, so a stop waits for every
+//! one of them to close (each watches the same shutdown token).
 
+use std::net::SocketAddr;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use tokio::net::TcpListener;
-use tokio::sync::Semaphore;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
 use super::access::{Rights, SharedAccess};
+use super::addresses::{AddressSlot, Addresses};
 use super::connection::{self, ConnectionSettings};
 use super::gateway::{Client, Gateway};
+use super::refusals::{QUIET, RefusalLog, Refused, Report};
+use crate::metrics::Metrics;
 
 /// What the accept loop enforces.
 #[derive(Debug, Clone)]
@@ -28,8 +35,99 @@ pub struct ServerSettings {
     pub access: SharedAccess,
     /// Connections served at once.
     pub max_connections: usize,
+    /// Connections one address may hold at once.
+    pub max_connections_per_address: usize,
     /// Limits of each connection.
     pub connection: ConnectionSettings,
+}
+
+/// A connection's places: one of the listener's, one of its address's.
+struct Admitted {
+    _slot: OwnedSemaphorePermit,
+    _address: AddressSlot,
+}
+
+/// The limits of one listener, and the log of what they refused.
+struct Admission {
+    /// "Modbus TCP" or "Modbus/TCP Security", for the log.
+    face: &'static str,
+    slots: Arc<Semaphore>,
+    max_connections: usize,
+    addresses: Arc<Addresses>,
+    log: RefusalLog,
+    metrics: Arc<Metrics>,
+}
+
+impl Admission {
+    fn new(face: &'static str, settings: &ServerSettings, metrics: Arc<Metrics>) -> Self {
+        Admission {
+            face,
+            slots: Arc::new(Semaphore::new(settings.max_connections)),
+            max_connections: settings.max_connections,
+            addresses: Addresses::new(settings.max_connections_per_address),
+            log: RefusalLog::default(),
+            metrics,
+        }
+    }
+
+    /// Places for a client at `peer`: its address's first, so that one
+    /// host's surplus is refused as such, then the listener's.
+    fn admit(&mut self, peer: SocketAddr) -> Option<Admitted> {
+        let Some(address) = self.addresses.take(peer.ip()) else {
+            self.refuse(peer, Refused::PerAddress);
+            return None;
+        };
+        let Ok(slot) = self.slots.clone().try_acquire_owned() else {
+            self.refuse(peer, Refused::Limit);
+            return None;
+        };
+        Some(Admitted {
+            _slot: slot,
+            _address: address,
+        })
+    }
+
+    /// Counts a refusal, and logs it if it is the first of its address's
+    /// burst.
+    fn refuse(&mut self, peer: SocketAddr, reason: Refused) {
+        self.metrics.faces().tcp_rejected(reason.label());
+        let before = match self.log.refused(peer.ip(), reason, Instant::now()) {
+            Report::Quiet => return,
+            Report::Log { before } => before,
+            Report::LogMany => {
+                warn!(
+                    "{} connections refused from more than {} addresses at once ({}); further refusals of addresses not yet logged are counted in drivegate_modbus_tcp_connections_rejected_total, not logged",
+                    self.face,
+                    super::refusals::CAPACITY,
+                    reason.label()
+                );
+                return;
+            }
+        };
+        let why = match reason {
+            Refused::NotAllowed => "the address is in none of the networks of [modbus_tcp] allowed_networks (not set: loopback only) and [[modbus_tcp.clients]]; to let it in, add a [[modbus_tcp.clients]] entry with its network and a role".to_string(),
+            Refused::PerAddress => format!(
+                "the address holds {} connections already, the most one address may ([modbus_tcp] max_connections_per_address)",
+                self.addresses.limit()
+            ),
+            Refused::Limit => format!(
+                "{} connections are open ([modbus_tcp] max_connections)",
+                self.max_connections
+            ),
+        };
+        let last = if before > 1 {
+            format!(" Its last burst: {before} refused.")
+        } else {
+            String::new()
+        };
+        warn!(
+            client = %peer,
+            "{} connection refused: {why}. Further refusals of this address are counted (drivegate_modbus_tcp_connections_rejected_total{{reason=\"{}\"}}), not logged, until it has been quiet for {} s.{last}",
+            self.face,
+            reason.label(),
+            QUIET.as_secs()
+        );
+    }
 }
 
 /// Accepts clients until `shutdown` fires, then waits for their connections
@@ -41,7 +139,7 @@ pub async fn run(
     shutdown: CancellationToken,
 ) {
     let metrics = gateway.metrics().clone();
-    let slots = Arc::new(Semaphore::new(settings.max_connections));
+    let mut admission = Admission::new("Modbus TCP", &settings, metrics.clone());
     let tracker = TaskTracker::new();
     loop {
         let accepted = tokio::select! {
@@ -63,13 +161,10 @@ pub async fn run(
             }
         };
         let Some(rights) = settings.access.rights(peer.ip()) else {
-            metrics.faces().tcp_rejected("not_allowed");
-            warn!(client = %peer, "Modbus TCP connection refused: the address is in none of the networks of [modbus_tcp] allowed_networks and clients");
+            admission.refuse(peer, Refused::NotAllowed);
             continue;
         };
-        let Ok(permit) = slots.clone().try_acquire_owned() else {
-            metrics.faces().tcp_rejected("limit");
-            warn!(client = %peer, "Modbus TCP connection refused: {} connections are open (max_connections)", settings.max_connections);
+        let Some(permit) = admission.admit(peer) else {
             continue;
         };
         // Replies are small and latency matters more than packet count.
@@ -151,7 +246,8 @@ fn identify(
 /// handshake (a client certificate of `client_ca` required) runs in the
 /// connection's task within the idle timeout, then the client's role comes
 /// from its certificate and it is served as a plain client of that role
-/// would be. The connection limit is the plain listener's own count.
+/// would be. The connection limits are the plain listener's, counted on
+/// their own.
 pub async fn run_tls(
     listener: TcpListener,
     gateway: Arc<Gateway>,
@@ -160,7 +256,7 @@ pub async fn run_tls(
     shutdown: CancellationToken,
 ) {
     let metrics = gateway.metrics().clone();
-    let slots = Arc::new(Semaphore::new(settings.max_connections));
+    let mut admission = Admission::new("Modbus/TCP Security", &settings, metrics.clone());
     let tracker = TaskTracker::new();
     let tls = Arc::new(tls);
     loop {
@@ -180,9 +276,7 @@ pub async fn run_tls(
                 }
             }
         };
-        let Ok(permit) = slots.clone().try_acquire_owned() else {
-            metrics.faces().tcp_rejected("limit");
-            warn!(client = %peer, "Modbus/TCP Security connection refused: {} connections are open (max_connections)", settings.max_connections);
+        let Some(permit) = admission.admit(peer) else {
             continue;
         };
         if let Err(e) = stream.set_nodelay(true) {

@@ -80,6 +80,8 @@ pub fn problem(caller: &Caller, failure: &Failure, ctx: BusContext<'_>) -> Probl
                 format!("{}: send \"only_drive_on_bus\": true", refusal.detail),
             ),
             Rule::LeaseLength { .. } => lease_problem(refusal),
+            // Only a passthrough face sends what the core cannot decode.
+            Rule::NotDecoded => Problem::new(Kind::InvalidRequest, refusal.detail.clone()),
         },
         other => match other.bus_error() {
             Some(e) => Problem::bus(&e, ctx),

@@ -4,6 +4,13 @@
 //! rule), each face rendering it in its own terms. A rule that held for one
 //! face and not another would show here as a row that differs.
 //!
+//! Over Modbus TCP each write goes in every framing the specification
+//! allows for it: as the manual's 0x06 or 0x10, as a mask write (0x16, AND
+//! mask 0) and as the write of a read/write multiple (0x17); each must come
+//! out the same. A second table sends every function code the Modbus
+//! application protocol defines, from each role, and checks on the
+//! simulator's own counters what reached the wire.
+//!
 //! HTTP and the stream take the role of a token; Modbus TCP the role of the
 //! client's network: the client connects from 127.0.0.2 (viewer),
 //! 127.0.0.3 (operator), 127.0.0.1 (admin, the default allowed network) or
@@ -125,7 +132,8 @@ struct Case {
     http: (&'static str, &'static str, Value),
     /// The stream's command: op, `drive` or `bus` field, body.
     stream: (&'static str, (&'static str, &'static str), Value),
-    /// Unit and PDU over Modbus TCP (`None`: the face has no such request).
+    /// Unit and PDU over Modbus TCP in the manual's framing (`None`: the
+    /// face has no such request); sent in every framing of [`framings`].
     modbus: Option<(u8, Vec<u8>)>,
     /// Device and DCMD metric over MQTT (`None`: the face has no such
     /// request).
@@ -139,6 +147,38 @@ fn inertia_saved(ratio: u16) -> Vec<u8> {
     pdu.extend_from_slice(&ratio.to_be_bytes());
     pdu.extend_from_slice(&[0x00, 0x01]);
     pdu
+}
+
+/// Every framing of the write `pdu` (a 0x06 or a 0x10 of the manual) that
+/// the specification has: itself; a 0x06 as a mask write with an AND mask
+/// of 0; to one unit, the write of a read/write multiple that reads the
+/// status block after it (unit 0 cannot be sent a read).
+fn framings(unit: u8, pdu: &[u8]) -> Vec<Vec<u8>> {
+    let mut out = vec![pdu.to_vec()];
+    if pdu[0] == 0x06 {
+        out.push(vec![0x16, pdu[1], pdu[2], 0, 0, pdu[3], pdu[4]]);
+    }
+    if unit != 0 {
+        let mut rw = vec![0x17, 0x00, 0xC0, 0x00, 0x07];
+        if pdu[0] == 0x06 {
+            rw.extend_from_slice(&[pdu[1], pdu[2], 0x00, 0x01, 0x02, pdu[3], pdu[4]]);
+        } else {
+            rw.extend_from_slice(&pdu[1..]);
+        }
+        out.push(rw);
+    }
+    out
+}
+
+/// The reply a write in framing `pdu` gets when it is carried out.
+fn done(pdu: &[u8]) -> Vec<u8> {
+    match pdu[0] {
+        // 0x06 and 0x16 echo the request; 0x10 answers address and count.
+        0x06 | 0x16 => pdu.to_vec(),
+        0x10 => pdu[..5].to_vec(),
+        // 0x17: the status block read after the write.
+        _ => vec![0x17, 14],
+    }
 }
 
 fn cases() -> Vec<Case> {
@@ -264,6 +304,23 @@ async fn stream_command(ws: &mut Ws, id: u64, case: &Case) -> Value {
     .await
 }
 
+/// `case` over Modbus TCP, from the network of its role, in every framing
+/// of its write `manual` to `unit`.
+async fn modbus_case(tcp: SocketAddr, case: &Case, unit: u8, manual: &[u8], label: &str) {
+    let mut plc = modbus_from(tcp, case.who.source()).await;
+    for pdu in framings(unit, manual) {
+        let answer = plc.ask(unit, &pdu).await;
+        let label = format!("{label} as 0x{:02X}", pdu[0]);
+        match case.expect.modbus() {
+            Some(code) => assert_eq!(answer, [pdu[0] | 0x80, code], "Modbus TCP: {label}"),
+            None => {
+                let want = done(&pdu);
+                assert_eq!(&answer[..want.len()], want, "Modbus TCP: {label}")
+            }
+        }
+    }
+}
+
 async fn http_request(api: &Api, case: &Case) -> crate::support::api::Reply {
     let (method, path, body) = &case.http;
     match (*method, body) {
@@ -358,19 +415,9 @@ async fn every_rule_decides_the_same_through_every_face() {
                 );
             }
 
-            // Modbus TCP, from the network of the same role.
-            if let Some((unit, pdu)) = &case.modbus {
-                let mut plc = modbus_from(tcp, case.who.source()).await;
-                let answer = plc.ask(*unit, pdu).await;
-                match case.expect.modbus() {
-                    Some(code) => assert_eq!(
-                        answer,
-                        [pdu[0] | 0x80, code],
-                        "Modbus TCP: {label}"
-                    ),
-                    // 0x06 echoes the request; 0x10 answers address and count.
-                    None => assert_eq!(answer.as_slice(), &pdu[..5], "Modbus TCP: {label}"),
-                }
+            // Modbus TCP, from the network of the same role, in every framing.
+            if let Some((unit, manual)) = &case.modbus {
+                modbus_case(tcp, &case, *unit, manual, &label).await;
             }
 
             // MQTT, whose role is the operator's.
@@ -399,15 +446,15 @@ async fn every_rule_decides_the_same_through_every_face() {
         assert_eq!(over_mqtt, 3, "the operator's setpoints and brake over MQTT");
 
         // What the table did to the drives: a setpoint without a lease left
-        // none; the forced saves (one per face) reached flash while the
-        // conveyor turned; nothing moved the turntable; no drive took
-        // address 9.
+        // none; the forced saves (HTTP, the stream, Modbus TCP's 0x10 and
+        // 0x17) reached flash while the conveyor turned; nothing moved the
+        // turntable; no drive took address 9.
         assert!(
             admin.get("/api/v1/drives/lift").await.expect(200)["lease"].is_null(),
             "a setpoint without a lease took one"
         );
         let conveyor = d.sim().drive(1).unwrap();
-        assert_eq!(conveyor.saves_while_moving, 3);
+        assert_eq!(conveyor.saves_while_moving, 4);
         assert_eq!(conveyor.flash.settings.inertia_ratio, 3);
         assert_eq!(d.sim().drive(3).unwrap().setpoints.speed_rpm, 0);
         assert!(d.sim().drive(9).is_none());
@@ -416,4 +463,238 @@ async fn every_rule_decides_the_same_through_every_face() {
     })
     .await
     .expect("test finished in time");
+}
+
+/// What becomes of a function code, whoever sends it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Fate {
+    /// A read: passed to the drive for every role (the drive has 0x03
+    /// only, and answers the others with its own 0x01, on the wire).
+    Read,
+    /// A register write the core decodes, here a setting (STALLED_DURATION_MS):
+    /// an admin's work, carried out; 0x01 for the others, off the wire.
+    Setting,
+    /// What the core cannot decode: 0x01 for every role, off the wire.
+    NotDecoded,
+    /// Listed in `raw_functions`: an admin's goes to the drive unchecked
+    /// (which answers 0x01 on the wire); 0x01 for the others, off the wire.
+    Raw,
+}
+
+/// Every function code of the Modbus application protocol V1.1b3 (and the
+/// sub-functions of 0x08 and the MEI types of 0x2B), with its fate. A
+/// setting's value is `STALL` + its row, so each write can be told on the
+/// drive.
+fn function_codes() -> Vec<(String, Vec<u8>, Fate)> {
+    let mut rows: Vec<(String, Vec<u8>, Fate)> = vec![
+        (
+            "0x01".into(),
+            vec![0x01, 0x00, 0x00, 0x00, 0x08],
+            Fate::Read,
+        ),
+        (
+            "0x02".into(),
+            vec![0x02, 0x00, 0x00, 0x00, 0x08],
+            Fate::Read,
+        ),
+        (
+            "0x03".into(),
+            vec![0x03, 0x00, 0xC0, 0x00, 0x07],
+            Fate::Read,
+        ),
+        (
+            "0x04".into(),
+            vec![0x04, 0x00, 0xC0, 0x00, 0x07],
+            Fate::Read,
+        ),
+        (
+            "0x05".into(),
+            vec![0x05, 0x00, 0x01, 0xFF, 0x00],
+            Fate::NotDecoded,
+        ),
+        ("0x06".into(), vec![0x06, 0x00, 0x0E], Fate::Setting),
+        ("0x07".into(), vec![0x07], Fate::Read),
+        (
+            "0x08/0000".into(),
+            vec![0x08, 0x00, 0x00, 0xA5, 0x37],
+            Fate::Read,
+        ),
+        ("0x0B".into(), vec![0x0B], Fate::Read),
+        ("0x0C".into(), vec![0x0C], Fate::Read),
+        (
+            "0x0F".into(),
+            vec![0x0F, 0x00, 0x00, 0x00, 0x0A, 0x02, 0xFF, 0x03],
+            Fate::NotDecoded,
+        ),
+        (
+            "0x10".into(),
+            vec![0x10, 0x00, 0x0E, 0x00, 0x01, 0x02],
+            Fate::Setting,
+        ),
+        ("0x11".into(), vec![0x11], Fate::Read),
+        (
+            "0x14".into(),
+            vec![0x14, 0x07, 0x06, 0x00, 0x04, 0x00, 0x01, 0x00, 0x02],
+            Fate::Read,
+        ),
+        (
+            "0x15".into(),
+            vec![
+                0x15, 0x09, 0x06, 0x00, 0x04, 0x00, 0x07, 0x00, 0x01, 0x06, 0xAF,
+            ],
+            Fate::NotDecoded,
+        ),
+        (
+            "0x16".into(),
+            vec![0x16, 0x00, 0x0E, 0x00, 0x00],
+            Fate::Setting,
+        ),
+        (
+            "0x16 keeping bits".into(),
+            vec![0x16, 0x00, 0x0E, 0xFF, 0x00, 0x00, 0x05],
+            Fate::NotDecoded,
+        ),
+        (
+            "0x17".into(),
+            vec![0x17, 0x00, 0x0E, 0x00, 0x01, 0x00, 0x0E, 0x00, 0x01, 0x02],
+            Fate::Setting,
+        ),
+        ("0x18".into(), vec![0x18, 0x04, 0xDE], Fate::Read),
+        ("0x2B/0E".into(), vec![0x2B, 0x0E, 0x01, 0x00], Fate::Read),
+        (
+            "0x2B/0D".into(),
+            vec![0x2B, 0x0D, 0x00, 0x01],
+            Fate::NotDecoded,
+        ),
+        ("0x41 listed".into(), vec![0x41, 0x12, 0x34], Fate::Raw),
+    ];
+    rows.extend(diagnostics_and_others());
+    rows
+}
+
+/// The rows of diagnostics' sub-functions (those that return data are
+/// reads; restart, delimiter, listen only, the clears and the reserved
+/// ones are not), the user-defined codes (but 0x41, listed), the reserved
+/// ones, and codes the specification does not define.
+fn diagnostics_and_others() -> Vec<(String, Vec<u8>, Fate)> {
+    let diag = |sub: u16| {
+        let [hi, lo] = sub.to_be_bytes();
+        vec![0x08, hi, lo, 0x00, 0x00]
+    };
+    let mut rows = Vec::new();
+    // Diagnostics: the sub-functions that return data are reads; restart,
+    // delimiter, listen only, the clears and the reserved ones are not.
+    for sub in [0x02, 0x0B, 0x0C, 0x0D, 0x0E, 0x0F, 0x10, 0x11, 0x12] {
+        rows.push((format!("0x08/{sub:04X}"), diag(sub), Fate::Read));
+    }
+    for sub in [0x01, 0x03, 0x04, 0x05, 0x0A, 0x13, 0x14, 0x15] {
+        rows.push((format!("0x08/{sub:04X}"), diag(sub), Fate::NotDecoded));
+    }
+    // User-defined (but 0x41, listed), reserved, and codes the
+    // specification does not define.
+    let others = (0x42..=0x48)
+        .chain(0x64..=0x6E)
+        .chain([
+            0x09, 0x0A, 0x0D, 0x0E, 0x29, 0x2A, 0x5A, 0x5B, 0x7D, 0x7E, 0x7F,
+        ])
+        .chain([0x12, 0x19, 0x20, 0x30, 0x50, 0x7B]);
+    for code in others {
+        rows.push((
+            format!("0x{code:02X}"),
+            vec![code, 0x00, 0x01],
+            Fate::NotDecoded,
+        ));
+    }
+    rows
+}
+
+/// STALLED_DURATION_MS's value of row `row`: distinct, in range.
+fn stall_value(row: usize, who: Who) -> u16 {
+    1000 + 10 * row as u16 + who as u16
+}
+
+/// `pdu` of a setting row completed with `value` (for a mask write, its
+/// OR mask).
+fn with_value(pdu: &[u8], value: u16) -> Vec<u8> {
+    let mut pdu = pdu.to_vec();
+    pdu.extend_from_slice(&value.to_be_bytes());
+    pdu
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_function_code_of_the_specification_is_decided_by_the_core() {
+    tokio::time::timeout(LIMIT, async {
+        let networks = "raw_functions = [0x41]\n\
+            [[modbus_tcp.clients]]\nnetwork = \"127.0.0.2/32\"\nrole = \"viewer\"\n\
+            [[modbus_tcp.clients]]\nnetwork = \"127.0.0.3/32\"\nrole = \"operator\"\n";
+        let d = TestDaemon::start(&config("", networks, false, "")).await;
+        let tcp = d.modbus_tcp.unwrap();
+        const LIFT: u8 = 2;
+        // The simulator's own count of the exceptions it answered: every
+        // function but 0x03, 0x06 and 0x10 that reaches a drive is one.
+        let on_wire = || d.sim().stats().exceptions;
+        let mut checked = 0;
+        for who in [Who::Viewer, Who::Operator, Who::Admin] {
+            let mut plc = modbus_from(tcp, who.source()).await;
+            for (row, (name, pdu, fate)) in function_codes().into_iter().enumerate() {
+                let label = format!("{name} by {who:?}");
+                let value = stall_value(row, who);
+                let pdu = match fate {
+                    Fate::Setting => with_value(&pdu, value),
+                    _ => pdu,
+                };
+                let before = on_wire();
+                let answer = plc.ask(LIFT, &pdu).await;
+                let refused = [pdu[0] | 0x80, 0x01];
+                match (fate, who) {
+                    (Fate::Read, _) if pdu[0] == 0x03 => {
+                        assert_eq!(answer[..2], [0x03, 14], "{label}");
+                        assert_eq!(on_wire(), before, "{label}");
+                    }
+                    // The drive's own 0x01, on the wire.
+                    (Fate::Read, _) | (Fate::Raw, Who::Admin) => {
+                        assert_eq!(answer, refused, "{label}");
+                        assert_eq!(on_wire(), before + 1, "{label}: on the wire");
+                    }
+                    (Fate::Setting, Who::Admin) => {
+                        assert_eq!(answer[0], pdu[0], "{label}: {answer:02X?}");
+                        let written = d.sim().drive(LIFT).unwrap().settings.stall_duration_ms;
+                        assert_eq!(written, value, "{label}: the drive took it");
+                    }
+                    // Refused by the core, before the wire.
+                    _ => {
+                        assert_eq!(answer, refused, "{label}");
+                        assert_eq!(on_wire(), before, "{label}: off the wire");
+                        let stall = d.sim().drive(LIFT).unwrap().settings.stall_duration_ms;
+                        assert_ne!(stall, value, "{label}: the drive took it");
+                    }
+                }
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, 3 * function_codes().len());
+        // Nothing the core refused was sent as a broadcast either.
+        let mut admin = modbus_from(tcp, Who::Admin.source()).await;
+        for pdu in [
+            vec![0x05, 0x00, 0x01, 0xFF, 0x00],
+            vec![0x41, 0x12, 0x34],
+            vec![0x08, 0x00, 0x04, 0x00, 0x00],
+        ] {
+            admin.send(9, 0, &pdu).await;
+        }
+        assert_eq!(
+            registers_of(&admin.ask(LIFT, &[0x03, 0x00, 0xC0, 0x00, 0x01]).await),
+            1
+        );
+        assert_eq!(d.sim().stats().broadcasts, 0);
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// How many registers a 0x03 reply carries.
+fn registers_of(reply: &[u8]) -> usize {
+    assert_eq!(reply[0], 0x03, "{reply:02X?}");
+    usize::from(reply[1]) / 2
 }

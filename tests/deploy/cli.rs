@@ -118,3 +118,44 @@ async fn a_token_made_by_the_tool_authenticates_once_pasted() {
             .contains("role must be one of viewer, operator, admin")
     );
 }
+
+#[test]
+fn check_config_warns_of_plain_admin_networks_and_the_old_default() {
+    let dir = tempfile::tempdir().unwrap();
+    let check = |name: &str, modbus_tcp: &str| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, format!("[modbus_tcp]\n{modbus_tcp}\n")).unwrap();
+        let out = drivegate().arg("check-config").arg(&path).output().unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    // A plant network with the admin role over plain Modbus TCP.
+    let out = check(
+        "admin.toml",
+        "listen = \"0.0.0.0:502\"\nallowed_networks = [\"127.0.0.0/8\", \"10.0.0.0/8\"]",
+    );
+    let warnings: Vec<&str> = out.lines().filter(|l| l.starts_with("warning: ")).collect();
+    assert_eq!(warnings.len(), 1, "{out}");
+    assert!(
+        warnings[0].contains("gives 10.0.0.0/8 the admin role over plain Modbus TCP")
+            && warnings[0].contains("Modbus/TCP Security"),
+        "{out}"
+    );
+    // A file that relied on the private ranges being let in by default.
+    let out = check("old.toml", "listen = \"0.0.0.0:502\"");
+    assert!(
+        out.contains("warning: Modbus TCP listens on 0.0.0.0:502 but admits loopback only")
+            && out.contains("[[modbus_tcp.clients]]"),
+        "{out}"
+    );
+    // Plant networks with a role each, on loopback: nothing to say.
+    let out = check(
+        "new.toml",
+        "[[modbus_tcp.clients]]\nnetwork = \"10.0.5.0/24\"\nrole = \"operator\"",
+    );
+    assert!(!out.contains("warning"), "{out}");
+}

@@ -216,7 +216,9 @@ async fn a_broadcast_reaches_every_drive_and_is_not_answered() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn thirty_two_clients_at_once_each_get_their_own_replies() {
     bounded(LIMIT, async {
-        let d = TestDaemon::start(&drives(8, "", "")).await;
+        // One SCADA host with a connection per drive: more than the default
+        // share of one address (a quarter of max_connections).
+        let d = TestDaemon::start(&drives(8, "max_connections_per_address = 32", "")).await;
         let addr = d.modbus_tcp.unwrap();
         // 32 pymodbus connections at once; each owns one register of one of
         // the 8 drives, writes values only it writes, reads them back and

@@ -1,13 +1,15 @@
 //! Modbus TCP connections under stress, byte by byte: pipelining and reply
 //! order, disconnects while queued, malformed frames, idle timeout,
-//! connection limit, allowed networks, read-only listeners, passthrough of
-//! codes the drive lacks, fairness between connections.
+//! connection limit, the per-address cap under 500 idle sockets, allowed
+//! networks, read-only listeners, passthrough of reads the drive lacks,
+//! fairness between connections.
 
 use std::time::{Duration, Instant};
 
 use crate::support::bounded;
 use crate::support::config::ConfigBuilder;
-use crate::support::metrics::metric;
+use crate::support::logs::{capture_logs, log_text};
+use crate::support::metrics::{exported, metric};
 use crate::support::modbus_tcp::{Raw, four_drives_with, read, registers, write};
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::bus::stats::Outcome;
@@ -218,7 +220,8 @@ async fn idle_connections_time_out() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sixty_four_connections_are_served_at_once() {
     bounded(LIMIT, async {
-        let d = TestDaemon::start(FOUR_DRIVES).await;
+        // All from one address: its cap raised to the whole limit.
+        let d = TestDaemon::start(&four_drives_with("max_connections_per_address = 64")).await;
         let addr = d.modbus_tcp.unwrap();
         let mut clients = Vec::new();
         for _ in 0..64 {
@@ -253,14 +256,18 @@ async fn sixty_four_connections_are_served_at_once() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn connections_beyond_the_limit_are_refused() {
     bounded(LIMIT, async {
-        let d = TestDaemon::start(&four_drives_with("max_connections = 2")).await;
+        let d = TestDaemon::start(&four_drives_with(
+            "max_connections = 2\nmax_connections_per_address = 2",
+        ))
+        .await;
         let addr = d.modbus_tcp.unwrap();
         let mut one = Raw::connect(addr).await;
         let mut two = Raw::connect(addr).await;
         assert_eq!(registers(&one.ask(1, &read(0xC0, 7)).await).len(), 7);
         assert_eq!(registers(&two.ask(1, &read(0xC0, 7)).await).len(), 7);
-        let mut three = Raw::connect(addr).await;
-        three.send(1, 1, &read(0xC0, 7)).await;
+        // From another address, whose own cap is far: the listener's limit.
+        let mut three = Raw::from_stream(connect_from("127.0.0.2", addr).await);
+        try_send(&mut three, 1, &read(0xC0, 7)).await;
         assert!(three.closed_by_server().await);
         let text = d.metrics.render();
         assert_eq!(
@@ -287,6 +294,116 @@ async fn connections_beyond_the_limit_are_refused() {
             7
         );
         assert_eq!(registers(&two.ask(1, &read(0xC0, 7)).await).len(), 7);
+        d.stop().await;
+    })
+    .await;
+}
+
+/// Sends a request to unit 1 on `c` as transaction `transaction`, if the
+/// server has not closed it already (a refused connection may be reset
+/// before the bytes go).
+async fn try_send(c: &mut Raw, transaction: u16, pdu: &[u8]) {
+    use tokio::io::AsyncWriteExt;
+    let bytes = crate::support::modbus_tcp::frame(transaction, 1, pdu);
+    let _ = c.stream.write_all(&bytes).await;
+}
+
+/// A connection from `source` to `addr`, without waiting for anything.
+async fn connect_from(source: &str, addr: std::net::SocketAddr) -> tokio::net::TcpStream {
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.bind(format!("{source}:0").parse().unwrap()).unwrap();
+    tokio::time::timeout(Duration::from_secs(10), socket.connect(addr))
+        .await
+        .expect("connect in time")
+        .expect("connect")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn five_hundred_idle_connections_from_one_address_leave_room_for_the_others() {
+    capture_logs();
+    bounded(Duration::from_secs(120), async {
+        // The defaults: 64 connections, 16 per address; idle ones closed
+        // after 3 s.
+        let d = TestDaemon::start(&four_drives_with("idle_timeout_ms = 3000")).await;
+        let addr = d.modbus_tcp.unwrap();
+        // A fresh /metrics has every refusal's series, and the outcome of
+        // what the core cannot decode, at 0.
+        let fresh = d.metrics.render();
+        for reason in ["not_allowed", "per_address", "limit"] {
+            let series =
+                format!("drivegate_modbus_tcp_connections_rejected_total{{reason=\"{reason}\"}}");
+            assert_eq!(exported(&fresh, &series), 0.0);
+        }
+        assert_eq!(
+            exported(
+                &fresh,
+                "drivegate_modbus_tcp_requests_total{function=\"0x06\",outcome=\"not_decoded\"}"
+            ),
+            0.0
+        );
+        // 500 sockets from one address (this test's own), that send nothing.
+        let flood = "127.0.0.77";
+        let mut idle = Vec::new();
+        for _ in 0..500 {
+            idle.push(connect_from(flood, addr).await);
+        }
+        let per_address = "drivegate_modbus_tcp_connections_rejected_total{reason=\"per_address\"}";
+        eventually(
+            Duration::from_secs(20),
+            "484 refused for the address",
+            || (metric(&d.metrics.render(), per_address) == 484.0).then_some(()),
+        )
+        .await;
+        // Another address is served at once, and the listener's limit was
+        // never reached.
+        let started = Instant::now();
+        let mut other = Raw::from_stream(connect_from("127.0.0.78", addr).await);
+        assert_eq!(registers(&other.ask(1, &read(0xC0, 7)).await).len(), 7);
+        let served_in = started.elapsed();
+        let text = d.metrics.render();
+        assert_eq!(metric(&text, "drivegate_modbus_tcp_connections"), 17.0);
+        assert_eq!(
+            metric(
+                &text,
+                "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}"
+            ),
+            0.0
+        );
+        // One warning for the burst, naming the key.
+        let lines: Vec<String> = log_text()
+            .lines()
+            .filter(|l| l.contains("WARN") && l.contains(&format!("{flood}:")))
+            .map(str::to_string)
+            .collect();
+        assert_eq!(lines.len(), 1, "{lines:#?}");
+        assert!(
+            lines[0].contains("max_connections_per_address")
+                && lines[0].contains("holds 16 connections"),
+            "{}",
+            lines[0]
+        );
+        // Its idle sockets time out; the address is served again within
+        // the idle timeout.
+        let mut again = None;
+        for _ in 0..100 {
+            let mut c = Raw::from_stream(connect_from(flood, addr).await);
+            try_send(&mut c, 5, &read(0xC0, 7)).await;
+            if let Some((5, 1, pdu)) = c.recv().await {
+                again = Some(pdu);
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        assert_eq!(
+            registers(&again.expect("served after the idle timeout")).len(),
+            7
+        );
+        eprintln!(
+            "500 idle connections from {flood}: 16 held, 484 refused, {} warning line(s); \
+             another address served in {served_in:?}",
+            lines.len()
+        );
+        drop(idle);
         d.stop().await;
     })
     .await;
@@ -372,12 +489,14 @@ async fn a_read_only_listener_refuses_writes_with_illegal_function() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn codes_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
+async fn reads_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
     bounded(LIMIT, async {
         let d = TestDaemon::start(FOUR_DRIVES).await;
         let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;
         let (_, bus) = d.plant.drive("conveyor").unwrap();
-        // The drive answers 0x01 itself for codes it lacks: 0x04, 0x01, 0x41.
+        // The drive answers 0x01 itself for reads it lacks: 0x04, 0x01. A
+        // code nobody can decode (0x41, a vendor's) is refused with 0x01 by
+        // the control core, for every role, and never reaches the wire.
         assert_eq!(
             c.ask(1, &[0x04, 0x00, 0xC0, 0x00, 0x07]).await,
             [0x84, 0x01]
@@ -404,13 +523,18 @@ async fn codes_the_drive_lacks_pass_through_and_bad_shapes_stay_off_the_bus() {
             Some(&2),
             "both diagnostics requests on the wire"
         );
-        for function in [0x04, 0x01, 0x41] {
+        for function in [0x04, 0x01] {
             assert_eq!(
                 stats.transactions.get(&(function, Outcome::Exception)),
                 Some(&1),
                 "0x{function:02X} on the wire"
             );
         }
+        assert!(
+            !stats.transactions.keys().any(|(f, _)| *f == 0x41),
+            "0x41 reached the wire: {:?}",
+            stats.transactions
+        );
         // Requests whose length or quantity cannot be right for their code
         // are answered 0x03 by the gateway, as the Modbus specification
         // has a server do, without costing bus time.

@@ -15,3 +15,5 @@ mod buses;
 mod clients;
 mod comm_loss;
 mod connections;
+mod functions;
+mod networks;

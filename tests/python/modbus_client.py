@@ -7,6 +7,10 @@ Usage: modbus_client.py HOST PORT COMMAND ARGS...
   write UNIT ADDRESS VALUE         write single register (0x06)
   write-multiple UNIT ADDRESS V,.. write multiple registers (0x10)
   broadcast ADDRESS VALUE          write single register to unit 0, no reply
+  calls UNIT NAME...               pymodbus's own request for each NAME (see
+                                   CALLS: mask writes, read/write multiple,
+                                   coils, files, diagnostics, device
+                                   identification), one result per name
   swarm CLIENTS ROUNDS DRIVES      CLIENTS connections at once, each writing
                                    its own register on one of DRIVES drives,
                                    reading it back and reading the status
@@ -26,6 +30,7 @@ import sys
 try:
     from pymodbus.client import AsyncModbusTcpClient, ModbusTcpClient
     from pymodbus.exceptions import ModbusException
+    from pymodbus.pdu import FileRecord
 except ImportError:
     print(
         "pymodbus is not installed: install it with `pip install 'pymodbus>=3.10'`",
@@ -42,6 +47,52 @@ def result(response, **fields):
     if response.isError():
         return {"exception": getattr(response, "exception_code", None)}
     return fields
+
+
+# CONFIG (0x0002) = 6 is the factory reset; 0x0024 is INERTIA_RATIO.
+CALLS = {
+    "mask-write-reset": lambda c, u: c.mask_write_register(
+        address=0x0002, and_mask=0x0000, or_mask=0x0006, device_id=u
+    ),
+    "mask-write-keeping-bits": lambda c, u: c.mask_write_register(
+        address=0x0002, and_mask=0xFFF0, or_mask=0x0006, device_id=u
+    ),
+    "mask-write-inertia-9": lambda c, u: c.mask_write_register(
+        address=0x0024, and_mask=0x0000, or_mask=9, device_id=u
+    ),
+    "read-write-reset": lambda c, u: c.readwrite_registers(
+        read_address=0x00C0, read_count=7, write_address=0x0002, values=[6], device_id=u
+    ),
+    "read-write-inertia-5": lambda c, u: c.readwrite_registers(
+        read_address=0x0024, read_count=1, write_address=0x0024, values=[5], device_id=u
+    ),
+    "write-coil": lambda c, u: c.write_coil(1, True, device_id=u),
+    "write-coils": lambda c, u: c.write_coils(0, [True] * 10, device_id=u),
+    "write-file-record": lambda c, u: c.write_file_record(
+        [FileRecord(file_number=4, record_number=7, record_data=b"\x06\xaf")], device_id=u
+    ),
+    "diag-restart": lambda c, u: c.diag_restart_communication(False, device_id=u),
+    "diag-listen-only": lambda c, u: c.diag_force_listen_only(
+        device_id=u, no_response_expected=False
+    ),
+    "diag-clear-counters": lambda c, u: c.diag_clear_counters(device_id=u),
+    "diag-bus-messages": lambda c, u: c.diag_read_bus_message_count(device_id=u),
+    "read-coils": lambda c, u: c.read_coils(0, count=8, device_id=u),
+    "read-input-registers": lambda c, u: c.read_input_registers(0xC0, count=7, device_id=u),
+    "read-exception-status": lambda c, u: c.read_exception_status(device_id=u),
+    "report-server-id": lambda c, u: c.report_device_id(device_id=u),
+    "read-device-information": lambda c, u: c.read_device_information(device_id=u),
+}
+
+
+def outcome(call, client, unit):
+    try:
+        rr = call(client, unit)
+    except (ModbusException, OSError) as e:
+        return {"error": str(e)}
+    if rr.isError():
+        return {"exception": getattr(rr, "exception_code", None)}
+    return {"ok": True, "registers": list(getattr(rr, "registers", []) or [])}
 
 
 def single(host, port, command, args):
@@ -62,12 +113,17 @@ def single(host, port, command, args):
             values = [number(v) for v in args[2].split(",")]
             rr = client.write_registers(address, values, device_id=unit)
             return result(rr, written=True)
+        if command == "calls":
+            unit = number(args[0])
+            return {name: outcome(CALLS[name], client, unit) for name in args[1:]}
         if command == "broadcast":
             address, value = map(number, args)
             client.write_register(address, value, device_id=0, no_response_expected=True)
             return {"sent": True}
         return {"error": f"unknown command {command}"}
-    except ModbusException as e:
+    except (ModbusException, OSError) as e:
+        # A server that refuses the connection closes it, reset when the
+        # request was already in: either way, no answer.
         return {"error": str(e)}
     finally:
         client.close()

@@ -123,6 +123,11 @@ fn request_for(code: u8) -> Vec<u8> {
         0x06 => write(STALL_MS, 1111),
         0x0F => vec![0x0F, 0x00, 0x00, 0x00, 0x08, 0x01, 0xFF],
         0x10 => vec![0x10, 0x00, 0x0E, 0x00, 0x01, 0x02, 0x04, 0x57],
+        0x14 => vec![0x14, 0x07, 0x06, 0x00, 0x04, 0x00, 0x01, 0x00, 0x02],
+        0x15 => vec![
+            0x15, 0x09, 0x06, 0x00, 0x04, 0x00, 0x07, 0x00, 0x01, 0x06, 0xAF,
+        ],
+        0x18 => vec![0x18, 0x04, 0xDE],
         0x16 => vec![0x16, 0x00, 0x0E, 0xFF, 0xFF, 0x00, 0x00],
         0x17 => vec![
             0x17, 0x00, 0xC0, 0x00, 0x01, 0x00, 0x0E, 0x00, 0x01, 0x02, 0x04, 0x57,
@@ -145,12 +150,19 @@ async fn a_read_only_listener_lets_no_function_but_reads_through() {
         // Every function code a request may carry, to a drive and as a
         // broadcast.
         // The gateway's refusals are told from the drive's own 0x01 (for
-        // codes it lacks) by the outcome they are counted under.
+        // codes it lacks) by the outcome they are counted under: a viewer's
+        // write (`read_only`), or, for every role, a code the control core
+        // cannot decode (`not_decoded`).
         let read_only = |code: u8| {
-            counter(
-                &d,
-                &format!("drivegate_modbus_tcp_requests_total{{function=\"0x{code:02x}\",outcome=\"read_only\"}}"),
-            )
+            ["read_only", "not_decoded"]
+                .iter()
+                .map(|outcome| {
+                    counter(
+                        &d,
+                        &format!("drivegate_modbus_tcp_requests_total{{function=\"0x{code:02x}\",outcome=\"{outcome}\"}}"),
+                    )
+                })
+                .sum::<f64>()
         };
         for code in 0x01..=0x7Fu8 {
             let pdu = request_for(code);
@@ -186,7 +198,12 @@ async fn a_read_only_listener_lets_no_function_but_reads_through() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_connection_limit_holds_under_a_flood() {
     tokio::time::timeout(LIMIT, async {
-        let d = daemon("127.0.0.1:0", "max_connections = 4").await;
+        // One address: its cap raised to the whole limit.
+        let d = daemon(
+            "127.0.0.1:0",
+            "max_connections = 4\nmax_connections_per_address = 4",
+        )
+        .await;
         let addr = d.modbus_tcp.unwrap();
         let mut held = Vec::new();
         for _ in 0..4 {
@@ -194,10 +211,18 @@ async fn the_connection_limit_holds_under_a_flood() {
             assert_eq!(registers(&c.ask(1, &read(0xC0, 7)).await).len(), 7);
             held.push(c);
         }
-        let rejected = counter(
-            &d,
-            "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}",
-        );
+        // Refused by the limit, or first by the cap of their address (the
+        // same as the four's), which is the same size here.
+        let rejected = || {
+            counter(
+                &d,
+                "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}",
+            ) + counter(
+                &d,
+                "drivegate_modbus_tcp_connections_rejected_total{reason=\"per_address\"}",
+            )
+        };
+        let before = rejected();
         // 200 more at once, each with a write: none is served, none writes.
         let writes = writes_on_wire(&d.plant);
         let flood: Vec<_> = (0..200).map(|_| tokio::spawn(try_write(addr))).collect();
@@ -212,11 +237,7 @@ async fn the_connection_limit_holds_under_a_flood() {
         }
         assert!(peak <= 4.0, "{peak} connections open at once");
         eventually(Duration::from_secs(5), "200 refusals counted", || {
-            (counter(
-                &d,
-                "drivegate_modbus_tcp_connections_rejected_total{reason=\"limit\"}",
-            ) == rejected + 200.0)
-                .then_some(())
+            (rejected() == before + 200.0).then_some(())
         })
         .await;
         assert_eq!(writes_on_wire(&d.plant), writes);
