@@ -4,13 +4,15 @@
 //! third-party `pysparkplug`: births and bdSeq, rebirth, DDATA by
 //! exception, commands through the control core and their refusals, the
 //! motor-safety lease of MQTT's commands, the NDEATH of a killed daemon,
-//! TLS with the broker's CA.
+//! TLS with the broker's CA, and who may command: a password file and the
+//! ACL of `docs/security.md` (`acl.rs`).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
 #[path = "../support/mod.rs"]
 mod support;
 
+mod acl;
 mod births;
 mod commands;
 mod death;
