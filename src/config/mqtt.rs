@@ -44,8 +44,8 @@ pub struct MqttConfig {
     /// is taken, the face only publishes. Any other needs an authenticated
     /// broker connection (see [`MqttConfig::login`]) or
     /// `unauthenticated_commands`. Read it with [`MqttConfig::commands`].
-    #[serde(default = "no_commands")]
-    pub commands: Spanned<Commands>,
+    #[serde(default)]
+    commands: CommandsKey,
     /// Takes commands over a broker connection that is not authenticated
     /// (no user and password, no client certificate): from whoever can
     /// publish on the broker. Logged at every start.
@@ -251,6 +251,30 @@ impl Commands {
     }
 }
 
+/// `commands` with where the file says it (for an error pointing at it);
+/// compared and shown by its value only.
+#[derive(Clone, Deserialize)]
+#[serde(transparent)]
+struct CommandsKey(Spanned<Commands>);
+
+impl Default for CommandsKey {
+    fn default() -> Self {
+        CommandsKey(Spanned::new(0..0, Commands::None))
+    }
+}
+
+impl PartialEq for CommandsKey {
+    fn eq(&self, other: &Self) -> bool {
+        self.0.get_ref() == other.0.get_ref()
+    }
+}
+
+impl fmt::Debug for CommandsKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.0.get_ref().fmt(f)
+    }
+}
+
 /// How drivegate logs in to the broker: what the broker knows of the
 /// connection its commands arrive on.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -266,7 +290,7 @@ pub enum Login {
 impl MqttConfig {
     /// The role of commands from MQTT (`none`: none are taken).
     pub fn commands(&self) -> Commands {
-        *self.commands.get_ref()
+        *self.commands.0.get_ref()
     }
 
     /// How drivegate logs in to the broker. A user without a password
@@ -302,7 +326,7 @@ impl MqttConfig {
             return Err((0..0, "[mqtt] client_key needs client_cert".to_string()));
         }
         if self.takes_unauthenticated_commands() && !self.unauthenticated_commands {
-            return Err((self.commands.span(), self.unauthenticated_refusal()));
+            return Err((self.commands.0.span(), self.unauthenticated_refusal()));
         }
         Ok(())
     }
@@ -347,10 +371,6 @@ impl MqttConfig {
     pub fn store_max_bytes(&self) -> u64 {
         self.store_max_mb.saturating_mul(1024 * 1024)
     }
-}
-
-fn no_commands() -> Spanned<Commands> {
-    Spanned::new(0..0, Commands::None)
 }
 
 fn default_group() -> String {
