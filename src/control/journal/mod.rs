@@ -11,22 +11,34 @@
 //! (renamed) and never keeps the daemon from starting; a disk that cannot
 //! be written leaves the leases working in memory, with a warning on each
 //! write the journal misses.
+//!
+//! The journal is read from its end ([`tail`]) back to its last clean stop
+//! (nothing before one is owed), its start, or [`READ_BUDGET`] bytes: a
+//! journal this daemon wrote is compacted at 64 KiB (or twice its
+//! snapshot, a few hundred bytes per drive), so one larger than the budget
+//! was not; its older records are skipped, counted and logged, and what
+//! they promised is taken as unknown ([`replay::Recovered::Tail`]).
 
+pub mod chunk;
 pub mod format;
 pub mod replay;
+pub mod tail;
 
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
-use format::{Decoded, Record, Unreadable};
+use format::{Record, Unreadable};
 use replay::{JournalState, Recovered};
+use tail::Wanted;
 
 /// The journal's file name in the state directory.
 pub const FILE: &str = "safety.journal";
 /// Compacted once it is this long (and twice its last snapshot).
 pub const COMPACT_AT: u64 = 64 * 1024;
+/// At most this much of the journal is read at start-up, from its end.
+pub const READ_BUDGET: u64 = 4 * 1024 * 1024;
 
 /// The state directory of `drivegate serve` without a configuration:
 /// `$XDG_STATE_HOME/drivegate`, else `~/.local/state/drivegate`, else
@@ -83,6 +95,8 @@ pub struct Counts {
     pub unreadable: u64,
     /// Bytes of the file.
     pub bytes: u64,
+    /// Bytes of older records skipped unread at start-up.
+    pub skipped_bytes: u64,
 }
 
 /// The open journal.
@@ -110,6 +124,78 @@ pub struct Opened {
     pub news: Vec<String>,
 }
 
+/// What reading the journal at start-up found.
+struct ReadBack {
+    /// The state its records come to.
+    state: JournalState,
+    /// Everything owed is known: it was read back to its start or to its
+    /// last clean stop.
+    whole: bool,
+    /// Bytes of older records skipped.
+    skipped: u64,
+    /// What is worth saying, in words.
+    news: Vec<String>,
+}
+
+/// Reads the journal at `path` from its end back to its last clean stop,
+/// its start, or [`READ_BUDGET`].
+fn read(path: &Path) -> Result<ReadBack, Unreadable> {
+    let mut newest_first: Vec<Record> = Vec::new();
+    let mut clean = false;
+    let read = tail::read_from_end(path, format::SAFETY_JOURNAL, READ_BUDGET, |records| {
+        for r in records.into_iter().rev() {
+            if matches!(r, Record::Shutdown) {
+                clean = true;
+                return Wanted::Enough;
+            }
+            newest_first.push(r);
+        }
+        Wanted::More
+    })?;
+    let Some(read) = read else {
+        return Ok(ReadBack {
+            state: JournalState::default(),
+            whole: true,
+            skipped: 0,
+            news: Vec::new(),
+        });
+    };
+    newest_first.reverse();
+    let mut news = Vec::new();
+    if read.torn > 0 {
+        news.push(format!(
+            "the safety journal {} ended in a record cut short ({} bytes, a write the power cut or the crash interrupted); it was left out",
+            path.display(),
+            read.torn
+        ));
+    }
+    let whole = clean || read.skipped == 0;
+    if read.skipped > 0 {
+        news.push(if whole {
+            format!(
+                "the safety journal {} is {}: it was read from its end back to its last clean stop, and the {} before it were skipped (nothing before a clean stop is owed)",
+                path.display(),
+                tail::size(read.len),
+                tail::size(read.skipped)
+            )
+        } else {
+            format!(
+                "the safety journal {} is {}, more than a journal drivegate keeps (it is compacted at 64 KiB): its last {} were read and the {} before them skipped. What those promised is unknown: [safety] on_unknown_state is applied to every drive found moving that the records read say nothing about",
+                path.display(),
+                tail::size(read.len),
+                tail::size(read.len - read.skipped),
+                tail::size(read.skipped)
+            )
+        });
+    }
+    Ok(ReadBack {
+        state: JournalState::of(&newest_first),
+        whole,
+        skipped: read.skipped,
+        news,
+    })
+}
+
 impl Journal {
     /// Opens (or creates) the journal in `dir`; `None`: there is none.
     pub fn open(dir: Option<&Path>) -> Opened {
@@ -124,21 +210,16 @@ impl Journal {
         let path = dir.join(FILE);
         let mut news = Vec::new();
         let mut journal = Journal::new(Some(dir.to_path_buf()), Health::Ok);
-        let bytes = match fs::read(&path) {
-            Ok(bytes) => Ok(bytes),
-            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(Vec::new()),
-            Err(e) => Err(Unreadable::Io(e.to_string())),
-        };
-        let recovered = match bytes.and_then(|b| format::decode(&b)) {
-            Ok(Decoded { records, torn, .. }) => {
-                if torn > 0 {
-                    news.push(format!(
-                        "the safety journal {} ended in a record cut short ({torn} bytes, a write the power cut or the crash interrupted); it was left out",
-                        path.display()
-                    ));
+        let recovered = match read(&path) {
+            Ok(read) => {
+                news.extend(read.news);
+                journal.counts.skipped_bytes = read.skipped;
+                journal.state = read.state;
+                if read.whole {
+                    Recovered::Read(journal.state.clone())
+                } else {
+                    Recovered::Tail(journal.state.clone())
                 }
-                journal.state = JournalState::of(&records);
-                Recovered::Read(journal.state.clone())
             }
             Err(why) => {
                 journal.counts.unreadable += 1;
@@ -380,6 +461,51 @@ mod tests {
             })
             .count();
         assert_eq!(aside, 1);
+    }
+
+    #[test]
+    fn a_journal_beyond_its_bound_is_read_from_its_end() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(FILE);
+        // Renewals without a clean stop, longer than the read budget.
+        let mut bytes = format::header();
+        let mut deadline = 0;
+        while (bytes.len() as u64) < READ_BUDGET + READ_BUDGET / 2 {
+            deadline += 1;
+            bytes.extend(format::encode(&lease(deadline)));
+        }
+        fs::write(&path, &bytes).unwrap();
+        let opened = Journal::open(Some(dir.path()));
+        // The newest record read is the last word; older ones are unknown.
+        assert_eq!(
+            opened.recovered,
+            Recovered::Tail(JournalState::of(&[lease(deadline)]))
+        );
+        let skipped = opened.journal.counts().skipped_bytes;
+        assert!(skipped >= READ_BUDGET / 4, "{skipped}");
+        assert!(
+            opened.news.iter().any(|n| n.contains("on_unknown_state")),
+            "{:?}",
+            opened.news
+        );
+        // Compacted: the next start reads it whole.
+        drop(opened);
+        assert!(fs::metadata(&path).unwrap().len() < 1024);
+        assert!(matches!(
+            Journal::open(Some(dir.path())).recovered,
+            Recovered::Read(_)
+        ));
+
+        // With a clean stop near its end, all that is owed is after it.
+        bytes.extend(format::encode(&Record::Shutdown));
+        bytes.extend(format::encode(&lease(7)));
+        fs::write(&path, &bytes).unwrap();
+        let opened = Journal::open(Some(dir.path()));
+        assert_eq!(
+            opened.recovered,
+            Recovered::Read(JournalState::of(&[lease(7)]))
+        );
+        assert!(opened.journal.counts().skipped_bytes > 0);
     }
 
     #[test]
