@@ -149,7 +149,7 @@ impl Control {
         let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
         alarms.reconcile(&plant);
         alarms.watch(&plant, events.subscribe(), &shutdown);
-        let opened = Journal::open(state_dir.as_deref());
+        let opened = Journal::open(state_dir.as_deref(), plant.now().drive_count());
         for news in &opened.news {
             match opened.journal.health() {
                 journal::Health::Off(_) => tracing::info!("{news}"),

@@ -66,8 +66,8 @@ static JOURNAL_BYTES: Spec = Spec {
 static JOURNAL_SKIPPED: Spec = Spec {
     name: "drivegate_safety_journal_skipped_bytes",
     help: "Bytes of the safety journal skipped unread at start-up: it is read from its end back \
-           to its last clean stop, its start, or 4 MiB (a journal larger than that was not \
-           written by this daemon, which compacts it at 64 KiB); 0 when it was read whole.",
+           to its last clean stop, its start, or 64 KiB and 4 KiB per drive (a longer one was \
+           not written by this daemon, which compacts it); 0 when it was read whole.",
     kind: Kind::Gauge,
     labels: &[],
 };

@@ -13,11 +13,12 @@
 //! write the journal misses.
 //!
 //! The journal is read from its end ([`tail`]) back to its last clean stop
-//! (nothing before one is owed), its start, or [`READ_BUDGET`] bytes: a
-//! journal this daemon wrote is compacted at 64 KiB (or twice its
-//! snapshot, a few hundred bytes per drive), so one larger than the budget
-//! was not; its older records are skipped, counted and logged, and what
-//! they promised is taken as unknown ([`replay::Recovered::Tail`]).
+//! (nothing before one is owed), its start, or a budget of bytes: a
+//! journal this daemon wrote is compacted at 64 KiB, or twice its
+//! snapshot (a few hundred bytes per drive), so one longer than
+//! [`read_budget`] was not; its older records are skipped, counted and
+//! logged, and what they promised is taken as unknown
+//! ([`replay::Recovered::Tail`]).
 
 pub mod chunk;
 pub mod format;
@@ -37,8 +38,12 @@ use tail::Wanted;
 pub const FILE: &str = "safety.journal";
 /// Compacted once it is this long (and twice its last snapshot).
 pub const COMPACT_AT: u64 = 64 * 1024;
-/// At most this much of the journal is read at start-up, from its end.
-pub const READ_BUDGET: u64 = 4 * 1024 * 1024;
+/// At most this much of the journal of a plant of `drives` drives is read
+/// at start-up, from its end: [`COMPACT_AT`], and twice a snapshot's
+/// three records of each drive (each well under 700 bytes).
+pub fn read_budget(drives: usize) -> u64 {
+    COMPACT_AT + (drives as u64).saturating_mul(4 * 1024)
+}
 
 /// The state directory of `drivegate serve` without a configuration:
 /// `$XDG_STATE_HOME/drivegate`, else `~/.local/state/drivegate`, else
@@ -138,11 +143,11 @@ struct ReadBack {
 }
 
 /// Reads the journal at `path` from its end back to its last clean stop,
-/// its start, or [`READ_BUDGET`].
-fn read(path: &Path) -> Result<ReadBack, Unreadable> {
+/// its start, or `budget` bytes.
+fn read(path: &Path, budget: u64) -> Result<ReadBack, Unreadable> {
     let mut newest_first: Vec<Record> = Vec::new();
     let mut clean = false;
-    let read = tail::read_from_end(path, format::SAFETY_JOURNAL, READ_BUDGET, |records| {
+    let read = tail::read_from_end(path, format::SAFETY_JOURNAL, budget, |records| {
         for r in records.into_iter().rev() {
             if matches!(r, Record::Shutdown) {
                 clean = true;
@@ -180,7 +185,7 @@ fn read(path: &Path) -> Result<ReadBack, Unreadable> {
             )
         } else {
             format!(
-                "the safety journal {} is {}, more than a journal drivegate keeps (it is compacted at 64 KiB): its last {} were read and the {} before them skipped. What those promised is unknown: [safety] on_unknown_state is applied to every drive found moving that the records read say nothing about",
+                "the safety journal {} is {}, more than a journal drivegate keeps for this plant (it is compacted at 64 KiB, or twice what it holds): its last {} were read and the {} before them skipped. What those promised is unknown: [safety] on_unknown_state is applied to every drive found moving that the records read say nothing about",
                 path.display(),
                 tail::size(read.len),
                 tail::size(read.len - read.skipped),
@@ -197,8 +202,9 @@ fn read(path: &Path) -> Result<ReadBack, Unreadable> {
 }
 
 impl Journal {
-    /// Opens (or creates) the journal in `dir`; `None`: there is none.
-    pub fn open(dir: Option<&Path>) -> Opened {
+    /// Opens (or creates) the journal in `dir` of a plant of `drives`
+    /// drives; `None`: there is none.
+    pub fn open(dir: Option<&Path>, drives: usize) -> Opened {
         let Some(dir) = dir else {
             let why = "no state directory ([safety] state_dir, or systemd's $STATE_DIRECTORY): leases and stops owed are not kept across a restart".to_string();
             return Opened {
@@ -210,7 +216,7 @@ impl Journal {
         let path = dir.join(FILE);
         let mut news = Vec::new();
         let mut journal = Journal::new(Some(dir.to_path_buf()), Health::Ok);
-        let recovered = match read(&path) {
+        let recovered = match read(&path, read_budget(drives)) {
             Ok(read) => {
                 news.extend(read.news);
                 journal.counts.skipped_bytes = read.skipped;
@@ -399,12 +405,12 @@ mod tests {
     #[test]
     fn what_is_appended_is_read_back_by_the_next_process() {
         let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path())).journal;
+        let mut j = Journal::open(Some(dir.path()), 4).journal;
         assert_eq!(j.health(), &Health::Ok);
         j.append(&[lease(5)]).unwrap();
         let state = j.state().clone();
         drop(j);
-        let opened = Journal::open(Some(dir.path()));
+        let opened = Journal::open(Some(dir.path()), 4);
         assert_eq!(opened.recovered, Recovered::Read(state));
         assert!(opened.news.is_empty(), "{:?}", opened.news);
     }
@@ -412,7 +418,7 @@ mod tests {
     #[test]
     fn a_growing_journal_is_compacted_to_what_it_holds() {
         let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path())).journal;
+        let mut j = Journal::open(Some(dir.path()), 4).journal;
         // 5000 records, ten to a sync.
         for i in 0..500 {
             let batch: Vec<Record> = (0..10).map(|k| lease(i * 10 + k)).collect();
@@ -423,7 +429,7 @@ mod tests {
         assert!(c.bytes <= COMPACT_AT + 200, "{c:?}");
         let on_disk = fs::metadata(dir.path().join(FILE)).unwrap().len();
         assert_eq!(on_disk, c.bytes);
-        let read = Journal::open(Some(dir.path())).recovered;
+        let read = Journal::open(Some(dir.path()), 4).recovered;
         assert_eq!(read, Recovered::Read(JournalState::of(&[lease(4_999)])));
         assert!(!dir.path().join(format!("{FILE}.tmp")).exists());
     }
@@ -431,14 +437,14 @@ mod tests {
     #[test]
     fn a_torn_tail_is_said_and_dropped_and_garbage_is_set_aside() {
         let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path())).journal;
+        let mut j = Journal::open(Some(dir.path()), 4).journal;
         j.append(&[lease(7)]).unwrap();
         drop(j);
         let path = dir.path().join(FILE);
         let mut bytes = fs::read(&path).unwrap();
         bytes.extend_from_slice(&[40, 0, 0, 0, 1, 2]);
         fs::write(&path, &bytes).unwrap();
-        let opened = Journal::open(Some(dir.path()));
+        let opened = Journal::open(Some(dir.path()), 4);
         assert_eq!(
             opened.recovered,
             Recovered::Read(JournalState::of(&[lease(7)]))
@@ -446,10 +452,10 @@ mod tests {
         assert!(opened.news[0].contains("cut short"), "{:?}", opened.news);
         drop(opened);
         // Rewritten without the tail.
-        assert!(Journal::open(Some(dir.path())).news.is_empty());
+        assert!(Journal::open(Some(dir.path()), 4).news.is_empty());
 
         fs::write(&path, b"garbage").unwrap();
-        let opened = Journal::open(Some(dir.path()));
+        let opened = Journal::open(Some(dir.path()), 4);
         assert_eq!(opened.recovered, Recovered::Unreadable);
         assert_eq!(opened.journal.counts().unreadable, 1);
         assert!(opened.news[0].contains("set aside"), "{:?}", opened.news);
@@ -470,19 +476,19 @@ mod tests {
         // Renewals without a clean stop, longer than the read budget.
         let mut bytes = format::header();
         let mut deadline = 0;
-        while (bytes.len() as u64) < READ_BUDGET + READ_BUDGET / 2 {
+        while (bytes.len() as u64) < 3 * tail::CHUNK + read_budget(4) {
             deadline += 1;
             bytes.extend(format::encode(&lease(deadline)));
         }
         fs::write(&path, &bytes).unwrap();
-        let opened = Journal::open(Some(dir.path()));
+        let opened = Journal::open(Some(dir.path()), 4);
         // The newest record read is the last word; older ones are unknown.
         assert_eq!(
             opened.recovered,
             Recovered::Tail(JournalState::of(&[lease(deadline)]))
         );
         let skipped = opened.journal.counts().skipped_bytes;
-        assert!(skipped >= READ_BUDGET / 4, "{skipped}");
+        assert!(skipped >= tail::CHUNK, "{skipped}");
         assert!(
             opened.news.iter().any(|n| n.contains("on_unknown_state")),
             "{:?}",
@@ -492,7 +498,7 @@ mod tests {
         drop(opened);
         assert!(fs::metadata(&path).unwrap().len() < 1024);
         assert!(matches!(
-            Journal::open(Some(dir.path())).recovered,
+            Journal::open(Some(dir.path()), 4).recovered,
             Recovered::Read(_)
         ));
 
@@ -500,7 +506,7 @@ mod tests {
         bytes.extend(format::encode(&Record::Shutdown));
         bytes.extend(format::encode(&lease(7)));
         fs::write(&path, &bytes).unwrap();
-        let opened = Journal::open(Some(dir.path()));
+        let opened = Journal::open(Some(dir.path()), 4);
         assert_eq!(
             opened.recovered,
             Recovered::Read(JournalState::of(&[lease(7)]))
@@ -513,7 +519,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let blocked = dir.path().join("a-file");
         fs::write(&blocked, b"x").unwrap();
-        let mut opened = Journal::open(Some(&blocked));
+        let mut opened = Journal::open(Some(&blocked), 4);
         assert_eq!(opened.recovered, Recovered::Unreadable);
         assert!(matches!(opened.journal.health(), Health::Failing(_)));
         assert!(opened.journal.append(&[lease(9)]).is_err());

@@ -55,6 +55,14 @@ pub fn read_from_end<T: serde::de::DeserializeOwned>(
     };
     let io_error = |e: io::Error| Unreadable::Io(e.to_string());
     let len = file.metadata().map_err(io_error)?.len();
+    if len > budget {
+        tracing::info!(
+            "the {} {} is {}: reading it from its end",
+            kind.what,
+            path.display(),
+            size(len)
+        );
+    }
     let mut head = vec![0u8; usize::try_from(len.min(HEADER_LEN as u64)).unwrap_or(0)];
     file.read_exact_at(&mut head, 0).map_err(io_error)?;
     let mut read = Read {
