@@ -64,7 +64,7 @@ pub fn decode<T: serde::de::DeserializeOwned>(
 fn first_record(bytes: &[u8], at_end: bool) -> Option<usize> {
     let last = (FRAME_LEN + MAX_RECORD).min(bytes.len());
     (0..last).find(|&p| {
-        matches!(format::frame_at(bytes, p), Ok(Some(_)))
+        matches!(format::frame_at(bytes, p), format::FrameAt::Whole(_))
             && format::frames(bytes, p, at_end).is_ok()
     })
 }

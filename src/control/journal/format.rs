@@ -355,30 +355,36 @@ pub(super) struct Chain {
     pub good_len: usize,
 }
 
-/// One frame at `at` of `bytes`: its payload and end, `Ok(None)` when
-/// its bytes do not all come before the end, or what is wrong with it
-/// (and where it ends, when its length could be read).
-pub(super) fn frame_at(
-    bytes: &[u8],
-    at: usize,
-) -> Result<Option<(std::ops::Range<usize>, usize)>, (&'static str, Option<usize>)> {
+/// What is at some offset of a framed file's bytes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) enum FrameAt {
+    /// A whole frame: its payload's range (it ends where that does).
+    Whole(std::ops::Range<usize>),
+    /// A frame whose bytes do not all come before the end.
+    Short,
+    /// Not a good frame: why, and where it ends when its length could be
+    /// read.
+    Bad(&'static str, Option<usize>),
+}
+
+/// The frame at `at` of `bytes`.
+pub(super) fn frame_at(bytes: &[u8], at: usize) -> FrameAt {
     let Some(head) = bytes.get(at..at + FRAME_LEN) else {
-        return Ok(None);
+        return FrameAt::Short;
     };
     let len = u32::from_le_bytes([head[0], head[1], head[2], head[3]]) as usize;
     if len > MAX_RECORD {
-        return Err(("its length is impossible", None));
+        return FrameAt::Bad("its length is impossible", None);
     }
     let payload = at + FRAME_LEN..at + FRAME_LEN + len;
     let Some(body) = bytes.get(payload.clone()) else {
-        return Ok(None);
+        return FrameAt::Short;
     };
     let crc = u32::from_le_bytes([head[4], head[5], head[6], head[7]]);
     if crc32(body) != crc {
-        return Err(("its CRC does not match", Some(payload.end)));
+        return FrameAt::Bad("its CRC does not match", Some(payload.end));
     }
-    let end = payload.end;
-    Ok(Some((payload, end)))
+    FrameAt::Whole(payload)
 }
 
 /// Follows the frames of `bytes` from `from` to its end. With `torn_ok`
@@ -393,15 +399,15 @@ pub(super) fn frames(
     let mut at = from;
     while at < bytes.len() {
         match frame_at(bytes, at) {
-            Ok(Some((payload, end))) => {
+            FrameAt::Whole(payload) => {
+                at = payload.end;
                 payloads.push(payload);
-                at = end;
             }
             // Torn mid-write: its bytes never all reached the disk.
-            Ok(None) if torn_ok => break,
-            Err((_, Some(end))) if torn_ok && end == bytes.len() => break,
-            Ok(None) => return Err((at, "it is cut short")),
-            Err((why, _)) => return Err((at, why)),
+            FrameAt::Short if torn_ok => break,
+            FrameAt::Bad(_, Some(end)) if torn_ok && end == bytes.len() => break,
+            FrameAt::Short => return Err((at, "it is cut short")),
+            FrameAt::Bad(why, _) => return Err((at, why)),
         }
     }
     Ok(Chain {
