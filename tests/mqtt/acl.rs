@@ -3,7 +3,8 @@
 //! from the page itself) and users in a password file made by
 //! `mosquitto_passwd`, a DCMD from a user other than the SCADA host's is
 //! not delivered and moves no motor, the SCADA user's does; the audit log,
-//! the lease and the bus monitor say only what is known of the sender.
+//! the lease and the bus monitor say only what is known of the sender. The
+//! same for the JSON format's commands, with its `acl_file`.
 //! Without a login the broker authenticates, `check-config` and `serve`
 //! refuse commands, naming both ways (and `unauthenticated_commands`).
 
@@ -13,12 +14,13 @@ use std::time::Duration;
 use drivegate::mqtt::metric::Value;
 use drivegate::mqtt::sparkplug_b::Payload;
 use prost::Message;
+use serde_json::json;
 use tokio::io::AsyncBufReadExt;
 
 use super::commands::{born, run};
 use super::{GROUP, NODE, config};
 use crate::support::api::Api;
-use crate::support::mosquitto::{Mosquitto, publish_as};
+use crate::support::mosquitto::{Mosquitto, Sub, publish_as};
 use crate::support::sparkplug::{Host, bool_metric, double_metric, number, string_metric};
 use crate::support::{TestDaemon, bounded};
 
@@ -27,13 +29,14 @@ const GW1: (&str, &str) = ("gw1", "gw1-secret");
 const SCADA: (&str, &str) = ("scada", "scada-secret");
 const HMI: (&str, &str) = ("hmi", "hmi-secret");
 
-/// The mosquitto `acl_file` of `docs/security.md`, as the page shows it.
-fn acl_from_the_docs() -> String {
+/// The mosquitto `acl_file` of `docs/security.md` whose first line
+/// starts with `first`, as the page shows it.
+fn acl_from_the_docs(first: &str) -> String {
     let page =
         std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/security.md")).unwrap();
     let start = page
-        .find("# mosquitto acl_file, Sparkplug")
-        .expect("docs/security.md shows the Sparkplug acl_file");
+        .find(first)
+        .unwrap_or_else(|| panic!("docs/security.md shows no acl_file {first:?}"));
     let block = &page[start..];
     block[..block.find("```").expect("the block ends")].to_string()
 }
@@ -52,7 +55,10 @@ fn logged_in(dir: &std::path::Path, keys: &str) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_dcmd_from_another_broker_user_moves_no_motor() {
     bounded(Duration::from_secs(90), async {
-        let broker = Mosquitto::start_with_users(&[GW1, SCADA, HMI], &acl_from_the_docs());
+        let broker = Mosquitto::start_with_users(
+            &[GW1, SCADA, HMI],
+            &acl_from_the_docs("# mosquitto acl_file, Sparkplug"),
+        );
         let mut host =
             Host::connect_as(broker.port, "scada-host", Some("scada"), Some(SCADA)).await;
         host.announce(true).await;
@@ -169,6 +175,88 @@ async fn a_dcmd_from_another_broker_user_moves_no_motor() {
         let frames = frames["frames"].as_array().unwrap();
         assert!(!frames.is_empty());
         assert!(frames.iter().all(|f| f["source_who"] == who), "{frames:#?}");
+        d.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_json_formats_commands_from_another_broker_user_move_no_motor() {
+    bounded(Duration::from_secs(90), async {
+        let broker = Mosquitto::start_with_users(
+            &[GW1, SCADA, HMI],
+            &acl_from_the_docs("# mosquitto acl_file, JSON format"),
+        );
+        crate::support::logs::capture_logs();
+        let dir = tempfile::tempdir().unwrap();
+        let keys = logged_in(dir.path(), "format = \"json\"\ncommands = \"operator\"");
+        let d = TestDaemon::start(&config(&broker.url(), &keys)).await;
+        let prefix = format!("drivegate/{NODE}");
+        let state = format!("{prefix}/state");
+        let replies = format!("{prefix}/+/reply");
+        let mut sub = Sub::start_as(broker.port, Some(SCADA), &[&state, &replies]);
+        sub.next(WAIT, "the state online", |m| {
+            m.topic == state && m.payload == "online"
+        })
+        .await;
+        let command =
+            |id: &str| format!(r#"{{"type":"command","id":"{id}","op":"activate","body":{{}}}}"#);
+        // Another user's command: dropped by the broker.
+        let conveyor = format!("{prefix}/conveyor/command");
+        publish_as(
+            broker.port,
+            HMI,
+            "hmi-console",
+            &conveyor,
+            command("hmi").as_bytes(),
+        )
+        .await;
+        assert!(
+            broker.log().contains(&format!(
+                "Denied PUBLISH from hmi-console (d0, q1, r0, m1, '{conveyor}'"
+            )),
+            "{}",
+            broker.log()
+        );
+        // The SCADA user's, sent after it: taken and confirmed.
+        let lift = format!("{prefix}/lift/command");
+        publish_as(
+            broker.port,
+            SCADA,
+            "scada-client",
+            &lift,
+            command("scada").as_bytes(),
+        )
+        .await;
+        let reply = sub
+            .next(WAIT, "the reply to the SCADA user's command", |m| {
+                m.json()["id"] == "scada" || m.json()["id"] == "hmi"
+            })
+            .await
+            .json();
+        assert_eq!(
+            (&reply["id"], &reply["ok"]),
+            (&json!("scada"), &json!(true)),
+            "{reply}"
+        );
+        assert_eq!(
+            crate::support::metrics::counter(
+                &d,
+                "drivegate_mqtt_commands_total{result=\"confirmed\"}"
+            ),
+            1.0
+        );
+        let api = Api::new(d.http, None);
+        let status = api.get("/api/v1/drives/conveyor/status").await.expect(200);
+        assert_eq!(status["active"], false, "{status:#}");
+        let log = crate::support::logs::log_text();
+        assert!(
+            log.lines().any(|l| l.contains("drivegate::audit")
+                && l.contains("face=\"mqtt\"")
+                && l.contains("who=\"broker user gw1\"")),
+            "no audit line naming the broker's user"
+        );
+        sub.stop().await;
         d.stop().await;
     })
     .await;

@@ -212,8 +212,16 @@ pub struct Sub {
 impl Sub {
     /// Subscribes to `topics` on the broker on `port` (MQTT 5, QoS 1).
     pub fn start(port: u16, topics: &[&str]) -> Sub {
+        Self::start_as(port, None, topics)
+    }
+
+    /// [`Sub::start`], logged in as `login` (user, password).
+    pub fn start_as(port: u16, login: Option<(&str, &str)>, topics: &[&str]) -> Sub {
         use tokio::io::AsyncBufReadExt;
         let mut cmd = tokio::process::Command::new("mosquitto_sub");
+        if let Some((user, password)) = login {
+            cmd.args(["-u", user, "-P", password]);
+        }
         cmd.args([
             "-h",
             "127.0.0.1",
