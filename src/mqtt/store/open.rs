@@ -226,6 +226,9 @@ fn cut(path: &Path, len: u64, keep: u64) -> io::Result<u64> {
     file.read_exact_at(&mut window, from)?;
     let Some(first) = frame::first_frame(&window) else {
         // No frame in it: nothing of it can be kept.
+        let f = OpenOptions::new().write(true).open(path)?;
+        f.set_len(HEADER_LEN as u64)?;
+        f.sync_all()?;
         return Ok(len - HEADER_LEN as u64);
     };
     let start = from + first as u64;
@@ -291,6 +294,18 @@ mod tests {
         assert_eq!(d.messages.len() as u64, s.messages);
         assert_eq!(d.messages.last().unwrap().message, msg(59_999));
         assert_eq!(d.torn, 0);
+    }
+
+    #[test]
+    fn an_oversized_segment_without_a_frame_is_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut bytes = frame::header();
+        bytes.resize(10 << 20, 0);
+        fs::write(super::super::segment_path(dir.path(), 0), &bytes).unwrap();
+        let found = scan(dir.path(), &[0], (0, 0), 16 << 20, 2 << 20).unwrap();
+        assert!(found.segments.is_empty(), "{found:?}");
+        assert_eq!(found.skipped, (10 << 20) - HEADER_LEN as u64);
+        assert!(!super::super::segment_path(dir.path(), 0).exists());
     }
 
     #[test]
