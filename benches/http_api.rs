@@ -295,7 +295,7 @@ fn soak(dir: &std::path::Path) {
     use drivegate::control::journal::format::{Action, HolderKind, ModeName, Record, unix_ms};
     use drivegate::control::lease_book::{Holder, LeaseAsk, LeaseBook, Note, WriteKind};
 
-    let mut journal = Journal::open(Some(dir)).journal;
+    let mut journal = Journal::open(Some(dir), 1).journal;
     let mut book = LeaseBook::new(drivegate::safety::StopAction::ZeroSpeed);
     let t0 = Instant::now();
     let wall0 = std::time::SystemTime::now();

@@ -28,13 +28,75 @@ pub enum DaemonError {
     Signals(std::io::Error),
 }
 
+/// What the start brought up.
+struct Started {
+    plant: Arc<Plant>,
+    faces: crate::faces::Faces,
+    reloader: Option<tokio::task::JoinHandle<()>>,
+}
+
 /// Runs the daemon with `config` (read from `path`, if given: then
 /// SIGHUP and `POST /api/v1/config/reload` apply its changes) until SIGINT
 /// or SIGTERM.
+///
+/// A stop asked for during the start is honoured: the start runs in a task
+/// of its own while this one listens for the signals, and every step of it
+/// is bounded (the state files are read within bounds, see
+/// `crate::control::journal::tail`), so the start finishes its step and
+/// the daemon stops as after a start, with its safe stop; a start that
+/// does not finish within [`START_STOP_LIMIT`] of the signal is left, and
+/// the process ends without it.
 pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonError> {
     // Catch the signals from the start: a stop asked for while the buses open
     // is then a graceful stop right after, not an abrupt kill.
     let mut signals = StopSignals::new().map_err(DaemonError::Signals)?;
+    let shutdown = CancellationToken::new();
+    let mut starting = tokio::spawn(start(config.clone(), path, shutdown.clone()));
+    let started = tokio::select! {
+        started = &mut starting => started,
+        () = signals.recv() => {
+            info!("a stop was asked for during the start: drivegate stops once the step under way is done");
+            return stop_during_start(starting, config.safety.on_shutdown, shutdown).await;
+        }
+    };
+    let started = started.map_err(|e| DaemonError::Listen(format!("the start failed: {e}")))??;
+    signals.reload_with(started.faces.control.clone());
+    if started.plant.now().bus_count() == 0 {
+        // The package's configuration as shipped: `systemctl status` says
+        // what to do first.
+        tracing::warn!("{}", crate::api::health::NO_BUS);
+    }
+    let summary = crate::systemd::status_line(&started.plant, Some(started.faces.http));
+    notify_systemd(&[
+        sd_notify::NotifyState::Ready,
+        sd_notify::NotifyState::Status(&summary),
+    ]);
+    // The watchdog keeps pinging through the stop: a safe stop that takes a
+    // few seconds must not be mistaken for a hang.
+    let watchdog = Watchdog::start();
+    signals.recv().await;
+    // `[safety] on_shutdown` as the last reload left it.
+    let on_shutdown = started
+        .faces
+        .control
+        .follow_config()
+        .borrow()
+        .as_ref()
+        .map_or(config.safety.on_shutdown, |c| c.safety.on_shutdown);
+    stop(started, on_shutdown, shutdown).await;
+    watchdog.stop().await;
+    Ok(())
+}
+
+/// How long a start under way gets to finish its step after a stop signal.
+const START_STOP_LIMIT: Duration = Duration::from_millis(1500);
+
+/// Starts the plant, the core and the faces.
+async fn start(
+    config: Config,
+    path: Option<PathBuf>,
+    shutdown: CancellationToken,
+) -> Result<Started, DaemonError> {
     let plant = Arc::new(Plant::start(&config)?);
     info!(
         buses = plant.now().bus_count(),
@@ -42,7 +104,6 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
         "drivegate {} running",
         env!("CARGO_PKG_VERSION")
     );
-    let shutdown = CancellationToken::new();
     let metrics = crate::metrics::Metrics::new(plant.clone());
     let faces = crate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
         .await
@@ -57,31 +118,51 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
             shutdown.clone(),
         )
     });
-    signals.reload_with(faces.control.clone());
+    Ok(Started {
+        plant,
+        faces,
+        reloader,
+    })
+}
 
-    if plant.now().bus_count() == 0 {
-        // The package's configuration as shipped: `systemctl status` says
-        // what to do first.
-        tracing::warn!("{}", crate::api::health::NO_BUS);
+/// A stop signal came while `starting` ran: once it is done (within
+/// [`START_STOP_LIMIT`]), what it brought up stops as after a start.
+async fn stop_during_start(
+    starting: tokio::task::JoinHandle<Result<Started, DaemonError>>,
+    on_shutdown: crate::safety::StopAction,
+    shutdown: CancellationToken,
+) -> Result<(), DaemonError> {
+    notify_systemd(&[sd_notify::NotifyState::Stopping]);
+    match tokio::time::timeout(START_STOP_LIMIT, starting).await {
+        Ok(Ok(Ok(started))) => {
+            stop(started, on_shutdown, shutdown).await;
+            Ok(())
+        }
+        Ok(Ok(Err(e))) => {
+            warn!("the start failed while stopping: {e}");
+            Ok(())
+        }
+        Ok(Err(e)) => {
+            warn!("the start failed while stopping: {e}");
+            Ok(())
+        }
+        Err(_) => {
+            warn!(
+                "the start did not finish within {} ms of the stop signal: drivegate ends without its safe stop (nothing was served yet)",
+                START_STOP_LIMIT.as_millis()
+            );
+            Ok(())
+        }
     }
-    let summary = crate::systemd::status_line(&plant, Some(faces.http));
-    notify_systemd(&[
-        sd_notify::NotifyState::Ready,
-        sd_notify::NotifyState::Status(&summary),
-    ]);
-    // The watchdog keeps pinging through the stop: a safe stop that takes a
-    // few seconds must not be mistaken for a hang.
-    let watchdog_stop = CancellationToken::new();
-    let watchdog = spawn_watchdog(watchdog_stop.clone());
+}
 
-    signals.recv().await;
-    // `[safety] on_shutdown` as the last reload left it.
-    let on_shutdown = faces
-        .control
-        .follow_config()
-        .borrow()
-        .as_ref()
-        .map_or(config.safety.on_shutdown, |c| c.safety.on_shutdown);
+/// The graceful stop: no new work, the faces closed, the safe stop of
+/// every drive (`on_shutdown`), the plant stopped.
+async fn stop(
+    started: Started,
+    on_shutdown: crate::safety::StopAction,
+    shutdown: CancellationToken,
+) {
     info!(
         "stopping: no new work; finishing the frame on the wire and applying the safe-stop action ({})",
         on_shutdown.name()
@@ -91,11 +172,11 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
         sd_notify::NotifyState::Status("stopping: applying the safe-stop action"),
     ]);
     shutdown.cancel();
-    if let Some(reloader) = reloader {
+    if let Some(reloader) = started.reloader {
         // A reload under way finishes first: the plant is whole for the stop.
         let _ = reloader.await;
     }
-    if tokio::time::timeout(FACES_STOP_LIMIT, faces.wait())
+    if tokio::time::timeout(FACES_STOP_LIMIT, started.faces.wait())
         .await
         .is_err()
     {
@@ -104,13 +185,29 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
             FACES_STOP_LIMIT.as_secs()
         );
     }
-    crate::control::shutdown(&plant, on_shutdown).await;
-    watchdog_stop.cancel();
-    if let Some(w) = watchdog {
-        let _ = w.await;
-    }
+    crate::control::shutdown(&started.plant, on_shutdown).await;
     info!("stopped");
-    Ok(())
+}
+
+/// systemd's watchdog, pinged while it runs.
+struct Watchdog {
+    stop: CancellationToken,
+    task: Option<tokio::task::JoinHandle<()>>,
+}
+
+impl Watchdog {
+    fn start() -> Self {
+        let stop = CancellationToken::new();
+        let task = spawn_watchdog(stop.clone());
+        Watchdog { stop, task }
+    }
+
+    async fn stop(self) {
+        self.stop.cancel();
+        if let Some(task) = self.task {
+            let _ = task.await;
+        }
+    }
 }
 
 /// How long open connections get to finish after a stop signal; the unit

@@ -1,23 +1,31 @@
 //! The HTTP listener: where it binds (loopback only without tokens), how
-//! many connections it serves at once, and the socket options of each.
+//! many connections it serves at once, and from one address, and the
+//! socket options of each.
 //!
 //! The connection limit is a semaphore: a connection holds a permit for as
 //! long as it lives, WebSocket or keep-alive included. Over the limit a
 //! client gets a short `503 too-many-connections` and the socket is closed,
 //! so a flood of clients cannot exhaust the small box's file descriptors or
-//! memory while the clients already connected keep working.
+//! memory while the clients already connected keep working. One address
+//! (an IPv6 host by its /64) holds at most `max_connections_per_address`
+//! of them, so one client, or one attacker's host, cannot take every slot
+//! and lock the others (the admin included) out; its refusals are logged
+//! once per burst.
 //!
 //! Permits must come back, so connections cannot live forever unattended:
-//! one that moves no byte for `[http] idle_timeout_s` is closed (the HTTP
-//! server sets no header timeout of its own), TCP keepalive finds peers
-//! that vanished without a word (power cut, cable pulled), and
+//! one that has not sent a whole request head within `[http]
+//! header_timeout_ms` is closed by the server (`super::server`), one that
+//! moves no byte for `[http] idle_timeout_s` is closed here, TCP keepalive
+//! finds peers that vanished without a word (power cut, cable pulled), and
 //! `TCP_USER_TIMEOUT` drops a peer that stops acknowledging data.
 
+use std::collections::HashMap;
 use std::future::Future;
 use std::io;
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::pin::Pin;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::Duration;
 
@@ -29,6 +37,7 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use super::problem::{Kind, Problem};
+use crate::metrics::{Metrics, OpenConnection};
 
 /// Where to bind: `listen`, or with no tokens the loopback address of the
 /// same family and port (an open API must not be reachable from the plant
@@ -53,26 +62,54 @@ const KEEPALIVE_RETRIES: u32 = 3;
 /// Data unacknowledged for this long drops the connection.
 const USER_TIMEOUT: Duration = Duration::from_secs(60);
 
-/// A TCP listener that serves at most `max` connections at once.
+/// What the listener allows.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    /// Connections at once.
+    pub max: usize,
+    /// Connections at once from one address (an IPv6 host by its /64).
+    pub per_address: usize,
+    /// Kernel send buffer per connection, bytes (0: the system's).
+    pub send_buffer: usize,
+    /// A connection that moves no byte for this long is closed.
+    pub idle_timeout: Duration,
+}
+
+impl Limits {
+    /// The limits of `[http]`.
+    pub fn of(http: &crate::config::HttpConfig) -> Self {
+        Limits {
+            max: http.max_connections,
+            per_address: http.max_connections_per_address,
+            send_buffer: http.send_buffer_bytes,
+            idle_timeout: http.idle_timeout,
+        }
+    }
+}
+
+/// A TCP listener that serves at most `max` connections at once, and
+/// `per_address` from one address.
 pub struct LimitedListener {
     inner: TcpListener,
+    limits: Limits,
     permits: Arc<Semaphore>,
+    addresses: Arc<Addresses>,
     refusals: Arc<Semaphore>,
-    send_buffer: usize,
-    idle_timeout: Duration,
+    bursts: Bursts,
+    metrics: Arc<Metrics>,
 }
 
 impl LimitedListener {
-    /// Wraps `inner`; `send_buffer` bytes of kernel send buffer per
-    /// connection (0: the system's); connections idle for `idle_timeout`
-    /// are closed.
-    pub fn new(inner: TcpListener, max: usize, send_buffer: usize, idle_timeout: Duration) -> Self {
+    /// Wraps `inner` with `limits`, counting in `metrics`.
+    pub fn new(inner: TcpListener, limits: Limits, metrics: Arc<Metrics>) -> Self {
         Self {
             inner,
-            permits: Arc::new(Semaphore::new(max)),
+            limits,
+            permits: Arc::new(Semaphore::new(limits.max)),
+            addresses: Arc::default(),
             refusals: Arc::new(Semaphore::new(REFUSALS_IN_FLIGHT)),
-            send_buffer,
-            idle_timeout,
+            bursts: Bursts::default(),
+            metrics,
         }
     }
 
@@ -80,8 +117,8 @@ impl LimitedListener {
         // Status replies are small: do not let Nagle hold them back.
         let _ = stream.set_nodelay(true);
         let socket = socket2::SockRef::from(stream);
-        if self.send_buffer > 0 {
-            let _ = socket.set_send_buffer_size(self.send_buffer);
+        if self.limits.send_buffer > 0 {
+            let _ = socket.set_send_buffer_size(self.limits.send_buffer);
         }
         let keepalive = socket2::TcpKeepalive::new()
             .with_time(KEEPALIVE_TIME)
@@ -90,15 +127,63 @@ impl LimitedListener {
         let _ = socket.set_tcp_keepalive(&keepalive);
         let _ = socket.set_tcp_user_timeout(Some(USER_TIMEOUT));
     }
+
+    /// Refuses `stream` from `addr` for `why`: counted, logged once per
+    /// burst, answered 503 while few refusals are in flight (a flood is
+    /// closed unanswered).
+    fn refuse(&mut self, stream: TcpStream, addr: SocketAddr, why: Refusal) {
+        let (reason, key) = match why {
+            Refusal::Limit => ("limit", None),
+            Refusal::PerAddress => ("per_address", Some(super::throttle::key(addr.ip()))),
+        };
+        self.metrics.security().http_refused(reason);
+        if self.bursts.begins(key, std::time::Instant::now()) {
+            match why {
+                Refusal::Limit => tracing::warn!(
+                    listener = %self.inner.local_addr().map_or_else(|e| e.to_string(), |a| a.to_string()),
+                    "HTTP connections refused: {} are open ([http] max_connections); new ones are answered 503 until some close (logged once per burst, counted in drivegate_http_connections_refused_total)",
+                    self.limits.max
+                ),
+                Refusal::PerAddress => tracing::warn!(
+                    client = %addr.ip(),
+                    listener = %self.inner.local_addr().map_or_else(|e| e.to_string(), |a| a.to_string()),
+                    "HTTP connections from {} refused: it holds {} already ([http] max_connections_per_address); its new ones are answered 503 until some close (logged once per burst, counted in drivegate_http_connections_refused_total)",
+                    addr.ip(),
+                    self.limits.per_address
+                ),
+            }
+        } else {
+            tracing::debug!(client = %addr, "HTTP connection refused ({reason})");
+        }
+        if let Ok(slot) = self.refusals.clone().try_acquire_owned() {
+            tokio::spawn(async move {
+                refuse(stream, why).await;
+                drop(slot);
+            });
+        }
+    }
 }
 
-/// The answer to a connection over the limit, sent before closing it.
-fn over_limit_response() -> Vec<u8> {
-    let problem = Problem::new(
-        Kind::TooManyConnections,
-        "drivegate serves a limited number of connections at once ([http] max_connections); close idle ones or retry shortly",
-    )
-    .retry_after(1);
+/// Why a connection was refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Refusal {
+    /// `max_connections` are open.
+    Limit,
+    /// Its address holds `max_connections_per_address`.
+    PerAddress,
+}
+
+/// The answer to a connection refused for `why`, sent before closing it.
+fn over_limit_response(why: Refusal) -> Vec<u8> {
+    let detail = match why {
+        Refusal::Limit => {
+            "drivegate serves a limited number of connections at once ([http] max_connections); close idle ones or retry shortly"
+        }
+        Refusal::PerAddress => {
+            "your address holds as many connections as one address may ([http] max_connections_per_address); close idle ones or retry shortly"
+        }
+    };
+    let problem = Problem::new(Kind::TooManyConnections, detail).retry_after(1);
     let body = serde_json::to_string(&problem).unwrap_or_default();
     format!(
         "HTTP/1.1 503 Service Unavailable\r\ncontent-type: {}\r\nretry-after: 1\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
@@ -119,7 +204,7 @@ const REFUSAL_WAIT: Duration = Duration::from_millis(500);
 /// [`REFUSAL_WAIT`]), then reads what the client sent until it closes (or
 /// 1 s), so the answer is not lost to a reset. An HTTP client takes an
 /// answer that comes before its request for a broken server, not a refusal.
-async fn refuse(mut stream: TcpStream) {
+async fn refuse(mut stream: TcpStream, why: Refusal) {
     let mut sink = [0u8; 1024];
     let _ = tokio::time::timeout(
         REFUSAL_WAIT,
@@ -127,7 +212,7 @@ async fn refuse(mut stream: TcpStream) {
     )
     .await;
     let answer = async {
-        stream.write_all(&over_limit_response()).await?;
+        stream.write_all(&over_limit_response(why)).await?;
         stream.shutdown().await?;
         while tokio::io::AsyncReadExt::read(&mut stream, &mut sink).await? > 0 {}
         Ok::<(), io::Error>(())
@@ -155,21 +240,27 @@ impl Listener for LimitedListener {
                     continue;
                 }
             };
-            match self.permits.clone().try_acquire_owned() {
-                Ok(permit) => {
-                    self.configure(&stream);
-                    return (LimitedStream::new(stream, permit, self.idle_timeout), addr);
-                }
-                Err(_) => {
-                    tracing::debug!(client = %addr, "HTTP connection refused: connection limit reached");
-                    if let Ok(slot) = self.refusals.clone().try_acquire_owned() {
-                        tokio::spawn(async move {
-                            refuse(stream).await;
-                            drop(slot);
-                        });
-                    }
-                }
-            }
+            // The address's share first: a full one must not take a
+            // permit another address could use.
+            let Some(address) = self.addresses.take(addr.ip(), self.limits.per_address) else {
+                self.refuse(stream, addr, Refusal::PerAddress);
+                continue;
+            };
+            let Ok(permit) = self.permits.clone().try_acquire_owned() else {
+                drop(address);
+                self.refuse(stream, addr, Refusal::Limit);
+                continue;
+            };
+            self.configure(&stream);
+            let held = Held {
+                _permit: permit,
+                _address: address,
+                _open: self.metrics.security().http_connection(),
+            };
+            return (
+                LimitedStream::new(stream, held, self.limits.idle_timeout),
+                addr,
+            );
         }
     }
 
@@ -178,10 +269,102 @@ impl Listener for LimitedListener {
     }
 }
 
+/// What a connection holds until it closes: its permit, its address's
+/// share, its place in the open-connections gauge.
+struct Held {
+    _permit: OwnedSemaphorePermit,
+    _address: AddressSlot,
+    _open: OpenConnection,
+}
+
+/// How many connections each address holds (IPv6 hosts by their /64).
+#[derive(Debug, Default)]
+struct Addresses(Mutex<HashMap<IpAddr, usize>>);
+
+impl Addresses {
+    /// One more connection from `ip`, unless it holds `max` already.
+    fn take(self: &Arc<Self>, ip: IpAddr, max: usize) -> Option<AddressSlot> {
+        let key = super::throttle::key(ip);
+        let mut held = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        let n = held.entry(key).or_insert(0);
+        if *n >= max {
+            return None;
+        }
+        *n += 1;
+        Some(AddressSlot {
+            table: self.clone(),
+            key,
+        })
+    }
+}
+
+/// One connection's share of its address; given back when dropped.
+#[derive(Debug)]
+struct AddressSlot {
+    table: Arc<Addresses>,
+    key: IpAddr,
+}
+
+impl Drop for AddressSlot {
+    fn drop(&mut self) {
+        let mut held = self.table.0.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(n) = held.get_mut(&self.key) {
+            *n = n.saturating_sub(1);
+            if *n == 0 {
+                held.remove(&self.key);
+            }
+        }
+    }
+}
+
+/// A refusal burst ends after this long without a refusal (of that
+/// address, or of the limit): the next one is logged again.
+const BURST_GAP: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// When each address (`None`: the whole listener's limit) was last
+/// refused, so a burst of refusals is logged once.
+#[derive(Debug, Default)]
+struct Bursts(HashMap<Option<IpAddr>, std::time::Instant>);
+
+impl Bursts {
+    /// Notes a refusal of `key` at `now`; true when it begins a burst.
+    fn begins(&mut self, key: Option<IpAddr>, now: std::time::Instant) -> bool {
+        if self.0.len() > 4096 {
+            self.0.retain(|_, at| now.duration_since(*at) < BURST_GAP);
+        }
+        let last = self.0.insert(key, now);
+        last.is_none_or(|at| now.duration_since(at) >= BURST_GAP)
+    }
+}
+
+/// What the server tells of a connection's requests, and the stream of
+/// its reads and writes: a connection closed for its request head is one
+/// that never sent a whole first head, or had begun its next one; a
+/// kept-alive connection left unused is not.
+#[derive(Debug, Default)]
+pub struct Activity {
+    requests: AtomicU64,
+    read_since_answer: AtomicBool,
+}
+
+impl Activity {
+    /// A request head arrived whole.
+    pub fn request(&self) {
+        self.requests.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// The connection owed a request head: it has sent none whole yet, or
+    /// sent bytes of its next one.
+    pub fn head_owed(&self) -> bool {
+        self.requests.load(Ordering::Relaxed) == 0 || self.read_since_answer.load(Ordering::Relaxed)
+    }
+}
+
 /// A connection holding its permit until it closes, closed when idle.
 pub struct LimitedStream {
     stream: TcpStream,
-    _permit: OwnedSemaphorePermit,
+    _held: Held,
+    activity: Arc<Activity>,
     idle_timeout: Duration,
     last_activity: Instant,
     idle: Pin<Box<Sleep>>,
@@ -193,15 +376,28 @@ impl LimitedStream {
         self.stream.local_addr()
     }
 
-    fn new(stream: TcpStream, permit: OwnedSemaphorePermit, idle_timeout: Duration) -> Self {
+    /// What is known of its requests.
+    pub fn activity(&self) -> Arc<Activity> {
+        self.activity.clone()
+    }
+
+    fn new(stream: TcpStream, held: Held, idle_timeout: Duration) -> Self {
         let now = Instant::now();
         LimitedStream {
             stream,
-            _permit: permit,
+            _held: held,
+            activity: Arc::default(),
             idle_timeout,
             last_activity: now,
             idle: Box::pin(tokio::time::sleep_until(now + idle_timeout)),
         }
+    }
+
+    fn wrote(&mut self) {
+        self.last_activity = Instant::now();
+        self.activity
+            .read_since_answer
+            .store(false, Ordering::Relaxed);
     }
 
     /// While a read waits: fails the read once nothing moved for the idle
@@ -237,6 +433,9 @@ impl AsyncRead for LimitedStream {
             Poll::Ready(Ok(())) => {
                 if buf.filled().len() > before {
                     self.last_activity = Instant::now();
+                    self.activity
+                        .read_since_answer
+                        .store(true, Ordering::Relaxed);
                 }
                 Poll::Ready(Ok(()))
             }
@@ -254,7 +453,7 @@ impl AsyncWrite for LimitedStream {
     ) -> Poll<io::Result<usize>> {
         let written = Pin::new(&mut self.stream).poll_write(cx, buf);
         if matches!(written, Poll::Ready(Ok(n)) if n > 0) {
-            self.last_activity = Instant::now();
+            self.wrote();
         }
         written
     }
@@ -274,7 +473,7 @@ impl AsyncWrite for LimitedStream {
     ) -> Poll<io::Result<usize>> {
         let written = Pin::new(&mut self.stream).poll_write_vectored(cx, bufs);
         if matches!(written, Poll::Ready(Ok(n)) if n > 0) {
-            self.last_activity = Instant::now();
+            self.wrote();
         }
         written
     }
@@ -310,10 +509,45 @@ mod tests {
 
     #[test]
     fn over_limit_answer_is_a_problem() {
-        let text = String::from_utf8(over_limit_response()).unwrap();
-        assert!(text.starts_with("HTTP/1.1 503"));
-        let body = text.split("\r\n\r\n").nth(1).unwrap();
-        let p: Problem = serde_json::from_str(body).unwrap();
-        assert_eq!(p.kind(), Kind::TooManyConnections);
+        for why in [Refusal::Limit, Refusal::PerAddress] {
+            let text = String::from_utf8(over_limit_response(why)).unwrap();
+            assert!(text.starts_with("HTTP/1.1 503"));
+            let body = text.split("\r\n\r\n").nth(1).unwrap();
+            let p: Problem = serde_json::from_str(body).unwrap();
+            assert_eq!(p.kind(), Kind::TooManyConnections);
+        }
+        assert!(
+            String::from_utf8(over_limit_response(Refusal::PerAddress))
+                .unwrap()
+                .contains("max_connections_per_address")
+        );
+    }
+
+    #[test]
+    fn an_address_holds_its_share_and_gets_it_back() {
+        let table = Arc::new(Addresses::default());
+        let a: IpAddr = "127.0.0.1".parse().unwrap();
+        let held: Vec<_> = (0..3).map(|_| table.take(a, 3).unwrap()).collect();
+        assert!(table.take(a, 3).is_none());
+        // Another address is not concerned; an IPv6 host counts by its /64.
+        assert!(table.take("127.0.0.2".parse().unwrap(), 3).is_some());
+        let v6 = table.take("2001:db8::1".parse().unwrap(), 1).unwrap();
+        assert!(table.take("2001:db8::ffff".parse().unwrap(), 1).is_none());
+        drop(v6);
+        drop(held);
+        assert!(table.0.lock().unwrap().is_empty());
+        assert!(table.take(a, 3).is_some());
+    }
+
+    #[test]
+    fn a_burst_of_refusals_is_logged_once() {
+        let mut bursts = Bursts::default();
+        let t = std::time::Instant::now();
+        let a = Some("127.0.0.1".parse().unwrap());
+        assert!(bursts.begins(a, t));
+        assert!(!bursts.begins(a, t + std::time::Duration::from_secs(9)));
+        assert!(!bursts.begins(a, t + std::time::Duration::from_secs(18)));
+        assert!(bursts.begins(None, t));
+        assert!(bursts.begins(a, t + std::time::Duration::from_secs(30)));
     }
 }

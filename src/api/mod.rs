@@ -150,7 +150,7 @@ pub async fn start(
     scope::publish_progress(&plant, &hub, &shutdown);
     let state = ApiState::new(
         plant,
-        metrics,
+        metrics.clone(),
         http.clone(),
         tokens,
         control,
@@ -159,15 +159,10 @@ pub async fn start(
         shutdown.clone(),
     );
     let app = app(state.clone(), pages);
-    let listener = LimitedListener::new(
-        tcp,
-        http.max_connections,
-        http.send_buffer_bytes,
-        http.idle_timeout,
-    );
-    let read_timeout = http.read_timeout;
+    let listener = LimitedListener::new(tcp, listener::Limits::of(&http), metrics.clone());
+    let header_timeout = http.header_timeout;
     let task = tokio::spawn(async move {
-        server::serve(listener, app, read_timeout, tls, shutdown).await;
+        server::serve(listener, app, header_timeout, tls, metrics, shutdown).await;
         // Upgraded connections are not the server's any more: the sessions
         // close themselves on shutdown, and are waited for here.
         state.sessions.close();

@@ -2,19 +2,22 @@
 //! deadline on every request head, the client's address for the handlers,
 //! upgrades for the stream, and a graceful stop.
 //!
-//! A deadline is the defence against slow clients ("slow-loris"): one that
-//! sends a request a byte at a time moves a byte well within the idle
-//! timeout and would keep its connection, and one of the `max_connections`
-//! slots, for ever; enough of them and no one else gets in. hyper can time
-//! out a request head only with a timer, which axum's `serve` does not give
-//! it: here it gets tokio's and `[http] read_timeout_s`. The head of each
+//! A deadline is the defence against idle and slow clients ("slow-loris"):
+//! one that connects and sends nothing, or a request a byte at a time,
+//! would keep its connection, and one of the `max_connections` slots, for
+//! ever; enough of them and no one else gets in. hyper can time out a
+//! request head only with a timer, which axum's `serve` does not give it:
+//! here it gets tokio's and `[http] header_timeout_ms`. The head of each
 //! request, the first as the later ones on a kept-alive connection, must
-//! arrive within it (so a kept-alive connection left unused that long is
-//! closed too); the body then has as long again (see [`super::extract`]).
+//! arrive whole within it (so a kept-alive connection left unused that long
+//! is closed too); the body then has `read_timeout_s` (see
+//! [`super::extract`]). A connection closed for a head it owed (none sent
+//! whole yet, or the next one begun) is counted in
+//! `drivegate_http_header_timeouts_total`.
 //!
 //! Under `[http.tls]` every connection is TLS: the handshake runs in the
-//! connection's own task (a slow one holds up nobody else) within the same
-//! deadline, with the configuration current when it starts, so a reloaded
+//! connection's own task (a slow one holds up nobody else) within the
+//! header deadline (then the head has its own), with the configuration current when it starts, so a reloaded
 //! certificate serves new connections while the open ones carry on. A
 //! client that speaks plain HTTP fails the handshake and gets no answer.
 
@@ -47,17 +50,19 @@ pub struct Tls {
 /// Serves `app` on the connections of `listener` until `shutdown` fires,
 /// then lets the requests in progress finish and waits for their
 /// connections to close. Upgraded connections (the stream) are the
-/// sessions' own and are not waited for here.
+/// sessions' own and are not waited for here. A request head must arrive
+/// whole within `header_timeout`.
 pub async fn serve(
     mut listener: LimitedListener,
     app: Router,
-    read_timeout: Duration,
+    header_timeout: Duration,
     tls: Option<Tls>,
+    metrics: Arc<Metrics>,
     shutdown: CancellationToken,
 ) {
     let mut http = hyper::server::conn::http1::Builder::new();
     http.timer(TokioTimer::new())
-        .header_read_timeout(read_timeout);
+        .header_read_timeout(header_timeout);
     let connections = TaskTracker::new();
     loop {
         let (stream, addr) = tokio::select! {
@@ -67,9 +72,12 @@ pub async fn serve(
             accepted = listener.accept() => accepted,
         };
         let local = stream.local_addr().ok();
+        let activity = stream.activity();
+        let heads = activity.clone();
         let service = app
             .clone()
             .map_request(move |mut request: axum::http::Request<Incoming>| {
+                heads.request();
                 let extensions = request.extensions_mut();
                 extensions.insert(ConnectInfo(ClientAddr(addr)));
                 if let Some(local) = local {
@@ -80,6 +88,7 @@ pub async fn serve(
         let http = http.clone();
         let shutdown = shutdown.clone();
         let tls = tls.clone();
+        let metrics = metrics.clone();
         connections.spawn(async move {
             let service = TowerToHyperService::new(service);
             let served = match tls {
@@ -87,7 +96,7 @@ pub async fn serve(
                 Some(tls) => {
                     let acceptor = tokio_rustls::TlsAcceptor::from(tls.config.current());
                     let handshake = tokio::select! {
-                        h = tokio::time::timeout(read_timeout, acceptor.accept(stream)) => h,
+                        h = tokio::time::timeout(header_timeout, acceptor.accept(stream)) => h,
                         () = shutdown.cancelled() => return,
                     };
                     match handshake {
@@ -99,13 +108,16 @@ pub async fn serve(
                         }
                         Err(_) => {
                             tls.metrics.security().tls_handshake_failed("http");
-                            tracing::debug!(client = %addr, "TLS handshake not done within {read_timeout:?}");
+                            tracing::debug!(client = %addr, "TLS handshake not done within {header_timeout:?}");
                             return;
                         }
                     }
                 }
             };
             if let Err(e) = served {
+                if e.is_timeout() && activity.head_owed() {
+                    metrics.security().http_header_timeout();
+                }
                 // Timeouts, resets and malformed requests: the client's doing.
                 tracing::debug!(client = %addr, "HTTP connection ended: {e}");
             }

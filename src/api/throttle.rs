@@ -65,7 +65,7 @@ pub struct Throttle {
 }
 
 /// The key of an address: IPv4 as is, IPv6 by its /64.
-fn key(ip: IpAddr) -> IpAddr {
+pub(super) fn key(ip: IpAddr) -> IpAddr {
     match ip.to_canonical() {
         IpAddr::V6(v6) => {
             let mut s = v6.segments();

@@ -48,10 +48,11 @@ pub enum Origin {
         /// (Modbus/TCP Security). A thin pointer, so jobs stay small.
         name: Option<Arc<String>>,
     },
-    /// A command from the MQTT face (a Sparkplug DCMD): the host it is
-    /// taken to come from (the primary host, or the broker).
+    /// A command from the MQTT face (a Sparkplug DCMD, a JSON command):
+    /// what is known of its sender.
     Mqtt {
-        /// The primary host's id, or the broker's address.
+        /// How the broker knows drivegate's connection and the primary
+        /// host claimed (`broker user gw1; primary host "scada" claimed`).
         who: Arc<str>,
     },
     /// The stop sent when a motor-safety lease ended.

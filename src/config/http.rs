@@ -54,12 +54,20 @@ pub struct HttpConfig {
     pub max_body_bytes: usize,
     /// Connections served at once; more are answered 503 and closed.
     pub max_connections: usize,
+    /// Connections one address (an IPv6 host by its /64) may hold at once;
+    /// more from it are answered 503 and closed, so one client (or one
+    /// attacker) cannot take every slot. Default: a quarter of
+    /// `max_connections`.
+    pub max_connections_per_address: usize,
+    /// A connection must send a whole request head within this long (of
+    /// its opening, or of the previous answer on a kept-alive connection),
+    /// else it is closed: idle and slow connections give their slots back.
+    pub header_timeout: Duration,
     /// A connection with no byte read or written for this long is closed
     /// (stream clients are pinged well within it).
     pub idle_timeout: Duration,
-    /// A request's head must arrive within this long (of the connection
-    /// opening, or of the previous answer on a kept-alive connection), and
-    /// its body within as long again: slower clients are disconnected.
+    /// A request's body must arrive within this long of its head: slower
+    /// clients are answered 408.
     pub read_timeout: Duration,
     /// Kernel send buffer per connection, bytes (0: the system's
     /// autotuning). It bounds how far behind a slow stream client can fall
@@ -94,6 +102,8 @@ impl Default for HttpConfig {
                 tokens: Vec::new(),
                 max_body_bytes: 65_536,
                 max_connections: 128,
+                max_connections_per_address: 32,
+                header_timeout: Duration::from_millis(5000),
                 idle_timeout: Duration::from_secs(120),
                 read_timeout: Duration::from_secs(30),
                 send_buffer_bytes: 65_536,
@@ -120,6 +130,9 @@ pub struct RawHttpConfig {
     token: Vec<RawToken>,
     max_body_bytes: i64,
     max_connections: i64,
+    /// Absent: a quarter of `max_connections`.
+    max_connections_per_address: Option<i64>,
+    header_timeout_ms: i64,
     idle_timeout_s: i64,
     read_timeout_s: i64,
     send_buffer_bytes: i64,
@@ -142,6 +155,8 @@ impl Default for RawHttpConfig {
             token: Vec::new(),
             max_body_bytes: 65_536,
             max_connections: 128,
+            max_connections_per_address: None,
+            header_timeout_ms: 5000,
             idle_timeout_s: 120,
             read_timeout_s: 30,
             send_buffer_bytes: 65_536,
@@ -193,6 +208,18 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
     fn try_from(raw: RawHttpConfig) -> Result<Self, String> {
         let max_body_bytes = as_usize("max_body_bytes", raw.max_body_bytes, 256, 16 << 20)?;
         let max_connections = as_usize("max_connections", raw.max_connections, 1, 65_536)?;
+        let max_connections_per_address = match raw.max_connections_per_address {
+            // A quarter: four clients (or one attacker) cannot take them all.
+            None => (max_connections / 4).max(1),
+            Some(v) => as_usize(
+                "max_connections_per_address",
+                v,
+                1,
+                i64::try_from(max_connections).unwrap_or(i64::MAX),
+            )
+            .map_err(|e| format!("{e} (at most max_connections)"))?,
+        };
+        let header_timeout_ms = in_range("header_timeout_ms", raw.header_timeout_ms, 100, 600_000)?;
         let idle_timeout_s = in_range("idle_timeout_s", raw.idle_timeout_s, 1, 86_400)?;
         let read_timeout_s = in_range("read_timeout_s", raw.read_timeout_s, 1, 3_600)?;
         let send_buffer_bytes = if raw.send_buffer_bytes == 0 {
@@ -236,6 +263,8 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
             tokens,
             max_body_bytes,
             max_connections,
+            max_connections_per_address,
+            header_timeout: ms(header_timeout_ms),
             idle_timeout: Duration::from_secs(idle_timeout_s.unsigned_abs()),
             read_timeout: Duration::from_secs(read_timeout_s.unsigned_abs()),
             send_buffer_bytes,
@@ -421,6 +450,18 @@ mod tests {
         assert!(e.contains("autotuning"), "{e}");
         let e = parse("[http]\nmax_conections = 5\n").unwrap_err();
         assert!(e.contains("max_conections"), "{e}");
+        let e =
+            parse("[http]\nmax_connections = 8\nmax_connections_per_address = 9\n").unwrap_err();
+        assert!(
+            e.contains("max_connections_per_address = 9 is out of range: valid 1 to 8"),
+            "{e}"
+        );
+        let e = parse("[http]\nheader_timeout_ms = 10\n").unwrap_err();
+        assert!(e.contains("valid 100 to 600000"), "{e}");
+        let c = parse("[http]\nmax_connections = 10\n").unwrap();
+        assert_eq!(c.max_connections_per_address, 2);
+        let c = parse("[http]\nmax_connections = 2\n").unwrap();
+        assert_eq!(c.max_connections_per_address, 1);
         let c = parse("[http]\nlease_default_ms = 500\nsend_buffer_bytes = 0\n").unwrap();
         assert_eq!(c.lease_default, Some(Duration::from_millis(500)));
         assert_eq!(c.send_buffer_bytes, 0);

@@ -41,9 +41,16 @@ pub struct MqttConfig {
     #[serde(default, deserialize_with = "opt_sparkplug_id")]
     pub primary_host_id: Option<String>,
     /// The role of commands from MQTT, or `none` (the default): no command
-    /// is taken, the face only publishes.
+    /// is taken, the face only publishes. Any other needs an authenticated
+    /// broker connection (see [`MqttConfig::login`]) or
+    /// `unauthenticated_commands`. Read it with [`MqttConfig::commands`].
     #[serde(default)]
-    pub commands: Commands,
+    commands: CommandsKey,
+    /// Takes commands over a broker connection that is not authenticated
+    /// (no user and password, no client certificate): from whoever can
+    /// publish on the broker. Logged at every start.
+    #[serde(default)]
+    pub unauthenticated_commands: bool,
     /// The user name given to the broker.
     #[serde(default)]
     pub username: Option<String>,
@@ -244,8 +251,68 @@ impl Commands {
     }
 }
 
+/// `commands` with where the file says it (for an error pointing at it);
+/// compared and shown by its value only.
+#[derive(Clone, Deserialize)]
+#[serde(transparent)]
+struct CommandsKey(Spanned<Commands>);
+
+impl Default for CommandsKey {
+    fn default() -> Self {
+        CommandsKey(Spanned::new(0..0, Commands::None))
+    }
+}
+
+impl PartialEq for CommandsKey {
+    fn eq(&self, other: &Self) -> bool {
+        self.0.get_ref() == other.0.get_ref()
+    }
+}
+
+impl fmt::Debug for CommandsKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.0.get_ref().fmt(f)
+    }
+}
+
+/// How drivegate logs in to the broker: what the broker knows of the
+/// connection its commands arrive on.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Login {
+    /// `username` with a `password_file`.
+    User(String),
+    /// A client certificate over `mqtts://` (`client_cert`, `client_key`).
+    Certificate,
+    /// Neither: the broker lets anyone in as drivegate does.
+    Anonymous,
+}
+
 impl MqttConfig {
-    /// Checks across keys: a client certificate comes with its key.
+    /// The role of commands from MQTT (`none`: none are taken).
+    pub fn commands(&self) -> Commands {
+        *self.commands.0.get_ref()
+    }
+
+    /// How drivegate logs in to the broker. A user without a password
+    /// file, or a certificate over plain `mqtt://` (where it is not sent),
+    /// is no authentication.
+    pub fn login(&self) -> Login {
+        match (&self.username, &self.password_file) {
+            (Some(user), Some(_)) => Login::User(user.clone()),
+            _ if self.broker.tls && self.client_cert.is_some() => Login::Certificate,
+            _ => Login::Anonymous,
+        }
+    }
+
+    /// Commands are taken over a connection the broker did not
+    /// authenticate (`unauthenticated_commands = true` said so).
+    pub fn takes_unauthenticated_commands(&self) -> bool {
+        self.commands() != Commands::None && self.login() == Login::Anonymous
+    }
+
+    /// Checks across keys: a client certificate comes with its key;
+    /// commands come over an authenticated connection only, unless
+    /// `unauthenticated_commands` says otherwise.
     pub(super) fn validate(&self) -> Result<(), (std::ops::Range<usize>, String)> {
         if let Some(cert) = &self.client_cert
             && self.client_key.is_none()
@@ -258,7 +325,36 @@ impl MqttConfig {
         if self.client_key.is_some() && self.client_cert.is_none() {
             return Err((0..0, "[mqtt] client_key needs client_cert".to_string()));
         }
+        if self.takes_unauthenticated_commands() && !self.unauthenticated_commands {
+            return Err((self.commands.0.span(), self.unauthenticated_refusal()));
+        }
         Ok(())
+    }
+
+    /// Why commands over an unauthenticated connection are refused, and
+    /// the ways out.
+    fn unauthenticated_refusal(&self) -> String {
+        let name = match self.commands() {
+            Commands::None => "none",
+            Commands::Viewer => "viewer",
+            Commands::Operator => "operator",
+            Commands::Admin => "admin",
+        };
+        let certificate_note = if self.client_cert.is_some() && !self.broker.tls {
+            " (client_cert is sent over mqtts:// only; the broker is mqtt://)"
+        } else {
+            ""
+        };
+        format!(
+            "[mqtt] commands = \"{name}\" over a broker connection that is not authenticated{certificate_note}: \
+             MQTT does not say who published a command, so only the broker can decide who may \
+             (its users and its ACL); a broker that lets drivegate in without credentials lets \
+             anyone in. Log in with username and password_file, or with a client certificate \
+             (client_cert and client_key) over mqtts://, and let only the SCADA host's user \
+             publish commands (docs/security.md, MQTT); or set unauthenticated_commands = true \
+             to take commands from any client of the broker (a test bench, a broker only \
+             trusted hosts reach)"
+        )
     }
 
     /// The communication-loss time of the MQTT session's leases.
@@ -393,6 +489,61 @@ mod tests {
                 .contains("valid 1 to 65535")
         );
         assert!(Broker::parse("mqtt://:1").is_err());
+    }
+
+    fn parse(keys: &str) -> Result<MqttConfig, String> {
+        let toml = format!("[mqtt]\n{keys}\n");
+        crate::config::Config::parse(&toml, "drivegate.toml")
+            .map(|c| c.mqtt.unwrap())
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn commands_need_an_authenticated_broker_connection() {
+        let plain = "broker = \"mqtt://127.0.0.1\"";
+        let refused = parse(&format!("{plain}\ncommands = \"operator\"")).unwrap_err();
+        for words in [
+            "drivegate.toml:3",
+            "not authenticated",
+            "username and password_file",
+            "client certificate",
+            "mqtts://",
+            "unauthenticated_commands = true",
+        ] {
+            assert!(refused.contains(words), "{words:?} in {refused}");
+        }
+        // A certificate over plain MQTT is not sent.
+        let refused = parse(&format!(
+            "{plain}\ncommands = \"admin\"\nclient_cert = \"a.pem\"\nclient_key = \"a.key\""
+        ))
+        .unwrap_err();
+        assert!(refused.contains("over mqtts:// only"), "{refused}");
+        // A user without a password is no login.
+        assert!(
+            parse(&format!(
+                "{plain}\ncommands = \"viewer\"\nusername = \"gw1\""
+            ))
+            .is_err()
+        );
+        // The two ways, and the explicit choice.
+        let user = parse(&format!(
+            "{plain}\ncommands = \"operator\"\nusername = \"gw1\"\npassword_file = \"/p\""
+        ))
+        .unwrap();
+        assert_eq!(user.login(), Login::User("gw1".into()));
+        assert!(!user.takes_unauthenticated_commands());
+        let cert = parse(
+            "broker = \"mqtts://broker\"\ncommands = \"operator\"\nclient_cert = \"a.pem\"\nclient_key = \"a.key\"",
+        )
+        .unwrap();
+        assert_eq!(cert.login(), Login::Certificate);
+        let open = parse(&format!(
+            "{plain}\ncommands = \"operator\"\nunauthenticated_commands = true"
+        ))
+        .unwrap();
+        assert!(open.takes_unauthenticated_commands());
+        // Without commands nothing is asked.
+        assert_eq!(parse(plain).unwrap().commands(), Commands::None);
     }
 
     #[test]

@@ -153,7 +153,7 @@ impl Control {
         alarms.reconcile(&plant);
         alarms.watch(&plant, events.subscribe(), &shutdown);
         freshness::watch(&plant, events.clone(), &shutdown);
-        let opened = Journal::open(state_dir.as_deref());
+        let opened = Journal::open(state_dir.as_deref(), plant.now().drive_count());
         for news in &opened.news {
             match opened.journal.health() {
                 journal::Health::Off(_) => tracing::info!("{news}"),

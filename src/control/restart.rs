@@ -87,7 +87,7 @@ pub async fn run(
     recovered: &Recovered,
     on_unknown: StopAction,
 ) -> Vec<Decision> {
-    let statuses = if *recovered == Recovered::Unreadable {
+    let statuses = if recovered.has_unknowns() {
         first_statuses(plant).await
     } else {
         plant

@@ -63,6 +63,15 @@ static JOURNAL_BYTES: Spec = Spec {
     labels: &[],
 };
 
+static JOURNAL_SKIPPED: Spec = Spec {
+    name: "drivegate_safety_journal_skipped_bytes",
+    help: "Bytes of the safety journal skipped unread at start-up: it is read from its end back \
+           to its last clean stop, its start, or 64 KiB and 4 KiB per drive (a longer one was \
+           not written by this daemon, which compacts it); 0 when it was read whole.",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
 static RELOADS: Spec = Spec {
     name: "drivegate_config_reload_total",
     help: "Reloads of the configuration file (SIGHUP or POST /api/v1/config/reload), by \
@@ -129,6 +138,14 @@ static ALARM_FILE_OK: Spec = Spec {
     labels: &[],
 };
 
+static ALARM_FILE_SKIPPED: Spec = Spec {
+    name: "drivegate_alarm_file_skipped_bytes",
+    help: "Bytes of the alarm file skipped unread at start-up: it is read from its end until it \
+           gave [safety] alarms_kept alarms; 0 when it was read whole.",
+    kind: Kind::Gauge,
+    labels: &[],
+};
+
 /// Exports the control core's counters.
 pub(crate) struct ControlCollector {
     control: Control,
@@ -146,6 +163,7 @@ impl ControlCollector {
                 JOURNAL_OK.desc(),
                 JOURNAL_EVENTS.desc(),
                 JOURNAL_BYTES.desc(),
+                JOURNAL_SKIPPED.desc(),
                 RELOADS.desc(),
                 RELOAD_OK.desc(),
                 LOADED_AT.desc(),
@@ -154,6 +172,7 @@ impl ControlCollector {
                 ALARMS_UNACKED.desc(),
                 ALARM_FILE_BYTES.desc(),
                 ALARM_FILE_OK.desc(),
+                ALARM_FILE_SKIPPED.desc(),
             ],
         }
     }
@@ -196,6 +215,8 @@ impl Collector for ControlCollector {
         events.set(&["unreadable"], c.unreadable as f64);
         let mut bytes = JOURNAL_BYTES.family();
         bytes.set(&[], c.bytes as f64);
+        let mut journal_skipped = JOURNAL_SKIPPED.family();
+        journal_skipped.set(&[], c.skipped_bytes as f64);
         let status = self.control.reload_status();
         let mut reloads = RELOADS.family();
         reloads.set(&["applied"], status.applied as f64);
@@ -233,6 +254,8 @@ impl Collector for ControlCollector {
         file_bytes.set(&[], file.bytes as f64);
         let mut file_ok = ALARM_FILE_OK.family();
         file_ok.set(&[], f64::from(u8::from(file.failing.is_none())));
+        let mut file_skipped = ALARM_FILE_SKIPPED.family();
+        file_skipped.set(&[], file.skipped_bytes as f64);
         vec![
             reloads.finish(),
             reload_ok.finish(),
@@ -244,10 +267,12 @@ impl Collector for ControlCollector {
             ok.finish(),
             events.finish(),
             bytes.finish(),
+            journal_skipped.finish(),
             active.finish(),
             unacked.finish(),
             file_bytes.finish(),
             file_ok.finish(),
+            file_skipped.finish(),
         ]
     }
 }

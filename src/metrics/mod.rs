@@ -36,7 +36,7 @@ use prometheus::{Encoder, Registry, TextEncoder};
 
 pub use faces::{FaceMetrics, WsClientGuard};
 pub use mqtt::{LinkState as MqttLink, MqttMetrics};
-pub use security::SecurityMetrics;
+pub use security::{OpenConnection, SecurityMetrics};
 pub use utilisation::{SAMPLE_PERIOD, WINDOW as UTILISATION_WINDOW};
 
 use crate::plant::Plant;

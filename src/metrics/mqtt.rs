@@ -46,6 +46,7 @@ pub struct MqttMetrics {
     store_bytes: IntGauge,
     store_messages: IntGauge,
     store_dropped: IntCounter,
+    store_skipped: IntGauge,
     replay_dropped: IntCounter,
     link: Mutex<LinkState>,
 }
@@ -125,6 +126,10 @@ impl MqttMetrics {
                 "drivegate_mqtt_store_dropped_total",
                 "Stored messages dropped unsent, the oldest first, to keep [mqtt] store_max_mb.",
             ),
+            store_skipped: gauge(
+                "drivegate_mqtt_store_skipped_bytes",
+                "Bytes of the store skipped unread when it was opened: older segments beyond [mqtt] store_max_mb, and the head of a segment longer than one may be; 0 when it was read within its bound.",
+            ),
             replay_dropped: counter(
                 "drivegate_mqtt_replay_dropped_total",
                 "Stored messages dropped at replay because their drive is no longer configured (it will never be born again).",
@@ -203,6 +208,12 @@ impl MqttMetrics {
     /// A command's result (one of [`COMMAND_RESULTS`]).
     pub fn command(&self, result: &str) {
         self.commands.with_label_values(&[result]).inc();
+    }
+
+    /// The store's bytes skipped unread when it was opened.
+    pub fn store_skipped(&self, bytes: u64) {
+        self.store_skipped
+            .set(i64::try_from(bytes).unwrap_or(i64::MAX));
     }
 
     /// The store's figures now: bytes and messages waiting, messages

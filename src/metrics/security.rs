@@ -1,8 +1,9 @@
 //! Counters of the transport's defences: requests the browser-origin
 //! guards refused, failed and throttled token checks, TLS handshakes that
-//! failed, and certificate reloads.
+//! failed, certificate reloads, and the HTTP listener's connections (open,
+//! refused by its limits, closed for a request head that did not come).
 
-use prometheus::{IntCounter, IntCounterVec, Opts, Registry};
+use prometheus::{IntCounter, IntCounterVec, IntGauge, Opts, Registry};
 
 /// The security counters.
 #[derive(Clone)]
@@ -13,7 +14,14 @@ pub struct SecurityMetrics {
     tls_handshake_failures: IntCounterVec,
     tls_reloads: IntCounterVec,
     tls_refused_clients: IntCounterVec,
+    http_open: IntGauge,
+    http_refused: IntCounterVec,
+    http_header_timeouts: IntCounter,
 }
+
+/// Why the HTTP listener refused a connection (the label of
+/// `drivegate_http_connections_refused_total`).
+const HTTP_REFUSALS: [&str; 2] = ["limit", "per_address"];
 
 fn counter_vec(registry: &Registry, name: &str, help: &str, labels: &[&str]) -> IntCounterVec {
     let c = IntCounterVec::new(Opts::new(name, help), labels)
@@ -67,9 +75,36 @@ impl SecurityMetrics {
                 "Modbus/TCP Security clients refused after the handshake, by reason (role).",
                 &["reason"],
             ),
+            http_open: {
+                let g = IntGauge::new(
+                    "drivegate_http_connections",
+                    "HTTP connections open now (WebSocket and keep-alive included).",
+                )
+                .unwrap_or_else(|e| panic!("invalid metric definition: {e}"));
+                let _ = registry.register(Box::new(g.clone()));
+                g
+            },
+            http_refused: counter_vec(
+                registry,
+                "drivegate_http_connections_refused_total",
+                "HTTP connections answered 503 and closed, by reason: limit ([http] max_connections \
+                 reached) or per_address (the client's address held \
+                 [http] max_connections_per_address).",
+                &["reason"],
+            ),
+            http_header_timeouts: counter(
+                registry,
+                "drivegate_http_header_timeouts_total",
+                "HTTP connections closed because a request head did not arrive whole within \
+                 [http] header_timeout_ms (nothing sent, or sent too slowly); kept-alive \
+                 connections closed unused are not counted.",
+            ),
         };
         for reason in ["host", "origin", "cross-site"] {
             metrics.guard_refused.with_label_values(&[reason]);
+        }
+        for reason in HTTP_REFUSALS {
+            metrics.http_refused.with_label_values(&[reason]);
         }
         metrics
     }
@@ -100,8 +135,34 @@ impl SecurityMetrics {
         self.tls_reloads.with_label_values(&[face, result]).inc();
     }
 
+    /// An HTTP connection opened: counted open until the guard drops.
+    pub fn http_connection(&self) -> OpenConnection {
+        self.http_open.inc();
+        OpenConnection(self.http_open.clone())
+    }
+
+    /// An HTTP connection refused, for `reason` (`limit` or
+    /// `per_address`).
+    pub fn http_refused(&self, reason: &str) {
+        self.http_refused.with_label_values(&[reason]).inc();
+    }
+
+    /// An HTTP connection closed for a request head not whole in time.
+    pub fn http_header_timeout(&self) {
+        self.http_header_timeouts.inc();
+    }
+
     /// A Modbus/TCP Security client refused after its handshake.
     pub fn tls_client_refused(&self, reason: &str) {
         self.tls_refused_clients.with_label_values(&[reason]).inc();
+    }
+}
+
+/// An open HTTP connection in `drivegate_http_connections`, until dropped.
+pub struct OpenConnection(IntGauge);
+
+impl Drop for OpenConnection {
+    fn drop(&mut self) {
+        self.0.dec();
     }
 }

@@ -20,14 +20,16 @@
 //!
 //! Like every face it decides nothing about the motors: commands go to
 //! [`crate::control`] as face `mqtt` with the role of `[mqtt] commands`, in
-//! a session whose communication-loss function holds their leases. See
-//! `docs/mqtt.md`.
+//! a session whose communication-loss function holds their leases, named
+//! by what is known of their sender ([`identity`]: the broker's login, the
+//! primary host claimed). See `docs/mqtt.md` and `docs/security.md`.
 
 mod bd_seq;
 pub mod commands;
 mod connection;
 pub mod exception;
 pub mod host;
+pub mod identity;
 pub mod json;
 pub mod metric;
 mod node;
@@ -117,6 +119,7 @@ pub fn start(
         return Ok(None);
     };
     let node_id = node_id(&section);
+    identity::warn_if_unauthenticated(&section);
     if section.format == Format::Json {
         if section.primary_host_id.is_some() {
             tracing::warn!(

@@ -142,12 +142,8 @@ pub(super) fn spawn(
     let (results_tx, results_rx) = mpsc::unbounded_channel();
     let (bus_tx, bus_rx) = mpsc::channel(4096);
     let topics = NodeTopics::new(&config.group_id, &node_id);
-    // The primary host, or without one whoever uses the broker.
-    let who: Arc<str> = config
-        .primary_host_id
-        .clone()
-        .unwrap_or_else(|| format!("{}:{}", config.broker.host, config.broker.port))
-        .into();
+    // What is known of who commands: the broker's login, the host claimed.
+    let who: Arc<str> = super::identity::who(&config, config.primary_host_id.as_deref()).into();
     let session = open_session(&control, &config);
     let node = Node {
         topics,
@@ -503,7 +499,7 @@ impl Node {
         }
         let role = self
             .config
-            .commands
+            .commands()
             .role()
             .unwrap_or(crate::control::Role::Viewer);
         let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)

@@ -253,7 +253,11 @@ async fn without_tokens_the_api_listens_on_loopback_only() {
 async fn limits_on_connections_bodies_and_messages() {
     capture_logs();
     tokio::time::timeout(LIMIT, async {
-        let d = TestDaemon::start(&config("max_connections = 3\nmax_body_bytes = 1024", "")).await;
+        let d = TestDaemon::start(&config(
+            "max_connections = 3\nmax_connections_per_address = 3\nmax_body_bytes = 1024",
+            "",
+        ))
+        .await;
         let api = Api::new(d.http, None);
 
         // A body over the limit: 413, and the daemon carries on.

@@ -186,7 +186,12 @@ async fn connect_small_buffer(addr: std::net::SocketAddr, query: &str) -> Ws {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_hundred_clients_keep_receiving_while_one_never_reads() {
     tokio::time::timeout(LIMIT, async {
-        let d = TestDaemon::start(&config("stream_buffer = 8\nsend_buffer_bytes = 4096", "")).await;
+        // A hundred clients of one address: its share is all the slots.
+        let d = TestDaemon::start(&config(
+            "stream_buffer = 8\nsend_buffer_bytes = 4096\nmax_connections_per_address = 128",
+            "",
+        ))
+        .await;
         let names = ["conveyor", "lift", "turntable", "feeder"];
 
         // The slow one subscribes to everything and then reads nothing.

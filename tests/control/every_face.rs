@@ -341,7 +341,7 @@ async fn every_rule_decides_the_same_through_every_face() {
         let broker = Mosquitto::start();
         let mut host = Host::connect(broker.port, "every-face-host", None).await;
         let mqtt = format!(
-            "[mqtt]\nbroker = \"{}\"\ngroup_id = \"plant\"\nnode_id = \"gw1\"\ncommands = \"operator\"\n",
+            "[mqtt]\nbroker = \"{}\"\ngroup_id = \"plant\"\nnode_id = \"gw1\"\ncommands = \"operator\"\nunauthenticated_commands = true\n",
             broker.url()
         );
         let d = TestDaemon::start(&config("", networks, true, &mqtt)).await;

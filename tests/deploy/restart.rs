@@ -618,7 +618,7 @@ async fn an_mqtt_commands_lease_stops_at_start_up() {
         let mut host = Host::connect(broker.port, "restart-host", None).await;
         let bench = Bench::new().await;
         *bench.extra.lock().unwrap() = format!(
-            "[mqtt]\nbroker = \"{}\"\ngroup_id = \"plant\"\nnode_id = \"gw1\"\ncommands = \"operator\"\ncomm_loss_ms = 60000\n",
+            "[mqtt]\nbroker = \"{}\"\ngroup_id = \"plant\"\nnode_id = \"gw1\"\ncommands = \"operator\"\nunauthenticated_commands = true\ncomm_loss_ms = 60000\n",
             broker.url()
         );
         let d = bench.serve().await;

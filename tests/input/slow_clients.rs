@@ -2,8 +2,9 @@
 //! real sockets: request heads trickled a byte at a time (slow-loris),
 //! bodies that never complete or trickle, kept-alive connections left
 //! unused, and stream clients that stop answering pings. Each is
-//! disconnected after `[http] read_timeout_s` (or the idle timeout for the
-//! stream) rather than holding one of the `max_connections` slots for ever;
+//! disconnected after `[http] header_timeout_ms` (a head), `read_timeout_s`
+//! (a body) or the idle timeout (the stream) rather than holding one of the
+//! `max_connections` slots for ever;
 //! a well-behaved client is served throughout and no socket or task is left
 //! behind.
 
@@ -21,10 +22,10 @@ use tokio::net::TcpStream;
 const LIMIT: Duration = Duration::from_secs(60);
 /// `[http] read_timeout_s` of these tests.
 const READ_TIMEOUT: Duration = Duration::from_secs(1);
-/// `[http] read_timeout_s` of the slow-loris test: long enough that a
+/// `[http] header_timeout_ms` of the slow-loris test: long enough that a
 /// loaded machine's stalls cannot close the trickling clients before the
 /// test has seen them hold every slot.
-const LORIS_READ_TIMEOUT: Duration = Duration::from_secs(3);
+const LORIS_HEADER_TIMEOUT: Duration = Duration::from_secs(3);
 
 /// Reads until the server closes the connection; what it sent, or `None`
 /// if it is still open after `limit`.
@@ -71,10 +72,10 @@ async fn get_status(addr: SocketAddr) -> u16 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn slow_loris_heads_lose_their_connection_slots() {
     tokio::time::timeout(LIMIT, async {
-        // Eight slots; the idle timeout is long, so only the read deadline
-        // can free a slot a trickling client holds.
+        // Eight slots, all for one address; the idle timeout is long, so
+        // only the head's deadline can free a slot a trickling client holds.
         let d = TestDaemon::start(&config(
-            "max_connections = 8\nidle_timeout_s = 60\nread_timeout_s = 3",
+            "max_connections = 8\nmax_connections_per_address = 8\nidle_timeout_s = 60\nheader_timeout_ms = 3000",
             "",
             true,
             "",
@@ -118,7 +119,7 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         let first_opened = first_opened.expect("seven trickling clients");
         let mut refused = false;
         let mut seen = Vec::new();
-        while !refused && first_opened.elapsed() < LORIS_READ_TIMEOUT * 9 / 10 {
+        while !refused && first_opened.elapsed() < LORIS_HEADER_TIMEOUT * 9 / 10 {
             let status = get_status(addr).await;
             seen.push((status, first_opened.elapsed()));
             refused = status == 503;
@@ -134,7 +135,7 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         for loris in lorises {
             let (closed_early, after, answer) = loris.await.unwrap();
             assert!(closed_early, "a trickling client finished its head");
-            assert!(after >= LORIS_READ_TIMEOUT, "closed after {after:?}");
+            assert!(after >= LORIS_HEADER_TIMEOUT, "closed after {after:?}");
             assert!(answer.is_some(), "a trickling client kept its connection");
         }
         let mut served = false;
@@ -157,11 +158,11 @@ async fn slow_loris_heads_lose_their_connection_slots() {
         let answer = read_until_closed(&mut kept, Duration::from_secs(10))
             .await
             .expect("the unused kept-alive connection is closed");
-        assert!(opened.elapsed() >= LORIS_READ_TIMEOUT);
+        assert!(opened.elapsed() >= LORIS_HEADER_TIMEOUT);
         assert!(String::from_utf8_lossy(&answer).starts_with("HTTP/1.1 200"));
 
         let (ok, slowest) = bystander.finish(3, "slow-loris heads").await;
-        println!("HTTP slow-loris: 7 trickling heads closed after the read timeout; well-behaved client: {ok} answers, slowest {slowest:?}");
+        println!("HTTP slow-loris: 7 trickling heads closed after the header timeout; well-behaved client: {ok} answers, slowest {slowest:?}");
         drop(kept);
         baseline
             .assert_back(Duration::from_secs(5), "slow-loris heads")

@@ -57,7 +57,11 @@ async fn a_dcmd_setpoint_runs_the_drive_and_is_confirmed() {
         let broker = Mosquitto::start();
         let mut host = Host::connect(broker.port, "dcmd-host", None).await;
         crate::support::logs::capture_logs();
-        let d = TestDaemon::start(&config(&broker.url(), "commands = \"operator\"")).await;
+        let d = TestDaemon::start(&config(
+            &broker.url(),
+            "commands = \"operator\"\nunauthenticated_commands = true",
+        ))
+        .await;
         born(&mut host).await;
         run(&host, "conveyor", 120.0).await;
         // The value the drive confirmed, and an empty last result.
@@ -91,8 +95,8 @@ async fn a_dcmd_setpoint_runs_the_drive_and_is_confirmed() {
             .unwrap();
         let lease = d.control().lease(index).expect("a lease on the conveyor");
         assert!(lease.comm_loss, "{lease:?}");
-        // Without a primary host, the broker's address says who.
-        let who = format!("127.0.0.1:{}", broker.port);
+        // Without a login nor a primary host, only the broker is known.
+        let who = format!("unauthenticated broker 127.0.0.1:{}", broker.port);
         assert_eq!(&*lease.owner, format!("mqtt {who}"));
         // Audited as every face's writes are.
         let log = crate::support::logs::log_text();
@@ -132,7 +136,11 @@ async fn refused_commands_say_why() {
     bounded(Duration::from_secs(60), async {
         let broker = Mosquitto::start();
         let mut host = Host::connect(broker.port, "refusal-host", None).await;
-        let d = TestDaemon::start(&config(&broker.url(), "commands = \"operator\"")).await;
+        let d = TestDaemon::start(&config(
+            &broker.url(),
+            "commands = \"operator\"\nunauthenticated_commands = true",
+        ))
+        .await;
         born(&mut host).await;
         // Out of range: the drive's range, in the words of every face.
         host.dcmd(

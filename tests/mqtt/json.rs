@@ -91,7 +91,11 @@ fn is_status(m: &Received, speed_over: f64) -> bool {
 async fn retained_state_and_status_and_a_command_that_turns_a_drive() {
     bounded(Duration::from_secs(90), async {
         let broker = Mosquitto::start();
-        let d = daemon(&broker, "commands = \"operator\"").await;
+        let d = daemon(
+            &broker,
+            "commands = \"operator\"\nunauthenticated_commands = true",
+        )
+        .await;
         // A client that comes later gets the state and each drive's status
         // from the broker (retained), in the API's status JSON.
         let status_topic = topic("conveyor/status");
@@ -154,7 +158,11 @@ async fn retained_state_and_status_and_a_command_that_turns_a_drive() {
 async fn refusals_and_malformed_messages_are_replied_in_the_apis_words() {
     bounded(Duration::from_secs(90), async {
         let broker = Mosquitto::start();
-        let d = daemon(&broker, "commands = \"operator\"").await;
+        let d = daemon(
+            &broker,
+            "commands = \"operator\"\nunauthenticated_commands = true",
+        )
+        .await;
         let mut sub = subscribed(&broker, &[&topic("conveyor/reply")]).await;
         command(&broker, json!(1), "activate", json!({})).await;
         reply(&mut sub, json!(1)).await;
@@ -236,7 +244,7 @@ async fn a_viewer_role_and_no_role_refuse_commands_with_words() {
         for (id, keys, words) in [
             (
                 1,
-                "commands = \"viewer\"",
+                "commands = \"viewer\"\nunauthenticated_commands = true",
                 "commands over MQTT have the viewer role",
             ),
             (2, "", "commands over MQTT are off"),
@@ -260,7 +268,11 @@ async fn a_viewer_role_and_no_role_refuse_commands_with_words() {
 async fn an_mqtt5_reply_goes_to_the_response_topic_with_the_correlation_data() {
     bounded(Duration::from_secs(90), async {
         let broker = Mosquitto::start();
-        let d = daemon(&broker, "commands = \"operator\"").await;
+        let d = daemon(
+            &broker,
+            "commands = \"operator\"\nunauthenticated_commands = true",
+        )
+        .await;
         let mut sub = subscribed(&broker, &["app/replies/#"]).await;
         publish(
             broker.port,
@@ -338,7 +350,11 @@ async fn kill_9_leaves_the_state_offline() {
 async fn events_tell_of_a_lease_ending_and_of_a_drive_offline_and_back() {
     bounded(Duration::from_secs(90), async {
         let broker = Mosquitto::start();
-        let d = daemon(&broker, "commands = \"operator\"").await;
+        let d = daemon(
+            &broker,
+            "commands = \"operator\"\nunauthenticated_commands = true",
+        )
+        .await;
         let event_topic = topic("conveyor/event");
         let mut sub = subscribed(&broker, &[&event_topic, &topic("conveyor/reply")]).await;
         command(&broker, json!(1), "activate", json!({})).await;
@@ -409,7 +425,11 @@ async fn events_tell_of_a_lease_ending_and_of_a_drive_offline_and_back() {
 async fn losing_the_broker_stops_what_json_commands_started() {
     bounded(Duration::from_secs(90), async {
         let mut broker = Mosquitto::start();
-        let d = daemon(&broker, "commands = \"operator\"\ncomm_loss_ms = 500").await;
+        let d = daemon(
+            &broker,
+            "commands = \"operator\"\nunauthenticated_commands = true\ncomm_loss_ms = 500",
+        )
+        .await;
         let mut sub = subscribed(&broker, &[&topic("conveyor/reply")]).await;
         command(&broker, json!(1), "activate", json!({})).await;
         reply(&mut sub, json!(1)).await;

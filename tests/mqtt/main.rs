@@ -4,14 +4,16 @@
 //! third-party `pysparkplug`: births and bdSeq, rebirth, DDATA by
 //! exception, commands through the control core and their refusals, the
 //! motor-safety lease of MQTT's commands, the NDEATH of a killed daemon,
-//! TLS with the broker's CA; and the adapter unplugged under a daemon with
-//! every face on, each face timed showing it (`wire_gone`).
+//! TLS with the broker's CA, and who may command: a password file and the
+//! ACL of `docs/security.md` (`acl.rs`); and the adapter unplugged under a
+//! daemon with every face on, each face timed showing it (`wire_gone`).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
 #[path = "../support/mod.rs"]
 mod support;
 
+mod acl;
 mod births;
 mod commands;
 mod convergence;

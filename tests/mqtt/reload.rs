@@ -21,7 +21,7 @@ async fn a_changed_mqtt_section_restarts_the_face_and_ends_its_leases_with_their
         let broker = Mosquitto::start();
         let mut host = Host::connect(broker.port, "reload-host", None).await;
         // A minute of communication loss: the stop below is the restart's.
-        let keys = "commands = \"operator\"\ncomm_loss_ms = 60000";
+        let keys = "commands = \"operator\"\nunauthenticated_commands = true\ncomm_loss_ms = 60000";
         let before = config(&broker.url(), keys);
         let d = TestDaemon::reloadable(&before).await;
         born(&mut host).await;

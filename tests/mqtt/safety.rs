@@ -48,7 +48,7 @@ async fn the_primary_host_offline_stops_the_motor_it_commanded() {
         host.announce(true).await;
         let d = TestDaemon::start(&config(
             &broker.url(),
-            "primary_host_id = \"scada\"\ncommands = \"operator\"\ncomm_loss_ms = 60000",
+            "primary_host_id = \"scada\"\ncommands = \"operator\"\nunauthenticated_commands = true\ncomm_loss_ms = 60000",
         ))
         .await;
         born(&mut host).await;
@@ -115,7 +115,7 @@ async fn losing_the_broker_stops_the_motor_after_comm_loss_ms() {
         let mut host = Host::connect(broker.port, "loss-host", None).await;
         let d = TestDaemon::start(&config(
             &broker.url(),
-            "commands = \"operator\"\ncomm_loss_ms = 500",
+            "commands = \"operator\"\nunauthenticated_commands = true\ncomm_loss_ms = 500",
         ))
         .await;
         born(&mut host).await;

@@ -2,7 +2,10 @@
 //! `[http] max_body_bytes` is refused with 413 whether its length is
 //! announced, chunked or only claimed, a stream message over it closes that
 //! stream, and a flood of connections beyond `max_connections` is refused
-//! while the connections already open keep being served.
+//! while the connections already open keep being served; idle connections
+//! from one address hold at most `max_connections_per_address` slots and
+//! are closed after `header_timeout_ms`, so the admin gets in from another
+//! address at once and from the same one within the timeout.
 
 use std::time::Duration;
 
@@ -163,7 +166,13 @@ async fn ask(s: &mut TcpStream) -> u16 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flood_of_connections_is_refused_and_the_open_ones_kept() {
     tokio::time::timeout(LIMIT, async {
-        let d = TestDaemon::start(&config("max_connections = 8", "", true, "")).await;
+        let d = TestDaemon::start(&config(
+            "max_connections = 8\nmax_connections_per_address = 8",
+            "",
+            true,
+            "",
+        ))
+        .await;
         let addr = d.http;
         let mut held = Vec::new();
         for _ in 0..8 {
@@ -214,6 +223,111 @@ async fn a_flood_of_connections_is_refused_and_the_open_ones_kept() {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
         assert!(served, "the slots did not come back");
+        d.stop().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// A connection to `addr` from the loopback address `from`.
+async fn connect_from(from: &str, addr: std::net::SocketAddr) -> std::io::Result<TcpStream> {
+    let socket = tokio::net::TcpSocket::new_v4()?;
+    socket.bind(format!("{from}:0").parse().unwrap())?;
+    socket.connect(addr).await
+}
+
+/// An admin's `GET /api/v1/drives` from `from`: its status, or why none.
+async fn admin_from(from: &str, addr: std::net::SocketAddr) -> Result<u16, String> {
+    let mut s = connect_from(from, addr).await.map_err(|e| e.to_string())?;
+    let request = format!(
+        "GET /api/v1/drives HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\nAuthorization: Bearer {ADMIN}\r\n\r\n"
+    );
+    let _ = s.write_all(request.as_bytes()).await;
+    let mut bytes = Vec::new();
+    tokio::time::timeout(Duration::from_secs(10), s.read_to_end(&mut bytes))
+        .await
+        .map_err(|_| "no answer within 10 s".to_string())?
+        .map_err(|e| e.to_string())?;
+    parse_answer(&bytes).map(|a| a.status)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_connections_from_one_address_do_not_lock_the_admin_out() {
+    tokio::time::timeout(LIMIT, async {
+        crate::support::logs::capture_logs();
+        // The defaults: 128 connections, 32 per address, 5 s for a head.
+        let d = TestDaemon::start(&config("", "", true, "")).await;
+        let addr = d.http;
+        let header_timeout = Duration::from_millis(5000);
+        let metric = |name: &'static str| crate::support::metrics::counter(&d, name);
+        for name in [
+            "drivegate_http_connections",
+            "drivegate_http_header_timeouts_total",
+            "drivegate_http_connections_refused_total{reason=\"limit\"}",
+            "drivegate_http_connections_refused_total{reason=\"per_address\"}",
+        ] {
+            let fresh = d.metrics.render();
+            assert_eq!(
+                crate::support::metrics::exported(&fresh, name),
+                0.0,
+                "{name} in a fresh /metrics"
+            );
+        }
+        // 200 connections from 127.0.0.1 that send nothing.
+        let opened = tokio::time::Instant::now();
+        let mut idle = Vec::new();
+        for _ in 0..200 {
+            idle.push(connect_from("127.0.0.1", addr).await.unwrap());
+        }
+        crate::support::wait::eventually(
+            Duration::from_secs(10),
+            "the idle connections held (32) or refused (168)",
+            || {
+                (metric("drivegate_http_connections") == 32.0
+                    && metric("drivegate_http_connections_refused_total{reason=\"per_address\"}")
+                        >= 168.0)
+                    .then_some(())
+            },
+        )
+        .await;
+        // The admin, from another address: served at once.
+        let asked = tokio::time::Instant::now();
+        assert_eq!(admin_from("127.0.0.2", addr).await, Ok(200));
+        let elsewhere = asked.elapsed();
+        assert!(elsewhere < Duration::from_secs(2), "{elsewhere:?}");
+        // From the same address: refused while its share is held, served
+        // once the idle ones are closed for the head they never sent.
+        let mut refused = 0;
+        let same = loop {
+            match admin_from("127.0.0.1", addr).await {
+                Ok(200) => break opened.elapsed(),
+                Ok(503) | Err(_) => refused += 1,
+                Ok(other) => panic!("the admin from 127.0.0.1 got {other}"),
+            }
+            assert!(
+                opened.elapsed() < header_timeout + Duration::from_secs(5),
+                "the admin from 127.0.0.1 was not served within the header timeout"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        };
+        assert!(refused > 0, "served before the idle connections were closed");
+        assert!(same >= header_timeout - Duration::from_millis(200), "{same:?}");
+        assert!(metric("drivegate_http_header_timeouts_total") >= 32.0);
+        println!(
+            "HTTP: 200 idle connections from 127.0.0.1 (32 held, {} refused): an admin from 127.0.0.2 served in {} ms, one from 127.0.0.1 after {:.1} s ({refused} tries refused; header_timeout_ms 5000), {} connections closed for their head",
+            metric("drivegate_http_connections_refused_total{reason=\"per_address\"}"),
+            elsewhere.as_millis(),
+            same.as_secs_f64(),
+            metric("drivegate_http_header_timeouts_total"),
+        );
+        // The refusals of 127.0.0.1 were logged once, as one burst.
+        let port = format!("listener=127.0.0.1:{}", addr.port());
+        let lines = crate::support::logs::log_text()
+            .lines()
+            .filter(|l| l.contains("HTTP connections from 127.0.0.1 refused") && l.contains(&port))
+            .count();
+        assert_eq!(lines, 1, "refusals logged once per burst");
+        drop(idle);
         d.stop().await;
     })
     .await

@@ -1,6 +1,7 @@
 //! Debian's `mosquitto` as the MQTT tests' broker: on a free loopback
 //! port, anonymous, nothing kept on disk; optionally a TLS listener beside
-//! it with certificates made by `openssl` (`certs.rs`). Killed when
+//! it with certificates made by `openssl` (`certs.rs`), or users in a
+//! password file made by `mosquitto_passwd` and an `acl_file`. Killed when
 //! dropped; stopped and started again on the same ports by the tests of a
 //! broker outage.
 
@@ -29,16 +30,23 @@ fn is_root() -> bool {
 impl Mosquitto {
     /// A broker with a plain listener.
     pub fn start() -> Mosquitto {
-        Self::with(None)
+        Self::with(None, None)
     }
 
     /// A broker with a plain listener and a TLS one whose certificate is
     /// `pki`'s `server`, signed by its `ca`.
     pub fn start_tls(pki: &Pki) -> Mosquitto {
-        Self::with(Some(pki))
+        Self::with(Some(pki), None)
     }
 
-    fn with(pki: Option<&Pki>) -> Mosquitto {
+    /// A broker that lets in only `users` (name, password: a password
+    /// file made by Debian's `mosquitto_passwd`, no anonymous client) and
+    /// gives each the topics of `acl` (mosquitto's `acl_file` format).
+    pub fn start_with_users(users: &[(&str, &str)], acl: &str) -> Mosquitto {
+        Self::with(None, Some((users, acl)))
+    }
+
+    fn with(pki: Option<&Pki>, auth: Option<(&[(&str, &str)], &str)>) -> Mosquitto {
         let dir = tempfile::tempdir().unwrap();
         let port = super::ports::free_port();
         let tls_port = pki.map(|_| super::ports::free_port());
@@ -49,10 +57,42 @@ impl Mosquitto {
             conf.push_str("user root\n");
         }
         conf.push_str(&format!(
-            "persistence false\nper_listener_settings false\nallow_anonymous true\n\
+            "persistence false\nper_listener_settings false\n\
              log_dest file {}\nlog_type all\nlistener {port} 127.0.0.1\n",
             dir.path().join("mosquitto.log").display()
         ));
+        match auth {
+            None => conf.push_str("allow_anonymous true\n"),
+            Some((users, acl)) => {
+                let passwords = dir.path().join("passwords");
+                for (i, (user, password)) in users.iter().enumerate() {
+                    let mut cmd = Command::new("mosquitto_passwd");
+                    cmd.arg("-b");
+                    if i == 0 {
+                        cmd.arg("-c");
+                    }
+                    let out = cmd
+                        .arg(&passwords)
+                        .args([user, password])
+                        .output()
+                        .unwrap_or_else(|e| {
+                            panic!("{}", tools::cannot_run("mosquitto_passwd", &e))
+                        });
+                    assert!(
+                        out.status.success(),
+                        "mosquitto_passwd: {}",
+                        String::from_utf8_lossy(&out.stderr)
+                    );
+                }
+                let acl_file = dir.path().join("acl");
+                std::fs::write(&acl_file, acl).unwrap();
+                conf.push_str(&format!(
+                    "allow_anonymous false\npassword_file {}\nacl_file {}\n",
+                    passwords.display(),
+                    acl_file.display()
+                ));
+            }
+        }
         if let (Some(pki), Some(tls_port)) = (pki, tls_port) {
             conf.push_str(&format!(
                 "listener {tls_port} 127.0.0.1\ncafile {}\ncertfile {}\nkeyfile {}\n",
@@ -172,8 +212,16 @@ pub struct Sub {
 impl Sub {
     /// Subscribes to `topics` on the broker on `port` (MQTT 5, QoS 1).
     pub fn start(port: u16, topics: &[&str]) -> Sub {
+        Self::start_as(port, None, topics)
+    }
+
+    /// [`Sub::start`], logged in as `login` (user, password).
+    pub fn start_as(port: u16, login: Option<(&str, &str)>, topics: &[&str]) -> Sub {
         use tokio::io::AsyncBufReadExt;
         let mut cmd = tokio::process::Command::new("mosquitto_sub");
+        if let Some((user, password)) = login {
+            cmd.args(["-u", user, "-P", password]);
+        }
         cmd.args([
             "-h",
             "127.0.0.1",
@@ -272,6 +320,34 @@ pub async fn publish(port: u16, topic: &str, payload: &str, properties: &[(&str,
         cmd.args(["-D", "publish", name, value]);
     }
     let out = cmd
+        .stdin(Stdio::null())
+        .output()
+        .await
+        .unwrap_or_else(|e| panic!("{}", tools::cannot_run("mosquitto_pub", &e)));
+    assert!(
+        out.status.success(),
+        "mosquitto_pub failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// Publishes `payload` (any bytes) on `topic` with Debian's `mosquitto_pub`
+/// logged in as `user` with `password` (MQTT 3.1.1, QoS 1): returns once
+/// the broker acknowledged it, whether its ACL let it through or not.
+pub async fn publish_as(
+    port: u16,
+    login: (&str, &str),
+    client_id: &str,
+    topic: &str,
+    payload: &[u8],
+) {
+    let file = tempfile::NamedTempFile::new().unwrap();
+    std::fs::write(file.path(), payload).unwrap();
+    let out = tokio::process::Command::new("mosquitto_pub")
+        .args(["-h", "127.0.0.1", "-p", &port.to_string(), "-q", "1"])
+        .args(["-u", login.0, "-P", login.1, "-i", client_id, "-t", topic])
+        .arg("-f")
+        .arg(file.path())
         .stdin(Stdio::null())
         .output()
         .await

@@ -111,7 +111,21 @@ impl Host {
     /// `primary`, it is that primary host: its will is its `STATE`
     /// offline; it says online only when told ([`Host::online`]).
     pub async fn connect(port: u16, client_id: &str, primary: Option<&str>) -> Host {
+        Self::connect_as(port, client_id, primary, None).await
+    }
+
+    /// [`Host::connect`], logged in to the broker as `login` (user,
+    /// password).
+    pub async fn connect_as(
+        port: u16,
+        client_id: &str,
+        primary: Option<&str>,
+        login: Option<(&str, &str)>,
+    ) -> Host {
         let mut options = MqttOptions::new(client_id, "127.0.0.1", port);
+        if let Some((user, password)) = login {
+            options.set_credentials(user, password);
+        }
         options.set_keep_alive(Duration::from_secs(5));
         options.set_max_packet_size(1 << 20, 1 << 20);
         if let Some(id) = primary {

@@ -207,6 +207,12 @@ impl AlarmBook {
         (book, changes)
     }
 
+    /// Numbers new alarms after `id` (the highest a file's records name,
+    /// whether or not its alarm was kept): a number is never given twice.
+    pub fn number_after(&mut self, id: u64) {
+        self.next_id = self.next_id.max(id.saturating_add(1));
+    }
+
     fn reindex(&mut self) {
         self.open = self
             .alarms

@@ -11,8 +11,17 @@
 //! synced, renamed over it, the directory synced). The book holds at most
 //! `[safety] alarms_kept` alarms, so the file stays below twice their
 //! snapshot plus one append.
+//!
+//! At start-up the file is read from its end
+//! ([`crate::control::journal::tail`]), the newest records first, until it
+//! has given `alarms_kept` alarms (the last record of each), its start, or
+//! a budget of bytes a file of that many alarms never reaches: a file
+//! that grew beyond what the daemon keeps (written with a larger
+//! `alarms_kept`, or not by this daemon) costs no more time or memory than
+//! one of the alarms kept. What lies before is skipped unread, counted
+//! and logged, and the file is compacted to what was kept.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashSet};
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
@@ -21,11 +30,16 @@ use serde::{Deserialize, Serialize};
 
 use super::book::Alarm;
 use crate::control::journal::format::{self, Kind};
+use crate::control::journal::tail::{self, Wanted};
 
 /// The file's name in the state directory.
 pub const FILE: &str = "alarms.journal";
 /// Compacted once it is this long (and twice its last snapshot).
 pub const COMPACT_AT: u64 = 64 * 1024;
+/// Bytes read at start-up per alarm kept: an alarm's record is well under
+/// 2 KiB, and a file this daemon wrote holds at most two of each (twice
+/// its snapshot) plus [`COMPACT_AT`].
+const READ_PER_ALARM: u64 = 4 * 1024;
 /// The alarm file's magic and version.
 pub const ALARM_FILE: Kind = Kind {
     magic: b"DRVGALRM",
@@ -72,6 +86,81 @@ pub struct FileState {
     /// What is wrong, in words (`None`: written and synced, or no state
     /// directory).
     pub failing: Option<String>,
+    /// Bytes of older records skipped unread at start-up.
+    pub skipped_bytes: u64,
+}
+
+/// The newest alarms of a file, read from its end.
+struct Newest {
+    alarms: BTreeMap<u64, Alarm>,
+    last_id: u64,
+    skipped: u64,
+    news: Vec<String>,
+}
+
+/// Reads the file at `path` from its end until it gave `keep` alarms (the
+/// last record of each id; a dropped one counts for nothing), its start,
+/// or `keep` times [`READ_PER_ALARM`] bytes.
+fn read_newest(path: &Path, keep: usize) -> Result<Newest, format::Unreadable> {
+    let mut decided: HashSet<u64> = HashSet::new();
+    let mut alarms = BTreeMap::new();
+    let mut last_id = 0;
+    let keep = keep.max(1);
+    let budget = (keep as u64)
+        .saturating_mul(READ_PER_ALARM)
+        .saturating_add(COMPACT_AT);
+    let read = tail::read_from_end(path, ALARM_FILE, budget, |records: Vec<AlarmRecord>| {
+        for r in records.into_iter().rev() {
+            let id = match &r {
+                AlarmRecord::Alarm(a) => a.id,
+                AlarmRecord::Dropped { id } => *id,
+            };
+            last_id = last_id.max(id);
+            // Newest first: the first record of an id is its last word.
+            if !decided.insert(id) {
+                continue;
+            }
+            if let AlarmRecord::Alarm(a) = r {
+                alarms.insert(id, a);
+                if alarms.len() >= keep {
+                    return Wanted::Enough;
+                }
+            }
+        }
+        Wanted::More
+    })?;
+    let mut news = Vec::new();
+    let Some(read) = read else {
+        return Ok(Newest {
+            alarms,
+            last_id,
+            skipped: 0,
+            news,
+        });
+    };
+    if read.torn > 0 {
+        news.push(format!(
+            "the alarm file {} ended in a record cut short ({} bytes); it was left out",
+            path.display(),
+            read.torn
+        ));
+    }
+    if read.skipped > 0 {
+        news.push(format!(
+            "the alarm file {} is {}, more than {} alarms ([safety] alarms_kept) need: it was read from its end, its newest {} alarms kept and the {} before them skipped unread; the file is compacted to what is kept",
+            path.display(),
+            tail::size(read.len),
+            keep,
+            alarms.len(),
+            tail::size(read.skipped)
+        ));
+    }
+    Ok(Newest {
+        alarms,
+        last_id,
+        skipped: read.skipped,
+        news,
+    })
 }
 
 /// The open file, with a copy of what it holds (for its snapshots).
@@ -90,14 +179,17 @@ pub struct OpenedFile {
     pub file: AlarmFile,
     /// The alarms it held, oldest first.
     pub alarms: Vec<Alarm>,
+    /// The highest alarm number its records read name (the book numbers
+    /// on after it).
+    pub last_id: u64,
     /// What happened, in words, for the log (empty: nothing worth saying).
     pub news: Vec<String>,
 }
 
 impl AlarmFile {
-    /// Opens (or creates) the file in `dir`; `None`: alarms live in memory
-    /// only.
-    pub fn open(dir: Option<&Path>) -> OpenedFile {
+    /// Opens (or creates) the file in `dir`, reading back the newest
+    /// `keep` alarms; `None`: alarms live in memory only.
+    pub fn open(dir: Option<&Path>, keep: usize) -> OpenedFile {
         let mut file = AlarmFile {
             dir: dir.map(Path::to_path_buf),
             file: None,
@@ -110,6 +202,7 @@ impl AlarmFile {
             return OpenedFile {
                 file,
                 alarms: Vec::new(),
+                last_id: 0,
                 news: vec![
                     "no state directory ([safety] state_dir): alarms are kept in memory only and lost at a restart".into(),
                 ],
@@ -117,21 +210,13 @@ impl AlarmFile {
         };
         let path = dir.join(FILE);
         let mut news = Vec::new();
-        let bytes = match fs::read(&path) {
-            Ok(b) => Ok(b),
-            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(Vec::new()),
-            Err(e) => Err(format::Unreadable::Io(e.to_string())),
-        };
-        match bytes.and_then(|b| format::decode_as::<AlarmRecord>(ALARM_FILE, &b)) {
-            Ok(decoded) => {
-                if decoded.torn > 0 {
-                    news.push(format!(
-                        "the alarm file {} ended in a record cut short ({} bytes); it was left out",
-                        path.display(),
-                        decoded.torn
-                    ));
-                }
-                file.held = replay(decoded.records);
+        let mut last_id = 0;
+        match read_newest(&path, keep) {
+            Ok(read) => {
+                news.extend(read.news);
+                file.state.skipped_bytes = read.skipped;
+                file.held = read.alarms;
+                last_id = read.last_id;
             }
             Err(why) => {
                 let aside = dir.join(format!(
@@ -157,6 +242,7 @@ impl AlarmFile {
         }
         OpenedFile {
             alarms: file.held.values().cloned().collect(),
+            last_id,
             file,
             news,
         }
@@ -283,7 +369,7 @@ mod tests {
     #[test]
     fn alarms_are_read_back_by_the_next_process_last_record_winning() {
         let dir = tempfile::tempdir().unwrap();
-        let mut f = AlarmFile::open(Some(dir.path())).file;
+        let mut f = AlarmFile::open(Some(dir.path()), 500).file;
         f.append(&[
             AlarmRecord::Alarm(alarm(1, "first")),
             AlarmRecord::Alarm(alarm(2, "second")),
@@ -293,7 +379,7 @@ mod tests {
             AlarmRecord::Dropped { id: 2 },
         ]);
         drop(f);
-        let opened = AlarmFile::open(Some(dir.path()));
+        let opened = AlarmFile::open(Some(dir.path()), 500);
         assert_eq!(opened.alarms, vec![alarm(1, "first, cleared")]);
         assert!(opened.news.is_empty(), "{:?}", opened.news);
     }
@@ -301,7 +387,7 @@ mod tests {
     #[test]
     fn a_torn_tail_is_left_out_and_garbage_set_aside() {
         let dir = tempfile::tempdir().unwrap();
-        let mut f = AlarmFile::open(Some(dir.path())).file;
+        let mut f = AlarmFile::open(Some(dir.path()), 500).file;
         f.append(&[AlarmRecord::Alarm(alarm(1, "kept"))]);
         drop(f);
         let path = dir.path().join(FILE);
@@ -310,13 +396,13 @@ mod tests {
         bytes.extend(format::frame(&AlarmRecord::Alarm(alarm(2, "torn"))));
         bytes.truncate(whole + 20);
         fs::write(&path, &bytes).unwrap();
-        let opened = AlarmFile::open(Some(dir.path()));
+        let opened = AlarmFile::open(Some(dir.path()), 500);
         assert_eq!(opened.alarms, vec![alarm(1, "kept")]);
         assert!(opened.news[0].contains("cut short"), "{:?}", opened.news);
         drop(opened);
         // The safety journal is not an alarm file.
         fs::write(&path, format::header()).unwrap();
-        let opened = AlarmFile::open(Some(dir.path()));
+        let opened = AlarmFile::open(Some(dir.path()), 500);
         assert!(opened.alarms.is_empty());
         assert!(
             opened.news[0].contains("not a drivegate alarm file"),
@@ -328,7 +414,7 @@ mod tests {
     #[test]
     fn the_file_stays_bounded_by_its_snapshots() {
         let dir = tempfile::tempdir().unwrap();
-        let mut f = AlarmFile::open(Some(dir.path())).file;
+        let mut f = AlarmFile::open(Some(dir.path()), 500).file;
         // The same ten alarms rewritten 2000 times.
         for round in 0..2000u64 {
             let id = round % 10;
@@ -337,12 +423,44 @@ mod tests {
         let bytes = f.state().bytes;
         assert!(bytes <= COMPACT_AT + 1024, "{bytes}");
         assert_eq!(fs::metadata(dir.path().join(FILE)).unwrap().len(), bytes);
-        assert_eq!(AlarmFile::open(Some(dir.path())).alarms.len(), 10);
+        assert_eq!(AlarmFile::open(Some(dir.path()), 500).alarms.len(), 10);
+    }
+
+    #[test]
+    fn a_file_beyond_what_is_kept_is_read_from_its_end_and_compacted() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(FILE);
+        // 20000 alarms, each raised then cleared, and a dropped number.
+        let mut bytes = format::header_of(ALARM_FILE);
+        for id in 1..=20_000u64 {
+            let mut a = alarm(id, "raised");
+            bytes.extend(format::frame(&AlarmRecord::Alarm(a.clone())));
+            a.cleared_ms = Some(a.raised_ms + 1);
+            bytes.extend(format::frame(&AlarmRecord::Alarm(a)));
+        }
+        bytes.extend(format::frame(&AlarmRecord::Dropped { id: 20_000 }));
+        fs::write(&path, &bytes).unwrap();
+        let opened = AlarmFile::open(Some(dir.path()), 10);
+        // The newest ten that are still there, each as last written.
+        let ids: Vec<u64> = opened.alarms.iter().map(|a| a.id).collect();
+        assert_eq!(ids, (19_990..20_000).collect::<Vec<_>>());
+        assert!(opened.alarms.iter().all(|a| a.cleared_ms.is_some()));
+        assert_eq!(opened.last_id, 20_000);
+        let state = opened.file.state();
+        assert!(state.skipped_bytes > bytes.len() as u64 / 2, "{state:?}");
+        assert!(
+            opened.news.iter().any(|n| n.contains("skipped unread")),
+            "{:?}",
+            opened.news
+        );
+        // Compacted to what was kept.
+        assert!(fs::metadata(&path).unwrap().len() < 20 * 1024);
+        assert_eq!(AlarmFile::open(Some(dir.path()), 10).alarms, opened.alarms);
     }
 
     #[test]
     fn without_a_directory_alarms_live_in_memory() {
-        let mut opened = AlarmFile::open(None);
+        let mut opened = AlarmFile::open(None, 500);
         opened.file.append(&[AlarmRecord::Alarm(alarm(1, "x"))]);
         assert_eq!(opened.file.state(), &FileState::default());
         assert!(opened.news[0].contains("memory only"));

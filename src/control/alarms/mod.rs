@@ -92,7 +92,7 @@ impl Alarms {
     /// Opens the alarm list kept in `dir` (`None`: in memory only), at
     /// most `keep` alarms, publishing its news on `events`.
     pub fn open(dir: Option<&Path>, keep: usize, events: Arc<Events>) -> Arc<Alarms> {
-        let opened = AlarmFile::open(dir);
+        let opened = AlarmFile::open(dir, keep);
         for news in &opened.news {
             if dir.is_some() {
                 tracing::warn!("{news}");
@@ -100,7 +100,8 @@ impl Alarms {
                 tracing::info!("{news}");
             }
         }
-        let (book, dropped) = AlarmBook::restore(keep, opened.alarms);
+        let (mut book, dropped) = AlarmBook::restore(keep, opened.alarms);
+        book.number_after(opened.last_id);
         let file_state = Arc::new(Mutex::new(opened.file.state().clone()));
         let (tx, rx) = mpsc::channel::<Batch>();
         let thread = {

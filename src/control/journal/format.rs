@@ -235,12 +235,10 @@ pub enum Unreadable {
         reads: u32,
     },
     /// A bad record with more after it: not a torn append.
-    #[error("record {index} at byte {offset} is damaged ({why}) and more follows it")]
+    #[error("the record at byte {offset} is damaged ({why}) and more follows it")]
     Damaged {
-        /// 0-based record number.
-        index: usize,
-        /// Its byte offset.
-        offset: usize,
+        /// Its byte offset in the file.
+        offset: u64,
         /// What is wrong with it.
         why: &'static str,
     },
@@ -269,82 +267,152 @@ pub fn decode(bytes: &[u8]) -> Result<Decoded, Unreadable> {
     decode_as(SAFETY_JOURNAL, bytes)
 }
 
-/// Reads the bytes of a file of `kind` with records of type `T`, as
-/// [`decode`] reads a journal.
-pub fn decode_as<T: serde::de::DeserializeOwned>(
-    kind: Kind,
-    bytes: &[u8],
-) -> Result<DecodedAs<T>, Unreadable> {
+/// What a file's first bytes say.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Header {
+    /// A whole header of `kind`: records follow it.
+    Whole,
+    /// An empty file, or a header cut short while the file was created:
+    /// an empty file of `kind`.
+    Torn,
+}
+
+/// Checks the header of a file of `kind` (its first [`HEADER_LEN`] bytes,
+/// or all of it if shorter).
+pub fn check_header(kind: Kind, head: &[u8]) -> Result<Header, Unreadable> {
     let magic = kind.magic;
-    if bytes.is_empty() {
-        return Ok(DecodedAs {
-            records: Vec::new(),
-            good_len: 0,
-            torn: 0,
-        });
-    }
-    if bytes.len() < HEADER_LEN {
-        // A header cut short is a journal torn while it was created, if
-        // what there is matches.
-        let n = bytes.len().min(magic.len());
-        if bytes[..n] == magic[..n] {
-            return Ok(DecodedAs {
-                records: Vec::new(),
-                good_len: 0,
-                torn: bytes.len(),
-            });
+    if head.len() < HEADER_LEN {
+        // A header cut short is a file torn while it was created, if what
+        // there is matches.
+        let n = head.len().min(magic.len());
+        if head[..n] == magic[..n] {
+            return Ok(Header::Torn);
         }
         return Err(Unreadable::NotAJournal(kind));
     }
-    if &bytes[..8] != magic {
+    if &head[..8] != magic {
         return Err(Unreadable::NotAJournal(kind));
     }
-    let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+    let version = u32::from_le_bytes([head[8], head[9], head[10], head[11]]);
     if version != kind.version {
         return Err(Unreadable::Version {
             found: version,
             reads: kind.version,
         });
     }
-    let mut records = Vec::new();
-    let mut at = HEADER_LEN;
-    while at < bytes.len() {
-        let rest = &bytes[at..];
-        let torn = |why| -> Result<DecodedAs<T>, Unreadable> {
-            Err(Unreadable::Damaged {
-                index: records.len(),
-                offset: at,
-                why,
-            })
-        };
-        if rest.len() < FRAME_LEN {
-            break; // a torn frame
-        }
-        let len = u32::from_le_bytes([rest[0], rest[1], rest[2], rest[3]]) as usize;
-        let crc = u32::from_le_bytes([rest[4], rest[5], rest[6], rest[7]]);
-        if len > MAX_RECORD {
-            return torn("its length is impossible");
-        }
-        let Some(payload) = rest.get(FRAME_LEN..FRAME_LEN + len) else {
-            break; // a torn payload
-        };
-        let last = FRAME_LEN + len == rest.len();
-        if crc32(payload) != crc {
-            if last {
-                break; // torn mid-write: its bytes never all reached the disk
-            }
-            return torn("its CRC does not match");
-        }
-        match serde_json::from_slice::<T>(payload) {
-            Ok(record) => records.push(record),
-            Err(_) => return torn("its CRC matches but its content is not a known record"),
-        }
-        at += FRAME_LEN + len;
+    Ok(Header::Whole)
+}
+
+/// Reads the bytes of a file of `kind` with records of type `T`, as
+/// [`decode`] reads a journal.
+pub fn decode_as<T: serde::de::DeserializeOwned>(
+    kind: Kind,
+    bytes: &[u8],
+) -> Result<DecodedAs<T>, Unreadable> {
+    if check_header(kind, &bytes[..bytes.len().min(HEADER_LEN)])? == Header::Torn {
+        return Ok(DecodedAs {
+            records: Vec::new(),
+            good_len: 0,
+            torn: bytes.len(),
+        });
     }
+    let chain = frames(bytes, HEADER_LEN, true).map_err(|(at, why)| Unreadable::Damaged {
+        offset: at as u64,
+        why,
+    })?;
+    let records = parse(bytes, &chain.payloads, 0)?;
     Ok(DecodedAs {
         records,
+        good_len: chain.good_len,
+        torn: bytes.len() - chain.good_len,
+    })
+}
+
+/// The records of `payloads` (ranges of `bytes`, which starts at byte
+/// `base` of its file).
+pub(super) fn parse<T: serde::de::DeserializeOwned>(
+    bytes: &[u8],
+    payloads: &[std::ops::Range<usize>],
+    base: u64,
+) -> Result<Vec<T>, Unreadable> {
+    payloads
+        .iter()
+        .map(|p| {
+            serde_json::from_slice::<T>(&bytes[p.clone()]).map_err(|_| Unreadable::Damaged {
+                offset: base + (p.start - FRAME_LEN) as u64,
+                why: "its CRC matches but its content is not a known record",
+            })
+        })
+        .collect()
+}
+
+/// Frames that follow one another to the end of some bytes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) struct Chain {
+    /// Each whole frame's payload, in order.
+    pub payloads: Vec<std::ops::Range<usize>>,
+    /// Where the last whole frame ends (the rest is a torn frame).
+    pub good_len: usize,
+}
+
+/// What is at some offset of a framed file's bytes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) enum FrameAt {
+    /// A whole frame: its payload's range (it ends where that does).
+    Whole(std::ops::Range<usize>),
+    /// A frame whose bytes do not all come before the end.
+    Short,
+    /// Not a good frame: why, and where it ends when its length could be
+    /// read.
+    Bad(&'static str, Option<usize>),
+}
+
+/// The frame at `at` of `bytes`.
+pub(super) fn frame_at(bytes: &[u8], at: usize) -> FrameAt {
+    let Some(head) = bytes.get(at..at + FRAME_LEN) else {
+        return FrameAt::Short;
+    };
+    let len = u32::from_le_bytes([head[0], head[1], head[2], head[3]]) as usize;
+    if len > MAX_RECORD {
+        return FrameAt::Bad("its length is impossible", None);
+    }
+    let payload = at + FRAME_LEN..at + FRAME_LEN + len;
+    let Some(body) = bytes.get(payload.clone()) else {
+        return FrameAt::Short;
+    };
+    let crc = u32::from_le_bytes([head[4], head[5], head[6], head[7]]);
+    if crc32(body) != crc {
+        return FrameAt::Bad("its CRC does not match", Some(payload.end));
+    }
+    FrameAt::Whole(payload)
+}
+
+/// Follows the frames of `bytes` from `from` to its end. With `torn_ok`
+/// the last frame may be cut short or garbled (a torn append); anything
+/// else that is not a whole frame is an error, with its offset.
+pub(super) fn frames(
+    bytes: &[u8],
+    from: usize,
+    torn_ok: bool,
+) -> Result<Chain, (usize, &'static str)> {
+    let mut payloads = Vec::new();
+    let mut at = from;
+    while at < bytes.len() {
+        match frame_at(bytes, at) {
+            FrameAt::Whole(payload) => {
+                at = payload.end;
+                payloads.push(payload);
+            }
+            // Torn mid-write: its bytes never all reached the disk.
+            FrameAt::Short if torn_ok => break,
+            FrameAt::Bad(_, Some(end)) if torn_ok && end == bytes.len() => break,
+            FrameAt::Short => return Err((at, "it is cut short")),
+            FrameAt::Bad(why, _) => return Err((at, why)),
+        }
+    }
+    Ok(Chain {
+        payloads,
         good_len: at,
-        torn: bytes.len() - at,
     })
 }
 
@@ -446,7 +514,7 @@ mod tests {
         bytes[HEADER_LEN + FRAME_LEN + 3] ^= 0x55;
         assert!(matches!(
             decode(&bytes),
-            Err(Unreadable::Damaged { index: 0, .. })
+            Err(Unreadable::Damaged { offset, .. }) if offset == HEADER_LEN as u64
         ));
     }
 

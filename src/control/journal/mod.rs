@@ -11,22 +11,39 @@
 //! (renamed) and never keeps the daemon from starting; a disk that cannot
 //! be written leaves the leases working in memory, with a warning on each
 //! write the journal misses.
+//!
+//! The journal is read from its end ([`tail`]) back to its last clean stop
+//! (nothing before one is owed), its start, or a budget of bytes: a
+//! journal this daemon wrote is compacted at 64 KiB, or twice its
+//! snapshot (a few hundred bytes per drive), so one longer than
+//! [`read_budget`] was not; its older records are skipped, counted and
+//! logged, and what they promised is taken as unknown
+//! ([`replay::Recovered::Tail`]).
 
+pub mod chunk;
 pub mod format;
 pub mod replay;
+pub mod tail;
 
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
-use format::{Decoded, Record, Unreadable};
+use format::{Record, Unreadable};
 use replay::{JournalState, Recovered};
+use tail::Wanted;
 
 /// The journal's file name in the state directory.
 pub const FILE: &str = "safety.journal";
 /// Compacted once it is this long (and twice its last snapshot).
 pub const COMPACT_AT: u64 = 64 * 1024;
+/// At most this much of the journal of a plant of `drives` drives is read
+/// at start-up, from its end: [`COMPACT_AT`], and twice a snapshot's
+/// three records of each drive (each well under 700 bytes).
+pub fn read_budget(drives: usize) -> u64 {
+    COMPACT_AT + (drives as u64).saturating_mul(4 * 1024)
+}
 
 /// The state directory of `drivegate serve` without a configuration:
 /// `$XDG_STATE_HOME/drivegate`, else `~/.local/state/drivegate`, else
@@ -83,6 +100,8 @@ pub struct Counts {
     pub unreadable: u64,
     /// Bytes of the file.
     pub bytes: u64,
+    /// Bytes of older records skipped unread at start-up.
+    pub skipped_bytes: u64,
 }
 
 /// The open journal.
@@ -110,9 +129,82 @@ pub struct Opened {
     pub news: Vec<String>,
 }
 
+/// What reading the journal at start-up found.
+struct ReadBack {
+    /// The state its records come to.
+    state: JournalState,
+    /// Everything owed is known: it was read back to its start or to its
+    /// last clean stop.
+    whole: bool,
+    /// Bytes of older records skipped.
+    skipped: u64,
+    /// What is worth saying, in words.
+    news: Vec<String>,
+}
+
+/// Reads the journal at `path` from its end back to its last clean stop,
+/// its start, or `budget` bytes.
+fn read(path: &Path, budget: u64) -> Result<ReadBack, Unreadable> {
+    let mut newest_first: Vec<Record> = Vec::new();
+    let mut clean = false;
+    let read = tail::read_from_end(path, format::SAFETY_JOURNAL, budget, |records| {
+        for r in records.into_iter().rev() {
+            if matches!(r, Record::Shutdown) {
+                clean = true;
+                return Wanted::Enough;
+            }
+            newest_first.push(r);
+        }
+        Wanted::More
+    })?;
+    let Some(read) = read else {
+        return Ok(ReadBack {
+            state: JournalState::default(),
+            whole: true,
+            skipped: 0,
+            news: Vec::new(),
+        });
+    };
+    newest_first.reverse();
+    let mut news = Vec::new();
+    if read.torn > 0 {
+        news.push(format!(
+            "the safety journal {} ended in a record cut short ({} bytes, a write the power cut or the crash interrupted); it was left out",
+            path.display(),
+            read.torn
+        ));
+    }
+    let whole = clean || read.skipped == 0;
+    if read.skipped > 0 {
+        news.push(if whole {
+            format!(
+                "the safety journal {} is {}: it was read from its end back to its last clean stop, and the {} before it were skipped (nothing before a clean stop is owed)",
+                path.display(),
+                tail::size(read.len),
+                tail::size(read.skipped)
+            )
+        } else {
+            format!(
+                "the safety journal {} is {}, more than a journal drivegate keeps for this plant (it is compacted at 64 KiB, or twice what it holds): its last {} were read and the {} before them skipped. What those promised is unknown: [safety] on_unknown_state is applied to every drive found moving that the records read say nothing about",
+                path.display(),
+                tail::size(read.len),
+                tail::size(read.len - read.skipped),
+                tail::size(read.skipped)
+            )
+        });
+    }
+    Ok(ReadBack {
+        state: JournalState::of(&newest_first),
+        whole,
+        skipped: read.skipped,
+        news,
+    })
+}
+
 impl Journal {
-    /// Opens (or creates) the journal in `dir`; `None`: there is none.
-    pub fn open(dir: Option<&Path>) -> Opened {
+    /// Opens (or creates) the journal in `dir` of a plant of `drives`
+    /// drives; `None`: there is none.
+    pub fn open(dir: Option<&Path>, drives: usize) -> Opened {
         let Some(dir) = dir else {
             let why = "no state directory ([safety] state_dir, or systemd's $STATE_DIRECTORY): leases and stops owed are not kept across a restart".to_string();
             return Opened {
@@ -124,21 +216,16 @@ impl Journal {
         let path = dir.join(FILE);
         let mut news = Vec::new();
         let mut journal = Journal::new(Some(dir.to_path_buf()), Health::Ok);
-        let bytes = match fs::read(&path) {
-            Ok(bytes) => Ok(bytes),
-            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(Vec::new()),
-            Err(e) => Err(Unreadable::Io(e.to_string())),
-        };
-        let recovered = match bytes.and_then(|b| format::decode(&b)) {
-            Ok(Decoded { records, torn, .. }) => {
-                if torn > 0 {
-                    news.push(format!(
-                        "the safety journal {} ended in a record cut short ({torn} bytes, a write the power cut or the crash interrupted); it was left out",
-                        path.display()
-                    ));
+        let recovered = match read(&path, read_budget(drives)) {
+            Ok(read) => {
+                news.extend(read.news);
+                journal.counts.skipped_bytes = read.skipped;
+                journal.state = read.state;
+                if read.whole {
+                    Recovered::Read(journal.state.clone())
+                } else {
+                    Recovered::Tail(journal.state.clone())
                 }
-                journal.state = JournalState::of(&records);
-                Recovered::Read(journal.state.clone())
             }
             Err(why) => {
                 journal.counts.unreadable += 1;
@@ -318,12 +405,12 @@ mod tests {
     #[test]
     fn what_is_appended_is_read_back_by_the_next_process() {
         let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path())).journal;
+        let mut j = Journal::open(Some(dir.path()), 4).journal;
         assert_eq!(j.health(), &Health::Ok);
         j.append(&[lease(5)]).unwrap();
         let state = j.state().clone();
         drop(j);
-        let opened = Journal::open(Some(dir.path()));
+        let opened = Journal::open(Some(dir.path()), 4);
         assert_eq!(opened.recovered, Recovered::Read(state));
         assert!(opened.news.is_empty(), "{:?}", opened.news);
     }
@@ -331,7 +418,7 @@ mod tests {
     #[test]
     fn a_growing_journal_is_compacted_to_what_it_holds() {
         let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path())).journal;
+        let mut j = Journal::open(Some(dir.path()), 4).journal;
         // 5000 records, ten to a sync.
         for i in 0..500 {
             let batch: Vec<Record> = (0..10).map(|k| lease(i * 10 + k)).collect();
@@ -342,7 +429,7 @@ mod tests {
         assert!(c.bytes <= COMPACT_AT + 200, "{c:?}");
         let on_disk = fs::metadata(dir.path().join(FILE)).unwrap().len();
         assert_eq!(on_disk, c.bytes);
-        let read = Journal::open(Some(dir.path())).recovered;
+        let read = Journal::open(Some(dir.path()), 4).recovered;
         assert_eq!(read, Recovered::Read(JournalState::of(&[lease(4_999)])));
         assert!(!dir.path().join(format!("{FILE}.tmp")).exists());
     }
@@ -350,14 +437,14 @@ mod tests {
     #[test]
     fn a_torn_tail_is_said_and_dropped_and_garbage_is_set_aside() {
         let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path())).journal;
+        let mut j = Journal::open(Some(dir.path()), 4).journal;
         j.append(&[lease(7)]).unwrap();
         drop(j);
         let path = dir.path().join(FILE);
         let mut bytes = fs::read(&path).unwrap();
         bytes.extend_from_slice(&[40, 0, 0, 0, 1, 2]);
         fs::write(&path, &bytes).unwrap();
-        let opened = Journal::open(Some(dir.path()));
+        let opened = Journal::open(Some(dir.path()), 4);
         assert_eq!(
             opened.recovered,
             Recovered::Read(JournalState::of(&[lease(7)]))
@@ -365,10 +452,10 @@ mod tests {
         assert!(opened.news[0].contains("cut short"), "{:?}", opened.news);
         drop(opened);
         // Rewritten without the tail.
-        assert!(Journal::open(Some(dir.path())).news.is_empty());
+        assert!(Journal::open(Some(dir.path()), 4).news.is_empty());
 
         fs::write(&path, b"garbage").unwrap();
-        let opened = Journal::open(Some(dir.path()));
+        let opened = Journal::open(Some(dir.path()), 4);
         assert_eq!(opened.recovered, Recovered::Unreadable);
         assert_eq!(opened.journal.counts().unreadable, 1);
         assert!(opened.news[0].contains("set aside"), "{:?}", opened.news);
@@ -383,11 +470,56 @@ mod tests {
     }
 
     #[test]
+    fn a_journal_beyond_its_bound_is_read_from_its_end() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(FILE);
+        // Renewals without a clean stop, longer than the read budget.
+        let mut bytes = format::header();
+        let mut deadline = 0;
+        while (bytes.len() as u64) < 3 * tail::CHUNK + read_budget(4) {
+            deadline += 1;
+            bytes.extend(format::encode(&lease(deadline)));
+        }
+        fs::write(&path, &bytes).unwrap();
+        let opened = Journal::open(Some(dir.path()), 4);
+        // The newest record read is the last word; older ones are unknown.
+        assert_eq!(
+            opened.recovered,
+            Recovered::Tail(JournalState::of(&[lease(deadline)]))
+        );
+        let skipped = opened.journal.counts().skipped_bytes;
+        assert!(skipped >= tail::CHUNK, "{skipped}");
+        assert!(
+            opened.news.iter().any(|n| n.contains("on_unknown_state")),
+            "{:?}",
+            opened.news
+        );
+        // Compacted: the next start reads it whole.
+        drop(opened);
+        assert!(fs::metadata(&path).unwrap().len() < 1024);
+        assert!(matches!(
+            Journal::open(Some(dir.path()), 4).recovered,
+            Recovered::Read(_)
+        ));
+
+        // With a clean stop near its end, all that is owed is after it.
+        bytes.extend(format::encode(&Record::Shutdown));
+        bytes.extend(format::encode(&lease(7)));
+        fs::write(&path, &bytes).unwrap();
+        let opened = Journal::open(Some(dir.path()), 4);
+        assert_eq!(
+            opened.recovered,
+            Recovered::Read(JournalState::of(&[lease(7)]))
+        );
+        assert!(opened.journal.counts().skipped_bytes > 0);
+    }
+
+    #[test]
     fn a_directory_that_cannot_be_written_keeps_the_state_in_memory() {
         let dir = tempfile::tempdir().unwrap();
         let blocked = dir.path().join("a-file");
         fs::write(&blocked, b"x").unwrap();
-        let mut opened = Journal::open(Some(&blocked));
+        let mut opened = Journal::open(Some(&blocked), 4);
         assert_eq!(opened.recovered, Recovered::Unreadable);
         assert!(matches!(opened.journal.health(), Health::Failing(_)));
         assert!(opened.journal.append(&[lease(9)]).is_err());

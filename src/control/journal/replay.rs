@@ -13,7 +13,10 @@
 //!   could release it (a zero speed would);
 //! - a setpoint without a lease is left alone: nothing was promised;
 //! - a journal that cannot be read promises nothing that can be trusted:
-//!   every configured drive found moving gets `[safety] on_unknown_state`.
+//!   every configured drive found moving gets `[safety] on_unknown_state`;
+//! - a journal read only in part (its older records skipped, see
+//!   [`super::tail`]) is trusted for what its records read say, and every
+//!   other drive found moving gets `on_unknown_state`.
 
 use std::collections::BTreeMap;
 use std::time::{Duration, SystemTime};
@@ -191,8 +194,19 @@ impl JournalState {
 pub enum Recovered {
     /// Read (a missing journal is an empty one).
     Read(JournalState),
+    /// Only its newest records were read: what the older ones promised is
+    /// unknown.
+    Tail(JournalState),
     /// Not readable: nothing in it can be trusted.
     Unreadable,
+}
+
+impl Recovered {
+    /// Some of what the last process promised is unknown: the drives'
+    /// motion must be read to decide.
+    pub fn has_unknowns(&self) -> bool {
+        !matches!(self, Recovered::Read(_))
+    }
 }
 
 /// A configured drive at start-up.
@@ -236,7 +250,7 @@ impl StopWhy {
                     .to_string()
             }
             StopWhy::UnknownState => {
-                "the safety journal could not be read at start-up and the drive was moving"
+                "what the safety journal held about it could not be read at start-up and the drive was moving"
                     .to_string()
             }
         }
@@ -283,32 +297,37 @@ pub struct Decision {
 }
 
 /// What a restart does, drive by drive. `on_unknown` is applied to every
-/// moving drive when the journal could not be read.
+/// moving drive when the journal could not be read, and to those its
+/// records read do not name when it was read in part.
 pub fn replay(
     journal: &Recovered,
     now: SystemTime,
     drives: &[DriveAtStart],
     on_unknown: Action,
 ) -> Vec<Decision> {
+    let unknown = |known: &dyn Fn(&str) -> bool| -> Vec<Decision> {
+        drives
+            .iter()
+            .filter(|d| d.moving == Some(true) && on_unknown != Action::None && !known(&d.name))
+            .map(|d| Decision {
+                drive: d.name.clone(),
+                what: Replayed::Stop {
+                    owner: None,
+                    action: on_unknown,
+                    mode: ModeName::Speed,
+                    why: StopWhy::UnknownState,
+                },
+            })
+            .collect()
+    };
     let state = match journal {
-        Recovered::Read(state) => state,
-        Recovered::Unreadable => {
-            return drives
-                .iter()
-                .filter(|d| d.moving == Some(true) && on_unknown != Action::None)
-                .map(|d| Decision {
-                    drive: d.name.clone(),
-                    what: Replayed::Stop {
-                        owner: None,
-                        action: on_unknown,
-                        mode: ModeName::Speed,
-                        why: StopWhy::UnknownState,
-                    },
-                })
-                .collect();
-        }
+        Recovered::Read(state) | Recovered::Tail(state) => state,
+        Recovered::Unreadable => return unknown(&|_| false),
     };
     let mut out = Vec::new();
+    if matches!(journal, Recovered::Tail(_)) {
+        out = unknown(&|name| state.drives.contains_key(name));
+    }
     for (name, record) in &state.drives {
         let decision = |what| Decision {
             drive: name.clone(),
@@ -631,6 +650,26 @@ mod tests {
             }]
         );
         assert!(replay(&Recovered::Unreadable, at(), &at_start, Action::None).is_empty());
+    }
+
+    #[test]
+    fn a_journal_read_in_part_stops_the_moving_drives_it_does_not_name() {
+        // The records read keep the conveyor's HTTP lease; the lift and
+        // the belt move, and what older records said of them is unknown.
+        let tail = JournalState::of(&[lease("conveyor", HolderKind::Http, at() + 5 * S)]);
+        let mut at_start = drives(&["conveyor", "lift", "belt"]);
+        at_start[2].moving = Some(false);
+        let d = replay(&Recovered::Tail(tail), at(), &at_start, Action::ZeroSpeed);
+        assert_eq!(d.len(), 2, "{d:?}");
+        assert_eq!(d[0].drive, "lift");
+        assert_eq!(
+            d[0].what,
+            stop(None, Action::ZeroSpeed, StopWhy::UnknownState)
+        );
+        assert_eq!(d[1].drive, "conveyor");
+        assert!(matches!(d[1].what, Replayed::Keep { .. }), "{d:?}");
+        assert!(Recovered::Tail(JournalState::default()).has_unknowns());
+        assert!(!Recovered::Read(JournalState::default()).has_unknowns());
     }
 
     #[test]

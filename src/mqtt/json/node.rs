@@ -99,7 +99,7 @@ pub(in crate::mqtt) fn spawn(
         .unwrap_or_else(|| JsonTopics::default_prefix(&node_id));
     let (replies_tx, replies_rx) = mpsc::unbounded_channel();
     let (bus_tx, bus_rx) = mpsc::channel(4096);
-    let who: Arc<str> = format!("{}:{}", config.broker.host, config.broker.port).into();
+    let who: Arc<str> = crate::mqtt::identity::who(&config, None).into();
     let session = open_session(&control, &config);
     let node = JsonNode {
         topics: JsonTopics::new(&prefix),
@@ -282,7 +282,7 @@ impl JsonNode {
                 return;
             }
         };
-        let Some(role) = self.config.commands.role() else {
+        let Some(role) = self.config.commands().role() else {
             self.metrics.mqtt().command("refused");
             let problem = Problem::new(
                 Kind::Forbidden,

@@ -116,26 +116,64 @@ pub enum NotASegment {
     Version(u32),
 }
 
+/// Checks a segment's first bytes (its header, or all of it if shorter):
+/// true for a whole header, false for an empty file or a header torn
+/// while the file was created (an empty segment).
+pub fn check_header(head: &[u8]) -> Result<bool, NotASegment> {
+    if head.len() < HEADER_LEN {
+        let n = head.len().min(MAGIC.len());
+        if head[..n] == MAGIC[..n] {
+            return Ok(false);
+        }
+        return Err(NotASegment::Magic);
+    }
+    if &head[..8] != MAGIC {
+        return Err(NotASegment::Magic);
+    }
+    let version = u32::from_le_bytes([head[8], head[9], head[10], head[11]]);
+    if version != VERSION {
+        return Err(NotASegment::Version(version));
+    }
+    Ok(true)
+}
+
+/// The body length and CRC a frame's head says, if the length can be
+/// true.
+pub fn frame_head(head: &[u8; FRAME_LEN]) -> Option<(usize, u32)> {
+    let len = u32::from_le_bytes([head[0], head[1], head[2], head[3]]) as usize;
+    let crc = u32::from_le_bytes([head[4], head[5], head[6], head[7]]);
+    (BODY_HEAD..=MAX_BODY).contains(&len).then_some((len, crc))
+}
+
+/// Where the first whole frame of `bytes` (some part of a segment, not
+/// from its start) begins: a length that can be true and a body whose
+/// CRC-32 matches, which bytes of another frame pass only by a one in
+/// four billion chance. `None` within its first `FRAME_LEN + MAX_BODY`
+/// bytes: there is none.
+pub fn first_frame(bytes: &[u8]) -> Option<usize> {
+    (0..(FRAME_LEN + MAX_BODY).min(bytes.len())).find(|&p| {
+        let Some(head) = bytes.get(p..p + FRAME_LEN) else {
+            return false;
+        };
+        let head: [u8; FRAME_LEN] = head.try_into().unwrap_or([0; FRAME_LEN]);
+        let Some((len, crc)) = frame_head(&head) else {
+            return false;
+        };
+        bytes
+            .get(p + FRAME_LEN..p + FRAME_LEN + len)
+            .is_some_and(|body| crc32(body) == crc)
+    })
+}
+
 /// Reads a segment's bytes, keeping the messages whose frames start at or
 /// after `from` (a reader's cursor). An empty file or a torn header is an
 /// empty segment (a crash while creating it).
 pub fn decode(bytes: &[u8], from: usize) -> Result<Decoded, NotASegment> {
-    if bytes.len() < HEADER_LEN {
-        let n = bytes.len().min(MAGIC.len());
-        if bytes[..n] == MAGIC[..n] {
-            return Ok(Decoded {
-                torn: bytes.len(),
-                ..Decoded::default()
-            });
-        }
-        return Err(NotASegment::Magic);
-    }
-    if &bytes[..8] != MAGIC {
-        return Err(NotASegment::Magic);
-    }
-    let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
-    if version != VERSION {
-        return Err(NotASegment::Version(version));
+    if !check_header(&bytes[..bytes.len().min(HEADER_LEN)])? {
+        return Ok(Decoded {
+            torn: bytes.len(),
+            ..Decoded::default()
+        });
     }
     let mut out = Decoded::default();
     let mut at = HEADER_LEN;
@@ -144,11 +182,10 @@ pub fn decode(bytes: &[u8], from: usize) -> Result<Decoded, NotASegment> {
         if rest.len() < FRAME_LEN {
             break; // a torn frame head
         }
-        let len = u32::from_le_bytes([rest[0], rest[1], rest[2], rest[3]]) as usize;
-        let crc = u32::from_le_bytes([rest[4], rest[5], rest[6], rest[7]]);
-        if !(BODY_HEAD..=MAX_BODY).contains(&len) {
+        let head: [u8; FRAME_LEN] = rest[..FRAME_LEN].try_into().unwrap_or([0; FRAME_LEN]);
+        let Some((len, crc)) = frame_head(&head) else {
             break; // garbage where a length should be: nothing after it can be found
-        }
+        };
         let Some(body) = rest.get(FRAME_LEN..FRAME_LEN + len) else {
             break; // a torn body
         };
@@ -297,6 +334,26 @@ mod tests {
         assert_eq!(decode(&v2, 0), Err(NotASegment::Version(2)));
         assert_eq!(decode(b"DRVG", 0).unwrap().torn, 4);
         assert!(decode(b"", 0).unwrap().messages.is_empty());
+    }
+
+    #[test]
+    fn the_first_whole_frame_is_found_inside_a_segment() {
+        let ms: Vec<_> = (0..50).map(|i| msg("t/x", &[i as u8; 30], i)).collect();
+        let bytes = segment(&ms);
+        let ends: Vec<usize> = decode(&bytes, 0)
+            .unwrap()
+            .messages
+            .iter()
+            .map(|f| f.end)
+            .collect();
+        for cut in HEADER_LEN..bytes.len() - 100 {
+            let p = first_frame(&bytes[cut..]).unwrap();
+            let next = std::iter::once(HEADER_LEN)
+                .chain(ends.iter().copied())
+                .find(|&e| e >= cut)
+                .unwrap();
+            assert_eq!(cut + p, next, "from {cut}");
+        }
     }
 
     #[test]

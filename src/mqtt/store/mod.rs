@@ -18,8 +18,15 @@
 //! The cursor is replaced atomically (written, renamed), after the
 //! messages it passes were handed to the MQTT client: a crash in between
 //! sends them again (at least once), never loses them.
+//!
+//! What a restart finds is read back within `store_max_mb` and without
+//! reading the messages' bodies (`open`): a store left larger, or a
+//! segment longer than this daemon writes, costs a start no more time or
+//! memory than one at its bound; what lies beyond is skipped, counted
+//! ([`Figures::skipped_bytes`]) and logged.
 
 pub mod frame;
+mod open;
 pub mod outbox;
 pub mod pacing;
 
@@ -51,6 +58,8 @@ pub struct Figures {
     pub dropped: u64,
     /// Frames found damaged on disk and skipped.
     pub damaged: u64,
+    /// Bytes skipped unread when the store was opened (beyond its bound).
+    pub skipped_bytes: u64,
 }
 
 /// Why the store cannot be used, in words.
@@ -94,12 +103,20 @@ pub struct Store {
     cursor: u64,
     dropped: u64,
     damaged: u64,
+    skipped_bytes: u64,
+}
+
+/// The file of segment `id` in `dir`.
+fn segment_path(dir: &Path, id: u64) -> PathBuf {
+    dir.join(format!("seg-{id:016}.mqs"))
 }
 
 impl Store {
     /// Opens (or creates) the store in `dir`, bounded to `max_bytes` on
-    /// disk. What an earlier process left is read back: its segments, its
-    /// cursor; torn tails are cut off, damaged frames counted.
+    /// disk. What an earlier process left is read back within the bound:
+    /// its segments, its cursor; torn tails are cut off, what lies beyond
+    /// the bound skipped and counted, damaged frames counted as they are
+    /// replayed.
     pub fn open(dir: &Path, max_bytes: u64) -> Result<Store, StoreError> {
         let io = |source| StoreError::Io {
             dir: dir.to_path_buf(),
@@ -130,52 +147,16 @@ impl Store {
             cursor: HEADER_LEN as u64,
             dropped: 0,
             damaged: 0,
+            skipped_bytes: 0,
         };
-        let (cursor_id, cursor_at) = store.read_cursor().unwrap_or((0, HEADER_LEN as u64));
-        for id in ids {
-            let path = store.segment_path(id);
-            if id < cursor_id {
-                // Replayed before the cursor moved past it; its removal was
-                // cut short.
-                fs::remove_file(&path).map_err(io)?;
-                continue;
-            }
-            let bytes = fs::read(&path).map_err(io)?;
-            let from = if id == cursor_id {
-                cursor_at as usize
-            } else {
-                0
-            };
-            match frame::decode(&bytes, from) {
-                Ok(d) => {
-                    if d.torn > 0 {
-                        // Appends go after the good frames.
-                        let f = OpenOptions::new().write(true).open(&path).map_err(io)?;
-                        f.set_len(d.good_len as u64).map_err(io)?;
-                        f.sync_all().map_err(io)?;
-                    }
-                    if d.good_len < HEADER_LEN {
-                        fs::remove_file(&path).map_err(io)?;
-                        continue;
-                    }
-                    store.damaged += d.damaged;
-                    store.segments.push_back(Segment {
-                        id,
-                        len: d.good_len as u64,
-                        messages: d.messages.len() as u64,
-                        bytes: d.messages.iter().map(|m| m.len as u64).sum(),
-                    });
-                }
-                Err(why) => {
-                    // Not ours to read: set aside, never deleted.
-                    tracing::warn!("MQTT store: {} is set aside: {why}", path.display());
-                    fs::rename(&path, path.with_extension("unreadable")).map_err(io)?;
-                }
-            }
+        let cursor = store.read_cursor().unwrap_or((0, HEADER_LEN as u64));
+        let found = open::scan(dir, &ids, cursor, max_bytes, store.segment_bytes).map_err(io)?;
+        for news in &found.news {
+            tracing::warn!("{news}");
         }
-        if store.segments.front().is_some_and(|s| s.id == cursor_id) {
-            store.cursor = cursor_at;
-        }
+        store.segments = found.segments;
+        store.cursor = found.cursor;
+        store.skipped_bytes = found.skipped;
         if let Some(last) = store.segments.back() {
             let f = OpenOptions::new()
                 .append(true)
@@ -194,6 +175,7 @@ impl Store {
             messages: self.segments.iter().map(|s| s.messages).sum(),
             dropped: self.dropped,
             damaged: self.damaged,
+            skipped_bytes: self.skipped_bytes,
         }
     }
 
@@ -308,7 +290,7 @@ impl Store {
     }
 
     fn segment_path(&self, id: u64) -> PathBuf {
-        self.dir.join(format!("seg-{id:016}.mqs"))
+        segment_path(&self.dir, id)
     }
 
     fn disk_bytes(&self) -> u64 {
@@ -369,19 +351,33 @@ impl Store {
         Ok(())
     }
 
+    /// Reads the oldest segment's messages from the cursor on, when none
+    /// are left in memory. Its counts become what it really holds (a frame
+    /// damaged on disk is skipped, and counted, here); one that holds
+    /// nothing more is removed and the next one read.
     fn load_head(&mut self) -> io::Result<()> {
-        if self.head.as_ref().is_some_and(|h| !h.is_empty()) {
-            return Ok(());
+        loop {
+            if self.head.as_ref().is_some_and(|h| !h.is_empty()) {
+                return Ok(());
+            }
+            let Some(front) = self.segments.front() else {
+                self.head = Some(VecDeque::new());
+                return Ok(());
+            };
+            let bytes = fs::read(self.segment_path(front.id))?;
+            let d = frame::decode(&bytes, self.cursor as usize)
+                .map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))?;
+            self.damaged += d.damaged;
+            if let Some(front) = self.segments.front_mut() {
+                front.messages = d.messages.len() as u64;
+                front.bytes = d.messages.iter().map(|m| m.len as u64).sum();
+            }
+            self.head = Some(d.messages.into());
+            if self.head.as_ref().is_some_and(|h| !h.is_empty()) {
+                return Ok(());
+            }
+            self.drop_empty_head()?;
         }
-        let Some(front) = self.segments.front() else {
-            self.head = Some(VecDeque::new());
-            return Ok(());
-        };
-        let bytes = fs::read(self.segment_path(front.id))?;
-        let d = frame::decode(&bytes, self.cursor as usize)
-            .map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))?;
-        self.head = Some(d.messages.into());
-        Ok(())
     }
 
     fn read_cursor(&self) -> Option<(u64, u64)> {

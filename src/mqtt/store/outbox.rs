@@ -61,6 +61,10 @@ impl StoredOutbox {
             warned: false,
         };
         outbox.report();
+        outbox
+            .metrics
+            .mqtt()
+            .store_skipped(outbox.store.figures().skipped_bytes);
         Ok(outbox)
     }
 

@@ -1,0 +1,84 @@
+//! Who a command from MQTT comes from, as far as drivegate can know it.
+//!
+//! MQTT carries no publisher identity: a DCMD (or a JSON command) says
+//! nothing the broker vouches for about who sent it. What drivegate knows
+//! is how it logged in itself (the broker's user, or its client
+//! certificate), so that the broker's ACL for that user's topics is what
+//! decides who may command; and, with Sparkplug, which primary host
+//! *claims* to be in charge (its `STATE`, which any client allowed to
+//! publish there could send). The audit log, the leases and the bus
+//! monitor say exactly that, and nothing more:
+//! `broker user gw1; primary host "scada" claimed`.
+
+use crate::config::MqttConfig;
+use crate::config::mqtt::Login;
+
+/// The `who` of the MQTT face's commands (audit log, lease owner, bus
+/// monitor): how the broker knows drivegate's connection, and the
+/// primary host claimed, if any (Sparkplug only: `primary_host`).
+pub fn who(config: &MqttConfig, primary_host: Option<&str>) -> String {
+    let login = match config.login() {
+        Login::User(user) => format!("broker user {user}"),
+        Login::Certificate => match certificate_name(config) {
+            Some(cn) => format!("broker certificate \"{cn}\""),
+            None => "broker certificate".to_string(),
+        },
+        Login::Anonymous => format!(
+            "unauthenticated broker {}:{}",
+            config.broker.host, config.broker.port
+        ),
+    };
+    match primary_host {
+        Some(host) => format!("{login}; primary host \"{host}\" claimed"),
+        None => login,
+    }
+}
+
+/// The subject CN of drivegate's own client certificate, if it can be
+/// read (a file that cannot fails the connection later, in words).
+fn certificate_name(config: &MqttConfig) -> Option<String> {
+    let path = config.client_cert.as_ref()?.get_ref();
+    let chain = crate::tls::load_certificates(path, "MQTT client certificate").ok()?;
+    crate::tls::peer_identity(chain.first()?, "")
+        .ok()?
+        .common_name
+}
+
+/// Logs, at every start of the face, that commands are taken from any
+/// client of the broker (`unauthenticated_commands = true`).
+pub fn warn_if_unauthenticated(config: &MqttConfig) {
+    if config.takes_unauthenticated_commands() {
+        tracing::warn!(
+            broker = %config.broker,
+            "[mqtt] unauthenticated_commands = true: commands are taken from any client of the broker, which drivegate cannot tell apart (it logs in with no user and no client certificate); the audit log names them \"{}\". Log in with username and password_file, or a client certificate over mqtts://, and let the broker's ACL decide who may command (docs/security.md, MQTT)",
+            who(config, None)
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::config::Config;
+
+    fn mqtt(keys: &str) -> MqttConfig {
+        let toml = format!("[mqtt]\nbroker = \"mqtt://10.0.0.5:1883\"\n{keys}\n");
+        Config::parse(&toml, "test").unwrap().mqtt.unwrap()
+    }
+
+    #[test]
+    fn says_only_what_is_known() {
+        let c = mqtt("commands = \"operator\"\nusername = \"gw1\"\npassword_file = \"/x\"");
+        assert_eq!(
+            who(&c, Some("scada")),
+            "broker user gw1; primary host \"scada\" claimed"
+        );
+        assert_eq!(who(&c, None), "broker user gw1");
+        let c = mqtt("commands = \"operator\"\nunauthenticated_commands = true");
+        assert_eq!(who(&c, None), "unauthenticated broker 10.0.0.5:1883");
+        // A user without a password is no login.
+        let c = mqtt("username = \"gw1\"");
+        assert_eq!(who(&c, None), "unauthenticated broker 10.0.0.5:1883");
+    }
+}
