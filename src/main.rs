@@ -70,12 +70,18 @@ fn main() -> ExitCode {
 }
 
 fn check_config(file: &std::path::Path) -> ExitCode {
-    let loaded = Config::load(file).map_err(|e| e.to_string()).and_then(|c| {
-        drivegate::faces::check_tls(&c).map_err(|e| format!("{}: {e}", file.display()))?;
-        Ok(c)
-    });
+    let loaded = Config::load_with_warnings(file)
+        .map_err(|e| e.to_string())
+        .and_then(|(c, warnings)| {
+            drivegate::faces::check_tls(&c).map_err(|e| format!("{}: {e}", file.display()))?;
+            Ok((c, warnings))
+        });
     match loaded {
-        Ok(c) => {
+        Ok((c, warnings)) => {
+            // Valid, so the exit status stays 0; a script sees them on stderr.
+            for warning in &warnings {
+                eprintln!("warning: {warning}");
+            }
             println!(
                 "{}: valid ({} bus(es), {} drive(s))",
                 file.display(),
@@ -113,6 +119,11 @@ fn new_token(name: &str, role: &str) -> ExitCode {
             println!();
             println!("    {}", made.token);
             println!();
+            println!("{}", drivegate::api::new_token::FIRST_TOKEN_NOTE);
+            if role != "admin" {
+                println!("{}", drivegate::api::new_token::MAKE_AN_ADMIN);
+            }
+            println!();
             println!("Add these lines to the configuration (they hold only the token's SHA-256),");
             println!("then reload drivegate (systemctl reload drivegate):");
             println!();
@@ -128,10 +139,10 @@ fn new_token(name: &str, role: &str) -> ExitCode {
 
 fn serve(path: Option<PathBuf>) -> ExitCode {
     let config = match &path {
-        Some(p) => Config::load(p),
-        None => Config::embedded_default(),
+        Some(p) => Config::load_with_warnings(p),
+        None => Config::embedded_default().map(|c| (c, Vec::new())),
     };
-    let mut config = match config {
+    let (mut config, warnings) = match config {
         Ok(c) => c,
         Err(e) => {
             eprintln!("drivegate: {e}");
@@ -145,6 +156,9 @@ fn serve(path: Option<PathBuf>) -> ExitCode {
     }
     if let Some(note) = drivegate::logging::init(&config.log) {
         tracing::warn!("{note}");
+    }
+    for warning in warnings {
+        tracing::warn!("{warning}");
     }
     if path.is_none() {
         tracing::info!(

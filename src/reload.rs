@@ -122,8 +122,14 @@ impl Reloader {
             text = write.text;
         }
         let new = check(&text, &origin)?;
+        for warning in crate::config::warnings::warnings(&text, &origin) {
+            warn!(by, "{warning}");
+        }
         let changes = diff(&self.running, &new);
-        Ok(self.apply(new, changes).await)
+        let first_token = first_token(&self.running, &new);
+        let mut applied = self.apply(new, changes).await;
+        applied.changes.extend(first_token);
+        Ok(applied)
     }
 
     async fn apply(&mut self, new: Config, mut changes: Changes) -> Applied {
@@ -191,6 +197,38 @@ impl Reloader {
     }
 }
 
+/// What the first API token changes, when `new` brings it: every client
+/// needs a token from now on, loopback included (without tokens, clients
+/// on loopback were admin), and how to make an admin token when none has
+/// that role. Said in the reload's answer and its log line.
+fn first_token(old: &Config, new: &Config) -> Option<String> {
+    if !old.http.tokens.is_empty() || new.http.tokens.is_empty() {
+        return None;
+    }
+    let admins: Vec<&str> = new
+        .http
+        .tokens
+        .iter()
+        .filter(|t| t.role == crate::control::Role::Admin)
+        .map(|t| t.name.as_str())
+        .collect();
+    let mut line = "first API token: from now on every client needs a token, on this machine \
+                    (loopback) too; until now clients on loopback were admin without one, and \
+                    the console now asks for a token"
+        .to_string();
+    if admins.is_empty() {
+        line.push_str(
+            "; no token has the admin role, so no client has the admin's controls (scans, \
+             ramps, saves to flash, reloads from the console or API): make one with \
+             `drivegate token new --name NAME --role admin`, add its lines and reload \
+             (systemctl reload drivegate needs no token)",
+        );
+    } else {
+        line.push_str(&format!("; admin tokens: {}", admins.join(", ")));
+    }
+    Some(line)
+}
+
 /// The checks of `drivegate check-config`: the file parses and holds
 /// together, its certificates load and its tokens resolve.
 fn check(text: &str, origin: &str) -> Result<Config, Refused> {
@@ -221,4 +259,43 @@ fn write_file(path: &Path, text: &str) -> std::io::Result<()> {
         let _ = dir.sync_all();
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(tokens: &[(&str, &str)]) -> Config {
+        let mut text = String::new();
+        for (i, (name, role)) in tokens.iter().enumerate() {
+            text.push_str(&format!(
+                "[[http.token]]\nname = \"{name}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n",
+                format!("{i:x}").repeat(64).get(..64).unwrap_or_default()
+            ));
+        }
+        match Config::parse(&text, "test.toml") {
+            Ok(c) => c,
+            Err(e) => panic!("{e}"),
+        }
+    }
+
+    #[test]
+    fn the_first_token_is_said_with_how_to_make_an_admin_one() {
+        let none = config(&[]);
+        let operator = config(&[("scada", "operator")]);
+        let line = first_token(&none, &operator).unwrap_or_default();
+        assert!(
+            line.starts_with("first API token: from now on every client needs a token, on this machine (loopback) too")
+                && line.contains("no token has the admin role")
+                && line.contains("`drivegate token new --name NAME --role admin`"),
+            "{line}"
+        );
+        let admin = config(&[("scada", "operator"), ("ops", "admin")]);
+        let line = first_token(&none, &admin).unwrap_or_default();
+        assert!(line.ends_with("; admin tokens: ops"), "{line}");
+        // Not the first: nothing to say; none at all: the loopback rule is back.
+        assert_eq!(first_token(&operator, &admin), None);
+        assert_eq!(first_token(&admin, &none), None);
+        assert_eq!(first_token(&none, &none), None);
+    }
 }
