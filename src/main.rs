@@ -6,9 +6,15 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 use drivegate::config::Config;
 
-/// Puts a bus of RS-485 servo drives on the network.
+/// Puts a bus of RS-485 servo drives (Modbus RTU) on the network.
+///
+/// Its faces: a REST API with a WebSocket stream, Modbus TCP and
+/// Modbus/TCP Security for SCADA and PLCs, MQTT (Sparkplug B, or JSON
+/// topics), Prometheus metrics, and a web console for people (at / on the
+/// API's port). Every write, from any face, passes the same safety rules
+/// and is logged. Without hardware it runs on its built-in simulator.
 #[derive(Debug, Parser)]
-#[command(name = "drivegate", version, about)]
+#[command(name = "drivegate", version)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -16,7 +22,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Runs the daemon (without --config: one simulated bus of 4 drives).
+    /// Runs the daemon and its faces (without --config: one simulated bus
+    /// of 4 drives, everything on loopback).
     Serve {
         /// Configuration file (TOML).
         #[arg(long, short)]
