@@ -117,7 +117,7 @@ impl Reloader {
             }
             check(&write.text, &origin)?;
             write_file(&self.path, &write.text)
-                .map_err(|e| Refused::Invalid(format!("cannot write {origin}: {e}")))?;
+                .map_err(|e| Refused::Invalid(not_written(&origin, &e)))?;
             info!(by, "configuration file {origin} rewritten");
             text = write.text;
         }
@@ -239,6 +239,25 @@ fn check(text: &str, origin: &str) -> Result<Config, Refused> {
     Ok(config)
 }
 
+/// Why the file was not written, in words: a file the service may not
+/// write is named as such, with what to do instead.
+fn not_written(origin: &str, e: &std::io::Error) -> String {
+    use std::io::ErrorKind;
+    if matches!(
+        e.kind(),
+        ErrorKind::PermissionDenied | ErrorKind::ReadOnlyFilesystem
+    ) {
+        format!(
+            "cannot write {origin}: {e}: drivegate may not write its configuration file \
+             (its unit or the file's permissions keep it read-only: docs/operations.md, \
+             \"Changing the configuration\"); nothing was written: add the lines to the file \
+             by hand (sudoedit {origin}) and reload (systemctl reload drivegate)"
+        )
+    } else {
+        format!("cannot write {origin}: {e}; nothing was written")
+    }
+}
+
 /// Writes `text` into `path` whole or not at all: a new file beside it,
 /// synced, renamed over it, keeping its permissions.
 fn write_file(path: &Path, text: &str) -> std::io::Result<()> {
@@ -297,5 +316,20 @@ mod tests {
         assert_eq!(first_token(&operator, &admin), None);
         assert_eq!(first_token(&admin, &none), None);
         assert_eq!(first_token(&none, &none), None);
+    }
+
+    #[test]
+    fn a_file_the_service_may_not_write_is_said_with_what_to_do() {
+        let e = std::io::Error::from(std::io::ErrorKind::ReadOnlyFilesystem);
+        let said = not_written("/etc/drivegate/drivegate.toml", &e);
+        assert!(
+            said.starts_with("cannot write /etc/drivegate/drivegate.toml: read-only")
+                && said.contains("drivegate may not write its configuration file")
+                && said.contains("sudoedit /etc/drivegate/drivegate.toml"),
+            "{said}"
+        );
+        let e = std::io::Error::from(std::io::ErrorKind::StorageFull);
+        let said = not_written("plant.toml", &e);
+        assert!(said.ends_with("; nothing was written"), "{said}");
     }
 }

@@ -1199,8 +1199,8 @@ async fn without_a_bus_the_overview_says_to_run_probe() {
     assert_eq!(
         text,
         json!(
-            "No bus configured: run drivegate probe --port /dev/ttyUSB0 (with your adapter's \
-             port) to find the drives and their baud rate, then add a [[bus]] with its drives \
+            "No bus configured: run drivegate probe --port /dev/serial/by-id/... (your adapter's \
+             stable name: ls -l /dev/serial/by-id/) to find the drives and their baud rate, then add a [[bus]] with its drives \
              to the configuration and reload it (systemctl reload drivegate)."
         )
     );

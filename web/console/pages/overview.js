@@ -130,8 +130,8 @@ function mount(main, _params, { store }) {
     if (store.busesKnown && cards.length === 0) {
       // The package's configuration as shipped: say what to do first.
       cards.push(h('p', { class: 'reason no-bus' }, 'No bus configured: run ',
-        h('code', {}, 'drivegate probe --port /dev/ttyUSB0'),
-        ' (with your adapter\'s port) to find the drives and their baud rate, then add a [[bus]] with its drives to the configuration and reload it (systemctl reload drivegate).'));
+        h('code', {}, 'drivegate probe --port /dev/serial/by-id/...'),
+        ' (your adapter\'s stable name: ls -l /dev/serial/by-id/) to find the drives and their baud rate, then add a [[bus]] with its drives to the configuration and reload it (systemctl reload drivegate).'));
     }
     buses.replaceChildren(...cards);
   }
