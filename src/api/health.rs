@@ -127,6 +127,10 @@ pub fn mqtt_readiness(state: &ApiState) -> Option<MqttReadiness> {
     })
 }
 
+/// The routes of this module a monitoring system asks, as the router
+/// names them: their request series exist from start-up.
+pub const MONITORED_ROUTES: [&str; 3] = ["/metrics", "/healthz", "/readyz"];
+
 /// The reason `/readyz` gives when the configuration has no `[[bus]]` (the
 /// package's configuration as shipped); the console says the same.
 pub const NO_BUS: &str = "no bus configured: run `drivegate probe --port /dev/serial/by-id/...` \
