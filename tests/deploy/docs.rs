@@ -445,3 +445,25 @@ fn collect(dir: &Path, ext: &str, out: &mut Vec<std::path::PathBuf>) {
         }
     }
 }
+
+#[test]
+fn the_readme_shows_both_quick_start_commands_in_command_blocks() {
+    let readme = read("README.md");
+    let start = readme.find("## Try it").expect("a quick start");
+    let end = readme[start + 3..].find("\n## ").map_or(readme.len(), |e| start + 3 + e);
+    let mut commands = Vec::new();
+    let mut block = false;
+    for line in readme[start..end].lines() {
+        if line.starts_with("```") {
+            block = !block && line == "```sh";
+        } else if block {
+            commands.push(line.split('#').next().unwrap().trim().to_string());
+        }
+    }
+    for wanted in ["cargo run --release -- serve", "scripts/test"] {
+        assert!(
+            commands.iter().any(|c| c == wanted),
+            "the README's quick start has no command block with `{wanted}`: {commands:?}"
+        );
+    }
+}
