@@ -19,6 +19,7 @@ mod comm_loss;
 mod diagnostics;
 mod harness;
 mod https;
+mod layout;
 mod plain;
 mod replace;
 mod trends;

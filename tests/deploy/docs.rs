@@ -450,7 +450,9 @@ fn collect(dir: &Path, ext: &str, out: &mut Vec<std::path::PathBuf>) {
 fn the_readme_shows_both_quick_start_commands_in_command_blocks() {
     let readme = read("README.md");
     let start = readme.find("## Try it").expect("a quick start");
-    let end = readme[start + 3..].find("\n## ").map_or(readme.len(), |e| start + 3 + e);
+    let end = readme[start + 3..]
+        .find("\n## ")
+        .map_or(readme.len(), |e| start + 3 + e);
     let mut commands = Vec::new();
     let mut block = false;
     for line in readme[start..end].lines() {
