@@ -1,13 +1,15 @@
 //! The console's layout, measured in the real browser: the header in one
-//! row at 1280 px (BRAKE ALL beside the pages, not under them), the
-//! trends' time labels apart from each other at every zoom and width, and
-//! the bus's utilisation explained where it is shown.
+//! row at 1280 px (BRAKE ALL beside the pages, not under them) over a
+//! plant's overview, and pages that fit a tablet's width; the trends' time
+//! labels apart from each other at every zoom and width; the bus's
+//! utilisation explained where it is shown. The overview's and the
+//! tablet's pictures for docs/ are taken here.
 
 use serde_json::{Value, json};
 
-use crate::browser::{LONG, assert_clean, open, picture};
+use crate::browser::{LONG, assert_clean, open, picture, rest_ok};
 use crate::harness::cdp::Browser;
-use crate::harness::{ADMIN, config};
+use crate::harness::{ADMIN, OPERATOR, config};
 use crate::support::TestDaemon;
 
 /// The header's items as boxes: every item's top and bottom, and the
@@ -51,25 +53,112 @@ fn one_row(header: &Value) {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_header_fits_one_row_at_1280_px_with_every_page_and_brake_all() {
+async fn the_overview_of_a_plant_fits_one_header_row_at_1280_px_and_a_tablet() {
     let daemon = TestDaemon::start(&config(true, "")).await;
+    // A plant: the conveyor running, the turntable in fault, the feeder
+    // gone silent.
+    crate::browser::in_speed_mode(&daemon, "conveyor").await;
+    rest_ok(
+        &daemon,
+        Some(ADMIN),
+        "PUT",
+        "/api/v1/drives/conveyor/setpoint",
+        Some(json!({"speed_rpm": 120})),
+    )
+    .await;
+    daemon
+        .sim()
+        .inject_fault(3, drivegate::drive::Fault::OverTemperature)
+        .unwrap();
+    daemon.sim().set_silent(4, true);
     let browser = Browser::start(&[]).await;
     // The admin sees every page in the navigation, and BRAKE ALL.
     let page = open(&browser, &daemon.url(""), "/", Some(ADMIN)).await;
     page.wait_for(
-        "!document.getElementById('brake-all').hidden && document.querySelectorAll('#nav a').length === 8",
+        "!document.getElementById('brake-all').hidden && document.querySelectorAll('#nav a').length === 8 \
+         && document.querySelectorAll('tr.fault').length === 1 && document.querySelectorAll('tr.offline').length === 1",
         LONG,
-        "the admin's header",
+        "the admin's header over the plant's overview",
     )
     .await;
+    page.wait_for(UTILISATION, LONG, "the utilisation").await;
     let header = page.eval(HEADER).await;
     assert_eq!(header["width"], json!(1280), "{header:#}");
     assert_eq!(header["brake"], json!(true));
     one_row(&header);
-    // One row of buttons, the padding around it: not two rows.
+    // One row of buttons with the padding around it, not two rows.
     let height = header["height"].as_f64().unwrap();
-    assert!(height < 70.0, "header {height} px high: {header:#}");
+    assert!(
+        height < 70.0
+            || page
+                .eval("!document.getElementById('alarm-banner').hidden")
+                .await
+                == json!(true),
+        "header {height} px high: {header:#}"
+    );
+    let below_banner = page
+        .eval("(() => { const b = document.getElementById('alarm-banner'); const brake = document.getElementById('brake-all'); \
+               return b.hidden || b.getBoundingClientRect().top >= brake.getBoundingClientRect().bottom; })()")
+        .await;
+    assert_eq!(
+        below_banner,
+        json!(true),
+        "the alarm banner is a row of its own"
+    );
+    picture(&page, "console-overview.png", false).await;
     assert_clean(&page, &daemon.url(""));
+
+    // At a tablet's width the header wraps, by design, and the overview's
+    // table fits without scrolling sideways.
+    let tablet = browser.new_page(820, 1180).await;
+    tablet.goto(&format!("{}/#/", daemon.url(""))).await;
+    tablet
+        .wait_for(
+            "document.getElementById('login').open",
+            LONG,
+            "the token dialog",
+        )
+        .await;
+    tablet.fill("#login input", OPERATOR).await;
+    tablet.click("#login button[type=submit]").await;
+    tablet
+        .wait_for(
+            "window.drivegate && drivegate.stream.state === 'open' \
+             && document.querySelectorAll('table.drives tbody tr').length === 4 \
+             && document.querySelectorAll('tr.offline').length === 1",
+            LONG,
+            "the overview at tablet width",
+        )
+        .await;
+    tablet
+        .wait_for(UTILISATION, LONG, "the utilisation at tablet width")
+        .await;
+    let widths = tablet
+        .eval("[document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+        .await;
+    assert_eq!(
+        widths[0], widths[1],
+        "the overview scrolls sideways: {widths}"
+    );
+    picture(&tablet, "console-overview-tablet.png", false).await;
+    tablet.eval("location.hash = '#/drive/conveyor'").await;
+    tablet
+        .wait_for(
+            "!!document.querySelector('.controls') && !document.getElementById('brake-all').hidden \
+             && Number(document.querySelector('.plots').dataset.points) > 5",
+            LONG,
+            "the drive page at tablet width",
+        )
+        .await;
+    let widths = tablet
+        .eval("[document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+        .await;
+    assert_eq!(
+        widths[0], widths[1],
+        "the drive page scrolls sideways: {widths}"
+    );
+    picture(&tablet, "console-drive-tablet.png", false).await;
+    assert_clean(&tablet, &daemon.url(""));
     browser.stop().await;
     daemon.stop().await;
 }
@@ -93,6 +182,15 @@ fn apart(plot: &Value, what: &str) {
     let width = plot["width"].as_f64().unwrap();
     let least = if width >= 400.0 { 2 } else { 1 };
     assert!(labels.len() >= least, "{what}: too few labels: {plot}");
+    // Each label says another time: ticks closer than the labels' unit
+    // would repeat one.
+    let texts: std::collections::BTreeSet<&str> =
+        labels.iter().map(|l| l[2].as_str().unwrap()).collect();
+    assert_eq!(
+        texts.len(),
+        labels.len(),
+        "{what}: a time said twice: {plot}"
+    );
     for pair in labels.windows(2) {
         let (right, next_left) = (pair[0][1].as_f64().unwrap(), pair[1][0].as_f64().unwrap());
         assert!(right + 4.0 <= next_left, "{what}: labels overlap: {plot}");
@@ -118,6 +216,15 @@ async fn the_trends_time_labels_never_overlap_at_any_zoom_or_width() {
         "the live plots",
     )
     .await;
+    // Just opened: the live view has seen a second or less.
+    for plot in ["speed", "temperature"] {
+        let measured = page
+            .eval(&format!(
+                "{LABELS}(document.querySelector('[data-plot={plot}]').plot)"
+            ))
+            .await;
+        apart(&measured, &format!("{plot} just opened"));
+    }
     // The drive page's own plots at each zoom, on a wide screen and at
     // tablet width.
     for (width, height) in [(1280, 900), (820, 1180)] {

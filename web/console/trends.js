@@ -145,7 +145,10 @@ export class Trends {
         padding: timePadding(),
         legend: { show: false },
         cursor: { drag: { x: false, y: false } },
-        scales: { x: { time: true, range: live ? undefined : () => this.range } },
+        // The live view ends at the newest status and spans 10 s at least
+        // (whole-second ticks while the page has seen less); a history
+        // view shows the range it read.
+        scales: { x: { time: true, range: live ? (_, min, max) => (max == null ? [min, max] : [Math.min(min, max - 10), max]) : () => this.range } },
         axes: [
           timeAxis(),
           { stroke: '#444', grid: { stroke: '#e5e7eb' }, size: 56 },
