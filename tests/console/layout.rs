@@ -108,8 +108,15 @@ async fn the_overview_of_a_plant_fits_one_header_row_at_1280_px_and_a_tablet() {
     picture(&page, "console-overview.png", false).await;
     assert_clean(&page, &daemon.url(""));
 
-    // At a tablet's width the header wraps, by design, and the overview's
-    // table fits without scrolling sideways.
+    tablet_pages(&browser, &daemon).await;
+    browser.stop().await;
+    daemon.stop().await;
+}
+
+/// At a tablet's width (an operator's) the header wraps, by design, and
+/// the overview and the drive page fit without scrolling sideways; their
+/// pictures are taken.
+async fn tablet_pages(browser: &Browser, daemon: &TestDaemon) {
     let tablet = browser.new_page(820, 1180).await;
     tablet.goto(&format!("{}/#/", daemon.url(""))).await;
     tablet
@@ -159,8 +166,6 @@ async fn the_overview_of_a_plant_fits_one_header_row_at_1280_px_and_a_tablet() {
     );
     picture(&tablet, "console-drive-tablet.png", false).await;
     assert_clean(&tablet, &daemon.url(""));
-    browser.stop().await;
-    daemon.stop().await;
 }
 
 /// The time labels of the plot `u` (a JavaScript expression) as boxes in
