@@ -146,7 +146,7 @@ async fn health_readiness_metrics_and_unknown_routes() {
         assert!(metrics.content_type().starts_with("text/plain; version=0.0.4"));
         let text = reqwest::get(api.url("/metrics")).await.unwrap().text().await.unwrap();
         assert!(
-            text.contains(r#"drivegate_http_requests_total{method="GET",route="/api/v1/drives/{drive}/status",status="404"} 1"#),
+            text.contains(r#"drivegate_http_requests_total{method="GET",route="/api/v1/drives/{drive}/status",status="404"} 2"#),
             "{text}"
         );
         assert!(text.contains(r#"route="unmatched",status="404"} 1"#), "{text}");
