@@ -213,6 +213,9 @@ pub async fn start(
             .iter()
             .map(|r| r.label()),
     );
+    metrics
+        .faces()
+        .http_routes(crate::api::health::MONITORED_ROUTES.map(|route| (route, "GET")));
     metrics.watch_control(&control);
     let history = crate::history::History::new(config.history.settings());
     let following = (history.clone(), plant.clone());

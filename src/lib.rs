@@ -31,6 +31,8 @@
 //!   [`reload`], [`systemd`], [`logging`], [`bench`] (`drivegate bench`),
 //!   [`probe`] (`drivegate probe`).
 //!
+//! [`suggest`] ("did you mean") is a leaf any module may use.
+//!
 //! `timestamp` (the one time format of every face and observer) is used
 //! only inside the daemon, so it is `pub(crate)`.
 
@@ -59,6 +61,7 @@ pub mod reload;
 pub mod safety;
 pub mod scope;
 pub mod sim;
+pub mod suggest;
 pub mod systemd;
 pub(crate) mod timestamp;
 pub mod tls;

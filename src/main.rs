@@ -6,9 +6,15 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 use drivegate::config::Config;
 
-/// Puts a bus of RS-485 servo drives on the network.
+/// Puts a bus of RS-485 servo drives (Modbus RTU) on the network.
+///
+/// Its faces: a REST API with a WebSocket stream, Modbus TCP and
+/// Modbus/TCP Security for SCADA and PLCs, MQTT (Sparkplug B, or JSON
+/// topics), Prometheus metrics, and a web console for people (at / on the
+/// API's port). Every write, from any face, passes the same safety rules
+/// and is logged. Without hardware it runs on its built-in simulator.
 #[derive(Debug, Parser)]
-#[command(name = "drivegate", version, about)]
+#[command(name = "drivegate", version)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -16,7 +22,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Runs the daemon (without --config: one simulated bus of 4 drives).
+    /// Runs the daemon and its faces (without --config: one simulated bus
+    /// of 4 drives, everything on loopback).
     Serve {
         /// Configuration file (TOML).
         #[arg(long, short)]
@@ -70,12 +77,18 @@ fn main() -> ExitCode {
 }
 
 fn check_config(file: &std::path::Path) -> ExitCode {
-    let loaded = Config::load(file).map_err(|e| e.to_string()).and_then(|c| {
-        drivegate::faces::check_tls(&c).map_err(|e| format!("{}: {e}", file.display()))?;
-        Ok(c)
-    });
+    let loaded = Config::load_with_warnings(file)
+        .map_err(|e| e.to_string())
+        .and_then(|(c, warnings)| {
+            drivegate::faces::check_tls(&c).map_err(|e| format!("{}: {e}", file.display()))?;
+            Ok((c, warnings))
+        });
     match loaded {
-        Ok(c) => {
+        Ok((c, warnings)) => {
+            // Valid, so the exit status stays 0; a script sees them on stderr.
+            for warning in &warnings {
+                eprintln!("warning: {warning}");
+            }
             println!(
                 "{}: valid ({} bus(es), {} drive(s))",
                 file.display(),
@@ -116,6 +129,11 @@ fn new_token(name: &str, role: &str) -> ExitCode {
             println!();
             println!("    {}", made.token);
             println!();
+            println!("{}", drivegate::api::new_token::FIRST_TOKEN_NOTE);
+            if role != "admin" {
+                println!("{}", drivegate::api::new_token::MAKE_AN_ADMIN);
+            }
+            println!();
             println!("Add these lines to the configuration (they hold only the token's SHA-256),");
             println!("then reload drivegate (systemctl reload drivegate):");
             println!();
@@ -131,10 +149,10 @@ fn new_token(name: &str, role: &str) -> ExitCode {
 
 fn serve(path: Option<PathBuf>) -> ExitCode {
     let config = match &path {
-        Some(p) => Config::load(p),
-        None => Config::embedded_default(),
+        Some(p) => Config::load_with_warnings(p),
+        None => Config::embedded_default().map(|c| (c, Vec::new())),
     };
-    let mut config = match config {
+    let (mut config, warnings) = match config {
         Ok(c) => c,
         Err(e) => {
             eprintln!("drivegate: {e}");
@@ -148,6 +166,9 @@ fn serve(path: Option<PathBuf>) -> ExitCode {
     }
     if let Some(note) = drivegate::logging::init(&config.log) {
         tracing::warn!("{note}");
+    }
+    for warning in warnings {
+        tracing::warn!("{warning}");
     }
     if path.is_none() {
         tracing::info!(

@@ -166,12 +166,33 @@ pub enum PlantError {
 /// Why a drive could not be found.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum LookupError {
-    /// No drive has that name (or unit).
-    #[error("no drive named \"{0}\" is configured")]
-    Unknown(String),
+    /// No drive has that name (or unit): said with the closest name and
+    /// the list of those that exist.
+    #[error("{}", unknown_drive(.name, .known))]
+    Unknown {
+        /// What was asked for.
+        name: String,
+        /// The configured drives' names.
+        known: Vec<String>,
+    },
     /// A unit number was given but several buses are configured.
     #[error("\"{0}\" is a unit number, but several buses are configured: use the drive's name")]
     Ambiguous(String),
+}
+
+/// "no drive named \"conveyr\" is configured: did you mean \"conveyor\"? The
+/// drives are conveyor, lift, ...": the refusal of every face.
+pub fn unknown_drive(name: &str, known: &[String]) -> String {
+    let mut text = format!("no drive named \"{name}\" is configured");
+    if let Some(close) = crate::suggest::closest(name, known.iter().map(String::as_str)) {
+        text.push_str(&format!(": did you mean \"{close}\"?"));
+    }
+    if known.is_empty() {
+        text.push_str(" (no drive is configured)");
+    } else {
+        text.push_str(&format!(" (the drives are {})", known.join(", ")));
+    }
+    text
 }
 
 /// The plant as it is at one moment: every bus and every drive, each in
@@ -267,11 +288,17 @@ impl Directory {
                 Err(_) => None,
             },
         };
-        let drive = found.ok_or_else(|| LookupError::Unknown(key.to_string()))?;
-        let bus = self
-            .bus_at(drive.bus)
-            .ok_or_else(|| LookupError::Unknown(key.to_string()))?;
+        let drive = found.ok_or_else(|| self.unknown(key))?;
+        let bus = self.bus_at(drive.bus).ok_or_else(|| self.unknown(key))?;
         Ok((drive, &bus.handle))
+    }
+
+    /// The refusal of `key`, with the names of the drives there are.
+    fn unknown(&self, key: &str) -> LookupError {
+        LookupError::Unknown {
+            name: key.to_string(),
+            known: self.drives().map(|d| d.name.clone()).collect(),
+        }
     }
 
     /// The handle of a drive's bus (a drive's bus is always running: the
@@ -422,7 +449,7 @@ impl Plant {
             .drives
             .iter()
             .position(|d| d.as_ref() == Some(drive))
-            .ok_or_else(|| LookupError::Unknown(key.to_string()))?;
+            .ok_or_else(|| now.unknown(key))?;
         Ok((index, drive.clone(), bus.clone()))
     }
 
@@ -541,5 +568,28 @@ impl Plant {
         for bus in now.buses() {
             bus.join().await;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::unknown_drive;
+
+    #[test]
+    fn an_unknown_drive_is_refused_with_the_closest_name_and_the_list() {
+        let known = ["conveyor", "lift", "turntable", "feeder"].map(String::from);
+        assert_eq!(
+            unknown_drive("conveyr", &known),
+            "no drive named \"conveyr\" is configured: did you mean \"conveyor\"? \
+             (the drives are conveyor, lift, turntable, feeder)"
+        );
+        assert_eq!(
+            unknown_drive("press", &known),
+            "no drive named \"press\" is configured (the drives are conveyor, lift, turntable, feeder)"
+        );
+        assert_eq!(
+            unknown_drive("press", &[]),
+            "no drive named \"press\" is configured (no drive is configured)"
+        );
     }
 }

@@ -117,13 +117,19 @@ impl Reloader {
             }
             check(&write.text, &origin)?;
             write_file(&self.path, &write.text)
-                .map_err(|e| Refused::Invalid(format!("cannot write {origin}: {e}")))?;
+                .map_err(|e| Refused::Invalid(not_written(&origin, &e)))?;
             info!(by, "configuration file {origin} rewritten");
             text = write.text;
         }
         let new = check(&text, &origin)?;
+        for warning in crate::config::warnings::warnings(&text, &origin) {
+            warn!(by, "{warning}");
+        }
         let changes = diff(&self.running, &new);
-        Ok(self.apply(new, changes).await)
+        let first_token = first_token(&self.running, &new);
+        let mut applied = self.apply(new, changes).await;
+        applied.changes.extend(first_token);
+        Ok(applied)
     }
 
     async fn apply(&mut self, new: Config, mut changes: Changes) -> Applied {
@@ -191,6 +197,38 @@ impl Reloader {
     }
 }
 
+/// What the first API token changes, when `new` brings it: every client
+/// needs a token from now on, loopback included (without tokens, clients
+/// on loopback were admin), and how to make an admin token when none has
+/// that role. Said in the reload's answer and its log line.
+fn first_token(old: &Config, new: &Config) -> Option<String> {
+    if !old.http.tokens.is_empty() || new.http.tokens.is_empty() {
+        return None;
+    }
+    let admins: Vec<&str> = new
+        .http
+        .tokens
+        .iter()
+        .filter(|t| t.role == crate::control::Role::Admin)
+        .map(|t| t.name.as_str())
+        .collect();
+    let mut line = "first API token: from now on every client needs a token, on this machine \
+                    (loopback) too; until now clients on loopback were admin without one, and \
+                    the console now asks for a token"
+        .to_string();
+    if admins.is_empty() {
+        line.push_str(
+            "; no token has the admin role, so no client has the admin's controls (scans, \
+             ramps, saves to flash, reloads from the console or API): make one with \
+             `drivegate token new --name NAME --role admin`, add its lines and reload \
+             (systemctl reload drivegate needs no token)",
+        );
+    } else {
+        line.push_str(&format!("; admin tokens: {}", admins.join(", ")));
+    }
+    Some(line)
+}
+
 /// The checks of `drivegate check-config`: the file parses and holds
 /// together, its certificates load and its tokens resolve.
 fn check(text: &str, origin: &str) -> Result<Config, Refused> {
@@ -199,6 +237,25 @@ fn check(text: &str, origin: &str) -> Result<Config, Refused> {
     crate::api::auth::Tokens::resolve(&config.http.tokens, config.http.token_guesses)
         .map_err(|e| Refused::Invalid(format!("{origin}: [http]: {e}")))?;
     Ok(config)
+}
+
+/// Why the file was not written, in words: a file the service may not
+/// write is named as such, with what to do instead.
+fn not_written(origin: &str, e: &std::io::Error) -> String {
+    use std::io::ErrorKind;
+    if matches!(
+        e.kind(),
+        ErrorKind::PermissionDenied | ErrorKind::ReadOnlyFilesystem
+    ) {
+        format!(
+            "cannot write {origin}: {e}: drivegate may not write its configuration file \
+             (its unit or the file's permissions keep it read-only: docs/operations.md, \
+             \"Changing the configuration\"); nothing was written: add the lines to the file \
+             by hand (sudoedit {origin}) and reload (systemctl reload drivegate)"
+        )
+    } else {
+        format!("cannot write {origin}: {e}; nothing was written")
+    }
 }
 
 /// Writes `text` into `path` whole or not at all: a new file beside it,
@@ -221,4 +278,58 @@ fn write_file(path: &Path, text: &str) -> std::io::Result<()> {
         let _ = dir.sync_all();
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(tokens: &[(&str, &str)]) -> Config {
+        let mut text = String::new();
+        for (i, (name, role)) in tokens.iter().enumerate() {
+            text.push_str(&format!(
+                "[[http.token]]\nname = \"{name}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n",
+                format!("{i:x}").repeat(64).get(..64).unwrap_or_default()
+            ));
+        }
+        match Config::parse(&text, "test.toml") {
+            Ok(c) => c,
+            Err(e) => panic!("{e}"),
+        }
+    }
+
+    #[test]
+    fn the_first_token_is_said_with_how_to_make_an_admin_one() {
+        let none = config(&[]);
+        let operator = config(&[("scada", "operator")]);
+        let line = first_token(&none, &operator).unwrap_or_default();
+        assert!(
+            line.starts_with("first API token: from now on every client needs a token, on this machine (loopback) too")
+                && line.contains("no token has the admin role")
+                && line.contains("`drivegate token new --name NAME --role admin`"),
+            "{line}"
+        );
+        let admin = config(&[("scada", "operator"), ("ops", "admin")]);
+        let line = first_token(&none, &admin).unwrap_or_default();
+        assert!(line.ends_with("; admin tokens: ops"), "{line}");
+        // Not the first: nothing to say; none at all: the loopback rule is back.
+        assert_eq!(first_token(&operator, &admin), None);
+        assert_eq!(first_token(&admin, &none), None);
+        assert_eq!(first_token(&none, &none), None);
+    }
+
+    #[test]
+    fn a_file_the_service_may_not_write_is_said_with_what_to_do() {
+        let e = std::io::Error::from(std::io::ErrorKind::ReadOnlyFilesystem);
+        let said = not_written("/etc/drivegate/drivegate.toml", &e);
+        assert!(
+            said.starts_with("cannot write /etc/drivegate/drivegate.toml: read-only")
+                && said.contains("drivegate may not write its configuration file")
+                && said.contains("sudoedit /etc/drivegate/drivegate.toml"),
+            "{said}"
+        );
+        let e = std::io::Error::from(std::io::ErrorKind::StorageFull);
+        let said = not_written("plant.toml", &e);
+        assert!(said.ends_with("; nothing was written"), "{said}");
+    }
 }

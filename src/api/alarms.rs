@@ -96,7 +96,18 @@ pub async fn list_alarms(
         if !known {
             return Err(Problem::new(
                 Kind::UnknownDrive,
-                format!("no drive named \"{drive}\" is configured or has alarms"),
+                format!(
+                    "{}, and none of that name has alarms",
+                    crate::plant::unknown_drive(
+                        drive,
+                        &state
+                            .plant
+                            .now()
+                            .drives()
+                            .map(|d| d.name.clone())
+                            .collect::<Vec<_>>()
+                    )
+                ),
             ));
         }
     }

@@ -94,6 +94,11 @@ pub struct BusView {
     pub queue: QueueDepths,
     /// Counters.
     pub counters: BusCounters,
+    /// True when a drive of the bus is polled as fast as the bus allows
+    /// (`poll_interval_ms = 0`, the default): its wire is then in use all
+    /// the time by design (commands still go ahead of polls), and a
+    /// utilisation near 100 % is no fault.
+    pub polled_flat_out: bool,
 }
 
 fn bus_view(bus: &Bus) -> BusView {
@@ -144,6 +149,11 @@ fn bus_view(bus: &Bus) -> BusView {
             reopens: stats.reopens,
             busy_seconds: stats.busy_seconds,
         },
+        polled_flat_out: bus
+            .config
+            .drives
+            .iter()
+            .any(|d| d.poll_interval_ms.unwrap_or(bus.config.poll_interval_ms) == 0),
     }
 }
 

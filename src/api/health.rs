@@ -128,10 +128,15 @@ pub fn mqtt_readiness(state: &ApiState) -> Option<MqttReadiness> {
     })
 }
 
+/// The routes of this module a monitoring system asks, as the router
+/// names them: their request series exist from start-up.
+pub const MONITORED_ROUTES: [&str; 3] = ["/metrics", "/healthz", "/readyz"];
+
 /// The reason `/readyz` gives when the configuration has no `[[bus]]` (the
 /// package's configuration as shipped); the console says the same.
-pub const NO_BUS: &str = "no bus configured: run `drivegate probe --port /dev/ttyUSB0` \
-     (with your adapter's port) to find the drives and their baud rate, then add a [[bus]] \
+pub const NO_BUS: &str = "no bus configured: run `drivegate probe --port /dev/serial/by-id/...` \
+     (your adapter's stable name: `ls -l /dev/serial/by-id/`) to find the drives and their \
+     baud rate, then add a [[bus]] \
      with its [[bus.drive]] sections to the configuration and reload it \
      (`systemctl reload drivegate`)";
 

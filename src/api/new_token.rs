@@ -18,6 +18,23 @@ use crate::control::Role;
 /// Bytes of randomness in a token.
 pub const TOKEN_BYTES: usize = 32;
 
+/// What the first token changes, said by `token new` (the reload that
+/// adds it says it again): without tokens the API is for this machine
+/// only and every client on it is admin; with one, nobody is without a
+/// token.
+pub const FIRST_TOKEN_NOTE: &str = "\
+If it is the configuration's first token: from that reload on, every client
+needs a token, on this machine (loopback) too. Until then, clients on this
+machine are admin without one; after it, the console asks for a token and
+curl needs -H \"Authorization: Bearer TOKEN\".";
+
+/// The advice `token new` adds for a token that is not an admin's.
+pub const MAKE_AN_ADMIN: &str = "\
+Make an admin token for yourself too, before the reload, or no client keeps
+the admin's controls (scans, ramps, saves to flash, reloads from the console
+or the API; systemctl reload needs no token):
+  drivegate token new --name NAME --role admin";
+
 /// A token just made, with the configuration lines that accept it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct NewToken {

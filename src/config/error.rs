@@ -40,7 +40,7 @@ pub enum ConfigError {
 }
 
 /// 1-based line and column of byte `offset` in `text`.
-fn line_column(text: &str, offset: usize) -> (usize, usize) {
+pub(super) fn line_column(text: &str, offset: usize) -> (usize, usize) {
     let offset = offset.min(text.len());
     let before = &text[..text.floor_char_boundary(offset)];
     let line = before.matches('\n').count() + 1;
@@ -50,12 +50,19 @@ fn line_column(text: &str, offset: usize) -> (usize, usize) {
 
 impl ConfigError {
     pub(super) fn parse(origin: &str, text: &str, error: &toml::de::Error) -> Self {
-        let (line, column) = error.span().map_or((1, 1), |s| line_column(text, s.start));
+        let raw = error.message().trim();
+        let ((line, column), message) = match error.span() {
+            Some(span) => (
+                line_column(text, span.start),
+                super::wording::plain(text, span.start, raw),
+            ),
+            None => ((1, 1), raw.to_string()),
+        };
         ConfigError::Parse {
             origin: origin.to_string(),
             line,
             column,
-            message: error.message().trim().to_string(),
+            message,
         }
     }
 

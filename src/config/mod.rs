@@ -21,6 +21,8 @@ pub mod origins;
 mod role;
 mod safety;
 pub(crate) mod values;
+pub mod warnings;
+mod wording;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -91,11 +93,19 @@ impl Config {
 
     /// Reads, parses and validates the file at `path`.
     pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        Self::load_with_warnings(path).map(|(config, _)| config)
+    }
+
+    /// Reads, parses and validates the file at `path`, with what it holds
+    /// that is valid but probably a mistake ([`warnings::warnings`]).
+    pub fn load_with_warnings(path: &Path) -> Result<(Config, Vec<String>), ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
             path: path.display().to_string(),
             source,
         })?;
-        Self::parse(&text, &path.display().to_string())
+        let origin = path.display().to_string();
+        let config = Self::parse(&text, &origin)?;
+        Ok((config, warnings::warnings(&text, &origin)))
     }
 
     /// The embedded default configuration.

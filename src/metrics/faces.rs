@@ -52,6 +52,15 @@ fn unreachable_metric(name: &str, e: &prometheus::Error) -> ! {
 impl FaceMetrics {
     /// Creates the metrics and registers them in `registry`.
     pub fn register(registry: &Registry) -> Self {
+        let metrics = Self::new(registry);
+        // The reasons a Modbus TCP connection is refused, at 0 from start-up.
+        for reason in ["not_allowed", "limit"] {
+            metrics.tcp_rejected.with_label_values(&[reason]);
+        }
+        metrics
+    }
+
+    fn new(registry: &Registry) -> Self {
         let http_duration = HistogramVec::new(
             HistogramOpts::new(
                 "drivegate_http_request_duration_seconds",
@@ -126,6 +135,19 @@ impl FaceMetrics {
     pub fn tcp_rejections<'a>(&self, reasons: impl IntoIterator<Item = &'a str>) {
         for reason in reasons {
             self.tcp_rejected.with_label_values(&[reason]);
+        }
+    }
+
+    /// Creates the HTTP series of `routes` (template, method) answered
+    /// 200, at 0: the routes a monitoring system asks (`/metrics`,
+    /// `/healthz`, `/readyz`), so the families are there from the first
+    /// scrape. Other routes appear with their first request (their
+    /// statuses cannot be known before).
+    pub fn http_routes<'a>(&self, routes: impl IntoIterator<Item = (&'a str, &'a str)>) {
+        for (route, method) in routes {
+            self.http_requests
+                .with_label_values(&[route, method, "200"]);
+            self.http_duration.with_label_values(&[route]);
         }
     }
 

@@ -5,6 +5,9 @@
 
 use prometheus::{IntCounter, IntCounterVec, IntGauge, Opts, Registry};
 
+/// The faces that speak TLS, each with its series from start-up.
+const TLS_FACES: [&str; 2] = ["http", "modbus_tcp"];
+
 /// The security counters.
 #[derive(Clone)]
 pub struct SecurityMetrics {
@@ -100,12 +103,21 @@ impl SecurityMetrics {
                  connections closed unused are not counted.",
             ),
         };
+        // Every known series at 0 from start-up, so rate() sees the first
+        // event and a dashboard shows 0 rather than "No data".
         for reason in ["host", "origin", "cross-site"] {
             metrics.guard_refused.with_label_values(&[reason]);
         }
         for reason in HTTP_REFUSALS {
             metrics.http_refused.with_label_values(&[reason]);
         }
+        for face in TLS_FACES {
+            metrics.tls_handshake_failures.with_label_values(&[face]);
+            for result in ["ok", "failed"] {
+                metrics.tls_reloads.with_label_values(&[face, result]);
+            }
+        }
+        metrics.tls_refused_clients.with_label_values(&["role"]);
         metrics
     }
 

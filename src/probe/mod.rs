@@ -10,17 +10,19 @@
 //! heard into advice.
 //!
 //! The probe owns the port while it runs: stop the daemon (or the bus) that
-//! uses it first.
+//! uses it first. A port another program holds is named as such, with
+//! that program and its pid ([`holders`]).
 
 pub mod diagnosis;
+pub mod holders;
 
 use std::io::{IsTerminal, Write};
 use std::sync::Arc;
 use std::time::Duration;
 
 use crate::bus::master::{MasterSettings, RtuMaster};
-use crate::bus::port::Rs485Settings;
-use crate::bus::transport;
+use crate::bus::port::{PortError, Rs485Settings};
+use crate::bus::transport::{self, OpenError};
 use crate::drive::DriveRequest;
 use crate::modbus::timing::LineTiming;
 use crate::monitor::record::Direction;
@@ -227,7 +229,7 @@ async fn scan(
     let rs485 = Rs485Settings::default();
     let opened = transport::open(port, baud, &rs485)
         .await
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| open_error(port, &e))?;
     // One attempt per read, with the full timeout (see `read`).
     let settings = MasterSettings::new(baud, timeout, 0);
     let line = LineTiming::new_8n1(baud);
@@ -267,6 +269,17 @@ async fn scan(
     }
     progress.end();
     Ok(result)
+}
+
+/// Why `port` could not be opened, in words: taken by another program
+/// (the system says "busy", or its lock is held), that program is named.
+fn open_error(port: &str, e: &OpenError) -> String {
+    if let OpenError::Serial(PortError::Open { source, .. }) = e
+        && source.kind == tokio_serial::ErrorKind::NoDevice
+    {
+        return holders::in_use(port);
+    }
+    e.to_string()
 }
 
 /// One status read of `unit`, sorted by what came back.

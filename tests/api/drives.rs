@@ -127,6 +127,13 @@ async fn health_readiness_metrics_and_unknown_routes() {
         // Unknown drives, routes and methods are problems too.
         let p = api.get("/api/v1/drives/nosuch").await.expect_problem(404, "unknown-drive");
         assert!(p["detail"].as_str().unwrap().contains("nosuch"));
+        // A slip of the keyboard gets the name meant, and the list.
+        let p = api.get("/api/v1/drives/conveyr/status").await.expect_problem(404, "unknown-drive");
+        assert_eq!(
+            p["detail"],
+            "no drive named \"conveyr\" is configured: did you mean \"conveyor\"? \
+             (the drives are conveyor, lift, turntable, feeder)"
+        );
         api.get("/api/v1/drives/9/status").await.expect_problem(404, "unknown-drive");
         api.get("/api/v1/nothing/here").await.expect_problem(404, "not-found");
         api.delete("/api/v1/drives").await.expect_problem(405, "method-not-allowed");
@@ -139,7 +146,7 @@ async fn health_readiness_metrics_and_unknown_routes() {
         assert!(metrics.content_type().starts_with("text/plain; version=0.0.4"));
         let text = reqwest::get(api.url("/metrics")).await.unwrap().text().await.unwrap();
         assert!(
-            text.contains(r#"drivegate_http_requests_total{method="GET",route="/api/v1/drives/{drive}/status",status="404"} 1"#),
+            text.contains(r#"drivegate_http_requests_total{method="GET",route="/api/v1/drives/{drive}/status",status="404"} 2"#),
             "{text}"
         );
         assert!(text.contains(r#"route="unmatched",status="404"} 1"#), "{text}");

@@ -2,12 +2,16 @@
 //! with their figures, a silent line, drives at another baud rate (the
 //! simulator reads the master's rate off the pty and garbles the bits as a
 //! UART at the other rate would), an adapter that echoes, and a line that
-//! corrupts some replies; and a serial device server's `tcp://` line.
+//! corrupts some replies; a serial device server's `tcp://` line; and a
+//! port another program holds (a running `drivegate serve`, `flock`),
+//! named with that program and its pid.
 
 use std::time::Duration;
 
 use drivegate::sim::SimConfig;
 use drivegate::sim::Simulator;
+
+use crate::support::eventually;
 
 /// Runs the probe on `sim`'s pty with `args`; its stdout.
 async fn probe(sim: &SimConfig, args: &[&str]) -> String {
@@ -138,4 +142,99 @@ async fn probes_a_serial_device_server_over_tcp() {
     has(&out, "Probing tcp://127.0.0.1:");
     has(&out, "Found at 115200 baud:\n  unit   2: mode open_loop");
     has(&out, "port = \"tcp://127.0.0.1:");
+}
+
+/// True when process `pid` has `path` open.
+fn has_open(pid: u32, path: &std::path::Path) -> bool {
+    std::fs::read_dir(format!("/proc/{pid}/fd")).is_ok_and(|fds| {
+        fds.flatten()
+            .any(|fd| std::fs::read_link(fd.path()).is_ok_and(|l| l == path))
+    })
+}
+
+/// The probe on `port`, expected to fail: its stderr.
+async fn probe_refused(port: &std::path::Path) -> String {
+    let out = tokio::time::timeout(
+        Duration::from_secs(60),
+        tokio::process::Command::new(env!("CARGO_BIN_EXE_drivegate"))
+            .args(["probe", "--units", "1-2", "--port"])
+            .arg(port)
+            .kill_on_drop(true)
+            .output(),
+    )
+    .await
+    .expect("the probe ends within 60 s")
+    .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    String::from_utf8(out.stderr).unwrap()
+}
+
+#[tokio::test]
+async fn a_port_another_program_holds_is_named_with_that_program_and_its_pid() {
+    let sim = Simulator::start(SimConfig::for_units([1])).unwrap();
+    let port = sim.port_path().to_path_buf();
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("plant.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[http]\nlisten = \"127.0.0.1:0\"\n[modbus_tcp]\nenabled = false\n\
+             [[bus]]\nname = \"line1\"\nport = \"{}\"\nresponse_timeout_ms = 250\n\
+             [[bus.drive]]\nunit = 1\nname = \"conveyor\"\n",
+            port.display()
+        ),
+    )
+    .unwrap();
+    // The daemon on the line, as on a plant box: it holds the port.
+    let mut daemon = tokio::process::Command::new(env!("CARGO_BIN_EXE_drivegate"))
+        .arg("serve")
+        .arg("--config")
+        .arg(&config)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    let pid = daemon.id().unwrap();
+    eventually(
+        Duration::from_secs(30),
+        "the daemon holding the port",
+        || has_open(pid, &port).then_some(()),
+    )
+    .await;
+    let said = probe_refused(&port).await;
+    assert!(
+        said.contains(&format!("{} is in use by", port.display()))
+            && said.contains(&format!(
+                "drivegate serve --config {} (pid {pid}, holds its lock)",
+                config.display()
+            ))
+            && said.contains("sudo systemctl stop drivegate"),
+        "{said}"
+    );
+    assert!(!said.contains("dialout"), "{said}");
+    daemon.kill().await.unwrap();
+
+    // Another program: flock(1) holding the port's lock.
+    let mut flock = tokio::process::Command::new("flock")
+        .arg(&port)
+        .args(["sleep", "600"])
+        .kill_on_drop(true)
+        .spawn()
+        .expect("flock (util-linux) runs");
+    let pid = flock.id().unwrap();
+    eventually(Duration::from_secs(30), "flock holding the port", || {
+        has_open(pid, &port).then_some(())
+    })
+    .await;
+    let said = probe_refused(&port).await;
+    assert!(
+        said.contains(&format!(
+            "flock {} sleep 600 (pid {pid}, holds its lock)",
+            port.display()
+        )) && said.contains("Stop it first, then probe again"),
+        "{said}"
+    );
+    flock.kill().await.unwrap();
+    sim.stop();
 }

@@ -142,6 +142,53 @@ fn every_page_module_is_in_the_navigation() {
     }
 }
 
+/// Every picture in docs/ is taken by a test of this binary through
+/// `browser::picture` (so it is retaken, and what it shows was checked,
+/// at each `DRIVEGATE_SCREENSHOTS=docs cargo test --test console`), and
+/// every picture the docs show is there.
+#[test]
+fn every_picture_of_the_docs_is_taken_by_a_test() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut tests = String::new();
+    for entry in std::fs::read_dir(root.join("tests/console")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "rs") {
+            tests.push_str(&std::fs::read_to_string(path).unwrap());
+        }
+    }
+    // The name of each picture a `picture(page, "name", ...)` call takes.
+    let mut taken = Vec::new();
+    for (i, _) in tests.match_indices("picture(") {
+        let call = &tests[i..tests[i..].find(".await").map_or(tests.len(), |e| i + e)];
+        if let Some(name) = call.split('"').nth(1) {
+            taken.push(name.to_string());
+        }
+    }
+    let mut docs_text = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let mut untaken = Vec::new();
+    for entry in std::fs::read_dir(root.join("docs")).unwrap() {
+        let name = entry.unwrap().file_name().to_string_lossy().to_string();
+        if name.ends_with(".png") && !taken.contains(&name) {
+            untaken.push(name.clone());
+        }
+        if name.ends_with(".md") {
+            docs_text.push_str(&std::fs::read_to_string(root.join("docs").join(&name)).unwrap());
+        }
+    }
+    assert!(
+        untaken.is_empty(),
+        "pictures in docs/ no test takes: {untaken:?}"
+    );
+    for (i, _) in docs_text.match_indices(".png)") {
+        let start = docs_text[..i].rfind('(').unwrap() + 1;
+        let shown = docs_text[start..i + 4].trim_start_matches("docs/");
+        assert!(
+            root.join("docs").join(shown).is_file(),
+            "the docs show {shown}, which is not in docs/"
+        );
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn served_with_types_policy_and_revalidation() {
     let daemon = TestDaemon::start(FOUR_DRIVES).await;

@@ -4,8 +4,9 @@
 //! page element, a stream message, the drive's polled state), never for a
 //! fixed time, so a loaded machine only makes it slower.
 //!
-//! Screenshots for docs/: `DRIVEGATE_SCREENSHOTS=docs cargo test --test
-//! console_browser -- --ignored screenshots`.
+//! The pictures in docs/ are taken by the tests that check what they show
+//! (`picture`), when `DRIVEGATE_SCREENSHOTS` is set: `DRIVEGATE_SCREENSHOTS=docs
+//! cargo test --test console` retakes them all.
 
 use std::time::{Duration, Instant};
 
@@ -703,6 +704,40 @@ async fn the_event_log_shows_every_write_live_and_the_ramp_time_follows_the_manu
         row.contains("panel") && row.contains("activate") && row.contains("confirmed by the drive"),
         "{row}"
     );
+    // Two more, in the order they were made, newest first.
+    rest_ok(
+        &daemon,
+        Some(OPERATOR),
+        "PUT",
+        "/api/v1/drives/lift/mode",
+        Some(json!({"mode": "speed"})),
+    )
+    .await;
+    rest_ok(
+        &daemon,
+        Some(OPERATOR),
+        "PUT",
+        "/api/v1/drives/lift/setpoint",
+        Some(json!({"speed_rpm": 30})),
+    )
+    .await;
+    let newest = page
+        .wait_for(
+            "(() => { const r = document.querySelectorAll('table.log tbody tr[data-kind=write]'); return r.length >= 3 && r[0].textContent; })()",
+            LONG,
+            "three writes in the log",
+        )
+        .await;
+    assert!(newest.as_str().unwrap().contains("30 rpm"), "{newest}");
+    picture(&page, "console-events.png", false).await;
+    rest_ok(
+        &daemon,
+        Some(OPERATOR),
+        "POST",
+        "/api/v1/drives/lift/commands/brake",
+        None,
+    )
+    .await;
     // Filtered to faults, it is gone.
     page.eval("(() => { const k = document.querySelector('[data-filter=kind]'); k.value = 'fault'; k.dispatchEvent(new Event('change')); })()")
         .await;
@@ -744,6 +779,7 @@ async fn the_event_log_shows_every_write_live_and_the_ramp_time_follows_the_manu
     page.fill("[data-field=step_rpm-alpha]", "5000").await;
     let preview = text(&page, "[data-preview=step_rpm]").await;
     assert!(preview.starts_with("0.2044 s"), "{preview}");
+    picture(&page, "console-settings.png", true).await;
 
     // The drive page's read-back says so when another client writes after
     // it, and a new read clears that.
@@ -780,9 +816,9 @@ async fn the_event_log_shows_every_write_live_and_the_ramp_time_follows_the_manu
 
 /// With `DRIVEGATE_SCREENSHOTS` set (a directory, relative to the
 /// repository or absolute: `docs`), saves a PNG of `page` there as
-/// `name`: the tests of the newer pages take their pictures for the docs
-/// at the moment they have checked what the picture shows. Without it,
-/// nothing.
+/// `name`: each picture of the docs is taken by the test that checks what
+/// it shows, at that moment (`assets::every_picture_of_the_docs_is_taken_by_a_test`
+/// holds every one to it). Without it, nothing.
 pub(crate) async fn picture(page: &Page, name: &str, full: bool) {
     let Some(dir) = std::env::var_os("DRIVEGATE_SCREENSHOTS") else {
         return;
@@ -794,258 +830,6 @@ pub(crate) async fn picture(page: &Page, name: &str, full: bool) {
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(dir)
     };
     page.screenshot(&dir.join(name), full).await;
-}
-
-/// Not a test: writes the screenshots in docs/ (run with
-/// `DRIVEGATE_SCREENSHOTS=docs cargo test --test console_browser -- --ignored screenshots`).
-/// A small plant scene: one drive running, one positioning, one in fault,
-/// one gone silent.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "writes docs/console-*.png"]
-async fn screenshots() {
-    let dir = std::path::PathBuf::from(
-        std::env::var("DRIVEGATE_SCREENSHOTS").unwrap_or_else(|_| "docs".into()),
-    );
-    let dir = if dir.is_absolute() {
-        dir
-    } else {
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(dir)
-    };
-    // The product's own jog lease on the pictures, not the tests' longer one.
-    let toml = config(true, "").replace(
-        &format!("jog_lease_ms = {}", crate::harness::JOG_LEASE_MS),
-        "jog_lease_ms = 300",
-    );
-    let daemon = TestDaemon::start(&toml).await;
-    let a = Some(ADMIN);
-    for drive in ["conveyor", "lift"] {
-        rest_ok(
-            &daemon,
-            a,
-            "POST",
-            &format!("/api/v1/drives/{drive}/commands/activate"),
-            None,
-        )
-        .await;
-    }
-    rest_ok(
-        &daemon,
-        a,
-        "PUT",
-        "/api/v1/drives/conveyor/mode",
-        Some(json!({"mode": "speed"})),
-    )
-    .await;
-    rest_ok(
-        &daemon,
-        a,
-        "PUT",
-        "/api/v1/drives/lift/mode",
-        Some(json!({"mode": "position"})),
-    )
-    .await;
-    rest_ok(
-        &daemon,
-        a,
-        "PUT",
-        "/api/v1/drives/conveyor/ramps/speed",
-        Some(json!({"time_s": 1.0, "step_rpm": 150})),
-    )
-    .await;
-    rest_ok(
-        &daemon,
-        a,
-        "PUT",
-        "/api/v1/drives/lift/ramps/position",
-        Some(json!({"time_s": 2.0, "step_deg": 90})),
-    )
-    .await;
-    let browser = Browser::start(&[]).await;
-    let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(ADMIN)).await;
-    // A capture of the conveyor and the lift around the speed's first step
-    // (for the scope page): 0.5 s before it, 2.5 s from it.
-    let (status, armed) = rest(
-        &daemon,
-        a,
-        "POST",
-        "/api/v1/buses/sim/scope",
-        Some(json!({
-            "drives": ["conveyor", "lift"],
-            "fields": ["speed_rpm", "current_a", "angle_deg"],
-            "trigger": {"type": "rising", "drive": "conveyor", "field": "speed_rpm", "level": 20},
-            "pre_trigger": {"seconds": 0.5},
-            "length": {"seconds": 2.5}
-        })),
-    )
-    .await;
-    assert_eq!(status, 201, "{armed:#}");
-    tokio::time::sleep(Duration::from_secs(1)).await; // a full pre-trigger buffer
-    // Some history for the plots: speed steps up, reverses, settles.
-    for (rpm, secs) in [(150, 4), (-80, 4), (100, 4)] {
-        rest_ok(
-            &daemon,
-            a,
-            "PUT",
-            "/api/v1/drives/conveyor/setpoint",
-            Some(json!({"speed_rpm": rpm})),
-        )
-        .await;
-        tokio::time::sleep(Duration::from_secs(secs)).await;
-    }
-    rest_ok(
-        &daemon,
-        a,
-        "PUT",
-        "/api/v1/drives/lift/setpoint",
-        Some(json!({"position_deg": 90.0})),
-    )
-    .await;
-    daemon
-        .sim()
-        .inject_fault(3, drivegate::drive::Fault::OverTemperature)
-        .unwrap();
-    daemon.sim().set_silent(4, true);
-    until(LONG, "the feeder offline", || {
-        daemon.plant.buses()[0]
-            .handle
-            .drive(4)
-            .is_some_and(|d| d.link == drivegate::bus::cache::Link::Offline)
-    })
-    .await;
-    page.wait_for("document.querySelector('[data-read=settings]') && !document.querySelector('[data-read=settings]').disabled", LONG, "settings read").await;
-    page.screenshot(&dir.join("console-drive.png"), true).await;
-
-    page.eval("location.hash = '#/'").await;
-    page.wait_for("document.querySelectorAll('tr.fault').length === 1 && document.querySelectorAll('tr.offline').length === 1", LONG, "the scene").await;
-    tokio::time::sleep(Duration::from_secs(2)).await; // two bus polls for the utilisation
-    page.screenshot(&dir.join("console-overview.png"), false)
-        .await;
-
-    page.eval("location.hash = '#/settings/conveyor'").await;
-    page.wait_for(
-        "!!document.querySelector('[data-preview=step_rpm]')",
-        LONG,
-        "settings",
-    )
-    .await;
-    page.screenshot(&dir.join("console-settings.png"), true)
-        .await;
-
-    page.eval("location.hash = '#/commissioning'").await;
-    page.wait_for(
-        "!!document.querySelector('[data-action=scan]')",
-        LONG,
-        "commissioning",
-    )
-    .await;
-    page.fill("[data-field=scan-to]", "8").await;
-    page.click("[data-action=scan]").await;
-    page.wait_for(
-        "document.querySelector('#scan-h').parentElement.querySelector('.note.ok')",
-        LONG,
-        "the scan",
-    )
-    .await;
-    page.screenshot(&dir.join("console-commissioning.png"), true)
-        .await;
-
-    page.eval("location.hash = '#/events'").await;
-    page.wait_for(
-        "document.querySelectorAll('table.log tbody tr').length > 5",
-        LONG,
-        "events",
-    )
-    .await;
-    page.screenshot(&dir.join("console-events.png"), false)
-        .await;
-
-    page.eval("location.hash = '#/scope'").await;
-    page.wait_for(
-        "document.querySelector('.capture-state').dataset.state === 'complete' \
-         && document.querySelectorAll('[data-scope-plot] canvas').length === 3",
-        LONG,
-        "the scope's plots",
-    )
-    .await;
-    page.screenshot(&dir.join("console-scope.png"), true).await;
-
-    // The monitor of the conveyor (unit 1) with a Modbus TCP client's
-    // write and a setpoint from HTTP among the polls.
-    page.eval("location.hash = '#/monitor'").await;
-    page.wait_for(
-        "document.querySelectorAll('.frame-rows [data-seq]').length > 30",
-        LONG,
-        "the monitor",
-    )
-    .await;
-    page.eval(
-        "(() => { const s = document.querySelector('[data-filter=unit]'); s.value = '1'; s.dispatchEvent(new Event('change')); })()",
-    )
-    .await;
-    page.wait_for(
-        "(() => { const r = [...document.querySelectorAll('.frame-rows [data-seq]')]; return r.length > 20 && r.every((x) => x.dataset.unit === '1'); })()",
-        LONG,
-        "the conveyor's frames",
-    )
-    .await;
-    let mut tcp = tokio::net::TcpStream::connect(daemon.modbus_tcp.unwrap())
-        .await
-        .unwrap();
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    tcp.write_all(&[0, 0x21, 0, 0, 0, 6, 1, 0x06, 0x00, 0x02, 0x00, 0x00])
-        .await
-        .unwrap();
-    let mut echo = [0u8; 12];
-    tcp.read_exact(&mut echo).await.unwrap();
-    rest_ok(
-        &daemon,
-        a,
-        "PUT",
-        "/api/v1/drives/conveyor/setpoint",
-        Some(json!({"speed_rpm": 60})),
-    )
-    .await;
-    page.wait_for(
-        "!!document.querySelector('.frame[data-source=modbus-tcp]') && !!document.querySelector('.frame[data-source=http]')",
-        LONG,
-        "the client's frames",
-    )
-    .await;
-    page.click("[data-action=pause]").await;
-    page.screenshot(&dir.join("console-monitor.png"), false)
-        .await;
-
-    // Tablet width.
-    let tablet = browser.new_page(820, 1180).await;
-    tablet
-        .goto(&format!("{}/#/drive/conveyor", daemon.url("")))
-        .await;
-    tablet
-        .wait_for(
-            "document.getElementById('login').open",
-            LONG,
-            "the token dialog",
-        )
-        .await;
-    tablet.fill("#login input", OPERATOR).await;
-    tablet.click("#login button[type=submit]").await;
-    tablet.wait_for("window.drivegate && drivegate.stream.state === 'open' && document.querySelector('.controls')", LONG, "tablet").await;
-    tablet
-        .screenshot(&dir.join("console-drive-tablet.png"), false)
-        .await;
-    tablet.eval("location.hash = '#/'").await;
-    tablet
-        .wait_for(
-            "document.querySelectorAll('table.drives tbody tr').length === 4",
-            LONG,
-            "the overview at tablet width",
-        )
-        .await;
-    tablet
-        .screenshot(&dir.join("console-overview-tablet.png"), false)
-        .await;
-    browser.stop().await;
-    daemon.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -1091,6 +875,7 @@ async fn commissioning_scans_with_progress_guards_the_address_and_follows_a_cali
     );
     let why = text(&page, ".check").await;
     assert!(why.contains("did not cover units 1 to 255"), "{why}");
+    picture(&page, "console-commissioning.png", true).await;
 
     // Calibration of the lift, confirmed in the dialog, followed to its end.
     page.eval("(() => { const s = document.getElementById('proc-drive'); s.value = 'lift'; })()")
@@ -1199,8 +984,8 @@ async fn without_a_bus_the_overview_says_to_run_probe() {
     assert_eq!(
         text,
         json!(
-            "No bus configured: run drivegate probe --port /dev/ttyUSB0 (with your adapter's \
-             port) to find the drives and their baud rate, then add a [[bus]] with its drives \
+            "No bus configured: run drivegate probe --port /dev/serial/by-id/... (your adapter's \
+             stable name: ls -l /dev/serial/by-id/) to find the drives and their baud rate, then add a [[bus]] with its drives \
              to the configuration and reload it (systemctl reload drivegate)."
         )
     );

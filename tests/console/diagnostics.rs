@@ -11,7 +11,7 @@ use std::time::Duration;
 use serde_json::json;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-use crate::browser::{LONG, assert_clean, open, rest, rest_ok, text};
+use crate::browser::{LONG, assert_clean, open, picture, rest, rest_ok, text};
 use crate::harness::cdp::{Browser, Page};
 use crate::harness::{ADMIN, OPERATOR, VIEWER, config};
 use crate::support::TestDaemon;
@@ -144,6 +144,7 @@ async fn the_scope_page_arms_on_a_level_fills_plots_exports_and_shows_a_refusal(
         .await,
         json!([["speed_rpm", true, "speed (rpm)"], ["current_a", true, "current (A)"]])
     );
+    picture(&page, "console-scope.png", true).await;
 
     // The CSV download: the API's file, its columns named with their units.
     let seen = browser.downloads_done();
@@ -343,6 +344,7 @@ async fn the_monitor_page_names_who_caused_each_frame_filters_pauses_and_downloa
     )
     .await;
     assert_eq!(page.eval(first).await, held, "the list moved while paused");
+    picture(&page, "console-monitor.png", false).await;
     assert!(text(&page, ".monitor .count").await.contains("paused"));
     page.click("[data-action=pause]").await;
     page.wait_for(

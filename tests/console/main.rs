@@ -20,6 +20,7 @@ mod diagnostics;
 mod freshness;
 mod harness;
 mod https;
+mod layout;
 mod plain;
 mod replace;
 mod trends;

@@ -42,6 +42,16 @@ async fn the_drive_page_zooms_from_30_seconds_to_the_hour_from_the_history() {
             .await,
         json!("true")
     );
+    // The drive page as an operator sees it, the conveyor running at 90
+    // rpm: its plots live over five seconds, its controls.
+    page.wait_for(
+        "(() => { const h = drivegate.store.drives.get('conveyor').history; \
+         return h && h.t.length && h.t[h.t.length - 1] - h.t[0] >= 5 && h.speed.slice(-5).every((v) => v > 80); })()",
+        LONG,
+        "five seconds of the speed plotted",
+    )
+    .await;
+    picture(&page, "console-drive.png", true).await;
 
     page.click("[data-zoom=\"3600\"]").await;
     let read = page

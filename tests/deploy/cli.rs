@@ -1,4 +1,6 @@
-//! The command line: `check-config` on good and bad files.
+//! The command line: `check-config` on good and bad files (the common
+//! mistakes of a hand-written file in plain words, a baud rate that is
+//! probably a typo), `--help`, and `token new`.
 
 use std::process::Command;
 
@@ -48,6 +50,104 @@ fn check_config_points_at_the_line_and_column() {
     );
 }
 
+/// `check-config` on `text`: its exit code, stdout and stderr.
+fn check(text: &str) -> (Option<i32>, String, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("plant.toml");
+    std::fs::write(&path, text).unwrap();
+    // Named as a user names it, from where it is.
+    let out = drivegate()
+        .args(["check-config", "plant.toml"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn the_common_mistakes_are_said_in_plain_words_with_the_right_form() {
+    // Each mistake as a plant engineer makes it, the position, and the
+    // right form in the message.
+    let cases = [
+        (
+            "[bus]\nname = \"line1\"\nport = \"sim\"\n",
+            "plant.toml:1:1: [bus] must be written [[bus]] (two brackets)",
+        ),
+        (
+            "[[bus]]\nname = \"line1\"\nport = \"sim\"\n\n[bus.drive]\nunit = 1\nname = \"conveyor\"\n",
+            "plant.toml:5:1: [bus.drive] must be written [[bus.drive]] (two brackets)",
+        ),
+        (
+            "[[safety]]\non_shutdown = \"brake\"\n",
+            "plant.toml:2:1: [[safety]] must be written [safety] (one pair of brackets)",
+        ),
+        (
+            "[http]\nlisten = \"8080\"\n",
+            "plant.toml:2:10: listen = \"8080\" is a port without an address: write \
+             listen = \"0.0.0.0:8080\" (every network interface) or listen = \"127.0.0.1:8080\" \
+             (this machine only)",
+        ),
+        (
+            "[[bus]]\nname = \"line1\"\nport = \"sim\"\nbaud = \"115200\"\n",
+            "plant.toml:4:8: baud = \"115200\": numbers are written without quotes: baud = 115200",
+        ),
+        (
+            "[safety]\non_shutdown = brake\n",
+            "plant.toml:2:15: on_shutdown = brake: text is written in quotes: on_shutdown = \"brake\"",
+        ),
+    ];
+    for (text, wanted) in cases {
+        let (code, _, stderr) = check(text);
+        assert_eq!(code, Some(1), "{text}");
+        assert!(stderr.starts_with(wanted), "{text}\n{stderr}");
+    }
+}
+
+#[test]
+fn a_baud_rate_that_is_no_standard_one_is_warned_with_the_rate_meant() {
+    let (code, stdout, stderr) = check(
+        "[[bus]]\nname = \"line1\"\nport = \"sim\"\nbaud = 11520\n\n[[bus.drive]]\nunit = 1\nname = \"conveyor\"\n",
+    );
+    // Valid (an unusual rate may be meant), and said.
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(stdout.contains("valid (1 bus(es), 1 drive(s))"), "{stdout}");
+    assert!(
+        stderr.starts_with(
+            "warning: plant.toml:4:8: bus \"line1\": baud = 11520 is not a standard rate \
+             (did you mean 115200?): a drive at another rate never answers."
+        ) && stderr.contains("9600, 19200, 38400, 57600, 115200")
+            && stderr.contains("--try-bauds"),
+        "{stderr}"
+    );
+    let (code, _, stderr) = check("[[bus]]\nname = \"line1\"\nport = \"sim\"\nbaud = 19200\n");
+    assert_eq!(code, Some(0));
+    assert!(stderr.is_empty(), "{stderr}");
+}
+
+#[test]
+fn help_names_every_face() {
+    let out = drivegate().arg("--help").output().unwrap();
+    assert!(out.status.success());
+    let help = String::from_utf8_lossy(&out.stdout);
+    for face in [
+        "REST",
+        "WebSocket",
+        "Modbus TCP",
+        "Modbus/TCP Security",
+        "MQTT",
+        "Sparkplug B",
+        "JSON",
+        "Prometheus",
+        "web console",
+    ] {
+        assert!(help.contains(face), "--help does not name {face}:\n{help}");
+    }
+}
+
 #[test]
 fn serve_refuses_a_bad_config_before_starting() {
     let dir = tempfile::tempdir().unwrap();
@@ -89,6 +189,13 @@ async fn a_token_made_by_the_tool_authenticates_once_pasted() {
     assert_eq!(stdout.matches(&token).count(), 1, "printed once");
     let lines = &stdout[stdout.find("[[http.token]]").expect("lines to paste")..];
     assert!(!lines.contains(&token), "the lines hold no secret");
+    // What the first token changes, and how to keep an admin.
+    let before = &stdout[..stdout.find("[[http.token]]").unwrap()];
+    assert!(
+        before.contains("every client\nneeds a token, on this machine (loopback) too")
+            && before.contains("drivegate token new --name NAME --role admin"),
+        "{stdout}"
+    );
 
     let config = format!("{}\n{lines}", crate::support::FOUR_DRIVES);
     let daemon = crate::support::TestDaemon::start_no_wait(&config).await;
@@ -107,6 +214,18 @@ async fn a_token_made_by_the_tool_authenticates_once_pasted() {
         .await
         .expect_problem(401, "unauthorized");
     daemon.stop().await;
+
+    // An admin's token needs no advice to make one.
+    let out = drivegate()
+        .args(["token", "new", "--name", "ops", "--role", "admin"])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    assert!(
+        stdout.contains("on this machine (loopback) too"),
+        "{stdout}"
+    );
+    assert!(!stdout.contains("--role admin"), "{stdout}");
 
     let out = drivegate()
         .args(["token", "new", "--name", "scada", "--role", "root"])

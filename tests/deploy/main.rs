@@ -12,6 +12,7 @@
 mod support;
 
 mod cli;
+mod docs;
 mod graceful_stop;
 mod grafana;
 mod logs;

@@ -170,6 +170,6 @@ async fn the_shipped_configuration_waits_to_be_configured() {
         console.contains("No bus configured: run "),
         "the console says it too"
     );
-    assert!(console.contains("drivegate probe --port /dev/ttyUSB0"));
+    assert!(console.contains("drivegate probe --port /dev/serial/by-id/..."));
     d.stop().await;
 }

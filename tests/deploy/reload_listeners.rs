@@ -422,6 +422,68 @@ async fn every_token_removed_reopens_the_api_open_on_loopback_at_once() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_first_token_says_that_loopback_needs_one_from_then_on_and_how_to_make_an_admin_one() {
+    capture_logs();
+    bounded(LIMIT, async {
+        let token = |name: &str, role: &str, secret: &str| {
+            format!(
+                "[[http.token]]\nname = \"{name}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n",
+                crate::support::config::sha256_hex(secret)
+            )
+        };
+        let with_admin = plant("127.0.0.1:0", "127.0.0.1:0");
+        let without = with_admin.replace(&token("admin", "admin", ADMIN), "");
+        assert!(!without.contains("http.token"), "{without}");
+        let d = TestDaemon::reloadable(&without).await;
+        // Without tokens, a client on loopback is admin without one.
+        let open = Api::new(d.http, None);
+        let me = open.get("/api/v1/whoami").await.expect(200);
+        assert_eq!(me["role"], "admin", "{me}");
+
+        // The first token, for a SCADA: an operator's.
+        const SCADA: &str = "listeners-first-scada-token";
+        d.rewrite(&format!(
+            "{without}\n{}",
+            token("lsn_first_scada", "operator", SCADA)
+        ));
+        let reply = reload(&open).await.expect(200);
+        let said = lines(&reply, "changes");
+        let first = said
+            .iter()
+            .find(|l| l.starts_with("first API token: "))
+            .unwrap_or_else(|| panic!("{reply}"));
+        assert!(
+            first
+                .contains("from now on every client needs a token, on this machine (loopback) too")
+                && first.contains("no token has the admin role")
+                && first.contains("`drivegate token new --name NAME --role admin`"),
+            "{first}"
+        );
+        // The log line of the reload says it too.
+        assert!(
+            log_text()
+                .lines()
+                .any(|l| l.contains("configuration reloaded") && l.contains(first.as_str())),
+            "no log line of the first token"
+        );
+        // And so it is: no token, no answer; the operator may not reload.
+        let api = Api::new(d.http, None);
+        let me = api.get("/api/v1/whoami").await.expect(200);
+        assert_eq!(
+            (&me["role"], &me["tokens_required"]),
+            (&json!(null), &json!(true)),
+            "{me}"
+        );
+        reload(&api).await.expect_problem(401, "unauthorized");
+        reload(&api.with_token(Some(SCADA)))
+            .await
+            .expect_problem(403, "forbidden");
+        d.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_bus_port_changed_reopens_that_bus_only() {
     bounded(LIMIT, async {
         let two = |line2_port: &str| {

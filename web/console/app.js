@@ -101,15 +101,21 @@ function buildHeader() {
   const who = document.getElementById('who');
   // "Token" and "role" in words: a token named "commissioning" or
   // "settings" must not read as the name of a page.
+  // Two short lines beside the pages on a wide screen (so the header keeps
+  // one row at 1280 px), one line on a tablet.
   const tokenWord = store.me.tokens_required ? 'token' : 'client';
-  who.replaceChildren(
-    h('span', { class: 'who-label' }, `${tokenWord} `),
-    h('q', { class: 'token-name', title: store.me.tokens_required ? 'The name of the API token in use' : 'No tokens are configured: this local client is known by its address' }, store.me.who),
-    h('span', { class: 'who-label' }, ' · role '),
+  const role = h('span', { class: 'who-line' },
+    h('span', { class: 'who-label sep' }, ' · '),
+    h('span', { class: 'who-label' }, 'role '),
     h('span', { class: `role ${store.me.role}`, title: 'What this token may do' }, store.me.role));
   if (store.me.tokens_required) {
-    who.append(' ', h('button', { class: 'link', onclick: () => { setToken(null); location.reload(); } }, 'Forget token'));
+    role.append(' ', h('button', { class: 'link', onclick: () => { setToken(null); location.reload(); } }, 'Forget token'));
   }
+  who.replaceChildren(
+    h('span', { class: 'who-line' },
+      h('span', { class: 'who-label' }, `${tokenWord} `),
+      h('q', { class: 'token-name', title: store.me.tokens_required ? 'The name of the API token in use' : 'No tokens are configured: this local client is known by its address' }, store.me.who)),
+    role);
   const brake = document.getElementById('brake-all');
   brake.hidden = !store.can('operator');
   brake.addEventListener('click', () => brakeAll());

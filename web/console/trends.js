@@ -32,9 +32,64 @@ const PLOTS = [
 /** Points asked of the history: about one per pixel of a wide plot. */
 const MAX_POINTS = 1500;
 
-/** 24-hour time of day for the plots' axis. */
-function timeOfDay(seconds) {
-  return new Date(seconds * 1000).toLocaleTimeString([], { hour12: false });
+/** The time axis's labels: hours and minutes where the ticks are whole
+ * minutes apart, seconds too where they are closer. */
+function clock(seconds, step) {
+  const d = new Date(seconds * 1000);
+  const two = (n) => String(n).padStart(2, '0');
+  const hm = `${two(d.getHours())}:${two(d.getMinutes())}`;
+  return step >= 60 ? hm : `${hm}:${two(d.getSeconds())}`;
+}
+
+/** The widths of a label with seconds ("00:00:00") and without ("00:00")
+ * in the axis's font, CSS px. */
+let widths = null;
+function labelWidths(u) {
+  if (!widths) {
+    const font = Array.isArray(u.axes[0].font) ? u.axes[0].font[0] : '12px sans-serif';
+    const ctx = document.createElement('canvas').getContext('2d');
+    ctx.font = font;
+    const dpr = window.devicePixelRatio || 1;
+    widths = { seconds: ctx.measureText('00:00:00').width / dpr, minutes: ctx.measureText('00:00').width / dpr };
+  }
+  return widths;
+}
+
+/** Room between two labels, px. */
+const GAP = 16;
+
+/** The least distance between two ticks, px, for `span` seconds over
+ * `plotWidth` px: room for a label with seconds if a step under a minute
+ * fits that way, else for one of hours and minutes with a step of a
+ * minute or more (the labels then say no seconds). */
+function tickSpace(u, _axis, min, max, plotWidth) {
+  const w = labelWidths(u);
+  const withSeconds = w.seconds + GAP;
+  const stepNeeded = ((max - min) * withSeconds) / Math.max(1, plotWidth);
+  if (stepNeeded <= 30) return withSeconds;
+  // A step of a minute or more: more room than 30 s take, so uPlot does
+  // not pick a step under a minute (whose labels would need seconds).
+  const halfMinute = (30 * plotWidth) / Math.max(1, max - min);
+  return Math.max(w.minutes + GAP, halfMinute + 1);
+}
+
+/** The plots' padding: room at the right for half a label, so the label
+ * of a tick at the right edge is not cut off. */
+export function timePadding() {
+  return [null, (u) => Math.ceil(labelWidths(u).seconds / 2) + 2, null, null];
+}
+
+/** The plots' x axis: the time of day, with ticks never closer than a
+ * label and a gap, so the labels never overlap, whatever the
+ * window shown and the plot's width (uPlot picks the step, from seconds to
+ * hours, that keeps that space). */
+export function timeAxis() {
+  return {
+    stroke: '#444',
+    grid: { stroke: '#e5e7eb' },
+    space: tickSpace,
+    values: (_, ticks, _axis, _space, step) => ticks.map((t) => clock(t, step)),
+  };
 }
 
 export class Trends {
@@ -87,11 +142,15 @@ export class Trends {
       const edge = { stroke: `${spec.colour}66`, width: 1, points: { show: false } };
       const u = new window.uPlot({
         width, height: 160,
+        padding: timePadding(),
         legend: { show: false },
         cursor: { drag: { x: false, y: false } },
-        scales: { x: { time: true, range: live ? undefined : () => this.range } },
+        // The live view ends at the newest status and spans 10 s at least
+        // (whole-second ticks while the page has seen less); a history
+        // view shows the range it read.
+        scales: { x: { time: true, range: live ? (_, min, max) => (max == null ? [min, max] : [Math.min(min, max - 10), max]) : () => this.range } },
         axes: [
-          { stroke: '#444', grid: { stroke: '#e5e7eb' }, values: (_, ticks) => ticks.map(timeOfDay) },
+          timeAxis(),
           { stroke: '#444', grid: { stroke: '#e5e7eb' }, size: 56 },
         ],
         series: live ? [{}, line] : [{}, line, { ...edge, label: 'minimum' }, { ...edge, label: 'maximum' }],

@@ -148,6 +148,14 @@ function mount(main, _params, { store }) {
     if (s && store.stats.firstRowsAt === undefined) store.stats.firstRowsAt = now;
   }
 
+  /** What the utilisation says, beside it: the share of the wire's time
+   * in use, and why 100 % is no fault on a bus polled flat out. */
+  function utilisationNote(b) {
+    return h('p', { class: 'hint utilisation', dataset: { field: 'utilisation-note' } }, b.polled_flat_out
+      ? 'Utilisation is the share of the wire\'s time in use. Its drives are polled as fast as the line allows (poll_interval_ms = 0), so it stays near 100 % by design: commands still go ahead of polls.'
+      : 'Utilisation is the share of the wire\'s time in use (frames, silences, waits for replies); near 100 %, commands wait longer.');
+  }
+
   function drawBuses() {
     const cards = [];
     for (const b of store.buses.values()) {
@@ -160,13 +168,14 @@ function mount(main, _params, { store }) {
           h('dt', {}, 'Utilisation'), h('dd', {}, b.utilisation === null ? '–' : `${fmt(b.utilisation * 100)} %`),
           h('dt', {}, 'Errors'), h('dd', {}, b.errorRate === null ? '–' : `${fmt(b.errorRate * 100, 2)} % of transactions`),
           h('dt', {}, 'Queue'), h('dd', {}, `${b.queue.emergency} / ${b.queue.command} / ${b.queue.poll}`, h('small', {}, ' emerg. / cmd / poll'))),
+        utilisationNote(b),
         b.reason ? h('p', { class: 'reason' }, b.reason) : null));
     }
     if (store.busesKnown && cards.length === 0) {
       // The package's configuration as shipped: say what to do first.
       cards.push(h('p', { class: 'reason no-bus' }, 'No bus configured: run ',
-        h('code', {}, 'drivegate probe --port /dev/ttyUSB0'),
-        ' (with your adapter\'s port) to find the drives and their baud rate, then add a [[bus]] with its drives to the configuration and reload it (systemctl reload drivegate).'));
+        h('code', {}, 'drivegate probe --port /dev/serial/by-id/...'),
+        ' (your adapter\'s stable name: ls -l /dev/serial/by-id/) to find the drives and their baud rate, then add a [[bus]] with its drives to the configuration and reload it (systemctl reload drivegate).'));
     }
     buses.replaceChildren(...cards);
   }
