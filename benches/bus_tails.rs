@@ -337,6 +337,16 @@ fn start_sim(transport: Transport, scenario: Scenario) -> SimHandle {
         config.listen = Some("127.0.0.1:0".parse().unwrap());
     }
     config.faults = scenario.faults();
+    if let Some((gap, strict)) = scenario.frame_gap_us() {
+        let t35 = LineTiming::new_8n1(BAUD).t3_5();
+        for drive in &mut config.drives {
+            drive.frame_gap = Some(if strict.contains(&drive.unit) {
+                t35
+            } else {
+                Duration::from_micros(u64::from(gap))
+            });
+        }
+    }
     Simulator::start(config).unwrap()
 }
 
@@ -698,14 +708,17 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     drop(sim);
     let mut window = String::new();
     if let Some((mut child, _)) = external {
-        signal(&child, "TERM");
-        if transport == Transport::Py
-            && let Some(out) = child.stdout.as_mut()
-        {
-            use std::io::BufRead;
-            let _ = std::io::BufReader::new(out).read_line(&mut window);
+        // The paced simulator prints its window's counters on SIGTERM and
+        // stops its socat; the other is killed.
+        if transport == Transport::Py {
+            signal(&child, "TERM");
+            if let Some(out) = child.stdout.as_mut() {
+                use std::io::BufRead;
+                let _ = std::io::BufReader::new(out).read_line(&mut window);
+            }
+        } else {
+            let _ = child.kill();
         }
-        let _ = child.kill();
         let _ = child.wait();
     }
     if !window.trim().is_empty() {
@@ -720,7 +733,10 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
                     .map_or_else(|| format!("{u}:-"), |g| format!("{u}:{g:.0}"))
             })
             .collect();
-        println!("  learned gap before each drive's requests (unit:us): {}", gaps.join(" "));
+        println!(
+            "  learned gap before each drive's requests (unit:us): {}",
+            gaps.join(" ")
+        );
     }
     if !trace.is_empty() {
         println!(

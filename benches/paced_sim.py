@@ -95,7 +95,8 @@ def main():
         q = lambda f: round(gaps[min(len(gaps) - 1, int(f * len(gaps)))] * 1e6) if gaps else 0
         print(" ".join(f"{k}={v}" for k, v in counts.items()),
               f"gap_p50_us={q(0.5)} gap_p99_us={q(0.99)}", flush=True)
-        socat.terminate()
+        socat.kill()
+        socat.wait()
         os._exit(0)
     reset()
     signal.signal(signal.SIGUSR1, reset)
