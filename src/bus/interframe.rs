@@ -21,7 +21,8 @@
 //! - any fault of a request sent after the confirmed gap (a timeout, a CRC
 //!   error, a reply that does not answer) puts the drive back on the spec
 //!   at once (its retry goes after the spec's silence) and it learns again
-//!   only after a backoff that doubles each time ([`RELEARN`]);
+//!   only after a backoff that doubles each time ([`RELEARN`]), trying the
+//!   level it had answered first;
 //! - an emergency uses the drive's gap only if a request sent after it was
 //!   answered within [`RECENT`]; otherwise, and for broadcasts, the spec.
 //!
@@ -207,6 +208,9 @@ pub struct DriveGap {
     backoff: Duration,
     /// Times the drive fell back to the spec.
     fallbacks: u64,
+    /// The level that was answered before the last fallback: relearning
+    /// tries it first.
+    previous: Option<Duration>,
 }
 
 impl DriveGap {
@@ -218,6 +222,7 @@ impl DriveGap {
             phase: Phase::start(limits),
             backoff: RELEARN.0,
             fallbacks: 0,
+            previous: None,
         }
     }
 
@@ -276,7 +281,19 @@ impl DriveGap {
         if let Phase::Waiting { until } = self.phase
             && now >= until
         {
-            self.phase = Phase::start(limits);
+            // The level answered before the fallback first: if it is
+            // answered again, the gap is back at once.
+            self.phase = match self.previous.take() {
+                Some(level) => Phase::Stepping {
+                    trial: level,
+                    answers: 0,
+                    fails: 0,
+                    misses: 0,
+                    ok: limits.spec,
+                    failed: Some(level - level / RESOLUTION),
+                },
+                None => Phase::start(limits),
+            };
         }
     }
 
@@ -362,6 +379,7 @@ impl DriveGap {
         }
         if self.confirmed < limits.spec {
             self.fallbacks += 1;
+            self.previous = Some(self.confirmed / 2);
         }
         self.confirmed = limits.spec;
         self.confirmed_at = None;
@@ -640,6 +658,22 @@ mod tests {
         let later = now + RELEARN.0 * 4;
         gap.tick(&l, later);
         learn(&mut gap, 350 * US, later);
+        assert_eq!(gap.confirmed(), learned);
+    }
+
+    #[test]
+    fn a_drive_that_fell_back_is_tried_first_at_its_old_level() {
+        let l = limits();
+        let t0 = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        learn(&mut gap, 350 * US, t0);
+        let learned = gap.confirmed();
+        // A reply the machine made late: a fault like any other.
+        gap.failed(false, &l, t0);
+        let now = t0 + RELEARN.0;
+        gap.tick(&l, now);
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, learned / 2);
+        assert_eq!(learn(&mut gap, 350 * US, now), ANSWERS_PER_STEP as usize);
         assert_eq!(gap.confirmed(), learned);
     }
 
