@@ -28,8 +28,9 @@
 //!
 //! The silences counted are the master's: from the last byte it received
 //! to the first it sends. The wire's silence is longer by the adapter's and
-//! the system's latency, never shorter, and a trial counts only if the
-//! silence measured was the one tried.
+//! the system's latency, never shorter. A level counts at the longest
+//! silence measured before its answers (the thread may run late), and a
+//! trial counts only if that was shorter than any answered before.
 
 use std::time::{Duration, Instant};
 
@@ -71,8 +72,8 @@ pub const RECENT: Duration = Duration::from_secs(5);
 /// First and longest wait before a drive that fell back to the spec is
 /// tried shorter again.
 pub const RELEARN: (Duration, Duration) = (Duration::from_secs(10), Duration::from_secs(600));
-/// A trial counts when the silence measured before it was at most this
-/// much longer than the one tried (the thread may have run late).
+/// An answered request vouches for the confirmed gap when the silence
+/// before it was at most this much longer (the thread may have run late).
 pub const TOLERANCE: Duration = Duration::from_micros(50);
 /// Trials of one level not answered before the level counts as too short
 /// (one may be a reply lost to noise).
@@ -135,13 +136,14 @@ pub struct Silence {
 /// Where a drive's learning is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Phase {
-    /// Trying `trial`: answered `answers` times so far, not answered
-    /// `fails` times, `misses` times sent after a longer silence than it.
-    /// `ok` is the shortest level answered (the spec at first), `failed`
-    /// the longest not answered.
+    /// Trying `trial`: answered `answers` times so far after silences of
+    /// at most `worst`, not answered `fails` times, `misses` times sent
+    /// after a silence no shorter than `ok`. `ok` is the shortest level
+    /// answered (the spec at first), `failed` the longest not answered.
     Stepping {
         trial: Duration,
         answers: u8,
+        worst: Duration,
         fails: u8,
         misses: u8,
         ok: Duration,
@@ -160,6 +162,7 @@ impl Phase {
         Phase::Stepping {
             trial: (limits.spec / 2).max(limits.shortest_trial),
             answers: 0,
+            worst: Duration::ZERO,
             fails: 0,
             misses: 0,
             ok: limits.spec,
@@ -184,6 +187,7 @@ impl Phase {
         Phase::Stepping {
             trial: next,
             answers: 0,
+            worst: Duration::ZERO,
             fails: 0,
             misses: 0,
             ok,
@@ -287,6 +291,7 @@ impl DriveGap {
                 Some(level) => Phase::Stepping {
                     trial: level,
                     answers: 0,
+                    worst: Duration::ZERO,
                     fails: 0,
                     misses: 0,
                     ok: limits.spec,
@@ -306,6 +311,7 @@ impl DriveGap {
         let Phase::Stepping {
             trial: tried,
             answers,
+            worst,
             fails,
             misses,
             ok,
@@ -317,27 +323,35 @@ impl DriveGap {
         if !trial {
             return;
         }
-        if silence > tried + TOLERANCE {
-            // The master could not keep it that short: after a few, the
-            // steps end here.
-            self.phase = if misses + 1 >= MISSES_PER_STEP {
-                Phase::Settled
+        if silence >= ok {
+            // The master could not keep it shorter than what was already
+            // answered (the machine kept it from running): after a few, the
+            // steps end here (and a drive that learned nothing yet tries
+            // again after the backoff).
+            if misses + 1 >= MISSES_PER_STEP {
+                self.settle_or_wait(limits, now);
             } else {
-                Phase::Stepping {
+                self.phase = Phase::Stepping {
                     trial: tried,
                     answers,
+                    worst,
                     fails,
                     misses: misses + 1,
                     ok,
                     failed,
-                }
-            };
+                };
+            }
             return;
         }
+        // A silence longer than the one tried, but shorter than any
+        // answered before, still says something: the level counts at the
+        // longest silence it was answered after.
+        let worst = worst.max(silence).max(tried);
         if answers + 1 < ANSWERS_PER_STEP {
             self.phase = Phase::Stepping {
                 trial: tried,
                 answers: answers + 1,
+                worst,
                 fails,
                 misses,
                 ok,
@@ -346,10 +360,23 @@ impl DriveGap {
             return;
         }
         // The level holds: the drive's gap is twice it, within the limits.
-        self.confirmed = (tried * 2).clamp(limits.floor, limits.spec);
+        self.confirmed = (worst * 2).clamp(limits.floor, limits.spec);
         self.confirmed_at = Some(now);
         self.backoff = RELEARN.0;
-        self.phase = Phase::between(tried, failed, limits);
+        self.phase = Phase::between(worst, failed, limits);
+    }
+
+    /// Ends the steps: settled on the gap learned, or, with none learned,
+    /// tried again after the backoff.
+    fn settle_or_wait(&mut self, limits: &Limits, now: Instant) {
+        if self.confirmed >= limits.spec {
+            self.phase = Phase::Waiting {
+                until: now + self.backoff,
+            };
+            self.backoff = (self.backoff * 2).min(RELEARN.1);
+        } else {
+            self.phase = Phase::Settled;
+        }
     }
 
     /// A request sent after `silence` got no valid answer at `now` (a
@@ -369,11 +396,8 @@ impl DriveGap {
             if let Phase::Stepping { trial, ok, .. } = self.phase {
                 self.phase = Phase::between(ok, Some(trial), limits);
             }
-            if self.phase == Phase::Settled && self.confirmed >= limits.spec {
-                self.phase = Phase::Waiting {
-                    until: now + self.backoff,
-                };
-                self.backoff = (self.backoff * 2).min(RELEARN.1);
+            if self.phase == Phase::Settled {
+                self.settle_or_wait(limits, now);
             }
             return;
         }
@@ -675,6 +699,21 @@ mod tests {
         assert_eq!(gap.silence(Use::Poll, &l, now).gap, learned / 2);
         assert_eq!(learn(&mut gap, 350 * US, now), ANSWERS_PER_STEP as usize);
         assert_eq!(gap.confirmed(), learned);
+    }
+
+    #[test]
+    fn a_level_counts_at_the_longest_silence_measured_before_its_answers() {
+        let l = limits();
+        let now = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        // Half the spec (875 us), answered after 875, 975 and 925 us (the
+        // thread ran late twice): the level is 975 us.
+        for extra in [0, 100, 50] {
+            let s = gap.silence(Use::Poll, &l, now);
+            gap.answered(s.gap + extra * US, s.trial, &l, now);
+        }
+        assert_eq!(gap.confirmed(), l.spec, "twice 975 us is above the spec");
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, 975 * US * 7 / 8);
     }
 
     #[test]

@@ -80,6 +80,9 @@ async fn learned_each(bus: &BusHandle, units: &[u8]) -> Vec<u32> {
         for (i, &u) in units.iter().enumerate() {
             seen[i] = seen[i].min(gap_us(bus, u).unwrap_or(SPEC_US));
         }
+        if std::env::var_os("DEBUG_GAPS").is_some() {
+            eprintln!("{seen:?}");
+        }
         seen.iter().all(|&g| g <= 1000).then(|| seen.clone())
     })
     .await
