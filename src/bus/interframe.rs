@@ -325,11 +325,11 @@ impl DriveGap {
         }
         if silence >= ok {
             // The master could not keep it shorter than what was already
-            // answered (the machine kept it from running): after a few, the
-            // steps end here (and a drive that learned nothing yet tries
-            // again after the backoff).
-            if misses + 1 >= MISSES_PER_STEP {
-                self.settle_or_wait(limits, now);
+            // answered (its own overhead, or the machine kept it from
+            // running): once something was learned, after a few, the steps
+            // end there; before, the trial is simply made again.
+            if misses + 1 >= MISSES_PER_STEP && ok < limits.spec {
+                self.phase = Phase::Settled;
             } else {
                 self.phase = Phase::Stepping {
                     trial: tried,
@@ -635,16 +635,25 @@ mod tests {
             gap.answered(s.gap, false, &l, now);
         }
         assert_eq!(gap.silence(Use::Poll, &l, now), s);
-        // The thread ran late: 1 ms more silence than tried. It counts for
-        // nothing, and after a few the steps end where they are.
-        for _ in 0..MISSES_PER_STEP - 1 {
+        // The thread ran late: 1 ms more silence than tried, no shorter
+        // than the spec. It counts for nothing, and is tried again.
+        for _ in 0..MISSES_PER_STEP * 2 {
             gap.answered(s.gap + 1000 * US, true, &l, now);
         }
         assert_eq!(gap.silence(Use::Poll, &l, now), s, "still the same trial");
         assert_eq!(gap.confirmed(), l.spec);
-        gap.answered(s.gap + 1000 * US, true, &l, now);
+        // Once a gap was learned, misses end the steps there.
+        while gap.confirmed() == l.spec {
+            let s = gap.silence(Use::Poll, &l, now);
+            gap.answered(s.gap, s.trial, &l, now);
+        }
+        let learned = gap.confirmed();
+        assert!(learned < l.spec);
+        for _ in 0..MISSES_PER_STEP {
+            gap.answered(l.spec, true, &l, now);
+        }
         assert!(!gap.wants_trial(now));
-        assert_eq!(gap.silence(Use::Poll, &l, now).gap, l.spec);
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, learned);
     }
 
     #[test]
