@@ -81,7 +81,7 @@ pub const FAILS_PER_STEP: u8 = 2;
 /// Trials of one level that could not be kept that short (the master's
 /// own overhead is longer, or the machine kept it from running) before the
 /// steps end there.
-pub const MISSES_PER_STEP: u8 = 10;
+pub const MISSES_PER_STEP: u8 = 30;
 /// The latency a serial adapter adds to the wire's timing, kept in the
 /// floor: a request can reach the wire sooner after the last frame than the
 /// master's own clock says by as much as this.
@@ -353,17 +353,21 @@ impl DriveGap {
                 answers: answers + 1,
                 worst,
                 fails,
-                misses,
+                misses: 0,
                 ok,
                 failed,
             };
             return;
         }
-        // The level holds: the drive's gap is twice it, within the limits.
-        self.confirmed = (worst * 2).clamp(limits.floor, limits.spec);
+        // The level holds: the drive's gap is twice the longest silence it
+        // was answered after (never longer than a level before proved),
+        // within the limits; the steps go on from the level tried.
+        self.confirmed = self
+            .confirmed
+            .min((worst * 2).clamp(limits.floor, limits.spec));
         self.confirmed_at = Some(now);
         self.backoff = RELEARN.0;
-        self.phase = Phase::between(worst, failed, limits);
+        self.phase = Phase::between(tried, failed, limits);
     }
 
     /// Ends the steps: settled on the gap learned, or, with none learned,
@@ -722,7 +726,15 @@ mod tests {
             gap.answered(s.gap + extra * US, s.trial, &l, now);
         }
         assert_eq!(gap.confirmed(), l.spec, "twice 975 us is above the spec");
-        assert_eq!(gap.silence(Use::Poll, &l, now).gap, 975 * US * 7 / 8);
+        // The steps go on from the level tried.
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, 875 * US * 7 / 8);
+        // The next level answered after 800 us each time (it tried 766):
+        // the gap is twice that.
+        for _ in 0..ANSWERS_PER_STEP {
+            let s = gap.silence(Use::Poll, &l, now);
+            gap.answered(800 * US, s.trial, &l, now);
+        }
+        assert_eq!(gap.confirmed(), 1600 * US);
     }
 
     #[test]
