@@ -133,7 +133,6 @@ fn bus_view(bus: &Bus) -> BusView {
     };
     let stats = handle.stats();
     let [emergency, command, poll] = handle.queue_depths();
-    let drives = handle.drives();
     let start = bus.config.starting_interframe();
     let interframe = InterframeView {
         setting: bus.config.interframe.describe(),
