@@ -27,6 +27,15 @@
 //! phased polling, cheap dead drives, overhead and reply-deadline changes
 //! are printed beside each run.
 //!
+//! Two more transports put the simulator in another process, as a real
+//! wire is: `link`, `drivegate sim --link` on its own pty; `py`, the paced
+//! simulator in Python (`benches/paced_sim.py`, each reply byte written at
+//! its wire time) behind a socat pty pair. And two more scenarios: `fast8`,
+//! eight drives that part frames after 0.35 ms with `[bus] interframe =
+//! "auto"`, and `fast7strict1`, seven such drives and one that needs the
+//! spec's t3.5 (the gaps are learned before the window opens; their share
+//! is of the spec's limit, so 160 % is 1.6 times it).
+//!
 //! `cargo bench --bench bus_tails`; `DRIVEGATE_BENCH_SECS` sets each run's
 //! length (default 10); `DRIVEGATE_BENCH_ONLY=pty,usb` picks transports,
 //! `DRIVEGATE_BENCH_SCENARIOS=off,1hz,dead,dead-steady` scenarios.
@@ -52,6 +61,8 @@ const DRIVES: u8 = 8;
 const DEAD_UNIT: u8 = 9;
 const BAUD: u32 = 115_200;
 const TURNAROUND_MS: f64 = 0.5;
+/// The frame separation of the fast drives, µs.
+const FAST_GAP_US: u32 = 350;
 /// The longest backoff of the dead drive in the steady scenario.
 const STEADY_BACKOFF_MS: u64 = 5000;
 
@@ -62,14 +73,18 @@ enum Transport {
     Tcp,
     /// An external `drivegate sim --link` process on a pty.
     Link,
+    /// The paced simulator in Python (`benches/paced_sim.py`) behind a
+    /// socat pty pair: another program, another language, its own delivery.
+    Py,
 }
 
 impl Transport {
-    const ALL: [Transport; 4] = [
+    const ALL: [Transport; 5] = [
         Transport::Pty,
         Transport::Usb,
         Transport::Tcp,
         Transport::Link,
+        Transport::Py,
     ];
 
     fn name(self) -> &'static str {
@@ -78,6 +93,7 @@ impl Transport {
             Transport::Usb => "usb",
             Transport::Tcp => "tcp",
             Transport::Link => "link",
+            Transport::Py => "py",
         }
     }
 
@@ -103,10 +119,15 @@ enum Scenario {
     Slow8,
     /// Drives slowing from 0.5 ms to 20 ms in the middle of the run.
     Slowdown,
+    /// Eight drives that part frames after 0.35 ms, `interframe = "auto"`,
+    /// polling 1 Hz, retries 3.
+    Fast8,
+    /// Seven such drives and one (unit 8) that needs the spec's t3.5.
+    Fast7Strict1,
 }
 
 impl Scenario {
-    const ALL: [Scenario; 8] = [
+    const ALL: [Scenario; 10] = [
         Scenario::PollingOff,
         Scenario::Polling1Hz,
         Scenario::DeadDrive,
@@ -115,6 +136,8 @@ impl Scenario {
         Scenario::Lossy,
         Scenario::Slow8,
         Scenario::Slowdown,
+        Scenario::Fast8,
+        Scenario::Fast7Strict1,
     ];
 
     fn name(self) -> &'static str {
@@ -127,6 +150,8 @@ impl Scenario {
             Scenario::Lossy => "5% lost + 2% bad",
             Scenario::Slow8 => "8 ms drives",
             Scenario::Slowdown => "0.5 -> 20 ms",
+            Scenario::Fast8 => "8 fast, auto",
+            Scenario::Fast7Strict1 => "7 fast+1 strict",
         }
     }
 
@@ -140,12 +165,19 @@ impl Scenario {
             Scenario::Lossy => "lossy",
             Scenario::Slow8 => "slow8",
             Scenario::Slowdown => "slowdown",
+            Scenario::Fast8 => "fast8",
+            Scenario::Fast7Strict1 => "fast7strict1",
         }
     }
 
     fn retries(self) -> u8 {
         match self {
-            Scenario::Clean3 | Scenario::Lossy | Scenario::Slow8 | Scenario::Slowdown => 3,
+            Scenario::Clean3
+            | Scenario::Lossy
+            | Scenario::Slow8
+            | Scenario::Slowdown
+            | Scenario::Fast8
+            | Scenario::Fast7Strict1 => 3,
             _ => 1,
         }
     }
@@ -176,6 +208,21 @@ impl Scenario {
             Scenario::PollingOff => 3_600_000,
             _ => 1000,
         }
+    }
+
+    /// The drives' frame separation, µs, when they part frames sooner
+    /// than the spec's t3.5; and the units that keep the spec's.
+    fn frame_gap_us(self) -> Option<(u32, Vec<u8>)> {
+        match self {
+            Scenario::Fast8 => Some((FAST_GAP_US, vec![])),
+            Scenario::Fast7Strict1 => Some((FAST_GAP_US, vec![DRIVES])),
+            _ => None,
+        }
+    }
+
+    /// `[bus] interframe` for the scenario.
+    fn interframe(self) -> Option<&'static str> {
+        self.frame_gap_us().map(|_| "\"auto\"")
     }
 
     fn units(self) -> Vec<u8> {
@@ -270,6 +317,9 @@ fn daemon_config(port: &str, scenario: Scenario) -> String {
     if scenario == Scenario::DeadSteady {
         toml.push_str(&format!("offline_backoff_max_ms = {STEADY_BACKOFF_MS}\n"));
     }
+    if let Some(interframe) = scenario.interframe() {
+        toml.push_str(&format!("interframe = {interframe}\n"));
+    }
     for unit in scenario.units() {
         toml.push_str(&format!(
             "[[bus.drive]]\nunit = {unit}\nname = \"d{unit}\"\ngear_ratio = 3.75\n"
@@ -287,6 +337,16 @@ fn start_sim(transport: Transport, scenario: Scenario) -> SimHandle {
         config.listen = Some("127.0.0.1:0".parse().unwrap());
     }
     config.faults = scenario.faults();
+    if let Some((gap, strict)) = scenario.frame_gap_us() {
+        let t35 = LineTiming::new_8n1(BAUD).t3_5();
+        for drive in &mut config.drives {
+            drive.frame_gap = Some(if strict.contains(&drive.unit) {
+                t35
+            } else {
+                Duration::from_micros(u64::from(gap))
+            });
+        }
+    }
     Simulator::start(config).unwrap()
 }
 
@@ -316,6 +376,13 @@ fn start_external_sim(scenario: Scenario) -> (std::process::Child, String) {
     if !f.silent_units.is_empty() {
         cmd.arg("--silent-units").arg(DEAD_UNIT.to_string());
     }
+    if let Some((gap, strict)) = scenario.frame_gap_us() {
+        if sim_knows_frame_gaps() {
+            frame_gap_args(&mut cmd, gap, &strict);
+        } else {
+            println!("  (this simulator has no frame gaps: its drives part frames by length)");
+        }
+    }
     let mut child = cmd.stdout(std::process::Stdio::piped()).spawn().unwrap();
     let mut line = String::new();
     std::io::BufReader::new(child.stdout.take().unwrap())
@@ -323,6 +390,114 @@ fn start_external_sim(scenario: Scenario) -> (std::process::Child, String) {
         .unwrap();
     assert!(!line.is_empty(), "the simulator did not start");
     (child, link.display().to_string())
+}
+
+/// True when `drivegate sim` models drives' frame separation.
+fn sim_knows_frame_gaps() -> bool {
+    std::process::Command::new(env!("CARGO_BIN_EXE_drivegate"))
+        .args(["sim", "--help"])
+        .output()
+        .is_ok_and(|o| String::from_utf8_lossy(&o.stdout).contains("--frame-gap-us"))
+}
+
+fn frame_gap_args(cmd: &mut std::process::Command, gap: u32, strict: &[u8]) {
+    cmd.arg("--frame-gap-us").arg(gap.to_string());
+    if !strict.is_empty() {
+        let list: Vec<String> = strict.iter().map(u8::to_string).collect();
+        cmd.arg("--strict-units").arg(list.join(","));
+    }
+}
+
+/// The paced simulator in Python on a socat pty pair, for `scenario`: the
+/// process (its stdout piped: the window's counters come out on SIGTERM)
+/// and the link the daemon opens.
+fn start_python_sim(scenario: Scenario) -> (std::process::Child, String) {
+    use std::io::BufRead;
+    let link = std::env::temp_dir().join(format!("drivegate-bench-py-{}", std::process::id()));
+    let _ = std::fs::remove_file(&link);
+    let f = scenario.faults();
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/paced_sim.py");
+    let mut cmd = std::process::Command::new("python3");
+    cmd.arg(script)
+        .arg("--link")
+        .arg(&link)
+        .arg("--units")
+        .arg(format!("1-{DRIVES}"))
+        .arg("--turnaround-ms")
+        .arg(scenario.turnaround_ms().to_string())
+        .arg("--drop-rate")
+        .arg(f.drop_rate.to_string())
+        .arg("--crc-error-rate")
+        .arg(f.crc_error_rate.to_string());
+    if let Some((gap, strict)) = scenario.frame_gap_us() {
+        frame_gap_args(&mut cmd, gap, &strict);
+    }
+    let mut child = cmd.stdout(std::process::Stdio::piped()).spawn().unwrap();
+    let mut line = String::new();
+    let mut out = std::io::BufReader::new(child.stdout.take().unwrap());
+    out.read_line(&mut line).unwrap();
+    assert!(!line.is_empty(), "the paced simulator did not start");
+    child.stdout = Some(out.into_inner());
+    (child, link.display().to_string())
+}
+
+/// Sends `SIG<name>` to a child process.
+fn signal(child: &std::process::Child, name: &str) {
+    let _ = std::process::Command::new("kill")
+        .arg(format!("-{name}"))
+        .arg(child.id().to_string())
+        .status();
+}
+
+/// The gap `unit`'s requests are sent after now, µs (`None` where the
+/// daemon has no `interframe`).
+fn interframe_gap_us(metrics: &Metrics, unit: u8) -> Option<f64> {
+    let text = metrics.render();
+    let key = format!("drivegate_bus_interframe_gap_seconds{{bus=\"bench\",unit=\"{unit}\"}} ");
+    text.lines()
+        .find_map(|l| l.strip_prefix(&key))
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .map(|s| s * 1e6)
+}
+
+/// Waits until the drives' learned gaps have settled: each fast drive's
+/// below the spec and none changed for 2 s (at most 60 s; at once where the
+/// daemon has no `interframe`).
+async fn learned(metrics: &Metrics, scenario: Scenario) {
+    let Some((_, strict)) = scenario.frame_gap_us() else {
+        return;
+    };
+    let fast: Vec<u8> = scenario
+        .units()
+        .into_iter()
+        .filter(|u| !strict.contains(u))
+        .collect();
+    let start = Instant::now();
+    let mut last = Vec::new();
+    let mut steady_since = Instant::now();
+    while start.elapsed() < Duration::from_secs(60) {
+        let gaps: Vec<Option<f64>> = scenario
+            .units()
+            .iter()
+            .map(|&u| interframe_gap_us(metrics, u))
+            .collect();
+        if gaps.iter().all(Option::is_none) {
+            return;
+        }
+        if gaps != last {
+            last = gaps;
+            steady_since = Instant::now();
+        }
+        let settled = fast
+            .iter()
+            .all(|&u| interframe_gap_us(metrics, u).is_some_and(|g| g < 1750.0));
+        if settled && steady_since.elapsed() >= Duration::from_secs(2) {
+            println!("  gaps learned in {:.1} s", start.elapsed().as_secs_f64());
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    println!("  gaps not settled after 60 s");
 }
 
 /// The learned reply timeout of `unit` in a scrape, ms (`None` where the
@@ -426,17 +601,28 @@ fn ms(d: Option<Duration>) -> f64 {
 }
 
 async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
-    let (sim, external) = if transport == Transport::Link {
-        (None, Some(start_external_sim(scenario)))
-    } else {
-        (Some(start_sim(transport, scenario)), None)
+    let (sim, external) = match transport {
+        Transport::Link => (None, Some(start_external_sim(scenario))),
+        Transport::Py => (None, Some(start_python_sim(scenario))),
+        _ => (Some(start_sim(transport, scenario)), None),
     };
     let port = match (&sim, &external) {
         (Some(sim), _) => sim.port_path().display().to_string(),
         (_, Some((_, link))) => link.clone(),
         _ => unreachable!(),
     };
-    let config = Config::parse(&daemon_config(&port, scenario), "bench").unwrap();
+    // A daemon without `[bus] interframe` (the code before it) runs the
+    // scenario at the spec's silences.
+    let toml = daemon_config(&port, scenario);
+    let config = Config::parse(&toml, "bench").unwrap_or_else(|e| {
+        println!("  (no interframe here: {e}; spec silences)");
+        let toml: String = toml
+            .lines()
+            .filter(|l| !l.starts_with("interframe"))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        Config::parse(&toml, "bench").unwrap()
+    });
     let plant = Arc::new(Plant::start(&config).unwrap());
     let metrics = Metrics::new(plant.clone());
     let shutdown = CancellationToken::new();
@@ -470,6 +656,12 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
         }
     }
 
+    if scenario.interframe().is_some() {
+        learned(&metrics, scenario).await;
+    }
+    if let (Transport::Py, Some((child, _))) = (transport, &external) {
+        signal(child, "USR1");
+    }
     let stats_before = bus.stats();
     let sim_before = sim.as_ref().map(|s| s.stats());
     let gaps_before = sim.as_ref().map(|s| s.gaps());
@@ -514,9 +706,37 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     faces.wait().await;
     drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
     drop(sim);
+    let mut window = String::new();
     if let Some((mut child, _)) = external {
-        let _ = child.kill();
+        // The paced simulator prints its window's counters on SIGTERM and
+        // stops its socat; the other is killed.
+        if transport == Transport::Py {
+            signal(&child, "TERM");
+            if let Some(out) = child.stdout.as_mut() {
+                use std::io::BufRead;
+                let _ = std::io::BufReader::new(out).read_line(&mut window);
+            }
+        } else {
+            let _ = child.kill();
+        }
         let _ = child.wait();
+    }
+    if !window.trim().is_empty() {
+        println!("  paced simulator: {}", window.trim());
+    }
+    if scenario.interframe().is_some() {
+        let gaps: Vec<String> = scenario
+            .units()
+            .iter()
+            .map(|&u| {
+                interframe_gap_us(&metrics, u)
+                    .map_or_else(|| format!("{u}:-"), |g| format!("{u}:{g:.0}"))
+            })
+            .collect();
+        println!(
+            "  learned gap before each drive's requests (unit:us): {}",
+            gaps.join(" ")
+        );
     }
     if !trace.is_empty() {
         println!(

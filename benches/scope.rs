@@ -385,7 +385,7 @@ fn tap_cost() -> [Duration; 3] {
             } else {
                 Origin::Poller
             });
-            tap.request(1, &request, now, 1);
+            tap.request(1, &request, now, 1, Duration::from_micros(1750));
             tap.reply(Some(&reply), now, None::<&Fault>);
             if i == 2 {
                 // What the scheduler asks of a running capture per poll.

@@ -63,12 +63,12 @@ pub fn sim_request(data: &[u8]) {
     for chunk in data.split(|&b| b == 0xFF).filter(|c| !c.is_empty()) {
         let _ = rtu_frame::request_length(chunk);
         reply.clear();
-        let _ = bus.request(chunk, now, &mut reply);
+        let _ = bus.request(chunk, now, None, &mut reply);
         if let Some((&unit, rest)) = chunk.split_first() {
             let framed = rtu_frame::encode(unit % 4, rest);
             reply.clear();
             let collisions = bus.stats().collisions;
-            let _ = bus.request(&framed, now, &mut reply);
+            let _ = bus.request(&framed, now, None, &mut reply);
             // Two drives given one address by a broadcast both answer, as on
             // a real bus: that garbled reply is counted as a collision.
             if !reply.is_empty() && bus.stats().collisions == collisions {

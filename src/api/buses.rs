@@ -70,6 +70,27 @@ pub struct BusCounters {
     pub busy_seconds: f64,
 }
 
+/// One drive's silence before its requests.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, ToSchema)]
+pub struct DriveGapView {
+    /// Its unit address.
+    pub unit: u8,
+    /// The silence its requests get now, µs: t3.5, the fixed value, or its
+    /// learned gap.
+    pub gap_us: u64,
+    /// Times its learned gap was dropped for the spec after a fault.
+    pub fallbacks: u64,
+}
+
+/// The silence before requests on a bus (`[bus] interframe`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, ToSchema)]
+pub struct InterframeView {
+    /// `spec`, `auto`, or the fixed silence in µs.
+    pub setting: String,
+    /// Each configured drive's, in configuration order.
+    pub drives: Vec<DriveGapView>,
+}
+
 /// A bus: its port, health and counters.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
 pub struct BusView {
@@ -99,6 +120,8 @@ pub struct BusView {
     /// the time by design (commands still go ahead of polls), and a
     /// utilisation near 100 % is no fault.
     pub polled_flat_out: bool,
+    /// The silence before each drive's requests.
+    pub interframe: InterframeView,
 }
 
 fn bus_view(bus: &Bus) -> BusView {
@@ -110,6 +133,23 @@ fn bus_view(bus: &Bus) -> BusView {
     };
     let stats = handle.stats();
     let [emergency, command, poll] = handle.queue_depths();
+    let start = bus.config.starting_interframe();
+    let interframe = InterframeView {
+        setting: bus.config.interframe.describe(),
+        drives: bus
+            .config
+            .drives
+            .iter()
+            .map(|d| {
+                let timing = stats.drives.get(&d.unit());
+                DriveGapView {
+                    unit: d.unit(),
+                    gap_us: timing.map_or(start, |t| t.interframe).as_micros() as u64,
+                    fallbacks: timing.map_or(0, |t| t.interframe_fallbacks),
+                }
+            })
+            .collect(),
+    };
     let live = handle.freshness_all(std::time::Instant::now());
     BusView {
         name: handle.name().to_string(),
@@ -154,6 +194,7 @@ fn bus_view(bus: &Bus) -> BusView {
             .drives
             .iter()
             .any(|d| d.poll_interval_ms.unwrap_or(bus.config.poll_interval_ms) == 0),
+        interframe,
     }
 }
 

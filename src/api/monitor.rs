@@ -318,7 +318,7 @@ fn download(body: Vec<u8>, content_type: &'static str, file: String) -> Response
     security(("bearer" = ["viewer"])),
     params(("bus" = String, Path, description = "Bus name"), FrameQuery),
     responses(
-        (status = 200, description = "CSV with a header line: seq,time,time_us,direction,unit,function,bytes,length,meaning,decoded_as,crc,outcome,detail,attempt,turnaround_us,wire_us,source,source_who,source_ref", content_type = "text/csv", body = String),
+        (status = 200, description = "CSV with a header line: seq,time,time_us,direction,unit,function,bytes,length,meaning,decoded_as,crc,outcome,detail,attempt,turnaround_us,wire_us,source,source_who,source_ref,silence_us", content_type = "text/csv", body = String),
         (status = 409, description = "`monitor-off`", body = ProblemDetails, content_type = "application/problem+json"),
         ReadProblems,
     )

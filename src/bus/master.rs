@@ -2,8 +2,10 @@
 //!
 //! Rules it enforces, because RTU frames carry no length and no transaction id:
 //! - one frame in flight; each request goes out in one write, only after the
-//!   line has been silent for t3.5 (bytes seen meanwhile are stray: counted,
-//!   discarded, and the silence starts again);
+//!   line has been silent for t3.5, or the addressed drive's own gap with
+//!   `[bus] interframe` ([`interframe`](super::interframe): tried shorter only
+//!   on polls, back to the spec at the drive's first fault); bytes seen
+//!   meanwhile are stray: counted, discarded, and the silence starts again;
 //! - the response timeout is the wait for the reply's first byte; once bytes
 //!   flow, the deadline follows the wire (the bytes still to come at the
 //!   character time, plus t3.5 and an allowance for delivery), so a long
@@ -17,14 +19,14 @@
 //!   ([`reply_timeout`](super::reply_timeout)): the ceiling
 //!   (`response_timeout`) until the drive has answered, then a little more
 //!   than its usual turnaround, never less than the floor. The learned
-//!   timeout decides when to give up and retry; the guard after it (the
-//!   time the longest reply the request can draw takes on the wire, t3.5,
-//!   and the learned timeout again) is still the request's own: nothing
-//!   else was sent, so a reply that starts in it answers this request, is
-//!   taken, and raises the drive's estimate. A frame from another unit (a
-//!   late reply to an earlier request) is discarded and the wait goes on.
-//!   A corrupted reply that ended needs only t3.5. The last attempt of a
-//!   transaction waits the whole ceiling;
+//!   timeout decides when to give up: the line has then been silent for
+//!   longer than t3.5, so the retry (the same request, whose answer a late
+//!   reply is) goes at once. A probe's guard after it (the longest reply
+//!   the request can draw on the wire, t3.5, and the timeout again) is
+//!   still the probe's own: a reply that starts in it is taken. A frame
+//!   from another unit (a late reply to an earlier request) is discarded
+//!   and the wait goes on. A corrupted reply that ended needs only t3.5.
+//!   The last attempt of a transaction waits the whole ceiling;
 //! - a reply later than all that (a drive that slowed down) can still come
 //!   until the ceiling: until then the drive is sent nothing its reply
 //!   could pass for the answer to, except the same request again (whose
@@ -38,11 +40,14 @@
 //! - a broadcast (unit 0) is sent, followed by the turnaround delay, and no
 //!   reply is read; bytes arriving during the turnaround do not shorten it.
 
+mod line;
+
 use std::io;
 use std::time::{Duration, Instant};
 
 pub use super::fault::Fault;
-use super::port::{Direction, Rs485Settings};
+use super::interframe::{Gaps, Interframe, Limits, SERIAL_ADAPTER_LATENCY, Silence, Use};
+use super::port::Rs485Settings;
 use super::reply_timeout::{Bounds, ReplyTimeout};
 use super::stats::Outcome;
 use super::tap::WireTap;
@@ -50,7 +55,7 @@ use super::transport::Transport;
 use crate::clock::{PreciseTimer, SPIN};
 use crate::modbus::function::EXCEPTION_BIT;
 use crate::modbus::reply::{self, Mismatch};
-use crate::modbus::rtu_frame::{self, FrameLength};
+use crate::modbus::rtu_frame;
 use crate::modbus::timing::LineTiming;
 
 /// Time allowed, beyond the wire's own pace, for the rest of a reply to
@@ -74,8 +79,8 @@ pub const DEFAULT_REPLY_TIMEOUT_FLOOR: Duration = Duration::from_millis(3);
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Purpose {
     /// A request to a drive: its learned timeout, the ceiling on the last
-    /// attempt.
-    Transact,
+    /// attempt; the silence before it as [`Use`] says.
+    Transact(Use),
     /// A probe of a configured drive not known to answer (off, or never
     /// heard): one attempt, the learned (or floor) timeout.
     Probe,
@@ -102,6 +107,8 @@ pub struct MasterSettings {
     pub reply_timeout_floor: Duration,
     /// Time the drives get to act on a broadcast before the next request.
     pub broadcast_delay: Duration,
+    /// The silence before each request (`[bus] interframe`).
+    pub interframe: Interframe,
     /// RS-485 direction control.
     pub rs485: Rs485Settings,
 }
@@ -117,6 +124,7 @@ impl MasterSettings {
             guard: Guard::Auto,
             reply_timeout_floor: DEFAULT_REPLY_TIMEOUT_FLOOR,
             broadcast_delay: Duration::from_millis(20),
+            interframe: Interframe::Spec,
             rs485: Rs485Settings::default(),
         }
     }
@@ -176,6 +184,10 @@ pub struct Report {
     /// The drive's reply timeout after this transaction (what the next
     /// request to it waits for a first byte).
     pub reply_timeout: Duration,
+    /// The silence the drive's requests get after this transaction.
+    pub interframe: Duration,
+    /// Times the drive's learned gap fell back to the spec, since start.
+    pub interframe_fallbacks: u64,
 }
 
 /// The serial port itself failed during a transaction (adapter unplugged,
@@ -235,6 +247,26 @@ pub struct RtuMaster {
     timeouts: Box<[ReplyTimeout; 256]>,
     /// Each unit's request whose reply may still come, and until when.
     late: Box<[Option<LateWindow>; 256]>,
+    /// The silence before each unit's requests.
+    gaps: Gaps,
+}
+
+/// What the attempts of one transaction have added up to so far.
+#[derive(Debug, Default)]
+struct Run {
+    /// When its first byte went out.
+    started: Option<Instant>,
+    /// When the wait for the last reply ended.
+    ended: Option<Instant>,
+    busy: Duration,
+    last_fault: Option<Fault>,
+    idle_before: Duration,
+    late_replies: u8,
+    /// The turnaround of the reply taken.
+    turnaround: Option<Duration>,
+    /// Karn: once an attempt got no reply in time, a reply may answer an
+    /// earlier attempt, so its turnaround is no clean sample.
+    retried_after_timeout: bool,
 }
 
 /// A request that got no reply in time, whose reply may still come until
@@ -255,11 +287,17 @@ impl RtuMaster {
             settings.response_timeout,
             settings.reply_timeout_floor,
         );
+        let mut interframe = settings.interframe;
         if matches!(port, Transport::Tcp { .. }) {
             // A serial device server hands bytes over a network: the wire's
             // timing reaches us late by as much as its packets and the
             // network's jitter, which its own turnarounds only partly show.
             bounds.margin = DELIVERY_ALLOWANCE;
+            // Nor can the silences be timed from here: a learned gap would
+            // be the network's, not the drive's.
+            if interframe == Interframe::Auto {
+                interframe = Interframe::Spec;
+            }
         }
         Ok(Self {
             port,
@@ -272,6 +310,10 @@ impl RtuMaster {
             bounds,
             timeouts: Box::new([ReplyTimeout::default(); 256]),
             late: Box::new([const { None }; 256]),
+            gaps: Gaps::new(
+                interframe,
+                Limits::for_line(settings.line, SERIAL_ADAPTER_LATENCY),
+            ),
         })
     }
 
@@ -303,6 +345,19 @@ impl RtuMaster {
         self.timeouts[usize::from(unit)].timeout(&self.bounds)
     }
 
+    /// The silence `unit`'s requests get now (the spec's, a fixed one, or
+    /// the drive's learned gap).
+    pub fn interframe(&self, unit: u8) -> Duration {
+        self.gaps.confirmed(unit)
+    }
+
+    /// True when a poll of `unit` would try a shorter silence than its
+    /// gap now (with `interframe = "auto"`): a poll in idle time helps it
+    /// learn.
+    pub fn wants_trial(&self, unit: u8, now: Instant) -> bool {
+        self.gaps.wants_trial(unit, now)
+    }
+
     /// The master's settings.
     pub fn settings(&self) -> &MasterSettings {
         &self.settings
@@ -326,7 +381,22 @@ impl RtuMaster {
         pdu: &[u8],
         max_attempts: Option<u8>,
     ) -> Result<Report, PortFailure> {
-        self.run(unit, pdu, max_attempts, Purpose::Transact).await
+        self.transact_as(unit, pdu, max_attempts, Use::Command)
+            .await
+    }
+
+    /// [`transact`](Self::transact) for a request of kind `use_`: a poll
+    /// may try a shorter silence before it, an emergency keeps to a gap
+    /// answered lately (see [`interframe`](super::interframe)).
+    pub async fn transact_as(
+        &mut self,
+        unit: u8,
+        pdu: &[u8],
+        max_attempts: Option<u8>,
+        use_: Use,
+    ) -> Result<Report, PortFailure> {
+        self.run(unit, pdu, max_attempts, Purpose::Transact(use_))
+            .await
     }
 
     /// Sends `pdu` once to `unit`, a drive not known to answer (off, or not
@@ -385,173 +455,253 @@ impl RtuMaster {
         let attempts_allowed = max_attempts
             .unwrap_or(self.settings.retries.saturating_add(1))
             .max(1);
-        let line = self.settings.line;
-        let t35 = line.t3_5();
-        let learn = self.settings.guard == Guard::Auto && purpose != Purpose::Scan;
-        let expected = rtu_frame::expected_response_length(pdu).unwrap_or(rtu_frame::MAX_FRAME);
-        let slot = usize::from(unit);
         self.stray = 0;
-        let mut started = None;
-        let mut busy = Duration::ZERO;
-        let mut last_fault = None;
-        let mut idle_before = Duration::ZERO;
-        let mut late_replies = 0;
-        // Karn: once an attempt got no reply in time, a reply may answer an
-        // earlier attempt, so its turnaround is no clean sample.
-        let mut retried_after_timeout = false;
+        let mut run = Run::default();
         for attempt in 1..=attempts_allowed {
-            self.wait_for_silence(Duration::ZERO, PICK_AHEAD + PICK_AHEAD)
+            let silence = match purpose {
+                Purpose::Transact(use_) => self.gaps.silence(unit, use_, Instant::now()),
+                Purpose::Probe => self.gaps.silence(unit, Use::Command, Instant::now()),
+                // A unit that may not exist: the spec, which every drive knows.
+                Purpose::Scan => Silence {
+                    gap: self.gaps.limits().spec,
+                    trial: false,
+                },
+            };
+            self.wait_for_silence(silence.gap, Duration::ZERO, PICK_AHEAD + PICK_AHEAD)
                 .await?;
             let quiet_since = self.quiet_since;
             let sent_at = self.send(&frame, sent).await?;
-            if started.is_none() {
-                idle_before = sent_at.saturating_duration_since(quiet_since);
+            let left = sent_at.saturating_duration_since(quiet_since);
+            if run.started.is_none() {
+                run.idle_before = left;
             }
-            self.tap.request(unit, &frame, sent_at, attempt);
-            started.get_or_insert(sent_at);
-            let wire_end = sent_at + line.wire_time(frame.len());
-
+            self.tap.request(unit, &frame, sent_at, attempt, left);
+            run.started.get_or_insert(sent_at);
+            let wire_end = sent_at + self.settings.line.wire_time(frame.len());
             if unit == 0 {
-                // Nobody answers a broadcast; give the drives their turnaround.
-                self.quiet_since = wire_end + self.settings.broadcast_delay;
-                busy += (self.quiet_since - sent_at) + t35;
-                return Ok(Report {
-                    outcome: Outcome::Ok,
-                    reply: Some(Vec::new()),
-                    attempts: attempt,
-                    fault: None,
-                    on_wire: wire_end - sent_at,
-                    busy,
-                    stray_bytes: self.stray,
-                    idle_before,
-                    turnaround: None,
-                    late_replies: 0,
-                    reply_timeout: Duration::ZERO,
-                });
+                return Ok(self.broadcast(sent_at, wire_end, attempt, run));
             }
-
-            // The learned timeout decides when to give up on the first
-            // byte; the guard after it (the longest reply this request can
-            // draw, t3.5, and the learned timeout again) is still this
-            // request's time: nothing else has been sent, so a reply that
-            // starts in it is this request's, taken and learned from. The
-            // last attempt of a transaction waits the whole response
-            // timeout: a drive is never reported silent sooner than
-            // configured, and a reply the machine made late still counts.
-            let ceiling = self.settings.response_timeout;
-            let estimate = &self.timeouts[slot];
-            let timeout = match purpose {
-                Purpose::Probe => estimate.probe_timeout(&self.bounds),
-                Purpose::Transact => estimate.timeout(&self.bounds),
-                Purpose::Scan => ceiling,
-            };
-            let last_of_transaction = attempt == attempts_allowed && purpose == Purpose::Transact;
-            let listen = if !learn || last_of_transaction {
-                ceiling
-            } else {
-                // Never longer than a reply starting at the ceiling takes.
-                (timeout + line.wire_time(expected) + t35 + timeout)
-                    .min(ceiling + line.wire_time(expected) + t35)
-            };
-            let (received, first_byte) = self
-                .receive(unit, pdu, wire_end + listen, wire_end + ceiling.max(listen))
-                .await?;
-            let end = Instant::now();
-            busy += (end - sent_at) + t35;
-            let framed = received.as_ref().ok().copied();
-            let checked = received.and_then(|len| {
-                reply::check(unit, pdu, &self.buf[..len]).map_err(|m| match m {
-                    Mismatch::Crc => Fault::Crc,
-                    other => Fault::Mismatch(other.describe()),
-                })
-            });
-            let frame = framed.map(|n| &self.buf[..n]);
-            self.tap.reply(frame, end, checked.as_ref().err());
-            let turnaround = first_byte.map(|t| t.saturating_duration_since(wire_end));
-            match checked {
-                Ok(reply) => {
-                    let outcome = if reply.first().is_some_and(|f| f & EXCEPTION_BIT != 0) {
-                        Outcome::Exception
-                    } else {
-                        Outcome::Ok
-                    };
-                    if let (true, Some(turnaround)) = (learn, turnaround) {
-                        let estimate = &mut self.timeouts[slot];
-                        if turnaround > timeout {
-                            estimate.late(turnaround);
-                            late_replies += 1;
-                        } else if !retried_after_timeout {
-                            estimate.sample(turnaround);
-                        }
-                    }
-                    return Ok(Report {
-                        outcome,
-                        reply: Some(reply),
-                        attempts: attempt,
-                        fault: None,
-                        on_wire: end - *started.get_or_insert(sent_at),
-                        busy,
-                        stray_bytes: self.stray,
-                        idle_before,
-                        turnaround,
-                        late_replies,
-                        reply_timeout: self.reply_timeout(unit),
-                    });
+            let last = attempt == attempts_allowed && matches!(purpose, Purpose::Transact(_));
+            match self
+                .exchange(unit, pdu, purpose, last, sent_at, &mut run)
+                .await?
+            {
+                Ok((outcome, reply)) => {
+                    self.gaps
+                        .answered(unit, left, silence.trial, Instant::now());
+                    return Ok(self.report(unit, outcome, Some(reply), attempt, None, run));
                 }
                 Err(fault) => {
-                    let guard_start = Instant::now();
-                    match (self.settings.guard, &fault) {
-                        // A unit scanned: keep the line as long as a reply
-                        // starting at the timeout takes, so nothing it sends
-                        // late lands in the next unit's read.
-                        (Guard::Auto, Fault::Timeout) if purpose == Purpose::Scan => {
-                            self.guard(line.wire_time(expected) + t35).await?;
-                        }
-                        (Guard::Auto, Fault::Timeout) => {
-                            // Nothing came while a reply could start and end:
-                            // one may still come, later, until the ceiling.
-                            self.timeouts[slot].timed_out();
-                            retried_after_timeout = true;
-                            self.late[slot] = Some(LateWindow {
-                                pdu: pdu.to_vec(),
-                                until: wire_end
-                                    + self.settings.response_timeout
-                                    + line.wire_time(expected)
-                                    + t35,
-                            });
-                            self.flush_input()?;
-                        }
-                        // A frame came and ended (bad CRC, wrong length or
-                        // content): t3.5 of silence after it is enough, and
-                        // the next attempt waits for it anyway.
-                        (Guard::Auto, _) => {}
-                        (Guard::Fixed(time), _) => self.guard(time).await?,
-                    }
-                    busy += guard_start.elapsed();
-                    last_fault = Some(fault);
+                    self.gaps.failed(unit, silence.trial, Instant::now());
+                    run.last_fault = Some(fault);
                 }
             }
         }
-        let fault = last_fault.unwrap_or(Fault::Timeout);
-        Ok(Report {
-            outcome: fault_outcome(&fault),
-            reply: None,
-            attempts: attempts_allowed,
-            fault: Some(fault),
-            on_wire: started.map_or(Duration::ZERO, |s| s.elapsed()),
-            busy,
-            stray_bytes: self.stray,
-            idle_before,
-            turnaround: None,
-            late_replies,
-            reply_timeout: self.reply_timeout(unit),
-        })
+        let fault = run.last_fault.clone().unwrap_or(Fault::Timeout);
+        run.turnaround = None;
+        run.ended = None;
+        Ok(self.report(
+            unit,
+            fault_outcome(&fault),
+            None,
+            attempts_allowed,
+            Some(fault),
+            run,
+        ))
     }
 
-    /// When the line may carry the next request: t3.5 after the end of the
-    /// last frame (later after a broadcast's turnaround).
+    /// A broadcast went out: nobody answers, the drives get their time.
+    fn broadcast(&mut self, sent_at: Instant, wire_end: Instant, attempt: u8, run: Run) -> Report {
+        self.quiet_since = wire_end + self.settings.broadcast_delay;
+        Report {
+            outcome: Outcome::Ok,
+            reply: Some(Vec::new()),
+            attempts: attempt,
+            fault: None,
+            on_wire: wire_end - sent_at,
+            busy: run.busy + (self.quiet_since - sent_at) + self.settings.line.t3_5(),
+            stray_bytes: self.stray,
+            idle_before: run.idle_before,
+            turnaround: None,
+            late_replies: 0,
+            reply_timeout: Duration::ZERO,
+            interframe: self.gaps.limits().spec,
+            interframe_fallbacks: 0,
+        }
+    }
+
+    /// The report of a transaction to `unit` that ended so.
+    fn report(
+        &self,
+        unit: u8,
+        outcome: Outcome,
+        reply: Option<Vec<u8>>,
+        attempts: u8,
+        fault: Option<Fault>,
+        run: Run,
+    ) -> Report {
+        Report {
+            outcome,
+            reply,
+            attempts,
+            fault,
+            on_wire: run.started.map_or(Duration::ZERO, |s| {
+                run.ended.unwrap_or_else(Instant::now) - s
+            }),
+            busy: run.busy,
+            stray_bytes: self.stray,
+            idle_before: run.idle_before,
+            turnaround: run.turnaround,
+            late_replies: run.late_replies,
+            reply_timeout: self.reply_timeout(unit),
+            interframe: self.gaps.confirmed(unit),
+            interframe_fallbacks: self.gaps.fallbacks(unit),
+        }
+    }
+
+    /// Waits for the reply to the request that went out at `sent_at`,
+    /// checks it and learns from it: the reply PDU, or the attempt's fault
+    /// (after the guard it calls for).
+    async fn exchange(
+        &mut self,
+        unit: u8,
+        pdu: &[u8],
+        purpose: Purpose,
+        last: bool,
+        sent_at: Instant,
+        run: &mut Run,
+    ) -> io::Result<Result<(Outcome, Vec<u8>), Fault>> {
+        let line = self.settings.line;
+        let t35 = line.t3_5();
+        // The frame: unit, PDU, CRC.
+        let wire_end = sent_at + line.wire_time(pdu.len() + 3);
+        let learn = self.settings.guard == Guard::Auto && purpose != Purpose::Scan;
+        let expected = rtu_frame::expected_response_length(pdu).unwrap_or(rtu_frame::MAX_FRAME);
+        // The learned timeout decides when to give up on the first byte. A
+        // transaction's attempt then retries at once (the line has been
+        // silent longer than t3.5, and a late reply answers the retry's
+        // same request); a probe keeps the line as long as a reply
+        // starting then takes, and the timeout again, as its own. The last
+        // attempt of a transaction waits the whole response timeout: a
+        // drive is never reported silent sooner than configured.
+        let ceiling = self.settings.response_timeout;
+        let estimate = &self.timeouts[usize::from(unit)];
+        let timeout = match purpose {
+            Purpose::Probe => estimate.probe_timeout(&self.bounds),
+            Purpose::Transact(_) => estimate.timeout(&self.bounds),
+            Purpose::Scan => ceiling,
+        };
+        let listen = match purpose {
+            _ if !learn || last => ceiling,
+            Purpose::Transact(_) => timeout,
+            // Never longer than a reply starting at the ceiling takes.
+            _ => (timeout + line.wire_time(expected) + t35 + timeout)
+                .min(ceiling + line.wire_time(expected) + t35),
+        };
+        let (received, first_byte) = self
+            .receive(unit, pdu, wire_end + listen, wire_end + ceiling.max(listen))
+            .await?;
+        let end = Instant::now();
+        run.ended = Some(end);
+        run.busy += (end - sent_at) + t35;
+        let framed = received.as_ref().ok().copied();
+        let checked = received.and_then(|len| {
+            reply::check(unit, pdu, &self.buf[..len]).map_err(|m| match m {
+                Mismatch::Crc => Fault::Crc,
+                other => Fault::Mismatch(other.describe()),
+            })
+        });
+        self.tap
+            .reply(framed.map(|n| &self.buf[..n]), end, checked.as_ref().err());
+        let turnaround = first_byte.map(|t| t.saturating_duration_since(wire_end));
+        match checked {
+            Ok(reply) => {
+                let outcome = if reply.first().is_some_and(|f| f & EXCEPTION_BIT != 0) {
+                    Outcome::Exception
+                } else {
+                    Outcome::Ok
+                };
+                if let (true, Some(turnaround)) = (learn, turnaround) {
+                    let estimate = &mut self.timeouts[usize::from(unit)];
+                    if turnaround > timeout {
+                        estimate.late(turnaround);
+                        run.late_replies += 1;
+                    } else if !run.retried_after_timeout {
+                        estimate.sample(turnaround);
+                    }
+                }
+                run.turnaround = turnaround;
+                Ok(Ok((outcome, reply)))
+            }
+            Err(fault) => {
+                let guard_start = Instant::now();
+                self.after_fault(unit, pdu, purpose, last, &fault, wire_end, run)
+                    .await?;
+                run.busy += guard_start.elapsed();
+                Ok(Err(fault))
+            }
+        }
+    }
+
+    /// What the line needs after an attempt to `unit` failed with `fault`:
+    /// its request ended on the wire at `wire_end`.
+    #[allow(clippy::too_many_arguments)]
+    async fn after_fault(
+        &mut self,
+        unit: u8,
+        pdu: &[u8],
+        purpose: Purpose,
+        last: bool,
+        fault: &Fault,
+        wire_end: Instant,
+        run: &mut Run,
+    ) -> io::Result<()> {
+        let line = self.settings.line;
+        let t35 = line.t3_5();
+        let expected = rtu_frame::expected_response_length(pdu).unwrap_or(rtu_frame::MAX_FRAME);
+        let slot = usize::from(unit);
+        match (self.settings.guard, fault) {
+            // A unit scanned: keep the line as long as a reply starting at
+            // the timeout takes, so nothing it sends late lands in the next
+            // unit's read.
+            (Guard::Auto, Fault::Timeout) if purpose == Purpose::Scan => {
+                self.guard(line.wire_time(expected) + t35).await?;
+            }
+            (Guard::Auto, Fault::Timeout) => {
+                // Nothing came while a reply could start: one may still
+                // come, later, until the ceiling; until then nothing it
+                // could pass for the answer to goes to that drive.
+                self.timeouts[slot].timed_out();
+                run.retried_after_timeout = true;
+                self.late[slot] = Some(LateWindow {
+                    pdu: pdu.to_vec(),
+                    until: wire_end
+                        + self.settings.response_timeout
+                        + line.wire_time(expected)
+                        + t35,
+                });
+                if matches!(purpose, Purpose::Transact(_)) && !last {
+                    // Silent since the request ended, longer than t3.5:
+                    // the retry may go now.
+                    self.quiet_since = wire_end;
+                } else {
+                    self.flush_input()?;
+                }
+            }
+            // A frame came and ended (bad CRC, wrong length or content):
+            // t3.5 of silence after it is enough, and the next attempt
+            // waits for it anyway.
+            (Guard::Auto, _) => {}
+            (Guard::Fixed(time), _) => self.guard(time).await?,
+        }
+        Ok(())
+    }
+
+    /// When the line may carry the next request: the least gap any request
+    /// may get (t3.5 with the spec's silences) after the end of the last
+    /// frame (later after a broadcast's turnaround).
     pub fn line_free_at(&self) -> Instant {
-        self.quiet_since + self.settings.line.t3_5()
+        self.quiet_since + self.gaps.least()
     }
 
     /// Waits until the line may carry the next request (t3.5 of silence),
@@ -561,267 +711,8 @@ impl RtuMaster {
     /// then waits out the rest. Returns the stray bytes discarded meanwhile.
     pub async fn settle(&mut self) -> io::Result<usize> {
         self.stray = 0;
-        self.wait_for_silence(PICK_AHEAD, SPIN).await?;
+        self.wait_for_silence(self.gaps.least(), PICK_AHEAD, SPIN)
+            .await?;
         Ok(std::mem::take(&mut self.stray))
-    }
-
-    /// Waits until the line has been silent for t3.5 (less `early`),
-    /// discarding (and counting) whatever arrives meanwhile; every byte
-    /// restarts the silence. The last `spin` of the wait is spun.
-    async fn wait_for_silence(&mut self, early: Duration, spin: Duration) -> io::Result<()> {
-        let t35 = self.settings.line.t3_5();
-        // A line that never goes quiet (a babbling device) must not stall the
-        // bus forever: after this long we send anyway, and the reply check
-        // sorts out the rest. Counted from the end of a broadcast's
-        // turnaround, which even a babbling line does not cut short.
-        let give_up = self.quiet_since.max(Instant::now())
-            + self
-                .settings
-                .response_timeout
-                .max(Duration::from_millis(50));
-        loop {
-            let deadline = self.quiet_since + t35.saturating_sub(early);
-            let now = Instant::now();
-            if now >= deadline {
-                // Bytes that arrived but were not read yet (while we were
-                // busy elsewhere, or spinning) are stray too, and the
-                // silence starts again after them.
-                if self.drain_input()? == 0 || now >= give_up {
-                    break;
-                }
-                self.quiet_since = self.quiet_since.max(Instant::now());
-                continue;
-            }
-            tokio::select! {
-                biased;
-                read = self.port.read(&mut self.buf[..]) => {
-                    let n = self.got(read)?;
-                    self.stray += n;
-                    self.tap.stray(&self.buf[..n], Instant::now());
-                    // The silence restarts now, unless it was set to end
-                    // later (a broadcast's turnaround): a stray byte must
-                    // not cut the drives' time to act short.
-                    let now = Instant::now();
-                    self.quiet_since = self.quiet_since.max(now);
-                    if now >= give_up {
-                        break;
-                    }
-                }
-                // Spinning through the last stretch (the job is picked by
-                // then): no wake-up can come late.
-                slept = self.timer.sleep_until_spinning(deadline, spin) => slept?,
-            }
-        }
-        Ok(())
-    }
-
-    /// Reads and discards what has arrived, without waiting; the count.
-    fn drain_input(&mut self) -> io::Result<usize> {
-        let mut drained = 0;
-        loop {
-            match self.port.try_read(&mut self.buf[..]) {
-                Ok(0) => return Err(self.port.closed()),
-                Ok(n) => {
-                    drained += n;
-                    self.tap.stray(&self.buf[..n], Instant::now());
-                }
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
-                Err(e) => return Err(e),
-            }
-        }
-        self.stray += drained;
-        Ok(drained)
-    }
-
-    /// Puts one frame on the wire in one write; returns when it started.
-    /// Sets `sent` as soon as the port has taken a byte of it.
-    async fn send(&mut self, frame: &[u8], sent: &mut bool) -> io::Result<Instant> {
-        let rs485 = self.settings.rs485;
-        if rs485.direction == Direction::Rts {
-            self.port.set_rts(rs485.rts_active_high)?;
-            if !rs485.before().is_zero() {
-                self.timer
-                    .sleep_until(Instant::now() + rs485.before())
-                    .await?;
-            }
-        }
-        let sent_at = Instant::now();
-        // write_all, counting: an error after a partial write must not pass
-        // for a request that never left.
-        let mut written = 0;
-        while written < frame.len() {
-            match self.port.write(&frame[written..]).await? {
-                0 => return Err(io::ErrorKind::WriteZero.into()),
-                n => {
-                    written += n;
-                    *sent = true;
-                }
-            }
-        }
-        self.port.flush().await?;
-        if rs485.direction == Direction::Rts {
-            // The bus thread is ours: blocking until the UART is empty is the
-            // exact moment to release the line.
-            self.port.drain()?;
-            if !rs485.after().is_zero() {
-                self.timer
-                    .sleep_until(Instant::now() + rs485.after())
-                    .await?;
-            }
-            self.port.set_rts(!rs485.rts_active_high)?;
-        }
-        Ok(sent_at)
-    }
-
-    /// Reads one reply frame to `request` into `buf`; `Ok(Err(fault))` for a
-    /// protocol fault, `Err` for a port failure; with the instant its first
-    /// byte was read.
-    ///
-    /// `first_byte_by` is the wait for the reply's first byte. Once bytes
-    /// flow, the deadline follows the wire: the bytes still to come at the
-    /// character time, plus t3.5 and the [`DELIVERY_ALLOWANCE`], counted
-    /// from the last bytes received, but never earlier than the timeout. A
-    /// 125-register reply takes 265 ms at 9600 baud; a drive that starts it
-    /// in time gets it through whatever the timeout.
-    ///
-    /// A whole frame from another unit is a late reply to an earlier
-    /// request: it is discarded as stray bytes and the wait goes on, moved
-    /// by the time that frame held the line, but never past `latest`.
-    async fn receive(
-        &mut self,
-        unit: u8,
-        request: &[u8],
-        first_byte_by: Instant,
-        latest: Instant,
-    ) -> io::Result<(Result<usize, Fault>, Option<Instant>)> {
-        let line = self.settings.line;
-        let t35 = line.t3_5();
-        let expected = rtu_frame::expected_response_length(request).unwrap_or(rtu_frame::MAX_FRAME);
-        let mut len = 0;
-        let mut last_byte = Instant::now();
-        let mut first_byte = None;
-        let mut first_byte_by = first_byte_by;
-        let mut deadline = first_byte_by;
-        loop {
-            // A full buffer holds no Modbus frame (the longest is 256 bytes):
-            // it is noise. Reading on would read into an empty slice, whose
-            // Ok(0) means an unplugged adapter.
-            if len >= self.buf.len() {
-                self.quiet_since = last_byte;
-                return Ok((
-                    Err(Fault::Mismatch("reply longer than any Modbus frame")),
-                    first_byte,
-                ));
-            }
-            let complete = match rtu_frame::response_length(&self.buf[..len]) {
-                FrameLength::Known(n) if len >= n => Some(n),
-                FrameLength::Known(_) | FrameLength::NeedMore => None,
-                FrameLength::BySilence => {
-                    // The length is unknown: the frame ends at t3.5 of silence.
-                    tokio::select! {
-                        biased;
-                        read = self.port.read(&mut self.buf[len..]) => {
-                            len += self.got(read)?;
-                            last_byte = Instant::now();
-                            continue;
-                        }
-                        slept = self.timer.sleep_until(last_byte + t35) => {
-                            slept?;
-                            Some(len)
-                        }
-                    }
-                }
-            };
-            if let Some(n) = complete {
-                self.quiet_since = last_byte;
-                if self.buf[0] == unit || last_byte >= latest {
-                    return Ok((Ok(n), first_byte));
-                }
-                // Another unit's late reply: never ours. Discard it and wait
-                // on, as long again as it held the line.
-                self.stray += n;
-                self.tap.stray(&self.buf[..n], last_byte);
-                let held = first_byte.map_or(Duration::ZERO, |t| last_byte - t);
-                self.buf.copy_within(n..len, 0);
-                len -= n;
-                first_byte = None;
-                first_byte_by = (first_byte_by + held + t35).min(latest);
-                deadline = first_byte_by;
-                if len > 0 {
-                    first_byte = Some(last_byte);
-                }
-                continue;
-            }
-            let need = match rtu_frame::response_length(&self.buf[..len]) {
-                FrameLength::Known(n) => Some(n),
-                _ => None,
-            };
-            if len > 0 {
-                let remaining = if self.buf[0] == unit {
-                    need.unwrap_or(expected)
-                } else {
-                    need.unwrap_or(rtu_frame::MAX_FRAME)
-                }
-                .saturating_sub(len);
-                deadline =
-                    deadline.max(last_byte + line.wire_time(remaining) + t35 + DELIVERY_ALLOWANCE);
-            }
-            let end = need.map_or(self.buf.len(), |n| n.min(self.buf.len()));
-            match tokio::time::timeout_at(deadline.into(), self.port.read(&mut self.buf[len..end]))
-                .await
-            {
-                Ok(read) => {
-                    len += self.got(read)?;
-                    last_byte = Instant::now();
-                    first_byte.get_or_insert(last_byte);
-                }
-                Err(_) if len == 0 => return Ok((Err(Fault::Timeout), None)),
-                Err(_) => {
-                    self.quiet_since = last_byte;
-                    let fault = if self.buf[0] == unit {
-                        Fault::Mismatch("reply cut short")
-                    } else {
-                        Fault::Mismatch("reply from another unit")
-                    };
-                    return Ok((Err(fault), first_byte));
-                }
-            }
-        }
-    }
-
-    /// After a fault: keep the line for `time`, discarding anything that
-    /// arrives (a late reply), then flush the input.
-    async fn guard(&mut self, time: Duration) -> io::Result<()> {
-        let until = Instant::now() + time;
-        loop {
-            tokio::select! {
-                read = self.port.read(&mut self.buf[..]) => {
-                    let n = self.got(read)?;
-                    self.stray += n;
-                    self.tap.stray(&self.buf[..n], Instant::now());
-                }
-                slept = self.timer.sleep_until_relaxed(until) => {
-                    slept?;
-                    break;
-                }
-            }
-        }
-        self.flush_input()
-    }
-
-    /// Discards whatever the port holds unread; the line is silent from now.
-    fn flush_input(&mut self) -> io::Result<()> {
-        self.port.clear_input()?;
-        self.quiet_since = Instant::now();
-        Ok(())
-    }
-
-    /// A read's byte count; a read of 0 bytes means the line went away (the
-    /// adapter was unplugged, the device server closed the connection).
-    fn got(&self, read: io::Result<usize>) -> io::Result<usize> {
-        match read {
-            Ok(0) => Err(self.port.closed()),
-            other => other,
-        }
     }
 }

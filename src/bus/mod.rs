@@ -8,6 +8,8 @@
 //!   framing and checks, retries, guard time and input flush after faults,
 //! - [`queue`] holds waiting jobs by priority, fair between submitters,
 //! - [`reply_timeout`] learns how long each drive takes to answer,
+//! - [`interframe`] keeps the silence before each drive's requests (the
+//!   spec's, a fixed one, or each drive's own, learned),
 //! - [`poller`] decides which drive's status is due next,
 //! - [`scheduler`] is the task's loop tying them together,
 //! - [`cache`] keeps each drive's latest status and publishes changes,
@@ -27,6 +29,7 @@ pub mod error;
 pub mod fault;
 pub mod freshness;
 pub mod handle;
+pub mod interframe;
 pub mod job;
 pub mod master;
 pub mod observers;

@@ -12,7 +12,7 @@
 
 use std::fmt;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use super::fault::Fault;
 use super::origin::Origin;
@@ -28,6 +28,9 @@ pub struct Sent<'a> {
     pub frame: &'a [u8],
     /// When its first byte went out.
     pub at: Instant,
+    /// The silence before it: from the end of the last frame (as the master
+    /// received or sent it) to its first byte.
+    pub silence: Duration,
     /// Who caused the transaction.
     pub origin: &'a Origin,
 }

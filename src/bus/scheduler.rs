@@ -16,6 +16,7 @@ use super::cache::StatusCache;
 use super::error::BusError;
 use super::error::PortCause;
 use super::handle::{BusHandle, PortState, Shared};
+use super::interframe::Use;
 use super::job::{Exchange, Job, Priority};
 use super::master::{Fault, MasterSettings, PortFailure, Report, RtuMaster};
 use super::observers::{Observers, Steer};
@@ -147,6 +148,8 @@ fn never_started(shared: &Shared, reason: String) {
 enum Work {
     Job(Job),
     Poll(u8),
+    /// A status read in idle time, to try a shorter silence before it.
+    Trial(u8),
     Idle(Option<Instant>),
 }
 
@@ -309,18 +312,9 @@ impl Scheduler {
                     match self.next_work(Instant::now(), m) {
                         Work::Job(job) => self.run_job(m, job).await,
                         Work::Poll(unit) => self.run_poll(m, unit).await,
+                        Work::Trial(unit) => self.run_trial(m, unit).await,
                         Work::Idle(until) => {
-                            let sleep = async {
-                                match until {
-                                    Some(t) => tokio::time::sleep_until(t.into()).await,
-                                    None => std::future::pending().await,
-                                }
-                            };
-                            tokio::select! {
-                                () = self.shared.queue.notified() => {}
-                                () = sleep => {}
-                                () = self.shared.stop.cancelled() => {}
-                            }
+                            self.idle(until).await;
                             Ok(())
                         }
                     }
@@ -353,6 +347,22 @@ impl Scheduler {
             reason: "the bus has stopped: drivegate is shutting down".to_string(),
         });
         info!(bus = %name, "bus stopped");
+    }
+
+    /// Waits for a job, for `until` (when something falls due), or for
+    /// the stop.
+    async fn idle(&self, until: Option<Instant>) {
+        let sleep = async {
+            match until {
+                Some(t) => tokio::time::sleep_until(t.into()).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            () = self.shared.queue.notified() => {}
+            () = sleep => {}
+            () = self.shared.stop.cancelled() => {}
+        }
     }
 
     /// What the port is, for messages.
@@ -478,6 +488,14 @@ impl Scheduler {
         if let Some(job) = queue.pop_first(Priority::Poll, may_go) {
             return Work::Job(job);
         }
+        // Idle: a drive learning its gap may try a shorter one.
+        if let Some(unit) = self.settings.drives.iter().map(|d| d.0).find(|&unit| {
+            master.wants_trial(unit, now)
+                && cache.answering(unit)
+                && master.held_until(unit, &STATUS_PDU, now).is_none()
+        }) {
+            return Work::Trial(unit);
+        }
         // Whatever waits for a late reply's time to pass goes when it has,
         // and a probe that waited for the clients when its wait is over.
         let released = match (
@@ -514,6 +532,7 @@ impl Scheduler {
             report.reply_timeout,
             report.turnaround,
             report.late_replies,
+            (report.interframe, report.interframe_fallbacks),
         );
         if waiting_since <= self.line_free_at {
             stats.interframe_idle.observe(report.idle_before);
@@ -543,14 +562,21 @@ impl Scheduler {
         let offline = job.unit != 0 && self.cache().is_offline(job.unit);
         let queued = now - job.submitted;
         master.tap().cause(job.origin.clone());
+        // An emergency keeps to a gap answered lately; a client's request
+        // never tries a shorter one.
+        let use_ = match job.priority {
+            Priority::Emergency => Use::Emergency,
+            _ => Use::Command,
+        };
         let sent = if offline && job.max_attempts.is_none() {
             master.probe(job.unit, &job.pdu).await
         } else {
             master
-                .transact(
+                .transact_as(
                     job.unit,
                     &job.pdu,
                     job.max_attempts.or(offline.then_some(1)),
+                    use_,
                 )
                 .await
         };
@@ -583,7 +609,13 @@ impl Scheduler {
                     && let Ok(DriveReply::Status(s)) = DriveRequest::ReadStatus.parse_reply(&reply)
                 {
                     self.cache().record_status(job.unit, s);
-                    self.plan.refreshed(job.unit, now);
+                    // A drive learning its gap keeps its polls: only they
+                    // may try a shorter silence.
+                    if master.wants_trial(job.unit, now) {
+                        self.plan.answered(job.unit, now);
+                    } else {
+                        self.plan.refreshed(job.unit, now);
+                    }
                 } else if job.unit != 0 {
                     self.plan.answered(job.unit, now);
                 }
@@ -610,6 +642,28 @@ impl Scheduler {
         Ok(())
     }
 
+    /// A status read of `unit` in idle time with a shorter silence before
+    /// it (a drive learning its gap): its status counts as a client's read
+    /// would (the plan may skip the next poll), its failure is the trial's.
+    async fn run_trial(&mut self, master: &mut RtuMaster, unit: u8) -> io::Result<()> {
+        master.tap().cause(Origin::Poller);
+        let report = master
+            .transact_as(unit, &STATUS_PDU, None, Use::Poll)
+            .await
+            .map_err(PortFailure::into_io)?;
+        let now = Instant::now();
+        self.account(unit, STATUS_PDU[0], &report, now);
+        if let Some(Ok(DriveReply::Status(s))) = report
+            .reply
+            .as_deref()
+            .map(|r| DriveRequest::ReadStatus.parse_reply(r))
+        {
+            self.cache().record_status(unit, s);
+            self.plan.refreshed(unit, now);
+        }
+        Ok(())
+    }
+
     async fn run_poll(&mut self, master: &mut RtuMaster, unit: u8) -> io::Result<()> {
         let pdu: &[u8] = &STATUS_PDU;
         let offline = self.cache().is_offline(unit);
@@ -624,7 +678,7 @@ impl Scheduler {
         };
         master.tap().cause(origin);
         let report = if self.cache().answering(unit) {
-            master.transact(unit, pdu, None).await
+            master.transact_as(unit, pdu, None, Use::Poll).await
         } else {
             master.probe(unit, pdu).await
         }

@@ -66,6 +66,10 @@ pub struct DriveTiming {
     reply_timeout_ns: AtomicU64,
     /// Replies taken after the learned timeout.
     late_replies: AtomicU64,
+    /// The silence the drive's requests get now.
+    interframe_ns: AtomicU64,
+    /// Times the drive's learned gap fell back to the spec.
+    interframe_fallbacks: AtomicU64,
     /// Each reply's turnaround.
     pub turnaround: Histogram,
 }
@@ -77,6 +81,11 @@ pub struct DriveTimingSnapshot {
     pub reply_timeout: Duration,
     /// Replies taken after the learned timeout.
     pub late_replies: u64,
+    /// The silence the drive's requests get now (t3.5, a fixed gap, or
+    /// its learned one).
+    pub interframe: Duration,
+    /// Times its learned gap fell back to the spec.
+    pub interframe_fallbacks: u64,
     /// Turnarounds of its replies.
     pub turnaround: HistogramSnapshot,
 }
@@ -242,14 +251,16 @@ impl BusStats {
     }
 
     /// Records what a transaction to `unit` says about its timing: the
-    /// reply timeout it has now, the turnaround of the reply taken, and the
-    /// replies taken after the learned timeout.
+    /// reply timeout it has now, the turnaround of the reply taken, the
+    /// replies taken after the learned timeout, and the silence before its
+    /// requests now with the times it fell back to the spec.
     pub fn record_timing(
         &self,
         unit: u8,
         reply_timeout: Duration,
         turnaround: Option<Duration>,
         late_replies: u8,
+        interframe: (Duration, u64),
     ) {
         if unit == 0 {
             return;
@@ -262,6 +273,8 @@ impl BusStats {
                     std::sync::Arc::new(DriveTiming {
                         reply_timeout_ns: AtomicU64::new(0),
                         late_replies: AtomicU64::new(0),
+                        interframe_ns: AtomicU64::new(0),
+                        interframe_fallbacks: AtomicU64::new(0),
                         turnaround: Histogram::new(TURNAROUND_BOUNDS),
                     })
                 })
@@ -274,6 +287,13 @@ impl BusStats {
         timing
             .late_replies
             .fetch_add(u64::from(late_replies), Ordering::Relaxed);
+        timing.interframe_ns.store(
+            u64::try_from(interframe.0.as_nanos()).unwrap_or(u64::MAX),
+            Ordering::Relaxed,
+        );
+        timing
+            .interframe_fallbacks
+            .store(interframe.1, Ordering::Relaxed);
         if let Some(t) = turnaround {
             timing.turnaround.observe(t);
         }
@@ -374,6 +394,10 @@ impl BusStats {
                                 t.reply_timeout_ns.load(Ordering::Relaxed),
                             ),
                             late_replies: t.late_replies.load(Ordering::Relaxed),
+                            interframe: Duration::from_nanos(
+                                t.interframe_ns.load(Ordering::Relaxed),
+                            ),
+                            interframe_fallbacks: t.interframe_fallbacks.load(Ordering::Relaxed),
                             turnaround: t.turnaround.snapshot(),
                         },
                     )

@@ -63,8 +63,16 @@ impl WireTap {
     }
 
     /// A request went out: `frame` (unit, PDU, CRC) to `unit`, its first
-    /// byte at `sent_at`, attempt `attempt` (1 = first).
-    pub fn request(&mut self, unit: u8, frame: &[u8], sent_at: Instant, attempt: u8) {
+    /// byte at `sent_at`, attempt `attempt` (1 = first), after `silence`
+    /// since the end of the last frame (as the master measured it).
+    pub fn request(
+        &mut self,
+        unit: u8,
+        frame: &[u8],
+        sent_at: Instant,
+        attempt: u8,
+        silence: Duration,
+    ) {
         self.unit = unit;
         self.last_unit = unit;
         self.attempt = attempt;
@@ -78,6 +86,7 @@ impl WireTap {
             attempt,
             frame,
             at: sent_at,
+            silence,
             origin: &self.origin,
         };
         for observer in &self.observers {
@@ -218,7 +227,7 @@ mod tests {
         // Unit 3 reads 7 registers from 0x00C0: 8 bytes, kept whole.
         let read = encode(3, &[0x03, 0x00, 0xC0, 0x00, 0x07]);
         let t0 = Instant::now();
-        tap.request(3, &read, t0, 2);
+        tap.request(3, &read, t0, 2, Duration::ZERO);
         let reply = encode(3, &[0x03, 0x02, 0x12, 0x34]);
         tap.reply(Some(&reply), t0 + Duration::from_millis(2), None);
         let shown = rec[0].shown();
@@ -254,7 +263,7 @@ mod tests {
         let write = encode(1, &[0x10, 0x01, 0x00, 0x00, 0x03, 0x06, 0, 1, 0, 2, 0, 3]);
         assert!(write.len() > REQUEST_HEAD);
         let t0 = Instant::now();
-        tap.request(1, &write, t0, 1);
+        tap.request(1, &write, t0, 1, Duration::ZERO);
         tap.reply(None, t0 + Duration::from_millis(50), Some(&Fault::Timeout));
         let Shown::Received {
             request,
@@ -281,6 +290,7 @@ mod tests {
             &encode(4, &[0x03, 0x00, 0xC0, 0x00, 0x07]),
             Instant::now(),
             1,
+            Duration::ZERO,
         );
         tap.stray(&[], Instant::now());
         tap.stray(&[0x55, 0xAA], Instant::now());
@@ -310,11 +320,11 @@ mod tests {
         let (mut tap, rec) = attached(2);
         let read = encode(1, &[0x03, 0x00, 0xC0, 0x00, 0x07]);
         tap.cause(Origin::Scope);
-        tap.request(1, &read, Instant::now(), 1);
+        tap.request(1, &read, Instant::now(), 1, Duration::ZERO);
         tap.reply(None, Instant::now(), Some(&Fault::Crc));
-        tap.request(1, &read, Instant::now(), 2);
+        tap.request(1, &read, Instant::now(), 2, Duration::ZERO);
         tap.cause(Origin::Poller);
-        tap.request(1, &read, Instant::now(), 1);
+        tap.request(1, &read, Instant::now(), 1, Duration::ZERO);
         assert_eq!(rec[0].shown(), rec[1].shown());
         let origins: Vec<String> = rec[0]
             .shown()
@@ -331,9 +341,9 @@ mod tests {
     fn attaching_replaces_the_observers() {
         let (mut tap, rec) = attached(1);
         let read = encode(1, &[0x03, 0x00, 0xC0, 0x00, 0x07]);
-        tap.request(1, &read, Instant::now(), 1);
+        tap.request(1, &read, Instant::now(), 1, Duration::ZERO);
         tap.attach(Vec::new());
-        tap.request(1, &read, Instant::now(), 2);
+        tap.request(1, &read, Instant::now(), 2, Duration::ZERO);
         tap.stray(&[1, 2, 3], Instant::now());
         assert_eq!(rec[0].shown().len(), 1, "{:?}", rec[0].shown());
     }

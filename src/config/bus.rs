@@ -2,11 +2,12 @@
 
 use std::time::Duration;
 
-use serde::Deserialize;
+use serde::{Deserialize, Deserializer};
 use toml::Spanned;
 
 use super::declared::{Declared, DeclaredKeys};
 use super::values::{self, Name, UnitAddress};
+use crate::bus::interframe::Interframe;
 use crate::bus::master::{Guard, MasterSettings};
 use crate::bus::port::Rs485Settings;
 use crate::bus::queue::QueueLimits;
@@ -57,6 +58,10 @@ pub struct BusConfig {
     /// every fault, nothing learned).
     #[serde(default, deserialize_with = "values::opt_int_in::<_, _, 0, 10000>")]
     pub guard_ms: Option<u64>,
+    /// The silence before each request: `"spec"` (t3.5, 1.75 ms above
+    /// 19200 baud), `"auto"` (each drive's own, learned), or microseconds.
+    #[serde(default, deserialize_with = "interframe")]
+    pub interframe: Interframe,
     /// Time the drives get after a broadcast before the next request.
     #[serde(
         default = "default_broadcast_delay",
@@ -144,6 +149,16 @@ pub struct SimSection {
     /// exact timing).
     #[serde(default)]
     pub delivery: Delivery,
+    /// The silence after which the simulated drives part frames, µs: a
+    /// request that follows the last frame sooner is garbled to them and
+    /// not answered; they answer this long (and the turnaround) after a
+    /// request. Default: none, the drives frame requests by their length
+    /// and answer t3.5 after them.
+    #[serde(default, deserialize_with = "values::opt_int_in::<_, _, 50, 100000>")]
+    pub frame_gap_us: Option<u32>,
+    /// Drives that part frames only after the spec's t3.5.
+    #[serde(default)]
+    pub strict_units: Vec<u8>,
 }
 
 impl Default for SimSection {
@@ -156,6 +171,8 @@ impl Default for SimSection {
             devices: Vec::new(),
             faults: FaultRates::default(),
             delivery: Delivery::default(),
+            frame_gap_us: None,
+            strict_units: Vec::new(),
         }
     }
 }
@@ -225,6 +242,7 @@ impl BusConfig {
                 .map(|d| SimDriveConfig {
                     unit: d.unit(),
                     gear_ratio: d.gear_ratio,
+                    frame_gap: sim_frame_gap(&section, d.unit(), self.baud),
                 })
                 .collect(),
             devices: section.devices,
@@ -241,6 +259,17 @@ impl BusConfig {
         }
     }
 
+    /// The silence every drive's requests get at start: t3.5, or the
+    /// fixed `interframe`.
+    pub fn starting_interframe(&self) -> Duration {
+        match self.interframe {
+            Interframe::Fixed(gap) => gap,
+            Interframe::Spec | Interframe::Auto => {
+                crate::modbus::timing::LineTiming::new_8n1(self.baud).t3_5()
+            }
+        }
+    }
+
     /// The scheduler's settings, with the serial device at `port_path` (the
     /// simulator's pty for a simulated bus).
     pub fn settings(&self, port_path: &str) -> BusSettings {
@@ -251,6 +280,7 @@ impl BusConfig {
             .map_or(Guard::Auto, |ms| Guard::Fixed(Duration::from_millis(ms)));
         master.reply_timeout_floor = Duration::from_millis(self.reply_timeout_floor_ms);
         master.broadcast_delay = Duration::from_millis(self.broadcast_delay_ms);
+        master.interframe = self.interframe;
         master.rs485 = self.rs485;
         let mut settings = BusSettings::new(
             self.name(),
@@ -278,6 +308,61 @@ impl BusConfig {
         settings.poll_share = self.poll_share;
         settings
     }
+}
+
+/// The frame separation of the simulated drive at `unit` (see
+/// [`SimSection::frame_gap_us`]).
+fn sim_frame_gap(section: &SimSection, unit: u8, baud: u32) -> Option<Duration> {
+    if section.strict_units.contains(&unit) {
+        return Some(crate::modbus::timing::LineTiming::new_8n1(baud).t3_5());
+    }
+    section
+        .frame_gap_us
+        .map(|us| Duration::from_micros(u64::from(us)))
+}
+
+/// The least and most a fixed `interframe` may be, µs.
+const INTERFRAME_US: (u64, u64) = (100, 100_000);
+
+/// `interframe`: `"spec"`, `"auto"` or a number of microseconds.
+fn interframe<'de, D: Deserializer<'de>>(d: D) -> Result<Interframe, D::Error> {
+    struct Visitor;
+    impl serde::de::Visitor<'_> for Visitor {
+        type Value = Interframe;
+
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            write!(
+                f,
+                "\"spec\", \"auto\" or a number of microseconds ({} to {})",
+                INTERFRAME_US.0, INTERFRAME_US.1
+            )
+        }
+
+        fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<Interframe, E> {
+            match v {
+                "spec" => Ok(Interframe::Spec),
+                "auto" => Ok(Interframe::Auto),
+                _ => Err(E::custom(format!(
+                    "interframe \"{v}\" is not \"spec\", \"auto\" or a number of \
+                     microseconds ({} to {})",
+                    INTERFRAME_US.0, INTERFRAME_US.1
+                ))),
+            }
+        }
+
+        fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<Interframe, E> {
+            match u64::try_from(v) {
+                Ok(us) if (INTERFRAME_US.0..=INTERFRAME_US.1).contains(&us) => {
+                    Ok(Interframe::Fixed(Duration::from_micros(us)))
+                }
+                _ => Err(E::custom(format!(
+                    "interframe {v} us is out of range: valid {} to {} (or \"spec\", \"auto\")",
+                    INTERFRAME_US.0, INTERFRAME_US.1
+                ))),
+            }
+        }
+    }
+    d.deserialize_any(Visitor)
 }
 
 fn default_baud() -> u32 {
@@ -330,4 +415,65 @@ fn default_calibrated() -> bool {
 }
 fn default_gear_ratio() -> f64 {
     1.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Config;
+
+    fn bus(keys: &str) -> Result<BusConfig, String> {
+        let text = format!("[[bus]]\nname = \"line1\"\nport = \"sim\"\n{keys}\n");
+        Config::parse(&text, "test")
+            .map(|c| c.buses[0].clone())
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn interframe_is_spec_auto_or_microseconds() {
+        assert_eq!(bus("").unwrap().interframe, Interframe::Spec);
+        assert_eq!(
+            bus("interframe = \"spec\"").unwrap().interframe,
+            Interframe::Spec
+        );
+        assert_eq!(
+            bus("interframe = \"auto\"").unwrap().interframe,
+            Interframe::Auto
+        );
+        let fixed = bus("interframe = 400").unwrap();
+        assert_eq!(
+            fixed.interframe,
+            Interframe::Fixed(Duration::from_micros(400))
+        );
+        assert_eq!(fixed.starting_interframe(), Duration::from_micros(400));
+        assert_eq!(
+            fixed.settings("/dev/ttyUSB0").master.interframe,
+            fixed.interframe
+        );
+        assert_eq!(
+            bus("").unwrap().starting_interframe(),
+            Duration::from_micros(1750)
+        );
+        let e = bus("interframe = \"fast\"").unwrap_err();
+        assert!(
+            e.contains("test:4:14") && e.contains("\"spec\", \"auto\""),
+            "{e}"
+        );
+        let e = bus("interframe = 50").unwrap_err();
+        assert!(e.contains("out of range: valid 100 to 100000"), "{e}");
+    }
+
+    #[test]
+    fn the_simulated_drives_frame_gaps() {
+        let b = bus("[bus.sim]\nframe_gap_us = 350\nstrict_units = [2]\n[[bus.drive]]\nunit = 1\nname = \"a\"\n[[bus.drive]]\nunit = 2\nname = \"b\"").unwrap();
+        let gaps: Vec<_> = b.sim_config().drives.iter().map(|d| d.frame_gap).collect();
+        assert_eq!(
+            gaps,
+            [
+                Some(Duration::from_micros(350)),
+                Some(Duration::from_micros(1750))
+            ]
+        );
+        assert_eq!(bus("").unwrap().sim_config().drives.len(), 0);
+    }
 }

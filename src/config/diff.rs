@@ -343,6 +343,11 @@ fn bus_differences(a: &BusConfig, b: &BusConfig) -> Vec<String> {
             b.broadcast_delay_ms,
         ),
     );
+    key("interframe", a.interframe != b.interframe);
+    key(
+        "reply timeout floor",
+        a.reply_timeout_floor_ms != b.reply_timeout_floor_ms,
+    );
     key("poll rates", a.poll_interval_ms != b.poll_interval_ms);
     key(
         "offline detection",
@@ -568,6 +573,29 @@ name = "press"
             )]
         );
         assert!(c.drives_added.is_empty() && c.drives_changed.is_empty());
+    }
+
+    #[test]
+    fn the_silence_before_requests_reopens_that_bus() {
+        let c = changed(
+            "name = \"line2\"\nport = \"sim\"",
+            "name = \"line2\"\nport = \"sim\"\ninterframe = \"auto\"",
+        );
+        assert_eq!(
+            c.buses_reopened,
+            vec![("line2".to_string(), vec!["interframe".to_string()])]
+        );
+        let c = diff(
+            &parse(&BASE.replace("port = \"sim\"", "port = \"sim\"\ninterframe = 400")),
+            &parse(&BASE.replace("port = \"sim\"", "port = \"sim\"\ninterframe = 500")),
+        );
+        assert_eq!(c.buses_reopened.len(), 2, "{c:?}");
+        // The default, written or not, is no change.
+        assert!(
+            changed("port = \"sim\"", "port = \"sim\"\ninterframe = \"spec\"")
+                .buses_reopened
+                .is_empty()
+        );
     }
 
     #[test]

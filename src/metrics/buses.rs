@@ -140,6 +140,22 @@ static LATE_REPLIES: Spec = Spec {
     kind: Kind::Counter,
     labels: &["bus", "unit"],
 };
+static INTERFRAME_GAP: Spec = Spec {
+    name: "drivegate_bus_interframe_gap_seconds",
+    help: "The silence each drive's requests get now: t3.5 (1.75 ms above 19200 baud) with \
+           interframe = \"spec\", the fixed value, or with \"auto\" the drive's learned gap \
+           (twice the shortest silence it answered, at least 3.5 characters and the adapter's \
+           latency; the spec again after any fault, until relearned).",
+    kind: Kind::Gauge,
+    labels: &["bus", "unit"],
+};
+static INTERFRAME_FALLBACKS: Spec = Spec {
+    name: "drivegate_bus_interframe_fallbacks_total",
+    help: "Times a drive's learned gap (interframe = \"auto\") was dropped for the spec's t3.5 \
+           after a fault: a drive that turned strict (replaced), or a noisy line.",
+    kind: Kind::Counter,
+    labels: &["bus", "unit"],
+};
 static SIM_REQUESTS: Spec = Spec {
     name: "drivegate_sim_requests_total",
     help: "Simulated bus only: requests the simulated drives received with a good CRC.",
@@ -169,7 +185,7 @@ static SIM_INJECTED: Spec = Spec {
     labels: &["bus", "kind"],
 };
 
-static SPECS: [&Spec; 22] = [
+static SPECS: [&Spec; 24] = [
     &INFO,
     &PORT_OPEN,
     &TRANSACTIONS,
@@ -189,6 +205,8 @@ static SPECS: [&Spec; 22] = [
     &REPLY_TIMEOUT,
     &TURNAROUND,
     &LATE_REPLIES,
+    &INTERFRAME_GAP,
+    &INTERFRAME_FALLBACKS,
     &SIM_REQUESTS,
     &SIM_GAPS,
     &SIM_INJECTED,
@@ -238,6 +256,8 @@ struct Families {
     reply_timeout: Family,
     turnaround: Family,
     late_replies: Family,
+    interframe_gap: Family,
+    interframe_fallbacks: Family,
     sim_requests: Family,
     sim_gaps: Family,
     sim_stalled: Family,
@@ -266,6 +286,8 @@ impl Families {
             reply_timeout: REPLY_TIMEOUT.family(),
             turnaround: TURNAROUND.family(),
             late_replies: LATE_REPLIES.family(),
+            interframe_gap: INTERFRAME_GAP.family(),
+            interframe_fallbacks: INTERFRAME_FALLBACKS.family(),
             sim_requests: SIM_REQUESTS.family(),
             sim_gaps: SIM_GAPS.family(),
             sim_stalled: SIM_STALLED.family(),
@@ -307,6 +329,19 @@ impl Families {
                 .set(&l, timing.reply_timeout.as_secs_f64());
             self.turnaround.set_histogram(&l, &timing.turnaround);
             self.late_replies.set(&l, timing.late_replies as f64);
+        }
+        // Every configured drive's gap from start: its starting one until
+        // it was sent a request.
+        let start = bus.config.starting_interframe();
+        for drive in &bus.config.drives {
+            let unit = drive.unit();
+            let timing = stats.drives.get(&unit);
+            let gap = timing.map_or(start, |t| t.interframe);
+            let fallbacks = timing.map_or(0, |t| t.interframe_fallbacks);
+            let unit = unit.to_string();
+            let l = [name, unit.as_str()];
+            self.interframe_gap.set(&l, gap.as_secs_f64());
+            self.interframe_fallbacks.set(&l, fallbacks as f64);
         }
         if let Some(sim) = &bus.sim {
             let s = sim.stats();
@@ -364,6 +399,8 @@ impl Families {
             self.reply_timeout,
             self.turnaround,
             self.late_replies,
+            self.interframe_gap,
+            self.interframe_fallbacks,
             self.sim_requests,
             self.sim_gaps,
             self.sim_stalled,

@@ -111,6 +111,10 @@ pub struct FrameRecord {
     /// Replies: from the end of the request on the wire to the start of the
     /// reply, in µs (estimated from the reply's end and length).
     pub turnaround_us: Option<u32>,
+    /// The silence on the line before the frame, in µs, as the master
+    /// measured it: before a request, from the end of the last frame to
+    /// its first byte; before a reply, its turnaround.
+    pub silence_us: Option<u32>,
     /// Who caused the transaction.
     pub origin: Origin,
     /// Replies: the first bytes of their request (see [`REQUEST_HEAD`]).
@@ -136,6 +140,7 @@ impl Default for FrameRecord {
             outcome: FrameOutcome::Sent,
             detail: "",
             turnaround_us: None,
+            silence_us: None,
             origin: Origin::Internal,
             request: [0; REQUEST_HEAD],
             request_len: 0,

@@ -20,6 +20,7 @@ impl WireObserver for BusMonitor {
             return;
         };
         let at_ns = self.ns_since_start(sent.at);
+        let silence = u32::try_from(sent.silence.as_micros()).unwrap_or(u32::MAX);
         ring.push(|r| {
             r.at_ns = at_ns;
             r.direction = Direction::Request;
@@ -32,6 +33,7 @@ impl WireObserver for BusMonitor {
             };
             r.detail = "";
             r.turnaround_us = None;
+            r.silence_us = Some(silence);
             r.origin.clone_from(sent.origin);
             r.request_len = 0;
             r.set_bytes(sent.frame);
@@ -77,6 +79,7 @@ impl WireObserver for BusMonitor {
             r.outcome = outcome;
             r.detail = detail;
             r.turnaround_us = turnaround;
+            r.silence_us = turnaround;
             r.origin.clone_from(got.origin);
             r.set_request(got.request, got.request_whole);
             r.set_bytes(bytes);
@@ -97,6 +100,7 @@ impl WireObserver for BusMonitor {
             r.outcome = FrameOutcome::Stray;
             r.detail = "";
             r.turnaround_us = None;
+            r.silence_us = None;
             r.origin = Origin::Internal;
             r.request_len = 0;
             r.set_bytes(bytes);
@@ -135,12 +139,12 @@ mod tests {
         });
         let read = encode(1, &[0x03, 0x00, 0xC0, 0x00, 0x07]);
         let t0 = Instant::now();
-        tap.request(1, &read, t0, 1);
+        tap.request(1, &read, t0, 1, Duration::ZERO);
         let mut bad = encode(1, &[0x03, 0x0E, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]);
         bad[5] ^= 1;
         tap.reply(Some(&bad), t0 + Duration::from_millis(3), Some(&Fault::Crc));
         tap.stray(&[0x55, 0xAA], t0 + Duration::from_millis(4));
-        tap.request(1, &read, t0 + Duration::from_millis(60), 2);
+        tap.request(1, &read, t0 + Duration::from_millis(60), 2, Duration::ZERO);
         let good = encode(1, &[0x03, 0x0E, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]);
         let end =
             t0 + Duration::from_millis(60) + tap.wire_time(8 + 19) + Duration::from_micros(500);
@@ -183,7 +187,13 @@ mod tests {
         let (mut tap, monitor) = tap();
         tap.cause(Origin::Poller);
         let t0 = Instant::now();
-        tap.request(2, &encode(2, &[0x03, 0x00, 0xC0, 0x00, 0x07]), t0, 1);
+        tap.request(
+            2,
+            &encode(2, &[0x03, 0x00, 0xC0, 0x00, 0x07]),
+            t0,
+            1,
+            Duration::ZERO,
+        );
         tap.reply(None, t0 + Duration::from_millis(51), Some(&Fault::Timeout));
         let last = &monitor.last(1)[0];
         assert_eq!(

@@ -51,6 +51,12 @@ pub struct FrameView {
     /// the reply (the drive's turnaround), estimated from the reply's end
     /// and length.
     pub turnaround_us: Option<u32>,
+    /// µs of silence on the line before the frame, as drivegate measured
+    /// it: before a request, from the end of the previous frame (its last
+    /// byte received, or sent) to the request's first byte (t3.5, or the
+    /// drive's learned gap with `interframe = "auto"`, plus overhead);
+    /// before a reply, the turnaround.
+    pub silence_us: Option<u32>,
     /// µs the frame took on the wire at the line's baud rate.
     pub wire_us: u32,
     /// Who caused the transaction: `poller`, `scope`, `http`, `websocket`,
@@ -107,6 +113,7 @@ impl FrameView {
             detail: (!record.detail.is_empty()).then_some(record.detail),
             attempt: record.attempt,
             turnaround_us: record.turnaround_us,
+            silence_us: record.silence_us,
             wire_us: u32::try_from(u64::from(record.len) * clock.char_ns / 1000)
                 .unwrap_or(u32::MAX),
             source: record.origin.kind(),
@@ -118,7 +125,7 @@ impl FrameView {
 }
 
 /// The CSV header; one line per frame follows.
-pub const CSV_HEADER: &str = "seq,time,time_us,direction,unit,function,bytes,length,meaning,decoded_as,crc,outcome,detail,attempt,turnaround_us,wire_us,source,source_who,source_ref";
+pub const CSV_HEADER: &str = "seq,time,time_us,direction,unit,function,bytes,length,meaning,decoded_as,crc,outcome,detail,attempt,turnaround_us,wire_us,source,source_who,source_ref,silence_us";
 
 /// Quotes a CSV field when it needs it (RFC 4180).
 pub fn csv_field(s: &str) -> String {
@@ -153,6 +160,7 @@ impl FrameView {
             self.source.to_string(),
             csv_field(&opt(self.source_who.clone())),
             opt(self.source_ref.map(|r| r.to_string())),
+            opt(self.silence_us.map(|t| t.to_string())),
         ]
         .join(",")
     }
@@ -175,6 +183,7 @@ mod tests {
             attempt: 2,
             outcome: FrameOutcome::Ok,
             turnaround_us: Some(480),
+            silence_us: Some(480),
             origin: Origin::Http {
                 who: "line, \"A\"".into(),
             },
@@ -197,7 +206,7 @@ mod tests {
         let line = v.csv_line();
         assert_eq!(
             line,
-            "41,2026-11-22T03:39:12.001500Z,1795318752001500,reply,1,0x06,01 06 00 06 00 64 68 20,8,confirmed: speed setpoint 100 rpm,drive,ok,ok,,2,480,694,http,\"line, \"\"A\"\"\","
+            "41,2026-11-22T03:39:12.001500Z,1795318752001500,reply,1,0x06,01 06 00 06 00 64 68 20,8,confirmed: speed setpoint 100 rpm,drive,ok,ok,,2,480,694,http,\"line, \"\"A\"\"\",,480"
         );
         assert_eq!(
             line.matches(',').count() - 1,

@@ -22,6 +22,16 @@ use crate::modbus::rtu_frame;
 struct Slot {
     model: DriveModel,
     clock: Instant,
+    /// See [`SimDriveConfig::frame_gap`](super::config::SimDriveConfig).
+    frame_gap: Option<Duration>,
+}
+
+impl Slot {
+    /// True when a frame after `silence` is one garbled frame with the
+    /// last, to this drive.
+    fn merges(&self, silence: Option<Duration>) -> bool {
+        matches!((self.frame_gap, silence), (Some(gap), Some(s)) if s < gap)
+    }
 }
 
 impl Slot {
@@ -42,6 +52,9 @@ pub struct Outcome {
     pub late: Duration,
     /// Noise to write about t3.5 after it.
     pub noise: Option<Noise>,
+    /// The answering drive's frame gap, after which it answers (`None`:
+    /// t3.5).
+    pub frame_gap: Option<Duration>,
 }
 
 /// The simulated drives, the fault injection and the counters.
@@ -70,6 +83,7 @@ impl Bus {
                 .map(|d| Slot {
                     model: DriveModel::new(d.unit, d.gear_ratio, config.calibrated, reboot),
                     clock: now,
+                    frame_gap: d.frame_gap,
                 })
                 .collect(),
             devices: config
@@ -114,6 +128,17 @@ impl Bus {
     /// Changes the fault rates.
     pub fn set_fault_rates(&mut self, rates: FaultRates) {
         self.faults.set_rates(rates);
+    }
+
+    /// Sets the silence after which the drive at `unit` parts frames
+    /// (`None`: by length); false when there is no such drive.
+    pub fn set_frame_gap(&mut self, unit: u8, gap: Option<Duration>) -> bool {
+        let mut found = false;
+        for slot in self.slots.iter_mut().filter(|s| s.model.address() == unit) {
+            slot.frame_gap = gap;
+            found = true;
+        }
+        found
     }
 
     /// Makes `unit` silent or lets it answer again.
@@ -172,9 +197,16 @@ impl Bus {
             .collect()
     }
 
-    /// Handles one framed request heard at `now`; a reply frame, if any, is
+    /// Handles one framed request heard at `now`, `silence` after the last
+    /// frame on the line (`None`: unknown, long); a reply frame, if any, is
     /// left in `reply`.
-    pub fn request(&mut self, frame: &[u8], now: Instant, reply: &mut Vec<u8>) -> Outcome {
+    pub fn request(
+        &mut self,
+        frame: &[u8],
+        now: Instant,
+        silence: Option<Duration>,
+        reply: &mut Vec<u8>,
+    ) -> Outcome {
         reply.clear();
         let Ok((unit, pdu)) = rtu_frame::decode(frame) else {
             self.stats.bad_crc_requests += 1;
@@ -185,7 +217,10 @@ impl Bus {
             self.stats.broadcasts += 1;
             for slot in &mut self.slots {
                 slot.advance_to(now);
-                if slot.model.online() && !self.faults.rates().is_silent(slot.model.address()) {
+                if slot.model.online()
+                    && !slot.merges(silence)
+                    && !self.faults.rates().is_silent(slot.model.address())
+                {
                     slave::broadcast(&mut slot.model, pdu, &mut self.scratch);
                 }
             }
@@ -195,41 +230,7 @@ impl Bus {
             self.stats.unanswered += 1;
             return Outcome::default();
         }
-        let mut answering = 0;
-        for slot in &mut self.slots {
-            if slot.model.address() != unit {
-                continue;
-            }
-            slot.advance_to(now);
-            if !slot.model.online() {
-                continue;
-            }
-            let exception = slave::answer(&mut slot.model, pdu, &mut self.pdu);
-            answering += 1;
-            if answering == 1 {
-                if exception.is_some() {
-                    self.stats.exceptions += 1;
-                }
-                frame_into(reply, unit, &self.pdu);
-            } else {
-                // Two drivers on the line at once: the bytes collide.
-                frame_into(&mut self.scratch, unit, &self.pdu);
-                collide(reply, &self.scratch);
-            }
-        }
-        for device in self.devices.iter_mut().filter(|d| d.unit() == unit) {
-            let exception = device.answer(pdu, &mut self.pdu);
-            answering += 1;
-            if answering == 1 {
-                if exception.is_some() {
-                    self.stats.exceptions += 1;
-                }
-                frame_into(reply, unit, &self.pdu);
-            } else {
-                frame_into(&mut self.scratch, unit, &self.pdu);
-                collide(reply, &self.scratch);
-            }
-        }
+        let (answering, frame_gap) = self.answer(unit, pdu, now, silence, reply);
         if answering == 0 {
             self.stats.unanswered += 1;
             return Outcome::default();
@@ -265,7 +266,65 @@ impl Bus {
             reply: true,
             late: fate.late.unwrap_or_default(),
             noise: fate.noise,
+            frame_gap,
         }
+    }
+
+    /// The drives and devices at `unit` answer `pdu` heard at `now`
+    /// `silence` after the last frame: their reply (collided, if more than
+    /// one) into `reply`; how many answered, and the first drive's frame
+    /// gap.
+    fn answer(
+        &mut self,
+        unit: u8,
+        pdu: &[u8],
+        now: Instant,
+        silence: Option<Duration>,
+        reply: &mut Vec<u8>,
+    ) -> (u32, Option<Duration>) {
+        let mut answering = 0;
+        let mut frame_gap = None;
+        for slot in &mut self.slots {
+            if slot.model.address() != unit {
+                continue;
+            }
+            slot.advance_to(now);
+            if slot.merges(silence) {
+                // Heard as one garbled frame with the last: no CRC holds.
+                self.stats.merged_frames += 1;
+                continue;
+            }
+            if !slot.model.online() {
+                continue;
+            }
+            frame_gap = slot.frame_gap;
+            let exception = slave::answer(&mut slot.model, pdu, &mut self.pdu);
+            answering += 1;
+            if answering == 1 {
+                if exception.is_some() {
+                    self.stats.exceptions += 1;
+                }
+                frame_into(reply, unit, &self.pdu);
+            } else {
+                // Two drivers on the line at once: the bytes collide.
+                frame_into(&mut self.scratch, unit, &self.pdu);
+                collide(reply, &self.scratch);
+            }
+        }
+        for device in self.devices.iter_mut().filter(|d| d.unit() == unit) {
+            let exception = device.answer(pdu, &mut self.pdu);
+            answering += 1;
+            if answering == 1 {
+                if exception.is_some() {
+                    self.stats.exceptions += 1;
+                }
+                frame_into(reply, unit, &self.pdu);
+            } else {
+                frame_into(&mut self.scratch, unit, &self.pdu);
+                collide(reply, &self.scratch);
+            }
+        }
+        (answering, frame_gap)
     }
 }
 
@@ -305,7 +364,9 @@ mod tests {
     fn send(bus: &mut Bus, unit: u8, req: DriveRequest, now: Instant) -> Option<Vec<u8>> {
         let mut reply = Vec::new();
         let frame = req.frame(unit).unwrap();
-        bus.request(&frame, now, &mut reply).reply.then_some(reply)
+        bus.request(&frame, now, None, &mut reply)
+            .reply
+            .then_some(reply)
     }
 
     #[test]
@@ -329,7 +390,7 @@ mod tests {
         let mut frame = DriveRequest::ReadStatus.frame(1).unwrap();
         frame[7] ^= 1;
         let mut reply = Vec::new();
-        assert!(!bus.request(&frame, now, &mut reply).reply);
+        assert!(!bus.request(&frame, now, None, &mut reply).reply);
         assert_eq!((bus.stats().bad_crc_requests, bus.stats().requests), (1, 0));
     }
 
@@ -417,7 +478,7 @@ mod tests {
         let mut bus = Bus::new(&config, now);
         let frame = rtu_frame::encode(100, &[0x03, 0x00, 0x00, 0x00, 125]);
         let mut reply = Vec::new();
-        assert!(bus.request(&frame, now, &mut reply).reply);
+        assert!(bus.request(&frame, now, None, &mut reply).reply);
         assert_eq!(reply.len(), 255, "the longest RTU frame");
         assert_eq!(&reply[..3], &[100, 0x03, 250]);
         assert!(crate::modbus::crc::frame_crc_ok(&reply));

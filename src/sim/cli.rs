@@ -69,6 +69,17 @@ pub struct SimArgs {
     /// Largest extra delay of each chunk, in microseconds.
     #[arg(long, default_value_t = 0)]
     pub jitter_us: u32,
+    /// The silence after which the drives part frames, in µs (e.g. 350: 4
+    /// characters at 115200 baud): a request that follows the last frame
+    /// sooner is garbled to a drive, which does not answer; a drive answers
+    /// this long (and the turnaround) after a request. Default: the drives
+    /// frame requests by length and answer t3.5 after them.
+    #[arg(long)]
+    pub frame_gap_us: Option<u32>,
+    /// Drives that part frames only after the spec's t3.5 (1.75 ms above
+    /// 19200 baud), e.g. "8": strict drives beside fast ones.
+    #[arg(long)]
+    pub strict_units: Option<UnitList>,
     /// Echo every byte the master sends, as an adapter without automatic
     /// direction control does (the master hears its own request first).
     #[arg(long)]
@@ -81,6 +92,19 @@ pub struct SimArgs {
 }
 
 impl SimArgs {
+    /// The frame separation of the drive at `unit`.
+    fn frame_gap(&self, unit: u8) -> Option<std::time::Duration> {
+        if self
+            .strict_units
+            .as_ref()
+            .is_some_and(|s| s.0.contains(&unit))
+        {
+            return Some(crate::modbus::timing::LineTiming::new_8n1(self.baud).t3_5());
+        }
+        self.frame_gap_us
+            .map(|us| std::time::Duration::from_micros(u64::from(us)))
+    }
+
     /// The simulated bus these arguments describe.
     pub fn config(&self) -> SimConfig {
         SimConfig {
@@ -94,6 +118,7 @@ impl SimArgs {
                 .map(|&unit| SimDriveConfig {
                     unit,
                     gear_ratio: self.gear_ratio,
+                    frame_gap: self.frame_gap(unit),
                 })
                 .collect(),
             devices: self.devices.clone().map(|u| u.0).unwrap_or_default(),
@@ -295,6 +320,26 @@ mod tests {
         assert_eq!(config.faults.silent_units, vec![4]);
         assert_eq!((config.faults.drop_rate, config.seed), (0.1, 9));
         assert_eq!(config.drives[0].gear_ratio, 10.0);
+        assert_eq!(config.drives[0].frame_gap, None);
+        let cli = Cli::parse_from([
+            "sim",
+            "--units",
+            "1-8",
+            "--frame-gap-us",
+            "350",
+            "--strict-units",
+            "8",
+        ]);
+        let gaps: Vec<_> = cli
+            .args
+            .config()
+            .drives
+            .iter()
+            .map(|d| d.frame_gap)
+            .collect();
+        let us = |n| Some(std::time::Duration::from_micros(n));
+        assert_eq!(gaps[..7], [us(350); 7]);
+        assert_eq!(gaps[7], us(1750));
         assert!(Cli::try_parse_from(["sim", "--units", "0-3"]).is_err());
         let cli = Cli::parse_from(["sim", "--listen", "127.0.0.1:4001"]);
         assert_eq!(

@@ -21,6 +21,13 @@ pub struct SimDriveConfig {
     pub unit: u8,
     /// Its gearbox ratio (motor turns per output turn).
     pub gear_ratio: f64,
+    /// The silence after which it parts frames: a request that follows the
+    /// last frame on the line sooner is, to it, one garbled frame with that
+    /// one, and it does not answer; it answers this long (and the
+    /// turnaround) after a request. `None`: it frames requests by their
+    /// length, answers t3.5 after them, and only counts a short silence.
+    #[serde(skip)]
+    pub frame_gap: Option<Duration>,
 }
 
 /// A simulated bus. Start from [`SimConfig::default`] (or
@@ -94,6 +101,7 @@ impl SimConfig {
                 .map(|unit| SimDriveConfig {
                     unit,
                     gear_ratio: DEFAULT_GEAR_RATIO,
+                    frame_gap: None,
                 })
                 .collect(),
             devices: Vec::new(),
@@ -129,6 +137,9 @@ impl SimConfig {
                 GEAR_RATIO.1,
                 "",
             )?;
+            if let Some(gap) = drive.frame_gap {
+                RangeError::check("frame gap", gap.as_secs_f64() * 1e6, 0.0, 100_000.0, "us")?;
+            }
         }
         for (i, &unit) in self.devices.iter().enumerate() {
             if unit == 0 {

@@ -187,6 +187,17 @@ impl SimHandle {
         self.with_drive(unit, DriveModel::power_cycle)
     }
 
+    /// Sets the silence after which the drive at `unit` parts frames
+    /// (`None`: by length, as at start without a frame gap): a drive
+    /// replaced by a stricter one.
+    pub fn set_frame_gap(&self, unit: u8, gap: Option<Duration>) -> Result<(), SimError> {
+        if lock(&self.bus).set_frame_gap(unit, gap) {
+            Ok(())
+        } else {
+            Err(SimError::UnknownUnit(unit))
+        }
+    }
+
     /// Replaces the drive at `unit` with a new one at the same address,
     /// fresh from the factory (factory settings, inactive): silent for the
     /// reboot time, then back. Keep it silent meanwhile

@@ -21,6 +21,10 @@ pub struct SimStats {
     pub truncated_frames: u64,
     /// Requests nobody answered: no such unit, a silent unit, a drive off.
     pub unanswered: u64,
+    /// Requests the addressed drive did not understand: they followed the
+    /// last frame sooner than it parts frames (its frame gap), so it heard
+    /// one garbled frame. Counted in `unanswered` too.
+    pub merged_frames: u64,
     /// Replies dropped by fault injection.
     pub dropped: u64,
     /// Replies sent with a corrupted CRC.
@@ -47,8 +51,8 @@ impl fmt::Display for SimStats {
         write!(
             f,
             "requests={} replies={} broadcasts={} gap_violations={} bad_crc_requests={} \
-             truncated_frames={} unanswered={} dropped={} corrupted={} late={} stalled={} noise_bursts={} \
-             exceptions={} collisions={} connections={}",
+             truncated_frames={} unanswered={} merged_frames={} dropped={} corrupted={} late={} \
+             stalled={} noise_bursts={} exceptions={} collisions={} connections={}",
             self.requests,
             self.replies,
             self.broadcasts,
@@ -56,6 +60,7 @@ impl fmt::Display for SimStats {
             self.bad_crc_requests,
             self.truncated_frames,
             self.unanswered,
+            self.merged_frames,
             self.dropped,
             self.corrupted,
             self.late,

@@ -274,10 +274,13 @@ impl Wire {
             if violation {
                 bus.stats_mut().gap_violations += 1;
             }
-            if let Some(q) = self.quiet_from {
-                bus.record_gap(arrival.saturating_duration_since(q));
+            let silence = self
+                .quiet_from
+                .map(|q| arrival.saturating_duration_since(q));
+            if let Some(gap) = silence {
+                bus.record_gap(gap);
             }
-            bus.request(&self.rx.bytes[..len], Instant::now(), &mut self.tx)
+            bus.request(&self.rx.bytes[..len], Instant::now(), silence, &mut self.tx)
         };
         self.rx.consume(len);
         if !outcome.reply {
@@ -288,7 +291,10 @@ impl Wire {
             let read = super::uart::resample(&self.tx, self.line.baud(), master_baud);
             self.tx = read;
         }
-        let reply_start = wire_end + t3_5 + self.turnaround + outcome.late;
+        // A drive answers once it has parted the request from what follows:
+        // t3.5 by the spec, sooner for a drive with a shorter frame gap.
+        let reply_start =
+            wire_end + outcome.frame_gap.unwrap_or(t3_5) + self.turnaround + outcome.late;
         // The daemon's own simulator gives a reply up once the master has
         // (see `SimConfig::max_lag`); a reply made late on purpose is sent
         // however late, as a late drive's is.

@@ -34,6 +34,15 @@ async fn bus_counters_and_a_scan() {
         );
         assert!(bus["counters"]["polls"].as_u64().unwrap() > 0);
         assert!(bus["queue"]["poll"].is_u64());
+        // The silence before each drive's requests: the spec's by default.
+        assert_eq!(bus["interframe"]["setting"], "spec");
+        let gaps = bus["interframe"]["drives"].as_array().unwrap();
+        assert_eq!(gaps.len(), 4);
+        assert_eq!(
+            (gaps[0]["unit"].as_u64(), gaps[0]["gap_us"].as_u64()),
+            (Some(1), Some(1750))
+        );
+        assert_eq!(gaps[0]["fallbacks"], 0);
         assert_eq!(
             api.get("/api/v1/buses/sim").await.expect(200)["name"],
             "sim"

@@ -12,6 +12,7 @@
 mod support;
 
 mod dead_drive;
+mod interframe;
 mod long_replies;
 mod master_pty;
 mod master_timing;

@@ -627,6 +627,17 @@ async fn a_missing_adapter_shows_the_bus_down() {
             None,
             "not simulated"
         );
+        // A drive never sent a request has its silence from start: the
+        // spec's t3.5, and no fallback.
+        let drive = [("bus", "unplugged"), ("unit", "7")];
+        assert_eq!(
+            value(&s, "drivegate_bus_interframe_gap_seconds", &drive),
+            Some(0.00175)
+        );
+        assert_eq!(
+            value(&s, "drivegate_bus_interframe_fallbacks_total", &drive),
+            Some(0.0)
+        );
         let (ok, printed) = promtool_check(&d.metrics.render()).await;
         assert!(ok && printed.trim().is_empty(), "{printed}");
         d.stop().await;

@@ -279,7 +279,8 @@ async fn csv_and_a_pcap_that_tshark_decodes() {
                 "wire_us",
                 "source",
                 "source_who",
-                "source_ref"
+                "source_ref",
+                "silence_us"
             ]
         );
         let rows: Vec<Vec<String>> = lines.map(csv_fields).collect();

@@ -1,5 +1,5 @@
 // The bus monitor: every frame on the wire of a bus, live, newest first,
-// with its meaning, CRC, outcome, turnaround and who caused it. The filters
+// with its meaning, CRC, outcome, the silence before it and who caused it. The filters
 // are the API's own (the list is reloaded from the bus's ring through
 // them); pause holds the list still while frames keep being counted;
 // downloads are the API's CSV and PCAP. The list keeps the newest ROWS
@@ -104,7 +104,7 @@ function mount(main, params, ctx) {
     filterNote.el,
     count,
     h('div', { class: 'scroll' }, h('div', { class: 'frames', role: 'table', 'aria-label': 'Frames, newest first' },
-      h('div', { role: 'rowgroup', class: 'frame-head' }, h('div', { role: 'row', class: 'frame' }, ['Time', 'Dir', 'Unit', 'Function', 'Meaning', 'Bytes', 'CRC', 'Outcome', 'Turnaround', 'Caused by']
+      h('div', { role: 'rowgroup', class: 'frame-head' }, h('div', { role: 'row', class: 'frame' }, ['Time', 'Dir', 'Unit', 'Function', 'Meaning', 'Bytes', 'CRC', 'Outcome', 'Silence before', 'Caused by']
         .map((t) => h('span', { role: 'columnheader' }, t)))),
       tbody)),
     h('div', { class: 'row filters' }, csv, pcap, downloadNote.el),
@@ -135,6 +135,13 @@ function mount(main, params, ctx) {
   let delay = 500;
   let generation = 0;
 
+  // The silence before a frame: a request's as drivegate left it (t3.5, or
+  // the drive's learned gap), a reply's turnaround.
+  const silence = (f) => {
+    const us = f.silence_us ?? f.turnaround_us;
+    return us === null || us === undefined ? '' : `${fmt(us / 1000, 2)} ms`;
+  };
+
   const row = (f) => {
     if (f.lostHere) {
       return h('div', { role: 'row', class: 'frame lost', dataset: { lost: String(f.lostHere) } },
@@ -151,7 +158,7 @@ function mount(main, params, ctx) {
       h('span', { role: 'cell', class: 'bytes', title: `${f.length} bytes, ${f.wire_us} µs on the wire` }, f.bytes),
       h('span', { role: 'cell', class: f.crc === 'bad' ? 'bad' : '' }, f.crc),
       h('span', { role: 'cell', title: f.detail || '' }, `${f.outcome.replaceAll('_', ' ')}${retry}${f.detail ? `: ${f.detail}` : ''}`),
-      h('span', { role: 'cell', class: 'num' }, f.turnaround_us === null || f.turnaround_us === undefined ? '' : `${fmt(f.turnaround_us / 1000, 2)} ms`),
+      h('span', { role: 'cell', class: 'num', title: f.direction === 'reply' ? 'the drive\'s turnaround' : 'the silence drivegate left before this request' }, silence(f)),
       h('span', { role: 'cell', title: f.source_text }, f.source_text));
   };
 

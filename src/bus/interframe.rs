@@ -1,0 +1,769 @@
+//! The silence before a request, per drive (`[bus] interframe`). Pure: the
+//! time and every outcome are passed in.
+//!
+//! The Modbus specification asks for t3.5 of silence between frames (1.75
+//! ms above 19200 baud), but many drives part frames after 3.5 character
+//! times (0.3 ms at 115200 baud). With [`Interframe::Auto`] the master
+//! learns, per drive, the shortest silence before a request that the drive
+//! still understands, and keeps a margin above it:
+//!
+//! - every drive starts at the spec; shorter silences are tried only on
+//!   status polls (and polls made in idle time for the purpose), never on a
+//!   client's command or an emergency: a trial that fails costs a retried
+//!   poll, nobody's command;
+//! - the trials start at half the spec (a longer one could not shorten the
+//!   gap) and step down (by [`STEP`]) while each level is answered
+//!   [`ANSWERS_PER_STEP`] times; the gap every other request gets is then
+//!   twice the shortest level answered, never below the floor (3.5
+//!   character times and the adapter's latency) nor above the spec. After
+//!   a trial that is not answered, the next tries halfway back, until the
+//!   levels answered and not are within 1/16 of each other;
+//! - any fault of a request sent after the confirmed gap (a timeout, a CRC
+//!   error, a reply that does not answer) puts the drive back on the spec
+//!   at once (its retry goes after the spec's silence) and it learns again
+//!   only after a backoff that doubles each time ([`RELEARN`]), trying the
+//!   level it had answered first;
+//! - an emergency uses the drive's gap only if a request sent after it was
+//!   answered within [`RECENT`]; otherwise, and for broadcasts, the spec.
+//!
+//! The silences counted are the master's: from the last byte it received
+//! to the first it sends. The wire's silence is longer by the adapter's and
+//! the system's latency, never shorter. A level counts at the longest
+//! silence measured before its answers (the thread may run late), and a
+//! trial counts only if that was shorter than any answered before.
+
+use std::time::{Duration, Instant};
+
+use crate::modbus::timing::LineTiming;
+
+/// The silence before requests a bus is set to keep.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Interframe {
+    /// The specification's t3.5 before every request.
+    #[default]
+    Spec,
+    /// Each drive's own, learned (see the module).
+    Auto,
+    /// This silence before every request: the plant's promise that every
+    /// drive on the bus parts frames after it.
+    Fixed(Duration),
+}
+
+impl Interframe {
+    /// The setting as the configuration and the API write it: `spec`,
+    /// `auto`, or microseconds.
+    pub fn describe(&self) -> String {
+        match self {
+            Interframe::Spec => "spec".into(),
+            Interframe::Auto => "auto".into(),
+            Interframe::Fixed(d) => d.as_micros().to_string(),
+        }
+    }
+}
+
+/// Each trial is this much shorter than the last (7/8): the shortest
+/// silence answered is at most 8/7 of the least the drive needs.
+pub const STEP: (u32, u32) = (7, 8);
+/// Answers a trial level needs before the next, shorter one is tried.
+pub const ANSWERS_PER_STEP: u8 = 3;
+/// How long an answered request vouches for the drive's gap for an
+/// emergency.
+pub const RECENT: Duration = Duration::from_secs(5);
+/// First and longest wait before a drive that fell back to the spec is
+/// tried shorter again.
+pub const RELEARN: (Duration, Duration) = (Duration::from_secs(10), Duration::from_secs(600));
+/// An answered request vouches for the confirmed gap when the silence
+/// before it was at most this much longer (the thread may have run late).
+pub const TOLERANCE: Duration = Duration::from_micros(50);
+/// Trials of one level not answered before the level counts as too short
+/// (one may be a reply lost to noise).
+pub const FAILS_PER_STEP: u8 = 2;
+/// Trials of one level that could not be kept that short (the master's
+/// own overhead is longer, or the machine kept it from running) before the
+/// steps end there.
+pub const MISSES_PER_STEP: u8 = 30;
+/// The latency a serial adapter adds to the wire's timing, kept in the
+/// floor: a request can reach the wire sooner after the last frame than the
+/// master's own clock says by as much as this.
+pub const SERIAL_ADAPTER_LATENCY: Duration = Duration::from_micros(50);
+
+/// The limits of one line's gaps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// The spec's t3.5.
+    pub spec: Duration,
+    /// The least gap a request other than a trial gets: 3.5 character
+    /// times and the adapter's latency (never above the spec).
+    pub floor: Duration,
+    /// The least silence tried: 1.5 character times, under which no drive
+    /// can tell two frames apart.
+    pub shortest_trial: Duration,
+}
+
+impl Limits {
+    /// The limits of `line` behind an adapter that adds up to `latency`.
+    pub fn for_line(line: LineTiming, latency: Duration) -> Self {
+        let spec = line.t3_5();
+        Self {
+            spec,
+            floor: (line.char_time() * 7 / 2 + latency).min(spec),
+            shortest_trial: line.char_time() * 3 / 2,
+        }
+    }
+}
+
+/// What a request is, as far as its silence goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Use {
+    /// A status poll: it may try a shorter silence.
+    Poll,
+    /// A client's command or read: the confirmed gap only.
+    Command,
+    /// An emergency: the confirmed gap if it was answered lately, else
+    /// the spec.
+    Emergency,
+}
+
+/// The silence to keep before one request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Silence {
+    /// How long.
+    pub gap: Duration,
+    /// True when it is a trial, shorter than the drive's confirmed gap.
+    pub trial: bool,
+}
+
+/// Where a drive's learning is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Phase {
+    /// Trying `trial`: answered `answers` times so far after silences of
+    /// at most `worst`, not answered `fails` times, `misses` times sent
+    /// after a silence no shorter than `ok`. `ok` is the shortest level
+    /// answered (the spec at first), `failed` the longest not answered.
+    Stepping {
+        trial: Duration,
+        answers: u8,
+        worst: Duration,
+        fails: u8,
+        misses: u8,
+        ok: Duration,
+        failed: Option<Duration>,
+    },
+    /// Learned: the confirmed gap holds until a fault.
+    Settled,
+    /// Back on the spec after a fault; learning again from `until`.
+    Waiting { until: Instant },
+}
+
+impl Phase {
+    /// The first trial from the spec: half of it (a longer one could not
+    /// shorten the gap, twice it).
+    fn start(limits: &Limits) -> Self {
+        Phase::Stepping {
+            trial: (limits.spec / 2).max(limits.shortest_trial),
+            answers: 0,
+            worst: Duration::ZERO,
+            fails: 0,
+            misses: 0,
+            ok: limits.spec,
+            failed: None,
+        }
+    }
+
+    /// The next trial between `ok` (answered) and `failed`, or `Settled`
+    /// once they are within [`RESOLUTION`] of each other.
+    fn between(ok: Duration, failed: Option<Duration>, limits: &Limits) -> Self {
+        let next = match failed {
+            Some(f) => (ok + f) / 2,
+            None => (ok * STEP.0 / STEP.1).max(limits.shortest_trial),
+        };
+        let close = |f: Duration| ok.saturating_sub(f) <= ok / RESOLUTION;
+        // A trial helps only if twice it makes a shorter gap than twice
+        // `ok` (within the floor and the spec).
+        let gap = |t: Duration| (t * 2).clamp(limits.floor, limits.spec);
+        if failed.is_some_and(close) || next >= ok || gap(next) >= gap(ok) {
+            return Phase::Settled;
+        }
+        Phase::Stepping {
+            trial: next,
+            answers: 0,
+            worst: Duration::ZERO,
+            fails: 0,
+            misses: 0,
+            ok,
+            failed,
+        }
+    }
+}
+
+/// The steps end once the shortest silence answered and the longest not
+/// answered are within 1/16 of each other.
+const RESOLUTION: u32 = 16;
+
+/// One drive's gap.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DriveGap {
+    /// The gap every request but a trial gets.
+    confirmed: Duration,
+    /// When a request sent after `confirmed` (or less) was last answered.
+    confirmed_at: Option<Instant>,
+    phase: Phase,
+    /// The wait before the next relearning.
+    backoff: Duration,
+    /// Times the drive fell back to the spec.
+    fallbacks: u64,
+    /// The level that was answered before the last fallback: relearning
+    /// tries it first.
+    previous: Option<Duration>,
+}
+
+impl DriveGap {
+    /// A drive not heard yet: the spec, trials from the first poll.
+    pub fn new(limits: &Limits) -> Self {
+        Self {
+            confirmed: limits.spec,
+            confirmed_at: None,
+            phase: Phase::start(limits),
+            backoff: RELEARN.0,
+            fallbacks: 0,
+            previous: None,
+        }
+    }
+
+    /// The gap before the next request of kind `use_` at `now`.
+    pub fn silence(&self, use_: Use, limits: &Limits, now: Instant) -> Silence {
+        let confirmed = Silence {
+            gap: self.confirmed,
+            trial: false,
+        };
+        match use_ {
+            Use::Poll => match self.phase {
+                Phase::Stepping { trial, .. } if trial < self.confirmed => Silence {
+                    gap: trial,
+                    trial: true,
+                },
+                _ => confirmed,
+            },
+            Use::Command => confirmed,
+            Use::Emergency => {
+                if self
+                    .confirmed_at
+                    .is_some_and(|at| now.saturating_duration_since(at) <= RECENT)
+                {
+                    confirmed
+                } else {
+                    Silence {
+                        gap: limits.spec,
+                        trial: false,
+                    }
+                }
+            }
+        }
+    }
+
+    /// The gap requests get now (the spec until one was learned).
+    pub fn confirmed(&self) -> Duration {
+        self.confirmed
+    }
+
+    /// True while trials are wanted (and so a poll in idle time helps).
+    pub fn wants_trial(&self, now: Instant) -> bool {
+        match self.phase {
+            Phase::Stepping { trial, .. } => trial < self.confirmed,
+            Phase::Waiting { until } => now >= until,
+            Phase::Settled => false,
+        }
+    }
+
+    /// Times the drive fell back to the spec.
+    pub fn fallbacks(&self) -> u64 {
+        self.fallbacks
+    }
+
+    /// Moves a drive whose wait is over into its trials again.
+    pub fn tick(&mut self, limits: &Limits, now: Instant) {
+        if let Phase::Waiting { until } = self.phase
+            && now >= until
+        {
+            // The level answered before the fallback first: if it is
+            // answered again, the gap is back at once.
+            self.phase = match self.previous.take() {
+                Some(level) => Phase::Stepping {
+                    trial: level,
+                    answers: 0,
+                    worst: Duration::ZERO,
+                    fails: 0,
+                    misses: 0,
+                    ok: limits.spec,
+                    failed: Some(level - level / RESOLUTION),
+                },
+                None => Phase::start(limits),
+            };
+        }
+    }
+
+    /// A request sent after `silence` (as measured) was answered at `now`;
+    /// `trial` as [`silence`](Self::silence) said.
+    pub fn answered(&mut self, silence: Duration, trial: bool, limits: &Limits, now: Instant) {
+        if silence <= self.confirmed + TOLERANCE {
+            self.confirmed_at = Some(now);
+        }
+        let Phase::Stepping {
+            trial: tried,
+            answers,
+            worst,
+            fails,
+            misses,
+            ok,
+            failed,
+        } = self.phase
+        else {
+            return;
+        };
+        if !trial {
+            return;
+        }
+        if silence >= ok {
+            // The master could not keep it shorter than what was already
+            // answered (its own overhead, or the machine kept it from
+            // running): once something was learned, after a few, the steps
+            // end there; before, the trial is simply made again.
+            if misses + 1 >= MISSES_PER_STEP && ok < limits.spec {
+                self.phase = Phase::Settled;
+            } else {
+                self.phase = Phase::Stepping {
+                    trial: tried,
+                    answers,
+                    worst,
+                    fails,
+                    misses: misses + 1,
+                    ok,
+                    failed,
+                };
+            }
+            return;
+        }
+        // A silence longer than the one tried, but shorter than any
+        // answered before, still says something: the level counts at the
+        // longest silence it was answered after.
+        let worst = worst.max(silence).max(tried);
+        if answers + 1 < ANSWERS_PER_STEP {
+            self.phase = Phase::Stepping {
+                trial: tried,
+                answers: answers + 1,
+                worst,
+                fails,
+                misses: 0,
+                ok,
+                failed,
+            };
+            return;
+        }
+        // The level holds: the drive's gap is twice the longest silence it
+        // was answered after (never longer than a level before proved),
+        // within the limits; the steps go on from the level tried.
+        self.confirmed = self
+            .confirmed
+            .min((worst * 2).clamp(limits.floor, limits.spec));
+        self.confirmed_at = Some(now);
+        self.backoff = RELEARN.0;
+        self.phase = Phase::between(tried, failed, limits);
+    }
+
+    /// Ends the steps: settled on the gap learned, or, with none learned,
+    /// tried again after the backoff.
+    fn settle_or_wait(&mut self, limits: &Limits, now: Instant) {
+        if self.confirmed >= limits.spec {
+            self.phase = Phase::Waiting {
+                until: now + self.backoff,
+            };
+            self.backoff = (self.backoff * 2).min(RELEARN.1);
+        } else {
+            self.phase = Phase::Settled;
+        }
+    }
+
+    /// A request sent after `silence` got no valid answer at `now` (a
+    /// timeout, a CRC error, a reply that does not answer it).
+    pub fn failed(&mut self, trial: bool, limits: &Limits, now: Instant) {
+        if trial {
+            if let Phase::Stepping { fails, .. } = &mut self.phase
+                && *fails + 1 < FAILS_PER_STEP
+            {
+                // Perhaps a reply lost to noise: the level is tried again.
+                *fails += 1;
+                return;
+            }
+            // Too short: the gap the answered levels confirmed stays, and
+            // the next trial is halfway back to them. A drive that answered
+            // no level (a strict one) is tried again after the backoff.
+            if let Phase::Stepping { trial, ok, .. } = self.phase {
+                self.phase = Phase::between(ok, Some(trial), limits);
+            }
+            if self.phase == Phase::Settled {
+                self.settle_or_wait(limits, now);
+            }
+            return;
+        }
+        if self.confirmed < limits.spec {
+            self.fallbacks += 1;
+            self.previous = Some(self.confirmed / 2);
+        }
+        self.confirmed = limits.spec;
+        self.confirmed_at = None;
+        self.phase = Phase::Waiting {
+            until: now + self.backoff,
+        };
+        self.backoff = (self.backoff * 2).min(RELEARN.1);
+    }
+}
+
+/// Every unit's gap on one bus, as its master keeps them.
+#[derive(Debug, Clone)]
+pub struct Gaps {
+    setting: Interframe,
+    limits: Limits,
+    drives: Box<[DriveGap; 256]>,
+}
+
+impl Gaps {
+    /// Gaps for `setting` within `limits`, every drive at its start.
+    pub fn new(setting: Interframe, limits: Limits) -> Self {
+        Self {
+            setting,
+            limits,
+            drives: Box::new([DriveGap::new(&limits); 256]),
+        }
+    }
+
+    /// The limits in force.
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    /// The silence before the next request of kind `use_` to `unit` (0:
+    /// a broadcast, which every drive must understand: the spec).
+    pub fn silence(&mut self, unit: u8, use_: Use, now: Instant) -> Silence {
+        let fixed = |gap| Silence { gap, trial: false };
+        match self.setting {
+            Interframe::Spec => fixed(self.limits.spec),
+            Interframe::Fixed(gap) => fixed(gap),
+            Interframe::Auto if unit == 0 => fixed(self.limits.spec),
+            Interframe::Auto => {
+                let drive = &mut self.drives[usize::from(unit)];
+                drive.tick(&self.limits, now);
+                drive.silence(use_, &self.limits, now)
+            }
+        }
+    }
+
+    /// The least silence any request may get now: the line may be free
+    /// for some request this soon after the last frame.
+    pub fn least(&self) -> Duration {
+        match self.setting {
+            Interframe::Spec => self.limits.spec,
+            Interframe::Fixed(gap) => gap,
+            Interframe::Auto => self
+                .drives
+                .iter()
+                .map(|d| match d.phase {
+                    Phase::Stepping { trial, .. } => trial.min(d.confirmed),
+                    _ => d.confirmed,
+                })
+                .min()
+                .unwrap_or(self.limits.spec),
+        }
+    }
+
+    /// The gap `unit`'s requests get now.
+    pub fn confirmed(&self, unit: u8) -> Duration {
+        match self.setting {
+            Interframe::Spec => self.limits.spec,
+            Interframe::Fixed(gap) => gap,
+            Interframe::Auto => self.drives[usize::from(unit)].confirmed,
+        }
+    }
+
+    /// Times `unit` fell back to the spec.
+    pub fn fallbacks(&self, unit: u8) -> u64 {
+        self.drives[usize::from(unit)].fallbacks
+    }
+
+    /// True when a poll of `unit` would try a shorter silence now.
+    pub fn wants_trial(&self, unit: u8, now: Instant) -> bool {
+        self.setting == Interframe::Auto
+            && unit != 0
+            && self.drives[usize::from(unit)].wants_trial(now)
+    }
+
+    /// A request to `unit` sent after `silence` (measured) was answered.
+    pub fn answered(&mut self, unit: u8, silence: Duration, trial: bool, now: Instant) {
+        if self.setting == Interframe::Auto && unit != 0 {
+            self.drives[usize::from(unit)].answered(silence, trial, &self.limits, now);
+        }
+    }
+
+    /// A request to `unit` got no valid answer.
+    pub fn failed(&mut self, unit: u8, trial: bool, now: Instant) {
+        if self.setting == Interframe::Auto && unit != 0 {
+            self.drives[usize::from(unit)].failed(trial, &self.limits, now);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const US: Duration = Duration::from_micros(1);
+
+    fn limits() -> Limits {
+        Limits::for_line(LineTiming::new_8n1(115_200), SERIAL_ADAPTER_LATENCY)
+    }
+
+    /// Answers every poll of a drive that understands any silence of at
+    /// least `needs`, as long as trials go on; the polls made.
+    fn learn(gap: &mut DriveGap, needs: Duration, now: Instant) -> usize {
+        let l = limits();
+        let mut polls = 0;
+        while gap.wants_trial(now) && polls < 200 {
+            let s = gap.silence(Use::Poll, &l, now);
+            if s.gap >= needs {
+                gap.answered(s.gap, s.trial, &l, now);
+            } else {
+                gap.failed(s.trial, &l, now);
+            }
+            polls += 1;
+        }
+        polls
+    }
+
+    #[test]
+    fn limits_at_115200() {
+        let l = limits();
+        assert_eq!(l.spec, 1750 * US);
+        // 3.5 characters (303.8 us) and the adapter's 50 us.
+        assert_eq!(l.floor.as_micros(), 353);
+        assert_eq!(l.shortest_trial.as_micros(), 130);
+        // At 9600 baud 3.5 characters are the spec's t3.5 already.
+        let slow = Limits::for_line(LineTiming::new_8n1(9600), SERIAL_ADAPTER_LATENCY);
+        assert_eq!(slow.floor, slow.spec);
+    }
+
+    #[test]
+    fn starts_at_the_spec_and_tries_shorter_only_on_polls() {
+        let l = limits();
+        let now = Instant::now();
+        let gap = DriveGap::new(&l);
+        assert_eq!(gap.confirmed(), l.spec);
+        let poll = gap.silence(Use::Poll, &l, now);
+        assert!(poll.trial && poll.gap < l.spec, "{poll:?}");
+        for use_ in [Use::Command, Use::Emergency] {
+            assert_eq!(
+                gap.silence(use_, &l, now),
+                Silence {
+                    gap: l.spec,
+                    trial: false
+                }
+            );
+        }
+    }
+
+    #[test]
+    fn a_fast_drive_is_learned_with_a_margin_of_twice_what_worked() {
+        let l = limits();
+        let now = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        // A drive that parts frames after 0.35 ms (as the master measures).
+        let polls = learn(&mut gap, 350 * US, now);
+        assert!(polls < 40, "{polls} polls");
+        // Trials from half the spec down by 7/8: ... 449, 393 answered, 344
+        // not; then halfway back: 368 and 356 answered, close enough to 344
+        // to stop. Twice 356.
+        assert_eq!(gap.confirmed().as_micros(), 711, "{gap:?}");
+        assert!(!gap.wants_trial(now));
+        // Commands get it; polls too, now that the steps have ended.
+        for use_ in [Use::Command, Use::Poll, Use::Emergency] {
+            assert_eq!(gap.silence(use_, &l, now).gap, gap.confirmed());
+        }
+    }
+
+    #[test]
+    fn a_drive_faster_than_any_trial_gets_the_floor() {
+        let l = limits();
+        let now = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        learn(&mut gap, Duration::ZERO, now);
+        assert_eq!(gap.confirmed(), l.floor);
+        assert!(!gap.wants_trial(now));
+    }
+
+    #[test]
+    fn a_strict_drive_stays_on_the_spec_and_is_tried_again_with_backoff() {
+        let l = limits();
+        let now = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        // Half the spec, twice (once may be a reply lost to noise).
+        assert_eq!(learn(&mut gap, l.spec, now), FAILS_PER_STEP as usize);
+        assert_eq!(gap.confirmed(), l.spec);
+        assert_eq!(gap.fallbacks(), 0, "a failed trial is no fallback");
+        assert!(!gap.wants_trial(now + RELEARN.0 - US));
+        assert!(gap.wants_trial(now + RELEARN.0));
+        let later = now + RELEARN.0;
+        gap.tick(&l, later);
+        assert_eq!(learn(&mut gap, l.spec, later), FAILS_PER_STEP as usize);
+        assert!(!gap.wants_trial(later + RELEARN.0 * 2 - US));
+        assert!(gap.wants_trial(later + RELEARN.0 * 2));
+    }
+
+    #[test]
+    fn one_lost_reply_does_not_end_the_steps() {
+        let l = limits();
+        let now = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        let first = gap.silence(Use::Poll, &l, now);
+        gap.failed(true, &l, now);
+        assert_eq!(gap.silence(Use::Poll, &l, now), first, "the level again");
+        learn(&mut gap, 350 * US, now);
+        assert_eq!(gap.confirmed().as_micros(), 711);
+    }
+
+    #[test]
+    fn a_trial_counts_only_at_the_silence_tried() {
+        let l = limits();
+        let now = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        let s = gap.silence(Use::Poll, &l, now);
+        // A command's answer proves nothing about a trial.
+        for _ in 0..10 {
+            gap.answered(s.gap, false, &l, now);
+        }
+        assert_eq!(gap.silence(Use::Poll, &l, now), s);
+        // The thread ran late: 1 ms more silence than tried, no shorter
+        // than the spec. It counts for nothing, and is tried again.
+        for _ in 0..MISSES_PER_STEP * 2 {
+            gap.answered(s.gap + 1000 * US, true, &l, now);
+        }
+        assert_eq!(gap.silence(Use::Poll, &l, now), s, "still the same trial");
+        assert_eq!(gap.confirmed(), l.spec);
+        // Once a gap was learned, misses end the steps there.
+        while gap.confirmed() == l.spec {
+            let s = gap.silence(Use::Poll, &l, now);
+            gap.answered(s.gap, s.trial, &l, now);
+        }
+        let learned = gap.confirmed();
+        assert!(learned < l.spec);
+        for _ in 0..MISSES_PER_STEP {
+            gap.answered(l.spec, true, &l, now);
+        }
+        assert!(!gap.wants_trial(now));
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, learned);
+    }
+
+    #[test]
+    fn any_fault_at_the_learned_gap_puts_the_drive_back_on_the_spec_and_it_relearns_with_backoff() {
+        let l = limits();
+        let t0 = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        learn(&mut gap, 350 * US, t0);
+        let learned = gap.confirmed();
+        // The drive was replaced by a strict one: its first miss.
+        gap.failed(false, &l, t0);
+        assert_eq!(gap.confirmed(), l.spec);
+        assert_eq!(gap.fallbacks(), 1);
+        for use_ in [Use::Command, Use::Poll, Use::Emergency] {
+            assert_eq!(gap.silence(use_, &l, t0).gap, l.spec);
+        }
+        // Nothing shorter is tried before the backoff...
+        let mut now = t0 + RELEARN.0 - US;
+        gap.tick(&l, now);
+        assert!(!gap.wants_trial(now));
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, l.spec);
+        // ...then a trial, which the strict drive fails: the spec stays,
+        // and the next wait is twice as long.
+        now = t0 + RELEARN.0;
+        assert!(gap.wants_trial(now));
+        gap.tick(&l, now);
+        assert_eq!(learn(&mut gap, l.spec, now), FAILS_PER_STEP as usize);
+        assert_eq!(gap.confirmed(), l.spec);
+        assert!(!gap.wants_trial(now + RELEARN.0 * 2 - US));
+        assert!(gap.wants_trial(now + RELEARN.0 * 2));
+        // A fault at the spec is no fallback (and waits longer still).
+        gap.failed(false, &l, now);
+        assert_eq!(gap.fallbacks(), 1, "only a learned gap falls back");
+        // A drive that is fast again is learned again.
+        let later = now + RELEARN.0 * 4;
+        gap.tick(&l, later);
+        learn(&mut gap, 350 * US, later);
+        assert_eq!(gap.confirmed(), learned);
+    }
+
+    #[test]
+    fn a_drive_that_fell_back_is_tried_first_at_its_old_level() {
+        let l = limits();
+        let t0 = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        learn(&mut gap, 350 * US, t0);
+        let learned = gap.confirmed();
+        // A reply the machine made late: a fault like any other.
+        gap.failed(false, &l, t0);
+        let now = t0 + RELEARN.0;
+        gap.tick(&l, now);
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, learned / 2);
+        assert_eq!(learn(&mut gap, 350 * US, now), ANSWERS_PER_STEP as usize);
+        assert_eq!(gap.confirmed(), learned);
+    }
+
+    #[test]
+    fn a_level_counts_at_the_longest_silence_measured_before_its_answers() {
+        let l = limits();
+        let now = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        // Half the spec (875 us), answered after 875, 975 and 925 us (the
+        // thread ran late twice): the level is 975 us.
+        for extra in [0, 100, 50] {
+            let s = gap.silence(Use::Poll, &l, now);
+            gap.answered(s.gap + extra * US, s.trial, &l, now);
+        }
+        assert_eq!(gap.confirmed(), l.spec, "twice 975 us is above the spec");
+        // The steps go on from the level tried.
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, 875 * US * 7 / 8);
+        // The next level answered after 800 us each time (it tried 766):
+        // the gap is twice that.
+        for _ in 0..ANSWERS_PER_STEP {
+            let s = gap.silence(Use::Poll, &l, now);
+            gap.answered(800 * US, s.trial, &l, now);
+        }
+        assert_eq!(gap.confirmed(), 1600 * US);
+    }
+
+    #[test]
+    fn the_backoff_is_bounded() {
+        let l = limits();
+        let mut now = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        for _ in 0..20 {
+            gap.failed(false, &l, now);
+            now += RELEARN.1 * 2;
+            gap.tick(&l, now);
+        }
+        gap.failed(false, &l, now);
+        assert!(!gap.wants_trial(now + RELEARN.1 - US));
+        assert!(gap.wants_trial(now + RELEARN.1));
+    }
+
+    #[test]
+    fn an_emergency_uses_the_gap_only_when_it_was_answered_lately() {
+        let l = limits();
+        let t0 = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        learn(&mut gap, 350 * US, t0);
+        let learned = gap.confirmed();
+        assert_eq!(gap.silence(Use::Emergency, &l, t0 + RECENT).gap, learned);
+        let stale = t0 + RECENT + US;
+        assert_eq!(gap.silence(Use::Emergency, &l, stale).gap, l.spec);
+        // A command answered at the gap vouches for it again.
+        gap.answered(learned, false, &l, stale);
+        assert_eq!(gap.silence(Use::Emergency, &l, stale).gap, learned);
+    }
+}
