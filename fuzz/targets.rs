@@ -110,7 +110,16 @@ pub fn mbap(data: &[u8]) {
             link: drivegate::bus::cache::Link::Online,
             consecutive_failures: 0,
         };
-        if let Some(reply) = polled_copy::answer(&frame.pdu, &snapshot, std::time::Duration::from_secs(1)) {
+        let live = drivegate::bus::freshness::Verdict {
+            freshness: drivegate::bus::freshness::Freshness::Live,
+            since: None,
+            age: Some(std::time::Duration::ZERO),
+            cause: drivegate::bus::freshness::Cause::Polled,
+            stale_at: None,
+        };
+        if let Some(reply) =
+            polled_copy::answer(&frame.pdu, &snapshot, &live, std::time::Duration::from_secs(1))
+        {
             assert!(!reply.is_empty());
         }
         rest = &rest[used..];

@@ -56,6 +56,7 @@ pub mod monitor;
 pub mod mqtt;
 pub mod ops;
 pub mod plant;
+pub mod port_holders;
 pub mod probe;
 pub mod reload;
 pub mod safety;

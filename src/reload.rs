@@ -122,7 +122,7 @@ impl Reloader {
             text = write.text;
         }
         let new = check(&text, &origin)?;
-        for warning in crate::config::warnings::warnings(&text, &origin) {
+        for warning in crate::config::warnings::warnings(&new, &text, &origin) {
             warn!(by, "{warning}");
         }
         let changes = diff(&self.running, &new);

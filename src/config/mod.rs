@@ -105,7 +105,8 @@ impl Config {
         })?;
         let origin = path.display().to_string();
         let config = Self::parse(&text, &origin)?;
-        Ok((config, warnings::warnings(&text, &origin)))
+        let warnings = warnings::warnings(&config, &text, &origin);
+        Ok((config, warnings))
     }
 
     /// The embedded default configuration.

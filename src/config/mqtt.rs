@@ -48,7 +48,8 @@ pub struct MqttConfig {
     commands: CommandsKey,
     /// Takes commands over a broker connection that is not authenticated
     /// (no user and password, no client certificate): from whoever can
-    /// publish on the broker. Logged at every start.
+    /// publish on the broker. Warned about by `check-config`, at every
+    /// start and at every reload ([`MqttConfig::unauthenticated_warning`]).
     #[serde(default)]
     pub unauthenticated_commands: bool,
     /// The user name given to the broker.
@@ -308,6 +309,31 @@ impl MqttConfig {
     /// authenticate (`unauthenticated_commands = true` said so).
     pub fn takes_unauthenticated_commands(&self) -> bool {
         self.commands() != Commands::None && self.login() == Login::Anonymous
+    }
+
+    /// Who commands over a connection without a login come from, as the
+    /// audit log names them: all that is known is the broker.
+    pub fn anonymous_name(&self) -> String {
+        format!(
+            "unauthenticated broker {}:{}",
+            self.broker.host, self.broker.port
+        )
+    }
+
+    /// What `check-config`, `serve` and every reload say when commands
+    /// are taken from any client of the broker: a valid file, on purpose,
+    /// but one no stranger should be able to steer.
+    pub fn unauthenticated_warning(&self) -> Option<String> {
+        self.takes_unauthenticated_commands().then(|| {
+            format!(
+                "[mqtt] unauthenticated_commands = true: commands are taken from any client of \
+                 the broker, which drivegate cannot tell apart (it logs in with no user and no \
+                 client certificate); the audit log names them \"{}\". Log in with username \
+                 and password_file, or a client certificate over mqtts://, and let the \
+                 broker's ACL decide who may command (docs/security.md, MQTT)",
+                self.anonymous_name()
+            )
+        })
     }
 
     /// Checks across keys: a client certificate comes with its key;

@@ -1,7 +1,9 @@
-//! What a valid configuration holds that is probably a mistake, said
-//! without refusing it: a bus at a baud rate that no adapter or drive
-//! commonly uses (`11520` typed for `115200`), where the drives would
-//! never answer and nothing else would say why.
+//! What a valid configuration holds that is probably a mistake, or a
+//! risk taken on purpose, said without refusing it: a bus at a baud rate
+//! that no adapter or drive commonly uses (`11520` typed for `115200`),
+//! where the drives would never answer and nothing else would say why;
+//! MQTT commands taken from any client of the broker
+//! (`unauthenticated_commands = true`).
 //!
 //! `drivegate check-config` prints these, `serve` and every reload log
 //! them; the file is still taken (an unusual rate may be meant).
@@ -9,6 +11,7 @@
 use serde::Deserialize;
 use toml::Spanned;
 
+use super::Config;
 use super::error::line_column;
 
 /// The rates serial adapters and RS-485 devices commonly use. The drives
@@ -17,23 +20,32 @@ pub const STANDARD_BAUDS: [u32; 11] = [
     1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600,
 ];
 
-/// The warnings for `text` (already parsed and valid), each as
-/// `origin:line:column: what`.
-pub fn warnings(text: &str, origin: &str) -> Vec<String> {
+/// The warnings for `text` (already parsed and valid, as `config`), each
+/// as `origin:line:column: what`.
+pub fn warnings(config: &Config, text: &str, origin: &str) -> Vec<String> {
     // Only what the warnings look at, with positions; the rest of the
     // file was checked by the parser.
     #[derive(Deserialize)]
     struct File {
         #[serde(default)]
         bus: Vec<Bus>,
+        mqtt: Option<Mqtt>,
     }
     #[derive(Deserialize)]
     struct Bus {
         name: Option<String>,
         baud: Option<Spanned<i64>>,
     }
+    #[derive(Deserialize)]
+    struct Mqtt {
+        unauthenticated_commands: Option<Spanned<bool>>,
+    }
     let Ok(file) = toml::from_str::<File>(text) else {
         return Vec::new();
+    };
+    let at = |span: std::ops::Range<usize>| {
+        let (line, column) = line_column(text, span.start);
+        format!("{origin}:{line}:{column}")
     };
     let mut out = Vec::new();
     for bus in &file.bus {
@@ -42,16 +54,24 @@ pub fn warnings(text: &str, origin: &str) -> Vec<String> {
         if u32::try_from(rate).is_ok_and(|r| STANDARD_BAUDS.contains(&r)) {
             continue;
         }
-        let (line, column) = line_column(text, baud.span().start);
         let name = bus.name.as_deref().unwrap_or("?");
         out.push(format!(
-            "{origin}:{line}:{column}: bus \"{name}\": baud = {rate} is not a standard rate{}: \
+            "{}: bus \"{name}\": baud = {rate} is not a standard rate{}: \
              a drive at another rate never answers. The drives speak 115200; the standard \
              rates are {}. `drivegate probe --port PORT --try-bauds` finds the rate the \
              drives answer at",
+            at(baud.span()),
             did_you_mean(rate),
             STANDARD_BAUDS.map(|b| b.to_string()).join(", "),
         ));
+    }
+    if let Some(warning) = config
+        .mqtt
+        .as_ref()
+        .and_then(|m| m.unauthenticated_warning())
+        && let Some(key) = file.mqtt.and_then(|m| m.unauthenticated_commands)
+    {
+        out.push(format!("{}: {warning}", at(key.span())));
     }
     out
 }
@@ -67,6 +87,11 @@ fn did_you_mean(rate: i64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn warnings(text: &str, origin: &str) -> Vec<String> {
+        let config = Config::parse(text, origin).unwrap();
+        super::warnings(&config, text, origin)
+    }
 
     #[test]
     fn a_typo_in_the_baud_rate_is_named_with_the_rate_meant() {
@@ -97,6 +122,30 @@ mod tests {
         for baud in ["", "baud = 115200\n", "baud = 9600\n", "baud = 921600\n"] {
             let text = format!("[[bus]]\nname = \"line1\"\nport = \"sim\"\n{baud}");
             assert!(warnings(&text, "f").is_empty(), "{baud}");
+        }
+    }
+
+    #[test]
+    fn mqtt_commands_from_any_client_are_a_warning_where_they_take_effect() {
+        let mqtt = "[mqtt]\nbroker = \"mqtt://10.0.0.5:1883\"\n";
+        let text = format!("{mqtt}commands = \"operator\"\nunauthenticated_commands = true\n");
+        let w = warnings(&text, "plant.toml");
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].starts_with(
+                "plant.toml:4:28: [mqtt] unauthenticated_commands = true: commands are taken \
+                 from any client of the broker"
+            ) && w[0].contains("\"unauthenticated broker 10.0.0.5:1883\"")
+                && w[0].contains("username and password_file"),
+            "{w:?}"
+        );
+        // Without commands, or with a login, the key changes nothing.
+        for keys in [
+            "unauthenticated_commands = true\n",
+            "commands = \"operator\"\nunauthenticated_commands = true\nusername = \"gw1\"\n\
+             password_file = \"/etc/drivegate/mqtt-password\"\n",
+        ] {
+            assert!(warnings(&format!("{mqtt}{keys}"), "f").is_empty(), "{keys}");
         }
     }
 }

@@ -88,6 +88,19 @@ pub const OFFLINE: &str = "The drive stopped answering its status reads. Check i
      the line's settings (115200 bit/s, 8 data bits, no parity, 1 stop bit, manual 1.1). \
      drivegate keeps probing it and clears this alarm when it answers again.";
 
+/// What a drive that has not answered once since its bus opened means and
+/// what to check: most often the line's settings or the address, not the
+/// drive.
+pub const NEVER_ANSWERED: &str = "The drive has not answered a single status read since its bus \
+     opened, so drivegate has never heard it: this is most often the bus's settings, not the \
+     drive. Check the bus's baud rate (the drives speak 115200 bit/s, 8 data bits, no parity, 1 \
+     stop bit, manual 1.1; baud in the [[bus]] section) and the unit address drivegate polls \
+     against the one the drive has (set with a broadcast to address 0 with only that drive on \
+     the bus, manual 1.2). `drivegate probe --port PORT --try-bauds` (with drivegate stopped) \
+     finds the drives on the line and the rate they answer at. Then check the drive's power and \
+     the RS-485 wiring (A/B not swapped, termination at both ends). drivegate keeps polling it \
+     and clears this alarm when it answers.";
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -105,5 +118,12 @@ mod tests {
         }
         assert!(STALL.contains("fault reset"));
         assert!(OFFLINE.contains("1.2"));
+        assert!(
+            NEVER_ANSWERED.contains("baud rate")
+                && NEVER_ANSWERED.contains("unit address")
+                && NEVER_ANSWERED.contains("1.1")
+                && NEVER_ANSWERED.contains("1.2")
+                && NEVER_ANSWERED.contains("--try-bauds")
+        );
     }
 }

@@ -102,8 +102,8 @@ static DRIFT: Spec = Spec {
 
 static ALARMS_ACTIVE: Spec = Spec {
     name: "drivegate_alarms_active",
-    help: "Active alarms by kind: fault, stall, offline, bus-down, stop-failed (conditions that \
-           last), comm-loss and refused-write (events: never active, see \
+    help: "Active alarms by kind: fault, stall, offline, never-answered, bus-down, stop-failed \
+           (conditions that last), comm-loss and refused-write (events: never active, see \
            drivegate_alarms_unacknowledged).",
     kind: Kind::Gauge,
     labels: &["kind"],

@@ -297,9 +297,13 @@ impl Gateway {
                 .write(client, &caller, target, bus, pdu, unchecked)
                 .await;
         }
+        // The copy only while the drive's data is live (judged after the
+        // snapshot is taken): a bus that went down or a drive whose polls
+        // are missing is read from the bus, which answers 0x0A or 0x0B.
         if let Some(max_age) = tables.polled_copy.get(route.bus).copied().flatten()
             && let Some(snapshot) = bus.drive(route.unit)
-            && let Some(reply) = polled_copy::answer(&pdu, &snapshot, max_age)
+            && let Some(freshness) = bus.freshness(route.unit)
+            && let Some(reply) = polled_copy::answer(&pdu, &snapshot, &freshness, max_age)
         {
             self.count(function, Outcome::Cached);
             return Answer::Now(reply);

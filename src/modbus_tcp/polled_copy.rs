@@ -4,12 +4,19 @@
 //! take a large share of a 115200-baud bus. The scheduler polls every drive
 //! anyway, so a read of registers inside 0x00C0..=0x00CC (manual 1.7) can be
 //! answered from that copy, if it is younger than the configured maximum
-//! age. Addressing is the drive's: registers sit at even byte addresses and
-//! quantities count 16-bit words, so a one-register read at 0x00C2 is ANGLE.
+//! age and the drive's data is live as the bus judges it
+//! ([`crate::bus::freshness`]): its port up, the drive answering its polls
+//! within their period. A copy is never answered for a drive whose wire is
+//! gone, however young: the read goes to the bus instead, which refuses it
+//! unsent while the port is down (0x0A) and reports a drive that does not
+//! answer (0x0B), as for any read. Addressing is the drive's: registers sit
+//! at even byte addresses and quantities count 16-bit words, so a
+//! one-register read at 0x00C2 is ANGLE.
 
 use std::time::Duration;
 
 use crate::bus::cache::{DriveSnapshot, Link};
+use crate::bus::freshness::Verdict;
 use crate::drive::registers::{STATUS_BLOCK_LEN, STATUS_BLOCK_START};
 use crate::modbus::function::{READ_HOLDING_REGISTERS, be_u16};
 
@@ -30,10 +37,17 @@ pub fn status_registers(pdu: &[u8]) -> Option<(usize, usize)> {
 }
 
 /// The reply to `pdu` from `snapshot`, if it is a status read the copy can
-/// answer and the copy is at most `max_age` old.
-pub fn answer(pdu: &[u8], snapshot: &DriveSnapshot, max_age: Duration) -> Option<Vec<u8>> {
+/// answer: the drive's data `live` by `freshness` (judged after the
+/// snapshot was taken) and the copy at most `max_age` old.
+pub fn answer(
+    pdu: &[u8],
+    snapshot: &DriveSnapshot,
+    freshness: &Verdict,
+    max_age: Duration,
+) -> Option<Vec<u8>> {
     let (first, count) = status_registers(pdu)?;
-    if snapshot.link == Link::Offline || snapshot.age()? > max_age {
+    if !freshness.freshness.is_live() || snapshot.link == Link::Offline || snapshot.age()? > max_age
+    {
         return None;
     }
     let registers = snapshot.status?.to_registers();
@@ -49,8 +63,38 @@ pub fn answer(pdu: &[u8], snapshot: &DriveSnapshot, max_age: Duration) -> Option
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::bus::freshness::{Expected, Facts, judge};
+    use crate::bus::handle::PortState;
     use crate::drive::Status;
     use std::time::{Instant, SystemTime};
+
+    const EXPECTED: Expected = Expected {
+        period: Duration::from_millis(100),
+        slack: Duration::from_millis(400),
+    };
+
+    /// What the bus would say of `snapshot` on a port in `port`, now.
+    fn judged(snapshot: &DriveSnapshot, port: &PortState) -> Verdict {
+        let facts = Facts {
+            seen_at: snapshot.seen_at,
+            seen_instant: snapshot.seen_instant,
+            link: snapshot.link,
+            failures: snapshot.consecutive_failures,
+            offline_since: None,
+            last_failure: None,
+        };
+        judge(port, &facts, EXPECTED, Instant::now())
+    }
+
+    fn up() -> PortState {
+        PortState::Up {
+            since: SystemTime::now(),
+        }
+    }
+
+    fn live(snapshot: &DriveSnapshot) -> Verdict {
+        judged(snapshot, &up())
+    }
 
     fn snapshot(age: Duration, link: Link) -> DriveSnapshot {
         DriveSnapshot {
@@ -102,6 +146,7 @@ mod tests {
         let full = answer(
             &[0x03, 0x00, 0xC0, 0x00, 0x07],
             &s,
+            &live(&s),
             Duration::from_millis(100),
         )
         .unwrap();
@@ -112,6 +157,7 @@ mod tests {
         let two = answer(
             &[0x03, 0x00, 0xC2, 0x00, 0x02],
             &s,
+            &live(&s),
             Duration::from_millis(100),
         )
         .unwrap();
@@ -121,13 +167,37 @@ mod tests {
     #[test]
     fn a_stale_or_offline_copy_goes_to_the_bus() {
         let read = [0x03, 0x00, 0xC0, 0x00, 0x07];
+        let max_age = Duration::from_millis(100);
         let old = snapshot(Duration::from_millis(300), Link::Online);
-        assert_eq!(answer(&read, &old, Duration::from_millis(100)), None);
+        assert_eq!(answer(&read, &old, &live(&old), max_age), None);
         let offline = snapshot(Duration::from_millis(1), Link::Offline);
-        assert_eq!(answer(&read, &offline, Duration::from_millis(100)), None);
+        assert_eq!(answer(&read, &offline, &live(&offline), max_age), None);
         let mut never = snapshot(Duration::ZERO, Link::Unknown);
         never.status = None;
         never.seen_instant = None;
-        assert_eq!(answer(&read, &never, Duration::from_millis(100)), None);
+        assert_eq!(answer(&read, &never, &live(&never), max_age), None);
+    }
+
+    #[test]
+    fn a_young_copy_is_not_answered_once_the_wire_is_gone_or_the_data_stale() {
+        let read = [0x03, 0x00, 0xC0, 0x00, 0x07];
+        // Well within a long maximum age, and the drive's link still
+        // online: what decides is the bus's freshness.
+        let max_age = Duration::from_secs(60);
+        let young = snapshot(Duration::from_millis(5), Link::Online);
+        assert!(answer(&read, &young, &live(&young), max_age).is_some());
+        let down = PortState::Down {
+            since: SystemTime::now(),
+            reason: "serial port /dev/ttyUSB0 failed: gone".into(),
+        };
+        let bus_down = judged(&young, &down);
+        assert_eq!(bus_down.freshness.name(), "bus-down");
+        assert_eq!(answer(&read, &young, &bus_down, max_age), None);
+        // Polls missing past the drive's period and slack: stale, though
+        // younger than max_age.
+        let late = snapshot(Duration::from_secs(2), Link::Online);
+        let stale = live(&late);
+        assert_eq!(stale.freshness.name(), "stale");
+        assert_eq!(answer(&read, &late, &stale, max_age), None);
     }
 }

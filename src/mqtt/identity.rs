@@ -23,10 +23,7 @@ pub fn who(config: &MqttConfig, primary_host: Option<&str>) -> String {
             Some(cn) => format!("broker certificate \"{cn}\""),
             None => "broker certificate".to_string(),
         },
-        Login::Anonymous => format!(
-            "unauthenticated broker {}:{}",
-            config.broker.host, config.broker.port
-        ),
+        Login::Anonymous => config.anonymous_name(),
     };
     match primary_host {
         Some(host) => format!("{login}; primary host \"{host}\" claimed"),
@@ -42,18 +39,6 @@ fn certificate_name(config: &MqttConfig) -> Option<String> {
     crate::tls::peer_identity(chain.first()?, "")
         .ok()?
         .common_name
-}
-
-/// Logs, at every start of the face, that commands are taken from any
-/// client of the broker (`unauthenticated_commands = true`).
-pub fn warn_if_unauthenticated(config: &MqttConfig) {
-    if config.takes_unauthenticated_commands() {
-        tracing::warn!(
-            broker = %config.broker,
-            "[mqtt] unauthenticated_commands = true: commands are taken from any client of the broker, which drivegate cannot tell apart (it logs in with no user and no client certificate); the audit log names them \"{}\". Log in with username and password_file, or a client certificate over mqtts://, and let the broker's ACL decide who may command (docs/security.md, MQTT)",
-            who(config, None)
-        );
-    }
 }
 
 #[cfg(test)]

@@ -119,7 +119,6 @@ pub fn start(
         return Ok(None);
     };
     let node_id = node_id(&section);
-    identity::warn_if_unauthenticated(&section);
     if section.format == Format::Json {
         if section.primary_host_id.is_some() {
             tracing::warn!(

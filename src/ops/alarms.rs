@@ -14,8 +14,8 @@ pub struct AlarmView {
     /// Its number (for the acknowledgement), unique for the life of the
     /// state directory.
     pub id: u64,
-    /// What it is about: `fault`, `stall`, `offline`, `bus-down`,
-    /// `comm-loss` (a Modbus TCP client's communication-loss stop),
+    /// What it is about: `fault`, `stall`, `offline`, `never-answered`
+    /// (not answered once since its bus opened), `bus-down`, `comm-loss` (a Modbus TCP client's communication-loss stop),
     /// `stop-failed` (a lease's stop not confirmed) or `refused-write` (a
     /// write refused by a safety rule).
     pub kind: String,
@@ -33,7 +33,7 @@ pub struct AlarmView {
     /// When it was raised (RFC 3339, UTC).
     pub raised_at: String,
     /// True while its condition lasts (a fault, a stall, an offline drive,
-    /// a bus down, a stop not confirmed). An event (`comm-loss`,
+    /// a drive never heard, a bus down, a stop not confirmed). An event (`comm-loss`,
     /// `refused-write`) is never active: it is over when it is raised.
     pub active: bool,
     /// When its condition ended (for an event: when it was raised);

@@ -11,10 +11,9 @@
 //!
 //! The probe owns the port while it runs: stop the daemon (or the bus) that
 //! uses it first. A port another program holds is named as such, with
-//! that program and its pid ([`holders`]).
+//! that program and its pid ([`crate::port_holders`]).
 
 pub mod diagnosis;
-pub mod holders;
 
 use std::io::{IsTerminal, Write};
 use std::sync::Arc;
@@ -27,6 +26,7 @@ use crate::drive::DriveRequest;
 use crate::modbus::timing::LineTiming;
 use crate::monitor::record::Direction;
 use crate::monitor::{BusMonitor, MonitorSettings};
+use crate::port_holders::{self, Holder};
 use crate::sim::cli::UnitList;
 use diagnosis::{COMMON_BAUDS, Heard, RateScan, UnitReads};
 
@@ -272,14 +272,40 @@ async fn scan(
 }
 
 /// Why `port` could not be opened, in words: taken by another program
-/// (the system says "busy", or its lock is held), that program is named.
+/// (the system says "busy", or its lock is held), that program is named,
+/// with what to do before probing again.
 fn open_error(port: &str, e: &OpenError) -> String {
-    if let OpenError::Serial(PortError::Open { source, .. }) = e
-        && source.kind == tokio_serial::ErrorKind::NoDevice
-    {
-        return holders::in_use(port);
+    match e {
+        OpenError::Serial(PortError::Held { holders, .. }) => in_use(port, holders),
+        _ => e.to_string(),
     }
-    e.to_string()
+}
+
+/// What the probe says when `port` is held by `holders`: who, and what to
+/// do.
+fn in_use(port: &str, holders: &[Holder]) -> String {
+    if holders.is_empty() {
+        return format!(
+            "{port} is in use by another program, which holds it exclusively (the system does \
+             not say which to this user: `sudo fuser -v {port}` names it). Stop it, or stop \
+             drivegate if it polls this line (sudo systemctl stop drivegate), then probe again"
+        );
+    }
+    let stop = if port_holders::is_drivegate(holders) {
+        "A drivegate daemon polls this line: stop it first (sudo systemctl stop drivegate), \
+         or probe from the console's commissioning page, which scans through the daemon"
+    } else {
+        "Stop it first"
+    };
+    let who = if holders.len() == 1 {
+        "another program"
+    } else {
+        "other programs"
+    };
+    format!(
+        "{port} is in use by {who}: {}. {stop}, then probe again",
+        port_holders::named(holders)
+    )
 }
 
 /// One status read of `unit`, sorted by what came back.

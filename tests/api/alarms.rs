@@ -6,7 +6,11 @@
 //! the drive answering again clears it; a save refused while the motor
 //! turns becomes a `refused-write` alarm, repeats count on it, and the
 //! stream's `alarm-ack` acknowledges it; a drive's fault is an alarm with
-//! the manual's help, cleared by a fault reset.
+//! the manual's help, cleared by a fault reset; a drive that never answered
+//! since its bus opened is a `never-answered` alarm naming the baud rate
+//! and the unit address (not `offline`), once while it lasts (a bus down
+//! and back in between included), cleared when it answers, and none for a
+//! drive on a bus whose port is down.
 
 use std::time::{Duration, Instant};
 
@@ -17,6 +21,7 @@ use crate::support::api::{Api, connect, send_json, wait_for};
 use crate::support::config::ConfigBuilder;
 use crate::support::logs::{capture_logs, log_text};
 use crate::support::metrics::metric;
+use crate::support::sim_process::ExternalSim;
 use crate::support::wait::{bounded, eventually};
 
 const LIMIT: Duration = Duration::from_secs(90);
@@ -383,6 +388,128 @@ async fn a_bus_whose_adapter_is_missing_is_an_alarm() {
             alarm["help"].as_str().unwrap().contains("dialout"),
             "{alarm:#}"
         );
+        d.stop().await;
+    })
+    .await;
+}
+
+/// The newest alarm of `drive` once one satisfies `want`, within
+/// [`EVENT`].
+async fn alarm_where(api: &Api, drive: &str, what: &str, want: impl Fn(&Value) -> bool) -> Value {
+    let start = Instant::now();
+    loop {
+        let list = api
+            .get(&format!("/api/v1/alarms?drive={drive}"))
+            .await
+            .expect(200);
+        if let Some(a) = list["alarms"].as_array().and_then(|l| l.first())
+            && want(a)
+        {
+            return a.clone();
+        }
+        assert!(start.elapsed() < EVENT, "no {what}: {list:#}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drive_that_never_answered_is_an_alarm_naming_the_baud_rate_and_address() {
+    bounded(LIMIT, async {
+        // Line 1: the conveyor (1) answers, the belt (2) never does (as at
+        // a wrong address). Line 2: its adapter is missing.
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("ttyUSB-line1");
+        let sim = ExternalSim::start(&link, "1-2", &["--silent-units", "2"]).await;
+        let toml = ConfigBuilder::new()
+            .bus("line1", |b| {
+                // A silent drive probed often, so the test sees it probed
+                // in vain after the adapter is back.
+                b.port(&link.display().to_string())
+                    .keys("offline_backoff_ms = 200\noffline_backoff_max_ms = 400")
+                    .drive(1, "conveyor")
+                    .drive(2, "belt")
+            })
+            .bus("line2", |b| {
+                b.port("/dev/drivegate-test-no-such-adapter")
+                    .drive(1, "lift")
+            })
+            .toml();
+        let d = TestDaemon::start_no_wait(&toml).await;
+        let api = Api::new(d.http, None);
+        let raised = alarm_where(&api, "belt", "the belt's alarm", |a| a["active"] == true).await;
+        let alarm = &raised;
+        assert_eq!(alarm["kind"], "never-answered", "{raised:#}");
+        assert_eq!(alarm["active"], true);
+        let text = alarm["text"].as_str().unwrap();
+        for words in [
+            "drive belt (bus line1, unit 2) has never answered: no answer since bus line1 opened",
+            "check the baud rate (the bus runs at 115200 baud) and the unit address (2)",
+        ] {
+            assert!(text.contains(words), "{words:?} not in {text}");
+        }
+        let help = alarm["help"].as_str().unwrap();
+        assert!(
+            help.contains("baud rate")
+                && help.contains("unit address")
+                && help.contains("--try-bauds"),
+            "{help}"
+        );
+        let id = alarm["id"].as_u64().unwrap();
+        let active = |d: &TestDaemon, kind: &str| {
+            metric(
+                &d.metrics.render(),
+                &format!("drivegate_alarms_active{{kind=\"{kind}\"}}"),
+            )
+        };
+        assert_eq!(active(&d, "never-answered"), 1.0);
+        // Not also "offline": it never stopped, it never started.
+        assert!(alarms_of(&api, "belt", "offline").await.is_empty());
+        assert!(
+            alarms_of(&api, "conveyor", "never-answered")
+                .await
+                .is_empty()
+        );
+        // The lift's bus is down: that is the bus's alarm, not the drive's.
+        assert!(alarms_of(&api, "lift", "never-answered").await.is_empty());
+        assert!(alarms_of(&api, "lift", "offline").await.is_empty());
+        assert_eq!(active(&d, "bus-down"), 1.0);
+
+        // The adapter unplugged and back, the belt still silent: the same
+        // alarm, still active, none added.
+        sim.kill().await;
+        eventually(EVENT, "line1's bus-down alarm", || {
+            (active(&d, "bus-down") == 2.0).then_some(())
+        })
+        .await;
+        let sim = ExternalSim::start(&link, "1-2", &["--silent-units", "2"]).await;
+        eventually(EVENT, "line1 back", || {
+            (active(&d, "bus-down") == 1.0).then_some(())
+        })
+        .await;
+        let (_, line1) = d.plant.drive("belt").unwrap();
+        let polls = line1.stats().poll_failures;
+        eventually(EVENT, "the belt polled in vain again", || {
+            (line1.stats().poll_failures > polls + 1).then_some(())
+        })
+        .await;
+        let belt = alarms_of(&api, "belt", "never-answered").await;
+        assert_eq!(belt.len(), 1, "{belt:#?}");
+        assert_eq!(
+            (belt[0]["id"].as_u64(), &belt[0]["active"]),
+            (Some(id), &json!(true))
+        );
+
+        // The belt answers (its address put right, here: the adapter with
+        // both drives answering): the alarm clears.
+        sim.kill().await;
+        let _sim = ExternalSim::start(&link, "1-2", &[]).await;
+        let cleared = alarm_where(&api, "belt", "the alarm cleared", |a| {
+            a["id"] == id && a["active"] == false
+        })
+        .await;
+        assert!(cleared["cleared_at"].is_string(), "{cleared:#}");
+        assert_eq!(active(&d, "never-answered"), 0.0);
+        assert!(alarms_of(&api, "belt", "offline").await.is_empty());
         d.stop().await;
     })
     .await;

@@ -3,10 +3,15 @@
 //! killed, every value on the overview and the drive page is greyed, the
 //! overview counts "0 of 2 online: bus line1 is down", each row says since
 //! when and (on hover) why, the drive page says it in a sentence with the
-//! port's error; plugged back, all live again. A bus configured at the
-//! wrong baud rate shows its drives as never answered, with the rate, the
-//! unit address and `drivegate probe --try-bauds`. The pictures for
-//! `docs/` (`DRIVEGATE_SCREENSHOTS=docs`) are taken once each is checked.
+//! port's error; the bus's card shows no utilisation nor error rate from
+//! the moment it says the port is down ("— not live", greyed, never a
+//! figure), and the header's badge, which says the page is connected,
+//! says the bus is down beside it (never green over a dead line); plugged
+//! back, all live again. A bus configured at the wrong baud rate shows its
+//! drives as never answered, with the rate, the unit address and
+//! `drivegate probe --try-bauds`, and the badge says they are not live.
+//! The pictures for `docs/` (`DRIVEGATE_SCREENSHOTS=docs`) are taken once
+//! each is checked.
 
 use std::path::Path;
 
@@ -58,6 +63,37 @@ async fn summary(page: &Page, want: &str) {
     .await;
 }
 
+/// Waits until the header's badge reads `text` with class `class`.
+async fn badge_is(page: &Page, text: &str, class: &str) {
+    page.wait_for(
+        &format!(
+            "document.getElementById('conn').textContent === {} && document.getElementById('conn').className === {}",
+            serde_json::to_string(text).unwrap(),
+            serde_json::to_string(class).unwrap()
+        ),
+        LONG,
+        &format!("the badge \"{text}\""),
+    )
+    .await;
+}
+
+/// Bus line1's card's utilisation: `[text, font style, colour, the card
+/// down]`, once it has a card.
+const UTILISATION: &str = "(() => { const c = document.querySelector('.bus[data-bus=line1]'); if (!c) return null; \
+    const dt = [...c.querySelectorAll('dt')].find((d) => d.textContent === 'Utilisation'); \
+    const dd = dt.nextElementSibling; const s = getComputedStyle(dd); \
+    return [dd.textContent, s.fontStyle, s.color, c.classList.contains('down')]; })()";
+
+/// Records, from now on, every moment bus line1's card says its port is
+/// down while a figure stands beside Utilisation or Errors.
+const WATCH_RATES: &str = "(() => { window.ratesWhileDown = []; const check = () => { \
+    const c = document.querySelector('.bus[data-bus=line1]'); if (!c || !c.classList.contains('down')) return; \
+    for (const dt of c.querySelectorAll('dt')) { \
+      if ((dt.textContent === 'Utilisation' || dt.textContent === 'Errors') && /\\d/.test(dt.nextElementSibling.textContent)) \
+        window.ratesWhileDown.push(dt.nextElementSibling.textContent); } }; \
+    new MutationObserver(check).observe(document.querySelector('.buses'), { childList: true, subtree: true, characterData: true }); \
+    return true; })()";
+
 /// `[text, font style, colour, title]` of cell `n` (1-based, after the
 /// name: 2 the state, 4 the speed, 7 the voltage) of `drive`'s row.
 async fn cell(page: &Page, drive: &str, n: usize) -> serde_json::Value {
@@ -93,9 +129,44 @@ async fn a_bus_that_went_down_greys_every_value_with_why_and_since_when() {
             "the conveyor at 60 rpm",
         )
         .await;
+        // The page's link, and all live: green, one word.
+        badge_is(&page, "connected", "conn open").await;
+        let shown = page
+            .wait_for(
+                &format!("(() => {{ const u = {UTILISATION}; return u && u[0].endsWith(' %') ? u : null; }})()"),
+                LONG,
+                "the bus's utilisation",
+            )
+            .await;
+        assert_eq!(shown[3], json!(false), "{shown}");
+        assert_eq!(page.eval(WATCH_RATES).await, json!(true));
 
         sim.kill().await;
         summary(&page, "0 of 2 online: bus line1 is down").await;
+        // The card: no figure from the moment it says the port is down.
+        let utilisation = page
+            .wait_for(
+                &format!("(() => {{ const u = {UTILISATION}; return u && u[3] ? u : null; }})()"),
+                LONG,
+                "the card down",
+            )
+            .await;
+        assert_eq!(
+            utilisation,
+            json!(["— not live: the port is down", "italic", "rgb(107, 114, 128)", true])
+        );
+        assert_eq!(
+            page.eval("window.ratesWhileDown").await,
+            json!([]),
+            "a rate shown on a card whose port is down"
+        );
+        // The badge: still connected, and the bus down beside it.
+        badge_is(&page, "connected · bus down", "conn open down").await;
+        let title = page.eval("document.getElementById('conn').title").await;
+        assert_eq!(
+            title,
+            json!("This page is connected to drivegate; 0 of 2 drives live; down: bus line1.")
+        );
         for drive in ["conveyor", "belt"] {
             page.wait_for(
                 &format!("document.querySelector('tr[data-drive={drive}]').dataset.freshness === 'bus-down'"),
@@ -180,6 +251,14 @@ async fn a_bus_that_went_down_greys_every_value_with_why_and_since_when() {
         .await;
         page.eval("location.hash = '#/'").await;
         summary(&page, "2 of 2 online").await;
+        badge_is(&page, "connected", "conn open").await;
+        page.wait_for(
+            &format!("(() => {{ const u = {UTILISATION}; return u && !u[3] && u[0].endsWith(' %'); }})()"),
+            LONG,
+            "the utilisation again",
+        )
+        .await;
+        assert_eq!(page.eval("window.ratesWhileDown").await, json!([]));
         let voltage = cell(&page, "belt", 7).await;
         assert_eq!(voltage[1], json!("normal"), "{voltage}");
         assert_clean(&page, &base);
@@ -208,6 +287,9 @@ async fn a_drive_that_never_answered_at_the_wrong_baud_rate_says_to_check_the_ra
         .await;
         let state = cell(&page, "belt", 2).await;
         assert_eq!(state[0], json!("never answered"), "{state}");
+        // The port is open, the page connected: the badge says the data is
+        // not live all the same.
+        badge_is(&page, "connected · 2 not live", "conn open not-live").await;
         page.wait_for(
             "(document.querySelector('tr[data-drive=belt] td:nth-of-type(2)').title || '').includes('11520 baud')",
             LONG,

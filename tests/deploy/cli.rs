@@ -108,6 +108,36 @@ fn the_common_mistakes_are_said_in_plain_words_with_the_right_form() {
 }
 
 #[test]
+fn mqtt_commands_from_any_client_of_the_broker_are_warned_by_check_config() {
+    let mqtt = "[mqtt]\nbroker = \"mqtt://127.0.0.1:1883\"\ncommands = \"operator\"\n";
+    let (code, stdout, stderr) = check(&format!("{mqtt}unauthenticated_commands = true\n"));
+    // Valid (a test bench may mean it), and said, where the key is.
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(stdout.contains("valid (0 bus(es), 0 drive(s))"), "{stdout}");
+    assert!(
+        stderr.starts_with(
+            "warning: plant.toml:4:28: [mqtt] unauthenticated_commands = true: commands are \
+             taken from any client of the broker"
+        ) && stderr.contains("the audit log names them \"unauthenticated broker 127.0.0.1:1883\"")
+            && stderr.contains("username and password_file")
+            && stderr.contains("client certificate over mqtts://"),
+        "{stderr}"
+    );
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    // Without it, the file is refused (commands need a login); with a
+    // login, the key takes no effect and nothing is said.
+    let dir = tempfile::tempdir().unwrap();
+    let password = dir.path().join("mqtt-password");
+    std::fs::write(&password, "secret\n").unwrap();
+    let (code, _, stderr) = check(&format!(
+        "{mqtt}unauthenticated_commands = true\nusername = \"gw1\"\npassword_file = \"{}\"\n",
+        password.display()
+    ));
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(!stderr.contains("warning"), "{stderr}");
+}
+
+#[test]
 fn a_baud_rate_that_is_no_standard_one_is_warned_with_the_rate_meant() {
     let (code, stdout, stderr) = check(
         "[[bus]]\nname = \"line1\"\nport = \"sim\"\nbaud = 11520\n\n[[bus.drive]]\nunit = 1\nname = \"conveyor\"\n",

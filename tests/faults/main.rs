@@ -13,5 +13,6 @@ mod support;
 
 mod adapter;
 mod drives;
+mod held_port;
 mod stall;
 mod wire;

@@ -1,11 +1,14 @@
 //! One Modbus TCP listener over two simulated buses through a unit map, and
-//! status reads answered from the polled copy.
+//! status reads answered from the polled copy: while fresh, never once the
+//! wire is gone (an external simulator killed under a reading client).
 
 use std::time::Duration;
 
 use crate::support::bounded;
-use crate::support::metrics::metric;
+use crate::support::config::ConfigBuilder;
+use crate::support::metrics::{counter, metric};
 use crate::support::modbus_tcp::{Raw, drives, pymodbus, read, registers, write};
+use crate::support::sim_process::ExternalSim;
 use crate::support::{TestDaemon, eventually};
 use drivegate::bus::stats::Outcome;
 use drivegate::plant::SimRef;
@@ -226,6 +229,108 @@ async fn without_polled_copy_every_read_uses_the_bus() {
         // loaded machine a poll can time out).
         let polled = (after.polls - after.poll_failures) - (before.polls - before.poll_failures);
         assert!(reads(&after) - reads(&before) >= 20 + polled);
+        d.stop().await;
+    })
+    .await;
+}
+
+/// The copy's answers, counted by the daemon.
+const CACHED: &str = "drivegate_modbus_tcp_requests_total{function=\"0x03\",outcome=\"cached\"}";
+
+/// A status read of `unit`: its seven registers, or the exception's code.
+async fn status_or_exception(c: &mut Raw, unit: u8) -> Result<Vec<u16>, u8> {
+    let reply = c.ask(unit, &read(0xC0, 7)).await;
+    match reply.as_slice() {
+        [0x83, code] => Err(*code),
+        _ => {
+            let regs = registers(&reply);
+            assert_eq!(regs.len(), 7, "{reply:02X?}");
+            Ok(regs)
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_polled_copy_answers_nothing_once_the_wire_is_gone() {
+    bounded(LIMIT, async {
+        // The adapter is a process of its own, killed as an unplugged
+        // adapter; the copy may be a minute old, far longer than the test:
+        // only the bus's freshness can stop it answering.
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("ttyUSB-drives");
+        let sim = ExternalSim::start(&link, "1-2", &[]).await;
+        let toml = ConfigBuilder::new()
+            .bus("line1", |b| {
+                b.port(&link.display().to_string())
+                    .drive(1, "conveyor")
+                    .drive(2, "belt")
+            })
+            .tables("[[modbus_tcp.polled_copy]]\nbus = \"line1\"\nmax_age_ms = 60000")
+            .toml();
+        let d = TestDaemon::start(&toml).await;
+        let bus = d.plant.buses()[0].handle.clone();
+        let down = || {
+            matches!(
+                bus.port_state(),
+                drivegate::bus::handle::PortState::Down { .. }
+            )
+        };
+        let mut c = Raw::connect(d.modbus_tcp.unwrap()).await;
+        let before = counter(&d, CACHED);
+        for _ in 0..20 {
+            assert!(status_or_exception(&mut c, 1).await.is_ok());
+        }
+        assert_eq!(counter(&d, CACHED) - before, 20.0, "read from the copy");
+
+        // Cut: every read from the moment the bus is down is 0x0A, none
+        // from the copy; the first within 3 s.
+        let t0 = std::time::Instant::now();
+        sim.kill().await;
+        let mut cut_seen = None;
+        while cut_seen.is_none() {
+            let was_down = down();
+            let cached = counter(&d, CACHED);
+            let got = status_or_exception(&mut c, 1).await;
+            if was_down {
+                assert_eq!(got, Err(0x0A), "a read after the bus went down");
+                assert_eq!(counter(&d, CACHED), cached, "answered from the copy");
+            }
+            if got == Err(0x0A) {
+                cut_seen = Some(t0.elapsed());
+            } else {
+                assert!(got.is_ok(), "{got:?} before the cut was seen");
+                assert!(
+                    t0.elapsed() < Duration::from_secs(3),
+                    "still answered 3 s after the cut"
+                );
+            }
+        }
+        eprintln!(
+            "polled copy: 0x0A {} ms after the cut",
+            cut_seen.unwrap().as_millis()
+        );
+        assert!(down(), "0x0A while the port is not down");
+        let cached = counter(&d, CACHED);
+        for unit in [1, 2, 1, 2] {
+            assert_eq!(status_or_exception(&mut c, unit).await, Err(0x0A));
+        }
+        assert_eq!(counter(&d, CACHED), cached);
+
+        // Plugged back: answered again, from the copy once it is live.
+        let _sim = ExternalSim::start(&link, "1-2", &[]).await;
+        eventually(
+            Duration::from_secs(30),
+            "the bus back and the drive live",
+            || {
+                bus.freshness(1)
+                    .filter(|v| v.freshness.is_live())
+                    .map(|_| ())
+            },
+        )
+        .await;
+        let again = counter(&d, CACHED);
+        assert!(status_or_exception(&mut c, 1).await.is_ok());
+        assert_eq!(counter(&d, CACHED) - again, 1.0, "read from the copy again");
         d.stop().await;
     })
     .await;

@@ -97,7 +97,7 @@ export async function activeAlarmsOf(drive) {
 /** An alarm's kind in words. */
 export function kindWords(kind) {
   return {
-    fault: 'fault', stall: 'stall', offline: 'offline', 'bus-down': 'bus down',
+    fault: 'fault', stall: 'stall', offline: 'offline', 'never-answered': 'never answered', 'bus-down': 'bus down',
     'comm-loss': 'communication lost', 'stop-failed': 'stop not confirmed', 'refused-write': 'write refused',
   }[kind] || String(kind || '').replaceAll('-', ' ');
 }

@@ -1,4 +1,5 @@
-// The console's shell: who the user is (token entry), the live connection,
+// The console's shell: who the user is (token entry), the page's link to
+// drivegate and whether the plant's data is live (the header's badge),
 // the navigation between pages, the emergency brake on every page and the
 // keyboard shortcuts. A page is one module in pages/ with
 //   export const page = { id, title, nav, role, match(path), mount(main, params, ctx) }
@@ -7,7 +8,7 @@
 
 import { ApiError, drivePath, get, post, setToken, token } from './api.js';
 import { Stream } from './stream.js';
-import { Store } from './store.js';
+import { Store, plantLiveness } from './store.js';
 import { h, Note, run, dateTime } from './ui.js';
 import { kindWords } from './alarms.js';
 import { page as overview } from './pages/overview.js';
@@ -66,13 +67,69 @@ function buildNav() {
     .map((p) => h('a', { href: `#${p.nav.path}`, dataset: { page: p.id }, accesskey: p.nav.key }, p.nav.label)));
 }
 
-function showConnection({ state, reason }) {
+/**
+ * The header's badge: this page's link to drivegate ("connected",
+ * "connecting…", "connection lost"), and, while it is open, whether the
+ * drives' data is live, so a green badge never stands beside a dead line:
+ * "connected · bus down" (red) or "connected · 2 not live" (amber), the
+ * second part on a line of its own on a wide screen. The whole story, the
+ * buses named, is its tooltip. Drawn at most four times a second.
+ */
+function drawLink() {
   const el = document.getElementById('conn');
-  el.className = `conn ${state}`;
-  el.textContent = state === 'open' ? 'live'
-    : state === 'connecting' ? 'connecting…'
-      : `connection lost${reason ? ` (${reason})` : ''}: values are stale, reconnecting`;
+  const { state, reason } = linkState;
+  let cls = state;
+  let text;
+  let title;
+  let plantWords = '';
+  if (state === 'open') {
+    const p = plantLiveness(store);
+    const plant = p.drives === 0 ? 'no drive configured'
+      : p.notLive === 0 ? `the data of all ${p.drives} drives is live`
+        : `${p.live} of ${p.drives} drives live${p.busesDown.length ? `; down: bus ${p.busesDown.join(', bus ')}` : ''}`;
+    text = 'connected';
+    if (p.busesDown.length === 1) { cls = 'open down'; plantWords = 'bus down'; }
+    else if (p.busesDown.length > 1) { cls = 'open down'; plantWords = `${p.busesDown.length} buses down`; }
+    else if (p.notLive > 0) { cls = 'open not-live'; plantWords = `${p.notLive} not live`; }
+    title = `This page is connected to drivegate; ${plant}.`;
+  } else if (state === 'connecting') {
+    text = 'connecting…';
+    title = 'This page is connecting to drivegate: nothing shown is live yet.';
+  } else {
+    text = `connection lost${reason ? ` (${reason})` : ''}: values are stale, reconnecting`;
+    title = 'This page lost its connection to drivegate: every value shown is its last, greyed.';
+  }
+  linkDrawn = performance.now();
+  if (el.className !== `conn ${cls}`) el.className = `conn ${cls}`;
+  // The plant's words on a line of their own under the link's on a wide
+  // screen (the header keeps one row at 1280 px), after a dot on a tablet.
+  const whole = plantWords ? `${text} · ${plantWords}` : text;
+  if (el.textContent !== whole) {
+    el.replaceChildren(...(plantWords
+      ? [h('span', { class: 'conn-line' }, text), h('span', { class: 'conn-sep' }, ' · '), h('span', { class: 'conn-line' }, plantWords)]
+      : [text]));
+  }
+  if (el.title !== title) el.title = title;
   document.body.classList.toggle('stale', state !== 'open');
+}
+
+let linkState = { state: 'connecting', reason: '' };
+let linkTimer = 0;
+let linkDrawn = 0;
+/**
+ * Redraws the badge at once after a quiet spell (a bus going down), at
+ * most four times a second while statuses come by the hundred.
+ */
+function linkChanged() {
+  if (linkTimer) return;
+  const wait = linkDrawn + 250 - performance.now();
+  if (wait <= 0) { drawLink(); return; }
+  linkTimer = setTimeout(() => { linkTimer = 0; drawLink(); }, wait);
+}
+
+function showConnection(s) {
+  linkState = s;
+  drawLink();
 }
 
 /** Sends the emergency brake to one drive; resolves with the reply. */
@@ -217,6 +274,7 @@ async function start() {
   buildNav();
   alarmBanner();
   stream.on('state', showConnection);
+  store.subscribe(linkChanged);
   await store.refreshDrives().catch(() => {});
   stream.connect();
   store.watchBuses();

@@ -83,7 +83,9 @@ export class Store {
       const tx = c.ok + c.exceptions + c.timeouts + c.crc_errors + c.bad_replies;
       const errors = c.timeouts + c.crc_errors + c.bad_replies;
       const entry = { ...b, at: now, tx, errors, utilisation: null, errorRate: null };
-      if (prev) {
+      // Rates only between two readings of an open port: a bus that is
+      // down has no utilisation nor error rate to show as live.
+      if (prev && prev.state === 'up' && b.state === 'up') {
         const dt = (now - prev.at) / 1000;
         if (dt > 0) entry.utilisation = Math.min(1, Math.max(0, (c.busy_seconds - prev.counters.busy_seconds) / dt));
         const dtx = tx - prev.tx;
@@ -121,10 +123,19 @@ export class Store {
         this.log({ kind: 'bus', severity: 'info', drive: null, bus: m.bus, text: `bus ${m.bus}: port open` });
         this.refreshBuses().catch(() => {});
         break;
-      case 'bus-down':
+      case 'bus-down': {
         this.log({ kind: 'bus', severity: 'bad', drive: null, bus: m.bus, text: `bus ${m.bus}: port down: ${m.reason}` });
+        // The bus's card says it at once, before its counters are read
+        // again: no rate of the open port stays on it.
+        const b = this.buses.get(m.bus);
+        if (b) {
+          this.buses.set(m.bus, { ...b, state: 'down', reason: m.reason, since: new Date().toISOString(),
+            utilisation: null, errorRate: null });
+          this.changed(null);
+        }
         this.refreshBuses().catch(() => {});
         break;
+      }
       case 'lease-expired':
         this.log({ kind: 'lease', severity: m.ok ? 'warn' : 'bad', drive: m.drive, who: m.owner,
           text: `lease of ${m.owner} ended (${m.reason}); ${m.action}: ${m.result}${m.retrying ? ' — retrying until the drive confirms' : ''}` });
@@ -325,6 +336,27 @@ export function freshnessOf(d, now, bus = null) {
         why: rest !== why ? '' : why };
     }
   }
+}
+
+/**
+ * How live the plant's data is, as drivegate decides it: the drives whose
+ * data is live, those that are not, and the buses that are down (from the
+ * drives' freshness and the buses' ports, so a bus without drives counts
+ * too). What the header's badge says beside the page's own link.
+ */
+export function plantLiveness(store) {
+  const now = performance.now();
+  let live = 0;
+  const down = [];
+  for (const d of store.drives.values()) {
+    const f = freshnessOf(d, now).freshness;
+    if (f === 'live') live += 1;
+    else if (f === 'bus-down' && d.bus && !down.includes(d.bus)) down.push(d.bus);
+  }
+  for (const b of store.buses.values()) {
+    if (b.state === 'down' && !down.includes(b.name)) down.push(b.name);
+  }
+  return { drives: store.drives.size, live, notLive: store.drives.size - live, busesDown: down };
 }
 
 /** A time the data stopped being live: the time of day today, else the date too. */

@@ -3,8 +3,8 @@
 //! for the file and the stream. No I/O here.
 //!
 //! Two sorts of alarm:
-//! - a *condition* (a fault, a stall, an offline drive, a bus down, a stop
-//!   not confirmed) is active while it lasts: raising it again while it is
+//! - a *condition* (a fault, a stall, an offline drive, a drive that never
+//!   answered, a bus down, a stop not confirmed) is active while it lasts: raising it again while it is
 //!   active changes nothing; it clears when the condition ends;
 //! - an *event* (a communication-loss stop, a refused safety write) is
 //!   over when it happens: it is raised cleared, and the same event again
@@ -34,6 +34,9 @@ listed_enum! {
         Stall,
         /// The drive stopped answering its polls.
         Offline,
+        /// The drive has not answered once since its bus opened (a wrong
+        /// baud rate or unit address, most often).
+        NeverAnswered,
         /// A bus's serial port (or serial device server) failed.
         BusDown,
         /// A Modbus TCP client's communication-loss function ended its
@@ -55,6 +58,7 @@ impl AlarmKind {
             AlarmKind::Fault => "fault",
             AlarmKind::Stall => "stall",
             AlarmKind::Offline => "offline",
+            AlarmKind::NeverAnswered => "never-answered",
             AlarmKind::BusDown => "bus-down",
             AlarmKind::CommLoss => "comm-loss",
             AlarmKind::StopFailed => "stop-failed",

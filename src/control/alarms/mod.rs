@@ -1,6 +1,7 @@
 //! Alarms: what needs an operator's attention, kept until acknowledged
 //! and across restarts. The core raises and clears them from what it sees
-//! (every bus's events: faults, stalls, drives offline, ports down; its own
+//! (every bus's events: faults, stalls, drives offline or never heard since
+//! their bus opened, ports down; its own
 //! events: communication-loss stops, stops not confirmed, writes refused
 //! by a safety rule), keeps them in [`book`] (pure, time passed in) and in
 //! a file in `[safety] state_dir` ([`file`]), and publishes each change
@@ -32,6 +33,7 @@ use super::lease_book::LeaseEvent;
 use super::outcome::{Failure, Rule};
 use crate::bus::BusEvent;
 use crate::bus::cache::Link;
+use crate::bus::freshness::Freshness;
 use crate::bus::handle::PortState;
 use crate::drive::help;
 use crate::plant::Plant;
@@ -388,105 +390,34 @@ impl Alarms {
                 .find(|d| d.bus == bus_index && d.unit == unit)
                 .map(|d| d.name.clone())
         };
-        let key = |kind, drive: &str, code| AlarmKey {
-            kind,
+        let bus_key = AlarmKey {
+            kind: AlarmKind::BusDown,
             bus: bus_name.clone(),
-            drive: Some(drive.to_string()),
-            code,
+            drive: None,
+            code: 0,
         };
         match event {
             BusEvent::Status { unit, status, .. } => {
                 // A scan reads units that are not configured: not alarms.
                 let Some(drive) = drive_of(*unit) else { return };
-                let fault = status.fault();
-                // The common case, a healthy drive with nothing open: no
-                // change to make, nothing to allocate.
-                if fault.code() == 0
-                    && !status.stalled()
-                    && !self.lock().has_open_for(&bus_name, &drive)
-                {
-                    return;
-                }
-                self.apply(|book, now| {
-                    let mut changes = book.clear(&key(AlarmKind::Offline, &drive, 0), now);
-                    let code = fault.code();
-                    changes.extend(book.clear_other_codes(
-                        AlarmKind::Fault,
-                        &bus_name,
-                        Some(&drive),
-                        (code != 0).then_some(code),
-                        now,
-                    ));
-                    if code != 0 {
-                        changes.extend(book.raise(
-                            Raise {
-                                key: key(AlarmKind::Fault, &drive, code),
-                                text: format!(
-                                    "drive {drive} (bus {bus_name}, unit {unit}) reports a fault: {} (code {code})",
-                                    fault_words(fault)
-                                ),
-                                help: help::fault(fault).to_string(),
-                            },
-                            now,
-                        ));
-                    }
-                    let stall = key(AlarmKind::Stall, &drive, 0);
-                    if status.stalled() {
-                        changes.extend(book.raise(
-                            Raise {
-                                key: stall,
-                                text: format!(
-                                    "the motor of drive {drive} (bus {bus_name}, unit {unit}) stalled and is stopped until a fault reset"
-                                ),
-                                help: help::STALL.to_string(),
-                            },
-                            now,
-                        ));
-                    } else {
-                        changes.extend(book.clear(&stall, now));
-                    }
-                    changes
-                });
+                self.status(&bus_name, (&drive, *unit), status);
             }
             BusEvent::Online { unit, .. } => {
                 let Some(drive) = drive_of(*unit) else { return };
-                self.apply(|book, now| book.clear(&key(AlarmKind::Offline, &drive, 0), now));
+                self.apply(|book, now| answered(book, &bus_name, &drive, now));
             }
             BusEvent::Offline { unit, reason, .. } => {
                 let Some(drive) = drive_of(*unit) else { return };
-                self.apply(|book, now| {
-                    book.raise(
-                        Raise {
-                            key: key(AlarmKind::Offline, &drive, 0),
-                            text: format!(
-                                "drive {drive} (bus {bus_name}, unit {unit}) stopped answering: {reason}"
-                            ),
-                            help: help::OFFLINE.to_string(),
-                        },
-                        now,
-                    )
-                });
+                self.silent(bus, (&drive, *unit), reason);
             }
             BusEvent::BusUp { .. } => {
-                let k = AlarmKey {
-                    kind: AlarmKind::BusDown,
-                    bus: bus_name.clone(),
-                    drive: None,
-                    code: 0,
-                };
-                self.apply(|book, now| book.clear(&k, now));
+                self.apply(|book, now| book.clear(&bus_key, now));
             }
             BusEvent::BusDown { reason, .. } => {
-                let k = AlarmKey {
-                    kind: AlarmKind::BusDown,
-                    bus: bus_name.clone(),
-                    drive: None,
-                    code: 0,
-                };
                 self.apply(|book, now| {
                     book.raise(
                         Raise {
-                            key: k,
+                            key: bus_key,
                             text: format!(
                                 "bus {bus_name}: its port failed ({reason}); none of its drives is read or written until it reopens"
                             ),
@@ -497,6 +428,96 @@ impl Alarms {
                 });
             }
         }
+    }
+
+    /// A status of `drive` (`unit`) on `bus`: it answers (its `offline` or
+    /// `never-answered` alarm clears), and its fault and stall.
+    fn status(&self, bus: &str, (drive, unit): (&str, u8), status: &crate::drive::Status) {
+        let fault = status.fault();
+        // The common case, a healthy drive with nothing open: no
+        // change to make, nothing to allocate.
+        if fault.code() == 0 && !status.stalled() && !self.lock().has_open_for(bus, drive) {
+            return;
+        }
+        let key = |kind, code| drive_key(kind, bus, drive, code);
+        self.apply(|book, now| {
+            let mut changes = answered(book, bus, drive, now);
+            let code = fault.code();
+            changes.extend(book.clear_other_codes(
+                AlarmKind::Fault,
+                bus,
+                Some(drive),
+                (code != 0).then_some(code),
+                now,
+            ));
+            if code != 0 {
+                changes.extend(book.raise(
+                    Raise {
+                        key: key(AlarmKind::Fault, code),
+                        text: format!(
+                            "drive {drive} (bus {bus}, unit {unit}) reports a fault: {} (code {code})",
+                            fault_words(fault)
+                        ),
+                        help: help::fault(fault).to_string(),
+                    },
+                    now,
+                ));
+            }
+            let stall = key(AlarmKind::Stall, 0);
+            if status.stalled() {
+                changes.extend(book.raise(
+                    Raise {
+                        key: stall,
+                        text: format!(
+                            "the motor of drive {drive} (bus {bus}, unit {unit}) stalled and is stopped until a fault reset"
+                        ),
+                        help: help::STALL.to_string(),
+                    },
+                    now,
+                ));
+            } else {
+                changes.extend(book.clear(&stall, now));
+            }
+            changes
+        });
+    }
+
+    /// `drive` (`unit`) of `bus` went silent (`reason`, its last poll): an
+    /// `offline` alarm if it had answered since its bus opened, a
+    /// `never-answered` one (naming the baud rate and the unit address)
+    /// if it never did. A drive never heard on a bus whose port is down
+    /// gets neither: the bus's own `bus-down` alarm says why.
+    fn silent(&self, bus: &crate::plant::Bus, (drive, unit): (&str, u8), reason: &str) {
+        let bus_name = bus.handle.name();
+        let verdict = bus.handle.freshness(unit);
+        let never_heard = bus
+            .handle
+            .drive(unit)
+            .is_some_and(|d| d.seen_instant.is_none());
+        let raise = match verdict.as_ref().map(|v| v.freshness) {
+            Some(Freshness::Never) => {
+                let why = verdict
+                    .as_ref()
+                    .and_then(|v| v.words(bus_name, unit, bus.config.baud))
+                    .unwrap_or_else(|| reason.to_string());
+                Raise {
+                    key: drive_key(AlarmKind::NeverAnswered, bus_name, drive, 0),
+                    text: format!(
+                        "drive {drive} (bus {bus_name}, unit {unit}) has never answered: {why}"
+                    ),
+                    help: help::NEVER_ANSWERED.to_string(),
+                }
+            }
+            Some(Freshness::BusDown) if never_heard => return,
+            _ => Raise {
+                key: drive_key(AlarmKind::Offline, bus_name, drive, 0),
+                text: format!(
+                    "drive {drive} (bus {bus_name}, unit {unit}) stopped answering: {reason}"
+                ),
+                help: help::OFFLINE.to_string(),
+            },
+        };
+        self.apply(|book, now| book.raise(raise, now));
     }
 
     /// Raises or clears what an event of the core says.
@@ -625,6 +646,23 @@ impl Alarms {
             }
         }
     }
+}
+
+/// The key of `drive`'s alarm of `kind` on `bus`.
+fn drive_key(kind: AlarmKind, bus: &str, drive: &str, code: u16) -> AlarmKey {
+    AlarmKey {
+        kind,
+        bus: bus.to_string(),
+        drive: Some(drive.to_string()),
+        code,
+    }
+}
+
+/// `drive` answered: its `offline` and `never-answered` conditions end.
+fn answered(book: &mut AlarmBook, bus: &str, drive: &str, now: u64) -> Vec<Change> {
+    let mut changes = book.clear(&drive_key(AlarmKind::Offline, bus, drive, 0), now);
+    changes.extend(book.clear(&drive_key(AlarmKind::NeverAnswered, bus, drive, 0), now));
+    changes
 }
 
 /// A fault in words, for an alarm's text.

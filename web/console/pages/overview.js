@@ -156,6 +156,15 @@ function mount(main, _params, { store }) {
       : 'Utilisation is the share of the wire\'s time in use (frames, silences, waits for replies); near 100 %, commands wait longer.');
   }
 
+  /** A rate of the wire: live only while the port is open. */
+  function rate(b, value, text) {
+    if (b.state !== 'up') {
+      const why = b.state === 'opening' ? 'the port is not open yet' : 'the port is down';
+      return h('dd', { class: 'not-live', title: `Not live: ${why}${b.reason ? ` (${b.reason})` : ''}` }, `— not live: ${why}`);
+    }
+    return h('dd', {}, value === null ? '–' : text);
+  }
+
   function drawBuses() {
     const cards = [];
     for (const b of store.buses.values()) {
@@ -165,8 +174,8 @@ function mount(main, _params, { store }) {
         h('dl', {},
           h('dt', {}, 'Port'), h('dd', {}, `${b.port} @ ${b.baud}`),
           h('dt', {}, 'Drives online'), h('dd', {}, b.drives === 0 ? 'none configured: scan the bus on the commissioning page' : `${b.drives_online} of ${b.drives}`),
-          h('dt', {}, 'Utilisation'), h('dd', {}, b.utilisation === null ? '–' : `${fmt(b.utilisation * 100)} %`),
-          h('dt', {}, 'Errors'), h('dd', {}, b.errorRate === null ? '–' : `${fmt(b.errorRate * 100, 2)} % of transactions`),
+          h('dt', {}, 'Utilisation'), rate(b, b.utilisation, `${fmt(b.utilisation * 100)} %`),
+          h('dt', {}, 'Errors'), rate(b, b.errorRate, `${fmt(b.errorRate * 100, 2)} % of transactions`),
           h('dt', {}, 'Queue'), h('dd', {}, `${b.queue.emergency} / ${b.queue.command} / ${b.queue.poll}`, h('small', {}, ' emerg. / cmd / poll'))),
         utilisationNote(b),
         b.reason ? h('p', { class: 'reason' }, b.reason) : null));

@@ -1,12 +1,16 @@
-//! Who holds a serial port: when the probe cannot take a port because
-//! another program has it (the daemon polling that line, a terminal
-//! program, a second probe), it names that program and its pid from what
-//! the system tells: the lock on the device (`/proc/locks`), the
-//! processes that have it open (`/proc/<pid>/fd`), and a UUCP lock file
-//! (`/run/lock/LCK..ttyUSB0`, kept by minicom and friends).
+//! Who holds a serial port: when a port cannot be taken because another
+//! program has it (a daemon polling that line, a terminal program, a
+//! running `drivegate probe`), the bus and the probe name that program and
+//! its pid from what the system tells: the lock on the device
+//! (`/proc/locks`), the processes that have it open (`/proc/<pid>/fd`),
+//! and a UUCP lock file (`/run/lock/LCK..ttyUSB0`, kept by minicom and
+//! friends).
 //!
 //! What the system does not tell (another user's processes when not root)
-//! is not guessed: the message then says how to ask (`fuser`).
+//! is not guessed: the words then say how to ask (`fuser`).
+//!
+//! A leaf: it reads `/proc` and nothing of drivegate, so the bus (a port
+//! that does not open) and the probe (a tool on the bus) both use it.
 
 use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
@@ -34,8 +38,9 @@ struct Device {
     path: PathBuf,
 }
 
-/// The other processes that hold `port` (this one left out), those that
-/// hold its lock first.
+/// The other processes that hold `port` (this one left out): those that
+/// hold its lock, or, when the system names none, those that have it
+/// open.
 pub fn holders(port: &str) -> Vec<Holder> {
     let Ok(meta) = std::fs::metadata(port) else {
         return Vec::new();
@@ -58,8 +63,12 @@ pub fn holders(port: &str) -> Vec<Holder> {
         }
     };
     if let Ok(locks) = std::fs::read_to_string("/proc/locks") {
+        // The pid that took a lock may be gone while a child that
+        // inherited the descriptor keeps it: that child is found below.
         for pid in lock_holders(&locks, device.dev, device.ino) {
-            add(pid, true);
+            if Path::new(&format!("/proc/{pid}")).exists() {
+                add(pid, true);
+            }
         }
     }
     for pid in uucp_lock_holders(&device.path) {
@@ -67,6 +76,12 @@ pub fn holders(port: &str) -> Vec<Holder> {
     }
     for pid in open_by(&device) {
         add(pid, false);
+    }
+    // Who holds the lock is who keeps the port; those that merely have
+    // it open (the program serving a pty, a child that inherited the
+    // descriptor) are named only when no lock holder is known.
+    if found.iter().any(|(_, locks)| *locks) {
+        found.retain(|(_, locks)| *locks);
     }
     found.sort_by_key(|(pid, locks)| (!locks, *pid));
     found
@@ -79,18 +94,10 @@ pub fn holders(port: &str) -> Vec<Holder> {
         .collect()
 }
 
-/// What `probe` says when `port` is held by another program: who, and
-/// what to do.
-pub fn in_use(port: &str) -> String {
-    let holders = holders(port);
-    if holders.is_empty() {
-        return format!(
-            "{port} is in use by another program, which holds it exclusively (the system does \
-             not say which to this user: `sudo fuser -v {port}` names it). Stop it, or stop \
-             drivegate if it polls this line (sudo systemctl stop drivegate), then probe again"
-        );
-    }
-    let named: Vec<String> = holders
+/// The holders as a list in words: `minicom -D /dev/ttyUSB0 (pid 812,
+/// holds its lock); ...`.
+pub fn named(holders: &[Holder]) -> String {
+    holders
         .iter()
         .map(|h| {
             format!(
@@ -100,28 +107,49 @@ pub fn in_use(port: &str) -> String {
                 if h.locks { ", holds its lock" } else { "" }
             )
         })
-        .collect();
-    let drivegate = holders.iter().any(|h| {
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// True when one of them is drivegate itself (a daemon, a probe).
+pub fn is_drivegate(holders: &[Holder]) -> bool {
+    holders.iter().any(|h| {
         h.command
             .split_whitespace()
             .next()
             .is_some_and(|c| c.ends_with("drivegate"))
-    });
-    let stop = if drivegate {
-        "A drivegate daemon polls this line: stop it first (sudo systemctl stop drivegate), \
-         or probe from the console's commissioning page, which scans through the daemon"
-    } else {
-        "Stop it first"
-    };
-    let who = if holders.len() == 1 {
-        "another program"
-    } else {
-        "other programs"
-    };
-    format!(
-        "{port} is in use by {who}: {}. {stop}, then probe again",
-        named.join("; ")
-    )
+    })
+}
+
+/// The session whose controlling terminal `port` is (its leader's pid),
+/// when `port` leads to a pseudo-terminal (`/dev/pts/N`, followed through
+/// links) that a login session has as its terminal, a shell's: someone's
+/// terminal, never a serial line. `None` for anything else: a serial
+/// adapter, or a pty no session has (a simulator's, socat's). Read from
+/// `/proc/<pid>/stat`, without opening the terminal.
+pub fn session_terminal(port: &str) -> Option<(PathBuf, u32)> {
+    let target = std::fs::canonicalize(port).ok()?;
+    if !target.starts_with("/dev/pts") {
+        return None;
+    }
+    let rdev = std::fs::metadata(&target).ok()?.rdev();
+    let processes = std::fs::read_dir("/proc").ok()?;
+    processes
+        .flatten()
+        .filter_map(|p| std::fs::read_to_string(p.path().join("stat")).ok())
+        .find_map(|stat| session_of(&stat, rdev))
+        .map(|session| (target, session))
+}
+
+/// The session of a process from its `/proc/<pid>/stat`, if its
+/// controlling terminal is the device `rdev`.
+fn session_of(stat: &str, rdev: u64) -> Option<u32> {
+    // "pid (comm) state ppid pgrp session tty_nr ...": comm may hold
+    // spaces and parentheses, so the fields are counted after the last ')'.
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let tty: u64 = fields.get(4)?.parse().ok()?;
+    let session: u32 = fields.get(3)?.parse().ok()?;
+    (tty != 0 && tty == rdev && session > 0).then_some(session)
 }
 
 /// Pids holding a lock on the file `dev`/`ino` in `/proc/locks`' text.
@@ -196,17 +224,11 @@ fn open_by(device: &Device) -> Vec<u32> {
     pids
 }
 
-/// A process's command line, short, or its name.
-fn command_of(pid: u32) -> String {
-    let line = std::fs::read(format!("/proc/{pid}/cmdline"))
-        .map(|raw| {
-            raw.split(|&b| b == 0)
-                .filter(|a| !a.is_empty())
-                .map(|a| String::from_utf8_lossy(a).into_owned())
-                .collect::<Vec<_>>()
-                .join(" ")
-        })
-        .unwrap_or_default();
+/// A process's command line, short (the program by its file name, not
+/// its path; at most 80 characters), or its name.
+pub fn command_of(pid: u32) -> String {
+    let raw = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+    let line = command_line(&raw);
     let line = if line.is_empty() {
         std::fs::read_to_string(format!("/proc/{pid}/comm"))
             .map(|c| c.trim().to_string())
@@ -219,6 +241,23 @@ fn command_of(pid: u32) -> String {
     } else {
         line
     }
+}
+
+/// A `/proc/<pid>/cmdline` (NUL-separated) as one line, the program by
+/// its file name.
+fn command_line(raw: &[u8]) -> String {
+    let mut words = raw
+        .split(|&b| b == 0)
+        .filter(|a| !a.is_empty())
+        .map(|a| String::from_utf8_lossy(a).into_owned());
+    let Some(program) = words.next() else {
+        return String::new();
+    };
+    let name = program.rsplit('/').next().unwrap_or(&program).to_string();
+    std::iter::once(name)
+        .chain(words)
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 #[cfg(test)]
@@ -240,6 +279,34 @@ mod tests {
         assert_eq!(lock_file_pid(b"      4242\n"), Some(4242));
         assert_eq!(lock_file_pid(&4242u32.to_ne_bytes()), Some(4242));
         assert_eq!(lock_file_pid(b""), None);
+    }
+
+    #[test]
+    fn a_terminal_s_session_is_read_from_proc_stat() {
+        // /dev/pts/3 is 136:3.
+        let pts3 = nix::sys::stat::makedev(136, 3);
+        let shell = "4242 (bash) S 4200 4242 4242 34819 4300 4194560 0 0";
+        assert_eq!(session_of(shell, pts3), Some(4242));
+        // A name with spaces and parentheses; no terminal; another one.
+        let odd = "77 (a (b) c) S 1 77 77 34819 -1 0";
+        assert_eq!(session_of(odd, pts3), Some(77));
+        assert_eq!(session_of("9 (sim) S 1 9 9 0 -1 0", pts3), None);
+        assert_eq!(session_of(shell, nix::sys::stat::makedev(136, 4)), None);
+    }
+
+    #[test]
+    fn a_command_line_names_its_program_by_file_name() {
+        assert_eq!(
+            command_line(
+                b"/usr/local/bin/drivegate\0serve\0--config\0/etc/drivegate/drivegate.toml\0"
+            ),
+            "drivegate serve --config /etc/drivegate/drivegate.toml"
+        );
+        assert_eq!(
+            command_line(b"minicom\0-D\0/dev/ttyUSB0\0"),
+            "minicom -D /dev/ttyUSB0"
+        );
+        assert_eq!(command_line(b""), "");
     }
 
     #[test]
