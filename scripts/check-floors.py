@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Checks that the top-level modules of src/ import each other without a cycle.
+"""Checks that the top-level modules of src/, and the files of each folder, import each other without a cycle.
 
 Every `crate::X` path in the code (a `use crate::...` line, grouped as in
 `use crate::{a::X, b::{Y, Z}}`, or a path written inline such as
@@ -9,8 +9,17 @@ Every `crate::X` path in the code (a `use crate::...` line, grouped as in
 modules that reach one another (a strongly connected component), and it
 is printed with the file:line of each import between its members.
 
+Inside the folders the files stand on floors too: each `crate::`,
+`super::` and `self::` path (and a child module named by itself in its
+parent) is an arrow from its file to the file that defines what it names,
+followed through `pub use` re-exports (globs included); a `pub use` only
+hands names on and is no arrow of its own, so a folder's `mod.rs` stands on
+top of its files; `#[cfg(test)]` modules are left out. A circle of files is
+a set of files that reach one another, printed with the lines that close it.
+
 Known cycles may be listed in an allow-list file, one per line, by their
-members separated by spaces (`#` starts a comment). The check fails on a
+members separated by spaces (`#` starts a comment): top-level modules by
+name, circles of files by their paths under src/. The check fails on a
 cycle that is not listed exactly, and on a listed one that no longer
 exists: the list can only shrink, each time to what the code is.
 
@@ -246,10 +255,32 @@ def describe(component, graph, limit=3):
     return lines
 
 
+def _rel(path, src):
+    return os.path.relpath(path, src).replace(os.sep, "/")
+
+
+def room_report(src):
+    """The circles of files as (members relative to `src`, lines
+    describing the imports that close them)."""
+    graph = file_graph(src)
+    report = []
+    for component in room_cycles(graph):
+        members = set(component)
+        lines = []
+        for a in component:
+            for b in sorted(graph[a]):
+                if b in members:
+                    shown = ", ".join(str(n) for n in graph[a][b][:4])
+                    lines.append(f"    {_rel(a, src)} -> {_rel(b, src)} (line {shown})")
+        report.append((tuple(sorted(_rel(f, src) for f in component)), lines))
+    return report
+
+
 def check(src, allow_path, out=sys.stdout):
     """Prints the verdict; returns the exit status."""
     graph = import_graph(src)
     found = cycles(graph)
+    rooms = room_report(src)
     allowed = read_allowed(allow_path)
     allowed_sets = {members for members, _ in allowed}
     failed = False
@@ -260,6 +291,14 @@ def check(src, allow_path, out=sys.stdout):
         print(f"{head} between {len(component)} modules: {' '.join(component)}", file=out)
         for line in describe(component, graph):
             print(line, file=out)
+    for component, lines in rooms:
+        listed = component in allowed_sets
+        failed |= not listed
+        head = "allowed circle" if listed else "CIRCLE OF FILES"
+        print(f"{head} of {len(component)} files: {' '.join(component)}", file=out)
+        for line in lines:
+            print(line, file=out)
+    found = found + [component for component, _ in rooms]
     for members, number in allowed:
         if members not in found:
             failed = True
@@ -271,15 +310,249 @@ def check(src, allow_path, out=sys.stdout):
     if failed:
         print(
             "floors: FAILED. Every import must point down the floors of "
-            "docs/architecture.md; break the cycle, do not list it.",
+            "docs/architecture.md, between folders and between the files of "
+            "a folder (mod.rs on top of its files); break the cycle, do not list it.",
             file=out,
         )
         return 1
     if found:
         print(f"floors: ok, {len(found)} allowed cycle(s) still to break", file=out)
     else:
-        print(f"floors: ok, no import cycle between the {len(graph)} top-level modules", file=out)
+        print(
+            f"floors: ok, no import cycle between the {len(graph)} top-level modules "
+            f"nor between the {len(file_graph(src))} files",
+            file=out,
+        )
     return 0
+
+
+
+# ---- Inside the folders: files on floors too --------------------------------
+
+USE_START = re.compile(r"\buse\s+")
+INLINE_PATH = re.compile(r"\b(crate|super|self)((?:\s*::\s*[A-Za-z_][A-Za-z0-9_]*)+)")
+PUB_USE = re.compile(r"\bpub(?:\s*\([^)]*\))?\s+use\s+")
+
+
+def module_files(src):
+    """{module path (a tuple of names): file} for every .rs file of `src`;
+    the crate root is ()."""
+    mods = {}
+    for root, _, files in os.walk(src):
+        for name in sorted(files):
+            if not name.endswith(".rs"):
+                continue
+            rel = os.path.relpath(os.path.join(root, name), src).split(os.sep)
+            if rel[0] == "bin" or (len(rel) == 1 and rel[0] == "main.rs"):
+                continue
+            if len(rel) == 1 and rel[0] == "lib.rs":
+                mods[()] = os.path.join(root, name)
+                continue
+            stem = rel[-1][:-3]
+            path = tuple(rel[:-1]) if stem == "mod" else tuple(rel[:-1]) + (stem,)
+            mods[path] = os.path.join(root, name)
+    return mods
+
+
+def _use_tree(code, i):
+    """The paths (lists of names) of the use tree starting at `i`, and
+    where it ends (after its `;`)."""
+    paths, prefix_stack, current, n = [], [[]], [], len(code)
+    while i < n:
+        c = code[i]
+        if c.isspace() or c == ":":
+            i += 1
+        elif c == "{":
+            prefix_stack.append(prefix_stack[-1] + current)
+            current = []
+            i += 1
+        elif c in ",}":
+            if current:
+                paths.append(prefix_stack[-1] + current)
+            current = []
+            if c == "}":
+                prefix_stack.pop()
+            i += 1
+        elif c == ";":
+            if current:
+                paths.append(prefix_stack[-1] + current)
+            return paths, i + 1
+        elif c == "*":
+            current.append("*")
+            i += 1
+        else:
+            m = IDENT.match(code, i)
+            if not m:
+                i += 1
+                continue
+            word = m.group(0)
+            i = m.end()
+            if word == "as":
+                # `x as y`: the alias is not part of the path.
+                while i < n and code[i].isspace():
+                    i += 1
+                alias = IDENT.match(code, i)
+                i = alias.end() if alias else i
+                continue
+            current.append(word)
+    return paths, i
+
+
+INLINE_MOD = re.compile(r"(#\[cfg\(test\)\]\s*)?\bmod\s+([A-Za-z_][A-Za-z0-9_]*)\s*\{")
+
+
+def inline_modules(code):
+    """[(start, end, name, test)] of the `mod name { ... }` blocks of
+    `code` (comments and strings blanked), `test` for `#[cfg(test)]` ones."""
+    blocks = []
+    for m in INLINE_MOD.finditer(code):
+        depth, i = 0, m.end() - 1
+        while i < len(code):
+            if code[i] == "{":
+                depth += 1
+            elif code[i] == "}":
+                depth -= 1
+                if depth == 0:
+                    break
+            i += 1
+        blocks.append((m.start(), i, m.group(2), bool(m.group(1))))
+    return blocks
+
+
+def _enclosing(blocks, offset):
+    """The inline module names around `offset`, outermost first, and
+    whether one of them is a test module."""
+    names, test = [], False
+    for start, end, name, is_test in blocks:
+        if start <= offset <= end:
+            names.append(name)
+            test |= is_test
+    return names, test
+
+
+def _absolute(segments, here, is_mod_file, children):
+    """`segments` (a path written in module `here`) as an absolute module
+    path, or None when it does not lead into this crate."""
+    if not segments:
+        return None
+    head = segments[0]
+    if head == "crate":
+        return list(segments[1:])
+    base = list(here)
+    rest = list(segments)
+    if head == "self":
+        rest = rest[1:]
+    elif head == "super":
+        while rest and rest[0] == "super":
+            if not base:
+                return None
+            base.pop()
+            rest = rest[1:]
+    elif head in children:
+        # A child module named by itself (2018 paths).
+        pass
+    else:
+        return None
+    return base + rest
+
+
+def _line_start(code, offset):
+    return code.rfind("\n", 0, offset) + 1
+
+
+def _defines(code, name):
+    """Whether `code` defines an item called `name`."""
+    return re.search(
+        r"\b(struct|enum|fn|type|trait|const|static|mod|union|macro_rules!)\s+" + re.escape(name) + r"\b",
+        code,
+    ) is not None
+
+
+def _resolve(path, mods, exports, codes, depth=0):
+    """The module (a key of `mods`) that `path` names or holds an item
+    of, through `pub use` re-exports (globs too)."""
+    for cut in range(len(path), -1, -1):
+        head = tuple(path[:cut])
+        if head in mods:
+            if cut < len(path) and depth < 8:
+                names = exports.get(head, {})
+                target = names.get(path[cut])
+                if target is not None:
+                    return _resolve(list(target) + list(path[cut + 1:]), mods, exports, codes, depth + 1)
+                if not _defines(codes[head], path[cut]):
+                    for glob in names.get("*", []):
+                        inner = _resolve(list(glob) + [path[cut]], mods, exports, codes, depth + 1)
+                        if inner is not None and _defines(codes[inner], path[cut]):
+                            return inner
+            return head
+    return None
+
+
+def file_graph(src):
+    """{file: {imported file: [line, ...]}} over the .rs files of `src`,
+    each path resolved to the file that defines what it names."""
+    mods = module_files(src)
+    children = {}
+    for m in mods:
+        if m:
+            children.setdefault(m[:-1], set()).add(m[-1])
+    codes = {}
+    for m, path in mods.items():
+        with open(path, encoding="utf-8") as f:
+            codes[m] = strip_comments_and_strings(f.read())
+    # `pub use` re-exports: {module: {name: absolute path}}.
+    exports = {}
+    for m, code in codes.items():
+        for start in PUB_USE.finditer(code):
+            paths, _ = _use_tree(code, start.end())
+            for p in paths:
+                absolute = _absolute(p, m, True, children.get(m, set()))
+                if not absolute:
+                    continue
+                if p[-1] == "*":
+                    exports.setdefault(m, {}).setdefault("*", []).append(absolute[:-1])
+                else:
+                    exports.setdefault(m, {})[p[-1]] = absolute
+    graph = {}
+    for m, code in codes.items():
+        here = mods[m]
+        edges = graph.setdefault(here, {})
+        found = []
+        handed_on = []
+        for start in USE_START.finditer(code):
+            if _ident_before(code, start.start()):
+                continue
+            paths, end = _use_tree(code, start.end())
+            if PUB_USE.match(code, _line_start(code, start.start())):
+                # A re-export hands names on: not an arrow of its own.
+                handed_on.append((start.start(), end))
+                continue
+            found.extend((p, start.start()) for p in paths)
+        for inline in INLINE_PATH.finditer(code):
+            if _ident_before(code, inline.start()) or any(a <= inline.start() < b for a, b in handed_on):
+                continue
+            segments = [inline.group(1)] + re.findall(r"[A-Za-z_][A-Za-z0-9_]*", inline.group(2))
+            found.append((segments, inline.start()))
+        blocks = inline_modules(code)
+        for segments, offset in found:
+            inner, test = _enclosing(blocks, offset)
+            if test:
+                continue
+            absolute = _absolute(segments, tuple(m) + tuple(inner), True, children.get(m, set()) if not inner else set())
+            if absolute is None:
+                continue
+            target = _resolve([s for s in absolute if s != "*"], mods, exports, codes)
+            if target is None or mods[target] == here or target == ():
+                continue
+            line = code.count("\n", 0, offset) + 1
+            edges.setdefault(mods[target], set()).add(line)
+    return {f: {t: sorted(lines) for t, lines in e.items()} for f, e in graph.items()}
+
+
+def room_cycles(graph):
+    """The circles of files: strongly connected components of more than
+    one file, each sorted, in sorted order."""
+    return cycles({f: set(e) for f, e in graph.items()})
 
 
 def main(argv=None):

@@ -132,6 +132,53 @@ class CheckFloors(unittest.TestCase):
         self.assertEqual(status, 1, out)
         self.assertIn("allowed.txt:2: the cycle bus monitor no longer exists", out)
 
+    def test_files_of_a_folder_in_a_circle_fail_with_the_lines_that_close_it(self):
+        files = dict(ACYCLIC)
+        files["bus/mod.rs"] = "pub mod origin;\npub mod queue;\n"
+        files["bus/origin.rs"] = "use super::queue::Job;\npub enum Origin {}\n"
+        files["bus/queue.rs"] = "\nuse crate::bus::origin::Origin;\npub struct Job;\n"
+        status, out = self.tree(files).run()
+        self.assertEqual(status, 1, out)
+        self.assertIn("CIRCLE OF FILES of 2 files: bus/origin.rs bus/queue.rs", out)
+        self.assertIn("bus/origin.rs -> bus/queue.rs (line 1)", out)
+        self.assertIn("bus/queue.rs -> bus/origin.rs (line 2)", out)
+
+    def test_mod_rs_stands_on_top_of_its_files_and_re_exports_are_no_arrows(self):
+        files = dict(ACYCLIC)
+        files["bus/mod.rs"] = (
+            "mod origin;\nmod types;\npub use origin::Origin;\npub use types::*;\n"
+            "use origin::make;\npub fn run() { make(); }\n"
+        )
+        # The file takes a type of its sibling through mod.rs's glob: an
+        # arrow to types.rs, not up to mod.rs.
+        files["bus/origin.rs"] = "use super::Job;\npub enum Origin {}\npub fn make() {}\n"
+        files["bus/types.rs"] = "pub struct Job;\n"
+        tree = self.tree(files)
+        status, out = tree.run()
+        self.assertEqual(status, 0, out)
+        graph = floors.file_graph(tree.src)
+        origin = os.path.join(tree.src, "bus", "origin.rs")
+        self.assertEqual(set(graph[origin]), {os.path.join(tree.src, "bus", "types.rs")})
+        # A file that takes what mod.rs defines while mod.rs uses it: a circle.
+        files["bus/origin.rs"] = "use super::run;\npub enum Origin {}\npub fn make() {}\n"
+        status, out = self.tree(files).run()
+        self.assertEqual(status, 1, out)
+        self.assertIn("CIRCLE OF FILES of 2 files: bus/mod.rs bus/origin.rs", out)
+
+    def test_a_test_module_s_imports_and_inline_modules_resolve_where_they_stand(self):
+        files = dict(ACYCLIC)
+        files["bus/mod.rs"] = "pub mod origin;\npub mod queue;\n"
+        files["bus/queue.rs"] = "use super::origin::Origin;\npub struct Job;\n"
+        files["bus/origin.rs"] = (
+            "pub enum Origin {}\n"
+            "#[cfg(test)]\nmod tests {\n    use super::*;\n    use crate::bus::queue::Job;\n}\n"
+            "mod inner {\n    use super::Origin;\n}\n"
+        )
+        tree = self.tree(files)
+        status, out = tree.run()
+        self.assertEqual(status, 0, out)
+        self.assertEqual(floors.file_graph(tree.src)[os.path.join(tree.src, "bus", "origin.rs")], {})
+
     def test_the_repository_passes_with_its_allow_list(self):
         status = floors.check(
             os.path.join(HERE, "..", "src"),
