@@ -23,7 +23,13 @@ name, circles of files by their paths under src/. The check fails on a
 cycle that is not listed exactly, and on a listed one that no longer
 exists: the list can only shrink, each time to what the code is.
 
-    scripts/check-floors.py [--src DIR] [--allow FILE]
+    scripts/check-floors.py [--src DIR] [--allow FILE] [--doc FILE]
+    scripts/check-floors.py --picture [--write]
+
+It also checks that docs/architecture.md holds the picture of the floors
+that the code draws (`--picture` prints it, `--picture --write` redraws it
+in the doc): each top-level module on the floor one above the highest it
+imports.
 
 Exit status: 0 without unlisted cycles, 1 otherwise, 2 on bad usage.
 Python's standard library only.
@@ -555,16 +561,104 @@ def room_cycles(graph):
     return cycles({f: set(e) for f, e in graph.items()})
 
 
+PICTURE_BEGIN = "<!-- floors: drawn by scripts/check-floors.py --picture; checked by it -->"
+PICTURE_END = "<!-- floors: end -->"
+
+
+def floors_of(graph):
+    """{module: floor}: 1 for a module that imports none of the others,
+    else one above the highest it imports (a cycle's members share one)."""
+    floor = {}
+
+    def height(m, seen):
+        if m in floor:
+            return floor[m]
+        if m in seen:
+            return 0
+        seen = seen | {m}
+        floor[m] = 1 + max((height(t, seen) for t in graph[m]), default=0)
+        return floor[m]
+
+    for m in sorted(graph):
+        height(m, frozenset())
+    return floor
+
+
+def picture(src):
+    """The floors of the top-level modules as text, the top first, a
+    folder with a slash; what each floor's modules import is below it."""
+    graph = import_graph(src)
+    floor = floors_of(graph)
+    names = {m: m + "/" if os.path.isdir(os.path.join(src, m)) else m + ".rs" for m in graph}
+    lines = []
+    for level in range(max(floor.values(), default=0), 0, -1):
+        members = sorted(names[m] for m in graph if floor[m] == level)
+        row, rows = f"{level:>2} |", []
+        for name in members:
+            if len(row) + 1 + len(name) > 76:
+                rows.append(row)
+                row = "   |"
+            row += " " + name
+        rows.append(row)
+        lines.extend(rows)
+    return "\n".join(lines) + "\n"
+
+
+def check_picture(src, doc, out=sys.stdout):
+    """0 when `doc` holds the picture of `src`'s floors between its
+    markers, 1 (saying how to redraw it) when it does not."""
+    with open(doc, encoding="utf-8") as f:
+        text = f.read()
+    begin, end = text.find(PICTURE_BEGIN), text.find(PICTURE_END)
+    want = "```text\n" + picture(src) + "```\n"
+    if begin < 0 or end < begin:
+        print(f"{doc}: no picture of the floors (markers {PICTURE_BEGIN!r} ... {PICTURE_END!r})", file=out)
+        return 1
+    held = text[begin + len(PICTURE_BEGIN):end].strip("\n") + "\n"
+    if held != want:
+        print(
+            f"{doc}: the picture of the floors is not the code's: "
+            "redraw it with scripts/check-floors.py --picture --write",
+            file=out,
+        )
+        return 1
+    return 0
+
+
+def write_picture(src, doc):
+    with open(doc, encoding="utf-8") as f:
+        text = f.read()
+    begin, end = text.find(PICTURE_BEGIN), text.find(PICTURE_END)
+    if begin < 0 or end < begin:
+        raise SystemExit(f"{doc}: no markers for the picture")
+    drawn = PICTURE_BEGIN + "\n```text\n" + picture(src) + "```\n"
+    with open(doc, "w", encoding="utf-8") as f:
+        f.write(text[:begin] + drawn + text[end:])
+
+
 def main(argv=None):
     here = os.path.dirname(os.path.abspath(__file__))
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--src", default=os.path.join(here, "..", "src"))
     parser.add_argument("--allow", default=os.path.join(here, "floors-allowed.txt"))
+    parser.add_argument("--doc", default=os.path.join(here, "..", "docs", "architecture.md"))
+    parser.add_argument("--picture", action="store_true", help="print the floors' picture")
+    parser.add_argument("--write", action="store_true", help="with --picture: redraw it in --doc")
     args = parser.parse_args(argv)
     if not os.path.isdir(args.src):
         print(f"check-floors: no directory {args.src}", file=sys.stderr)
         return 2
-    return check(os.path.normpath(args.src), args.allow)
+    src = os.path.normpath(args.src)
+    if args.picture:
+        if args.write:
+            write_picture(src, args.doc)
+        else:
+            sys.stdout.write(picture(src))
+        return 0
+    status = check(src, args.allow)
+    if os.path.exists(args.doc):
+        status |= check_picture(src, args.doc)
+    return status
 
 
 if __name__ == "__main__":

@@ -179,6 +179,30 @@ class CheckFloors(unittest.TestCase):
         self.assertEqual(status, 0, out)
         self.assertEqual(floors.file_graph(tree.src)[os.path.join(tree.src, "bus", "origin.rs")], {})
 
+    def test_the_picture_puts_each_module_one_floor_above_what_it_imports(self):
+        tree = self.tree(ACYCLIC)
+        self.assertEqual(
+            floors.picture(tree.src),
+            " 4 | api/\n 3 | monitor/\n 2 | bus/\n 1 | drive/\n",
+        )
+        doc = os.path.join(tree.dir.name, "architecture.md")
+        with open(doc, "w", encoding="utf-8") as f:
+            f.write(f"# Floors\n{floors.PICTURE_BEGIN}\n```text\n 1 | drive/\n```\n{floors.PICTURE_END}\nmore\n")
+        out = io.StringIO()
+        self.assertEqual(floors.check_picture(tree.src, doc, out), 1)
+        self.assertIn("not the code's: redraw it with scripts/check-floors.py --picture --write", out.getvalue())
+        floors.write_picture(tree.src, doc)
+        self.assertEqual(floors.check_picture(tree.src, doc, io.StringIO()), 0)
+        with open(doc, encoding="utf-8") as f:
+            self.assertTrue(f.read().endswith(f"{floors.PICTURE_END}\nmore\n"))
+
+    def test_the_architecture_doc_holds_the_code_s_picture(self):
+        out = io.StringIO()
+        status = floors.check_picture(
+            os.path.join(HERE, "..", "src"), os.path.join(HERE, "..", "docs", "architecture.md"), out
+        )
+        self.assertEqual(status, 0, out.getvalue())
+
     def test_the_repository_passes_with_its_allow_list(self):
         status = floors.check(
             os.path.join(HERE, "..", "src"),
