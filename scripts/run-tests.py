@@ -73,8 +73,7 @@ def listed(executable, ignored=False):
 
 
 def jobs_of(binaries):
-    """[(key, argv)]: one per end-to-end test, one per other binary, and
-    the documentation's examples (which only cargo can run)."""
+    """[(key, argv)]: one per end-to-end test, one per other binary."""
     jobs = []
     for name, executable, split in binaries:
         if not split:
@@ -84,7 +83,6 @@ def jobs_of(binaries):
         for test in listed(executable):
             if test not in ignored:
                 jobs.append((f"{name}/{test}", [executable, "--exact", test]))
-    jobs.append(("doc", ["cargo", "test", "--locked", "--doc", "--quiet"]))
     return jobs
 
 

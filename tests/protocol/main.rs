@@ -10,6 +10,7 @@
 mod support;
 
 mod fuzz_corpus;
+mod listed;
 mod properties;
 mod sparkplug_proto;
 mod vectors;
