@@ -486,7 +486,20 @@ async fn fault_injection_meets_its_rates_and_repeats_with_the_seed() {
         };
         let (a, b) = tokio::join!(run(42), run(42));
         let (a, b) = (a.unwrap(), b.unwrap());
-        assert_eq!(a.seen, b.seen, "same seed, same faults");
+        // Which polls were dropped or corrupted is the seed's alone; which
+        // poll a noise burst is counted with is the machine's too (a loaded
+        // one can hold a burst past its poll's window), so noise is
+        // compared as counts below.
+        let faults = |run: &FaultyRun| {
+            run.seen
+                .iter()
+                .map(|s| match s {
+                    Seen::Answer { corrupted, .. } => Some(*corrupted),
+                    Seen::Nothing => None,
+                })
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(faults(&a), faults(&b), "same seed, same faults");
         assert_eq!(a.stats, b.stats, "same seed, same counters");
 
         assert_eq!(a.silent_answers, 0, "a silent unit never answers");
@@ -516,14 +529,18 @@ async fn fault_injection_meets_its_rates_and_repeats_with_the_seed() {
             assert!((8..=36).contains(&n), "{what}: {n} of 200");
         }
         // The master saw what the simulator counted; a stalled machine can
-        // only make more replies look late.
+        // only make more replies look late (up to 6 % of the polls on a
+        // machine loaded twenty times over).
         let s = a.stats;
-        assert_eq!(
-            (s.dropped, s.corrupted, s.noise_bursts),
-            (dropped, corrupted, noisy)
+        assert_eq!((s.dropped, s.corrupted), (dropped, corrupted));
+        // Every burst is seen, two may fall in one poll's window.
+        assert!(
+            noisy <= s.noise_bursts && noisy * 5 >= s.noise_bursts * 4,
+            "{noisy} polls with noise, {} bursts sent",
+            s.noise_bursts
         );
         assert!(
-            a.late >= s.late && a.late <= s.late + 5,
+            a.late >= s.late && a.late <= s.late + 12,
             "{} late seen, {} sent",
             a.late,
             s.late
