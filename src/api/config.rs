@@ -9,8 +9,7 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoResponses, ToSchema};
 
-use super::auth::Caller;
-use super::auth::forbidden;
+use super::caller::authorize;
 use super::extract::JsonBody;
 use super::problem::ProblemDetails;
 use super::problem::{Kind, Problem};
@@ -18,7 +17,8 @@ use super::state::ApiState;
 use crate::config::Config;
 use crate::config::edit::{NewDrive, add_drives, drive_tables, sha256_hex};
 use crate::control::reload::{Applied, NewText, Refused};
-use crate::control::{Operation, Rule, reload::ReloadResult};
+use crate::control::{Caller, Operation, Rule, reload::ReloadResult};
+use crate::ops::writes::forbidden;
 
 /// What a reload applied.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
@@ -175,7 +175,7 @@ pub async fn post_drives(
     caller: Caller,
     JsonBody(body): JsonBody<AddDrivesBody>,
 ) -> Result<Json<AddDrivesReply>, Problem> {
-    super::control::authorize(&state, &caller, Operation::Reload)?;
+    authorize(&state, &caller, Operation::Reload)?;
     let Some(path) = state.control.config_file() else {
         return Err(Problem::new(
             Kind::NoConfigFile,

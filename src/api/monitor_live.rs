@@ -17,14 +17,13 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, watch};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::StreamCaller;
-use super::buses::find_bus;
+use super::caller::StreamCaller;
 use super::extract::{Params, PathParams};
-use super::monitor::monitor_of;
-use super::openapi::ReadProblems;
+use super::problem::ReadProblems;
 use super::problem::{Problem, ProblemDetails};
 use super::socket::{self, send};
 use super::state::ApiState;
+use super::state::monitor_of;
 use crate::monitor::feed::Feed;
 use crate::monitor::filter::{FilterText, FrameFilter};
 use crate::monitor::view::FrameView;
@@ -184,7 +183,7 @@ pub async fn live(
     upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, Problem> {
     let upgrade = socket::upgrade(upgrade)?;
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let monitor = monitor_of(bus)?.clone();
     let filter = FrameFilter::parse(&FilterText {
         units: query.unit.as_deref(),
