@@ -11,7 +11,6 @@ use utoipa::ToSchema;
 
 use super::caller::authorize;
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
-use super::integers;
 use super::problem::{AdminBusProblems, ReadProblems};
 use super::problem::{BusContext, Kind, Problem};
 use super::state::ApiState;
@@ -20,6 +19,7 @@ use crate::bus::stats::Outcome;
 use crate::bus::{BusError, BusHandle, Priority};
 use crate::control::{Caller, ControlRequest, Operation};
 use crate::drive::{DriveReply, DriveRequest, RangeError};
+use crate::ops::integers;
 use crate::ops::status::StatusView;
 use crate::plant::Bus;
 use crate::timestamp::rfc3339;

@@ -114,7 +114,7 @@ pub fn render(caller: &Caller, result: ReloadResult) -> Result<Json<ReloadReply>
 pub struct DriveToAdd {
     /// Its unit address, 1 to 255.
     #[schema(minimum = 1, maximum = 255)]
-    #[serde(deserialize_with = "super::integers::integer")]
+    #[serde(deserialize_with = "crate::ops::integers::integer")]
     pub unit: i64,
     /// Its name, unique over all buses: 1 to 64 letters, digits, `-`,
     /// `_` or `.`.

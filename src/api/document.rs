@@ -17,7 +17,6 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::extract::{JsonBody, Params, PathParams};
-use super::integers;
 use super::problem::WriteProblems;
 use super::problem::{BusContext, InvalidSetting, Kind, Problem, ValidRange};
 use super::settings_diff::SettingsDiff;
@@ -26,6 +25,7 @@ use crate::config::Declared;
 use crate::control::Caller;
 use crate::control::settings::{ApplyOptions, SettingsError};
 use crate::drive::wanted::{Document, Setting, Wanted};
+use crate::ops::integers;
 use crate::ops::writes;
 
 /// Over-current protection in a document; give `limit_a` or

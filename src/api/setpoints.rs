@@ -7,13 +7,13 @@ use serde::Deserialize;
 use utoipa::ToSchema;
 
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
-use super::integers;
 use super::problem::{Kind, Problem};
 use super::problem::{LeaseProblems, WriteProblems};
 use super::state::ApiState;
 use crate::control::{Caller, LeaseError, Refusal, Rule};
 use crate::ops::commands::lease_length;
 pub use crate::ops::commands::{LeaseInfo, SetpointBody, SetpointReply};
+use crate::ops::integers;
 use crate::ops::writes::{self, forbidden};
 
 /// Sends a setpoint to drive `key` for `caller`; a lease taken over the

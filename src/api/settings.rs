@@ -9,13 +9,13 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::extract::{JsonBody, PathParams};
-use super::integers;
 use super::problem::Problem;
 use super::problem::WriteProblems;
 use super::state::{ApiState, Target};
 use crate::control::written::{Written, written};
 use crate::control::{Caller, ControlRequest};
 use crate::drive::{DriveRequest, RangeError, units};
+use crate::ops::integers;
 use crate::ops::writes;
 
 /// What a settings write did.
