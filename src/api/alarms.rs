@@ -9,13 +9,13 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::{Caller, forbidden};
 use super::extract::{Params, PathParams};
-use super::openapi::ReadProblems;
+use super::problem::ReadProblems;
 use super::problem::{Kind, Problem, ProblemDetails};
 use super::state::ApiState;
-use crate::control::{AlarmError, Rule};
+use crate::control::{AlarmError, Caller, Rule};
 pub use crate::ops::alarms::AlarmView;
+use crate::ops::writes::forbidden;
 use crate::timestamp::parse_time;
 
 /// Which alarms; every filter is optional.

@@ -1,6 +1,6 @@
-//! Bearer tokens: resolved once at start (hash, file or environment), checked
-//! on every request in constant time, and turned into a [`Caller`]: who
-//! (for the audit log) and with which [`Role`].
+//! Bearer tokens: resolved once at start (hash, file or environment), and
+//! checked on every request in constant time (by [`super::caller`], which
+//! turns a request into the caller it comes from).
 //!
 //! Only SHA-256 digests are kept in memory after start; a presented token is
 //! hashed and compared with every configured digest without an early exit,
@@ -14,19 +14,13 @@
 //! never echoed) and, discouraged, `?access_token=` in the URL.
 
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
 
-use axum::extract::{ConnectInfo, FromRequestParts};
 use axum::http::header::{AUTHORIZATION, SEC_WEBSOCKET_PROTOCOL};
 use axum::http::request::Parts;
 use sha2::{Digest, Sha256};
 
-use super::listener::ClientAddr;
-use super::problem::{Kind, Problem};
-use super::state::ApiState;
-use super::throttle::{Failure, Policy, Throttle};
+use super::throttle::{Policy, Throttle};
 use crate::config::http::{TokenConfig, TokenSource};
-use crate::control::Face;
 use crate::control::Role;
 
 /// The WebSocket subprotocol of drivegate's streams: the one the daemon
@@ -184,7 +178,8 @@ impl Tokens {
         tracing::info!(tokens = entries.len(), "API tokens reloaded");
     }
 
-    fn throttle(&self) -> std::sync::MutexGuard<'_, Throttle> {
+    /// The failures of each address that presented unknown tokens.
+    pub fn throttle(&self) -> std::sync::MutexGuard<'_, Throttle> {
         self.throttle.lock().unwrap_or_else(|p| p.into_inner())
     }
 
@@ -247,85 +242,14 @@ fn constant_time_eq(a: &[u8; 32], b: &[u8; 32]) -> bool {
     std::hint::black_box(diff) == 0
 }
 
-pub use crate::control::Caller;
-
-pub use crate::ops::writes::forbidden;
-
-/// Identifies the caller of a request. `websocket` also accepts the token
-/// as a subprotocol or as `?access_token=` (browsers cannot set headers on
-/// WebSockets). Never logs the token, nor the URL that may hold it.
-pub fn identify(parts: &Parts, state: &ApiState, websocket: bool) -> Result<Caller, Problem> {
-    let peer = parts
-        .extensions
-        .get::<ConnectInfo<ClientAddr>>()
-        .map(|c| c.0.0);
-    if state.tokens.is_empty() {
-        // Loopback only (see `listener::bind`): every local client is admin.
-        let who: Arc<str> = peer.map_or_else(|| "local".into(), |a| a.to_string().into());
-        let key = peer.map_or_else(|| "local".to_string(), |a| a.ip().to_string());
-        return Ok(Caller::new(
-            Face::Http,
-            who,
-            Role::Admin,
-            state.source_for(&key),
-        ));
-    }
-    let ip = peer.map(|a| a.ip());
-    if let Some(ip) = ip
-        && let Err(wait) = state.tokens.throttle().check(ip, Instant::now())
-    {
-        state.metrics.security().auth_throttled();
-        let seconds = wait.as_secs().max(1);
-        return Err(Problem::new(
-            Kind::TooManyFailures,
-            format!("too many invalid API tokens came from this address: retry in {seconds} s"),
-        )
-        .retry_after(seconds));
-    }
-    let presented = bearer(parts).or_else(|| {
+/// The token a request presents: `Authorization: Bearer <token>`, and on a
+/// WebSocket route (`websocket`) also the subprotocol or `?access_token=`.
+pub fn presented(parts: &Parts, websocket: bool) -> Option<String> {
+    bearer(parts).or_else(|| {
         websocket
             .then(|| protocol_token(parts).or_else(|| query_token(parts.uri.query().unwrap_or(""))))
             .flatten()
-    });
-    let Some(presented) = presented else {
-        return Err(Problem::new(
-            Kind::Unauthorized,
-            if websocket {
-                "send an API token in the header Authorization: Bearer <token>, or offer the WebSocket subprotocols \"drivegate\" and \"drivegate.bearer.<token>\""
-            } else {
-                "send an API token in the header Authorization: Bearer <token>"
-            },
-        ));
-    };
-    match state.tokens.check(&presented) {
-        Some((name, role)) => Ok(Caller::new(
-            Face::Http,
-            name.clone(),
-            role,
-            state.source_for(&name),
-        )),
-        None => {
-            state.metrics.security().auth_failure();
-            let client = peer.map_or_else(|| "unknown".to_string(), |a| a.to_string());
-            match ip.map(|ip| state.tokens.throttle().failure(ip, Instant::now())) {
-                Some(Failure::First) | None => tracing::warn!(
-                    client,
-                    "refused a request with an unknown API token (more from this address are counted, and logged if they pause it)"
-                ),
-                Some(Failure::Paused { failures, pause }) => tracing::warn!(
-                    client,
-                    failures,
-                    "{failures} unknown API tokens from this address in a short time: it is refused (429) for {} s",
-                    pause.as_secs()
-                ),
-                Some(Failure::Again) => {}
-            }
-            Err(Problem::new(
-                Kind::Unauthorized,
-                "the API token is not valid",
-            ))
-        }
-    }
+    })
 }
 
 /// The token in a `drivegate.bearer.<base64url of the token>` subprotocol
@@ -421,28 +345,6 @@ fn percent_decode(s: &str) -> Option<String> {
         }
     }
     String::from_utf8(out).ok().filter(|t| !t.is_empty())
-}
-
-impl FromRequestParts<ApiState> for Caller {
-    type Rejection = Problem;
-
-    async fn from_request_parts(parts: &mut Parts, state: &ApiState) -> Result<Self, Problem> {
-        identify(parts, state, false)
-    }
-}
-
-/// A [`Caller`] that may also present its token as a subprotocol or as
-/// `?access_token=`: only for the WebSocket routes, since browsers cannot
-/// set their headers.
-#[derive(Debug, Clone)]
-pub struct StreamCaller(pub Caller);
-
-impl FromRequestParts<ApiState> for StreamCaller {
-    type Rejection = Problem;
-
-    async fn from_request_parts(parts: &mut Parts, state: &ApiState) -> Result<Self, Problem> {
-        identify(parts, state, true).map(StreamCaller)
-    }
 }
 
 #[cfg(test)]

@@ -2,7 +2,6 @@
 //! answer, and address setting (manual 1.2: a broadcast that every drive
 //! on the bus obeys, so only with one drive connected).
 
-use std::sync::Arc;
 use std::time::Duration;
 
 use axum::Json;
@@ -10,19 +9,18 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::Caller;
-use super::control;
-use super::drives::StatusView;
+use super::caller::authorize;
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
-use super::integers;
-use super::openapi::{AdminBusProblems, ReadProblems};
+use super::problem::{AdminBusProblems, ReadProblems};
 use super::problem::{BusContext, Kind, Problem};
 use super::state::ApiState;
 use crate::bus::handle::{JobOptions, PortState};
 use crate::bus::stats::Outcome;
 use crate::bus::{BusError, BusHandle, Priority};
-use crate::control::{ControlRequest, Operation};
+use crate::control::{Caller, ControlRequest, Operation};
 use crate::drive::{DriveReply, DriveRequest, RangeError};
+use crate::ops::integers;
+use crate::ops::status::StatusView;
 use crate::plant::Bus;
 use crate::timestamp::rfc3339;
 
@@ -198,21 +196,6 @@ fn bus_view(bus: &Bus) -> BusView {
     }
 }
 
-/// The bus named `name`, or an `unknown-bus` problem listing the buses.
-pub fn find_bus(state: &ApiState, name: &str) -> Result<Arc<Bus>, Problem> {
-    let now = state.plant.now();
-    now.bus(name).cloned().ok_or_else(|| {
-        let names: Vec<&str> = now.buses().map(|b| b.handle.name()).collect();
-        Problem::new(
-            Kind::UnknownBus,
-            format!(
-                "no bus named \"{name}\" is configured: configured buses are {}",
-                names.join(", ")
-            ),
-        )
-    })
-}
-
 /// Every bus with its port state, queues and counters.
 #[utoipa::path(
     get,
@@ -250,7 +233,7 @@ pub async fn get_bus(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<BusView>, Problem> {
-    find_bus(&state, &name).map(|b| Json(bus_view(&b)))
+    state.bus(&name).map(|b| Json(bus_view(&b)))
 }
 
 /// `POST .../scan` body (optional).
@@ -398,8 +381,8 @@ pub async fn scan(
     name: &str,
     body: &ScanBody,
 ) -> Result<ScanReply, Problem> {
-    control::authorize(state, caller, Operation::Scan)?;
-    let bus = &*find_bus(state, name)?;
+    authorize(state, caller, Operation::Scan)?;
+    let bus = &*state.bus(name)?;
     let from = unit_in("first unit", body.from)?;
     let to = unit_in("last unit", body.to)?;
     if from > to {
@@ -555,7 +538,7 @@ pub async fn set_address(
     name: &str,
     body: &AddressBody,
 ) -> Result<AddressReply, Problem> {
-    let bus = &*find_bus(state, name)?;
+    let bus = &*state.bus(name)?;
     let address = unit_in("drive address", body.address)?;
     let handle: &BusHandle = &bus.handle;
     let index = state
@@ -573,7 +556,7 @@ pub async fn set_address(
         .control
         .write(caller, target, request)
         .await
-        .map_err(|f| control::problem(caller, &f, BusContext::default()))?;
+        .map_err(|f| crate::ops::writes::problem(caller, &f, BusContext::default()))?;
     let options = JobOptions {
         priority: Priority::Command,
         source: caller.source,

@@ -6,11 +6,11 @@ use axum::extract::State;
 use serde::Deserialize;
 use utoipa::IntoParams;
 
-use super::auth::Caller;
 use super::extract::{JsonBody, Params, PathParams};
-use super::openapi::WriteProblems;
 use super::problem::Problem;
+use super::problem::WriteProblems;
 use super::state::ApiState;
+use crate::control::Caller;
 use crate::drive::ConfigCommand;
 pub use crate::ops::commands::{CommandReply, ModeBody, ModeChoice, parse_command};
 

@@ -9,8 +9,7 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoResponses, ToSchema};
 
-use super::auth::Caller;
-use super::auth::forbidden;
+use super::caller::authorize;
 use super::extract::JsonBody;
 use super::problem::ProblemDetails;
 use super::problem::{Kind, Problem};
@@ -18,7 +17,8 @@ use super::state::ApiState;
 use crate::config::Config;
 use crate::config::edit::{NewDrive, add_drives, drive_tables, sha256_hex};
 use crate::control::reload::{Applied, NewText, Refused};
-use crate::control::{Operation, Rule, reload::ReloadResult};
+use crate::control::{Caller, Operation, Rule, reload::ReloadResult};
+use crate::ops::writes::forbidden;
 
 /// What a reload applied.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
@@ -114,7 +114,7 @@ pub fn render(caller: &Caller, result: ReloadResult) -> Result<Json<ReloadReply>
 pub struct DriveToAdd {
     /// Its unit address, 1 to 255.
     #[schema(minimum = 1, maximum = 255)]
-    #[serde(deserialize_with = "super::integers::integer")]
+    #[serde(deserialize_with = "crate::ops::integers::integer")]
     pub unit: i64,
     /// Its name, unique over all buses: 1 to 64 letters, digits, `-`,
     /// `_` or `.`.
@@ -175,7 +175,7 @@ pub async fn post_drives(
     caller: Caller,
     JsonBody(body): JsonBody<AddDrivesBody>,
 ) -> Result<Json<AddDrivesReply>, Problem> {
-    super::control::authorize(&state, &caller, Operation::Reload)?;
+    authorize(&state, &caller, Operation::Reload)?;
     let Some(path) = state.control.config_file() else {
         return Err(Problem::new(
             Kind::NoConfigFile,

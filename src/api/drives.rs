@@ -6,18 +6,15 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::Caller;
-use super::document::{DeclaredState, declared_state};
 use super::extract::{Params, PathParams};
-use super::openapi::{FreshReadProblems, ReadProblems};
 use super::problem::Problem;
-use super::setpoints::{LeaseInfo, lease_of};
+use super::problem::{FreshReadProblems, ReadProblems};
+use super::settings_diff::{DeclaredState, declared_state};
 use super::state::{ApiState, Target};
 use crate::bus::DriveSnapshot;
-pub use crate::ops::status::{
-    FaultName, FreshnessName, FreshnessView, LinkName, ModeName, StatusReply, StatusSource,
-    StatusView,
-};
+use crate::control::Caller;
+use crate::ops::commands::{LeaseInfo, lease_of};
+use crate::ops::status::{FreshnessView, LinkName, StatusReply, StatusView};
 use crate::timestamp::rfc3339;
 
 /// A configured drive and what is known of it.
@@ -87,8 +84,8 @@ fn view(state: &ApiState, target: Target) -> DriveView {
             .as_ref()
             .and_then(|s| s.status.as_ref())
             .map(StatusView::from),
-        lease: lease_of(state, target.index),
-        declared_settings: declared_state(state, target),
+        lease: lease_of(&state.control, target.index),
+        declared_settings: declared_state(&state.control, &target),
     }
 }
 

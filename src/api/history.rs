@@ -12,11 +12,11 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::Caller;
 use super::extract::{Params, PathParams};
-use super::openapi::ReadProblems;
 use super::problem::Problem;
+use super::problem::ReadProblems;
 use super::state::ApiState;
+use crate::control::Caller;
 use crate::history::store::{FIELDS, Field, Point};
 use crate::history::unix_ms;
 use crate::timestamp::{parse_time, rfc3339};

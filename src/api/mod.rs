@@ -7,17 +7,18 @@
 //!   [`server`] serves them with a deadline on every request, [`guard`]
 //!   refuses foreign hosts and foreign browser pages before any route runs,
 //! - [`auth`] checks bearer tokens, [`throttle`] pauses addresses that
-//!   guess them; [`roles`] says which role may do what,
+//!   guess them, [`caller`] turns a request into the core's `Caller` (the
+//!   core's policy says which role may do what),
 //! - [`drives`], [`commands`], [`setpoints`], [`settings`], [`readback`],
-//!   [`buses`], [`monitor`] (every frame on the wire), [`scope`]
-//!   (triggered captures), [`alarms`], [`history`] (trends), [`whoami`]
-//!   and [`health`] are the routes, all
-//!   documented in [`openapi`] (the body
-//!   schemas a derive cannot write are in [`body_schemas`]),
-//! - [`extract`] and [`integers`] read requests, refusing bad ones with a
-//!   problem document,
-//! - [`control`] hands their writes to the core and renders its outcomes,
-//! - [`hub`] and [`stream`] are the WebSocket stream,
+//!   [`document`], [`buses`], [`monitor`] (every frame on the wire),
+//!   [`scope`] (triggered captures), [`alarms`], [`history`] (trends),
+//!   [`whoami`] and [`health`] are the routes, all documented in
+//!   [`openapi`] (the body schemas a derive cannot write are in
+//!   [`body_schemas`]); they hand their writes to the core through
+//!   [`crate::ops`],
+//! - [`extract`] reads requests, refusing bad ones with a problem document,
+//! - [`hub`], [`stream`], [`stream_messages`] and [`stream_commands`] are
+//!   the WebSocket stream,
 //! - [`problem`] maps every error to `application/problem+json`.
 //!
 //! Handlers never touch a serial port: they submit jobs through the bus
@@ -27,9 +28,9 @@ pub mod alarms;
 pub mod auth;
 pub mod body_schemas;
 pub mod buses;
+pub mod caller;
 pub mod commands;
 pub mod config;
-pub mod control;
 pub mod document;
 pub mod drives;
 pub mod extract;
@@ -37,7 +38,6 @@ pub mod guard;
 pub mod health;
 pub mod history;
 pub mod hub;
-pub use crate::ops::integers;
 pub mod listener;
 pub mod monitor;
 pub mod monitor_live;
@@ -51,9 +51,12 @@ pub mod scope;
 pub mod server;
 pub mod setpoints;
 pub mod settings;
+pub mod settings_diff;
 pub mod socket;
 pub mod state;
 pub mod stream;
+pub mod stream_commands;
+pub mod stream_messages;
 pub mod throttle;
 pub mod whoami;
 

@@ -3,7 +3,6 @@
 //! [`super::monitor_live`]). Reading only: the viewer role.
 
 use std::collections::VecDeque;
-use std::sync::Arc;
 
 use axum::Json;
 use axum::extract::State;
@@ -12,12 +11,10 @@ use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::Caller;
-use super::buses::find_bus;
 use super::extract::{Params, PathParams};
-use super::openapi::ReadProblems;
-use super::problem::{Kind, Problem, ProblemDetails};
-use super::state::ApiState;
+use super::problem::{Problem, ProblemDetails, ReadProblems};
+use super::state::{ApiState, monitor_of};
+use crate::control::Caller;
 use crate::monitor::filter::{FilterText, FrameFilter};
 use crate::monitor::record::FrameRecord;
 use crate::monitor::view::{CSV_HEADER, FrameView};
@@ -161,23 +158,6 @@ fn drive_name(bus: &Bus, unit: u8) -> Option<String> {
         .map(|d| d.name().to_string())
 }
 
-/// The bus's monitor, or the problem that it keeps no frames.
-pub(super) fn monitor_of(bus: &Bus) -> Result<&Arc<BusMonitor>, Problem> {
-    let monitor = bus.monitor();
-    if monitor.enabled() {
-        Ok(monitor)
-    } else {
-        Err(Problem::new(
-            Kind::MonitorOff,
-            format!(
-                "the bus monitor is off ([monitor] enabled = false): no frames of bus \"{}\" are kept; the per-attempt counters are in GET /api/v1/buses/{}/monitor and /metrics",
-                bus.handle.name(),
-                bus.handle.name()
-            ),
-        ))
-    }
-}
-
 /// Reads the frames `query` selects: from `from`, or the last `limit`.
 /// Returns them with the next sequence number and the frames missed.
 fn select(
@@ -234,7 +214,7 @@ pub async fn get_monitor(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<MonitorView>, Problem> {
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let monitor = bus.monitor();
     let units = monitor
         .counters()
@@ -284,7 +264,7 @@ pub async fn get_frames(
     PathParams(name): PathParams<String>,
     Params(query): Params<FrameQuery>,
 ) -> Result<Json<FramesReply>, Problem> {
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
     let limit = query.limit(DEFAULT_LIMIT)?;
@@ -329,7 +309,7 @@ pub async fn get_frames_csv(
     PathParams(name): PathParams<String>,
     Params(query): Params<FrameQuery>,
 ) -> Result<Response, Problem> {
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
     let limit = query.limit(monitor.capacity())?;
@@ -371,7 +351,7 @@ pub async fn get_frames_pcap(
     PathParams(name): PathParams<String>,
     Params(query): Params<FrameQuery>,
 ) -> Result<Response, Problem> {
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let monitor = monitor_of(bus)?;
     let filter = query.filter()?;
     let limit = query.limit(monitor.capacity())?;

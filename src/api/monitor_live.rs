@@ -17,14 +17,13 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, watch};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::StreamCaller;
-use super::buses::find_bus;
+use super::caller::StreamCaller;
 use super::extract::{Params, PathParams};
-use super::monitor::monitor_of;
-use super::openapi::ReadProblems;
+use super::problem::ReadProblems;
 use super::problem::{Problem, ProblemDetails};
-use super::socket::{self, send};
+use super::socket::{self, Sink, Source, send};
 use super::state::ApiState;
+use super::state::monitor_of;
 use crate::monitor::feed::Feed;
 use crate::monitor::filter::{FilterText, FrameFilter};
 use crate::monitor::view::FrameView;
@@ -184,7 +183,7 @@ pub async fn live(
     upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, Problem> {
     let upgrade = socket::upgrade(upgrade)?;
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let monitor = monitor_of(bus)?.clone();
     let filter = FrameFilter::parse(&FilterText {
         units: query.unit.as_deref(),
@@ -207,66 +206,98 @@ pub async fn live(
     }))
 }
 
-async fn session(state: ApiState, bus: String, mut feed: Feed, socket: WebSocket) {
-    let (mut sink, mut stream) = socket.split();
-    let (control_tx, mut control) = watch::channel((feed.filter().clone(), false));
-    let (errors_tx, mut errors) = mpsc::channel::<Utf8Bytes>(8);
-    let idle = state.config.idle_timeout;
-    // The reader: the client's messages, and its silence (not even a pong
-    // to our pings for the idle timeout) ends the session.
-    let reader = tokio::spawn(async move {
-        loop {
-            let Ok(Some(Ok(message))) = tokio::time::timeout(idle, stream.next()).await else {
-                return;
-            };
-            let text = match message {
-                Message::Text(text) => text,
-                Message::Close(_) => return,
-                _ => continue,
-            };
-            let parsed = serde_json::from_str::<MonitorClientMessage>(text.as_str())
-                .map_err(|e| {
-                    Problem::invalid(format!(
-                        "not a valid monitor message: {e}; send {{\"type\":\"filter\",\"unit\":\"1,2\",\"outcome\":\"timeout\"}}, {{\"type\":\"pause\"}} or {{\"type\":\"resume\"}}"
-                    ))
+/// What a client asked for: a new filter, pause or resume.
+#[derive(Debug)]
+struct Asked {
+    filter: Option<FrameFilter>,
+    paused: Option<bool>,
+}
+
+/// A client's message as what it asks for, or the problem with it.
+fn parse(text: &str) -> Result<Asked, Problem> {
+    let message = serde_json::from_str::<MonitorClientMessage>(text).map_err(|e| {
+        Problem::invalid(format!(
+            "not a valid monitor message: {e}; send {{\"type\":\"filter\",\"unit\":\"1,2\",\"outcome\":\"timeout\"}}, {{\"type\":\"pause\"}} or {{\"type\":\"resume\"}}"
+        ))
+    })?;
+    Ok(match message {
+        MonitorClientMessage::Filter {
+            unit,
+            function,
+            outcome,
+            source,
+            who,
+        } => Asked {
+            filter: Some(
+                FrameFilter::parse(&FilterText {
+                    units: unit.as_deref(),
+                    functions: function.as_deref(),
+                    outcomes: outcome.as_deref(),
+                    sources: source.as_deref(),
+                    who: who.as_deref(),
                 })
-                .and_then(|m| match m {
-                    MonitorClientMessage::Filter {
-                        unit,
-                        function,
-                        outcome,
-                        source,
-                        who,
-                    } => FrameFilter::parse(&FilterText {
-                        units: unit.as_deref(),
-                        functions: function.as_deref(),
-                        outcomes: outcome.as_deref(),
-                        sources: source.as_deref(),
-                        who: who.as_deref(),
-                    })
-                    .map(|f| (Some(f), None))
-                    .map_err(Problem::invalid),
-                    MonitorClientMessage::Pause => Ok((None, Some(true))),
-                    MonitorClientMessage::Resume => Ok((None, Some(false))),
-                });
-            match parsed {
-                Ok((filter, paused)) => control_tx.send_modify(|(f, p)| {
-                    if let Some(filter) = filter {
-                        *f = filter;
-                    }
-                    if let Some(paused) = paused {
-                        *p = paused;
-                    }
-                }),
-                Err(problem) => {
-                    let text = MonitorMessage::Error { problem }.text();
-                    if errors_tx.send(text).await.is_err() {
-                        return;
-                    }
+                .map_err(Problem::invalid)?,
+            ),
+            paused: None,
+        },
+        MonitorClientMessage::Pause => Asked {
+            filter: None,
+            paused: Some(true),
+        },
+        MonitorClientMessage::Resume => Asked {
+            filter: None,
+            paused: Some(false),
+        },
+    })
+}
+
+/// The reader: the client's messages become the filter and pause it
+/// asks for, or an error to send it. Its silence (not even a pong to our
+/// pings for `idle`) ends the session.
+async fn read(
+    mut stream: Source,
+    idle: Duration,
+    asked: watch::Sender<(FrameFilter, bool)>,
+    errors: mpsc::Sender<Utf8Bytes>,
+) {
+    loop {
+        let Ok(Some(Ok(message))) = tokio::time::timeout(idle, stream.next()).await else {
+            return;
+        };
+        let text = match message {
+            Message::Text(text) => text,
+            Message::Close(_) => return,
+            _ => continue,
+        };
+        match parse(text.as_str()) {
+            Ok(Asked { filter, paused }) => asked.send_modify(|(f, p)| {
+                if let Some(filter) = filter {
+                    *f = filter;
+                }
+                if let Some(paused) = paused {
+                    *p = paused;
+                }
+            }),
+            Err(problem) => {
+                let text = MonitorMessage::Error { problem }.text();
+                if errors.send(text).await.is_err() {
+                    return;
                 }
             }
         }
-    });
+    }
+}
+
+async fn session(state: ApiState, bus: String, mut feed: Feed, socket: WebSocket) {
+    let (mut sink, stream) = socket.split();
+    let (control_tx, mut control) = watch::channel((feed.filter().clone(), false));
+    let (errors_tx, mut errors) = mpsc::channel::<Utf8Bytes>(8);
+    let reader = tokio::spawn(read(
+        stream,
+        state.config.idle_timeout,
+        control_tx,
+        errors_tx,
+    ));
 
     let mut tick = tokio::time::interval(FEED_PERIOD);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -278,7 +309,7 @@ async fn session(state: ApiState, bus: String, mut feed: Feed, socket: WebSocket
     let mut pending_state = Some(MonitorMessage::state(feed.filter(), false).text());
     let reader_done = reader;
     tokio::pin!(reader_done);
-    'session: loop {
+    loop {
         if let Some(text) = pending_state.take()
             && !send(&state, &mut sink, Message::Text(text)).await
         {
@@ -309,35 +340,46 @@ async fn session(state: ApiState, bus: String, mut feed: Feed, socket: WebSocket
             }
             _ = tick.tick() => {}
         }
-        if paused {
-            continue;
-        }
-        // Everything new, in messages of at most FEED_BATCH frames.
-        while feed.has_news() {
-            let batch = feed.poll(FEED_BATCH);
-            lost_total += batch.lost;
-            if batch.frames.is_empty() && batch.lost == 0 {
-                continue;
-            }
-            let clock = feed_clock(&feed);
-            let message = MonitorMessage::Frames {
-                bus: bus.clone(),
-                frames: batch
-                    .frames
-                    .iter()
-                    .map(|r| FrameView::new(r, &clock))
-                    .collect(),
-                lost: batch.lost,
-                lost_total,
-            };
-            if !send(&state, &mut sink, Message::Text(message.text())).await {
-                break 'session;
-            }
+        if !paused && !send_news(&state, &mut sink, &bus, &mut feed, &mut lost_total).await {
+            break;
         }
     }
     reader_done.abort();
     socket::close_if_stopping(&state, &mut sink).await;
     tracing::debug!(bus = %bus, "monitor client gone");
+}
+
+/// Sends everything new, in messages of at most FEED_BATCH frames; false
+/// once the client is gone.
+async fn send_news(
+    state: &ApiState,
+    sink: &mut Sink,
+    bus: &str,
+    feed: &mut Feed,
+    lost_total: &mut u64,
+) -> bool {
+    while feed.has_news() {
+        let batch = feed.poll(FEED_BATCH);
+        *lost_total += batch.lost;
+        if batch.frames.is_empty() && batch.lost == 0 {
+            continue;
+        }
+        let clock = feed_clock(feed);
+        let message = MonitorMessage::Frames {
+            bus: bus.to_string(),
+            frames: batch
+                .frames
+                .iter()
+                .map(|r| FrameView::new(r, &clock))
+                .collect(),
+            lost: batch.lost,
+            lost_total: *lost_total,
+        };
+        if !send(state, sink, Message::Text(message.text())).await {
+            return false;
+        }
+    }
+    true
 }
 
 fn feed_clock(feed: &Feed) -> crate::monitor::view::WallClock {
@@ -358,5 +400,25 @@ mod tests {
         assert!(
             serde_json::from_str::<MonitorClientMessage>(r#"{"type":"filter","x":1}"#).is_err()
         );
+    }
+
+    #[test]
+    fn a_message_asks_for_a_filter_or_a_pause_or_says_what_is_wrong() {
+        let asked = parse(r#"{"type":"filter","unit":"1,2","outcome":"timeout"}"#).unwrap();
+        assert!(asked.filter.is_some());
+        assert_eq!(asked.paused, None);
+        let asked = parse(r#"{"type":"pause"}"#).unwrap();
+        assert!(asked.filter.is_none());
+        assert_eq!(asked.paused, Some(true));
+        assert_eq!(parse(r#"{"type":"resume"}"#).unwrap().paused, Some(false));
+        let problem = parse(r#"{"type":"dance"}"#).unwrap_err();
+        assert!(
+            problem
+                .details()
+                .detail
+                .starts_with("not a valid monitor message: "),
+            "{problem:?}"
+        );
+        assert!(parse(r#"{"type":"filter","unit":"x"}"#).is_err());
     }
 }

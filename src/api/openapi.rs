@@ -8,14 +8,14 @@ use utoipa::Number;
 use utoipa::openapi::schema::Schema;
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::openapi::{LicenseBuilder, OpenApi as Document, RefOr};
-use utoipa::{IntoResponses, Modify, OpenApi};
+use utoipa::{Modify, OpenApi};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::monitor_live::MonitorClientMessage;
 use super::problem::{ProblemDetails, ValidRange};
 use super::state::ApiState;
-use super::stream::{ClientMessage, DriveSelection};
+use super::stream_messages::{ClientMessage, DriveSelection};
 use super::{
     alarms, buses, commands, config, document, drives, health, history, monitor, monitor_live,
     readback, replacement, scope, setpoints, settings, stream, whoami,
@@ -78,129 +78,6 @@ impl Modify for BearerScheme {
         );
     }
 }
-
-/// Errors of read routes.
-#[derive(IntoResponses)]
-pub enum ReadProblems {
-    /// `invalid-request`: a malformed parameter.
-    #[response(status = 400, content_type = "application/problem+json")]
-    BadRequest(ProblemDetails),
-    /// `unauthorized`: no token, or an unknown one.
-    #[response(status = 401, content_type = "application/problem+json")]
-    Unauthorized(ProblemDetails),
-    /// `unknown-drive` or `unknown-bus`.
-    #[response(status = 404, content_type = "application/problem+json")]
-    NotFound(ProblemDetails),
-}
-
-/// Errors of reads that may go to the bus.
-#[derive(IntoResponses)]
-pub enum FreshReadProblems {
-    /// `invalid-request`: a malformed parameter.
-    #[response(status = 400, content_type = "application/problem+json")]
-    BadRequest(ProblemDetails),
-    /// `unauthorized`: no token, or an unknown one.
-    #[response(status = 401, content_type = "application/problem+json")]
-    Unauthorized(ProblemDetails),
-    /// `unknown-drive`.
-    #[response(status = 404, content_type = "application/problem+json")]
-    NotFound(ProblemDetails),
-    /// `bus-busy`: the bus queue is full; see `Retry-After`.
-    #[response(status = 429, content_type = "application/problem+json")]
-    BusBusy(ProblemDetails),
-    /// `drive-refused`, `drive-unconfirmed`, `drive-bad-reply`.
-    #[response(status = 502, content_type = "application/problem+json")]
-    BadGateway(ProblemDetails),
-    /// `drive-offline` (also: no status read yet), `bus-down`,
-    /// `queue-timeout`, `shutting-down`.
-    #[response(status = 503, content_type = "application/problem+json")]
-    Unavailable(ProblemDetails),
-    /// `drive-timeout`: the drive did not answer.
-    #[response(status = 504, content_type = "application/problem+json")]
-    Timeout(ProblemDetails),
-}
-
-/// Errors of writes.
-#[derive(IntoResponses)]
-pub enum WriteProblems {
-    /// `invalid-request`: malformed JSON, wrong types, unknown or
-    /// contradictory fields.
-    #[response(status = 400, content_type = "application/problem+json")]
-    BadRequest(ProblemDetails),
-    /// `unauthorized`: no token, or an unknown one.
-    #[response(status = 401, content_type = "application/problem+json")]
-    Unauthorized(ProblemDetails),
-    /// `forbidden`: the token's role does not allow this.
-    #[response(status = 403, content_type = "application/problem+json")]
-    Forbidden(ProblemDetails),
-    /// `unknown-drive`, `unknown-bus`, `unknown-command`.
-    #[response(status = 404, content_type = "application/problem+json")]
-    NotFound(ProblemDetails),
-    /// `drive-not-active`, `drive-moving` (save while turning: send
-    /// `force`), `drive-busy` (calibrating), `confirmation-required`.
-    #[response(status = 409, content_type = "application/problem+json")]
-    Conflict(ProblemDetails),
-    /// `request-timeout`: the body did not arrive within `[http]
-    /// read_timeout_s`.
-    #[response(status = 408, content_type = "application/problem+json")]
-    TooSlow(ProblemDetails),
-    /// `payload-too-large`.
-    #[response(status = 413, content_type = "application/problem+json")]
-    TooLarge(ProblemDetails),
-    /// `unsupported-media-type`: send `Content-Type: application/json`.
-    #[response(status = 415, content_type = "application/problem+json")]
-    NotJson(ProblemDetails),
-    /// `out-of-range`: `valid_range` gives the accepted range.
-    #[response(status = 422, content_type = "application/problem+json")]
-    OutOfRange(ProblemDetails),
-    /// `bus-busy`: the bus queue is full; see `Retry-After`.
-    #[response(status = 429, content_type = "application/problem+json")]
-    BusBusy(ProblemDetails),
-    /// `drive-refused` (a Modbus exception, `exception_code`),
-    /// `drive-unconfirmed`, `drive-bad-reply`.
-    #[response(status = 502, content_type = "application/problem+json")]
-    BadGateway(ProblemDetails),
-    /// `drive-offline`, `bus-down`, `queue-timeout`, `shutting-down`.
-    #[response(status = 503, content_type = "application/problem+json")]
-    Unavailable(ProblemDetails),
-    /// `drive-timeout`: the drive did not answer; whether it carried the
-    /// request out is unknown.
-    #[response(status = 504, content_type = "application/problem+json")]
-    Timeout(ProblemDetails),
-}
-
-/// Errors of lease routes.
-#[derive(IntoResponses)]
-pub enum LeaseProblems {
-    /// `invalid-request`.
-    #[response(status = 400, content_type = "application/problem+json")]
-    BadRequest(ProblemDetails),
-    /// `unauthorized`.
-    #[response(status = 401, content_type = "application/problem+json")]
-    Unauthorized(ProblemDetails),
-    /// `forbidden`: needs the operator role.
-    #[response(status = 403, content_type = "application/problem+json")]
-    Forbidden(ProblemDetails),
-    /// `unknown-drive`.
-    #[response(status = 404, content_type = "application/problem+json")]
-    NotFound(ProblemDetails),
-    /// `no-lease`: none is in place; the detail says what became of the
-    /// last one (expired or its WebSocket closed, and whether its stop was
-    /// confirmed or is still being tried; released; ended by the brake or
-    /// deactivation), or that none was granted.
-    #[response(status = 409, content_type = "application/problem+json")]
-    NoLease(ProblemDetails),
-    /// `request-timeout`: the body did not arrive within `[http]
-    /// read_timeout_s`.
-    #[response(status = 408, content_type = "application/problem+json")]
-    TooSlow(ProblemDetails),
-    /// `out-of-range`: a lease length outside `[safety] lease_min_ms` to `lease_max_ms`.
-    #[response(status = 422, content_type = "application/problem+json")]
-    OutOfRange(ProblemDetails),
-}
-
-/// Errors of admin bus operations (same classes as writes).
-pub type AdminBusProblems = WriteProblems;
 
 /// Every documented route, ready for its state.
 pub fn router() -> OpenApiRouter<ApiState> {

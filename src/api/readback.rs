@@ -14,12 +14,11 @@ use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::auth::Caller;
-use super::control;
 use super::extract::{Params, PathParams};
-use super::openapi::FreshReadProblems;
+use super::problem::FreshReadProblems;
 use super::problem::{BusContext, Problem};
 use super::state::ApiState;
+use crate::control::Caller;
 use crate::drive::settings::DriveSettings;
 use crate::drive::units::{self, COUNTS_PER_AMP};
 use crate::timestamp::rfc3339;
@@ -121,7 +120,7 @@ pub async fn read(
     key: &str,
 ) -> Result<DriveSettingsView, Problem> {
     let target = state.target(key)?;
-    let offline = control::is_offline(&target);
+    let offline = crate::ops::writes::is_offline(&target);
     let held = state
         .control
         .read_settings(caller, target.control())

@@ -10,13 +10,13 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::{Caller, forbidden};
 use super::extract::{JsonBody, PathParams};
-use super::openapi::WriteProblems;
+use super::problem::WriteProblems;
 use super::problem::{Kind, Problem};
 use super::state::ApiState;
-use crate::control::Rule;
 use crate::control::replacement::ReplacementEvent;
+use crate::control::{Caller, Rule};
+use crate::ops::writes::forbidden;
 use crate::timestamp::rfc3339;
 
 /// The longest `detail`, in characters: a sentence, not a file.

@@ -14,15 +14,14 @@ use serde::{Deserialize, Serialize};
 use tokio_util::sync::CancellationToken;
 use utoipa::ToSchema;
 
-use super::auth::Caller;
-use super::buses::find_bus;
-use super::control;
+use super::caller::authorize;
 use super::extract::{JsonBody, PathParams};
-use super::hub::{Hub, ServerMessage};
-use super::openapi::ReadProblems;
+use super::hub::Hub;
+use super::problem::ReadProblems;
 use super::problem::{Kind, Problem, ProblemDetails};
 use super::state::ApiState;
-use crate::control::Operation;
+use super::stream_messages::StreamMessage;
+use crate::control::{Caller, Operation};
 use crate::plant::{Bus, Plant};
 use crate::scope::field::Field;
 use crate::scope::result::{self, ScopeResult, ScopeState};
@@ -306,7 +305,7 @@ pub async fn get_scope(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<ScopeView>, Problem> {
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let scope = bus.scope();
     scope.tick(Instant::now());
     let limits = scope.limits();
@@ -367,8 +366,8 @@ pub fn arm(
     name: &str,
     body: &ArmBody,
 ) -> Result<ScopeState, Problem> {
-    control::authorize(state, caller, Operation::Capture)?;
-    let bus = &*find_bus(state, name)?;
+    authorize(state, caller, Operation::Capture)?;
+    let bus = &*state.bus(name)?;
     let spec = spec(state, bus, body)?;
     let scope = bus.scope();
     let id = scope.arm(spec, Instant::now()).map_err(scope_problem)?;
@@ -402,8 +401,8 @@ pub async fn delete_scope(
 /// Cancels the capture on bus `name` for `caller` (the REST route and the
 /// stream's `scope-cancel`).
 pub fn cancel(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
-    control::authorize(state, caller, Operation::Capture)?;
-    let bus = &*find_bus(state, name)?;
+    authorize(state, caller, Operation::Capture)?;
+    let bus = &*state.bus(name)?;
     let id = bus.scope().cancel(Instant::now()).map_err(scope_problem)?;
     tracing::info!(who = %caller.who, bus = %bus.handle.name(), capture = id, "scope capture cancelled");
     current_state(bus).ok_or_else(|| Problem::new(Kind::Internal, "the capture is gone"))
@@ -434,8 +433,8 @@ pub async fn post_trigger(
 /// Triggers the capture on bus `name` for `caller` (the REST route and the
 /// stream's `scope-trigger`).
 pub fn trigger(state: &ApiState, caller: &Caller, name: &str) -> Result<ScopeState, Problem> {
-    control::authorize(state, caller, Operation::Capture)?;
-    let bus = &*find_bus(state, name)?;
+    authorize(state, caller, Operation::Capture)?;
+    let bus = &*state.bus(name)?;
     bus.scope()
         .trigger(Instant::now(), caller.origin.clone())
         .map_err(scope_problem)?;
@@ -461,7 +460,7 @@ pub async fn get_result(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Json<ScopeResult>, Problem> {
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let scope = bus.scope();
     scope.tick(Instant::now());
     let name = namer(bus);
@@ -490,7 +489,7 @@ pub async fn get_result_csv(
     _caller: Caller,
     PathParams(name): PathParams<String>,
 ) -> Result<Response, Problem> {
-    let bus = &*find_bus(&state, &name)?;
+    let bus = &*state.bus(&name)?;
     let scope = bus.scope();
     scope.tick(Instant::now());
     let name = namer(bus);
@@ -570,5 +569,5 @@ fn publish_change(bus: &Bus, hub: &Hub, last: &mut Option<(u64, &'static str, us
         return;
     }
     *last = Some(key);
-    hub.publish(None, &ServerMessage::Scope(state));
+    hub.publish(None, StreamMessage::Scope(state));
 }

@@ -1,37 +1,20 @@
 //! Setpoints (manual 1.4 to 1.6) in engineering units, and the leases that
 //! may come with them: renew, release.
 
-use std::time::Duration;
-
 use axum::Json;
 use axum::extract::State;
 use serde::Deserialize;
 use utoipa::ToSchema;
 
-use super::auth::{Caller, forbidden};
-use super::control::{self};
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
-use super::integers;
-use super::openapi::{LeaseProblems, WriteProblems};
 use super::problem::{Kind, Problem};
+use super::problem::{LeaseProblems, WriteProblems};
 use super::state::ApiState;
-use crate::control::{LeaseError, Refusal, Rule};
+use crate::control::{Caller, LeaseError, Refusal, Rule};
+use crate::ops::commands::lease_length;
 pub use crate::ops::commands::{LeaseInfo, SetpointBody, SetpointReply};
-
-/// The lease length asked for (or `[http] lease_default_ms`); the core
-/// checks it against its bounds. A negative length asks for 0 ms, which
-/// no bound allows.
-fn lease_length(state: &ApiState, asked: Option<i64>) -> Option<Duration> {
-    match asked {
-        Some(ms) => Some(Duration::from_millis(u64::try_from(ms).unwrap_or(0))),
-        None => state.config.lease_default,
-    }
-}
-
-/// The lease on drive `index` of the plant, as clients see it.
-pub fn lease_of(state: &ApiState, index: usize) -> Option<LeaseInfo> {
-    crate::ops::commands::lease_of(&state.control, index)
-}
+use crate::ops::integers;
+use crate::ops::writes::{self, forbidden};
 
 /// Sends a setpoint to drive `key` for `caller`; a lease taken over the
 /// stream ends with its session too.
@@ -59,7 +42,7 @@ fn lease_problem(caller: &Caller, drive: &str, error: LeaseError, hint: &str) ->
             rule: Rule::Role { needed, .. },
             ..
         }) => forbidden(caller, needed),
-        LeaseError::Refused(refusal) => control::lease_problem(&refusal),
+        LeaseError::Refused(refusal) => writes::lease_problem(&refusal),
         LeaseError::NoLease(why) => {
             Problem::new(Kind::NoLease, format!("{}; {hint}", why.0)).for_drive(drive)
         }
@@ -115,7 +98,7 @@ pub async fn renew(
     body: &RenewBody,
 ) -> Result<LeaseInfo, Problem> {
     let target = state.target(key)?;
-    let length = body.lease_ms.and_then(|ms| lease_length(state, Some(ms)));
+    let length = body.lease_ms.map(lease_length);
     state
         .control
         .renew(caller, target.index, length)

@@ -8,15 +8,15 @@ use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::auth::Caller;
-use super::control::{self, Written};
 use super::extract::{JsonBody, PathParams};
-use super::integers;
-use super::openapi::WriteProblems;
 use super::problem::Problem;
+use super::problem::WriteProblems;
 use super::state::{ApiState, Target};
-use crate::control::ControlRequest;
+use crate::control::written::{Written, written};
+use crate::control::{Caller, ControlRequest};
 use crate::drive::{DriveRequest, RangeError, units};
+use crate::ops::integers;
+use crate::ops::writes;
 
 /// What a settings write did.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
@@ -44,8 +44,8 @@ async fn write_settings(
     let target = state.target(key)?;
     let request = build(target.clone())?;
     request.validate()?;
-    control::send(
-        state,
+    writes::send(
+        &state.control,
         caller,
         target.clone(),
         ControlRequest::drive(request).forced(force),
@@ -55,7 +55,7 @@ async fn write_settings(
         drive: target.drive.name.clone(),
         bus: target.bus.name().to_string(),
         unit: target.drive.unit,
-        written: control::written(&request),
+        written: written(&request),
         saved: save,
     })
 }

@@ -1,5 +1,7 @@
 //! What every handler shares: the plant, the control core, the metrics,
-//! the tokens, the stream hub, and the shutdown signal.
+//! the tokens, the stream hub, and the shutdown signal; and the lookups of
+//! what a request names (a drive, a bus, a bus's monitor), each refused
+//! with a problem that lists what there is.
 
 use std::collections::HashMap;
 use std::ops::Deref;
@@ -10,13 +12,14 @@ use tokio_util::task::TaskTracker;
 
 use super::auth::Tokens;
 use super::hub::Hub;
-use super::problem::Problem;
+use super::problem::{Kind, Problem};
 use crate::bus::SourceId;
 use crate::config::HttpConfig;
 use crate::control::Control;
 use crate::history::History;
 use crate::metrics::Metrics;
-use crate::plant::Plant;
+use crate::monitor::BusMonitor;
+use crate::plant::{Bus, Plant};
 
 /// The handlers' state; cheap to clone.
 #[derive(Clone)]
@@ -99,5 +102,37 @@ impl ApiState {
     /// The drive in slot `index` of the plant, if it is still configured.
     pub fn target_at(&self, index: usize) -> Option<Target> {
         Target::at(&self.plant, index)
+    }
+
+    /// The bus named `name`, or an `unknown-bus` problem listing the buses.
+    pub fn bus(&self, name: &str) -> Result<Arc<Bus>, Problem> {
+        let now = self.plant.now();
+        now.bus(name).cloned().ok_or_else(|| {
+            let names: Vec<&str> = now.buses().map(|b| b.handle.name()).collect();
+            Problem::new(
+                Kind::UnknownBus,
+                format!(
+                    "no bus named \"{name}\" is configured: configured buses are {}",
+                    names.join(", ")
+                ),
+            )
+        })
+    }
+}
+
+/// The bus's monitor, or the problem that it keeps no frames.
+pub fn monitor_of(bus: &Bus) -> Result<&Arc<BusMonitor>, Problem> {
+    let monitor = bus.monitor();
+    if monitor.enabled() {
+        Ok(monitor)
+    } else {
+        Err(Problem::new(
+            Kind::MonitorOff,
+            format!(
+                "the bus monitor is off ([monitor] enabled = false): no frames of bus \"{}\" are kept; the per-attempt counters are in GET /api/v1/buses/{}/monitor and /metrics",
+                bus.handle.name(),
+                bus.handle.name()
+            ),
+        ))
     }
 }

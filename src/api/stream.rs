@@ -26,86 +26,30 @@ use axum::extract::ws::{Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
 use axum::response::Response;
 use futures_util::StreamExt;
 use serde::Deserialize;
-use serde_json::Value;
 use tokio::sync::{Semaphore, broadcast, mpsc};
 use tokio::task::JoinSet;
+use tokio::time::{Instant, timeout_at};
 use tokio_util::task::TaskTracker;
-use utoipa::{IntoParams, ToSchema};
+use utoipa::IntoParams;
 
-use super::alarms;
-use super::auth::{Caller, StreamCaller};
-use super::buses;
-use super::commands::parse_command;
-use super::document;
+use super::caller::StreamCaller;
 use super::extract::Params;
-use super::hub::{HubEvent, RestartDecision, ServerMessage, render};
-use super::openapi::ReadProblems;
-use super::problem::Problem;
-use super::replacement;
-use super::scope;
-use super::setpoints::{self, RenewBody};
-use super::settings;
+use super::hub::{HubEvent, render};
+use super::problem::{Problem, ReadProblems};
 use super::socket::{self, Sink, Source, send};
 use super::state::ApiState;
-use crate::control::{ControlEvent, Face, SessionId};
-use crate::drive::DriveRequest;
+use super::stream_commands::{self, Command};
+/// What a client sends on the stream (its home is [`super::stream_messages`]).
+pub use super::stream_messages::ClientMessage;
+use super::stream_messages::{DriveSelection, RestartDecision, ServerMessage, StreamMessage};
+use crate::control::{Caller, ControlEvent, Face, SessionId};
+use crate::ops::messages::DriveMessage;
 use crate::timestamp::rfc3339;
 
 /// Replies (and other answers to the client's own messages) that may wait.
 const REPLY_BUFFER: usize = 64;
 /// Commands of one client in flight at once.
 const COMMANDS_IN_FLIGHT: usize = 16;
-
-/// Which drives: `"all"`, one name, or a list of names (unit numbers work
-/// on a single bus).
-#[derive(Debug, Clone, PartialEq, Deserialize, ToSchema)]
-#[serde(untagged)]
-pub enum DriveSelection {
-    /// `"all"` or one drive.
-    One(String),
-    /// Several drives (`[]`: none).
-    Many(Vec<String>),
-}
-
-/// A message the client sends.
-#[derive(Debug, Clone, PartialEq, Deserialize, ToSchema)]
-#[serde(tag = "type", rename_all = "kebab-case", deny_unknown_fields)]
-pub enum ClientMessage {
-    /// Receive the updates of these drives from now on (replaces the
-    /// previous selection); answered with `subscribed`.
-    Subscribe {
-        /// `"all"`, a drive, or a list of drives.
-        drives: DriveSelection,
-    },
-    /// Run an operation; answered with `reply` carrying the same `id`.
-    ///
-    /// `op` is a command name (`activate`, `brake`, ... as in
-    /// `POST .../commands/{command}`, body `{"force": bool}`), or `mode`,
-    /// `setpoint`, `lease-renew`, `lease-release`, `status` (body
-    /// `{"fresh": bool}`), `protection`, `speed-ramp`, `position-ramp`,
-    /// `inertia`, `rs485-control`, `replacement`, `settings` (a settings
-    /// document, with `"dry_run": true` for a dry run) with the body of the
-    /// REST route; `scan`,
-    /// `set-address`, `scope-arm`, `scope-trigger` and `scope-cancel` take
-    /// `bus` instead of `drive`; `alarm-ack` takes neither, its body is
-    /// `{"alarm": id}`. A setpoint's lease also ends when this socket
-    /// closes.
-    Command {
-        /// Any JSON value; echoed in the reply.
-        id: Value,
-        /// The operation.
-        op: String,
-        /// The drive (name, or unit number on a single bus).
-        #[serde(default)]
-        drive: Option<String>,
-        /// The bus, for `scan`, `set-address` and the `scope-` operations.
-        #[serde(default)]
-        bus: Option<String>,
-        /// The operation's body, as for the REST route.
-        #[serde(default)]
-        body: Option<Value>,
-    },
-}
 
 /// Stream query parameters.
 #[derive(Debug, Clone, Default, Deserialize, IntoParams)]
@@ -358,7 +302,7 @@ async fn write_loop(
             _ = ping.tick() => Some(socket::ping()),
             Some(event) = events.recv() => {
                 let n = missed.swap(0, Ordering::Relaxed);
-                if n > 0 && !send(state, &mut sink, Message::Text(ServerMessage::Lagged { missed: n }.to_text())).await {
+                if n > 0 && !send(state, &mut sink, Message::Text(StreamMessage::Lagged { missed: n }.to_text())).await {
                     return;
                 }
                 Some(Message::Text(event))
@@ -395,7 +339,7 @@ fn subscribed(state: &ApiState, indexes: &[usize]) -> Utf8Bytes {
             at: rfc3339(n.at),
         })
         .collect();
-    ServerMessage::Subscribed { drives, restart }.to_text()
+    StreamMessage::Subscribed { drives, restart }.to_text()
 }
 
 /// Handles the client's messages until it closes the socket, or sends
@@ -416,61 +360,28 @@ async fn read_loop(
 ) {
     let in_flight = Arc::new(Semaphore::new(COMMANDS_IN_FLIGHT));
     let silence = state.config.idle_timeout;
-    let mut deadline = tokio::time::Instant::now() + silence;
+    let mut deadline = Instant::now() + silence;
     let gone = |what: &str| {
         tracing::debug!(who = %caller.who, connection = connection.0, "stream client {what} for {silence:?}: closing");
     };
     loop {
-        let Ok(next) = tokio::time::timeout_at(deadline, stream.next()).await else {
+        let Ok(next) = timeout_at(deadline, stream.next()).await else {
             gone("sent nothing, not even a pong,");
             return;
         };
-        deadline = tokio::time::Instant::now() + silence;
-        let Some(message) = next else {
-            return;
-        };
-        let text = match message {
-            Ok(Message::Text(text)) => text,
-            Ok(Message::Binary(_)) => {
-                let problem = Problem::invalid("send JSON text messages, not binary ones");
-                let answer = ServerMessage::Error { problem }.to_text();
-                match tokio::time::timeout_at(deadline, replies.send(answer)).await {
-                    Ok(Ok(())) => continue,
-                    Ok(Err(_)) => return,
-                    Err(_) => {
-                        gone("read no answer");
-                        return;
-                    }
-                }
-            }
-            Ok(Message::Ping(_) | Message::Pong(_)) => continue,
-            Ok(Message::Close(_)) | Err(_) => return,
-        };
-        let answer = match serde_json::from_str::<ClientMessage>(text.as_str()) {
-            Err(e) => ServerMessage::Error {
-                problem: Problem::invalid(format!(
-                    "not a valid stream message: {e}; send {{\"type\":\"subscribe\",\"drives\":\"all\"}} or {{\"type\":\"command\",\"id\":1,\"op\":\"activate\",\"drive\":\"NAME\"}}"
-                )),
-            }
-            .to_text(),
-            Ok(ClientMessage::Subscribe { drives }) => match resolve(state, &drives) {
-                Ok(indexes) => {
-                    let all = matches!(&drives, DriveSelection::One(s) if s == "all");
-                    selection.set(&indexes, all);
-                    subscribed(state, &indexes)
-                }
-                Err(problem) => ServerMessage::Error { problem }.to_text(),
-            },
-            Ok(ClientMessage::Command {
-                id,
-                op,
-                drive,
-                bus,
-                body,
-            }) => {
-                let permit =
-                    match tokio::time::timeout_at(deadline, in_flight.clone().acquire_owned())
-                        .await
+        deadline = Instant::now() + silence;
+        let answer = match next {
+            Some(Ok(Message::Text(text))) => match serde_json::from_str(text.as_str()) {
+                Err(e) => not_understood(&e),
+                Ok(ClientMessage::Subscribe { drives }) => subscribe(state, selection, &drives),
+                Ok(ClientMessage::Command {
+                    id,
+                    op,
+                    drive,
+                    bus,
+                    body,
+                }) => {
+                    let permit = match timeout_at(deadline, in_flight.clone().acquire_owned()).await
                     {
                         Ok(Ok(permit)) => permit,
                         Ok(Err(_)) => return,
@@ -479,38 +390,33 @@ async fn read_loop(
                             return;
                         }
                     };
-                // A write that stops the motor is carried out even if the
-                // socket closes first: the core's meaning of it says so.
-                let brake = parse_command(&op).is_ok_and(|c| {
-                    crate::control::policy::of_request(&DriveRequest::Config(c)).survives_caller()
-                });
-                let tracker = state.sessions.clone();
-                let (state, caller, replies) = (state.clone(), caller.clone(), replies.clone());
-                // Commands run beside the reader, so a slow one (a scan, a
-                // timeout) does not hold up lease renewals sent after it.
-                commands.spawn(&tracker, brake, async move {
-                    let result = dispatch(&state, &caller, &op, drive, bus, body).await;
-                    let reply = match result {
-                        Ok(result) => ServerMessage::Reply {
-                            id,
-                            ok: true,
-                            result: Some(result),
-                            problem: None,
-                        },
-                        Err(problem) => ServerMessage::Reply {
-                            id,
-                            ok: false,
-                            result: None,
-                            problem: Some(problem),
-                        },
+                    let command = Command {
+                        op,
+                        drive,
+                        bus,
+                        body,
                     };
-                    let _ = replies.send(reply.to_text()).await;
-                    drop(permit);
-                });
-                continue;
+                    let brake = command.survives_its_caller();
+                    let tracker = state.sessions.clone();
+                    let (state, caller, replies) = (state.clone(), caller.clone(), replies.clone());
+                    // Commands run beside the reader, so a slow one (a scan,
+                    // a timeout) does not hold up lease renewals sent after it.
+                    commands.spawn(&tracker, brake, async move {
+                        let result = stream_commands::run(&state, &caller, command).await;
+                        let reply = ServerMessage::from(DriveMessage::reply(id, result));
+                        let _ = replies.send(reply.to_text()).await;
+                        drop(permit);
+                    });
+                    continue;
+                }
+            },
+            Some(Ok(Message::Binary(_))) => {
+                error(Problem::invalid("send JSON text messages, not binary ones"))
             }
+            Some(Ok(Message::Ping(_) | Message::Pong(_))) => continue,
+            Some(Ok(Message::Close(_)) | Err(_)) | None => return,
         };
-        match tokio::time::timeout_at(deadline, replies.send(answer)).await {
+        match timeout_at(deadline, replies.send(answer)).await {
             Ok(Ok(())) => {}
             Ok(Err(_)) => return,
             Err(_) => {
@@ -521,114 +427,31 @@ async fn read_loop(
     }
 }
 
-use crate::ops::commands::{body_as, json};
+fn error(problem: Problem) -> Utf8Bytes {
+    StreamMessage::Error { problem }.to_text()
+}
 
-const OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, lease-renew, lease-release, status, protection, speed-ramp, position-ramp, inertia, rs485-control, replacement, settings, scan, set-address, scope-arm, scope-trigger, scope-cancel, alarm-ack";
+fn not_understood(e: &serde_json::Error) -> Utf8Bytes {
+    error(Problem::invalid(format!(
+        "not a valid stream message: {e}; send {{\"type\":\"subscribe\",\"drives\":\"all\"}} or {{\"type\":\"command\",\"id\":1,\"op\":\"activate\",\"drive\":\"NAME\"}}"
+    )))
+}
 
-/// Runs one stream command through the same code as its REST route.
-async fn dispatch(
-    state: &ApiState,
-    caller: &Caller,
-    op: &str,
-    drive: Option<String>,
-    bus: Option<String>,
-    body: Option<Value>,
-) -> Result<Value, Problem> {
-    if op == "alarm-ack" {
-        let b: alarms::AckBody = body_as(op, body)?;
-        return json(alarms::acknowledge(state, caller, b.alarm).await?);
-    }
-    if matches!(
-        op,
-        "scan" | "set-address" | "scope-arm" | "scope-trigger" | "scope-cancel"
-    ) {
-        let bus = bus.ok_or_else(|| Problem::invalid(format!("\"{op}\" needs \"bus\"")))?;
-        return match op {
-            "scan" => json(buses::scan(state, caller, &bus, &body_as(op, body)?).await?),
-            "scope-arm" => json(scope::arm(state, caller, &bus, &body_as(op, body)?)?),
-            "scope-trigger" => json(scope::trigger(state, caller, &bus)?),
-            "scope-cancel" => json(scope::cancel(state, caller, &bus)?),
-            _ => json(buses::set_address(state, caller, &bus, &body_as(op, body)?).await?),
-        };
-    }
-    let known = matches!(
-        op,
-        "mode"
-            | "setpoint"
-            | "lease-renew"
-            | "lease-release"
-            | "status"
-            | "protection"
-            | "speed-ramp"
-            | "position-ramp"
-            | "inertia"
-            | "rs485-control"
-            | "replacement"
-            | "settings"
-    );
-    if !known && parse_command(op).is_err() {
-        return Err(Problem::invalid(format!("unknown op \"{op}\": use {OPS}")));
-    }
-    let key = drive.ok_or_else(|| Problem::invalid(format!("\"{op}\" needs \"drive\"")))?;
-    let key = key.as_str();
-    if crate::ops::commands::is_drive_op(op) {
-        // The operations every face with command messages offers.
-        return crate::ops::commands::run_drive_op(
-            &state.control,
-            caller,
-            key,
-            op,
-            body,
-            state.config.lease_default,
-        )
-        .await;
-    }
-    match op {
-        "lease-renew" => {
-            let b: RenewBody = body_as(op, body)?;
-            json(setpoints::renew(state, caller, key, &b).await?)
+/// Takes the drives of `drives` from now on: answered with `subscribed`.
+fn subscribe(state: &ApiState, selection: &Selection, drives: &DriveSelection) -> Utf8Bytes {
+    match resolve(state, drives) {
+        Ok(indexes) => {
+            let all = matches!(drives, DriveSelection::One(s) if s == "all");
+            selection.set(&indexes, all);
+            subscribed(state, &indexes)
         }
-        "lease-release" => json(setpoints::release(state, caller, key).await?),
-        "protection" => json(settings::protection(state, caller, key, &body_as(op, body)?).await?),
-        "speed-ramp" => json(settings::speed_ramp(state, caller, key, &body_as(op, body)?).await?),
-        "position-ramp" => {
-            json(settings::position_ramp(state, caller, key, &body_as(op, body)?).await?)
-        }
-        "inertia" => json(settings::inertia(state, caller, key, &body_as(op, body)?).await?),
-        "rs485-control" => {
-            json(settings::rs485_control(state, caller, key, &body_as(op, body)?).await?)
-        }
-        "replacement" => json(replacement::record(state, caller, key, body_as(op, body)?)?),
-        "settings" => json(document::apply(state, caller, key, &body_as(op, body)?, false).await?),
-        _ => Err(Problem::invalid(format!("unknown op \"{op}\": use {OPS}"))),
+        Err(problem) => error(problem),
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn client_messages_parse() {
-        let m: ClientMessage =
-            serde_json::from_str(r#"{"type":"subscribe","drives":"all"}"#).unwrap();
-        assert_eq!(
-            m,
-            ClientMessage::Subscribe {
-                drives: DriveSelection::One("all".into())
-            }
-        );
-        let m: ClientMessage = serde_json::from_str(
-            r#"{"type":"command","id":"a7","op":"setpoint","drive":"conveyor","body":{"speed_rpm":100,"lease_ms":500}}"#,
-        )
-        .unwrap();
-        assert!(matches!(m, ClientMessage::Command { ref op, .. } if op == "setpoint"));
-        assert!(
-            serde_json::from_str::<ClientMessage>(r#"{"type":"subscribe","drives":"all","x":1}"#)
-                .is_err()
-        );
-        assert!(serde_json::from_str::<ClientMessage>(r#"{"type":"dance"}"#).is_err());
-    }
 
     #[test]
     fn selection_flags() {

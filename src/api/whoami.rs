@@ -15,11 +15,10 @@ use axum::http::header::AUTHORIZATION;
 use serde::Serialize;
 use utoipa::ToSchema;
 
-use super::auth::Caller;
-use super::openapi::ReadProblems;
 use super::problem::Problem;
+use super::problem::ReadProblems;
 use super::state::ApiState;
-use crate::control::Role;
+use crate::control::{Caller, Role};
 
 /// Who a token is.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]

@@ -280,11 +280,7 @@ pub async fn apply(
     lease_default: Option<Duration>,
 ) -> Result<SetpointReply, Problem> {
     let request = body.request()?;
-    let lease = match body.lease_ms {
-        // A negative length asks for 0 ms, which no bound allows.
-        Some(ms) => Some(Duration::from_millis(u64::try_from(ms).unwrap_or(0))),
-        None => lease_default,
-    };
+    let lease = body.lease_ms.map(lease_length).or(lease_default);
     let sent = writes::send(
         control,
         caller,
@@ -301,6 +297,13 @@ pub async fn apply(
         written: written(&request),
         lease,
     })
+}
+
+/// A lease length a client asked for (`lease_ms` of a setpoint or a
+/// renewal), which the core checks against its bounds. A negative length
+/// asks for 0 ms, which no bound allows.
+pub fn lease_length(ms: i64) -> Duration {
+    Duration::from_millis(u64::try_from(ms).unwrap_or(0))
 }
 
 /// The lease on drive `index` of the plant, as clients see it.

@@ -3,22 +3,24 @@
 //! motor-safety lease on it and its alarms, how fresh its data is, in the shape the WebSocket stream gives them
 //! (`{"type": "online", ...}`, `{"type": "lease-expired", ...}`), and the
 //! reply to a command message. The MQTT face publishes them on a drive's
-//! `event` and `reply` topics; the stream's own `ServerMessage` carries
-//! the same fields (a test in `api::hub` holds them equal).
+//! `event` and `reply` topics; the stream sends them as they are, beside
+//! messages of its own (`api::stream_messages`).
 
 use serde::Serialize;
 use serde_json::Value;
+use utoipa::ToSchema;
 
 use super::alarms::AlarmView;
-use super::problem::Problem;
+use super::problem::{Problem, ProblemDetails};
 use super::status::FreshnessView;
 use crate::control::LeaseEvent;
 use crate::control::alarms::AlarmNews;
 use crate::control::freshness::FreshnessNews;
 use crate::plant::Plant;
 
-/// A message about one drive.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+/// A message about one drive. Its texts are those of the stream's
+/// document (`ServerMessage`, of which these are a part).
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
 #[serde(tag = "type", rename_all = "kebab-case")]
 pub enum DriveMessage {
     /// A drive answers (again).
@@ -41,8 +43,11 @@ pub enum DriveMessage {
         /// The last failure.
         reason: String,
     },
-    /// The drive's data changed freshness: `live` again, or not live
-    /// (`stale`, `offline`, `never`, `bus-down`) with why and since when.
+    /// A drive's data changed freshness: `live` again, or not live
+    /// (`stale`: polls missing; `offline`: it stopped answering; `never`:
+    /// not answered since its bus opened; `bus-down`: its bus's port is
+    /// gone), with why and since when. Values received before are the
+    /// drive's current ones only while it is `live`.
     Freshness {
         /// Drive name.
         drive: String,
@@ -56,8 +61,10 @@ pub enum DriveMessage {
         /// Age of its last value, ms (`null`: it never answered).
         age_ms: Option<u64>,
     },
-    /// A motor-safety lease ended without renewal (or its session ended)
-    /// and the stop action was tried.
+    /// A motor-safety lease ended without renewal (or its WebSocket
+    /// closed; or, for a Modbus TCP client's communication-loss lease, no
+    /// request came within the time or its connection closed) and the
+    /// stop action was tried.
     LeaseExpired {
         /// Drive name.
         drive: String,
@@ -69,7 +76,8 @@ pub enum DriveMessage {
         owner: String,
         /// Why it ended.
         reason: String,
-        /// `zero-speed`, `brake` or `none`.
+        /// `[safety] on_lease_expiry` (or the client network's
+        /// `comm_loss_action`): `zero-speed`, `brake` or `none`.
         action: String,
         /// What was sent to the drive, if anything.
         sent: Option<String>,
@@ -77,11 +85,13 @@ pub enum DriveMessage {
         ok: bool,
         /// The drive's answer, or why the action failed.
         result: String,
-        /// True when the action failed and is tried again until the drive
-        /// confirms it; a `lease-stop` message tells the end.
+        /// True when the action failed and drivegate keeps trying it until
+        /// the drive confirms it; a `lease-stop` message tells the end.
         retrying: bool,
     },
-    /// How the stop of a lease that failed at first ended.
+    /// How the stop of a lease that failed at first ended: carried out at
+    /// last, or not tried again because something newer took over the
+    /// drive (a confirmed setpoint, brake or deactivation).
     LeaseStop {
         /// Drive name.
         drive: String,
@@ -91,7 +101,8 @@ pub enum DriveMessage {
         unit: u8,
         /// Who held the lease.
         owner: String,
-        /// `zero-speed` or `brake`.
+        /// `[safety] on_lease_expiry` (or the client network's
+        /// `comm_loss_action`): `zero-speed` or `brake`.
         action: String,
         /// What was sent to the drive at last, if anything.
         sent: Option<String>,
@@ -102,8 +113,9 @@ pub enum DriveMessage {
         /// The drive's answer, or what took over.
         result: String,
     },
-    /// A motor-safety lease ended without a stop (released, replaced, or
-    /// ended by a brake or a deactivation).
+    /// A motor-safety lease ended without a stop: released, replaced by a
+    /// newer lease, or ended by a write that stops the motor itself (a
+    /// brake or a deactivation, from any face), so no stop follows.
     LeaseEnded {
         /// Drive name.
         drive: String,
@@ -116,23 +128,25 @@ pub enum DriveMessage {
         /// Why it ended.
         reason: String,
     },
-    /// An alarm was raised (or an event came again: same `id`, `count`
-    /// up).
+    /// An alarm was raised (a fault, a stall, a drive offline, a bus down,
+    /// a stop not confirmed, a communication-loss stop, a write refused by
+    /// a safety rule), or an event came again before it was acknowledged
+    /// (same `id`, `count` up). Sent to every client.
     AlarmRaised {
         /// The alarm, as `GET /api/v1/alarms` shows it.
         alarm: AlarmView,
     },
-    /// An alarm's condition ended.
+    /// An alarm's condition ended. Sent to every client.
     AlarmCleared {
         /// The alarm, as `GET /api/v1/alarms` shows it.
         alarm: AlarmView,
     },
-    /// An operator acknowledged an alarm.
+    /// An operator acknowledged an alarm. Sent to every client.
     AlarmAcknowledged {
         /// The alarm, as `GET /api/v1/alarms` shows it.
         alarm: AlarmView,
     },
-    /// The answer to a command message.
+    /// The answer to a command sent on the stream, with its `id`.
     Reply {
         /// The command's `id`, echoed.
         id: Value,
@@ -143,6 +157,7 @@ pub enum DriveMessage {
         result: Option<Value>,
         /// The same problem the REST route returns.
         #[serde(skip_serializing_if = "Option::is_none")]
+        #[schema(value_type = Option<ProblemDetails>)]
         problem: Option<Problem>,
     },
 }
