@@ -22,6 +22,7 @@ use tokio_util::sync::CancellationToken;
 use super::audit;
 use super::caller::Caller;
 use super::events::ControlEvent;
+pub use super::news::{DriftChecked, DriftState, DriftView};
 use super::outcome::{Failure, Refusal, Rule};
 use super::settings::{ApplyOptions, SettingsError};
 use super::{Control, Target};
@@ -34,76 +35,6 @@ use crate::drive::wanted::{self, Difference};
 /// Who the audit log and the events name for drivegate's own checks and
 /// writes of declared settings.
 pub const WHO: &str = "declared-settings";
-
-/// Where a drive stands with its declared settings.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum DriftState {
-    /// It holds them.
-    Matches,
-    /// It holds other values (the drift says which); nothing is done
-    /// (`apply_settings = "never"`).
-    Drifted,
-    /// It holds other values, and they are written once the motor stands
-    /// still (`on-drift`).
-    WaitingForStandstill,
-    /// Writing them failed (why); tried again when the drive next comes
-    /// online.
-    ApplyFailed(String),
-    /// Its settings could not be read (why); compared when it next comes
-    /// online.
-    ReadFailed(String),
-}
-
-impl DriftState {
-    /// Stable name for the API, events and metrics.
-    pub fn name(&self) -> &'static str {
-        match self {
-            DriftState::Matches => "match",
-            DriftState::Drifted => "drift",
-            DriftState::WaitingForStandstill => "waiting-for-standstill",
-            DriftState::ApplyFailed(_) => "apply-failed",
-            DriftState::ReadFailed(_) => "read-failed",
-        }
-    }
-
-    /// Why, for the failed states.
-    pub fn detail(&self) -> Option<&str> {
-        match self {
-            DriftState::ApplyFailed(why) | DriftState::ReadFailed(why) => Some(why),
-            _ => None,
-        }
-    }
-}
-
-/// The latest comparison of a drive with its declared settings.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DriftView {
-    /// Where it stands.
-    pub state: DriftState,
-    /// The declared settings it does not hold (empty: none, or not
-    /// known after a failed read).
-    pub drift: Vec<Difference>,
-    /// When it was compared (or the comparison failed).
-    pub checked_at: SystemTime,
-    /// What drivegate does about a drift.
-    pub apply: ApplySettings,
-}
-
-impl DriftView {
-    /// True when the drive is known not to hold its declared settings.
-    pub fn drifted(&self) -> bool {
-        !self.drift.is_empty()
-    }
-}
-
-/// A drive's comparison with its declared settings, for the stream.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DriftChecked {
-    /// The drive, by index in the plant.
-    pub drive: usize,
-    /// Its new state.
-    pub view: DriftView,
-}
 
 /// What drivegate does once a drive was compared with its declaration.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -33,6 +33,7 @@ pub mod freshness;
 pub mod journal;
 pub mod lease_book;
 pub mod leases;
+pub mod news;
 pub mod outcome;
 pub mod policy;
 pub mod reload;
@@ -218,10 +219,8 @@ impl Control {
             .0
             .restart_notes
             .lock()
-            .unwrap_or_else(|p| p.into_inner()) = decisions
-            .iter()
-            .map(|d| restart::RestartNote::of(d, at))
-            .collect();
+            .unwrap_or_else(|p| p.into_inner()) =
+            decisions.iter().map(|d| restart::note(d, at)).collect();
     }
 
     /// What the start-up replay did, drive by drive, in words (empty when

@@ -13,7 +13,8 @@ use std::time::{Duration, SystemTime};
 
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 
-use super::{Caller, Control, ControlEvent, LeaseEvent, Operation, Refusal, audit, rules};
+pub use super::news::{ReloadApplied as Applied, ReloadRefused as Refused, ReloadResult};
+use super::{Caller, Control, ControlEvent, LeaseEvent, Operation, audit, rules};
 use crate::bus::Origin;
 use crate::config::Config;
 use crate::safety::{self, StopAction, StopOutcome};
@@ -36,47 +37,6 @@ pub struct NewText {
     pub text: String,
     /// SHA-256 (hex) of the file as it was read to make `text`.
     pub base_sha256: String,
-}
-
-/// What a reload did, or why it did nothing.
-pub type ReloadResult = Result<Applied, Refused>;
-
-/// A reload that was applied.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Applied {
-    /// What changed, in words, one line each.
-    pub changes: Vec<String>,
-    /// What could not be done, in words: a bus whose port did not open
-    /// (it stays out of the plant until the next reload), a listener that
-    /// could not move (it stays where it was, with its previous settings,
-    /// until the next reload). A reload with problems was applied in part.
-    pub problems: Vec<String>,
-    /// Drives that were moving when removed, and what stopped them.
-    pub stopped: Vec<String>,
-}
-
-/// A reload that left the running configuration as it was.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Refused {
-    /// The file does not pass the check: `file:line:column: why`.
-    Invalid(String),
-    /// The file changed on disk since the text to write was made from it.
-    Changed(String),
-    /// No reloader: started without a configuration file.
-    Unavailable(String),
-    /// The caller may not.
-    Refused(Refusal),
-}
-
-impl std::fmt::Display for Refused {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Refused::Invalid(why) | Refused::Changed(why) | Refused::Unavailable(why) => {
-                f.write_str(why)
-            }
-            Refused::Refused(r) => f.write_str(&r.detail),
-        }
-    }
 }
 
 /// What became of reloads since start-up.

@@ -15,8 +15,11 @@ use std::sync::Arc;
 use std::time::SystemTime;
 
 use super::audit;
-use super::caller::{Caller, Face};
+use super::caller::Caller;
 use super::events::ControlEvent;
+pub use super::news::{
+    SettingOutcome, SettingResult, SettingsApplied, SettingsError, SettingsReport,
+};
 use super::outcome::Failure;
 use super::policy::StillReason;
 use super::request::ControlRequest;
@@ -24,7 +27,7 @@ use super::{Control, Target};
 use crate::bus::handle::JobOptions;
 use crate::bus::{BusError, Priority};
 use crate::drive::settings::{self, BLOCKS, DriveSettings, REGISTERS};
-use crate::drive::wanted::{self, Document, Refused, Setting, Wanted};
+use crate::drive::wanted::{self, Document, Wanted};
 
 /// How a document is applied.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -39,160 +42,6 @@ pub struct ApplyOptions {
     /// drivegate applies it on its own: refused while the motor turns,
     /// whatever it writes.
     pub unattended: bool,
-}
-
-/// What became of one setting of a document.
-#[derive(Debug, Clone, PartialEq)]
-pub enum SettingResult {
-    /// The drive held it already; not written.
-    Unchanged,
-    /// A dry run: it would be written.
-    WouldWrite,
-    /// Written, and the drive confirmed it.
-    Written,
-    /// Its write failed (why, in words): it may or may not have been
-    /// carried out, as the words say.
-    Failed(String),
-    /// Not sent, since an earlier write of the document failed.
-    NotSent(String),
-}
-
-impl SettingResult {
-    /// Stable name for the API and events.
-    pub fn name(&self) -> &'static str {
-        match self {
-            SettingResult::Unchanged => "unchanged",
-            SettingResult::WouldWrite => "would-write",
-            SettingResult::Written => "written",
-            SettingResult::Failed(_) => "failed",
-            SettingResult::NotSent(_) => "not-sent",
-        }
-    }
-
-    /// Why it failed or was not sent.
-    pub fn detail(&self) -> Option<&str> {
-        match self {
-            SettingResult::Failed(why) | SettingResult::NotSent(why) => Some(why),
-            _ => None,
-        }
-    }
-}
-
-/// One setting of a document: the drive's value before, the document's,
-/// the value read back after, and what was done.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SettingOutcome {
-    /// The setting.
-    pub setting: Setting,
-    /// What the drive held before, raw.
-    pub before: u32,
-    /// What the document asks for, raw.
-    pub wanted: u32,
-    /// What the drive holds after, read back (absent for a dry run, or
-    /// when the read-back failed).
-    pub read_back: Option<u32>,
-    /// What was done.
-    pub result: SettingResult,
-}
-
-impl SettingOutcome {
-    /// The value after the operation: as read back, else as asked for
-    /// once written, else as before.
-    pub fn after(&self) -> u32 {
-        match (&self.result, self.read_back) {
-            (_, Some(v)) => v,
-            (SettingResult::Written | SettingResult::WouldWrite, None) => self.wanted,
-            _ => self.before,
-        }
-    }
-
-    /// True when the setting's value changes (or would, in a dry run).
-    pub fn changed(&self) -> bool {
-        self.after() != self.before
-    }
-}
-
-/// What a document did to a drive.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SettingsReport {
-    /// The drive, by index in the plant.
-    pub drive: usize,
-    /// Each setting the document names, in document order.
-    pub settings: Vec<SettingOutcome>,
-    /// Nothing was written: only compared and checked.
-    pub dry_run: bool,
-    /// Saving to flash was asked for.
-    pub save: bool,
-    /// The write that failed, if one did (the later ones were not sent).
-    pub failure: Option<Failure>,
-    /// Why the read-back after the writes failed, if it did.
-    pub read_back_error: Option<String>,
-}
-
-impl SettingsReport {
-    /// True when every write the document needed was confirmed.
-    pub fn complete(&self) -> bool {
-        self.failure.is_none()
-    }
-
-    /// Settings whose value changed (or would).
-    pub fn changed(&self) -> usize {
-        self.settings.iter().filter(|s| s.changed()).count()
-    }
-
-    /// The operation in words, for the audit log: what changed, what
-    /// failed.
-    pub fn words(&self) -> String {
-        let mut parts: Vec<String> = self
-            .settings
-            .iter()
-            .filter(|s| s.changed() || !matches!(s.result, SettingResult::Unchanged))
-            .map(|s| {
-                let change = format!(
-                    "{} {} -> {}",
-                    s.setting.key(),
-                    s.setting.words(s.before),
-                    s.setting.words(s.wanted)
-                );
-                match &s.result {
-                    SettingResult::Failed(why) => format!("{change} FAILED: {why}"),
-                    SettingResult::NotSent(_) => format!("{change} not sent"),
-                    _ => change,
-                }
-            })
-            .collect();
-        if parts.is_empty() {
-            parts.push("nothing to change".to_string());
-        }
-        let mut text = parts.join(", ");
-        if self.save {
-            text.push_str("; saved to flash");
-        }
-        text
-    }
-}
-
-/// Why a document was not applied at all.
-#[derive(Debug, Clone, PartialEq)]
-pub enum SettingsError {
-    /// Values that cannot be taken (every one of them); nothing was sent.
-    Invalid(Vec<Refused>),
-    /// Refused by a rule, or the drive could not be read: nothing was
-    /// written.
-    Failed(Failure),
-}
-
-/// A settings document put on a drive, for the stream and whoever listens.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SettingsApplied {
-    /// When it was settled.
-    pub at: SystemTime,
-    /// The face it came through.
-    pub face: Face,
-    /// Who sent it.
-    pub who: Arc<str>,
-    /// What it did.
-    pub report: SettingsReport,
 }
 
 impl Control {
@@ -388,6 +237,7 @@ fn outcomes(wanted: &Wanted, held: &DriveSettings) -> Vec<SettingOutcome> {
 mod tests {
     use super::*;
     use crate::bus::BusError;
+    use crate::drive::wanted::Setting;
 
     fn outcome(
         setting: Setting,

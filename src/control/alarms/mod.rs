@@ -29,6 +29,7 @@ use file::{AlarmFile, AlarmRecord, FileState};
 use super::events::{ControlEvent, Events, Published, WriteEnd};
 use super::journal::format::unix_ms;
 use super::lease_book::LeaseEvent;
+pub use super::news::AlarmNews;
 use super::outcome::{Failure, Rule};
 use crate::bus::BusEvent;
 use crate::bus::cache::Link;
@@ -38,26 +39,6 @@ use crate::plant::Plant;
 
 /// Alarms kept when `[safety] alarms_kept` does not say.
 pub const DEFAULT_KEPT: usize = 500;
-
-/// News of an alarm, for whoever listens to the core.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum AlarmNews {
-    /// Raised (or an event repeated on it: `count` went up).
-    Raised(Alarm),
-    /// Its condition ended.
-    Cleared(Alarm),
-    /// An operator acknowledged it.
-    Acknowledged(Alarm),
-}
-
-impl AlarmNews {
-    /// The alarm as it now stands.
-    pub fn alarm(&self) -> &Alarm {
-        match self {
-            AlarmNews::Raised(a) | AlarmNews::Cleared(a) | AlarmNews::Acknowledged(a) => a,
-        }
-    }
-}
 
 /// What is wrong in the alarm list, for the metrics.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
