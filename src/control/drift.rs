@@ -5,7 +5,7 @@
 //! reported: an event for the stream, the audit log, the drive's state
 //! for the API and the metric. With `apply_settings = "on-drift"` the
 //! declaration is then put on the drive through the core's one write path
-//! (`Control::apply_wanted`), never while the motor turns (the core
+//! (`settings::apply_wanted`), never while the motor turns (the core
 //! refuses it; this waits for a status at standstill and tries again) and
 //! never to flash unless `save = true` is declared; the read-back after
 //! it says whether the drift is gone.
@@ -24,7 +24,7 @@ use super::caller::Caller;
 use super::events::ControlEvent;
 pub use super::news::{DriftChecked, DriftState, DriftView};
 use super::outcome::{Failure, Refusal, Rule};
-use super::settings::{ApplyOptions, SettingsError};
+use super::settings::{self, ApplyOptions, SettingsError};
 use super::{Control, Target};
 use crate::bus::BusEvent;
 use crate::bus::cache::Link;
@@ -240,9 +240,7 @@ impl DriftBook {
             unattended: true,
         };
         loop {
-            match control
-                .apply_wanted(&caller, target, &declared.wanted, options)
-                .await
+            match settings::apply_wanted(control, &caller, target, &declared.wanted, options).await
             {
                 // The read-back compared it again (`after_apply`).
                 Ok(report) if report.complete() => return,

@@ -49,7 +49,7 @@ pub mod written;
 use std::sync::Arc;
 use std::time::Duration;
 
-use tokio::sync::{broadcast, mpsc};
+use tokio::sync::{broadcast, mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
 pub use caller::{Caller, Face, SessionId};
@@ -62,12 +62,20 @@ pub use rules::LeaseBounds;
 pub use shutdown::shutdown;
 pub use write::Pending;
 
+use crate::bus::{BusError, BusHandle};
+use crate::config::Config;
+use crate::drive::Status;
+use crate::drive::settings::DriveSettings;
+use crate::drive::wanted::Document;
 use crate::plant::{LookupError, Plant};
 use crate::safety::{SafetyConfig, StopAction};
 use events::Events;
 use journal::Journal;
 use journal::replay::Recovered;
 use leases::Leases;
+use reload::{NewText, ReloadRequest, ReloadResult, ReloadStatus};
+use replacement::ReplacementEvent;
+use settings::{ApplyOptions, SettingsError, SettingsReport};
 
 /// Where a write goes: a bus, a unit on it (0: every drive, a broadcast),
 /// and the configured drive at that unit, if there is one.
@@ -184,6 +192,151 @@ impl Control {
         }));
         drift::start(&control, &shutdown);
         control
+    }
+
+    /// Checks `request` for `caller`, puts it on the bus queue, and
+    /// returns the way to its result. A refusal, a failed check or a bus
+    /// that takes nothing is settled (audited) and returned at once.
+    pub async fn submit(
+        &self,
+        caller: &Caller,
+        target: Target,
+        request: ControlRequest,
+    ) -> Result<Pending, Failure> {
+        write::submit(self, caller, target, request).await
+    }
+
+    /// [`submit`](Self::submit), then waits for the result.
+    pub async fn write(
+        &self,
+        caller: &Caller,
+        target: Target,
+        request: ControlRequest,
+    ) -> WriteResult {
+        write::write(self, caller, target, request).await
+    }
+
+    /// Reads the drive's status now (not from the poll cache), with the
+    /// caller's turn on the bus.
+    pub async fn read_status(&self, caller: &Caller, target: Target) -> Result<Status, BusError> {
+        write::read_status(self, caller, target).await
+    }
+
+    /// Reads what the drive at `target` holds: its setpoints and settings
+    /// (six reads at command priority, with the caller's turn on the bus).
+    /// A read changes nothing, so it is not audited.
+    pub async fn read_settings(
+        &self,
+        caller: &Caller,
+        target: Target,
+    ) -> Result<DriveSettings, BusError> {
+        settings::read_settings(self, caller, target).await
+    }
+
+    /// Puts `document` on the drive at `target` for `caller`: checked whole
+    /// (ranges, then every write's rules), then written message by message,
+    /// then read back. With `dry_run`, only compared and checked.
+    pub async fn apply_settings(
+        &self,
+        caller: &Caller,
+        target: Target,
+        document: &Document,
+        options: ApplyOptions,
+    ) -> Result<SettingsReport, SettingsError> {
+        settings::apply_settings(self, caller, target, document, options).await
+    }
+
+    /// The bus a write to `target` goes on.
+    pub(crate) fn bus(&self, target: Target) -> Result<BusHandle, BusError> {
+        self.plant()
+            .now()
+            .bus_at(target.bus)
+            .map(|b| b.handle.clone())
+            .ok_or_else(|| BusError::Invalid(format!("no bus at index {}", target.bus)))
+    }
+
+    /// The drive at `target` in words: `drive "lift"` or `unit 7 on bus line1`.
+    pub(crate) fn name(&self, target: Target) -> String {
+        let now = self.plant().now();
+        match target.drive.and_then(|d| now.drive_at(d)) {
+            Some(d) => format!("drive \"{}\"", d.name),
+            None => {
+                let bus = now.bus_at(target.bus).map_or("?", |b| b.handle.name());
+                format!("unit {} on bus {bus}", target.unit)
+            }
+        }
+    }
+
+    /// The daemon's reloader of `file` takes reloads from here on.
+    pub fn attach_reloader(&self, reloader: mpsc::Sender<ReloadRequest>, file: &std::path::Path) {
+        self.0.reloads.attach(reloader, file);
+    }
+
+    /// Reloads the configuration for `caller` (an admin), optionally
+    /// writing `write` into the file first; audited either way.
+    pub async fn reload(&self, caller: &Caller, write: Option<NewText>) -> ReloadResult {
+        reload::reload(&self.0.reloads, caller, write).await
+    }
+
+    /// Asks the reloader, for a caller the daemon vouches for (SIGHUP).
+    pub(crate) async fn reload_as(&self, by: String, write: Option<NewText>) -> ReloadResult {
+        self.0.reloads.ask(by, write).await
+    }
+
+    /// The configuration file a reload reads, if drivegate was started
+    /// with one.
+    pub fn config_file(&self) -> Option<std::path::PathBuf> {
+        self.0.reloads.file()
+    }
+
+    /// What became of reloads since start-up.
+    pub fn reload_status(&self) -> ReloadStatus {
+        self.0.reloads.status()
+    }
+
+    /// Records what became of a reload (by the reloader).
+    pub fn record_reload(&self, result: &ReloadResult) {
+        self.0.reloads.record(result);
+    }
+
+    /// The running configuration, as last loaded; a face follows it for
+    /// its own section (`changed().await`, then `borrow_and_update()`).
+    pub fn follow_config(&self) -> watch::Receiver<Option<Arc<Config>>> {
+        self.0.reloads.follow()
+    }
+
+    /// Publishes the running configuration: at start-up, and after each
+    /// reload once the plant follows it. Applies `[safety]`'s lease bounds,
+    /// jog lease and lease-expiry action to leases granted from now on.
+    pub fn set_config(&self, config: Arc<Config>) {
+        let safety = &config.safety;
+        *self.0.settings.write().unwrap_or_else(|p| p.into_inner()) = Settings::of(safety);
+        self.0
+            .leases
+            .with(|book, _| (book.set_action(safety.on_lease_expiry), Vec::new()));
+        self.0.reloads.publish(config);
+    }
+
+    /// Stops the drives (slot indices) a reload removes, while their bus
+    /// still runs: a drive with a lease gets its lease's stop, the others
+    /// `on_shutdown` if they move; each stop audited. Returns what was
+    /// done, in words, once every stop ended (or after a few seconds).
+    pub async fn retire(&self, drives: &[usize], on_shutdown: StopAction) -> Vec<String> {
+        reload::retire(self, drives, on_shutdown).await
+    }
+
+    /// Notes in the audit log that `caller` started, finished or abandoned
+    /// the replacement of drive `drive` (an index in the plant), with
+    /// `detail` in the caller's words (where its settings came from, the
+    /// time it took). Commissioning work: the admin role.
+    pub fn note_replacement(
+        &self,
+        caller: &Caller,
+        drive: usize,
+        event: ReplacementEvent,
+        detail: &str,
+    ) -> Result<(), Refusal> {
+        replacement::note_replacement(self, caller, drive, event, detail)
     }
 
     /// Drives compared with their declared settings.

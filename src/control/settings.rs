@@ -27,7 +27,7 @@ use super::{Control, Target};
 use crate::bus::handle::JobOptions;
 use crate::bus::{BusError, Priority};
 use crate::drive::settings::{self, BLOCKS, DriveSettings, REGISTERS};
-use crate::drive::wanted::{self, Document, Wanted};
+use crate::drive::wanted::{self, Document, Step, Wanted};
 
 /// How a document is applied.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -44,179 +44,198 @@ pub struct ApplyOptions {
     pub unattended: bool,
 }
 
-impl Control {
-    /// Reads what the drive at `target` holds: its setpoints and settings
-    /// (six reads at command priority, with the caller's turn on the bus).
-    /// A read changes nothing, so it is not audited.
-    pub async fn read_settings(
-        &self,
-        caller: &Caller,
-        target: Target,
-    ) -> Result<DriveSettings, BusError> {
-        let bus = self.bus(target)?;
-        let unit = target.unit;
-        let options = JobOptions {
-            priority: Priority::Command,
-            source: caller.source,
-            queue_timeout: None,
-            max_attempts: None,
-            origin: caller.origin.clone(),
+/// Reads what the drive at `target` holds: its setpoints and settings
+/// (six reads at command priority, with the caller's turn on the bus).
+/// A read changes nothing, so it is not audited.
+pub(super) async fn read_settings(
+    control: &Control,
+    caller: &Caller,
+    target: Target,
+) -> Result<DriveSettings, BusError> {
+    let bus = control.bus(target)?;
+    let unit = target.unit;
+    let options = JobOptions {
+        priority: Priority::Command,
+        source: caller.source,
+        queue_timeout: None,
+        max_attempts: None,
+        origin: caller.origin.clone(),
+    };
+    let mut values = [0u16; REGISTERS];
+    let mut at = 0;
+    for (start, count) in BLOCKS {
+        let exchange = bus
+            .transact(unit, settings::read_pdu(start, count), options.clone())
+            .await?;
+        let block = settings::parse_read_reply(&exchange.reply, count)
+            .map_err(|e| BusError::from_reply(unit, e))?;
+        let Some(slot) = values.get_mut(at..at + block.len()) else {
+            return Err(BusError::Unconfirmed {
+                unit,
+                detail: "a settings read returned more registers than asked",
+            });
         };
-        let mut values = [0u16; REGISTERS];
-        let mut at = 0;
-        for (start, count) in BLOCKS {
-            let exchange = bus
-                .transact(unit, settings::read_pdu(start, count), options.clone())
-                .await?;
-            let block = settings::parse_read_reply(&exchange.reply, count)
-                .map_err(|e| BusError::from_reply(unit, e))?;
-            let Some(slot) = values.get_mut(at..at + block.len()) else {
-                return Err(BusError::Unconfirmed {
-                    unit,
-                    detail: "a settings read returned more registers than asked",
-                });
-            };
-            slot.copy_from_slice(&block);
-            at += block.len();
-        }
-        Ok(DriveSettings::from_registers(&values))
+        slot.copy_from_slice(&block);
+        at += block.len();
     }
+    Ok(DriveSettings::from_registers(&values))
+}
 
-    /// Puts `document` on the drive at `target` for `caller`: checked whole
-    /// (ranges, then every write's rules), then written message by message,
-    /// then read back. With `dry_run`, only compared and checked.
-    pub async fn apply_settings(
-        &self,
-        caller: &Caller,
-        target: Target,
-        document: &Document,
-        options: ApplyOptions,
-    ) -> Result<SettingsReport, SettingsError> {
-        match document.check() {
-            Ok(wanted) => self.apply_wanted(caller, target, &wanted, options).await,
-            Err(r) => {
-                let error = SettingsError::Invalid(r);
-                if !options.dry_run {
-                    let drive = self.name(target);
-                    audit::settings_refused(caller.face.name(), &caller.who, &drive, &error);
-                }
-                Err(error)
-            }
-        }
-    }
-
-    /// [`apply_settings`](Self::apply_settings) of a document whose values
-    /// were checked already (a declaration).
-    pub(crate) async fn apply_wanted(
-        &self,
-        caller: &Caller,
-        target: Target,
-        wanted: &Wanted,
-        options: ApplyOptions,
-    ) -> Result<SettingsReport, SettingsError> {
-        let drive_name = self.name(target);
-        let refused = |error: SettingsError| {
+/// Puts `document` on the drive at `target` for `caller`: checked whole
+/// (ranges, then every write's rules), then written message by message,
+/// then read back. With `dry_run`, only compared and checked.
+pub(super) async fn apply_settings(
+    control: &Control,
+    caller: &Caller,
+    target: Target,
+    document: &Document,
+    options: ApplyOptions,
+) -> Result<SettingsReport, SettingsError> {
+    match document.check() {
+        Ok(wanted) => apply_wanted(control, caller, target, &wanted, options).await,
+        Err(r) => {
+            let error = SettingsError::Invalid(r);
             if !options.dry_run {
-                audit::settings_refused(caller.face.name(), &caller.who, &drive_name, &error);
+                let drive = control.name(target);
+                audit::settings_refused(caller.face.name(), &caller.who, &drive, &error);
             }
-            error
-        };
-        let wanted = *wanted;
-        // The role before anything costs bus time.
-        super::rules::role(caller, super::policy::for_settings())
-            .map_err(|r| refused(SettingsError::Failed(Failure::Refused(r))))?;
-        let held = self
-            .read_settings(caller, target)
-            .await
-            .map_err(|e| refused(SettingsError::Failed(Failure::CheckFailed(e))))?;
-        let steps = wanted::steps(&wanted, &held, options.save);
-        let requests: Vec<ControlRequest> = steps
-            .iter()
-            .map(|step| {
-                let request = ControlRequest::drive(step.request).forced(options.force);
-                if options.unattended {
-                    request.at_standstill(StillReason::Unattended)
-                } else {
-                    request
-                }
-            })
-            .collect();
-        self.check_all(caller, target, &requests)
-            .await
-            .map_err(|f| refused(SettingsError::Failed(f)))?;
-        let mut outcomes = outcomes(&wanted, &held);
-        if options.dry_run {
-            for o in &mut outcomes {
-                if steps.iter().any(|s| s.settings.contains(&o.setting)) {
-                    o.result = SettingResult::WouldWrite;
-                }
-            }
+            Err(error)
         }
-        let mut report = SettingsReport {
-            drive: target.drive.unwrap_or(usize::MAX),
-            settings: Vec::new(),
-            dry_run: options.dry_run,
-            save: options.save,
-            failure: None,
-            read_back_error: None,
-        };
-        if options.dry_run {
-            report.settings = outcomes;
-            return Ok(report);
-        }
-        for (step, request) in steps.iter().zip(requests) {
-            let result = match &report.failure {
-                Some(earlier) => SettingResult::NotSent(format!(
-                    "not sent: an earlier write of the document failed ({earlier})"
-                )),
-                None => match self.write(caller, target, request).await {
-                    Ok(_) => SettingResult::Written,
-                    Err(failure) => {
-                        let words = failure.to_string();
-                        report.failure = Some(failure);
-                        SettingResult::Failed(words)
-                    }
-                },
-            };
-            for o in outcomes
-                .iter_mut()
-                .filter(|o| step.settings.contains(&o.setting))
-            {
-                o.result = result.clone();
-            }
-        }
-        let mut after = Some(held);
-        if !steps.is_empty() {
-            after = match self.read_settings(caller, target).await {
-                Ok(after) => {
-                    for o in &mut outcomes {
-                        o.read_back = Some(o.setting.held(&after));
-                    }
-                    Some(after)
-                }
-                Err(e) => {
-                    report.read_back_error = Some(e.to_string());
-                    None
-                }
-            };
-        }
-        report.settings = outcomes;
-        audit::settings_applied(caller.face.name(), &caller.who, &drive_name, &report);
-        self.events().publish(
-            Arc::new(ControlEvent::Settings(SettingsApplied {
-                at: SystemTime::now(),
-                face: caller.face,
-                who: caller.who.clone(),
-                report: report.clone(),
-            })),
-            None,
-        );
-        // Then, for a drive with a declaration, what it holds now.
-        if let (Some(index), Some(after)) = (target.drive, after) {
-            self.drift().after_apply(self, index, &after);
-        }
-        Ok(report)
     }
+}
+
+/// [`apply_settings`] of a document whose values
+/// were checked already (a declaration).
+pub(super) async fn apply_wanted(
+    control: &Control,
+    caller: &Caller,
+    target: Target,
+    wanted: &Wanted,
+    options: ApplyOptions,
+) -> Result<SettingsReport, SettingsError> {
+    let drive_name = control.name(target);
+    let refused = |error: SettingsError| {
+        if !options.dry_run {
+            audit::settings_refused(caller.face.name(), &caller.who, &drive_name, &error);
+        }
+        error
+    };
+    let wanted = *wanted;
+    // The role before anything costs bus time.
+    super::rules::role(caller, super::policy::for_settings())
+        .map_err(|r| refused(SettingsError::Failed(Failure::Refused(r))))?;
+    let held = control
+        .read_settings(caller, target)
+        .await
+        .map_err(|e| refused(SettingsError::Failed(Failure::CheckFailed(e))))?;
+    let steps = wanted::steps(&wanted, &held, options.save);
+    let requests = requests(&steps, options);
+    super::write::check_all(control, caller, target, &requests)
+        .await
+        .map_err(|f| refused(SettingsError::Failed(f)))?;
+    let mut outcomes = outcomes(&wanted, &held);
+    if options.dry_run {
+        for o in &mut outcomes {
+            if steps.iter().any(|s| s.settings.contains(&o.setting)) {
+                o.result = SettingResult::WouldWrite;
+            }
+        }
+    }
+    let mut report = SettingsReport {
+        drive: target.drive.unwrap_or(usize::MAX),
+        settings: Vec::new(),
+        dry_run: options.dry_run,
+        save: options.save,
+        failure: None,
+        read_back_error: None,
+    };
+    if options.dry_run {
+        report.settings = outcomes;
+        return Ok(report);
+    }
+    report.failure = write_steps(control, caller, target, &steps, requests, &mut outcomes).await;
+    let mut after = Some(held);
+    if !steps.is_empty() {
+        after = match read_settings(control, caller, target).await {
+            Ok(after) => {
+                for o in &mut outcomes {
+                    o.read_back = Some(o.setting.held(&after));
+                }
+                Some(after)
+            }
+            Err(e) => {
+                report.read_back_error = Some(e.to_string());
+                None
+            }
+        };
+    }
+    report.settings = outcomes;
+    audit::settings_applied(caller.face.name(), &caller.who, &drive_name, &report);
+    control.events().publish(
+        Arc::new(ControlEvent::Settings(SettingsApplied {
+            at: SystemTime::now(),
+            face: caller.face,
+            who: caller.who.clone(),
+            report: report.clone(),
+        })),
+        None,
+    );
+    // Then, for a drive with a declaration, what it holds now.
+    if let (Some(index), Some(after)) = (target.drive, after) {
+        control.drift().after_apply(control, index, &after);
+    }
+    Ok(report)
+}
+
+/// The writes of `steps`, as `options` asks them to be checked.
+fn requests(steps: &[Step], options: ApplyOptions) -> Vec<ControlRequest> {
+    steps
+        .iter()
+        .map(|step| {
+            let request = ControlRequest::drive(step.request).forced(options.force);
+            if options.unattended {
+                request.at_standstill(StillReason::Unattended)
+            } else {
+                request
+            }
+        })
+        .collect()
+}
+
+/// Sends the writes of `steps`, one message at a time, until one fails:
+/// what became of each setting goes into `outcomes`; the failure, if one
+/// did, is returned (the later writes were not sent).
+async fn write_steps(
+    control: &Control,
+    caller: &Caller,
+    target: Target,
+    steps: &[Step],
+    requests: Vec<ControlRequest>,
+    outcomes: &mut [SettingOutcome],
+) -> Option<Failure> {
+    let mut failed: Option<Failure> = None;
+    for (step, request) in steps.iter().zip(requests) {
+        let result = match &failed {
+            Some(earlier) => SettingResult::NotSent(format!(
+                "not sent: an earlier write of the document failed ({earlier})"
+            )),
+            None => match super::write::write(control, caller, target, request).await {
+                Ok(_) => SettingResult::Written,
+                Err(failure) => {
+                    let words = failure.to_string();
+                    failed = Some(failure);
+                    SettingResult::Failed(words)
+                }
+            },
+        };
+        for o in outcomes
+            .iter_mut()
+            .filter(|o| step.settings.contains(&o.setting))
+        {
+            o.result = result.clone();
+        }
+    }
+    failed
 }
 
 /// Each setting `wanted` names, before anything is written.

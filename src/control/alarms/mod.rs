@@ -26,7 +26,7 @@ use tokio_util::sync::CancellationToken;
 pub use book::{Ack, AckError, Alarm, AlarmBook, AlarmKey, AlarmKind, Change, Raise};
 use file::{AlarmFile, AlarmRecord, FileState};
 
-use super::events::{ControlEvent, Events, Published, WriteEnd};
+use super::events::{ControlEvent, Events, Published, WriteEnd, WriteEvent};
 use super::journal::format::unix_ms;
 use super::lease_book::LeaseEvent;
 pub use super::news::AlarmNews;
@@ -34,7 +34,7 @@ use super::outcome::{Failure, Rule};
 use crate::bus::BusEvent;
 use crate::bus::cache::Link;
 use crate::bus::handle::PortState;
-use crate::drive::help;
+use crate::drive::{Status, help};
 use crate::plant::Plant;
 
 /// Alarms kept when `[safety] alarms_kept` does not say.
@@ -379,55 +379,7 @@ impl Alarms {
             BusEvent::Status { unit, status, .. } => {
                 // A scan reads units that are not configured: not alarms.
                 let Some(drive) = drive_of(*unit) else { return };
-                let fault = status.fault();
-                // The common case, a healthy drive with nothing open: no
-                // change to make, nothing to allocate.
-                if fault.code() == 0
-                    && !status.stalled()
-                    && !self.lock().has_open_for(&bus_name, &drive)
-                {
-                    return;
-                }
-                self.apply(|book, now| {
-                    let mut changes = book.clear(&key(AlarmKind::Offline, &drive, 0), now);
-                    let code = fault.code();
-                    changes.extend(book.clear_other_codes(
-                        AlarmKind::Fault,
-                        &bus_name,
-                        Some(&drive),
-                        (code != 0).then_some(code),
-                        now,
-                    ));
-                    if code != 0 {
-                        changes.extend(book.raise(
-                            Raise {
-                                key: key(AlarmKind::Fault, &drive, code),
-                                text: format!(
-                                    "drive {drive} (bus {bus_name}, unit {unit}) reports a fault: {} (code {code})",
-                                    fault_words(fault)
-                                ),
-                                help: help::fault(fault).to_string(),
-                            },
-                            now,
-                        ));
-                    }
-                    let stall = key(AlarmKind::Stall, &drive, 0);
-                    if status.stalled() {
-                        changes.extend(book.raise(
-                            Raise {
-                                key: stall,
-                                text: format!(
-                                    "the motor of drive {drive} (bus {bus_name}, unit {unit}) stalled and is stopped until a fault reset"
-                                ),
-                                help: help::STALL.to_string(),
-                            },
-                            now,
-                        ));
-                    } else {
-                        changes.extend(book.clear(&stall, now));
-                    }
-                    changes
-                });
+                self.status_event(&bus_name, &drive, *unit, status);
             }
             BusEvent::Online { unit, .. } => {
                 let Some(drive) = drive_of(*unit) else { return };
@@ -564,47 +516,115 @@ impl Alarms {
                 });
             }
             ControlEvent::Write(w) => {
-                let WriteEnd::Failed(Failure::Refused(refusal)) = &w.result else {
-                    return;
-                };
-                let help = match refusal.rule {
-                    Rule::Moving { .. } => MOVING_HELP,
-                    Rule::SharedBusAddress => SHARED_BUS_HELP,
-                    _ => return,
-                };
-                let name = w
-                    .drive
-                    .and_then(|i| now.drive_at(i))
-                    .map(|d| d.name.clone());
-                let target = match &name {
-                    Some(n) => format!("drive {n} (bus {}, unit {})", w.bus, w.unit),
-                    None => format!("bus {} unit {}", w.bus, w.unit),
-                };
-                let text = format!(
-                    "{target}: {} from {} {} was refused: {}",
-                    w.what,
-                    w.who,
-                    w.face.words(),
-                    refusal.detail
-                );
-                let key = AlarmKey {
-                    kind: AlarmKind::RefusedWrite,
-                    bus: w.bus.to_string(),
-                    drive: name,
-                    code: 0,
-                };
-                self.apply(|book, now| {
-                    book.raise(
-                        Raise {
-                            key,
-                            text,
-                            help: help.to_string(),
-                        },
-                        now,
-                    )
-                });
+                self.refused_write(plant, w);
             }
         }
+    }
+
+    /// Raises or clears the fault and stall alarms of a status of `drive`
+    /// (and its offline alarm: it answers).
+    fn status_event(&self, bus_name: &str, drive: &str, unit: u8, status: &Status) {
+        let fault = status.fault();
+        // The common case, a healthy drive with nothing open: no
+        // change to make, nothing to allocate.
+        if fault.code() == 0 && !status.stalled() && !self.lock().has_open_for(bus_name, drive) {
+            return;
+        }
+        self.apply(|book, now| {
+            let mut changes = book.clear(&drive_key(AlarmKind::Offline, bus_name, drive, 0), now);
+            let code = fault.code();
+            changes.extend(book.clear_other_codes(
+                AlarmKind::Fault,
+                bus_name,
+                Some(drive),
+                (code != 0).then_some(code),
+                now,
+            ));
+            if code != 0 {
+                changes.extend(book.raise(
+                    Raise {
+                        key: drive_key(AlarmKind::Fault, bus_name, drive, code),
+                        text: format!(
+                            "drive {drive} (bus {bus_name}, unit {unit}) reports a fault: {} (code {code})",
+                            fault_words(fault)
+                        ),
+                        help: help::fault(fault).to_string(),
+                    },
+                    now,
+                ));
+            }
+            let stall = drive_key(AlarmKind::Stall, bus_name, drive, 0);
+            if status.stalled() {
+                changes.extend(book.raise(
+                    Raise {
+                        key: stall,
+                        text: format!(
+                            "the motor of drive {drive} (bus {bus_name}, unit {unit}) stalled and is stopped until a fault reset"
+                        ),
+                        help: help::STALL.to_string(),
+                    },
+                    now,
+                ));
+            } else {
+                changes.extend(book.clear(&stall, now));
+            }
+            changes
+        });
+    }
+
+    /// Raises an alarm for a write refused by a safety rule (a motor that
+    /// turns, a shared bus address).
+    fn refused_write(&self, plant: &Plant, w: &WriteEvent) {
+        let now = plant.now();
+        let WriteEnd::Failed(Failure::Refused(refusal)) = &w.result else {
+            return;
+        };
+        let help = match refusal.rule {
+            Rule::Moving { .. } => MOVING_HELP,
+            Rule::SharedBusAddress => SHARED_BUS_HELP,
+            _ => return,
+        };
+        let name = w
+            .drive
+            .and_then(|i| now.drive_at(i))
+            .map(|d| d.name.clone());
+        let target = match &name {
+            Some(n) => format!("drive {n} (bus {}, unit {})", w.bus, w.unit),
+            None => format!("bus {} unit {}", w.bus, w.unit),
+        };
+        let text = format!(
+            "{target}: {} from {} {} was refused: {}",
+            w.what,
+            w.who,
+            w.face.words(),
+            refusal.detail
+        );
+        let key = AlarmKey {
+            kind: AlarmKind::RefusedWrite,
+            bus: w.bus.to_string(),
+            drive: name,
+            code: 0,
+        };
+        self.apply(|book, now| {
+            book.raise(
+                Raise {
+                    key,
+                    text,
+                    help: help.to_string(),
+                },
+                now,
+            )
+        });
+    }
+}
+
+/// The key of `kind`'s alarm on drive `drive` of bus `bus`.
+fn drive_key(kind: AlarmKind, bus: &str, drive: &str, code: u16) -> AlarmKey {
+    AlarmKey {
+        kind,
+        bus: bus.to_string(),
+        drive: Some(drive.to_string()),
+        code,
     }
 }
 
