@@ -23,6 +23,13 @@
 //!   through [`Control::acknowledge_alarm`];
 //! - [`freshness`]: each change of a drive's data's freshness, told on
 //!   the events for the faces that show it.
+//!
+//! [`Control`]'s whole surface stands in this file, beside the type: each
+//! method is a few lines that hand the work to its concept's free
+//! functions ([`write`](mod@write), [`settings`], [`reload`],
+//! [`replacement`]), so a reader finds what the core offers in one place
+//! and how each part works in the file named for it. What the events and
+//! the audit log carry is in [`news`], at the bottom of the folder.
 
 pub mod alarms;
 pub mod audit;
