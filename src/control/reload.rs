@@ -13,9 +13,13 @@ use std::time::{Duration, SystemTime};
 
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 
-use super::events::Published;
+use super::caller::{Caller, Face};
+use super::events::{ControlEvent, Published, WriteEnd};
+use super::lease_book::LeaseEvent;
 pub use super::news::{ReloadApplied as Applied, ReloadRefused as Refused, ReloadResult};
-use super::{Caller, Control, ControlEvent, LeaseEvent, Operation, audit, rules};
+use super::parts::Parts;
+use super::policy::Operation;
+use super::{audit, rules};
 use crate::bus::{BusHandle, Origin};
 use crate::config::Config;
 use crate::plant::{Directory, Drive};
@@ -62,6 +66,13 @@ pub struct ReloadStatus {
     pub last_good_at: Option<SystemTime>,
 }
 
+/// What holds the running configuration: the core's handle
+/// ([`super::Control`]), which a face hands to [`ConfigFollower::new`].
+pub trait RunningConfig {
+    /// A receiver of the running configuration, as last loaded.
+    fn running_config(&self) -> watch::Receiver<Option<Arc<Config>>>;
+}
+
 /// A face's view of the running configuration, asked on its request path:
 /// [`changed`](Self::changed) answers each new configuration once, so
 /// what a reload changes applies from the very next request (the reloader
@@ -70,8 +81,8 @@ pub struct ConfigFollower(std::sync::Mutex<watch::Receiver<Option<Arc<Config>>>>
 
 impl ConfigFollower {
     /// Follows `control`'s running configuration from now on.
-    pub fn new(control: &Control) -> Self {
-        let mut rx = control.follow_config();
+    pub fn new(control: &impl RunningConfig) -> Self {
+        let mut rx = control.running_config();
         rx.mark_unchanged();
         ConfigFollower(std::sync::Mutex::new(rx))
     }
@@ -216,15 +227,15 @@ pub(super) async fn reload(
 /// `on_shutdown` if they move; each stop audited. Returns what was
 /// done, in words, once every stop ended (or after a few seconds).
 pub(super) async fn retire(
-    control: &Control,
+    parts: &Parts,
     drives: &[usize],
     on_shutdown: StopAction,
 ) -> Vec<String> {
-    let mut news = control.subscribe();
+    let mut news = parts.subscribe();
     let mut leased = Vec::new();
     let mut unleased = Vec::new();
     for &drive in drives {
-        let had = control.leases().with(|book, now| book.retire(drive, now));
+        let had = parts.leases().with(|book, now| book.retire(drive, now));
         if had {
             leased.push(drive);
         } else {
@@ -232,7 +243,7 @@ pub(super) async fn retire(
         }
     }
     let mut done = Vec::new();
-    let now = control.plant().now();
+    let now = parts.plant().now();
     let stops = unleased.iter().filter_map(|&index| {
         let drive = now.drive_at(index)?.clone();
         let handle = now.handle_of(&drive)?.clone();
@@ -270,12 +281,12 @@ async fn stop_unleased(handle: BusHandle, drive: Drive, on_shutdown: StopAction)
         Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
             for request in outcome.requests() {
                 audit::write(
-                    super::Face::Internal.name(),
+                    Face::Internal.name(),
                     "reload",
                     handle.name(),
                     drive.unit,
                     request.name(),
-                    &super::WriteEnd::Confirmed,
+                    &WriteEnd::Confirmed,
                 );
             }
             Some(format!(
@@ -287,12 +298,12 @@ async fn stop_unleased(handle: BusHandle, drive: Drive, on_shutdown: StopAction)
         Ok(_) => None,
         Err(e) => {
             audit::write(
-                super::Face::Internal.name(),
+                Face::Internal.name(),
                 "reload",
                 handle.name(),
                 drive.unit,
                 on_shutdown.name(),
-                &super::WriteEnd::bus_error(e.clone()),
+                &WriteEnd::bus_error(e.clone()),
             );
             Some(format!(
                 "drive {}: {} failed: {e}",

@@ -21,9 +21,10 @@ pub use super::news::{
     SettingOutcome, SettingResult, SettingsApplied, SettingsError, SettingsReport,
 };
 use super::outcome::Failure;
+use super::parts::Parts;
 use super::policy::StillReason;
 use super::request::ControlRequest;
-use super::{Control, Target};
+use super::request::Target;
 use crate::bus::handle::JobOptions;
 use crate::bus::{BusError, Priority};
 use crate::drive::settings::{self, BLOCKS, DriveSettings, REGISTERS};
@@ -48,11 +49,11 @@ pub struct ApplyOptions {
 /// (six reads at command priority, with the caller's turn on the bus).
 /// A read changes nothing, so it is not audited.
 pub(super) async fn read_settings(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
 ) -> Result<DriveSettings, BusError> {
-    let bus = control.bus(target)?;
+    let bus = parts.bus(target)?;
     let unit = target.unit;
     let options = JobOptions {
         priority: Priority::Command,
@@ -85,18 +86,18 @@ pub(super) async fn read_settings(
 /// (ranges, then every write's rules), then written message by message,
 /// then read back. With `dry_run`, only compared and checked.
 pub(super) async fn apply_settings(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
     document: &Document,
     options: ApplyOptions,
-) -> Result<SettingsReport, SettingsError> {
+) -> Result<Done, SettingsError> {
     match document.check() {
-        Ok(wanted) => apply_wanted(control, caller, target, &wanted, options).await,
+        Ok(wanted) => apply_wanted(parts, caller, target, &wanted, options).await,
         Err(r) => {
             let error = SettingsError::Invalid(r);
             if !options.dry_run {
-                let drive = control.name(target);
+                let drive = parts.name(target);
                 audit::settings_refused(caller.face.name(), &caller.who, &drive, &error);
             }
             Err(error)
@@ -104,16 +105,24 @@ pub(super) async fn apply_settings(
     }
 }
 
+/// A document put on a drive: what it did, and what the drive holds after
+/// it (read back; none for a dry run or a failed read-back), for the
+/// comparison with its declared settings that follows.
+pub(super) struct Done {
+    pub(super) report: SettingsReport,
+    pub(super) held: Option<DriveSettings>,
+}
+
 /// [`apply_settings`] of a document whose values
 /// were checked already (a declaration).
 pub(super) async fn apply_wanted(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
     wanted: &Wanted,
     options: ApplyOptions,
-) -> Result<SettingsReport, SettingsError> {
-    let drive_name = control.name(target);
+) -> Result<Done, SettingsError> {
+    let drive_name = parts.name(target);
     let refused = |error: SettingsError| {
         if !options.dry_run {
             audit::settings_refused(caller.face.name(), &caller.who, &drive_name, &error);
@@ -124,13 +133,12 @@ pub(super) async fn apply_wanted(
     // The role before anything costs bus time.
     super::rules::role(caller, super::policy::for_settings())
         .map_err(|r| refused(SettingsError::Failed(Failure::Refused(r))))?;
-    let held = control
-        .read_settings(caller, target)
+    let held = read_settings(parts, caller, target)
         .await
         .map_err(|e| refused(SettingsError::Failed(Failure::CheckFailed(e))))?;
     let steps = wanted::steps(&wanted, &held, options.save);
     let requests = requests(&steps, options);
-    super::write::check_all(control, caller, target, &requests)
+    super::write::check_all(parts, caller, target, &requests)
         .await
         .map_err(|f| refused(SettingsError::Failed(f)))?;
     let mut outcomes = outcomes(&wanted, &held);
@@ -151,12 +159,12 @@ pub(super) async fn apply_wanted(
     };
     if options.dry_run {
         report.settings = outcomes;
-        return Ok(report);
+        return Ok(Done { report, held: None });
     }
-    report.failure = write_steps(control, caller, target, &steps, requests, &mut outcomes).await;
+    report.failure = write_steps(parts, caller, target, &steps, requests, &mut outcomes).await;
     let mut after = Some(held);
     if !steps.is_empty() {
-        after = match read_settings(control, caller, target).await {
+        after = match read_settings(parts, caller, target).await {
             Ok(after) => {
                 for o in &mut outcomes {
                     o.read_back = Some(o.setting.held(&after));
@@ -171,7 +179,7 @@ pub(super) async fn apply_wanted(
     }
     report.settings = outcomes;
     audit::settings_applied(caller.face.name(), &caller.who, &drive_name, &report);
-    control.events().publish(
+    parts.events().publish(
         Arc::new(ControlEvent::Settings(SettingsApplied {
             at: SystemTime::now(),
             face: caller.face,
@@ -180,11 +188,10 @@ pub(super) async fn apply_wanted(
         })),
         None,
     );
-    // Then, for a drive with a declaration, what it holds now.
-    if let (Some(index), Some(after)) = (target.drive, after) {
-        control.drift().after_apply(control, index, &after);
-    }
-    Ok(report)
+    Ok(Done {
+        report,
+        held: after,
+    })
 }
 
 /// The writes of `steps`, as `options` asks them to be checked.
@@ -206,7 +213,7 @@ fn requests(steps: &[Step], options: ApplyOptions) -> Vec<ControlRequest> {
 /// what became of each setting goes into `outcomes`; the failure, if one
 /// did, is returned (the later writes were not sent).
 async fn write_steps(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
     steps: &[Step],
@@ -219,7 +226,7 @@ async fn write_steps(
             Some(earlier) => SettingResult::NotSent(format!(
                 "not sent: an earlier write of the document failed ({earlier})"
             )),
-            None => match super::write::write(control, caller, target, request).await {
+            None => match super::write::write(parts, caller, target, request).await {
                 Ok(_) => SettingResult::Written,
                 Err(failure) => {
                     let words = failure.to_string();

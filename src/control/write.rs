@@ -9,6 +9,7 @@
 //! unsent (the client went away), and a brake or deactivation is followed
 //! to its end whoever waits for it, since leases depend on it.
 
+use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
 use tokio::sync::oneshot;
@@ -19,10 +20,11 @@ use super::caller::Caller;
 use super::events::{ControlEvent, WriteEnd, WriteEvent};
 use super::lease_book::{Grant, Holder, LeaseAsk, Ticket, WriteKind};
 use super::outcome::{Applied, Failure, Outcome, WriteResult, applied};
+use super::parts::Parts;
 use super::policy::{Meaning, Stopper};
+use super::request::Target;
 use super::request::{ControlRequest, Write};
 use super::rules::{self, Activity, Decision, Facts, Need, Speed};
-use super::{Control, Target};
 use crate::bus::cache::Link;
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
@@ -38,27 +40,27 @@ const GONE: &str = "the client went away before the drive answered; a request al
 /// returns the way to its result. A refusal, a failed check or a bus
 /// that takes nothing is settled (audited) and returned at once.
 pub(super) async fn submit(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
     request: ControlRequest,
 ) -> Result<Pending, Failure> {
     let meaning = request.meaning();
-    let mut settle = Settle::new(control, caller, target, &request.write);
-    if let Err(refusal) = check(control, caller, target, &request, &meaning).await {
+    let mut settle = Settle::new(parts, caller, target, &request.write);
+    if let Err(refusal) = check(parts, caller, target, &request, &meaning).await {
         return Err(settle.failed(refusal));
     }
     let pdu = match request.write.encode() {
         Ok(pdu) => pdu,
         Err(e) => return Err(settle.failed(Failure::NotSent(BusError::Invalid(e.to_string())))),
     };
-    let bus = match control.bus(target) {
+    let bus = match parts.bus(target) {
         Ok(bus) => bus,
         Err(e) => return Err(settle.failed(Failure::NotSent(e))),
     };
     // The lease is in place, and the brake guard knows of the write,
     // before it can reach the wire.
-    settle.tickets = tickets(control, caller, target, &request, &meaning);
+    settle.tickets = tickets(parts, caller, target, &request, &meaning);
     let options = JobOptions {
         priority: if meaning.emergency {
             Priority::Emergency
@@ -82,12 +84,12 @@ pub(super) async fn submit(
 
 /// [`submit`], then waits for the result.
 pub(super) async fn write(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
     request: ControlRequest,
 ) -> WriteResult {
-    let mut pending = submit(control, caller, target, request).await?;
+    let mut pending = submit(parts, caller, target, request).await?;
     pending.wait().await;
     pending.finish()
 }
@@ -95,18 +97,18 @@ pub(super) async fn write(
 /// Reads the drive's status now (not from the poll cache), with the
 /// caller's turn on the bus.
 pub(super) async fn read_status(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
 ) -> Result<Status, BusError> {
-    let bus = control.bus(target)?;
+    let bus = parts.bus(target)?;
     read(&bus, caller, target.unit).await
 }
 
 /// The rules checked before a write is sent ([`rules::decide`]), with
 /// the facts they ask for gathered here.
 async fn check(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
     request: &ControlRequest,
@@ -115,8 +117,8 @@ async fn check(
     // What costs nothing first (a write nobody can decode, the role):
     // a caller they refuse costs no bus time.
     rules::admit(caller, meaning, request, target).map_err(Failure::Refused)?;
-    let bus = control.bus(target).map_err(Failure::NotSent)?;
-    let mut facts = facts(control, target, &bus);
+    let bus = parts.bus(target).map_err(Failure::NotSent)?;
+    let mut facts = facts(parts, target, &bus);
     loop {
         match rules::decide(caller, meaning, request, target, &facts) {
             Err(refusal) => return Err(Failure::Refused(refusal)),
@@ -138,7 +140,7 @@ async fn check(
                 facts.active = Some(activity(&bus, caller, target).await?);
             }
             Ok(Decision::Read(Need::Speeds)) => {
-                facts.speeds = Some(speeds(control, &bus, caller, target, request.force).await?);
+                facts.speeds = Some(speeds(parts, &bus, caller, target, request.force).await?);
             }
         }
     }
@@ -150,13 +152,13 @@ async fn check(
 /// before the first goes out. Nothing is audited here: each write is
 /// checked again, and audited, when it is sent.
 pub(super) async fn check_all(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
     requests: &[ControlRequest],
 ) -> Result<(), Failure> {
-    let bus = control.bus(target).map_err(Failure::NotSent)?;
-    let mut facts = facts(control, target, &bus);
+    let bus = parts.bus(target).map_err(Failure::NotSent)?;
+    let mut facts = facts(parts, target, &bus);
     for request in requests {
         let meaning = request.meaning();
         rules::admit(caller, &meaning, request, target).map_err(Failure::Refused)?;
@@ -168,8 +170,7 @@ pub(super) async fn check_all(
                     facts.active = Some(activity(&bus, caller, target).await?);
                 }
                 Ok(Decision::Read(Need::Speeds)) => {
-                    facts.speeds =
-                        Some(speeds(control, &bus, caller, target, request.force).await?);
+                    facts.speeds = Some(speeds(parts, &bus, caller, target, request.force).await?);
                 }
             }
         }
@@ -178,17 +179,17 @@ pub(super) async fn check_all(
 }
 
 /// What the rules know of `target` before anything is read.
-fn facts(control: &Control, target: Target, bus: &BusHandle) -> Facts {
+fn facts(parts: &Arc<Parts>, target: Target, bus: &BusHandle) -> Facts {
     Facts {
-        name: control.name(target),
+        name: parts.name(target),
         bus: bus.name().to_string(),
-        drives_on_bus: control
+        drives_on_bus: parts
             .plant()
             .drives()
             .iter()
             .filter(|d| d.bus == target.bus)
             .count(),
-        lease_bounds: control.lease_bounds(),
+        lease_bounds: parts.lease_bounds(),
         active: None,
         speeds: None,
     }
@@ -219,14 +220,14 @@ async fn activity(bus: &BusHandle, caller: &Caller, target: Target) -> Result<Ac
 /// old. A broadcast reads every configured drive of the bus that
 /// answers (one that does not is not there to move).
 async fn speeds(
-    control: &Control,
+    parts: &Arc<Parts>,
     bus: &BusHandle,
     caller: &Caller,
     target: Target,
     force: bool,
 ) -> Result<Vec<Speed>, Failure> {
     let units: Vec<u8> = if target.unit == 0 {
-        control
+        parts
             .plant()
             .now()
             .drives()
@@ -245,7 +246,7 @@ async fn speeds(
             Err(e) => return Err(Failure::CheckFailed(e)),
         };
         speeds.push(Speed {
-            name: control.name(control.unit_target(target.bus, unit)),
+            name: parts.name(parts.unit_target(target.bus, unit)),
             rpm: status.speed_rpm,
         });
         // The first drive that turns decides, unless overridden: the
@@ -261,14 +262,14 @@ async fn speeds(
 /// ticket per configured drive it reaches (every drive of the bus for a
 /// broadcast), with the lease granted for a setpoint.
 fn tickets(
-    control: &Control,
+    parts: &Arc<Parts>,
     caller: &Caller,
     target: Target,
     request: &ControlRequest,
     meaning: &Meaning,
 ) -> Vec<Ticket> {
     let drives: Vec<usize> = if target.unit == 0 {
-        control
+        parts
             .plant()
             .now()
             .indexed_drives()
@@ -281,12 +282,12 @@ fn tickets(
     let Some(kind) = write_kind(meaning) else {
         return Vec::new();
     };
-    let allowance = allowance(control, target.bus);
+    let allowance = allowance(parts, target.bus);
     // A broadcast setpoint moves only the drives that are active: the
     // others refuse it, and would refuse the stop of a lease too.
     // Read before the book is locked: the poll cache has its own lock.
-    let active = active_drives(control, target, &drives);
-    let leases = control.leases();
+    let active = active_drives(parts, target, &drives);
+    let leases = parts.leases();
     leases.with(|book, now| {
         // The lease asked for (a setpoint's over HTTP or the stream),
         // else the session's communication-loss lease, if it has one.
@@ -357,8 +358,8 @@ fn write_kind(meaning: &Meaning) -> Option<WriteKind> {
 
 /// Of `drives`, those a broadcast to `target` reaches active (none for a
 /// write to one unit), from the poll cache.
-fn active_drives(control: &Control, target: Target, drives: &[usize]) -> Vec<usize> {
-    let now = control.plant().now();
+fn active_drives(parts: &Arc<Parts>, target: Target, drives: &[usize]) -> Vec<usize> {
+    let now = parts.plant().now();
     drives
         .iter()
         .copied()
@@ -374,8 +375,8 @@ fn active_drives(control: &Control, target: Target, drives: &[usize]) -> Vec<usi
 
 /// How long a write on bus `bus` may take to be settled: the queue
 /// wait and every attempt's timeout, with a margin.
-fn allowance(control: &Control, bus: usize) -> Duration {
-    control
+fn allowance(parts: &Arc<Parts>, bus: usize) -> Duration {
+    parts
         .plant()
         .now()
         .bus_at(bus)
@@ -411,7 +412,7 @@ async fn read(bus: &BusHandle, caller: &Caller, unit: u8) -> Result<Status, BusE
 
 /// Everything needed to settle a write once its result is known.
 struct Settle {
-    control: Control,
+    parts: Arc<Parts>,
     caller: Caller,
     target: Target,
     bus: std::sync::Arc<str>,
@@ -421,14 +422,14 @@ struct Settle {
 }
 
 impl Settle {
-    fn new(control: &Control, caller: &Caller, target: Target, write: &Write) -> Self {
-        let bus = control
+    fn new(parts: &Arc<Parts>, caller: &Caller, target: Target, write: &Write) -> Self {
+        let bus = parts
             .plant()
             .now()
             .bus_at(target.bus)
             .map_or_else(|| "?".into(), |b| b.handle.name_arc());
         Settle {
-            control: control.clone(),
+            parts: parts.clone(),
             caller: caller.clone(),
             target,
             bus,
@@ -457,7 +458,7 @@ impl Settle {
         };
         if !self.tickets.is_empty() {
             let tickets = self.tickets;
-            self.control.leases().with(|book, now: Instant| {
+            self.parts.leases().with(|book, now: Instant| {
                 let effects = tickets
                     .iter()
                     .flat_map(|t| book.end_write(t, applied, now))
@@ -487,7 +488,7 @@ impl Settle {
             what: self.what,
             result: words,
         });
-        self.control.events().publish(event.into(), None);
+        self.parts.events().publish(event.into(), None);
     }
 
     /// What the bus's result means for this write.
