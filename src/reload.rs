@@ -170,7 +170,7 @@ impl Reloader {
         let after = self.plant.now();
         for (i, d) in after.indexed_drives() {
             if d.declared.is_some() && now.drive_at(i).map(|o| o.declared) != Some(d.declared) {
-                self.control.drift().recheck(&self.control, i);
+                self.control.drift().recheck(i);
             }
         }
         let new = Arc::new(new);

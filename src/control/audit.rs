@@ -6,8 +6,8 @@
 
 use super::events::WriteEnd;
 use super::lease_book::LeaseEvent;
+use super::news::{DecisionKind, ReloadResult, RestartNote, SettingsError, SettingsReport};
 use super::request::Write;
-use super::settings::{SettingsError, SettingsReport};
 use crate::drive::wanted::Difference;
 
 /// Logs one write: `who` is a token name or a client address, `what` the
@@ -166,14 +166,14 @@ pub fn lease(drive: &str, event: &LeaseEvent) {
 }
 
 /// A decision of the start-up replay of the safety journal.
-pub fn restart(note: &super::restart::RestartNote) {
+pub fn restart(note: &RestartNote) {
     let (drive, decision, text) = (
         note.drive.as_str(),
         note.decision.name(),
         note.text.as_str(),
     );
     let who = note.who.as_deref().unwrap_or("drivegate");
-    if note.decision == super::restart::DecisionKind::LeaseKept {
+    if note.decision == DecisionKind::LeaseKept {
         tracing::info!(target: "drivegate::audit", face = "restart", drive, who, decision, "restart: {text}")
     } else {
         tracing::warn!(target: "drivegate::audit", face = "restart", drive, who, decision, "restart: {text}")
@@ -182,7 +182,7 @@ pub fn restart(note: &super::restart::RestartNote) {
 
 /// Logs a reload of the configuration: who asked, and what it changed or
 /// why it was refused.
-pub fn reload(by: &str, result: &super::reload::ReloadResult) {
+pub fn reload(by: &str, result: &ReloadResult) {
     match result {
         Ok(applied) => tracing::info!(
             target: "drivegate::audit",

@@ -5,7 +5,7 @@
 //! reported: an event for the stream, the audit log, the drive's state
 //! for the API and the metric. With `apply_settings = "on-drift"` the
 //! declaration is then put on the drive through the core's one write path
-//! (`Control::apply_wanted`), never while the motor turns (the core
+//! (`settings::apply_wanted`), never while the motor turns (the core
 //! refuses it; this waits for a status at standstill and tries again) and
 //! never to flash unless `save = true` is declared; the read-back after
 //! it says whether the drift is gone.
@@ -22,9 +22,11 @@ use tokio_util::sync::CancellationToken;
 use super::audit;
 use super::caller::Caller;
 use super::events::ControlEvent;
+pub use super::news::{DriftChecked, DriftState, DriftView};
 use super::outcome::{Failure, Refusal, Rule};
-use super::settings::{ApplyOptions, SettingsError};
-use super::{Control, Target};
+use super::parts::Parts;
+use super::request::Target;
+use super::settings::{self, ApplyOptions, Done, SettingsError};
 use crate::bus::BusEvent;
 use crate::bus::cache::Link;
 use crate::config::{ApplySettings, Declared};
@@ -34,76 +36,6 @@ use crate::drive::wanted::{self, Difference};
 /// Who the audit log and the events name for drivegate's own checks and
 /// writes of declared settings.
 pub const WHO: &str = "declared-settings";
-
-/// Where a drive stands with its declared settings.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum DriftState {
-    /// It holds them.
-    Matches,
-    /// It holds other values (the drift says which); nothing is done
-    /// (`apply_settings = "never"`).
-    Drifted,
-    /// It holds other values, and they are written once the motor stands
-    /// still (`on-drift`).
-    WaitingForStandstill,
-    /// Writing them failed (why); tried again when the drive next comes
-    /// online.
-    ApplyFailed(String),
-    /// Its settings could not be read (why); compared when it next comes
-    /// online.
-    ReadFailed(String),
-}
-
-impl DriftState {
-    /// Stable name for the API, events and metrics.
-    pub fn name(&self) -> &'static str {
-        match self {
-            DriftState::Matches => "match",
-            DriftState::Drifted => "drift",
-            DriftState::WaitingForStandstill => "waiting-for-standstill",
-            DriftState::ApplyFailed(_) => "apply-failed",
-            DriftState::ReadFailed(_) => "read-failed",
-        }
-    }
-
-    /// Why, for the failed states.
-    pub fn detail(&self) -> Option<&str> {
-        match self {
-            DriftState::ApplyFailed(why) | DriftState::ReadFailed(why) => Some(why),
-            _ => None,
-        }
-    }
-}
-
-/// The latest comparison of a drive with its declared settings.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DriftView {
-    /// Where it stands.
-    pub state: DriftState,
-    /// The declared settings it does not hold (empty: none, or not
-    /// known after a failed read).
-    pub drift: Vec<Difference>,
-    /// When it was compared (or the comparison failed).
-    pub checked_at: SystemTime,
-    /// What drivegate does about a drift.
-    pub apply: ApplySettings,
-}
-
-impl DriftView {
-    /// True when the drive is known not to hold its declared settings.
-    pub fn drifted(&self) -> bool {
-        !self.drift.is_empty()
-    }
-}
-
-/// A drive's comparison with its declared settings, for the stream.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DriftChecked {
-    /// The drive, by index in the plant.
-    pub drive: usize,
-    /// Its new state.
-    pub view: DriftView,
-}
 
 /// What drivegate does once a drive was compared with its declaration.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -129,8 +61,9 @@ pub struct DriftBook {
     /// Drives being checked; true when another check was asked for
     /// meanwhile (it runs after).
     running: Mutex<HashMap<usize, bool>>,
-    /// The daemon's shutdown, once the buses are followed.
-    shutdown: std::sync::OnceLock<CancellationToken>,
+    /// The core's parts and the daemon's shutdown, once the buses are
+    /// followed.
+    started: std::sync::OnceLock<(Arc<Parts>, CancellationToken)>,
 }
 
 impl DriftBook {
@@ -141,13 +74,8 @@ impl DriftBook {
     }
 
     /// Records drive `drive`'s new state and tells the stream and the log.
-    fn set(&self, control: &Control, drive: usize, view: DriftView) {
-        let Some(name) = control
-            .plant()
-            .now()
-            .drive_at(drive)
-            .map(|d| d.name.clone())
-        else {
+    fn set(&self, parts: &Arc<Parts>, drive: usize, view: DriftView) {
+        let Some(name) = parts.plant().now().drive_at(drive).map(|d| d.name.clone()) else {
             return;
         };
         match &view.state {
@@ -160,7 +88,7 @@ impl DriftBook {
             }
         }
         lock(&self.views).insert(name, view.clone());
-        control.events().publish(
+        parts.events().publish(
             Arc::new(ControlEvent::Drift(DriftChecked { drive, view })),
             None,
         );
@@ -169,21 +97,16 @@ impl DriftBook {
     /// After a settings document was put on drive `drive` (from any face,
     /// or by drivegate), with `held` read back: a drive with a declaration
     /// is compared with it again, so its state follows what it holds now.
-    pub(crate) fn after_apply(&self, control: &Control, drive: usize, held: &DriveSettings) {
-        let Some(declared) = control
-            .plant()
-            .now()
-            .drive_at(drive)
-            .and_then(|d| d.declared)
-        else {
+    pub(super) fn after_apply(&self, parts: &Arc<Parts>, drive: usize, held: &DriveSettings) {
+        let Some(declared) = parts.plant().now().drive_at(drive).and_then(|d| d.declared) else {
             return;
         };
-        self.compared(control, drive, &declared, held);
+        self.compared(parts, drive, &declared, held);
     }
 
     fn compared(
         &self,
-        control: &Control,
+        parts: &Arc<Parts>,
         drive: usize,
         declared: &Declared,
         held: &DriveSettings,
@@ -195,7 +118,7 @@ impl DriftBook {
             DriftState::Drifted
         };
         self.set(
-            control,
+            parts,
             drive,
             DriftView {
                 state,
@@ -208,8 +131,8 @@ impl DriftBook {
     }
 
     /// Keeps the known drift, with a new state.
-    fn restate(&self, control: &Control, drive: usize, apply: ApplySettings, state: DriftState) {
-        let drift = control
+    fn restate(&self, parts: &Arc<Parts>, drive: usize, apply: ApplySettings, state: DriftState) {
+        let drift = parts
             .plant()
             .drives()
             .get(drive)
@@ -217,7 +140,7 @@ impl DriftBook {
             .map(|v| v.drift)
             .unwrap_or_default();
         self.set(
-            control,
+            parts,
             drive,
             DriftView {
                 state,
@@ -232,19 +155,22 @@ impl DriftBook {
     /// it under `on-drift`), as when it comes online: for a declaration
     /// that changed while the drive was online. Nothing before the buses
     /// are followed, nor for a drive without a declaration.
-    pub fn recheck(self: &Arc<Self>, control: &Control, drive: usize) {
-        let declared = control
+    pub fn recheck(self: &Arc<Self>, drive: usize) {
+        let Some((parts, shutdown)) = self.started.get() else {
+            return;
+        };
+        let declared = parts
             .plant()
             .now()
             .drive_at(drive)
             .is_some_and(|d| d.declared.is_some());
-        if let (true, Some(shutdown)) = (declared, self.shutdown.get()) {
-            self.request(control, drive, shutdown);
+        if declared {
+            self.request(parts, drive, shutdown);
         }
     }
 
     /// Checks drive `drive` now, or once the check running for it ends.
-    fn request(self: &Arc<Self>, control: &Control, drive: usize, shutdown: &CancellationToken) {
+    fn request(self: &Arc<Self>, parts: &Arc<Parts>, drive: usize, shutdown: &CancellationToken) {
         {
             let mut running = lock(&self.running);
             if let Some(again) = running.get_mut(&drive) {
@@ -253,10 +179,10 @@ impl DriftBook {
             }
             running.insert(drive, false);
         }
-        let (book, control, shutdown) = (self.clone(), control.clone(), shutdown.clone());
+        let (book, parts, shutdown) = (self.clone(), parts.clone(), shutdown.clone());
         tokio::spawn(async move {
             loop {
-                book.check(&control, drive, &shutdown).await;
+                book.check(&parts, drive, &shutdown).await;
                 let mut running = lock(&book.running);
                 if running.get(&drive) == Some(&true) && !shutdown.is_cancelled() {
                     running.insert(drive, false);
@@ -270,8 +196,8 @@ impl DriftBook {
 
     /// Compares drive `drive` with its declaration and, with `on-drift`,
     /// applies it.
-    async fn check(&self, control: &Control, drive: usize, shutdown: &CancellationToken) {
-        let now = control.plant().now();
+    async fn check(&self, parts: &Arc<Parts>, drive: usize, shutdown: &CancellationToken) {
+        let now = parts.plant().now();
         let Some(d) = now.drive_at(drive).cloned() else {
             return;
         };
@@ -290,15 +216,15 @@ impl DriftBook {
             drive: Some(drive),
         };
         let caller = Caller::internal(WHO);
-        let held = match control.read_settings(&caller, target).await {
+        let held = match settings::read_settings(parts, &caller, target).await {
             Ok(held) => held,
             Err(e) => {
                 let why = format!("its settings could not be read: {e}");
-                self.restate(control, drive, declared.apply, DriftState::ReadFailed(why));
+                self.restate(parts, drive, declared.apply, DriftState::ReadFailed(why));
                 return;
             }
         };
-        let drift = self.compared(control, drive, &declared, &held);
+        let drift = self.compared(parts, drive, &declared, &held);
         if next(declared.apply, &drift) == Next::Report {
             return;
         }
@@ -309,18 +235,23 @@ impl DriftBook {
             unattended: true,
         };
         loop {
-            match control
-                .apply_wanted(&caller, target, &declared.wanted, options)
-                .await
+            let applied =
+                settings::apply_wanted(parts, &caller, target, &declared.wanted, options).await;
+            // What the drive holds after the writes, compared again.
+            if let Ok(Done {
+                held: Some(held), ..
+            }) = &applied
             {
-                // The read-back compared it again (`after_apply`).
+                self.after_apply(parts, drive, held);
+            }
+            match applied.map(|done| done.report) {
                 Ok(report) if report.complete() => return,
                 Ok(report) => {
                     let why = report
                         .failure
                         .map_or_else(|| "unknown".to_string(), |f| f.to_string());
                     let why = format!("writing the declared settings failed: {why}");
-                    self.restate(control, drive, declared.apply, DriftState::ApplyFailed(why));
+                    self.restate(parts, drive, declared.apply, DriftState::ApplyFailed(why));
                     return;
                 }
                 Err(SettingsError::Failed(Failure::Refused(Refusal {
@@ -328,7 +259,7 @@ impl DriftBook {
                     ..
                 }))) => {
                     self.restate(
-                        control,
+                        parts,
                         drive,
                         declared.apply,
                         DriftState::WaitingForStandstill,
@@ -343,7 +274,7 @@ impl DriftBook {
                         SettingsError::Failed(f) => f.to_string(),
                     };
                     let why = format!("the declared settings were not written: {why}");
-                    self.restate(control, drive, declared.apply, DriftState::ApplyFailed(why));
+                    self.restate(parts, drive, declared.apply, DriftState::ApplyFailed(why));
                     return;
                 }
             }
@@ -381,37 +312,37 @@ async fn standstill(
 /// Follows every bus: each drive with a declaration is compared with it
 /// when it comes online, and those online already now. Ends with
 /// `shutdown`.
-pub(crate) fn start(control: &Control, shutdown: &CancellationToken) {
+pub(super) fn start(book: &Arc<DriftBook>, parts: &Arc<Parts>, shutdown: &CancellationToken) {
     if tokio::runtime::Handle::try_current().is_err() {
         return;
     }
-    let book = control.drift().clone();
-    let _ = book.shutdown.set(shutdown.clone());
+    let book = book.clone();
+    let _ = book.started.set((parts.clone(), shutdown.clone()));
     // Follows the plant: each bus a reload adds or reopens gets its
     // watcher, one it removes or reopens loses its own. The buses of now
     // are subscribed to at once, before the drives online already are
     // asked for below: a drive that comes online in between is not missed.
-    let (watcher_book, watcher_control) = (book.clone(), control.clone());
-    control
+    let (watcher_book, watcher_parts) = (book.clone(), parts.clone());
+    parts
         .plant()
         .for_each_bus(shutdown, move |index, bus, stop| {
             watch_bus(
                 watcher_book.clone(),
-                watcher_control.clone(),
+                watcher_parts.clone(),
                 index,
                 bus.handle.subscribe(),
                 stop,
             );
         });
     // Online before the buses were followed.
-    let now = control.plant().now();
+    let now = parts.plant().now();
     for (drive, d) in now.indexed_drives() {
         let online = now
             .bus_at(d.bus)
             .and_then(|b| b.handle.drive(d.unit))
             .is_some_and(|s| s.link == Link::Online);
         if d.declared.is_some() && online {
-            book.request(control, drive, shutdown);
+            book.request(parts, drive, shutdown);
         }
     }
 }
@@ -420,7 +351,7 @@ pub(crate) fn start(control: &Control, shutdown: &CancellationToken) {
 /// online, until `shutdown`.
 fn watch_bus(
     book: Arc<DriftBook>,
-    control: Control,
+    parts: Arc<Parts>,
     index: usize,
     mut rx: broadcast::Receiver<BusEvent>,
     shutdown: CancellationToken,
@@ -434,14 +365,14 @@ fn watch_bus(
                 };
                 match event {
                     Ok(BusEvent::Online { unit, .. }) => {
-                        let drive = control
+                        let drive = parts
                             .plant()
                             .now()
                             .indexed_drives()
                             .find(|(_, d)| d.bus == index && d.unit == unit && d.declared.is_some())
                             .map(|(i, _)| i);
                         if let Some(drive) = drive {
-                            book.request(&control, drive, &shutdown);
+                            book.request(&parts, drive, &shutdown);
                         }
                     }
                     Ok(_) => {}

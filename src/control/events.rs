@@ -13,10 +13,9 @@ use std::time::SystemTime;
 use tokio::sync::broadcast;
 
 use super::caller::{Face, SessionId};
-use super::drift::DriftChecked;
 use super::lease_book::LeaseEvent;
+use super::news::{AlarmNews, DriftChecked, FreshnessNews, SettingsApplied};
 use super::outcome::{Failure, Outcome, WriteResult};
-use super::settings::SettingsApplied;
 use crate::bus::BusError;
 
 /// Events held for subscribers that fall behind.
@@ -118,10 +117,10 @@ pub enum ControlEvent {
         closed: bool,
     },
     /// An alarm raised, cleared or acknowledged.
-    Alarm(super::alarms::AlarmNews),
+    Alarm(AlarmNews),
     /// A drive's data changed freshness (live, stale, offline, never,
     /// bus-down).
-    Freshness(super::freshness::FreshnessNews),
+    Freshness(FreshnessNews),
 }
 
 impl ControlEvent {

@@ -15,24 +15,10 @@ use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 
 use super::events::{ControlEvent, Events};
+pub use super::news::FreshnessNews;
 use crate::bus::BusHandle;
 use crate::bus::freshness::{Cause, Freshness, Verdict};
 use crate::plant::Plant;
-
-/// A drive's data changed freshness.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FreshnessNews {
-    /// The drive, by index in the plant.
-    pub drive: usize,
-    /// Its bus.
-    pub bus: Arc<str>,
-    /// Its unit address.
-    pub unit: u8,
-    /// What it was.
-    pub was: Freshness,
-    /// What it is now, why and since when.
-    pub verdict: Verdict,
-}
 
 /// Watches every bus of `plant` (and those a reload adds) until
 /// `shutdown`, publishing each change on `events`.

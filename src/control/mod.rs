@@ -23,6 +23,15 @@
 //!   through [`Control::acknowledge_alarm`];
 //! - [`freshness`]: each change of a drive's data's freshness, told on
 //!   the events for the faces that show it.
+//!
+//! [`Control`]'s whole surface stands in this file, beside the type: each
+//! method is a few lines that hand the work to its concept's free
+//! functions ([`write`](mod@write), [`settings`], [`reload`],
+//! [`replacement`]), so a reader finds what the core offers in one place
+//! and how each part works in the file named for it. Those functions take
+//! the core's shared parts (`parts.rs`: plant, leases, events, lease
+//! settings), not the handle, so no file of the folder imports this one.
+//! What the events and the audit log carry is in [`news`], at the bottom.
 
 pub mod alarms;
 pub mod audit;
@@ -33,7 +42,9 @@ pub mod freshness;
 pub mod journal;
 pub mod lease_book;
 pub mod leases;
+pub mod news;
 pub mod outcome;
+mod parts;
 pub mod policy;
 pub mod reload;
 pub mod replacement;
@@ -48,7 +59,7 @@ pub mod written;
 use std::sync::Arc;
 use std::time::Duration;
 
-use tokio::sync::{broadcast, mpsc};
+use tokio::sync::{broadcast, mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
 pub use caller::{Caller, Face, SessionId};
@@ -56,29 +67,26 @@ pub use events::{ControlEvent, Published, WriteEnd, WriteEvent};
 pub use lease_book::{CommLoss, LeaseEvent, LeaseView, NoLease};
 pub use outcome::{Applied, Failure, Outcome, Refusal, Rule, WriteResult};
 pub use policy::{Operation, Role};
-pub use request::{ControlRequest, Write};
+pub use request::{ControlRequest, Target, Write};
 pub use rules::LeaseBounds;
 pub use shutdown::shutdown;
 pub use write::Pending;
 
+use crate::bus::BusError;
+use crate::config::Config;
+use crate::drive::Status;
+use crate::drive::settings::DriveSettings;
+use crate::drive::wanted::Document;
 use crate::plant::{LookupError, Plant};
 use crate::safety::{SafetyConfig, StopAction};
 use events::Events;
 use journal::Journal;
 use journal::replay::Recovered;
 use leases::Leases;
-
-/// Where a write goes: a bus, a unit on it (0: every drive, a broadcast),
-/// and the configured drive at that unit, if there is one.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Target {
-    /// Index of the bus in the plant.
-    pub bus: usize,
-    /// Unit address; 0 for a broadcast.
-    pub unit: u8,
-    /// Index of the configured drive in the plant.
-    pub drive: Option<usize>,
-}
+use parts::Parts;
+use reload::{NewText, ReloadRequest, ReloadResult, ReloadStatus};
+use replacement::ReplacementEvent;
+use settings::{ApplyOptions, SettingsError, SettingsReport};
 
 /// Why an alarm could not be acknowledged.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -98,36 +106,14 @@ pub enum LeaseError {
     NoLease(NoLease),
 }
 
-/// `[safety]`'s settings of leases, which a reload may change.
-#[derive(Debug, Clone, Copy)]
-struct Settings {
-    jog_lease: Duration,
-    lease_bounds: LeaseBounds,
-}
-
-impl Settings {
-    fn of(safety: &SafetyConfig) -> Self {
-        Settings {
-            jog_lease: Duration::from_millis(safety.jog_lease_ms),
-            lease_bounds: LeaseBounds {
-                min: Duration::from_millis(safety.lease_min_ms),
-                max: Duration::from_millis(safety.lease_max_ms),
-            },
-        }
-    }
-}
-
 /// The handle every face holds; cheap to clone.
 #[derive(Clone)]
 pub struct Control(Arc<Inner>);
 
 struct Inner {
-    plant: Arc<Plant>,
-    leases: Arc<Leases>,
+    /// The plant, the lease driver, the events and the lease settings.
+    parts: Arc<Parts>,
     alarms: Arc<alarms::Alarms>,
-    events: Arc<Events>,
-    /// `[safety]`'s lease settings, as last loaded.
-    settings: std::sync::RwLock<Settings>,
     /// Reloads of the configuration.
     reloads: reload::Reloads,
     /// What the journal held at start-up, until it is replayed.
@@ -167,12 +153,10 @@ impl Control {
             opened.journal,
             shutdown.clone(),
         );
+        let parts = Arc::new(Parts::new(plant, leases, events, safety));
         let control = Control(Arc::new(Inner {
-            plant,
-            leases,
+            parts: parts.clone(),
             alarms,
-            events,
-            settings: std::sync::RwLock::new(Settings::of(safety)),
             reloads: reload::Reloads::default(),
             recovered: std::sync::Mutex::new(Some(opened.recovered)),
             on_unknown_state: safety.on_unknown_state,
@@ -181,8 +165,134 @@ impl Control {
             restart_notes: std::sync::Mutex::new(Vec::new()),
             drift: Arc::new(drift::DriftBook::default()),
         }));
-        drift::start(&control, &shutdown);
+        drift::start(&control.0.drift, &parts, &shutdown);
         control
+    }
+
+    /// Checks `request` for `caller`, puts it on the bus queue, and
+    /// returns the way to its result. A refusal, a failed check or a bus
+    /// that takes nothing is settled (audited) and returned at once.
+    pub async fn submit(
+        &self,
+        caller: &Caller,
+        target: Target,
+        request: ControlRequest,
+    ) -> Result<Pending, Failure> {
+        write::submit(&self.0.parts, caller, target, request).await
+    }
+
+    /// [`submit`](Self::submit), then waits for the result.
+    pub async fn write(
+        &self,
+        caller: &Caller,
+        target: Target,
+        request: ControlRequest,
+    ) -> WriteResult {
+        write::write(&self.0.parts, caller, target, request).await
+    }
+
+    /// Reads the drive's status now (not from the poll cache), with the
+    /// caller's turn on the bus.
+    pub async fn read_status(&self, caller: &Caller, target: Target) -> Result<Status, BusError> {
+        write::read_status(&self.0.parts, caller, target).await
+    }
+
+    /// Reads what the drive at `target` holds: its setpoints and settings
+    /// (six reads at command priority, with the caller's turn on the bus).
+    /// A read changes nothing, so it is not audited.
+    pub async fn read_settings(
+        &self,
+        caller: &Caller,
+        target: Target,
+    ) -> Result<DriveSettings, BusError> {
+        settings::read_settings(&self.0.parts, caller, target).await
+    }
+
+    /// Puts `document` on the drive at `target` for `caller`: checked whole
+    /// (ranges, then every write's rules), then written message by message,
+    /// then read back. With `dry_run`, only compared and checked.
+    pub async fn apply_settings(
+        &self,
+        caller: &Caller,
+        target: Target,
+        document: &Document,
+        options: ApplyOptions,
+    ) -> Result<SettingsReport, SettingsError> {
+        let done =
+            settings::apply_settings(&self.0.parts, caller, target, document, options).await?;
+        // Then, for a drive with a declaration, what it holds now.
+        if let (Some(index), Some(held)) = (target.drive, &done.held) {
+            self.0.drift.after_apply(&self.0.parts, index, held);
+        }
+        Ok(done.report)
+    }
+
+    /// The daemon's reloader of `file` takes reloads from here on.
+    pub fn attach_reloader(&self, reloader: mpsc::Sender<ReloadRequest>, file: &std::path::Path) {
+        self.0.reloads.attach(reloader, file);
+    }
+
+    /// Reloads the configuration for `caller` (an admin), optionally
+    /// writing `write` into the file first; audited either way.
+    pub async fn reload(&self, caller: &Caller, write: Option<NewText>) -> ReloadResult {
+        reload::reload(&self.0.reloads, caller, write).await
+    }
+
+    /// Asks the reloader, for a caller the daemon vouches for (SIGHUP).
+    pub(crate) async fn reload_as(&self, by: String, write: Option<NewText>) -> ReloadResult {
+        self.0.reloads.ask(by, write).await
+    }
+
+    /// The configuration file a reload reads, if drivegate was started
+    /// with one.
+    pub fn config_file(&self) -> Option<std::path::PathBuf> {
+        self.0.reloads.file()
+    }
+
+    /// What became of reloads since start-up.
+    pub fn reload_status(&self) -> ReloadStatus {
+        self.0.reloads.status()
+    }
+
+    /// Records what became of a reload (by the reloader).
+    pub fn record_reload(&self, result: &ReloadResult) {
+        self.0.reloads.record(result);
+    }
+
+    /// The running configuration, as last loaded; a face follows it for
+    /// its own section (`changed().await`, then `borrow_and_update()`).
+    pub fn follow_config(&self) -> watch::Receiver<Option<Arc<Config>>> {
+        self.0.reloads.follow()
+    }
+
+    /// Publishes the running configuration: at start-up, and after each
+    /// reload once the plant follows it. Applies `[safety]`'s lease bounds,
+    /// jog lease and lease-expiry action to leases granted from now on.
+    pub fn set_config(&self, config: Arc<Config>) {
+        self.0.parts.set_safety(&config.safety);
+        self.0.reloads.publish(config);
+    }
+
+    /// Stops the drives (slot indices) a reload removes, while their bus
+    /// still runs: a drive with a lease gets its lease's stop, the others
+    /// `on_shutdown` if they move; each stop audited. Returns what was
+    /// done, in words, once every stop ended (or after a few seconds).
+    pub async fn retire(&self, drives: &[usize], on_shutdown: StopAction) -> Vec<String> {
+        reload::retire(&self.0.parts, drives, on_shutdown).await
+    }
+
+    /// Notes in the audit log that `caller` started, finished or abandoned
+    /// the replacement of drive `drive` (an index in the plant), with
+    /// `detail` in the caller's words (where its settings came from, the
+    /// time it took). Commissioning work: the admin role.
+    pub fn note_replacement(
+        &self,
+        caller: &Caller,
+        drive: usize,
+        event: ReplacementEvent,
+        detail: &str,
+    ) -> Result<(), Refusal> {
+        replacement::note_replacement(&self.0.parts, caller, drive, event, detail)
     }
 
     /// Drives compared with their declared settings.
@@ -203,8 +313,8 @@ impl Control {
             return;
         };
         let decisions = restart::run(
-            &self.0.plant,
-            &self.0.leases,
+            self.0.parts.plant(),
+            self.0.parts.leases(),
             &recovered,
             self.0.on_unknown_state,
         )
@@ -218,10 +328,8 @@ impl Control {
             .0
             .restart_notes
             .lock()
-            .unwrap_or_else(|p| p.into_inner()) = decisions
-            .iter()
-            .map(|d| restart::RestartNote::of(d, at))
-            .collect();
+            .unwrap_or_else(|p| p.into_inner()) =
+            decisions.iter().map(|d| restart::note(d, at)).collect();
     }
 
     /// What the start-up replay did, drive by drive, in words (empty when
@@ -245,13 +353,16 @@ impl Control {
 
     /// The safety journal's health and counts.
     pub fn journal(&self) -> (journal::Health, journal::Counts) {
-        self.0.leases.journal(|j| (j.health().clone(), j.counts()))
+        self.0
+            .parts
+            .leases()
+            .journal(|j| (j.health().clone(), j.counts()))
     }
 
     /// What is wrong with the safety journal, in words (empty: nothing).
     pub fn journal_warnings(&self) -> Vec<String> {
         let mut out = self.0.journal_news.clone();
-        match self.0.leases.journal(|j| j.health().clone()) {
+        match self.0.parts.leases().journal(|j| j.health().clone()) {
             journal::Health::Ok => {}
             journal::Health::Off(why) => {
                 if !out.contains(&why) {
@@ -267,27 +378,23 @@ impl Control {
 
     /// The lease a console jog asks for (`[safety] jog_lease_ms`).
     pub fn jog_lease(&self) -> Duration {
-        self.settings().jog_lease
+        self.0.parts.jog_lease()
     }
 
     /// The shortest and longest lease a setpoint may ask for (`[safety]
     /// lease_min_ms`, `lease_max_ms`), from any face.
     pub fn lease_bounds(&self) -> LeaseBounds {
-        self.settings().lease_bounds
-    }
-
-    fn settings(&self) -> Settings {
-        *self.0.settings.read().unwrap_or_else(|p| p.into_inner())
+        self.0.parts.lease_bounds()
     }
 
     /// Buses and drives.
     pub fn plant(&self) -> &Arc<Plant> {
-        &self.0.plant
+        self.0.parts.plant()
     }
 
     /// Every future event of the core.
     pub fn subscribe(&self) -> broadcast::Receiver<Published> {
-        self.0.events.subscribe()
+        self.0.parts.events().subscribe()
     }
 
     /// The alarm list.
@@ -323,18 +430,10 @@ impl Control {
         Ok(alarm)
     }
 
-    pub(crate) fn leases(&self) -> &Arc<Leases> {
-        &self.0.leases
-    }
-
-    pub(crate) fn events(&self) -> &Arc<Events> {
-        &self.0.events
-    }
-
     /// The configured drive named `key` (or, on a single bus, with that
     /// unit number).
     pub fn target(&self, key: &str) -> Result<Target, LookupError> {
-        let (index, drive, _) = self.0.plant.find(key)?;
+        let (index, drive, _) = self.0.parts.plant().find(key)?;
         Ok(Target {
             bus: drive.bus,
             unit: drive.unit,
@@ -344,17 +443,7 @@ impl Control {
 
     /// `unit` on bus `bus` (0: a broadcast), configured or not.
     pub fn unit_target(&self, bus: usize, unit: u8) -> Target {
-        let drive = (unit != 0)
-            .then(|| {
-                self.0
-                    .plant
-                    .now()
-                    .indexed_drives()
-                    .find(|(_, d)| d.bus == bus && d.unit == unit)
-                    .map(|(i, _)| i)
-            })
-            .flatten();
-        Target { bus, unit, drive }
+        self.0.parts.unit_target(bus, unit)
     }
 
     /// Refuses `caller` unless its role allows `operation` (what is not
@@ -366,7 +455,10 @@ impl Control {
 
     /// The lease on drive `drive`, if any.
     pub fn lease(&self, drive: usize) -> Option<LeaseView> {
-        self.0.leases.read(|book, now| book.lease(drive, now))
+        self.0
+            .parts
+            .leases()
+            .read(|book, now| book.lease(drive, now))
     }
 
     /// Pushes the deadline of drive `drive`'s lease ahead by its length (or
@@ -383,8 +475,8 @@ impl Control {
                 .check(length)
                 .map_err(LeaseError::Refused)?;
         }
-        let name = self.drive_name(drive);
-        self.0.leases.with(|book, now| {
+        let name = self.0.parts.drive_name(drive);
+        self.0.parts.leases().with(|book, now| {
             let result = book
                 .renew(drive, length, now)
                 .map_err(|e| LeaseError::NoLease(named(&name, e)));
@@ -396,14 +488,13 @@ impl Control {
     /// setpoint, unguarded.
     pub fn release(&self, caller: &Caller, drive: usize) -> Result<LeaseView, LeaseError> {
         rules::role(caller, Operation::Lease.needs()).map_err(LeaseError::Refused)?;
-        let name = self.drive_name(drive);
-        let released =
-            self.0
-                .leases
-                .with(|book, now| match book.release(drive, &caller.who, now) {
-                    Ok((view, effects)) => (Ok(view), effects),
-                    Err(e) => (Err(LeaseError::NoLease(named(&name, e))), Vec::new()),
-                })?;
+        let name = self.0.parts.drive_name(drive);
+        let released = self.0.parts.leases().with(|book, now| {
+            match book.release(drive, &caller.who, now) {
+                Ok((view, effects)) => (Ok(view), effects),
+                Err(e) => (Err(LeaseError::NoLease(named(&name, e))), Vec::new()),
+            }
+        })?;
         audit::released(caller.face.name(), &caller.who, &name);
         Ok(released)
     }
@@ -419,12 +510,12 @@ impl Control {
         closing: &'static str,
         comm_loss: Option<CommLoss>,
     ) -> (SessionGuard, mpsc::UnboundedReceiver<Arc<ControlEvent>>) {
-        let (id, rx) = self.0.leases.open_session(closing, comm_loss);
+        let (id, rx) = self.0.parts.leases().open_session(closing, comm_loss);
         (
             SessionGuard {
                 id,
                 watched: comm_loss.is_some(),
-                leases: self.0.leases.clone(),
+                leases: self.0.parts.leases().clone(),
             },
             rx,
         )
@@ -435,23 +526,21 @@ impl Control {
     /// or for MQTT no broker), and by their session closing. Each was
     /// followed by its action.
     pub fn comm_loss_ends(&self, bus: usize, face: Face) -> (u64, u64) {
-        self.0.leases.comm_loss_ends(bus, face)
+        self.0.parts.leases().comm_loss_ends(bus, face)
     }
 
     /// Waits for the lease driver and its stops to finish (after shutdown).
     pub async fn wait(&self) {
-        self.0.leases.wait().await;
+        self.0.parts.leases().wait().await;
         // The alarm file gets what the stop raised, and is closed.
         let alarms = self.0.alarms.clone();
         let _ = tokio::task::spawn_blocking(move || alarms.close()).await;
     }
+}
 
-    fn drive_name(&self, drive: usize) -> String {
-        self.0
-            .plant
-            .now()
-            .drive_at(drive)
-            .map_or_else(String::new, |d| d.name.clone())
+impl reload::RunningConfig for Control {
+    fn running_config(&self) -> watch::Receiver<Option<Arc<Config>>> {
+        self.0.reloads.follow()
     }
 }
 

@@ -13,9 +13,16 @@ use std::time::{Duration, SystemTime};
 
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 
-use super::{Caller, Control, ControlEvent, LeaseEvent, Operation, Refusal, audit, rules};
-use crate::bus::Origin;
+use super::caller::{Caller, Face};
+use super::events::{ControlEvent, Published, WriteEnd};
+use super::lease_book::LeaseEvent;
+pub use super::news::{ReloadApplied as Applied, ReloadRefused as Refused, ReloadResult};
+use super::parts::Parts;
+use super::policy::Operation;
+use super::{audit, rules};
+use crate::bus::{BusHandle, Origin};
 use crate::config::Config;
+use crate::plant::{Directory, Drive};
 use crate::safety::{self, StopAction, StopOutcome};
 
 /// A reload asked for, with where its answer goes.
@@ -36,47 +43,6 @@ pub struct NewText {
     pub text: String,
     /// SHA-256 (hex) of the file as it was read to make `text`.
     pub base_sha256: String,
-}
-
-/// What a reload did, or why it did nothing.
-pub type ReloadResult = Result<Applied, Refused>;
-
-/// A reload that was applied.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Applied {
-    /// What changed, in words, one line each.
-    pub changes: Vec<String>,
-    /// What could not be done, in words: a bus whose port did not open
-    /// (it stays out of the plant until the next reload), a listener that
-    /// could not move (it stays where it was, with its previous settings,
-    /// until the next reload). A reload with problems was applied in part.
-    pub problems: Vec<String>,
-    /// Drives that were moving when removed, and what stopped them.
-    pub stopped: Vec<String>,
-}
-
-/// A reload that left the running configuration as it was.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Refused {
-    /// The file does not pass the check: `file:line:column: why`.
-    Invalid(String),
-    /// The file changed on disk since the text to write was made from it.
-    Changed(String),
-    /// No reloader: started without a configuration file.
-    Unavailable(String),
-    /// The caller may not.
-    Refused(Refusal),
-}
-
-impl std::fmt::Display for Refused {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Refused::Invalid(why) | Refused::Changed(why) | Refused::Unavailable(why) => {
-                f.write_str(why)
-            }
-            Refused::Refused(r) => f.write_str(&r.detail),
-        }
-    }
 }
 
 /// What became of reloads since start-up.
@@ -100,6 +66,13 @@ pub struct ReloadStatus {
     pub last_good_at: Option<SystemTime>,
 }
 
+/// What holds the running configuration: the core's handle
+/// ([`super::Control`]), which a face hands to [`ConfigFollower::new`].
+pub trait RunningConfig {
+    /// A receiver of the running configuration, as last loaded.
+    fn running_config(&self) -> watch::Receiver<Option<Arc<Config>>>;
+}
+
 /// A face's view of the running configuration, asked on its request path:
 /// [`changed`](Self::changed) answers each new configuration once, so
 /// what a reload changes applies from the very next request (the reloader
@@ -108,8 +81,8 @@ pub struct ConfigFollower(std::sync::Mutex<watch::Receiver<Option<Arc<Config>>>>
 
 impl ConfigFollower {
     /// Follows `control`'s running configuration from now on.
-    pub fn new(control: &Control) -> Self {
-        let mut rx = control.follow_config();
+    pub fn new(control: &impl RunningConfig) -> Self {
+        let mut rx = control.running_config();
         rx.mark_unchanged();
         ConfigFollower(std::sync::Mutex::new(rx))
     }
@@ -154,46 +127,16 @@ impl Default for Reloads {
 /// on without its confirmation (the stop is still audited when it ends).
 const RETIRE_LIMIT: Duration = Duration::from_secs(3);
 
-impl Control {
+impl Reloads {
     /// The daemon's reloader of `file` takes reloads from here on.
-    pub fn attach_reloader(&self, reloader: mpsc::Sender<ReloadRequest>, file: &std::path::Path) {
-        *self
-            .0
-            .reloads
-            .file
-            .lock()
-            .unwrap_or_else(|p| p.into_inner()) = Some(file.to_path_buf());
-        *self
-            .0
-            .reloads
-            .reloader
-            .lock()
-            .unwrap_or_else(|p| p.into_inner()) = Some(reloader);
-    }
-
-    /// Reloads the configuration for `caller` (an admin), optionally
-    /// writing `write` into the file first; audited either way.
-    pub async fn reload(&self, caller: &Caller, write: Option<NewText>) -> ReloadResult {
-        let by = format!("{} {}", caller.face.name(), caller.who);
-        if let Err(refusal) = rules::role(caller, Operation::Reload.needs()) {
-            let refused = Refused::Refused(refusal);
-            audit::reload(&by, &Err(refused.clone()));
-            return Err(refused);
-        }
-        let result = self.reload_as(by.clone(), write).await;
-        audit::reload(&by, &result);
-        result
+    pub(super) fn attach(&self, reloader: mpsc::Sender<ReloadRequest>, file: &std::path::Path) {
+        *lock(&self.file) = Some(file.to_path_buf());
+        *lock(&self.reloader) = Some(reloader);
     }
 
     /// Asks the reloader, for a caller the daemon vouches for (SIGHUP).
-    pub(crate) async fn reload_as(&self, by: String, write: Option<NewText>) -> ReloadResult {
-        let reloader = self
-            .0
-            .reloads
-            .reloader
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone();
+    pub(super) async fn ask(&self, by: String, write: Option<NewText>) -> ReloadResult {
+        let reloader = lock(&self.reloader).clone();
         let Some(reloader) = reloader else {
             return Err(Refused::Unavailable(
                 "no configuration file to reload: drivegate was started without --config"
@@ -209,33 +152,18 @@ impl Control {
 
     /// The configuration file a reload reads, if drivegate was started
     /// with one.
-    pub fn config_file(&self) -> Option<std::path::PathBuf> {
-        self.0
-            .reloads
-            .file
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone()
+    pub(super) fn file(&self) -> Option<std::path::PathBuf> {
+        lock(&self.file).clone()
     }
 
     /// What became of reloads since start-up.
-    pub fn reload_status(&self) -> ReloadStatus {
-        self.0
-            .reloads
-            .status
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone()
+    pub(super) fn status(&self) -> ReloadStatus {
+        lock(&self.status).clone()
     }
 
     /// Records what became of a reload (by the reloader).
-    pub fn record_reload(&self, result: &ReloadResult) {
-        let mut status = self
-            .0
-            .reloads
-            .status
-            .lock()
-            .unwrap_or_else(|p| p.into_inner());
+    pub(super) fn record(&self, result: &ReloadResult) {
+        let mut status = lock(&self.status);
         match result {
             Ok(applied) if !applied.problems.is_empty() => {
                 status.partial += 1;
@@ -261,132 +189,163 @@ impl Control {
         }
     }
 
-    /// The running configuration, as last loaded; a face follows it for
-    /// its own section (`changed().await`, then `borrow_and_update()`).
-    pub fn follow_config(&self) -> watch::Receiver<Option<Arc<Config>>> {
-        self.0.reloads.running.subscribe()
+    /// The running configuration, as last loaded.
+    pub(super) fn follow(&self) -> watch::Receiver<Option<Arc<Config>>> {
+        self.running.subscribe()
     }
 
-    /// Publishes the running configuration: at start-up, and after each
-    /// reload once the plant follows it. Applies `[safety]`'s lease bounds,
-    /// jog lease and lease-expiry action to leases granted from now on.
-    pub fn set_config(&self, config: Arc<Config>) {
-        let safety = &config.safety;
-        *self.0.settings.write().unwrap_or_else(|p| p.into_inner()) = super::Settings::of(safety);
-        self.0
-            .leases
-            .with(|book, _| (book.set_action(safety.on_lease_expiry), Vec::new()));
-        self.0.reloads.running.send_replace(Some(config));
+    /// Publishes the running configuration.
+    pub(super) fn publish(&self, config: Arc<Config>) {
+        self.running.send_replace(Some(config));
     }
+}
 
-    /// Stops the drives (slot indices) a reload removes, while their bus
-    /// still runs: a drive with a lease gets its lease's stop, the others
-    /// `on_shutdown` if they move; each stop audited. Returns what was
-    /// done, in words, once every stop ended (or after a few seconds).
-    pub async fn retire(&self, drives: &[usize], on_shutdown: StopAction) -> Vec<String> {
-        let mut news = self.subscribe();
-        let mut leased = Vec::new();
-        let mut unleased = Vec::new();
-        for &drive in drives {
-            let had = self.0.leases.with(|book, now| book.retire(drive, now));
-            if had {
-                leased.push(drive);
-            } else {
-                unleased.push(drive);
-            }
+fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Reloads the configuration for `caller` (an admin), optionally
+/// writing `write` into the file first; audited either way.
+pub(super) async fn reload(
+    reloads: &Reloads,
+    caller: &Caller,
+    write: Option<NewText>,
+) -> ReloadResult {
+    let by = format!("{} {}", caller.face.name(), caller.who);
+    if let Err(refusal) = rules::role(caller, Operation::Reload.needs()) {
+        let refused = Refused::Refused(refusal);
+        audit::reload(&by, &Err(refused.clone()));
+        return Err(refused);
+    }
+    let result = reloads.ask(by.clone(), write).await;
+    audit::reload(&by, &result);
+    result
+}
+
+/// Stops the drives (slot indices) a reload removes, while their bus
+/// still runs: a drive with a lease gets its lease's stop, the others
+/// `on_shutdown` if they move; each stop audited. Returns what was
+/// done, in words, once every stop ended (or after a few seconds).
+pub(super) async fn retire(
+    parts: &Parts,
+    drives: &[usize],
+    on_shutdown: StopAction,
+) -> Vec<String> {
+    let mut news = parts.subscribe();
+    let mut leased = Vec::new();
+    let mut unleased = Vec::new();
+    for &drive in drives {
+        let had = parts.leases().with(|book, now| book.retire(drive, now));
+        if had {
+            leased.push(drive);
+        } else {
+            unleased.push(drive);
         }
-        let mut done = Vec::new();
-        let now = self.plant().now();
-        let stops = unleased.iter().filter_map(|&index| {
-            let drive = now.drive_at(index)?.clone();
-            let handle = now.handle_of(&drive)?.clone();
-            Some(async move {
-                let result = safety::stop_drive(
-                    &handle,
+    }
+    let mut done = Vec::new();
+    let now = parts.plant().now();
+    let stops = unleased.iter().filter_map(|&index| {
+        let drive = now.drive_at(index)?.clone();
+        let handle = now.handle_of(&drive)?.clone();
+        Some(stop_unleased(handle, drive, on_shutdown))
+    });
+    let unleased_stops = futures_util::future::join_all(stops);
+    let leased_stops = lease_stops(&mut news, &leased, &now);
+    let both = async { tokio::join!(unleased_stops, leased_stops) };
+    match tokio::time::timeout(RETIRE_LIMIT, both).await {
+        Ok((unleased, leased)) => {
+            done.extend(unleased.into_iter().flatten());
+            done.extend(leased);
+        }
+        Err(_) => done.push(format!(
+            "the stops of the removed drives did not end within {} s",
+            RETIRE_LIMIT.as_secs()
+        )),
+    }
+    done
+}
+
+/// Stops a removed drive that held no lease with `on_shutdown`, if it
+/// moves; audited. What was done, in words, if anything.
+async fn stop_unleased(handle: BusHandle, drive: Drive, on_shutdown: StopAction) -> Option<String> {
+    let result = safety::stop_drive(
+        &handle,
+        drive.unit,
+        on_shutdown,
+        true,
+        None,
+        Origin::Internal,
+    )
+    .await;
+    match result {
+        Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
+            for request in outcome.requests() {
+                audit::write(
+                    Face::Internal.name(),
+                    "reload",
+                    handle.name(),
                     drive.unit,
-                    on_shutdown,
-                    true,
-                    None,
-                    Origin::Internal,
-                )
-                .await;
-                match result {
-                    Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
-                        for request in outcome.requests() {
-                            audit::write(
-                                super::Face::Internal.name(),
-                                "reload",
-                                handle.name(),
-                                drive.unit,
-                                request.name(),
-                                &super::WriteEnd::Confirmed,
-                            );
-                        }
-                        Some(format!(
-                            "drive {} was moving: {} applied",
-                            drive.name,
-                            on_shutdown.name()
-                        ))
-                    }
-                    Ok(_) => None,
-                    Err(e) => {
-                        audit::write(
-                            super::Face::Internal.name(),
-                            "reload",
-                            handle.name(),
-                            drive.unit,
-                            on_shutdown.name(),
-                            &super::WriteEnd::bus_error(e.clone()),
-                        );
-                        Some(format!(
-                            "drive {}: {} failed: {e}",
-                            drive.name,
-                            on_shutdown.name()
-                        ))
-                    }
-                }
-            })
-        });
-        let unleased_stops = futures_util::future::join_all(stops);
-        let leased_stops = async {
-            let mut waiting = leased.clone();
-            let mut words = Vec::new();
-            while !waiting.is_empty() {
-                match news.recv().await {
-                    Ok(published) => {
-                        if let ControlEvent::Lease(LeaseEvent::Expired {
-                            drive,
-                            sent,
-                            result,
-                            ..
-                        }) = &*published.event
-                            && let Some(at) = waiting.iter().position(|d| d == drive)
-                        {
-                            waiting.swap_remove(at);
-                            let name = now.drive_at(*drive).map_or("?", |d| d.name.as_str());
-                            words.push(format!(
-                                "drive {name}'s lease ended with its stop ({}): {result}",
-                                sent.as_deref().unwrap_or("nothing sent")
-                            ));
-                        }
-                    }
-                    Err(broadcast::error::RecvError::Lagged(_)) => continue,
-                    Err(broadcast::error::RecvError::Closed) => break,
-                }
+                    request.name(),
+                    &WriteEnd::Confirmed,
+                );
             }
-            words
-        };
-        let both = async { tokio::join!(unleased_stops, leased_stops) };
-        match tokio::time::timeout(RETIRE_LIMIT, both).await {
-            Ok((unleased, leased)) => {
-                done.extend(unleased.into_iter().flatten());
-                done.extend(leased);
-            }
-            Err(_) => done.push(format!(
-                "the stops of the removed drives did not end within {} s",
-                RETIRE_LIMIT.as_secs()
-            )),
+            Some(format!(
+                "drive {} was moving: {} applied",
+                drive.name,
+                on_shutdown.name()
+            ))
         }
-        done
+        Ok(_) => None,
+        Err(e) => {
+            audit::write(
+                Face::Internal.name(),
+                "reload",
+                handle.name(),
+                drive.unit,
+                on_shutdown.name(),
+                &WriteEnd::bus_error(e.clone()),
+            );
+            Some(format!(
+                "drive {}: {} failed: {e}",
+                drive.name,
+                on_shutdown.name()
+            ))
+        }
     }
+}
+
+/// Waits for the stops of the removed drives `leased` that held a lease
+/// (their lease's own stop, told on the core's events). What they did, in
+/// words.
+async fn lease_stops(
+    news: &mut broadcast::Receiver<Published>,
+    leased: &[usize],
+    now: &Directory,
+) -> Vec<String> {
+    let mut waiting = leased.to_vec();
+    let mut words = Vec::new();
+    while !waiting.is_empty() {
+        match news.recv().await {
+            Ok(published) => {
+                if let ControlEvent::Lease(LeaseEvent::Expired {
+                    drive,
+                    sent,
+                    result,
+                    ..
+                }) = &*published.event
+                    && let Some(at) = waiting.iter().position(|d| d == drive)
+                {
+                    waiting.swap_remove(at);
+                    let name = now.drive_at(*drive).map_or("?", |d| d.name.as_str());
+                    words.push(format!(
+                        "drive {name}'s lease ended with its stop ({}): {result}",
+                        sent.as_deref().unwrap_or("nothing sent")
+                    ));
+                }
+            }
+            Err(broadcast::error::RecvError::Lagged(_)) => continue,
+            Err(broadcast::error::RecvError::Closed) => break,
+        }
+    }
+    words
 }

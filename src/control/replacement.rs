@@ -5,11 +5,12 @@
 //! ends; the core checks the role and writes the line, so every face
 //! words it the same.
 
+use super::audit;
 use super::caller::Caller;
 use super::outcome::Refusal;
+use super::parts::Parts;
 use super::policy::Operation;
 use super::rules;
-use super::{Control, audit};
 use crate::listed_enum;
 
 listed_enum! {
@@ -36,21 +37,19 @@ impl ReplacementEvent {
     }
 }
 
-impl Control {
-    /// Notes in the audit log that `caller` started, finished or abandoned
-    /// the replacement of drive `drive` (an index in the plant), with
-    /// `detail` in the caller's words (where its settings came from, the
-    /// time it took). Commissioning work: the admin role.
-    pub fn note_replacement(
-        &self,
-        caller: &Caller,
-        drive: usize,
-        event: ReplacementEvent,
-        detail: &str,
-    ) -> Result<(), Refusal> {
-        rules::role(caller, Operation::Replacement.needs())?;
-        let name = self.drive_name(drive);
-        audit::replacement(caller.face.name(), &caller.who, &name, event.name(), detail);
-        Ok(())
-    }
+/// Notes in the audit log that `caller` started, finished or abandoned
+/// the replacement of drive `drive` (an index in the plant), with
+/// `detail` in the caller's words (where its settings came from, the
+/// time it took). Commissioning work: the admin role.
+pub(super) fn note_replacement(
+    parts: &Parts,
+    caller: &Caller,
+    drive: usize,
+    event: ReplacementEvent,
+    detail: &str,
+) -> Result<(), Refusal> {
+    rules::role(caller, Operation::Replacement.needs())?;
+    let name = parts.drive_name(drive);
+    audit::replacement(caller.face.name(), &caller.who, &name, event.name(), detail);
+    Ok(())
 }

@@ -11,6 +11,18 @@ use crate::drive::writes::{self, PduMeaning};
 use crate::drive::{DriveRequest, RangeError};
 use crate::safety::StopAction;
 
+/// Where a write goes: a bus, a unit on it (0: every drive, a broadcast),
+/// and the configured drive at that unit, if there is one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Target {
+    /// Index of the bus in the plant.
+    pub bus: usize,
+    /// Unit address; 0 for a broadcast.
+    pub unit: u8,
+    /// Index of the configured drive in the plant.
+    pub drive: Option<usize>,
+}
+
 /// The write itself.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Write {

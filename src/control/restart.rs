@@ -12,6 +12,7 @@ use std::time::{Duration, Instant, SystemTime};
 use super::journal::format::Action;
 use super::journal::replay::{self, Decision, DriveAtStart, Recovered, Replayed, StopWhy};
 use super::leases::{self, Leases};
+pub use super::news::{DecisionKind, RestartNote};
 use crate::bus::cache::Link;
 use crate::plant::Plant;
 use crate::safety::{self, StopAction};
@@ -22,47 +23,6 @@ const FIRST_STATUS: Duration = Duration::from_secs(5);
 
 /// Replayed decisions by kind, for the metrics.
 pub type Counts = BTreeMap<DecisionKind, u64>;
-
-crate::listed::listed_enum! {
-    /// The kind of a start-up decision: the metric's label, and what the
-    /// stream and the audit log call it. Every kind has its series from
-    /// start-up (`ALL`).
-    #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-    pub enum DecisionKind {
-        /// A stop owed: the lease's holder ended with the old process.
-        StopHolderGone,
-        /// A stop owed: the lease ran out while the daemon was down.
-        StopRanOut,
-        /// A stop that was being retried, retried again.
-        StopUnfinished,
-        /// A brake sent but not confirmed, sent again.
-        BrakeAgain,
-        /// `on_unknown_state` on a moving drive: the journal was unreadable.
-        StopUnknownState,
-        /// An HTTP lease kept to its deadline.
-        LeaseKept,
-        /// No releasing stop: the drive's last confirmed command was a brake.
-        BrakeHolds,
-        /// The journal names a drive no longer configured.
-        NotConfigured,
-    }
-}
-
-impl DecisionKind {
-    /// The label.
-    pub fn name(self) -> &'static str {
-        match self {
-            DecisionKind::StopHolderGone => "stop-holder-gone",
-            DecisionKind::StopRanOut => "stop-ran-out",
-            DecisionKind::StopUnfinished => "stop-unfinished",
-            DecisionKind::BrakeAgain => "brake-again",
-            DecisionKind::StopUnknownState => "stop-unknown-state",
-            DecisionKind::LeaseKept => "lease-kept",
-            DecisionKind::BrakeHolds => "brake-holds",
-            DecisionKind::NotConfigured => "not-configured",
-        }
-    }
-}
 
 /// The kind of a decision.
 pub fn kind(what: &Replayed) -> DecisionKind {
@@ -114,7 +74,7 @@ pub async fn run(
     };
     leases.with(|book, now: Instant| {
         for d in &decisions {
-            super::audit::restart(&RestartNote::of(d, SystemTime::now()));
+            super::audit::restart(&note(d, SystemTime::now()));
             let Some(drive) = index(&d.drive) else {
                 continue;
             };
@@ -183,60 +143,42 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
     }
 }
 
-/// A start-up decision in words, for the audit log and the stream's
-/// clients (who see what the daemon did to their drives when it started).
-#[derive(Debug, Clone, PartialEq)]
-pub struct RestartNote {
-    /// The drive's name.
-    pub drive: String,
-    /// The decision's kind.
-    pub decision: DecisionKind,
-    /// Who held the lease concerned, if anyone.
-    pub who: Option<String>,
-    /// What was done and why, in words.
-    pub text: String,
-    /// When it was decided.
-    pub at: SystemTime,
-}
-
-impl RestartNote {
-    /// `d` in words, decided at `at`.
-    pub fn of(d: &Decision, at: SystemTime) -> RestartNote {
-        let (who, text) = match &d.what {
-            Replayed::Stop {
-                owner, action, why, ..
-            } => (
-                owner.clone(),
-                format!(
-                    "a stop ({}) is owed because {}; it is sent and tried until the drive confirms it",
-                    leases::stop_action(*action).name(),
-                    why.words()
-                ),
+/// `d` in words, decided at `at`.
+pub fn note(d: &Decision, at: SystemTime) -> RestartNote {
+    let (who, text) = match &d.what {
+        Replayed::Stop {
+            owner, action, why, ..
+        } => (
+            owner.clone(),
+            format!(
+                "a stop ({}) is owed because {}; it is sent and tried until the drive confirms it",
+                leases::stop_action(*action).name(),
+                why.words()
             ),
-            Replayed::Keep { lease, left } => (
-                Some(lease.owner.to_string()),
-                format!(
-                    "the HTTP lease goes on until its deadline ({} ms left); its client may renew it",
-                    left.as_millis()
-                ),
+        ),
+        Replayed::Keep { lease, left } => (
+            Some(lease.owner.to_string()),
+            format!(
+                "the HTTP lease goes on until its deadline ({} ms left); its client may renew it",
+                left.as_millis()
             ),
-            Replayed::BrakeHolds { owner } => (
-                owner.clone(),
-                "the drive's last confirmed command was a brake; no stop that would release it is sent"
-                    .to_string(),
-            ),
-            Replayed::NotConfigured => (
-                None,
-                "the safety journal names a drive that is not configured any more; nothing is sent"
-                    .to_string(),
-            ),
-        };
-        RestartNote {
-            drive: d.drive.clone(),
-            decision: kind(&d.what),
-            who,
-            text,
-            at,
-        }
+        ),
+        Replayed::BrakeHolds { owner } => (
+            owner.clone(),
+            "the drive's last confirmed command was a brake; no stop that would release it is sent"
+                .to_string(),
+        ),
+        Replayed::NotConfigured => (
+            None,
+            "the safety journal names a drive that is not configured any more; nothing is sent"
+                .to_string(),
+        ),
+    };
+    RestartNote {
+        drive: d.drive.clone(),
+        decision: kind(&d.what),
+        who,
+        text,
+        at,
     }
 }

@@ -27,11 +27,10 @@
 
 use std::time::Duration;
 
-use super::Target;
 use super::caller::Caller;
 use super::outcome::{Refusal, Rule};
 use super::policy::{Meaning, Role, Undecoded};
-use super::request::ControlRequest;
+use super::request::{ControlRequest, Target};
 
 /// The shortest and longest lease a setpoint may ask for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

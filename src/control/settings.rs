@@ -15,16 +15,20 @@ use std::sync::Arc;
 use std::time::SystemTime;
 
 use super::audit;
-use super::caller::{Caller, Face};
+use super::caller::Caller;
 use super::events::ControlEvent;
+pub use super::news::{
+    SettingOutcome, SettingResult, SettingsApplied, SettingsError, SettingsReport,
+};
 use super::outcome::Failure;
+use super::parts::Parts;
 use super::policy::StillReason;
 use super::request::ControlRequest;
-use super::{Control, Target};
+use super::request::Target;
 use crate::bus::handle::JobOptions;
 use crate::bus::{BusError, Priority};
 use crate::drive::settings::{self, BLOCKS, DriveSettings, REGISTERS};
-use crate::drive::wanted::{self, Document, Refused, Setting, Wanted};
+use crate::drive::wanted::{self, Document, Step, Wanted};
 
 /// How a document is applied.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -41,333 +45,204 @@ pub struct ApplyOptions {
     pub unattended: bool,
 }
 
-/// What became of one setting of a document.
-#[derive(Debug, Clone, PartialEq)]
-pub enum SettingResult {
-    /// The drive held it already; not written.
-    Unchanged,
-    /// A dry run: it would be written.
-    WouldWrite,
-    /// Written, and the drive confirmed it.
-    Written,
-    /// Its write failed (why, in words): it may or may not have been
-    /// carried out, as the words say.
-    Failed(String),
-    /// Not sent, since an earlier write of the document failed.
-    NotSent(String),
-}
-
-impl SettingResult {
-    /// Stable name for the API and events.
-    pub fn name(&self) -> &'static str {
-        match self {
-            SettingResult::Unchanged => "unchanged",
-            SettingResult::WouldWrite => "would-write",
-            SettingResult::Written => "written",
-            SettingResult::Failed(_) => "failed",
-            SettingResult::NotSent(_) => "not-sent",
-        }
-    }
-
-    /// Why it failed or was not sent.
-    pub fn detail(&self) -> Option<&str> {
-        match self {
-            SettingResult::Failed(why) | SettingResult::NotSent(why) => Some(why),
-            _ => None,
-        }
-    }
-}
-
-/// One setting of a document: the drive's value before, the document's,
-/// the value read back after, and what was done.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SettingOutcome {
-    /// The setting.
-    pub setting: Setting,
-    /// What the drive held before, raw.
-    pub before: u32,
-    /// What the document asks for, raw.
-    pub wanted: u32,
-    /// What the drive holds after, read back (absent for a dry run, or
-    /// when the read-back failed).
-    pub read_back: Option<u32>,
-    /// What was done.
-    pub result: SettingResult,
-}
-
-impl SettingOutcome {
-    /// The value after the operation: as read back, else as asked for
-    /// once written, else as before.
-    pub fn after(&self) -> u32 {
-        match (&self.result, self.read_back) {
-            (_, Some(v)) => v,
-            (SettingResult::Written | SettingResult::WouldWrite, None) => self.wanted,
-            _ => self.before,
-        }
-    }
-
-    /// True when the setting's value changes (or would, in a dry run).
-    pub fn changed(&self) -> bool {
-        self.after() != self.before
-    }
-}
-
-/// What a document did to a drive.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SettingsReport {
-    /// The drive, by index in the plant.
-    pub drive: usize,
-    /// Each setting the document names, in document order.
-    pub settings: Vec<SettingOutcome>,
-    /// Nothing was written: only compared and checked.
-    pub dry_run: bool,
-    /// Saving to flash was asked for.
-    pub save: bool,
-    /// The write that failed, if one did (the later ones were not sent).
-    pub failure: Option<Failure>,
-    /// Why the read-back after the writes failed, if it did.
-    pub read_back_error: Option<String>,
-}
-
-impl SettingsReport {
-    /// True when every write the document needed was confirmed.
-    pub fn complete(&self) -> bool {
-        self.failure.is_none()
-    }
-
-    /// Settings whose value changed (or would).
-    pub fn changed(&self) -> usize {
-        self.settings.iter().filter(|s| s.changed()).count()
-    }
-
-    /// The operation in words, for the audit log: what changed, what
-    /// failed.
-    pub fn words(&self) -> String {
-        let mut parts: Vec<String> = self
-            .settings
-            .iter()
-            .filter(|s| s.changed() || !matches!(s.result, SettingResult::Unchanged))
-            .map(|s| {
-                let change = format!(
-                    "{} {} -> {}",
-                    s.setting.key(),
-                    s.setting.words(s.before),
-                    s.setting.words(s.wanted)
-                );
-                match &s.result {
-                    SettingResult::Failed(why) => format!("{change} FAILED: {why}"),
-                    SettingResult::NotSent(_) => format!("{change} not sent"),
-                    _ => change,
-                }
-            })
-            .collect();
-        if parts.is_empty() {
-            parts.push("nothing to change".to_string());
-        }
-        let mut text = parts.join(", ");
-        if self.save {
-            text.push_str("; saved to flash");
-        }
-        text
-    }
-}
-
-/// Why a document was not applied at all.
-#[derive(Debug, Clone, PartialEq)]
-pub enum SettingsError {
-    /// Values that cannot be taken (every one of them); nothing was sent.
-    Invalid(Vec<Refused>),
-    /// Refused by a rule, or the drive could not be read: nothing was
-    /// written.
-    Failed(Failure),
-}
-
-/// A settings document put on a drive, for the stream and whoever listens.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SettingsApplied {
-    /// When it was settled.
-    pub at: SystemTime,
-    /// The face it came through.
-    pub face: Face,
-    /// Who sent it.
-    pub who: Arc<str>,
-    /// What it did.
-    pub report: SettingsReport,
-}
-
-impl Control {
-    /// Reads what the drive at `target` holds: its setpoints and settings
-    /// (six reads at command priority, with the caller's turn on the bus).
-    /// A read changes nothing, so it is not audited.
-    pub async fn read_settings(
-        &self,
-        caller: &Caller,
-        target: Target,
-    ) -> Result<DriveSettings, BusError> {
-        let bus = self.bus(target)?;
-        let unit = target.unit;
-        let options = JobOptions {
-            priority: Priority::Command,
-            source: caller.source,
-            queue_timeout: None,
-            max_attempts: None,
-            origin: caller.origin.clone(),
+/// Reads what the drive at `target` holds: its setpoints and settings
+/// (six reads at command priority, with the caller's turn on the bus).
+/// A read changes nothing, so it is not audited.
+pub(super) async fn read_settings(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+) -> Result<DriveSettings, BusError> {
+    let bus = parts.bus(target)?;
+    let unit = target.unit;
+    let options = JobOptions {
+        priority: Priority::Command,
+        source: caller.source,
+        queue_timeout: None,
+        max_attempts: None,
+        origin: caller.origin.clone(),
+    };
+    let mut values = [0u16; REGISTERS];
+    let mut at = 0;
+    for (start, count) in BLOCKS {
+        let exchange = bus
+            .transact(unit, settings::read_pdu(start, count), options.clone())
+            .await?;
+        let block = settings::parse_read_reply(&exchange.reply, count)
+            .map_err(|e| BusError::from_reply(unit, e))?;
+        let Some(slot) = values.get_mut(at..at + block.len()) else {
+            return Err(BusError::Unconfirmed {
+                unit,
+                detail: "a settings read returned more registers than asked",
+            });
         };
-        let mut values = [0u16; REGISTERS];
-        let mut at = 0;
-        for (start, count) in BLOCKS {
-            let exchange = bus
-                .transact(unit, settings::read_pdu(start, count), options.clone())
-                .await?;
-            let block = settings::parse_read_reply(&exchange.reply, count)
-                .map_err(|e| BusError::from_reply(unit, e))?;
-            let Some(slot) = values.get_mut(at..at + block.len()) else {
-                return Err(BusError::Unconfirmed {
-                    unit,
-                    detail: "a settings read returned more registers than asked",
-                });
-            };
-            slot.copy_from_slice(&block);
-            at += block.len();
-        }
-        Ok(DriveSettings::from_registers(&values))
+        slot.copy_from_slice(&block);
+        at += block.len();
     }
+    Ok(DriveSettings::from_registers(&values))
+}
 
-    /// Puts `document` on the drive at `target` for `caller`: checked whole
-    /// (ranges, then every write's rules), then written message by message,
-    /// then read back. With `dry_run`, only compared and checked.
-    pub async fn apply_settings(
-        &self,
-        caller: &Caller,
-        target: Target,
-        document: &Document,
-        options: ApplyOptions,
-    ) -> Result<SettingsReport, SettingsError> {
-        match document.check() {
-            Ok(wanted) => self.apply_wanted(caller, target, &wanted, options).await,
-            Err(r) => {
-                let error = SettingsError::Invalid(r);
-                if !options.dry_run {
-                    let drive = self.name(target);
-                    audit::settings_refused(caller.face.name(), &caller.who, &drive, &error);
-                }
-                Err(error)
-            }
-        }
-    }
-
-    /// [`apply_settings`](Self::apply_settings) of a document whose values
-    /// were checked already (a declaration).
-    pub(crate) async fn apply_wanted(
-        &self,
-        caller: &Caller,
-        target: Target,
-        wanted: &Wanted,
-        options: ApplyOptions,
-    ) -> Result<SettingsReport, SettingsError> {
-        let drive_name = self.name(target);
-        let refused = |error: SettingsError| {
+/// Puts `document` on the drive at `target` for `caller`: checked whole
+/// (ranges, then every write's rules), then written message by message,
+/// then read back. With `dry_run`, only compared and checked.
+pub(super) async fn apply_settings(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    document: &Document,
+    options: ApplyOptions,
+) -> Result<Done, SettingsError> {
+    match document.check() {
+        Ok(wanted) => apply_wanted(parts, caller, target, &wanted, options).await,
+        Err(r) => {
+            let error = SettingsError::Invalid(r);
             if !options.dry_run {
-                audit::settings_refused(caller.face.name(), &caller.who, &drive_name, &error);
+                let drive = parts.name(target);
+                audit::settings_refused(caller.face.name(), &caller.who, &drive, &error);
             }
-            error
-        };
-        let wanted = *wanted;
-        // The role before anything costs bus time.
-        super::rules::role(caller, super::policy::for_settings())
-            .map_err(|r| refused(SettingsError::Failed(Failure::Refused(r))))?;
-        let held = self
-            .read_settings(caller, target)
-            .await
-            .map_err(|e| refused(SettingsError::Failed(Failure::CheckFailed(e))))?;
-        let steps = wanted::steps(&wanted, &held, options.save);
-        let requests: Vec<ControlRequest> = steps
-            .iter()
-            .map(|step| {
-                let request = ControlRequest::drive(step.request).forced(options.force);
-                if options.unattended {
-                    request.at_standstill(StillReason::Unattended)
-                } else {
-                    request
-                }
-            })
-            .collect();
-        self.check_all(caller, target, &requests)
-            .await
-            .map_err(|f| refused(SettingsError::Failed(f)))?;
-        let mut outcomes = outcomes(&wanted, &held);
-        if options.dry_run {
-            for o in &mut outcomes {
-                if steps.iter().any(|s| s.settings.contains(&o.setting)) {
-                    o.result = SettingResult::WouldWrite;
-                }
-            }
+            Err(error)
         }
-        let mut report = SettingsReport {
-            drive: target.drive.unwrap_or(usize::MAX),
-            settings: Vec::new(),
-            dry_run: options.dry_run,
-            save: options.save,
-            failure: None,
-            read_back_error: None,
-        };
-        if options.dry_run {
-            report.settings = outcomes;
-            return Ok(report);
-        }
-        for (step, request) in steps.iter().zip(requests) {
-            let result = match &report.failure {
-                Some(earlier) => SettingResult::NotSent(format!(
-                    "not sent: an earlier write of the document failed ({earlier})"
-                )),
-                None => match self.write(caller, target, request).await {
-                    Ok(_) => SettingResult::Written,
-                    Err(failure) => {
-                        let words = failure.to_string();
-                        report.failure = Some(failure);
-                        SettingResult::Failed(words)
-                    }
-                },
-            };
-            for o in outcomes
-                .iter_mut()
-                .filter(|o| step.settings.contains(&o.setting))
-            {
-                o.result = result.clone();
-            }
-        }
-        let mut after = Some(held);
-        if !steps.is_empty() {
-            after = match self.read_settings(caller, target).await {
-                Ok(after) => {
-                    for o in &mut outcomes {
-                        o.read_back = Some(o.setting.held(&after));
-                    }
-                    Some(after)
-                }
-                Err(e) => {
-                    report.read_back_error = Some(e.to_string());
-                    None
-                }
-            };
-        }
-        report.settings = outcomes;
-        audit::settings_applied(caller.face.name(), &caller.who, &drive_name, &report);
-        self.events().publish(
-            Arc::new(ControlEvent::Settings(SettingsApplied {
-                at: SystemTime::now(),
-                face: caller.face,
-                who: caller.who.clone(),
-                report: report.clone(),
-            })),
-            None,
-        );
-        // Then, for a drive with a declaration, what it holds now.
-        if let (Some(index), Some(after)) = (target.drive, after) {
-            self.drift().after_apply(self, index, &after);
-        }
-        Ok(report)
     }
+}
+
+/// A document put on a drive: what it did, and what the drive holds after
+/// it (read back; none for a dry run or a failed read-back), for the
+/// comparison with its declared settings that follows.
+pub(super) struct Done {
+    pub(super) report: SettingsReport,
+    pub(super) held: Option<DriveSettings>,
+}
+
+/// [`apply_settings`] of a document whose values
+/// were checked already (a declaration).
+pub(super) async fn apply_wanted(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    wanted: &Wanted,
+    options: ApplyOptions,
+) -> Result<Done, SettingsError> {
+    let drive_name = parts.name(target);
+    let refused = |error: SettingsError| {
+        if !options.dry_run {
+            audit::settings_refused(caller.face.name(), &caller.who, &drive_name, &error);
+        }
+        error
+    };
+    let wanted = *wanted;
+    // The role before anything costs bus time.
+    super::rules::role(caller, super::policy::for_settings())
+        .map_err(|r| refused(SettingsError::Failed(Failure::Refused(r))))?;
+    let held = read_settings(parts, caller, target)
+        .await
+        .map_err(|e| refused(SettingsError::Failed(Failure::CheckFailed(e))))?;
+    let steps = wanted::steps(&wanted, &held, options.save);
+    let requests = requests(&steps, options);
+    super::write::check_all(parts, caller, target, &requests)
+        .await
+        .map_err(|f| refused(SettingsError::Failed(f)))?;
+    let mut outcomes = outcomes(&wanted, &held);
+    if options.dry_run {
+        for o in &mut outcomes {
+            if steps.iter().any(|s| s.settings.contains(&o.setting)) {
+                o.result = SettingResult::WouldWrite;
+            }
+        }
+    }
+    let mut report = SettingsReport {
+        drive: target.drive.unwrap_or(usize::MAX),
+        settings: Vec::new(),
+        dry_run: options.dry_run,
+        save: options.save,
+        failure: None,
+        read_back_error: None,
+    };
+    if options.dry_run {
+        report.settings = outcomes;
+        return Ok(Done { report, held: None });
+    }
+    report.failure = write_steps(parts, caller, target, &steps, requests, &mut outcomes).await;
+    let mut after = Some(held);
+    if !steps.is_empty() {
+        after = match read_settings(parts, caller, target).await {
+            Ok(after) => {
+                for o in &mut outcomes {
+                    o.read_back = Some(o.setting.held(&after));
+                }
+                Some(after)
+            }
+            Err(e) => {
+                report.read_back_error = Some(e.to_string());
+                None
+            }
+        };
+    }
+    report.settings = outcomes;
+    audit::settings_applied(caller.face.name(), &caller.who, &drive_name, &report);
+    parts.events().publish(
+        Arc::new(ControlEvent::Settings(SettingsApplied {
+            at: SystemTime::now(),
+            face: caller.face,
+            who: caller.who.clone(),
+            report: report.clone(),
+        })),
+        None,
+    );
+    Ok(Done {
+        report,
+        held: after,
+    })
+}
+
+/// The writes of `steps`, as `options` asks them to be checked.
+fn requests(steps: &[Step], options: ApplyOptions) -> Vec<ControlRequest> {
+    steps
+        .iter()
+        .map(|step| {
+            let request = ControlRequest::drive(step.request).forced(options.force);
+            if options.unattended {
+                request.at_standstill(StillReason::Unattended)
+            } else {
+                request
+            }
+        })
+        .collect()
+}
+
+/// Sends the writes of `steps`, one message at a time, until one fails:
+/// what became of each setting goes into `outcomes`; the failure, if one
+/// did, is returned (the later writes were not sent).
+async fn write_steps(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    steps: &[Step],
+    requests: Vec<ControlRequest>,
+    outcomes: &mut [SettingOutcome],
+) -> Option<Failure> {
+    let mut failed: Option<Failure> = None;
+    for (step, request) in steps.iter().zip(requests) {
+        let result = match &failed {
+            Some(earlier) => SettingResult::NotSent(format!(
+                "not sent: an earlier write of the document failed ({earlier})"
+            )),
+            None => match super::write::write(parts, caller, target, request).await {
+                Ok(_) => SettingResult::Written,
+                Err(failure) => {
+                    let words = failure.to_string();
+                    failed = Some(failure);
+                    SettingResult::Failed(words)
+                }
+            },
+        };
+        for o in outcomes
+            .iter_mut()
+            .filter(|o| step.settings.contains(&o.setting))
+        {
+            o.result = result.clone();
+        }
+    }
+    failed
 }
 
 /// Each setting `wanted` names, before anything is written.
@@ -388,6 +263,7 @@ fn outcomes(wanted: &Wanted, held: &DriveSettings) -> Vec<SettingOutcome> {
 mod tests {
     use super::*;
     use crate::bus::BusError;
+    use crate::drive::wanted::Setting;
 
     fn outcome(
         setting: Setting,

@@ -7,7 +7,9 @@ use std::time::Duration;
 
 use tracing::{info, warn};
 
-use super::{Face, WriteEnd, audit};
+use super::audit;
+use super::caller::Face;
+use super::events::WriteEnd;
 use crate::bus::Origin;
 use crate::plant::Plant;
 use crate::safety::{self, StopAction, StopOutcome};

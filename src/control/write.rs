@@ -9,6 +9,7 @@
 //! unsent (the client went away), and a brake or deactivation is followed
 //! to its end whoever waits for it, since leases depend on it.
 
+use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
 use tokio::sync::oneshot;
@@ -19,10 +20,11 @@ use super::caller::Caller;
 use super::events::{ControlEvent, WriteEnd, WriteEvent};
 use super::lease_book::{Grant, Holder, LeaseAsk, Ticket, WriteKind};
 use super::outcome::{Applied, Failure, Outcome, WriteResult, applied};
+use super::parts::Parts;
 use super::policy::{Meaning, Stopper};
+use super::request::Target;
 use super::request::{ControlRequest, Write};
 use super::rules::{self, Activity, Decision, Facts, Need, Speed};
-use super::{Control, Target};
 use crate::bus::cache::Link;
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
@@ -34,373 +36,357 @@ use crate::modbus::function::EXCEPTION_BIT;
 /// What the audit log says of a write whose caller went away first.
 const GONE: &str = "the client went away before the drive answered; a request already on the wire was carried out, a queued one was dropped";
 
-impl Control {
-    /// Checks `request` for `caller`, puts it on the bus queue, and
-    /// returns the way to its result. A refusal, a failed check or a bus
-    /// that takes nothing is settled (audited) and returned at once.
-    pub async fn submit(
-        &self,
-        caller: &Caller,
-        target: Target,
-        request: ControlRequest,
-    ) -> Result<Pending, Failure> {
-        let meaning = request.meaning();
-        let mut settle = Settle::new(self, caller, target, &request.write);
-        if let Err(refusal) = self.check(caller, target, &request, &meaning).await {
-            return Err(settle.failed(refusal));
-        }
-        let pdu = match request.write.encode() {
-            Ok(pdu) => pdu,
-            Err(e) => return Err(settle.failed(Failure::NotSent(BusError::Invalid(e.to_string())))),
-        };
-        let bus = match self.bus(target) {
-            Ok(bus) => bus,
-            Err(e) => return Err(settle.failed(Failure::NotSent(e))),
-        };
-        // The lease is in place, and the brake guard knows of the write,
-        // before it can reach the wire.
-        settle.tickets = self.tickets(caller, target, &request, &meaning);
-        let options = JobOptions {
-            priority: if meaning.emergency {
-                Priority::Emergency
-            } else {
-                Priority::Command
-            },
-            source: caller.source,
-            queue_timeout: None,
-            max_attempts: None,
-            origin: caller.origin.clone(),
-        };
-        match bus.submit(target.unit, pdu, options) {
-            Ok(rx) => Ok(Pending {
-                settle: Some(settle),
-                state: State::Waiting(rx),
-                follow: meaning.survives_caller(),
-            }),
-            Err(e) => Err(settle.failed(Failure::NotSent(e))),
-        }
+/// Checks `request` for `caller`, puts it on the bus queue, and
+/// returns the way to its result. A refusal, a failed check or a bus
+/// that takes nothing is settled (audited) and returned at once.
+pub(super) async fn submit(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    request: ControlRequest,
+) -> Result<Pending, Failure> {
+    let meaning = request.meaning();
+    let mut settle = Settle::new(parts, caller, target, &request.write);
+    if let Err(refusal) = check(parts, caller, target, &request, &meaning).await {
+        return Err(settle.failed(refusal));
     }
-
-    /// [`submit`](Self::submit), then waits for the result.
-    pub async fn write(
-        &self,
-        caller: &Caller,
-        target: Target,
-        request: ControlRequest,
-    ) -> WriteResult {
-        let mut pending = self.submit(caller, target, request).await?;
-        pending.wait().await;
-        pending.finish()
+    let pdu = match request.write.encode() {
+        Ok(pdu) => pdu,
+        Err(e) => return Err(settle.failed(Failure::NotSent(BusError::Invalid(e.to_string())))),
+    };
+    let bus = match parts.bus(target) {
+        Ok(bus) => bus,
+        Err(e) => return Err(settle.failed(Failure::NotSent(e))),
+    };
+    // The lease is in place, and the brake guard knows of the write,
+    // before it can reach the wire.
+    settle.tickets = tickets(parts, caller, target, &request, &meaning);
+    let options = JobOptions {
+        priority: if meaning.emergency {
+            Priority::Emergency
+        } else {
+            Priority::Command
+        },
+        source: caller.source,
+        queue_timeout: None,
+        max_attempts: None,
+        origin: caller.origin.clone(),
+    };
+    match bus.submit(target.unit, pdu, options) {
+        Ok(rx) => Ok(Pending {
+            settle: Some(settle),
+            state: State::Waiting(rx),
+            follow: meaning.survives_caller(),
+        }),
+        Err(e) => Err(settle.failed(Failure::NotSent(e))),
     }
+}
 
-    /// Reads the drive's status now (not from the poll cache), with the
-    /// caller's turn on the bus.
-    pub async fn read_status(&self, caller: &Caller, target: Target) -> Result<Status, BusError> {
-        let bus = self.bus(target)?;
-        read(&bus, caller, target.unit).await
-    }
+/// [`submit`], then waits for the result.
+pub(super) async fn write(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    request: ControlRequest,
+) -> WriteResult {
+    let mut pending = submit(parts, caller, target, request).await?;
+    pending.wait().await;
+    pending.finish()
+}
 
-    pub(crate) fn bus(&self, target: Target) -> Result<BusHandle, BusError> {
-        self.plant()
-            .now()
-            .bus_at(target.bus)
-            .map(|b| b.handle.clone())
-            .ok_or_else(|| BusError::Invalid(format!("no bus at index {}", target.bus)))
-    }
+/// Reads the drive's status now (not from the poll cache), with the
+/// caller's turn on the bus.
+pub(super) async fn read_status(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+) -> Result<Status, BusError> {
+    let bus = parts.bus(target)?;
+    read(&bus, caller, target.unit).await
+}
 
-    /// The rules checked before a write is sent ([`rules::decide`]), with
-    /// the facts they ask for gathered here.
-    async fn check(
-        &self,
-        caller: &Caller,
-        target: Target,
-        request: &ControlRequest,
-        meaning: &Meaning,
-    ) -> Result<(), Failure> {
-        // What costs nothing first (a write nobody can decode, the role):
-        // a caller they refuse costs no bus time.
-        rules::admit(caller, meaning, request, target).map_err(Failure::Refused)?;
-        let bus = self.bus(target).map_err(Failure::NotSent)?;
-        let mut facts = self.facts(target, &bus);
-        loop {
-            match rules::decide(caller, meaning, request, target, &facts) {
-                Err(refusal) => return Err(Failure::Refused(refusal)),
-                Ok(Decision::Send { forced }) => {
-                    if let Some(still) = meaning.still {
-                        for speed in forced {
-                            audit::forced(
-                                caller.face.name(),
-                                &caller.who,
-                                &speed.name,
-                                still.what(),
-                                speed.rpm,
-                            );
-                        }
+/// The rules checked before a write is sent ([`rules::decide`]), with
+/// the facts they ask for gathered here.
+async fn check(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    request: &ControlRequest,
+    meaning: &Meaning,
+) -> Result<(), Failure> {
+    // What costs nothing first (a write nobody can decode, the role):
+    // a caller they refuse costs no bus time.
+    rules::admit(caller, meaning, request, target).map_err(Failure::Refused)?;
+    let bus = parts.bus(target).map_err(Failure::NotSent)?;
+    let mut facts = facts(parts, target, &bus);
+    loop {
+        match rules::decide(caller, meaning, request, target, &facts) {
+            Err(refusal) => return Err(Failure::Refused(refusal)),
+            Ok(Decision::Send { forced }) => {
+                if let Some(still) = meaning.still {
+                    for speed in forced {
+                        audit::forced(
+                            caller.face.name(),
+                            &caller.who,
+                            &speed.name,
+                            still.what(),
+                            speed.rpm,
+                        );
                     }
-                    return Ok(());
                 }
+                return Ok(());
+            }
+            Ok(Decision::Read(Need::Active)) => {
+                facts.active = Some(activity(&bus, caller, target).await?);
+            }
+            Ok(Decision::Read(Need::Speeds)) => {
+                facts.speeds = Some(speeds(parts, &bus, caller, target, request.force).await?);
+            }
+        }
+    }
+}
+
+/// The rules of every write of `requests` to `target`, decided before
+/// any of them is sent, with the facts gathered once: several writes
+/// that make one operation (a settings document) are refused whole,
+/// before the first goes out. Nothing is audited here: each write is
+/// checked again, and audited, when it is sent.
+pub(super) async fn check_all(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    requests: &[ControlRequest],
+) -> Result<(), Failure> {
+    let bus = parts.bus(target).map_err(Failure::NotSent)?;
+    let mut facts = facts(parts, target, &bus);
+    for request in requests {
+        let meaning = request.meaning();
+        rules::admit(caller, &meaning, request, target).map_err(Failure::Refused)?;
+        loop {
+            match rules::decide(caller, &meaning, request, target, &facts) {
+                Err(refusal) => return Err(Failure::Refused(refusal)),
+                Ok(Decision::Send { .. }) => break,
                 Ok(Decision::Read(Need::Active)) => {
-                    facts.active = Some(self.activity(&bus, caller, target).await?);
+                    facts.active = Some(activity(&bus, caller, target).await?);
                 }
                 Ok(Decision::Read(Need::Speeds)) => {
-                    facts.speeds = Some(self.speeds(&bus, caller, target, request.force).await?);
+                    facts.speeds = Some(speeds(parts, &bus, caller, target, request.force).await?);
                 }
             }
         }
     }
+    Ok(())
+}
 
-    /// The rules of every write of `requests` to `target`, decided before
-    /// any of them is sent, with the facts gathered once: several writes
-    /// that make one operation (a settings document) are refused whole,
-    /// before the first goes out. Nothing is audited here: each write is
-    /// checked again, and audited, when it is sent.
-    pub(crate) async fn check_all(
-        &self,
-        caller: &Caller,
-        target: Target,
-        requests: &[ControlRequest],
-    ) -> Result<(), Failure> {
-        let bus = self.bus(target).map_err(Failure::NotSent)?;
-        let mut facts = self.facts(target, &bus);
-        for request in requests {
-            let meaning = request.meaning();
-            rules::admit(caller, &meaning, request, target).map_err(Failure::Refused)?;
-            loop {
-                match rules::decide(caller, &meaning, request, target, &facts) {
-                    Err(refusal) => return Err(Failure::Refused(refusal)),
-                    Ok(Decision::Send { .. }) => break,
-                    Ok(Decision::Read(Need::Active)) => {
-                        facts.active = Some(self.activity(&bus, caller, target).await?);
-                    }
-                    Ok(Decision::Read(Need::Speeds)) => {
-                        facts.speeds =
-                            Some(self.speeds(&bus, caller, target, request.force).await?);
-                    }
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// What the rules know of `target` before anything is read.
-    fn facts(&self, target: Target, bus: &BusHandle) -> Facts {
-        Facts {
-            name: self.name(target),
-            bus: bus.name().to_string(),
-            drives_on_bus: self
-                .plant()
-                .drives()
-                .iter()
-                .filter(|d| d.bus == target.bus)
-                .count(),
-            lease_bounds: self.lease_bounds(),
-            active: None,
-            speeds: None,
-        }
-    }
-
-    /// Whether the drive a setpoint goes to is active. The poll cache may
-    /// predate an activation sent a moment ago, so an inactive cached
-    /// status is confirmed with a fresh read.
-    async fn activity(
-        &self,
-        bus: &BusHandle,
-        caller: &Caller,
-        target: Target,
-    ) -> Result<Activity, Failure> {
-        match bus.drive(target.unit).and_then(|s| s.status) {
-            Some(s) if s.active() => return Ok(Activity::Active),
-            // Never polled (or not configured): the drive decides.
-            None => return Ok(Activity::Unknown),
-            Some(_) => {}
-        }
-        let status = read(bus, caller, target.unit)
-            .await
-            .map_err(Failure::CheckFailed)?;
-        Ok(if status.active() {
-            Activity::Active
-        } else {
-            Activity::Inactive
-        })
-    }
-
-    /// The speed of every drive a write that needs standstill reaches. The
-    /// drive is read now: such writes are rare and the cache may be a poll
-    /// old. A broadcast reads every configured drive of the bus that
-    /// answers (one that does not is not there to move).
-    async fn speeds(
-        &self,
-        bus: &BusHandle,
-        caller: &Caller,
-        target: Target,
-        force: bool,
-    ) -> Result<Vec<Speed>, Failure> {
-        let units: Vec<u8> = if target.unit == 0 {
-            self.plant()
-                .now()
-                .drives()
-                .filter(|d| d.bus == target.bus)
-                .filter(|d| bus.drive(d.unit).is_none_or(|s| s.link != Link::Offline))
-                .map(|d| d.unit)
-                .collect()
-        } else {
-            vec![target.unit]
-        };
-        let mut speeds = Vec::with_capacity(units.len());
-        for unit in units {
-            let status = match read(bus, caller, unit).await {
-                Ok(s) => s,
-                Err(_) if target.unit == 0 => continue,
-                Err(e) => return Err(Failure::CheckFailed(e)),
-            };
-            speeds.push(Speed {
-                name: self.name(self.unit_target(target.bus, unit)),
-                rpm: status.speed_rpm,
-            });
-            // The first drive that turns decides, unless overridden: the
-            // others need not be read.
-            if status.speed_rpm != 0 && !force {
-                break;
-            }
-        }
-        Ok(speeds)
-    }
-
-    /// The drive at `target` in words: `drive "lift"` or `unit 7 on bus line1`.
-    pub(crate) fn name(&self, target: Target) -> String {
-        let now = self.plant().now();
-        match target.drive.and_then(|d| now.drive_at(d)) {
-            Some(d) => format!("drive \"{}\"", d.name),
-            None => {
-                let bus = now.bus_at(target.bus).map_or("?", |b| b.handle.name());
-                format!("unit {} on bus {bus}", target.unit)
-            }
-        }
-    }
-
-    /// The lease and brake bookkeeping of a write about to be sent: one
-    /// ticket per configured drive it reaches (every drive of the bus for a
-    /// broadcast), with the lease granted for a setpoint.
-    fn tickets(
-        &self,
-        caller: &Caller,
-        target: Target,
-        request: &ControlRequest,
-        meaning: &Meaning,
-    ) -> Vec<Ticket> {
-        let drives: Vec<usize> = if target.unit == 0 {
-            self.plant()
-                .now()
-                .indexed_drives()
-                .filter(|(_, d)| d.bus == target.bus)
-                .map(|(i, _)| i)
-                .collect()
-        } else {
-            target.drive.into_iter().collect()
-        };
-        let kind = match (meaning.stops, meaning.setpoint) {
-            (Some(Stopper::Brake), _) => Some(WriteKind::Brake),
-            (Some(Stopper::Deactivate), _) => Some(WriteKind::Deactivate),
-            (None, Some(_)) => Some(WriteKind::Setpoint { lease: None }),
-            (None, None) if meaning.releases_brake => {
-                Some(WriteKind::ReleasesBrake { lease: None })
-            }
-            (None, None) => None,
-        };
-        let Some(kind) = kind else {
-            return Vec::new();
-        };
-        let allowance = self.allowance(target.bus);
-        // A broadcast setpoint moves only the drives that are active: the
-        // others refuse it, and would refuse the stop of a lease too.
-        // Read before the book is locked: the poll cache has its own lock.
-        let now = self.plant().now();
-        let active: Vec<usize> = drives
+/// What the rules know of `target` before anything is read.
+fn facts(parts: &Arc<Parts>, target: Target, bus: &BusHandle) -> Facts {
+    Facts {
+        name: parts.name(target),
+        bus: bus.name().to_string(),
+        drives_on_bus: parts
+            .plant()
+            .drives()
             .iter()
-            .copied()
-            .filter(|_| target.unit == 0)
-            .filter(|&drive| {
-                now.drive_at(drive)
-                    .and_then(|d| now.handle_of(d)?.drive(d.unit))
-                    .and_then(|s| s.status)
-                    .is_some_and(|s| s.active())
+            .filter(|d| d.bus == target.bus)
+            .count(),
+        lease_bounds: parts.lease_bounds(),
+        active: None,
+        speeds: None,
+    }
+}
+
+/// Whether the drive a setpoint goes to is active. The poll cache may
+/// predate an activation sent a moment ago, so an inactive cached
+/// status is confirmed with a fresh read.
+async fn activity(bus: &BusHandle, caller: &Caller, target: Target) -> Result<Activity, Failure> {
+    match bus.drive(target.unit).and_then(|s| s.status) {
+        Some(s) if s.active() => return Ok(Activity::Active),
+        // Never polled (or not configured): the drive decides.
+        None => return Ok(Activity::Unknown),
+        Some(_) => {}
+    }
+    let status = read(bus, caller, target.unit)
+        .await
+        .map_err(Failure::CheckFailed)?;
+    Ok(if status.active() {
+        Activity::Active
+    } else {
+        Activity::Inactive
+    })
+}
+
+/// The speed of every drive a write that needs standstill reaches. The
+/// drive is read now: such writes are rare and the cache may be a poll
+/// old. A broadcast reads every configured drive of the bus that
+/// answers (one that does not is not there to move).
+async fn speeds(
+    parts: &Arc<Parts>,
+    bus: &BusHandle,
+    caller: &Caller,
+    target: Target,
+    force: bool,
+) -> Result<Vec<Speed>, Failure> {
+    let units: Vec<u8> = if target.unit == 0 {
+        parts
+            .plant()
+            .now()
+            .drives()
+            .filter(|d| d.bus == target.bus)
+            .filter(|d| bus.drive(d.unit).is_none_or(|s| s.link != Link::Offline))
+            .map(|d| d.unit)
+            .collect()
+    } else {
+        vec![target.unit]
+    };
+    let mut speeds = Vec::with_capacity(units.len());
+    for unit in units {
+        let status = match read(bus, caller, unit).await {
+            Ok(s) => s,
+            Err(_) if target.unit == 0 => continue,
+            Err(e) => return Err(Failure::CheckFailed(e)),
+        };
+        speeds.push(Speed {
+            name: parts.name(parts.unit_target(target.bus, unit)),
+            rpm: status.speed_rpm,
+        });
+        // The first drive that turns decides, unless overridden: the
+        // others need not be read.
+        if status.speed_rpm != 0 && !force {
+            break;
+        }
+    }
+    Ok(speeds)
+}
+
+/// The lease and brake bookkeeping of a write about to be sent: one
+/// ticket per configured drive it reaches (every drive of the bus for a
+/// broadcast), with the lease granted for a setpoint.
+fn tickets(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    request: &ControlRequest,
+    meaning: &Meaning,
+) -> Vec<Ticket> {
+    let drives: Vec<usize> = if target.unit == 0 {
+        parts
+            .plant()
+            .now()
+            .indexed_drives()
+            .filter(|(_, d)| d.bus == target.bus)
+            .map(|(i, _)| i)
+            .collect()
+    } else {
+        target.drive.into_iter().collect()
+    };
+    let Some(kind) = write_kind(meaning) else {
+        return Vec::new();
+    };
+    let allowance = allowance(parts, target.bus);
+    // A broadcast setpoint moves only the drives that are active: the
+    // others refuse it, and would refuse the stop of a lease too.
+    // Read before the book is locked: the poll cache has its own lock.
+    let active = active_drives(parts, target, &drives);
+    let leases = parts.leases();
+    leases.with(|book, now| {
+        // The lease asked for (a setpoint's over HTTP or the stream),
+        // else the session's communication-loss lease, if it has one.
+        let terms = book.terms(caller.session, request.lease, request.lease_action);
+        let by: std::sync::Arc<str> = match meaning.stops {
+            Some(stopper) => format!("{} from {}", stopper.name(), caller.describe()),
+            None if meaning.setpoint.is_some() && terms.is_none() => {
+                format!("a setpoint without a lease from {}", caller.describe())
+            }
+            None => format!("a write from {}", caller.describe()),
+        }
+        .into();
+        let mut effects = Vec::new();
+        let tickets = drives
+            .iter()
+            .map(|&drive| {
+                // What the lease covers: a setpoint, or a mode command
+                // under communication loss; a broadcast takes one per
+                // active drive, only for communication loss.
+                let mode = match kind {
+                    WriteKind::Setpoint { .. } => meaning.setpoint,
+                    WriteKind::ReleasesBrake { .. } if terms.is_some_and(|t| t.comm_loss) => {
+                        meaning.mode
+                    }
+                    _ => None,
+                };
+                let grant = match (mode, terms) {
+                    (Some(mode), Some(terms))
+                        if target.unit != 0 || (terms.comm_loss && active.contains(&drive)) =>
+                    {
+                        let ask = LeaseAsk {
+                            owner: caller.owner(),
+                            holder: caller.session.map_or(Holder::Request, Holder::Session),
+                            mode,
+                            length: terms.length,
+                            allowance,
+                            action: terms.action,
+                            comm_loss: terms.comm_loss,
+                        };
+                        let (grant, e): (Grant, _) = book.grant(drive, ask, now);
+                        effects.extend(e);
+                        Some(grant)
+                    }
+                    _ => None,
+                };
+                let kind = match kind {
+                    WriteKind::Setpoint { .. } => WriteKind::Setpoint { lease: grant },
+                    WriteKind::ReleasesBrake { .. } => WriteKind::ReleasesBrake { lease: grant },
+                    other => other,
+                };
+                book.begin_write(drive, kind, by.clone())
             })
             .collect();
-        let leases = self.leases();
-        leases.with(|book, now| {
-            // The lease asked for (a setpoint's over HTTP or the stream),
-            // else the session's communication-loss lease, if it has one.
-            let terms = book.terms(caller.session, request.lease, request.lease_action);
-            let by: std::sync::Arc<str> = match meaning.stops {
-                Some(stopper) => format!("{} from {}", stopper.name(), caller.describe()),
-                None if meaning.setpoint.is_some() && terms.is_none() => {
-                    format!("a setpoint without a lease from {}", caller.describe())
-                }
-                None => format!("a write from {}", caller.describe()),
-            }
-            .into();
-            let mut effects = Vec::new();
-            let tickets = drives
-                .iter()
-                .map(|&drive| {
-                    // What the lease covers: a setpoint, or a mode command
-                    // under communication loss; a broadcast takes one per
-                    // active drive, only for communication loss.
-                    let mode = match kind {
-                        WriteKind::Setpoint { .. } => meaning.setpoint,
-                        WriteKind::ReleasesBrake { .. } if terms.is_some_and(|t| t.comm_loss) => {
-                            meaning.mode
-                        }
-                        _ => None,
-                    };
-                    let grant = match (mode, terms) {
-                        (Some(mode), Some(terms))
-                            if target.unit != 0 || (terms.comm_loss && active.contains(&drive)) =>
-                        {
-                            let ask = LeaseAsk {
-                                owner: caller.owner(),
-                                holder: caller.session.map_or(Holder::Request, Holder::Session),
-                                mode,
-                                length: terms.length,
-                                allowance,
-                                action: terms.action,
-                                comm_loss: terms.comm_loss,
-                            };
-                            let (grant, e): (Grant, _) = book.grant(drive, ask, now);
-                            effects.extend(e);
-                            Some(grant)
-                        }
-                        _ => None,
-                    };
-                    let kind = match kind {
-                        WriteKind::Setpoint { .. } => WriteKind::Setpoint { lease: grant },
-                        WriteKind::ReleasesBrake { .. } => {
-                            WriteKind::ReleasesBrake { lease: grant }
-                        }
-                        other => other,
-                    };
-                    book.begin_write(drive, kind, by.clone())
-                })
-                .collect();
-            (tickets, effects)
-        })
-    }
+        (tickets, effects)
+    })
+}
 
-    /// How long a write on bus `bus` may take to be settled: the queue
-    /// wait and every attempt's timeout, with a margin.
-    fn allowance(&self, bus: usize) -> Duration {
-        self.plant()
-            .now()
-            .bus_at(bus)
-            .map_or(Duration::from_secs(10), |b| {
-                let c = &b.config;
-                let per_attempt =
-                    c.response_timeout_ms + c.guard_ms.unwrap_or(c.response_timeout_ms);
-                Duration::from_millis(c.queue_timeout_ms)
-                    + Duration::from_millis(per_attempt) * (u32::from(c.retries) + 1)
-                    + Duration::from_secs(1)
-            })
+/// What the lease book must know of a write of `meaning` (none: nothing).
+fn write_kind(meaning: &Meaning) -> Option<WriteKind> {
+    match (meaning.stops, meaning.setpoint) {
+        (Some(Stopper::Brake), _) => Some(WriteKind::Brake),
+        (Some(Stopper::Deactivate), _) => Some(WriteKind::Deactivate),
+        (None, Some(_)) => Some(WriteKind::Setpoint { lease: None }),
+        (None, None) if meaning.releases_brake => Some(WriteKind::ReleasesBrake { lease: None }),
+        (None, None) => None,
     }
+}
+
+/// Of `drives`, those a broadcast to `target` reaches active (none for a
+/// write to one unit), from the poll cache.
+fn active_drives(parts: &Arc<Parts>, target: Target, drives: &[usize]) -> Vec<usize> {
+    let now = parts.plant().now();
+    drives
+        .iter()
+        .copied()
+        .filter(|_| target.unit == 0)
+        .filter(|&drive| {
+            now.drive_at(drive)
+                .and_then(|d| now.handle_of(d)?.drive(d.unit))
+                .and_then(|s| s.status)
+                .is_some_and(|s| s.active())
+        })
+        .collect()
+}
+
+/// How long a write on bus `bus` may take to be settled: the queue
+/// wait and every attempt's timeout, with a margin.
+fn allowance(parts: &Arc<Parts>, bus: usize) -> Duration {
+    parts
+        .plant()
+        .now()
+        .bus_at(bus)
+        .map_or(Duration::from_secs(10), |b| {
+            let c = &b.config;
+            let per_attempt = c.response_timeout_ms + c.guard_ms.unwrap_or(c.response_timeout_ms);
+            Duration::from_millis(c.queue_timeout_ms)
+                + Duration::from_millis(per_attempt) * (u32::from(c.retries) + 1)
+                + Duration::from_secs(1)
+        })
 }
 
 /// Reads `unit`'s status with `caller`'s turn on the bus.
@@ -426,7 +412,7 @@ async fn read(bus: &BusHandle, caller: &Caller, unit: u8) -> Result<Status, BusE
 
 /// Everything needed to settle a write once its result is known.
 struct Settle {
-    control: Control,
+    parts: Arc<Parts>,
     caller: Caller,
     target: Target,
     bus: std::sync::Arc<str>,
@@ -436,14 +422,14 @@ struct Settle {
 }
 
 impl Settle {
-    fn new(control: &Control, caller: &Caller, target: Target, write: &Write) -> Self {
-        let bus = control
+    fn new(parts: &Arc<Parts>, caller: &Caller, target: Target, write: &Write) -> Self {
+        let bus = parts
             .plant()
             .now()
             .bus_at(target.bus)
             .map_or_else(|| "?".into(), |b| b.handle.name_arc());
         Settle {
-            control: control.clone(),
+            parts: parts.clone(),
             caller: caller.clone(),
             target,
             bus,
@@ -472,7 +458,7 @@ impl Settle {
         };
         if !self.tickets.is_empty() {
             let tickets = self.tickets;
-            self.control.leases().with(|book, now: Instant| {
+            self.parts.leases().with(|book, now: Instant| {
                 let effects = tickets
                     .iter()
                     .flat_map(|t| book.end_write(t, applied, now))
@@ -502,7 +488,7 @@ impl Settle {
             what: self.what,
             result: words,
         });
-        self.control.events().publish(event.into(), None);
+        self.parts.events().publish(event.into(), None);
     }
 
     /// What the bus's result means for this write.

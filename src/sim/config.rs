@@ -5,6 +5,7 @@ use std::time::Duration;
 
 use serde::Deserialize;
 
+use super::config_error::ConfigError;
 use super::delivery::Delivery;
 use super::faults::FaultRates;
 use crate::drive::RangeError;
@@ -152,23 +153,6 @@ impl SimConfig {
         self.delivery.validate()?;
         self.faults.validate()
     }
-}
-
-/// A simulated bus that cannot be built.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum ConfigError {
-    /// A drive at address 0.
-    #[error("unit 0 is the broadcast address, not a drive: use 1 to 255")]
-    BroadcastUnit,
-    /// Two drives at one address.
-    #[error("unit {0} is given twice: each simulated drive needs its own address")]
-    DuplicateUnit(u8),
-    /// Baud rate outside what serial lines use.
-    #[error("baud rate {0} is out of range: valid 300 to 4000000")]
-    Baud(u32),
-    /// A number outside its range.
-    #[error(transparent)]
-    Range(#[from] RangeError),
 }
 
 #[cfg(test)]

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use rand::Rng;
 use serde::Deserialize;
 
-use super::config::ConfigError;
+use super::config_error::ConfigError;
 use crate::drive::RangeError;
 use crate::modbus::timing::LineTiming;
 

@@ -10,7 +10,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Deserialize;
 
-use super::config::ConfigError;
+use super::config_error::ConfigError;
 use crate::drive::RangeError;
 
 /// Per-reply fault injection rates (0.0 to 1.0), reproducible by seed.

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
 
 use super::bus::Bus;
-use super::config::ConfigError;
+use super::config_error::ConfigError;
 use super::faults::FaultRates;
 use super::lock;
 use super::model::{DriveModel, SimDriveView};

@@ -34,6 +34,7 @@
 pub mod bus;
 pub mod cli;
 pub(crate) mod config;
+pub(crate) mod config_error;
 pub(crate) mod control;
 pub(crate) mod delivery;
 pub(crate) mod device;
@@ -57,7 +58,8 @@ use std::time::Instant;
 
 use tokio_util::sync::CancellationToken;
 
-pub use config::{ConfigError, SimConfig, SimDriveConfig};
+pub use config::{SimConfig, SimDriveConfig};
+pub use config_error::ConfigError;
 pub use delivery::Delivery;
 pub use faults::FaultRates;
 pub use handle::{SimError, SimHandle};

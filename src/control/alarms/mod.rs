@@ -27,9 +27,10 @@ use tokio_util::sync::CancellationToken;
 pub use book::{Ack, AckError, Alarm, AlarmBook, AlarmKey, AlarmKind, Change, Raise};
 use file::{AlarmFile, AlarmRecord, FileState};
 
-use super::events::{ControlEvent, Events, Published, WriteEnd};
+use super::events::{ControlEvent, Events, Published, WriteEnd, WriteEvent};
 use super::journal::format::unix_ms;
 use super::lease_book::LeaseEvent;
+pub use super::news::AlarmNews;
 use super::outcome::{Failure, Rule};
 use crate::bus::BusEvent;
 use crate::bus::cache::Link;
@@ -40,26 +41,6 @@ use crate::plant::Plant;
 
 /// Alarms kept when `[safety] alarms_kept` does not say.
 pub const DEFAULT_KEPT: usize = 500;
-
-/// News of an alarm, for whoever listens to the core.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum AlarmNews {
-    /// Raised (or an event repeated on it: `count` went up).
-    Raised(Alarm),
-    /// Its condition ended.
-    Cleared(Alarm),
-    /// An operator acknowledged it.
-    Acknowledged(Alarm),
-}
-
-impl AlarmNews {
-    /// The alarm as it now stands.
-    pub fn alarm(&self) -> &Alarm {
-        match self {
-            AlarmNews::Raised(a) | AlarmNews::Cleared(a) | AlarmNews::Acknowledged(a) => a,
-        }
-    }
-}
 
 /// What is wrong in the alarm list, for the metrics.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -604,47 +585,54 @@ impl Alarms {
                 });
             }
             ControlEvent::Write(w) => {
-                let WriteEnd::Failed(Failure::Refused(refusal)) = &w.result else {
-                    return;
-                };
-                let help = match refusal.rule {
-                    Rule::Moving { .. } => MOVING_HELP,
-                    Rule::SharedBusAddress => SHARED_BUS_HELP,
-                    _ => return,
-                };
-                let name = w
-                    .drive
-                    .and_then(|i| now.drive_at(i))
-                    .map(|d| d.name.clone());
-                let target = match &name {
-                    Some(n) => format!("drive {n} (bus {}, unit {})", w.bus, w.unit),
-                    None => format!("bus {} unit {}", w.bus, w.unit),
-                };
-                let text = format!(
-                    "{target}: {} from {} {} was refused: {}",
-                    w.what,
-                    w.who,
-                    w.face.words(),
-                    refusal.detail
-                );
-                let key = AlarmKey {
-                    kind: AlarmKind::RefusedWrite,
-                    bus: w.bus.to_string(),
-                    drive: name,
-                    code: 0,
-                };
-                self.apply(|book, now| {
-                    book.raise(
-                        Raise {
-                            key,
-                            text,
-                            help: help.to_string(),
-                        },
-                        now,
-                    )
-                });
+                self.refused_write(plant, w);
             }
         }
+    }
+
+    /// Raises an alarm for a write refused by a safety rule (a motor that
+    /// turns, a shared bus address).
+    fn refused_write(&self, plant: &Plant, w: &WriteEvent) {
+        let now = plant.now();
+        let WriteEnd::Failed(Failure::Refused(refusal)) = &w.result else {
+            return;
+        };
+        let help = match refusal.rule {
+            Rule::Moving { .. } => MOVING_HELP,
+            Rule::SharedBusAddress => SHARED_BUS_HELP,
+            _ => return,
+        };
+        let name = w
+            .drive
+            .and_then(|i| now.drive_at(i))
+            .map(|d| d.name.clone());
+        let target = match &name {
+            Some(n) => format!("drive {n} (bus {}, unit {})", w.bus, w.unit),
+            None => format!("bus {} unit {}", w.bus, w.unit),
+        };
+        let text = format!(
+            "{target}: {} from {} {} was refused: {}",
+            w.what,
+            w.who,
+            w.face.words(),
+            refusal.detail
+        );
+        let key = AlarmKey {
+            kind: AlarmKind::RefusedWrite,
+            bus: w.bus.to_string(),
+            drive: name,
+            code: 0,
+        };
+        self.apply(|book, now| {
+            book.raise(
+                Raise {
+                    key,
+                    text,
+                    help: help.to_string(),
+                },
+                now,
+            )
+        });
     }
 }
 
