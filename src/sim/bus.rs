@@ -348,6 +348,12 @@ fn collide(line: &mut Vec<u8>, other: &[u8]) {
     }
 }
 
+/// Locks the shared bus; a panic elsewhere does not make its state unusable.
+pub(super) fn lock(bus: &std::sync::Mutex<Bus>) -> std::sync::MutexGuard<'_, Bus> {
+    bus.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

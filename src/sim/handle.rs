@@ -11,9 +11,9 @@ use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
 
 use super::bus::Bus;
+use super::bus::lock;
 use super::config_error::ConfigError;
 use super::faults::FaultRates;
-use super::lock;
 use super::model::{DriveModel, SimDriveView};
 use super::physics::Environment;
 use super::stats::{GapHistogram, SimStats};

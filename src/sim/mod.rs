@@ -53,7 +53,7 @@ pub(crate) mod wire;
 use std::io;
 use std::path::PathBuf;
 use std::sync::mpsc;
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use tokio_util::sync::CancellationToken;
@@ -142,9 +142,4 @@ fn run(
             }
         }
     });
-}
-
-/// Locks the shared bus; a panic elsewhere does not make its state unusable.
-fn lock(bus: &Mutex<Bus>) -> MutexGuard<'_, Bus> {
-    bus.lock().unwrap_or_else(PoisonError::into_inner)
 }

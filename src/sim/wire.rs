@@ -35,9 +35,9 @@ use rand_chacha::ChaCha8Rng;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 use super::bus::Bus;
+use super::bus::lock;
 use super::config::SimConfig;
 use super::delivery::Delivery;
-use super::lock;
 use super::pty::Pty;
 use super::tcp::{Disconnects, TcpLine};
 use crate::clock::PreciseTimer;

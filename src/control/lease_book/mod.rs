@@ -53,7 +53,7 @@ use crate::control::journal::format::BrakeState;
 use crate::drive::Mode;
 use crate::safety::StopAction;
 
-use sessions::SESSION_CLOSED;
+use types::SESSION_CLOSED;
 
 struct Lease {
     id: LeaseId,

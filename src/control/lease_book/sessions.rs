@@ -4,12 +4,10 @@
 
 use std::time::{Duration, Instant};
 
+use super::types::SESSION_CLOSED;
 use super::{CommLoss, Effect, Holder, LeaseBook, Session, StopReason, Terms};
 use crate::control::caller::{Face, SessionId};
 use crate::safety::StopAction;
-
-/// How the end of a session reads when nothing more precise is known.
-pub(super) const SESSION_CLOSED: &str = "its session closed";
 
 impl LeaseBook {
     /// A session opened; `closing` is how its end reads in messages

@@ -371,3 +371,6 @@ pub enum Effect {
 /// Why there is no lease to renew or release, in words.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct NoLease(pub String);
+
+/// How the end of a session reads when nothing more precise is known.
+pub(super) const SESSION_CLOSED: &str = "its session closed";
