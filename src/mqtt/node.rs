@@ -51,7 +51,7 @@ use super::commands::{self, Command};
 use super::connection::{Connection, next_event};
 use super::exception::Reported;
 use super::host::{Host, HostChange, HostState};
-use super::metric::{self, BD_SEQ, Field, LAST_RESULT, REBIRTH, Setpoints, Value, Writable};
+use super::metric::{self, BD_SEQ, LAST_RESULT, REBIRTH, Setpoints, Value, Writable};
 use super::replay::{self, Held};
 use super::sparkplug_b::payload::Metric;
 use super::sparkplug_b::{DataType, Payload};
@@ -643,7 +643,7 @@ impl Node {
                     .changes(&status, &self.config.deadbands, false);
                 let metrics: Vec<Metric> = changes
                     .into_iter()
-                    .map(|(f, v)| metric::metric(f.name(), f.datatype(), v, ts))
+                    .map(|(f, v)| metric::status_metric(f, v, ts))
                     .collect();
                 self.device_data(c, &name, metrics);
             }
@@ -793,7 +793,7 @@ impl Node {
                 .reported
                 .changes(&status, &self.config.deadbands, true)
                 .into_iter()
-                .map(|(f, v): (Field, Value)| metric::metric(f.name(), f.datatype(), v, now))
+                .map(|(f, v)| metric::status_metric(f, v, now))
                 .collect();
             let payload = self.payload(metrics);
             let topic = self.topics.device_topic(Kind::DData, &drive.name);
