@@ -497,11 +497,7 @@ impl Node {
         if run.is_empty() {
             return;
         }
-        let role = self
-            .config
-            .commands()
-            .role()
-            .unwrap_or(crate::control::Role::Viewer);
+        let role = self.config.commands().role();
         let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
             .in_session(Face::Mqtt, self.session.id());
         self.session.active();

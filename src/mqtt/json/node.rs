@@ -45,7 +45,7 @@ use crate::metrics::Metrics;
 use crate::mqtt::connection::next_event;
 use crate::ops::commands::{self, CommandMessage, DRIVE_OPS};
 use crate::ops::messages::{self, DriveMessage};
-use crate::ops::problem::{Kind, Problem};
+use crate::ops::problem::Problem;
 use crate::ops::status::{self, StatusSource};
 use crate::ops::target::Target;
 
@@ -262,8 +262,10 @@ impl JsonNode {
         Ok(())
     }
 
-    /// A command message for `drive`: refused at once, or run through the
-    /// core in a task of its own; either way a reply follows.
+    /// A command message for `drive`: refused at once when it is none the
+    /// face takes, else run through the core (which refuses what the role
+    /// of `[mqtt] commands` may not do) in a task of its own; either way a
+    /// reply follows.
     fn on_command(&mut self, drive: String, payload: &[u8], props: Option<&PublishProperties>) {
         let topic = props
             .and_then(|p| p.response_topic.clone())
@@ -282,16 +284,6 @@ impl JsonNode {
                 return;
             }
         };
-        let Some(role) = self.config.commands().role() else {
-            self.metrics.mqtt().command("refused");
-            let problem = Problem::new(
-                Kind::Forbidden,
-                "commands over MQTT are off ([mqtt] commands = \"none\"): set commands = \"operator\" (or \"admin\") to take them",
-            )
-            .for_drive(&drive);
-            self.send_now(reply(DriveMessage::reply(id, Err(problem))));
-            return;
-        };
         if !commands::is_drive_op(&op) {
             self.metrics.mqtt().command("malformed");
             let problem = Problem::invalid(format!(
@@ -300,6 +292,9 @@ impl JsonNode {
             self.send_now(reply(DriveMessage::reply(id, Err(problem))));
             return;
         }
+        // The core decides, as for Sparkplug's commands: `[mqtt] commands`
+        // is the caller's role, and "none" a viewer's.
+        let role = self.config.commands().role();
         let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
             .in_session(Face::Mqtt, self.session.id());
         self.session.active();
