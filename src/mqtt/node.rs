@@ -52,12 +52,12 @@ use tokio::task::JoinHandle;
 use tokio::time::{Instant, sleep_until};
 use tokio_util::sync::CancellationToken;
 
-use super::Outbox;
 use super::bd_seq::BdSeq;
 use super::connection::{Backoff, Connection, next_event};
 use super::exception::Reported;
 use super::host::Host;
 use super::metric::Setpoints;
+use super::outbox::Outbox;
 use super::replay::{self, Held};
 use super::topic::{Kind, NodeTopics};
 use crate::bus::SourceId;
