@@ -32,6 +32,7 @@ use drivegate::bus::Origin;
 use drivegate::bus::master::Fault;
 use drivegate::bus::tap::WireTap;
 use drivegate::config::{Config, MonitorConfig, ScopeConfig};
+use drivegate::drive::StatusField;
 use drivegate::faces;
 use drivegate::metrics::Metrics;
 use drivegate::modbus::rtu_frame::encode;
@@ -39,7 +40,7 @@ use drivegate::modbus::timing::LineTiming;
 use drivegate::monitor::record::Direction;
 use drivegate::monitor::{BusMonitor, MonitorSettings};
 use drivegate::plant::Plant;
-use drivegate::scope::field::Field;
+use drivegate::scope::field::RECORDED;
 use drivegate::scope::spec::{Amount, CaptureSpec};
 use drivegate::scope::trigger::Trigger;
 use drivegate::scope::{Scope, ScopeSettings};
@@ -128,7 +129,7 @@ async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> Scop
     let units: Vec<u8> = (1..=captured).collect();
     let spec = CaptureSpec {
         units: units.clone(),
-        fields: vec![Field::SpeedRpm],
+        fields: vec![StatusField::SpeedRpm],
         trigger: Trigger::Immediate,
         pre_trigger: Amount::Samples(0),
         length: Amount::Seconds(secs),
@@ -367,7 +368,7 @@ fn tap_cost() -> [Duration; 3] {
         if i == 2 {
             let spec = CaptureSpec {
                 units: vec![1],
-                fields: Field::ALL.to_vec(),
+                fields: RECORDED.to_vec(),
                 trigger: Trigger::Immediate,
                 pre_trigger: Amount::Samples(0),
                 length: Amount::Samples(READS + 1),

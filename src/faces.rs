@@ -358,6 +358,8 @@ impl Running {
         followed
     }
 
+    /// Follows `config` for one listening face: opened, closed, restarted
+    /// on its socket or moved, as its section changed.
     async fn follow_listener(
         &self,
         face: Face,
@@ -376,73 +378,110 @@ impl Running {
             return;
         }
         let name = face.name();
-        let (old, address) = match (slot.take(), wanted) {
-            (None, None) => return,
+        match (slot.take(), wanted) {
+            (None, None) => {}
             (Some(old), None) => {
                 followed
                     .changes
                     .push(format!("{name} closed (it was on {})", old.addr));
                 tracing::info!(addr = %old.addr, "{name} closed by a reload");
                 old.close(true);
-                return;
             }
-            (None, Some(address)) => match bind(face, address).await {
-                Ok(listener) => match self.serve(face, config, address, listener).await {
-                    Ok(new) => {
-                        followed
-                            .changes
-                            .push(format!("{name} opened on {}", new.addr));
-                        *slot = Some(new);
-                        return;
-                    }
-                    Err(why) => return followed.problems.push(format!("{name} not opened: {why}")),
-                },
+            (None, Some(address)) => {
+                if let Some(new) = self.open(face, config, address, followed).await {
+                    *slot = Some(new);
+                }
+            }
+            (Some(old), Some(address)) if address == old.bind => {
+                *slot = self.reopen(face, config, old, followed).await;
+            }
+            (Some(old), Some(address)) => {
+                *slot = self.move_to(face, config, old, address, followed).await;
+            }
+        }
+    }
+
+    /// Opens `face`, which a reload adds, on `address`.
+    async fn open(
+        &self,
+        face: Face,
+        config: &Arc<Config>,
+        address: SocketAddr,
+        followed: &mut Followed,
+    ) -> Option<Listening> {
+        let name = face.name();
+        match bind(face, address).await {
+            Ok(listener) => match self.serve(face, config, address, listener).await {
+                Ok(new) => {
+                    followed
+                        .changes
+                        .push(format!("{name} opened on {}", new.addr));
+                    Some(new)
+                }
                 Err(why) => {
-                    return followed.problems.push(format!(
-                        "{name} not opened: {why}; the next reload tries again"
-                    ));
+                    followed.problems.push(format!("{name} not opened: {why}"));
+                    None
                 }
             },
-            (Some(old), Some(address)) => (old, address),
-        };
-        // The same address: the same socket, served with the new settings.
-        if address == old.bind {
-            let listener = old
-                .socket
-                .try_clone()
-                .and_then(TcpListener::from_std)
-                .map_err(|e| format!("cannot take over its socket: {e}"));
-            match listener {
-                Ok(listener) => match self.serve(face, config, address, listener).await {
-                    Ok(new) => {
-                        followed.changes.push(format!(
-                            "{name} reopened on {} with the new {}",
-                            new.addr,
-                            face.section()
-                        ));
-                        old.close(false);
-                        *slot = Some(new);
-                    }
-                    Err(why) => {
-                        followed.problems.push(format!(
-                            "{name} not reopened: {why}; it stays on {} with its previous settings",
-                            old.addr
-                        ));
-                        *slot = Some(old);
-                    }
-                },
-                Err(why) => {
-                    followed.problems.push(format!(
-                        "{name} not reopened: {why}; it stays on {} with its previous settings",
-                        old.addr
-                    ));
-                    *slot = Some(old);
-                }
+            Err(why) => {
+                followed.problems.push(format!(
+                    "{name} not opened: {why}; the next reload tries again"
+                ));
+                None
             }
-            return;
         }
-        // Another address: bound before the old one closes, unless the
-        // two cannot be held at once.
+    }
+
+    /// The same address: the same socket, served with the new settings;
+    /// the listener that serves after it (`old` when that failed).
+    async fn reopen(
+        &self,
+        face: Face,
+        config: &Arc<Config>,
+        old: Listening,
+        followed: &mut Followed,
+    ) -> Option<Listening> {
+        let name = face.name();
+        let listener = old
+            .socket
+            .try_clone()
+            .and_then(TcpListener::from_std)
+            .map_err(|e| format!("cannot take over its socket: {e}"));
+        let served = match listener {
+            Ok(listener) => self.serve(face, config, old.bind, listener).await,
+            Err(why) => Err(why),
+        };
+        match served {
+            Ok(new) => {
+                followed.changes.push(format!(
+                    "{name} reopened on {} with the new {}",
+                    new.addr,
+                    face.section()
+                ));
+                old.close(false);
+                Some(new)
+            }
+            Err(why) => {
+                followed.problems.push(format!(
+                    "{name} not reopened: {why}; it stays on {} with its previous settings",
+                    old.addr
+                ));
+                Some(old)
+            }
+        }
+    }
+
+    /// Another address: bound before the old one closes, unless the two
+    /// cannot be held at once; the listener that serves after it.
+    async fn move_to(
+        &self,
+        face: Face,
+        config: &Arc<Config>,
+        old: Listening,
+        address: SocketAddr,
+        followed: &mut Followed,
+    ) -> Option<Listening> {
+        let name = face.name();
         let overlapping = overlaps(old.bind, address);
         if overlapping {
             old.stop.cancel();
@@ -460,41 +499,53 @@ impl Running {
                 ));
                 tracing::info!(addr = %new.addr, was = %old.addr, "{name} moved by a reload");
                 old.close(true);
-                *slot = Some(new);
+                Some(new)
             }
-            Err(why) if overlapping => {
-                // Listening again where it was, as it was.
-                let back = socket2::SockRef::from(&old.socket)
-                    .listen(1024)
-                    .and_then(|()| old.socket.try_clone())
-                    .and_then(TcpListener::from_std)
-                    .map_err(|e| e.to_string());
-                let previous = old.config.clone();
-                let (bind, addr) = (old.bind, old.addr);
-                old.close(false);
-                match back {
-                    Ok(listener) => match self.serve(face, &previous, bind, listener).await {
-                        Ok(again) => {
-                            followed.problems.push(format!(
-                                "{name} not moved: {why}; it stays on {addr} with its previous settings, and the next reload tries again"
-                            ));
-                            *slot = Some(again);
-                        }
-                        Err(e) => followed.problems.push(format!(
-                            "{name} not moved: {why}; and not opened again on {addr}: {e}"
-                        )),
-                    },
-                    Err(e) => followed.problems.push(format!(
-                        "{name} not moved: {why}; and not opened again on {addr}: {e}"
-                    )),
-                }
-            }
+            Err(why) if overlapping => self.restore(face, old, &why, followed).await,
             Err(why) => {
                 followed.problems.push(format!(
                     "{name} not moved: {why}; it stays on {} with its previous settings, and the next reload tries again",
                     old.addr
                 ));
-                *slot = Some(old);
+                Some(old)
+            }
+        }
+    }
+
+    /// A move that stopped `old` first failed (`why`): listening again
+    /// where it was, as it was.
+    async fn restore(
+        &self,
+        face: Face,
+        old: Listening,
+        why: &str,
+        followed: &mut Followed,
+    ) -> Option<Listening> {
+        let name = face.name();
+        let back = socket2::SockRef::from(&old.socket)
+            .listen(1024)
+            .and_then(|()| old.socket.try_clone())
+            .and_then(TcpListener::from_std)
+            .map_err(|e| e.to_string());
+        let previous = old.config.clone();
+        let (bind, addr) = (old.bind, old.addr);
+        old.close(false);
+        let again = match back {
+            Ok(listener) => self.serve(face, &previous, bind, listener).await,
+            Err(e) => Err(e),
+        };
+        match again {
+            Ok(again) => {
+                followed.problems.push(format!(
+                    "{name} not moved: {why}; it stays on {addr} with its previous settings, and the next reload tries again"
+                ));
+                Some(again)
+            }
+            Err(e) => {
+                followed.problems.push(format!(
+                    "{name} not moved: {why}; and not opened again on {addr}: {e}"
+                ));
+                None
             }
         }
     }

@@ -17,7 +17,8 @@ use super::problem::Problem;
 use super::problem::ReadProblems;
 use super::state::ApiState;
 use crate::control::Caller;
-use crate::history::store::{FIELDS, Field, Point};
+use crate::drive::StatusField;
+use crate::history::store::{KEPT, Point};
 use crate::history::unix_ms;
 use crate::timestamp::{parse_time, rfc3339};
 
@@ -97,14 +98,15 @@ fn time_param(name: &str, text: &str) -> Result<i64, Problem> {
     })
 }
 
-fn fields_param(text: Option<&str>) -> Result<Vec<Field>, Problem> {
+fn fields_param(text: Option<&str>) -> Result<Vec<StatusField>, Problem> {
     let Some(text) = text else {
-        return Ok(Field::ALL.to_vec());
+        return Ok(KEPT.to_vec());
     };
     let mut out = Vec::new();
     for name in text.split(',').map(str::trim).filter(|n| !n.is_empty()) {
-        let field = Field::from_name(name).ok_or_else(|| {
-            let known: Vec<&str> = Field::ALL.iter().map(|f| f.name()).collect();
+        let kept = StatusField::from_name(name).filter(|f| KEPT.contains(f));
+        let field = kept.ok_or_else(|| {
+            let known: Vec<&str> = KEPT.iter().map(|f| f.name()).collect();
             Problem::invalid(format!(
                 "no field {name:?} in the history: the fields are {}",
                 known.join(", ")
@@ -218,13 +220,11 @@ pub async fn get_history(
     }))
 }
 
-fn column(field: Field, points: &[Point]) -> HistoryColumn {
-    let i = field as usize;
-    debug_assert!(i < FIELDS);
-    let v = |raw: f64| field.value(raw);
+/// `field`'s columns (a field the history keeps: one value per point).
+fn column(field: StatusField, points: &[Point]) -> HistoryColumn {
     HistoryColumn {
-        min: points.iter().map(|p| v(f64::from(p.min[i]))).collect(),
-        max: points.iter().map(|p| v(f64::from(p.max[i]))).collect(),
-        mean: points.iter().map(|p| v(p.mean[i])).collect(),
+        min: points.iter().filter_map(|p| p.min_of(field)).collect(),
+        max: points.iter().filter_map(|p| p.max_of(field)).collect(),
+        mean: points.iter().filter_map(|p| p.mean_of(field)).collect(),
     }
 }

@@ -23,7 +23,7 @@ use super::state::ApiState;
 use super::stream_messages::StreamMessage;
 use crate::control::{Caller, Operation};
 use crate::plant::{Bus, Plant};
-use crate::scope::field::Field;
+use crate::scope::field::{Field, RECORDED};
 use crate::scope::result::{self, ScopeResult, ScopeState};
 use crate::scope::spec::{Amount, CaptureSpec, SpecError};
 use crate::scope::trigger::{Edge, Trigger};
@@ -235,7 +235,7 @@ fn spec(state: &ApiState, bus: &Bus, body: &ArmBody) -> Result<CaptureSpec, Prob
             level,
         } => Trigger::Level {
             unit: unit(drive)?,
-            field: *field,
+            field: field.0,
             level: *level,
             edge: Edge::Rising,
         },
@@ -245,7 +245,7 @@ fn spec(state: &ApiState, bus: &Bus, body: &ArmBody) -> Result<CaptureSpec, Prob
             level,
         } => Trigger::Level {
             unit: unit(drive)?,
-            field: *field,
+            field: field.0,
             level: *level,
             edge: Edge::Falling,
         },
@@ -276,7 +276,10 @@ fn spec(state: &ApiState, bus: &Bus, body: &ArmBody) -> Result<CaptureSpec, Prob
     };
     Ok(CaptureSpec {
         units,
-        fields: body.fields.clone().unwrap_or_else(|| Field::ALL.to_vec()),
+        fields: body
+            .fields
+            .as_ref()
+            .map_or_else(|| RECORDED.to_vec(), |f| f.iter().map(|f| f.0).collect()),
         trigger,
         pre_trigger: match &body.pre_trigger {
             Some(a) => a.amount("pre-trigger")?,

@@ -11,29 +11,8 @@ use std::time::{Instant, SystemTime};
 use tokio::sync::broadcast;
 
 use super::freshness::{Expected, Facts};
+pub use super::link::Link;
 use crate::drive::Status;
-
-/// Whether a drive answers its polls.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Link {
-    /// Not polled yet.
-    Unknown,
-    /// Answering.
-    Online,
-    /// Stopped answering; polled with backoff.
-    Offline,
-}
-
-impl Link {
-    /// Stable name for the API.
-    pub fn name(self) -> &'static str {
-        match self {
-            Link::Unknown => "unknown",
-            Link::Online => "online",
-            Link::Offline => "offline",
-        }
-    }
-}
 
 /// What the daemon knows of one drive.
 #[derive(Debug, Clone, PartialEq)]

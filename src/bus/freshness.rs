@@ -18,9 +18,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use serde::Serialize;
 
-use super::cache::Link;
-use super::handle::PortState;
-use super::scheduler::BusSettings;
+use super::link::{Link, PortState};
 use crate::modbus::timing::LineTiming;
 
 /// Room beyond a drive's poll period and a poll's own worst case before
@@ -147,25 +145,6 @@ impl Expected {
     pub fn allowance(&self) -> Duration {
         self.period + self.slack
     }
-}
-
-/// How often each drive of a bus with `settings` is polled.
-pub fn expected_of(settings: &BusSettings) -> Vec<(u8, Expected)> {
-    let master = &settings.master;
-    settings
-        .drives
-        .iter()
-        .map(|&(unit, interval)| {
-            let expected = Expected::new(
-                interval,
-                (settings.drives.len(), settings.poll_share),
-                master.line,
-                u32::from(master.retries) + 1,
-                master.response_timeout,
-            );
-            (unit, expected)
-        })
-        .collect()
 }
 
 /// What the bus knows of one drive, for [`judge`].

@@ -2,7 +2,7 @@
 //! events, read the counters. Cheap to clone; never touches the port.
 
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Duration, Instant};
 
 use tokio::sync::{broadcast, oneshot};
 use tokio_util::sync::CancellationToken;
@@ -11,31 +11,12 @@ use super::cache::{BusEvent, DriveSnapshot, StatusCache};
 use super::error::BusError;
 use super::freshness::{self, Verdict};
 use super::job::{Exchange, Job, Priority, SourceId};
+pub use super::link::PortState;
 use super::origin::Origin;
 use super::queue::{JobQueue, Refused};
 use super::stats::{BusStats, BusStatsSnapshot, Outcome};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest};
 use crate::modbus::timing::LineTiming;
-
-/// State of a bus's serial port.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum PortState {
-    /// Not opened yet.
-    Opening,
-    /// Open and working since then.
-    Up {
-        /// When it opened.
-        since: SystemTime,
-    },
-    /// Closed: failed and being reopened with backoff, or stopped for good
-    /// (at shutdown, or when the bus could not start); the reason says which.
-    Down {
-        /// When it failed.
-        since: SystemTime,
-        /// Why.
-        reason: String,
-    },
-}
 
 /// Options of one submission.
 #[derive(Debug, Clone)]

@@ -11,7 +11,8 @@
 //! - [`interframe`] keeps the silence before each drive's requests (the
 //!   spec's, a fixed one, or each drive's own, learned),
 //! - [`poller`] decides which drive's status is due next,
-//! - [`scheduler`] is the task's loop tying them together,
+//! - [`scheduler`] is the task's loop tying them together, run with the
+//!   [`settings`] the configuration builds,
 //! - [`cache`] keeps each drive's latest status and publishes changes,
 //! - [`freshness`] says how fresh a drive's data is (live, stale, offline,
 //!   never, bus-down), the one answer every face shows,
@@ -22,7 +23,9 @@
 //!   (the bus monitor, the scope), through the master's [`tap`]; the bus
 //!   never names them,
 //! - [`fault`] and [`priority`] are leaves shared by the master, the
-//!   queue and the errors.
+//!   queue and the errors; [`link`] (a port's state, whether a drive
+//!   answers) is the leaf the cache, freshness, the handle and the
+//!   scheduler share.
 
 pub mod cache;
 pub mod error;
@@ -31,6 +34,7 @@ pub mod freshness;
 pub mod handle;
 pub mod interframe;
 pub mod job;
+pub mod link;
 pub mod master;
 pub mod observers;
 pub mod origin;
@@ -41,6 +45,7 @@ pub mod queue;
 pub mod reply_timeout;
 pub mod rs485;
 pub mod scheduler;
+pub mod settings;
 pub mod stats;
 pub mod tap;
 pub mod tcp_port;

@@ -18,64 +18,17 @@ use super::error::PortCause;
 use super::handle::{BusHandle, PortState, Shared};
 use super::interframe::Use;
 use super::job::{Exchange, Job, Priority};
-use super::master::{Fault, MasterSettings, PortFailure, Report, RtuMaster};
-use super::observers::{Observers, Steer};
+use super::master::{Fault, PortFailure, Report, RtuMaster};
+use super::observers::Steer;
 use super::origin::Origin;
 use super::poller::{PollPlan, PollResult};
-use super::queue::{JobQueue, QueueLimits};
+use super::queue::JobQueue;
+pub use super::settings::BusSettings;
 use super::stats::{BusStats, Outcome};
 use super::tcp_port;
 use super::transport;
 use crate::clock;
 use crate::drive::{DriveReply, DriveRequest};
-
-/// Everything a bus needs to run.
-#[derive(Debug, Clone)]
-pub struct BusSettings {
-    /// Name used in logs, metrics and the API.
-    pub name: String,
-    /// Serial device path, or `tcp://host:port` for a serial device server.
-    pub port: String,
-    /// Master timing, retries and RS-485 settings.
-    pub master: MasterSettings,
-    /// Polled drives: unit and poll interval (zero: as fast as the bus allows).
-    pub drives: Vec<(u8, Duration)>,
-    /// Failed polls in a row before a drive is marked offline.
-    pub offline_after: u32,
-    /// First and longest poll backoff for an offline drive.
-    pub offline_backoff: (Duration, Duration),
-    /// First and longest delay between attempts to reopen a failed port.
-    pub reopen_backoff: (Duration, Duration),
-    /// Queue capacities.
-    pub queue: QueueLimits,
-    /// How long a job may wait in the queue before it is dropped unsent.
-    pub queue_timeout: Duration,
-    /// After this many commands in a row while a poll is due, the poll goes
-    /// first, so a flood of commands cannot freeze the status of every drive.
-    pub poll_share: u32,
-    /// Who watches the wire and may steer the polling (the bus monitor,
-    /// the scope); none by default.
-    pub observers: Observers,
-}
-
-impl BusSettings {
-    /// Defaults for a bus on `port` at `baud` with the given drives.
-    pub fn new(name: &str, port: &str, baud: u32, drives: Vec<(u8, Duration)>) -> Self {
-        Self {
-            name: name.to_string(),
-            port: port.to_string(),
-            master: MasterSettings::new(baud, Duration::from_millis(50), 1),
-            drives,
-            offline_after: 3,
-            offline_backoff: (Duration::from_secs(1), Duration::from_secs(30)),
-            reopen_backoff: (Duration::from_millis(200), Duration::from_secs(5)),
-            queue: QueueLimits::default(),
-            queue_timeout: Duration::from_secs(5),
-            poll_share: 4,
-            observers: Observers::default(),
-        }
-    }
-}
 
 /// Starts the bus's thread; returns its handle and the thread to join.
 pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle<()>)> {
@@ -113,7 +66,7 @@ fn new_shared(settings: &BusSettings) -> Arc<Shared> {
             settings.drives.iter().map(|d| d.0),
             settings.offline_after,
         )
-        .expecting(super::freshness::expected_of(settings)),
+        .expecting(settings.expected()),
         stats: BusStats::new(),
         state: Mutex::new(PortState::Opening),
         line: settings.master.line,

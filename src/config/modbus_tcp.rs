@@ -471,24 +471,34 @@ impl ModbusTcpConfig {
     /// to fix.
     pub fn validate(&self, config: &crate::config::Config) -> Result<(), (Range<usize>, String)> {
         let bus_names: Vec<&str> = config.buses.iter().map(|b| b.name()).collect();
-        let known = |bus: &Spanned<String>, what: String| {
-            if bus_names.contains(&bus.get_ref().as_str()) {
-                Ok(())
-            } else {
-                Err((
-                    bus.span(),
-                    format!(
-                        "[modbus_tcp] {what} names bus \"{}\", which is not configured (buses: {})",
-                        bus.get_ref(),
-                        quoted(&bus_names)
-                    ),
-                ))
-            }
-        };
+        self.check_unit_map(&bus_names)?;
+        self.check_polled_copy(&bus_names)?;
+        self.check_comm_loss()?;
+        if let Some(per) = &self.max_connections_per_address
+            && per.get_ref().0 > self.max_connections
+        {
+            return Err((
+                per.span(),
+                format!(
+                    "[modbus_tcp] max_connections_per_address = {} is out of range: valid 1 to {} (max_connections)",
+                    per.get_ref().0,
+                    self.max_connections
+                ),
+            ));
+        }
+        for raw in &self.raw_functions {
+            check_raw(raw)?;
+        }
+        self.check_read_only()
+    }
+
+    /// Each unit map entry names a configured bus, maps ranges of equal
+    /// length, and overlaps no entry before it.
+    fn check_unit_map(&self, bus_names: &[&str]) -> Result<(), (Range<usize>, String)> {
         for (i, entry) in self.unit_map.iter().enumerate() {
             let units = entry.units();
             let what = format!("unit_map entry {} (units {units})", i + 1);
-            known(&entry.bus, what.clone())?;
+            known_bus(bus_names, &entry.bus, &what)?;
             if let Some(bus_units) = &entry.bus_units
                 && bus_units.get_ref().len() != units.len()
             {
@@ -517,9 +527,18 @@ impl ModbusTcpConfig {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// Each polled-copy entry names a configured bus, each bus once.
+    fn check_polled_copy(&self, bus_names: &[&str]) -> Result<(), (Range<usize>, String)> {
         let mut seen = BTreeSet::new();
         for (i, entry) in self.polled_copy.iter().enumerate() {
-            known(&entry.bus, format!("polled_copy entry {}", i + 1))?;
+            known_bus(
+                bus_names,
+                &entry.bus,
+                &format!("polled_copy entry {}", i + 1),
+            )?;
             if !seen.insert(entry.bus.get_ref().as_str()) {
                 return Err((
                     entry.bus.span(),
@@ -530,6 +549,11 @@ impl ModbusTcpConfig {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// A client's communication-loss action comes with its time.
+    fn check_comm_loss(&self) -> Result<(), (Range<usize>, String)> {
         if let Some((client, action)) = self.clients.iter().find_map(|c| {
             Some((c, c.comm_loss_action.as_ref()?)).filter(|_| c.comm_loss_ms.is_none())
         }) {
@@ -541,21 +565,11 @@ impl ModbusTcpConfig {
                 ),
             ));
         }
-        if let Some(per) = &self.max_connections_per_address
-            && per.get_ref().0 > self.max_connections
-        {
-            return Err((
-                per.span(),
-                format!(
-                    "[modbus_tcp] max_connections_per_address = {} is out of range: valid 1 to {} (max_connections)",
-                    per.get_ref().0,
-                    self.max_connections
-                ),
-            ));
-        }
-        for raw in &self.raw_functions {
-            check_raw(raw)?;
-        }
+        Ok(())
+    }
+
+    /// With `read_only`, no client network has a role above viewer.
+    fn check_read_only(&self) -> Result<(), (Range<usize>, String)> {
         if self.read_only
             && let Some(client) = self.clients.iter().find(|c| c.role() > Role::Viewer)
         {
@@ -569,6 +583,26 @@ impl ModbusTcpConfig {
             ));
         }
         Ok(())
+    }
+}
+
+/// `bus` (what `what` names) must be one of `bus_names`.
+fn known_bus(
+    bus_names: &[&str],
+    bus: &Spanned<String>,
+    what: &str,
+) -> Result<(), (Range<usize>, String)> {
+    if bus_names.contains(&bus.get_ref().as_str()) {
+        Ok(())
+    } else {
+        Err((
+            bus.span(),
+            format!(
+                "[modbus_tcp] {what} names bus \"{}\", which is not configured (buses: {})",
+                bus.get_ref(),
+                quoted(bus_names)
+            ),
+        ))
     }
 }
 

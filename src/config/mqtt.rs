@@ -229,10 +229,10 @@ pub enum Format {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Commands {
-    /// Read only: commands are refused.
+    /// Read only: commands are refused, as a viewer's (the core says why).
     #[default]
     None,
-    /// Commands are refused as a viewer's (the core says why).
+    /// The same.
     Viewer,
     /// Setpoints, modes, brake and resets.
     Operator,
@@ -241,13 +241,14 @@ pub enum Commands {
 }
 
 impl Commands {
-    /// The role commands have, if any are taken.
-    pub fn role(self) -> Option<Role> {
+    /// The role commands have: with none, a viewer's, so the control
+    /// core refuses every write in its own words, as it does for any
+    /// face's viewer.
+    pub fn role(self) -> Role {
         match self {
-            Commands::None => None,
-            Commands::Viewer => Some(Role::Viewer),
-            Commands::Operator => Some(Role::Operator),
-            Commands::Admin => Some(Role::Admin),
+            Commands::None | Commands::Viewer => Role::Viewer,
+            Commands::Operator => Role::Operator,
+            Commands::Admin => Role::Admin,
         }
     }
 }

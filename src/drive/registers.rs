@@ -229,7 +229,7 @@ impl Register {
         let (min, max) = self.write_range();
         let in_range = v >= min && v <= max;
         match self {
-            Register::Config => in_range && super::ConfigCommand::from_code(raw).is_some(),
+            Register::Config => in_range && super::command::ConfigCommand::from_code(raw).is_some(),
             _ => in_range,
         }
     }

@@ -6,80 +6,44 @@
 //! - the recent samples at full rate, as polled ([`Sample`], 24 bytes):
 //!   `full_rate_samples` of them;
 //! - one-second buckets over the whole window ([`Bucket`], 48 bytes): the
-//!   number of samples, and the minimum, maximum and mean of each field,
-//!   and the flags seen (OR), `window_ms / 1000` of them.
+//!   number of samples, the minimum, maximum and mean of each field kept
+//!   ([`KEPT`]), and the flags seen (OR), `window_ms / 1000` of them.
 //!
 //! A query answers from the full-rate ring as far back as it reaches and
 //! from the buckets before that, oldest first, as [`Point`]s.
 
 use std::collections::VecDeque;
 
-use crate::drive::Status;
-use crate::listed::listed_enum;
+use crate::drive::{Status, StatusField};
 
 /// A bucket's width, ms.
 pub const BUCKET_MS: i64 = 1000;
 
-listed_enum! {
-    /// A field of the status kept in the history.
-    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-    pub enum Field {
-        /// Speed at the gearbox output, rpm.
-        SpeedRpm,
-        /// Motor current, amps.
-        CurrentA,
-        /// Supply voltage, volts.
-        VoltageV,
-        /// Drive temperature, degrees Celsius.
-        TemperatureC,
-        /// Angle within the turn, degrees.
-        AngleDeg,
-    }
-}
+/// The fields kept, in the order of a record's arrays: the status
+/// block's measurements but `turns`, a counter that wraps (its minimum,
+/// maximum and mean would mean nothing).
+pub const KEPT: [StatusField; FIELDS] = [
+    StatusField::SpeedRpm,
+    StatusField::CurrentA,
+    StatusField::VoltageV,
+    StatusField::TemperatureC,
+    StatusField::AngleDeg,
+];
 
 /// Fields per record.
-pub const FIELDS: usize = Field::ALL.len();
+pub const FIELDS: usize = 5;
 
-impl Field {
-    /// Its name in the API (as in the status).
-    pub fn name(self) -> &'static str {
-        match self {
-            Field::SpeedRpm => "speed_rpm",
-            Field::CurrentA => "current_a",
-            Field::VoltageV => "voltage_v",
-            Field::TemperatureC => "temperature_c",
-            Field::AngleDeg => "angle_deg",
-        }
-    }
+/// Where `field` is in a record's arrays, if it is kept.
+pub fn slot(field: StatusField) -> Option<usize> {
+    KEPT.iter().position(|f| *f == field)
+}
 
-    /// The field named `name`.
-    pub fn from_name(name: &str) -> Option<Field> {
-        Field::ALL.into_iter().find(|f| f.name() == name)
-    }
-
-    fn index(self) -> usize {
-        self as usize
-    }
-
-    /// Its raw value in a status (the drive's own units).
-    fn raw(self, s: &Status) -> i16 {
-        match self {
-            Field::SpeedRpm => s.speed_rpm,
-            Field::CurrentA => s.current_counts,
-            Field::VoltageV => i16::try_from(s.voltage_v).unwrap_or(i16::MAX),
-            Field::TemperatureC => s.temperature_c,
-            Field::AngleDeg => s.angle_centideg,
-        }
-    }
-
-    /// A raw value in engineering units.
-    pub fn value(self, raw: f64) -> f64 {
-        match self {
-            Field::CurrentA => raw / 128.0,
-            Field::AngleDeg => raw / 100.0,
-            _ => raw,
-        }
-    }
+/// The register of `field` in a status, as a record keeps it (a voltage
+/// past 32767 V kept as 32767).
+fn raw_of(field: StatusField, s: &Status) -> i16 {
+    field
+        .counts(s)
+        .map_or(0, |c| i16::try_from(c).unwrap_or(i16::MAX))
 }
 
 /// One status as polled: 24 bytes.
@@ -121,7 +85,7 @@ struct Filling {
 
 impl Filling {
     fn new(t_ms: i64, s: &Status) -> Self {
-        let raw = Field::ALL.map(|f| f.raw(s));
+        let raw = KEPT.map(|f| raw_of(f, s));
         Filling {
             t_ms,
             n: 1,
@@ -135,8 +99,8 @@ impl Filling {
     fn add(&mut self, s: &Status) {
         self.n += 1;
         self.flags_any |= s.flags;
-        for f in Field::ALL {
-            let (i, v) = (f.index(), f.raw(s));
+        for (i, f) in KEPT.into_iter().enumerate() {
+            let v = raw_of(f, s);
             self.min[i] = self.min[i].min(v);
             self.max[i] = self.max[i].max(v);
             self.sum[i] += i64::from(v);
@@ -199,8 +163,24 @@ pub struct Point {
 }
 
 impl Point {
+    /// `field`'s lowest value in this point, in its unit (`None`: a field
+    /// not kept).
+    pub fn min_of(&self, field: StatusField) -> Option<f64> {
+        slot(field).map(|i| field.from_counts(f64::from(self.min[i])))
+    }
+
+    /// `field`'s highest value in this point, in its unit.
+    pub fn max_of(&self, field: StatusField) -> Option<f64> {
+        slot(field).map(|i| field.from_counts(f64::from(self.max[i])))
+    }
+
+    /// The mean of `field` over this point's samples, in its unit.
+    pub fn mean_of(&self, field: StatusField) -> Option<f64> {
+        slot(field).map(|i| field.from_counts(self.mean[i]))
+    }
+
     fn of_sample(s: &Sample) -> Self {
-        let raw = Field::ALL.map(|f| f.raw(&s.status));
+        let raw = KEPT.map(|f| raw_of(f, &s.status));
         Point {
             t_ms: s.t_ms,
             span_ms: 0,
@@ -456,11 +436,12 @@ mod tests {
         // and mean as they were.
         let b = buckets[100];
         assert_eq!(b.n, 50);
-        let speed = Field::SpeedRpm as usize;
+        let speed = slot(StatusField::SpeedRpm).unwrap();
         assert_eq!(i32::from(b.max[speed]) - i32::from(b.min[speed]), 49);
         let mid = (f64::from(b.min[speed]) + f64::from(b.max[speed])) / 2.0;
         assert!((b.mean[speed] - mid).abs() <= 0.5, "{b:?}");
-        assert_eq!(Field::CurrentA.value(b.mean[Field::CurrentA as usize]), 1.0);
+        assert_eq!(b.mean_of(StatusField::CurrentA), Some(1.0));
+        assert_eq!(b.mean_of(StatusField::Turns), None);
         // The stall of minute 30 is in its buckets' flags.
         let stall_minute = start + 30 * 60_000;
         assert!(
@@ -495,7 +476,7 @@ mod tests {
         let merged = h.query(start + 60_000, start + 119_999, now, 6);
         assert_eq!(merged.len(), 6);
         assert!(merged.iter().all(|p| p.n == 100 && p.span_ms == 10_000));
-        let s = Field::SpeedRpm as usize;
+        let s = slot(StatusField::SpeedRpm).unwrap();
         assert_eq!((merged[0].min[s], merged[0].max[s]), (600, 699));
         assert!((merged[0].mean[s] - 649.5).abs() < 0.6);
         // Outside what is kept: nothing.

@@ -26,18 +26,20 @@
 //! ends them with their stop.
 
 use std::collections::VecDeque;
+use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::{Buf, BytesMut};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
-use tokio::time::Instant;
+use tokio::time::{Instant, Sleep};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
 use super::gateway::{Answer, Client, Gateway, Pending};
 use super::mbap::{self, MAX_FRAME};
 use crate::control::SessionGuard;
+use crate::metrics::Metrics;
 
 /// Bytes of unparsed requests a connection may buffer (about 250 frames)
 /// beyond the ones queued on the bus.
@@ -79,6 +81,90 @@ impl InFlight {
     }
 }
 
+/// The requests whose replies are not written yet, oldest first.
+#[derive(Default)]
+struct Pipeline {
+    queue: VecDeque<InFlight>,
+    /// A malformed frame came: nothing after it is parsed.
+    malformed: bool,
+}
+
+impl Pipeline {
+    /// Takes every whole request in `buf`, up to the pipeline limit: each
+    /// handed to the gateway (queued on the bus, or answered at once), the
+    /// idle timer restarted. A malformed frame ends the parsing, counted
+    /// and logged.
+    async fn take(
+        &mut self,
+        buf: &mut BytesMut,
+        (gateway, client): (&Gateway, &Client),
+        max_pipelined: usize,
+        mut idle: Pin<&mut Sleep>,
+        idle_timeout: Duration,
+    ) {
+        while !self.malformed && self.queue.len() < max_pipelined {
+            match mbap::parse(buf) {
+                Ok(Some((frame, used))) => {
+                    buf.advance(used);
+                    idle.as_mut().reset(Instant::now() + idle_timeout);
+                    let reply = match gateway
+                        .handle(client, frame.transaction, frame.unit, frame.pdu)
+                        .await
+                    {
+                        Answer::Now(pdu) => Reply::Ready(pdu),
+                        Answer::Pending(p) => Reply::Pending(p),
+                        Answer::Silent => continue,
+                    };
+                    self.queue.push_back(InFlight {
+                        transaction: frame.transaction,
+                        unit: frame.unit,
+                        reply,
+                    });
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    gateway.metrics().faces().tcp_malformed();
+                    warn!(client = %client.peer, "malformed Modbus TCP frame: {e}; closing the connection after answering the {} request(s) before it", self.queue.len());
+                    self.malformed = true;
+                    buf.clear();
+                }
+            }
+        }
+    }
+
+    /// The replies ready at the head of the queue, in request order,
+    /// encoded into `out` (emptied first).
+    fn ready_replies(&mut self, out: &mut Vec<u8>, metrics: &Metrics) {
+        out.clear();
+        while let Some(front) = self.queue.front_mut() {
+            if !front.try_ready() {
+                break;
+            }
+            let Some(done) = self.queue.pop_front() else {
+                break;
+            };
+            let pdu = match done.reply {
+                Reply::Ready(pdu) => pdu,
+                Reply::Pending(p) => p.finish(metrics),
+            };
+            mbap::encode(done.transaction, done.unit, &pdu, out);
+        }
+    }
+
+    /// Cancels the requests still queued, so the bus drops them unsent;
+    /// how many were left.
+    fn cancel(self, metrics: &Metrics) -> usize {
+        let left = self.queue.len();
+        for request in self.queue {
+            match request.reply {
+                Reply::Pending(p) => p.cancel(metrics),
+                Reply::Ready(_) => {}
+            }
+        }
+        left
+    }
+}
+
 /// Why a connection ended, for the log.
 #[derive(Debug)]
 enum End {
@@ -88,6 +174,35 @@ enum End {
     Idle,
     NotReading,
     Shutdown,
+}
+
+impl End {
+    /// Our side closed it, so the client may still be sending: its input
+    /// is drained before the socket closes.
+    fn closed_by_us(&self) -> bool {
+        matches!(
+            self,
+            End::Malformed | End::Idle | End::NotReading | End::Shutdown
+        )
+    }
+
+    /// Logs the end of `client`'s connection, with the requests `cancelled`.
+    fn log(&self, client: &Client, cancelled: usize, idle_timeout: Duration) {
+        match self {
+            End::Malformed => {}
+            End::Idle => debug!(client = %client.peer, "closed after {:?} idle", idle_timeout),
+            End::NotReading => {
+                warn!(client = %client.peer, "closed: the client did not take its replies for {:?}", idle_timeout)
+            }
+            End::Failed(e) => debug!(client = %client.peer, cancelled, "connection failed: {e}"),
+            End::ClientClosed => {
+                debug!(client = %client.peer, cancelled, "client closed the connection")
+            }
+            End::Shutdown => {
+                debug!(client = %client.peer, cancelled, "closed: the daemon is stopping")
+            }
+        }
+    }
 }
 
 /// Serves one connection (plain TCP, or TLS for Modbus/TCP Security)
@@ -103,43 +218,22 @@ pub async fn serve<S: AsyncRead + AsyncWrite + Send + 'static>(
     let metrics = gateway.metrics().clone();
     let (mut rd, mut wr) = tokio::io::split(stream);
     let mut buf = BytesMut::with_capacity(2 * MAX_FRAME);
-    let mut queue: VecDeque<InFlight> = VecDeque::new();
+    let mut pipeline = Pipeline::default();
     let mut out = Vec::with_capacity(MAX_FRAME);
-    let mut malformed = false;
     let idle = tokio::time::sleep(settings.idle_timeout);
     tokio::pin!(idle);
 
     let end = loop {
-        // Take every whole request in the buffer, up to the pipeline limit.
-        while !malformed && queue.len() < settings.max_pipelined {
-            match mbap::parse(&buf) {
-                Ok(Some((frame, used))) => {
-                    buf.advance(used);
-                    idle.as_mut().reset(Instant::now() + settings.idle_timeout);
-                    let reply = match gateway
-                        .handle(&client, frame.transaction, frame.unit, frame.pdu)
-                        .await
-                    {
-                        Answer::Now(pdu) => Reply::Ready(pdu),
-                        Answer::Pending(p) => Reply::Pending(p),
-                        Answer::Silent => continue,
-                    };
-                    queue.push_back(InFlight {
-                        transaction: frame.transaction,
-                        unit: frame.unit,
-                        reply,
-                    });
-                }
-                Ok(None) => break,
-                Err(e) => {
-                    metrics.faces().tcp_malformed();
-                    warn!(client = %client.peer, "malformed Modbus TCP frame: {e}; closing the connection after answering the {} request(s) before it", queue.len());
-                    malformed = true;
-                    buf.clear();
-                }
-            }
-        }
-        if malformed && queue.is_empty() {
+        pipeline
+            .take(
+                &mut buf,
+                (&gateway, &client),
+                settings.max_pipelined,
+                idle.as_mut(),
+                settings.idle_timeout,
+            )
+            .await;
+        if pipeline.malformed && pipeline.queue.is_empty() {
             break End::Malformed;
         }
         // Keep reading while the pipeline is full, into a bounded buffer, so
@@ -152,19 +246,8 @@ pub async fn serve<S: AsyncRead + AsyncWrite + Send + 'static>(
         tokio::select! {
             biased;
             () = shutdown.cancelled() => break End::Shutdown,
-            () = head_ready(&mut queue), if !queue.is_empty() => {
-                out.clear();
-                while let Some(front) = queue.front_mut() {
-                    if !front.try_ready() {
-                        break;
-                    }
-                    let Some(done) = queue.pop_front() else { break };
-                    let pdu = match done.reply {
-                        Reply::Ready(pdu) => pdu,
-                        Reply::Pending(p) => p.finish(&metrics),
-                    };
-                    mbap::encode(done.transaction, done.unit, &pdu, &mut out);
-                }
+            () = head_ready(&mut pipeline.queue), if !pipeline.queue.is_empty() => {
+                pipeline.ready_replies(&mut out, &metrics);
                 let write = tokio::time::timeout(settings.idle_timeout, wr.write_all(&out));
                 tokio::select! {
                     r = write => match r {
@@ -179,44 +262,24 @@ pub async fn serve<S: AsyncRead + AsyncWrite + Send + 'static>(
                 Ok(0) => break End::ClientClosed,
                 // After a malformed frame the bytes mean nothing: read only
                 // to notice the client leaving.
-                Ok(_) if malformed => buf.clear(),
+                Ok(_) if pipeline.malformed => buf.clear(),
                 // The client is alive, even while its requests wait for
                 // room in the pipeline behind a slow bus.
                 Ok(_) => session.active(),
                 Err(e) => break End::Failed(e),
             },
-            () = &mut idle, if queue.is_empty() => break End::Idle,
+            () = &mut idle, if pipeline.queue.is_empty() => break End::Idle,
         }
     };
-    let cancelled = queue.len();
-    for left in queue {
-        match left.reply {
-            Reply::Pending(p) => p.cancel(&metrics),
-            Reply::Ready(_) => {}
-        }
-    }
+    let cancelled = pipeline.cancel(&metrics);
     // Only once none of its queued writes can reach the bus: a setpoint
     // landing after the stop would set the motor going again.
     drop(session);
     let _ = wr.shutdown().await;
-    if matches!(
-        end,
-        End::Malformed | End::Idle | End::NotReading | End::Shutdown
-    ) {
+    if end.closed_by_us() {
         drain(&mut rd).await;
     }
-    match end {
-        End::Malformed => {}
-        End::Idle => debug!(client = %client.peer, "closed after {:?} idle", settings.idle_timeout),
-        End::NotReading => {
-            warn!(client = %client.peer, "closed: the client did not take its replies for {:?}", settings.idle_timeout)
-        }
-        End::Failed(e) => debug!(client = %client.peer, cancelled, "connection failed: {e}"),
-        End::ClientClosed => {
-            debug!(client = %client.peer, cancelled, "client closed the connection")
-        }
-        End::Shutdown => debug!(client = %client.peer, cancelled, "closed: the daemon is stopping"),
-    }
+    end.log(&client, cancelled, settings.idle_timeout);
 }
 
 /// Reads and discards what the client still sends, briefly, after our side

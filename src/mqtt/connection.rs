@@ -5,9 +5,12 @@
 //! each connection has its own will (its bdSeq), so the node opens a new
 //! one instead.
 
+use std::time::Duration;
+
 use rumqttc::{AsyncClient, Event, LastWill, MqttOptions, Transport};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
+use tokio::time::Instant;
 
 use crate::config::MqttConfig;
 
@@ -78,6 +81,51 @@ pub(in crate::mqtt) async fn next_event<C, E>(
     match link {
         Some(l) => l.events.recv().await,
         None => std::future::pending().await,
+    }
+}
+
+/// The first wait before reconnecting; it doubles up to [`BACKOFF_MAX`].
+const BACKOFF_MIN: Duration = Duration::from_millis(250);
+const BACKOFF_MAX: Duration = Duration::from_secs(15);
+
+/// When to connect again: at once at first; after a failure, after a wait
+/// that doubles from [`BACKOFF_MIN`] to [`BACKOFF_MAX`] while connections
+/// keep failing, and starts over once the broker accepted one.
+#[derive(Debug)]
+pub(in crate::mqtt) struct Backoff {
+    at: Instant,
+    wait: Duration,
+}
+
+impl Backoff {
+    /// Connect now.
+    pub(in crate::mqtt) fn new() -> Self {
+        Backoff {
+            at: Instant::now(),
+            wait: BACKOFF_MIN,
+        }
+    }
+
+    /// When the next connection is due.
+    pub(in crate::mqtt) fn at(&self) -> Instant {
+        self.at
+    }
+
+    /// A connection failed (or could not be opened): the next one after
+    /// the wait, which doubles.
+    pub(in crate::mqtt) fn failed(&mut self) {
+        self.at = Instant::now() + self.wait;
+        self.wait = (self.wait * 2).min(BACKOFF_MAX);
+    }
+
+    /// The broker accepted a connection: the wait starts over.
+    pub(in crate::mqtt) fn accepted(&mut self) {
+        self.wait = BACKOFF_MIN;
+    }
+
+    /// The next connection at once (the wait unchanged).
+    pub(in crate::mqtt) fn at_once(&mut self) {
+        self.at = Instant::now();
     }
 }
 

@@ -6,9 +6,9 @@
 //! [`SETTLE_POLLS`] polls, so the host's value ends equal to the drive's
 //! after every change. Pure: no I/O.
 
-use super::metric::{Field, Value};
+use super::metric::{self, Value};
 use crate::config::mqtt::Deadbands;
-use crate::drive::Status;
+use crate::drive::{Status, StatusField};
 
 /// Polls in a row a value within its deadband must be read unchanged
 /// before it is published: long enough that noise is not reported, short
@@ -29,11 +29,11 @@ impl Reported {
     /// The values a birth published (every field of `status`).
     pub fn born(status: Option<&Status>) -> Self {
         Reported {
-            last: Field::ALL
+            last: StatusField::ALL
                 .iter()
-                .map(|f| status.map(|s| f.value(s)))
+                .map(|f| status.map(|s| metric::status_value(*f, s)))
                 .collect(),
-            settling: vec![None; Field::ALL.len()],
+            settling: vec![None; StatusField::ALL.len()],
         }
     }
 
@@ -45,18 +45,18 @@ impl Reported {
         status: &Status,
         deadbands: &Deadbands,
         full: bool,
-    ) -> Vec<(Field, Value)> {
-        if self.last.len() != Field::ALL.len() {
-            self.last = vec![None; Field::ALL.len()];
+    ) -> Vec<(StatusField, Value)> {
+        if self.last.len() != StatusField::ALL.len() {
+            self.last = vec![None; StatusField::ALL.len()];
         }
-        if self.settling.len() != Field::ALL.len() {
-            self.settling = vec![None; Field::ALL.len()];
+        if self.settling.len() != StatusField::ALL.len() {
+            self.settling = vec![None; StatusField::ALL.len()];
         }
         let mut out = Vec::new();
-        for (i, field) in Field::ALL.iter().enumerate() {
-            let now = field.value(status);
+        for (i, field) in StatusField::ALL.iter().enumerate() {
+            let now = metric::status_value(*field, status);
             let publish = full
-                || match (&self.last[i], field.deadband(deadbands)) {
+                || match (&self.last[i], metric::deadband(*field, deadbands)) {
                     (None, _) => true,
                     (Some(last), Some(band)) => {
                         moved(last, &now) > band || settled(&mut self.settling[i], last, &now)
@@ -132,14 +132,14 @@ mod tests {
         // 1 rpm is within the band; 2 is beyond it.
         assert!(r.changes(&status(101, 30, 5), &bands, false).is_empty());
         let c = r.changes(&status(102, 30, 5), &bands, false);
-        assert_eq!(c, vec![(Field::SpeedRpm, Value::Int(102))]);
+        assert_eq!(c, vec![(StatusField::SpeedRpm, Value::Int(102))]);
         // The band is measured from the value last published (102), so a
         // slow drift is published once it adds up.
         assert!(r.changes(&status(103, 30, 5), &bands, false).is_empty());
         assert_eq!(r.changes(&status(104, 30, 5), &bands, false).len(), 1);
         // Counts have no band.
         let c = r.changes(&status(104, 30, 6), &bands, false);
-        assert_eq!(c, vec![(Field::Turns, Value::UInt(6))]);
+        assert_eq!(c, vec![(StatusField::Turns, Value::UInt(6))]);
     }
 
     /// Speeds a poll catches of a ramp from 0 to `to` in steps of `step`.
@@ -154,7 +154,7 @@ mod tests {
         let mut host = 0_i64;
         let mut publish = |r: &mut Reported, rpm: i16| {
             for (f, v) in r.changes(&status(rpm, 30, 0), &bands, false) {
-                if let (Field::SpeedRpm, Value::Int(v)) = (f, v) {
+                if let (StatusField::SpeedRpm, Value::Int(v)) = (f, v) {
                     host = v;
                 }
             }
@@ -197,8 +197,8 @@ mod tests {
         let mut r = Reported::born(None);
         // Nothing published yet: everything is new.
         let all = r.changes(&status(0, 20, 0), &Deadbands::default(), false);
-        assert_eq!(all.len(), Field::ALL.len());
+        assert_eq!(all.len(), StatusField::ALL.len());
         let again = r.changes(&status(0, 20, 0), &Deadbands::default(), true);
-        assert_eq!(again.len(), Field::ALL.len());
+        assert_eq!(again.len(), StatusField::ALL.len());
     }
 }

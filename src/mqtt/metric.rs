@@ -1,13 +1,14 @@
-//! A drive as a Sparkplug device: the metrics of its status (read only,
-//! with their engineering units) and the ones a host may write, their
-//! values from a status, and their protobuf form. Pure: no I/O.
+//! A drive as a Sparkplug device: the metrics of its status (read only:
+//! `status/<name>` of every [`StatusField`], with its unit) and the ones
+//! a host may write, their values from a status, and their protobuf form.
+//! Pure: no I/O.
 
 use super::sparkplug_b::DataType;
 use super::sparkplug_b::payload::{
     self, Metric, PropertySet, PropertyValue, metric, property_value,
 };
 use crate::config::mqtt::Deadbands;
-use crate::drive::Status;
+use crate::drive::{Reading, Status, StatusField};
 
 /// A metric's value, typed as Sparkplug sends it.
 #[derive(Debug, Clone, PartialEq)]
@@ -26,123 +27,56 @@ pub enum Value {
     Null,
 }
 
-/// A status field of a drive, published as `status/<name>`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Field {
-    /// Speed at the gearbox output, rpm.
-    SpeedRpm,
-    /// Angle within the turn, degrees.
-    AngleDeg,
-    /// Whole turns (wraps at 65536).
-    Turns,
-    /// Motor current, amps.
-    CurrentA,
-    /// Supply voltage, volts.
-    VoltageV,
-    /// Temperature, degrees Celsius.
-    TemperatureC,
-    /// Active (takes setpoints).
-    Active,
-    /// Stalled (needs a fault reset).
-    Stalled,
-    /// Calibrated.
-    Calibrated,
-    /// Control mode's name.
-    Mode,
-    /// Fault's name.
-    Fault,
-    /// Fault's code.
-    FaultCode,
+/// A status field's metric name: `status/speed_rpm`.
+pub fn status_name(field: StatusField) -> String {
+    format!("status/{}", field.name())
 }
 
-impl Field {
-    /// Every status field, in the order of the births.
-    pub const ALL: [Field; 12] = [
-        Field::SpeedRpm,
-        Field::AngleDeg,
-        Field::Turns,
-        Field::CurrentA,
-        Field::VoltageV,
-        Field::TemperatureC,
-        Field::Active,
-        Field::Stalled,
-        Field::Calibrated,
-        Field::Mode,
-        Field::Fault,
-        Field::FaultCode,
-    ];
-
-    /// The metric's name.
-    pub fn name(self) -> &'static str {
-        match self {
-            Field::SpeedRpm => "status/speed_rpm",
-            Field::AngleDeg => "status/angle_deg",
-            Field::Turns => "status/turns",
-            Field::CurrentA => "status/current_a",
-            Field::VoltageV => "status/voltage_v",
-            Field::TemperatureC => "status/temperature_c",
-            Field::Active => "status/active",
-            Field::Stalled => "status/stalled",
-            Field::Calibrated => "status/calibrated",
-            Field::Mode => "status/mode",
-            Field::Fault => "status/fault",
-            Field::FaultCode => "status/fault_code",
-        }
+/// A status field's Sparkplug data type: a signed register Int32, an
+/// unsigned one (and the fault code) UInt32, a scaled one Double, a flag
+/// Boolean, the mode and the fault their names.
+pub fn status_datatype(field: StatusField) -> DataType {
+    match field {
+        StatusField::SpeedRpm | StatusField::TemperatureC => DataType::Int32,
+        StatusField::Turns | StatusField::VoltageV | StatusField::FaultCode => DataType::UInt32,
+        StatusField::AngleDeg | StatusField::CurrentA => DataType::Double,
+        StatusField::Active | StatusField::Stalled | StatusField::Calibrated => DataType::Boolean,
+        StatusField::Mode | StatusField::Fault => DataType::String,
     }
+}
 
-    /// Its engineering unit, if it has one.
-    pub fn unit(self) -> Option<&'static str> {
-        match self {
-            Field::SpeedRpm => Some("rpm"),
-            Field::AngleDeg => Some("deg"),
-            Field::Turns => Some("turns"),
-            Field::CurrentA => Some("A"),
-            Field::VoltageV => Some("V"),
-            Field::TemperatureC => Some("°C"),
-            _ => None,
-        }
+/// A status field's value in `status`, as its metric carries it.
+pub fn status_value(field: StatusField, status: &Status) -> Value {
+    match field.read(status) {
+        Reading::Signed(v) => Value::Int(i64::from(v)),
+        Reading::Unsigned(v) => Value::UInt(u32::from(v)),
+        Reading::Scaled(v) => Value::Double(v),
+        Reading::Flag(on) => Value::Bool(on),
+        Reading::Mode(mode) => Value::Text(mode.name().to_string()),
+        Reading::Fault(fault) => Value::Text(fault.name().to_string()),
     }
+}
 
-    /// Its Sparkplug data type.
-    pub fn datatype(self) -> DataType {
-        match self {
-            Field::SpeedRpm | Field::TemperatureC => DataType::Int32,
-            Field::Turns | Field::VoltageV | Field::FaultCode => DataType::UInt32,
-            Field::AngleDeg | Field::CurrentA => DataType::Double,
-            Field::Active | Field::Stalled | Field::Calibrated => DataType::Boolean,
-            Field::Mode | Field::Fault => DataType::String,
-        }
-    }
+/// The metric of status field `field` with `value` (at `timestamp`, ms).
+pub fn status_metric(field: StatusField, value: Value, timestamp: u64) -> Metric {
+    metric(
+        &status_name(field),
+        status_datatype(field),
+        value,
+        timestamp,
+    )
+}
 
-    /// Its value in `status`.
-    pub fn value(self, status: &Status) -> Value {
-        match self {
-            Field::SpeedRpm => Value::Int(i64::from(status.speed_rpm)),
-            Field::AngleDeg => Value::Double(status.angle_deg()),
-            Field::Turns => Value::UInt(u32::from(status.turns)),
-            Field::CurrentA => Value::Double(status.current_a()),
-            Field::VoltageV => Value::UInt(u32::from(status.voltage_v)),
-            Field::TemperatureC => Value::Int(i64::from(status.temperature_c)),
-            Field::Active => Value::Bool(status.active()),
-            Field::Stalled => Value::Bool(status.stalled()),
-            Field::Calibrated => Value::Bool(status.calibrated()),
-            Field::Mode => Value::Text(status.mode().name().to_string()),
-            Field::Fault => Value::Text(status.fault().name().to_string()),
-            Field::FaultCode => Value::UInt(u32::from(status.fault().code())),
-        }
-    }
-
-    /// How far it must move before it is published again; `None`: on
-    /// every change.
-    pub fn deadband(self, deadbands: &Deadbands) -> Option<f64> {
-        match self {
-            Field::SpeedRpm => Some(deadbands.speed_rpm),
-            Field::AngleDeg => Some(deadbands.angle_deg),
-            Field::CurrentA => Some(deadbands.current_a),
-            Field::VoltageV => Some(deadbands.voltage_v),
-            Field::TemperatureC => Some(deadbands.temperature_c),
-            _ => None,
-        }
+/// How far a status field must move before it is published again;
+/// `None`: on every change.
+pub fn deadband(field: StatusField, deadbands: &Deadbands) -> Option<f64> {
+    match field {
+        StatusField::SpeedRpm => Some(deadbands.speed_rpm),
+        StatusField::AngleDeg => Some(deadbands.angle_deg),
+        StatusField::CurrentA => Some(deadbands.current_a),
+        StatusField::VoltageV => Some(deadbands.voltage_v),
+        StatusField::TemperatureC => Some(deadbands.temperature_c),
+        _ => None,
     }
 }
 
@@ -298,10 +232,10 @@ pub fn birth_metrics(
     last_result: &str,
     timestamp: u64,
 ) -> Vec<Metric> {
-    let mut out = Vec::with_capacity(Field::ALL.len() + Writable::ALL.len() + 1);
-    for field in Field::ALL {
-        let value = status.map_or(Value::Null, |s| field.value(s));
-        let mut m = metric(field.name(), field.datatype(), value, timestamp);
+    let mut out = Vec::with_capacity(StatusField::ALL.len() + Writable::ALL.len() + 1);
+    for field in StatusField::ALL {
+        let value = status.map_or(Value::Null, |s| status_value(field, s));
+        let mut m = status_metric(field, value, timestamp);
         m.properties = Some(properties(field.unit(), true));
         out.push(m);
     }
@@ -412,6 +346,36 @@ mod tests {
         assert_eq!(value_of(&m), Value::Int(-150));
         let m = metric(BD_SEQ, DataType::Int64, Value::Int(7), 1);
         assert_eq!(value_of(&m), Value::Int(7));
+    }
+
+    #[test]
+    fn status_values_are_of_their_declared_types() {
+        let s = Status {
+            turns: 7,
+            angle_centideg: -4500,
+            speed_rpm: -120,
+            current_counts: 256,
+            voltage_v: 24,
+            temperature_c: -5,
+            flags: Status::flags_from(
+                true,
+                true,
+                false,
+                crate::drive::Mode::Speed,
+                crate::drive::Fault::Encoder,
+            ),
+        };
+        for field in StatusField::ALL {
+            let value = status_value(field, &s);
+            let m = status_metric(field, value.clone(), 1);
+            assert_eq!(value_of(&m), value, "{field:?}");
+        }
+        assert_eq!(status_name(StatusField::FaultCode), "status/fault_code");
+        assert_eq!(
+            status_value(StatusField::Fault, &s),
+            Value::Text("encoder".into())
+        );
+        assert_eq!(status_value(StatusField::FaultCode, &s), Value::UInt(2));
     }
 
     #[test]

@@ -33,6 +33,7 @@ pub mod identity;
 pub mod json;
 pub mod metric;
 mod node;
+mod outbox;
 pub mod replay;
 pub mod store;
 #[rustfmt::skip]
@@ -48,36 +49,7 @@ use crate::config::mqtt::Format;
 use crate::config::{Config, MqttConfig};
 use crate::control::Control;
 use crate::metrics::Metrics;
-use sparkplug_b::payload::Metric;
-
-/// Where device data goes while it cannot be published (no broker, or the
-/// primary host offline), and where it comes back from once the births
-/// are out: the node replays it a little at a time, marked historical,
-/// each message with the seq of when it is sent.
-///
-/// The node calls [`keep`](Outbox::keep) for each DDATA it could not send,
-/// in order, and [`next`](Outbox::next) while connected and born, a few
-/// times per tick, until it returns `None`.
-pub trait Outbox: Send {
-    /// Keeps the metrics of one DDATA of `device` (each with its own
-    /// timestamp) for later.
-    fn keep(&mut self, device: &str, metrics: Vec<Metric>);
-    /// The oldest kept DDATA, taken out; `None` when nothing is kept.
-    fn next(&mut self) -> Option<(String, Vec<Metric>)>;
-}
-
-/// The outbox without a store: what cannot be published is dropped (the
-/// births republish every value when the link is back).
-#[derive(Debug, Default)]
-pub struct Discard;
-
-impl Outbox for Discard {
-    fn keep(&mut self, _device: &str, _metrics: Vec<Metric>) {}
-
-    fn next(&mut self) -> Option<(String, Vec<Metric>)> {
-        None
-    }
-}
+pub use outbox::{Discard, Outbox};
 
 /// The node id of `config`: its `node_id`, else the host's name (with any
 /// character a topic level cannot hold replaced by `-`).

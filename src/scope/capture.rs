@@ -494,8 +494,8 @@ impl Capture {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::drive::StatusField;
     use crate::drive::status::FLAG_STALLED;
-    use crate::scope::field::Field;
     use crate::scope::spec::fixtures::{limits, spec};
     use crate::scope::trigger::Edge;
 
@@ -522,7 +522,7 @@ mod tests {
                 &[1],
                 Trigger::Level {
                     unit: 1,
-                    field: Field::SpeedRpm,
+                    field: StatusField::SpeedRpm,
                     level: 50.0,
                     edge: Edge::Rising,
                 },

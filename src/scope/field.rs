@@ -1,96 +1,102 @@
-//! The status fields a capture records, each in engineering units with the
-//! unit in its name (as the CSV columns are named).
+//! The status fields a capture records: every field of the status block
+//! ([`StatusField`], with its name, unit and value) but `calibrated` and
+//! `fault_code` (the scope's `fault` is the fault's code), and how a
+//! client names them.
 
-use serde::{Deserialize, Serialize};
-use utoipa::ToSchema;
+use std::borrow::Cow;
+use std::fmt;
 
-use crate::drive::Status;
-use crate::listed::listed_enum;
+use serde::de::{self, Deserialize, Deserializer, Visitor};
+use utoipa::openapi::RefOr;
+use utoipa::openapi::schema::{ObjectBuilder, Schema, Type};
+use utoipa::{PartialSchema, ToSchema};
 
-listed_enum! {
-    /// One field of the status block (manual 1.7).
-    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, ToSchema)]
-    #[serde(rename_all = "snake_case")]
-    pub enum Field {
-        /// Speed at the gearbox output, rpm.
-        SpeedRpm,
-        /// Angle, degrees (-180..180).
-        AngleDeg,
-        /// Whole turns counted by the drive (0..65535, wraps).
-        Turns,
-        /// Motor current, A (1 A = 128 counts).
-        CurrentA,
-        /// Supply voltage, V.
-        VoltageV,
-        /// Drive temperature, °C.
-        TemperatureC,
-        /// 1 while the drive is active.
-        Active,
-        /// 1 while the drive is stalled (until a fault reset).
-        Stalled,
-        /// Control mode: 0 open loop, 1 speed, 2 position, 3 torque.
-        Mode,
-        /// Fault code: 0 none, 1 current sense, 2 encoder, 3 power stage,
-        /// 4 over-temperature, 5 under-voltage, 6 over-voltage.
-        Fault,
+use crate::drive::StatusField;
+
+/// What a capture can record, in the order of the CSV's columns when a
+/// client names none.
+pub const RECORDED: [StatusField; 10] = [
+    StatusField::SpeedRpm,
+    StatusField::AngleDeg,
+    StatusField::Turns,
+    StatusField::CurrentA,
+    StatusField::VoltageV,
+    StatusField::TemperatureC,
+    StatusField::Active,
+    StatusField::Stalled,
+    StatusField::Mode,
+    StatusField::Fault,
+];
+
+/// Their names, for the refusal of any other.
+const NAMES: [&str; RECORDED.len()] = {
+    let mut names = [""; RECORDED.len()];
+    let mut i = 0;
+    while i < RECORDED.len() {
+        names[i] = RECORDED[i].name();
+        i += 1;
+    }
+    names
+};
+
+/// A field's value in a sample, a number in the field's unit (a flag 0
+/// or 1, the mode its two STATUS bits, the fault its code).
+pub fn value(field: StatusField, status: &crate::drive::Status) -> f64 {
+    field.read(status).number()
+}
+
+/// A field's unit, empty for flags and codes.
+pub fn unit(field: StatusField) -> &'static str {
+    field.unit().unwrap_or("")
+}
+
+/// A field a capture records, as a client names it (`"speed_rpm"`): one
+/// of [`RECORDED`], any other name refused with the list.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Field(pub StatusField);
+
+impl<'de> Deserialize<'de> for Field {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct Name;
+        impl Visitor<'_> for Name {
+            type Value = Field;
+
+            fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("the name of a status field")
+            }
+
+            fn visit_str<E: de::Error>(self, name: &str) -> Result<Field, E> {
+                RECORDED
+                    .into_iter()
+                    .find(|f| f.name() == name)
+                    .map(Field)
+                    .ok_or_else(|| E::unknown_variant(name, &NAMES))
+            }
+        }
+        deserializer.deserialize_str(Name)
     }
 }
 
-impl Field {
-    /// The field's name, its unit in it: `speed_rpm`.
-    pub fn name(self) -> &'static str {
-        match self {
-            Field::SpeedRpm => "speed_rpm",
-            Field::AngleDeg => "angle_deg",
-            Field::Turns => "turns",
-            Field::CurrentA => "current_a",
-            Field::VoltageV => "voltage_v",
-            Field::TemperatureC => "temperature_c",
-            Field::Active => "active",
-            Field::Stalled => "stalled",
-            Field::Mode => "mode",
-            Field::Fault => "fault",
-        }
+impl PartialSchema for Field {
+    fn schema() -> RefOr<Schema> {
+        ObjectBuilder::new()
+            .schema_type(Type::String)
+            .description(Some("One field of the status block (manual 1.7)."))
+            .enum_values(Some(NAMES))
+            .into()
     }
+}
 
-    /// The unit, in words (empty for flags and codes).
-    pub fn unit(self) -> &'static str {
-        match self {
-            Field::SpeedRpm => "rpm",
-            Field::AngleDeg => "deg",
-            Field::Turns => "turns",
-            Field::CurrentA => "A",
-            Field::VoltageV => "V",
-            Field::TemperatureC => "°C",
-            Field::Active | Field::Stalled | Field::Mode | Field::Fault => "",
-        }
-    }
-
-    /// The field named `name`.
-    pub fn from_name(name: &str) -> Option<Field> {
-        Self::ALL.into_iter().find(|f| f.name() == name)
-    }
-
-    /// Its value in `status`.
-    pub fn value(self, s: &Status) -> f64 {
-        match self {
-            Field::SpeedRpm => f64::from(s.speed_rpm),
-            Field::AngleDeg => s.angle_deg(),
-            Field::Turns => f64::from(s.turns),
-            Field::CurrentA => s.current_a(),
-            Field::VoltageV => f64::from(s.voltage_v),
-            Field::TemperatureC => f64::from(s.temperature_c),
-            Field::Active => f64::from(u8::from(s.active())),
-            Field::Stalled => f64::from(u8::from(s.stalled())),
-            Field::Mode => f64::from(s.mode().bits()),
-            Field::Fault => f64::from(s.fault().code()),
-        }
+impl ToSchema for Field {
+    fn name() -> Cow<'static, str> {
+        Cow::Borrowed("Field")
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::drive::Status;
 
     #[test]
     fn values_in_engineering_units() {
@@ -103,14 +109,22 @@ mod tests {
             temperature_c: 40,
             flags: 0x80 | 0x20 | (2 << 3) | 4,
         };
-        let v: Vec<f64> = Field::ALL.iter().map(|f| f.value(&s)).collect();
+        let v: Vec<f64> = RECORDED.iter().map(|f| value(*f, &s)).collect();
         assert_eq!(v, [-120.0, -45.0, 2.0, 2.0, 24.0, 40.0, 1.0, 1.0, 2.0, 4.0]);
-        for f in Field::ALL {
-            assert_eq!(Field::from_name(f.name()), Some(f));
-        }
-        assert_eq!(
-            serde_json::to_string(&Field::TemperatureC).unwrap(),
-            "\"temperature_c\""
+        assert_eq!(unit(StatusField::TemperatureC), "°C");
+        assert_eq!(unit(StatusField::Fault), "");
+    }
+
+    #[test]
+    fn a_client_names_the_recorded_fields_only() {
+        let f: Field = serde_json::from_str("\"temperature_c\"").unwrap();
+        assert_eq!(f.0, StatusField::TemperatureC);
+        let e = serde_json::from_str::<Field>("\"calibrated\"").unwrap_err();
+        assert!(
+            e.to_string().starts_with(
+                "unknown variant `calibrated`, expected one of `speed_rpm`, `angle_deg`,"
+            ),
+            "{e}"
         );
     }
 }

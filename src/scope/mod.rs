@@ -5,7 +5,8 @@
 //! - [`capture`] is one capture's pure state machine (time passed in):
 //!   armed with a pre-trigger buffer, triggered, ended;
 //! - [`trigger`] says what starts it and detects it in the samples;
-//! - [`field`] lists the status fields in engineering units;
+//! - [`field`] says which status fields it records, and how a client
+//!   names them;
 //! - [`steer`] decides which drive is polled while a capture runs: the
 //!   captured drives at full rate, the others at a floor rate;
 //! - [`result`] renders a capture as JSON or CSV;
@@ -377,7 +378,7 @@ impl Scope {
 mod tests {
     use super::*;
     use crate::modbus::rtu_frame::encode;
-    use field::Field;
+    use field::RECORDED;
     use spec::Amount;
     use trigger::Trigger;
 
@@ -392,7 +393,7 @@ mod tests {
     fn spec(units: &[u8]) -> CaptureSpec {
         CaptureSpec {
             units: units.to_vec(),
-            fields: Field::ALL.to_vec(),
+            fields: RECORDED.to_vec(),
             trigger: Trigger::Manual,
             pre_trigger: Amount::Samples(10),
             length: Amount::Samples(3),

@@ -10,6 +10,7 @@ use serde::Serialize;
 use utoipa::ToSchema;
 
 use super::capture::{Capture, Fired};
+use super::field;
 use crate::timestamp::rfc3339_micros;
 
 /// The trigger of a capture and, once it fired, when and why.
@@ -188,7 +189,10 @@ pub fn result(capture: &Capture, bus: &str, name: &dyn Fn(u8) -> String) -> Scop
                 .map(|f| {
                     (
                         f.name(),
-                        samples.iter().map(|s| f.value(&s.status)).collect(),
+                        samples
+                            .iter()
+                            .map(|s| field::value(*f, &s.status))
+                            .collect(),
                     )
                 })
                 .collect();
@@ -217,7 +221,7 @@ pub fn result(capture: &Capture, bus: &str, name: &dyn Fn(u8) -> String) -> Scop
             .iter()
             .map(|f| FieldView {
                 name: f.name(),
-                unit: f.unit(),
+                unit: field::unit(*f),
             })
             .collect(),
         traces,
@@ -244,7 +248,7 @@ pub fn csv(capture: &Capture, name: &dyn Fn(u8) -> String) -> String {
             s.unit
         );
         for f in fields {
-            let _ = write!(out, ",{}", f.value(&s.status));
+            let _ = write!(out, ",{}", field::value(*f, &s.status));
         }
         out.push('\n');
     }
@@ -255,7 +259,7 @@ pub fn csv(capture: &Capture, name: &dyn Fn(u8) -> String) -> String {
 mod tests {
     use super::*;
     use crate::drive::Status;
-    use crate::scope::field::Field;
+    use crate::drive::StatusField;
     use crate::scope::spec::{Amount, CaptureSpec, Limits};
     use crate::scope::trigger::Trigger;
     use std::time::{Duration, Instant};
@@ -264,7 +268,7 @@ mod tests {
     fn traces_and_csv_with_units_in_the_column_names() {
         let spec = CaptureSpec {
             units: vec![1, 2],
-            fields: vec![Field::SpeedRpm, Field::CurrentA],
+            fields: vec![StatusField::SpeedRpm, StatusField::CurrentA],
             trigger: Trigger::Manual,
             pre_trigger: Amount::Samples(1),
             length: Amount::Samples(2),

@@ -3,9 +3,8 @@
 
 use std::time::Duration;
 
-use super::field::Field;
 use super::trigger::Trigger;
-use crate::drive::RangeError;
+use crate::drive::{RangeError, StatusField};
 
 /// A length: a number of samples per captured drive, or a time.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -22,7 +21,7 @@ pub struct CaptureSpec {
     /// The drives captured (polled at the bus's full rate meanwhile).
     pub units: Vec<u8>,
     /// The fields kept in the result.
-    pub fields: Vec<Field>,
+    pub fields: Vec<StatusField>,
     /// What starts it.
     pub trigger: Trigger,
     /// What to keep from before the trigger.
@@ -185,7 +184,7 @@ pub(crate) mod fixtures {
     pub(crate) fn spec(units: &[u8], trigger: Trigger, pre: Amount, length: Amount) -> CaptureSpec {
         CaptureSpec {
             units: units.to_vec(),
-            fields: vec![Field::SpeedRpm],
+            fields: vec![StatusField::SpeedRpm],
             trigger,
             pre_trigger: pre,
             length,

@@ -1,8 +1,8 @@
 //! What starts a capture, and the pure detector that watches the samples
 //! for it.
 
-use super::field::Field;
-use crate::drive::Status;
+use super::field;
+use crate::drive::{Status, StatusField};
 
 /// Which way a level is crossed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -21,7 +21,7 @@ pub enum Trigger {
         /// The drive watched.
         unit: u8,
         /// The field.
-        field: Field,
+        field: StatusField,
         /// The level, in the field's unit.
         level: f64,
         /// Which way.
@@ -113,7 +113,10 @@ impl Detector {
             Trigger::Level {
                 field, level, edge, ..
             } => {
-                let (before, now) = (field.value(&previous), field.value(status));
+                let (before, now) = (
+                    field::value(*field, &previous),
+                    field::value(*field, status),
+                );
                 let crossed = match edge {
                     Edge::Rising => before < *level && now >= *level,
                     Edge::Falling => before > *level && now <= *level,
@@ -122,7 +125,7 @@ impl Detector {
                     format!(
                         "{} went from {before} to {now} {}, crossing {level}",
                         field.name(),
-                        field.unit()
+                        field::unit(*field)
                     )
                     .replace("  ", " ")
                 })
@@ -153,7 +156,7 @@ mod tests {
     fn rising_and_falling_edges() {
         let mut d = Detector::new(Trigger::Level {
             unit: 1,
-            field: Field::SpeedRpm,
+            field: StatusField::SpeedRpm,
             level: 100.0,
             edge: Edge::Rising,
         });
@@ -168,7 +171,7 @@ mod tests {
         assert_eq!(d.sample(1, &speed(120)), None, "already above");
         let mut d = Detector::new(Trigger::Level {
             unit: 1,
-            field: Field::SpeedRpm,
+            field: StatusField::SpeedRpm,
             level: 0.0,
             edge: Edge::Falling,
         });

@@ -32,7 +32,7 @@ use rumqttc::v5::{AsyncClient, Event};
 use serde_json::Value;
 use tokio::sync::{broadcast, mpsc};
 use tokio::task::JoinHandle;
-use tokio::time::{Instant, sleep_until};
+use tokio::time::sleep_until;
 use tokio_util::sync::CancellationToken;
 
 use super::connection::Connection;
@@ -42,16 +42,12 @@ use crate::bus::cache::BusEvent;
 use crate::config::MqttConfig;
 use crate::control::{Caller, CommLoss, Control, ControlEvent, Face, Published, SessionGuard};
 use crate::metrics::Metrics;
-use crate::mqtt::connection::next_event;
+use crate::mqtt::connection::{Backoff, next_event};
 use crate::ops::commands::{self, CommandMessage, DRIVE_OPS};
 use crate::ops::messages::{self, DriveMessage};
-use crate::ops::problem::{Kind, Problem};
+use crate::ops::problem::Problem;
 use crate::ops::status::{self, StatusSource};
 use crate::ops::target::Target;
-
-/// The first wait before reconnecting; it doubles up to [`BACKOFF_MAX`].
-const BACKOFF_MIN: Duration = Duration::from_millis(250);
-const BACKOFF_MAX: Duration = Duration::from_secs(15);
 
 /// How the session's closing reads in lease news and the audit log.
 const SESSION_CLOSING: &str = "the MQTT session ended (the face stopped)";
@@ -135,47 +131,23 @@ impl JsonNode {
         self.follow_buses();
         let mut control_rx = self.control.subscribe();
         let mut conn: Option<Connection> = None;
-        let mut reconnect_at = Instant::now();
-        let mut backoff = BACKOFF_MIN;
+        let mut backoff = Backoff::new();
         let renew_every = (self.config.comm_loss() / 4).max(Duration::from_millis(20));
         let mut renew = tokio::time::interval(renew_every);
         renew.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             tokio::select! {
                 _ = shutdown.cancelled() => break,
-                _ = sleep_until(reconnect_at), if conn.is_none() => {
+                _ = sleep_until(backoff.at()), if conn.is_none() => {
                     match Connection::open(&self.config, &self.client_id, &self.topics.state()) {
                         Ok(c) => conn = Some(c),
                         Err(why) => {
                             self.failed(&why);
-                            reconnect_at = Instant::now() + backoff;
-                            backoff = (backoff * 2).min(BACKOFF_MAX);
+                            backoff.failed();
                         }
                     }
                 }
-                event = next_event(&mut conn) => {
-                    let Some(c) = conn.as_mut() else { continue };
-                    let ended = match event {
-                        Some(Ok(event)) => self.on_event(c, event).err(),
-                        Some(Err(why)) => Some(why),
-                        None => Some("the connection's event loop ended".to_string()),
-                    };
-                    match ended {
-                        Some(why) => {
-                            let was_accepted = c.accepted;
-                            conn = None;
-                            self.metrics.mqtt().disconnected();
-                            self.failed(&why);
-                            if was_accepted {
-                                backoff = BACKOFF_MIN;
-                            }
-                            reconnect_at = Instant::now() + backoff;
-                            backoff = (backoff * 2).min(BACKOFF_MAX);
-                        }
-                        None if c.accepted => backoff = BACKOFF_MIN,
-                        None => {}
-                    }
-                }
+                event = next_event(&mut conn) => self.on_connection(&mut conn, event, &mut backoff),
                 Some(event) = bus_rx.recv() => self.on_bus(conn.as_ref(), event),
                 published = control_rx.recv() => match published {
                     Ok(p) => self.on_control(conn.as_ref(), &p),
@@ -193,7 +165,43 @@ impl JsonNode {
                 }
             }
         }
-        if let Some(mut c) = conn.take()
+        self.stop(conn).await;
+    }
+
+    /// An event of the connection, or its end: a connection that ended is
+    /// dropped, and the next one comes after the backoff.
+    fn on_connection(
+        &mut self,
+        conn: &mut Option<Connection>,
+        event: Option<Result<Event, String>>,
+        backoff: &mut Backoff,
+    ) {
+        let Some(c) = conn.as_mut() else { return };
+        let ended = match event {
+            Some(Ok(event)) => self.on_event(c, event).err(),
+            Some(Err(why)) => Some(why),
+            None => Some("the connection's event loop ended".to_string()),
+        };
+        match ended {
+            Some(why) => {
+                let was_accepted = c.accepted;
+                *conn = None;
+                self.metrics.mqtt().disconnected();
+                self.failed(&why);
+                if was_accepted {
+                    backoff.accepted();
+                }
+                backoff.failed();
+            }
+            None if c.accepted => backoff.accepted(),
+            None => {}
+        }
+    }
+
+    /// At shutdown: `offline` and a clean disconnect (a connection the
+    /// broker accepted).
+    async fn stop(&mut self, conn: Option<Connection>) {
+        if let Some(mut c) = conn
             && c.accepted
         {
             // A clean DISCONNECT suppresses the will: say offline first.
@@ -262,8 +270,10 @@ impl JsonNode {
         Ok(())
     }
 
-    /// A command message for `drive`: refused at once, or run through the
-    /// core in a task of its own; either way a reply follows.
+    /// A command message for `drive`: refused at once when it is none the
+    /// face takes, else run through the core (which refuses what the role
+    /// of `[mqtt] commands` may not do) in a task of its own; either way a
+    /// reply follows.
     fn on_command(&mut self, drive: String, payload: &[u8], props: Option<&PublishProperties>) {
         let topic = props
             .and_then(|p| p.response_topic.clone())
@@ -282,16 +292,6 @@ impl JsonNode {
                 return;
             }
         };
-        let Some(role) = self.config.commands().role() else {
-            self.metrics.mqtt().command("refused");
-            let problem = Problem::new(
-                Kind::Forbidden,
-                "commands over MQTT are off ([mqtt] commands = \"none\"): set commands = \"operator\" (or \"admin\") to take them",
-            )
-            .for_drive(&drive);
-            self.send_now(reply(DriveMessage::reply(id, Err(problem))));
-            return;
-        };
         if !commands::is_drive_op(&op) {
             self.metrics.mqtt().command("malformed");
             let problem = Problem::invalid(format!(
@@ -300,6 +300,9 @@ impl JsonNode {
             self.send_now(reply(DriveMessage::reply(id, Err(problem))));
             return;
         }
+        // The core decides, as for Sparkplug's commands: `[mqtt] commands`
+        // is the caller's role, and "none" a viewer's.
+        let role = self.config.commands().role();
         let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
             .in_session(Face::Mqtt, self.session.id());
         self.session.active();

@@ -17,7 +17,7 @@ use prost::Message;
 use super::pacing::{Pacer, Pacing};
 use super::{DIR, Store, StoreError, StoredMessage};
 use crate::metrics::Metrics;
-use crate::mqtt::Outbox;
+use crate::mqtt::outbox::Outbox;
 use crate::mqtt::sparkplug_b::Payload;
 use crate::mqtt::sparkplug_b::payload::Metric;
 

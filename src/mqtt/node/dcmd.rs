@@ -1,0 +1,154 @@
+//! Commands from hosts (DCMD): a DCMD's metrics in order, through the
+//! control core with a caller in the MQTT session, in a task of their own;
+//! each result comes back to the node and is published as the metric's
+//! confirmed value or `command/last_result` with the words.
+
+use prost::Message;
+
+use super::{Connection, Node, now_ms};
+use crate::control::{Caller, Face};
+use crate::mqtt::commands::{self, Command};
+use crate::mqtt::metric::{self, LAST_RESULT, Value, Writable};
+use crate::mqtt::sparkplug_b::{DataType, Payload};
+
+/// What a command's task reports.
+pub(super) struct CommandResult {
+    device: String,
+    metric: Writable,
+    /// The value the drive confirmed, or the failure in words.
+    outcome: Result<Value, String>,
+}
+
+impl Node {
+    /// A DCMD for `device`: its metrics in order, through the core, in a
+    /// task of their own.
+    pub(super) fn on_dcmd(&mut self, c: &Connection, device: String, payload: &[u8]) {
+        let Ok(target) = self.control.target(&device) else {
+            self.metrics.mqtt().command("malformed");
+            tracing::warn!(
+                device,
+                "MQTT: a DCMD for a device that is not a configured drive: ignored"
+            );
+            return;
+        };
+        let Ok(p) = Payload::decode(payload) else {
+            self.metrics.mqtt().command("malformed");
+            self.last_result(
+                Some(c),
+                &device,
+                "the DCMD is no Sparkplug B payload".to_string(),
+            );
+            return;
+        };
+        let mut run: Vec<Command> = Vec::new();
+        for m in &p.metrics {
+            match commands::parse(m) {
+                Ok(Some(cmd)) => run.push(cmd),
+                Ok(None) => {}
+                Err(malformed) => {
+                    self.metrics.mqtt().command("malformed");
+                    self.last_result(Some(c), &device, malformed.0);
+                }
+            }
+        }
+        if run.is_empty() {
+            return;
+        }
+        let role = self.config.commands().role();
+        let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
+            .in_session(Face::Mqtt, self.session.id());
+        self.session.active();
+        let control = self.control.clone();
+        let results = self.results_tx.clone();
+        // Finished commands' handles go; the others stay to be aborted
+        // with their session.
+        while self.commands.try_join_next().is_some() {}
+        self.commands.spawn(async move {
+            for cmd in run {
+                let outcome = commands::run(&control, &caller, target, &cmd)
+                    .await
+                    .map(|()| commands::confirmed_value(&cmd))
+                    .map_err(|f| f.to_string());
+                let failed = outcome.is_err();
+                let _ = results.send(CommandResult {
+                    device: device.clone(),
+                    metric: cmd.metric,
+                    outcome,
+                });
+                // The rest of a DCMD whose command failed is not sent: a
+                // setpoint after a refused mode would go to the wrong mode.
+                if failed {
+                    break;
+                }
+            }
+        });
+    }
+
+    /// A command's result: the metric's confirmed value (and an empty
+    /// `command/last_result`), or the words of its refusal or failure.
+    pub(super) fn on_result(&mut self, c: Option<&Connection>, result: CommandResult) {
+        let now = now_ms();
+        let device = self.devices.entry(result.device.clone()).or_default();
+        let mut metrics = Vec::new();
+        match result.outcome {
+            Ok(value) => {
+                self.metrics.mqtt().command("confirmed");
+                match (&value, result.metric) {
+                    (Value::Double(v), Writable::SpeedRpm) => device.setpoints.speed_rpm = Some(*v),
+                    (Value::Double(v), Writable::PositionDeg) => {
+                        device.setpoints.position_deg = Some(*v);
+                    }
+                    (Value::Double(v), Writable::TorqueA) => device.setpoints.torque_a = Some(*v),
+                    _ => {}
+                }
+                device.last_result.clear();
+                metrics.push(metric::metric(
+                    result.metric.name(),
+                    result.metric.datatype(),
+                    value,
+                    now,
+                ));
+                metrics.push(metric::metric(
+                    LAST_RESULT,
+                    DataType::String,
+                    Value::Text(String::new()),
+                    now,
+                ));
+            }
+            Err(words) => {
+                let refused = words.starts_with("refused");
+                self.metrics
+                    .mqtt()
+                    .command(if refused { "refused" } else { "failed" });
+                let words = format!("{}: {words}", result.metric.name());
+                device.last_result = words.clone();
+                metrics.push(metric::metric(
+                    LAST_RESULT,
+                    DataType::String,
+                    Value::Text(words),
+                    now,
+                ));
+            }
+        }
+        self.device_data(c, &result.device, metrics);
+    }
+
+    /// `command/last_result` of `device` set to `words`, and published.
+    fn last_result(&mut self, c: Option<&Connection>, device: &str, words: String) {
+        let now = now_ms();
+        self.devices
+            .entry(device.to_string())
+            .or_default()
+            .last_result = words.clone();
+        self.device_data(
+            c,
+            device,
+            vec![metric::metric(
+                LAST_RESULT,
+                DataType::String,
+                Value::Text(words),
+                now,
+            )],
+        );
+    }
+}
