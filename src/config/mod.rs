@@ -7,6 +7,7 @@
 //! `[bus.rs485]`, `[bus.sim]`). `config/drivegate.toml` documents every key.
 
 mod bus;
+mod comm_loss;
 mod declared;
 mod diagnostics;
 pub mod diff;

@@ -13,6 +13,7 @@ use serde::Deserialize;
 use serde::de::{self, Deserializer, Visitor};
 use toml::Spanned;
 
+pub use super::comm_loss::CommLossConfig;
 use super::role::Role;
 use super::safety::StopAction;
 use super::values::int_in;
@@ -97,18 +98,6 @@ pub struct ClientNetwork {
     /// counted, but nothing is written to the drive).
     #[serde(default)]
     pub comm_loss_action: Option<Spanned<StopAction>>,
-}
-
-/// A client network's communication-loss function, as configured: its
-/// setpoints and mode commands each take a lease that any request of the
-/// connection renews and `after` of silence ends with `action`. The control
-/// core's lease book runs it (`crate::control::CommLoss`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct CommLossConfig {
-    /// Silence that ends its leases.
-    pub after: Duration,
-    /// What their end sends.
-    pub action: StopAction,
 }
 
 /// Shortest communication-loss time: below it, a PLC's ordinary jitter

@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use serde::{Deserialize, Deserializer, de};
 
-use super::modbus_tcp::CommLossConfig;
+use super::comm_loss::CommLossConfig;
 use super::role::Role;
 use super::safety::StopAction;
 

@@ -37,6 +37,7 @@
 //! [`dcmd`] (hosts' commands and their results) and [`freshness`].
 
 mod births;
+mod command_result;
 mod data;
 mod dcmd;
 mod freshness;
@@ -66,7 +67,7 @@ use crate::bus::handle::PortState;
 use crate::config::MqttConfig;
 use crate::control::{CommLoss, Control, Face, SessionGuard};
 use crate::metrics::Metrics;
-use dcmd::CommandResult;
+use command_result::CommandResult;
 
 /// The QoS of births and data (Sparkplug: 0); the NDEATH, as the will
 /// and at a clean stop, goes with 1.

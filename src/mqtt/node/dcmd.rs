@@ -5,19 +5,12 @@
 
 use prost::Message;
 
+use super::command_result::CommandResult;
 use super::{Connection, Node, now_ms};
 use crate::control::{Caller, Face};
 use crate::mqtt::commands::{self, Command};
 use crate::mqtt::metric::{self, LAST_RESULT, Value, Writable};
 use crate::mqtt::sparkplug_b::{DataType, Payload};
-
-/// What a command's task reports.
-pub(super) struct CommandResult {
-    device: String,
-    metric: Writable,
-    /// The value the drive confirmed, or the failure in words.
-    outcome: Result<Value, String>,
-}
 
 impl Node {
     /// A DCMD for `device`: its metrics in order, through the core, in a
