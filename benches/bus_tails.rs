@@ -626,9 +626,14 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     let plant = Arc::new(Plant::start(&config).unwrap());
     let metrics = Metrics::new(plant.clone());
     let shutdown = CancellationToken::new();
-    let faces = drivegate::faces::start(&config, plant.clone(), metrics.clone(), shutdown.clone())
-        .await
-        .unwrap();
+    let faces = drivegate::daemon::supervisor::start(
+        &config,
+        plant.clone(),
+        metrics.clone(),
+        shutdown.clone(),
+    )
+    .await
+    .unwrap();
     let addr = faces.modbus_tcp.unwrap();
     let bus = plant.buses()[0].handle.clone();
 
@@ -704,7 +709,7 @@ async fn run(transport: Transport, scenario: Scenario, secs: u64) -> Figures {
     };
     shutdown.cancel();
     faces.wait().await;
-    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::control::stop_action::StopAction::None).await;
     drop(sim);
     let mut window = String::new();
     if let Some((mut child, _)) = external {

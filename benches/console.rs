@@ -109,7 +109,7 @@ struct Daemon {
     base: String,
     plant: Arc<Plant>,
     shutdown: CancellationToken,
-    faces: drivegate::faces::Faces,
+    faces: drivegate::daemon::supervisor::Faces,
 }
 
 async fn start(buses: u32, per_bus: u32) -> Daemon {
@@ -117,9 +117,10 @@ async fn start(buses: u32, per_bus: u32) -> Daemon {
     let plant = Arc::new(Plant::start(&config).unwrap());
     let metrics = Metrics::new(plant.clone());
     let shutdown = CancellationToken::new();
-    let faces = drivegate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
-        .await
-        .unwrap();
+    let faces =
+        drivegate::daemon::supervisor::start(&config, plant.clone(), metrics, shutdown.clone())
+            .await
+            .unwrap();
     let base = format!("http://{}", faces.http);
     let start = Instant::now();
     while plant
@@ -391,6 +392,10 @@ async fn main() {
         browser.stop().await;
         daemon.shutdown.cancel();
         let _ = tokio::time::timeout(Duration::from_secs(5), daemon.faces.wait()).await;
-        drivegate::control::shutdown(&daemon.plant, drivegate::safety::StopAction::None).await;
+        drivegate::control::shutdown(
+            &daemon.plant,
+            drivegate::control::stop_action::StopAction::None,
+        )
+        .await;
     }
 }

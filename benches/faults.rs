@@ -27,8 +27,8 @@ use std::time::{Duration, Instant};
 
 use drivegate::bus::BusEvent;
 use drivegate::config::Config;
+use drivegate::control::stop_action::StopAction;
 use drivegate::plant::Plant;
-use drivegate::safety::StopAction;
 use drivegate::sim::{FaultRates, SimConfig, SimStats, Simulator};
 
 const DRIVES: u8 = 8;

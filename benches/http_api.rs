@@ -164,9 +164,10 @@ async fn main() {
     let plant = Arc::new(Plant::start(&config).unwrap());
     let metrics = Metrics::new(plant.clone());
     let shutdown = CancellationToken::new();
-    let faces = drivegate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
-        .await
-        .unwrap();
+    let faces =
+        drivegate::daemon::supervisor::start(&config, plant.clone(), metrics, shutdown.clone())
+            .await
+            .unwrap();
     let base = format!("http://{}", faces.http);
     let bus = plant.buses()[0].handle.clone();
     while bus.drives().iter().any(|d| d.status.is_none()) {
@@ -296,7 +297,7 @@ fn soak(dir: &std::path::Path) {
     use drivegate::control::lease_book::{Holder, LeaseAsk, LeaseBook, Note, WriteKind};
 
     let mut journal = Journal::open(Some(dir), 1).journal;
-    let mut book = LeaseBook::new(drivegate::safety::StopAction::ZeroSpeed);
+    let mut book = LeaseBook::new(drivegate::control::stop_action::StopAction::ZeroSpeed);
     let t0 = Instant::now();
     let wall0 = std::time::SystemTime::now();
     let mut records = 0u64;

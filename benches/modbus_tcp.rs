@@ -99,9 +99,10 @@ async fn run_phase(
     let plant = Arc::new(Plant::start(&config).unwrap());
     let metrics = Metrics::new(plant.clone());
     let shutdown = CancellationToken::new();
-    let faces = drivegate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
-        .await
-        .unwrap();
+    let faces =
+        drivegate::daemon::supervisor::start(&config, plant.clone(), metrics, shutdown.clone())
+            .await
+            .unwrap();
     let addr = faces.modbus_tcp.unwrap();
     let bus = plant.buses()[0].handle.clone();
     let sim = drivegate::plant::SimRef::of(plant.buses()[0].clone()).unwrap();
@@ -186,7 +187,7 @@ async fn run_phase(
     };
     shutdown.cancel();
     faces.wait().await;
-    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::control::stop_action::StopAction::None).await;
     result
 }
 

@@ -32,8 +32,8 @@ use drivegate::bus::Origin;
 use drivegate::bus::master::Fault;
 use drivegate::bus::tap::WireTap;
 use drivegate::config::{Config, MonitorConfig, ScopeConfig};
+use drivegate::daemon::supervisor;
 use drivegate::drive::StatusField;
-use drivegate::faces;
 use drivegate::metrics::Metrics;
 use drivegate::modbus::rtu_frame::encode;
 use drivegate::modbus::timing::LineTiming;
@@ -177,7 +177,7 @@ async fn scope_run(drives: u8, captured: u8, secs: f64, turnaround: f64) -> Scop
             rates.iter().copied().fold(0.0, f64::max),
         )
     });
-    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::control::stop_action::StopAction::None).await;
     ScopeRun {
         captured,
         drives,
@@ -200,7 +200,7 @@ async fn bus_run(monitor: bool, with_clients: bool, secs: f64, turnaround: f64) 
     let plant = start(&toml).await;
     let metrics = Metrics::new(plant.clone());
     let shutdown = CancellationToken::new();
-    let faces = faces::start(&config, plant.clone(), metrics, shutdown.clone())
+    let faces = supervisor::start(&config, plant.clone(), metrics, shutdown.clone())
         .await
         .unwrap();
     let received = Arc::new(AtomicU64::new(0));
@@ -231,7 +231,7 @@ async fn bus_run(monitor: bool, with_clients: bool, secs: f64, turnaround: f64) 
         r.abort();
     }
     let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
-    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::control::stop_action::StopAction::None).await;
     BusRun {
         polls_per_s: (polls1 - polls0) as f64 / elapsed,
         cpu_share: (cpu1 - cpu0) / elapsed,
@@ -291,7 +291,7 @@ async fn clients_ab(pairs: usize, window: f64, turnaround: f64) -> (f64, f64, u6
     let plant = start(&toml).await;
     let metrics = Metrics::new(plant.clone());
     let shutdown = CancellationToken::new();
-    let faces = faces::start(&config, plant.clone(), metrics, shutdown.clone())
+    let faces = supervisor::start(&config, plant.clone(), metrics, shutdown.clone())
         .await
         .unwrap();
     let bus = plant.buses()[0].handle.clone();
@@ -320,7 +320,7 @@ async fn clients_ab(pairs: usize, window: f64, turnaround: f64) -> (f64, f64, u6
     }
     shutdown.cancel();
     let _ = tokio::time::timeout(Duration::from_secs(5), faces.wait()).await;
-    drivegate::control::shutdown(&plant, drivegate::safety::StopAction::None).await;
+    drivegate::control::shutdown(&plant, drivegate::control::stop_action::StopAction::None).await;
     (
         totals[0].0 as f64 / totals[0].1,
         totals[1].0 as f64 / totals[1].1,

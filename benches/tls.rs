@@ -240,9 +240,10 @@ async fn main() {
         let plant = Arc::new(Plant::start(&config).unwrap());
         let metrics = Metrics::new(plant.clone());
         let shutdown = CancellationToken::new();
-        let f = drivegate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
-            .await
-            .unwrap();
+        let f =
+            drivegate::daemon::supervisor::start(&config, plant.clone(), metrics, shutdown.clone())
+                .await
+                .unwrap();
         // Let every drive answer a poll first (the polled copy).
         tokio::time::sleep(Duration::from_secs(2)).await;
         let server_only = client_config(dir.path(), false);

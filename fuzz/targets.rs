@@ -134,7 +134,7 @@ pub fn mbap(data: &[u8]) {
 pub fn http_body(data: &[u8]) {
     use drivegate::api::body_schemas;
     use drivegate::api::buses::{AddressBody, ScanBody};
-    use drivegate::api::commands::ModeBody;
+    use drivegate::api::config_commands::ModeBody;
     use drivegate::api::setpoints::{RenewBody, SetpointBody};
     use drivegate::api::settings::{
         InertiaBody, PositionRampBody, ProtectionBody, Rs485Body, SpeedRampBody,

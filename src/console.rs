@@ -179,8 +179,8 @@ pub fn answer(path: &str, headers: &HeaderMap) -> Option<Response> {
 
 fn serve(path: &str, headers: &HeaderMap) -> Response {
     answer(path, headers).unwrap_or_else(|| {
-        crate::api::problem::Problem::new(
-            crate::api::problem::Kind::NotFound,
+        crate::api::problem_response::Problem::new(
+            crate::api::problem_response::Kind::NotFound,
             format!("the console has no file {PREFIX}{path}; open the console at /"),
         )
         .into_response()

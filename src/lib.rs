@@ -22,19 +22,21 @@
 //! - The bus and its observers: [`bus`] (the handle every face uses, and the
 //!   RTU master and port the pty tests drive directly), [`monitor`],
 //!   [`scope`], [`history`] (the trends), [`clock`].
-//! - The control core, [`control`], with [`safety`]'s stop actions.
+//! - The control core, [`control`] (with its stop actions, `stop_action`).
 //! - The faces: [`api`] (the request bodies and stream messages fuzzed, the
 //!   OpenAPI document checked for drift), [`modbus_tcp`] (MBAP, fuzzed),
 //!   [`mqtt`] (Sparkplug B; its payload types for the tests' host),
 //!   [`console`] (its assets), [`metrics`].
-//! - Putting it together: [`config`], [`plant`], [`faces`], [`daemon`],
-//!   [`reload`], [`systemd`], [`logging`], [`bench`] (`drivegate bench`),
+//! - Putting it together: [`config`], [`plant`], [`daemon`] (`serve`, its
+//!   `supervisor` of the faces and its `reloader`, which the tests start
+//!   as the daemon does), [`logging`], [`bench`] (`drivegate bench`),
 //!   [`probe`] (`drivegate probe`).
 //!
-//! [`suggest`] ("did you mean") is a leaf any module may use.
-//!
-//! `timestamp` (the one time format of every face and observer) is used
-//! only inside the daemon, so it is `pub(crate)`.
+//! Private to the crate, because none of them needs it: `faces_shared`
+//! (what the faces share: problem documents, a drive's status JSON, the
+//! command messages), `port_holders` (who holds a serial port),
+//! `suggest` ("did you mean"), `timestamp` (the one time format of every
+//! face and observer), and the daemon's `systemd` notifications.
 
 pub mod api;
 pub mod bench;
@@ -45,7 +47,7 @@ pub mod console;
 pub mod control;
 pub mod daemon;
 pub mod drive;
-pub mod faces;
+pub(crate) mod faces_shared;
 pub mod history;
 pub mod listed;
 pub mod logging;
@@ -54,15 +56,11 @@ pub mod modbus;
 pub mod modbus_tcp;
 pub mod monitor;
 pub mod mqtt;
-pub mod ops;
 pub mod plant;
-pub mod port_holders;
+pub(crate) mod port_holders;
 pub mod probe;
-pub mod reload;
-pub mod safety;
 pub mod scope;
 pub mod sim;
-pub mod suggest;
-pub mod systemd;
+pub(crate) mod suggest;
 pub(crate) mod timestamp;
 pub mod tls;

@@ -41,7 +41,7 @@ struct Device {
 /// The other processes that hold `port` (this one left out): those that
 /// hold its lock, or, when the system names none, those that have it
 /// open.
-pub fn holders(port: &str) -> Vec<Holder> {
+pub(crate) fn holders(port: &str) -> Vec<Holder> {
     let Ok(meta) = std::fs::metadata(port) else {
         return Vec::new();
     };
@@ -96,7 +96,7 @@ pub fn holders(port: &str) -> Vec<Holder> {
 
 /// The holders as a list in words: `minicom -D /dev/ttyUSB0 (pid 812,
 /// holds its lock); ...`.
-pub fn named(holders: &[Holder]) -> String {
+pub(crate) fn named(holders: &[Holder]) -> String {
     holders
         .iter()
         .map(|h| {
@@ -112,7 +112,7 @@ pub fn named(holders: &[Holder]) -> String {
 }
 
 /// True when one of them is drivegate itself (a daemon, a probe).
-pub fn is_drivegate(holders: &[Holder]) -> bool {
+pub(crate) fn is_drivegate(holders: &[Holder]) -> bool {
     holders.iter().any(|h| {
         h.command
             .split_whitespace()
@@ -127,7 +127,7 @@ pub fn is_drivegate(holders: &[Holder]) -> bool {
 /// terminal, never a serial line. `None` for anything else: a serial
 /// adapter, or a pty no session has (a simulator's, socat's). Read from
 /// `/proc/<pid>/stat`, without opening the terminal.
-pub fn session_terminal(port: &str) -> Option<(PathBuf, u32)> {
+pub(crate) fn session_terminal(port: &str) -> Option<(PathBuf, u32)> {
     let target = std::fs::canonicalize(port).ok()?;
     if !target.starts_with("/dev/pts") {
         return None;
@@ -226,7 +226,7 @@ fn open_by(device: &Device) -> Vec<u32> {
 
 /// A process's command line, short (the program by its file name, not
 /// its path; at most 80 characters), or its name.
-pub fn command_of(pid: u32) -> String {
+pub(crate) fn command_of(pid: u32) -> String {
     let raw = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
     let line = command_line(&raw);
     let line = if line.is_empty() {

@@ -8,7 +8,10 @@
 /// slip of the keyboard: at most one edit (a letter added, dropped,
 /// changed, or two swapped) per three letters, and at least one. Case is
 /// ignored; an exact match is no suggestion.
-pub fn closest<'a>(given: &str, known: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
+pub(crate) fn closest<'a>(
+    given: &str,
+    known: impl IntoIterator<Item = &'a str>,
+) -> Option<&'a str> {
     let given_lower = given.to_lowercase();
     let limit = (given.chars().count() / 3).max(1);
     known

@@ -10,12 +10,12 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::extract::{Params, PathParams};
-use super::problem::ReadProblems;
-use super::problem::{Kind, Problem, ProblemDetails};
+use super::problem_response::ReadProblems;
+use super::problem_response::{Kind, Problem, ProblemDetails};
 use super::state::ApiState;
 use crate::control::{AlarmError, Caller, Rule};
-pub use crate::ops::alarms::AlarmView;
-use crate::ops::writes::forbidden;
+pub use crate::faces_shared::alarms::AlarmView;
+use crate::faces_shared::writes::forbidden;
 use crate::timestamp::parse_time;
 
 /// Which alarms; every filter is optional.

@@ -167,7 +167,7 @@ impl Tokens {
         let fresh = new.entries();
         if fresh.is_empty() && !entries.is_empty() {
             // Without tokens every client is admin: safe only on loopback,
-            // where the reload reopens the listener (`crate::faces`); this
+            // where the reload reopens the listener (`crate::daemon::supervisor`); this
             // one keeps its tokens until it closes.
             tracing::info!(
                 "every API token was removed: this listener keeps the old ones until the reload has reopened the API on loopback"

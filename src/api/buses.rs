@@ -11,16 +11,16 @@ use utoipa::ToSchema;
 
 use super::caller::authorize;
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
-use super::problem::{AdminBusProblems, ReadProblems};
-use super::problem::{BusContext, Kind, Problem};
+use super::problem_response::{AdminBusProblems, ReadProblems};
+use super::problem_response::{BusContext, Kind, Problem};
 use super::state::ApiState;
 use crate::bus::handle::{JobOptions, PortState};
 use crate::bus::stats::Outcome;
 use crate::bus::{BusError, BusHandle, Priority};
 use crate::control::{Caller, ControlRequest, Operation};
 use crate::drive::{DriveReply, DriveRequest, RangeError};
-use crate::ops::integers;
-use crate::ops::status::StatusView;
+use crate::faces_shared::integers;
+use crate::faces_shared::status::StatusView;
 use crate::plant::Bus;
 use crate::timestamp::rfc3339;
 
@@ -556,7 +556,7 @@ pub async fn set_address(
         .control
         .write(caller, target, request)
         .await
-        .map_err(|f| crate::ops::writes::problem(caller, &f, BusContext::default()))?;
+        .map_err(|f| crate::faces_shared::writes::problem(caller, &f, BusContext::default()))?;
     let options = JobOptions {
         priority: Priority::Command,
         source: caller.source,

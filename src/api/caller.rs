@@ -15,11 +15,11 @@ use axum::http::request::Parts;
 
 use super::auth::presented;
 use super::listener::ClientAddr;
-use super::problem::{Kind, Problem};
+use super::problem_response::{Kind, Problem};
 use super::state::ApiState;
 use super::throttle::Failure;
 use crate::control::{Caller, Face, Operation, Role, Rule};
-use crate::ops::writes::forbidden;
+use crate::faces_shared::writes::forbidden;
 
 /// Identifies the caller of a request. `websocket` also accepts the token
 /// as a subprotocol or as `?access_token=` (browsers cannot set headers on

@@ -11,14 +11,14 @@ use utoipa::{IntoResponses, ToSchema};
 
 use super::caller::authorize;
 use super::extract::JsonBody;
-use super::problem::ProblemDetails;
-use super::problem::{Kind, Problem};
+use super::problem_response::ProblemDetails;
+use super::problem_response::{Kind, Problem};
 use super::state::ApiState;
 use crate::config::Config;
 use crate::config::edit::{NewDrive, add_drives, drive_tables, sha256_hex};
 use crate::control::reload::{Applied, NewText, Refused};
 use crate::control::{Caller, Operation, Rule, reload::ReloadResult};
-use crate::ops::writes::forbidden;
+use crate::faces_shared::writes::forbidden;
 
 /// What a reload applied.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
@@ -114,7 +114,7 @@ pub fn render(caller: &Caller, result: ReloadResult) -> Result<Json<ReloadReply>
 pub struct DriveToAdd {
     /// Its unit address, 1 to 255.
     #[schema(minimum = 1, maximum = 255)]
-    #[serde(deserialize_with = "crate::ops::integers::integer")]
+    #[serde(deserialize_with = "crate::faces_shared::integers::integer")]
     pub unit: i64,
     /// Its name, unique over all buses: 1 to 64 letters, digits, `-`,
     /// `_` or `.`.

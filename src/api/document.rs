@@ -17,16 +17,16 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::extract::{JsonBody, Params, PathParams};
-use super::problem::WriteProblems;
-use super::problem::{BusContext, InvalidSetting, Kind, Problem, ValidRange};
+use super::problem_response::WriteProblems;
+use super::problem_response::{BusContext, InvalidSetting, Kind, Problem, ValidRange};
 use super::settings_diff::SettingsDiff;
 use super::state::ApiState;
 use crate::config::Declared;
 use crate::control::Caller;
 use crate::control::settings::{ApplyOptions, SettingsError};
 use crate::drive::wanted::{Document, Setting, Wanted};
-use crate::ops::integers;
-use crate::ops::writes;
+use crate::faces_shared::integers;
+use crate::faces_shared::writes;
 
 /// Over-current protection in a document; give `limit_a` or
 /// `limit_counts` (both: they must agree).
@@ -381,7 +381,7 @@ fn declared_document(name: &str, declared: &Declared) -> DeclaredDocument {
     params(("drive" = String, Path, description = "Drive name, or its unit number on a single bus")),
     responses(
         (status = 200, description = "The declaration, in the keys PUT .../settings takes", body = DeclaredDocument),
-        super::problem::ReadProblems,
+        super::problem_response::ReadProblems,
     )
 )]
 pub async fn get_declared(

@@ -7,14 +7,14 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::extract::{Params, PathParams};
-use super::problem::Problem;
-use super::problem::{FreshReadProblems, ReadProblems};
+use super::problem_response::Problem;
+use super::problem_response::{FreshReadProblems, ReadProblems};
 use super::settings_diff::{DeclaredState, declared_state};
 use super::state::{ApiState, Target};
 use crate::bus::DriveSnapshot;
 use crate::control::Caller;
-use crate::ops::commands::{LeaseInfo, lease_of};
-use crate::ops::status::{FreshnessView, LinkName, StatusReply, StatusView};
+use crate::faces_shared::command_messages::{LeaseInfo, lease_of};
+use crate::faces_shared::status::{FreshnessView, LinkName, StatusReply, StatusView};
 use crate::timestamp::rfc3339;
 
 /// A configured drive and what is known of it.
@@ -62,8 +62,8 @@ fn snapshot(target: Target) -> Option<DriveSnapshot> {
 
 fn view(state: &ApiState, target: Target) -> DriveView {
     let snap = snapshot(target.clone());
-    let verdict = crate::ops::status::verdict(&target);
-    let link = crate::ops::status::link_of(snap.as_ref(), &verdict);
+    let verdict = crate::faces_shared::status::verdict(&target);
+    let link = crate::faces_shared::status::link_of(snap.as_ref(), &verdict);
     DriveView {
         name: target.drive.name.clone(),
         bus: target.bus.name().to_string(),
@@ -151,7 +151,7 @@ pub async fn status(
     fresh: bool,
 ) -> Result<StatusReply, Problem> {
     let target = state.target(key)?;
-    crate::ops::status::status(&state.control, caller, &target, fresh).await
+    crate::faces_shared::status::status(&state.control, caller, &target, fresh).await
 }
 
 /// The drive's decoded status and its age; `?fresh=true` reads the drive now.

@@ -14,7 +14,7 @@ use axum::extract::{FromRequest, FromRequestParts, Path, Query, Request};
 use axum::http::request::Parts;
 use serde::de::DeserializeOwned;
 
-use super::problem::{Kind, Problem};
+use super::problem_response::{Kind, Problem};
 use super::state::ApiState;
 
 /// Runs a body read with the configured deadline.

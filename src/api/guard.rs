@@ -39,7 +39,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
 use super::listener::ServedAt;
-use super::problem::{Kind, Problem};
+use super::problem_response::{Kind, Problem};
 pub use crate::config::origins::{WebOrigin, parse_allowed_host, parse_allowed_origin, split_host};
 use crate::metrics::Metrics;
 

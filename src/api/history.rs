@@ -13,8 +13,8 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::extract::{Params, PathParams};
-use super::problem::Problem;
-use super::problem::ReadProblems;
+use super::problem_response::Problem;
+use super::problem_response::ReadProblems;
 use super::state::ApiState;
 use crate::control::Caller;
 use crate::drive::StatusField;
@@ -138,7 +138,7 @@ fn fields_param(text: Option<&str>) -> Result<Vec<StatusField>, Problem> {
     ),
     responses(
         (status = 200, description = "The history as columns, oldest first (empty arrays when nothing was kept yet)", body = HistoryReply),
-        (status = 422, description = "`out-of-range`: `max_points` outside 1 to 100000", body = super::problem::ProblemDetails, content_type = "application/problem+json"),
+        (status = 422, description = "`out-of-range`: `max_points` outside 1 to 100000", body = super::problem_response::ProblemDetails, content_type = "application/problem+json"),
         ReadProblems,
     )
 )]

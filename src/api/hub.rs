@@ -18,8 +18,8 @@ use super::settings_diff::{DeclaredState, SettingsDiff};
 use super::stream_messages::{ServerMessage, StreamMessage};
 use crate::bus::BusEvent;
 use crate::control::{Control, ControlEvent, Published, SessionId};
-use crate::ops::messages::{self, DriveMessage};
-use crate::ops::status::StatusView;
+use crate::faces_shared::messages::{self, DriveMessage};
+use crate::faces_shared::status::StatusView;
 use crate::plant::Plant;
 use crate::timestamp::rfc3339;
 

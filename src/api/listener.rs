@@ -36,7 +36,7 @@ use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
-use super::problem::{Kind, Problem};
+use super::problem_response::{Kind, Problem};
 use crate::metrics::{Metrics, OpenConnection};
 
 /// Where to bind: `listen`, or with no tokens the loopback address of the
@@ -187,7 +187,7 @@ fn over_limit_response(why: Refusal) -> Vec<u8> {
     let body = serde_json::to_string(&problem).unwrap_or_default();
     format!(
         "HTTP/1.1 503 Service Unavailable\r\ncontent-type: {}\r\nretry-after: 1\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
-        super::problem::CONTENT_TYPE,
+        super::problem_response::CONTENT_TYPE,
         body.len()
     )
     .into_bytes()

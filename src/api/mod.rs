@@ -15,7 +15,7 @@
 //!   [`whoami`] and [`health`] are the routes, all documented in
 //!   [`openapi`] (the body schemas a derive cannot write are in
 //!   [`body_schemas`]); they hand their writes to the core through
-//!   [`crate::ops`],
+//!   [`crate::faces_shared`],
 //! - [`extract`] reads requests, refusing bad ones with a problem document,
 //! - [`hub`], [`stream`], [`stream_messages`] and [`stream_commands`] are
 //!   the WebSocket stream,
@@ -29,8 +29,8 @@ pub mod auth;
 pub mod body_schemas;
 pub mod buses;
 pub mod caller;
-pub mod commands;
 pub mod config;
+pub mod config_commands;
 pub mod document;
 pub mod drives;
 pub mod extract;
@@ -43,7 +43,7 @@ pub mod monitor;
 pub mod monitor_live;
 pub mod new_token;
 pub mod openapi;
-pub mod problem;
+pub mod problem_response;
 pub mod readback;
 pub mod replacement;
 pub mod request_metrics;
@@ -79,7 +79,7 @@ use crate::plant::Plant;
 use auth::Tokens;
 use hub::Hub;
 use listener::LimitedListener;
-use problem::{Kind, Problem};
+use problem_response::{Kind, Problem};
 use state::ApiState;
 
 /// Serves the API on `tcp` (bound by the caller where

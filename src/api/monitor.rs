@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::extract::{Params, PathParams};
-use super::problem::{Problem, ProblemDetails, ReadProblems};
+use super::problem_response::{Problem, ProblemDetails, ReadProblems};
 use super::state::{ApiState, monitor_of};
 use crate::control::Caller;
 use crate::monitor::filter::{FilterText, FrameFilter};

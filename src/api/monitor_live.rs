@@ -19,8 +19,8 @@ use utoipa::{IntoParams, ToSchema};
 
 use super::caller::StreamCaller;
 use super::extract::{Params, PathParams};
-use super::problem::ReadProblems;
-use super::problem::{Problem, ProblemDetails};
+use super::problem_response::ReadProblems;
+use super::problem_response::{Problem, ProblemDetails};
 use super::socket::{self, Sink, Source, send};
 use super::state::ApiState;
 use super::state::monitor_of;

@@ -13,12 +13,12 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::monitor_live::MonitorClientMessage;
-use super::problem::{ProblemDetails, ValidRange};
+use super::problem_response::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream_messages::{ClientMessage, DriveSelection};
 use super::{
-    alarms, buses, commands, config, document, drives, health, history, monitor, monitor_live,
-    readback, replacement, scope, setpoints, settings, stream, whoami,
+    alarms, buses, config, config_commands, document, drives, health, history, monitor,
+    monitor_live, readback, replacement, scope, setpoints, settings, stream, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -92,8 +92,8 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(document::get_declared))
         .routes(routes!(replacement::post_replacement))
         .routes(routes!(whoami::whoami))
-        .routes(routes!(commands::post_command))
-        .routes(routes!(commands::put_mode))
+        .routes(routes!(config_commands::post_command))
+        .routes(routes!(config_commands::put_mode))
         .routes(routes!(setpoints::put_setpoint))
         .routes(routes!(setpoints::post_renew))
         .routes(routes!(setpoints::delete_lease))

@@ -15,8 +15,8 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::extract::{Params, PathParams};
-use super::problem::FreshReadProblems;
-use super::problem::{BusContext, Problem};
+use super::problem_response::FreshReadProblems;
+use super::problem_response::{BusContext, Problem};
 use super::state::ApiState;
 use crate::control::Caller;
 use crate::drive::settings::DriveSettings;
@@ -120,7 +120,7 @@ pub async fn read(
     key: &str,
 ) -> Result<DriveSettingsView, Problem> {
     let target = state.target(key)?;
-    let offline = crate::ops::writes::is_offline(&target);
+    let offline = crate::faces_shared::writes::is_offline(&target);
     let held = state
         .control
         .read_settings(caller, target.control())

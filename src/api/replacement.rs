@@ -11,12 +11,12 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::extract::{JsonBody, PathParams};
-use super::problem::WriteProblems;
-use super::problem::{Kind, Problem};
+use super::problem_response::WriteProblems;
+use super::problem_response::{Kind, Problem};
 use super::state::ApiState;
 use crate::control::replacement::ReplacementEvent;
 use crate::control::{Caller, Rule};
-use crate::ops::writes::forbidden;
+use crate::faces_shared::writes::forbidden;
 use crate::timestamp::rfc3339;
 
 /// The longest `detail`, in characters: a sentence, not a file.

@@ -7,14 +7,14 @@ use serde::Deserialize;
 use utoipa::ToSchema;
 
 use super::extract::{JsonBody, OptionalJsonBody, PathParams};
-use super::problem::{Kind, Problem};
-use super::problem::{LeaseProblems, WriteProblems};
+use super::problem_response::{Kind, Problem};
+use super::problem_response::{LeaseProblems, WriteProblems};
 use super::state::ApiState;
 use crate::control::{Caller, LeaseError, Refusal, Rule};
-use crate::ops::commands::lease_length;
-pub use crate::ops::commands::{LeaseInfo, SetpointBody, SetpointReply};
-use crate::ops::integers;
-use crate::ops::writes::{self, forbidden};
+use crate::faces_shared::command_messages::lease_length;
+pub use crate::faces_shared::command_messages::{LeaseInfo, SetpointBody, SetpointReply};
+use crate::faces_shared::integers;
+use crate::faces_shared::writes::{self, forbidden};
 
 /// Sends a setpoint to drive `key` for `caller`; a lease taken over the
 /// stream ends with its session too.
@@ -25,7 +25,7 @@ pub async fn apply(
     body: &SetpointBody,
 ) -> Result<SetpointReply, Problem> {
     let target = state.target(key)?;
-    crate::ops::commands::apply(
+    crate::faces_shared::command_messages::apply(
         &state.control,
         caller,
         &target,

@@ -9,14 +9,14 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::extract::{JsonBody, PathParams};
-use super::problem::Problem;
-use super::problem::WriteProblems;
+use super::problem_response::Problem;
+use super::problem_response::WriteProblems;
 use super::state::{ApiState, Target};
 use crate::control::written::{Written, written};
 use crate::control::{Caller, ControlRequest};
 use crate::drive::{DriveRequest, RangeError, units};
-use crate::ops::integers;
-use crate::ops::writes;
+use crate::faces_shared::integers;
+use crate::faces_shared::writes;
 
 /// What a settings write did.
 #[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]

@@ -11,7 +11,7 @@ use crate::control::Control;
 use crate::control::drift::DriftView;
 use crate::control::settings::{SettingOutcome, SettingsReport};
 use crate::drive::wanted::{self, Difference};
-use crate::ops::target::Target;
+use crate::faces_shared::target::Target;
 use crate::timestamp::rfc3339;
 
 /// A setting's value in engineering units: a number, or on/off.

@@ -12,7 +12,7 @@ use axum::response::Response;
 use futures_util::SinkExt;
 use futures_util::stream::{SplitSink, SplitStream};
 
-use super::problem::Problem;
+use super::problem_response::Problem;
 use super::state::ApiState;
 
 /// The sending half of a session's socket.

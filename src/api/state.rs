@@ -12,7 +12,7 @@ use tokio_util::task::TaskTracker;
 
 use super::auth::Tokens;
 use super::hub::Hub;
-use super::problem::{Kind, Problem};
+use super::problem_response::{Kind, Problem};
 use crate::bus::SourceId;
 use crate::config::HttpConfig;
 use crate::control::Control;
@@ -56,7 +56,7 @@ impl Deref for ApiState {
     }
 }
 
-pub use crate::ops::target::Target;
+pub use crate::faces_shared::target::Target;
 
 impl ApiState {
     /// The state of a starting API.

@@ -35,7 +35,7 @@ use utoipa::IntoParams;
 use super::caller::StreamCaller;
 use super::extract::Params;
 use super::hub::{HubEvent, render};
-use super::problem::{Problem, ReadProblems};
+use super::problem_response::{Problem, ReadProblems};
 use super::socket::{self, Sink, Source, send};
 use super::state::ApiState;
 use super::stream_commands::{self, Command};
@@ -43,7 +43,7 @@ use super::stream_commands::{self, Command};
 pub use super::stream_messages::ClientMessage;
 use super::stream_messages::{DriveSelection, RestartDecision, ServerMessage, StreamMessage};
 use crate::control::{Caller, ControlEvent, Face, SessionId};
-use crate::ops::messages::DriveMessage;
+use crate::faces_shared::messages::DriveMessage;
 use crate::timestamp::rfc3339;
 
 /// Replies (and other answers to the client's own messages) that may wait.

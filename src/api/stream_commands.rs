@@ -1,18 +1,20 @@
 //! The stream's commands: each `op` a client sends on the stream runs the
 //! operation of its REST route (the same code, the same reply, the same
 //! problem), and those every face with command messages offers run in
-//! [`crate::ops::commands`]. This is the stream's table of operations, as
+//! [`crate::faces_shared::command_messages`]. This is the stream's table of operations, as
 //! the router ([`super::openapi`]) is HTTP's: both stand above the routes.
 
 use serde_json::Value;
 
-use super::problem::Problem;
+use super::problem_response::Problem;
 use super::setpoints::{self, RenewBody};
 use super::state::ApiState;
 use super::{alarms, buses, document, replacement, scope, settings};
 use crate::control::Caller;
 use crate::drive::DriveRequest;
-use crate::ops::commands::{body_as, is_drive_op, json, parse_command, run_drive_op};
+use crate::faces_shared::command_messages::{
+    body_as, is_drive_op, json, parse_command, run_drive_op,
+};
 
 /// A command a client sent: `op` on `drive` (or `bus`), with `body`.
 #[derive(Debug, Clone, PartialEq)]

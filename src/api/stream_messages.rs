@@ -12,10 +12,10 @@ use utoipa::openapi::RefOr;
 use utoipa::openapi::schema::{OneOfBuilder, Schema};
 use utoipa::{PartialSchema, ToSchema};
 
-use super::problem::{Problem, ProblemDetails};
+use super::problem_response::{Problem, ProblemDetails};
 use super::settings_diff::{DeclaredState, SettingsDiff};
-use crate::ops::messages::DriveMessage;
-use crate::ops::status::StatusView;
+use crate::faces_shared::messages::DriveMessage;
+use crate::faces_shared::status::StatusView;
 use crate::scope::result::ScopeState;
 
 /// A message the server sends on the stream.

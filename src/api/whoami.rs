@@ -15,8 +15,8 @@ use axum::http::header::AUTHORIZATION;
 use serde::Serialize;
 use utoipa::ToSchema;
 
-use super::problem::Problem;
-use super::problem::ReadProblems;
+use super::problem_response::Problem;
+use super::problem_response::ReadProblems;
 use super::state::ApiState;
 use crate::control::{Caller, Role};
 

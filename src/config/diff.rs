@@ -1,6 +1,6 @@
 //! What changed between the running configuration and a new one: a pure
 //! comparison of two checked [`Config`]s, which the daemon then applies
-//! (`crate::reload`). Nothing here opens a port or touches a drive.
+//! (`crate::daemon::reloader`). Nothing here opens a port or touches a drive.
 //!
 //! The bus is the unit a change is applied to: a bus whose settings or
 //! drive list changed is reopened (its thread and port, its simulator

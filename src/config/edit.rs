@@ -1,7 +1,7 @@
 //! Changes written into the configuration file itself, keeping its
 //! comments, order and layout (`toml_edit`): the console's "add to
 //! configuration" after a scan. Pure: text in, text out; the daemon's
-//! reloader writes and reloads it (`crate::reload`).
+//! reloader writes and reloads it (`crate::daemon::reloader`).
 
 use toml_edit::{ArrayOfTables, DocumentMut, Item, Table, value};
 

@@ -1,6 +1,6 @@
 //! `[safety]` section: what the daemon does to moving motors nobody
 //! controls any more (a lease ran out, the daemon stops), and the console's
-//! jog lease. Plain data; `crate::safety` and the control core act on it.
+//! jog lease. Plain data; `crate::control::stop_action` and the control core act on it.
 
 use serde::Deserialize;
 

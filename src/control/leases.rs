@@ -1,6 +1,6 @@
 //! The lease book's driver: owns the [`LeaseBook`] behind a lock, wakes it
 //! when a deadline passes, carries out its effects (sends stops through
-//! [`crate::safety`], publishes its news), reports the stops' results
+//! [`crate::control::stop_action`], publishes its news), reports the stops' results
 //! back, and tells it when a bus or a drive answers again.
 //!
 //! One task sleeps until the book's next deadline; every change to the
@@ -26,9 +26,9 @@ use super::lease_book::{
 };
 use super::written::describe;
 use crate::bus::{BusError, BusEvent, Origin};
+use crate::control::stop_action::{self, StopAction, StopOutcome};
 use crate::drive::{DriveRequest, Mode};
 use crate::plant::Plant;
-use crate::safety::{self, StopAction, StopOutcome};
 
 /// Communication-loss leases of one bus that ended.
 #[derive(Default)]
@@ -400,7 +400,7 @@ impl Leases {
             .owner
             .clone()
             .map_or(Origin::Internal, |owner| Origin::LeaseExpiry { owner });
-        let outcome = safety::stop_drive(
+        let outcome = stop_action::stop_drive(
             bus,
             drive.unit,
             order.action,

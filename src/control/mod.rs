@@ -53,6 +53,7 @@ pub mod restart;
 pub mod rules;
 pub mod settings;
 pub mod shutdown;
+pub mod stop_action;
 pub mod write;
 pub mod written;
 
@@ -74,11 +75,11 @@ pub use write::Pending;
 
 use crate::bus::BusError;
 use crate::config::Config;
+use crate::control::stop_action::{SafetyConfig, StopAction};
 use crate::drive::Status;
 use crate::drive::settings::DriveSettings;
 use crate::drive::wanted::Document;
 use crate::plant::{LookupError, Plant};
-use crate::safety::{SafetyConfig, StopAction};
 use events::Events;
 use journal::Journal;
 use journal::replay::Recovered;

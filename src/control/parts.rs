@@ -14,8 +14,8 @@ use super::leases::Leases;
 use super::request::Target;
 use super::rules::LeaseBounds;
 use crate::bus::{BusError, BusHandle};
+use crate::control::stop_action::SafetyConfig;
 use crate::plant::Plant;
-use crate::safety::SafetyConfig;
 
 /// `[safety]`'s settings of leases, which a reload may change.
 #[derive(Debug, Clone, Copy)]

@@ -4,7 +4,7 @@
 //! the metrics), and the stop of a drive a reload removes.
 //!
 //! The core does not read files or start buses: the daemon's reloader
-//! (`crate::reload`) does, and registers itself here with
+//! (`crate::daemon::reloader`) does, and registers itself here with
 //! [`Control::attach_reloader`]. A face asks [`Control::reload`] like it
 //! asks any write, and renders the answer.
 
@@ -22,8 +22,8 @@ use super::policy::Operation;
 use super::{audit, rules};
 use crate::bus::{BusHandle, Origin};
 use crate::config::Config;
+use crate::control::stop_action::{self, StopAction, StopOutcome};
 use crate::plant::{Directory, Drive};
-use crate::safety::{self, StopAction, StopOutcome};
 
 /// A reload asked for, with where its answer goes.
 pub struct ReloadRequest {
@@ -268,7 +268,7 @@ pub(super) async fn retire(
 /// Stops a removed drive that held no lease with `on_shutdown`, if it
 /// moves; audited. What was done, in words, if anything.
 async fn stop_unleased(handle: BusHandle, drive: Drive, on_shutdown: StopAction) -> Option<String> {
-    let result = safety::stop_drive(
+    let result = stop_action::stop_drive(
         &handle,
         drive.unit,
         on_shutdown,

@@ -7,9 +7,9 @@ use std::time::Duration;
 
 use super::policy::{self, Meaning, StillReason};
 use super::written::{describe, describe_pdu};
+use crate::control::stop_action::StopAction;
 use crate::drive::writes::{self, PduMeaning};
 use crate::drive::{DriveRequest, RangeError};
-use crate::safety::StopAction;
 
 /// Where a write goes: a bus, a unit on it (0: every drive, a broadcast),
 /// and the configured drive at that unit, if there is one.

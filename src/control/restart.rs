@@ -14,8 +14,8 @@ use super::journal::replay::{self, Decision, DriveAtStart, Recovered, Replayed, 
 use super::leases::{self, Leases};
 pub use super::news::{DecisionKind, RestartNote};
 use crate::bus::cache::Link;
+use crate::control::stop_action::{self, StopAction};
 use crate::plant::Plant;
-use crate::safety::{self, StopAction};
 
 /// How long start-up waits for the drives' first statuses when the journal
 /// could not be read (only then does it matter which drives move).
@@ -126,7 +126,7 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
                     moving: state
                         .and_then(|s| s.status)
                         .filter(|_| known)
-                        .map(|s| safety::is_moving(&s)),
+                        .map(|s| stop_action::is_moving(&s)),
                 }
             })
             .collect();

@@ -11,8 +11,8 @@ use super::audit;
 use super::caller::Face;
 use super::events::WriteEnd;
 use crate::bus::Origin;
+use crate::control::stop_action::{self, StopAction, StopOutcome};
 use crate::plant::Plant;
-use crate::safety::{self, StopAction, StopOutcome};
 
 /// Stops the plant: no new work, `action` on every moving drive (bounded
 /// to 5 s), then the buses finish their frame on the wire and stop.
@@ -25,7 +25,8 @@ pub async fn shutdown(plant: &Plant, action: StopAction) {
         let handle = now.handle_of(drive)?.clone();
         let (name, unit) = (drive.name.clone(), drive.unit);
         Some(async move {
-            match safety::stop_drive(&handle, unit, action, true, None, Origin::Shutdown).await {
+            match stop_action::stop_drive(&handle, unit, action, true, None, Origin::Shutdown).await
+            {
                 Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
                     // One line per write: with the mode unknown,
                     // zero-speed is two (speed and torque setpoint 0).

@@ -119,7 +119,7 @@ impl FaceMetrics {
     /// Creates the Modbus TCP request series of the drives' function codes
     /// with each of `outcomes` at 0, so rate() sees the first request and
     /// a dashboard panel shows 0 rather than "No data" before any client
-    /// came. The face names its outcomes (`crate::faces` passes them at
+    /// came. The face names its outcomes (`crate::daemon::supervisor` passes them at
     /// start-up): the metrics sit below the faces and import none.
     pub fn tcp_outcomes<'a>(&self, outcomes: impl IntoIterator<Item = &'a str>) {
         for outcome in outcomes {

@@ -19,7 +19,7 @@
 //! so a scrape never puts a frame on the wire nor waits for one.
 
 mod buses;
-mod control;
+mod control_core;
 mod drives;
 mod faces;
 mod family;
@@ -92,7 +92,9 @@ impl Metrics {
     pub fn watch_control(&self, control: &crate::control::Control) {
         if let Err(e) = self
             .registry
-            .register(Box::new(control::ControlCollector::new(control.clone())))
+            .register(Box::new(control_core::ControlCollector::new(
+                control.clone(),
+            )))
         {
             tracing::warn!("the control core's metrics are not exported: {e}");
         }

@@ -25,13 +25,13 @@
 //! primary host claimed). See `docs/mqtt.md` and `docs/security.md`.
 
 mod bd_seq;
-pub mod commands;
 mod connection;
 pub mod exception;
 pub mod host;
 pub mod identity;
 pub mod json;
 pub mod metric;
+pub mod metric_commands;
 mod node;
 mod outbox;
 pub mod replay;

@@ -33,9 +33,9 @@
 
 pub mod bus;
 pub mod cli;
+pub(crate) mod closed_loop;
 pub(crate) mod config;
 pub(crate) mod config_error;
-pub(crate) mod control;
 pub(crate) mod delivery;
 pub(crate) mod device;
 pub(crate) mod faults;

@@ -32,7 +32,7 @@
 //! - After power-off the turn count restarts at 0 (the angle within the turn
 //!   is absolute) and the zero point is lost (manual 1.3, 0x4).
 
-use super::control;
+use super::closed_loop;
 use super::physics::{Drive, Environment, Motor, MotorParams};
 use super::ramp::Ramp;
 use crate::drive::registers::{STATUS_BLOCK_LEN, STATUS_BLOCK_START};
@@ -449,7 +449,7 @@ fn status_index(register: Register) -> Option<usize> {
     (index < usize::from(STATUS_BLOCK_LEN)).then_some(index)
 }
 
-mod commands;
+mod config_register;
 mod motion;
 mod registers;
 #[cfg(test)]

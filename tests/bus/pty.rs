@@ -12,9 +12,9 @@ use crate::support::pty::pty;
 use drivegate::bus::handle::{JobOptions, PortState};
 use drivegate::bus::scheduler::{self, BusSettings};
 use drivegate::bus::{BusError, BusHandle, Origin, Priority};
+use drivegate::control::stop_action::{self, StopAction};
 use drivegate::drive::DriveRequest;
 use drivegate::modbus::rtu_frame::{self, FrameLength};
-use drivegate::safety::{self, StopAction};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio_serial::SerialStream;
@@ -281,9 +281,10 @@ async fn zero_speed_with_the_mode_unknown_zeroes_both_setpoints() {
     });
     let (bus, thread) = bus_on(&peer.path);
     port_up(&bus).await;
-    let outcome = safety::stop_drive(&bus, 1, StopAction::ZeroSpeed, true, None, Origin::Internal)
-        .await
-        .unwrap();
+    let outcome =
+        stop_action::stop_drive(&bus, 1, StopAction::ZeroSpeed, true, None, Origin::Internal)
+            .await
+            .unwrap();
     let speed = DriveRequest::Speed { rpm: 0 };
     let torque = DriveRequest::Torque { counts: 0 };
     for expected in [&DriveRequest::ReadStatus, &speed, &torque] {

@@ -1,5 +1,5 @@
 //! A reload that moves a listener or a bus's port reopens only that one
-//! (`src/faces.rs`): a drive turning at 100 rpm over HTTP keeps turning,
+//! (`src/daemon/supervisor.rs`): a drive turning at 100 rpm over HTTP keeps turning,
 //! its speed and lease unchanged, its stream going, while the Modbus TCP
 //! listener moves (the old port refuses, pymodbus reads on the new one, the
 //! PLC that was connected to the old one is closed and its

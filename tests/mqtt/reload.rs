@@ -1,5 +1,5 @@
 //! A reload that changes `[mqtt]` restarts the MQTT face with the new
-//! section (`src/faces.rs`): the old node says goodbye (its NDEATH), its
+//! section (`src/daemon/supervisor.rs`): the old node says goodbye (its NDEATH), its
 //! session's leases end with `comm_loss_action` at once, as for a lost
 //! broker, and the new node is born under its new name; the HTTP API and
 //! the drives run on. `[mqtt]` removed stops the face for good.

@@ -446,7 +446,7 @@ struct Daemon {
     http: SocketAddr,
     tcp: SocketAddr,
     shutdown: CancellationToken,
-    faces: drivegate::faces::Faces,
+    faces: drivegate::daemon::supervisor::Faces,
 }
 
 impl Daemon {
@@ -455,9 +455,10 @@ impl Daemon {
         let plant = Arc::new(Plant::start(&config).expect("plant starts"));
         let metrics = Metrics::new(plant.clone());
         let shutdown = CancellationToken::new();
-        let faces = drivegate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
-            .await
-            .expect("faces start");
+        let faces =
+            drivegate::daemon::supervisor::start(&config, plant.clone(), metrics, shutdown.clone())
+                .await
+                .expect("faces start");
         Daemon {
             http: faces.http,
             tcp: faces.modbus_tcp.expect("Modbus TCP on"),
@@ -540,7 +541,11 @@ impl Daemon {
     async fn stop(self) {
         self.shutdown.cancel();
         let _ = tokio::time::timeout(Duration::from_secs(5), self.faces.wait()).await;
-        drivegate::control::shutdown(&self.plant, drivegate::safety::StopAction::None).await;
+        drivegate::control::shutdown(
+            &self.plant,
+            drivegate::control::stop_action::StopAction::None,
+        )
+        .await;
     }
 }
 

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use drivegate::config::Config;
-use drivegate::faces::{self, Faces};
+use drivegate::daemon::supervisor::{self, Faces};
 use drivegate::metrics::Metrics;
 use drivegate::plant::{Plant, SimRef};
 
@@ -97,7 +97,7 @@ impl TestDaemon {
         let plant = Arc::new(Plant::start(&config).expect("plant starts"));
         let metrics = Metrics::new(plant.clone());
         let shutdown = CancellationToken::new();
-        let faces = faces::start(&config, plant.clone(), metrics.clone(), shutdown.clone())
+        let faces = supervisor::start(&config, plant.clone(), metrics.clone(), shutdown.clone())
             .await
             .expect("faces start");
         TestDaemon {
@@ -123,7 +123,7 @@ impl TestDaemon {
             .expect("a configuration file");
         std::fs::write(file.path(), toml).expect("the configuration written");
         let mut daemon = Self::start(toml).await;
-        drivegate::reload::Reloader::start(
+        drivegate::daemon::reloader::Reloader::start(
             file.path(),
             Arc::new(daemon.config.clone()),
             daemon.plant.clone(),
@@ -146,7 +146,7 @@ impl TestDaemon {
     }
 
     /// Where the listeners are now (a reload may have moved them).
-    pub async fn faces_addresses(&self) -> drivegate::faces::Addresses {
+    pub async fn faces_addresses(&self) -> drivegate::daemon::supervisor::Addresses {
         self.faces
             .as_ref()
             .expect("running")

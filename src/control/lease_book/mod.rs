@@ -50,8 +50,8 @@ use std::time::{Duration, Instant};
 use super::caller::{Face, SessionId};
 use super::outcome::Applied;
 use crate::control::journal::format::BrakeState;
+use crate::control::stop_action::StopAction;
 use crate::drive::Mode;
-use crate::safety::StopAction;
 
 use types::SESSION_CLOSED;
 

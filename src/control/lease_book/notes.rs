@@ -17,8 +17,8 @@ use std::time::{Duration, Instant};
 
 use super::{Ended, Holder, How, Lease, LeaseBook, LeaseId, StopReason};
 use crate::control::journal::format::BrakeState;
+use crate::control::stop_action::StopAction;
 use crate::drive::Mode;
-use crate::safety::StopAction;
 
 /// A fact for the safety journal.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use super::types::SESSION_CLOSED;
 use super::{CommLoss, Effect, Holder, LeaseBook, Session, StopReason, Terms};
 use crate::control::caller::{Face, SessionId};
-use crate::safety::StopAction;
+use crate::control::stop_action::StopAction;
 
 impl LeaseBook {
     /// A session opened; `closing` is how its end reads in messages

@@ -6,8 +6,8 @@ use std::time::Duration;
 
 use crate::bus::BusError;
 use crate::control::caller::{Face, SessionId};
+use crate::control::stop_action::StopAction;
 use crate::drive::Mode;
-use crate::safety::StopAction;
 
 /// A lease's identity, unique for the daemon's life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]

@@ -11,7 +11,7 @@
 //! The messages are the other faces': a drive's status is the API's
 //! status JSON, commands are the WebSocket stream's command messages,
 //! replies and events the stream's, refusals the API's problem documents
-//! (all from [`crate::ops`]).
+//! (all from [`crate::faces_shared`]).
 
 mod connection;
 pub(super) mod node;

@@ -41,13 +41,13 @@ use crate::bus::SourceId;
 use crate::bus::cache::BusEvent;
 use crate::config::MqttConfig;
 use crate::control::{Caller, CommLoss, Control, ControlEvent, Face, Published, SessionGuard};
+use crate::faces_shared::command_messages::{self, CommandMessage, DRIVE_OPS};
+use crate::faces_shared::messages::{self, DriveMessage};
+use crate::faces_shared::problem::Problem;
+use crate::faces_shared::status::{self, StatusSource};
+use crate::faces_shared::target::Target;
 use crate::metrics::Metrics;
 use crate::mqtt::connection::{Backoff, next_event};
-use crate::ops::commands::{self, CommandMessage, DRIVE_OPS};
-use crate::ops::messages::{self, DriveMessage};
-use crate::ops::problem::Problem;
-use crate::ops::status::{self, StatusSource};
-use crate::ops::target::Target;
 
 /// How the session's closing reads in lease news and the audit log.
 const SESSION_CLOSING: &str = "the MQTT session ended (the face stopped)";
@@ -292,7 +292,7 @@ impl JsonNode {
                 return;
             }
         };
-        if !commands::is_drive_op(&op) {
+        if !command_messages::is_drive_op(&op) {
             self.metrics.mqtt().command("malformed");
             let problem = Problem::invalid(format!(
                 "\"{op}\" is not an operation MQTT takes: use {DRIVE_OPS} (the REST API and the WebSocket stream offer the rest)"
@@ -312,7 +312,8 @@ impl JsonNode {
         // Finished commands' handles go; the others run on.
         while self.commands.try_join_next().is_some() {}
         self.commands.spawn(async move {
-            let result = commands::run_drive_op(&control, &caller, &drive, &op, body, None).await;
+            let result =
+                command_messages::run_drive_op(&control, &caller, &drive, &op, body, None).await;
             metrics.mqtt().command(match &result {
                 Ok(_) => "confirmed",
                 Err(p) if p.status < 500 => "refused",
@@ -439,7 +440,7 @@ impl JsonNode {
         &mut self,
         client: &AsyncClient,
         drive: &str,
-        reply: &crate::ops::status::StatusReply,
+        reply: &crate::faces_shared::status::StatusReply,
     ) {
         let Ok(json) = serde_json::to_string(reply) else {
             return;

@@ -8,8 +8,8 @@ use prost::Message;
 use super::command_result::CommandResult;
 use super::{Connection, Node, now_ms};
 use crate::control::{Caller, Face};
-use crate::mqtt::commands::{self, Command};
 use crate::mqtt::metric::{self, LAST_RESULT, Value, Writable};
+use crate::mqtt::metric_commands::{self, Command};
 use crate::mqtt::sparkplug_b::{DataType, Payload};
 
 impl Node {
@@ -35,7 +35,7 @@ impl Node {
         };
         let mut run: Vec<Command> = Vec::new();
         for m in &p.metrics {
-            match commands::parse(m) {
+            match metric_commands::parse(m) {
                 Ok(Some(cmd)) => run.push(cmd),
                 Ok(None) => {}
                 Err(malformed) => {
@@ -58,9 +58,9 @@ impl Node {
         while self.commands.try_join_next().is_some() {}
         self.commands.spawn(async move {
             for cmd in run {
-                let outcome = commands::run(&control, &caller, target, &cmd)
+                let outcome = metric_commands::run(&control, &caller, target, &cmd)
                     .await
-                    .map(|()| commands::confirmed_value(&cmd))
+                    .map(|()| metric_commands::confirmed_value(&cmd))
                     .map_err(|f| f.to_string());
                 let failed = outcome.is_err();
                 let _ = results.send(CommandResult {

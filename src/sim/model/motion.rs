@@ -127,20 +127,20 @@ impl DriveModel {
                 }
             } else {
                 let offset = running.procedure.trajectory(running.elapsed);
-                let speed = control::position_loop(running.origin + offset, self.motor.angle());
-                return Drive::Accelerate(control::speed_loop(speed, self.motor.speed(), h));
+                let speed = closed_loop::position_loop(running.origin + offset, self.motor.angle());
+                return Drive::Accelerate(closed_loop::speed_loop(speed, self.motor.speed(), h));
             }
         }
         if !self.active {
             return Drive::Off;
         }
         if self.braking {
-            return Drive::Accelerate(control::brake(self.motor.speed(), h));
+            return Drive::Accelerate(closed_loop::brake(self.motor.speed(), h));
         }
         match self.ramp_engaged {
             Some(Mode::Speed) => {
                 self.ramp.advance(h);
-                Drive::Accelerate(control::speed_loop(
+                Drive::Accelerate(closed_loop::speed_loop(
                     self.ramp.value(),
                     self.motor.speed(),
                     h,
@@ -149,8 +149,8 @@ impl DriveModel {
             Some(_) => {
                 self.ramp.advance(h);
                 let command = (self.ramp.value() + self.zero) * r;
-                let speed = control::position_loop(command, self.motor.angle());
-                Drive::Accelerate(control::speed_loop(speed, self.motor.speed(), h))
+                let speed = closed_loop::position_loop(command, self.motor.angle());
+                Drive::Accelerate(closed_loop::speed_loop(speed, self.motor.speed(), h))
             }
             None => match self.mode {
                 Mode::Torque => {

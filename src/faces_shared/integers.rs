@@ -38,13 +38,13 @@ impl Visitor<'_> for Integer {
 }
 
 /// An integer field.
-pub fn integer<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+pub(crate) fn integer<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
     d.deserialize_any(Integer)
 }
 
 /// An optional integer field (`null` or left out: `None`); use with
 /// `#[serde(default)]`.
-pub fn optional<'de, D: Deserializer<'de>>(d: D) -> Result<Option<i64>, D::Error> {
+pub(crate) fn optional<'de, D: Deserializer<'de>>(d: D) -> Result<Option<i64>, D::Error> {
     struct Optional;
 
     impl<'de> Visitor<'de> for Optional {

@@ -7,12 +7,14 @@ use serde::Deserialize;
 use utoipa::IntoParams;
 
 use super::extract::{JsonBody, Params, PathParams};
-use super::problem::Problem;
-use super::problem::WriteProblems;
+use super::problem_response::Problem;
+use super::problem_response::WriteProblems;
 use super::state::ApiState;
 use crate::control::Caller;
 use crate::drive::ConfigCommand;
-pub use crate::ops::commands::{CommandReply, ModeBody, ModeChoice, parse_command};
+pub use crate::faces_shared::command_messages::{
+    CommandReply, ModeBody, ModeChoice, parse_command,
+};
 
 /// `?force=`.
 #[derive(Debug, Clone, Default, Deserialize, IntoParams)]
@@ -35,7 +37,8 @@ pub async fn run(
     force: bool,
 ) -> Result<CommandReply, Problem> {
     let target = state.target(key)?;
-    crate::ops::commands::run(&state.control, caller, &target, command, force).await
+    crate::faces_shared::command_messages::run(&state.control, caller, &target, command, force)
+        .await
 }
 
 /// Sends a config command; it returns once the drive echoed it.

@@ -14,7 +14,7 @@ use crate::control::{
 use crate::drive::{DriveReply, RangeError, Status};
 
 /// True when the drive's polls have stopped getting answers.
-pub fn is_offline(target: &Target) -> bool {
+pub(crate) fn is_offline(target: &Target) -> bool {
     target
         .bus
         .drive(target.drive.unit)
@@ -23,7 +23,7 @@ pub fn is_offline(target: &Target) -> bool {
 
 /// Writes `request` to the drive through the core for `caller`, and
 /// returns once the drive confirmed it (or the problem saying why not).
-pub async fn send(
+pub(crate) async fn send(
     control: &Control,
     caller: &Caller,
     target: Target,
@@ -48,7 +48,7 @@ pub async fn send(
 
 /// The 403 for `caller`, whose role is not `needed`: what it has, in the
 /// terms of its face (a token's name, or MQTT's `[mqtt] commands`).
-pub fn forbidden(caller: &Caller, needed: Role) -> Problem {
+pub(crate) fn forbidden(caller: &Caller, needed: Role) -> Problem {
     let detail = match caller.face {
         Face::Mqtt => format!(
             "this needs the {} role; commands over MQTT have the {} role ([mqtt] commands)",
@@ -66,7 +66,7 @@ pub fn forbidden(caller: &Caller, needed: Role) -> Problem {
 }
 
 /// The problem document of a failed write.
-pub fn problem(caller: &Caller, failure: &Failure, ctx: BusContext<'_>) -> Problem {
+pub(crate) fn problem(caller: &Caller, failure: &Failure, ctx: BusContext<'_>) -> Problem {
     let p = match failure {
         Failure::Refused(refusal) => match &refusal.rule {
             Rule::Role { needed, .. } => forbidden(caller, *needed),
@@ -96,7 +96,7 @@ pub fn problem(caller: &Caller, failure: &Failure, ctx: BusContext<'_>) -> Probl
 
 /// The problem of a lease length the core refused: out of range, with
 /// the valid range.
-pub fn lease_problem(refusal: &Refusal) -> Problem {
+pub(crate) fn lease_problem(refusal: &Refusal) -> Problem {
     match refusal.rule {
         Rule::LeaseLength { asked, min, max } => Problem::range(&RangeError {
             quantity: "lease",
@@ -110,7 +110,7 @@ pub fn lease_problem(refusal: &Refusal) -> Problem {
 }
 
 /// Reads the drive's status now (not from the poll cache).
-pub async fn read_status(
+pub(crate) async fn read_status(
     control: &Control,
     caller: &Caller,
     target: Target,

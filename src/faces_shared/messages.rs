@@ -191,7 +191,7 @@ impl DriveMessage {
 
 /// Lease news as a message about its drive: the drive's name and the
 /// message, if the drive is still configured.
-pub fn of_lease(plant: &Plant, lease: &LeaseEvent) -> Option<(String, DriveMessage)> {
+pub(crate) fn of_lease(plant: &Plant, lease: &LeaseEvent) -> Option<(String, DriveMessage)> {
     let now = plant.now();
     let drive = now.drive_at(lease.drive())?;
     let (name, bus, unit) = (
@@ -253,7 +253,7 @@ pub fn of_lease(plant: &Plant, lease: &LeaseEvent) -> Option<(String, DriveMessa
 
 /// Freshness news as a message about its drive: the drive's name and the
 /// message, if the drive is still configured.
-pub fn of_freshness(plant: &Plant, news: &FreshnessNews) -> Option<(String, DriveMessage)> {
+pub(crate) fn of_freshness(plant: &Plant, news: &FreshnessNews) -> Option<(String, DriveMessage)> {
     let now = plant.now();
     let drive = now.drive_at(news.drive)?;
     let handle = now.handle_of(drive)?;
@@ -272,7 +272,7 @@ pub fn of_freshness(plant: &Plant, news: &FreshnessNews) -> Option<(String, Driv
 
 /// Alarm news as a message: the drive it concerns (`None`: bus-wide) and
 /// the message.
-pub fn of_alarm(news: &AlarmNews) -> (Option<String>, DriveMessage) {
+pub(crate) fn of_alarm(news: &AlarmNews) -> (Option<String>, DriveMessage) {
     let alarm = AlarmView::from(news.alarm());
     let drive = alarm.drive.clone();
     let message = match news {

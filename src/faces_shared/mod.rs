@@ -7,11 +7,11 @@
 //! and the MQTT face's JSON format: one wording, one shape, whatever the
 //! face; the faces do not import each other.
 
-pub mod alarms;
-pub mod commands;
-pub mod integers;
-pub mod messages;
-pub mod problem;
-pub mod status;
-pub mod target;
-pub mod writes;
+pub(crate) mod alarms;
+pub(crate) mod command_messages;
+pub(crate) mod integers;
+pub(crate) mod messages;
+pub(crate) mod problem;
+pub(crate) mod status;
+pub(crate) mod target;
+pub(crate) mod writes;

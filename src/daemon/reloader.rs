@@ -26,7 +26,7 @@ use crate::config::diff::{Changes, diff};
 use crate::config::edit::sha256_hex;
 use crate::control::Control;
 use crate::control::reload::{Applied, NewText, Refused, ReloadRequest, ReloadResult};
-use crate::faces::Running;
+use crate::daemon::supervisor::Running;
 use crate::plant::{Plant, Rebuild};
 
 /// Reloads waiting for the reloader.
@@ -181,7 +181,7 @@ impl Reloader {
         let faces = self.faces.follow(&new).await;
         self.running = new;
         // `systemctl status` shows the drives and the API's address now.
-        crate::systemd::status(&self.plant, self.faces.addresses().await.http);
+        crate::daemon::systemd::status(&self.plant, self.faces.addresses().await.http);
         let mut lines = changes.lines();
         if changes.is_empty() && !faces.changes.is_empty() {
             lines.clear();
@@ -233,7 +233,8 @@ fn first_token(old: &Config, new: &Config) -> Option<String> {
 /// together, its certificates load and its tokens resolve.
 fn check(text: &str, origin: &str) -> Result<Config, Refused> {
     let config = Config::parse(text, origin).map_err(|e| Refused::Invalid(e.to_string()))?;
-    crate::faces::check_tls(&config).map_err(|e| Refused::Invalid(format!("{origin}: {e}")))?;
+    crate::daemon::supervisor::check_tls(&config)
+        .map_err(|e| Refused::Invalid(format!("{origin}: {e}")))?;
     crate::api::auth::Tokens::resolve(&config.http.tokens, config.http.token_guesses)
         .map_err(|e| Refused::Invalid(format!("{origin}: [http]: {e}")))?;
     Ok(config)

@@ -8,7 +8,7 @@ use tracing::warn;
 use crate::plant::Plant;
 
 /// Sends `states` to systemd; a failure is logged, never fatal.
-pub fn notify(states: &[sd_notify::NotifyState<'_>]) {
+pub(crate) fn notify(states: &[sd_notify::NotifyState<'_>]) {
     if let Err(e) = sd_notify::notify(states) {
         warn!("cannot notify systemd: {e}");
     }
@@ -16,7 +16,7 @@ pub fn notify(states: &[sd_notify::NotifyState<'_>]) {
 
 /// The line `systemctl status` shows: what is served and where the API
 /// is, or what to do first on a package as shipped.
-pub fn status_line(plant: &Plant, http: Option<SocketAddr>) -> String {
+pub(crate) fn status_line(plant: &Plant, http: Option<SocketAddr>) -> String {
     let http = http.map_or_else(|| "off".to_string(), |a| a.to_string());
     let now = plant.now();
     if now.bus_count() == 0 {
@@ -31,6 +31,6 @@ pub fn status_line(plant: &Plant, http: Option<SocketAddr>) -> String {
 }
 
 /// Updates the status line, after a reload.
-pub fn status(plant: &Plant, http: Option<SocketAddr>) {
+pub(crate) fn status(plant: &Plant, http: Option<SocketAddr>) {
     notify(&[sd_notify::NotifyState::Status(&status_line(plant, http))]);
 }

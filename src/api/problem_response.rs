@@ -1,4 +1,4 @@
-//! The API's side of the problem documents ([`crate::ops::problem`]): the
+//! The API's side of the problem documents ([`crate::faces_shared::problem`]): the
 //! HTTP response (content type, `Retry-After`, `WWW-Authenticate`,
 //! `Connection: close`), axum's rejections as problems, and the lists of
 //! problems a kind of route answers, as the OpenAPI document gives them.
@@ -8,7 +8,7 @@ use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use utoipa::IntoResponses;
 
-pub use crate::ops::problem::*;
+pub use crate::faces_shared::problem::*;
 
 impl From<JsonRejection> for Problem {
     fn from(rejection: JsonRejection) -> Self {

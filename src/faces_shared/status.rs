@@ -169,7 +169,7 @@ impl FreshnessView {
 
 /// The freshness of `target`'s data now (a drive the bus does not know
 /// counts as never heard).
-pub fn verdict(target: &Target) -> Verdict {
+pub(crate) fn verdict(target: &Target) -> Verdict {
     target
         .bus
         .freshness_at(target.drive.unit, Instant::now())
@@ -184,7 +184,7 @@ pub fn verdict(target: &Target) -> Verdict {
 
 /// The link as the API shows it: the cache's, except that no drive
 /// answers on a bus whose port is gone.
-pub fn link_of(snapshot: Option<&DriveSnapshot>, verdict: &Verdict) -> LinkName {
+pub(crate) fn link_of(snapshot: Option<&DriveSnapshot>, verdict: &Verdict) -> LinkName {
     if verdict.freshness == Freshness::BusDown {
         return LinkName::Offline;
     }
@@ -291,13 +291,13 @@ fn snapshot(target: &Target) -> Option<DriveSnapshot> {
 /// The latest polled status of `target` as a reply (`source: cache`), or
 /// the problem saying it has not answered yet (with what to check, and
 /// how to find the drive with `drivegate probe` on `port`).
-pub fn cached(target: &Target) -> Result<StatusReply, Problem> {
+pub(crate) fn cached(target: &Target) -> Result<StatusReply, Problem> {
     cached_on(target, None)
 }
 
 /// [`cached`], naming the bus's `port` in the hint for a drive that never
 /// answered.
-pub fn cached_on(target: &Target, port: Option<&str>) -> Result<StatusReply, Problem> {
+pub(crate) fn cached_on(target: &Target, port: Option<&str>) -> Result<StatusReply, Problem> {
     let snap = snapshot(target);
     let cached = snap
         .as_ref()
@@ -348,7 +348,7 @@ fn no_status_yet(target: &Target, port: Option<&str>) -> String {
 }
 
 /// `status` of `target`, read at `seen_at`, as a reply.
-pub fn reply(
+pub(crate) fn reply(
     target: &Target,
     status: &Status,
     source: StatusSource,
@@ -378,7 +378,7 @@ pub fn reply(
 
 /// The status of `target`, from the cache or (`fresh`) read from the
 /// drive now for `caller`.
-pub async fn status(
+pub(crate) async fn status(
     control: &Control,
     caller: &Caller,
     target: &Target,

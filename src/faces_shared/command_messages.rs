@@ -68,7 +68,7 @@ fn note(command: ConfigCommand) -> Option<&'static str> {
 }
 
 /// Sends config command `command` to `target` for `caller`.
-pub async fn run(
+pub(crate) async fn run(
     control: &Control,
     caller: &Caller,
     target: &Target,
@@ -272,7 +272,7 @@ pub struct SetpointReply {
 /// Sends a setpoint to `target` for `caller`, with a lease of `lease_ms`
 /// (or `lease_default`) when one is asked for; a lease taken in a session
 /// (a WebSocket, MQTT) ends with its session too.
-pub async fn apply(
+pub(crate) async fn apply(
     control: &Control,
     caller: &Caller,
     target: &Target,
@@ -302,12 +302,12 @@ pub async fn apply(
 /// A lease length a client asked for (`lease_ms` of a setpoint or a
 /// renewal), which the core checks against its bounds. A negative length
 /// asks for 0 ms, which no bound allows.
-pub fn lease_length(ms: i64) -> Duration {
+pub(crate) fn lease_length(ms: i64) -> Duration {
     Duration::from_millis(u64::try_from(ms).unwrap_or(0))
 }
 
 /// The lease on drive `index` of the plant, as clients see it.
-pub fn lease_of(control: &Control, index: usize) -> Option<LeaseInfo> {
+pub(crate) fn lease_of(control: &Control, index: usize) -> Option<LeaseInfo> {
     let view = control.lease(index)?;
     let name = control.plant().now().drive_at(index)?.name.clone();
     Some(LeaseInfo::new(&name, &view))
@@ -323,7 +323,7 @@ fn millis_u64(d: Duration) -> u64 {
 /// topic, so `drive` may be left out there).
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(tag = "type", rename_all = "kebab-case", deny_unknown_fields)]
-pub enum CommandMessage {
+pub(crate) enum CommandMessage {
     /// Run an operation; answered with a reply carrying the same `id`.
     Command {
         /// Any JSON value; echoed in the reply.
@@ -358,7 +358,7 @@ struct FreshBody {
 
 /// The body of a command message as `T`: none is `{}`, anything but an
 /// object is refused.
-pub fn body_as<T: DeserializeOwned>(op: &str, body: Option<Value>) -> Result<T, Problem> {
+pub(crate) fn body_as<T: DeserializeOwned>(op: &str, body: Option<Value>) -> Result<T, Problem> {
     let body = match body {
         None => Value::Object(Default::default()),
         // serde would read a struct from an array, field by field.
@@ -374,24 +374,24 @@ pub fn body_as<T: DeserializeOwned>(op: &str, body: Option<Value>) -> Result<T, 
 }
 
 /// `value` as a reply's JSON.
-pub fn json<T: serde::Serialize>(value: T) -> Result<Value, Problem> {
+pub(crate) fn json<T: serde::Serialize>(value: T) -> Result<Value, Problem> {
     serde_json::to_value(value)
         .map_err(|e| Problem::new(Kind::Internal, format!("cannot encode the reply: {e}")))
 }
 
 /// The operations on one drive that every face with command messages
 /// offers (the stream, MQTT's JSON format).
-pub const DRIVE_OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, status";
+pub(crate) const DRIVE_OPS: &str = "a command name (activate, deactivate, calibrate, fine-tune, set-zero, brake, factory-reset, soft-reset, fault-reset), mode, setpoint, status";
 
 /// Whether `op` is one of [`DRIVE_OPS`].
-pub fn is_drive_op(op: &str) -> bool {
+pub(crate) fn is_drive_op(op: &str) -> bool {
     matches!(op, "mode" | "setpoint" | "status") || ConfigCommand::from_name(op).is_some()
 }
 
 /// Runs drive operation `op` (one of [`DRIVE_OPS`]) with `body` on the
 /// drive named `key` for `caller`: its reply as JSON, or the problem. The
 /// body is read before the drive is looked up, as the REST routes do.
-pub async fn run_drive_op(
+pub(crate) async fn run_drive_op(
     control: &Control,
     caller: &Caller,
     key: &str,

@@ -1,6 +1,10 @@
 //! `drivegate serve`: start the plant and the faces, tell systemd, wait for
 //! a signal, stop gracefully.
 
+pub mod reloader;
+pub mod supervisor;
+pub(crate) mod systemd;
+
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -31,7 +35,7 @@ pub enum DaemonError {
 /// What the start brought up.
 struct Started {
     plant: Arc<Plant>,
-    faces: crate::faces::Faces,
+    faces: crate::daemon::supervisor::Faces,
     reloader: Option<tokio::task::JoinHandle<()>>,
 }
 
@@ -66,7 +70,7 @@ pub async fn serve(config: Config, path: Option<PathBuf>) -> Result<(), DaemonEr
         // what to do first.
         tracing::warn!("{}", crate::api::health::NO_BUS);
     }
-    let summary = crate::systemd::status_line(&started.plant, Some(started.faces.http));
+    let summary = crate::daemon::systemd::status_line(&started.plant, Some(started.faces.http));
     notify_systemd(&[
         sd_notify::NotifyState::Ready,
         sd_notify::NotifyState::Status(&summary),
@@ -105,11 +109,11 @@ async fn start(
         env!("CARGO_PKG_VERSION")
     );
     let metrics = crate::metrics::Metrics::new(plant.clone());
-    let faces = crate::faces::start(&config, plant.clone(), metrics, shutdown.clone())
+    let faces = crate::daemon::supervisor::start(&config, plant.clone(), metrics, shutdown.clone())
         .await
         .map_err(DaemonError::Listen)?;
     let reloader = path.as_deref().map(|path| {
-        crate::reload::Reloader::start(
+        crate::daemon::reloader::Reloader::start(
             path,
             Arc::new(config.clone()),
             plant.clone(),
@@ -129,7 +133,7 @@ async fn start(
 /// [`START_STOP_LIMIT`]), what it brought up stops as after a start.
 async fn stop_during_start(
     starting: tokio::task::JoinHandle<Result<Started, DaemonError>>,
-    on_shutdown: crate::safety::StopAction,
+    on_shutdown: crate::control::stop_action::StopAction,
     shutdown: CancellationToken,
 ) -> Result<(), DaemonError> {
     notify_systemd(&[sd_notify::NotifyState::Stopping]);
@@ -160,7 +164,7 @@ async fn stop_during_start(
 /// every drive (`on_shutdown`), the plant stopped.
 async fn stop(
     started: Started,
-    on_shutdown: crate::safety::StopAction,
+    on_shutdown: crate::control::stop_action::StopAction,
     shutdown: CancellationToken,
 ) {
     info!(
@@ -215,7 +219,7 @@ impl Watchdog {
 /// step is bounded to 5 s in [`crate::control::shutdown`]).
 const FACES_STOP_LIMIT: Duration = Duration::from_secs(5);
 
-use crate::systemd::notify as notify_systemd;
+use crate::daemon::systemd::notify as notify_systemd;
 
 /// Pings systemd's watchdog (`WatchdogSec=`) at half its interval until
 /// `stop` fires. The pings come from the runtime that serves the faces and
@@ -240,7 +244,7 @@ fn spawn_watchdog(stop: CancellationToken) -> Option<tokio::task::JoinHandle<()>
 
 /// SIGTERM (systemd's stop) and SIGINT (Ctrl-C); SIGHUP (systemd's
 /// reload) is taken here too, so that it never ends the daemon: it reloads
-/// the configuration file through the core (`crate::reload`), and the TLS
+/// the configuration file through the core (`crate::daemon::reloader`), and the TLS
 /// listeners watch it themselves and reload their certificates
 /// ([`crate::tls::reload_on_hangup`]).
 struct StopSignals {
