@@ -312,7 +312,14 @@ async fn idle_connections_from_one_address_do_not_lock_the_admin_out() {
         };
         assert!(refused > 0, "served before the idle connections were closed");
         assert!(same >= header_timeout - Duration::from_millis(200), "{same:?}");
-        assert!(metric("drivegate_http_header_timeouts_total") >= 32.0);
+        // Every idle one is closed for its head (the admin may have been
+        // served as soon as the first of them was).
+        crate::support::wait::eventually(
+            Duration::from_secs(10),
+            "the 32 idle connections closed for their head",
+            || (metric("drivegate_http_header_timeouts_total") >= 32.0).then_some(()),
+        )
+        .await;
         println!(
             "HTTP: 200 idle connections from 127.0.0.1 (32 held, {} refused): an admin from 127.0.0.2 served in {} ms, one from 127.0.0.1 after {:.1} s ({refused} tries refused; header_timeout_ms 5000), {} connections closed for their head",
             metric("drivegate_http_connections_refused_total{reason=\"per_address\"}"),
