@@ -26,6 +26,8 @@
 //! - The faces: [`api`] (the request bodies and stream messages fuzzed, the
 //!   OpenAPI document checked for drift), [`modbus_tcp`] (MBAP, fuzzed),
 //!   [`mqtt`] (Sparkplug B; its payload types for the tests' host),
+//!   [`opcua`] (the OPC UA server; its address space's names for the
+//!   tests),
 //!   [`console`] (its assets), [`metrics`].
 //! - Putting it together: [`config`], [`plant`], [`faces`], [`daemon`],
 //!   [`reload`], [`systemd`], [`logging`], [`bench`] (`drivegate bench`),
@@ -54,6 +56,7 @@ pub mod modbus;
 pub mod modbus_tcp;
 pub mod monitor;
 pub mod mqtt;
+pub mod opcua;
 pub mod ops;
 pub mod plant;
 pub mod probe;

@@ -35,6 +35,8 @@ listed_enum! {
         ModbusTls,
         /// The MQTT face, a client of its broker.
         Mqtt,
+        /// The OPC UA listener (`[opcua]`).
+        OpcUa,
     }
 }
 
@@ -46,6 +48,7 @@ impl Face {
             Face::ModbusTcp => "Modbus TCP listener",
             Face::ModbusTls => "Modbus/TCP Security listener",
             Face::Mqtt => "MQTT face",
+            Face::OpcUa => "OPC UA listener",
         }
     }
 
@@ -56,6 +59,7 @@ impl Face {
             Face::ModbusTcp => "[modbus_tcp]",
             Face::ModbusTls => "[modbus_tcp.tls]",
             Face::Mqtt => "[mqtt]",
+            Face::OpcUa => "[opcua]",
         }
     }
 
@@ -109,6 +113,13 @@ impl Face {
             Face::Mqtt => {
                 old.mqtt != new.mqtt
                     || (new.mqtt.is_some() && old.safety.state_dir != new.safety.state_dir)
+            }
+            // Its certificates are in the state directory unless its
+            // pki_dir says; its users are the [[http.token]]s, which it
+            // follows session by session.
+            Face::OpcUa => {
+                old.opcua != new.opcua
+                    || (new.opcua.is_some() && old.safety.state_dir != new.safety.state_dir)
             }
         }
     }
@@ -190,6 +201,7 @@ pub fn diff(old: &Config, new: &Config) -> Changes {
         http: _,
         modbus_tcp,
         mqtt: _,
+        opcua: _,
         log,
         safety,
         monitor,
@@ -869,6 +881,33 @@ name = "press"
                 );
             }
         }
+    }
+
+    #[test]
+    fn opcua_changes_restart_only_its_listener() {
+        let section = "[opcua]\nlisten = \"127.0.0.1:4840\"\n";
+        let (old, new) = (reference(), with(section));
+        assert_eq!(diff(&old, &new).faces_restarted, vec![Face::OpcUa]);
+        assert_eq!(diff(&new, &old).faces_restarted, vec![Face::OpcUa]);
+        assert_eq!(diff(&old, &new).lines(), vec!["restarted: OPC UA listener"]);
+        let mut longer = new.clone();
+        if let Some(o) = longer.opcua.as_mut() {
+            o.session_timeout_max_ms += 1000;
+        }
+        assert_eq!(diff(&new, &longer).faces_restarted, vec![Face::OpcUa]);
+        // Its certificates are in the state directory.
+        let mut moved = new.clone();
+        moved.safety.state_dir = Some("/var/lib/elsewhere".into());
+        assert!(diff(&new, &moved).faces_restarted.contains(&Face::OpcUa));
+        assert!(
+            !diff(&old, &{
+                let mut o = old.clone();
+                o.safety.state_dir = Some("/var/lib/elsewhere".into());
+                o
+            })
+            .faces_restarted
+            .contains(&Face::OpcUa)
+        );
     }
 
     #[test]
