@@ -1,0 +1,691 @@
+//! The OPC UA face with two third-party clients: asyncua (PyPI, in the
+//! test venv; `tests/python/opcua_client.py`) and node-opcua's client (npm,
+//! installed under `target/node-opcua` by `scripts/test`;
+//! `tests/node/opcua_client.js`). Each scenario is a client process that
+//! prints one JSON line per step; the test reads them and checks the
+//! daemon's side too (the simulated motor, the alarm book, the PKI
+//! directory, the audit).
+//!
+//! The server's certificate is made by openssl in the test's PKI directory
+//! before the start (the daemon's own RSA key generation costs seconds of
+//! CPU in a debug build); the first start making it is unit-tested in
+//! `src/opcua/pki.rs`.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+use tokio::io::{AsyncBufReadExt, BufReader, Lines};
+use tokio::process::{Child, ChildStdout, Command};
+
+use crate::support::TestDaemon;
+use crate::support::api::Api;
+use crate::support::config::ConfigBuilder;
+use crate::support::input::{OPERATOR, role_tokens};
+use crate::support::logs::{capture_logs, log_text};
+use crate::support::sim_process::ExternalSim;
+use crate::support::tools;
+use crate::support::wait::{bounded, eventually};
+
+const LIMIT: Duration = Duration::from_secs(150);
+/// Longest wait for one client step.
+const STEP: Duration = Duration::from_secs(60);
+/// The operator's user name: its `[[http.token]]`'s name.
+const USER: &str = "scada";
+
+/// A daemon with `[opcua]` on loopback (a `none` endpoint beside
+/// Basic256Sha256), its PKI directory and where it listens.
+struct Ua {
+    d: TestDaemon,
+    url: String,
+    pki: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+fn openssl(dir: &Path, args: &[&str]) {
+    let out = std::process::Command::new("openssl")
+        .current_dir(dir)
+        .args(args)
+        .output()
+        .unwrap_or_else(|e| panic!("{}", tools::cannot_run("openssl", &e)));
+    assert!(
+        out.status.success(),
+        "openssl {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A self-signed application certificate `name.der` / `name-key.pem`
+/// for application URI `uri`.
+fn application_cert(dir: &Path, name: &str, uri: &str) {
+    openssl(
+        dir,
+        &[
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-keyout",
+            &format!("{name}-key.pem"),
+            "-out",
+            &format!("{name}.pem"),
+            "-days",
+            "30",
+            "-subj",
+            &format!("/CN={name}"),
+            "-addext",
+            &format!("subjectAltName=URI:{uri},DNS:localhost,IP:127.0.0.1"),
+            "-addext",
+            "keyUsage=critical,digitalSignature,nonRepudiation,keyEncipherment,dataEncipherment",
+            "-addext",
+            "extendedKeyUsage=clientAuth,serverAuth",
+        ],
+    );
+    openssl(
+        dir,
+        &[
+            "x509",
+            "-in",
+            &format!("{name}.pem"),
+            "-outform",
+            "der",
+            "-out",
+            &format!("{name}.der"),
+        ],
+    );
+}
+
+fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|s| s.trim().to_string())
+        .unwrap_or_else(|_| "localhost".into())
+}
+
+impl Ua {
+    /// The four drives (or `port`'s bus of two) with `[opcua]`, the role
+    /// tokens, and a safety state directory.
+    async fn start(port: Option<&Path>) -> Ua {
+        let dir = tempfile::tempdir().unwrap();
+        let pki = dir.path().join("pki");
+        for sub in ["own", "private"] {
+            std::fs::create_dir_all(pki.join(sub)).unwrap();
+        }
+        application_cert(
+            dir.path(),
+            "server",
+            &format!("urn:{}:drivegate", host_name()),
+        );
+        std::fs::rename(dir.path().join("server.der"), pki.join("own/cert.der")).unwrap();
+        std::fs::rename(
+            dir.path().join("server-key.pem"),
+            pki.join("private/private.pem"),
+        )
+        .unwrap();
+        let builder = match port {
+            None => ConfigBuilder::four_drives(),
+            Some(link) => ConfigBuilder::new().bus("line1", |b| {
+                b.port(&link.display().to_string())
+                    .drive(1, "conveyor")
+                    .drive(2, "belt")
+            }),
+        };
+        let toml = role_tokens(builder)
+            .section(
+                "opcua",
+                &format!(
+                    "listen = \"127.0.0.1:0\"\npki_dir = \"{}\"\nsecurity = [\"none\", \"basic256sha256\"]\nsession_timeout_max_ms = 3000",
+                    pki.display()
+                ),
+            )
+            .section(
+                "safety",
+                &format!("state_dir = \"{}\"", dir.path().join("state").display()),
+            )
+            .toml();
+        let d = if port.is_some() {
+            TestDaemon::start_no_wait(&toml).await
+        } else {
+            TestDaemon::start(&toml).await
+        };
+        let addr: SocketAddr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        let url = format!("opc.tcp://{addr}/");
+        let ua = Ua {
+            d,
+            url,
+            pki,
+            _dir: dir,
+        };
+        ua.wait_serving().await;
+        ua
+    }
+
+    /// Until `/readyz` says the server serves.
+    async fn wait_serving(&self) {
+        let api = Api::new(self.d.http, None);
+        let t0 = Instant::now();
+        loop {
+            let r = api.get("/readyz").await;
+            if r.body["opcua"]["serving"] == true {
+                return;
+            }
+            assert!(t0.elapsed() < STEP, "OPC UA not serving: {:#}", r.body);
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+}
+
+/// A client process: asyncua or node-opcua.
+struct Client {
+    child: Child,
+    lines: Lines<BufReader<ChildStdout>>,
+    name: &'static str,
+}
+
+/// The operator's credentials as client arguments.
+fn operator() -> Vec<String> {
+    ["--user", USER, "--password", OPERATOR]
+        .map(String::from)
+        .to_vec()
+}
+
+impl Client {
+    /// `tests/python/opcua_client.py URL SCENARIO ARGS`.
+    fn asyncua(url: &str, scenario: &str, args: &[String]) -> Client {
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/opcua_client.py");
+        let mut cmd = Command::new("python3");
+        cmd.arg(script).arg(url).arg(scenario).args(args);
+        Client::spawn(cmd, "asyncua")
+    }
+
+    /// `tests/node/opcua_client.js URL SCENARIO ARGS` with node-opcua from
+    /// `target/node-opcua` (scripts/test installs it there).
+    fn node(url: &str, scenario: &str, pki: &Path, args: &[String]) -> Client {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let modules = root.join("target/node-opcua/node_modules");
+        assert!(
+            modules.join("node-opcua-client").is_dir(),
+            "node-opcua-client is not installed in {}: run scripts/test (it runs \
+             `npm ci` there from tests/node/package-lock.json)",
+            modules.display()
+        );
+        let mut cmd = Command::new("node");
+        cmd.env("NODE_PATH", modules)
+            .arg(root.join("tests/node/opcua_client.js"))
+            .arg(url)
+            .arg(scenario)
+            .arg("--pki")
+            .arg(pki)
+            .args(args);
+        Client::spawn(cmd, "node-opcua")
+    }
+
+    fn spawn(mut cmd: Command, name: &'static str) -> Client {
+        let mut child = cmd
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .kill_on_drop(true)
+            .spawn()
+            .unwrap_or_else(|e| panic!("{}", tools::cannot_run(name, &e)));
+        let stdout = child.stdout.take().expect("its output");
+        Client {
+            child,
+            lines: BufReader::new(stdout).lines(),
+            name,
+        }
+    }
+
+    /// The next step the client prints (failing on its `error` step).
+    async fn next(&mut self) -> Option<Value> {
+        loop {
+            let line = tokio::time::timeout(STEP, self.lines.next_line())
+                .await
+                .unwrap_or_else(|_| panic!("{}: no line within {STEP:?}", self.name))
+                .expect("its output")?;
+            let Ok(v) = serde_json::from_str::<Value>(&line) else {
+                continue;
+            };
+            assert_ne!(v["step"], "error", "{}: {v}", self.name);
+            return Some(v);
+        }
+    }
+
+    /// Reads steps until one named `step`.
+    async fn until(&mut self, step: &str) -> Value {
+        loop {
+            match self.next().await {
+                Some(v) if v["step"] == step => return v,
+                Some(_) => {}
+                None => panic!("{}: ended before its {step:?} step", self.name),
+            }
+        }
+    }
+
+    /// Every step until the client ends, by name.
+    async fn steps(mut self) -> Vec<Value> {
+        let mut all = Vec::new();
+        while let Some(v) = self.next().await {
+            all.push(v);
+        }
+        let status = self.child.wait().await.expect("it ends");
+        assert!(
+            status.success(),
+            "{} ended with {status}: {all:?}",
+            self.name
+        );
+        all
+    }
+
+    /// `kill -9`.
+    async fn kill(mut self) {
+        self.child.start_kill().expect("kill -9");
+        let _ = self.child.wait().await;
+    }
+}
+
+fn step<'a>(steps: &'a [Value], name: &str) -> &'a Value {
+    steps
+        .iter()
+        .find(|s| s["step"] == name)
+        .unwrap_or_else(|| panic!("no {name:?} step in {steps:#?}"))
+}
+
+/// Endpoints, browse, read with units, the anonymous write and HistoryRead,
+/// as both clients see them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn both_clients_browse_read_with_units_and_read_history() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let all = Client::asyncua(&ua.url, "endpoints", &[]).steps().await;
+        let endpoints = step(&all, "endpoints")["endpoints"]
+            .as_array()
+            .unwrap()
+            .clone();
+        let policies: Vec<_> = endpoints
+            .iter()
+            .map(|e| e["policy"].as_str().unwrap())
+            .collect();
+        assert!(
+            policies.contains(&"None") && policies.contains(&"Basic256Sha256"),
+            "{endpoints:?}"
+        );
+        for e in &endpoints {
+            assert_eq!(
+                e["tokens"],
+                serde_json::json!(["Anonymous", "Certificate", "UserName"]),
+                "{e}"
+            );
+            if e["policy"] == "Basic256Sha256" {
+                assert_eq!(e["mode"], "SignAndEncrypt");
+            }
+        }
+
+        let all = Client::asyncua(&ua.url, "browse", &[]).steps().await;
+        let browse = step(&all, "browse");
+        assert_eq!(
+            browse["drives"],
+            serde_json::json!(["conveyor", "feeder", "lift", "turntable"])
+        );
+        assert_eq!(browse["type"], "DriveType");
+        assert_eq!(browse["buses"], serde_json::json!(["sim"]));
+        for child in [
+            "Speed",
+            "Angle",
+            "Turns",
+            "Current",
+            "Voltage",
+            "Temperature",
+            "Active",
+            "Stalled",
+            "Calibrated",
+            "Online",
+            "Mode",
+            "Fault",
+            "FaultCode",
+            "SpeedSetpoint",
+            "PositionSetpoint",
+            "TorqueSetpoint",
+            "Activate",
+            "Deactivate",
+            "Brake",
+            "FaultReset",
+            "SetMode",
+            "Settings",
+        ] {
+            assert!(
+                browse["children"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|c| c == child),
+                "{child}: {browse}"
+            );
+        }
+
+        let all = Client::asyncua(&ua.url, "read", &[]).steps().await;
+        let read = step(&all, "read");
+        let speed = &read["values"]["Speed"];
+        assert_eq!(
+            (speed["status"].as_str(), speed["type"].as_str()),
+            (Some("Good"), Some("Double"))
+        );
+        // UNECE codes: RPM, CEL, VLT.
+        assert_eq!(
+            (speed["unit"].as_str(), speed["unit_id"].as_u64()),
+            (Some("r/min"), Some(5_394_509))
+        );
+        assert_eq!(read["values"]["Temperature"]["unit_id"], 4_408_652);
+        assert_eq!(read["values"]["Voltage"]["unit_id"], 5_655_636);
+        assert!(
+            speed["low"].as_f64().unwrap() < 0.0 && speed["high"].as_f64().unwrap() > 0.0,
+            "{speed}"
+        );
+        assert!(
+            speed["source_timestamp"]
+                .as_str()
+                .is_some_and(|t| !t.is_empty()),
+            "{speed}"
+        );
+        assert_eq!(read["values"]["Turns"]["type"], "Int32");
+        assert_eq!(read["values"]["FaultCode"]["type"], "UInt16");
+        assert_eq!(read["values"]["Online"]["value"], true);
+        // The poll's period is the fastest sampling.
+        assert!(read["min_sampling_ms"].as_f64().unwrap() > 0.0, "{read}");
+
+        let all = Client::asyncua(&ua.url, "anonymous-write", &[])
+            .steps()
+            .await;
+        let refused = step(&all, "anonymous-write");
+        assert_eq!(refused["status"], "BadUserAccessDenied", "{refused}");
+        // Its UserAccessLevel shows no write (CurrentRead only).
+        assert_eq!(refused["user_access_level"], 1, "{refused}");
+
+        let all = Client::asyncua(&ua.url, "history", &["--drive".into(), "lift".into()])
+            .steps()
+            .await;
+        let history = step(&all, "history");
+        assert!(history["count"].as_u64().unwrap() > 5, "{history}");
+        assert_eq!(history["five"], 5, "{history}");
+
+        // node-opcua: the same server through a second implementation.
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        let all = Client::node(&ua.url, "endpoints", &pki, &[]).steps().await;
+        assert_eq!(
+            step(&all, "endpoints")["endpoints"]
+                .as_array()
+                .unwrap()
+                .len(),
+            endpoints.len()
+        );
+        let all = Client::node(&ua.url, "browse", &pki, &[]).steps().await;
+        assert_eq!(step(&all, "browse")["drives"], browse["drives"]);
+        let all = Client::node(&ua.url, "read", &pki, &[]).steps().await;
+        let speed = &step(&all, "read")["values"]["Speed"];
+        assert_eq!(
+            (speed["status"].as_str(), speed["unit_id"].as_u64()),
+            (Some("Good"), Some(5_394_509))
+        );
+        let all = Client::node(&ua.url, "history", &pki, &[]).steps().await;
+        let history = step(&all, "history");
+        assert_eq!(history["status"], "Good");
+        assert!(history["count"].as_u64().unwrap() > 5, "{history}");
+    })
+    .await;
+}
+
+/// An operator (user name = the token's name, password = the token) sets
+/// the mode, activates and writes SpeedSetpoint; the motor turns, the
+/// subscription is notified at the poll rate, an out-of-range setpoint is
+/// refused with the range in the diagnostics; audited as `opcua <user>`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
+    capture_logs();
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let mut args = operator();
+        args.extend(["--value".into(), "600".into()]);
+        let all = Client::asyncua(&ua.url, "operate", &args).steps().await;
+        assert_eq!(step(&all, "written")["status"], "Good", "{all:?}");
+        assert_eq!(step(&all, "turned")["reached"], 600.0, "{all:?}");
+        // The simulated motor turned (the conveyor's gear: 3.75).
+        let angle = step(&all, "angle");
+        let n = angle["notifications"].as_u64().unwrap();
+        // 2 s of a turning motor polled every ~100 ms or faster: at least
+        // one notification per publish (100 ms), none lost to the sampling.
+        assert!(n >= 8, "{angle}");
+        let out = step(&all, "out-of-range");
+        assert_eq!(out["status"], "BadOutOfRange", "{out}");
+        assert!(
+            out["diagnostics"]
+                .as_str()
+                .unwrap()
+                .contains("valid -2048 to 2047 rpm"),
+            "{out}"
+        );
+        eventually(
+            Duration::from_secs(20),
+            "the brake stopping the conveyor",
+            || (ua.d.sim().drive(1)?.speed_rpm.abs() < 1.0).then_some(()),
+        )
+        .await;
+        let log = log_text();
+        assert!(log.contains("face=\"opcua\" who=\"scada (urn:"), "{log}");
+        assert!(log.contains("speed setpoint 600 rpm"), "{log}");
+
+        // node-opcua, on the feeder.
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        let mut args = operator();
+        args.extend([
+            "--drive".into(),
+            "feeder".into(),
+            "--value".into(),
+            "450".into(),
+        ]);
+        let all = Client::node(&ua.url, "operate", &pki, &args).steps().await;
+        assert_eq!(
+            step(&all, "anonymous-write")["status"],
+            "BadUserAccessDenied",
+            "{all:?}"
+        );
+        assert_eq!(step(&all, "written")["status"], "Good", "{all:?}");
+        assert_eq!(step(&all, "turned")["reached"], 450.0, "{all:?}");
+        assert_eq!(
+            step(&all, "out-of-range")["status"],
+            "BadOutOfRange",
+            "{all:?}"
+        );
+    })
+    .await;
+}
+
+/// A client killed with -9 while its setpoint holds a lease: its session
+/// times out (3 s, the most `[opcua]` allows here) and the lease ends with
+/// `comm_loss_action` (zero speed): the motor stops. Both clients.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_client_whose_session_times_out_stops_the_motor() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        for (unit, drive, client) in [(1u8, "conveyor", "asyncua"), (2, "lift", "node-opcua")] {
+            let mut args = operator();
+            args.extend([
+                "--drive".into(),
+                drive.into(),
+                "--value".into(),
+                "300".into(),
+            ]);
+            let mut c = match client {
+                "asyncua" => Client::asyncua(&ua.url, "lease", &args),
+                _ => Client::node(&ua.url, "lease", &pki, &args),
+            };
+            let leased = c.until("leased").await;
+            assert_eq!(leased["status"], "Good", "{client}: {leased}");
+            eventually(Duration::from_secs(20), "the motor turning", || {
+                (ua.d.sim().drive(unit)?.speed_rpm.abs() > 50.0).then_some(())
+            })
+            .await;
+            c.kill().await;
+            let t0 = Instant::now();
+            eventually(
+                Duration::from_secs(20),
+                "the motor stopped by the lease's end",
+                || (ua.d.sim().drive(unit)?.speed_rpm.abs() < 1.0).then_some(()),
+            )
+            .await;
+            // Not before the session's timeout: the session outlives its
+            // connection that long (a client may reconnect).
+            assert!(
+                t0.elapsed() >= Duration::from_millis(1500),
+                "{client}: stopped after {:?}",
+                t0.elapsed()
+            );
+        }
+    })
+    .await;
+}
+
+/// An unknown client certificate is refused and copied to
+/// `rejected/certs`; moved to `trusted/certs`, the same client is served,
+/// without a restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_certificate_is_refused_then_trusted_without_a_restart() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let dir = ua.pki.parent().unwrap().to_path_buf();
+        application_cert(&dir, "pyclient", "urn:freeopcua:client");
+        let args: Vec<String> = [
+            "--policy",
+            "basic256sha256",
+            "--cert",
+            &dir.join("pyclient.der").display().to_string(),
+            "--key",
+            &dir.join("pyclient-key.pem").display().to_string(),
+        ]
+        .map(String::from)
+        .to_vec();
+        let all = Client::asyncua(&ua.url, "secure", &args).steps().await;
+        assert_ne!(step(&all, "secure")["status"], "Good", "{all:?}");
+        let rejected = ua.pki.join("rejected/certs");
+        let file = eventually(
+            Duration::from_secs(20),
+            "the certificate in rejected/certs",
+            || {
+                std::fs::read_dir(&rejected)
+                    .ok()?
+                    .flatten()
+                    .map(|e| e.path())
+                    .next()
+            },
+        )
+        .await;
+        let text = ua.d.metrics.render();
+        assert!(
+            text.contains("drivegate_opcua_rejected_certificates_total 1"),
+            "{text}"
+        );
+        std::fs::rename(
+            &file,
+            ua.pki.join("trusted/certs").join(file.file_name().unwrap()),
+        )
+        .unwrap();
+        // Trusted at the next secure channel (the store follows the
+        // directory every second).
+        let t0 = Instant::now();
+        loop {
+            let all = Client::asyncua(&ua.url, "secure", &args).steps().await;
+            if step(&all, "secure")["status"] == "Good" {
+                break;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(30),
+                "still refused: {all:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(500)).await;
+        }
+    })
+    .await;
+}
+
+/// The daemon on an external simulator: killed (the adapter unplugged),
+/// a subscribed value turns `BadNoCommunication` (clients with no filter:
+/// the default trigger).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn good_turns_bad_no_communication_when_the_adapter_goes_away() {
+    bounded(LIMIT, async {
+        let links = tempfile::tempdir().unwrap();
+        let link = links.path().join("adapter");
+        let sim = ExternalSim::start(&link, "1,2", &[]).await;
+        let ua = Ua::start(Some(&link)).await;
+        ua.d.wait_all_online(Duration::from_secs(30)).await;
+        let mut c = Client::asyncua(&ua.url, "quality", &["--seconds".into(), "60".into()]);
+        c.until("subscribed").await;
+        loop {
+            let v = c.until("value").await;
+            if v["status"] == "Good" {
+                break;
+            }
+        }
+        sim.kill().await;
+        let t0 = Instant::now();
+        loop {
+            let v = c.until("value").await;
+            if v["status"] == "BadNoCommunication" {
+                break;
+            }
+        }
+        assert!(t0.elapsed() < Duration::from_secs(10), "{:?}", t0.elapsed());
+        c.kill().await;
+    })
+    .await;
+}
+
+/// An alarm of the book (a drive gone silent: offline) reaches both
+/// clients as an AlarmConditionType event with their default filters;
+/// acknowledged over OPC UA, the API shows it acknowledged.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_alarm_is_an_event_acknowledged_as_through_the_api() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let api = Api::new(ua.d.http, Some(OPERATOR));
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        for (unit, drive, client) in [(2u8, "lift", "asyncua"), (4, "feeder", "node-opcua")] {
+            let mut args = operator();
+            args.extend([
+                "--drive".into(),
+                drive.into(),
+                "--seconds".into(),
+                "40".into(),
+            ]);
+            let mut c = match client {
+                "asyncua" => Client::asyncua(&ua.url, "events", &args),
+                _ => Client::node(&ua.url, "events", &pki, &args),
+            };
+            c.until("subscribed").await;
+            ua.d.sim().set_silent(unit, true);
+            let acked = c.until("acknowledged").await;
+            assert_eq!(acked["status"], "Good", "{client}: {acked}");
+            let t0 = Instant::now();
+            loop {
+                let list = api
+                    .get(&format!("/api/v1/alarms?drive={drive}"))
+                    .await
+                    .expect(200);
+                let offline = list["alarms"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .find(|a| a["kind"] == "offline")
+                    .cloned();
+                if offline.as_ref().is_some_and(|a| a["acknowledged"] == true) {
+                    break;
+                }
+                assert!(t0.elapsed() < STEP, "{client}: not acknowledged: {list:#}");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            c.kill().await;
+        }
+    })
+    .await;
+}
