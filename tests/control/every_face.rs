@@ -17,6 +17,12 @@
 //! 127.0.0.4 (admin, allowed to save while moving: the face's override,
 //! which HTTP and the stream give with `"force": true`).
 //!
+//! OPC UA signs in with the role's token (user name = the token's name,
+//! password = the token): setpoints as writes of `SpeedSetpoint`, the
+//! brake as `Brake()`, a save as `Settings.Save()` (it has no override of
+//! the still-check, nor an address broadcast); its answer is the status
+//! code.
+//!
 //! MQTT has one role per daemon (`[mqtt] commands`), here `operator`: the
 //! operator's rows that MQTT can say (setpoints, the brake) go through it
 //! too, as a host's DCMD, and its answer is the drive's
@@ -28,6 +34,7 @@ use std::time::Duration;
 
 use serde_json::{Value, json};
 
+use crate::opcua::Table;
 use crate::support::api::{Api, Ws, connect, send_json, wait_for};
 use crate::support::input::{ADMIN, OPERATOR, VIEWER, config};
 use crate::support::modbus_tcp::{Raw, write};
@@ -81,6 +88,18 @@ impl Decision {
         }
     }
 
+    /// OPC UA: the status code of the write or the method call.
+    fn opcua(self) -> &'static str {
+        match self {
+            Decision::Done => "Good",
+            Decision::Role => "BadUserAccessDenied",
+            Decision::Moving | Decision::NotActive => "BadInvalidState",
+            Decision::Address | Decision::LeaseLength => {
+                unreachable!("OPC UA has no such request")
+            }
+        }
+    }
+
     /// MQTT: what `command/last_result` says (empty: confirmed).
     fn mqtt(self) -> &'static str {
         match self {
@@ -113,6 +132,15 @@ impl Who {
         }
     }
 
+    /// Its OPC UA user name (its token's name; the password is the token).
+    fn user(self) -> &'static str {
+        match self {
+            Who::Viewer => "dashboard",
+            Who::Operator => "scada",
+            Who::Admin | Who::AdminForcing => "commissioning",
+        }
+    }
+
     /// The loopback address its Modbus TCP client connects from.
     fn source(self) -> Ipv4Addr {
         match self {
@@ -138,6 +166,9 @@ struct Case {
     /// Device and DCMD metric over MQTT (`None`: the face has no such
     /// request).
     mqtt: Option<(&'static str, Metric)>,
+    /// The write or method call over OPC UA (`None`: the face has no such
+    /// request).
+    opcua: Option<Value>,
     expect: Decision,
 }
 
@@ -199,6 +230,9 @@ fn cases() -> Vec<Case> {
             drive,
             sparkplug::double_metric("setpoint/speed_rpm", speed as f64),
         )),
+        opcua: Some(
+            json!({"op": "write", "path": format!("{drive}/SpeedSetpoint"), "value": speed}),
+        ),
         expect,
     };
     let save = |who, drive: &'static str, unit: u8, expect| {
@@ -221,6 +255,10 @@ fn cases() -> Vec<Case> {
             ),
             modbus: Some((unit, inertia_saved(3))),
             mqtt: None,
+            // No override of the still-check over OPC UA.
+            opcua: (!force).then(|| {
+                json!({"op": "call", "object": format!("{drive}/Settings"), "method": format!("{drive}/Settings/Save")})
+            }),
             expect,
         }
     };
@@ -231,6 +269,7 @@ fn cases() -> Vec<Case> {
         stream: ("set-address", ("bus", "sim"), json!({"address": 9})),
         modbus: Some((0, write(0x0000, 9))),
         mqtt: None,
+        opcua: None,
         expect,
     };
     let brake = |who, expect| Case {
@@ -240,6 +279,7 @@ fn cases() -> Vec<Case> {
         stream: ("brake", ("drive", "lift"), json!({})),
         modbus: Some((2, write(CONFIG, 5))),
         mqtt: Some(("lift", sparkplug::bool_metric("command/brake", true))),
+        opcua: Some(json!({"op": "call", "object": "lift", "method": "lift/Brake"})),
         expect,
     };
     vec![
@@ -271,6 +311,7 @@ fn cases() -> Vec<Case> {
             ),
             modbus: None,
             mqtt: None,
+            opcua: None,
             expect: Decision::LeaseLength,
         },
         // A setpoint only to an active drive.
@@ -344,7 +385,9 @@ async fn every_rule_decides_the_same_through_every_face() {
             "[mqtt]\nbroker = \"{}\"\ngroup_id = \"plant\"\nnode_id = \"gw1\"\ncommands = \"operator\"\nunauthenticated_commands = true\n",
             broker.url()
         );
-        let d = TestDaemon::start(&config("", networks, true, &mqtt)).await;
+        let dir = tempfile::tempdir().unwrap();
+        let opcua = format!("[opcua]\n{}\n", crate::opcua::section(dir.path()));
+        let d = TestDaemon::start(&config("", networks, true, &format!("{mqtt}{opcua}"))).await;
         host.next(LIMIT, "the node's births", |m| m.is("DBIRTH", Some("feeder")))
             .await;
         let admin = Api::new(d.http, Some(ADMIN));
@@ -378,8 +421,11 @@ async fn every_rule_decides_the_same_through_every_face() {
         for who in [Who::Viewer, Who::Operator, Who::Admin] {
             streams.push((who, connect(d.http, "", Some(who.token())).await));
         }
+        let addr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        let mut ua = Table::start(&format!("opc.tcp://{addr}/")).await;
         let mut id = 0;
         let mut over_mqtt = 0;
+        let mut over_opcua = 0;
         for case in cases() {
             let label = format!("{} by {:?}", case.what, case.who);
             let (status, kind) = case.expect.http();
@@ -441,9 +487,20 @@ async fn every_rule_decides_the_same_through_every_face() {
                     part => assert!(words.contains(part), "MQTT: {label}: {words}"),
                 }
             }
+
+            // OPC UA, signed in as the role's token (name and token).
+            if let Some(request) = &case.opcua {
+                over_opcua += 1;
+                let mut request = request.clone();
+                request["user"] = json!(case.who.user());
+                request["password"] = json!(case.who.token());
+                let status = ua.ask(request).await;
+                assert_eq!(status, case.expect.opcua(), "OPC UA: {label}");
+            }
         }
 
         assert_eq!(over_mqtt, 3, "the operator's setpoints and brake over MQTT");
+        assert_eq!(over_opcua, 9, "every row OPC UA can say");
 
         // What the table did to the drives: a setpoint without a lease left
         // none; the forced saves (HTTP, the stream, Modbus TCP's 0x10 and

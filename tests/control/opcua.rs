@@ -104,26 +104,30 @@ fn host_name() -> String {
         .unwrap_or_else(|_| "localhost".into())
 }
 
+/// The keys of an `[opcua]` section on loopback (a `none` endpoint beside
+/// Basic256Sha256, sessions of at most 3 s) with its PKI directory in
+/// `dir/pki`, holding a server certificate made by openssl.
+pub(crate) fn section(dir: &Path) -> String {
+    let pki = dir.join("pki");
+    for sub in ["own", "private"] {
+        std::fs::create_dir_all(pki.join(sub)).unwrap();
+    }
+    application_cert(dir, "server", &format!("urn:{}:drivegate", host_name()));
+    std::fs::rename(dir.join("server.der"), pki.join("own/cert.der")).unwrap();
+    std::fs::rename(dir.join("server-key.pem"), pki.join("private/private.pem")).unwrap();
+    format!(
+        "listen = \"127.0.0.1:0\"\npki_dir = \"{}\"\nsecurity = [\"none\", \"basic256sha256\"]\nsession_timeout_max_ms = 3000",
+        pki.display()
+    )
+}
+
 impl Ua {
     /// The four drives (or `port`'s bus of two) with `[opcua]`, the role
     /// tokens, and a safety state directory.
     async fn start(port: Option<&Path>) -> Ua {
         let dir = tempfile::tempdir().unwrap();
+        let section = section(dir.path());
         let pki = dir.path().join("pki");
-        for sub in ["own", "private"] {
-            std::fs::create_dir_all(pki.join(sub)).unwrap();
-        }
-        application_cert(
-            dir.path(),
-            "server",
-            &format!("urn:{}:drivegate", host_name()),
-        );
-        std::fs::rename(dir.path().join("server.der"), pki.join("own/cert.der")).unwrap();
-        std::fs::rename(
-            dir.path().join("server-key.pem"),
-            pki.join("private/private.pem"),
-        )
-        .unwrap();
         let builder = match port {
             None => ConfigBuilder::four_drives(),
             Some(link) => ConfigBuilder::new().bus("line1", |b| {
@@ -133,13 +137,7 @@ impl Ua {
             }),
         };
         let toml = role_tokens(builder)
-            .section(
-                "opcua",
-                &format!(
-                    "listen = \"127.0.0.1:0\"\npki_dir = \"{}\"\nsecurity = [\"none\", \"basic256sha256\"]\nsession_timeout_max_ms = 3000",
-                    pki.display()
-                ),
-            )
+            .section("opcua", &section)
             .section(
                 "safety",
                 &format!("state_dir = \"{}\"", dir.path().join("state").display()),
@@ -178,10 +176,41 @@ impl Ua {
 }
 
 /// A client process: asyncua or node-opcua.
-struct Client {
+pub(crate) struct Client {
     child: Child,
     lines: Lines<BufReader<ChildStdout>>,
     name: &'static str,
+}
+
+/// asyncua answering requests one by one (its `table` scenario): one
+/// session per user, kept open.
+pub(crate) struct Table {
+    client: Client,
+    stdin: tokio::process::ChildStdin,
+}
+
+impl Table {
+    pub(crate) async fn start(url: &str) -> Table {
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/opcua_client.py");
+        let mut cmd = Command::new("python3");
+        cmd.arg(script).arg(url).arg("table").stdin(Stdio::piped());
+        let mut client = Client::spawn(cmd, "asyncua");
+        let stdin = client.child.stdin.take().expect("its input");
+        client.until("ready").await;
+        Table { client, stdin }
+    }
+
+    /// The status code `request` gets (`user`, `password`, `op` ...).
+    pub(crate) async fn ask(&mut self, request: Value) -> String {
+        use tokio::io::AsyncWriteExt;
+        let line = format!("{request}\n");
+        self.stdin
+            .write_all(line.as_bytes())
+            .await
+            .expect("a request");
+        let v = self.client.until("result").await;
+        v["status"].as_str().unwrap_or_default().to_string()
+    }
 }
 
 /// The operator's credentials as client arguments.

@@ -286,7 +286,43 @@ async def history(args):
         )
 
 
-SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, secure, quality, events, history]}
+async def table(args):
+    """Requests read from stdin, one JSON object a line: {"user", "password"
+    (absent: anonymous), "op": "write", "path": "lift/SpeedSetpoint",
+    "value"} or {"op": "call", "object": "lift", "method": "lift/Brake"};
+    answers {"step": "result", "status": ...} for each. One session per
+    user, kept open."""
+    sessions = {}
+    loop = asyncio.get_running_loop()
+    reader = asyncio.StreamReader()
+    await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), sys.stdin)
+    say("ready")
+    try:
+        while line := await reader.readline():
+            req = json.loads(line)
+            user = req.get("user")
+            if user not in sessions:
+                args.user, args.password = user, req.get("password")
+                c = await client(args)
+                await c.connect()
+                sessions[user] = c
+            c = sessions[user]
+            try:
+                if req["op"] == "write":
+                    n = await node(c, req["path"])
+                    await n.write_value(ua.DataValue(ua.Variant(float(req["value"]), ua.VariantType.Double)))
+                else:
+                    await (await node(c, req["object"])).call_method(await node(c, req["method"]))
+                status = "Good"
+            except ua.UaStatusCodeError as e:
+                status = status_name(e)
+            say("result", status=status)
+    finally:
+        for c in sessions.values():
+            await c.disconnect()
+
+
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, secure, quality, events, history, table]}
 
 
 async def main():
