@@ -33,6 +33,7 @@ pub struct OpcUaMetrics {
     subscriptions: IntGauge,
     monitored_items: IntGauge,
     values_published: IntCounter,
+    notifications: IntCounter,
     events: IntCounter,
     rejected_certificates: IntCounter,
     sign_ins: IntCounterVec,
@@ -101,6 +102,11 @@ impl OpcUaMetrics {
                 "Values put into the OPC UA address space (each poll's values, freshness changes, \
                  bus counters); each reaches the subscriptions that monitor it.",
             ),
+            notifications: counter(
+                "drivegate_opcua_notifications_total",
+                "Notifications sent to OPC UA subscriptions (data changes and events, as put into \
+                 the notification messages of every session).",
+            ),
             events: counter(
                 "drivegate_opcua_events_total",
                 "Alarm events sent to OPC UA subscriptions (raised, cleared, acknowledged).",
@@ -164,6 +170,7 @@ impl OpcUaMetrics {
         let grow = |c: &IntCounter, delta: u32| c.inc_by(u64::from(delta));
         grow(&self.sessions_total, counts.new_sessions);
         grow(&self.session_timeouts, counts.new_timeouts);
+        self.notifications.inc_by(counts.new_notifications);
     }
 
     /// Sessions open now.
@@ -210,4 +217,6 @@ pub struct ServerCounts {
     pub new_sessions: u32,
     /// Sessions timed out since the last reading.
     pub new_timeouts: u32,
+    /// Notifications sent since the last reading.
+    pub new_notifications: u64,
 }

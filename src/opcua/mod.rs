@@ -290,6 +290,8 @@ async fn counts(handle: ServerHandle, metrics: Arc<Metrics>, stop: CancellationT
         _ => 0,
     };
     let (mut sessions_seen, mut timeouts_seen) = (0u32, 0u32);
+    // The crate's count is the process's: from what it was at the start.
+    let mut notifications_seen = opcua::server::notifications_sent();
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     loop {
         tokio::select! {
@@ -300,6 +302,7 @@ async fn counts(handle: ServerHandle, metrics: Arc<Metrics>, stop: CancellationT
             read(V::Server_ServerDiagnostics_ServerDiagnosticsSummary_CumulatedSessionCount);
         let timeouts =
             read(V::Server_ServerDiagnostics_ServerDiagnosticsSummary_SessionTimeoutCount);
+        let notifications = opcua::server::notifications_sent();
         metrics.opcua().server_counts(ServerCounts {
             sessions: read(
                 V::Server_ServerDiagnostics_ServerDiagnosticsSummary_CurrentSessionCount,
@@ -309,7 +312,9 @@ async fn counts(handle: ServerHandle, metrics: Arc<Metrics>, stop: CancellationT
             ),
             new_sessions: cumulated.saturating_sub(sessions_seen),
             new_timeouts: timeouts.saturating_sub(timeouts_seen),
+            new_notifications: notifications.saturating_sub(notifications_seen),
         });
+        notifications_seen = notifications;
         (sessions_seen, timeouts_seen) = (cumulated, timeouts);
     }
     metrics.opcua().server_counts(ServerCounts::default());

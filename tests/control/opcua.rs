@@ -25,6 +25,7 @@ use crate::support::api::Api;
 use crate::support::config::ConfigBuilder;
 use crate::support::input::{OPERATOR, role_tokens};
 use crate::support::logs::{capture_logs, log_text};
+use crate::support::metrics::metric;
 use crate::support::sim_process::ExternalSim;
 use crate::support::tools;
 use crate::support::wait::{bounded, eventually};
@@ -498,6 +499,12 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
             "the brake stopping the conveyor",
             || (ua.d.sim().drive(1)?.speed_rpm.abs() < 1.0).then_some(()),
         )
+        .await;
+        // /metrics: the notifications the subscriptions were sent.
+        eventually(Duration::from_secs(10), "notifications counted", || {
+            let text = ua.d.metrics.render();
+            (metric(&text, "drivegate_opcua_notifications_total") >= 10.0).then_some(())
+        })
         .await;
         let log = log_text();
         assert!(log.contains("face=\"opcua\" who=\"scada (urn:"), "{log}");

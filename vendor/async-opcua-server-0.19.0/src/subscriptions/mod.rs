@@ -12,7 +12,7 @@ use opcua_core::{trace_read_lock, trace_write_lock, ResponseMessage};
 use opcua_nodes::{Event, TypeTree};
 pub use session_subscriptions::SessionSubscriptions;
 use subscription::TickReason;
-pub use subscription::{MonitoredItemHandle, Subscription, SubscriptionState};
+pub use subscription::{notifications_sent, MonitoredItemHandle, Subscription, SubscriptionState};
 use tracing::error;
 
 pub use notify::{

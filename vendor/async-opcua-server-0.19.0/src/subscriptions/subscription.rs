@@ -10,6 +10,18 @@ use tracing::{debug, trace, warn};
 
 use super::monitored_item::{MonitoredItem, Notification};
 
+
+/// Notifications (data changes and events) put into notification messages
+/// since the process started, by every server of the process.
+pub(crate) static NOTIFICATIONS_SENT: std::sync::atomic::AtomicU64 =
+    std::sync::atomic::AtomicU64::new(0);
+
+/// Notifications (data changes and events) put into notification messages
+/// since the process started, by every server of the process.
+pub fn notifications_sent() -> u64 {
+    NOTIFICATIONS_SENT.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 #[derive(Debug, Copy, Clone, PartialEq)]
 /// Current internal state of the subscription.
 pub enum SubscriptionState {
@@ -599,6 +611,10 @@ impl Subscription {
                 Notification::Event(n) => event_notifications.push(n),
             }
         }
+        NOTIFICATIONS_SENT.fetch_add(
+            (data_change_notifications.len() + event_notifications.len()) as u64,
+            std::sync::atomic::Ordering::Relaxed,
+        );
 
         NotificationMessage::data_change(
             next_sequence_number,
