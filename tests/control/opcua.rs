@@ -8,8 +8,8 @@
 //!
 //! The server's certificate is made by openssl in the test's PKI directory
 //! before the start (the daemon's own RSA key generation costs seconds of
-//! CPU in a debug build); the first start making it is unit-tested in
-//! `src/opcua/pki.rs`.
+//! CPU in a debug build), but in the certificate test, where the daemon
+//! makes it at its first start.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -21,10 +21,9 @@ use tokio::io::{AsyncBufReadExt, BufReader, Lines};
 use tokio::process::{Child, ChildStdout, Command};
 
 use crate::support::TestDaemon;
-use crate::support::api::Api;
+use crate::support::api::{Api, connect, wait_for};
 use crate::support::config::ConfigBuilder;
-use crate::support::input::{OPERATOR, role_tokens};
-use crate::support::logs::{capture_logs, log_text};
+use crate::support::input::{OPERATOR, VIEWER, role_tokens};
 use crate::support::metrics::metric;
 use crate::support::sim_process::ExternalSim;
 use crate::support::tools;
@@ -116,6 +115,12 @@ pub(crate) fn section(dir: &Path) -> String {
     application_cert(dir, "server", &format!("urn:{}:drivegate", host_name()));
     std::fs::rename(dir.join("server.der"), pki.join("own/cert.der")).unwrap();
     std::fs::rename(dir.join("server-key.pem"), pki.join("private/private.pem")).unwrap();
+    section_keys(&pki)
+}
+
+/// The keys of the `[opcua]` section with `pki` (made by the daemon at its
+/// first start if it holds no certificate).
+fn section_keys(pki: &Path) -> String {
     format!(
         "listen = \"127.0.0.1:0\"\npki_dir = \"{}\"\nsecurity = [\"none\", \"basic256sha256\"]\nsession_timeout_max_ms = 3000",
         pki.display()
@@ -128,6 +133,11 @@ impl Ua {
     async fn start(port: Option<&Path>) -> Ua {
         let dir = tempfile::tempdir().unwrap();
         let section = section(dir.path());
+        Ua::start_with(port, dir, section).await
+    }
+
+    /// The same, with `section` and its directory.
+    async fn start_with(port: Option<&Path>, dir: tempfile::TempDir, section: String) -> Ua {
         let pki = dir.path().join("pki");
         let builder = match port {
             None => ConfigBuilder::four_drives(),
@@ -471,9 +481,10 @@ async fn both_clients_browse_read_with_units_and_read_history() {
 /// refused with the range in the diagnostics; audited as `opcua <user>`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
-    capture_logs();
     bounded(LIMIT, async {
         let ua = Ua::start(None).await;
+        // The audit's lines, as the stream's `write` messages carry them.
+        let mut ws = connect(ua.d.http, "?drives=all", Some(VIEWER)).await;
         let mut args = operator();
         args.extend(["--value".into(), "600".into()]);
         let all = Client::asyncua(&ua.url, "operate", &args).steps().await;
@@ -506,9 +517,19 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
             (metric(&text, "drivegate_opcua_notifications_total") >= 10.0).then_some(())
         })
         .await;
-        let log = log_text();
-        assert!(log.contains("face=\"opcua\" who=\"scada (urn:"), "{log}");
-        assert!(log.contains("speed setpoint 600 rpm"), "{log}");
+        let audit = wait_for(&mut ws, STEP, "the setpoint's audit line", |m| {
+            m["type"] == "write"
+                && m["what"]
+                    .as_str()
+                    .is_some_and(|w| w.contains("speed setpoint 600 rpm"))
+        })
+        .await;
+        let who = audit["who"].as_str().unwrap_or_default();
+        assert!(
+            who.contains("scada (urn:") && who.contains("session"),
+            "{audit}"
+        );
+        assert_eq!(audit["ok"], true, "{audit}");
 
         // node-opcua, on the feeder.
         let pki = ua.pki.parent().unwrap().join("node-pki");
@@ -582,13 +603,44 @@ async fn a_killed_client_whose_session_times_out_stops_the_motor() {
     .await;
 }
 
-/// An unknown client certificate is refused and copied to
-/// `rejected/certs`; moved to `trusted/certs`, the same client is served,
-/// without a restart.
+/// The server's certificate is made at the first start (its SANs: the
+/// application URI and the address); an unknown client certificate is
+/// refused and copied to `rejected/certs`; moved to `trusted/certs`, the
+/// same client is served, without a restart.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_certificate_is_refused_then_trusted_without_a_restart() {
     bounded(LIMIT, async {
-        let ua = Ua::start(None).await;
+        // The server's own certificate made at its first start.
+        let dir = tempfile::tempdir().unwrap();
+        let section = section_keys(&dir.path().join("pki"));
+        let ua = Ua::start_with(None, dir, section).await;
+        let own = ua.pki.join("own/cert.der");
+        let out = std::process::Command::new("openssl")
+            .args([
+                "x509",
+                "-inform",
+                "der",
+                "-noout",
+                "-ext",
+                "subjectAltName",
+                "-in",
+            ])
+            .arg(&own)
+            .output()
+            .unwrap();
+        let san = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            san.contains(&format!("URI:urn:{}:drivegate", host_name())),
+            "{san}"
+        );
+        assert!(san.contains("127.0.0.1"), "{san}");
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(ua.pki.join("private/private.pem"))
+            .unwrap()
+            .permissions()
+            .mode();
+        assert_eq!(mode & 0o777, 0o600);
+
         let dir = ua.pki.parent().unwrap().to_path_buf();
         application_cert(&dir, "pyclient", "urn:freeopcua:client");
         let args: Vec<String> = [
@@ -722,6 +774,98 @@ async fn an_alarm_is_an_event_acknowledged_as_through_the_api() {
             }
             c.kill().await;
         }
+    })
+    .await;
+}
+
+/// A user certificate signed by a CA of `issuers/certs` with the role
+/// extension signs in with that role (operator: Brake() done; viewer:
+/// refused); a self-signed one claiming admin is refused at sign-in.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn user_certificates_sign_in_with_the_role_they_carry() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let dir = ua.pki.parent().unwrap().to_path_buf();
+        openssl(&dir, &["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem",
+            "-days", "30", "-subj", "/CN=plant users", "-addext", "basicConstraints=critical,CA:TRUE",
+            "-addext", "keyUsage=critical,keyCertSign,cRLSign"]);
+        std::fs::copy(dir.join("ca.pem"), ua.pki.join("issuers/certs/ca.pem")).unwrap();
+        let role = format!("{}=ASN1:UTF8String:", drivegate::config::ROLE_EXTENSION);
+        for (who, r) in [("olivia", "operator"), ("vera", "viewer")] {
+            openssl(&dir, &["req", "-newkey", "rsa:2048", "-nodes", "-keyout", &format!("{who}-key.pem"),
+                "-out", &format!("{who}.csr"), "-subj", &format!("/CN={who}")]);
+            std::fs::write(dir.join(format!("{who}.ext")), format!(
+                "basicConstraints=CA:FALSE\nkeyUsage=critical,digitalSignature,nonRepudiation\nextendedKeyUsage=clientAuth\n{role}{r}\n"
+            )).unwrap();
+            openssl(&dir, &["x509", "-req", "-in", &format!("{who}.csr"), "-CA", "ca.pem", "-CAkey", "ca.key",
+                "-CAcreateserial", "-days", "30", "-out", &format!("{who}.pem"), "-extfile", &format!("{who}.ext")]);
+            openssl(&dir, &["x509", "-in", &format!("{who}.pem"), "-outform", "der", "-out", &format!("{who}.der")]);
+        }
+        openssl(&dir, &["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "rogue-key.pem", "-out",
+            "rogue.pem", "-days", "30", "-subj", "/CN=rogue", "-addext", &format!("{role}admin")]);
+        openssl(&dir, &["x509", "-in", "rogue.pem", "-outform", "der", "-out", "rogue.der"]);
+        for (who, step_name, status) in [
+            ("olivia", "brake", "Good"),
+            ("vera", "brake", "BadUserAccessDenied"),
+            ("rogue", "session", "BadIdentityTokenRejected"),
+        ] {
+            let args: Vec<String> = vec![
+                "--drive".into(), "lift".into(),
+                "--user-cert".into(), dir.join(format!("{who}.der")).display().to_string(),
+                "--user-key".into(), dir.join(format!("{who}-key.pem")).display().to_string(),
+            ];
+            let all = Client::asyncua(&ua.url, "brake", &args).steps().await;
+            assert_eq!(step(&all, step_name)["status"], status, "{who}: {all:?}");
+        }
+        let text = ua.d.metrics.render();
+        assert_eq!(metric(&text, "drivegate_opcua_sign_ins_total{kind=\"certificate\",result=\"accepted\"}"), 2.0);
+        assert_eq!(metric(&text, "drivegate_opcua_sign_ins_total{kind=\"certificate\",result=\"refused\"}"), 1.0);
+    })
+    .await;
+}
+
+/// A reload that changes `[opcua]` restarts the OPC UA server alone, with
+/// the new section: anonymous sessions, allowed before, are refused after.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_restarts_the_server_with_the_new_section() {
+    bounded(LIMIT, async {
+        let dir = tempfile::tempdir().unwrap();
+        let section = section(dir.path());
+        let with = |extra: &str| {
+            role_tokens(ConfigBuilder::four_drives())
+                .section("opcua", &format!("{section}\n{extra}"))
+                .toml()
+        };
+        let d = TestDaemon::reloadable(&with("")).await;
+        let url = |addr: SocketAddr| format!("opc.tcp://{addr}/");
+        let addr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        let all = Client::asyncua(&url(addr), "brake", &[]).steps().await;
+        assert_eq!(
+            step(&all, "brake")["status"],
+            "BadUserAccessDenied",
+            "{all:?}"
+        );
+
+        d.rewrite(&with("anonymous = \"none\""));
+        let reply = Api::new(d.http, Some(crate::support::input::ADMIN))
+            .post_empty("/api/v1/config/reload")
+            .await
+            .expect(200);
+        assert!(reply["changes"].to_string().contains("OPC UA"), "{reply}");
+        let addr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        let t0 = Instant::now();
+        loop {
+            let all = Client::asyncua(&url(addr), "brake", &[]).steps().await;
+            if all.iter().any(|s| s["step"] == "session") {
+                break;
+            }
+            assert!(t0.elapsed() < STEP, "anonymous still served: {all:?}");
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        let all = Client::asyncua(&url(addr), "brake", &operator())
+            .steps()
+            .await;
+        assert_eq!(step(&all, "brake")["status"], "Good", "{all:?}");
     })
     .await;
 }

@@ -52,6 +52,9 @@ async def client(args, timeout_ms=None):
     if args.user:
         c.set_user(args.user)
         c.set_password(args.password)
+    if args.user_cert:
+        await c.load_client_certificate(args.user_cert)
+        await c.load_private_key(args.user_key)
     return c
 
 
@@ -217,6 +220,22 @@ async def lease(args):
     await asyncio.sleep(3600)
 
 
+async def brake(args):
+    """Brake() on --drive (an operator's work), signed in as given."""
+    try:
+        async with await client(args) as c:
+            try:
+                await call(c, args.drive, "Brake")
+                status = "Good"
+            except ua.UaStatusCodeError as e:
+                status = status_name(e)
+            say("brake", status=status)
+    except ua.UaStatusCodeError as e:
+        say("session", status=status_name(e))
+    except Exception as e:  # refused sign-ins surface as other errors too
+        say("session", status=type(e).__name__, message=str(e))
+
+
 async def secure(args):
     """A session on a signed and encrypted endpoint with --cert."""
     try:
@@ -322,7 +341,7 @@ async def table(args):
             await c.disconnect()
 
 
-SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, secure, quality, events, history, table]}
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, brake, secure, quality, events, history, table]}
 
 
 async def main():
@@ -336,6 +355,8 @@ async def main():
     p.add_argument("--policy", default="none", choices=POLICIES)
     p.add_argument("--cert")
     p.add_argument("--key")
+    p.add_argument("--user-cert")
+    p.add_argument("--user-key")
     p.add_argument("--value", type=float, default=600.0)
     p.add_argument("--seconds", type=float, default=20)
     p.add_argument("--timeout-ms", type=int, default=3000)
