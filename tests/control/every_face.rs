@@ -212,6 +212,35 @@ fn done(pdu: &[u8]) -> Vec<u8> {
     }
 }
 
+/// A save of the load inertia to flash by `who` on `drive` (`unit`).
+fn save(who: Who, drive: &'static str, unit: u8, expect: Decision) -> Case {
+    let force = who == Who::AdminForcing;
+    Case {
+        what: "load inertia saved to flash",
+        who,
+        http: (
+            "PUT",
+            match drive {
+                "lift" => "/api/v1/drives/lift/inertia",
+                _ => "/api/v1/drives/conveyor/inertia",
+            },
+            json!({"ratio": 3, "save": true, "force": force}),
+        ),
+        stream: (
+            "inertia",
+            ("drive", drive),
+            json!({"ratio": 3, "save": true, "force": force}),
+        ),
+        modbus: Some((unit, inertia_saved(3))),
+        mqtt: None,
+        // No override of the still-check over OPC UA.
+        opcua: (!force).then(|| {
+            json!({"op": "call", "object": format!("{drive}/Settings"), "method": format!("{drive}/Settings/Save")})
+        }),
+        expect,
+    }
+}
+
 fn cases() -> Vec<Case> {
     let setpoint = |who, speed: i64, drive: &'static str, unit: u8, expect| Case {
         what: "a speed setpoint without a lease",
@@ -234,33 +263,6 @@ fn cases() -> Vec<Case> {
             json!({"op": "write", "path": format!("{drive}/SpeedSetpoint"), "value": speed}),
         ),
         expect,
-    };
-    let save = |who, drive: &'static str, unit: u8, expect| {
-        let force = who == Who::AdminForcing;
-        Case {
-            what: "load inertia saved to flash",
-            who,
-            http: (
-                "PUT",
-                match drive {
-                    "lift" => "/api/v1/drives/lift/inertia",
-                    _ => "/api/v1/drives/conveyor/inertia",
-                },
-                json!({"ratio": 3, "save": true, "force": force}),
-            ),
-            stream: (
-                "inertia",
-                ("drive", drive),
-                json!({"ratio": 3, "save": true, "force": force}),
-            ),
-            modbus: Some((unit, inertia_saved(3))),
-            mqtt: None,
-            // No override of the still-check over OPC UA.
-            opcua: (!force).then(|| {
-                json!({"op": "call", "object": format!("{drive}/Settings"), "method": format!("{drive}/Settings/Save")})
-            }),
-            expect,
-        }
     };
     let address = |who, expect| Case {
         what: "an address broadcast without the single-drive confirmation",
@@ -360,6 +362,19 @@ async fn modbus_case(tcp: SocketAddr, case: &Case, unit: u8, manual: &[u8], labe
             }
         }
     }
+}
+
+/// `case` over OPC UA, if the face can say it; whether it could.
+async fn opcua_case(ua: &mut Table, case: &Case, label: &str) -> bool {
+    let Some(request) = &case.opcua else {
+        return false;
+    };
+    let mut request = request.clone();
+    request["user"] = json!(case.who.user());
+    request["password"] = json!(case.who.token());
+    let status = ua.ask(request).await;
+    assert_eq!(status, case.expect.opcua(), "OPC UA: {label}");
+    true
 }
 
 async fn http_request(api: &Api, case: &Case) -> crate::support::api::Reply {
@@ -489,37 +504,35 @@ async fn every_rule_decides_the_same_through_every_face() {
             }
 
             // OPC UA, signed in as the role's token (name and token).
-            if let Some(request) = &case.opcua {
-                over_opcua += 1;
-                let mut request = request.clone();
-                request["user"] = json!(case.who.user());
-                request["password"] = json!(case.who.token());
-                let status = ua.ask(request).await;
-                assert_eq!(status, case.expect.opcua(), "OPC UA: {label}");
-            }
+            over_opcua += usize::from(opcua_case(&mut ua, &case, &label).await);
         }
 
         assert_eq!(over_mqtt, 3, "the operator's setpoints and brake over MQTT");
         assert_eq!(over_opcua, 9, "every row OPC UA can say");
 
-        // What the table did to the drives: a setpoint without a lease left
-        // none; the forced saves (HTTP, the stream, Modbus TCP's 0x10 and
-        // 0x17) reached flash while the conveyor turned; nothing moved the
-        // turntable; no drive took address 9.
-        assert!(
-            admin.get("/api/v1/drives/lift").await.expect(200)["lease"].is_null(),
-            "a setpoint without a lease took one"
-        );
-        let conveyor = d.sim().drive(1).unwrap();
-        assert_eq!(conveyor.saves_while_moving, 4);
-        assert_eq!(conveyor.flash.settings.inertia_ratio, 3);
-        assert_eq!(d.sim().drive(3).unwrap().setpoints.speed_rpm, 0);
-        assert!(d.sim().drive(9).is_none());
-        assert!(d.sim().drive(2).unwrap().braking);
+        what_the_table_did(&d, &admin).await;
         d.stop().await;
     })
     .await
     .expect("test finished in time");
+}
+
+/// What the table did to the drives, whichever face sent it.
+async fn what_the_table_did(d: &TestDaemon, admin: &Api) {
+    // What the table did to the drives: a setpoint without a lease left
+    // none; the forced saves (HTTP, the stream, Modbus TCP's 0x10 and
+    // 0x17) reached flash while the conveyor turned; nothing moved the
+    // turntable; no drive took address 9.
+    assert!(
+        admin.get("/api/v1/drives/lift").await.expect(200)["lease"].is_null(),
+        "a setpoint without a lease took one"
+    );
+    let conveyor = d.sim().drive(1).unwrap();
+    assert_eq!(conveyor.saves_while_moving, 4);
+    assert_eq!(conveyor.flash.settings.inertia_ratio, 3);
+    assert_eq!(d.sim().drive(3).unwrap().setpoints.speed_rpm, 0);
+    assert!(d.sim().drive(9).is_none());
+    assert!(d.sim().drive(2).unwrap().braking);
 }
 
 /// What becomes of a function code, whoever sends it.

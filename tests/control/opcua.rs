@@ -35,6 +35,32 @@ const STEP: Duration = Duration::from_secs(60);
 /// The operator's user name: its `[[http.token]]`'s name.
 const USER: &str = "scada";
 
+/// What `DriveType` has: its variables, methods and settings object.
+const DRIVE_CHILDREN: [&str; 22] = [
+    "Speed",
+    "Angle",
+    "Turns",
+    "Current",
+    "Voltage",
+    "Temperature",
+    "Active",
+    "Stalled",
+    "Calibrated",
+    "Online",
+    "Mode",
+    "Fault",
+    "FaultCode",
+    "SpeedSetpoint",
+    "PositionSetpoint",
+    "TorqueSetpoint",
+    "Activate",
+    "Deactivate",
+    "Brake",
+    "FaultReset",
+    "SetMode",
+    "Settings",
+];
+
 /// A daemon with `[opcua]` on loopback (a `none` endpoint beside
 /// Basic256Sha256), its PKI directory and where it listens.
 struct Ua {
@@ -370,30 +396,7 @@ async fn both_clients_browse_read_with_units_and_read_history() {
         );
         assert_eq!(browse["type"], "DriveType");
         assert_eq!(browse["buses"], serde_json::json!(["sim"]));
-        for child in [
-            "Speed",
-            "Angle",
-            "Turns",
-            "Current",
-            "Voltage",
-            "Temperature",
-            "Active",
-            "Stalled",
-            "Calibrated",
-            "Online",
-            "Mode",
-            "Fault",
-            "FaultCode",
-            "SpeedSetpoint",
-            "PositionSetpoint",
-            "TorqueSetpoint",
-            "Activate",
-            "Deactivate",
-            "Brake",
-            "FaultReset",
-            "SetMode",
-            "Settings",
-        ] {
+        for child in DRIVE_CHILDREN {
             assert!(
                 browse["children"]
                     .as_array()
@@ -450,29 +453,35 @@ async fn both_clients_browse_read_with_units_and_read_history() {
         assert_eq!(history["five"], 5, "{history}");
 
         // node-opcua: the same server through a second implementation.
-        let pki = ua.pki.parent().unwrap().join("node-pki");
-        let all = Client::node(&ua.url, "endpoints", &pki, &[]).steps().await;
-        assert_eq!(
-            step(&all, "endpoints")["endpoints"]
-                .as_array()
-                .unwrap()
-                .len(),
-            endpoints.len()
-        );
-        let all = Client::node(&ua.url, "browse", &pki, &[]).steps().await;
-        assert_eq!(step(&all, "browse")["drives"], browse["drives"]);
-        let all = Client::node(&ua.url, "read", &pki, &[]).steps().await;
-        let speed = &step(&all, "read")["values"]["Speed"];
-        assert_eq!(
-            (speed["status"].as_str(), speed["unit_id"].as_u64()),
-            (Some("Good"), Some(5_394_509))
-        );
-        let all = Client::node(&ua.url, "history", &pki, &[]).steps().await;
-        let history = step(&all, "history");
-        assert_eq!(history["status"], "Good");
-        assert!(history["count"].as_u64().unwrap() > 5, "{history}");
+        node_sees_the_same(&ua, endpoints.len(), &browse["drives"]).await;
     })
     .await;
+}
+
+/// node-opcua's view of `ua`: as many endpoints, the same drives, Speed
+/// read with its unit, HistoryRead.
+async fn node_sees_the_same(ua: &Ua, endpoints: usize, drives: &Value) {
+    let pki = ua.pki.parent().unwrap().join("node-pki");
+    let all = Client::node(&ua.url, "endpoints", &pki, &[]).steps().await;
+    assert_eq!(
+        step(&all, "endpoints")["endpoints"]
+            .as_array()
+            .unwrap()
+            .len(),
+        endpoints
+    );
+    let all = Client::node(&ua.url, "browse", &pki, &[]).steps().await;
+    assert_eq!(step(&all, "browse")["drives"], *drives);
+    let all = Client::node(&ua.url, "read", &pki, &[]).steps().await;
+    let speed = &step(&all, "read")["values"]["Speed"];
+    assert_eq!(
+        (speed["status"].as_str(), speed["unit_id"].as_u64()),
+        (Some("Good"), Some(5_394_509))
+    );
+    let all = Client::node(&ua.url, "history", &pki, &[]).steps().await;
+    let history = step(&all, "history");
+    assert_eq!(history["status"], "Good");
+    assert!(history["count"].as_u64().unwrap() > 5, "{history}");
 }
 
 /// An operator (user name = the token's name, password = the token) sets
