@@ -26,6 +26,8 @@
 //! - The faces: [`api`] (the request bodies and stream messages fuzzed, the
 //!   OpenAPI document checked for drift), [`modbus_tcp`] (MBAP, fuzzed),
 //!   [`mqtt`] (Sparkplug B; its payload types for the tests' host),
+//!   [`opcua`] (the OPC UA server; its address space's names for the
+//!   tests),
 //!   [`console`] (its assets), [`metrics`].
 //! - Putting it together: [`config`], [`plant`], [`daemon`] (`serve`, its
 //!   `supervisor` of the faces and its `reloader`, which the tests start
@@ -56,6 +58,7 @@ pub mod modbus;
 pub mod modbus_tcp;
 pub mod monitor;
 pub mod mqtt;
+pub mod opcua;
 pub mod plant;
 pub(crate) mod port_holders;
 pub mod probe;

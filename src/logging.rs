@@ -43,6 +43,20 @@ impl Default for LogConfig {
     }
 }
 
+/// The OPC UA stack (async-opcua) logs every connection at info and a
+/// client's routine mistakes at error: at `[log] level` it says only its
+/// warnings, unless the level names one of its targets itself. The face
+/// logs what a plant engineer needs (sign-ins refused, certificates
+/// rejected, sessions ended) under `drivegate::opcua`.
+fn quiet_stacks(level: &str) -> String {
+    if level.contains("opcua") {
+        return level.to_string();
+    }
+    format!(
+        "{level},opcua_server=warn,opcua_core=warn,opcua_crypto=warn,opcua_nodes=warn,opcua_types=warn"
+    )
+}
+
 /// Installs the global subscriber; returns notes to log once it is up
 /// (journald asked for but not there, a filter that does not parse).
 pub fn init(config: &LogConfig) -> Option<String> {
@@ -58,7 +72,7 @@ pub fn init(config: &LogConfig) -> Option<String> {
         _ => None,
     };
     let filter = filter.unwrap_or_else(|| {
-        EnvFilter::try_new(&config.level).unwrap_or_else(|e| {
+        EnvFilter::try_new(quiet_stacks(&config.level)).unwrap_or_else(|e| {
             notes.push(format!(
                 "[log] level = \"{}\" is not a valid filter ({e}); using \"info\"",
                 config.level

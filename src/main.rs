@@ -9,9 +9,9 @@ use drivegate::config::Config;
 /// Puts a bus of RS-485 servo drives (Modbus RTU) on the network.
 ///
 /// Its faces: a REST API with a WebSocket stream, Modbus TCP and
-/// Modbus/TCP Security for SCADA and PLCs, MQTT (Sparkplug B, or JSON
-/// topics), Prometheus metrics, and a web console for people (at / on the
-/// API's port). Every write, from any face, passes the same safety rules
+/// Modbus/TCP Security for SCADA and PLCs, an OPC UA server, MQTT
+/// (Sparkplug B, or JSON topics), Prometheus metrics, and a web console for
+/// people (at / on the API's port). Every write, from any face, passes the same safety rules
 /// and is logged. Without hardware it runs on its built-in simulator.
 #[derive(Debug, Parser)]
 #[command(name = "drivegate", version)]

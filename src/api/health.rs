@@ -71,6 +71,43 @@ pub struct Readiness {
     /// It does not make drivegate unready: the drives work without it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub mqtt: Option<MqttReadiness>,
+    /// The OPC UA server, when `[opcua]` is configured. It does not make
+    /// drivegate unready: the drives work without it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opcua: Option<OpcUaReadiness>,
+}
+
+/// The OPC UA server in `/readyz`.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+pub struct OpcUaReadiness {
+    /// Where it listens (`opc.tcp://` on this address).
+    pub listen: String,
+    /// Serving: its certificate is there and the server runs (at the
+    /// first start it makes its certificate first).
+    pub serving: bool,
+    /// Sessions open now.
+    pub sessions: i64,
+    /// Why it does not serve, in words.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_error: Option<String>,
+    /// When that happened (RFC 3339).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_error_at: Option<String>,
+}
+
+/// The OPC UA server as `/readyz` and the console show it.
+pub fn opcua_readiness(state: &ApiState) -> Option<OpcUaReadiness> {
+    let face = state.metrics.opcua().state();
+    Some(OpcUaReadiness {
+        listen: face.listen?,
+        serving: face.serving,
+        sessions: state.metrics.opcua().sessions(),
+        last_error_at: face
+            .problem
+            .as_ref()
+            .map(|(at, _)| crate::timestamp::rfc3339(*at)),
+        last_error: face.problem.map(|(_, why)| why),
+    })
 }
 
 /// The configuration in `/readyz`.
@@ -200,6 +237,7 @@ pub fn readiness(state: &ApiState) -> Readiness {
             }
         },
         mqtt: mqtt_readiness(state),
+        opcua: opcua_readiness(state),
     }
 }
 

@@ -254,6 +254,12 @@ impl BusHandle {
         self.shared.cache.all()
     }
 
+    /// How often `unit` is polled: its poll interval, or (polled as fast
+    /// as the bus allows) one round of the bus's drives.
+    pub fn poll_period(&self, unit: u8) -> std::time::Duration {
+        self.shared.cache.expected(unit).period
+    }
+
     /// How fresh `unit`'s data is now (`None`: not a drive of this bus).
     pub fn freshness(&self, unit: u8) -> Option<Verdict> {
         self.freshness_at(unit, Instant::now())

@@ -55,6 +55,12 @@ pub enum Origin {
         /// host claimed (`broker user gw1; primary host "scada" claimed`).
         who: Arc<str>,
     },
+    /// A write or method call of an OPC UA session: its user, client and
+    /// session (`alice (urn:plant:scada, session 7)`).
+    OpcUa {
+        /// Who, as far as the session tells.
+        who: Arc<str>,
+    },
     /// The stop sent when a motor-safety lease ended.
     LeaseExpiry {
         /// Who held the lease.
@@ -82,6 +88,8 @@ listed_enum! {
         ModbusTcp,
         /// [`Origin::Mqtt`].
         Mqtt,
+        /// [`Origin::OpcUa`].
+        OpcUa,
         /// [`Origin::LeaseExpiry`].
         LeaseExpiry,
         /// [`Origin::Shutdown`].
@@ -100,6 +108,7 @@ impl OriginKind {
             OriginKind::WebSocket => "websocket",
             OriginKind::ModbusTcp => "modbus-tcp",
             OriginKind::Mqtt => "mqtt",
+            OriginKind::OpcUa => "opcua",
             OriginKind::LeaseExpiry => "lease-expiry",
             OriginKind::Shutdown => "shutdown",
         }
@@ -155,6 +164,7 @@ impl Origin {
             Origin::WebSocket { .. } => OriginKind::WebSocket,
             Origin::ModbusTcp { .. } => OriginKind::ModbusTcp,
             Origin::Mqtt { .. } => OriginKind::Mqtt,
+            Origin::OpcUa { .. } => OriginKind::OpcUa,
             Origin::LeaseExpiry { .. } => OriginKind::LeaseExpiry,
             Origin::Shutdown => OriginKind::Shutdown,
         }
@@ -164,9 +174,10 @@ impl Origin {
     /// Modbus TCP peer, a lease's owner.
     pub fn who(&self) -> Option<String> {
         match self {
-            Origin::Http { who } | Origin::WebSocket { who, .. } | Origin::Mqtt { who } => {
-                Some(who.to_string())
-            }
+            Origin::Http { who }
+            | Origin::WebSocket { who, .. }
+            | Origin::Mqtt { who }
+            | Origin::OpcUa { who } => Some(who.to_string()),
             Origin::ModbusTcp {
                 ip,
                 port,
@@ -226,6 +237,7 @@ impl fmt::Display for Origin {
                 ),
             },
             Origin::Mqtt { who } => write!(f, "MQTT {who}"),
+            Origin::OpcUa { who } => write!(f, "OPC UA {who}"),
             Origin::LeaseExpiry { owner } => write!(f, "lease expiry ({owner}'s lease)"),
             Origin::Shutdown => f.write_str("shutdown"),
         }

@@ -35,6 +35,8 @@ listed_enum! {
         ModbusTls,
         /// The MQTT face, a client of its broker.
         Mqtt,
+        /// The OPC UA listener (`[opcua]`).
+        OpcUa,
     }
 }
 
@@ -46,6 +48,7 @@ impl Face {
             Face::ModbusTcp => "Modbus TCP listener",
             Face::ModbusTls => "Modbus/TCP Security listener",
             Face::Mqtt => "MQTT face",
+            Face::OpcUa => "OPC UA listener",
         }
     }
 
@@ -56,6 +59,7 @@ impl Face {
             Face::ModbusTcp => "[modbus_tcp]",
             Face::ModbusTls => "[modbus_tcp.tls]",
             Face::Mqtt => "[mqtt]",
+            Face::OpcUa => "[opcua]",
         }
     }
 
@@ -109,6 +113,13 @@ impl Face {
             Face::Mqtt => {
                 old.mqtt != new.mqtt
                     || (new.mqtt.is_some() && old.safety.state_dir != new.safety.state_dir)
+            }
+            // Its certificates are in the state directory unless its
+            // pki_dir says; its users are the [[http.token]]s, which it
+            // follows session by session.
+            Face::OpcUa => {
+                old.opcua != new.opcua
+                    || (new.opcua.is_some() && old.safety.state_dir != new.safety.state_dir)
             }
         }
     }
@@ -190,6 +201,7 @@ pub fn diff(old: &Config, new: &Config) -> Changes {
         http: _,
         modbus_tcp,
         mqtt: _,
+        opcua: _,
         log,
         safety,
         monitor,

@@ -1,7 +1,7 @@
 //! The daemon's configuration: a TOML file, validated with errors that point
 //! at the line and column to fix.
 //!
-//! Sections: `[http]`, `[modbus_tcp]`, `[mqtt]`, `[log]`, `[safety]`, `[monitor]`,
+//! Sections: `[http]`, `[modbus_tcp]`, `[mqtt]`, `[opcua]`, `[log]`, `[safety]`, `[monitor]`,
 //! `[scope]`, `[history]` and one `[[bus]]`
 //! per serial adapter, each with its `[[bus.drive]]` list (and optional
 //! `[bus.rs485]`, `[bus.sim]`). `config/drivegate.toml` documents every key.
@@ -18,6 +18,7 @@ pub mod http;
 pub mod modbus_tcp;
 mod modbus_tls;
 pub mod mqtt;
+pub mod opcua;
 pub mod origins;
 mod role;
 mod safety;
@@ -39,7 +40,8 @@ pub use http::HttpConfig;
 pub use modbus_tcp::ModbusTcpConfig;
 pub use modbus_tls::ModbusTlsConfig;
 pub use mqtt::MqttConfig;
-pub use role::Role;
+pub use opcua::OpcUaConfig;
+pub use role::{ROLE_EXTENSION, Role};
 pub use safety::{SafetyConfig, StopAction};
 
 use crate::logging::LogConfig;
@@ -61,6 +63,9 @@ pub struct Config {
     /// The MQTT face (Sparkplug B); absent: off.
     #[serde(default)]
     pub mqtt: Option<MqttConfig>,
+    /// The OPC UA server; absent: off.
+    #[serde(default)]
+    pub opcua: Option<OpcUaConfig>,
     /// Logging.
     #[serde(default)]
     pub log: LogConfig,
@@ -192,6 +197,11 @@ impl Config {
             .map_err(|(span, message)| at(span, message))?;
         if let Some(mqtt) = &self.mqtt {
             mqtt.validate()
+                .map_err(|(span, message)| at(span, message))?;
+        }
+        if let Some(opcua) = &self.opcua {
+            opcua
+                .validate()
                 .map_err(|(span, message)| at(span, message))?;
         }
         Ok(())

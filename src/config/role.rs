@@ -5,6 +5,11 @@
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
+/// The X.509 extension that carries a role in a client certificate, as an
+/// ASN.1 UTF8String: Modbus/TCP Security's (its specification's), which
+/// OPC UA user certificates carry too.
+pub const ROLE_EXTENSION: &str = "1.3.6.1.4.1.50316.802.1";
+
 /// A caller's role; each includes the rights of the ones before it.
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Deserialize, Serialize, ToSchema,
@@ -21,6 +26,13 @@ pub enum Role {
 }
 
 impl Role {
+    /// The role named `name` (`viewer`, `operator`, `admin`).
+    pub fn from_name(name: &str) -> Option<Role> {
+        [Role::Viewer, Role::Operator, Role::Admin]
+            .into_iter()
+            .find(|r| r.name() == name)
+    }
+
     /// Stable name for messages and logs.
     pub fn name(self) -> &'static str {
         match self {

@@ -19,6 +19,8 @@ pub enum Face {
     ModbusTcp,
     /// A command from the MQTT broker (a Sparkplug DCMD).
     Mqtt,
+    /// A write or method call of an OPC UA session.
+    OpcUa,
     /// drivegate itself (safe stops, a brake applied again).
     Internal,
 }
@@ -31,6 +33,7 @@ impl Face {
             Face::WebSocket => "websocket",
             Face::ModbusTcp => "modbus-tcp",
             Face::Mqtt => "mqtt",
+            Face::OpcUa => "opcua",
             Face::Internal => "internal",
         }
     }
@@ -42,6 +45,7 @@ impl Face {
             Face::WebSocket => "over the WebSocket stream",
             Face::ModbusTcp => "over Modbus TCP",
             Face::Mqtt => "over MQTT",
+            Face::OpcUa => "over OPC UA",
             Face::Internal => "by drivegate",
         }
     }
@@ -71,6 +75,7 @@ fn origin_of(face: Face, who: &Arc<str>, session: Option<SessionId>) -> Origin {
         },
         (Face::WebSocket, None) => Origin::Http { who: who.clone() },
         (Face::Mqtt, _) => Origin::Mqtt { who: who.clone() },
+        (Face::OpcUa, _) => Origin::OpcUa { who: who.clone() },
         (Face::ModbusTcp | Face::Internal, _) => Origin::Internal,
     }
 }
@@ -136,10 +141,13 @@ impl Caller {
     /// Who holds a lease this caller takes, as lease views and the stream
     /// show it: a token's name, or for a Modbus TCP client its face and
     /// address ("modbus-tcp 10.1.2.3:50412"), since an address alone does
-    /// not say what it is (and for MQTT, "mqtt" and the host: "mqtt scada").
+    /// not say what it is (and for MQTT, "mqtt" and the host: "mqtt scada";
+    /// for OPC UA the user and session: "opcua alice (urn:scada, session 7)").
     pub fn owner(&self) -> Arc<str> {
         match self.face {
-            Face::ModbusTcp | Face::Mqtt => format!("{} {}", self.face.name(), self.who).into(),
+            Face::ModbusTcp | Face::Mqtt | Face::OpcUa => {
+                format!("{} {}", self.face.name(), self.who).into()
+            }
             Face::Http | Face::WebSocket | Face::Internal => self.who.clone(),
         }
     }

@@ -228,6 +228,23 @@ impl Control {
         Ok(done.report)
     }
 
+    /// [`apply_settings`](Self::apply_settings) of settings whose values
+    /// were checked already (what the drive holds, saved to its flash by
+    /// OPC UA's `Settings.Save()`).
+    pub(crate) async fn apply_wanted(
+        &self,
+        caller: &Caller,
+        target: Target,
+        wanted: &crate::drive::wanted::Wanted,
+        options: ApplyOptions,
+    ) -> Result<SettingsReport, SettingsError> {
+        let done = settings::apply_wanted(&self.0.parts, caller, target, wanted, options).await?;
+        if let (Some(index), Some(held)) = (target.drive, &done.held) {
+            self.0.drift.after_apply(&self.0.parts, index, held);
+        }
+        Ok(done.report)
+    }
+
     /// The daemon's reloader of `file` takes reloads from here on.
     pub fn attach_reloader(&self, reloader: mpsc::Sender<ReloadRequest>, file: &std::path::Path) {
         self.0.reloads.attach(reloader, file);

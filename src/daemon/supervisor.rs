@@ -1,5 +1,5 @@
 //! Starts the network faces (HTTP API with metrics, Modbus TCP, Modbus/TCP
-//! Security, MQTT), restarts one of them when a reload changes its section,
+//! Security, MQTT, OPC UA), restarts one of them when a reload changes its section,
 //! and waits for them to finish after shutdown.
 //!
 //! Each face runs under a stop token of its own (a child of the daemon's
@@ -50,6 +50,8 @@ pub struct Faces {
     pub modbus_tcp: Option<SocketAddr>,
     /// Where Modbus/TCP Security listened at start-up, if configured.
     pub modbus_tls: Option<SocketAddr>,
+    /// Where OPC UA listened at start-up, if configured.
+    pub opcua: Option<SocketAddr>,
     /// The control core every face writes through.
     pub control: Control,
     running: Arc<Running>,
@@ -79,6 +81,8 @@ pub struct Addresses {
     pub modbus_tcp: Option<SocketAddr>,
     /// Modbus/TCP Security.
     pub modbus_tls: Option<SocketAddr>,
+    /// OPC UA.
+    pub opcua: Option<SocketAddr>,
 }
 
 /// What a reload did to the faces, in words.
@@ -114,6 +118,7 @@ struct Started {
     http: Option<Listening>,
     modbus_tcp: Option<Listening>,
     modbus_tls: Option<Listening>,
+    opcua: Option<Listening>,
     mqtt: Option<Client>,
 }
 
@@ -124,6 +129,7 @@ impl Started {
             Face::Http => Some(&mut self.http),
             Face::ModbusTcp => Some(&mut self.modbus_tcp),
             Face::ModbusTls => Some(&mut self.modbus_tls),
+            Face::OpcUa => Some(&mut self.opcua),
             Face::Mqtt => None,
         }
     }
@@ -244,7 +250,7 @@ pub async fn start(
     });
     let config = Arc::new(config.clone());
     let mut started = Started::default();
-    for face in [Face::Http, Face::ModbusTls] {
+    for face in [Face::Http, Face::ModbusTls, Face::OpcUa] {
         if let Some(address) = bind_address(face, &config) {
             let listener = bind(face, address).await?;
             let serving = running.serve(face, &config, address, listener).await?;
@@ -264,16 +270,18 @@ pub async fn start(
         );
     }
     let addr = |l: &Option<Listening>| l.as_ref().map(|l| l.addr);
-    let (http, modbus_tcp, modbus_tls) = (
+    let (http, modbus_tcp, modbus_tls, opcua) = (
         addr(&started.http).ok_or("the HTTP API did not start")?,
         addr(&started.modbus_tcp),
         addr(&started.modbus_tls),
+        addr(&started.opcua),
     );
     *running.started.lock().await = started;
     Ok(Faces {
         http,
         modbus_tcp,
         modbus_tls,
+        opcua,
         control,
         running,
     })
@@ -293,6 +301,7 @@ fn bind_address(face: Face, config: &Config) -> Option<SocketAddr> {
             .enabled
             .then_some(config.modbus_tcp.listen),
         Face::ModbusTls => config.modbus_tcp.tls.as_ref().map(|t| t.listen),
+        Face::OpcUa => config.opcua.as_ref().map(|o| o.listen),
         Face::Mqtt => None,
     }
 }
@@ -318,6 +327,7 @@ fn protocol(face: Face) -> &'static str {
         Face::Http => "HTTP API",
         Face::ModbusTcp => "Modbus TCP",
         Face::ModbusTls => "Modbus/TCP Security",
+        Face::OpcUa => "OPC UA",
         Face::Mqtt => "MQTT",
     }
 }
@@ -339,6 +349,7 @@ impl Running {
             http: addr(&started.http),
             modbus_tcp: addr(&started.modbus_tcp),
             modbus_tls: addr(&started.modbus_tls),
+            opcua: addr(&started.opcua),
         }
     }
 
@@ -350,7 +361,7 @@ impl Running {
     pub async fn follow(&self, config: &Arc<Config>) -> Followed {
         let mut started = self.started.lock().await;
         let mut followed = Followed::default();
-        for face in [Face::Http, Face::ModbusTls, Face::ModbusTcp] {
+        for face in [Face::Http, Face::ModbusTls, Face::OpcUa, Face::ModbusTcp] {
             self.follow_listener(face, config, &mut started, &mut followed)
                 .await;
         }
@@ -583,6 +594,14 @@ impl Running {
                 s.plant.clone(),
                 s.metrics.clone(),
                 s.control.clone(),
+                stop.clone(),
+            )?,
+            Face::OpcUa => crate::opcua::start(
+                config,
+                listener,
+                s.control.clone(),
+                s.metrics.clone(),
+                s.history.clone(),
                 stop.clone(),
             )?,
             Face::ModbusTls | Face::Mqtt => crate::modbus_tcp::start_tls(

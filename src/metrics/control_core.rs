@@ -22,6 +22,15 @@ static COMM_LOSS: Spec = Spec {
     labels: &["bus", "reason"],
 };
 
+static OPCUA_COMM_LOSS: Spec = Spec {
+    name: "drivegate_opcua_comm_loss_stops_total",
+    help: "Leases of OPC UA sessions' setpoints and modes that ended with [opcua] \
+           comm_loss_action (none: nothing sent), by reason: timeout (no request within the \
+           session's timeout) or closed (the session was closed, or timed out on the server).",
+    kind: Kind::Counter,
+    labels: &["bus", "reason"],
+};
+
 static MQTT_COMM_LOSS: Spec = Spec {
     name: "drivegate_mqtt_comm_loss_stops_total",
     help: "Leases of commands from MQTT that ended with the MQTT session's comm_loss_action \
@@ -159,6 +168,7 @@ impl ControlCollector {
             descs: vec![
                 COMM_LOSS.desc(),
                 MQTT_COMM_LOSS.desc(),
+                OPCUA_COMM_LOSS.desc(),
                 REPLAYED.desc(),
                 JOURNAL_OK.desc(),
                 JOURNAL_EVENTS.desc(),
@@ -186,11 +196,13 @@ impl Collector for ControlCollector {
     fn collect(&self) -> Vec<MetricFamily> {
         let mut comm_loss = COMM_LOSS.family();
         let mut mqtt_comm_loss = MQTT_COMM_LOSS.family();
+        let mut opcua_comm_loss = OPCUA_COMM_LOSS.family();
         for (i, bus) in self.control.plant().now().indexed_buses() {
             let name = bus.handle.name();
             for (family, face) in [
                 (&mut comm_loss, Face::ModbusTcp),
                 (&mut mqtt_comm_loss, Face::Mqtt),
+                (&mut opcua_comm_loss, Face::OpcUa),
             ] {
                 let (timeout, closed) = self.control.comm_loss_ends(i, face);
                 family.set(&[name, "timeout"], timeout as f64);
@@ -262,6 +274,7 @@ impl Collector for ControlCollector {
             loaded_at.finish(),
             comm_loss.finish(),
             mqtt_comm_loss.finish(),
+            opcua_comm_loss.finish(),
             drift.finish(),
             replayed.finish(),
             ok.finish(),

@@ -3,6 +3,8 @@
 //! - [`faces`]: counters the HTTP, WebSocket and Modbus TCP faces update,
 //! - `security`: the browser-origin guards, token failures and TLS,
 //! - `mqtt`: the MQTT face's messages, commands and broker link,
+//! - `opcua`: the OPC UA face's sessions, subscriptions, monitored items,
+//!   values and events, sign-ins and refused certificates,
 //! - `drives`: per-drive series read from the poll cache at scrape time,
 //! - `buses`: per-bus series read from the bus counters, queues and port
 //!   state (and the simulator's wire counters) at scrape time,
@@ -25,6 +27,7 @@ mod faces;
 mod family;
 mod history;
 mod mqtt;
+mod opcua;
 mod process;
 mod security;
 mod utilisation;
@@ -36,6 +39,7 @@ use prometheus::{Encoder, Registry, TextEncoder};
 
 pub use faces::{FaceMetrics, WsClientGuard};
 pub use mqtt::{LinkState as MqttLink, MqttMetrics};
+pub use opcua::{FaceState as OpcUaState, OpcUaMetrics, SIGN_IN_KINDS, ServerCounts};
 pub use security::{OpenConnection, SecurityMetrics};
 pub use utilisation::{SAMPLE_PERIOD, WINDOW as UTILISATION_WINDOW};
 
@@ -48,6 +52,7 @@ pub struct Metrics {
     faces: FaceMetrics,
     security: SecurityMetrics,
     mqtt: MqttMetrics,
+    opcua: OpcUaMetrics,
     plant: Arc<Plant>,
     utilisation: Arc<Utilisation>,
 }
@@ -61,6 +66,7 @@ impl Metrics {
         let faces = FaceMetrics::register(&registry);
         let security = SecurityMetrics::register(&registry);
         let mqtt = MqttMetrics::register(&registry);
+        let opcua = OpcUaMetrics::register(&registry);
         let utilisation = Arc::new(Utilisation::new(&plant));
         let collectors: [Box<dyn prometheus::core::Collector>; 3] = [
             Box::new(drives::DriveCollector::new(plant.clone())),
@@ -78,6 +84,7 @@ impl Metrics {
             faces,
             security,
             mqtt,
+            opcua,
             plant,
             utilisation,
         });
@@ -123,6 +130,21 @@ impl Metrics {
     /// The MQTT face's counters and the state of its link.
     pub fn mqtt(&self) -> &MqttMetrics {
         &self.mqtt
+    }
+
+    /// The OPC UA face's counters and state.
+    pub fn opcua(&self) -> &OpcUaMetrics {
+        &self.opcua
+    }
+
+    /// The share of the last [`UTILISATION_WINDOW`] the wire of the bus in
+    /// slot `bus` was busy (0 to 1); `None` until the window is long
+    /// enough.
+    pub fn bus_utilisation(&self, bus: usize) -> Option<f64> {
+        let handle = self.plant.now().bus_at(bus)?.handle.clone();
+        self.utilisation
+            .window(bus)?
+            .ratio(std::time::Instant::now(), handle.stats().busy_seconds)
     }
 
     /// The plant the drive and bus metrics are read from.

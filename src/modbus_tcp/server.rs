@@ -204,7 +204,7 @@ pub struct TlsSettings {
 }
 
 /// The role extension of Modbus/TCP Security certificates.
-pub const ROLE_OID: &str = "1.3.6.1.4.1.50316.802.1";
+pub const ROLE_OID: &str = crate::config::ROLE_EXTENSION;
 
 /// The rights and name of a client from its certificate, or why it is
 /// refused.

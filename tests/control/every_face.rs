@@ -17,6 +17,12 @@
 //! 127.0.0.4 (admin, allowed to save while moving: the face's override,
 //! which HTTP and the stream give with `"force": true`).
 //!
+//! OPC UA signs in with the role's token (user name = the token's name,
+//! password = the token): setpoints as writes of `SpeedSetpoint`, the
+//! brake as `Brake()`, a save as `Settings.Save()` (it has no override of
+//! the still-check, nor an address broadcast); its answer is the status
+//! code.
+//!
 //! MQTT has one role per daemon (`[mqtt] commands`), here `operator`: the
 //! operator's rows that MQTT can say (setpoints, the brake) go through it
 //! too, as a host's DCMD, and its answer is the drive's
@@ -28,6 +34,7 @@ use std::time::Duration;
 
 use serde_json::{Value, json};
 
+use crate::opcua::Table;
 use crate::support::api::{Api, Ws, connect, send_json, wait_for};
 use crate::support::input::{ADMIN, OPERATOR, VIEWER, config};
 use crate::support::modbus_tcp::{Raw, write};
@@ -81,6 +88,18 @@ impl Decision {
         }
     }
 
+    /// OPC UA: the status code of the write or the method call.
+    fn opcua(self) -> &'static str {
+        match self {
+            Decision::Done => "Good",
+            Decision::Role => "BadUserAccessDenied",
+            Decision::Moving | Decision::NotActive => "BadInvalidState",
+            Decision::Address | Decision::LeaseLength => {
+                unreachable!("OPC UA has no such request")
+            }
+        }
+    }
+
     /// MQTT: what `command/last_result` says (empty: confirmed).
     fn mqtt(self) -> &'static str {
         match self {
@@ -113,6 +132,15 @@ impl Who {
         }
     }
 
+    /// Its OPC UA user name (its token's name; the password is the token).
+    fn user(self) -> &'static str {
+        match self {
+            Who::Viewer => "dashboard",
+            Who::Operator => "scada",
+            Who::Admin | Who::AdminForcing => "commissioning",
+        }
+    }
+
     /// The loopback address its Modbus TCP client connects from.
     fn source(self) -> Ipv4Addr {
         match self {
@@ -138,6 +166,9 @@ struct Case {
     /// Device and DCMD metric over MQTT (`None`: the face has no such
     /// request).
     mqtt: Option<(&'static str, Metric)>,
+    /// The write or method call over OPC UA (`None`: the face has no such
+    /// request).
+    opcua: Option<Value>,
     expect: Decision,
 }
 
@@ -181,6 +212,35 @@ fn done(pdu: &[u8]) -> Vec<u8> {
     }
 }
 
+/// A save of the load inertia to flash by `who` on `drive` (`unit`).
+fn save(who: Who, drive: &'static str, unit: u8, expect: Decision) -> Case {
+    let force = who == Who::AdminForcing;
+    Case {
+        what: "load inertia saved to flash",
+        who,
+        http: (
+            "PUT",
+            match drive {
+                "lift" => "/api/v1/drives/lift/inertia",
+                _ => "/api/v1/drives/conveyor/inertia",
+            },
+            json!({"ratio": 3, "save": true, "force": force}),
+        ),
+        stream: (
+            "inertia",
+            ("drive", drive),
+            json!({"ratio": 3, "save": true, "force": force}),
+        ),
+        modbus: Some((unit, inertia_saved(3))),
+        mqtt: None,
+        // No override of the still-check over OPC UA.
+        opcua: (!force).then(|| {
+            json!({"op": "call", "object": format!("{drive}/Settings"), "method": format!("{drive}/Settings/Save")})
+        }),
+        expect,
+    }
+}
+
 fn cases() -> Vec<Case> {
     let setpoint = |who, speed: i64, drive: &'static str, unit: u8, expect| Case {
         what: "a speed setpoint without a lease",
@@ -199,30 +259,10 @@ fn cases() -> Vec<Case> {
             drive,
             sparkplug::double_metric("setpoint/speed_rpm", speed as f64),
         )),
+        opcua: Some(
+            json!({"op": "write", "path": format!("{drive}/SpeedSetpoint"), "value": speed}),
+        ),
         expect,
-    };
-    let save = |who, drive: &'static str, unit: u8, expect| {
-        let force = who == Who::AdminForcing;
-        Case {
-            what: "load inertia saved to flash",
-            who,
-            http: (
-                "PUT",
-                match drive {
-                    "lift" => "/api/v1/drives/lift/inertia",
-                    _ => "/api/v1/drives/conveyor/inertia",
-                },
-                json!({"ratio": 3, "save": true, "force": force}),
-            ),
-            stream: (
-                "inertia",
-                ("drive", drive),
-                json!({"ratio": 3, "save": true, "force": force}),
-            ),
-            modbus: Some((unit, inertia_saved(3))),
-            mqtt: None,
-            expect,
-        }
     };
     let address = |who, expect| Case {
         what: "an address broadcast without the single-drive confirmation",
@@ -231,6 +271,7 @@ fn cases() -> Vec<Case> {
         stream: ("set-address", ("bus", "sim"), json!({"address": 9})),
         modbus: Some((0, write(0x0000, 9))),
         mqtt: None,
+        opcua: None,
         expect,
     };
     let brake = |who, expect| Case {
@@ -240,6 +281,7 @@ fn cases() -> Vec<Case> {
         stream: ("brake", ("drive", "lift"), json!({})),
         modbus: Some((2, write(CONFIG, 5))),
         mqtt: Some(("lift", sparkplug::bool_metric("command/brake", true))),
+        opcua: Some(json!({"op": "call", "object": "lift", "method": "lift/Brake"})),
         expect,
     };
     vec![
@@ -271,6 +313,7 @@ fn cases() -> Vec<Case> {
             ),
             modbus: None,
             mqtt: None,
+            opcua: None,
             expect: Decision::LeaseLength,
         },
         // A setpoint only to an active drive.
@@ -321,6 +364,19 @@ async fn modbus_case(tcp: SocketAddr, case: &Case, unit: u8, manual: &[u8], labe
     }
 }
 
+/// `case` over OPC UA, if the face can say it; whether it could.
+async fn opcua_case(ua: &mut Table, case: &Case, label: &str) -> bool {
+    let Some(request) = &case.opcua else {
+        return false;
+    };
+    let mut request = request.clone();
+    request["user"] = json!(case.who.user());
+    request["password"] = json!(case.who.token());
+    let status = ua.ask(request).await;
+    assert_eq!(status, case.expect.opcua(), "OPC UA: {label}");
+    true
+}
+
 async fn http_request(api: &Api, case: &Case) -> crate::support::api::Reply {
     let (method, path, body) = &case.http;
     match (*method, body) {
@@ -344,7 +400,9 @@ async fn every_rule_decides_the_same_through_every_face() {
             "[mqtt]\nbroker = \"{}\"\ngroup_id = \"plant\"\nnode_id = \"gw1\"\ncommands = \"operator\"\nunauthenticated_commands = true\n",
             broker.url()
         );
-        let d = TestDaemon::start(&config("", networks, true, &mqtt)).await;
+        let dir = tempfile::tempdir().unwrap();
+        let opcua = format!("[opcua]\n{}\n", crate::opcua::section(dir.path()));
+        let d = TestDaemon::start(&config("", networks, true, &format!("{mqtt}{opcua}"))).await;
         host.next(LIMIT, "the node's births", |m| m.is("DBIRTH", Some("feeder")))
             .await;
         let admin = Api::new(d.http, Some(ADMIN));
@@ -378,8 +436,11 @@ async fn every_rule_decides_the_same_through_every_face() {
         for who in [Who::Viewer, Who::Operator, Who::Admin] {
             streams.push((who, connect(d.http, "", Some(who.token())).await));
         }
+        let addr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        let mut ua = Table::start(&format!("opc.tcp://{addr}/")).await;
         let mut id = 0;
         let mut over_mqtt = 0;
+        let mut over_opcua = 0;
         for case in cases() {
             let label = format!("{} by {:?}", case.what, case.who);
             let (status, kind) = case.expect.http();
@@ -441,28 +502,37 @@ async fn every_rule_decides_the_same_through_every_face() {
                     part => assert!(words.contains(part), "MQTT: {label}: {words}"),
                 }
             }
+
+            // OPC UA, signed in as the role's token (name and token).
+            over_opcua += usize::from(opcua_case(&mut ua, &case, &label).await);
         }
 
         assert_eq!(over_mqtt, 3, "the operator's setpoints and brake over MQTT");
+        assert_eq!(over_opcua, 9, "every row OPC UA can say");
 
-        // What the table did to the drives: a setpoint without a lease left
-        // none; the forced saves (HTTP, the stream, Modbus TCP's 0x10 and
-        // 0x17) reached flash while the conveyor turned; nothing moved the
-        // turntable; no drive took address 9.
-        assert!(
-            admin.get("/api/v1/drives/lift").await.expect(200)["lease"].is_null(),
-            "a setpoint without a lease took one"
-        );
-        let conveyor = d.sim().drive(1).unwrap();
-        assert_eq!(conveyor.saves_while_moving, 4);
-        assert_eq!(conveyor.flash.settings.inertia_ratio, 3);
-        assert_eq!(d.sim().drive(3).unwrap().setpoints.speed_rpm, 0);
-        assert!(d.sim().drive(9).is_none());
-        assert!(d.sim().drive(2).unwrap().braking);
+        what_the_table_did(&d, &admin).await;
         d.stop().await;
     })
     .await
     .expect("test finished in time");
+}
+
+/// What the table did to the drives, whichever face sent it.
+async fn what_the_table_did(d: &TestDaemon, admin: &Api) {
+    // What the table did to the drives: a setpoint without a lease left
+    // none; the forced saves (HTTP, the stream, Modbus TCP's 0x10 and
+    // 0x17) reached flash while the conveyor turned; nothing moved the
+    // turntable; no drive took address 9.
+    assert!(
+        admin.get("/api/v1/drives/lift").await.expect(200)["lease"].is_null(),
+        "a setpoint without a lease took one"
+    );
+    let conveyor = d.sim().drive(1).unwrap();
+    assert_eq!(conveyor.saves_while_moving, 4);
+    assert_eq!(conveyor.flash.settings.inertia_ratio, 3);
+    assert_eq!(d.sim().drive(3).unwrap().setpoints.speed_rpm, 0);
+    assert!(d.sim().drive(9).is_none());
+    assert!(d.sim().drive(2).unwrap().braking);
 }
 
 /// What becomes of a function code, whoever sends it.

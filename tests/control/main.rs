@@ -14,5 +14,6 @@ mod support;
 mod audit;
 mod brake;
 mod every_face;
+mod opcua;
 mod roles;
 mod rules;

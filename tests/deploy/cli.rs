@@ -168,6 +168,7 @@ fn help_names_every_face() {
         "WebSocket",
         "Modbus TCP",
         "Modbus/TCP Security",
+        "OPC UA",
         "MQTT",
         "Sparkplug B",
         "JSON",

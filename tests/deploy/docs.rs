@@ -176,6 +176,7 @@ fn table_rule(title: &str) -> Option<(&'static [&'static str], &'static [&'stati
             ],
         ),
         "MQTT" => (&[], &["drivegate_mqtt_"]),
+        "OPC UA" => (&[], &["drivegate_opcua_"]),
         _ => return None,
     })
 }

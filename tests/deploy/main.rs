@@ -27,3 +27,4 @@ mod reload;
 mod reload_listeners;
 mod restart;
 mod systemd;
+mod vendor;

@@ -101,6 +101,7 @@ max_age_ms = 250
         &["monitor"],
         &["scope"],
         &["history"],
+        &["opcua"],
         &["bus"],
         &["bus", "rs485"],
         &["bus", "drive"],
@@ -212,6 +213,13 @@ fn every_value_the_reference_shows_is_the_default() {
         }
     }
     differ.extend(bus_differ);
+    // [opcua] is off unless there: its values against an empty [opcua].
+    let plain_opcua = with("[opcua]\n");
+    for (key, value) in doc["opcua"].as_table().unwrap() {
+        if with(&format!("[opcua]\n{key} = {value}\n")) != plain_opcua {
+            differ.push(format!("[opcua] {key} = {value}"));
+        }
+    }
     assert!(
         differ.is_empty(),
         "config/drivegate.toml shows values that are not the defaults: {differ:?}"

@@ -479,6 +479,35 @@ fn a_change_of_any_section_is_applied_or_said_to_wait_for_the_next_start() {
 }
 
 #[test]
+fn opcua_changes_restart_only_its_listener() {
+    // The reference shows [opcua]; without it, no OPC UA.
+    let mut old = reference();
+    old.opcua = None;
+    let new = reference();
+    assert_eq!(diff(&old, &new).faces_restarted, vec![Face::OpcUa]);
+    assert_eq!(diff(&new, &old).faces_restarted, vec![Face::OpcUa]);
+    assert_eq!(diff(&old, &new).lines(), vec!["restarted: OPC UA listener"]);
+    let mut longer = new.clone();
+    if let Some(o) = longer.opcua.as_mut() {
+        o.session_timeout_max_ms += 1000;
+    }
+    assert_eq!(diff(&new, &longer).faces_restarted, vec![Face::OpcUa]);
+    // Its certificates are in the state directory.
+    let mut moved = new.clone();
+    moved.safety.state_dir = Some("/var/lib/elsewhere".into());
+    assert!(diff(&new, &moved).faces_restarted.contains(&Face::OpcUa));
+    assert!(
+        !diff(&old, &{
+            let mut o = old.clone();
+            o.safety.state_dir = Some("/var/lib/elsewhere".into());
+            o
+        })
+        .faces_restarted
+        .contains(&Face::OpcUa)
+    );
+}
+
+#[test]
 fn tls_and_mqtt_changes_restart_only_their_face() {
     let tls = "[modbus_tcp.tls]\nlisten = \"127.0.0.1:802\"\ncert = \"/x/gw.pem\"\nkey = \"/x/gw.key\"\nclient_ca = \"/x/ca.pem\"\n";
     let (old, new) = (reference(), with(tls));
@@ -492,7 +521,16 @@ fn tls_and_mqtt_changes_restart_only_their_face() {
         vec![Face::ModbusTcp, Face::ModbusTls]
     );
     let mqtt = "[mqtt]\nbroker = \"mqtt://127.0.0.1:1883\"\n";
-    let (a, b) = (with(mqtt), with(&mqtt.replace("1883", "1884")));
+    // Without the reference's [opcua], whose certificates are in the
+    // state directory too.
+    let plain = |mut c: Config| {
+        c.opcua = None;
+        c
+    };
+    let (a, b) = (
+        plain(with(mqtt)),
+        plain(with(&mqtt.replace("1883", "1884"))),
+    );
     let c = diff(&a, &b);
     assert_eq!(c.faces_restarted, vec![Face::Mqtt]);
     assert_eq!(c.lines(), vec!["restarted: MQTT face"]);
@@ -500,5 +538,8 @@ fn tls_and_mqtt_changes_restart_only_their_face() {
     let mut moved = a.clone();
     moved.safety.state_dir = Some("/var/lib/elsewhere".into());
     assert_eq!(diff(&a, &moved).faces_restarted, vec![Face::Mqtt]);
-    assert_eq!(diff(&a, &reference()).faces_restarted, vec![Face::Mqtt]);
+    assert_eq!(
+        diff(&a, &plain(reference())).faces_restarted,
+        vec![Face::Mqtt]
+    );
 }

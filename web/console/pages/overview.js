@@ -78,11 +78,15 @@ function mount(main, _params, { store }) {
     h('caption', { class: 'sr-only' }, 'Drives, live'),
     h('thead', {}, h('tr', {}, COLUMNS.map(([label, , cls]) => h('th', { scope: 'col', class: cls }, label)))),
     tbody);
-  // The MQTT link (docs/mqtt.md), from /readyz; shown only with [mqtt].
+  // The faces that are not this page's own, from /readyz: the MQTT link
+  // (docs/mqtt.md), shown only with [mqtt]; the OPC UA server
+  // (docs/opcua.md), shown only with [opcua].
   const mqtt = h('p', { class: 'summary mqtt', role: 'status' });
   mqtt.hidden = true;
+  const opcua = h('p', { class: 'summary opcua', role: 'status' });
+  opcua.hidden = true;
   main.append(
-    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, mqtt),
+    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, mqtt, opcua),
     h('section', { class: 'panel', 'aria-labelledby': 'drives-h' }, h('h1', { id: 'drives-h' }, 'Drives'), summary,
       h('div', { class: 'scroll' }, table)));
 
@@ -235,10 +239,23 @@ function mount(main, _params, { store }) {
     if (mqtt.textContent !== text) mqtt.textContent = text;
     mqtt.className = `summary mqtt ${m.connected && m.publishing ? 'good' : 'bad'}`;
   }
+  function showOpcUa(o) {
+    opcua.hidden = !o;
+    if (!o) return;
+    const sessions = `${o.sessions} session${o.sessions === 1 ? '' : 's'}`;
+    let text;
+    if (o.serving) text = `OPC UA: serving on opc.tcp://${o.listen}/ (${sessions})`;
+    else if (o.last_error) text = `OPC UA: not serving on ${o.listen} (${o.last_error})`;
+    else text = `OPC UA: making its certificate, then serving on opc.tcp://${o.listen}/`;
+    if (opcua.textContent !== text) opcua.textContent = text;
+    opcua.className = `summary opcua ${o.serving ? 'good' : 'bad'}`;
+  }
   async function pollMqtt() {
     try {
       const r = await fetch('/readyz', { cache: 'no-store', headers: { Accept: 'application/json' } });
-      showMqtt((await r.json()).mqtt);
+      const ready = await r.json();
+      showMqtt(ready.mqtt);
+      showOpcUa(ready.opcua);
     } catch {
       // The stream's state already says when drivegate cannot be reached.
     }

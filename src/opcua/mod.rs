@@ -1,0 +1,321 @@
+//! The OPC UA face: the drives in the language of SCADA, MES and PLCs with
+//! an OPC UA client, on async-opcua (server feature, pure-Rust crypto).
+//!
+//! Floors of the room, from the bottom:
+//! - [`spec`]: the address space as data (namespace, `DriveType`'s
+//!   variables with their units and ranges, methods, bus variables, node
+//!   ids), pure;
+//! - [`values`] (a drive's values as data values, with the poll's source
+//!   timestamp and the freshness's status code), [`outcome`] (the core's
+//!   refusals as status codes), both pure; [`pki`] (the Part 12 layout,
+//!   the server's certificate, trust without a restart), [`user_cert`];
+//! - [`users`] (user names and tokens, user certificates, anonymous),
+//!   [`sessions`] (each OPC UA session a session of the core, its leases
+//!   ended when it closes or times out), [`address`] (the nodes),
+//!   [`history`] (`HistoryRead`);
+//! - [`nodes`] (reads of what a drive holds, writes and method calls
+//!   through the core), [`alarms`] (the alarm book as
+//!   `AlarmConditionType` events), [`conditions`] (acknowledgement and
+//!   `ConditionRefresh`);
+//! - [`render`] (the plant in the address space, at every poll),
+//!   [`server`] (the server built from `[opcua]`);
+//! - here, [`start`]: on the socket `faces.rs` bound, with a stop token of
+//!   its own, as every face.
+//!
+//! Like every face it decides nothing about the motors: writes and calls
+//! go to [`crate::control`] with the session's caller (face `opcua`), and
+//! its answers are rendered as status codes with the core's words. See
+//! `docs/opcua.md`.
+
+pub mod address;
+pub mod alarms;
+pub mod conditions;
+pub mod history;
+pub mod nodes;
+pub mod outcome;
+pub mod pki;
+pub mod render;
+pub mod server;
+pub mod sessions;
+pub mod spec;
+pub mod user_cert;
+pub mod users;
+pub mod values;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
+
+use opcua::server::ServerHandle;
+use opcua::types::{VariableId, Variant};
+use tokio::net::TcpListener;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+
+use crate::config::{Config, OpcUaConfig};
+use crate::control::Control;
+use crate::history::History;
+use crate::metrics::{Metrics, ServerCounts};
+use nodes::DriveManager;
+use pki::{Own, Pki};
+
+/// Starts the OPC UA face of `config` on `listener` (bound by
+/// `faces.rs`), until `stop`: its certificate is made at the first start
+/// in a blocking task (RSA key generation: the other faces start
+/// meanwhile, and clients wait in the listener's backlog), then the server
+/// runs. Returns where it listens and its task.
+pub fn start(
+    config: &Arc<Config>,
+    listener: TcpListener,
+    control: Control,
+    metrics: Arc<Metrics>,
+    history: Arc<History>,
+    stop: CancellationToken,
+) -> Result<(SocketAddr, JoinHandle<()>), String> {
+    let section = config.opcua.clone().ok_or("no [opcua] section")?;
+    let bound = listener.local_addr().map_err(|e| e.to_string())?;
+    let (root, temporary) = match section.pki_dir(config.safety.state_dir().as_deref()) {
+        Some(dir) => (dir, false),
+        None => (temporary_pki(), true),
+    };
+    let pki = Pki::new(root);
+    pki.prepare().map_err(|e| format!("[opcua] pki_dir: {e}"))?;
+    if temporary {
+        tracing::warn!(
+            target: "drivegate::opcua",
+            pki = %pki.root().display(),
+            "OPC UA: no [opcua] pki_dir and no state directory: the server's certificate is made \
+             anew at each start, and clients must trust it again"
+        );
+    }
+    metrics.opcua().started(bound.to_string());
+    let face = Face {
+        section,
+        bound,
+        pki,
+        temporary,
+        control,
+        metrics,
+        history,
+    };
+    Ok((bound, tokio::spawn(face.run(listener, stop))))
+}
+
+/// A PKI directory of this process's own, when none is configured.
+fn temporary_pki() -> PathBuf {
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    std::env::temp_dir().join(format!(
+        "drivegate-opcua-pki-{}-{}",
+        std::process::id(),
+        NEXT.fetch_add(1, Ordering::Relaxed)
+    ))
+}
+
+/// The host's name, as its kernel says it.
+fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|s| s.trim().to_string())
+        .ok()
+        .filter(|s| !s.is_empty())
+        .unwrap_or_else(|| "localhost".to_string())
+}
+
+/// The face, before it runs.
+struct Face {
+    section: OpcUaConfig,
+    bound: SocketAddr,
+    pki: Pki,
+    temporary: bool,
+    control: Control,
+    metrics: Arc<Metrics>,
+    history: Arc<History>,
+}
+
+impl Face {
+    async fn run(self, listener: TcpListener, stop: CancellationToken) {
+        let host = host_name();
+        if let Err(why) = self.certificate(&host).await {
+            tracing::error!(target: "drivegate::opcua", "OPC UA not started: {why}");
+            self.metrics.opcua().failed(why);
+            return;
+        }
+        if !stop.is_cancelled() {
+            if let Err(why) = self.serve(listener, host, &stop).await {
+                tracing::error!(target: "drivegate::opcua", "OPC UA not started: {why}");
+                self.metrics.opcua().failed(why);
+            } else {
+                self.metrics.opcua().stopped(true);
+            }
+        }
+        if self.temporary {
+            let _ = std::fs::remove_dir_all(self.pki.root());
+        }
+    }
+
+    /// The server's certificate, made now if `own/` has none.
+    async fn certificate(&self, host: &str) -> Result<(), String> {
+        let pki = self.pki.clone();
+        let uri = server::application_uri(host);
+        let host = host.to_string();
+        let addresses = if self.bound.ip().is_unspecified() {
+            Vec::new()
+        } else {
+            vec![self.bound.ip().to_string()]
+        };
+        let made = tokio::task::spawn_blocking(move || {
+            pki.ensure_own_certificate(&uri, &host, &addresses)
+        })
+        .await
+        .map_err(|e| format!("making its certificate: {e}"))?
+        .map_err(|e| format!("its certificate in {}: {e}", self.pki.root().display()))?;
+        if made == Own::Made {
+            tracing::info!(
+                target: "drivegate::opcua",
+                certificate = %self.pki.cert_path().display(),
+                "OPC UA: the server's certificate was made (clients trust it once)"
+            );
+        }
+        Ok(())
+    }
+
+    /// Builds the server and serves `listener` until `stop`.
+    async fn serve(
+        &self,
+        listener: TcpListener,
+        host: String,
+        stop: &CancellationToken,
+    ) -> Result<(), String> {
+        let stash = Arc::new(user_cert::Stash::default());
+        let users = Arc::new(users::Users::new(
+            self.control.follow_config(),
+            self.section.anonymous,
+            self.pki.clone(),
+            stash.clone(),
+            self.metrics.clone(),
+        ));
+        let sessions = Arc::new(sessions::Sessions::new(
+            self.control.clone(),
+            self.section.comm_loss_action,
+            self.section.session_timeout_max(),
+        ));
+        let built = server::build(server::Parts {
+            section: self.section.clone(),
+            bound: self.bound,
+            host,
+            pki: self.pki.clone(),
+            control: self.control.clone(),
+            history: self.history.clone(),
+            metrics: self.metrics.clone(),
+            users,
+            sessions: sessions.clone(),
+            stop: stop.clone(),
+        })?;
+        user_cert::install(&built.handle, stash);
+        let manager = built
+            .handle
+            .node_managers()
+            .get_of_type::<DriveManager>()
+            .ok_or("the server has no node manager for the drives")?;
+        let aux = stop.child_token();
+        let render = render::Render {
+            nodes: manager.inner().nodes(),
+            space: manager.address_space().clone(),
+            subscriptions: built.handle.subscriptions().clone(),
+            control: self.control.clone(),
+            metrics: self.metrics.clone(),
+        };
+        let shown = render.begin();
+        tokio::spawn(render.run(shown, aux.clone()));
+        tokio::spawn(sessions.run(aux.clone()));
+        tokio::spawn(alarms::run(
+            built.events,
+            self.control.clone(),
+            built.handle.subscriptions().clone(),
+            self.metrics.clone(),
+            aux.clone(),
+        ));
+        tokio::spawn(mirror(self.pki.clone(), self.metrics.clone(), aux.clone()));
+        tokio::spawn(counts(
+            built.handle.clone(),
+            self.metrics.clone(),
+            aux.clone(),
+        ));
+        self.metrics.opcua().serving();
+        tracing::info!(
+            target: "drivegate::opcua",
+            addr = %self.bound,
+            endpoints = ?self.section.endpoints().iter().map(|s| s.name()).collect::<Vec<_>>(),
+            "OPC UA serving"
+        );
+        let served = built.server.run_with(listener).await;
+        aux.cancel();
+        served
+    }
+}
+
+/// Keeps the crate's store in step with the PKI directory every second
+/// (see [`pki`]), counting and logging the certificates it refused.
+async fn mirror(pki: Pki, metrics: Arc<Metrics>, stop: CancellationToken) {
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            () = stop.cancelled() => return,
+        }
+        let p = pki.clone();
+        let rejected = tokio::task::spawn_blocking(move || p.sync())
+            .await
+            .unwrap_or_default();
+        for name in &rejected {
+            tracing::warn!(
+                target: "drivegate::opcua",
+                certificate = %name,
+                dir = %pki.rejected().display(),
+                "OPC UA client certificate refused (not trusted): move it to trusted/certs to trust it"
+            );
+        }
+        metrics.opcua().rejected_certificates(rejected.len());
+    }
+}
+
+/// Copies the server's own counts (sessions, subscriptions, timeouts) to
+/// the metrics every second.
+async fn counts(handle: ServerHandle, metrics: Arc<Metrics>, stop: CancellationToken) {
+    use VariableId as V;
+    let read = |id: VariableId| match handle.info().summary().get(id).and_then(|v| v.value) {
+        Some(Variant::UInt32(n)) => n,
+        _ => 0,
+    };
+    let (mut sessions_seen, mut timeouts_seen) = (0u32, 0u32);
+    // The crate's count is the process's: from what it was at the start.
+    let mut notifications_seen = opcua::server::notifications_sent();
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            () = stop.cancelled() => break,
+        }
+        let cumulated =
+            read(V::Server_ServerDiagnostics_ServerDiagnosticsSummary_CumulatedSessionCount);
+        let timeouts =
+            read(V::Server_ServerDiagnostics_ServerDiagnosticsSummary_SessionTimeoutCount);
+        let notifications = opcua::server::notifications_sent();
+        metrics.opcua().server_counts(ServerCounts {
+            sessions: read(
+                V::Server_ServerDiagnostics_ServerDiagnosticsSummary_CurrentSessionCount,
+            ),
+            subscriptions: read(
+                V::Server_ServerDiagnostics_ServerDiagnosticsSummary_CurrentSubscriptionCount,
+            ),
+            new_sessions: cumulated.saturating_sub(sessions_seen),
+            new_timeouts: timeouts.saturating_sub(timeouts_seen),
+            new_notifications: notifications.saturating_sub(notifications_seen),
+        });
+        notifications_seen = notifications;
+        (sessions_seen, timeouts_seen) = (cumulated, timeouts);
+    }
+    metrics.opcua().server_counts(ServerCounts::default());
+}

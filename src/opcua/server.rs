@@ -1,0 +1,211 @@
+//! The async-opcua server of `[opcua]`: its endpoints (one per security
+//! policy, each signing and encrypting, and `none` when asked), its users,
+//! its limits, its certificates in the PKI directory, and the node
+//! managers: the core namespace (with conditions), the diagnostics, and
+//! the drives'. It runs on the daemon's runtime, on the socket `faces.rs`
+//! bound, and stops with the face's token.
+
+use std::net::SocketAddr;
+use std::sync::atomic::AtomicI64;
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
+
+use opcua::server::address_space::AddressSpace;
+use opcua::server::diagnostics::DiagnosticsNodeManagerBuilder;
+use opcua::server::node_manager::memory::{CoreNodeManagerBuilder, InMemoryNodeManagerBuilder};
+use opcua::server::node_manager::{NodeManagerBuilder, ServerContext};
+use opcua::server::{Server, ServerBuilder, ServerEndpoint, ServerHandle};
+use tokio_util::sync::CancellationToken;
+
+use super::address::Nodes;
+use super::alarms::AlarmEvents;
+use super::conditions::CoreWithConditions;
+use super::nodes::Drives;
+use super::pki::Pki;
+use super::sessions::Sessions;
+use super::spec::NAMESPACE;
+use super::users::Users;
+use crate::config::OpcUaConfig;
+use crate::config::opcua::Security;
+use crate::control::Control;
+use crate::history::History;
+use crate::metrics::Metrics;
+
+/// What the server is built from.
+pub struct Parts {
+    /// The section.
+    pub section: OpcUaConfig,
+    /// Where it is bound.
+    pub bound: SocketAddr,
+    /// The host's name (endpoint URLs on a wildcard address, the
+    /// application URI).
+    pub host: String,
+    /// The certificates.
+    pub pki: Pki,
+    /// The core.
+    pub control: Control,
+    /// The trends.
+    pub history: Arc<History>,
+    /// The metrics.
+    pub metrics: Arc<Metrics>,
+    /// Who sessions are.
+    pub users: Arc<Users>,
+    /// The sessions' callers.
+    pub sessions: Arc<Sessions>,
+    /// The server's stop.
+    pub stop: CancellationToken,
+}
+
+/// The server, its handle, and the alarms' events (whose namespace the
+/// build decided).
+pub struct Built {
+    /// The server, to run on the listener.
+    pub server: Server,
+    /// Its handle.
+    pub handle: ServerHandle,
+    /// The alarms' events.
+    pub events: Arc<AlarmEvents>,
+}
+
+/// The application URI of the server on `host`.
+pub fn application_uri(host: &str) -> String {
+    format!("urn:{host}:drivegate")
+}
+
+fn endpoint(security: Security) -> ServerEndpoint {
+    let ids: Vec<String> = Vec::new();
+    match security {
+        Security::None => {
+            let mut none = ServerEndpoint::new_none("/", &ids);
+            // Passwords are encrypted even without a secure channel.
+            none.password_security_policy = Some("Basic256Sha256".to_string());
+            none
+        }
+        Security::Basic256sha256 => ServerEndpoint::new_basic256sha256_sign_encrypt("/", &ids),
+        Security::Aes128Sha256Rsaoaep => {
+            ServerEndpoint::new_aes128_sha256_rsaoaep_sign_encrypt("/", &ids)
+        }
+        Security::Aes256Sha256Rsapss => {
+            ServerEndpoint::new_aes256_sha256_rsapss_sign_encrypt("/", &ids)
+        }
+    }
+}
+
+/// The host clients reach the server by, for its endpoint URLs: the
+/// address it listens on, or the host's name on a wildcard address.
+fn endpoint_host(bound: SocketAddr, host: &str) -> String {
+    let ip = bound.ip();
+    if ip.is_unspecified() {
+        host.to_string()
+    } else if ip.is_ipv6() {
+        format!("[{ip}]")
+    } else {
+        ip.to_string()
+    }
+}
+
+/// The fastest poll of the plant now: the smallest sampling interval a
+/// subscription gets (the crate has one minimum for every node).
+fn fastest_poll(control: &Control) -> Duration {
+    let directory = control.plant().now();
+    directory
+        .drives()
+        .filter_map(|d| Some(directory.handle_of(d)?.poll_period(d.unit)))
+        .min()
+        .unwrap_or(Duration::from_millis(100))
+        .max(Duration::from_millis(10))
+}
+
+/// Builds the server of `parts`.
+pub fn build(parts: Parts) -> Result<Built, String> {
+    let monitored = Arc::new(AtomicI64::new(0));
+    let events: Arc<OnceLock<Arc<AlarmEvents>>> = Arc::new(OnceLock::new());
+    let core = {
+        let (control, users, sessions, metrics, monitored, events) = (
+            parts.control.clone(),
+            parts.users.clone(),
+            parts.sessions.clone(),
+            parts.metrics.clone(),
+            monitored.clone(),
+            events.clone(),
+        );
+        move |context: ServerContext| CoreWithConditions {
+            core: Box::new(InMemoryNodeManagerBuilder::new(CoreNodeManagerBuilder)).build(context),
+            control,
+            users,
+            sessions,
+            events,
+            monitored,
+            metrics,
+        }
+    };
+    let drives = {
+        let (control, users, sessions, history, metrics, events) = (
+            parts.control.clone(),
+            parts.users.clone(),
+            parts.sessions.clone(),
+            parts.history.clone(),
+            parts.metrics.clone(),
+            events.clone(),
+        );
+        InMemoryNodeManagerBuilder::new(move |context: ServerContext, space: &mut AddressSpace| {
+            let ns = context
+                .type_tree
+                .write()
+                .namespaces_mut()
+                .add_namespace(NAMESPACE);
+            space.add_namespace(NAMESPACE, ns);
+            let nodes = Nodes { ns };
+            nodes.build_types(space);
+            let _ = events.set(Arc::new(AlarmEvents::new(nodes)));
+            Drives::new(
+                nodes,
+                control,
+                (users, sessions),
+                history,
+                metrics,
+                monitored,
+            )
+        })
+    };
+    let section = &parts.section;
+    let mut builder = ServerBuilder::new()
+        .without_node_managers()
+        .with_node_manager(core)
+        .with_node_manager(DiagnosticsNodeManagerBuilder)
+        .with_node_manager(drives)
+        .application_name("drivegate")
+        .application_uri(application_uri(&parts.host))
+        .product_uri("urn:drivegate")
+        .pki_dir(parts.pki.stack_dir())
+        .certificate_path(parts.pki.cert_path())
+        .private_key_path(parts.pki.key_path())
+        .create_sample_keypair(false)
+        .trust_client_certs(false)
+        .host(endpoint_host(parts.bound, &parts.host))
+        .port(parts.bound.port())
+        .discovery_urls(vec!["/".to_string()])
+        .with_authenticator(parts.users.clone())
+        .max_session_timeout_ms(section.session_timeout_max_ms)
+        .max_sessions(section.max_sessions)
+        .diagnostics_enabled(true)
+        .token(parts.stop.clone());
+    for security in section.endpoints() {
+        builder = builder.add_endpoint(security.name(), endpoint(security));
+    }
+    let limits = builder.limits_mut();
+    limits.subscriptions.min_sampling_interval_ms =
+        fastest_poll(&parts.control).as_secs_f64() * 1000.0;
+    // Event items: a ConditionRefresh sends every retained alarm at once.
+    limits.subscriptions.max_monitored_item_queue_size = 1000;
+    let (server, handle) = builder.build()?;
+    let events = events
+        .get()
+        .cloned()
+        .ok_or("the server built no namespace for the drives")?;
+    Ok(Built {
+        server,
+        handle,
+        events,
+    })
+}

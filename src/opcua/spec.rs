@@ -1,0 +1,602 @@
+//! The address space as data: the namespace, the variables of `DriveType`
+//! and of a bus, with their types, engineering units and ranges, where
+//! each value comes from, the methods, and the node ids. Pure; the floor
+//! every other file of the face stands on.
+
+use opcua::types::{Identifier, NodeId};
+
+use crate::drive::StatusField;
+use crate::drive::units::{COUNTS_PER_AMP, SPEED_RPM, TORQUE_COUNTS};
+use crate::drive::wanted::Setting;
+
+/// The server's own namespace: the same on every drivegate, so a SCADA's
+/// tags made on one gateway fit the next.
+pub const NAMESPACE: &str = "urn:drivegate:drives";
+
+/// How a variable's value is typed on the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// Double.
+    Double,
+    /// Int32.
+    Int32,
+    /// UInt16.
+    UInt16,
+    /// UInt32.
+    UInt32,
+    /// Boolean.
+    Boolean,
+    /// String.
+    String,
+}
+
+/// An engineering unit: its UNECE common code (OPC UA Part 8, 5.6.3) and
+/// how it is shown.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Unit {
+    /// The UNECE common code ("RPM").
+    pub code: &'static str,
+    /// Its symbol ("r/min").
+    pub symbol: &'static str,
+    /// Its name ("revolutions per minute").
+    pub name: &'static str,
+}
+
+/// Revolutions per minute.
+pub const RPM: Unit = Unit {
+    code: "RPM",
+    symbol: "r/min",
+    name: "revolutions per minute",
+};
+/// Degree (of angle).
+pub const DEGREE: Unit = Unit {
+    code: "DD",
+    symbol: "°",
+    name: "degree",
+};
+/// Ampere.
+pub const AMPERE: Unit = Unit {
+    code: "AMP",
+    symbol: "A",
+    name: "ampere",
+};
+/// Volt.
+pub const VOLT: Unit = Unit {
+    code: "VLT",
+    symbol: "V",
+    name: "volt",
+};
+/// Degree Celsius.
+pub const CELSIUS: Unit = Unit {
+    code: "CEL",
+    symbol: "°C",
+    name: "degree Celsius",
+};
+/// Millisecond.
+pub const MILLISECOND: Unit = Unit {
+    code: "C26",
+    symbol: "ms",
+    name: "millisecond",
+};
+/// Percent.
+pub const PERCENT: Unit = Unit {
+    code: "P1",
+    symbol: "%",
+    name: "percent",
+};
+
+impl Unit {
+    /// The `UnitId` of its `EUInformation`: the code's characters folded
+    /// into an integer (Part 8, 5.6.3).
+    pub fn unit_id(self) -> i32 {
+        self.code
+            .bytes()
+            .fold(0i32, |acc, b| (acc << 8) | i32::from(b))
+    }
+}
+
+/// A setpoint a session may write.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Setpoint {
+    /// Speed, rpm.
+    Speed,
+    /// Position, degrees.
+    Position,
+    /// Torque, as the motor current, A.
+    Torque,
+}
+
+/// Where a variable's value comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Source {
+    /// The drive's polled status.
+    Status(StatusField),
+    /// Whether its data is live (always `Good`: it is the answer).
+    Online,
+    /// What the drive holds, read from it: a setpoint (writable by an
+    /// operator, through the core).
+    Setpoint(Setpoint),
+    /// A setting of the `Settings` object (writable by an admin, as a
+    /// settings document through the core).
+    Setting(Setting),
+}
+
+/// One variable of `DriveType`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Variable {
+    /// Its browse name (and the last part of its node id).
+    pub name: &'static str,
+    /// Its data type.
+    pub kind: Kind,
+    /// Its engineering unit, if it has one.
+    pub unit: Option<Unit>,
+    /// Its `EURange`: the range of the drive's register.
+    pub range: Option<(f64, f64)>,
+    /// Where its value comes from.
+    pub source: Source,
+    /// Its trend in the history, for `HistoryRead`.
+    pub history: Option<StatusField>,
+}
+
+impl Variable {
+    /// True when a session may write it (the core still decides).
+    pub fn writable(&self) -> bool {
+        matches!(self.source, Source::Setpoint(_) | Source::Setting(_))
+    }
+
+    /// Its node id's path under its drive (`Speed`, `Settings/StallTime`).
+    pub fn path(&self) -> String {
+        match self.source {
+            Source::Setting(_) => format!("{SETTINGS}/{}", self.name),
+            _ => self.name.to_string(),
+        }
+    }
+
+    /// A number it shows (`Double`).
+    pub fn is_analog(&self) -> bool {
+        self.kind == Kind::Double
+    }
+}
+
+const fn status(
+    name: &'static str,
+    kind: Kind,
+    unit: Option<Unit>,
+    range: Option<(f64, f64)>,
+    field: StatusField,
+    history: Option<StatusField>,
+) -> Variable {
+    Variable {
+        name,
+        kind,
+        unit,
+        range,
+        source: Source::Status(field),
+        history,
+    }
+}
+
+/// The current's range, A: the register's -2048..2047 counts.
+const AMPS: (f64, f64) = (
+    TORQUE_COUNTS.0 as f64 / COUNTS_PER_AMP,
+    TORQUE_COUNTS.1 as f64 / COUNTS_PER_AMP,
+);
+const RPMS: (f64, f64) = (SPEED_RPM.0 as f64, SPEED_RPM.1 as f64);
+
+/// The name of a drive's settings object.
+pub const SETTINGS: &str = "Settings";
+
+/// The variables of `DriveType`, in the order they are browsed: the
+/// status, `Online`, the setpoints; then the `Settings` object's.
+pub const VARIABLES: [Variable; 22] = [
+    status(
+        "Speed",
+        Kind::Double,
+        Some(RPM),
+        Some(RPMS),
+        StatusField::SpeedRpm,
+        Some(StatusField::SpeedRpm),
+    ),
+    status(
+        "Angle",
+        Kind::Double,
+        Some(DEGREE),
+        Some((-180.0, 180.0)),
+        StatusField::AngleDeg,
+        Some(StatusField::AngleDeg),
+    ),
+    status("Turns", Kind::Int32, None, None, StatusField::Turns, None),
+    status(
+        "Current",
+        Kind::Double,
+        Some(AMPERE),
+        Some(AMPS),
+        StatusField::CurrentA,
+        Some(StatusField::CurrentA),
+    ),
+    status(
+        "Voltage",
+        Kind::Double,
+        Some(VOLT),
+        Some((0.0, 255.0)),
+        StatusField::VoltageV,
+        Some(StatusField::VoltageV),
+    ),
+    status(
+        "Temperature",
+        Kind::Double,
+        Some(CELSIUS),
+        Some((-128.0, 127.0)),
+        StatusField::TemperatureC,
+        Some(StatusField::TemperatureC),
+    ),
+    status(
+        "Active",
+        Kind::Boolean,
+        None,
+        None,
+        StatusField::Active,
+        None,
+    ),
+    status(
+        "Stalled",
+        Kind::Boolean,
+        None,
+        None,
+        StatusField::Stalled,
+        None,
+    ),
+    status(
+        "Calibrated",
+        Kind::Boolean,
+        None,
+        None,
+        StatusField::Calibrated,
+        None,
+    ),
+    Variable {
+        name: "Online",
+        kind: Kind::Boolean,
+        unit: None,
+        range: None,
+        source: Source::Online,
+        history: None,
+    },
+    status("Mode", Kind::String, None, None, StatusField::Mode, None),
+    status("Fault", Kind::String, None, None, StatusField::Fault, None),
+    status(
+        "FaultCode",
+        Kind::UInt16,
+        None,
+        None,
+        StatusField::FaultCode,
+        None,
+    ),
+    held(
+        "SpeedSetpoint",
+        Kind::Double,
+        Some(RPM),
+        Some(RPMS),
+        Source::Setpoint(Setpoint::Speed),
+    ),
+    held(
+        "PositionSetpoint",
+        Kind::Double,
+        Some(DEGREE),
+        Some((-180.0, 180.0)),
+        Source::Setpoint(Setpoint::Position),
+    ),
+    held(
+        "TorqueSetpoint",
+        Kind::Double,
+        Some(AMPERE),
+        Some(AMPS),
+        Source::Setpoint(Setpoint::Torque),
+    ),
+    held(
+        "CurrentLimit",
+        Kind::Double,
+        Some(AMPERE),
+        Some((0.0, 2047.0 / COUNTS_PER_AMP)),
+        Source::Setting(Setting::CurrentLimit),
+    ),
+    held(
+        "StallTime",
+        Kind::UInt32,
+        Some(MILLISECOND),
+        Some((0.0, 60_000.0)),
+        Source::Setting(Setting::StallTime),
+    ),
+    held(
+        "SpeedRampAlpha",
+        Kind::UInt32,
+        None,
+        None,
+        Source::Setting(Setting::SpeedRamp),
+    ),
+    held(
+        "PositionRampAlpha",
+        Kind::UInt32,
+        None,
+        None,
+        Source::Setting(Setting::PositionRamp),
+    ),
+    held(
+        "InertiaRatio",
+        Kind::UInt32,
+        None,
+        Some((1.0, 65_535.0)),
+        Source::Setting(Setting::InertiaRatio),
+    ),
+    held(
+        "Rs485Control",
+        Kind::Boolean,
+        None,
+        None,
+        Source::Setting(Setting::Rs485Control),
+    ),
+];
+
+const fn held(
+    name: &'static str,
+    kind: Kind,
+    unit: Option<Unit>,
+    range: Option<(f64, f64)>,
+    source: Source,
+) -> Variable {
+    Variable {
+        name,
+        kind,
+        unit,
+        range,
+        source,
+        history: None,
+    }
+}
+
+/// A method of a drive.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Method {
+    /// Activates the drive (it then takes setpoints).
+    Activate,
+    /// Deactivates it.
+    Deactivate,
+    /// The emergency brake.
+    Brake,
+    /// Clears a fault or a stall.
+    FaultReset,
+    /// Sets the control mode: `speed`, `position` or `torque`.
+    SetMode,
+    /// Saves what the drive holds to its flash (the `Settings` object's
+    /// method; only at standstill).
+    Save,
+}
+
+impl Method {
+    /// Every method, in the order they are browsed.
+    pub const ALL: [Method; 6] = [
+        Method::Activate,
+        Method::Deactivate,
+        Method::Brake,
+        Method::FaultReset,
+        Method::SetMode,
+        Method::Save,
+    ];
+
+    /// Its browse name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Activate => "Activate",
+            Method::Deactivate => "Deactivate",
+            Method::Brake => "Brake",
+            Method::FaultReset => "FaultReset",
+            Method::SetMode => "SetMode",
+            Method::Save => "Save",
+        }
+    }
+
+    /// Its node id's path under its drive (`Activate`, `Settings/Save`).
+    pub fn path(self) -> String {
+        match self {
+            Method::Save => format!("{SETTINGS}/{}", self.name()),
+            _ => self.name().to_string(),
+        }
+    }
+}
+
+/// A variable of a bus object.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BusVariable {
+    /// `opening`, `up` or `down`.
+    State,
+    /// Why it is down (empty when up).
+    Reason,
+    /// The share of the last 10 s the wire was busy, percent.
+    Utilisation,
+    /// Transactions that timed out.
+    Timeouts,
+    /// Replies with a bad CRC.
+    CrcErrors,
+    /// Replies that did not answer their request.
+    BadReplies,
+    /// Retries made.
+    Retries,
+    /// Times the port was reopened after a failure.
+    Reopens,
+    /// Drives whose data is live.
+    DrivesOnline,
+}
+
+impl BusVariable {
+    /// Every variable of a bus, in the order they are browsed.
+    pub const ALL: [BusVariable; 9] = [
+        BusVariable::State,
+        BusVariable::Reason,
+        BusVariable::Utilisation,
+        BusVariable::Timeouts,
+        BusVariable::CrcErrors,
+        BusVariable::BadReplies,
+        BusVariable::Retries,
+        BusVariable::Reopens,
+        BusVariable::DrivesOnline,
+    ];
+
+    /// Its browse name.
+    pub fn name(self) -> &'static str {
+        match self {
+            BusVariable::State => "State",
+            BusVariable::Reason => "Reason",
+            BusVariable::Utilisation => "Utilisation",
+            BusVariable::Timeouts => "Timeouts",
+            BusVariable::CrcErrors => "CrcErrors",
+            BusVariable::BadReplies => "BadReplies",
+            BusVariable::Retries => "Retries",
+            BusVariable::Reopens => "Reopens",
+            BusVariable::DrivesOnline => "DrivesOnline",
+        }
+    }
+
+    /// Its data type.
+    pub fn kind(self) -> Kind {
+        match self {
+            BusVariable::State | BusVariable::Reason => Kind::String,
+            BusVariable::Utilisation => Kind::Double,
+            _ => Kind::UInt32,
+        }
+    }
+
+    /// Its unit.
+    pub fn unit(self) -> Option<Unit> {
+        (self == BusVariable::Utilisation).then_some(PERCENT)
+    }
+}
+
+/// The node id path of the drives' folder.
+pub const DRIVES: &str = "Drives";
+/// The node id path of the buses' folder.
+pub const BUSES: &str = "Buses";
+/// The node id of the object type.
+pub const DRIVE_TYPE: &str = "DriveType";
+/// The node id of the buses' object type.
+pub const BUS_TYPE: &str = "BusType";
+
+/// The node id path of drive `drive` (`Drives/conveyor`).
+pub fn drive_path(drive: &str) -> String {
+    format!("{DRIVES}/{drive}")
+}
+
+/// The node id path of a variable of `drive` (`Drives/conveyor/Speed`).
+pub fn variable_path(drive: &str, variable: &Variable) -> String {
+    format!("{DRIVES}/{drive}/{}", variable.path())
+}
+
+/// The node id path of a method of `drive`.
+pub fn method_path(drive: &str, method: Method) -> String {
+    format!("{DRIVES}/{drive}/{}", method.path())
+}
+
+/// The node id path of the object a method of `drive` is called on: the
+/// drive, or its `Settings`.
+pub fn method_object_path(drive: &str, method: Method) -> String {
+    match method {
+        Method::Save => format!("{DRIVES}/{drive}/{SETTINGS}"),
+        _ => drive_path(drive),
+    }
+}
+
+/// The node id path of bus `bus` (`Buses/line1`).
+pub fn bus_path(bus: &str) -> String {
+    format!("{BUSES}/{bus}")
+}
+
+/// The node id path of condition (alarm) `id`.
+pub fn alarm_path(id: u64) -> String {
+    format!("Alarms/{id}")
+}
+
+/// The alarm number of a condition's node id path.
+pub fn alarm_of(path: &str) -> Option<u64> {
+    path.strip_prefix("Alarms/")?.parse().ok()
+}
+
+/// The string path of a node id (the namespace's ids are all strings).
+pub fn path_of(id: &NodeId) -> Option<&str> {
+    match &id.identifier {
+        Identifier::String(s) => Some(s.as_ref()),
+        _ => None,
+    }
+}
+
+/// What a node id path under `Drives/` names: the drive and the rest.
+pub fn split_drive_path(path: &str) -> Option<(&str, &str)> {
+    path.strip_prefix("Drives/")?.split_once('/')
+}
+
+/// The variable at `rest` of a drive's path (`Speed`, `Settings/StallTime`).
+pub fn variable_at(rest: &str) -> Option<&'static Variable> {
+    VARIABLES.iter().find(|v| v.path() == rest)
+}
+
+/// The method at `rest` of a drive's path.
+pub fn method_at(rest: &str) -> Option<Method> {
+    Method::ALL.into_iter().find(|m| m.path() == rest)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unece_codes_fold_into_unit_ids() {
+        // The values UaExpert and the OPC Foundation's table show.
+        assert_eq!(RPM.unit_id(), 5_394_509);
+        assert_eq!(DEGREE.unit_id(), 17_476);
+        assert_eq!(AMPERE.unit_id(), 4_279_632);
+        assert_eq!(VOLT.unit_id(), 5_655_636);
+        assert_eq!(CELSIUS.unit_id(), 4_408_652);
+    }
+
+    #[test]
+    fn paths_find_their_variables_and_methods() {
+        for v in &VARIABLES {
+            let path = variable_path("conveyor", v);
+            let (drive, rest) = split_drive_path(&path).unwrap();
+            assert_eq!(drive, "conveyor");
+            assert_eq!(variable_at(rest), Some(v));
+        }
+        let path = method_path("lift", Method::SetMode);
+        let (_, rest) = split_drive_path(&path).unwrap();
+        assert_eq!(method_at(rest), Some(Method::SetMode));
+        assert_eq!(split_drive_path("Drives/lift"), None);
+        assert_eq!(alarm_of(&alarm_path(17)), Some(17));
+        assert_eq!(alarm_of("Alarms/x"), None);
+        // Names are unique.
+        for (i, v) in VARIABLES.iter().enumerate() {
+            assert!(VARIABLES[..i].iter().all(|o| o.path() != v.path()));
+        }
+    }
+
+    #[test]
+    fn writable_variables_are_the_setpoints_and_settings() {
+        let writable: Vec<&str> = VARIABLES
+            .iter()
+            .filter(|v| v.writable())
+            .map(|v| v.name)
+            .collect();
+        assert_eq!(
+            writable,
+            [
+                "SpeedSetpoint",
+                "PositionSetpoint",
+                "TorqueSetpoint",
+                "CurrentLimit",
+                "StallTime",
+                "SpeedRampAlpha",
+                "PositionRampAlpha",
+                "InertiaRatio",
+                "Rs485Control"
+            ]
+        );
+        assert!((AMPS.0 + 16.0).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,881 @@
+//! The OPC UA face with two third-party clients: asyncua (PyPI, in the
+//! test venv; `tests/python/opcua_client.py`) and node-opcua's client (npm,
+//! installed under `target/node-opcua` by `scripts/test`;
+//! `tests/node/opcua_client.js`). Each scenario is a client process that
+//! prints one JSON line per step; the test reads them and checks the
+//! daemon's side too (the simulated motor, the alarm book, the PKI
+//! directory, the audit).
+//!
+//! The server's certificate is made by openssl in the test's PKI directory
+//! before the start (the daemon's own RSA key generation costs seconds of
+//! CPU in a debug build), but in the certificate test, where the daemon
+//! makes it at its first start.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+use tokio::io::{AsyncBufReadExt, BufReader, Lines};
+use tokio::process::{Child, ChildStdout, Command};
+
+use crate::support::TestDaemon;
+use crate::support::api::{Api, connect, wait_for};
+use crate::support::config::ConfigBuilder;
+use crate::support::input::{OPERATOR, VIEWER, role_tokens};
+use crate::support::metrics::metric;
+use crate::support::sim_process::ExternalSim;
+use crate::support::tools;
+use crate::support::wait::{bounded, eventually};
+
+const LIMIT: Duration = Duration::from_secs(150);
+/// Longest wait for one client step.
+const STEP: Duration = Duration::from_secs(60);
+/// The operator's user name: its `[[http.token]]`'s name.
+const USER: &str = "scada";
+
+/// What `DriveType` has: its variables, methods and settings object.
+const DRIVE_CHILDREN: [&str; 22] = [
+    "Speed",
+    "Angle",
+    "Turns",
+    "Current",
+    "Voltage",
+    "Temperature",
+    "Active",
+    "Stalled",
+    "Calibrated",
+    "Online",
+    "Mode",
+    "Fault",
+    "FaultCode",
+    "SpeedSetpoint",
+    "PositionSetpoint",
+    "TorqueSetpoint",
+    "Activate",
+    "Deactivate",
+    "Brake",
+    "FaultReset",
+    "SetMode",
+    "Settings",
+];
+
+/// A daemon with `[opcua]` on loopback (a `none` endpoint beside
+/// Basic256Sha256), its PKI directory and where it listens.
+struct Ua {
+    d: TestDaemon,
+    url: String,
+    pki: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+fn openssl(dir: &Path, args: &[&str]) {
+    let out = std::process::Command::new("openssl")
+        .current_dir(dir)
+        .args(args)
+        .output()
+        .unwrap_or_else(|e| panic!("{}", tools::cannot_run("openssl", &e)));
+    assert!(
+        out.status.success(),
+        "openssl {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A self-signed application certificate `name.der` / `name-key.pem`
+/// for application URI `uri`.
+fn application_cert(dir: &Path, name: &str, uri: &str) {
+    openssl(
+        dir,
+        &[
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-keyout",
+            &format!("{name}-key.pem"),
+            "-out",
+            &format!("{name}.pem"),
+            "-days",
+            "30",
+            "-subj",
+            &format!("/CN={name}"),
+            "-addext",
+            &format!("subjectAltName=URI:{uri},DNS:localhost,IP:127.0.0.1"),
+            "-addext",
+            "keyUsage=critical,digitalSignature,nonRepudiation,keyEncipherment,dataEncipherment",
+            "-addext",
+            "extendedKeyUsage=clientAuth,serverAuth",
+        ],
+    );
+    openssl(
+        dir,
+        &[
+            "x509",
+            "-in",
+            &format!("{name}.pem"),
+            "-outform",
+            "der",
+            "-out",
+            &format!("{name}.der"),
+        ],
+    );
+}
+
+fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|s| s.trim().to_string())
+        .unwrap_or_else(|_| "localhost".into())
+}
+
+/// The keys of an `[opcua]` section on loopback (a `none` endpoint beside
+/// Basic256Sha256, sessions of at most 3 s) with its PKI directory in
+/// `dir/pki`, holding a server certificate made by openssl.
+pub(crate) fn section(dir: &Path) -> String {
+    let pki = dir.join("pki");
+    for sub in ["own", "private"] {
+        std::fs::create_dir_all(pki.join(sub)).unwrap();
+    }
+    application_cert(dir, "server", &format!("urn:{}:drivegate", host_name()));
+    std::fs::rename(dir.join("server.der"), pki.join("own/cert.der")).unwrap();
+    std::fs::rename(dir.join("server-key.pem"), pki.join("private/private.pem")).unwrap();
+    section_keys(&pki)
+}
+
+/// The keys of the `[opcua]` section with `pki` (made by the daemon at its
+/// first start if it holds no certificate).
+fn section_keys(pki: &Path) -> String {
+    format!(
+        "listen = \"127.0.0.1:0\"\npki_dir = \"{}\"\nsecurity = [\"none\", \"basic256sha256\"]\nsession_timeout_max_ms = 3000",
+        pki.display()
+    )
+}
+
+impl Ua {
+    /// The four drives (or `port`'s bus of two) with `[opcua]`, the role
+    /// tokens, and a safety state directory.
+    async fn start(port: Option<&Path>) -> Ua {
+        let dir = tempfile::tempdir().unwrap();
+        let section = section(dir.path());
+        Ua::start_with(port, dir, section).await
+    }
+
+    /// The same, with `section` and its directory.
+    async fn start_with(port: Option<&Path>, dir: tempfile::TempDir, section: String) -> Ua {
+        let pki = dir.path().join("pki");
+        let builder = match port {
+            None => ConfigBuilder::four_drives(),
+            Some(link) => ConfigBuilder::new().bus("line1", |b| {
+                b.port(&link.display().to_string())
+                    .drive(1, "conveyor")
+                    .drive(2, "belt")
+            }),
+        };
+        let toml = role_tokens(builder)
+            .section("opcua", &section)
+            .section(
+                "safety",
+                &format!("state_dir = \"{}\"", dir.path().join("state").display()),
+            )
+            .toml();
+        let d = if port.is_some() {
+            TestDaemon::start_no_wait(&toml).await
+        } else {
+            TestDaemon::start(&toml).await
+        };
+        let addr: SocketAddr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        let url = format!("opc.tcp://{addr}/");
+        let ua = Ua {
+            d,
+            url,
+            pki,
+            _dir: dir,
+        };
+        ua.wait_serving().await;
+        ua
+    }
+
+    /// Until `/readyz` says the server serves.
+    async fn wait_serving(&self) {
+        let api = Api::new(self.d.http, None);
+        let t0 = Instant::now();
+        loop {
+            let r = api.get("/readyz").await;
+            if r.body["opcua"]["serving"] == true {
+                return;
+            }
+            assert!(t0.elapsed() < STEP, "OPC UA not serving: {:#}", r.body);
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+}
+
+/// A client process: asyncua or node-opcua.
+pub(crate) struct Client {
+    child: Child,
+    lines: Lines<BufReader<ChildStdout>>,
+    name: &'static str,
+}
+
+/// asyncua answering requests one by one (its `table` scenario): one
+/// session per user, kept open.
+pub(crate) struct Table {
+    client: Client,
+    stdin: tokio::process::ChildStdin,
+}
+
+impl Table {
+    pub(crate) async fn start(url: &str) -> Table {
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/opcua_client.py");
+        let mut cmd = Command::new("python3");
+        cmd.arg(script).arg(url).arg("table").stdin(Stdio::piped());
+        let mut client = Client::spawn(cmd, "asyncua");
+        let stdin = client.child.stdin.take().expect("its input");
+        client.until("ready").await;
+        Table { client, stdin }
+    }
+
+    /// The status code `request` gets (`user`, `password`, `op` ...).
+    pub(crate) async fn ask(&mut self, request: Value) -> String {
+        use tokio::io::AsyncWriteExt;
+        let line = format!("{request}\n");
+        self.stdin
+            .write_all(line.as_bytes())
+            .await
+            .expect("a request");
+        let v = self.client.until("result").await;
+        v["status"].as_str().unwrap_or_default().to_string()
+    }
+}
+
+/// The operator's credentials as client arguments.
+fn operator() -> Vec<String> {
+    ["--user", USER, "--password", OPERATOR]
+        .map(String::from)
+        .to_vec()
+}
+
+impl Client {
+    /// `tests/python/opcua_client.py URL SCENARIO ARGS`.
+    fn asyncua(url: &str, scenario: &str, args: &[String]) -> Client {
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/opcua_client.py");
+        let mut cmd = Command::new("python3");
+        cmd.arg(script).arg(url).arg(scenario).args(args);
+        Client::spawn(cmd, "asyncua")
+    }
+
+    /// `tests/node/opcua_client.js URL SCENARIO ARGS` with node-opcua from
+    /// `target/node-opcua` (scripts/test installs it there).
+    fn node(url: &str, scenario: &str, pki: &Path, args: &[String]) -> Client {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let modules = root.join("target/node-opcua/node_modules");
+        assert!(
+            modules.join("node-opcua-client").is_dir(),
+            "node-opcua-client is not installed in {}: run scripts/test (it runs \
+             `npm ci` there from tests/node/package-lock.json)",
+            modules.display()
+        );
+        let mut cmd = Command::new("node");
+        cmd.env("NODE_PATH", modules)
+            .arg(root.join("tests/node/opcua_client.js"))
+            .arg(url)
+            .arg(scenario)
+            .arg("--pki")
+            .arg(pki)
+            .args(args);
+        Client::spawn(cmd, "node-opcua")
+    }
+
+    fn spawn(mut cmd: Command, name: &'static str) -> Client {
+        let mut child = cmd
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .kill_on_drop(true)
+            .spawn()
+            .unwrap_or_else(|e| panic!("{}", tools::cannot_run(name, &e)));
+        let stdout = child.stdout.take().expect("its output");
+        Client {
+            child,
+            lines: BufReader::new(stdout).lines(),
+            name,
+        }
+    }
+
+    /// The next step the client prints (failing on its `error` step).
+    async fn next(&mut self) -> Option<Value> {
+        loop {
+            let line = tokio::time::timeout(STEP, self.lines.next_line())
+                .await
+                .unwrap_or_else(|_| panic!("{}: no line within {STEP:?}", self.name))
+                .expect("its output")?;
+            let Ok(v) = serde_json::from_str::<Value>(&line) else {
+                continue;
+            };
+            assert_ne!(v["step"], "error", "{}: {v}", self.name);
+            return Some(v);
+        }
+    }
+
+    /// Reads steps until one named `step`.
+    async fn until(&mut self, step: &str) -> Value {
+        loop {
+            match self.next().await {
+                Some(v) if v["step"] == step => return v,
+                Some(_) => {}
+                None => panic!("{}: ended before its {step:?} step", self.name),
+            }
+        }
+    }
+
+    /// Every step until the client ends, by name.
+    async fn steps(mut self) -> Vec<Value> {
+        let mut all = Vec::new();
+        while let Some(v) = self.next().await {
+            all.push(v);
+        }
+        let status = self.child.wait().await.expect("it ends");
+        assert!(
+            status.success(),
+            "{} ended with {status}: {all:?}",
+            self.name
+        );
+        all
+    }
+
+    /// `kill -9`.
+    async fn kill(mut self) {
+        self.child.start_kill().expect("kill -9");
+        let _ = self.child.wait().await;
+    }
+}
+
+fn step<'a>(steps: &'a [Value], name: &str) -> &'a Value {
+    steps
+        .iter()
+        .find(|s| s["step"] == name)
+        .unwrap_or_else(|| panic!("no {name:?} step in {steps:#?}"))
+}
+
+/// Endpoints, browse, read with units, the anonymous write and HistoryRead,
+/// as both clients see them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn both_clients_browse_read_with_units_and_read_history() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let all = Client::asyncua(&ua.url, "endpoints", &[]).steps().await;
+        let endpoints = step(&all, "endpoints")["endpoints"]
+            .as_array()
+            .unwrap()
+            .clone();
+        let policies: Vec<_> = endpoints
+            .iter()
+            .map(|e| e["policy"].as_str().unwrap())
+            .collect();
+        assert!(
+            policies.contains(&"None") && policies.contains(&"Basic256Sha256"),
+            "{endpoints:?}"
+        );
+        for e in &endpoints {
+            assert_eq!(
+                e["tokens"],
+                serde_json::json!(["Anonymous", "Certificate", "UserName"]),
+                "{e}"
+            );
+            if e["policy"] == "Basic256Sha256" {
+                assert_eq!(e["mode"], "SignAndEncrypt");
+            }
+        }
+
+        let all = Client::asyncua(&ua.url, "browse", &[]).steps().await;
+        let browse = step(&all, "browse");
+        assert_eq!(
+            browse["drives"],
+            serde_json::json!(["conveyor", "feeder", "lift", "turntable"])
+        );
+        assert_eq!(browse["type"], "DriveType");
+        assert_eq!(browse["buses"], serde_json::json!(["sim"]));
+        for child in DRIVE_CHILDREN {
+            assert!(
+                browse["children"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|c| c == child),
+                "{child}: {browse}"
+            );
+        }
+
+        let all = Client::asyncua(&ua.url, "read", &[]).steps().await;
+        let read = step(&all, "read");
+        let speed = &read["values"]["Speed"];
+        assert_eq!(
+            (speed["status"].as_str(), speed["type"].as_str()),
+            (Some("Good"), Some("Double"))
+        );
+        // UNECE codes: RPM, CEL, VLT.
+        assert_eq!(
+            (speed["unit"].as_str(), speed["unit_id"].as_u64()),
+            (Some("r/min"), Some(5_394_509))
+        );
+        assert_eq!(read["values"]["Temperature"]["unit_id"], 4_408_652);
+        assert_eq!(read["values"]["Voltage"]["unit_id"], 5_655_636);
+        assert!(
+            speed["low"].as_f64().unwrap() < 0.0 && speed["high"].as_f64().unwrap() > 0.0,
+            "{speed}"
+        );
+        assert!(
+            speed["source_timestamp"]
+                .as_str()
+                .is_some_and(|t| !t.is_empty()),
+            "{speed}"
+        );
+        assert_eq!(read["values"]["Turns"]["type"], "Int32");
+        assert_eq!(read["values"]["FaultCode"]["type"], "UInt16");
+        assert_eq!(read["values"]["Online"]["value"], true);
+        // The poll's period is the fastest sampling.
+        assert!(read["min_sampling_ms"].as_f64().unwrap() > 0.0, "{read}");
+
+        let all = Client::asyncua(&ua.url, "anonymous-write", &[])
+            .steps()
+            .await;
+        let refused = step(&all, "anonymous-write");
+        assert_eq!(refused["status"], "BadUserAccessDenied", "{refused}");
+        // Its UserAccessLevel shows no write (CurrentRead only).
+        assert_eq!(refused["user_access_level"], 1, "{refused}");
+
+        let all = Client::asyncua(&ua.url, "history", &["--drive".into(), "lift".into()])
+            .steps()
+            .await;
+        let history = step(&all, "history");
+        assert!(history["count"].as_u64().unwrap() > 5, "{history}");
+        assert_eq!(history["five"], 5, "{history}");
+
+        // node-opcua: the same server through a second implementation.
+        node_sees_the_same(&ua, endpoints.len(), &browse["drives"]).await;
+    })
+    .await;
+}
+
+/// node-opcua's view of `ua`: as many endpoints, the same drives, Speed
+/// read with its unit, HistoryRead.
+async fn node_sees_the_same(ua: &Ua, endpoints: usize, drives: &Value) {
+    let pki = ua.pki.parent().unwrap().join("node-pki");
+    let all = Client::node(&ua.url, "endpoints", &pki, &[]).steps().await;
+    assert_eq!(
+        step(&all, "endpoints")["endpoints"]
+            .as_array()
+            .unwrap()
+            .len(),
+        endpoints
+    );
+    let all = Client::node(&ua.url, "browse", &pki, &[]).steps().await;
+    assert_eq!(step(&all, "browse")["drives"], *drives);
+    let all = Client::node(&ua.url, "read", &pki, &[]).steps().await;
+    let speed = &step(&all, "read")["values"]["Speed"];
+    assert_eq!(
+        (speed["status"].as_str(), speed["unit_id"].as_u64()),
+        (Some("Good"), Some(5_394_509))
+    );
+    let all = Client::node(&ua.url, "history", &pki, &[]).steps().await;
+    let history = step(&all, "history");
+    assert_eq!(history["status"], "Good");
+    assert!(history["count"].as_u64().unwrap() > 5, "{history}");
+}
+
+/// An operator (user name = the token's name, password = the token) sets
+/// the mode, activates and writes SpeedSetpoint; the motor turns, the
+/// subscription is notified at the poll rate, an out-of-range setpoint is
+/// refused with the range in the diagnostics; audited as `opcua <user>`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        // The audit's lines, as the stream's `write` messages carry them.
+        let mut ws = connect(ua.d.http, "?drives=all", Some(VIEWER)).await;
+        let mut args = operator();
+        args.extend(["--value".into(), "600".into()]);
+        let all = Client::asyncua(&ua.url, "operate", &args).steps().await;
+        assert_eq!(step(&all, "written")["status"], "Good", "{all:?}");
+        assert_eq!(step(&all, "turned")["reached"], 600.0, "{all:?}");
+        // The simulated motor turned (the conveyor's gear: 3.75).
+        let angle = step(&all, "angle");
+        let n = angle["notifications"].as_u64().unwrap();
+        // 2 s of a turning motor polled every ~100 ms or faster: at least
+        // one notification per publish (100 ms), none lost to the sampling.
+        assert!(n >= 8, "{angle}");
+        let out = step(&all, "out-of-range");
+        assert_eq!(out["status"], "BadOutOfRange", "{out}");
+        assert!(
+            out["diagnostics"]
+                .as_str()
+                .unwrap()
+                .contains("valid -2048 to 2047 rpm"),
+            "{out}"
+        );
+        eventually(
+            Duration::from_secs(20),
+            "the brake stopping the conveyor",
+            || (ua.d.sim().drive(1)?.speed_rpm.abs() < 1.0).then_some(()),
+        )
+        .await;
+        // /metrics: the notifications the subscriptions were sent.
+        eventually(Duration::from_secs(10), "notifications counted", || {
+            let text = ua.d.metrics.render();
+            (metric(&text, "drivegate_opcua_notifications_total") >= 10.0).then_some(())
+        })
+        .await;
+        let audit = wait_for(&mut ws, STEP, "the setpoint's audit line", |m| {
+            m["type"] == "write"
+                && m["what"]
+                    .as_str()
+                    .is_some_and(|w| w.contains("speed setpoint 600 rpm"))
+        })
+        .await;
+        let who = audit["who"].as_str().unwrap_or_default();
+        assert!(
+            who.contains("scada (urn:") && who.contains("session"),
+            "{audit}"
+        );
+        assert_eq!(audit["ok"], true, "{audit}");
+
+        // node-opcua, on the feeder.
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        let mut args = operator();
+        args.extend([
+            "--drive".into(),
+            "feeder".into(),
+            "--value".into(),
+            "450".into(),
+        ]);
+        let all = Client::node(&ua.url, "operate", &pki, &args).steps().await;
+        assert_eq!(
+            step(&all, "anonymous-write")["status"],
+            "BadUserAccessDenied",
+            "{all:?}"
+        );
+        assert_eq!(step(&all, "written")["status"], "Good", "{all:?}");
+        assert_eq!(step(&all, "turned")["reached"], 450.0, "{all:?}");
+        assert_eq!(
+            step(&all, "out-of-range")["status"],
+            "BadOutOfRange",
+            "{all:?}"
+        );
+    })
+    .await;
+}
+
+/// A client killed with -9 while its setpoint holds a lease: its session
+/// times out (3 s, the most `[opcua]` allows here) and the lease ends with
+/// `comm_loss_action` (zero speed): the motor stops. Both clients.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_client_whose_session_times_out_stops_the_motor() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        for (unit, drive, client) in [(1u8, "conveyor", "asyncua"), (2, "lift", "node-opcua")] {
+            let mut args = operator();
+            args.extend([
+                "--drive".into(),
+                drive.into(),
+                "--value".into(),
+                "300".into(),
+            ]);
+            let mut c = match client {
+                "asyncua" => Client::asyncua(&ua.url, "lease", &args),
+                _ => Client::node(&ua.url, "lease", &pki, &args),
+            };
+            let leased = c.until("leased").await;
+            assert_eq!(leased["status"], "Good", "{client}: {leased}");
+            eventually(Duration::from_secs(20), "the motor turning", || {
+                (ua.d.sim().drive(unit)?.speed_rpm.abs() > 50.0).then_some(())
+            })
+            .await;
+            c.kill().await;
+            let t0 = Instant::now();
+            eventually(
+                Duration::from_secs(20),
+                "the motor stopped by the lease's end",
+                || (ua.d.sim().drive(unit)?.speed_rpm.abs() < 1.0).then_some(()),
+            )
+            .await;
+            // Not before the session's timeout: the session outlives its
+            // connection that long (a client may reconnect).
+            assert!(
+                t0.elapsed() >= Duration::from_millis(1500),
+                "{client}: stopped after {:?}",
+                t0.elapsed()
+            );
+        }
+    })
+    .await;
+}
+
+/// The server's certificate is made at the first start (its SANs: the
+/// application URI and the address); an unknown client certificate is
+/// refused and copied to `rejected/certs`; moved to `trusted/certs`, the
+/// same client is served, without a restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_certificate_is_refused_then_trusted_without_a_restart() {
+    bounded(LIMIT, async {
+        // The server's own certificate made at its first start.
+        let dir = tempfile::tempdir().unwrap();
+        let section = section_keys(&dir.path().join("pki"));
+        let ua = Ua::start_with(None, dir, section).await;
+        let own = ua.pki.join("own/cert.der");
+        let out = std::process::Command::new("openssl")
+            .args([
+                "x509",
+                "-inform",
+                "der",
+                "-noout",
+                "-ext",
+                "subjectAltName",
+                "-in",
+            ])
+            .arg(&own)
+            .output()
+            .unwrap();
+        let san = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            san.contains(&format!("URI:urn:{}:drivegate", host_name())),
+            "{san}"
+        );
+        assert!(san.contains("127.0.0.1"), "{san}");
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(ua.pki.join("private/private.pem"))
+            .unwrap()
+            .permissions()
+            .mode();
+        assert_eq!(mode & 0o777, 0o600);
+
+        let dir = ua.pki.parent().unwrap().to_path_buf();
+        application_cert(&dir, "pyclient", "urn:freeopcua:client");
+        let args: Vec<String> = [
+            "--policy",
+            "basic256sha256",
+            "--cert",
+            &dir.join("pyclient.der").display().to_string(),
+            "--key",
+            &dir.join("pyclient-key.pem").display().to_string(),
+        ]
+        .map(String::from)
+        .to_vec();
+        let all = Client::asyncua(&ua.url, "secure", &args).steps().await;
+        assert_ne!(step(&all, "secure")["status"], "Good", "{all:?}");
+        let rejected = ua.pki.join("rejected/certs");
+        let file = eventually(
+            Duration::from_secs(20),
+            "the certificate in rejected/certs",
+            || {
+                std::fs::read_dir(&rejected)
+                    .ok()?
+                    .flatten()
+                    .map(|e| e.path())
+                    .next()
+            },
+        )
+        .await;
+        // Counted once the mirror has moved it (the same pass).
+        eventually(Duration::from_secs(10), "the refusal counted", || {
+            let text = ua.d.metrics.render();
+            (metric(&text, "drivegate_opcua_rejected_certificates_total") >= 1.0).then_some(())
+        })
+        .await;
+        std::fs::rename(
+            &file,
+            ua.pki.join("trusted/certs").join(file.file_name().unwrap()),
+        )
+        .unwrap();
+        // Trusted at the next secure channel (the store follows the
+        // directory every second).
+        let t0 = Instant::now();
+        loop {
+            let all = Client::asyncua(&ua.url, "secure", &args).steps().await;
+            if step(&all, "secure")["status"] == "Good" {
+                break;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(30),
+                "still refused: {all:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(500)).await;
+        }
+    })
+    .await;
+}
+
+/// The daemon on an external simulator: killed (the adapter unplugged),
+/// a subscribed value turns `BadNoCommunication` (clients with no filter:
+/// the default trigger).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn good_turns_bad_no_communication_when_the_adapter_goes_away() {
+    bounded(LIMIT, async {
+        let links = tempfile::tempdir().unwrap();
+        let link = links.path().join("adapter");
+        let sim = ExternalSim::start(&link, "1,2", &[]).await;
+        let ua = Ua::start(Some(&link)).await;
+        ua.d.wait_all_online(Duration::from_secs(30)).await;
+        let mut c = Client::asyncua(&ua.url, "quality", &["--seconds".into(), "60".into()]);
+        c.until("subscribed").await;
+        loop {
+            let v = c.until("value").await;
+            if v["status"] == "Good" {
+                break;
+            }
+        }
+        sim.kill().await;
+        let t0 = Instant::now();
+        loop {
+            let v = c.until("value").await;
+            if v["status"] == "BadNoCommunication" {
+                break;
+            }
+        }
+        assert!(t0.elapsed() < Duration::from_secs(10), "{:?}", t0.elapsed());
+        c.kill().await;
+    })
+    .await;
+}
+
+/// An alarm of the book (a drive gone silent: offline) reaches both
+/// clients as an AlarmConditionType event with their default filters;
+/// acknowledged over OPC UA, the API shows it acknowledged.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_alarm_is_an_event_acknowledged_as_through_the_api() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let api = Api::new(ua.d.http, Some(OPERATOR));
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        for (unit, drive, client) in [(2u8, "lift", "asyncua"), (4, "feeder", "node-opcua")] {
+            let mut args = operator();
+            args.extend([
+                "--drive".into(),
+                drive.into(),
+                "--seconds".into(),
+                "40".into(),
+            ]);
+            let mut c = match client {
+                "asyncua" => Client::asyncua(&ua.url, "events", &args),
+                _ => Client::node(&ua.url, "events", &pki, &args),
+            };
+            c.until("subscribed").await;
+            ua.d.sim().set_silent(unit, true);
+            let acked = c.until("acknowledged").await;
+            assert_eq!(acked["status"], "Good", "{client}: {acked}");
+            let t0 = Instant::now();
+            loop {
+                let list = api
+                    .get(&format!("/api/v1/alarms?drive={drive}"))
+                    .await
+                    .expect(200);
+                let offline = list["alarms"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .find(|a| a["kind"] == "offline")
+                    .cloned();
+                if offline.as_ref().is_some_and(|a| a["acknowledged"] == true) {
+                    break;
+                }
+                assert!(t0.elapsed() < STEP, "{client}: not acknowledged: {list:#}");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            c.kill().await;
+        }
+    })
+    .await;
+}
+
+/// A user certificate signed by a CA of `issuers/certs` with the role
+/// extension signs in with that role (operator: Brake() done; viewer:
+/// refused); a self-signed one claiming admin is refused at sign-in.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn user_certificates_sign_in_with_the_role_they_carry() {
+    bounded(LIMIT, async {
+        let ua = Ua::start(None).await;
+        let dir = ua.pki.parent().unwrap().to_path_buf();
+        openssl(&dir, &["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem",
+            "-days", "30", "-subj", "/CN=plant users", "-addext", "basicConstraints=critical,CA:TRUE",
+            "-addext", "keyUsage=critical,keyCertSign,cRLSign"]);
+        std::fs::copy(dir.join("ca.pem"), ua.pki.join("issuers/certs/ca.pem")).unwrap();
+        let role = format!("{}=ASN1:UTF8String:", drivegate::config::ROLE_EXTENSION);
+        for (who, r) in [("olivia", "operator"), ("vera", "viewer")] {
+            openssl(&dir, &["req", "-newkey", "rsa:2048", "-nodes", "-keyout", &format!("{who}-key.pem"),
+                "-out", &format!("{who}.csr"), "-subj", &format!("/CN={who}")]);
+            std::fs::write(dir.join(format!("{who}.ext")), format!(
+                "basicConstraints=CA:FALSE\nkeyUsage=critical,digitalSignature,nonRepudiation\nextendedKeyUsage=clientAuth\n{role}{r}\n"
+            )).unwrap();
+            openssl(&dir, &["x509", "-req", "-in", &format!("{who}.csr"), "-CA", "ca.pem", "-CAkey", "ca.key",
+                "-CAcreateserial", "-days", "30", "-out", &format!("{who}.pem"), "-extfile", &format!("{who}.ext")]);
+            openssl(&dir, &["x509", "-in", &format!("{who}.pem"), "-outform", "der", "-out", &format!("{who}.der")]);
+        }
+        openssl(&dir, &["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "rogue-key.pem", "-out",
+            "rogue.pem", "-days", "30", "-subj", "/CN=rogue", "-addext", &format!("{role}admin")]);
+        openssl(&dir, &["x509", "-in", "rogue.pem", "-outform", "der", "-out", "rogue.der"]);
+        for (who, step_name, status) in [
+            ("olivia", "brake", "Good"),
+            ("vera", "brake", "BadUserAccessDenied"),
+            ("rogue", "session", "BadIdentityTokenRejected"),
+        ] {
+            let args: Vec<String> = vec![
+                "--drive".into(), "lift".into(),
+                "--user-cert".into(), dir.join(format!("{who}.der")).display().to_string(),
+                "--user-key".into(), dir.join(format!("{who}-key.pem")).display().to_string(),
+            ];
+            let all = Client::asyncua(&ua.url, "brake", &args).steps().await;
+            assert_eq!(step(&all, step_name)["status"], status, "{who}: {all:?}");
+        }
+        let text = ua.d.metrics.render();
+        assert_eq!(metric(&text, "drivegate_opcua_sign_ins_total{kind=\"certificate\",result=\"accepted\"}"), 2.0);
+        assert_eq!(metric(&text, "drivegate_opcua_sign_ins_total{kind=\"certificate\",result=\"refused\"}"), 1.0);
+    })
+    .await;
+}
+
+/// A reload that changes `[opcua]` restarts the OPC UA server alone, with
+/// the new section: anonymous sessions, allowed before, are refused after.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_restarts_the_server_with_the_new_section() {
+    bounded(LIMIT, async {
+        let dir = tempfile::tempdir().unwrap();
+        let section = section(dir.path());
+        let with = |extra: &str| {
+            role_tokens(ConfigBuilder::four_drives())
+                .section("opcua", &format!("{section}\n{extra}"))
+                .toml()
+        };
+        let d = TestDaemon::reloadable(&with("")).await;
+        let url = |addr: SocketAddr| format!("opc.tcp://{addr}/");
+        let addr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        let all = Client::asyncua(&url(addr), "brake", &[]).steps().await;
+        assert_eq!(
+            step(&all, "brake")["status"],
+            "BadUserAccessDenied",
+            "{all:?}"
+        );
+
+        d.rewrite(&with("anonymous = \"none\""));
+        let reply = Api::new(d.http, Some(crate::support::input::ADMIN))
+            .post_empty("/api/v1/config/reload")
+            .await
+            .expect(200);
+        assert!(reply["changes"].to_string().contains("OPC UA"), "{reply}");
+        let addr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        let t0 = Instant::now();
+        loop {
+            let all = Client::asyncua(&url(addr), "brake", &[]).steps().await;
+            if all.iter().any(|s| s["step"] == "session") {
+                break;
+            }
+            assert!(t0.elapsed() < STEP, "anonymous still served: {all:?}");
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        let all = Client::asyncua(&url(addr), "brake", &operator())
+            .steps()
+            .await;
+        assert_eq!(step(&all, "brake")["status"], "Good", "{all:?}");
+    })
+    .await;
+}

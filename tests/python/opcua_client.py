@@ -1,0 +1,368 @@
+"""An OPC UA client on asyncua (PyPI), the third-party client of the OPC UA
+tests (tests/control/opcua.rs): one scenario per run,
+
+    python3 opcua_client.py URL SCENARIO [--drive D] [--user U --password P]
+        [--policy none|basic256sha256|aes128|aes256 --cert C.der --key K.pem]
+
+Prints one JSON object per line (`{"step": ..., ...}`) for the test to
+check, and `{"step": "error", ...}` with exit status 1 when the server
+answered otherwise than the scenario needs; the test decides what is right.
+"""
+
+import argparse
+import asyncio
+import json
+import sys
+import time
+from datetime import datetime, timedelta, timezone
+
+from asyncua import Client, ua
+from asyncua.common.events import get_filter_from_event_type
+from asyncua.crypto import security_policies as sp
+
+NS = "urn:drivegate:drives"
+POLICIES = {
+    "none": None,
+    "basic256sha256": sp.SecurityPolicyBasic256Sha256,
+    "aes128": sp.SecurityPolicyAes128Sha256RsaOaep,
+    "aes256": sp.SecurityPolicyAes256Sha256RsaPss,
+}
+
+
+def say(step, **fields):
+    print(json.dumps({"step": step, **fields}, default=str), flush=True)
+
+
+def fail(what, **fields):
+    say("error", what=what, **fields)
+    sys.exit(1)
+
+
+async def client(args, timeout_ms=None):
+    c = Client(args.url, timeout=20)
+    if timeout_ms:
+        c.session_timeout = timeout_ms
+    if args.policy != "none":
+        await c.set_security(
+            POLICIES[args.policy],
+            args.cert,
+            args.key,
+            mode=ua.MessageSecurityMode.SignAndEncrypt,
+        )
+    if args.user:
+        c.set_user(args.user)
+        c.set_password(args.password)
+    if args.user_cert:
+        await c.load_client_certificate(args.user_cert)
+        await c.load_private_key(args.user_key)
+    return c
+
+
+async def node(c, name):
+    ns = await c.get_namespace_index(NS)
+    return c.get_node(ua.NodeId(f"Drives/{name}", ns))
+
+
+async def call(c, drive, method, *inputs):
+    d = await node(c, drive)
+    m = await node(c, f"{drive}/{method}")
+    return await d.call_method(m, *inputs)
+
+
+def status_name(e):
+    return type(e).__name__
+
+
+async def endpoints(args):
+    c = Client(args.url, timeout=20)
+    eps = await c.connect_and_get_server_endpoints()
+    say(
+        "endpoints",
+        endpoints=[
+            {
+                "url": e.EndpointUrl,
+                "policy": e.SecurityPolicyUri.split("#")[-1],
+                "mode": e.SecurityMode.name,
+                "tokens": sorted({t.TokenType.name for t in e.UserIdentityTokens}),
+            }
+            for e in eps
+        ],
+    )
+
+
+async def browse(args):
+    async with await client(args) as c:
+        ns = await c.get_namespace_index(NS)
+        drives = await c.nodes.objects.get_child(f"{ns}:Drives")
+        names = [(await n.read_browse_name()).Name for n in await drives.get_children()]
+        d = await drives.get_child(f"{ns}:{args.drive}")
+        kind = (await c.get_node(await d.read_type_definition()).read_browse_name()).Name
+        children = sorted([(await n.read_browse_name()).Name for n in await d.get_children()])
+        buses = await c.nodes.objects.get_child(f"{ns}:Buses")
+        bus_names = [(await n.read_browse_name()).Name for n in await buses.get_children()]
+        say("browse", drives=sorted(names), type=kind, children=children, buses=sorted(bus_names))
+
+
+async def read(args):
+    async with await client(args) as c:
+        out = {}
+        for name in ["Speed", "Angle", "Turns", "Current", "Voltage", "Temperature", "Active", "Mode", "FaultCode", "Online"]:
+            n = await node(c, f"{args.drive}/{name}")
+            dv = await n.read_data_value(raise_on_bad_status=False)
+            entry = {
+                "value": dv.Value.Value if dv.Value is not None else None,
+                "status": dv.StatusCode.name,
+                "source_timestamp": dv.SourceTimestamp,
+                "type": (await n.read_data_type_as_variant_type()).name,
+            }
+            try:
+                eu = await (await n.get_child("0:EngineeringUnits")).read_value()
+                rng = await (await n.get_child("0:EURange")).read_value()
+                entry.update(unit=eu.DisplayName.Text, unit_id=eu.UnitId, low=rng.Low, high=rng.High)
+            except ua.UaError:
+                pass
+            out[name] = entry
+        msi = await (await node(c, f"{args.drive}/Speed")).read_attribute(ua.AttributeIds.MinimumSamplingInterval)
+        say("read", values=out, min_sampling_ms=msi.Value.Value)
+
+
+class Handler:
+    def __init__(self, quiet=False):
+        self.values = []
+        self.events = []
+        self.quiet = quiet
+
+    def datachange_notification(self, n, val, data):
+        dv = data.monitored_item.Value
+        self.values.append((time.monotonic(), val, dv.StatusCode.name))
+        if not self.quiet:
+            say("value", value=val, status=dv.StatusCode.name, source_timestamp=dv.SourceTimestamp)
+
+    def event_notification(self, event):
+        self.events.append(event)
+
+
+async def write(c, drive, name, value):
+    n = await node(c, f"{drive}/{name}")
+    try:
+        await n.write_value(ua.DataValue(ua.Variant(value, ua.VariantType.Double)))
+        return "Good"
+    except ua.UaStatusCodeError as e:
+        return status_name(e)
+
+
+async def anonymous_write(args):
+    async with await client(args) as c:
+        got = await write(c, args.drive, "SpeedSetpoint", 100.0)
+        level = await (await node(c, f"{args.drive}/SpeedSetpoint")).read_attribute(ua.AttributeIds.UserAccessLevel)
+        say("anonymous-write", status=got, user_access_level=level.Value.Value)
+
+
+async def operate(args):
+    """SetMode("speed"), Activate(), SpeedSetpoint = --value, with a
+    subscription to Speed that sees the motor turn at the poll rate; then
+    an out-of-range setpoint with its diagnostics, and Brake()."""
+    async with await client(args) as c:
+        h = Handler(quiet=True)
+        sub = await c.create_subscription(50, h)
+        speed = await node(c, f"{args.drive}/Speed")
+        await sub.subscribe_data_change(speed, sampling_interval=0, queuesize=10)
+        angle = Handler(quiet=True)
+        sub2 = await c.create_subscription(50, angle)
+        for method, inputs in [("SetMode", [ua.Variant("speed", ua.VariantType.String)]), ("Activate", [])]:
+            try:
+                await call(c, args.drive, method, *inputs)
+            except ua.UaStatusCodeError as e:
+                fail(method, status=status_name(e))
+            say("called", method=method)
+        got = await write(c, args.drive, "SpeedSetpoint", args.value)
+        say("written", status=got)
+        if got != "Good":
+            sys.exit(1)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < args.seconds:
+            if h.values and abs(h.values[-1][1] - args.value) < 1:
+                break
+            await asyncio.sleep(0.05)
+        say("turned", reached=h.values[-1][1] if h.values else None)
+        # The angle changes at every poll while the motor turns: its
+        # notifications come at the poll rate.
+        await sub2.subscribe_data_change(await node(c, f"{args.drive}/Angle"), sampling_interval=0, queuesize=10)
+        await asyncio.sleep(2.0)
+        await sub2.delete()
+        ts = [v[0] for v in angle.values]
+        gaps = [round((b - a) * 1000) for a, b in zip(ts, ts[1:])]
+        say("angle", notifications=len(angle.values), gaps_ms=gaps)
+        # Out of range, with the refusal's words in the diagnostics.
+        n = await node(c, f"{args.drive}/SpeedSetpoint")
+        params = ua.WriteParameters()
+        params.NodesToWrite = [ua.WriteValue(NodeId=n.nodeid, AttributeId=ua.AttributeIds.Value, Value=ua.DataValue(ua.Variant(99999.0, ua.VariantType.Double)))]
+        req = ua.WriteRequest()
+        req.Parameters = params
+        req.RequestHeader.ReturnDiagnostics = 0x3FF
+        from asyncua.ua.ua_binary import struct_from_binary
+        r = struct_from_binary(ua.WriteResponse, await c.uaclient.session._send_request(req))
+        diag = r.DiagnosticInfos[0].AdditionalInfo if r.DiagnosticInfos else None
+        say("out-of-range", status=r.Results[0].name, diagnostics=diag)
+        await call(c, args.drive, "Brake")
+        say("called", method="Brake")
+
+
+async def lease(args):
+    """Takes a lease (SetMode, Activate, a setpoint) and waits to be killed."""
+    c = await client(args, timeout_ms=args.timeout_ms)
+    await c.connect()
+    say("session", timeout_ms=c.session_timeout)
+    await call(c, args.drive, "SetMode", ua.Variant("speed", ua.VariantType.String))
+    await call(c, args.drive, "Activate")
+    got = await write(c, args.drive, "SpeedSetpoint", args.value)
+    say("leased", status=got)
+    await asyncio.sleep(3600)
+
+
+async def brake(args):
+    """Brake() on --drive (an operator's work), signed in as given."""
+    try:
+        async with await client(args) as c:
+            try:
+                await call(c, args.drive, "Brake")
+                status = "Good"
+            except ua.UaStatusCodeError as e:
+                status = status_name(e)
+            say("brake", status=status)
+    except ua.UaStatusCodeError as e:
+        say("session", status=status_name(e))
+    except Exception as e:  # refused sign-ins surface as other errors too
+        say("session", status=type(e).__name__, message=str(e))
+
+
+async def secure(args):
+    """A session on a signed and encrypted endpoint with --cert."""
+    try:
+        async with await client(args) as c:
+            v = await (await node(c, f"{args.drive}/Speed")).read_value()
+            say("secure", status="Good", speed=v)
+    except Exception as e:  # the refusal is what some runs are for
+        say("secure", status=status_name(e), message=str(e))
+
+
+async def quality(args):
+    """Follows a variable's status codes (no filter: the default trigger)."""
+    async with await client(args) as c:
+        h = Handler()
+        sub = await c.create_subscription(50, h)
+        await sub.subscribe_data_change(await node(c, f"{args.drive}/{args.variable}"), sampling_interval=0, queuesize=10)
+        say("subscribed")
+        await asyncio.sleep(args.seconds)
+
+
+async def events(args):
+    """Alarm events (AlarmConditionType, the client's default filter):
+    prints each, and acknowledges the first active one for --drive."""
+    async with await client(args) as c:
+        h = Handler()
+        sub = await c.create_subscription(50, h)
+        alarm_type = c.get_node(ua.ObjectIds.AlarmConditionType)
+        evf = await get_filter_from_event_type([alarm_type])
+        await sub.subscribe_events(c.nodes.server, alarm_type, evfilter=evf, queuesize=100)
+        say("subscribed")
+        t0, seen, acked = time.monotonic(), 0, None
+        while time.monotonic() - t0 < args.seconds:
+            while seen < len(h.events):
+                ev = h.events[seen]
+                seen += 1
+                fields = {k: str(getattr(ev, k, None)) for k in ["SourceName", "Message", "Severity", "ConditionName", "Retain", "ActiveState", "AckedState", "NodeId"]}
+                say("event", **fields)
+                if acked is None and getattr(ev, "SourceName", None) == args.drive and "True" not in str(getattr(ev, "AckedState", "")):
+                    cond = getattr(ev, "NodeId", None)
+                    try:
+                        await c.get_node(cond).call_method(
+                            ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
+                            ua.Variant(ev.EventId, ua.VariantType.ByteString),
+                            ua.LocalizedText("seen over OPC UA"),
+                        )
+                        acked = "Good"
+                    except ua.UaStatusCodeError as e:
+                        acked = status_name(e)
+                    say("acknowledged", status=acked, condition=str(cond))
+            await asyncio.sleep(0.05)
+
+
+async def history(args):
+    async with await client(args) as c:
+        speed = await node(c, f"{args.drive}/Speed")
+        end = datetime.now(timezone.utc)
+        start = end - timedelta(hours=1)
+        vals = await speed.read_raw_history(start, end, numvalues=0)
+        five = await speed.read_raw_history(start, end, numvalues=5)
+        say(
+            "history",
+            count=len(vals),
+            first=vals[0].SourceTimestamp if vals else None,
+            last=vals[-1].SourceTimestamp if vals else None,
+            values=sorted({round(v.Value.Value) for v in vals if v.Value is not None and v.Value.Value is not None}),
+            five=len(five),
+        )
+
+
+async def table(args):
+    """Requests read from stdin, one JSON object a line: {"user", "password"
+    (absent: anonymous), "op": "write", "path": "lift/SpeedSetpoint",
+    "value"} or {"op": "call", "object": "lift", "method": "lift/Brake"};
+    answers {"step": "result", "status": ...} for each. One session per
+    user, kept open."""
+    sessions = {}
+    loop = asyncio.get_running_loop()
+    reader = asyncio.StreamReader()
+    await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), sys.stdin)
+    say("ready")
+    try:
+        while line := await reader.readline():
+            req = json.loads(line)
+            user = req.get("user")
+            if user not in sessions:
+                args.user, args.password = user, req.get("password")
+                c = await client(args)
+                await c.connect()
+                sessions[user] = c
+            c = sessions[user]
+            try:
+                if req["op"] == "write":
+                    n = await node(c, req["path"])
+                    await n.write_value(ua.DataValue(ua.Variant(float(req["value"]), ua.VariantType.Double)))
+                else:
+                    await (await node(c, req["object"])).call_method(await node(c, req["method"]))
+                status = "Good"
+            except ua.UaStatusCodeError as e:
+                status = status_name(e)
+            say("result", status=status)
+    finally:
+        for c in sessions.values():
+            await c.disconnect()
+
+
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, brake, secure, quality, events, history, table]}
+
+
+async def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("url")
+    p.add_argument("scenario", choices=SCENARIOS)
+    p.add_argument("--drive", default="conveyor")
+    p.add_argument("--variable", default="Speed")
+    p.add_argument("--user")
+    p.add_argument("--password")
+    p.add_argument("--policy", default="none", choices=POLICIES)
+    p.add_argument("--cert")
+    p.add_argument("--key")
+    p.add_argument("--user-cert")
+    p.add_argument("--user-key")
+    p.add_argument("--value", type=float, default=600.0)
+    p.add_argument("--seconds", type=float, default=20)
+    p.add_argument("--timeout-ms", type=int, default=3000)
+    args = p.parse_args()
+    await SCENARIOS[args.scenario](args)
+
+
+if __name__ == "__main__":
+    asyncio.run(main())
