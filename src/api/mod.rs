@@ -60,6 +60,7 @@ pub mod stream_messages;
 pub mod throttle;
 pub mod whoami;
 
+use crate::faces_shared::start::FaceStart;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -68,14 +69,8 @@ use axum::Router;
 use axum::extract::DefaultBodyLimit;
 use axum::middleware;
 use tokio::task::JoinHandle;
-use tokio_util::sync::CancellationToken;
 use utoipa_swagger_ui::SwaggerUi;
 
-use crate::config::Config;
-use crate::control::Control;
-use crate::history::History;
-use crate::metrics::Metrics;
-use crate::plant::Plant;
 use auth::Tokens;
 use hub::Hub;
 use listener::LimitedListener;
@@ -87,17 +82,20 @@ use state::ApiState;
 /// of its own above this one) beside its routes, until `shutdown` fires.
 /// Returns the bound address (the real port when the config said port 0)
 /// and the task serving it.
-#[allow(clippy::too_many_arguments)]
-pub async fn start(
-    config: &Config,
+pub(crate) async fn start(
+    start: FaceStart,
     tcp: tokio::net::TcpListener,
-    plant: Arc<Plant>,
-    metrics: Arc<Metrics>,
-    control: Control,
-    history: Arc<History>,
     pages: Router<ApiState>,
-    shutdown: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
+    let FaceStart {
+        config,
+        plant,
+        control,
+        metrics,
+        history,
+        stop: shutdown,
+    } = start;
+    let config = &*config;
     let http = config.http.clone();
     let tokens = Tokens::resolve(&http.tokens, http.token_guesses)
         .map_err(|e| e.to_string())?

@@ -37,6 +37,7 @@ use tokio_util::task::TaskTracker;
 use crate::config::Config;
 use crate::config::diff::Face;
 use crate::control::Control;
+use crate::faces_shared::start::FaceStart;
 use crate::history::History;
 use crate::metrics::Metrics;
 use crate::plant::Plant;
@@ -111,6 +112,20 @@ struct Shared {
     control: Control,
     history: Arc<History>,
     shutdown: CancellationToken,
+}
+
+impl Shared {
+    /// What a face started with `config` under `stop` is handed.
+    fn face_start(&self, config: &Arc<Config>, stop: &CancellationToken) -> FaceStart {
+        FaceStart {
+            config: config.clone(),
+            plant: self.plant.clone(),
+            control: self.control.clone(),
+            metrics: self.metrics.clone(),
+            history: self.history.clone(),
+            stop: stop.clone(),
+        }
+    }
 }
 
 #[derive(Default)]
@@ -573,45 +588,12 @@ impl Running {
         let socket = std.try_clone().map_err(|e| e.to_string())?;
         let listener = TcpListener::from_std(std).map_err(|e| e.to_string())?;
         let stop = self.shared.shutdown.child_token();
-        let s = &self.shared;
+        let start = self.shared.face_start(config, &stop);
         let (addr, task) = match face {
-            Face::Http => {
-                crate::api::start(
-                    config,
-                    listener,
-                    s.plant.clone(),
-                    s.metrics.clone(),
-                    s.control.clone(),
-                    s.history.clone(),
-                    crate::console::router(),
-                    stop.clone(),
-                )
-                .await?
-            }
-            Face::ModbusTcp => crate::modbus_tcp::start(
-                config,
-                listener,
-                s.plant.clone(),
-                s.metrics.clone(),
-                s.control.clone(),
-                stop.clone(),
-            )?,
-            Face::OpcUa => crate::opcua::start(
-                config,
-                listener,
-                s.control.clone(),
-                s.metrics.clone(),
-                s.history.clone(),
-                stop.clone(),
-            )?,
-            Face::ModbusTls | Face::Mqtt => crate::modbus_tcp::start_tls(
-                config,
-                listener,
-                s.plant.clone(),
-                s.metrics.clone(),
-                s.control.clone(),
-                stop.clone(),
-            )?,
+            Face::Http => crate::api::start(start, listener, crate::console::router()).await?,
+            Face::ModbusTcp => crate::modbus_tcp::start(start, listener)?,
+            Face::OpcUa => crate::opcua::start(start, listener)?,
+            Face::ModbusTls | Face::Mqtt => crate::modbus_tcp::start_tls(start, listener)?,
         };
         tracing::info!(addr = %addr, "{} listening", protocol(face));
         self.tasks.spawn(async move {
@@ -631,11 +613,8 @@ impl Running {
         let s = &self.shared;
         let stop = s.shutdown.child_token();
         if let Some(task) = crate::mqtt::start(
-            config,
-            s.control.clone(),
-            s.metrics.clone(),
+            s.face_start(config, &stop),
             crate::mqtt::store::outbox::for_config(config, &s.metrics),
-            stop.clone(),
         )? {
             tracing::info!("MQTT face started");
             started.mqtt = Some(Client {

@@ -34,16 +34,11 @@ pub mod request;
 pub mod routing;
 pub mod server;
 
+use crate::faces_shared::start::FaceStart;
 use std::net::SocketAddr;
 use std::sync::Arc;
 
 use tokio::task::JoinHandle;
-use tokio_util::sync::CancellationToken;
-
-use crate::config::Config;
-use crate::control::Control;
-use crate::metrics::Metrics;
-use crate::plant::Plant;
 
 use access::{Access, SharedAccess};
 use connection::ConnectionSettings;
@@ -53,14 +48,19 @@ use server::ServerSettings;
 /// Serves Modbus TCP on `listener` (bound by the caller at `[modbus_tcp]
 /// listen`) until `shutdown` fires. Returns the bound address and the task
 /// serving it.
-pub fn start(
-    config: &Config,
+pub(crate) fn start(
+    start: FaceStart,
     listener: tokio::net::TcpListener,
-    plant: Arc<Plant>,
-    metrics: Arc<Metrics>,
-    control: Control,
-    shutdown: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
+    let FaceStart {
+        config,
+        plant,
+        control,
+        metrics,
+        stop: shutdown,
+        ..
+    } = start;
+    let config = &*config;
     let tcp = &config.modbus_tcp;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
     // Said at every start: a plain admin network, a listener on the plant
@@ -89,14 +89,19 @@ pub fn start(
 /// Serves Modbus/TCP Security on `listener` (bound by the caller at
 /// `[modbus_tcp.tls] listen`) until `shutdown` fires; its certificate is
 /// reloaded on SIGHUP. Refused without a `[modbus_tcp.tls]` section.
-pub fn start_tls(
-    config: &Config,
+pub(crate) fn start_tls(
+    start: FaceStart,
     listener: tokio::net::TcpListener,
-    plant: Arc<Plant>,
-    metrics: Arc<Metrics>,
-    control: Control,
-    shutdown: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
+    let FaceStart {
+        config,
+        plant,
+        control,
+        metrics,
+        stop: shutdown,
+        ..
+    } = start;
+    let config = &*config;
     let tcp = &config.modbus_tcp;
     let Some(section) = tcp.tls.clone() else {
         return Err("no [modbus_tcp.tls] section".to_string());

@@ -40,15 +40,13 @@ pub mod store;
 pub mod sparkplug_b;
 pub mod topic;
 
+use crate::faces_shared::start::FaceStart;
 use std::sync::Arc;
 
 use tokio::task::JoinHandle;
-use tokio_util::sync::CancellationToken;
 
+use crate::config::MqttConfig;
 use crate::config::mqtt::Format;
-use crate::config::{Config, MqttConfig};
-use crate::control::Control;
-use crate::metrics::Metrics;
 pub use outbox::{Discard, Outbox};
 
 /// The node id of `config`: its `node_id`, else the host's name (with any
@@ -80,13 +78,18 @@ pub fn node_id(config: &MqttConfig) -> String {
 /// Starts the MQTT face of `config` (if it has an `[mqtt]` section): it
 /// connects, and reconnects, on its own, and stops when `shutdown` fires
 /// (after its NDEATH). `outbox` keeps what cannot be published meanwhile.
-pub fn start(
-    config: &Config,
-    control: Control,
-    metrics: Arc<Metrics>,
+pub(crate) fn start(
+    start: FaceStart,
     outbox: Box<dyn Outbox>,
-    shutdown: CancellationToken,
 ) -> Result<Option<JoinHandle<()>>, String> {
+    let FaceStart {
+        config,
+        control,
+        metrics,
+        stop: shutdown,
+        ..
+    } = start;
+    let config = &*config;
     let Some(section) = config.mqtt.clone() else {
         return Ok(None);
     };

@@ -42,6 +42,7 @@ pub mod user_cert;
 pub mod users;
 pub mod values;
 
+use crate::faces_shared::start::FaceStart;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -54,7 +55,7 @@ use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
-use crate::config::{Config, OpcUaConfig};
+use crate::config::OpcUaConfig;
 use crate::control::Control;
 use crate::history::History;
 use crate::metrics::{Metrics, ServerCounts};
@@ -66,14 +67,19 @@ use pki::{Own, Pki};
 /// in a blocking task (RSA key generation: the other faces start
 /// meanwhile, and clients wait in the listener's backlog), then the server
 /// runs. Returns where it listens and its task.
-pub fn start(
-    config: &Arc<Config>,
+pub(crate) fn start(
+    start: FaceStart,
     listener: TcpListener,
-    control: Control,
-    metrics: Arc<Metrics>,
-    history: Arc<History>,
-    stop: CancellationToken,
 ) -> Result<(SocketAddr, JoinHandle<()>), String> {
+    let FaceStart {
+        config,
+        control,
+        metrics,
+        history,
+        stop,
+        ..
+    } = start;
+    let config = &config;
     let section = config.opcua.clone().ok_or("no [opcua] section")?;
     let bound = listener.local_addr().map_err(|e| e.to_string())?;
     let (root, temporary) = match section.pki_dir(config.safety.state_dir().as_deref()) {
