@@ -231,10 +231,11 @@ async fn auto_learns_fast_drives_and_keeps_a_strict_one_on_the_spec() {
         // gaps only; the trials (shorter) were polls.
         let seen = requests(&bus);
         assert_clients_kept_confirmed_gaps(&seen);
-        assert!(
-            seen.iter().any(|q| q.poll && q.silence < FLOOR_US),
-            "trials below the floor were polls"
-        );
+        // Trials below the floor (how far down the ladder goes depends on
+        // how often the machine let the master keep a silence that short)
+        // were polls, every one.
+        let below: Vec<_> = seen.iter().filter(|q| q.silence < FLOOR_US).collect();
+        assert!(below.iter().all(|q| q.poll), "{below:?}");
         let sim = d.sim().stats();
         assert!(sim.merged_frames >= 1, "{sim}");
         d.stop().await;

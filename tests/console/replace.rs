@@ -67,7 +67,10 @@ async fn a_drive_is_replaced_step_by_step_from_a_saved_file() {
     let short = plant
         .replace("response_timeout_ms = 250", "response_timeout_ms = 60")
         .replace("guard_ms = 50", "guard_ms = 10");
-    assert_ne!(plant, short, "the tests' bus timing moved: update this test");
+    assert_ne!(
+        plant, short,
+        "the tests' bus timing moved: update this test"
+    );
     let daemon = TestDaemon::start(&short).await;
     let a = Some(ADMIN);
     for (path, body) in LIFT {
