@@ -351,6 +351,17 @@ impl Client {
     }
 }
 
+/// How the audit names `user`'s session of a client whose `step` says its
+/// end of the connection (`address`): `scada (127.0.0.1:50412)`.
+fn client_named(user: &str, step: &Value) -> String {
+    let address = step["address"].as_str().unwrap_or_default();
+    let ours: SocketAddr = address
+        .parse()
+        .unwrap_or_else(|_| panic!("the client's address: {step}"));
+    assert!(ours.ip().is_loopback() && ours.port() != 0, "{step}");
+    format!("{user} ({ours})")
+}
+
 fn step<'a>(steps: &'a [Value], name: &str) -> &'a Value {
     steps
         .iter()
@@ -487,7 +498,9 @@ async fn node_sees_the_same(ua: &Ua, endpoints: usize, drives: &Value) {
 /// An operator (user name = the token's name, password = the token) sets
 /// the mode, activates and writes SpeedSetpoint; the motor turns, the
 /// subscription is notified at the poll rate, an out-of-range setpoint is
-/// refused with the range in the diagnostics; audited as `opcua <user>`.
+/// refused with the range in the diagnostics. The operator's write and an
+/// anonymous session's refused one are audited by user and the client's
+/// address, `<user> (127.0.0.1:<port>)` (face `opcua`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
     bounded(LIMIT, async {
@@ -526,6 +539,29 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
             (metric(&text, "drivegate_opcua_notifications_total") >= 10.0).then_some(())
         })
         .await;
+        // The audit names each session by its user and its client's
+        // address, as the client itself sees its end of the connection.
+        let anonymous = step(&all, "anonymous-write");
+        assert_eq!(anonymous["status"], "BadUserAccessDenied", "{anonymous}");
+        let audit = wait_for(&mut ws, STEP, "the refusal's audit line", |m| {
+            m["type"] == "write"
+                && m["what"]
+                    .as_str()
+                    .is_some_and(|w| w.contains("speed setpoint 100 rpm"))
+        })
+        .await;
+        assert_eq!(audit["ok"], false, "{audit}");
+        assert_eq!(
+            audit["who"].as_str(),
+            Some(client_named("anonymous", anonymous).as_str()),
+            "{audit}"
+        );
+        assert!(
+            audit["answer"]
+                .as_str()
+                .is_some_and(|a| a.contains("operator")),
+            "{audit}"
+        );
         let audit = wait_for(&mut ws, STEP, "the setpoint's audit line", |m| {
             m["type"] == "write"
                 && m["what"]
@@ -533,9 +569,9 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
                     .is_some_and(|w| w.contains("speed setpoint 600 rpm"))
         })
         .await;
-        let who = audit["who"].as_str().unwrap_or_default();
-        assert!(
-            who.contains("scada (urn:") && who.contains("session"),
+        assert_eq!(
+            audit["who"].as_str(),
+            Some(client_named(USER, step(&all, "connected")).as_str()),
             "{audit}"
         );
         assert_eq!(audit["ok"], true, "{audit}");

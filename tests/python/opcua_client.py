@@ -58,6 +58,12 @@ async def client(args, timeout_ms=None):
     return c
 
 
+def local_address(c):
+    """The client's end of its connection, as the server sees it."""
+    host, port = c.uaclient.protocol.transport.get_extra_info("sockname")[:2]
+    return f"{host}:{port}"
+
+
 async def node(c, name):
     ns = await c.get_namespace_index(NS)
     return c.get_node(ua.NodeId(f"Drives/{name}", ns))
@@ -159,10 +165,16 @@ async def anonymous_write(args):
 
 
 async def operate(args):
-    """SetMode("speed"), Activate(), SpeedSetpoint = --value, with a
+    """An anonymous SpeedSetpoint write (refused), then as --user:
+    SetMode("speed"), Activate(), SpeedSetpoint = --value, with a
     subscription to Speed that sees the motor turn at the poll rate; then
-    an out-of-range setpoint with its diagnostics, and Brake()."""
+    an out-of-range setpoint with its diagnostics, and Brake(). Each
+    session says its client's address."""
+    async with Client(args.url, timeout=20) as anonymous:
+        got = await write(anonymous, args.drive, "SpeedSetpoint", 100.0)
+        say("anonymous-write", status=got, address=local_address(anonymous))
     async with await client(args) as c:
+        say("connected", address=local_address(c))
         h = Handler(quiet=True)
         sub = await c.create_subscription(50, h)
         speed = await node(c, f"{args.drive}/Speed")
