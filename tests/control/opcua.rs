@@ -22,9 +22,11 @@ use tokio::process::{Child, ChildStdout, Command};
 
 use crate::support::TestDaemon;
 use crate::support::api::{Api, connect, wait_for};
+use crate::support::certs::openssl;
 use crate::support::config::ConfigBuilder;
 use crate::support::input::{OPERATOR, VIEWER, role_tokens};
 use crate::support::metrics::metric;
+use crate::support::opcua::{application_cert, host_name, server_pki};
 use crate::support::sim_process::ExternalSim;
 use crate::support::tools;
 use crate::support::wait::{bounded, eventually};
@@ -70,78 +72,11 @@ struct Ua {
     _dir: tempfile::TempDir,
 }
 
-fn openssl(dir: &Path, args: &[&str]) {
-    let out = std::process::Command::new("openssl")
-        .current_dir(dir)
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| panic!("{}", tools::cannot_run("openssl", &e)));
-    assert!(
-        out.status.success(),
-        "openssl {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// A self-signed application certificate `name.der` / `name-key.pem`
-/// for application URI `uri`.
-fn application_cert(dir: &Path, name: &str, uri: &str) {
-    openssl(
-        dir,
-        &[
-            "req",
-            "-x509",
-            "-newkey",
-            "rsa:2048",
-            "-nodes",
-            "-keyout",
-            &format!("{name}-key.pem"),
-            "-out",
-            &format!("{name}.pem"),
-            "-days",
-            "30",
-            "-subj",
-            &format!("/CN={name}"),
-            "-addext",
-            &format!("subjectAltName=URI:{uri},DNS:localhost,IP:127.0.0.1"),
-            "-addext",
-            "keyUsage=critical,digitalSignature,nonRepudiation,keyEncipherment,dataEncipherment",
-            "-addext",
-            "extendedKeyUsage=clientAuth,serverAuth",
-        ],
-    );
-    openssl(
-        dir,
-        &[
-            "x509",
-            "-in",
-            &format!("{name}.pem"),
-            "-outform",
-            "der",
-            "-out",
-            &format!("{name}.der"),
-        ],
-    );
-}
-
-fn host_name() -> String {
-    std::fs::read_to_string("/proc/sys/kernel/hostname")
-        .map(|s| s.trim().to_string())
-        .unwrap_or_else(|_| "localhost".into())
-}
-
 /// The keys of an `[opcua]` section on loopback (a `none` endpoint beside
 /// Basic256Sha256, sessions of at most 3 s) with its PKI directory in
 /// `dir/pki`, holding a server certificate made by openssl.
 pub(crate) fn section(dir: &Path) -> String {
-    let pki = dir.join("pki");
-    for sub in ["own", "private"] {
-        std::fs::create_dir_all(pki.join(sub)).unwrap();
-    }
-    application_cert(dir, "server", &format!("urn:{}:drivegate", host_name()));
-    std::fs::rename(dir.join("server.der"), pki.join("own/cert.der")).unwrap();
-    std::fs::rename(dir.join("server-key.pem"), pki.join("private/private.pem")).unwrap();
-    section_keys(&pki)
+    section_keys(&server_pki(dir))
 }
 
 /// The keys of the `[opcua]` section with `pki` (made by the daemon at its

@@ -317,6 +317,18 @@ async def history(args):
         )
 
 
+async def hold(args):
+    """A session (anonymous, or --user) held open until stdin closes; then
+    closed (CloseSession)."""
+    async with await client(args) as c:
+        say("connected", address=local_address(c))
+        loop = asyncio.get_running_loop()
+        reader = asyncio.StreamReader()
+        await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), sys.stdin)
+        await reader.read()
+    say("closed")
+
+
 async def table(args):
     """Requests read from stdin, one JSON object a line: {"user", "password"
     (absent: anonymous), "op": "write", "path": "lift/SpeedSetpoint",
@@ -353,7 +365,7 @@ async def table(args):
             await c.disconnect()
 
 
-SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, brake, secure, quality, events, history, table]}
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table]}
 
 
 async def main():
