@@ -432,7 +432,8 @@ async fn node_sees_the_same(ua: &Ua, endpoints: usize, drives: &Value) {
 
 /// An operator (user name = the token's name, password = the token) sets
 /// the mode, activates and writes SpeedSetpoint; the motor turns, the
-/// subscription is notified at the poll rate, an out-of-range setpoint is
+/// subscription is notified at the poll rate (and through absolute and
+/// percent deadbands as wide as they say), an out-of-range setpoint is
 /// refused with the range in the diagnostics. The operator's write and an
 /// anonymous session's refused one are audited by user and the client's
 /// address, `<user> (127.0.0.1:<port>)` (face `opcua`).
@@ -453,6 +454,15 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
         // 2 s of a turning motor polled every ~100 ms or faster: at least
         // one notification per publish (100 ms), none lost to the sampling.
         assert!(n >= 8, "{angle}");
+        // Deadband filters on the same angle: a narrow one lets every step
+        // through, one no change can exceed only the first value.
+        let deadbands = &angle["deadbands"];
+        for narrow in ["absolute-narrow", "percent-narrow"] {
+            assert!(deadbands[narrow].as_u64() >= Some(8), "{narrow}: {angle}");
+        }
+        for wide in ["absolute-wide", "percent-wide"] {
+            assert_eq!(deadbands[wide], 1, "{wide}: {angle}");
+        }
         let out = step(&all, "out-of-range");
         assert_eq!(out["status"], "BadOutOfRange", "{out}");
         assert!(

@@ -199,12 +199,26 @@ async def operate(args):
         say("turned", reached=h.values[-1][1] if h.values else None)
         # The angle changes at every poll while the motor turns: its
         # notifications come at the poll rate.
-        await sub2.subscribe_data_change(await node(c, f"{args.drive}/Angle"), sampling_interval=0, queuesize=10)
+        angle_node = await node(c, f"{args.drive}/Angle")
+        await sub2.subscribe_data_change(angle_node, sampling_interval=0, queuesize=10)
+        # Beside it, deadband filters (DataChangeFilter) on the same angle:
+        # absolute (degrees) and percent (of its EURange, 360 degrees), one
+        # narrower than a poll's step and one no change can exceed.
+        deadbands = {}
+        for name, value, kind in [("absolute-narrow", 0.01, 1), ("absolute-wide", 1000.0, 1),
+                                  ("percent-narrow", 0.01, 2), ("percent-wide", 100.0, 2)]:
+            hd = Handler(quiet=True)
+            sd = await c.create_subscription(50, hd)
+            await sd.deadband_monitor(angle_node, value, kind, queuesize=10)
+            deadbands[name] = (sd, hd)
         await asyncio.sleep(2.0)
         await sub2.delete()
+        for sd, _ in deadbands.values():
+            await sd.delete()
         ts = [v[0] for v in angle.values]
         gaps = [round((b - a) * 1000) for a, b in zip(ts, ts[1:])]
-        say("angle", notifications=len(angle.values), gaps_ms=gaps)
+        say("angle", notifications=len(angle.values), gaps_ms=gaps,
+            deadbands={name: len(hd.values) for name, (_, hd) in deadbands.items()})
         # Out of range, with the refusal's words in the diagnostics.
         n = await node(c, f"{args.drive}/SpeedSetpoint")
         params = ua.WriteParameters()
