@@ -55,10 +55,10 @@ pub enum Origin {
         /// host claimed (`broker user gw1; primary host "scada" claimed`).
         who: Arc<str>,
     },
-    /// A write or method call of an OPC UA session: its user, client and
-    /// session (`alice (urn:plant:scada, session 7)`).
+    /// A write or method call of an OPC UA session: its user and the
+    /// client's address (`alice (10.0.0.5:50412)`).
     OpcUa {
-        /// Who, as far as the session tells.
+        /// Who: the session's user and its client's address.
         who: Arc<str>,
     },
     /// The stop sent when a motor-safety lease ended.

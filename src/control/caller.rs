@@ -142,7 +142,8 @@ impl Caller {
     /// show it: a token's name, or for a Modbus TCP client its face and
     /// address ("modbus-tcp 10.1.2.3:50412"), since an address alone does
     /// not say what it is (and for MQTT, "mqtt" and the host: "mqtt scada";
-    /// for OPC UA the user and session: "opcua alice (urn:scada, session 7)").
+    /// for OPC UA the user and the client's address: "opcua alice
+    /// (10.0.0.5:50412)").
     pub fn owner(&self) -> Arc<str> {
         match self.face {
             Face::ModbusTcp | Face::Mqtt | Face::OpcUa => {

@@ -130,7 +130,7 @@ impl Drives {
         let identity = self.users.identity(context.user_token());
         let caller = Caller::new(
             crate::control::Face::OpcUa,
-            identity.user,
+            super::sessions::who_of(context, &identity),
             identity.role.unwrap_or(crate::control::Role::Viewer),
             crate::bus::SourceId::new_unique(),
         );

@@ -14,12 +14,16 @@
 //! leases end with their stop. The core's communication-loss time is the
 //! session's own timeout, so a watcher that stalled cannot keep a lease.
 //!
-//! The crate gives no peer address, so a caller is named by what the
-//! session says of itself: the user, the client's application URI (for a
-//! signed or encrypted channel, checked against its certificate) and the
-//! session's number: `opcua alice (urn:plant:scada, session 7)`.
+//! A caller is named as every face names a client, by its address: the
+//! session's user and the address of the client's connection
+//! (`opcua alice (10.0.0.5:50412)` in the audit log), which the vendored
+//! crate keeps on the session (`Session::peer_address`, vendor/README.md).
+//! A session that moves to a new connection (its client reconnected) is
+//! named by the new address from its next request on. The session's number
+//! and the client's application URI are in the face's log, beside the name.
 
 use std::collections::HashMap;
+use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -32,6 +36,30 @@ use super::users::Identity;
 use crate::bus::SourceId;
 use crate::config::StopAction;
 use crate::control::{Caller, CommLoss, Control, Face, SessionGuard};
+
+/// The name of `context`'s caller, as the audit log and lease views show
+/// it: its user and its client's address (see [`who`]).
+pub fn who_of(context: &RequestContext, identity: &Identity) -> Arc<str> {
+    let (peer, session) = {
+        let session = context.session().read();
+        (session.peer_address(), session.session_id_numeric())
+    };
+    who(&identity.user, peer, session).into()
+}
+
+/// How a session's caller is named: `alice (10.0.0.5:50412)`, by the
+/// client's address as every face names a client; an IPv4 client of a
+/// dual-stack listener by its IPv4 address. Without an address (none is
+/// known before a session is activated), by the session's number.
+pub fn who(user: &str, peer: Option<SocketAddr>, session: u32) -> String {
+    match peer {
+        Some(peer) => {
+            let peer = SocketAddr::new(peer.ip().to_canonical(), peer.port());
+            format!("{user} ({peer})")
+        }
+        None => format!("{user} (session {session})"),
+    }
+}
 
 /// How often the sessions are looked at.
 pub const CHECK: Duration = Duration::from_millis(250);
@@ -109,17 +137,23 @@ impl Sessions {
             ));
         };
         let id = context.session_id();
+        let who = who_of(context, identity);
         let mut watched = self.watched.lock().unwrap_or_else(|p| p.into_inner());
         let entry = watched
             .entry(id)
-            .or_insert_with(|| self.watch(context, identity));
+            .or_insert_with(|| self.watch(context, who.clone()));
+        if entry.who != who {
+            // Reactivated on a new connection, or by another user.
+            tracing::info!(target: "drivegate::opcua", session = id, was = %entry.who, who = %who, "OPC UA session: its caller is now named anew");
+            entry.who = who;
+        }
         entry.guard.active();
         let caller = Caller::new(Face::OpcUa, entry.who.clone(), role, entry.source);
         Ok(caller.in_session(Face::OpcUa, entry.guard.id()))
     }
 
-    /// Opens the core session of `context`'s session.
-    fn watch(&self, context: &RequestContext, identity: &Identity) -> Watched {
+    /// Opens the core session of `context`'s session, whose caller is `who`.
+    fn watch(&self, context: &RequestContext, who: Arc<str>) -> Watched {
         let (application, timeout) = {
             let session = context.session().read();
             let timeout = session.deadline().saturating_duration_since(Instant::now());
@@ -147,13 +181,14 @@ impl Sessions {
                 face: Face::OpcUa,
             }),
         );
-        let known = if application.is_empty() {
-            format!("session {}", context.session_id())
-        } else {
-            format!("{application}, session {}", context.session_id())
-        };
-        let who: Arc<str> = format!("{} ({known})", identity.user).into();
-        tracing::debug!(target: "drivegate::opcua", who = %who, timeout_ms = after.as_millis() as u64, "a session of the core opened");
+        tracing::info!(
+            target: "drivegate::opcua",
+            who = %who,
+            session = context.session_id(),
+            application = %application,
+            timeout_ms = after.as_millis() as u64,
+            "OPC UA session: its first write or call opened a session of the core"
+        );
         let weak = Arc::downgrade(&context.session);
         Watched {
             probe: Box::new(move || match weak.upgrade() {
@@ -178,7 +213,7 @@ impl Sessions {
     /// Looks at every watched session once: the alive ones are active,
     /// the others' core sessions close (their leases end with their stop).
     fn check(&self) {
-        let ended: Vec<(Watched, State)> = {
+        let ended: Vec<(u32, Watched, State)> = {
             let mut watched = self.watched.lock().unwrap_or_else(|p| p.into_inner());
             let gone: Vec<(u32, State)> = watched
                 .iter()
@@ -187,15 +222,15 @@ impl Sessions {
                 .collect();
             let ended = gone
                 .into_iter()
-                .filter_map(|(id, state)| watched.remove(&id).map(|w| (w, state)))
+                .filter_map(|(id, state)| watched.remove(&id).map(|w| (id, w, state)))
                 .collect();
             for w in watched.values() {
                 w.guard.active();
             }
             ended
         };
-        for (w, state) in ended {
-            tracing::info!(target: "drivegate::opcua", who = %w.who, "OPC UA session {}: its leases end", state.words());
+        for (id, w, state) in ended {
+            tracing::info!(target: "drivegate::opcua", who = %w.who, session = id, "OPC UA session {}: its leases end", state.words());
             drop(w.guard);
         }
     }
@@ -220,5 +255,22 @@ impl Sessions {
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_caller_is_named_by_its_user_and_its_clients_address() {
+        let v4: SocketAddr = "10.0.0.5:50412".parse().unwrap();
+        assert_eq!(who("alice", Some(v4), 7), "alice (10.0.0.5:50412)");
+        let v6: SocketAddr = "[fd00::5]:4711".parse().unwrap();
+        assert_eq!(who("anonymous", Some(v6), 7), "anonymous ([fd00::5]:4711)");
+        // An IPv4 client of a listener on [::].
+        let mapped: SocketAddr = "[::ffff:10.0.0.5]:50412".parse().unwrap();
+        assert_eq!(who("alice", Some(mapped), 7), "alice (10.0.0.5:50412)");
+        assert_eq!(who("alice", None, 7), "alice (session 7)");
     }
 }

@@ -15,6 +15,7 @@ use serde_json::{Value, json};
 use crate::harness::cdp::{Browser, Page};
 use crate::harness::{ADMIN, OPERATOR, Proxy, VIEWER, Watcher, config, speed, until};
 use crate::support::TestDaemon;
+use crate::support::opcua::{Held, server_pki};
 
 /// The jog's lease in the page (web/console/jog.js).
 const LEASE: Duration = Duration::from_millis(crate::harness::JOG_LEASE_MS);
@@ -191,11 +192,25 @@ async fn activate_in_speed_mode(page: &Page) {
     .await;
 }
 
+/// Every page, live values, and the overview's line of the OPC UA face:
+/// where it serves, and its sessions as a client (asyncua) comes and goes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_page_loads_clean_from_loopback_and_values_update_live() {
-    let daemon = TestDaemon::start(&config(false, "")).await;
+    let dir = tempfile::tempdir().unwrap();
+    let opcua = format!(
+        "[opcua]\nlisten = \"127.0.0.1:0\"\npki_dir = \"{}\"\nsecurity = [\"none\"]",
+        server_pki(dir.path()).display()
+    );
+    let daemon = TestDaemon::start(&config(false, &opcua)).await;
     let base = daemon.url("");
     let browser = Browser::start(&[]).await;
+    let opcua = daemon
+        .faces_addresses()
+        .await
+        .opcua
+        .expect("OPC UA listens");
+    // The client starts meanwhile (a Python process takes a while).
+    let client = tokio::spawn(Held::open(format!("opc.tcp://{opcua}/"), LONG));
     let page = open(&browser, &base, "/", None).await;
     page.wait_for(
         "document.querySelectorAll('table.drives tbody tr').length === 4",
@@ -250,6 +265,11 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
     )
     .await;
 
+    // The OPC UA session is open before the tour, which ends on the
+    // overview: its line is read again as the overview opens.
+    let held = client.await.expect("the OPC UA client");
+    assert!(held.address.starts_with("127.0.0.1:"), "{}", held.address);
+
     // Every page of the console, each without an error.
     for (hash, marker) in [
         ("/drive/lift", "[data-plot=speed] canvas"),
@@ -273,6 +293,31 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
         )
         .await;
     }
+    // The overview lists the OPC UA face: where it serves, with the
+    // client's session; closed, the count goes back down.
+    let opcua_line = |sessions: &str| {
+        format!(
+            "(document.querySelector('.summary.opcua.good:not([hidden])') || {{}}).textContent === {}",
+            serde_json::to_string(&format!(
+                "OPC UA: serving on opc.tcp://{opcua}/ ({sessions})"
+            ))
+            .unwrap()
+        )
+    };
+    page.wait_for(
+        &opcua_line("1 session"),
+        LONG,
+        "the OPC UA line with one session",
+    )
+    .await;
+    held.close(LONG).await;
+    page.wait_for(
+        &opcua_line("0 sessions"),
+        LONG,
+        "the OPC UA line with no session",
+    )
+    .await;
+
     // The plot drew the speed it received.
     page.eval("location.hash = '#/drive/lift'").await;
     page.wait_for(

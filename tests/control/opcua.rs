@@ -22,9 +22,11 @@ use tokio::process::{Child, ChildStdout, Command};
 
 use crate::support::TestDaemon;
 use crate::support::api::{Api, connect, wait_for};
+use crate::support::certs::openssl;
 use crate::support::config::ConfigBuilder;
 use crate::support::input::{OPERATOR, VIEWER, role_tokens};
 use crate::support::metrics::metric;
+use crate::support::opcua::{application_cert, host_name, server_pki};
 use crate::support::sim_process::ExternalSim;
 use crate::support::tools;
 use crate::support::wait::{bounded, eventually};
@@ -70,78 +72,11 @@ struct Ua {
     _dir: tempfile::TempDir,
 }
 
-fn openssl(dir: &Path, args: &[&str]) {
-    let out = std::process::Command::new("openssl")
-        .current_dir(dir)
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| panic!("{}", tools::cannot_run("openssl", &e)));
-    assert!(
-        out.status.success(),
-        "openssl {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// A self-signed application certificate `name.der` / `name-key.pem`
-/// for application URI `uri`.
-fn application_cert(dir: &Path, name: &str, uri: &str) {
-    openssl(
-        dir,
-        &[
-            "req",
-            "-x509",
-            "-newkey",
-            "rsa:2048",
-            "-nodes",
-            "-keyout",
-            &format!("{name}-key.pem"),
-            "-out",
-            &format!("{name}.pem"),
-            "-days",
-            "30",
-            "-subj",
-            &format!("/CN={name}"),
-            "-addext",
-            &format!("subjectAltName=URI:{uri},DNS:localhost,IP:127.0.0.1"),
-            "-addext",
-            "keyUsage=critical,digitalSignature,nonRepudiation,keyEncipherment,dataEncipherment",
-            "-addext",
-            "extendedKeyUsage=clientAuth,serverAuth",
-        ],
-    );
-    openssl(
-        dir,
-        &[
-            "x509",
-            "-in",
-            &format!("{name}.pem"),
-            "-outform",
-            "der",
-            "-out",
-            &format!("{name}.der"),
-        ],
-    );
-}
-
-fn host_name() -> String {
-    std::fs::read_to_string("/proc/sys/kernel/hostname")
-        .map(|s| s.trim().to_string())
-        .unwrap_or_else(|_| "localhost".into())
-}
-
 /// The keys of an `[opcua]` section on loopback (a `none` endpoint beside
 /// Basic256Sha256, sessions of at most 3 s) with its PKI directory in
 /// `dir/pki`, holding a server certificate made by openssl.
 pub(crate) fn section(dir: &Path) -> String {
-    let pki = dir.join("pki");
-    for sub in ["own", "private"] {
-        std::fs::create_dir_all(pki.join(sub)).unwrap();
-    }
-    application_cert(dir, "server", &format!("urn:{}:drivegate", host_name()));
-    std::fs::rename(dir.join("server.der"), pki.join("own/cert.der")).unwrap();
-    std::fs::rename(dir.join("server-key.pem"), pki.join("private/private.pem")).unwrap();
-    section_keys(&pki)
+    section_keys(&server_pki(dir))
 }
 
 /// The keys of the `[opcua]` section with `pki` (made by the daemon at its
@@ -351,6 +286,17 @@ impl Client {
     }
 }
 
+/// How the audit names `user`'s session of a client whose `step` says its
+/// end of the connection (`address`): `scada (127.0.0.1:50412)`.
+fn client_named(user: &str, step: &Value) -> String {
+    let address = step["address"].as_str().unwrap_or_default();
+    let ours: SocketAddr = address
+        .parse()
+        .unwrap_or_else(|_| panic!("the client's address: {step}"));
+    assert!(ours.ip().is_loopback() && ours.port() != 0, "{step}");
+    format!("{user} ({ours})")
+}
+
 fn step<'a>(steps: &'a [Value], name: &str) -> &'a Value {
     steps
         .iter()
@@ -486,8 +432,11 @@ async fn node_sees_the_same(ua: &Ua, endpoints: usize, drives: &Value) {
 
 /// An operator (user name = the token's name, password = the token) sets
 /// the mode, activates and writes SpeedSetpoint; the motor turns, the
-/// subscription is notified at the poll rate, an out-of-range setpoint is
-/// refused with the range in the diagnostics; audited as `opcua <user>`.
+/// subscription is notified at the poll rate (and through absolute and
+/// percent deadbands as wide as they say), an out-of-range setpoint is
+/// refused with the range in the diagnostics. The operator's write and an
+/// anonymous session's refused one are audited by user and the client's
+/// address, `<user> (127.0.0.1:<port>)` (face `opcua`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
     bounded(LIMIT, async {
@@ -505,6 +454,15 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
         // 2 s of a turning motor polled every ~100 ms or faster: at least
         // one notification per publish (100 ms), none lost to the sampling.
         assert!(n >= 8, "{angle}");
+        // Deadband filters on the same angle: a narrow one lets every step
+        // through, one no change can exceed only the first value.
+        let deadbands = &angle["deadbands"];
+        for narrow in ["absolute-narrow", "percent-narrow"] {
+            assert!(deadbands[narrow].as_u64() >= Some(8), "{narrow}: {angle}");
+        }
+        for wide in ["absolute-wide", "percent-wide"] {
+            assert_eq!(deadbands[wide], 1, "{wide}: {angle}");
+        }
         let out = step(&all, "out-of-range");
         assert_eq!(out["status"], "BadOutOfRange", "{out}");
         assert!(
@@ -526,6 +484,29 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
             (metric(&text, "drivegate_opcua_notifications_total") >= 10.0).then_some(())
         })
         .await;
+        // The audit names each session by its user and its client's
+        // address, as the client itself sees its end of the connection.
+        let anonymous = step(&all, "anonymous-write");
+        assert_eq!(anonymous["status"], "BadUserAccessDenied", "{anonymous}");
+        let audit = wait_for(&mut ws, STEP, "the refusal's audit line", |m| {
+            m["type"] == "write"
+                && m["what"]
+                    .as_str()
+                    .is_some_and(|w| w.contains("speed setpoint 100 rpm"))
+        })
+        .await;
+        assert_eq!(audit["ok"], false, "{audit}");
+        assert_eq!(
+            audit["who"].as_str(),
+            Some(client_named("anonymous", anonymous).as_str()),
+            "{audit}"
+        );
+        assert!(
+            audit["answer"]
+                .as_str()
+                .is_some_and(|a| a.contains("operator")),
+            "{audit}"
+        );
         let audit = wait_for(&mut ws, STEP, "the setpoint's audit line", |m| {
             m["type"] == "write"
                 && m["what"]
@@ -533,9 +514,9 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
                     .is_some_and(|w| w.contains("speed setpoint 600 rpm"))
         })
         .await;
-        let who = audit["who"].as_str().unwrap_or_default();
-        assert!(
-            who.contains("scada (urn:") && who.contains("session"),
+        assert_eq!(
+            audit["who"].as_str(),
+            Some(client_named(USER, step(&all, "connected")).as_str()),
             "{audit}"
         );
         assert_eq!(audit["ok"], true, "{audit}");

@@ -132,3 +132,47 @@ fn the_vendored_crates_are_the_published_ones_with_their_patches() {
         );
     }
 }
+
+/// Every file a patch changes is named in `vendor/README.md`, and every
+/// fix the README explains is in its table of which patch carries it: a
+/// change to the published crates cannot go unexplained.
+#[test]
+fn every_change_of_the_patches_is_explained_in_the_readme() {
+    let readme = std::fs::read_to_string(root().join("vendor/README.md")).expect("the README");
+    for (name, _) in VENDORED {
+        let patch = std::fs::read_to_string(root().join("vendor").join(format!("{name}.patch")))
+            .expect("the patch");
+        let changed: Vec<&str> = patch
+            .lines()
+            .filter_map(|l| l.strip_prefix("diff --git a/src/"))
+            .filter_map(|l| l.split(' ').next())
+            .collect();
+        assert!(!changed.is_empty(), "{name}.patch changes no file");
+        for file in changed {
+            assert!(
+                readme.contains(&format!("`{file}`")),
+                "{name}.patch changes src/{file}, which vendor/README.md does not name"
+            );
+        }
+    }
+    // The fixes explained ("6. **...**"), and those the table assigns to a
+    // patch ("| 3, 5, 6 |").
+    let explained: Vec<u32> = readme
+        .lines()
+        .filter_map(|l| l.split_once(". **"))
+        .filter_map(|(n, _)| n.trim().parse().ok())
+        .collect();
+    let mut assigned: Vec<u32> = readme
+        .lines()
+        .filter(|l| l.contains(".patch`"))
+        .filter_map(|l| l.trim_end_matches('|').rsplit('|').next())
+        .flat_map(|cell| cell.split(',').map(|n| n.trim().parse::<u32>()))
+        .collect::<Result<_, _>>()
+        .expect("the table's last column lists fix numbers");
+    assigned.sort_unstable();
+    assert!(!explained.is_empty(), "vendor/README.md explains no fix");
+    assert_eq!(
+        assigned, explained,
+        "vendor/README.md: the table assigns other fixes than it explains"
+    );
+}

@@ -58,6 +58,12 @@ async def client(args, timeout_ms=None):
     return c
 
 
+def local_address(c):
+    """The client's end of its connection, as the server sees it."""
+    host, port = c.uaclient.protocol.transport.get_extra_info("sockname")[:2]
+    return f"{host}:{port}"
+
+
 async def node(c, name):
     ns = await c.get_namespace_index(NS)
     return c.get_node(ua.NodeId(f"Drives/{name}", ns))
@@ -159,10 +165,16 @@ async def anonymous_write(args):
 
 
 async def operate(args):
-    """SetMode("speed"), Activate(), SpeedSetpoint = --value, with a
+    """An anonymous SpeedSetpoint write (refused), then as --user:
+    SetMode("speed"), Activate(), SpeedSetpoint = --value, with a
     subscription to Speed that sees the motor turn at the poll rate; then
-    an out-of-range setpoint with its diagnostics, and Brake()."""
+    an out-of-range setpoint with its diagnostics, and Brake(). Each
+    session says its client's address."""
+    async with Client(args.url, timeout=20) as anonymous:
+        got = await write(anonymous, args.drive, "SpeedSetpoint", 100.0)
+        say("anonymous-write", status=got, address=local_address(anonymous))
     async with await client(args) as c:
+        say("connected", address=local_address(c))
         h = Handler(quiet=True)
         sub = await c.create_subscription(50, h)
         speed = await node(c, f"{args.drive}/Speed")
@@ -187,12 +199,26 @@ async def operate(args):
         say("turned", reached=h.values[-1][1] if h.values else None)
         # The angle changes at every poll while the motor turns: its
         # notifications come at the poll rate.
-        await sub2.subscribe_data_change(await node(c, f"{args.drive}/Angle"), sampling_interval=0, queuesize=10)
+        angle_node = await node(c, f"{args.drive}/Angle")
+        await sub2.subscribe_data_change(angle_node, sampling_interval=0, queuesize=10)
+        # Beside it, deadband filters (DataChangeFilter) on the same angle:
+        # absolute (degrees) and percent (of its EURange, 360 degrees), one
+        # narrower than a poll's step and one no change can exceed.
+        deadbands = {}
+        for name, value, kind in [("absolute-narrow", 0.01, 1), ("absolute-wide", 1000.0, 1),
+                                  ("percent-narrow", 0.01, 2), ("percent-wide", 100.0, 2)]:
+            hd = Handler(quiet=True)
+            sd = await c.create_subscription(50, hd)
+            await sd.deadband_monitor(angle_node, value, kind, queuesize=10)
+            deadbands[name] = (sd, hd)
         await asyncio.sleep(2.0)
         await sub2.delete()
+        for sd, _ in deadbands.values():
+            await sd.delete()
         ts = [v[0] for v in angle.values]
         gaps = [round((b - a) * 1000) for a, b in zip(ts, ts[1:])]
-        say("angle", notifications=len(angle.values), gaps_ms=gaps)
+        say("angle", notifications=len(angle.values), gaps_ms=gaps,
+            deadbands={name: len(hd.values) for name, (_, hd) in deadbands.items()})
         # Out of range, with the refusal's words in the diagnostics.
         n = await node(c, f"{args.drive}/SpeedSetpoint")
         params = ua.WriteParameters()
@@ -305,6 +331,18 @@ async def history(args):
         )
 
 
+async def hold(args):
+    """A session (anonymous, or --user) held open until stdin closes; then
+    closed (CloseSession)."""
+    async with await client(args) as c:
+        say("connected", address=local_address(c))
+        loop = asyncio.get_running_loop()
+        reader = asyncio.StreamReader()
+        await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), sys.stdin)
+        await reader.read()
+    say("closed")
+
+
 async def table(args):
     """Requests read from stdin, one JSON object a line: {"user", "password"
     (absent: anonymous), "op": "write", "path": "lift/SpeedSetpoint",
@@ -341,7 +379,7 @@ async def table(args):
             await c.disconnect()
 
 
-SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, brake, secure, quality, events, history, table]}
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table]}
 
 
 async def main():

@@ -15,7 +15,8 @@ pub struct Pki {
     pub dir: tempfile::TempDir,
 }
 
-fn openssl(dir: &Path, args: &[&str]) {
+/// Runs `openssl args` in `dir`, failing the test with its words.
+pub fn openssl(dir: &Path, args: &[&str]) {
     let out = Command::new("openssl")
         .current_dir(dir)
         .args(args)

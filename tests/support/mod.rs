@@ -17,6 +17,7 @@ pub mod logs;
 pub mod metrics;
 pub mod modbus_tcp;
 pub mod mosquitto;
+pub mod opcua;
 pub mod ports;
 pub mod proxy;
 pub mod pty;

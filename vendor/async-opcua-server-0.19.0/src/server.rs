@@ -387,7 +387,7 @@ impl Server {
                                 self.certificate_store.clone(),
                                 self.node_managers.clone(),
                                 self.subscriptions.clone()
-                            );
+                            ).peer_address(addr);
 
                             let (send, recv) = tokio::sync::mpsc::channel(5);
                             let handle = tokio::spawn(async move {
@@ -432,7 +432,7 @@ impl Server {
                         self.certificate_store.clone(),
                         self.node_managers.clone(),
                         self.subscriptions.clone()
-                    );
+                    ).peer_address(rev_connect.target.address);
 
                     // We need to make sure that the reverse connect handle is passed
                     // to the connection task, so that we can signal the result of the connection attempt

@@ -1,4 +1,5 @@
 use std::collections::HashMap;
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -68,6 +69,8 @@ pub struct Session {
     user_token: Option<UserToken>,
     /// Whether the session has been closed.
     is_closed: bool,
+    /// The peer address of the connection it was last activated on.
+    peer_address: Option<SocketAddr>,
 }
 
 impl Session {
@@ -120,6 +123,7 @@ impl Session {
             application_description,
             message_security_mode,
             is_closed: false,
+            peer_address: None,
         }
     }
 
@@ -179,7 +183,9 @@ impl Session {
         identity: IdentityToken,
         locale_ids: Option<Vec<UAString>>,
         user_token: UserToken,
+        peer_address: Option<SocketAddr>,
     ) {
+        self.peer_address = peer_address;
         self.user_token = Some(user_token);
         self.secure_channel_id = secure_channel_id;
         self.session_nonce = server_nonce;
@@ -198,6 +204,13 @@ impl Session {
     /// `UserToken` to refer to the _user_, rather than the session.
     pub fn session_id(&self) -> &NodeId {
         &self.session_id
+    }
+
+    /// The address of the client at the other end of the connection the
+    /// session was last activated on (a session may move to a new
+    /// connection when its client reconnects). `None` before activation.
+    pub fn peer_address(&self) -> Option<SocketAddr> {
+        self.peer_address
     }
 
     /// Get the endpoint this session was created on.

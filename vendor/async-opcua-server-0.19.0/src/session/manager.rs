@@ -1,5 +1,6 @@
 use std::{
     collections::HashMap,
+    net::SocketAddr,
     sync::{
         atomic::{AtomicU32, Ordering},
         Arc,
@@ -305,6 +306,7 @@ pub(crate) async fn activate_session(
     channel: &mut SecureChannel,
     request: &ActivateSessionRequest,
     handler: &mut MessageHandler,
+    peer_address: Option<SocketAddr>,
 ) -> Result<ActivateSessionResponse, StatusCode> {
     let security_policy = channel.security_policy();
     let security_mode = channel.security_mode();
@@ -378,6 +380,7 @@ pub(crate) async fn activate_session(
             IdentityToken::new(request.user_identity_token.clone()),
             request.locale_ids.clone(),
             user_token.clone(),
+            peer_address,
         );
         (
             session.session_nonce().clone(),
