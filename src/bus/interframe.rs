@@ -22,7 +22,16 @@
 //!   error, a reply that does not answer) puts the drive back on the spec
 //!   at once (its retry goes after the spec's silence) and it learns again
 //!   only after a backoff that doubles each time ([`RELEARN`]), trying the
-//!   level it had answered first;
+//!   level it had answered first. A lone miss after [`RECHECK_AFTER`]
+//!   answers at the confirmed gap is checked once sooner: a poll
+//!   [`RECHECK`] later goes after that gap again, and if it is answered
+//!   the gap holds again (one reply lost to noise, or a host that ran late,
+//!   does not make a drive strict); if not, the backoff as above;
+//! - a timeout is no fault of the gap when the reply comes after all: if
+//!   the retry's reply begins sooner than any drive could answer the retry
+//!   (3.5 character times after it), it is the late answer to the request
+//!   that fell back, and what the drive had learned holds again (the host
+//!   or the adapter ran late, the drive understood the gap);
 //! - an emergency uses the drive's gap only if a request sent after it was
 //!   answered within [`RECENT`]; otherwise, and for broadcasts, the spec.
 //!
@@ -82,6 +91,13 @@ pub const FAILS_PER_STEP: u8 = 2;
 /// own overhead is longer, or the machine kept it from running) before the
 /// steps end there.
 pub const MISSES_PER_STEP: u8 = 30;
+/// Answers at the confirmed gap after which a lone miss is checked again
+/// ([`RECHECK`] later, on a poll) rather than waited out: a drive that kept
+/// a gap this long did not turn strict for one lost reply.
+pub const RECHECK_AFTER: u32 = 100;
+/// How long after such a miss its poll tries the gap again: never the
+/// retry of the same transaction.
+pub const RECHECK: Duration = Duration::from_secs(1);
 /// The latency a serial adapter adds to the wire's timing, kept in the
 /// floor: a request can reach the wire sooner after the last frame than the
 /// master's own clock says by as much as this.
@@ -151,6 +167,12 @@ enum Phase {
     },
     /// Learned: the confirmed gap holds until a fault.
     Settled,
+    /// Back on the spec after a lone miss at `level`, a gap the drive had
+    /// answered [`RECHECK_AFTER`] times: from `at`, the next poll goes
+    /// after `level` again. An answer restores it (the miss was the line's
+    /// or the host's, not the gap's); a miss is the drive's, and it waits
+    /// its backoff.
+    Recheck { level: Duration, at: Instant },
     /// Back on the spec after a fault; learning again from `until`.
     Waiting { until: Instant },
 }
@@ -215,6 +237,21 @@ pub struct DriveGap {
     /// The level that was answered before the last fallback: relearning
     /// tries it first.
     previous: Option<Duration>,
+    /// What the last fallback replaced, until the next outcome: a late
+    /// reply to the request that fell back restores it.
+    undo: Option<Learned>,
+    /// Requests answered after the confirmed gap since it was set.
+    held: u32,
+}
+
+/// What a drive had learned before a fallback.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Learned {
+    confirmed: Duration,
+    phase: Phase,
+    backoff: Duration,
+    previous: Option<Duration>,
+    held: u32,
 }
 
 impl DriveGap {
@@ -227,6 +264,8 @@ impl DriveGap {
             backoff: RELEARN.0,
             fallbacks: 0,
             previous: None,
+            undo: None,
+            held: 0,
         }
     }
 
@@ -240,6 +279,10 @@ impl DriveGap {
             Use::Poll => match self.phase {
                 Phase::Stepping { trial, .. } if trial < self.confirmed => Silence {
                     gap: trial,
+                    trial: true,
+                },
+                Phase::Recheck { level, at } if now >= at => Silence {
+                    gap: level,
                     trial: true,
                 },
                 _ => confirmed,
@@ -271,6 +314,7 @@ impl DriveGap {
         match self.phase {
             Phase::Stepping { trial, .. } => trial < self.confirmed,
             Phase::Waiting { until } => now >= until,
+            Phase::Recheck { at, .. } => now >= at,
             Phase::Settled => false,
         }
     }
@@ -305,8 +349,22 @@ impl DriveGap {
     /// A request sent after `silence` (as measured) was answered at `now`;
     /// `trial` as [`silence`](Self::silence) said.
     pub fn answered(&mut self, silence: Duration, trial: bool, limits: &Limits, now: Instant) {
+        self.undo = None;
         if silence <= self.confirmed + TOLERANCE {
             self.confirmed_at = Some(now);
+            if !trial {
+                self.held = self.held.saturating_add(1);
+            }
+        }
+        if let Phase::Recheck { level, .. } = self.phase {
+            // Only an answer after the level itself restores it.
+            if trial && silence <= level + TOLERANCE {
+                self.confirmed = level;
+                self.confirmed_at = Some(now);
+                self.phase = Phase::Settled;
+                self.held = 0;
+            }
+            return;
         }
         let Phase::Stepping {
             trial: tried,
@@ -362,9 +420,13 @@ impl DriveGap {
         // The level holds: the drive's gap is twice the longest silence it
         // was answered after (never longer than a level before proved),
         // within the limits; the steps go on from the level tried.
-        self.confirmed = self
+        let confirmed = self
             .confirmed
             .min((worst * 2).clamp(limits.floor, limits.spec));
+        if confirmed != self.confirmed {
+            self.held = 0;
+        }
+        self.confirmed = confirmed;
         self.confirmed_at = Some(now);
         self.backoff = RELEARN.0;
         self.phase = Phase::between(tried, failed, limits);
@@ -386,6 +448,15 @@ impl DriveGap {
     /// A request sent after `silence` got no valid answer at `now` (a
     /// timeout, a CRC error, a reply that does not answer it).
     pub fn failed(&mut self, trial: bool, limits: &Limits, now: Instant) {
+        self.undo = None;
+        if trial && let Phase::Recheck { .. } = self.phase {
+            // The gap that held is too short now: the drive's own doing.
+            self.phase = Phase::Waiting {
+                until: now + self.backoff,
+            };
+            self.backoff = (self.backoff * 2).min(RELEARN.1);
+            return;
+        }
         if trial {
             if let Phase::Stepping { fails, .. } = &mut self.phase
                 && *fails + 1 < FAILS_PER_STEP
@@ -406,15 +477,51 @@ impl DriveGap {
             return;
         }
         if self.confirmed < limits.spec {
+            self.undo = Some(Learned {
+                confirmed: self.confirmed,
+                phase: self.phase,
+                backoff: self.backoff,
+                previous: self.previous,
+                held: self.held,
+            });
             self.fallbacks += 1;
             self.previous = Some(self.confirmed / 2);
+            if self.held >= RECHECK_AFTER {
+                // A lone miss after a long hold: checked again soon.
+                self.phase = Phase::Recheck {
+                    level: self.confirmed,
+                    at: now + RECHECK,
+                };
+                self.confirmed = limits.spec;
+                self.confirmed_at = None;
+                self.held = 0;
+                return;
+            }
         }
         self.confirmed = limits.spec;
         self.confirmed_at = None;
+        self.held = 0;
         self.phase = Phase::Waiting {
             until: now + self.backoff,
         };
         self.backoff = (self.backoff * 2).min(RELEARN.1);
+    }
+}
+
+impl DriveGap {
+    /// The request that failed last (and fell back) was answered after
+    /// all, late, at `now`: the drive understood it after its gap, and
+    /// what it had learned holds again. Nothing happens after any other
+    /// outcome.
+    pub fn answered_late(&mut self, now: Instant) {
+        if let Some(learned) = self.undo.take() {
+            self.confirmed = learned.confirmed;
+            self.phase = learned.phase;
+            self.backoff = learned.backoff;
+            self.previous = learned.previous;
+            self.held = learned.held;
+            self.confirmed_at = Some(now);
+        }
     }
 }
 
@@ -468,6 +575,7 @@ impl Gaps {
                 .iter()
                 .map(|d| match d.phase {
                     Phase::Stepping { trial, .. } => trial.min(d.confirmed),
+                    Phase::Recheck { level, .. } => level.min(d.confirmed),
                     _ => d.confirmed,
                 })
                 .min()
@@ -507,6 +615,15 @@ impl Gaps {
     pub fn failed(&mut self, unit: u8, trial: bool, now: Instant) {
         if self.setting == Interframe::Auto && unit != 0 {
             self.drives[usize::from(unit)].failed(trial, &self.limits, now);
+        }
+    }
+
+    /// The request to `unit` that failed last was answered late (its
+    /// retry's reply began before the drive could have answered the retry):
+    /// a fallback it caused is undone.
+    pub fn answered_late(&mut self, unit: u8, now: Instant) {
+        if self.setting == Interframe::Auto && unit != 0 {
+            self.drives[usize::from(unit)].answered_late(now);
         }
     }
 }
@@ -712,6 +829,101 @@ mod tests {
         assert_eq!(gap.silence(Use::Poll, &l, now).gap, learned / 2);
         assert_eq!(learn(&mut gap, 350 * US, now), ANSWERS_PER_STEP as usize);
         assert_eq!(gap.confirmed(), learned);
+    }
+
+    /// The drive keeps its learned gap for `n` commands.
+    fn hold(gap: &mut DriveGap, n: u32, now: Instant) {
+        let l = limits();
+        let confirmed = gap.confirmed();
+        for _ in 0..n {
+            gap.answered(confirmed, false, &l, now);
+        }
+    }
+
+    #[test]
+    fn a_lone_miss_after_a_long_hold_is_checked_again_on_a_poll_a_moment_later() {
+        let l = limits();
+        let t0 = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        learn(&mut gap, 350 * US, t0);
+        let learned = gap.confirmed();
+        hold(&mut gap, RECHECK_AFTER, t0);
+        gap.failed(false, &l, t0);
+        assert_eq!(gap.fallbacks(), 1);
+        // The retry, and everything until the recheck, after the spec.
+        let soon = t0 + RECHECK - US;
+        assert!(!gap.wants_trial(soon));
+        for use_ in [Use::Command, Use::Poll, Use::Emergency] {
+            assert_eq!(gap.silence(use_, &l, t0).gap, l.spec);
+            assert_eq!(gap.silence(use_, &l, soon).gap, l.spec);
+        }
+        // Then one poll after the gap that held; commands keep the spec.
+        let now = t0 + RECHECK;
+        assert!(gap.wants_trial(now));
+        let poll = gap.silence(Use::Poll, &l, now);
+        assert_eq!(
+            poll,
+            Silence {
+                gap: learned,
+                trial: true
+            }
+        );
+        assert_eq!(gap.silence(Use::Command, &l, now).gap, l.spec);
+        // A command's answer proves nothing; nor does a poll that the
+        // machine sent after a longer silence.
+        gap.answered(l.spec, false, &l, now);
+        gap.answered(learned + 2 * TOLERANCE, true, &l, now);
+        assert_eq!(gap.confirmed(), l.spec);
+        // Answered after the gap itself: it holds again.
+        gap.answered(poll.gap, poll.trial, &l, now);
+        assert_eq!(gap.confirmed(), learned);
+        assert!(!gap.wants_trial(now));
+        assert_eq!(gap.silence(Use::Command, &l, now).gap, learned);
+        // A second miss before the drive held the gap long again waits
+        // the backoff.
+        gap.failed(false, &l, now);
+        assert!(!gap.wants_trial(now + RELEARN.0 - US));
+        assert!(gap.wants_trial(now + RELEARN.0));
+    }
+
+    #[test]
+    fn a_recheck_the_drive_does_not_answer_waits_the_backoff() {
+        let l = limits();
+        let t0 = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        learn(&mut gap, 350 * US, t0);
+        hold(&mut gap, RECHECK_AFTER, t0);
+        // The drive was replaced by a strict one.
+        gap.failed(false, &l, t0);
+        let now = t0 + RECHECK;
+        let poll = gap.silence(Use::Poll, &l, now);
+        assert!(poll.trial);
+        gap.failed(poll.trial, &l, now);
+        assert_eq!(gap.confirmed(), l.spec);
+        assert_eq!(gap.fallbacks(), 1, "the recheck is no second fallback");
+        assert_eq!(gap.silence(Use::Poll, &l, now).gap, l.spec);
+        assert!(!gap.wants_trial(now + RELEARN.0 - US));
+        assert!(gap.wants_trial(now + RELEARN.0));
+    }
+
+    #[test]
+    fn a_late_answer_to_the_request_that_fell_back_restores_the_gap() {
+        let l = limits();
+        let t0 = Instant::now();
+        let mut gap = DriveGap::new(&l);
+        learn(&mut gap, 350 * US, t0);
+        let learned = gap.confirmed();
+        gap.failed(false, &l, t0);
+        assert_eq!(gap.confirmed(), l.spec);
+        gap.answered_late(t0);
+        assert_eq!(gap.confirmed(), learned);
+        assert_eq!(gap.silence(Use::Emergency, &l, t0).gap, learned);
+        assert!(!gap.wants_trial(t0 + RELEARN.0));
+        // Only the very next outcome may say so.
+        gap.failed(false, &l, t0);
+        gap.answered(l.spec, false, &l, t0);
+        gap.answered_late(t0);
+        assert_eq!(gap.confirmed(), l.spec);
     }
 
     #[test]

@@ -267,6 +267,9 @@ struct Run {
     /// Karn: once an attempt got no reply in time, a reply may answer an
     /// earlier attempt, so its turnaround is no clean sample.
     retried_after_timeout: bool,
+    /// The reply taken began sooner after its request than any drive can
+    /// answer (3.5 character times): it answers an earlier attempt.
+    early_reply: bool,
 }
 
 /// A request that got no reply in time, whose reply may still come until
@@ -486,6 +489,12 @@ impl RtuMaster {
                 .exchange(unit, pdu, purpose, last, sent_at, &mut run)
                 .await?
             {
+                Ok((outcome, reply)) if run.early_reply && run.retried_after_timeout => {
+                    // The late answer to the attempt that timed out: the
+                    // drive understood the silence before that one.
+                    self.gaps.answered_late(unit, Instant::now());
+                    return Ok(self.report(unit, outcome, Some(reply), attempt, None, run));
+                }
                 Ok((outcome, reply)) => {
                     self.gaps
                         .answered(unit, left, silence.trial, Instant::now());
@@ -601,6 +610,9 @@ impl RtuMaster {
         let (received, first_byte) = self
             .receive(unit, pdu, wire_end + listen, wire_end + ceiling.max(listen))
             .await?;
+        // The line is busy with our own frame until it has left the wire,
+        // whatever was read meanwhile (a late reply, handed over at once).
+        self.quiet_since = self.quiet_since.max(wire_end);
         let end = Instant::now();
         run.ended = Some(end);
         run.busy += (end - sent_at) + t35;
@@ -614,6 +626,7 @@ impl RtuMaster {
         self.tap
             .reply(framed.map(|n| &self.buf[..n]), end, checked.as_ref().err());
         let turnaround = first_byte.map(|t| t.saturating_duration_since(wire_end));
+        run.early_reply = first_byte.is_some_and(|t| t < wire_end + line.char_time() * 7 / 2);
         match checked {
             Ok(reply) => {
                 let outcome = if reply.first().is_some_and(|f| f & EXCEPTION_BIT != 0) {

@@ -16,6 +16,9 @@
 //!   writing together all bytes already due when a wakeup comes late. With a
 //!   USB adapter's [`Delivery`], bytes are handed over in chunks, late; the
 //!   wire's own timing (and so the silence the master owes) does not change.
+//! - A request that is not answered ends the activity at the later of its
+//!   own end (from its first byte's arrival) and the previous activity's: a
+//!   request heard over a reply overlapped it on the wire.
 //! - A request whose first byte arrives less than t3.5 after the end of the
 //!   previous activity (the last reply byte's scheduled end, or the end of the
 //!   previous request when it had no reply) is a gap violation. The check is
@@ -284,7 +287,12 @@ impl Wire {
         };
         self.rx.consume(len);
         if !outcome.reply {
-            self.quiet_from = Some(wire_end);
+            // Unanswered, the request's bytes end the activity where they
+            // ended on the wire: a request heard over the end of the last
+            // reply (the master gave up on a reply this thread sent late)
+            // overlapped it, it did not follow it.
+            let heard_end = arrival + self.line.wire_time(len);
+            self.quiet_from = Some(self.quiet_from.map_or(heard_end, |q| q.max(heard_end)));
             return Ok(());
         }
         if let Some(master_baud) = self.master_baud_if_other() {

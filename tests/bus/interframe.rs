@@ -6,6 +6,8 @@
 //!   spec; clients' requests never wait on a trial;
 //! - a drive replaced by a strict one is noticed at its first miss and
 //!   served at the spec from then on, with no client error;
+//! - a simulator kept from running (a late host) costs a drive its gap
+//!   until one poll checks it again, not a relearning;
 //! - commands and emergencies never go after an unconfirmed gap;
 //! - "spec" leaves no silence shorter than t3.5.
 //!
@@ -309,6 +311,88 @@ async fn a_drive_replaced_by_a_strict_one_is_served_at_the_spec_from_its_first_m
         assert!(after.iter().all(|q| q.silence >= SPEC_US), "{after:?}");
         // The retry of the missed request went after the spec's silence too.
         assert!(to_2[first_miss + 1].silence >= SPEC_US, "{to_2:?}");
+        d.stop().await;
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_simulator_kept_from_running_costs_a_drive_its_gap_until_one_poll_only() {
+    bounded(WHOLE, async {
+        let d = TestDaemon::start(&config("\"auto\"", "", 200)).await;
+        let bus = d.plant.buses()[0].clone();
+        let handle = bus.handle.clone();
+        let units = [1, 2, 3, 4];
+        learned(&handle, &units).await;
+        // The steps are over when the gaps stay as they are.
+        let mut last = Vec::new();
+        let mut same = 0;
+        let held: Vec<u32> = eventually(LIMIT, "settled gaps", || {
+            let gaps: Vec<u32> = units
+                .iter()
+                .map(|&u| gap_us(&handle, u).unwrap_or(SPEC_US))
+                .collect();
+            same = if gaps == last { same + 1 } else { 0 };
+            last = gaps.clone();
+            (same >= 200 && gaps.iter().all(|&g| g < SPEC_US)).then_some(gaps)
+        })
+        .await;
+        let stop = CancellationToken::new();
+        let (answered, tasks) = clients(&handle, &units, &stop);
+        // Each drive keeps its gap for far more than a hundred reads.
+        eventually(LIMIT, "reads at the learned gaps", || {
+            (answered.load(Ordering::Relaxed) > 2000).then_some(())
+        })
+        .await;
+        let fallbacks = |h: &BusHandle| -> Vec<u64> {
+            units
+                .iter()
+                .map(|u| {
+                    h.stats()
+                        .drives
+                        .get(u)
+                        .map_or(0, |t| t.interframe_fallbacks)
+                })
+                .collect()
+        };
+        let before = fallbacks(&handle);
+        let stalled_at = bus.monitor().frames();
+        // The machine keeps the simulator from running for longer than the
+        // reply timeout: the request on the wire then gets no reply in time.
+        let sim = d.sim();
+        tokio::task::block_in_place(|| sim.stall(Duration::from_millis(400)));
+        let i = eventually(LIMIT, "a drive back on the spec", || {
+            let now = fallbacks(&handle);
+            (0..units.len()).find(|&i| now[i] > before[i])
+        })
+        .await;
+        let unit = units[i];
+        // A poll checks its gap again, and it holds again.
+        eventually(LIMIT, "the gap back", || {
+            (gap_us(&handle, unit) == Some(held[i])).then_some(())
+        })
+        .await;
+        stop.cancel();
+        let errors = errors_of(tasks).await;
+        assert!(errors.is_empty(), "no client error: {errors:?}");
+        let to_unit: Vec<Request> = requests(&bus)
+            .into_iter()
+            .filter(|q| q.unit == unit && q.seq >= stalled_at)
+            .collect();
+        let miss = to_unit
+            .iter()
+            .position(|q| !q.answered)
+            .expect("the request during the stall missed");
+        // After the miss, the first request shorter than the spec was a
+        // poll after the gap that had held (not a trial below it, as
+        // relearning makes), and it was answered; none before it.
+        let short = to_unit[miss + 1..]
+            .iter()
+            .find(|q| q.silence < SPEC_US - 100)
+            .expect("a request after a shorter silence");
+        assert!(short.poll && short.answered, "{short:?} in {to_unit:?}");
+        assert!(short.silence + 100 >= held[i], "{short:?}, held {held:?}");
+        assert_clients_kept_confirmed_gaps(&requests(&bus));
         d.stop().await;
     })
     .await;
