@@ -238,7 +238,7 @@ async def lease(args):
     """Takes a lease (SetMode, Activate, a setpoint) and waits to be killed."""
     c = await client(args, timeout_ms=args.timeout_ms)
     await c.connect()
-    say("session", timeout_ms=c.session_timeout)
+    say("session", timeout_ms=c.session_timeout, address=local_address(c))
     await call(c, args.drive, "SetMode", ua.Variant("speed", ua.VariantType.String))
     await call(c, args.drive, "Activate")
     got = await write(c, args.drive, "SpeedSetpoint", args.value)
