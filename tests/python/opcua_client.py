@@ -14,6 +14,7 @@ import asyncio
 import json
 import sys
 import time
+import urllib.request
 from datetime import datetime, timedelta, timezone
 
 from asyncua import Client, ua
@@ -27,6 +28,14 @@ POLICIES = {
     "aes128": sp.SecurityPolicyAes128Sha256RsaOaep,
     "aes256": sp.SecurityPolicyAes256Sha256RsaPss,
 }
+
+
+def polls(metrics):
+    """Status polls made on every bus so far, from the daemon's /metrics."""
+    with urllib.request.urlopen(metrics, timeout=10) as r:
+        text = r.read().decode()
+    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+               if line.startswith("drivegate_bus_polls_total{"))
 
 
 def say(step, **fields):
@@ -167,7 +176,9 @@ async def anonymous_write(args):
 async def operate(args):
     """An anonymous SpeedSetpoint write (refused), then as --user:
     SetMode("speed"), Activate(), SpeedSetpoint = --value, with a
-    subscription to Speed that sees the motor turn at the poll rate; then
+    subscription to Speed that sees the motor turn; the Angle's
+    notifications over 2 s at its minimum sampling interval, beside the
+    polls of /metrics (--metrics), and through deadband filters; then
     an out-of-range setpoint with its diagnostics, and Brake(). Each
     session says its client's address."""
     async with Client(args.url, timeout=20) as anonymous:
@@ -179,8 +190,6 @@ async def operate(args):
         sub = await c.create_subscription(50, h)
         speed = await node(c, f"{args.drive}/Speed")
         await sub.subscribe_data_change(speed, sampling_interval=0, queuesize=10)
-        angle = Handler(quiet=True)
-        sub2 = await c.create_subscription(50, angle)
         for method, inputs in [("SetMode", [ua.Variant("speed", ua.VariantType.String)]), ("Activate", [])]:
             try:
                 await call(c, args.drive, method, *inputs)
@@ -197,10 +206,16 @@ async def operate(args):
                 break
             await asyncio.sleep(0.05)
         say("turned", reached=h.values[-1][1] if h.values else None)
-        # The angle changes at every poll while the motor turns: its
-        # notifications come at the poll rate.
+        # The angle changes at every poll while the motor turns: monitored
+        # at the sampling interval it says is its minimum (the poll's
+        # period), in a subscription publishing as often, with a queue of
+        # one (what most SCADA ask), its notifications come at the poll
+        # rate; counted over the window below, beside the bus's polls.
         angle_node = await node(c, f"{args.drive}/Angle")
-        await sub2.subscribe_data_change(angle_node, sampling_interval=0, queuesize=10)
+        msi = (await angle_node.read_attribute(ua.AttributeIds.MinimumSamplingInterval)).Value.Value
+        angle = Handler(quiet=True)
+        sub2 = await c.create_subscription(msi, angle)
+        await sub2.subscribe_data_change(angle_node, sampling_interval=msi, queuesize=1)
         # Beside it, deadband filters (DataChangeFilter) on the same angle:
         # absolute (degrees) and percent (of its EURange, 360 degrees), one
         # narrower than a poll's step and one no change can exceed.
@@ -211,13 +226,19 @@ async def operate(args):
             sd = await c.create_subscription(50, hd)
             await sd.deadband_monitor(angle_node, value, kind, queuesize=10)
             deadbands[name] = (sd, hd)
+        # The window starts once the first values are in.
+        await asyncio.sleep(0.3)
+        angle.values.clear()
+        polls0, t0 = polls(args.metrics), time.monotonic()
         await asyncio.sleep(2.0)
+        n, polls1, window = len(angle.values), polls(args.metrics), time.monotonic() - t0
         await sub2.delete()
         for sd, _ in deadbands.values():
             await sd.delete()
         ts = [v[0] for v in angle.values]
         gaps = [round((b - a) * 1000) for a, b in zip(ts, ts[1:])]
-        say("angle", notifications=len(angle.values), gaps_ms=gaps,
+        say("angle", notifications=n, window_s=window, polls=polls1 - polls0,
+            sampling_ms=msi, publishing_ms=sub2.parameters.RequestedPublishingInterval, gaps_ms=gaps,
             deadbands={name: len(hd.values) for name, (_, hd) in deadbands.items()})
         # Out of range, with the refusal's words in the diagnostics.
         n = await node(c, f"{args.drive}/SpeedSetpoint")
@@ -398,6 +419,7 @@ async def main():
     p.add_argument("--value", type=float, default=600.0)
     p.add_argument("--seconds", type=float, default=20)
     p.add_argument("--timeout-ms", type=int, default=3000)
+    p.add_argument("--metrics", help="the daemon's /metrics URL")
     args = p.parse_args()
     await SCENARIOS[args.scenario](args)
 
