@@ -120,6 +120,7 @@ async def browse(args):
 
 async def read(args):
     async with await client(args) as c:
+        ns = await c.get_namespace_index(NS)
         out = {}
         for name in ["Speed", "Angle", "Turns", "Current", "Voltage", "Temperature", "Active", "Mode", "FaultCode", "Online"]:
             n = await node(c, f"{args.drive}/{name}")
@@ -138,7 +139,18 @@ async def read(args):
                 pass
             out[name] = entry
         msi = await (await node(c, f"{args.drive}/Speed")).read_attribute(ua.AttributeIds.MinimumSamplingInterval)
-        say("read", values=out, min_sampling_ms=msi.Value.Value)
+        # Each bus's variables (Objects/Buses/<bus>/*): value and status.
+        buses = {}
+        for b in await (await c.nodes.objects.get_child(f"{ns}:Buses")).get_children():
+            values = {}
+            for v in await b.get_children():
+                dv = await v.read_data_value(raise_on_bad_status=False)
+                values[(await v.read_browse_name()).Name] = {
+                    "value": dv.Value.Value if dv.Value is not None else None,
+                    "status": dv.StatusCode.name,
+                }
+            buses[(await b.read_browse_name()).Name] = values
+        say("read", values=out, min_sampling_ms=msi.Value.Value, buses=buses)
 
 
 class Handler:
@@ -305,13 +317,20 @@ async def quality(args):
 
 async def events(args):
     """Alarm events (AlarmConditionType, the client's default filter):
-    prints each, and acknowledges the first active one for --drive."""
+    prints each, and acknowledges the first active one for --drive; and,
+    in a subscription of its own, --drive's --variable (no filter: the
+    default trigger), each value with its status."""
     async with await client(args) as c:
-        h = Handler()
+        # Quiet: async-opcua sends an event item a data change of its own
+        # (BadWaitingForInitialData) when it is created; only the values'
+        # subscription's are printed.
+        h = Handler(quiet=True)
         sub = await c.create_subscription(50, h)
         alarm_type = c.get_node(ua.ObjectIds.AlarmConditionType)
         evf = await get_filter_from_event_type([alarm_type])
         await sub.subscribe_events(c.nodes.server, alarm_type, evfilter=evf, queuesize=100)
+        values = await c.create_subscription(50, Handler())
+        await values.subscribe_data_change(await node(c, f"{args.drive}/{args.variable}"), sampling_interval=0, queuesize=10)
         say("subscribed")
         t0, seen, acked = time.monotonic(), 0, None
         while time.monotonic() - t0 < args.seconds:
