@@ -163,6 +163,8 @@ pub(crate) struct Client {
     child: Child,
     lines: Lines<BufReader<ChildStdout>>,
     name: &'static str,
+    /// Its standard error, for the failure's message.
+    stderr: tempfile::NamedTempFile,
 }
 
 /// asyncua answering requests one by one (its `table` scenario): one
@@ -235,9 +237,10 @@ impl Client {
     }
 
     fn spawn(mut cmd: Command, name: &'static str) -> Client {
+        let stderr = tempfile::NamedTempFile::new().expect("a file for its errors");
         let mut child = cmd
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(stderr.reopen().expect("its errors' file"))
             .kill_on_drop(true)
             .spawn()
             .unwrap_or_else(|e| panic!("{}", tools::cannot_run(name, &e)));
@@ -246,7 +249,15 @@ impl Client {
             child,
             lines: BufReader::new(stdout).lines(),
             name,
+            stderr,
         }
+    }
+
+    /// The end of what it wrote to its standard error.
+    fn errors(&self) -> String {
+        let text = std::fs::read_to_string(self.stderr.path()).unwrap_or_default();
+        let lines: Vec<&str> = text.lines().collect();
+        lines[lines.len().saturating_sub(30)..].join("\n")
     }
 
     /// The next step the client prints (failing on its `error` step).
@@ -259,7 +270,7 @@ impl Client {
             let Ok(v) = serde_json::from_str::<Value>(&line) else {
                 continue;
             };
-            assert_ne!(v["step"], "error", "{}: {v}", self.name);
+            assert_ne!(v["step"], "error", "{}: {v}\n{}", self.name, self.errors());
             return Some(v);
         }
     }
@@ -284,8 +295,9 @@ impl Client {
         let status = self.child.wait().await.expect("it ends");
         assert!(
             status.success(),
-            "{} ended with {status}: {all:?}",
-            self.name
+            "{} ended with {status}: {all:?}\n{}",
+            self.name,
+            self.errors()
         );
         all
     }
@@ -316,12 +328,22 @@ fn step<'a>(steps: &'a [Value], name: &str) -> &'a Value {
 }
 
 /// Endpoints, browse, read with units, the anonymous write and HistoryRead,
-/// as both clients see them.
+/// as both clients see them, each client running its scenarios in one
+/// process, both at once.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn both_clients_browse_read_with_units_and_read_history() {
     bounded(LIMIT, async {
         let ua = Ua::start(None).await;
-        let all = Client::asyncua(&ua.url, "endpoints", &[]).steps().await;
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        let (all, node) = tokio::join!(
+            Client::asyncua(
+                &ua.url,
+                "endpoints,browse,read,anonymous-write,history",
+                &["--drive".into(), "lift".into()],
+            )
+            .steps(),
+            Client::node(&ua.url, "endpoints,browse,read,history", &pki, &[]).steps(),
+        );
         let endpoints = step(&all, "endpoints")["endpoints"]
             .as_array()
             .unwrap()
@@ -345,7 +367,6 @@ async fn both_clients_browse_read_with_units_and_read_history() {
             }
         }
 
-        let all = Client::asyncua(&ua.url, "browse", &[]).steps().await;
         let browse = step(&all, "browse");
         assert_eq!(
             browse["drives"],
@@ -364,7 +385,6 @@ async fn both_clients_browse_read_with_units_and_read_history() {
             );
         }
 
-        let all = Client::asyncua(&ua.url, "read", &[]).steps().await;
         let read = step(&all, "read");
         let speed = &read["values"]["Speed"];
         assert_eq!(
@@ -394,49 +414,38 @@ async fn both_clients_browse_read_with_units_and_read_history() {
         // The poll's period is the fastest sampling.
         assert!(read["min_sampling_ms"].as_f64().unwrap() > 0.0, "{read}");
 
-        let all = Client::asyncua(&ua.url, "anonymous-write", &[])
-            .steps()
-            .await;
         let refused = step(&all, "anonymous-write");
         assert_eq!(refused["status"], "BadUserAccessDenied", "{refused}");
         // Its UserAccessLevel shows no write (CurrentRead only).
         assert_eq!(refused["user_access_level"], 1, "{refused}");
 
-        let all = Client::asyncua(&ua.url, "history", &["--drive".into(), "lift".into()])
-            .steps()
-            .await;
         let history = step(&all, "history");
         assert!(history["count"].as_u64().unwrap() > 5, "{history}");
         assert_eq!(history["five"], 5, "{history}");
 
         // node-opcua: the same server through a second implementation.
-        node_sees_the_same(&ua, endpoints.len(), &browse["drives"]).await;
+        node_sees_the_same(&node, endpoints.len(), &browse["drives"]);
     })
     .await;
 }
 
-/// node-opcua's view of `ua`: as many endpoints, the same drives, Speed
-/// read with its unit, HistoryRead.
-async fn node_sees_the_same(ua: &Ua, endpoints: usize, drives: &Value) {
-    let pki = ua.pki.parent().unwrap().join("node-pki");
-    let all = Client::node(&ua.url, "endpoints", &pki, &[]).steps().await;
+/// node-opcua's view (its steps `node`): as many endpoints, the same
+/// drives, Speed read with its unit, HistoryRead.
+fn node_sees_the_same(node: &[Value], endpoints: usize, drives: &Value) {
     assert_eq!(
-        step(&all, "endpoints")["endpoints"]
+        step(node, "endpoints")["endpoints"]
             .as_array()
             .unwrap()
             .len(),
         endpoints
     );
-    let all = Client::node(&ua.url, "browse", &pki, &[]).steps().await;
-    assert_eq!(step(&all, "browse")["drives"], *drives);
-    let all = Client::node(&ua.url, "read", &pki, &[]).steps().await;
-    let speed = &step(&all, "read")["values"]["Speed"];
+    assert_eq!(step(node, "browse")["drives"], *drives);
+    let speed = &step(node, "read")["values"]["Speed"];
     assert_eq!(
         (speed["status"].as_str(), speed["unit_id"].as_u64()),
         (Some("Good"), Some(5_394_509))
     );
-    let all = Client::node(&ua.url, "history", &pki, &[]).steps().await;
-    let history = step(&all, "history");
+    let history = step(node, "history");
     assert_eq!(history["status"], "Good");
     assert!(history["count"].as_u64().unwrap() > 5, "{history}");
 }
@@ -447,7 +456,8 @@ async fn node_sees_the_same(ua: &Ua, endpoints: usize, drives: &Value) {
 /// percent deadbands as wide as they say), an out-of-range setpoint is
 /// refused with the range in the diagnostics. The operator's write and an
 /// anonymous session's refused one are audited by user and the client's
-/// address, `<user> (127.0.0.1:<port>)` (face `opcua`).
+/// address, `<user> (127.0.0.1:<port>)` (face `opcua`). node-opcua does the
+/// same on another drive at the same time.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
     bounded(LIMIT, async {
@@ -461,7 +471,19 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
             "--metrics".into(),
             format!("http://{}/metrics", ua.d.http),
         ]);
-        let all = Client::asyncua(&ua.url, "operate", &args).steps().await;
+        // node-opcua at the same time, on the feeder.
+        let pki = ua.pki.parent().unwrap().join("node-pki");
+        let mut node_args = operator();
+        node_args.extend([
+            "--drive".into(),
+            "feeder".into(),
+            "--value".into(),
+            "450".into(),
+        ]);
+        let (all, node) = tokio::join!(
+            Client::asyncua(&ua.url, "operate", &args).steps(),
+            Client::node(&ua.url, "operate", &pki, &node_args).steps(),
+        );
         assert_eq!(step(&all, "written")["status"], "Good", "{all:?}");
         assert_eq!(step(&all, "turned")["reached"], 600.0, "{all:?}");
         // The simulated motor turned (the conveyor's gear: 3.75): its
@@ -504,6 +526,7 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
         assert_eq!(anonymous["status"], "BadUserAccessDenied", "{anonymous}");
         let audit = wait_for(&mut ws, STEP, "the refusal's audit line", |m| {
             m["type"] == "write"
+                && m["drive"] == "conveyor"
                 && m["what"]
                     .as_str()
                     .is_some_and(|w| w.contains("speed setpoint 100 rpm"))
@@ -523,6 +546,7 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
         );
         let audit = wait_for(&mut ws, STEP, "the setpoint's audit line", |m| {
             m["type"] == "write"
+                && m["drive"] == "conveyor"
                 && m["what"]
                     .as_str()
                     .is_some_and(|w| w.contains("speed setpoint 600 rpm"))
@@ -536,26 +560,17 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
         assert_eq!(audit["ok"], true, "{audit}");
 
         // node-opcua, on the feeder.
-        let pki = ua.pki.parent().unwrap().join("node-pki");
-        let mut args = operator();
-        args.extend([
-            "--drive".into(),
-            "feeder".into(),
-            "--value".into(),
-            "450".into(),
-        ]);
-        let all = Client::node(&ua.url, "operate", &pki, &args).steps().await;
         assert_eq!(
-            step(&all, "anonymous-write")["status"],
+            step(&node, "anonymous-write")["status"],
             "BadUserAccessDenied",
-            "{all:?}"
+            "{node:?}"
         );
-        assert_eq!(step(&all, "written")["status"], "Good", "{all:?}");
-        assert_eq!(step(&all, "turned")["reached"], 450.0, "{all:?}");
+        assert_eq!(step(&node, "written")["status"], "Good", "{node:?}");
+        assert_eq!(step(&node, "turned")["reached"], 450.0, "{node:?}");
         assert_eq!(
-            step(&all, "out-of-range")["status"],
+            step(&node, "out-of-range")["status"],
             "BadOutOfRange",
-            "{all:?}"
+            "{node:?}"
         );
     })
     .await;
@@ -587,46 +602,51 @@ fn subscribed_at_the_poll_rate(angle: &Value) {
 
 /// A client killed with -9 while its setpoint holds a lease: its session
 /// times out (3 s, the most `[opcua]` allows here) and the lease ends with
-/// `comm_loss_action` (zero speed): the motor stops. Both clients.
+/// `comm_loss_action` (zero speed): the motor stops. Both clients, at once.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_killed_client_whose_session_times_out_stops_the_motor() {
     bounded(LIMIT, async {
         let ua = Ua::start(None).await;
         let pki = ua.pki.parent().unwrap().join("node-pki");
-        for (unit, drive, client) in [(1u8, "conveyor", "asyncua"), (2, "lift", "node-opcua")] {
-            let mut args = operator();
-            args.extend([
-                "--drive".into(),
-                drive.into(),
-                "--value".into(),
-                "300".into(),
-            ]);
-            let mut c = match client {
-                "asyncua" => Client::asyncua(&ua.url, "lease", &args),
-                _ => Client::node(&ua.url, "lease", &pki, &args),
-            };
-            let leased = c.until("leased").await;
-            assert_eq!(leased["status"], "Good", "{client}: {leased}");
-            eventually(Duration::from_secs(20), "the motor turning", || {
-                (ua.d.sim().drive(unit)?.speed_rpm.abs() > 50.0).then_some(())
-            })
-            .await;
-            c.kill().await;
-            let t0 = Instant::now();
-            eventually(
-                Duration::from_secs(20),
-                "the motor stopped by the lease's end",
-                || (ua.d.sim().drive(unit)?.speed_rpm.abs() < 1.0).then_some(()),
-            )
-            .await;
-            // Not before the session's timeout: the session outlives its
-            // connection that long (a client may reconnect).
-            assert!(
-                t0.elapsed() >= Duration::from_millis(1500),
-                "{client}: stopped after {:?}",
-                t0.elapsed()
-            );
-        }
+        // Both clients at once, each on its drive.
+        let leg = |unit: u8, drive: &'static str, client: &'static str| {
+            let (ua, pki) = (&ua, &pki);
+            async move {
+                let mut args = operator();
+                args.extend([
+                    "--drive".into(),
+                    drive.into(),
+                    "--value".into(),
+                    "300".into(),
+                ]);
+                let mut c = match client {
+                    "asyncua" => Client::asyncua(&ua.url, "lease", &args),
+                    _ => Client::node(&ua.url, "lease", &pki, &args),
+                };
+                let leased = c.until("leased").await;
+                assert_eq!(leased["status"], "Good", "{client}: {leased}");
+                eventually(Duration::from_secs(20), "the motor turning", || {
+                    (ua.d.sim().drive(unit)?.speed_rpm.abs() > 50.0).then_some(())
+                })
+                .await;
+                c.kill().await;
+                let t0 = Instant::now();
+                eventually(
+                    Duration::from_secs(20),
+                    "the motor stopped by the lease's end",
+                    || (ua.d.sim().drive(unit)?.speed_rpm.abs() < 1.0).then_some(()),
+                )
+                .await;
+                // Not before the session's timeout: the session outlives its
+                // connection that long (a client may reconnect).
+                assert!(
+                    t0.elapsed() >= Duration::from_millis(1500),
+                    "{client}: stopped after {:?}",
+                    t0.elapsed()
+                );
+            }
+        };
+        tokio::join!(leg(1, "conveyor", "asyncua"), leg(2, "lift", "node-opcua"));
     })
     .await;
 }
@@ -936,19 +956,24 @@ async fn user_certificates_sign_in_with_the_role_they_carry() {
         openssl(&dir, &["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "rogue-key.pem", "-out",
             "rogue.pem", "-days", "30", "-subj", "/CN=rogue", "-addext", &format!("{role}admin")]);
         openssl(&dir, &["x509", "-in", "rogue.pem", "-outform", "der", "-out", "rogue.der"]);
-        for (who, step_name, status) in [
-            ("olivia", "brake", "Good"),
-            ("vera", "brake", "BadUserAccessDenied"),
-            ("rogue", "session", "BadIdentityTokenRejected"),
-        ] {
+        // The three at once.
+        let signs_in = |who: &'static str, step_name: &'static str, status: &'static str| {
             let args: Vec<String> = vec![
                 "--drive".into(), "lift".into(),
                 "--user-cert".into(), dir.join(format!("{who}.der")).display().to_string(),
                 "--user-key".into(), dir.join(format!("{who}-key.pem")).display().to_string(),
             ];
-            let all = Client::asyncua(&ua.url, "brake", &args).steps().await;
-            assert_eq!(step(&all, step_name)["status"], status, "{who}: {all:?}");
-        }
+            let client = Client::asyncua(&ua.url, "brake", &args);
+            async move {
+                let all = client.steps().await;
+                assert_eq!(step(&all, step_name)["status"], status, "{who}: {all:?}");
+            }
+        };
+        tokio::join!(
+            signs_in("olivia", "brake", "Good"),
+            signs_in("vera", "brake", "BadUserAccessDenied"),
+            signs_in("rogue", "session", "BadIdentityTokenRejected"),
+        );
         let text = ua.d.metrics.render();
         assert_eq!(metric(&text, "drivegate_opcua_sign_ins_total{kind=\"certificate\",result=\"accepted\"}"), 2.0);
         assert_eq!(metric(&text, "drivegate_opcua_sign_ins_total{kind=\"certificate\",result=\"refused\"}"), 1.0);

@@ -1,7 +1,8 @@
 """An OPC UA client on asyncua (PyPI), the third-party client of the OPC UA
-tests (tests/control/opcua.rs): one scenario per run,
+tests (tests/control/opcua.rs): one scenario per run, or several
+(comma-separated) one after the other,
 
-    python3 opcua_client.py URL SCENARIO [--drive D] [--user U --password P]
+    python3 opcua_client.py URL SCENARIO[,SCENARIO...] [--drive D] [--user U --password P]
         [--policy none|basic256sha256|aes128|aes256 --cert C.der --key K.pem]
 
 Prints one JSON object per line (`{"step": ..., ...}`) for the test to
@@ -422,10 +423,20 @@ async def table(args):
 SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table]}
 
 
+def scenarios(text):
+    """SCENARIO, or several, comma-separated, run one after the other in
+    this process (one interpreter start for them all)."""
+    names = text.split(",")
+    for name in names:
+        if name not in SCENARIOS:
+            raise argparse.ArgumentTypeError(f"unknown scenario {name!r}: {', '.join(SCENARIOS)}")
+    return names
+
+
 async def main():
     p = argparse.ArgumentParser()
     p.add_argument("url")
-    p.add_argument("scenario", choices=SCENARIOS)
+    p.add_argument("scenario", type=scenarios)
     p.add_argument("--drive", default="conveyor")
     p.add_argument("--variable", default="Speed")
     p.add_argument("--user")
@@ -440,7 +451,8 @@ async def main():
     p.add_argument("--timeout-ms", type=int, default=3000)
     p.add_argument("--metrics", help="the daemon's /metrics URL")
     args = p.parse_args()
-    await SCENARIOS[args.scenario](args)
+    for name in args.scenario:
+        await SCENARIOS[name](args)
 
 
 if __name__ == "__main__":
