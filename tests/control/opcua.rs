@@ -621,7 +621,7 @@ async fn a_killed_client_whose_session_times_out_stops_the_motor() {
                 ]);
                 let mut c = match client {
                     "asyncua" => Client::asyncua(&ua.url, "lease", &args),
-                    _ => Client::node(&ua.url, "lease", &pki, &args),
+                    _ => Client::node(&ua.url, "lease", pki, &args),
                 };
                 let leased = c.until("leased").await;
                 assert_eq!(leased["status"], "Good", "{client}: {leased}");
@@ -809,7 +809,7 @@ async fn an_alarm_is_an_event_acknowledged_as_through_the_api() {
                 ]);
                 let mut c = match client {
                     "asyncua" => Client::asyncua(&ua.url, "events", &args),
-                    _ => Client::node(&ua.url, "events", &pki, &args),
+                    _ => Client::node(&ua.url, "events", pki, &args),
                 };
                 c.until("subscribed").await;
                 ua.d.sim().set_silent(unit, true);
