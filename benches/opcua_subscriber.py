@@ -1,6 +1,8 @@
 """One OPC UA session of the OPC UA benchmark (benches/opcua.rs), on asyncua:
 monitors every variable of every drive (Objects/Drives/*/*, sampling 0: the
-server's minimum, the poll period), and after --warmup seconds counts, for
+server's minimum, the poll period; queue 10) in a subscription publishing
+every --publishing-ms (default 0: the server's least, the poll period), and
+after --warmup seconds counts, for
 --seconds, the notifications and their latency: the client's clock when a
 notification is handled minus the value's source timestamp (the poll's
 time; same machine, same clock). Prints one JSON line.
@@ -38,6 +40,7 @@ async def main():
     p.add_argument("url")
     p.add_argument("--seconds", type=float, default=10)
     p.add_argument("--warmup", type=float, default=3)
+    p.add_argument("--publishing-ms", type=float, default=0)
     args = p.parse_args()
     async with Client(args.url, timeout=60) as c:
         ns = await c.get_namespace_index(NS)
@@ -48,7 +51,7 @@ async def main():
                 nodes.append(n)
         h = Handler()
         sub = await c.create_subscription(
-            ua.CreateSubscriptionParameters(RequestedPublishingInterval=100, RequestedMaxKeepAliveCount=100, MaxNotificationsPerPublish=0, PublishingEnabled=True, Priority=0),
+            ua.CreateSubscriptionParameters(RequestedPublishingInterval=args.publishing_ms, RequestedMaxKeepAliveCount=100, MaxNotificationsPerPublish=0, PublishingEnabled=True, Priority=0),
             h,
         )
         for i in range(0, len(nodes), 200):
@@ -63,6 +66,7 @@ async def main():
         q = lambda f: lat[min(len(lat) - 1, int(f * len(lat)))] if lat else None
         print(json.dumps({
             "items": len(nodes),
+            "publishing_ms": sub.parameters.RequestedPublishingInterval,
             "notifications": h.count,
             "per_second": h.count / elapsed,
             "p50_ms": q(0.5),

@@ -163,6 +163,7 @@ impl StatusCache {
     pub fn expected(&self, unit: u8) -> Expected {
         self.expected.get(&unit).copied().unwrap_or(Expected {
             period: std::time::Duration::ZERO,
+            poll: std::time::Duration::ZERO,
             slack: super::freshness::GRACE,
         })
     }

@@ -110,8 +110,14 @@ pub enum Cause {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Expected {
     /// Its poll interval, or (polled as fast as the bus allows) one round
-    /// of the bus's drives.
+    /// of the bus's drives, each poll after its share of commands: the
+    /// longest it may wait for its next poll.
     pub period: Duration,
+    /// Its poll interval, or one round of the bus's status polls alone at
+    /// the line's shortest silences: how often it is polled on a bus that
+    /// nothing else uses, never later than it can be. Its OPC UA
+    /// variables' minimum sampling interval.
+    pub poll: Duration,
     /// The longest one poll may take (every attempt timing out), plus
     /// [`GRACE`].
     pub slack: Duration,
@@ -119,13 +125,14 @@ pub struct Expected {
 
 impl Expected {
     /// For a drive polled every `interval` (zero: round robin at full
-    /// rate) on a bus of `drives` drives at `line`, where commands may
-    /// take `poll_share` transactions for each poll, with `attempts` of
-    /// `response_timeout` each per poll.
+    /// rate) on a bus of `drives` drives at `line`, whose shortest silence
+    /// between two frames is `silence` (t3.5 with `interframe = "spec"`),
+    /// where commands may take `poll_share` transactions for each poll,
+    /// with `attempts` of `response_timeout` each per poll.
     pub fn new(
         interval: Duration,
         (drives, poll_share): (usize, u32),
-        line: LineTiming,
+        (line, silence): (LineTiming, Duration),
         attempts: u32,
         response_timeout: Duration,
     ) -> Self {
@@ -135,8 +142,13 @@ impl Expected {
         let one = line.transaction_time(8, 19, Duration::from_millis(1));
         let polls = u32::try_from(drives.max(1)).unwrap_or(u32::MAX);
         let round = one * polls * poll_share.saturating_add(1);
+        // The same round without commands: each poll its two frames on the
+        // wire and the silence before its request, the drive answering at
+        // once. No two polls of a drive are closer than that.
+        let fastest = (line.wire_time(8 + 19) + silence) * polls;
         Expected {
             period: interval.max(round),
+            poll: interval.max(fastest),
             slack: response_timeout * attempts.max(1) + GRACE,
         }
     }
@@ -314,6 +326,7 @@ mod tests {
 
     const EXPECTED: Expected = Expected {
         period: Duration::from_secs(1),
+        poll: Duration::from_secs(1),
         slack: Duration::from_millis(600),
     };
 
@@ -477,29 +490,44 @@ mod tests {
     }
 
     #[test]
-    fn the_period_is_the_interval_or_a_round_of_the_bus() {
+    fn the_period_is_the_interval_or_a_round_of_the_bus_and_the_poll_its_fastest() {
         let line = LineTiming::new_8n1(115_200);
         let timeout = Duration::from_millis(50);
-        let slow = Expected::new(Duration::from_secs(1), (8, 4), line, 2, timeout);
+        let spec = (line, line.t3_5());
+        let slow = Expected::new(Duration::from_secs(1), (8, 4), spec, 2, timeout);
         assert_eq!(slow.period, Duration::from_secs(1));
+        assert_eq!(slow.poll, Duration::from_secs(1));
         assert_eq!(slow.slack, Duration::from_millis(1100));
         // At full rate: one round of eight status polls, each after four
         // commands at most, about 275 ms.
-        let fast = Expected::new(Duration::ZERO, (8, 4), line, 2, timeout);
+        let fast = Expected::new(Duration::ZERO, (8, 4), spec, 2, timeout);
         assert!(
             fast.period > Duration::from_millis(230) && fast.period < Duration::from_millis(320),
             "{:?}",
             fast.period
         );
+        // Polled alone, eight drives take at least 8 x 4.09 ms (27 bytes
+        // and a t3.5 each) a round; with shorter silences (interframe
+        // "auto" trying 1.5 characters), less.
+        assert_eq!(fast.poll, Duration::from_micros(32_750));
+        let auto = Expected::new(
+            Duration::ZERO,
+            (8, 4),
+            (line, line.char_time() * 3 / 2),
+            2,
+            timeout,
+        );
+        assert!(auto.poll < Duration::from_millis(20), "{:?}", auto.poll);
         // At 9600 baud a round of thirty drives takes seconds.
         let long = Expected::new(
             Duration::ZERO,
             (30, 4),
-            LineTiming::new_8n1(9600),
+            (LineTiming::new_8n1(9600), LineTiming::new_8n1(9600).t3_5()),
             1,
             timeout,
         );
         assert!(long.period > Duration::from_secs(5), "{:?}", long.period);
+        assert!(long.poll < long.period, "{:?}", long.poll);
     }
 
     #[test]

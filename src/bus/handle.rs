@@ -254,10 +254,12 @@ impl BusHandle {
         self.shared.cache.all()
     }
 
-    /// How often `unit` is polled: its poll interval, or (polled as fast
-    /// as the bus allows) one round of the bus's drives.
+    /// How often `unit` is polled when nothing else uses the bus: its
+    /// poll interval, or (polled as fast as the bus allows) one round of
+    /// the bus's status polls; never later than it can be (see
+    /// [`freshness::Expected::poll`]).
     pub fn poll_period(&self, unit: u8) -> std::time::Duration {
-        self.shared.cache.expected(unit).period
+        self.shared.cache.expected(unit).poll
     }
 
     /// How fresh `unit`'s data is now (`None`: not a drive of this bus).

@@ -59,6 +59,17 @@ pub enum Interframe {
 }
 
 impl Interframe {
+    /// The shortest silence a status poll may get before its request on
+    /// `line`: the spec's t3.5, the plant's fixed gap, or the shortest
+    /// trial of `auto` (1.5 character times).
+    pub fn shortest(&self, line: LineTiming) -> Duration {
+        match self {
+            Interframe::Spec => line.t3_5(),
+            Interframe::Fixed(gap) => *gap,
+            Interframe::Auto => line.char_time() * 3 / 2,
+        }
+    }
+
     /// The setting as the configuration and the API write it: `spec`,
     /// `auto`, or microseconds.
     pub fn describe(&self) -> String {

@@ -65,7 +65,7 @@ impl BusSettings {
                 let expected = Expected::new(
                     interval,
                     (self.drives.len(), self.poll_share),
-                    master.line,
+                    (master.line, master.interframe.shortest(master.line)),
                     u32::from(master.retries) + 1,
                     master.response_timeout,
                 );

@@ -70,6 +70,7 @@ mod tests {
 
     const EXPECTED: Expected = Expected {
         period: Duration::from_millis(100),
+        poll: Duration::from_millis(100),
         slack: Duration::from_millis(400),
     };
 

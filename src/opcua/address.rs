@@ -369,7 +369,7 @@ fn set_missing(space: &mut AddressSpace, id: &NodeId) {
 }
 
 /// Names of the drives and buses of `directory`, with the drives' poll
-/// periods.
+/// periods (µs).
 pub fn plant_of(directory: &Directory) -> (BTreeSet<(String, u64)>, BTreeSet<String>) {
     let drives = directory
         .drives()
@@ -378,7 +378,7 @@ pub fn plant_of(directory: &Directory) -> (BTreeSet<(String, u64)>, BTreeSet<Str
             let period = handle.poll_period(d.unit);
             Some((
                 d.name.clone(),
-                u64::try_from(period.as_millis()).unwrap_or(u64::MAX),
+                u64::try_from(period.as_micros()).unwrap_or(u64::MAX),
             ))
         })
         .collect();

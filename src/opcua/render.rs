@@ -138,7 +138,7 @@ impl Render {
         for (name, period) in drives.difference(&shown.drives) {
             let drive = DriveNodes {
                 name,
-                period: Duration::from_millis(*period),
+                period: Duration::from_micros(*period),
             };
             self.nodes.add_drive(&mut space, &drive);
         }

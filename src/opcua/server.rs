@@ -104,16 +104,67 @@ fn endpoint_host(bound: SocketAddr, host: &str) -> String {
     }
 }
 
-/// The fastest poll of the plant now: the smallest sampling interval a
-/// subscription gets (the crate has one minimum for every node).
-fn fastest_poll(control: &Control) -> Duration {
+/// The least sampling interval and subscription tick: a tick every few
+/// milliseconds would cost CPU for nothing (no drive is polled that often
+/// but alone on a fast line).
+pub const FLOOR: Duration = Duration::from_millis(10);
+
+/// The tick and the least publishing interval at most: the crate's own,
+/// so that a plant of slow polls does not slow publishing.
+pub const CEILING: Duration = Duration::from_millis(100);
+
+/// The fastest poll of the plant now (see
+/// [`crate::bus::BusHandle::poll_period`]), at least [`FLOOR`]; 100 ms in
+/// a plant without drives.
+pub fn fastest_poll(control: &Control) -> Duration {
     let directory = control.plant().now();
     directory
         .drives()
         .filter_map(|d| Some(directory.handle_of(d)?.poll_period(d.unit)))
         .min()
-        .unwrap_or(Duration::from_millis(100))
-        .max(Duration::from_millis(10))
+        .unwrap_or(CEILING)
+        .max(FLOOR)
+}
+
+/// The subscriptions' timing for `fastest`, the fastest poll: the least
+/// sampling interval, the least publishing interval, and the tick.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Timing {
+    /// The minimum sampling interval: the poll's period (a client asking
+    /// for less, or 0, gets it: every poll, each with its source
+    /// timestamp).
+    pub sampling_ms: f64,
+    /// The least publishing interval: the poll's period too, at most
+    /// [`CEILING`].
+    pub publishing_ms: f64,
+    /// How often the crate looks at the subscriptions (it samples held
+    /// values and publishes at its ticks only): half the least publishing
+    /// interval, so that a subscription publishing at the poll's period
+    /// is not late by a whole tick when a tick comes a little early.
+    pub tick_ms: u64,
+}
+
+impl Timing {
+    /// The timing for polls every `fastest` at best.
+    pub fn of(fastest: Duration) -> Timing {
+        let fastest = fastest.max(FLOOR);
+        let publishing = fastest.min(CEILING);
+        let tick = (publishing / 2).max(FLOOR);
+        Timing {
+            sampling_ms: fastest.as_secs_f64() * 1000.0,
+            publishing_ms: publishing.as_secs_f64() * 1000.0,
+            tick_ms: u64::try_from(tick.as_millis()).unwrap_or(100),
+        }
+    }
+
+    /// `builder` with this timing.
+    fn apply(self, builder: ServerBuilder) -> ServerBuilder {
+        let mut builder = builder.subscription_poll_interval_ms(self.tick_ms);
+        let limits = &mut builder.limits_mut().subscriptions;
+        limits.min_sampling_interval_ms = self.sampling_ms;
+        limits.min_publishing_interval_ms = self.publishing_ms;
+        builder
+    }
 }
 
 /// Builds the server of `parts`.
@@ -193,11 +244,12 @@ pub fn build(parts: Parts) -> Result<Built, String> {
     for security in section.endpoints() {
         builder = builder.add_endpoint(security.name(), endpoint(security));
     }
-    let limits = builder.limits_mut();
-    limits.subscriptions.min_sampling_interval_ms =
-        fastest_poll(&parts.control).as_secs_f64() * 1000.0;
+    let mut builder = Timing::of(fastest_poll(&parts.control)).apply(builder);
     // Event items: a ConditionRefresh sends every retained alarm at once.
-    limits.subscriptions.max_monitored_item_queue_size = 1000;
+    builder
+        .limits_mut()
+        .subscriptions
+        .max_monitored_item_queue_size = 1000;
     let (server, handle) = builder.build()?;
     let events = events
         .get()
@@ -208,4 +260,40 @@ pub fn build(parts: Parts) -> Result<Built, String> {
         handle,
         events,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn subscriptions_sample_and_publish_at_the_fastest_poll_and_tick_twice_as_often() {
+        let ms = Duration::from_millis;
+        // Four drives polled flat out at 115200 baud: a round of 16.4 ms.
+        let four = Timing::of(Duration::from_micros(16_375));
+        assert_eq!(
+            four,
+            Timing {
+                sampling_ms: 16.375,
+                publishing_ms: 16.375,
+                tick_ms: 10,
+            }
+        );
+        // Eight drives: ticks of half the round.
+        let eight = Timing::of(Duration::from_micros(32_750));
+        assert_eq!((eight.sampling_ms, eight.tick_ms), (32.75, 16));
+        // Slow polls: sampling at their period, publishing and the tick
+        // no slower than the crate's own.
+        let slow = Timing::of(ms(1000));
+        assert_eq!(
+            (slow.sampling_ms, slow.publishing_ms, slow.tick_ms),
+            (1000.0, 100.0, 50)
+        );
+        // A lone drive on a fast line: the floor.
+        let lone = Timing::of(ms(4));
+        assert_eq!(
+            (lone.sampling_ms, lone.publishing_ms, lone.tick_ms),
+            (10.0, 10.0, 10)
+        );
+    }
 }

@@ -27,8 +27,10 @@ struct Bench {
     dir: tempfile::TempDir,
     link: PathBuf,
     _sim: Child,
-    /// Tables appended to the configuration (`[mqtt]`).
+    /// Tables appended to the configuration (`[mqtt]`, `[opcua]`).
     extra: Mutex<String>,
+    /// The API token of the daemon's reads, when `extra` has tokens.
+    token: Mutex<Option<&'static str>>,
 }
 
 impl Bench {
@@ -53,6 +55,7 @@ impl Bench {
             link,
             _sim: sim,
             extra: Mutex::new(String::new()),
+            token: Mutex::new(None),
         }
     }
 
@@ -142,7 +145,8 @@ name = "belt"
             .unwrap();
         let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
         let log = Arc::new(Mutex::new(Vec::<Value>::new()));
-        let (mut http, mut tcp) = (None, None);
+        let (mut http, mut tcp, mut opcua) = (None, None, None);
+        let with_opcua = self.extra.lock().unwrap().contains("[opcua]");
         let started = tokio::time::timeout(EVENT, async {
             while let Some(line) = lines.next_line().await.unwrap() {
                 let v: Value = serde_json::from_str(&line).unwrap_or(json!({"message": line}));
@@ -153,12 +157,13 @@ name = "belt"
                 match message.as_str() {
                     "HTTP API listening" => http = addr,
                     "Modbus TCP listening" => tcp = addr,
+                    "OPC UA listening" => opcua = addr,
                     _ => {}
                 }
                 log.lock().unwrap().push(v);
-                // The listeners bind after the replay, so both addresses
+                // The listeners bind after the replay, so their addresses
                 // come after every replayed decision.
-                if http.is_some() && tcp.is_some() {
+                if http.is_some() && tcp.is_some() && (opcua.is_some() || !with_opcua) {
                     return;
                 }
             }
@@ -179,9 +184,10 @@ name = "belt"
         let http = http.expect("the HTTP address in the log");
         Daemon {
             child,
-            api: Api::new(http, None),
+            api: Api::new(http, *self.token.lock().unwrap()),
             http,
             tcp: tcp.expect("the Modbus TCP address in the log"),
+            opcua,
             log,
         }
     }
@@ -192,6 +198,8 @@ struct Daemon {
     api: Api,
     http: SocketAddr,
     tcp: SocketAddr,
+    /// Where OPC UA listens, when `[opcua]` is configured.
+    opcua: Option<SocketAddr>,
     log: Arc<Mutex<Vec<Value>>>,
 }
 
@@ -644,6 +652,77 @@ async fn an_mqtt_commands_lease_stops_at_start_up() {
         let d = bench.serve().await;
         assert_eq!(d.decision("conveyor").as_deref(), Some("stop-holder-gone"));
         d.until_speed("conveyor", "stop", |s| s.abs() <= 2).await;
+        d.kill9().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// The lease of an OPC UA session's setpoint is the session's: it cannot
+/// outlive the process, so the next one ends it with `[opcua]
+/// comm_loss_action` (here `brake`, not the default, so that the stop
+/// sent is seen to be the session's own), audited with its holder.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_opcua_sessions_lease_stops_at_start_up_with_its_comm_loss_action() {
+    use crate::support::input::OPERATOR;
+    use crate::support::opcua::{Held, server_pki};
+    tokio::time::timeout(LIMIT, async {
+        let bench = Bench::new().await;
+        // The server's certificate made by openssl (the daemon's own key
+        // generation costs seconds of a debug build's CPU), kept across the
+        // restart like the journal.
+        let pki = server_pki(bench.dir.path());
+        *bench.extra.lock().unwrap() = format!(
+            "[opcua]\nlisten = \"127.0.0.1:0\"\npki_dir = \"{}\"\nsecurity = [\"none\"]\n\
+             session_timeout_max_ms = 60000\ncomm_loss_action = \"brake\"\n\
+             [[http.token]]\nname = \"scada\"\nrole = \"operator\"\nsha256 = \"{}\"\n",
+            pki.display(),
+            crate::support::config::sha256_hex(OPERATOR)
+        );
+        *bench.token.lock().unwrap() = Some(OPERATOR);
+        let d = bench.serve().await;
+        let url = format!("opc.tcp://{}/", d.opcua.expect("OPC UA listens"));
+        let client = Held::lease(&url, ("scada", OPERATOR), ("conveyor", 150.0), EVENT).await;
+        d.until_speed("conveyor", "motor at speed", |s| (s - 150).abs() <= 5)
+            .await;
+        // Held by the session, named by its user and its client's address.
+        let owner = format!("opcua scada ({})", client.address);
+        let lease = d.api.get("/api/v1/drives/conveyor").await.expect(200)["lease"].clone();
+        assert_eq!(lease["owner"].as_str(), Some(owner.as_str()), "{lease:#}");
+        d.kill9().await;
+        client.kill().await;
+
+        let d = bench.serve().await;
+        assert_eq!(
+            d.decision("conveyor").as_deref(),
+            Some("stop-holder-gone"),
+            "{:#?}",
+            d.replayed()
+        );
+        let replayed = d.replayed();
+        let audit = replayed
+            .iter()
+            .find(|v| v["drive"] == "conveyor")
+            .expect("the conveyor's decision audited");
+        assert_eq!(audit["who"].as_str(), Some(owner.as_str()), "{audit:#}");
+        let text = audit["message"].as_str().unwrap_or_default();
+        assert!(
+            text.contains("a stop (brake)") && text.contains("OPC UA session"),
+            "{audit:#}"
+        );
+        d.until_speed("conveyor", "stop", |s| s.abs() <= 2).await;
+        // The brake is what reached the drive.
+        let braked = d.writes_to(1).await.iter().any(|f| {
+            f["meaning"]
+                .as_str()
+                .is_some_and(|m| m.to_lowercase().contains("brake"))
+        });
+        assert!(braked, "{:#?}", d.writes_to(1).await);
+        assert_eq!(
+            d.metric("drivegate_restart_decisions_total{decision=\"stop-holder-gone\"}")
+                .await,
+            1.0
+        );
         d.kill9().await;
     })
     .await

@@ -1,7 +1,8 @@
 // An OPC UA client on node-opcua (npm node-opcua-client, installed under
 // target/node-opcua by scripts/test), the second implementation the OPC UA
-// tests (tests/control/opcua.rs) check the server with; one scenario per run:
-//   node opcua_client.js URL SCENARIO --pki DIR [--drive D] [--user U --password P]
+// tests (tests/control/opcua.rs) check the server with; one scenario per run,
+// or several (comma-separated) one after the other:
+//   node opcua_client.js URL SCENARIO[,SCENARIO...] --pki DIR [--drive D] [--user U --password P]
 // Prints one JSON object per line ({"step": ...}) for the test to check;
 // {"step": "error"} and exit status 1 when a step cannot go on.
 "use strict";
@@ -173,11 +174,16 @@ const scenarios = {
 };
 
 (async () => {
-    if (!scenarios[scenario]) fail(`unknown scenario ${scenario}`);
-    try {
-        await scenarios[scenario]();
-        process.exit(0);
-    } catch (e) {
-        fail(scenario, { message: e.message });
+    // One scenario, or several (comma-separated) one after the other: one
+    // start of node and node-opcua for them all.
+    const names = scenario.split(",");
+    for (const name of names) if (!scenarios[name]) fail(`unknown scenario ${name}`);
+    for (const name of names) {
+        try {
+            await scenarios[name]();
+        } catch (e) {
+            fail(name, { message: e.message });
+        }
     }
+    process.exit(0);
 })();

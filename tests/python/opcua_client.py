@@ -1,7 +1,8 @@
 """An OPC UA client on asyncua (PyPI), the third-party client of the OPC UA
-tests (tests/control/opcua.rs): one scenario per run,
+tests (tests/control/opcua.rs): one scenario per run, or several
+(comma-separated) one after the other,
 
-    python3 opcua_client.py URL SCENARIO [--drive D] [--user U --password P]
+    python3 opcua_client.py URL SCENARIO[,SCENARIO...] [--drive D] [--user U --password P]
         [--policy none|basic256sha256|aes128|aes256 --cert C.der --key K.pem]
 
 Prints one JSON object per line (`{"step": ..., ...}`) for the test to
@@ -14,6 +15,7 @@ import asyncio
 import json
 import sys
 import time
+import urllib.request
 from datetime import datetime, timedelta, timezone
 
 from asyncua import Client, ua
@@ -27,6 +29,14 @@ POLICIES = {
     "aes128": sp.SecurityPolicyAes128Sha256RsaOaep,
     "aes256": sp.SecurityPolicyAes256Sha256RsaPss,
 }
+
+
+def polls(metrics):
+    """Status polls made on every bus so far, from the daemon's /metrics."""
+    with urllib.request.urlopen(metrics, timeout=10) as r:
+        text = r.read().decode()
+    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+               if line.startswith("drivegate_bus_polls_total{"))
 
 
 def say(step, **fields):
@@ -111,6 +121,7 @@ async def browse(args):
 
 async def read(args):
     async with await client(args) as c:
+        ns = await c.get_namespace_index(NS)
         out = {}
         for name in ["Speed", "Angle", "Turns", "Current", "Voltage", "Temperature", "Active", "Mode", "FaultCode", "Online"]:
             n = await node(c, f"{args.drive}/{name}")
@@ -129,7 +140,18 @@ async def read(args):
                 pass
             out[name] = entry
         msi = await (await node(c, f"{args.drive}/Speed")).read_attribute(ua.AttributeIds.MinimumSamplingInterval)
-        say("read", values=out, min_sampling_ms=msi.Value.Value)
+        # Each bus's variables (Objects/Buses/<bus>/*): value and status.
+        buses = {}
+        for b in await (await c.nodes.objects.get_child(f"{ns}:Buses")).get_children():
+            values = {}
+            for v in await b.get_children():
+                dv = await v.read_data_value(raise_on_bad_status=False)
+                values[(await v.read_browse_name()).Name] = {
+                    "value": dv.Value.Value if dv.Value is not None else None,
+                    "status": dv.StatusCode.name,
+                }
+            buses[(await b.read_browse_name()).Name] = values
+        say("read", values=out, min_sampling_ms=msi.Value.Value, buses=buses)
 
 
 class Handler:
@@ -167,7 +189,9 @@ async def anonymous_write(args):
 async def operate(args):
     """An anonymous SpeedSetpoint write (refused), then as --user:
     SetMode("speed"), Activate(), SpeedSetpoint = --value, with a
-    subscription to Speed that sees the motor turn at the poll rate; then
+    subscription to Speed that sees the motor turn; the Angle's
+    notifications over 2 s at its minimum sampling interval, beside the
+    polls of /metrics (--metrics), and through deadband filters; then
     an out-of-range setpoint with its diagnostics, and Brake(). Each
     session says its client's address."""
     async with Client(args.url, timeout=20) as anonymous:
@@ -179,8 +203,6 @@ async def operate(args):
         sub = await c.create_subscription(50, h)
         speed = await node(c, f"{args.drive}/Speed")
         await sub.subscribe_data_change(speed, sampling_interval=0, queuesize=10)
-        angle = Handler(quiet=True)
-        sub2 = await c.create_subscription(50, angle)
         for method, inputs in [("SetMode", [ua.Variant("speed", ua.VariantType.String)]), ("Activate", [])]:
             try:
                 await call(c, args.drive, method, *inputs)
@@ -197,10 +219,16 @@ async def operate(args):
                 break
             await asyncio.sleep(0.05)
         say("turned", reached=h.values[-1][1] if h.values else None)
-        # The angle changes at every poll while the motor turns: its
-        # notifications come at the poll rate.
+        # The angle changes at every poll while the motor turns: monitored
+        # at the sampling interval it says is its minimum (the poll's
+        # period), in a subscription publishing as often, with a queue of
+        # one (what most SCADA ask), its notifications come at the poll
+        # rate; counted over the window below, beside the bus's polls.
         angle_node = await node(c, f"{args.drive}/Angle")
-        await sub2.subscribe_data_change(angle_node, sampling_interval=0, queuesize=10)
+        msi = (await angle_node.read_attribute(ua.AttributeIds.MinimumSamplingInterval)).Value.Value
+        angle = Handler(quiet=True)
+        sub2 = await c.create_subscription(msi, angle)
+        await sub2.subscribe_data_change(angle_node, sampling_interval=msi, queuesize=1)
         # Beside it, deadband filters (DataChangeFilter) on the same angle:
         # absolute (degrees) and percent (of its EURange, 360 degrees), one
         # narrower than a poll's step and one no change can exceed.
@@ -211,13 +239,19 @@ async def operate(args):
             sd = await c.create_subscription(50, hd)
             await sd.deadband_monitor(angle_node, value, kind, queuesize=10)
             deadbands[name] = (sd, hd)
+        # The window starts once the first values are in.
+        await asyncio.sleep(0.3)
+        angle.values.clear()
+        polls0, t0 = polls(args.metrics), time.monotonic()
         await asyncio.sleep(2.0)
+        n, polls1, window = len(angle.values), polls(args.metrics), time.monotonic() - t0
         await sub2.delete()
         for sd, _ in deadbands.values():
             await sd.delete()
         ts = [v[0] for v in angle.values]
         gaps = [round((b - a) * 1000) for a, b in zip(ts, ts[1:])]
-        say("angle", notifications=len(angle.values), gaps_ms=gaps,
+        say("angle", notifications=n, window_s=window, polls=polls1 - polls0,
+            sampling_ms=msi, publishing_ms=sub2.parameters.RequestedPublishingInterval, gaps_ms=gaps,
             deadbands={name: len(hd.values) for name, (_, hd) in deadbands.items()})
         # Out of range, with the refusal's words in the diagnostics.
         n = await node(c, f"{args.drive}/SpeedSetpoint")
@@ -238,7 +272,7 @@ async def lease(args):
     """Takes a lease (SetMode, Activate, a setpoint) and waits to be killed."""
     c = await client(args, timeout_ms=args.timeout_ms)
     await c.connect()
-    say("session", timeout_ms=c.session_timeout)
+    say("session", timeout_ms=c.session_timeout, address=local_address(c))
     await call(c, args.drive, "SetMode", ua.Variant("speed", ua.VariantType.String))
     await call(c, args.drive, "Activate")
     got = await write(c, args.drive, "SpeedSetpoint", args.value)
@@ -284,13 +318,20 @@ async def quality(args):
 
 async def events(args):
     """Alarm events (AlarmConditionType, the client's default filter):
-    prints each, and acknowledges the first active one for --drive."""
+    prints each, and acknowledges the first active one for --drive; and,
+    in a subscription of its own, --drive's --variable (no filter: the
+    default trigger), each value with its status."""
     async with await client(args) as c:
-        h = Handler()
+        # Quiet: async-opcua sends an event item a data change of its own
+        # (BadWaitingForInitialData) when it is created; only the values'
+        # subscription's are printed.
+        h = Handler(quiet=True)
         sub = await c.create_subscription(50, h)
         alarm_type = c.get_node(ua.ObjectIds.AlarmConditionType)
         evf = await get_filter_from_event_type([alarm_type])
         await sub.subscribe_events(c.nodes.server, alarm_type, evfilter=evf, queuesize=100)
+        values = await c.create_subscription(50, Handler())
+        await values.subscribe_data_change(await node(c, f"{args.drive}/{args.variable}"), sampling_interval=0, queuesize=10)
         say("subscribed")
         t0, seen, acked = time.monotonic(), 0, None
         while time.monotonic() - t0 < args.seconds:
@@ -382,10 +423,20 @@ async def table(args):
 SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table]}
 
 
+def scenarios(text):
+    """SCENARIO, or several, comma-separated, run one after the other in
+    this process (one interpreter start for them all)."""
+    names = text.split(",")
+    for name in names:
+        if name not in SCENARIOS:
+            raise argparse.ArgumentTypeError(f"unknown scenario {name!r}: {', '.join(SCENARIOS)}")
+    return names
+
+
 async def main():
     p = argparse.ArgumentParser()
     p.add_argument("url")
-    p.add_argument("scenario", choices=SCENARIOS)
+    p.add_argument("scenario", type=scenarios)
     p.add_argument("--drive", default="conveyor")
     p.add_argument("--variable", default="Speed")
     p.add_argument("--user")
@@ -398,8 +449,10 @@ async def main():
     p.add_argument("--value", type=float, default=600.0)
     p.add_argument("--seconds", type=float, default=20)
     p.add_argument("--timeout-ms", type=int, default=3000)
+    p.add_argument("--metrics", help="the daemon's /metrics URL")
     args = p.parse_args()
-    await SCENARIOS[args.scenario](args)
+    for name in args.scenario:
+        await SCENARIOS[name](args)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 //! What the OPC UA tests of several binaries share: a PKI directory with
 //! the server's certificate made by openssl (the daemon's own RSA key
 //! generation costs seconds of CPU in a debug build), and asyncua (PyPI,
-//! `tests/python/opcua_client.py`) holding a session open.
+//! `tests/python/opcua_client.py`) holding a session open, or a lease.
 
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
@@ -76,8 +76,9 @@ pub fn server_pki(dir: &Path) -> PathBuf {
     pki
 }
 
-/// An anonymous asyncua session held open (its `hold` scenario) until
-/// [`Held::close`] or the drop (which kills the client).
+/// An asyncua session held open: anonymous until [`Held::close`] or the
+/// drop (its `hold` scenario), or an operator's that took a lease (its
+/// `lease` scenario) until it is killed. The drop kills the client.
 pub struct Held {
     child: Child,
     lines: Lines<BufReader<ChildStdout>>,
@@ -88,11 +89,51 @@ pub struct Held {
 impl Held {
     /// Opens the session at `url` and waits until it is activated.
     pub async fn open(url: String, limit: Duration) -> Held {
+        let mut held = Held::spawn(&url, "hold", &[]);
+        let connected = held.until("connected", limit).await;
+        held.address = connected["address"]
+            .as_str()
+            .unwrap_or_default()
+            .to_string();
+        held
+    }
+
+    /// Signs in at `url` as `user` with `password` and takes a lease on
+    /// `drive`: SetMode("speed"), Activate(), SpeedSetpoint = `rpm`, each
+    /// answered `Good` (else the test fails); the session is kept open.
+    pub async fn lease(
+        url: &str,
+        (user, password): (&str, &str),
+        (drive, rpm): (&str, f64),
+        limit: Duration,
+    ) -> Held {
+        let rpm = rpm.to_string();
+        let args = [
+            "--user",
+            user,
+            "--password",
+            password,
+            "--drive",
+            drive,
+            "--value",
+            &rpm,
+        ];
+        let mut held = Held::spawn(url, "lease", &args);
+        let session = held.until("session", limit).await;
+        held.address = session["address"].as_str().unwrap_or_default().to_string();
+        let leased = held.until("leased", limit).await;
+        assert_eq!(leased["status"], "Good", "asyncua: {leased}");
+        held
+    }
+
+    /// `opcua_client.py URL SCENARIO ARGS`, its input a pipe.
+    fn spawn(url: &str, scenario: &str, args: &[&str]) -> Held {
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/opcua_client.py");
         let mut child = Command::new("python3")
             .arg(script)
             .arg(url)
-            .arg("hold")
+            .arg(scenario)
+            .args(args)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
@@ -100,17 +141,11 @@ impl Held {
             .spawn()
             .unwrap_or_else(|e| panic!("{}", tools::cannot_run("asyncua", &e)));
         let stdout = child.stdout.take().expect("its output");
-        let mut held = Held {
+        Held {
             child,
             lines: BufReader::new(stdout).lines(),
             address: String::new(),
-        };
-        let connected = held.until("connected", limit).await;
-        held.address = connected["address"]
-            .as_str()
-            .unwrap_or_default()
-            .to_string();
-        held
+        }
     }
 
     async fn until(&mut self, step: &str, limit: Duration) -> Value {
@@ -140,5 +175,11 @@ impl Held {
             .expect("asyncua ends")
             .expect("its status");
         assert!(status.success(), "asyncua ended with {status}");
+    }
+
+    /// `kill -9`: the client vanishes without closing its session.
+    pub async fn kill(mut self) {
+        self.child.start_kill().expect("kill -9");
+        let _ = self.child.wait().await;
     }
 }

@@ -64,7 +64,8 @@ pub enum HolderKind {
     /// A session (a WebSocket): it ends with the process.
     Session,
     /// A session's communication-loss function (a Modbus TCP client's
-    /// network, the MQTT session): it ends with the process.
+    /// network, the MQTT session, an OPC UA session): it ends with the
+    /// process.
     CommLoss,
 }
 
@@ -75,7 +76,7 @@ impl HolderKind {
             HolderKind::Http => "an HTTP client",
             HolderKind::Session => "a WebSocket stream session",
             HolderKind::CommLoss => {
-                "a Modbus TCP connection or the MQTT session, with a communication-loss time"
+                "a session with a communication-loss time (a Modbus TCP connection, the MQTT session or an OPC UA session)"
             }
         }
     }
