@@ -2,12 +2,13 @@
 """Builds the tests with `cargo test --locked --no-run` and runs them, each
 end-to-end test in a process of its own, several at once, the longest first.
 
-Most tests wait on the simulated wire and on timers, not on the CPU, so one
-binary after another (what `cargo test` does) leaves the machine idle most of
-the time, and a binary's slowest test holds up the rest. Here every test of
-an end-to-end binary is run as `BINARY --exact NAME`, and a pool keeps
-`--jobs` of them going; the unit tests (a fraction of a second) run as one
-process. A failed test's whole output is printed; every test's is kept under
+Most tests wait on the simulated wire and on timers, not on the CPU, so the
+tests of a binary in the threads of one process (what `cargo test` does) leave
+the machine idle most of the time, and the slowest tests hold up the rest.
+Here every end-to-end test (tests/main.rs, a module per area) is run as
+`BINARY --exact NAME`, and a pool keeps `--jobs` of them going; the unit tests
+(a fraction of a second) run as one process. A test is shown by its area:
+`api::leases::name` as `api/leases::name`. A failed test's whole output is printed; every test's is kept under
 target/test-logs/. How long each took is kept in target/test-logs/durations.tsv
 to order the next run; before a first run, tests/durations.tsv (seconds
 measured once, only an order) stands in.
@@ -72,6 +73,12 @@ def listed(executable, ignored=False):
     return [l[: -len(": test")] for l in out.splitlines() if l.endswith(": test")]
 
 
+def key_of(binary, test):
+    """`api/leases::name` for the test `api::leases::name`: its area first."""
+    area, _, rest = test.partition("::")
+    return f"{area}/{rest}" if rest else f"{binary}/{test}"
+
+
 def jobs_of(binaries):
     """[(key, argv)]: one per end-to-end test, one per other binary."""
     jobs = []
@@ -82,7 +89,7 @@ def jobs_of(binaries):
         ignored = set(listed(executable, ignored=True))
         for test in listed(executable):
             if test not in ignored:
-                jobs.append((f"{name}/{test}", [executable, "--exact", test]))
+                jobs.append((key_of(name, test), [executable, "--exact", test]))
     return jobs
 
 
@@ -172,14 +179,14 @@ def main():
 
     total = time.monotonic() - started
     failed = [key for key, ok, _ in finished if not ok]
-    per_binary = {}
+    per_area = {}
     for key, ok, seconds in finished:
-        binary = key.split("/")[0]
-        count, busy = per_binary.get(binary, (0, 0.0))
-        per_binary[binary] = (count + 1, busy + seconds)
-    for binary, (count, busy) in sorted(per_binary.items()):
+        area = key.split("/")[0]
+        count, busy = per_area.get(area, (0, 0.0))
+        per_area[area] = (count + 1, busy + seconds)
+    for area, (count, busy) in sorted(per_area.items()):
         if count > 1:
-            say(f"{binary}: {count} tests, {busy:.0f} s of test time")
+            say(f"{area}: {count} tests, {busy:.0f} s of test time")
     slowest = sorted(finished, key=lambda f: -f[2])[:3]
     say("slowest: " + ", ".join(f"{k} {s:.1f} s" for k, _, s in slowest))
     if failed:

@@ -15,4 +15,4 @@
 set -eu
 cd "$(dirname "$0")/../.."
 command -v prometheus >/dev/null || { echo "needs prometheus (apt-get install prometheus)" >&2; exit 1; }
-exec cargo test --test deploy prometheus::real_prometheus -- --nocapture
+exec cargo test --test e2e deploy::prometheus::real_prometheus -- --nocapture

@@ -7,9 +7,9 @@
 
 use serde_json::{Value, json};
 
-use crate::browser::{LONG, assert_clean, open, picture, rest, text};
-use crate::harness::cdp::Browser;
-use crate::harness::{OPERATOR, VIEWER, config};
+use super::browser::{LONG, assert_clean, open, picture, rest, text};
+use super::harness::cdp::Browser;
+use super::harness::{OPERATOR, VIEWER, config};
 use crate::support::TestDaemon;
 
 /// The alarms of `drive` of `kind`, as the API lists them.
@@ -45,7 +45,7 @@ async fn acknowledge_all(d: &TestDaemon) {
     for a in list["alarms"].as_array().unwrap() {
         let (status, body) = rest(
             d,
-            Some(crate::harness::ADMIN),
+            Some(super::harness::ADMIN),
             "POST",
             &format!("/api/v1/alarms/{}/ack", a["id"]),
             None,

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
 
-use crate::harness::{ADMIN, OPERATOR, VIEWER, Watcher, config};
+use super::harness::{ADMIN, OPERATOR, VIEWER, Watcher, config};
 use crate::support::modbus_tcp::{Raw, write};
 use crate::support::{FOUR_DRIVES, TestDaemon};
 
@@ -60,7 +60,7 @@ async fn whoami_names_the_token_and_its_role() {
         (
             200,
             json!({"who": null, "role": null, "tokens_required": true,
-                   "jog_lease_ms": crate::harness::JOG_LEASE_MS})
+                   "jog_lease_ms": super::harness::JOG_LEASE_MS})
         )
     );
     for (token, name, role) in [
@@ -74,7 +74,7 @@ async fn whoami_names_the_token_and_its_role() {
             (
                 200,
                 json!({"who": name, "role": role, "tokens_required": true,
-                       "jog_lease_ms": crate::harness::JOG_LEASE_MS})
+                       "jog_lease_ms": super::harness::JOG_LEASE_MS})
             )
         );
     }

@@ -144,7 +144,7 @@ fn every_page_module_is_in_the_navigation() {
 
 /// Every picture in docs/ is taken by a test of this binary through
 /// `browser::picture` (so it is retaken, and what it shows was checked,
-/// at each `DRIVEGATE_SCREENSHOTS=docs cargo test --test console`), and
+/// at each `DRIVEGATE_SCREENSHOTS=docs cargo test --test e2e console::`), and
 /// every picture the docs show is there.
 #[test]
 fn every_picture_of_the_docs_is_taken_by_a_test() {

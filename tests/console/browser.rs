@@ -6,19 +6,19 @@
 //!
 //! The pictures in docs/ are taken by the tests that check what they show
 //! (`picture`), when `DRIVEGATE_SCREENSHOTS` is set: `DRIVEGATE_SCREENSHOTS=docs
-//! cargo test --test console` retakes them all.
+//! cargo test --test e2e console::` retakes them all.
 
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
 
-use crate::harness::cdp::{Browser, Page};
-use crate::harness::{ADMIN, OPERATOR, Proxy, VIEWER, Watcher, config, speed, until};
+use super::harness::cdp::{Browser, Page};
+use super::harness::{ADMIN, OPERATOR, Proxy, VIEWER, Watcher, config, speed, until};
 use crate::support::TestDaemon;
 use crate::support::opcua::{Held, server_pki};
 
 /// The jog's lease in the page (web/console/jog.js).
-const LEASE: Duration = Duration::from_millis(crate::harness::JOG_LEASE_MS);
+const LEASE: Duration = Duration::from_millis(super::harness::JOG_LEASE_MS);
 /// Room for a loaded machine's scheduling beside the lease itself.
 const SLACK: Duration = Duration::from_millis(1500);
 pub(crate) const LONG: Duration = Duration::from_secs(30);

@@ -5,8 +5,8 @@
 
 use std::time::Duration;
 
-use crate::harness::cdp::Browser;
-use crate::harness::{ADMIN, config};
+use super::harness::cdp::Browser;
+use super::harness::{ADMIN, config};
 use crate::support::TestDaemon;
 use crate::support::api::Api;
 use crate::support::modbus_tcp::{Raw, write};

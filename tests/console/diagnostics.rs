@@ -11,9 +11,9 @@ use std::time::Duration;
 use serde_json::json;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-use crate::browser::{LONG, assert_clean, open, picture, rest, rest_ok, text};
-use crate::harness::cdp::{Browser, Page};
-use crate::harness::{ADMIN, OPERATOR, VIEWER, config};
+use super::browser::{LONG, assert_clean, open, picture, rest, rest_ok, text};
+use super::harness::cdp::{Browser, Page};
+use super::harness::{ADMIN, OPERATOR, VIEWER, config};
 use crate::support::TestDaemon;
 
 /// Picks `value` in the select `selector`, as a user would (a change event).
@@ -91,7 +91,7 @@ async fn the_scope_page_arms_on_a_level_fills_plots_exports_and_shows_a_refusal(
 
     // A speed step from the API (another client) makes it trigger.
     let a = Some(ADMIN);
-    crate::browser::in_speed_mode(&daemon, "conveyor").await;
+    super::browser::in_speed_mode(&daemon, "conveyor").await;
     rest_ok(
         &daemon,
         a,

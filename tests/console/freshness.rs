@@ -17,8 +17,8 @@ use std::path::Path;
 
 use serde_json::json;
 
-use crate::browser::{LONG, assert_clean, picture, rest_ok, text};
-use crate::harness::cdp::{Browser, Page};
+use super::browser::{LONG, assert_clean, picture, rest_ok, text};
+use super::harness::cdp::{Browser, Page};
 use crate::support::config::ConfigBuilder;
 use crate::support::sim_process::ExternalSim;
 use crate::support::{TestDaemon, bounded};
@@ -234,7 +234,7 @@ async fn a_bus_that_went_down_greys_every_value_with_why_and_since_when() {
         let _sim = ExternalSim::start(&link, "1-2", &[]).await;
         // The daemon first (the reopen waits for its backoff), then the
         // page: a failure says which of the two did not follow.
-        crate::harness::until(LONG, "the daemon's conveyor live again", || {
+        super::harness::until(LONG, "the daemon's conveyor live again", || {
             daemon.plant.buses()[0]
                 .handle
                 .freshness(1)

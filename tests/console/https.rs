@@ -5,8 +5,8 @@
 
 use std::process::Command;
 
-use crate::browser::{LONG, assert_no_errors, open};
-use crate::harness::{ADMIN, config};
+use super::browser::{LONG, assert_no_errors, open};
+use super::harness::{ADMIN, config};
 use crate::support::TestDaemon;
 use crate::support::cdp::Browser;
 

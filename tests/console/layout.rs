@@ -7,9 +7,9 @@
 
 use serde_json::{Value, json};
 
-use crate::browser::{LONG, assert_clean, open, picture, rest_ok};
-use crate::harness::cdp::Browser;
-use crate::harness::{ADMIN, OPERATOR, config};
+use super::browser::{LONG, assert_clean, open, picture, rest_ok};
+use super::harness::cdp::Browser;
+use super::harness::{ADMIN, OPERATOR, config};
 use crate::support::TestDaemon;
 
 /// The header's items as boxes: every item's top and bottom, and the
@@ -57,7 +57,7 @@ async fn the_overview_of_a_plant_fits_one_header_row_at_1280_px_and_a_tablet() {
     let daemon = TestDaemon::start(&config(true, "")).await;
     // A plant: the conveyor running, the turntable in fault, the feeder
     // gone silent.
-    crate::browser::in_speed_mode(&daemon, "conveyor").await;
+    super::browser::in_speed_mode(&daemon, "conveyor").await;
     rest_ok(
         &daemon,
         Some(ADMIN),
@@ -212,7 +212,7 @@ fn apart(plot: &Value, what: &str) {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_trends_time_labels_never_overlap_at_any_zoom_or_width() {
     let daemon = TestDaemon::start(&config(true, "")).await;
-    crate::browser::in_speed_mode(&daemon, "conveyor").await;
+    super::browser::in_speed_mode(&daemon, "conveyor").await;
     let browser = Browser::start(&[]).await;
     let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(ADMIN)).await;
     page.wait_for(

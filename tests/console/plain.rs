@@ -9,9 +9,9 @@ use std::time::Instant;
 
 use serde_json::json;
 
-use crate::browser::{LONG, assert_clean, open, picture, rest, text};
-use crate::harness::cdp::{Browser, Page};
-use crate::harness::{ADMIN, JOG_LEASE_MS, OPERATOR, Watcher, config, speed, until};
+use super::browser::{LONG, assert_clean, open, picture, rest, text};
+use super::harness::cdp::{Browser, Page};
+use super::harness::{ADMIN, JOG_LEASE_MS, OPERATOR, Watcher, config, speed, until};
 use crate::support::TestDaemon;
 
 /// Whether the first element matching `selector` is rendered (not in a
@@ -174,7 +174,7 @@ async fn setpoint_state(page: &Page, state: &str, what: &str) -> String {
 async fn the_setpoint_field_sets_a_speed_held_while_the_page_is_open_or_for_a_time() {
     let daemon = TestDaemon::start(&config(true, "")).await;
     let watcher = Watcher::start(daemon.http, Some(ADMIN)).await;
-    crate::browser::in_speed_mode(&daemon, "conveyor").await;
+    super::browser::in_speed_mode(&daemon, "conveyor").await;
     let browser = Browser::start(&[]).await;
     let page = open(&browser, &daemon.url(""), "/drive/conveyor", Some(OPERATOR)).await;
     page.wait_for(

@@ -12,9 +12,9 @@ use std::time::Duration;
 
 use serde_json::{Value, json};
 
-use crate::browser::{LONG, assert_clean, open, picture, rest_ok, text};
-use crate::harness::cdp::{Browser, Page};
-use crate::harness::{ADMIN, config};
+use super::browser::{LONG, assert_clean, open, picture, rest_ok, text};
+use super::harness::cdp::{Browser, Page};
+use super::harness::{ADMIN, config};
 use crate::support::TestDaemon;
 use drivegate::bus::cache::Link;
 
@@ -263,7 +263,7 @@ async fn a_drive_is_replaced_step_by_step_from_a_saved_file() {
     for unit in [1, 3, 4] {
         daemon.sim().set_silent(unit, false);
     }
-    crate::harness::until(Duration::from_secs(90), "all four drives online", || {
+    super::harness::until(Duration::from_secs(90), "all four drives online", || {
         (1..=4).all(|u| {
             daemon.plant.buses()[0]
                 .handle

@@ -6,16 +6,16 @@
 
 use serde_json::{Value, json};
 
-use crate::browser::{LONG, assert_clean, open, picture, rest, rest_ok};
-use crate::harness::cdp::Browser;
-use crate::harness::{ADMIN, OPERATOR, config, speed, until};
+use super::browser::{LONG, assert_clean, open, picture, rest, rest_ok};
+use super::harness::cdp::Browser;
+use super::harness::{ADMIN, OPERATOR, config, speed, until};
 use crate::support::TestDaemon;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_drive_page_zooms_from_30_seconds_to_the_hour_from_the_history() {
     let daemon = TestDaemon::start(&config(true, "")).await;
     let a = Some(ADMIN);
-    crate::browser::in_speed_mode(&daemon, "conveyor").await;
+    super::browser::in_speed_mode(&daemon, "conveyor").await;
     rest_ok(
         &daemon,
         a,

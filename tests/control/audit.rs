@@ -9,6 +9,7 @@ use std::io::Write;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use crate::support::alone;
 use crate::support::api::Api;
 use crate::support::modbus_tcp::{Raw, four_drives_with, write};
 use crate::support::{TestDaemon, eventually};
@@ -54,9 +55,14 @@ impl Captured {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn refusals_and_overrides_are_audited_alike_for_every_face() {
+    let name = "refusals_and_overrides_are_audited_alike_for_every_face";
+    if !alone::here(module_path!(), name) {
+        return;
+    }
     let log = Captured::default();
     let writer = log.clone();
-    // The only test of this binary: the global subscriber sees every thread.
+    // Alone in its process: the global subscriber sees every thread, and
+    // no other test's writes.
     tracing_subscriber::fmt()
         .with_writer(move || writer.clone())
         .with_env_filter("drivegate::audit=info")

@@ -34,7 +34,7 @@ use std::time::Duration;
 
 use serde_json::{Value, json};
 
-use crate::opcua::Table;
+use super::opcua::Table;
 use crate::support::api::{Api, Ws, connect, send_json, wait_for};
 use crate::support::input::{ADMIN, OPERATOR, VIEWER, config};
 use crate::support::modbus_tcp::{Raw, write};
@@ -401,7 +401,7 @@ async fn every_rule_decides_the_same_through_every_face() {
             broker.url()
         );
         let dir = tempfile::tempdir().unwrap();
-        let opcua = format!("[opcua]\n{}\n", crate::opcua::section(dir.path()));
+        let opcua = format!("[opcua]\n{}\n", super::opcua::section(dir.path()));
         let d = TestDaemon::start(&config("", networks, true, &format!("{mqtt}{opcua}"))).await;
         host.next(LIMIT, "the node's births", |m| m.is("DBIRTH", Some("feeder")))
             .await;

@@ -1,7 +1,7 @@
 //! The package manifest says what the code needs, no more: the oldest Rust
 //! it builds with, and only crates the daemon itself uses as dependencies
 //! (what only the tests and benchmarks use is a dev-dependency, so it is
-//! not built into the daemon).
+//! not built into the daemon); and one binary for the end-to-end tests.
 
 use std::path::Path;
 
@@ -72,5 +72,36 @@ fn every_dependency_is_used_by_the_daemon() {
     assert!(
         unused.is_empty(),
         "dependencies the daemon's code never uses (remove them, or make them dev-dependencies if only tests and benchmarks use them): {unused:?}"
+    );
+}
+
+/// The end-to-end tests are one binary (`tests/main.rs`, a module per
+/// area): each test binary links the whole daemon and its dependencies,
+/// seconds of a two-core build. Cargo would make a binary of any other
+/// `tests/*.rs` or `tests/*/main.rs`.
+#[test]
+fn the_end_to_end_tests_are_one_binary() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let declared: Vec<String> = manifest()["test"]
+        .as_array()
+        .expect("[[test]] in Cargo.toml")
+        .iter()
+        .map(|t| format!("{} {}", t["name"], t["path"]))
+        .collect();
+    assert_eq!(declared, [r#""e2e" "tests/main.rs""#]);
+    let mut more = Vec::new();
+    for entry in std::fs::read_dir(root.join("tests")).expect("tests/") {
+        let path = entry.expect("entry").path();
+        let name = path.file_name().unwrap().to_string_lossy().to_string();
+        if path.join("main.rs").is_file() {
+            more.push(format!("tests/{name}/main.rs"));
+        } else if name.ends_with(".rs") && name != "main.rs" {
+            more.push(format!("tests/{name}"));
+        }
+    }
+    assert!(
+        more.is_empty(),
+        "test binaries besides tests/main.rs: {more:?}; make each a module of an area \
+         (tests/<area>/<part>.rs, declared in tests/<area>/mod.rs)"
     );
 }

@@ -2,7 +2,7 @@
 //! time): what a scrape costs and whether scraping slows the bus.
 //!
 //! ```sh
-//! cargo test --release --test deploy metrics_scrape_cost -- --ignored --nocapture
+//! cargo test --release --test e2e deploy::metrics_scrape_cost -- --ignored --nocapture
 //! ```
 //!
 //! With 8 simulated drives polled as fast as the bus allows at 115200 baud,

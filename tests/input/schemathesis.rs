@@ -8,7 +8,7 @@
 //!
 //! Bounded for CI: `DRIVEGATE_ST_EXAMPLES` examples per operation (default
 //! 3) with a fixed seed (`DRIVEGATE_ST_SEED`); run more locally with e.g.
-//! `DRIVEGATE_ST_EXAMPLES=100 cargo test --test input schemathesis`.
+//! `DRIVEGATE_ST_EXAMPLES=100 cargo test --test e2e input::schemathesis`.
 
 use std::path::Path;
 use std::time::Duration;

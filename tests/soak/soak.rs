@@ -14,7 +14,7 @@
 //! the daemon promises for a wire fault (drive did not answer, garbled
 //! reply, busy).
 //!
-//! Used by `tests/soak/main.rs` (a few seconds, in CI) and
+//! Used by `tests/soak/mod.rs` (a few seconds, in CI) and
 //! `benches/soak.rs` (the long run, `cargo bench --bench soak`).
 
 #![allow(dead_code, unreachable_pub, clippy::unwrap_used, clippy::expect_used)]

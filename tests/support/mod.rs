@@ -1,9 +1,9 @@
-//! What the test binaries share, one module per concept. Every binary
-//! includes this directory (`#[path = "../support/mod.rs"] mod support;`)
-//! and uses the part it needs.
+//! What the areas of the end-to-end tests share, one module per concept
+//! (`crate::support` in every area).
 
 #![allow(dead_code)]
 
+pub mod alone;
 pub mod api;
 pub mod bus;
 pub mod cdp;

@@ -3,13 +3,10 @@
 //! and plugged back. Every job is answered and the accounting adds up.
 //!
 //! A new fault test goes into the module of its kind of fault here; the
-//! soak, which measures the whole process, has its own binary
-//! (`tests/soak/`).
+//! soak, which measures the whole process, runs alone in a process of
+//! its own (`tests/soak/`).
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-#[path = "../support/mod.rs"]
-mod support;
 
 mod adapter;
 mod drives;

@@ -8,9 +8,6 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
-#[path = "../support/mod.rs"]
-mod support;
-
 mod cli;
 mod docs;
 mod graceful_stop;

@@ -4,12 +4,9 @@
 //!
 //! One module per rule; a new test of a rule goes into its module, and a
 //! row into `every_face`'s table, which runs every rule through every face.
-//! Helpers shared with other binaries live in `tests/support/`.
+//! Helpers shared with other areas live in `tests/support/`.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-#[path = "../support/mod.rs"]
-mod support;
 
 mod audit;
 mod brake;

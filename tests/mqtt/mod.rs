@@ -10,9 +10,6 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
-#[path = "../support/mod.rs"]
-mod support;
-
 mod acl;
 mod births;
 mod commands;
@@ -26,7 +23,7 @@ mod store;
 mod tls;
 mod wire_gone;
 
-use support::config::ConfigBuilder;
+use crate::support::config::ConfigBuilder;
 
 /// The Sparkplug group and node of the tests' daemons.
 pub const GROUP: &str = "plant";

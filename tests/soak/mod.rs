@@ -7,17 +7,25 @@
 //! polling at the end. The long run with its memory and rate figures is
 //! `cargo bench --bench soak` (see docs/reliability.md).
 //!
-//! This is the only test of its binary: the file descriptor and memory
-//! figures are the process's.
+//! It runs alone in a process of its own (`support::alone`): the file
+//! descriptor and memory figures are the process's.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+// The soak itself, shared with `benches/soak.rs` (the long run).
+#[allow(clippy::module_inception)]
 mod soak;
 
 use std::time::Duration;
 
+use crate::support::alone;
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_short_soak_leaks_nothing_and_answers_every_client_correctly() {
+    let name = "a_short_soak_leaks_nothing_and_answers_every_client_correctly";
+    if !alone::here(module_path!(), name) {
+        return;
+    }
     let plan = soak::Plan {
         buses: 2,
         // Bound by time: about 6 s.

@@ -8,9 +8,6 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub, dead_code)]
 
-#[path = "../support/mod.rs"]
-mod support;
-
 mod alarms;
 mod api;
 mod assets;

@@ -4,12 +4,9 @@
 //!
 //! A new test of the bus (master, scheduler, queue, poller) or of the
 //! simulator goes into the module of its part here. Helpers shared with
-//! other binaries live in `tests/support/`.
+//! other areas live in `tests/support/`.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-#[path = "../support/mod.rs"]
-mod support;
 
 mod dead_drive;
 mod interframe;

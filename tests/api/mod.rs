@@ -4,12 +4,9 @@
 //!
 //! One module per part of the API; a new test of the API goes into the
 //! module of its part (or a new module declared here). Helpers shared with
-//! other binaries live in `tests/support/`.
+//! other areas live in `tests/support/`.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-#[path = "../support/mod.rs"]
-mod support;
 
 mod alarms;
 mod auth;

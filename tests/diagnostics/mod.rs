@@ -4,13 +4,10 @@
 //! their triggers, pre-trigger, limits and roles, and the floor rate of the
 //! drives not captured.
 //!
-//! One module per part; helpers shared with other binaries live in
+//! One module per part; helpers shared with other areas live in
 //! `tests/support/`.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
-
-#[path = "../support/mod.rs"]
-mod support;
 
 mod monitor;
 mod scope;
