@@ -105,7 +105,7 @@ pub const MISSES_PER_STEP: u8 = 30;
 /// Answers at the confirmed gap after which a lone miss is checked again
 /// ([`RECHECK`] later, on a poll) rather than waited out: a drive that kept
 /// a gap this long did not turn strict for one lost reply.
-pub const RECHECK_AFTER: u32 = 100;
+pub const RECHECK_AFTER: u32 = 20;
 /// How long after such a miss its poll tries the gap again: never the
 /// retry of the same transaction.
 pub const RECHECK: Duration = Duration::from_secs(1);

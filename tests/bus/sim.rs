@@ -528,6 +528,8 @@ async fn shutdown_stops_every_drive_even_beyond_the_queue_limits() {
 const TWO_DRIVES_AT_400_MS: &str = r#"
 [http]
 listen = "127.0.0.1:0"
+[modbus_tcp]
+enabled = false
 [[bus]]
 name = "line"
 port = "sim"
