@@ -252,6 +252,8 @@ struct StopSignals {
     int: tokio::signal::unix::Signal,
     hup: tokio::signal::unix::Signal,
     control: Option<crate::control::Control>,
+    /// A SIGHUP came before the start was done: its reload is made then.
+    reload_pending: bool,
 }
 
 impl StopSignals {
@@ -262,12 +264,26 @@ impl StopSignals {
             int: signal(SignalKind::interrupt())?,
             hup: signal(SignalKind::hangup())?,
             control: None,
+            reload_pending: false,
         })
     }
 
-    /// From now on SIGHUP reloads the configuration through `control`.
+    /// From now on SIGHUP reloads the configuration through `control`;
+    /// one that came during the start reloads now.
     fn reload_with(&mut self, control: crate::control::Control) {
+        if std::mem::take(&mut self.reload_pending) {
+            Self::reload(control.clone());
+        }
         self.control = Some(control);
+    }
+
+    /// Reloads in its own task: its result is logged and audited by the
+    /// reloader, and a stop signal meanwhile is not kept waiting.
+    fn reload(control: crate::control::Control) {
+        tokio::spawn(async move {
+            let result = control.reload_as("SIGHUP".to_string(), None).await;
+            crate::control::audit::reload("SIGHUP", &result);
+        });
     }
 
     async fn recv(&mut self) {
@@ -275,18 +291,41 @@ impl StopSignals {
             tokio::select! {
                 _ = self.term.recv() => return info!("SIGTERM received"),
                 _ = self.int.recv() => return info!("SIGINT received"),
-                _ = self.hup.recv() => {
-                    info!("SIGHUP received: reloading the configuration; TLS listeners reload their certificates");
-                    if let Some(control) = self.control.clone() {
-                        // Its result is logged and audited by the reloader;
-                        // a stop signal meanwhile is not kept waiting.
-                        tokio::spawn(async move {
-                            let result = control.reload_as("SIGHUP".to_string(), None).await;
-                            crate::control::audit::reload("SIGHUP", &result);
-                        });
+                _ = self.hup.recv() => match self.control.clone() {
+                    Some(control) => {
+                        info!("SIGHUP received: reloading the configuration; TLS listeners reload their certificates");
+                        Self::reload(control);
                     }
-                }
+                    None => {
+                        // A `systemctl reload` while the buses open is not
+                        // lost: the file is read again once they are.
+                        info!("SIGHUP received during the start: the configuration is reloaded once the start is done");
+                        self.reload_pending = true;
+                    }
+                },
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn a_sighup_during_the_start_is_kept_for_when_the_start_is_done() {
+        let mut signals = StopSignals::new().expect("signal handlers");
+        // Before the core is there (the buses are opening), a reload asked
+        // for by `systemctl reload` is remembered, not dropped; the process
+        // lives on (the handler is in place).
+        nix::sys::signal::raise(nix::sys::signal::Signal::SIGHUP).expect("raise");
+        let waited = tokio::time::timeout(Duration::from_secs(5), async {
+            while !signals.reload_pending {
+                let _ = tokio::time::timeout(Duration::from_millis(10), signals.recv()).await;
+            }
+        })
+        .await;
+        assert!(waited.is_ok(), "the SIGHUP was not kept");
+        assert!(signals.control.is_none());
     }
 }
