@@ -200,6 +200,24 @@ async fn a_bus_that_went_down_greys_every_value_with_why_and_since_when() {
         // The bus's card says it too.
         let card = text(&page, ".bus[data-bus=line1]").await;
         assert!(card.contains("port down") && card.contains("0 of 2"), "{card}");
+        // Why a full wire is no fault says nothing of a port that is down.
+        assert!(!card.contains("Utilisation is the share"), "{card}");
+        // The banner names the bus once, then the alarm and its words.
+        let banner = page
+            .wait_for(
+                "(() => { const b = document.getElementById('alarm-banner'); \
+                  return !b.hidden && b.textContent.includes('bus down') && b.textContent; })()",
+                LONG,
+                "the bus-down alarm's banner",
+            )
+            .await;
+        let banner = banner.as_str().unwrap_or_default();
+        assert!(
+            banner.starts_with("1 alarm not acknowledged: ")
+                && banner.contains(" bus line1: bus down, its port failed (")
+                && banner.matches("bus line1").count() == 1,
+            "{banner}"
+        );
         picture(&page, "console-bus-down.png", false).await;
 
         // The drive page: greyed values, a sentence with since when, the

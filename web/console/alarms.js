@@ -94,6 +94,19 @@ export async function activeAlarmsOf(drive) {
   }
 }
 
+/** What an alarm is about, as its list and banner name it. */
+export function subjectOf(a) {
+  return a.drive || `bus ${a.bus}`;
+}
+
+/** An alarm's text beside its subject: the text names its subject first
+ * ("bus line1: its port failed ...") for the faces that show it alone. */
+export function textBeside(a) {
+  const prefix = `${subjectOf(a)}: `;
+  const text = String(a.text || '');
+  return text.startsWith(prefix) ? text.slice(prefix.length) : text;
+}
+
 /** An alarm's kind in words. */
 export function kindWords(kind) {
   return {

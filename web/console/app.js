@@ -10,7 +10,7 @@ import { ApiError, drivePath, get, post, setToken, token } from './api.js';
 import { Stream } from './stream.js';
 import { Store, plantLiveness } from './store.js';
 import { h, Note, run, dateTime } from './ui.js';
-import { kindWords } from './alarms.js';
+import { kindWords, subjectOf, textBeside } from './alarms.js';
 import { page as overview } from './pages/overview.js';
 import { page as drive } from './pages/drive.js';
 import { page as settings } from './pages/settings.js';
@@ -202,8 +202,8 @@ function alarmBanner() {
     }
     el.dataset.count = String(a.unacknowledged);
     el.replaceChildren(
-      h('strong', {}, a.unacknowledged === 1 ? '1 alarm not acknowledged' : `${a.unacknowledged} alarms not acknowledged`),
-      ': ', h('span', { class: 'newest' }, `${dateTime(newest.raised_at)} ${newest.drive || `bus ${newest.bus}`}: ${kindWords(newest.kind)}, ${newest.text}${newest.active ? '' : ' (cleared since)'}`),
+      h('strong', {}, a.unacknowledged === 1 ? '1 alarm not acknowledged:' : `${a.unacknowledged} alarms not acknowledged:`),
+      ' ', h('span', { class: 'newest' }, `${dateTime(newest.raised_at)} ${subjectOf(newest)}: ${kindWords(newest.kind)}, ${textBeside(newest)}${newest.active ? '' : ' (cleared since)'}`),
       ' ', ack, ' ', h('a', { href: '#/alarms' }, 'All alarms'), ' ', note.el);
   };
   store.alarms.subscribe(draw);

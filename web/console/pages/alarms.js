@@ -6,7 +6,7 @@
 // stays until every alarm is.
 
 import { h, Note, run, timeEl, dateTime } from '../ui.js';
-import { kindWords } from '../alarms.js';
+import { kindWords, subjectOf, textBeside } from '../alarms.js';
 
 export const page = {
   id: 'alarms',
@@ -47,8 +47,8 @@ function mount(main, _params, { store }) {
     const state = a.active ? h('strong', {}, 'active') : h('span', {}, 'cleared', a.cleared_at ? [h('br'), timeEl(a.cleared_at)] : null);
     return h('tr', { class: `${a.active ? 'bad' : ''} ${a.acknowledged ? 'acked' : 'unacked'}`, dataset: { alarm: String(a.id), kind: a.kind } },
       h('td', {}, timeEl(a.raised_at), a.count > 1 ? h('small', {}, h('br'), `${a.count} times, last ${dateTime(a.last_at)}`) : null),
-      h('td', {}, a.drive || `bus ${a.bus}`),
-      h('td', {}, h('span', { class: 'kind' }, kindWords(a.kind)), ' ', a.text),
+      h('td', {}, subjectOf(a)),
+      h('td', {}, h('span', { class: 'kind' }, kindWords(a.kind)), ' ', textBeside(a)),
       h('td', { class: 'help' }, a.help || '–'),
       h('td', {}, state),
       h('td', {}, ack));

@@ -181,7 +181,8 @@ function mount(main, _params, { store }) {
           h('dt', {}, 'Utilisation'), rate(b, b.utilisation, `${fmt(b.utilisation * 100)} %`),
           h('dt', {}, 'Errors'), rate(b, b.errorRate, `${fmt(b.errorRate * 100, 2)} % of transactions`),
           h('dt', {}, 'Queue'), h('dd', {}, `${b.queue.emergency} / ${b.queue.command} / ${b.queue.poll}`, h('small', {}, ' emerg. / cmd / poll'))),
-        utilisationNote(b),
+        // Why 100 % is no fault says nothing while the port is down.
+        down ? null : utilisationNote(b),
         b.reason ? h('p', { class: 'reason' }, b.reason) : null));
     }
     if (store.busesKnown && cards.length === 0) {
