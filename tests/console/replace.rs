@@ -48,6 +48,31 @@ async fn step(page: &Page, id: &str, state: &str, limit: Duration) -> String {
     v[1].as_str().unwrap().to_string()
 }
 
+/// Clicks the button at `selector` until the page has taken the click (the
+/// button is disabled or gone): on a loaded machine the page may redraw
+/// between the press and the release, which a person would click again.
+async fn click_until_taken(page: &Page, selector: &str) {
+    let taken = format!(
+        "(() => {{ const b = document.querySelector({sel}); return !b || b.disabled; }})()",
+        sel = serde_json::to_string(selector).unwrap()
+    );
+    let start = std::time::Instant::now();
+    loop {
+        page.click(selector).await;
+        let waited = std::time::Instant::now();
+        while waited.elapsed() < Duration::from_secs(2) {
+            if page.eval(&taken).await == json!(true) {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        assert!(
+            start.elapsed() < LONG,
+            "{selector}: no click taken within {LONG:?}"
+        );
+    }
+}
+
 async fn step_ms(page: &Page, id: &str) -> u64 {
     page.eval(&format!(
         "Number(document.querySelector('[data-step={id}]').dataset.ms || 0)"
@@ -200,7 +225,7 @@ async fn a_drive_is_replaced_step_by_step_from_a_saved_file() {
     assert!(inertia.contains('1') && inertia.contains('7'), "{inertia}");
     let after_dry_run = daemon.sim().drive(2).expect("the new drive at unit 2");
     assert_eq!(after_dry_run.settings.inertia_ratio, 1, "the dry run wrote");
-    page.click("[data-action=write-settings]").await;
+    click_until_taken(&page, "[data-action=write-settings]").await;
     let restored = step(&page, "settings", "done", LONG).await;
     assert!(
         restored.contains("confirmed by the drive, saved to its flash"),
