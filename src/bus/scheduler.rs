@@ -56,7 +56,7 @@ pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle
 }
 
 /// What the handles and the bus thread share, for `settings`.
-fn new_shared(settings: &BusSettings) -> Arc<Shared> {
+pub(crate) fn new_shared(settings: &BusSettings) -> Arc<Shared> {
     let name: Arc<str> = settings.name.as_str().into();
     Arc::new(Shared {
         name: name.clone(),

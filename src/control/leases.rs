@@ -24,6 +24,7 @@ use super::journal::format::{self as record, Action, HolderKind, ModeName, Recor
 use super::lease_book::{
     CommLoss, Effect, Holder, LeaseBook, LeaseEvent, Note, StopOrder, StopReport, StopResult,
 };
+use super::time::Clock;
 use super::written::describe;
 use crate::bus::{BusError, BusEvent, Origin};
 use crate::control::stop_action::{self, StopAction, StopOutcome};
@@ -52,18 +53,21 @@ pub struct Leases {
     tasks: TaskTracker,
     /// The safety journal: what a restart must know.
     journal: Mutex<Journal>,
+    /// Where the time comes from.
+    clock: Clock,
 }
 
 impl Leases {
     /// Starts the driver for the drives of `plant`; leases end with
-    /// `action`. It stops when `shutdown` fires (the daemon's own safe stop
-    /// then covers every moving drive).
+    /// `action`, deadlines are kept by `clock`. It stops when `shutdown`
+    /// fires (the daemon's own safe stop then covers every moving drive).
     pub fn start(
         plant: Arc<Plant>,
         action: StopAction,
         events: Arc<Events>,
         journal: Journal,
         shutdown: CancellationToken,
+        clock: Clock,
     ) -> Arc<Leases> {
         let leases = Arc::new(Leases {
             plant: plant.clone(),
@@ -75,6 +79,7 @@ impl Leases {
             shutdown,
             tasks: TaskTracker::new(),
             journal: Mutex::new(journal),
+            clock,
         });
         let driver = leases.clone();
         leases.tasks.spawn(async move { driver.run().await });
@@ -107,7 +112,7 @@ impl Leases {
     /// disk in the order of the book's transitions.
     fn journaled<R>(&self, f: impl FnOnce(&mut LeaseBook, Instant) -> R) -> R {
         let mut book = self.lock();
-        let result = f(&mut book, Instant::now());
+        let result = f(&mut book, self.clock.now());
         let notes = book.take_notes();
         if notes.is_empty() {
             return result;
@@ -146,7 +151,7 @@ impl Leases {
                     (Holder::Session(_), false) => HolderKind::Session,
                     (Holder::Session(_), true) => HolderKind::CommLoss,
                 },
-                deadline_ms: record::unix_ms(wall_clock(*deadline)),
+                deadline_ms: record::unix_ms(self.clock.wall(*deadline)),
                 length_ms: u64::try_from(length.as_millis()).unwrap_or(u64::MAX),
                 action: action_of(*action),
                 mode: mode_of(*mode),
@@ -185,7 +190,12 @@ impl Leases {
     /// Reads the book at the current instant.
     pub fn read<R>(&self, f: impl FnOnce(&LeaseBook, Instant) -> R) -> R {
         let book = self.lock();
-        f(&book, Instant::now())
+        f(&book, self.clock.now())
+    }
+
+    /// Where the time comes from.
+    pub fn clock(&self) -> &Clock {
+        &self.clock
     }
 
     fn carry_out(self: &Arc<Self>, effects: Vec<Effect>) {
@@ -311,7 +321,7 @@ impl Leases {
             let next = self.lock().next_wake();
             let sleep = async {
                 match next {
-                    Some(at) => tokio::time::sleep_until(at.into()).await,
+                    Some(at) => self.clock.sleep_until(at).await,
                     None => std::future::pending().await,
                 }
             };
@@ -485,17 +495,6 @@ fn report(
                 result: StopResult::Failed(e),
             }
         }
-    }
-}
-
-/// The wall-clock time of `at`.
-fn wall_clock(at: Instant) -> SystemTime {
-    let now = Instant::now();
-    let wall = SystemTime::now();
-    if at >= now {
-        wall + (at - now)
-    } else {
-        wall.checked_sub(now - at).unwrap_or(wall)
     }
 }
 

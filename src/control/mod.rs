@@ -54,8 +54,12 @@ pub mod rules;
 pub mod settings;
 pub mod shutdown;
 pub mod stop_action;
+pub mod time;
 pub mod write;
 pub mod written;
+
+#[cfg(test)]
+mod model;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -134,6 +138,16 @@ impl Control {
     /// The core over `plant`, with `safety`'s lease-expiry action; its
     /// lease driver stops when `shutdown` fires.
     pub fn start(plant: Arc<Plant>, safety: &SafetyConfig, shutdown: CancellationToken) -> Self {
+        Self::start_with_clock(plant, safety, shutdown, time::Clock::System)
+    }
+
+    /// [`start`](Self::start), its leases' time read from `clock`.
+    pub(crate) fn start_with_clock(
+        plant: Arc<Plant>,
+        safety: &SafetyConfig,
+        shutdown: CancellationToken,
+        clock: time::Clock,
+    ) -> Self {
         let events = Arc::new(Events::default());
         let state_dir = safety.state_dir();
         let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
@@ -153,6 +167,7 @@ impl Control {
             events.clone(),
             opened.journal,
             shutdown.clone(),
+            clock,
         );
         let parts = Arc::new(Parts::new(plant, leases, events, safety));
         let control = Control(Arc::new(Inner {

@@ -64,7 +64,7 @@ pub async fn run(
         StopAction::Brake => Action::Brake,
         StopAction::None => Action::None,
     };
-    let decisions = replay::replay(recovered, SystemTime::now(), &statuses, on_unknown);
+    let decisions = replay::replay(recovered, leases.clock().wall_now(), &statuses, on_unknown);
     let directory = plant.now();
     let index = |name: &str| {
         directory
@@ -74,7 +74,7 @@ pub async fn run(
     };
     leases.with(|book, now: Instant| {
         for d in &decisions {
-            super::audit::restart(&note(d, SystemTime::now()));
+            super::audit::restart(&note(d, leases.clock().wall_now()));
             let Some(drive) = index(&d.drive) else {
                 continue;
             };

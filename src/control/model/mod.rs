@@ -1,0 +1,140 @@
+//! The model of the control core: a property-based state-machine test of
+//! the rule every safety rule serves, "no motor moves without a live
+//! owner", across random interleavings of what can happen to the core
+//! (docs/safety.md, "The invariant, checked by a model").
+//!
+//! A case is a plant (`steps::Setup`: the stop actions, each session's
+//! communication-loss time and action, which drives are active) and up to
+//! 40 steps (`steps::Step`): writes from every face's client, renewals,
+//! releases, sessions' requests and ends, time passing, the bus held or its
+//! port down, drives that fall silent or whose requests or replies are
+//! lost, and `kill -9` with the journal left whole, torn, garbled, emptied
+//! or deleted, then a start. `world` runs the real core (`Control`, its
+//! write path, lease book and driver, brake guard, journal and restart)
+//! with its clock turned by hand, on drives and a bus the `bench` serves;
+//! the `oracle` keeps what the rules promise and checks the invariants
+//! after every step.
+//!
+//! `DRIVEGATE_MODEL_CASES` sets the number of cases (default
+//! [`CASES`]); a failure prints the seed, and `DRIVEGATE_MODEL_SEED`
+//! replays it; `DRIVEGATE_MODEL_LOST_JOURNALS=1` adds journals emptied, cut
+//! to their header or deleted (see [`LOST_JOURNALS`]).
+
+mod bench;
+mod examples;
+mod oracle;
+mod steps;
+mod world;
+
+use std::time::Instant;
+
+use proptest::test_runner::{Config, RngAlgorithm, TestCaseError, TestError, TestRng, TestRunner};
+
+use steps::{Setup, Step};
+use world::World;
+
+/// Cases in the default run.
+const CASES: u32 = 2000;
+
+/// Whether restarts may find the journal emptied, cut to its header or
+/// deleted. The start-up must then treat the plant's state as unknown
+/// (`on_unknown_state` on every drive found moving); until it does, such
+/// cases are left out unless `DRIVEGATE_MODEL_LOST_JOURNALS=1`.
+const LOST_JOURNALS: bool = false;
+
+fn lost_journals() -> bool {
+    match std::env::var("DRIVEGATE_MODEL_LOST_JOURNALS") {
+        Ok(v) => v == "1",
+        Err(_) => LOST_JOURNALS,
+    }
+}
+
+/// Runs one case: the plant of `setup`, then `steps`; the first invariant
+/// broken, with the step that broke it.
+fn run_case(setup: Setup, steps: &[Step]) -> Result<(), String> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_time()
+        .build()
+        .map_err(|e| format!("no runtime: {e}"))?;
+    let root = world::scratch()?;
+    runtime.block_on(async {
+        let mut world = World::new(setup, root.path())?;
+        world.settle_start().await?;
+        for (i, step) in steps.iter().enumerate() {
+            if let Err(broken) = world.step(step).await {
+                world.finish();
+                return Err(format!("step {i} ({step:?}): {broken}"));
+            }
+        }
+        world.finish();
+        Ok(())
+    })
+}
+
+/// The seed of this run: `DRIVEGATE_MODEL_SEED` (64 hex digits), or a new
+/// one.
+fn seed() -> Result<[u8; 32], String> {
+    let mut seed = [0u8; 32];
+    match std::env::var("DRIVEGATE_MODEL_SEED") {
+        Ok(hex) => {
+            let hex = hex.trim();
+            if hex.len() != 64 {
+                return Err(format!(
+                    "DRIVEGATE_MODEL_SEED is 64 hex digits, not {}",
+                    hex.len()
+                ));
+            }
+            for (i, byte) in seed.iter_mut().enumerate() {
+                *byte = u8::from_str_radix(&hex[2 * i..2 * i + 2], 16)
+                    .map_err(|e| format!("DRIVEGATE_MODEL_SEED: {e}"))?;
+            }
+        }
+        Err(_) => rand::fill(&mut seed),
+    }
+    Ok(seed)
+}
+
+#[test]
+fn no_motor_moves_without_a_live_owner() {
+    if let Err(e) = run_model() {
+        panic!("{e}");
+    }
+}
+
+fn run_model() -> Result<(), String> {
+    let cases = match std::env::var("DRIVEGATE_MODEL_CASES") {
+        Ok(v) => v
+            .parse()
+            .map_err(|e| format!("DRIVEGATE_MODEL_CASES: {e}"))?,
+        Err(_) => CASES,
+    };
+    let seed = seed()?;
+    let hex: String = seed.iter().map(|b| format!("{b:02x}")).collect();
+    let mut config = Config::with_cases(cases);
+    config.failure_persistence = None;
+    let mut runner =
+        TestRunner::new_with_rng(config, TestRng::from_seed(RngAlgorithm::ChaCha, &seed));
+    let started = Instant::now();
+    let result = runner.run(&steps::case(lost_journals()), |(setup, steps)| {
+        run_case(setup, &steps).map_err(TestCaseError::fail)
+    });
+    match result {
+        Ok(()) => {
+            eprintln!(
+                "the model of the core: {cases} cases in {:.1} s (seed {hex})",
+                started.elapsed().as_secs_f64()
+            );
+            Ok(())
+        }
+        Err(TestError::Fail(why, (setup, steps))) => Err(format!(
+            "an invariant broke: {why}\n\nshrunk to {setup:?} and the steps\n{}\n\nreplay with DRIVEGATE_MODEL_SEED={hex}",
+            steps
+                .iter()
+                .enumerate()
+                .map(|(i, s)| format!("  {i}: {s:?}"))
+                .collect::<Vec<_>>()
+                .join("\n")
+        )),
+        Err(e) => Err(format!("{e} (seed {hex})")),
+    }
+}
