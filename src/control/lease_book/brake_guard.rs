@@ -70,15 +70,33 @@ impl LeaseBook {
                 if brake && applied != Applied::No {
                     slot.brake_landed = slot.brake_landed.max(ticket.seen);
                 }
+                // A lease taken after this brake was sent is not its to
+                // end: that lease's setpoint releases the brake as asked.
+                let newer = brake
+                    && self
+                        .slots
+                        .get(&drive)
+                        .and_then(|s| s.lease.as_ref())
+                        .is_some_and(|l| l.brakes_before >= ticket.seen);
                 match applied {
                     Applied::Yes => {
                         if brake {
                             self.note_brake(drive, BrakeState::Confirmed);
                         }
-                        self.end_by(drive, &by, now, &mut effects);
+                        if newer {
+                            self.supersede(drive, &by, &mut effects);
+                            self.journal_lease_again(drive);
+                        } else {
+                            self.end_by(drive, &by, now, &mut effects);
+                        }
                         if overtaken && !self.shut_down {
                             self.rebrake(drive, StopReason::BrakeReleased(by.clone()), now);
                         }
+                    }
+                    Applied::Maybe if brake && newer => {
+                        // Applied again once the newer lease ends (a stop
+                        // waits for a lease on the drive).
+                        self.rebrake(drive, StopReason::BrakeUnconfirmed(by.clone()), now);
                     }
                     Applied::Maybe if brake => {
                         // It may have landed, so what was sent before it
@@ -118,6 +136,41 @@ impl LeaseBook {
             // setpoint takes over.
             self.rebrake(drive, StopReason::BrakeReleased(by.clone()), now);
         }
+    }
+
+    /// A brake sent by a stop, numbered `number`, came back with
+    /// `report`: if it may have reached the drive, what was sent before it
+    /// must not release it. True when a write sent before it landed after
+    /// it meanwhile (and it may have landed): the brake is owed again.
+    pub(super) fn stop_brake_back(
+        &mut self,
+        drive: usize,
+        number: u64,
+        report: &StopReport,
+    ) -> bool {
+        let landed = match &report.result {
+            StopResult::Failed(e) => !e.not_sent(),
+            _ => true,
+        };
+        let slot = self.slot(drive);
+        let overtaken = slot.brakes_in_flight.remove(&number).unwrap_or(false);
+        if landed {
+            slot.brake_landed = slot.brake_landed.max(number);
+        }
+        overtaken && landed
+    }
+
+    /// The lease on `drive` outlived a brake the journal says was
+    /// confirmed (which a restart reads as the end of its lease): it is
+    /// journaled again after it.
+    fn journal_lease_again(&mut self, drive: usize) {
+        let slot = self.slot(drive);
+        if let Some(lease) = slot.lease.as_mut() {
+            lease.journaled = None;
+            // Its setpoint releases the brake: so the journal reads it.
+            slot.brake_journal = None;
+        }
+        self.note_lease(drive);
     }
 
     /// A write that stops the motor itself was confirmed: the lease ends

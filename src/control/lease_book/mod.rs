@@ -73,6 +73,10 @@ struct Lease {
     confirmed: bool,
     /// The deadline the safety journal holds, once journaled.
     journaled: Option<Instant>,
+    /// Brakes sent to the drive before it was granted: a brake sent
+    /// after it does not end it (its setpoint releases that brake as
+    /// asked).
+    brakes_before: u64,
 }
 
 /// How a drive's last lease ended.
@@ -129,6 +133,8 @@ struct Stop {
     announced: bool,
     /// Brakes sent before the try under way.
     seen: u64,
+    /// The number of the brake the try under way sends, if it sends one.
+    brake: Option<u64>,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -154,8 +160,9 @@ struct Slot {
     /// that releases a brake has landed, and may have landed after it.
     brakes_in_flight: BTreeMap<u64, bool>,
     /// Stops taken over while on their way, with the brakes sent before
-    /// them: what they send must still not release a later brake.
-    orphans: Vec<(StopId, u64)>,
+    /// them (and the brake they send, numbered): what they send must
+    /// still not release a later brake.
+    orphans: Vec<(StopId, u64, Option<u64>)>,
     /// The drive's brake as the safety journal holds it.
     brake_journal: Option<BrakeState>,
 }
@@ -241,6 +248,7 @@ impl LeaseBook {
             deadline: now + ask.length + ask.allowance,
             confirmed: false,
             journaled: None,
+            brakes_before: self.slots.get(&drive).map_or(0, |s| s.brakes_sent),
         };
         let slot = self.slot(drive);
         let old = slot.lease.replace(lease);
@@ -472,6 +480,13 @@ impl LeaseBook {
             {
                 stop.state = StopState::InFlight;
                 stop.tries += 1;
+                // A brake is a brake, whoever sends it: numbered, so that
+                // a write sent before it that lands after it is seen.
+                stop.brake = (stop.action == StopAction::Brake).then(|| {
+                    slot.brakes_sent += 1;
+                    slot.brakes_in_flight.insert(slot.brakes_sent, false);
+                    slot.brakes_sent
+                });
                 stop.seen = slot.brakes_sent;
                 effects.push(Effect::Stop(StopOrder {
                     drive,

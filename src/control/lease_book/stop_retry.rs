@@ -25,7 +25,7 @@ impl LeaseBook {
             return;
         };
         if stop.state == StopState::InFlight {
-            slot.orphans.push((stop.id, stop.seen));
+            slot.orphans.push((stop.id, stop.seen, stop.brake));
         }
         let result = format!("not sent again: {by} took over the drive");
         if let Some((id, owner, holder)) = &stop.lease {
@@ -133,7 +133,7 @@ impl LeaseBook {
         let mut reason = reason;
         if let Some(old) = slot.stop.take() {
             if old.state == StopState::InFlight {
-                slot.orphans.push((old.id, old.seen));
+                slot.orphans.push((old.id, old.seen, old.brake));
             }
             if old.action == StopAction::Brake {
                 action = StopAction::Brake;
@@ -169,6 +169,7 @@ impl LeaseBook {
             again: false,
             announced: false,
             seen: slot.brakes_sent,
+            brake: None,
         });
         self.note(Note::Stop {
             drive,
@@ -194,20 +195,24 @@ impl LeaseBook {
         }
     }
 
-    /// Lease `id` on `drive` ended before its setpoint was settled, so the
+    /// Lease `id` on `drive` ended before its setpoint was settled, so a
     /// stop may have gone out first and the setpoint landed after it: the
-    /// stop is sent again (after the try under way, if there is one).
+    /// stop is sent again (after the try under way, if there is one). Its
+    /// own stop, or the stop of a lease that replaced it: the setpoint of a
+    /// replaced lease can land after that lease's stop as well. A lease on
+    /// the drive now covers the motor; its end stops it.
     pub(super) fn stop_again(&mut self, drive: usize, id: LeaseId, now: Instant) {
         if self.shut_down {
             return;
         }
         let slot = self.slot(drive);
-        if let Some(stop) = slot.stop.as_mut()
-            && stop.lease.as_ref().is_some_and(|(l, _, _)| *l == id)
-        {
+        if let Some(stop) = slot.stop.as_mut() {
             if stop.state == StopState::InFlight {
                 stop.again = true;
             }
+            return;
+        }
+        if slot.lease.is_some() {
             return;
         }
         let Some(Ended {
@@ -218,21 +223,23 @@ impl LeaseBook {
                 How::Stopped {
                     reason,
                     action,
-                    end: StopEnd::Done(_),
+                    end: StopEnd::Done(_) | StopEnd::Superseded(_),
                 },
             ..
         }) = slot.last.as_ref()
         else {
-            // Taken over by something newer, or left to the safe stop.
+            // Released, ended by a brake (its guard sees to that), or left
+            // to the safe stop.
             return;
         };
-        if *ended != id {
+        if *ended < id {
+            // Ended before this lease was granted: not its stop to repeat.
             return;
         }
-        let lease = (id, owner.clone(), *holder);
+        let lease = (*ended, owner.clone(), *holder);
         let (reason, action) = (reason.clone(), *action);
         slot.last = Some(Ended {
-            id,
+            id: lease.0,
             owner: lease.1.clone(),
             holder: lease.2,
             at: now,
@@ -264,11 +271,27 @@ impl LeaseBook {
         if !current {
             // Taken over while on its way: what it sent must still not
             // release a brake confirmed since.
-            let orphan = slot.orphans.iter().position(|(o, _)| *o == id);
+            let orphan = slot.orphans.iter().position(|(o, _, _)| *o == id);
             if let Some(at) = orphan {
-                let (_, seen) = slot.orphans.swap_remove(at);
-                if report.released_brake {
-                    self.released(drive, seen, &"a lease's stop".into(), now);
+                let (_, seen, brake) = slot.orphans.swap_remove(at);
+                match brake {
+                    // A brake releases no brake; one that a write sent
+                    // before it overtook (and took it over) is owed again.
+                    Some(number) => {
+                        let braking = self.slots.get(&drive).and_then(|s| s.stop.as_ref());
+                        let covered = braking.is_some_and(|s| s.action == StopAction::Brake);
+                        if self.stop_brake_back(drive, number, &report)
+                            && !covered
+                            && !self.shut_down
+                        {
+                            let by: Arc<str> = "a write sent before the stop's brake".into();
+                            self.rebrake(drive, StopReason::BrakeReleased(by), now);
+                        }
+                    }
+                    None if report.released_brake => {
+                        self.released(drive, seen, &"a lease's stop".into(), now);
+                    }
+                    None => {}
                 }
             }
             effects.extend(self.tick(now));
@@ -277,7 +300,14 @@ impl LeaseBook {
         let Some(mut stop) = slot.stop.take() else {
             return effects;
         };
-        let released = report.released_brake.then_some(stop.seen);
+        let released = (report.released_brake && stop.brake.is_none()).then_some(stop.seen);
+        // Its brake, if it sent one, overtaken by a write sent before it:
+        // applied again once this stop is done.
+        let overtaken = match stop.brake.take() {
+            Some(number) => self.stop_brake_back(drive, number, &report),
+            None => false,
+        };
+        let slot = self.slot(drive);
         let first = !stop.announced;
         let lease = stop.lease.clone();
         let mut finished = None;
@@ -343,6 +373,10 @@ impl LeaseBook {
         }
         if let Some(seen) = released {
             self.released(drive, seen, &"a lease's stop".into(), now);
+        }
+        if overtaken && finished.is_some() && !shut_down {
+            let by: Arc<str> = "a write sent before the stop's brake".into();
+            self.rebrake(drive, StopReason::BrakeReleased(by), now);
         }
         effects.extend(self.tick(now));
         effects

@@ -74,6 +74,8 @@ pub(super) struct Req {
     /// Its lease was released (by a caller of this role) before it
     /// landed: it lands unguarded, as the release said.
     released: Option<Role>,
+    /// When it was put on the queue, in the bus's order.
+    sent: Option<Instant>,
 }
 
 impl Req {
@@ -105,6 +107,7 @@ impl Req {
             served: None,
             abandoned: false,
             released: None,
+            sent: None,
         }
     }
 
@@ -258,6 +261,7 @@ impl Oracle {
     pub(super) fn queued(&mut self, id: usize, now: Instant, sent: Instant) {
         let req = &mut self.reqs[id];
         req.stage = Stage::Queued;
+        req.sent = Some(sent);
         if req.releases_brake() && req.role.allows(Role::Operator) {
             let asked = &mut self.release_asked[req.drive];
             *asked = Some(asked.map_or(sent, |a| a.max(sent)));
@@ -298,10 +302,15 @@ impl Oracle {
                 lease.end = now + lease.terms.length;
             }
         }
+        // A brake ends the leases granted before it was sent; one taken
+        // after it releases it as asked.
+        let sent = self.reqs[id].sent;
+        let older = self.leases[d]
+            .as_ref()
+            .is_some_and(|l| self.reqs[l.req].sent < sent);
         match (cmd, applied) {
-            (Cmd::Brake, Applied::Yes | Applied::Maybe) | (Cmd::Deactivate, Applied::Yes) => {
-                self.leases[d] = None;
-            }
+            (Cmd::Brake, Applied::Yes | Applied::Maybe) if older => self.leases[d] = None,
+            (Cmd::Deactivate, Applied::Yes) => self.leases[d] = None,
             _ => {}
         }
     }

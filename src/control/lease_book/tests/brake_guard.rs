@@ -317,3 +317,96 @@ fn the_brake_is_applied_again_whichever_result_comes_back_first() {
     book.end_write(&after, Applied::Yes, t0);
     assert!(stops(&book.end_write(&brake, Applied::Yes, t0)).is_empty());
 }
+
+#[test]
+fn a_brake_ends_only_the_leases_granted_before_it_was_sent() {
+    let t0 = Instant::now();
+    let mut book = LeaseBook::new(StopAction::ZeroSpeed);
+    let brake = book.begin_write(LIFT, WriteKind::Brake, "the brake from panel".into());
+    let (grant, setpoint) = leased_write(
+        &mut book,
+        LIFT,
+        ask("panel", Holder::Request, Mode::Speed, SECOND),
+        t0,
+    );
+    book.take_notes();
+    // The brake lands first (emergency), then the setpoint sent after it,
+    // which releases it as asked: its lease goes on.
+    let effects = book.end_write(&brake, Applied::Yes, t0 + MS);
+    assert!(events(&effects).is_empty(), "{effects:?}");
+    assert_eq!(book.lease(LIFT, t0 + MS).map(|l| l.id), Some(grant.id));
+    // The journal reads the lease after the brake (a confirmed brake ends
+    // the leases before it).
+    let notes = book.take_notes();
+    assert!(
+        matches!(
+            notes.as_slice(),
+            [
+                Note::Brake {
+                    state: BrakeState::Confirmed,
+                    ..
+                },
+                Note::Lease { .. }
+            ]
+        ),
+        "{notes:?}"
+    );
+    assert!(stops(&book.end_write(&setpoint, Applied::Yes, t0 + 2 * MS)).is_empty());
+    // Its end stops the motor.
+    let order = stops(&book.tick(t0 + 2 * MS + SECOND))[0].clone();
+    assert_eq!(order.action, StopAction::ZeroSpeed);
+    assert_eq!(order.owner.as_deref(), Some("panel"));
+}
+
+#[test]
+fn a_write_sent_before_a_stop_brake_and_landing_after_it_has_the_brake_again() {
+    let t0 = Instant::now();
+    let mut book = LeaseBook::new(StopAction::Brake);
+    leased(&mut book, LIFT, "plc", SECOND, t0);
+    let setpoint = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint { lease: None },
+        "a setpoint without a lease from panel".into(),
+    );
+    // The lease ends with a brake, which overtakes the setpoint on the
+    // bus (emergency first) ...
+    let order = stops(&book.tick(t0 + SECOND))[0].clone();
+    assert_eq!(order.action, StopAction::Brake);
+    let effects = book.stop_tried(
+        LIFT,
+        order.id,
+        confirmed("config command brake 5"),
+        t0 + SECOND + MS,
+    );
+    assert!(stops(&effects).is_empty(), "{effects:?}");
+    // ... and the setpoint lands after it, releasing it: the brake again.
+    let again = stops(&book.end_write(&setpoint, Applied::Yes, t0 + SECOND + 2 * MS))
+        .into_iter()
+        .cloned()
+        .collect::<Vec<_>>();
+    assert_eq!(again.len(), 1, "{again:?}");
+    assert_eq!(
+        (again[0].action, again[0].owner.clone()),
+        (StopAction::Brake, None)
+    );
+
+    // The same when the setpoint lands while the brake is on its way.
+    let mut book = LeaseBook::new(StopAction::Brake);
+    leased(&mut book, LIFT, "plc", SECOND, t0);
+    let setpoint = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint { lease: None },
+        "a setpoint without a lease from panel".into(),
+    );
+    let order = stops(&book.tick(t0 + SECOND))[0].clone();
+    book.end_write(&setpoint, Applied::Yes, t0 + SECOND + MS);
+    let effects = book.stop_tried(
+        LIFT,
+        order.id,
+        confirmed("config command brake 5"),
+        t0 + SECOND + 2 * MS,
+    );
+    let again = stops(&effects);
+    assert_eq!(again.len(), 1, "{effects:?}");
+    assert_eq!(again[0].action, StopAction::Brake);
+}

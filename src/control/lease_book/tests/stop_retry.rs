@@ -248,3 +248,39 @@ fn the_stop_action_and_the_lease_mode_are_what_the_stop_is_sent_with() {
     );
     assert_eq!(book.action(), StopAction::Brake);
 }
+
+#[test]
+fn a_replaced_lease_setpoint_landing_after_the_stop_has_the_stop_again() {
+    let t0 = Instant::now();
+    let mut book = LeaseBook::new(StopAction::ZeroSpeed);
+    // A PLC's setpoint waits on the bus; an operator's lease replaces its
+    // lease, and its caller goes away.
+    let (_, plc) = leased_write(
+        &mut book,
+        CONVEYOR,
+        ask("plc", Holder::Request, Mode::Speed, SECOND),
+        t0,
+    );
+    let (_, panel) = leased_write(
+        &mut book,
+        CONVEYOR,
+        ask("panel", Holder::Request, Mode::Speed, 100 * MS),
+        t0,
+    );
+    book.end_write(&panel, Applied::Maybe, t0);
+    // That lease runs out and its stop is confirmed ...
+    let order = stops(&book.tick(t0 + 100 * MS))[0].clone();
+    let effects = book.stop_tried(
+        CONVEYOR,
+        order.id,
+        confirmed("speed setpoint 0 rpm"),
+        t0 + 200 * MS,
+    );
+    assert!(stops(&effects).is_empty());
+    // ... before the PLC's setpoint lands: the stop goes again.
+    let effects = book.end_write(&plc, Applied::Yes, t0 + 300 * MS);
+    let again = stops(&effects);
+    assert_eq!(again.len(), 1, "{effects:?}");
+    assert_eq!(again[0].action, StopAction::ZeroSpeed);
+    assert_eq!(again[0].owner.as_deref(), Some("panel"));
+}
