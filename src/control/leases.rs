@@ -370,6 +370,56 @@ impl Leases {
         }
     }
 
+    /// At start-up, a drive that did not answer while what the last
+    /// process promised about it is unknown (its journal unreadable, or
+    /// read only in part): once it answers, if it moves, it gets `action`
+    /// (`[safety] on_unknown_state`), as the drives found moving at the
+    /// start did, unless a face's write to it was settled first (someone
+    /// owns it again). A drive silent at the start (a cable, the port
+    /// down) still turns at whatever it was told before.
+    pub fn stop_at_first_answer(self: &Arc<Self>, drive: usize, action: StopAction, why: Arc<str>) {
+        let now = self.plant.now();
+        let Some((handle, unit)) = now
+            .drive_at(drive)
+            .and_then(|d| Some((now.handle_of(d)?.clone(), d.unit)))
+        else {
+            return;
+        };
+        let mut bus = handle.subscribe();
+        let mut writes = self.events.subscribe();
+        let leases = self.clone();
+        self.tasks.spawn(async move {
+            let status = loop {
+                tokio::select! {
+                    () = leases.shutdown.cancelled() => return,
+                    event = bus.recv() => match event {
+                        Ok(BusEvent::Status { unit: u, status, .. }) if u == unit => break status,
+                        Err(broadcast::error::RecvError::Closed) => return,
+                        Ok(_) | Err(broadcast::error::RecvError::Lagged(_)) => {}
+                    },
+                    published = writes.recv() => match published {
+                        Ok(p) => if let ControlEvent::Write(w) = p.event.as_ref()
+                            && w.drive == Some(drive)
+                            && w.face != Face::Internal
+                            && matches!(w.result, WriteEnd::Confirmed | WriteEnd::CallerGone(_))
+                        {
+                            return;
+                        },
+                        Err(broadcast::error::RecvError::Closed) => return,
+                        Err(broadcast::error::RecvError::Lagged(_)) => {}
+                    },
+                }
+            };
+            if !stop_action::is_moving(&status) {
+                return;
+            }
+            leases.with(|book, now| {
+                book.restart_stop(drive, None, action, Mode::Speed, why, now);
+                ((), book.tick(now))
+            });
+        });
+    }
+
     /// Watches the events of every bus, and of each bus a reload adds or
     /// reopens, until shutdown.
     async fn follow_buses(self: Arc<Self>) {
@@ -410,15 +460,7 @@ impl Leases {
             .owner
             .clone()
             .map_or(Origin::Internal, |owner| Origin::LeaseExpiry { owner });
-        let outcome = stop_action::stop_drive(
-            bus,
-            drive.unit,
-            order.action,
-            false,
-            Some(order.mode),
-            origin,
-        )
-        .await;
+        let outcome = stop_action::stop_drive(bus, drive.unit, order.action, false, origin).await;
         let who = match &order.owner {
             Some(owner) => format!("lease-expiry ({owner})"),
             None => "brake-guard".to_string(),

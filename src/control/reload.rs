@@ -268,15 +268,8 @@ pub(super) async fn retire(
 /// Stops a removed drive that held no lease with `on_shutdown`, if it
 /// moves; audited. What was done, in words, if anything.
 async fn stop_unleased(handle: BusHandle, drive: Drive, on_shutdown: StopAction) -> Option<String> {
-    let result = stop_action::stop_drive(
-        &handle,
-        drive.unit,
-        on_shutdown,
-        true,
-        None,
-        Origin::Internal,
-    )
-    .await;
+    let result =
+        stop_action::stop_drive(&handle, drive.unit, on_shutdown, true, Origin::Internal).await;
     match result {
         Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
             for request in outcome.requests() {

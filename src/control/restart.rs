@@ -107,6 +107,22 @@ pub async fn run(
         }
         ((), book.tick(now))
     });
+    // A drive that did not answer, whose journal said nothing to trust:
+    // decided at its first answer.
+    if on_unknown != Action::None {
+        let vouched = |name: &str| match recovered {
+            Recovered::Tail(state) => state.drives.contains_key(name),
+            Recovered::Read(_) | Recovered::Unreadable => false,
+        };
+        let why: Arc<str> = StopWhy::UnknownState.words().into();
+        for s in statuses.iter().filter(|s| s.moving.is_none()) {
+            if let Some(drive) = index(&s.name).filter(|_| recovered.has_unknowns())
+                && !vouched(&s.name)
+            {
+                leases.stop_at_first_answer(drive, leases::stop_action(on_unknown), why.clone());
+            }
+        }
+    }
     decisions
 }
 

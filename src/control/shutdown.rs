@@ -25,8 +25,7 @@ pub async fn shutdown(plant: &Plant, action: StopAction) {
         let handle = now.handle_of(drive)?.clone();
         let (name, unit) = (drive.name.clone(), drive.unit);
         Some(async move {
-            match stop_action::stop_drive(&handle, unit, action, true, None, Origin::Shutdown).await
-            {
+            match stop_action::stop_drive(&handle, unit, action, true, Origin::Shutdown).await {
                 Ok(outcome @ StopOutcome { sent: Some(_), .. }) => {
                     // One line per write: with the mode unknown,
                     // zero-speed is two (speed and torque setpoint 0).

@@ -67,12 +67,14 @@ impl StopOutcome {
 /// What to send depends on the drive's mode (zero speed is a zero current
 /// setpoint in torque mode and nothing in position mode), so the mode is
 /// read from the drive now: the polled copy may predate a mode command sent
-/// a moment ago. If that read fails, `fallback` (or the polled copy) is used
-/// and the drive is assumed to be moving; with no mode at all, zero-speed
-/// zeroes both the speed and the torque setpoint (see
-/// [`requests`]). With `only_if_moving`, a drive found standing
-/// is left alone. `origin` says why, for the bus monitor (a lease's end,
-/// the shutdown).
+/// a moment ago. If that read fails, the mode is unknown and the drive is
+/// assumed to be moving: zero-speed zeroes both the speed and the torque
+/// setpoint (see [`requests`]). No mode is guessed: the one a lease was
+/// taken in, or the last poll's, may be out of date (a mode command the
+/// drive did not confirm, another face's since), and zeroing the wrong
+/// setpoint leaves the motor turning. With `only_if_moving`, a drive found
+/// standing is left alone. `origin` says why, for the bus monitor (a
+/// lease's end, the shutdown).
 ///
 /// Every request is tried even if one before it failed (a drive that
 /// refused the speed setpoint may still take the torque one); the result is
@@ -82,7 +84,6 @@ pub async fn stop_drive(
     unit: u8,
     action: StopAction,
     only_if_moving: bool,
-    fallback: Option<Mode>,
     origin: Origin,
 ) -> Result<StopOutcome, BusError> {
     // From the daemon itself at emergency priority: the queue never refuses
@@ -110,10 +111,7 @@ pub async fn stop_drive(
                 outcome.mode = Some(s.mode());
                 outcome.moving = is_moving(&s);
             }
-            _ => {
-                outcome.mode =
-                    fallback.or_else(|| bus.drive(unit).and_then(|d| d.status).map(|s| s.mode()));
-            }
+            _ => {}
         }
     }
     if only_if_moving && !outcome.moving {

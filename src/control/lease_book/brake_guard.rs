@@ -20,6 +20,7 @@ impl LeaseBook {
             slot.brakes_in_flight.insert(slot.brakes_sent, false);
         }
         let seen = slot.brakes_sent;
+        let order = self.next();
         match kind {
             // Journaled before it is sent: a restart applies a brake it
             // cannot know was confirmed again.
@@ -34,6 +35,7 @@ impl LeaseBook {
             kind,
             seen,
             by,
+            order,
         }
     }
 
@@ -70,24 +72,30 @@ impl LeaseBook {
                 if brake && applied != Applied::No {
                     slot.brake_landed = slot.brake_landed.max(ticket.seen);
                 }
-                // A lease taken after this brake was sent is not its to
-                // end: that lease's setpoint releases the brake as asked.
-                let newer = brake
-                    && self
-                        .slots
-                        .get(&drive)
-                        .and_then(|s| s.lease.as_ref())
-                        .is_some_and(|l| l.brakes_before >= ticket.seen);
+                // A lease taken after this brake or deactivation was sent
+                // is not its to end: that lease's setpoint comes after it
+                // (and releases the brake as asked).
+                let newer = self
+                    .slots
+                    .get(&drive)
+                    .and_then(|s| s.lease.as_ref())
+                    .is_some_and(|l| l.id.0 > ticket.order);
                 match applied {
                     Applied::Yes => {
                         if brake {
                             self.note_brake(drive, BrakeState::Confirmed);
                         }
-                        if newer {
+                        if newer && brake {
                             self.supersede(drive, &by, &mut effects);
                             self.journal_lease_again(drive);
+                        } else if newer {
+                            // A deactivation: a stop under way is not
+                            // needed (but for a brake's).
+                            if !self.braking(drive) {
+                                self.supersede(drive, &by, &mut effects);
+                            }
                         } else {
-                            self.end_by(drive, &by, now, &mut effects);
+                            self.end_by(drive, &by, !brake, now, &mut effects);
                         }
                         if overtaken && !self.shut_down {
                             self.rebrake(drive, StopReason::BrakeReleased(by.clone()), now);
@@ -174,16 +182,21 @@ impl LeaseBook {
     }
 
     /// A write that stops the motor itself was confirmed: the lease ends
-    /// without a stop, and a stop still being tried is not needed.
+    /// without a stop, and a stop still being tried is not needed; but a
+    /// deactivation (`deactivation`) ends no brake being applied: it does
+    /// not hold the motor as the brake does.
     pub(super) fn end_by(
         &mut self,
         drive: usize,
         by: &Arc<str>,
+        deactivation: bool,
         now: Instant,
         effects: &mut Vec<Effect>,
     ) {
         let ended_by: Arc<str> = by.clone();
-        self.supersede(drive, &ended_by, effects);
+        if !(deactivation && self.braking(drive)) {
+            self.supersede(drive, &ended_by, effects);
+        }
         if self.slots.get(&drive).is_some_and(|s| s.lease.is_some()) {
             self.note(Note::LeaseEnded { drive });
         }
@@ -200,9 +213,57 @@ impl LeaseBook {
                 owner: lease.owner,
                 holder: lease.holder,
                 at: now,
-                how: How::EndedBy(by.clone()),
+                how: How::EndedBy(by.clone(), deactivation.then_some(lease.action)),
             });
         }
+    }
+
+    /// A setpoint of lease `id`, which a deactivation ended, was confirmed
+    /// by the drive afterwards: the drive was activated again meanwhile,
+    /// and turns with no lease. The lease's stop goes.
+    pub(super) fn deactivated_then_landed(&mut self, drive: usize, id: LeaseId, now: Instant) {
+        if self.shut_down {
+            return;
+        }
+        let slot = self.slot(drive);
+        if slot.lease.is_some() || slot.stop.is_some() {
+            // A lease covers the motor; a stop is under way.
+            return;
+        }
+        let Some(Ended {
+            id: ended,
+            owner,
+            holder,
+            how: How::EndedBy(what, Some(action)),
+            ..
+        }) = slot.last.as_ref()
+        else {
+            return;
+        };
+        if *ended != id {
+            return;
+        }
+        let lease = (id, owner.clone(), *holder);
+        let (reason, action) = (StopReason::LandedAfter(what.clone()), *action);
+        slot.last = Some(Ended {
+            id,
+            owner: lease.1.clone(),
+            holder: lease.2,
+            at: now,
+            how: How::Stopping {
+                reason: reason.clone(),
+                stop: StopId(0),
+            },
+        });
+        self.begin_stop(drive, Some(lease), reason, action, Mode::Speed, now);
+    }
+
+    /// True while a brake is being applied to `drive` (a stop's).
+    fn braking(&self, drive: usize) -> bool {
+        self.slots
+            .get(&drive)
+            .and_then(|s| s.stop.as_ref())
+            .is_some_and(|s| s.action == StopAction::Brake)
     }
 
     /// Applies the brake to `drive` again, until the drive confirms it.

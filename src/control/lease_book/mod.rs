@@ -73,10 +73,6 @@ struct Lease {
     confirmed: bool,
     /// The deadline the safety journal holds, once journaled.
     journaled: Option<Instant>,
-    /// Brakes sent to the drive before it was granted: a brake sent
-    /// after it does not end it (its setpoint releases that brake as
-    /// asked).
-    brakes_before: u64,
 }
 
 /// How a drive's last lease ended.
@@ -93,8 +89,11 @@ enum How {
     Released(Arc<str>),
     /// Replaced by a newer lease.
     Replaced(Arc<str>),
-    /// Ended by a confirmed write that stops the motor.
-    EndedBy(Arc<str>),
+    /// Ended by a confirmed write that stops the motor; for a
+    /// deactivation, with the lease's stop: a setpoint of it that the drive
+    /// confirms afterwards (activated again meanwhile) turns the motor with
+    /// no lease, and has this stop.
+    EndedBy(Arc<str>, Option<StopAction>),
     /// Ended with a stop; the stop is `Slot::stop` while it has this id.
     Stopping { reason: StopReason, stop: StopId },
     /// Ended with a stop, which ended so.
@@ -248,7 +247,6 @@ impl LeaseBook {
             deadline: now + ask.length + ask.allowance,
             confirmed: false,
             journaled: None,
-            brakes_before: self.slots.get(&drive).map_or(0, |s| s.brakes_sent),
         };
         let slot = self.slot(drive);
         let old = slot.lease.replace(lease);
@@ -326,6 +324,9 @@ impl LeaseBook {
                 // It ended while its setpoint waited: the setpoint may have
                 // landed after the stop and set the motor going again.
                 self.stop_again(drive, grant.id, now);
+            }
+            if applied == Applied::Yes {
+                self.deactivated_then_landed(drive, grant.id, now);
             }
             return;
         }
@@ -549,7 +550,7 @@ impl LeaseBook {
                 format!("{head}, released by {by} without a stop; the motor kept its setpoint")
             }
             How::Replaced(by) => format!("{head}, replaced by a leased setpoint from {by}"),
-            How::EndedBy(what) => format!("{head} when {what} was confirmed"),
+            How::EndedBy(what, _) => format!("{head} when {what} was confirmed"),
             How::Stopping { reason, .. } => {
                 let stop = slot.and_then(|s| s.stop.as_ref());
                 let action = stop.map_or(action, |s| s.action.name());

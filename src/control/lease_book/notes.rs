@@ -163,7 +163,6 @@ impl LeaseBook {
             deadline: now + left,
             confirmed: true,
             journaled: Some(now + left),
-            brakes_before: self.slots.get(&drive).map_or(0, |s| s.brakes_sent),
         };
         self.slot(drive).lease = Some(lease);
     }

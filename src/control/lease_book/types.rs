@@ -69,8 +69,8 @@ pub struct LeaseAsk {
     pub owner: Arc<str>,
     /// What holds it.
     pub holder: Holder,
-    /// The mode its setpoint drives the motor in: the stop's choice when
-    /// the drive's mode cannot be read.
+    /// The mode its setpoint drives the motor in (kept by the journal; a
+    /// stop reads the drive's, and zeroes both setpoints when it cannot).
     pub mode: Mode,
     /// Its length: each renewal pushes the deadline this far.
     pub length: Duration,
@@ -147,6 +147,9 @@ pub struct Ticket {
     pub(super) seen: u64,
     /// Who sent it, in words ("the brake from scada (Modbus TCP)").
     pub(super) by: Arc<str>,
+    /// When it was begun, in the book's order of leases and writes: a
+    /// lease granted later is newer than it.
+    pub(super) order: u64,
 }
 
 impl Ticket {
@@ -174,6 +177,9 @@ pub enum StopReason {
     Restarted(Arc<str>),
     /// A reload removed the drive from the configuration.
     Removed,
+    /// Its setpoint reached the drive after this ended the lease (the
+    /// drive had been activated again meanwhile).
+    LandedAfter(Arc<str>),
 }
 
 impl StopReason {
@@ -196,6 +202,9 @@ impl StopReason {
             StopReason::Removed => {
                 "the drive was removed from the configuration by a reload".to_string()
             }
+            StopReason::LandedAfter(what) => {
+                format!("{what} ended it, and its setpoint reached the drive afterwards")
+            }
         }
     }
 }
@@ -211,7 +220,8 @@ pub struct StopOrder {
     pub owner: Option<Arc<str>>,
     /// What to send.
     pub action: StopAction,
-    /// The mode to decide on when the drive's cannot be read.
+    /// The mode of the lease it ends (a stop reads the drive's own, and
+    /// zeroes both setpoints when it cannot).
     pub mode: Mode,
     /// 1 for the first try.
     pub attempt: u32,

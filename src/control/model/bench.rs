@@ -19,7 +19,6 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant, SystemTime};
 
-use crate::bus::cache::Link;
 use crate::bus::fault::Fault;
 use crate::bus::handle::PortState;
 use crate::bus::job::{Exchange, Job};
@@ -235,7 +234,7 @@ impl Bench {
     }
 
     /// True while drive `d` cannot be reached at all.
-    fn unreachable(&self, d: usize) -> bool {
+    pub(super) fn unreachable(&self, d: usize) -> bool {
         self.held_until.is_some()
             || self.down_until.is_some()
             || matches!(self.ailments[d], Ailment::Dead(_))
@@ -416,6 +415,9 @@ impl Bench {
     ) {
         let request = match writes::decode(&job.pdu) {
             PduMeaning::Message(r) => Some(r),
+            _ if Ok(&job.pdu) == DriveRequest::ReadStatus.pdu().as_ref() => {
+                Some(DriveRequest::ReadStatus)
+            }
             _ => None,
         };
         self.served.push(Served {

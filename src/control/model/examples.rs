@@ -2,7 +2,7 @@
 //! showed it, replayed through the same world.
 
 use super::run_case;
-use super::steps::{Cmd, Who};
+use super::steps::{Cmd, Damage, Trouble, Who};
 use super::steps::{Setup, Step};
 use crate::control::stop_action::StopAction;
 
@@ -78,6 +78,95 @@ fn a_replaced_lease_setpoint_landing_after_the_stop_has_the_stop_again() {
     ];
     assert_eq!(
         run_case(plant([false, false], StopAction::ZeroSpeed), &steps),
+        Ok(())
+    );
+}
+
+/// A lease taken with a torque-mode command the drive never got (it was
+/// silent) ends while the status read of its stop is lost: the stop
+/// zeroed the torque setpoint, by the lease's mode, and the motor went on
+/// turning in speed mode. With the mode unknown, both are zeroed.
+#[test]
+fn a_stop_that_cannot_read_the_mode_zeroes_both_setpoints() {
+    let steps = [
+        write(Who::Panel, 0, Cmd::Speed(150), None),
+        write(Who::Hmi, 0, Cmd::Speed(150), Some(100)),
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::Dead(100),
+        },
+        write(Who::Plc, 0, Cmd::TorqueMode, None),
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostRequests(1),
+        },
+        Step::Advance { ms: 200 },
+    ];
+    assert_eq!(
+        run_case(plant([true, false], StopAction::ZeroSpeed), &steps),
+        Ok(())
+    );
+}
+
+/// The journal garbled and the port down at the start: the turning drive
+/// did not answer then, and nothing stopped it once it did.
+#[test]
+fn a_drive_silent_at_a_start_with_the_journal_unknown_is_stopped_when_it_answers() {
+    let steps = [
+        write(Who::Panel, 1, Cmd::Speed(150), None),
+        Step::BusDown { ms: 50 },
+        Step::Restart {
+            wire: false,
+            damage: Damage::Garbled,
+            down_ms: 0,
+        },
+        Step::Advance { ms: 100 },
+    ];
+    assert_eq!(
+        run_case(plant([false, true], StopAction::ZeroSpeed), &steps),
+        Ok(())
+    );
+}
+
+/// Two setpoints sent before a brake land after it (the brake goes first)
+/// and release it; a deactivation sent after the brake then ended the
+/// brake being applied again, leaving the drive unbraked.
+#[test]
+fn a_deactivation_does_not_end_a_brake_owed_again() {
+    let steps = [
+        write(Who::Panel, 0, Cmd::Activate, None),
+        Step::Hold { ms: 1079 },
+        write(Who::Hmi, 0, Cmd::Speed(150), None),
+        write(Who::Panel, 0, Cmd::Speed(150), None),
+        Step::Advance { ms: 555 },
+        write(Who::Hmi, 0, Cmd::Brake, None),
+        Step::Advance { ms: 177 },
+        write(Who::Hmi, 0, Cmd::Deactivate, None),
+        Step::Advance { ms: 347 },
+    ];
+    assert_eq!(
+        run_case(plant([false, false], StopAction::ZeroSpeed), &steps),
+        Ok(())
+    );
+}
+
+/// An MQTT host's leased setpoint waits on the bus behind an OPC UA
+/// client's deactivation and an operator's activation: the deactivation
+/// ended the lease, the activation let the setpoint turn the motor, with
+/// no lease and no stop.
+#[test]
+fn a_setpoint_confirmed_after_a_deactivation_ended_its_lease_is_stopped() {
+    let steps = [
+        Step::Hold { ms: 50 },
+        write(Who::Panel, 0, Cmd::Speed(150), None),
+        write(Who::Scada, 0, Cmd::Speed(150), None),
+        write(Who::Panel, 1, Cmd::Activate, None),
+        write(Who::Scada, 1, Cmd::Speed(150), None),
+        write(Who::Opcua, 1, Cmd::Deactivate, None),
+        Step::Advance { ms: 50 },
+    ];
+    assert_eq!(
+        run_case(plant([false, true], StopAction::ZeroSpeed), &steps),
         Ok(())
     );
 }

@@ -42,6 +42,8 @@ pub(super) enum Event {
     Refused(usize),
     /// A request's result.
     Done(usize, Applied, Instant),
+    /// A request the bus took nothing of (its lease taken and given back).
+    NotSent(usize, Instant, Instant),
     /// The bench served a job.
     Served(Served),
 }
@@ -191,7 +193,7 @@ impl World {
     }
 
     /// Lets the first start settle, and checks.
-    pub async fn settle_start(&mut self) -> Result<(), String> {
+    pub(super) async fn settle_start(&mut self) -> Result<(), String> {
         self.settle().await;
         self.look()
     }
@@ -238,7 +240,7 @@ impl World {
     }
 
     /// Runs one step, then checks the invariants.
-    pub async fn step(&mut self, step: &Step) -> Result<(), String> {
+    pub(super) async fn step(&mut self, step: &Step) -> Result<(), String> {
         self.oracle.expire(self.now());
         match *step {
             Step::Write {
@@ -358,8 +360,7 @@ impl World {
                 // Refused by the bus after its lease was taken: settled
                 // as never sent.
                 Err(Failure::NotSent(_)) => {
-                    push(&log, Event::Queued(id, clock.now(), Instant::now()));
-                    push(&log, Event::Done(id, Applied::No, clock.now()));
+                    push(&log, Event::NotSent(id, clock.now(), Instant::now()));
                 }
                 Err(_) => push(&log, Event::Refused(id)),
             }
@@ -476,6 +477,7 @@ impl World {
                 Event::Queued(id, at, sent) => self.oracle.queued(id, at, sent),
                 Event::Refused(id) => self.oracle.refused(id),
                 Event::Done(id, applied, at) => self.oracle.settled(id, applied, at),
+                Event::NotSent(id, at, sent) => self.oracle.not_sent(id, at, sent),
                 Event::Served(s) => {
                     if let Some(broken) = self.oracle.served(&s) {
                         return Err(broken);
@@ -509,6 +511,10 @@ impl World {
         (0..DRIVES).map(|d| self.bench.motion(d)).collect()
     }
 
+    fn reachable(&self) -> Vec<bool> {
+        (0..DRIVES).map(|d| !self.bench.unreachable(d)).collect()
+    }
+
     fn troubled(&self) -> Vec<bool> {
         let now = self.now();
         (0..DRIVES)
@@ -522,11 +528,13 @@ impl World {
         let now = self.now();
         self.oracle.expire(now);
         let (core, motion, troubled) = (self.core(), self.motions(), self.troubled());
+        let reachable = self.reachable();
         self.oracle.check(&Look {
             now,
             core: &core,
             motion: &motion,
             troubled: &troubled,
+            reachable: &reachable,
         })
     }
 
@@ -568,6 +576,7 @@ impl World {
         self.drain()?;
         let (core, motion) = (self.core(), self.motions());
         self.oracle.killed(now, damage, &core, &motion);
+        self.oracle.forget_unknown();
         let Some(p) = self.process.take() else {
             return Ok(());
         };
@@ -603,11 +612,13 @@ impl World {
         let now = self.now();
         self.oracle.expire(now);
         let (core, motion, troubled) = (self.core(), self.motions(), self.troubled());
+        let reachable = self.reachable();
         let look = Look {
             now,
             core: &core,
             motion: &motion,
             troubled: &troubled,
+            reachable: &reachable,
         };
         self.oracle.check_restart(damage, &look)?;
         let unknown = damage == Damage::Garbled || damage.lost();
