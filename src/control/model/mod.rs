@@ -34,7 +34,7 @@ use steps::{Setup, Step};
 use world::World;
 
 /// Cases in the default run.
-const CASES: u32 = 2000;
+const CASES: u32 = 1000;
 
 /// Whether restarts may find the journal emptied, cut to its header or
 /// deleted. The start-up must then treat the plant's state as unknown
