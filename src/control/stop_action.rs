@@ -102,17 +102,13 @@ pub async fn stop_drive(
     if action == StopAction::None {
         return Ok(outcome);
     }
-    if action == StopAction::ZeroSpeed || only_if_moving {
-        match bus
+    if (action == StopAction::ZeroSpeed || only_if_moving)
+        && let Ok(DriveReply::Status(s)) = bus
             .execute(unit, &DriveRequest::ReadStatus, options.clone())
             .await
-        {
-            Ok(DriveReply::Status(s)) => {
-                outcome.mode = Some(s.mode());
-                outcome.moving = is_moving(&s);
-            }
-            _ => {}
-        }
+    {
+        outcome.mode = Some(s.mode());
+        outcome.moving = is_moving(&s);
     }
     if only_if_moving && !outcome.moving {
         return Ok(outcome);

@@ -273,18 +273,18 @@ async fn every_job_accepted_while_the_bus_stops_is_answered() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn zero_speed_with_the_mode_unknown_zeroes_both_setpoints() {
     // A drive whose status cannot be read (it answers the read with an
-    // exception) and that was never polled: its mode is unknown. It may be
-    // in torque mode, where a zero speed setpoint would leave it pushing.
+    // exception): its mode is unknown (the last poll's, or a lease's, may
+    // be out of date). It may be in torque mode, where a zero speed
+    // setpoint would leave it pushing.
     let mut peer = start_peer(|frame| match frame[1] {
         0x03 => Reply::Bytes(rtu_frame::encode(frame[0], &[0x83, 0x04])),
         _ => Reply::Bytes(frame.to_vec()),
     });
     let (bus, thread) = bus_on(&peer.path);
     port_up(&bus).await;
-    let outcome =
-        stop_action::stop_drive(&bus, 1, StopAction::ZeroSpeed, true, None, Origin::Internal)
-            .await
-            .unwrap();
+    let outcome = stop_action::stop_drive(&bus, 1, StopAction::ZeroSpeed, true, Origin::Internal)
+        .await
+        .unwrap();
     let speed = DriveRequest::Speed { rpm: 0 };
     let torque = DriveRequest::Torque { counts: 0 };
     for expected in [&DriveRequest::ReadStatus, &speed, &torque] {

@@ -189,8 +189,6 @@ pub(super) struct Look<'a> {
 struct AtKill {
     lease: Option<Lease>,
     core: Option<LeaseView>,
-    stopping: bool,
-    authority: Authority,
     driven: bool,
 }
 

@@ -26,8 +26,6 @@ impl Oracle {
         let at = std::array::from_fn(|d| AtKill {
             lease: self.leases[d].clone(),
             core: core[d].lease.clone(),
-            stopping: core[d].stopping,
-            authority: self.authority[d],
             driven: motion[d].driven,
         });
         self.kill = Some((now, at));
@@ -74,9 +72,7 @@ impl Oracle {
         let Some((killed_at, at)) = &self.kill else {
             return Ok(());
         };
-        let _ = killed_at;
-        for d in 0..DRIVES {
-            let was = &at[d];
+        for (d, was) in at.iter().enumerate() {
             let now_core = &look.core[d].lease;
             let Some(lease) = &was.lease else {
                 continue;
@@ -128,18 +124,14 @@ impl Oracle {
                 ));
             }
         }
-        let _ = (
-            at.iter().map(|a| (a.stopping, a.authority)).count(),
-            look.motion,
-        );
         Ok(())
     }
 
     /// After a restart whose journal said nothing that can be trusted:
     /// every drive found turning at its first poll is stopped.
     pub(crate) fn check_unknown(&mut self, found: &[Motion], look: &Look) -> Result<(), String> {
-        for d in 0..DRIVES {
-            if !found[d].driven {
+        for (d, found) in found.iter().enumerate() {
+            if !found.driven {
                 continue;
             }
             if !look.reachable[d] {
