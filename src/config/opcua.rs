@@ -426,4 +426,99 @@ mod tests {
         let e = parse("comm_loss_action = \"stop\"").unwrap_err();
         assert!(e.contains("test.toml:2:"), "{e}");
     }
+
+    #[test]
+    fn the_caps_have_the_stacks_defaults_and_their_ranges() {
+        let c = parse("").unwrap().opcua.unwrap();
+        assert_eq!(
+            (
+                c.max_subscriptions_per_session,
+                c.max_monitored_items_per_session,
+                c.max_monitored_items,
+                c.max_queue_size,
+                c.max_event_queue_size,
+                c.max_queued_values
+            ),
+            (10, 1000, 10_000, 10, 1000, 100_000)
+        );
+        for (key, bad, range) in [
+            ("max_subscriptions_per_session", "0", "valid 1 to 100"),
+            (
+                "max_monitored_items_per_session",
+                "100001",
+                "valid 1 to 100000",
+            ),
+            ("max_monitored_items", "0", "valid 1 to 1000000"),
+            ("max_queue_size", "0", "valid 1 to 10000"),
+            ("max_event_queue_size", "10001", "valid 1 to 10000"),
+            ("max_queued_values", "99", "valid 100 to 10000000"),
+        ] {
+            let e = parse(&format!("{key} = {bad}")).unwrap_err();
+            assert!(
+                e.contains(range) && e.contains("test.toml:2:"),
+                "{key}: {e}"
+            );
+        }
+        assert_eq!(
+            parse("max_queue_size = 100")
+                .unwrap()
+                .opcua
+                .unwrap()
+                .max_queue_size,
+            100
+        );
+    }
+
+    #[test]
+    fn user_certificates_are_named_by_thumbprint_or_subject() {
+        let toml = |entry: &str| {
+            Config::parse(
+                &format!(
+                    "[opcua]\nuser_ca = \"/etc/ca.pem\"\n[[opcua.user_certificate]]\n{entry}\n"
+                ),
+                "test.toml",
+            )
+            .map_err(|e| e.to_string())
+        };
+        let c = toml("thumbprint = \"SHA1 Fingerprint=3A:7F:00:11:22:33:44:55:66:77:88:99:AA:BB:CC:DD:EE:FF:01:C2\"\nrole = \"operator\"")
+            .unwrap()
+            .opcua
+            .unwrap();
+        let u = &c.user_certificates[0];
+        assert_eq!(u.role, crate::config::Role::Operator);
+        let sha1 = u.thumbprint.clone().unwrap();
+        assert_eq!((sha1.len(), sha1[0], sha1[19]), (20, 0x3a, 0xc2));
+        assert!(u.names(&sha1, &[0; 32], &[]));
+        let c = toml("subject = \"O=plant, CN=vera\"\nrole = \"viewer\"")
+            .unwrap()
+            .opcua
+            .unwrap();
+        let u = &c.user_certificates[0];
+        let subject = |pairs: &[(&str, &str)]| -> Vec<(String, String)> {
+            pairs
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect()
+        };
+        assert!(u.names(
+            &[0; 20],
+            &[0; 32],
+            &subject(&[("CN", "vera"), ("O", "plant"), ("C", "FR")])
+        ));
+        assert!(!u.names(&[0; 20], &[0; 32], &subject(&[("CN", "vera")])));
+        assert!(!u.names(
+            &[0; 20],
+            &[0; 32],
+            &subject(&[("CN", "vera2"), ("O", "plant")])
+        ));
+        let e = toml("thumbprint = \"3A:7F\"\nrole = \"admin\"").unwrap_err();
+        assert!(
+            e.contains("40 or 64 digits") && e.contains("test.toml:4:"),
+            "{e}"
+        );
+        let e = toml("role = \"admin\"").unwrap_err();
+        assert!(e.contains("either thumbprint or subject"), "{e}");
+        let e = toml("subject = \"vera\"\nrole = \"admin\"").unwrap_err();
+        assert!(e.contains("attribute=value"), "{e}");
+    }
 }

@@ -129,9 +129,9 @@ fn certificate(
         match &facts.extension {
             None => Ok(None),
             Some(Err(e)) => Err(format!("the certificate of {who}: its role extension: {e}")),
-            Some(Ok(name)) => Role::from_name(name).map(Some).ok_or_else(|| {
+            Some(Ok(name)) => Role::from_name(&name.trim().to_ascii_lowercase()).map(Some).ok_or_else(|| {
                 format!(
-                    "the certificate of {who} names the role \"{name}\": expected viewer, operator or admin"
+                    "the certificate's role \"{name}\" is none of viewer, operator, admin (the certificate of {who})"
                 )
             }),
         }
@@ -195,4 +195,57 @@ pub fn hex(bytes: &[u8]) -> String {
         .map(|b| format!("{b:02X}"))
         .collect::<Vec<_>>()
         .join(":")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(text: &str) -> Config {
+        Config::parse(text, "test.toml").unwrap()
+    }
+
+    const TOKEN: &str = "[[http.token]]\nname = \"panel\"\nrole = \"operator\"\nsha256 = \"0000000000000000000000000000000000000000000000000000000000000000\"\n";
+
+    #[test]
+    fn a_token_has_its_configured_role_and_loopback_is_admin_only_without_tokens() {
+        let c = config(TOKEN);
+        let panel = identify(&c, Face::OpcUa, Credential::Token("panel")).unwrap();
+        assert_eq!((&*panel.who, panel.role), ("panel", Role::Operator));
+        assert!(identify(&c, Face::Http, Credential::Token("ghost")).is_err());
+        assert!(identify(&c, Face::Http, Credential::Loopback("127.0.0.1:5000")).is_err());
+        let open = config("");
+        let local = identify(&open, Face::Http, Credential::Loopback("127.0.0.1:5000")).unwrap();
+        assert_eq!(local.role, Role::Admin);
+    }
+
+    #[test]
+    fn anonymous_is_a_viewer_only_when_the_configuration_says_so() {
+        let on = config("[opcua]\nanonymous = \"viewer\"\n");
+        assert_eq!(
+            identify(&on, Face::OpcUa, Credential::Anonymous)
+                .unwrap()
+                .role,
+            Role::Viewer
+        );
+        let off = config("[opcua]\nanonymous = \"none\"\n");
+        assert!(identify(&off, Face::OpcUa, Credential::Anonymous).is_err());
+        assert!(identify(&config(""), Face::OpcUa, Credential::Anonymous).is_err());
+    }
+
+    #[test]
+    fn garbage_is_no_certificate() {
+        let c = config("[opcua]\n");
+        let e = identify(
+            &c,
+            Face::OpcUa,
+            Credential::Certificate {
+                der: b"not a certificate",
+                vouched: Vouched::RoleCa,
+            },
+        )
+        .unwrap_err();
+        assert!(e.contains("not valid X.509"), "{e}");
+        assert_eq!(hex(&[0x3a, 0x07]), "3A:07");
+    }
 }

@@ -98,7 +98,11 @@ impl Ua {
     }
 
     /// The same, with `section` and its directory.
-    pub(crate) async fn start_with(port: Option<&Path>, dir: tempfile::TempDir, section: String) -> Ua {
+    pub(crate) async fn start_with(
+        port: Option<&Path>,
+        dir: tempfile::TempDir,
+        section: String,
+    ) -> Ua {
         let builder = match port {
             None => ConfigBuilder::four_drives(),
             Some(link) => ConfigBuilder::new().bus("line1", |b| {
@@ -736,7 +740,18 @@ async fn a_client_certificate_is_refused_then_trusted_without_a_restart() {
         assert_eq!(name, format!("pyclient-{thumbprint}.der"));
         // Copied (not moved) from the client's machine, as PEM under a name
         // of its own: trusted by its content, whatever rejected/ still holds.
-        openssl(&dir, &["x509", "-inform", "der", "-in", "pyclient.der", "-out", "copied.pem"]);
+        openssl(
+            &dir,
+            &[
+                "x509",
+                "-inform",
+                "der",
+                "-in",
+                "pyclient.der",
+                "-out",
+                "copied.pem",
+            ],
+        );
         std::fs::copy(
             dir.join("copied.pem"),
             ua.pki.join("trusted/certs/pyclient from the laptop.pem"),
@@ -763,7 +778,10 @@ async fn a_client_certificate_is_refused_then_trusted_without_a_restart() {
             rejected.display(),
             ua.pki.join("trusted/certs").display()
         );
-        let done = std::process::Command::new("sh").args(["-c", &mv]).status().unwrap();
+        let done = std::process::Command::new("sh")
+            .args(["-c", &mv])
+            .status()
+            .unwrap();
         assert!(done.success(), "{mv}");
         let all = Client::asyncua(&ua.url, "secure", &args).steps().await;
         assert_eq!(step(&all, "secure")["status"], "Good", "{all:?}");

@@ -470,6 +470,12 @@ async def sign_in_and_brake(args, user, password, clear=False):
     return {"status": status, "seconds": round(time.monotonic() - t0, 3), "address": address}
 
 
+async def sign_in(args):
+    """Signs in as given and calls Brake() on --drive, timed from the
+    connection's start to the answer."""
+    say("sign-in", **await sign_in_and_brake(args, args.user, args.password))
+
+
 async def clear_password(args):
     """The operator's password sent in clear on the endpoint without
     security (refused), then encrypted as the user token policy says
@@ -557,7 +563,7 @@ async def flood(args):
     say("closed")
 
 
-SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table, clear_password, guess, claim, flood]}
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table, sign_in, clear_password, guess, claim, flood]}
 
 
 def scenarios(text):
