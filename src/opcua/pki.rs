@@ -227,7 +227,7 @@ pub fn rejected_name(der: &[u8], fallback: &str) -> String {
         }
         out.trim_matches(['_', '.', '-']).to_string()
     };
-    let Ok(cert) = X509::from_der(der) else {
+    let Ok(facts) = crate::tls::peer_identity(&der.to_vec().into(), "") else {
         let stem = clean(fallback.trim_end_matches(".der"));
         return format!(
             "{}.der",
@@ -238,8 +238,11 @@ pub fn rejected_name(der: &[u8], fallback: &str) -> String {
             }
         );
     };
-    let thumbprint = cert.thumbprint().as_hex_string().to_lowercase();
-    let name = cert.common_name().map(|cn| clean(&cn)).unwrap_or_default();
+    let thumbprint: String = crate::tls::sha1_fingerprint(der)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    let name = facts.common_name.map(|cn| clean(&cn)).unwrap_or_default();
     if name.is_empty() {
         format!("{thumbprint}.der")
     } else {
