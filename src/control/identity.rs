@@ -22,8 +22,11 @@
 //!   extension of a certificate signed by `user_ca`;
 //! - OPC UA anonymous sessions: viewer, or refused (`[opcua] anonymous`).
 //!
-//! (Plain Modbus TCP clients get theirs from their network, in
-//! `modbus_tcp/access.rs`; MQTT commands from `[mqtt] commands`.)
+//! The API (`api/caller.rs`), Modbus/TCP Security (`modbus_tcp/server.rs`)
+//! and OPC UA (`opcua/users.rs`) ask here. Plain Modbus TCP clients, which
+//! prove nothing but their address, get theirs from their network's entry
+//! of the same configuration (`modbus_tcp/access.rs`); MQTT commands from
+//! `[mqtt] commands`.
 
 use std::sync::Arc;
 
