@@ -160,7 +160,7 @@ fn thumbprint<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Vec<u8>>, D::Err
         })
         .collect::<Option<Vec<u8>>>();
     match bytes {
-        Some(b) if hex.len() % 2 == 0 && (b.len() == 20 || b.len() == 32) => Ok(Some(b)),
+        Some(b) if hex.len().is_multiple_of(2) && (b.len() == 20 || b.len() == 32) => Ok(Some(b)),
         _ => Err(de::Error::custom(format!(
             "thumbprint \"{text}\": expected the certificate's SHA-1 or SHA-256 fingerprint in \
              hex (40 or 64 digits, colons allowed), as `openssl x509 -noout -fingerprint -sha1 \
