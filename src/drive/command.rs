@@ -108,7 +108,11 @@ impl ConfigCommand {
     /// The modes, in words: "speed, position or torque".
     pub fn modes_in_words() -> String {
         let names: Vec<&str> = Self::MODES.iter().map(|(n, _)| *n).collect();
-        format!("{} or {}", names[..names.len() - 1].join(", "), names[names.len() - 1])
+        format!(
+            "{} or {}",
+            names[..names.len() - 1].join(", "),
+            names[names.len() - 1]
+        )
     }
 }
 

@@ -129,8 +129,9 @@ pub enum ModeChoice {
 #[derive(Debug, Clone, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ModeBody {
-    /// The mode. Read as a string so that a mode the drive does not have
-    /// is refused by [`set_mode`], audited like any refused write.
+    // Read as a string, so that a mode the drive does not have is refused
+    // by `set_mode`, audited like any refused write.
+    /// The mode.
     #[schema(value_type = ModeChoice)]
     pub mode: String,
 }
@@ -149,7 +150,13 @@ pub(crate) async fn set_mode(
             body.mode,
             ConfigCommand::modes_in_words()
         );
-        writes::refused(control, caller, target, format!("mode \"{}\"", body.mode), &why);
+        writes::refused(
+            control,
+            caller,
+            target,
+            format!("mode \"{}\"", body.mode),
+            &why,
+        );
         return Err(Problem::invalid(why));
     };
     run(control, caller, target, command, false).await
@@ -220,9 +227,11 @@ impl SetpointBody {
     pub fn attempted(&self) -> String {
         let asked: Vec<String> = [
             self.speed_rpm.map(|v| format!("speed setpoint {v} rpm")),
-            self.position_deg.map(|v| format!("position setpoint {v} deg")),
+            self.position_deg
+                .map(|v| format!("position setpoint {v} deg")),
             self.torque_a.map(|v| format!("torque setpoint {v} A")),
-            self.torque_counts.map(|v| format!("torque setpoint {v} counts")),
+            self.torque_counts
+                .map(|v| format!("torque setpoint {v} counts")),
         ]
         .into_iter()
         .flatten()

@@ -63,9 +63,7 @@ pub fn parse(m: &Metric) -> Result<Option<Command>, Malformed> {
         Writable::Mode => {
             let modes = ConfigCommand::modes_in_words();
             let Some(mode) = metric::as_str(m) else {
-                return Err(Malformed::shape(format!(
-                    "{name} takes a String: {modes}"
-                )));
+                return Err(Malformed::shape(format!("{name} takes a String: {modes}")));
             };
             DriveRequest::Config(ConfigCommand::mode_named(mode).ok_or_else(|| {
                 Malformed(

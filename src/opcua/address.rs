@@ -17,8 +17,7 @@ use opcua::server::address_space::{
 use opcua::types::{
     Argument, AttributeId, DataTypeDefinition, DataTypeId, DataValue, EUInformation,
     EnumDefinition, EnumField, ExtensionObject, LocalizedText, NodeId, ObjectId, ObjectTypeId,
-    QualifiedName, Range, ReferenceTypeId, StatusCode, TimestampsToReturn, VariableTypeId,
-    Variant,
+    QualifiedName, Range, ReferenceTypeId, StatusCode, TimestampsToReturn, VariableTypeId, Variant,
 };
 
 use super::spec::{

@@ -399,8 +399,16 @@ pub const MODES: [(i32, &str, &str); 4] = [
         "Open-loop voltage control: the mode at power-on, before a mode command.",
     ),
     (1, "Speed", "Speed closed loop: follows SpeedSetpoint."),
-    (2, "Position", "Position closed loop: follows PositionSetpoint."),
-    (3, "Torque", "Torque (current) closed loop: follows TorqueSetpoint."),
+    (
+        2,
+        "Position",
+        "Position closed loop: follows PositionSetpoint.",
+    ),
+    (
+        3,
+        "Torque",
+        "Torque (current) closed loop: follows TorqueSetpoint.",
+    ),
 ];
 
 /// The node id path of `Mode`'s enumeration data type.
@@ -569,7 +577,9 @@ impl BusVariable {
             BusVariable::BadReplies => {
                 "Replies that did not answer their request (another unit, function or register), since the daemon started."
             }
-            BusVariable::Retries => "Requests sent again after a failed attempt, since the daemon started.",
+            BusVariable::Retries => {
+                "Requests sent again after a failed attempt, since the daemon started."
+            }
             BusVariable::Reopens => {
                 "Times the port was opened again after it failed, since the daemon started."
             }
@@ -584,7 +594,8 @@ pub mod described {
     /// `DriveType`.
     pub const DRIVE_TYPE: &str = "A servo drive on an RS-485 bus: its status, polled by the gateway, its setpoints, settings and commands (the maker's manual, sections 1.3 to 1.12).";
     /// `BusType`.
-    pub const BUS_TYPE: &str = "An RS-485 bus (a serial adapter, or a serial device server) and its wire's counters.";
+    pub const BUS_TYPE: &str =
+        "An RS-485 bus (a serial adapter, or a serial device server) and its wire's counters.";
     /// `Objects/Drives`.
     pub const DRIVES: &str = "The configured drives, by name.";
     /// `Objects/Buses`.

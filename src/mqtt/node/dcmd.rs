@@ -46,8 +46,12 @@ impl Node {
                     if let Some(what) = malformed.1 {
                         // A write the drive cannot take is audited like
                         // every refused write.
-                        self.control
-                            .refused(&caller, target, what, format!("refused: {}", malformed.0));
+                        self.control.refused(
+                            &caller,
+                            target,
+                            what,
+                            format!("refused: {}", malformed.0),
+                        );
                     }
                     self.last_result(Some(c), &device, malformed.0);
                 }
