@@ -190,6 +190,9 @@ struct AtKill {
     lease: Option<Lease>,
     core: Option<LeaseView>,
     driven: bool,
+    /// A brake to the drive was on its way: the journal says it may have
+    /// been sent, and a restart applies it (ending the lease).
+    brake_on_its_way: bool,
 }
 
 /// The rules' promises.

@@ -27,6 +27,10 @@ impl Oracle {
             lease: self.leases[d].clone(),
             core: core[d].lease.clone(),
             driven: motion[d].driven,
+            brake_on_its_way: self
+                .reqs
+                .iter()
+                .any(|r| r.drive == d && r.cmd == Cmd::Brake && r.stage == Stage::Queued),
         });
         self.kill = Some((now, at));
         for req in &mut self.reqs {
@@ -50,9 +54,11 @@ impl Oracle {
     /// the lease under which the motor was set turning decides again, and
     /// if its action is none, the motor may go on.
     fn torn(&mut self, d: usize) {
-        let unsent = self.leases[d]
-            .as_ref()
-            .is_some_and(|l| self.reqs[l.req].served.is_none());
+        let unsent = self.leases[d].as_ref().is_some_and(|l| {
+            self.reqs[l.req]
+                .served
+                .is_none_or(|o| o == Outcome::Dropped)
+        });
         let motion_action = self.motion_req[d]
             .and_then(|id| self.reqs[id].terms)
             .map(|t| t.action);
@@ -116,7 +122,12 @@ impl Oracle {
             let kept = promised
                 .checked_sub(horizon)
                 .is_some_and(|k| k > look.now + SLACK);
-            if damage == Damage::Intact && kept && back.is_none() && was.driven {
+            if damage == Damage::Intact
+                && kept
+                && back.is_none()
+                && was.driven
+                && !was.brake_on_its_way
+            {
                 return Err(format!(
                     "drive {d}: {}'s HTTP lease, promised for {:?} more, is not back after the restart",
                     lease.owner,
