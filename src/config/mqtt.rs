@@ -71,12 +71,22 @@ pub struct MqttConfig {
     #[serde(default)]
     pub client_key: Option<PathBuf>,
     /// MQTT keepalive, seconds: a connection cut without a close is
-    /// noticed within one and a half of it.
+    /// noticed within one and a half of it. At least 5 with the JSON
+    /// format (the MQTT 5 client's own floor); read it with
+    /// [`MqttConfig::keepalive`].
+    #[serde(default = "default_keepalive", deserialize_with = "keepalive")]
+    keepalive_s: Spanned<u64>,
+    /// The largest message the node takes from the broker, bytes (the
+    /// whole MQTT packet: topic, headers and payload). A larger one costs
+    /// the message, not the connection: dropped, counted and audited. The
+    /// default holds the largest command either format takes with room
+    /// to spare (the WebSocket stream's messages are bounded by
+    /// `[http] max_body_bytes`, 64 KiB by default).
     #[serde(
-        default = "default_keepalive",
-        deserialize_with = "int_in::<_, _, 2, 3600>"
+        default = "default_max_message_bytes",
+        deserialize_with = "int_in::<_, _, 1024, 16_777_216>"
     )]
-    pub keepalive_s: u64,
+    pub max_message_bytes: u32,
     /// A setpoint or mode command from MQTT takes a lease held by the MQTT
     /// session; the broker connection lost for this long ends it, ms.
     #[serde(
@@ -352,6 +362,15 @@ impl MqttConfig {
         if self.client_key.is_some() && self.client_cert.is_none() {
             return Err((0..0, "[mqtt] client_key needs client_cert".to_string()));
         }
+        if self.format == Format::Json && *self.keepalive_s.get_ref() < JSON_KEEPALIVE_MIN_S {
+            return Err((
+                self.keepalive_s.span(),
+                format!(
+                    "[mqtt] keepalive_s = {} is out of range with format = \"json\": valid {JSON_KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} (the MQTT 5 client's floor; Sparkplug allows {KEEPALIVE_MIN_S})",
+                    self.keepalive_s.get_ref()
+                ),
+            ));
+        }
         if self.takes_unauthenticated_commands() && !self.unauthenticated_commands {
             return Err((self.commands.0.span(), self.unauthenticated_refusal()));
         }
@@ -391,7 +410,7 @@ impl MqttConfig {
 
     /// The keepalive interval.
     pub fn keepalive(&self) -> Duration {
-        Duration::from_secs(self.keepalive_s)
+        Duration::from_secs(*self.keepalive_s.get_ref())
     }
 
     /// The largest the store may grow, bytes.
@@ -404,8 +423,32 @@ fn default_group() -> String {
     "drivegate".to_string()
 }
 
-fn default_keepalive() -> u64 {
-    10
+/// The keepalive's range, seconds (rumqttc's MQTT 3.1.1 client takes
+/// any whole second; a keepalive is a 16-bit field).
+const KEEPALIVE_MIN_S: u64 = 2;
+const KEEPALIVE_MAX_S: u64 = 3600;
+/// rumqttc's MQTT 5 client refuses less (it panics: "Keep alives should
+/// be >= 5 secs").
+const JSON_KEEPALIVE_MIN_S: u64 = 5;
+
+fn default_keepalive() -> Spanned<u64> {
+    Spanned::new(0..0, 10)
+}
+
+fn keepalive<'de, D: Deserializer<'de>>(d: D) -> Result<Spanned<u64>, D::Error> {
+    let v = Spanned::<i64>::deserialize(d)?;
+    let span = v.span();
+    let v = *v.get_ref();
+    match u64::try_from(v) {
+        Ok(s) if (KEEPALIVE_MIN_S..=KEEPALIVE_MAX_S).contains(&s) => Ok(Spanned::new(span, s)),
+        _ => Err(de::Error::custom(format!(
+            "{v} is out of range: valid {KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} ({JSON_KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} with format = \"json\")"
+        ))),
+    }
+}
+
+fn default_max_message_bytes() -> u32 {
+    65_536
 }
 
 fn default_comm_loss() -> u64 {
