@@ -617,6 +617,25 @@ mod tests {
     }
 
     #[test]
+    fn the_keepalive_and_the_largest_message_are_within_the_clients_limits() {
+        let broker = "broker = \"mqtt://127.0.0.1\"";
+        // rumqttc's MQTT 5 client panics below 5 s: refused at the line.
+        let e = parse(&format!("{broker}\nformat = \"json\"\nkeepalive_s = 4")).unwrap_err();
+        assert!(e.starts_with("drivegate.toml:4:"), "{e}");
+        assert!(e.contains("valid 5 to 3600"), "{e}");
+        assert!(parse(&format!("{broker}\nformat = \"json\"\nkeepalive_s = 5")).is_ok());
+        // Sparkplug's MQTT 3.1.1 client takes 2.
+        let c = parse(&format!("{broker}\nkeepalive_s = 2")).unwrap();
+        assert_eq!(c.keepalive(), Duration::from_secs(2));
+        let e = parse(&format!("{broker}\nkeepalive_s = 1")).unwrap_err();
+        assert!(e.starts_with("drivegate.toml:3:"), "{e}");
+        assert!(e.contains("valid 2 to 3600"), "{e}");
+        assert_eq!(parse(broker).unwrap().max_message_bytes, 65_536);
+        let e = parse(&format!("{broker}\nmax_message_bytes = 1023")).unwrap_err();
+        assert!(e.contains("valid 1024 to 16777216"), "{e}");
+    }
+
+    #[test]
     fn sparkplug_ids() {
         assert!(check_sparkplug_id("gw-1.plant").is_ok());
         assert!(check_sparkplug_id("a/b").unwrap_err().contains("'/'"));
