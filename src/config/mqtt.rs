@@ -75,7 +75,7 @@ pub struct MqttConfig {
     /// format (the MQTT 5 client's own floor); read it with
     /// [`MqttConfig::keepalive`].
     #[serde(default = "default_keepalive", deserialize_with = "keepalive")]
-    keepalive_s: Spanned<u64>,
+    keepalive_s: KeepaliveKey,
     /// The largest message the node takes from the broker, bytes (the
     /// whole MQTT packet: topic, headers and payload). A larger one costs
     /// the message, not the connection: dropped, counted and audited. The
@@ -287,6 +287,23 @@ impl fmt::Debug for CommandsKey {
     }
 }
 
+/// `keepalive_s` with where the file says it (for the JSON format's
+/// floor, checked across keys); compared and shown by its value only.
+#[derive(Clone)]
+struct KeepaliveKey(Spanned<u64>);
+
+impl PartialEq for KeepaliveKey {
+    fn eq(&self, other: &Self) -> bool {
+        self.0.get_ref() == other.0.get_ref()
+    }
+}
+
+impl fmt::Debug for KeepaliveKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.0.get_ref().fmt(f)
+    }
+}
+
 /// How drivegate logs in to the broker: what the broker knows of the
 /// connection its commands arrive on.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -362,12 +379,13 @@ impl MqttConfig {
         if self.client_key.is_some() && self.client_cert.is_none() {
             return Err((0..0, "[mqtt] client_key needs client_cert".to_string()));
         }
-        if self.format == Format::Json && *self.keepalive_s.get_ref() < JSON_KEEPALIVE_MIN_S {
+        let keepalive = &self.keepalive_s.0;
+        if self.format == Format::Json && *keepalive.get_ref() < JSON_KEEPALIVE_MIN_S {
             return Err((
-                self.keepalive_s.span(),
+                keepalive.span(),
                 format!(
-                    "[mqtt] keepalive_s = {} is out of range with format = \"json\": valid {JSON_KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} (the MQTT 5 client's floor; Sparkplug allows {KEEPALIVE_MIN_S})",
-                    self.keepalive_s.get_ref()
+                    "[mqtt] keepalive_s = {} is out of range: valid {JSON_KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} with format = \"json\" (the MQTT 5 client's floor; Sparkplug takes {KEEPALIVE_MIN_S})",
+                    keepalive.get_ref()
                 ),
             ));
         }
@@ -410,7 +428,7 @@ impl MqttConfig {
 
     /// The keepalive interval.
     pub fn keepalive(&self) -> Duration {
-        Duration::from_secs(*self.keepalive_s.get_ref())
+        Duration::from_secs(*self.keepalive_s.0.get_ref())
     }
 
     /// The largest the store may grow, bytes.
@@ -431,16 +449,18 @@ const KEEPALIVE_MAX_S: u64 = 3600;
 /// be >= 5 secs").
 const JSON_KEEPALIVE_MIN_S: u64 = 5;
 
-fn default_keepalive() -> Spanned<u64> {
-    Spanned::new(0..0, 10)
+fn default_keepalive() -> KeepaliveKey {
+    KeepaliveKey(Spanned::new(0..0, 10))
 }
 
-fn keepalive<'de, D: Deserializer<'de>>(d: D) -> Result<Spanned<u64>, D::Error> {
+fn keepalive<'de, D: Deserializer<'de>>(d: D) -> Result<KeepaliveKey, D::Error> {
     let v = Spanned::<i64>::deserialize(d)?;
     let span = v.span();
     let v = *v.get_ref();
     match u64::try_from(v) {
-        Ok(s) if (KEEPALIVE_MIN_S..=KEEPALIVE_MAX_S).contains(&s) => Ok(Spanned::new(span, s)),
+        Ok(s) if (KEEPALIVE_MIN_S..=KEEPALIVE_MAX_S).contains(&s) => {
+            Ok(KeepaliveKey(Spanned::new(span, s)))
+        }
         _ => Err(de::Error::custom(format!(
             "{v} is out of range: valid {KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} ({JSON_KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} with format = \"json\")"
         ))),
