@@ -255,15 +255,6 @@ fn read_password(path: &std::path::Path) -> Result<String, String> {
         .map_err(|e| format!("[mqtt] password_file {}: {e}", path.display()))
 }
 
-/// An I/O error reaching the broker, in words a plant engineer can act on.
-pub(super) fn io_words(io: &std::io::Error) -> String {
-    if io.kind() == std::io::ErrorKind::ConnectionRefused {
-        "the broker refused the TCP connection (is it running, on this port?)".to_string()
-    } else {
-        format!("connection to the broker: {io}")
-    }
-}
-
 /// A message above `max_message_bytes` that reached the client: the
 /// connection ends (rumqttc cannot skip it).
 pub(super) fn too_large_words(bytes: usize) -> String {
@@ -278,7 +269,7 @@ pub(super) fn too_large_words(bytes: usize) -> String {
 fn describe(e: &rumqttc::ConnectionError) -> String {
     use rumqttc::ConnectionError as E;
     match e {
-        E::Io(io) => io_words(io),
+        E::Io(io) => relay::io_words(io),
         E::MqttState(rumqttc::StateError::Deserialization(
             rumqttc::Error::PayloadSizeLimitExceeded(bytes),
         )) => too_large_words(*bytes),

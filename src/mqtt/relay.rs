@@ -185,7 +185,7 @@ async fn run(listener: UnixListener, dir: PathBuf, broker: Broker, stop: Cancell
     let carried = async {
         let tcp = match TcpStream::connect((broker.host.as_str(), broker.port)).await {
             Ok(tcp) => tcp,
-            Err(e) => return broker.failed(super::connection::io_words(&e)),
+            Err(e) => return broker.failed(io_words(&e)),
         };
         let _ = tcp.set_nodelay(true);
         match &broker.tls {
@@ -211,6 +211,16 @@ async fn run(listener: UnixListener, dir: PathBuf, broker: Broker, stop: Cancell
             stop.cancelled().await;
             tokio::time::sleep(LINGER).await;
         } => {}
+    }
+}
+
+/// An I/O error reaching the broker, in words a plant engineer can act on
+/// (both formats' connections say it so).
+pub(super) fn io_words(io: &std::io::Error) -> String {
+    if io.kind() == std::io::ErrorKind::ConnectionRefused {
+        "the broker refused the TCP connection (is it running, on this port?)".to_string()
+    } else {
+        format!("connection to the broker: {io}")
     }
 }
 

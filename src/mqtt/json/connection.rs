@@ -63,7 +63,7 @@ impl Connection {
 fn describe(e: &rumqttc::v5::ConnectionError) -> String {
     use rumqttc::v5::ConnectionError as E;
     match e {
-        E::Io(io) => crate::mqtt::connection::io_words(io),
+        E::Io(io) => crate::mqtt::relay::io_words(io),
         E::MqttState(rumqttc::v5::StateError::Deserialization(
             rumqttc::v5::mqttbytes::Error::PayloadSizeLimitExceeded { pkt_size, .. },
         )) => crate::mqtt::connection::too_large_words(*pkt_size),
