@@ -52,6 +52,17 @@ impl Face {
         }
     }
 
+    /// Its key in metrics' labels and `/readyz`.
+    pub fn key(self) -> &'static str {
+        match self {
+            Face::Http => "http",
+            Face::ModbusTcp => "modbus_tcp",
+            Face::ModbusTls => "modbus_tls",
+            Face::Mqtt => "mqtt",
+            Face::OpcUa => "opcua",
+        }
+    }
+
     /// The section it is started from.
     pub fn section(self) -> &'static str {
         match self {

@@ -13,7 +13,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use serde::Deserialize;
+use serde::{Deserialize, Deserializer};
 
 use super::role::Role;
 
@@ -128,24 +128,92 @@ fn default_listen() -> SocketAddr {
 pub struct RawHttpConfig {
     listen: SocketAddr,
     token: Vec<RawToken>,
+    #[serde(deserialize_with = "max_body_bytes")]
     max_body_bytes: i64,
+    #[serde(deserialize_with = "max_connections")]
     max_connections: i64,
     /// Absent: a quarter of `max_connections`.
+    #[serde(deserialize_with = "max_connections_per_address")]
     max_connections_per_address: Option<i64>,
+    #[serde(deserialize_with = "header_timeout_ms")]
     header_timeout_ms: i64,
+    #[serde(deserialize_with = "idle_timeout_s")]
     idle_timeout_s: i64,
+    #[serde(deserialize_with = "read_timeout_s")]
     read_timeout_s: i64,
+    #[serde(deserialize_with = "send_buffer_bytes")]
     send_buffer_bytes: i64,
+    #[serde(deserialize_with = "stream_buffer")]
     stream_buffer: i64,
     /// Moved to `[safety]`: refused here with where it went.
     lease_min_ms: Option<i64>,
     /// Moved to `[safety]`: refused here with where it went.
     lease_max_ms: Option<i64>,
+    #[serde(deserialize_with = "lease_default_ms")]
     lease_default_ms: i64,
     allowed_hosts: Vec<String>,
     allowed_origins: Vec<String>,
+    #[serde(deserialize_with = "token_guesses")]
     token_guesses: i64,
     tls: Option<crate::tls::TlsFiles>,
+}
+
+/// `[http] key` in `min..=max` (or 0, with `or_zero` saying what 0 is),
+/// refused at its value's line with the range.
+fn field<'de, D: Deserializer<'de>>(
+    d: D,
+    key: &str,
+    (min, max): (i64, i64),
+    or_zero: &str,
+) -> Result<i64, D::Error> {
+    let v = i64::deserialize(d)?;
+    if (!or_zero.is_empty() && v == 0) || (min..=max).contains(&v) {
+        return Ok(v);
+    }
+    Err(serde::de::Error::custom(format!(
+        "[http] {key} = {v} is out of range: valid {min} to {max}{or_zero}"
+    )))
+}
+
+fn max_body_bytes<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "max_body_bytes", (256, 16 << 20), "")
+}
+fn max_connections<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "max_connections", (1, 65_536), "")
+}
+fn max_connections_per_address<'de, D: Deserializer<'de>>(d: D) -> Result<Option<i64>, D::Error> {
+    field(d, "max_connections_per_address", (1, 65_536), "").map(Some)
+}
+fn header_timeout_ms<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "header_timeout_ms", (100, 600_000), "")
+}
+fn idle_timeout_s<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "idle_timeout_s", (1, 86_400), "")
+}
+fn read_timeout_s<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "read_timeout_s", (1, 3_600), "")
+}
+fn send_buffer_bytes<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(
+        d,
+        "send_buffer_bytes",
+        (4096, 16 << 20),
+        " (or 0 for the system's autotuning)",
+    )
+}
+fn stream_buffer<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "stream_buffer", (1, 65_536), "")
+}
+fn lease_default_ms<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(
+        d,
+        "lease_default_ms",
+        (10, 86_400_000),
+        " (or 0 for no default lease)",
+    )
+}
+fn token_guesses<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "token_guesses", (1, 1_000_000), "")
 }
 
 impl Default for RawHttpConfig {

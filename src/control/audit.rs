@@ -41,6 +41,30 @@ pub fn sign_in_refused(face: &str, client: &str, why: &str) {
     tracing::warn!(target: "drivegate::audit", face, client, why, "sign-in refused");
 }
 
+/// Logs a message a face dropped unread because it is larger than its
+/// configuration takes (`limit` bytes): who sent it is known only as far
+/// as the face knows (MQTT: the broker's login), its topic says what it
+/// was for.
+pub fn message_too_large(
+    face: &str,
+    who: &str,
+    topic: &str,
+    bytes: u64,
+    limit: u64,
+    retained: bool,
+) {
+    tracing::warn!(
+        target: "drivegate::audit",
+        face,
+        who,
+        topic,
+        bytes,
+        limit,
+        retained,
+        "message dropped: larger than the face takes"
+    )
+}
+
 /// Logs a write sent while the motor turns, as its caller's override
 /// allowed.
 pub fn forced(face: &str, who: &str, drive: &str, what: &str, speed_rpm: i16) {

@@ -1,6 +1,8 @@
 //! Prometheus metrics (`GET /metrics`).
 //!
 //! - [`faces`]: counters the HTTP, WebSocket and Modbus TCP faces update,
+//! - `face_health`: each face serving, or down after a crash, and its
+//!   restarts,
 //! - `security`: the browser-origin guards, token failures and TLS,
 //! - `mqtt`: the MQTT face's messages, commands and broker link,
 //! - `opcua`: the OPC UA face's sessions, subscriptions, monitored items,
@@ -23,6 +25,7 @@
 mod buses;
 mod control_core;
 mod drives;
+mod face_health;
 mod faces;
 mod family;
 mod history;
@@ -37,6 +40,7 @@ use std::sync::{Arc, Weak};
 
 use prometheus::{Encoder, Registry, TextEncoder};
 
+pub use face_health::{Down as FaceDown, FaceHealth, FaceState};
 pub use faces::{FaceMetrics, WsClientGuard};
 pub use mqtt::{LinkState as MqttLink, MqttMetrics};
 pub use opcua::{FaceState as OpcUaState, OpcUaMetrics, SIGN_IN_KINDS, ServerCounts};
@@ -50,6 +54,7 @@ use utilisation::Utilisation;
 pub struct Metrics {
     registry: Registry,
     faces: FaceMetrics,
+    face_health: FaceHealth,
     security: SecurityMetrics,
     mqtt: MqttMetrics,
     opcua: OpcUaMetrics,
@@ -64,6 +69,7 @@ impl Metrics {
     pub fn new(plant: Arc<Plant>) -> Arc<Self> {
         let registry = Registry::new();
         let faces = FaceMetrics::register(&registry);
+        let face_health = FaceHealth::register(&registry);
         let security = SecurityMetrics::register(&registry);
         let mqtt = MqttMetrics::register(&registry);
         let opcua = OpcUaMetrics::register(&registry);
@@ -82,6 +88,7 @@ impl Metrics {
         let metrics = Arc::new(Self {
             registry,
             faces,
+            face_health,
             security,
             mqtt,
             opcua,
@@ -115,6 +122,12 @@ impl Metrics {
         {
             tracing::warn!("the history's metrics are not exported: {e}");
         }
+    }
+
+    /// Each face serving, or down after a crash, for the supervisor to say
+    /// and `/readyz` to show.
+    pub fn face_health(&self) -> &FaceHealth {
+        &self.face_health
     }
 
     /// The faces' counters, for the HTTP and Modbus TCP code to update.

@@ -11,6 +11,10 @@
 //! - `node` is the edge node's task: births and deaths, data, commands and
 //!   the session's motor-safety lease, over a `connection` (rumqttc) with
 //!   its `bd_seq` (kept across restarts in `[safety] state_dir`),
+//! - `relay` carries the Sparkplug connection's bytes to the broker and
+//!   `too_large` cuts the messages above `[mqtt] max_message_bytes` from
+//!   what comes back (pure), so a large message costs itself, not the
+//!   connection,
 //! - [`store`] keeps on disk what cannot be published (store and forward:
 //!   the node's [`Outbox`] when there is a state directory); [`replay`]
 //!   holds what comes back out until its drive's DBIRTH is out (pure).
@@ -34,10 +38,12 @@ pub mod metric;
 pub mod metric_commands;
 mod node;
 mod outbox;
+mod relay;
 pub mod replay;
 pub mod store;
 #[rustfmt::skip]
 pub mod sparkplug_b;
+mod too_large;
 pub mod topic;
 
 use crate::faces_shared::start::FaceStart;

@@ -59,6 +59,7 @@ use super::exception::Reported;
 use super::host::Host;
 use super::metric::Setpoints;
 use super::outbox::Outbox;
+use super::relay::TooLarge;
 use super::replay::{self, Held};
 use super::topic::{Kind, NodeTopics};
 use crate::bus::SourceId;
@@ -121,6 +122,8 @@ struct Node {
     followed: Option<u64>,
     /// The commands on their way through the core, in the current session.
     commands: tokio::task::JoinSet<()>,
+    /// Messages cut for their size, for all connections.
+    too_large: Arc<TooLarge>,
 }
 
 /// Starts the edge node's task; it ends after `shutdown` fired.
@@ -141,7 +144,7 @@ pub(super) fn spawn(
     let session = open_session(&control, &config);
     let node = Node {
         topics,
-        who,
+        who: who.clone(),
         source: SourceId::new_unique(),
         outbox,
         held: Held::default(),
@@ -157,6 +160,7 @@ pub(super) fn spawn(
         forwarders: Vec::new(),
         followed: None,
         commands: tokio::task::JoinSet::new(),
+        too_large: TooLarge::new(metrics.clone(), who.clone(), &config),
         config,
         control,
         metrics,
@@ -329,6 +333,7 @@ impl Node {
                 QoS::AtLeastOnce,
                 false,
             ),
+            &self.too_large,
         )?;
         self.born = false;
         self.metrics.mqtt().born(false);

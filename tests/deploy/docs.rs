@@ -161,6 +161,7 @@ fn table_rule(title: &str) -> Option<(&'static [&'static str], &'static [&'stati
                 "drivegate_websocket_",
                 "drivegate_modbus_tcp_",
                 "drivegate_tls_",
+                "drivegate_face_",
                 "drivegate_build_",
                 "drivegate_process_",
             ],

@@ -9,7 +9,9 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
 mod cli;
+mod config_ranges;
 mod docs;
+mod face_crash;
 mod graceful_stop;
 mod grafana;
 mod logs;

@@ -16,6 +16,7 @@ mod commands;
 mod convergence;
 mod death;
 mod json;
+mod oversized;
 mod python;
 mod reload;
 mod safety;

@@ -93,7 +93,12 @@ impl TestDaemon {
 
     /// Starts the daemon without waiting for the drives.
     pub async fn start_no_wait(toml: &str) -> TestDaemon {
-        let config = Config::parse(toml, "test config").expect("test config");
+        Self::start_config(Config::parse(toml, "test config").expect("test config")).await
+    }
+
+    /// Starts the daemon with `config` as it is, checked or not (a test of
+    /// what the checks would have refused), without waiting for the drives.
+    pub async fn start_config(config: Config) -> TestDaemon {
         let plant = Arc::new(Plant::start(&config).expect("plant starts"));
         let metrics = Metrics::new(plant.clone());
         let shutdown = CancellationToken::new();

@@ -46,7 +46,21 @@ impl Mosquitto {
         Self::with(None, Some((users, acl)))
     }
 
+    /// [`Mosquitto::start_with_users`], with `conf`'s lines added to its
+    /// configuration (a block of `docs/security.md`).
+    pub fn start_with_users_and(users: &[(&str, &str)], acl: &str, conf: &str) -> Mosquitto {
+        Self::configured(None, Some((users, acl)), conf)
+    }
+
     fn with(pki: Option<&Pki>, auth: Option<(&[(&str, &str)], &str)>) -> Mosquitto {
+        Self::configured(pki, auth, "")
+    }
+
+    fn configured(
+        pki: Option<&Pki>,
+        auth: Option<(&[(&str, &str)], &str)>,
+        extra: &str,
+    ) -> Mosquitto {
         let dir = tempfile::tempdir().unwrap();
         let port = super::ports::free_port();
         let tls_port = pki.map(|_| super::ports::free_port());
@@ -93,6 +107,8 @@ impl Mosquitto {
                 ));
             }
         }
+        conf.push_str(extra);
+        conf.push('\n');
         if let (Some(pki), Some(tls_port)) = (pki, tls_port) {
             conf.push_str(&format!(
                 "listener {tls_port} 127.0.0.1\ncafile {}\ncertfile {}\nkeyfile {}\n",

@@ -7,7 +7,7 @@
 // drawing every frame), so a hundred drives at the bus's full rate cost the
 // browser little.
 
-import { h, fmt, age, ago, words } from '../ui.js';
+import { h, fmt, age, ago, words, clock } from '../ui.js';
 import { positionText, freshnessOf } from '../store.js';
 
 export const page = {
@@ -85,8 +85,12 @@ function mount(main, _params, { store }) {
   mqtt.hidden = true;
   const opcua = h('p', { class: 'summary opcua', role: 'status' });
   opcua.hidden = true;
+  // A face whose task crashed (docs/operations.md): down and when it is
+  // started again, or serving again and how often it was; shown only then.
+  const crashed = h('p', { class: 'summary faces', role: 'status' });
+  crashed.hidden = true;
   main.append(
-    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, mqtt, opcua),
+    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, mqtt, opcua, crashed),
     h('section', { class: 'panel', 'aria-labelledby': 'drives-h' }, h('h1', { id: 'drives-h' }, 'Drives'), summary,
       h('div', { class: 'scroll' }, table)));
 
@@ -251,12 +255,23 @@ function mount(main, _params, { store }) {
     if (opcua.textContent !== text) opcua.textContent = text;
     opcua.className = `summary opcua ${o.serving ? 'good' : 'bad'}`;
   }
+  function showFaces(faces) {
+    const list = faces || [];
+    crashed.hidden = list.length === 0;
+    if (!list.length) return;
+    const text = list.map((f) => (f.serving
+      ? `${f.name}: serving again, restarted ${f.restarts} time${f.restarts === 1 ? '' : 's'} (last: ${f.last_crash})`
+      : `${f.name}: down since ${clock(new Date(f.down_since))} (${f.down_why}); started again at ${clock(new Date(f.restart_at))}`)).join('. ');
+    if (crashed.textContent !== text) crashed.textContent = text;
+    crashed.className = `summary faces ${list.some((f) => !f.serving) ? 'bad' : 'good'}`;
+  }
   async function pollMqtt() {
     try {
       const r = await fetch('/readyz', { cache: 'no-store', headers: { Accept: 'application/json' } });
       const ready = await r.json();
       showMqtt(ready.mqtt);
       showOpcUa(ready.opcua);
+      showFaces(ready.faces);
     } catch {
       // The stream's state already says when drivegate cannot be reached.
     }
