@@ -136,11 +136,14 @@ impl Control {
     pub fn start(plant: Arc<Plant>, safety: &SafetyConfig, shutdown: CancellationToken) -> Self {
         let events = Arc::new(Events::default());
         let state_dir = safety.state_dir();
+        // The journal first: what the state directory held before this
+        // start (the alarm file among it) tells a lost journal from a
+        // first start.
+        let opened = Journal::open(state_dir.as_deref(), plant.now().drive_count());
         let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
         alarms.reconcile(&plant);
         alarms.watch(&plant, events.subscribe(), &shutdown);
         freshness::watch(&plant, events.clone(), &shutdown);
-        let opened = Journal::open(state_dir.as_deref(), plant.now().drive_count());
         for news in &opened.news {
             match opened.journal.health() {
                 journal::Health::Off(_) => tracing::info!("{news}"),
@@ -340,6 +343,11 @@ impl Control {
         let mut counts = self.0.replayed.lock().unwrap_or_else(|p| p.into_inner());
         for d in &decisions {
             *counts.entry(restart::kind(&d.what)).or_default() += 1;
+            if let Some(text) = restart::unknown_state_alarm(d) {
+                self.0
+                    .alarms
+                    .unknown_state(self.0.parts.plant(), &d.drive, text);
+            }
         }
         let at = std::time::SystemTime::now();
         *self

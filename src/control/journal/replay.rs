@@ -12,8 +12,11 @@
 //! - a drive whose last confirmed command was a brake gets no stop that
 //!   could release it (a zero speed would);
 //! - a setpoint without a lease is left alone: nothing was promised;
-//! - a journal that cannot be read promises nothing that can be trusted:
-//!   every configured drive found moving gets `[safety] on_unknown_state`;
+//! - a journal whose contents are unknown ([`Unknown`]: it cannot be
+//!   read, it is empty or ends at its header, it is missing where the
+//!   state directory shows an earlier run) promises nothing that can be
+//!   trusted: every configured drive found moving gets `[safety]
+//!   on_unknown_state` (with `none`, it is left moving, and said);
 //! - a journal read only in part (its older records skipped, see
 //!   [`super::tail`]) is trusted for what its records read say, and every
 //!   other drive found moving gets `on_unknown_state`.
@@ -150,6 +153,7 @@ impl JournalState {
                 }
             }
             Record::Shutdown => drives.clear(),
+            Record::Snapshot { .. } => {}
         }
         self.drives.retain(|_, d| !d.is_empty());
     }
@@ -189,16 +193,58 @@ impl JournalState {
     }
 }
 
+/// Why what the last process promised is unknown.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Unknown {
+    /// The file could not be read (why, and what became of it).
+    Unreadable(String),
+    /// The file was empty (or held part of its header).
+    Empty,
+    /// The file ended at its header: no record, not even the snapshot
+    /// every journal begins with.
+    HeaderOnly,
+    /// There was no file, and the state directory shows an earlier run
+    /// (what shows it).
+    Missing(String),
+}
+
+impl Unknown {
+    /// "the safety journal was empty at start", for the log and alarms.
+    pub fn words(&self) -> String {
+        match self {
+            Unknown::Unreadable(why) => {
+                format!("the safety journal could not be read at start: {why}")
+            }
+            Unknown::Empty => "the safety journal was empty at start".to_string(),
+            Unknown::HeaderOnly => "the safety journal held only its header at start".to_string(),
+            Unknown::Missing(evidence) => format!(
+                "the safety journal was missing at start, where an earlier run kept one ({evidence})"
+            ),
+        }
+    }
+
+    /// The journal's state in a word or two, for the metrics and the
+    /// audit log: `unreadable`, `empty`, `header-only`, `missing`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Unknown::Unreadable(_) => "unreadable",
+            Unknown::Empty => "empty",
+            Unknown::HeaderOnly => "header-only",
+            Unknown::Missing(_) => "missing",
+        }
+    }
+}
+
 /// What was journaled, as read at start-up.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Recovered {
-    /// Read (a missing journal is an empty one).
+    /// Read (a missing journal on a first start is an empty one).
     Read(JournalState),
     /// Only its newest records were read: what the older ones promised is
     /// unknown.
     Tail(JournalState),
-    /// Not readable: nothing in it can be trusted.
-    Unreadable,
+    /// Nothing in it can be trusted, and why.
+    Unknown(Unknown),
 }
 
 impl Recovered {
@@ -214,12 +260,56 @@ impl Recovered {
 pub struct DriveAtStart {
     /// Its name.
     pub name: String,
-    /// Whether it was found moving (`None`: it did not answer).
+    /// Whether it was found moving (`None`: it did not answer, or it was
+    /// not read: nothing needed it).
     pub moving: Option<bool>,
+    /// Its speed at its first poll, rpm, for the words.
+    pub speed_rpm: Option<i16>,
+}
+
+impl DriveAtStart {
+    /// A drive found at its first poll: moving or not, at `speed_rpm`.
+    pub fn polled(name: &str, moving: bool, speed_rpm: i16) -> Self {
+        DriveAtStart {
+            name: name.to_string(),
+            moving: Some(moving),
+            speed_rpm: Some(speed_rpm),
+        }
+    }
+
+    /// A drive not read (it did not answer, or nothing needed it).
+    pub fn unread(name: &str) -> Self {
+        DriveAtStart {
+            name: name.to_string(),
+            moving: None,
+            speed_rpm: None,
+        }
+    }
+}
+
+/// Why the journal cannot say what a moving drive is owed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Unsaid {
+    /// Its contents are unknown.
+    Journal(Unknown),
+    /// It was read in part, and its records read do not name the drive.
+    Partial,
+}
+
+impl Unsaid {
+    /// "the safety journal was empty at start", for the log and alarms.
+    pub fn words(&self) -> String {
+        match self {
+            Unsaid::Journal(unknown) => unknown.words(),
+            Unsaid::Partial => {
+                "the safety journal was read only in part at start (its older records skipped) and what was read does not name the drive".to_string()
+            }
+        }
+    }
 }
 
 /// Why a replayed stop is sent.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub enum StopWhy {
     /// Its lease's holder was a session, gone with the old process.
     HolderGone(HolderKind),
@@ -229,13 +319,13 @@ pub enum StopWhy {
     Unfinished,
     /// A brake was sent but not confirmed before drivegate stopped.
     BrakeUnconfirmed,
-    /// The journal could not be read and the drive was moving.
-    UnknownState,
+    /// What the journal held is unknown (why) and the drive was moving.
+    UnknownState(Unsaid),
 }
 
 impl StopWhy {
     /// In words, after "because".
-    pub fn words(self) -> String {
+    pub fn words(&self) -> String {
         match self {
             StopWhy::HolderGone(kind) => format!(
                 "drivegate restarted and its holder, {}, ended with the old process",
@@ -249,10 +339,10 @@ impl StopWhy {
                 "a brake was sent but not confirmed by the drive before drivegate restarted"
                     .to_string()
             }
-            StopWhy::UnknownState => {
-                "what the safety journal held about it could not be read at start-up and the drive was moving"
-                    .to_string()
-            }
+            StopWhy::UnknownState(unsaid) => format!(
+                "{}, so who owned the motor is unknown, and the drive was moving",
+                unsaid.words()
+            ),
         }
     }
 }
@@ -285,6 +375,12 @@ pub enum Replayed {
     },
     /// The journal names a drive that is not configured any more.
     NotConfigured,
+    /// A drive found moving while what the journal held about it is
+    /// unknown, left moving: `[safety] on_unknown_state = "none"`.
+    LeftMoving {
+        /// Why nothing is known.
+        why: Unsaid,
+    },
 }
 
 /// A decision for one drive.
@@ -294,44 +390,69 @@ pub struct Decision {
     pub drive: String,
     /// What to do.
     pub what: Replayed,
+    /// Its speed at its first poll, rpm, when it was read (only for a
+    /// drive found moving while the journal's contents were unknown).
+    pub speed_rpm: Option<i16>,
+}
+
+impl Decision {
+    /// Why nothing is known of the drive, for a decision made on a drive
+    /// found moving while the journal could not say (the alarm's words).
+    pub fn unsaid(&self) -> Option<&Unsaid> {
+        match &self.what {
+            Replayed::Stop {
+                why: StopWhy::UnknownState(unsaid),
+                ..
+            }
+            | Replayed::LeftMoving { why: unsaid } => Some(unsaid),
+            _ => None,
+        }
+    }
 }
 
 /// What a restart does, drive by drive. `on_unknown` is applied to every
-/// moving drive when the journal could not be read, and to those its
-/// records read do not name when it was read in part.
+/// moving drive when the journal's contents are unknown, and to those its
+/// records read do not name when it was read in part; with
+/// [`Action::None`] such a drive is left moving, and the decision says so.
 pub fn replay(
     journal: &Recovered,
     now: SystemTime,
     drives: &[DriveAtStart],
     on_unknown: Action,
 ) -> Vec<Decision> {
-    let unknown = |known: &dyn Fn(&str) -> bool| -> Vec<Decision> {
+    let unknown = |why: Unsaid, known: &dyn Fn(&str) -> bool| -> Vec<Decision> {
         drives
             .iter()
-            .filter(|d| d.moving == Some(true) && on_unknown != Action::None && !known(&d.name))
+            .filter(|d| d.moving == Some(true) && !known(&d.name))
             .map(|d| Decision {
                 drive: d.name.clone(),
-                what: Replayed::Stop {
-                    owner: None,
-                    action: on_unknown,
-                    mode: ModeName::Speed,
-                    why: StopWhy::UnknownState,
+                what: if on_unknown == Action::None {
+                    Replayed::LeftMoving { why: why.clone() }
+                } else {
+                    Replayed::Stop {
+                        owner: None,
+                        action: on_unknown,
+                        mode: ModeName::Speed,
+                        why: StopWhy::UnknownState(why.clone()),
+                    }
                 },
+                speed_rpm: d.speed_rpm,
             })
             .collect()
     };
     let state = match journal {
         Recovered::Read(state) | Recovered::Tail(state) => state,
-        Recovered::Unreadable => return unknown(&|_| false),
+        Recovered::Unknown(why) => return unknown(Unsaid::Journal(why.clone()), &|_| false),
     };
     let mut out = Vec::new();
     if matches!(journal, Recovered::Tail(_)) {
-        out = unknown(&|name| state.drives.contains_key(name));
+        out = unknown(Unsaid::Partial, &|name| state.drives.contains_key(name));
     }
     for (name, record) in &state.drives {
         let decision = |what| Decision {
             drive: name.clone(),
             what,
+            speed_rpm: None,
         };
         if !drives.iter().any(|d| &d.name == name) {
             out.push(decision(Replayed::NotConfigured));
@@ -426,10 +547,7 @@ mod tests {
     fn drives(names: &[&str]) -> Vec<DriveAtStart> {
         names
             .iter()
-            .map(|n| DriveAtStart {
-                name: (*n).to_string(),
-                moving: Some(true),
-            })
+            .map(|n| DriveAtStart::polled(n, true, 150))
             .collect()
     }
 
@@ -471,6 +589,7 @@ mod tests {
                         Action::ZeroSpeed,
                         StopWhy::HolderGone(HolderKind::Session)
                     ),
+                    speed_rpm: None,
                 },
                 Decision {
                     drive: "lift".into(),
@@ -479,6 +598,7 @@ mod tests {
                         Action::ZeroSpeed,
                         StopWhy::HolderGone(HolderKind::CommLoss)
                     ),
+                    speed_rpm: None,
                 },
             ]
         );
@@ -637,19 +757,84 @@ mod tests {
     }
 
     #[test]
-    fn an_unreadable_journal_stops_every_moving_drive_with_on_unknown_state() {
+    fn a_journal_whose_contents_are_unknown_stops_every_moving_drive_with_on_unknown_state() {
         let mut at_start = drives(&["conveyor", "lift", "belt"]);
-        at_start[1].moving = Some(false);
-        at_start[2].moving = None;
-        let d = replay(&Recovered::Unreadable, at(), &at_start, Action::Brake);
+        at_start[1] = DriveAtStart::polled("lift", false, 0);
+        at_start[2] = DriveAtStart::unread("belt");
+        for unknown in [
+            Unknown::Unreadable("garbage".into()),
+            Unknown::Empty,
+            Unknown::HeaderOnly,
+            Unknown::Missing("its marker is there".into()),
+        ] {
+            let why = Unsaid::Journal(unknown.clone());
+            let d = replay(&Recovered::Unknown(unknown), at(), &at_start, Action::Brake);
+            assert_eq!(
+                d,
+                vec![Decision {
+                    drive: "conveyor".into(),
+                    what: stop(None, Action::Brake, StopWhy::UnknownState(why.clone())),
+                    speed_rpm: Some(150),
+                }]
+            );
+            assert_eq!(d[0].unsaid(), Some(&why));
+        }
+    }
+
+    #[test]
+    fn with_on_unknown_state_none_a_moving_drive_is_left_moving_and_said() {
+        let at_start = vec![
+            DriveAtStart::polled("belt", true, 150),
+            DriveAtStart::polled("lift", false, 0),
+        ];
+        let d = replay(
+            &Recovered::Unknown(Unknown::Empty),
+            at(),
+            &at_start,
+            Action::None,
+        );
+        let why = Unsaid::Journal(Unknown::Empty);
         assert_eq!(
             d,
             vec![Decision {
-                drive: "conveyor".into(),
-                what: stop(None, Action::Brake, StopWhy::UnknownState),
+                drive: "belt".into(),
+                what: Replayed::LeftMoving { why: why.clone() },
+                speed_rpm: Some(150),
             }]
         );
-        assert!(replay(&Recovered::Unreadable, at(), &at_start, Action::None).is_empty());
+        assert_eq!(d[0].unsaid(), Some(&why));
+    }
+
+    #[test]
+    fn unknown_journals_say_what_was_found() {
+        assert_eq!(
+            Unknown::Empty.words(),
+            "the safety journal was empty at start"
+        );
+        assert_eq!(
+            Unknown::HeaderOnly.words(),
+            "the safety journal held only its header at start"
+        );
+        assert!(
+            Unknown::Missing("alarms.journal is there".into())
+                .words()
+                .contains("(alarms.journal is there)")
+        );
+        let names: Vec<_> = [
+            Unknown::Unreadable(String::new()),
+            Unknown::Empty,
+            Unknown::HeaderOnly,
+            Unknown::Missing(String::new()),
+        ]
+        .iter()
+        .map(Unknown::name)
+        .collect();
+        assert_eq!(names, ["unreadable", "empty", "header-only", "missing"]);
+        let why = StopWhy::UnknownState(Unsaid::Journal(Unknown::Empty)).words();
+        assert_eq!(
+            why,
+            "the safety journal was empty at start, so who owned the motor is unknown, and the drive was moving"
+        );
     }
 
     #[test]
@@ -664,11 +849,16 @@ mod tests {
         assert_eq!(d[0].drive, "lift");
         assert_eq!(
             d[0].what,
-            stop(None, Action::ZeroSpeed, StopWhy::UnknownState)
+            stop(
+                None,
+                Action::ZeroSpeed,
+                StopWhy::UnknownState(Unsaid::Partial)
+            )
         );
         assert_eq!(d[1].drive, "conveyor");
         assert!(matches!(d[1].what, Replayed::Keep { .. }), "{d:?}");
         assert!(Recovered::Tail(JournalState::default()).has_unknowns());
+        assert!(Recovered::Unknown(Unknown::Empty).has_unknowns());
         assert!(!Recovered::Read(JournalState::default()).has_unknowns());
     }
 
