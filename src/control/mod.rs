@@ -42,6 +42,7 @@ pub mod freshness;
 pub mod journal;
 pub mod lease_book;
 pub mod leases;
+pub mod live;
 pub mod news;
 pub mod outcome;
 mod parts;
@@ -470,6 +471,37 @@ impl Control {
     /// `unit` on bus `bus` (0: a broadcast), configured or not.
     pub fn unit_target(&self, bus: usize, unit: u8) -> Target {
         self.0.parts.unit_target(bus, unit)
+    }
+
+    /// Refuses a command of `caller` unless it came live from its sender
+    /// (`delivery`, as its face received it; [`live::judge`]): a refused
+    /// one is audited ("a retained command was ignored"), with `what` it
+    /// asked of `subject` (a drive, or the node), and nothing of it may be
+    /// carried out. Every command a face cannot vouch for as live passes
+    /// here before anything else.
+    pub fn check_live(
+        &self,
+        caller: &Caller,
+        subject: &str,
+        what: &str,
+        delivery: live::Delivery,
+    ) -> Result<(), Refusal> {
+        live::judge(delivery).inspect_err(|refusal| {
+            let why = refusal
+                .detail
+                .strip_prefix(delivery.ignored())
+                .map_or(refusal.detail.as_str(), |rest| {
+                    rest.trim_start_matches(": ")
+                });
+            audit::not_live(
+                caller.face.name(),
+                &caller.who,
+                subject,
+                what,
+                delivery.ignored(),
+                why,
+            );
+        })
     }
 
     /// Refuses `caller` unless its role allows `operation` (what is not

@@ -38,7 +38,12 @@ impl Connection {
         let mut options =
             MqttOptions::new(client_id, config.broker.host.clone(), config.broker.port);
         options.set_keep_alive(config.keepalive());
+        // A clean session that ends with the connection: the broker keeps
+        // nothing for drivegate while it is away, so no command queued
+        // then is delivered later (one that came anyway is refused,
+        // `super::super::arrival`).
         options.set_clean_start(true);
+        options.set_session_expiry_interval(Some(0));
         options.set_max_packet_size(Some(MAX_PACKET));
         options.set_last_will(LastWill::new(
             will_topic,
