@@ -16,6 +16,7 @@ mod commands;
 mod convergence;
 mod death;
 mod json;
+mod live;
 mod python;
 mod reload;
 mod safety;
