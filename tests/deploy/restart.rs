@@ -762,6 +762,10 @@ async fn an_opcua_sessions_lease_stops_at_start_up_with_its_comm_loss_action() {
     .expect("test finished in time");
 }
 
+/// A case of a journal's loss: its name, the words its alarm begins with,
+/// and what is done to the file.
+type Damage = (&'static str, &'static str, fn(&Path));
+
 /// A journal that lost what it held (what a power cut leaves on a disk
 /// that did not keep what it was told to, or a hand emptying or deleting
 /// it) says nothing of who owned a turning motor: the next start stops it
@@ -773,7 +777,7 @@ async fn an_opcua_sessions_lease_stops_at_start_up_with_its_comm_loss_action() {
 async fn an_empty_header_only_or_deleted_journal_stops_a_turning_leased_motor() {
     tokio::time::timeout(LIMIT, async {
         let bench = Bench::new().await;
-        let cases: [(&str, &str, fn(&Path)); 3] = [
+        let cases: [Damage; 3] = [
             ("empty", "the safety journal was empty at start", |j| {
                 std::fs::write(j, b"").unwrap()
             }),
