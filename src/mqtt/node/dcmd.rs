@@ -60,6 +60,16 @@ impl Node {
                 Ok(None) => {}
                 Err(malformed) => {
                     self.metrics.mqtt().command("malformed");
+                    if let Some(what) = malformed.1 {
+                        // A write the drive cannot take is audited like
+                        // every refused write.
+                        self.control.refused(
+                            &caller,
+                            target,
+                            what,
+                            format!("refused: {}", malformed.0),
+                        );
+                    }
                     self.last_result(Some(c), &device, malformed.0);
                 }
             }
