@@ -134,6 +134,12 @@ impl BusHandle {
         self.shared.response_timeout
     }
 
+    /// How long a job may wait in the queue before it is dropped unsent
+    /// (`queue_timeout_ms`), unless its submission says less.
+    pub fn queue_timeout(&self) -> Duration {
+        self.shared.queue_timeout
+    }
+
     /// Queues a raw request PDU for `unit`; the receiver yields the result.
     pub fn submit(
         &self,

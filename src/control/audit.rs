@@ -65,6 +65,21 @@ pub fn message_too_large(
     )
 }
 
+/// Logs a command refused because it did not come live from its sender
+/// (`what` in words, for `subject`, a drive or the node): "a retained
+/// command was ignored", with who sent it and why.
+pub fn not_live(face: &str, who: &str, subject: &str, what: &str, ignored: &str, why: &str) {
+    tracing::warn!(
+        target: "drivegate::audit",
+        face,
+        who,
+        drive = subject,
+        what,
+        why,
+        "{ignored}"
+    );
+}
+
 /// Logs a write sent while the motor turns, as its caller's override
 /// allowed.
 pub fn forced(face: &str, who: &str, drive: &str, what: &str, speed_rpm: i16) {

@@ -43,6 +43,7 @@ pub mod identity;
 pub mod journal;
 pub mod lease_book;
 pub mod leases;
+pub mod live;
 pub mod news;
 pub mod outcome;
 mod parts;
@@ -138,11 +139,14 @@ impl Control {
     pub fn start(plant: Arc<Plant>, safety: &SafetyConfig, shutdown: CancellationToken) -> Self {
         let events = Arc::new(Events::default());
         let state_dir = safety.state_dir();
+        // The journal first: what the state directory held before this
+        // start (the alarm file among it) tells a lost journal from a
+        // first start.
+        let opened = Journal::open(state_dir.as_deref(), plant.now().drive_count());
         let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
         alarms.reconcile(&plant);
         alarms.watch(&plant, events.subscribe(), &shutdown);
         freshness::watch(&plant, events.clone(), &shutdown);
-        let opened = Journal::open(state_dir.as_deref(), plant.now().drive_count());
         for news in &opened.news {
             match opened.journal.health() {
                 journal::Health::Off(_) => tracing::info!("{news}"),
@@ -350,6 +354,11 @@ impl Control {
         let mut counts = self.0.replayed.lock().unwrap_or_else(|p| p.into_inner());
         for d in &decisions {
             *counts.entry(restart::kind(&d.what)).or_default() += 1;
+            if let Some(text) = restart::unknown_state_alarm(d) {
+                self.0
+                    .alarms
+                    .unknown_state(self.0.parts.plant(), &d.drive, text);
+            }
         }
         let at = std::time::SystemTime::now();
         *self
@@ -472,6 +481,37 @@ impl Control {
     /// `unit` on bus `bus` (0: a broadcast), configured or not.
     pub fn unit_target(&self, bus: usize, unit: u8) -> Target {
         self.0.parts.unit_target(bus, unit)
+    }
+
+    /// Refuses a command of `caller` unless it came live from its sender
+    /// (`delivery`, as its face received it; [`live::judge`]): a refused
+    /// one is audited ("a retained command was ignored"), with `what` it
+    /// asked of `subject` (a drive, or the node), and nothing of it may be
+    /// carried out. Every command a face cannot vouch for as live passes
+    /// here before anything else.
+    pub fn check_live(
+        &self,
+        caller: &Caller,
+        subject: &str,
+        what: &str,
+        delivery: live::Delivery,
+    ) -> Result<(), Refusal> {
+        live::judge(delivery).inspect_err(|refusal| {
+            let why = refusal
+                .detail
+                .strip_prefix(delivery.ignored())
+                .map_or(refusal.detail.as_str(), |rest| {
+                    rest.trim_start_matches(": ")
+                });
+            audit::not_live(
+                caller.face.name(),
+                &caller.who,
+                subject,
+                what,
+                delivery.ignored(),
+                why,
+            );
+        })
     }
 
     /// Refuses `caller` unless its role allows `operation` (what is not

@@ -290,8 +290,16 @@ crate::listed::listed_enum! {
         StopUnfinished,
         /// A brake sent but not confirmed, sent again.
         BrakeAgain,
-        /// `on_unknown_state` on a moving drive: the journal was unreadable.
+        /// `on_unknown_state` on a moving drive: the journal was unreadable,
+        /// or read in part and silent about the drive.
         StopUnknownState,
+        /// `on_unknown_state` on a moving drive: the journal was lost
+        /// (empty, only its header, or missing where an earlier run kept
+        /// one).
+        StopJournalLost,
+        /// A drive found moving while the journal could not say who owned
+        /// it, left moving: `on_unknown_state = "none"` (an alarm says so).
+        UnknownStateLeft,
         /// An HTTP lease kept to its deadline.
         LeaseKept,
         /// No releasing stop: the drive's last confirmed command was a brake.
@@ -310,6 +318,8 @@ impl DecisionKind {
             DecisionKind::StopUnfinished => "stop-unfinished",
             DecisionKind::BrakeAgain => "brake-again",
             DecisionKind::StopUnknownState => "stop-unknown-state",
+            DecisionKind::StopJournalLost => "stop-journal-lost",
+            DecisionKind::UnknownStateLeft => "unknown-state-left",
             DecisionKind::LeaseKept => "lease-kept",
             DecisionKind::BrakeHolds => "brake-holds",
             DecisionKind::NotConfigured => "not-configured",

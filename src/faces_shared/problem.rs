@@ -26,6 +26,7 @@
 //! | `drive-busy` | 409 | the drive is calibrating or fine-tuning |
 //! | `no-lease` | 409 | renewing a lease that is not there (it expired) |
 //! | `confirmation-required` | 409 | address setting without `only_drive_on_bus` |
+//! | `not-live` | 409 | a command that did not come live from its sender (MQTT: retained, or queued for an earlier session): nothing of it was carried out |
 //! | `scope-busy` | 409 | a capture is running on the bus: one at a time |
 //! | `capture-not-running` | 409 | trigger or cancel a capture that is over |
 //! | `no-capture` | 404 | no capture was armed on the bus since start-up |
@@ -98,6 +99,8 @@ listed_enum! {
         NoLease,
         /// 409: a dangerous request lacks its confirmation.
         ConfirmationRequired,
+        /// 409: a command that did not come live from its sender.
+        NotLive,
         /// 409: a capture is running on the bus.
         ScopeBusy,
         /// 409: the capture is over (or not triggered yet, for some operations).
@@ -161,6 +164,7 @@ impl Kind {
             Kind::DriveBusy => "drive-busy",
             Kind::NoLease => "no-lease",
             Kind::ConfirmationRequired => "confirmation-required",
+            Kind::NotLive => "not-live",
             Kind::ScopeBusy => "scope-busy",
             Kind::CaptureNotRunning => "capture-not-running",
             Kind::NoCapture => "no-capture",
@@ -210,6 +214,7 @@ impl Kind {
             | Kind::DriveBusy
             | Kind::NoLease
             | Kind::ConfirmationRequired
+            | Kind::NotLive
             | Kind::ScopeBusy
             | Kind::CaptureNotRunning
             | Kind::MonitorOff
@@ -253,6 +258,7 @@ impl Kind {
             Kind::DriveBusy => "The drive is busy with a procedure",
             Kind::NoLease => "There is no lease",
             Kind::ConfirmationRequired => "A confirmation is required",
+            Kind::NotLive => "The command did not come live from its sender",
             Kind::ScopeBusy => "A capture is running on this bus",
             Kind::CaptureNotRunning => "The capture is not running",
             Kind::NoCapture => "No capture yet",

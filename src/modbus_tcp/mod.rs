@@ -23,6 +23,7 @@
 
 pub mod access;
 pub mod addresses;
+pub mod arrivals;
 pub mod connection;
 pub mod gateway;
 pub mod mbap;

@@ -8,6 +8,8 @@
 //! - [`exception`] decides what of a new status is published (deadbands,
 //!   pure), [`host`] follows the primary host's `STATE` (pure),
 //! - [`commands`] turns DCMD metrics into requests for the control core,
+//! - `arrival` tells a live command from a retained or queued one, for
+//!   both formats (pure; the core refuses what is not live),
 //! - `node` is the edge node's task: births and deaths, data, commands and
 //!   the session's motor-safety lease, over a `connection` (rumqttc) with
 //!   its `bd_seq` (kept across restarts in `[safety] state_dir`),
@@ -28,6 +30,7 @@
 //! by what is known of their sender ([`identity`]: the broker's login, the
 //! primary host claimed). See `docs/mqtt.md` and `docs/security.md`.
 
+mod arrival;
 mod bd_seq;
 mod connection;
 pub mod exception;

@@ -13,4 +13,5 @@ mod clients;
 mod comm_loss;
 mod connections;
 mod functions;
+mod late;
 mod networks;

@@ -17,6 +17,7 @@ mod convergence;
 mod death;
 mod json;
 mod oversized;
+mod live;
 mod python;
 mod reload;
 mod safety;

@@ -320,6 +320,25 @@ impl Sub {
 /// "c"]` pairs for `-D publish`); waits until it is delivered to the
 /// broker.
 pub async fn publish(port: u16, topic: &str, payload: &str, properties: &[(&str, &str)]) {
+    mosquitto_pub(port, topic, payload.as_bytes(), properties, false).await;
+}
+
+/// [`publish`] with the retain flag: the broker keeps it and hands it to
+/// every later subscriber (with its properties).
+pub async fn publish_retained(port: u16, topic: &str, payload: &[u8], properties: &[(&str, &str)]) {
+    mosquitto_pub(port, topic, payload, properties, true).await;
+}
+
+async fn mosquitto_pub(
+    port: u16,
+    topic: &str,
+    payload: &[u8],
+    properties: &[(&str, &str)],
+    retain: bool,
+) {
+    // Any bytes (a Sparkplug payload), from a file.
+    let file = tempfile::NamedTempFile::new().unwrap();
+    std::fs::write(file.path(), payload).unwrap();
     let mut cmd = tokio::process::Command::new("mosquitto_pub");
     cmd.args([
         "-h",
@@ -331,7 +350,12 @@ pub async fn publish(port: u16, topic: &str, payload: &str, properties: &[(&str,
         "-q",
         "1",
     ])
-    .args(["-t", topic, "-m", payload]);
+    .args(["-t", topic])
+    .arg("-f")
+    .arg(file.path());
+    if retain {
+        cmd.arg("-r");
+    }
     for (name, value) in properties {
         cmd.args(["-D", "publish", name, value]);
     }

@@ -6,7 +6,8 @@
 //! - a *condition* (a fault, a stall, an offline drive, a drive that never
 //!   answered, a bus down, a stop not confirmed) is active while it lasts: raising it again while it is
 //!   active changes nothing; it clears when the condition ends;
-//! - an *event* (a communication-loss stop, a refused safety write) is
+//! - an *event* (a communication-loss stop, a refused safety write, a
+//!   drive found moving at start when the safety journal was lost) is
 //!   over when it happens: it is raised cleared, and the same event again
 //!   while its alarm waits for an acknowledgement counts up on that alarm
 //!   instead of adding one (a PLC retrying a refused write every 100 ms
@@ -48,6 +49,10 @@ listed_enum! {
         /// A write refused by a safety rule (a save or calibration while
         /// the motor turns, an address broadcast without confirmation).
         RefusedWrite,
+        /// At start, the safety journal could not say who owned a drive
+        /// found moving (it was unreadable, empty, only its header, or
+        /// missing): `[safety] on_unknown_state` was applied to it.
+        UnknownState,
     }
 }
 
@@ -63,12 +68,16 @@ impl AlarmKind {
             AlarmKind::CommLoss => "comm-loss",
             AlarmKind::StopFailed => "stop-failed",
             AlarmKind::RefusedWrite => "refused-write",
+            AlarmKind::UnknownState => "unknown-state",
         }
     }
 
     /// True for a condition (active while it lasts), false for an event.
     pub fn is_condition(self) -> bool {
-        !matches!(self, AlarmKind::CommLoss | AlarmKind::RefusedWrite)
+        !matches!(
+            self,
+            AlarmKind::CommLoss | AlarmKind::RefusedWrite | AlarmKind::UnknownState
+        )
     }
 }
 

@@ -590,6 +590,31 @@ impl Alarms {
         }
     }
 
+    /// Raises the alarm of a drive found moving at start while the safety
+    /// journal could not say who owned it: `text` names the journal's state
+    /// and what was done.
+    pub(crate) fn unknown_state(&self, plant: &Plant, drive: &str, text: String) {
+        let now = plant.now();
+        let Some(bus) = now
+            .drives()
+            .find(|d| d.name == drive)
+            .and_then(|d| now.handle_of(d))
+            .map(|h| h.name().to_string())
+        else {
+            return;
+        };
+        self.apply(|book, now| {
+            book.raise(
+                Raise {
+                    key: drive_key(AlarmKind::UnknownState, &bus, drive, 0),
+                    text,
+                    help: UNKNOWN_STATE_HELP.to_string(),
+                },
+                now,
+            )
+        });
+    }
+
     /// Raises an alarm for a write refused by a safety rule (a motor that
     /// turns, a shared bus address).
     fn refused_write(&self, plant: &Plant, w: &WriteEvent) {
@@ -694,6 +719,15 @@ const MOVING_HELP: &str = "A write that the manual allows only with the motor st
      new address (1.2) or a calibration (CONFIG 0x2 and 0x3, 1.3). Stop the motor, check that it \
      reads 0 rpm, and send it again; a client that sends it while the line runs needs its \
      sequence fixed.";
+
+const UNKNOWN_STATE_HELP: &str = "At start, drivegate found this drive moving and its safety \
+     journal ([safety] state_dir/safety.journal) could not say who had set it moving: the file \
+     could not be read, was empty, held only its header, or was missing although an earlier run \
+     kept one. A lease it held may have been lost, so drivegate applied [safety] \
+     on_unknown_state to the drive (or left it moving, with none). Check the machine, then the \
+     state directory's disk: a power cut on a disk that does not keep what it is told to keep \
+     (a write cache without power-loss protection), a full or failing disk, or someone emptying \
+     or deleting the file. The owner of the motor sends its command again.";
 
 const SHARED_BUS_HELP: &str = "An address broadcast (manual 1.2: sent to address 0, every drive \
      that hears it takes the new address, and only one drive may be on the bus) was refused \

@@ -35,12 +35,17 @@ impl Connection {
         let mut options =
             MqttOptions::new(client_id, config.broker.host.clone(), config.broker.port);
         options.set_keep_alive(config.keepalive());
+        // A clean session that ends with the connection: the broker keeps
+        // nothing for drivegate while it is away, so no command queued
+        // then is delivered later (one that came anyway is refused,
+        // `super::super::arrival`).
         options.set_clean_start(true);
         // MQTT 5's Maximum Packet Size, in CONNECT: the broker sends
         // nothing larger (mosquitto drops it and logs "Dropping too large
         // outgoing PUBLISH"), so a large message costs itself, not the
         // connection.
         options.set_max_packet_size(Some(config.max_message_bytes));
+        options.set_session_expiry_interval(Some(0));
         options.set_last_will(LastWill::new(
             will_topic,
             "offline",

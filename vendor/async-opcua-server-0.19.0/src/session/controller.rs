@@ -501,10 +501,12 @@ impl SessionController {
                 let deadline = {
                     let timeout = message.request_header().timeout_hint;
                     let max_timeout = self.info.config.max_timeout_ms;
-                    let timeout = if max_timeout == 0 {
-                        timeout
-                    } else {
-                        max_timeout.max(timeout)
+                    // The client's timeout hint, capped by max_timeout_ms,
+                    // which also applies to a hint of 0 (no timeout).
+                    let timeout = match (timeout, max_timeout) {
+                        (0, max) => max,
+                        (hint, 0) => hint,
+                        (hint, max) => hint.min(max),
                     };
                     if timeout == 0 {
                         // Just set some huge value. A request taking a day can probably
