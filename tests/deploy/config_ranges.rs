@@ -90,6 +90,10 @@ const NOT_PROBED: &[(&str, &str)] = &[
     ("bus.sim.strict_units", "a list of units"),
     ("bus.sim.faults.silent_units", "a list of units"),
     ("opcua.security", "a list of endpoints, each an enum"),
+    (
+        "opcua.user_certificate.thumbprint",
+        "a user certificate is named one way: by subject here, or by thumbprint",
+    ),
 ];
 
 /// Every section, each key at a valid value.
@@ -174,6 +178,16 @@ anonymous = "viewer"
 session_timeout_max_ms = 30000
 comm_loss_action = "zero-speed"
 max_sessions = 20
+user_ca = "{ca}"
+max_subscriptions_per_session = 10
+max_monitored_items_per_session = 1000
+max_monitored_items = 10000
+max_queue_size = 10
+max_event_queue_size = 1000
+max_queued_values = 100000
+[[opcua.user_certificate]]
+subject = "CN=olivia, O=plant"
+role = "operator"
 
 [log]
 format = "auto"

@@ -71,7 +71,7 @@ const COLUMNS = [
 ];
 
 function mount(main, _params, { store }) {
-  const summary = h('p', { class: 'summary', role: 'status' });
+  const summary = h('p', { class: 'summary drives', role: 'status' });
   const buses = h('div', { class: 'buses' });
   const tbody = h('tbody');
   const table = h('table', { class: 'drives' },
@@ -230,7 +230,7 @@ function mount(main, _params, { store }) {
     const text = summaryText(store);
     if (summary.textContent !== text.text) {
       summary.textContent = text.text;
-      summary.className = `summary ${text.bad ? 'bad' : 'good'}`;
+      summary.className = `summary drives ${text.bad ? 'bad' : 'good'}`;
     }
   }
 
