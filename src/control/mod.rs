@@ -39,6 +39,7 @@ pub mod caller;
 pub mod drift;
 pub mod events;
 pub mod freshness;
+pub mod identity;
 pub mod journal;
 pub mod lease_book;
 pub mod leases;
@@ -54,6 +55,7 @@ pub mod rules;
 pub mod settings;
 pub mod shutdown;
 pub mod stop_action;
+pub mod throttle;
 pub mod write;
 pub mod written;
 
@@ -190,6 +192,14 @@ impl Control {
         request: ControlRequest,
     ) -> WriteResult {
         write::write(&self.0.parts, caller, target, request).await
+    }
+
+    /// Audits a write its face could not make into a request (`what` the
+    /// caller asked for, `why` it cannot be made: a value out of the
+    /// drive's range naming the range, a mode the drive does not have), as
+    /// every refusal is: nothing is sent, and the stream hears of it.
+    pub fn refused(&self, caller: &Caller, target: Target, what: String, why: String) {
+        write::refused_unmade(&self.0.parts, caller, target, what, why);
     }
 
     /// Reads the drive's status now (not from the poll cache), with the
