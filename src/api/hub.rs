@@ -218,8 +218,12 @@ async fn forward(
                 status,
                 at,
             }) => {
-                // A scan reads units that are not configured: not news.
+                // A scan reads units that are not configured: not news. And
+                // a status nobody's stream is open for is not written out.
                 let Some(&i) = units.get(&unit) else { continue };
+                if hub.tx.receiver_count() == 0 {
+                    continue;
+                }
                 let message = StreamMessage::Status {
                     drive: name(i),
                     bus: bus.to_string(),

@@ -132,6 +132,10 @@ pub struct StatusCache {
     bus: Arc<str>,
     drives: Mutex<BTreeMap<u8, Entry>>,
     events: broadcast::Sender<BusEvent>,
+    /// The events but statuses: a subscriber that only follows the links
+    /// is not woken at every poll (each wake-up of a task costs more than
+    /// most of them do with an event).
+    links: broadcast::Sender<BusEvent>,
     offline_after: u32,
     /// How often each drive is polled, for its freshness.
     expected: BTreeMap<u8, Expected>,
@@ -142,10 +146,12 @@ impl StatusCache {
     /// after `offline_after` failed polls in a row.
     pub fn new(bus: Arc<str>, units: impl IntoIterator<Item = u8>, offline_after: u32) -> Self {
         let (events, _) = broadcast::channel(EVENT_CAPACITY);
+        let (links, _) = broadcast::channel(EVENT_CAPACITY);
         Self {
             bus,
             drives: Mutex::new(units.into_iter().map(|u| (u, Entry::new(u))).collect()),
             events,
+            links,
             offline_after: offline_after.max(1),
             expected: BTreeMap::new(),
         }
@@ -174,6 +180,9 @@ impl StatusCache {
 
     fn publish(&self, event: BusEvent) {
         // No subscriber is not an error.
+        if !matches!(event, BusEvent::Status { .. }) {
+            let _ = self.links.send(event.clone());
+        }
         let _ = self.events.send(event);
     }
 
@@ -287,6 +296,11 @@ impl StatusCache {
     pub fn subscribe(&self) -> broadcast::Receiver<BusEvent> {
         self.events.subscribe()
     }
+
+    /// A receiver of every future event but the statuses.
+    pub fn subscribe_links(&self) -> broadcast::Receiver<BusEvent> {
+        self.links.subscribe()
+    }
 }
 
 #[cfg(test)]
@@ -297,6 +311,7 @@ mod tests {
     fn online_offline_transitions_are_published_once() {
         let cache = StatusCache::new("line1".into(), [1, 2], 3);
         let mut rx = cache.subscribe();
+        let mut links = cache.subscribe_links();
         cache.record_status(1, Status::default());
         assert!(matches!(
             rx.try_recv(),
@@ -320,6 +335,16 @@ mod tests {
             Ok(BusEvent::Offline { unit: 1, .. })
         ));
         assert!(rx.try_recv().is_err());
+        // The links' subscriber saw the same, without the statuses.
+        assert!(matches!(
+            links.try_recv(),
+            Ok(BusEvent::Online { unit: 1, .. })
+        ));
+        assert!(matches!(
+            links.try_recv(),
+            Ok(BusEvent::Offline { unit: 1, .. })
+        ));
+        assert!(links.try_recv().is_err());
         assert!(cache.is_offline(1));
         assert_eq!(cache.get(2).map(|d| d.link), Some(Link::Unknown));
         // Its last good status is kept, with its age.

@@ -304,6 +304,12 @@ impl BusHandle {
         self.shared.cache.subscribe()
     }
 
+    /// The future online/offline and bus events of this bus, without the
+    /// statuses: for whoever follows the links, not every poll.
+    pub fn subscribe_links(&self) -> broadcast::Receiver<BusEvent> {
+        self.shared.cache.subscribe_links()
+    }
+
     /// The bus's counters.
     pub fn stats(&self) -> BusStatsSnapshot {
         self.shared.stats.snapshot()

@@ -330,7 +330,7 @@ pub(super) fn start(book: &Arc<DriftBook>, parts: &Arc<Parts>, shutdown: &Cancel
                 watcher_book.clone(),
                 watcher_parts.clone(),
                 index,
-                bus.handle.subscribe(),
+                bus.handle.subscribe_links(),
                 stop,
             );
         });

@@ -375,7 +375,7 @@ impl Leases {
                 }
                 watched.push((index, bus.clone()));
                 let watcher = self.clone();
-                let rx = bus.handle.subscribe();
+                let rx = bus.handle.subscribe_links();
                 self.tasks
                     .spawn(async move { watcher.watch_links(index, rx).await });
             }
