@@ -542,7 +542,7 @@ impl Plant {
     /// buses in `rebuild.reopen` stopped and started again (a simulated
     /// one on the same simulated drives), new buses started; every other
     /// bus whose section changed takes it in place, its port kept open
-    /// (its simulated drives follow it: added, removed). A drive keeps its
+    /// (its simulated drives follow it: one added is wired in). A drive keeps its
     /// slot while its bus and its unit stay the same, whatever its name,
     /// unless its bus is in `rebuild.moved`. Every drive that leaves must
     /// have been stopped before (the control core's `retire`). Buses that
@@ -630,28 +630,20 @@ impl Plant {
 
     /// Hands `new` to the running `bus` and waits until its scheduler took
     /// it (at its next transaction boundary); a simulated bus's drives
-    /// follow it, those added before and those removed after, so that no
-    /// poll finds a drive missing.
+    /// follow it first, so that a drive added is on the line for its first
+    /// poll.
     async fn retune(&self, bus: &Bus, new: &BusConfig) -> Result<(), String> {
         let name = new.name();
-        let sim = bus
-            .sim
-            .as_ref()
-            .and_then(|_| lock(&self.sims).get(name).cloned());
-        if let Some(sim) = &sim {
-            let mut both = new.sim_config();
-            for d in bus.config.sim_config().drives {
-                if !both.drives.iter().any(|n| n.unit == d.unit) {
-                    both.drives.push(d);
-                }
-            }
-            sim.follow(&both);
+        if bus.sim.is_some()
+            && let Some(sim) = lock(&self.sims).get(name)
+        {
+            sim.follow(&new.sim_config());
         }
         let units: Vec<u8> = new.drives.iter().map(|d| d.unit()).collect();
         bus.monitor.set_units(units.clone());
         bus.scope.set_units(units);
         let taken = bus.handle.retune(bus.settings(new));
-        let outcome = match tokio::time::timeout(RETUNE_LIMIT, taken).await {
+        match tokio::time::timeout(RETUNE_LIMIT, taken).await {
             Ok(Ok(())) => Ok(()),
             Ok(Err(_)) => Err(format!(
                 "bus {name}: its new settings were not taken: the bus has stopped"
@@ -660,11 +652,7 @@ impl Plant {
                 "bus {name}: its new settings wait for the transaction under way, longer than {} s",
                 RETUNE_LIMIT.as_secs()
             )),
-        };
-        if let Some(sim) = &sim {
-            sim.follow(&new.sim_config());
         }
-        outcome
     }
 
     /// Takes no new work on any bus (the first step of the shutdown stop,

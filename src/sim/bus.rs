@@ -108,38 +108,31 @@ impl Bus {
         }
     }
 
-    /// Follows `config` at `now` (a reload): the drives it keeps stay as
-    /// they are (turning, in their mode, at their position: a reload is no
-    /// power cut), taking its frame separation; those it adds join the
-    /// line as a technician wires them in, fresh from the factory; those
-    /// it no longer has leave it. The devices follow alike, and new fault
+    /// Follows `config` at `now` (a reload): the drives on the line stay
+    /// as they are (turning, in their mode, at their position: a reload
+    /// is no power cut), taking its frame separation; those it adds join
+    /// the line as a technician wires them in, fresh from the factory;
+    /// those it no longer names stay wired as they are (a drive taken out
+    /// of the configuration is not taken off the line: it is found as it
+    /// was if it comes back). The devices follow alike, and new fault
     /// rates or a new seed apply from the next request.
     pub fn follow(&mut self, config: &SimConfig, now: Instant) {
         let reboot = config.reboot_ms / 1000.0;
-        let mut kept = std::mem::take(&mut self.slots);
         for d in &config.drives {
-            let slot = match kept.iter().position(|s| s.unit == d.unit) {
-                Some(i) => {
-                    let mut slot = kept.swap_remove(i);
-                    slot.frame_gap = d.frame_gap;
-                    slot
-                }
-                None => Slot {
+            match self.slots.iter_mut().find(|s| s.unit == d.unit) {
+                Some(slot) => slot.frame_gap = d.frame_gap,
+                None => self.slots.push(Slot {
                     unit: d.unit,
                     model: DriveModel::new(d.unit, d.gear_ratio, config.calibrated, reboot),
                     clock: now,
                     frame_gap: d.frame_gap,
-                },
-            };
-            self.slots.push(slot);
+                }),
+            }
         }
-        let mut devices = std::mem::take(&mut self.devices);
         for &unit in &config.devices {
-            let device = match devices.iter().position(|d| d.unit() == unit) {
-                Some(i) => devices.swap_remove(i),
-                None => RegisterDevice::new(unit),
-            };
-            self.devices.push(device);
+            if self.device(unit).is_none() {
+                self.devices.push(RegisterDevice::new(unit));
+            }
         }
         let faults = (config.faults.clone(), config.seed);
         if faults != self.configured_faults {

@@ -90,10 +90,11 @@ impl SimDrives {
         SimDrives(Arc::new(Mutex::new(Bus::new(config, Instant::now()))))
     }
 
-    /// Follows `config` (a reload): the drives it keeps stay as they are,
-    /// those it adds are wired in fresh from the factory, those it drops
-    /// leave the line; a simulator serving them sees the change from its
-    /// next request.
+    /// Follows `config` (a reload): the drives on the line stay as they
+    /// are, those it adds are wired in fresh from the factory, those it
+    /// no longer names stay wired (not polled, as a real drive taken out
+    /// of the configuration); a simulator serving them sees the change
+    /// from its next request.
     pub fn follow(&self, config: &SimConfig) {
         bus::lock(&self.0).follow(config, Instant::now());
     }

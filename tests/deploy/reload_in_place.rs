@@ -39,6 +39,8 @@ struct Watch {
     done: Arc<AtomicBool>,
     task: tokio::task::JoinHandle<Vec<String>>,
     started: Instant,
+    /// Reads made so far.
+    made: tokio::sync::watch::Receiver<usize>,
 }
 
 impl Watch {
@@ -46,6 +48,7 @@ impl Watch {
         let (api, path) = (api.clone(), format!("/api/v1/drives/{drive}/status"));
         let done = Arc::new(AtomicBool::new(false));
         let stop = done.clone();
+        let (count, made) = tokio::sync::watch::channel(0);
         let task = tokio::spawn(async move {
             let mut reads = Vec::new();
             let mut tick = tokio::time::interval(EVERY);
@@ -54,6 +57,7 @@ impl Watch {
                 let reply = api.get(&path).await;
                 let own = sim.as_ref().and_then(|s| s.drive(1));
                 reads.push(read_fault(&reply, own.as_ref()).unwrap_or_default());
+                count.send_replace(reads.len());
             }
             reads
         });
@@ -61,7 +65,18 @@ impl Watch {
             done,
             task,
             started: Instant::now(),
+            made,
         }
+    }
+
+    /// Waits for `n` more reads: each reload is read through, with reads
+    /// before and after it.
+    async fn more(&mut self, n: usize) {
+        let at = *self.made.borrow_and_update() + n;
+        tokio::time::timeout(EVENT, self.made.wait_for(|&made| made >= at))
+            .await
+            .expect("the reads go on")
+            .expect("the reader runs");
     }
 
     /// Stops reading; fails on any read that was not as it should be, or
@@ -105,6 +120,13 @@ fn read_fault(reply: &Reply, own: Option<&drivegate::sim::SimDriveView>) -> Opti
     })
 }
 
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64
+}
+
 /// Writes `toml` and reloads it: the answer.
 async fn reload(d: &TestDaemon, api: &Api, toml: &str) -> Value {
     d.rewrite(toml);
@@ -118,6 +140,22 @@ fn lines(reply: &Value, key: &str) -> Vec<String> {
         .iter()
         .map(|l| l.as_str().unwrap().to_string())
         .collect()
+}
+
+/// Waits until `drive`'s REST status reports it at 100 rpm (its polls
+/// caught up with the motor).
+async fn reported_turning(api: &Api, drive: &str) {
+    let path = format!("/api/v1/drives/{drive}/status");
+    let start = Instant::now();
+    let at_speed = |v: &Value| {
+        v["speed_rpm"]
+            .as_i64()
+            .is_some_and(|r| (98..=102).contains(&r))
+    };
+    while !at_speed(&api.get(&path).await.body) {
+        assert!(start.elapsed() < EVENT, "{drive} not reported at 100 rpm");
+        tokio::time::sleep(EVERY).await;
+    }
 }
 
 /// Activates `drive` in speed mode at 100 rpm under a ten-minute lease.
@@ -148,6 +186,7 @@ fn plant(port: &str, bus: impl FnOnce(ConfigBuilder) -> ConfigBuilder) -> Config
 async fn four_reloads_in_place(
     d: &TestDaemon,
     api: &Api,
+    watch: &mut Watch,
     config: impl Fn(&[(u8, &str)], &str) -> String,
     p: &str,
 ) {
@@ -193,13 +232,19 @@ async fn four_reloads_in_place(
             vec![format!("drives removed: {feeder}"), in_place("drives")],
         ),
     ];
+    let mut renamed_at = 0;
     for (what, toml, changes) in steps {
+        watch.more(3).await;
+        if what.starts_with("a rename") {
+            renamed_at = unix_ms();
+        }
         let reply = reload(d, api, &toml).await;
         assert_eq!(lines(&reply, "changes"), changes, "{what}: {reply}");
         for key in ["stopped", "paused", "problems"] {
             assert_eq!(reply[key], json!([]), "{what}: {reply}");
         }
     }
+    watch.more(3).await;
     // The renamed drive is the same motor: its status and its trends from
     // before the rename answer under its new name; the old name is gone.
     api.get(&format!("/api/v1/drives/{lift}/status"))
@@ -209,10 +254,13 @@ async fn four_reloads_in_place(
         .get(&format!("/api/v1/drives/{hoist}/history"))
         .await
         .expect(200);
-    assert!(
-        history["t_ms"].as_array().is_some_and(|t| t.len() > 5),
-        "{history}"
-    );
+    let before_rename = history["t_ms"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|t| t.as_u64().is_some_and(|t| t < renamed_at))
+        .count();
+    assert!(before_rename > 0, "{history}");
     // The drive added answers; the one removed is no longer polled.
     eventually(EVENT, "the added drive polled", || {
         let (_, bus) = d.plant.drive(&mixer).ok()?;
@@ -259,20 +307,26 @@ async fn on_the_built_in_simulator_a_turning_motor_turns_on_through_changes_in_p
         })
         .await;
 
-        let watch = Watch::start(&api, "sim_conveyor", Some(sim));
-        four_reloads_in_place(&d, &api, config, "sim").await;
+        reported_turning(&api, "sim_conveyor").await;
+        let mut watch = Watch::start(&api, "sim_conveyor", Some(sim));
+        four_reloads_in_place(&d, &api, &mut watch, config, "sim").await;
         let reads = watch.finish("changes in place").await;
 
         // MQTT: the renamed device's death and birth, the added one's
         // birth, the removed one's death; nothing of the others.
-        host.next(EVENT, "the removed feeder's DDEATH", |m| {
-            m.is("DDEATH", Some("sim_feeder"))
-        })
-        .await;
-        host.next(EVENT, "the mixer's DBIRTH", |m| {
-            m.is("DBIRTH", Some("sim_mixer"))
-        })
-        .await;
+        for (kind, device) in [
+            ("DDEATH", "sim_feeder"),
+            ("DDEATH", "sim_lift"),
+            ("DBIRTH", "sim_hoist"),
+            ("DBIRTH", "sim_mixer"),
+        ] {
+            if !host.seen.iter().any(|m| m.is(kind, Some(device))) {
+                host.next(EVENT, &format!("{kind} {device}"), |m| {
+                    m.is(kind, Some(device))
+                })
+                .await;
+            }
+        }
         let said = |m: &Msg| {
             let kind = matches!(m.kind.as_str(), "DDEATH" | "DBIRTH" | "NDEATH" | "NBIRTH");
             kind.then(|| format!("{} {}", m.kind, m.device.as_deref().unwrap_or("")))
@@ -291,7 +345,11 @@ async fn on_the_built_in_simulator_a_turning_motor_turns_on_through_changes_in_p
                 "DDEATH sim_lift"
             ],
             "{:?}",
-            host.seen.iter().map(|m| &m.topic).collect::<Vec<_>>()
+            host.seen
+                .iter()
+                .filter(|m| m.kind != "DDATA")
+                .map(|m| &m.topic)
+                .collect::<Vec<_>>()
         );
 
         // The baud rate reopens the port: the simulated drives are the
@@ -385,8 +443,9 @@ async fn on_an_external_simulator_a_turning_motor_turns_on_through_changes_in_pl
         })
         .await;
 
-        let watch = Watch::start(&api, "ext_conveyor", None);
-        four_reloads_in_place(&d, &api, |d, k| on(&port_a, d, k), "ext").await;
+        reported_turning(&api, "ext_conveyor").await;
+        let mut watch = Watch::start(&api, "ext_conveyor", None);
+        four_reloads_in_place(&d, &api, &mut watch, |d, k| on(&port_a, d, k), "ext").await;
         let reads = watch.finish("changes in place").await;
 
         // The bus moved to another adapter: other motors are behind it, so
