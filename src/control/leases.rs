@@ -177,6 +177,19 @@ impl Leases {
         })
     }
 
+    /// Drive `old` is named `new` now (renamed by a reload, the same slot):
+    /// what the journal owes it is owed under the new name, so a restart
+    /// finds it.
+    pub fn renamed(&self, old: &str, new: &str) {
+        let mut journal = self.journal.lock().unwrap_or_else(|p| p.into_inner());
+        if let Err(why) = journal.rename(old, new) {
+            tracing::warn!(
+                drive = new,
+                "the renamed drive's lease is not kept across a restart: {why}"
+            );
+        }
+    }
+
     /// The safety journal.
     pub fn journal<R>(&self, f: impl FnOnce(&Journal) -> R) -> R {
         f(&self.journal.lock().unwrap_or_else(|p| p.into_inner()))

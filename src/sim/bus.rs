@@ -551,7 +551,7 @@ mod tests {
     }
 
     #[test]
-    fn a_reload_keeps_the_drives_it_keeps_as_they_are() {
+    fn a_reload_keeps_the_drives_on_the_line_as_they_are() {
         let (mut bus, now) = bus(&[1, 2]);
         for req in [
             DriveRequest::Config(ConfigCommand::Activate),
@@ -561,9 +561,10 @@ mod tests {
             send(&mut bus, 1, req, now).unwrap();
         }
         bus.set_silent(2, true);
-        // Unit 2 leaves, unit 3 joins; unit 1 turns on through it.
+        // Units 1 and 2 out of the configuration, unit 3 in: unit 1 turns
+        // on, still wired.
         let later = now + Duration::from_millis(500);
-        let mut config = SimConfig::for_units([1, 3]);
+        let mut config = SimConfig::for_units([3]);
         config.devices = vec![100];
         bus.follow(&config, later);
         let one = bus
@@ -575,10 +576,13 @@ mod tests {
             "{one:?}"
         );
         assert_eq!(one.status.speed_rpm, 100);
-        assert!(bus.drive(2, later).is_none());
         let three = bus.drive(3, later).unwrap().view();
         assert!(!three.active, "a drive wired in is fresh from the factory");
         assert!(bus.device(100).is_some());
+        // Back in the configuration, unit 1 is found as it was.
+        bus.follow(&SimConfig::for_units([1, 3]), later);
+        assert_eq!(bus.views(later).len(), 3);
+        assert!(bus.drive(1, later).unwrap().view().active);
         // The same fault rates: the silent unit set at runtime stays so.
         assert!(bus.fault_rates().is_silent(2));
         config.faults.drop_rate = 1.0;

@@ -154,6 +154,38 @@ impl JournalState {
         self.drives.retain(|_, d| !d.is_empty());
     }
 
+    /// The records that move what is owed to drive `old` to `new` (the
+    /// same motor, renamed by a reload): the state restated under the new
+    /// name first, then ended under the old one, so a journal cut between
+    /// the two still owes it (the old name, no longer configured, is then
+    /// told apart at the restart).
+    pub fn renamed(&self, old: &str, new: &str) -> Vec<Record> {
+        let Some(d) = self.drives.get(old) else {
+            return Vec::new();
+        };
+        let one = JournalState {
+            drives: BTreeMap::from([(new.to_string(), d.clone())]),
+        };
+        let mut out = one.snapshot();
+        if d.lease.is_some() {
+            out.push(Record::LeaseEnded {
+                drive: old.to_string(),
+            });
+        }
+        if d.stop.is_some() {
+            out.push(Record::StopEnded {
+                drive: old.to_string(),
+            });
+        }
+        if d.brake.is_some() {
+            out.push(Record::Brake {
+                drive: old.to_string(),
+                state: BrakeState::Off,
+            });
+        }
+        out
+    }
+
     /// The records that rebuild this state (a compacted journal).
     pub fn snapshot(&self) -> Vec<Record> {
         let mut out = Vec::new();
@@ -690,5 +722,41 @@ mod tests {
         ];
         let state = JournalState::of(&records);
         assert_eq!(JournalState::of(&state.snapshot()), state);
+    }
+
+    #[test]
+    fn a_renamed_drive_is_owed_its_lease_under_its_new_name() {
+        let later = at() + 60 * S;
+        let mut state = JournalState::of(&[
+            lease("conveyor", HolderKind::Http, later),
+            Record::Brake {
+                drive: "lift".into(),
+                state: BrakeState::Sent,
+            },
+        ]);
+        for r in state.renamed("conveyor", "belt") {
+            state.apply(&r);
+        }
+        assert!(!state.drives.contains_key("conveyor"));
+        assert_eq!(
+            state
+                .drives
+                .get("belt")
+                .and_then(|d| d.lease.as_ref())
+                .map(|l| l.holder),
+            Some(HolderKind::Http)
+        );
+        // Replayed as the belt's (a configured drive now).
+        let d = replay(
+            &Recovered::Read(state.clone()),
+            later + S,
+            &drives(&["belt", "lift"]),
+            Action::ZeroSpeed,
+        );
+        assert!(d.iter().any(|d| d.drive == "belt"), "{d:?}");
+        // Its brake moves too; a drive the journal owes nothing moves nothing.
+        let moved = state.renamed("lift", "hoist");
+        assert_eq!(moved.len(), 2, "{moved:?}");
+        assert!(state.renamed("press", "saw").is_empty());
     }
 }
