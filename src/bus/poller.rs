@@ -724,7 +724,7 @@ mod tests {
     #[test]
     fn a_retune_keeps_the_phase_of_what_stayed_and_polls_the_new_at_once() {
         let t0 = Instant::now();
-        let mut plan = plan(&[(1, SECOND), (2, SECOND), (3, 0 * MS)], t0);
+        let mut plan = plan(&[(1, SECOND), (2, SECOND), (3, Duration::ZERO)], t0);
         plan.polled(1, t0 + 10 * MS, PollResult::Answered);
         plan.polled(2, t0 + 20 * MS, PollResult::Answered);
         plan.polled(3, t0 + 30 * MS, OFFLINE);
@@ -733,7 +733,7 @@ mod tests {
         // Unit 2 faster, unit 3 kept, unit 4 added, the backoff longer.
         let now = t0 + 100 * MS;
         plan.retune(
-            [(1, SECOND), (2, 200 * MS), (3, 0 * MS), (4, SECOND)],
+            [(1, SECOND), (2, 200 * MS), (3, Duration::ZERO), (4, SECOND)],
             SECOND,
             60 * SECOND,
             now,

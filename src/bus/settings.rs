@@ -120,12 +120,15 @@ mod tests {
 
     const MS: Duration = Duration::from_millis(1);
 
+    /// A change, named.
+    type Change = (&'static str, fn(&mut BusSettings));
+
     fn line1() -> BusSettings {
         BusSettings::new(
             "line1",
             "/dev/ttyUSB0",
             115_200,
-            vec![(1, MS * 0), (2, MS * 100)],
+            vec![(1, Duration::ZERO), (2, MS * 100)],
         )
     }
 
@@ -134,9 +137,9 @@ mod tests {
         let old = line1();
         assert_eq!(old.reach(&old.clone()), Reach::Same);
         // What the scheduler takes between two transactions.
-        let in_place: Vec<(&str, fn(&mut BusSettings))> = vec![
+        let in_place: Vec<Change> = vec![
             ("poll rates", |s| s.drives[1].1 = MS * 50),
-            ("a drive added", |s| s.drives.push((3, MS * 0))),
+            ("a drive added", |s| s.drives.push((3, Duration::ZERO))),
             ("a drive removed", |s| {
                 s.drives.pop();
             }),
@@ -164,7 +167,7 @@ mod tests {
             assert_eq!(old.reach(&new), Reach::InPlace, "{what}");
         }
         // What only a reopen can apply.
-        let reopen: Vec<(&str, fn(&mut BusSettings))> = vec![
+        let reopen: Vec<Change> = vec![
             ("port", |s| s.port = "/dev/ttyUSB1".into()),
             ("transport", |s| s.port = "tcp://10.0.0.7:4001".into()),
             ("baud", |s| {
@@ -176,7 +179,7 @@ mod tests {
             let mut new = old.clone();
             change(&mut new);
             // A reopen wins over what else changed with it.
-            new.drives.push((9, MS * 0));
+            new.drives.push((9, Duration::ZERO));
             assert_eq!(old.reach(&new), Reach::Reopen, "{what}");
         }
     }

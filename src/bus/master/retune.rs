@@ -30,7 +30,7 @@ impl RtuMaster {
         );
         self.bounds.margin = margin;
         if settings.guard != old.guard {
-            self.timeouts = Box::new([ReplyTimeout::default(); 256]);
+            *self.timeouts = [ReplyTimeout::default(); 256];
         }
         if settings.interframe != old.interframe {
             let mut interframe = settings.interframe;

@@ -95,7 +95,7 @@ mod tests {
             "line1",
             "/dev/null",
             115_200,
-            vec![(1, MS * 0), (2, MS * 0)],
+            vec![(1, Duration::ZERO), (2, Duration::ZERO)],
         );
         let mut s = scheduler(&old);
         let t0 = Instant::now();
@@ -103,7 +103,7 @@ mod tests {
             .cache
             .record_status(1, crate::drive::Status::default());
         let mut new = old.clone();
-        new.drives = vec![(1, MS * 200), (3, MS * 0)];
+        new.drives = vec![(1, MS * 200), (3, Duration::ZERO)];
         new.master.response_timeout = MS * 300;
         new.queue_timeout = MS * 700;
         new.offline_after = 7;
@@ -129,11 +129,11 @@ mod tests {
 
     #[test]
     fn settings_that_need_the_port_reopened_are_not_taken() {
-        let old = BusSettings::new("line1", "/dev/null", 115_200, vec![(1, MS * 0)]);
+        let old = BusSettings::new("line1", "/dev/null", 115_200, vec![(1, Duration::ZERO)]);
         let mut s = scheduler(&old);
         let mut new = old.clone();
         new.port = "/dev/ttyUSB1".into();
-        new.drives.push((2, MS * 0));
+        new.drives.push((2, Duration::ZERO));
         assert!(!s.retune(new, None, Instant::now()));
         assert_eq!(s.settings.port, "/dev/null");
         assert_eq!(s.plan.units().collect::<Vec<_>>(), vec![1]);
@@ -141,12 +141,12 @@ mod tests {
 
     #[test]
     fn the_handle_hands_over_and_hears_when_they_are_taken() {
-        let old = BusSettings::new("line1", "/dev/null", 115_200, vec![(1, MS * 0)]);
+        let old = BusSettings::new("line1", "/dev/null", 115_200, vec![(1, Duration::ZERO)]);
         let shared = new_shared(&old);
         let mut s = Scheduler::new(old.clone(), shared.clone());
         let handle = crate::bus::BusHandle { shared };
         let mut new = old.clone();
-        new.drives.push((2, MS * 0));
+        new.drives.push((2, Duration::ZERO));
         let mut taken = handle.retune(new);
         assert!(taken.try_recv().is_err(), "taken before the boundary");
         s.take_retune(None);
