@@ -238,7 +238,9 @@ async fn four_reloads_in_place(
         if what.starts_with("a rename") {
             renamed_at = unix_ms();
         }
+        let asked = Instant::now();
         let reply = reload(d, api, &toml).await;
+        eprintln!("{p}: {what} answered in {:?}", asked.elapsed());
         assert_eq!(lines(&reply, "changes"), changes, "{what}: {reply}");
         for key in ["stopped", "paused", "problems"] {
             assert_eq!(reply[key], json!([]), "{what}: {reply}");
@@ -368,6 +370,7 @@ async fn on_the_built_in_simulator_a_turning_motor_turns_on_through_changes_in_p
         );
         assert_eq!(reply["stopped"], json!([]), "{reply}");
         let paused = lines(&reply, "paused");
+        eprintln!("built-in simulator, baud changed: {paused:?}");
         assert!(
             paused.len() == 1
                 && paused[0].starts_with("polling of sim_conveyor, sim_hoist, sim_mixer paused ")
