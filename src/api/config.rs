@@ -28,8 +28,15 @@ pub struct ReloadReply {
     /// sections applied, what applies only at the next start; `no change`
     /// when the file is the running one.
     pub changes: Vec<String>,
-    /// Drives that were removed while moving, and what stopped them.
+    /// Every drive whose motion the reload changed, and why: drives that
+    /// were removed while moving (or whose bus moved to another port) and
+    /// what stopped them, and drives that report another motion after
+    /// their bus reopened than before it.
     pub stopped: Vec<String>,
+    /// Drives whose polling paused while their bus reopened (its port,
+    /// baud rate or transport changed), and for how long; a change applied
+    /// in place pauses nothing.
+    pub paused: Vec<String>,
     /// What could not be done: a bus whose port did not open stays out of
     /// the plant until the next reload.
     pub problems: Vec<String>,
@@ -40,6 +47,7 @@ impl From<Applied> for ReloadReply {
         ReloadReply {
             changes: a.changes,
             stopped: a.stopped,
+            paused: a.paused,
             problems: a.problems,
         }
     }

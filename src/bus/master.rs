@@ -41,6 +41,7 @@
 //!   reply is read; bytes arriving during the turnaround do not shorten it.
 
 mod line;
+mod retune;
 
 use std::io;
 use std::time::{Duration, Instant};

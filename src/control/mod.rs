@@ -313,6 +313,18 @@ impl Control {
         reload::retire(&self.0.parts, drives, on_shutdown).await
     }
 
+    /// Drive `old` of bus `bus` is named `new` now: a reload renamed it,
+    /// the same motor at the same unit, which keeps its slot (its lease,
+    /// its subscriptions). What the core keeps by name follows it: what
+    /// the safety journal owes it, its alarms and its settings' latest
+    /// comparison.
+    pub fn renamed(&self, bus: &str, old: &str, new: &str) {
+        self.0.parts.leases().renamed(old, new);
+        self.alarms().rename(bus, old, new);
+        self.0.drift.rename(old, new);
+        tracing::info!(bus, drive = new, "drive {old} is named {new} now");
+    }
+
     /// Notes in the audit log that `caller` started, finished or abandoned
     /// the replacement of drive `drive` (an index in the plant), with
     /// `detail` in the caller's words (where its settings came from, the

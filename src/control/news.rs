@@ -356,8 +356,14 @@ pub struct ReloadApplied {
     /// could not move (it stays where it was, with its previous settings,
     /// until the next reload). A reload with problems was applied in part.
     pub problems: Vec<String>,
-    /// Drives that were moving when removed, and what stopped them.
+    /// Every drive whose motion the reload changed, and why: drives that
+    /// were moving when removed (or when their bus moved to another port)
+    /// and what stopped them, and drives that report another motion after
+    /// their bus reopened than before it.
     pub stopped: Vec<String>,
+    /// Drives whose polling paused while their bus reopened, and for how
+    /// long (their motion is unchanged unless `stopped` says otherwise).
+    pub paused: Vec<String>,
 }
 
 /// A reload that left the running configuration as it was.

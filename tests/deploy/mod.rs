@@ -23,6 +23,7 @@ mod package;
 mod prometheus;
 mod reference;
 mod reload;
+mod reload_in_place;
 mod reload_listeners;
 mod restart;
 mod systemd;

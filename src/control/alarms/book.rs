@@ -383,6 +383,22 @@ impl AlarmBook {
         }
     }
 
+    /// Drive `old` of `bus` is named `new` now (a reload renamed it: the
+    /// same motor): its alarms, open or not, are its under the new name;
+    /// their words stay what was said at the time. The renamed alarms, for
+    /// the file.
+    pub fn rename(&mut self, bus: &str, old: &str, new: &str) -> Vec<Alarm> {
+        let mut renamed = Vec::new();
+        for a in self.alarms.values_mut() {
+            if a.bus == bus && a.drive.as_deref() == Some(old) {
+                a.drive = Some(new.to_string());
+                renamed.push(a.clone());
+            }
+        }
+        self.reindex();
+        renamed
+    }
+
     /// Every alarm, oldest first.
     pub fn alarms(&self) -> impl DoubleEndedIterator<Item = &Alarm> {
         self.alarms.values()
@@ -578,5 +594,20 @@ mod tests {
         let (small, changes) = AlarmBook::restore(1, restored.alarms().cloned());
         assert_eq!(small.len(), 1);
         assert_eq!(changes.len(), 2);
+    }
+
+    #[test]
+    fn a_renamed_drive_keeps_its_alarms_under_its_new_name() {
+        let mut book = AlarmBook::new(10);
+        book.raise(raise(AlarmKind::Offline, "conveyor", 0), 1);
+        book.raise(raise(AlarmKind::Offline, "lift", 0), 1);
+        let renamed = book.rename("line1", "conveyor", "belt");
+        assert_eq!(renamed.len(), 1);
+        assert_eq!(renamed[0].drive.as_deref(), Some("belt"));
+        assert!(book.has_open_for("line1", "belt"));
+        assert!(!book.has_open_for("line1", "conveyor"));
+        // Its condition ends under the new name.
+        assert_eq!(book.clear(&key(AlarmKind::Offline, "belt", 0), 2).len(), 1);
+        assert!(book.has_open_for("line1", "lift"));
     }
 }

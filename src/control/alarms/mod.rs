@@ -201,6 +201,27 @@ impl Alarms {
         Ok(alarm)
     }
 
+    /// Drive `old` of `bus` is named `new` now (the same motor, renamed by
+    /// a reload): its alarms follow it, in the book and in the file.
+    pub(crate) fn rename(&self, bus: &str, old: &str, new: &str) {
+        let mut book = self.lock();
+        let records: Vec<AlarmRecord> = book
+            .rename(bus, old, new)
+            .into_iter()
+            .map(AlarmRecord::Alarm)
+            .collect();
+        if records.is_empty() {
+            return;
+        }
+        let writer = self.writer.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(tx) = writer.as_ref() {
+            let _ = tx.send(Batch {
+                records,
+                done: None,
+            });
+        }
+    }
+
     /// Every alarm, oldest first.
     pub fn list(&self) -> Vec<Alarm> {
         self.lock().alarms().cloned().collect()

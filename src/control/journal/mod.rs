@@ -359,6 +359,16 @@ impl Journal {
         &self.state
     }
 
+    /// What is owed to drive `old` is owed to `new` from now on (the same
+    /// motor, renamed by a reload): appended and synced like any record.
+    pub fn rename(&mut self, old: &str, new: &str) -> Result<(), String> {
+        let records = self.state.renamed(old, new);
+        if records.is_empty() {
+            return Ok(());
+        }
+        self.append(&records)
+    }
+
     /// Appends `records` and syncs them to the disk (one sync for all).
     /// The state is kept in memory even when the disk fails, so the
     /// journal is whole again once the disk takes writes.

@@ -158,6 +158,38 @@ impl JournalState {
         self.drives.retain(|_, d| !d.is_empty());
     }
 
+    /// The records that move what is owed to drive `old` to `new` (the
+    /// same motor, renamed by a reload): the state restated under the new
+    /// name first, then ended under the old one, so a journal cut between
+    /// the two still owes it (the old name, no longer configured, is then
+    /// told apart at the restart).
+    pub fn renamed(&self, old: &str, new: &str) -> Vec<Record> {
+        let Some(d) = self.drives.get(old) else {
+            return Vec::new();
+        };
+        let one = JournalState {
+            drives: BTreeMap::from([(new.to_string(), d.clone())]),
+        };
+        let mut out = one.snapshot();
+        if d.lease.is_some() {
+            out.push(Record::LeaseEnded {
+                drive: old.to_string(),
+            });
+        }
+        if d.stop.is_some() {
+            out.push(Record::StopEnded {
+                drive: old.to_string(),
+            });
+        }
+        if d.brake.is_some() {
+            out.push(Record::Brake {
+                drive: old.to_string(),
+                state: BrakeState::Off,
+            });
+        }
+        out
+    }
+
     /// The records that rebuild this state (a compacted journal).
     pub fn snapshot(&self) -> Vec<Record> {
         let mut out = Vec::new();

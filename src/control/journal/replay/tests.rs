@@ -359,3 +359,39 @@ fn a_snapshot_rebuilds_the_same_state() {
     let state = JournalState::of(&records);
     assert_eq!(JournalState::of(&state.snapshot()), state);
 }
+
+#[test]
+fn a_renamed_drive_is_owed_its_lease_under_its_new_name() {
+    let later = at() + 60 * S;
+    let mut state = JournalState::of(&[
+        lease("conveyor", HolderKind::Http, later),
+        Record::Brake {
+            drive: "lift".into(),
+            state: BrakeState::Sent,
+        },
+    ]);
+    for r in state.renamed("conveyor", "belt") {
+        state.apply(&r);
+    }
+    assert!(!state.drives.contains_key("conveyor"));
+    assert_eq!(
+        state
+            .drives
+            .get("belt")
+            .and_then(|d| d.lease.as_ref())
+            .map(|l| l.holder),
+        Some(HolderKind::Http)
+    );
+    // Replayed as the belt's (a configured drive now).
+    let d = replay(
+        &Recovered::Read(state.clone()),
+        later + S,
+        &drives(&["belt", "lift"]),
+        Action::ZeroSpeed,
+    );
+    assert!(d.iter().any(|d| d.drive == "belt"), "{d:?}");
+    // Its brake moves too; a drive the journal owes nothing moves nothing.
+    let moved = state.renamed("lift", "hoist");
+    assert_eq!(moved.len(), 2, "{moved:?}");
+    assert!(state.renamed("press", "saw").is_empty());
+}
