@@ -1,0 +1,72 @@
+//! The listeners as the log, the metrics and the console name them: each
+//! with its section and the keys that change its limits.
+
+/// A listener's names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Face {
+    /// The `face` label of the metrics.
+    pub label: &'static str,
+    /// Its name in the log.
+    pub name: &'static str,
+    /// The configuration section of its keys.
+    pub section: &'static str,
+    /// The key of its limit.
+    pub max_key: &'static str,
+    /// The key of its hard cap per address.
+    pub per_address_key: &'static str,
+    /// What it counts: "connection", or "session".
+    pub unit: &'static str,
+}
+
+/// Modbus TCP.
+pub const MODBUS_TCP: Face = Face {
+    label: "modbus_tcp",
+    name: "Modbus TCP",
+    section: "[modbus_tcp]",
+    max_key: "max_connections",
+    per_address_key: "max_connections_per_address",
+    unit: "connection",
+};
+
+/// Modbus/TCP Security: the plain listener's keys, counted on its own.
+pub const MODBUS_TLS: Face = Face {
+    label: "modbus_tls",
+    name: "Modbus/TCP Security",
+    section: "[modbus_tcp]",
+    max_key: "max_connections",
+    per_address_key: "max_connections_per_address",
+    unit: "connection",
+};
+
+/// HTTP (REST, WebSocket, the console, metrics).
+pub const HTTP: Face = Face {
+    label: "http",
+    name: "HTTP",
+    section: "[http]",
+    max_key: "max_connections",
+    per_address_key: "max_connections_per_address",
+    unit: "connection",
+};
+
+/// OPC UA connections (each carries one secure channel).
+pub const OPCUA: Face = Face {
+    label: "opcua",
+    name: "OPC UA",
+    section: "[opcua]",
+    max_key: "max_connections",
+    per_address_key: "max_connections_per_address",
+    unit: "connection",
+};
+
+/// OPC UA sessions.
+pub const OPCUA_SESSIONS: Face = Face {
+    label: "opcua_sessions",
+    name: "OPC UA",
+    section: "[opcua]",
+    max_key: "max_sessions",
+    per_address_key: "max_sessions_per_address",
+    unit: "session",
+};
+
+/// Every listener, in the order the metrics list them.
+pub const ALL: [Face; 5] = [MODBUS_TCP, MODBUS_TLS, HTTP, OPCUA, OPCUA_SESSIONS];
