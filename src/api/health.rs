@@ -75,6 +75,13 @@ pub struct Readiness {
     /// drivegate unready: the drives work without it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub opcua: Option<OpcUaReadiness>,
+    /// The Modbus TCP listener, when it runs: its connections and what it
+    /// refused lately. It does not make drivegate unready.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub modbus_tcp: Option<super::listeners::ListenerReadiness>,
+    /// The Modbus/TCP Security listener, when it runs, likewise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub modbus_tls: Option<super::listeners::ListenerReadiness>,
 }
 
 /// The OPC UA server in `/readyz`.
@@ -238,6 +245,14 @@ pub fn readiness(state: &ApiState) -> Readiness {
         },
         mqtt: mqtt_readiness(state),
         opcua: opcua_readiness(state),
+        modbus_tcp: super::listeners::readiness(
+            &state.metrics,
+            crate::connections::words::MODBUS_TCP,
+        ),
+        modbus_tls: super::listeners::readiness(
+            &state.metrics,
+            crate::connections::words::MODBUS_TLS,
+        ),
     }
 }
 

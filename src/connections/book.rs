@@ -15,7 +15,7 @@
 //! second at most ([`super::repeats`]).
 
 use std::collections::HashMap;
-use std::net::IpAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, LazyLock, Mutex, MutexGuard};
 use std::time::Instant;
@@ -60,6 +60,7 @@ struct Entry {
 #[derive(Debug)]
 struct ListenerState {
     face: Face,
+    bound: Option<SocketAddr>,
     limits: Limits,
     tally: Tally,
     record: Record,
@@ -99,6 +100,7 @@ impl Book {
             id,
             ListenerState {
                 face,
+                bound: None,
                 limits,
                 tally: Tally::default(),
                 record: Record::default(),
@@ -209,7 +211,17 @@ pub struct Listener {
 /// A log line to write once the book is let go.
 struct Line {
     face: Face,
+    listener: Option<SocketAddr>,
     text: String,
+}
+
+impl Line {
+    fn write(&self) {
+        match self.listener {
+            Some(at) => tracing::warn!(face = self.face.label, listener = %at, "{}", self.text),
+            None => tracing::warn!(face = self.face.label, "{}", self.text),
+        }
+    }
 }
 
 impl Listener {
@@ -223,6 +235,13 @@ impl Listener {
     pub fn set_limits(&self, limits: Limits) {
         if let Some(l) = self.book.lock().listeners.get_mut(&self.id) {
             l.limits = limits;
+        }
+    }
+
+    /// Where it listens, for the console.
+    pub fn set_bound(&self, bound: SocketAddr) {
+        if let Some(l) = self.book.lock().listeners.get_mut(&self.id) {
+            l.bound = Some(bound);
         }
     }
 
@@ -278,6 +297,7 @@ impl Listener {
                         ) {
                             lines.push(Line {
                                 face: self.face,
+                                listener: state.bound,
                                 text,
                             });
                         }
@@ -311,6 +331,7 @@ impl Listener {
                             };
                             lines.push(Line {
                                 face: state.face,
+                                listener: state.bound,
                                 text: format!(
                                     "{}: a quiet connection of {victim} closed to make room for {key} ({} client): {why}. Counted in drivegate_connections_closed_total{{face=\"{}\"}}; further ones logged once per cause and second at most{}",
                                     state.face.name,
@@ -352,7 +373,7 @@ impl Listener {
             })
         };
         for line in lines {
-            tracing::warn!(face = line.face.label, "{}", line.text);
+            line.write();
         }
         verdict
     }
@@ -405,6 +426,7 @@ impl Listener {
                     if let Some(text) = refusal_words(self.face, say, key, reason, facts) {
                         lines.push(Line {
                             face: self.face,
+                            listener: state.bound,
                             text,
                         });
                     }
@@ -424,6 +446,7 @@ impl Listener {
                         {
                             lines.push(Line {
                                 face: self.face,
+                                listener: state.bound,
                                 text: format!(
                                     "{}: a quiet session of {victim} closed to make room for {key}: {} sessions are open ({} {}) and {victim} held the most ({}). Counted in drivegate_connections_closed_total{{face=\"{}\"}}{}",
                                     self.face.name,
@@ -442,7 +465,7 @@ impl Listener {
             }
         };
         for line in lines {
-            tracing::warn!(face = line.face.label, "{}", line.text);
+            line.write();
         }
         result
     }
@@ -455,6 +478,7 @@ impl Listener {
         };
         View {
             face: self.face,
+            bound: state.bound,
             limits: state.limits,
             held: state.tally.total(),
             holders: state.tally.by_weight(),
@@ -488,6 +512,8 @@ pub struct Seat {
 pub struct View {
     /// Its face.
     pub face: Face,
+    /// Where it listens, when it said.
+    pub bound: Option<SocketAddr>,
     /// Its limits.
     pub limits: Limits,
     /// Connections held.
@@ -508,6 +534,7 @@ impl Default for View {
     fn default() -> Self {
         View {
             face: super::words::HTTP,
+            bound: None,
             limits: Limits {
                 max: 0,
                 per_address: None,

@@ -70,3 +70,26 @@ pub const OPCUA_SESSIONS: Face = Face {
 
 /// Every listener, in the order the metrics list them.
 pub const ALL: [Face; 5] = [MODBUS_TCP, MODBUS_TLS, HTTP, OPCUA, OPCUA_SESSIONS];
+
+/// What happened to connections turned away, in the words of the
+/// console's overview ("12 connections from 10.0.0.5 refused: the listener
+/// was full").
+pub fn turned_words(face: Face, turned: super::record::Turned) -> String {
+    use super::budget::Refused;
+    use super::record::Turned;
+    let unit = face.unit;
+    match turned {
+        Turned::Refused(Refused::Limit) => "refused: the listener was full".to_string(),
+        Turned::Refused(Refused::Heaviest) => {
+            format!("refused: the listener was nearly full and this address held the most {unit}s")
+        }
+        Turned::Refused(Refused::PerAddress) => format!(
+            "refused: the address held {} {} {unit}s",
+            face.section, face.per_address_key
+        ),
+        Turned::Refused(Refused::Files) => format!(
+            "refused: drivegate was near its limit of open files and this address held the most {unit}s"
+        ),
+        Turned::Closed => format!("closed to make room for other addresses' {unit}s"),
+    }
+}

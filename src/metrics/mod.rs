@@ -14,6 +14,8 @@
 //!   the safety journal, the alarms),
 //! - `history`: the memory the trends take,
 //! - `utilisation`: the sampler behind `drivegate_bus_utilisation_ratio`,
+//! - `connections`: the listeners' connections, limits and refusals,
+//!   per address within bounds, and the file-descriptor reserve,
 //! - `process`: build information and the process's own resources,
 //! - `family`: the plumbing that turns those values into families.
 //!
@@ -21,6 +23,7 @@
 //! so a scrape never puts a frame on the wire nor waits for one.
 
 mod buses;
+mod connections;
 mod control_core;
 mod drives;
 mod faces;
@@ -37,6 +40,7 @@ use std::sync::{Arc, Weak};
 
 use prometheus::{Encoder, Registry, TextEncoder};
 
+pub use connections::Listeners;
 pub use faces::{FaceMetrics, WsClientGuard};
 pub use mqtt::{LinkState as MqttLink, MqttMetrics};
 pub use opcua::{FaceState as OpcUaState, OpcUaMetrics, SIGN_IN_KINDS, ServerCounts};
@@ -53,6 +57,7 @@ pub struct Metrics {
     security: SecurityMetrics,
     mqtt: MqttMetrics,
     opcua: OpcUaMetrics,
+    listeners: Arc<Listeners>,
     plant: Arc<Plant>,
     utilisation: Arc<Utilisation>,
 }
@@ -79,12 +84,19 @@ impl Metrics {
             }
         }
         process::register(&registry);
+        let listeners = Arc::new(Listeners::new(crate::connections::Book::process()));
+        if let Err(e) = registry.register(Box::new(connections::ListenersCollector::new(
+            listeners.clone(),
+        ))) {
+            tracing::warn!("the listeners' metrics are not exported: {e}");
+        }
         let metrics = Arc::new(Self {
             registry,
             faces,
             security,
             mqtt,
             opcua,
+            listeners,
             plant,
             utilisation,
         });
@@ -135,6 +147,12 @@ impl Metrics {
     /// The OPC UA face's counters and state.
     pub fn opcua(&self) -> &OpcUaMetrics {
         &self.opcua
+    }
+
+    /// The listeners' connections: each listener takes its place in the
+    /// process's book here, and is exported while it lives.
+    pub fn listeners(&self) -> &Arc<Listeners> {
+        &self.listeners
     }
 
     /// The share of the last [`UTILISATION_WINDOW`] the wire of the bus in

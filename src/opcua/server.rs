@@ -239,6 +239,11 @@ pub fn build(parts: Parts) -> Result<Built, String> {
         .with_authenticator(parts.users.clone())
         .max_session_timeout_ms(section.session_timeout_max_ms)
         .max_sessions(section.max_sessions)
+        .connection_gate(Arc::new(super::gate::Gate::new(
+            section,
+            parts.bound,
+            &parts.metrics,
+        )))
         .diagnostics_enabled(true)
         .token(parts.stop.clone());
     for security in section.endpoints() {

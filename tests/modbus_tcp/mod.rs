@@ -12,5 +12,6 @@ mod buses;
 mod clients;
 mod comm_loss;
 mod connections;
+mod fair_shares;
 mod functions;
 mod networks;
