@@ -113,7 +113,7 @@ async fn a_scada_with_a_connection_per_drive_is_served_beside_a_flood_of_idle_so
             lines.len(),
             waited.as_millis()
         );
-        drop(idle);
+        drop((idle, scada));
         d.stop().await;
     })
     .await;
