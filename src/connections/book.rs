@@ -470,6 +470,19 @@ impl Listener {
         result
     }
 
+    /// The sessions held now, by their clients' addresses (`None`: not
+    /// known yet): a listener of sessions is told, not asked.
+    pub fn set_seats(&self, addresses: impl IntoIterator<Item = Option<IpAddr>>) {
+        let unknown: IpAddr = std::net::Ipv6Addr::UNSPECIFIED.into();
+        let mut tally = Tally::default();
+        for a in addresses {
+            tally.add(a.map_or(unknown, host_key));
+        }
+        if let Some(l) = self.book.lock().listeners.get_mut(&self.id) {
+            l.tally = tally;
+        }
+    }
+
     /// What it holds and what it turned away, now.
     pub fn view(&self) -> View {
         let inner = self.book.lock();

@@ -17,6 +17,7 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use opcua::server::ServerHandle;
 use opcua::server::gate::{ConnectionGate, ConnectionPass, SessionAdmission, SessionSeat};
 use tokio_util::sync::CancellationToken;
 
@@ -59,6 +60,23 @@ impl Gate {
         gate
     }
 
+    /// Tells the sessions' listener of the server's sessions every second
+    /// (they end without asking the gate), until `stop`.
+    pub fn follow(&self, handle: ServerHandle, stop: CancellationToken) {
+        let sessions = self.sessions.clone();
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(Duration::from_secs(1));
+            loop {
+                tokio::select! {
+                    _ = tick.tick() => {}
+                    () = stop.cancelled() => return,
+                }
+                let peers = handle.session_manager().read().peer_addresses();
+                sessions.set_seats(peers.into_iter().map(|p| p.map(|p| p.ip())));
+            }
+        });
+    }
+
     fn errors(&self) -> std::sync::MutexGuard<'_, AcceptErrors> {
         self.errors.lock().unwrap_or_else(|p| p.into_inner())
     }
@@ -93,11 +111,23 @@ impl ConnectionGate for Gate {
                 last: s.deadline,
             })
             .collect();
-        match self.sessions.admit_seat(peer.map(|p| p.ip()), &seats) {
+        let admission = match self.sessions.admit_seat(peer.map(|p| p.ip()), &seats) {
             Ok(None) => SessionAdmission::Admit,
             Ok(Some(i)) => SessionAdmission::AdmitClosing(i),
-            Err(_) => SessionAdmission::Refuse,
-        }
+            Err(_) => return SessionAdmission::Refuse,
+        };
+        let closed = match admission {
+            SessionAdmission::AdmitClosing(i) => Some(i),
+            _ => None,
+        };
+        let held = seats
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| Some(*i) != closed)
+            .map(|(_, s)| s.address)
+            .chain(std::iter::once(peer.map(|p| p.ip())));
+        self.sessions.set_seats(held);
+        admission
     }
 
     fn accept_failed(&self, error: &io::Error) -> Duration {

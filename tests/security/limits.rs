@@ -167,8 +167,10 @@ async fn ask(s: &mut TcpStream) -> u16 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flood_of_connections_is_refused_and_the_open_ones_kept() {
     tokio::time::timeout(LIMIT, async {
+        // One address holding all but the slot kept for other addresses
+        // (the last eighth), then capped.
         let d = TestDaemon::start(&config(
-            "max_connections = 8\nmax_connections_per_address = 8",
+            "max_connections = 9\nmax_connections_per_address = 8",
             "",
             true,
             "",
@@ -206,7 +208,7 @@ async fn a_flood_of_connections_is_refused_and_the_open_ones_kept() {
                 Err(_) => dropped += 1,
             }
         }
-        println!("HTTP connection flood: 300 over the limit of 8: {refused} answered 503, {dropped} closed unanswered");
+        println!("HTTP connection flood: 300 beyond the 8 one address may hold: {refused} answered 503, {dropped} closed unanswered");
         assert!(refused > 0);
         // The eight open connections are served as before.
         for s in &mut held {

@@ -245,6 +245,12 @@ impl SessionManager {
         }
     }
 
+    /// The address of each session's client, when known (for the gate's
+    /// accounts).
+    pub fn peer_addresses(&self) -> Vec<Option<SocketAddr>> {
+        self.sessions.values().map(|s| s.read().peer_address()).collect()
+    }
+
     /// Closes a session the gate chose to make room for another client's.
     fn shed_session(&mut self, id: &NodeId) {
         let Some(session) = self.sessions.remove(id) else {
