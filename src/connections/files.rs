@@ -70,23 +70,12 @@ pub fn count_open() -> Option<usize> {
 
 /// The last count of open files, and the connections held when it was
 /// made: the estimate in between.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 pub struct Estimate {
     at: Option<Instant>,
     open: usize,
     held: usize,
     reserve: Option<Reserve>,
-}
-
-impl Default for Estimate {
-    fn default() -> Self {
-        Estimate {
-            at: None,
-            open: 0,
-            held: 0,
-            reserve: None,
-        }
-    }
 }
 
 impl Estimate {

@@ -137,7 +137,7 @@ impl Record {
     /// The bursts, the latest first.
     pub fn recent(&self) -> Vec<Burst> {
         let mut out = self.recent.clone();
-        out.sort_by(|a, b| b.last.cmp(&a.last));
+        out.sort_by_key(|b| std::cmp::Reverse(b.last));
         out
     }
 }

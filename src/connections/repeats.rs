@@ -162,6 +162,37 @@ impl<K: Hash + Eq> Repeats<K> {
     }
 }
 
+/// A book of repeats that the tasks of one listener share (a warning
+/// written from each connection's task, such as a failed TLS handshake).
+#[derive(Debug)]
+pub struct Shared<K>(std::sync::Mutex<Repeats<K>>);
+
+impl<K> Default for Shared<K> {
+    fn default() -> Self {
+        Shared(std::sync::Mutex::new(Repeats::default()))
+    }
+}
+
+impl<K: Hash + Eq> Shared<K> {
+    /// `cause` occurred now: the end of its line if one is due (empty, or
+    /// how many it stands for), `None` when it is to stay quiet.
+    pub fn due(&self, cause: K) -> Option<String> {
+        let say = self
+            .0
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .note(cause, Instant::now());
+        match say {
+            Say::Quiet => None,
+            Say::Line { folded, first } => Some(folded_words(folded, first)),
+            Say::Many { folded } => Some(format!(
+                " (from more than {CAPACITY} addresses at once; further ones are not logged){}",
+                folded_words(folded, false)
+            )),
+        }
+    }
+}
+
 /// The words a repeated line ends with: how many it stands for, or nothing.
 pub fn folded_words(folded: u64, first: bool) -> String {
     match (folded, first) {
@@ -243,6 +274,14 @@ mod tests {
         );
         assert_eq!(folded_words(0, false), "");
         assert_eq!(r.len(), 2);
+    }
+
+    #[test]
+    fn a_shared_book_says_the_first_and_keeps_the_rest_quiet() {
+        let shared = Shared::default();
+        assert_eq!(shared.due("10.0.0.1"), Some(String::new()));
+        assert_eq!(shared.due("10.0.0.1"), None);
+        assert_eq!(shared.due("10.0.0.2"), Some(String::new()));
     }
 
     #[test]

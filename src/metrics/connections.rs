@@ -144,7 +144,7 @@ fn merge(into: &mut View, v: View) {
         }
     }
     into.recent.extend(v.recent);
-    into.recent.sort_by(|a, b| b.last.cmp(&a.last));
+    into.recent.sort_by_key(|b| std::cmp::Reverse(b.last));
 }
 
 /// The collector of [`Listeners`].

@@ -15,7 +15,7 @@
 //! descriptors) back off. Connection tasks are tracked, so a stop waits for
 //! every one of them to close (each watches the same shutdown token).
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -29,7 +29,8 @@ use super::connection::{self, ConnectionSettings};
 use super::gateway::{Client, Gateway};
 use super::refusals::NotAllowedLog;
 use crate::connections::accept::AcceptErrors;
-use crate::connections::{Face, Guarded, Limits, Listener, Ticket};
+use crate::connections::repeats::Shared;
+use crate::connections::{Face, Guarded, Limits, Listener, Ticket, host_key};
 use crate::metrics::Metrics;
 
 /// What the accept loop enforces.
@@ -268,13 +269,19 @@ pub async fn run_tls(
     );
     let tracker = TaskTracker::new();
     let tls = Arc::new(tls);
+    // Handshakes and identities that fail, said once per address, cause
+    // and second at most: a scanner or a plain-text client in a loop
+    // writes a few lines, not one per connection.
+    let noisy: Arc<Shared<(IpAddr, &'static str)>> = Arc::default();
     while let Some((stream, peer, _)) = admission.next(&listener, &shutdown, true).await {
-        let (gateway, metrics, shutdown, tls) = (
+        let (gateway, metrics, shutdown, tls, noisy) = (
             gateway.clone(),
             metrics.clone(),
             shutdown.clone(),
             tls.clone(),
+            noisy.clone(),
         );
+        let from = host_key(peer.ip());
         tracker.spawn(async move {
             let acceptor = tokio_rustls::TlsAcceptor::from(tls.config.current());
             let handshake = tokio::select! {
@@ -285,7 +292,9 @@ pub async fn run_tls(
                 Ok(Ok(stream)) => stream,
                 Ok(Err(e)) => {
                     metrics.security().tls_handshake_failed("modbus_tcp");
-                    warn!(client = %peer, "Modbus/TCP Security handshake failed: {e}");
+                    if let Some(more) = noisy.due((from, "handshake")) {
+                        warn!(client = %peer, "Modbus/TCP Security handshake failed: {e}. Counted in drivegate_tls_handshake_failures_total{{face=\"modbus_tcp\"}}; logged once per address and second at most{more}");
+                    }
                     return;
                 }
                 Err(_) => {
@@ -298,7 +307,9 @@ pub async fn run_tls(
                 Ok(found) => found,
                 Err(why) => {
                     metrics.security().tls_client_refused("role");
-                    warn!(client = %peer, "Modbus/TCP Security client refused: {why}");
+                    if let Some(more) = noisy.due((from, "role")) {
+                        warn!(client = %peer, "Modbus/TCP Security client refused: {why}{more}");
+                    }
                     return;
                 }
             };
