@@ -45,6 +45,7 @@ pub mod bench;
 pub mod bus;
 pub mod clock;
 pub mod config;
+pub mod connections;
 pub mod console;
 pub mod control;
 pub mod daemon;

@@ -80,6 +80,13 @@ pub struct Readiness {
     /// serving again. Empty while none did. A face down does not make
     /// drivegate unready: the drives and the other faces work on.
     pub faces: Vec<FaceReadiness>,
+    /// The Modbus TCP listener, when it runs: its connections and what it
+    /// refused lately. It does not make drivegate unready.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub modbus_tcp: Option<super::listeners::ListenerReadiness>,
+    /// The Modbus/TCP Security listener, when it runs, likewise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub modbus_tls: Option<super::listeners::ListenerReadiness>,
 }
 
 /// A face that crashed, in `/readyz`.
@@ -295,6 +302,14 @@ pub fn readiness(state: &ApiState) -> Readiness {
         mqtt: mqtt_readiness(state),
         opcua: opcua_readiness(state),
         faces: faces_readiness(state),
+        modbus_tcp: super::listeners::readiness(
+            &state.metrics,
+            crate::connections::words::MODBUS_TCP,
+        ),
+        modbus_tls: super::listeners::readiness(
+            &state.metrics,
+            crate::connections::words::MODBUS_TLS,
+        ),
     }
 }
 

@@ -39,6 +39,7 @@ pub mod health;
 pub mod history;
 pub mod hub;
 pub mod listener;
+pub mod listeners;
 pub mod monitor;
 pub mod monitor_live;
 pub mod new_token;

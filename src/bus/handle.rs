@@ -179,7 +179,7 @@ impl BusHandle {
     /// How long a job may wait in the queue before it is dropped unsent
     /// (`queue_timeout_ms`), unless its submission says less.
     pub fn queue_timeout(&self) -> Duration {
-        self.shared.queue_timeout
+        self.shared.tuned().queue_timeout
     }
 
     /// Queues a raw request PDU for `unit`; the receiver yields the result.

@@ -54,11 +54,11 @@ pub struct HttpConfig {
     pub max_body_bytes: usize,
     /// Connections served at once; more are answered 503 and closed.
     pub max_connections: usize,
-    /// Connections one address (an IPv6 host by its /64) may hold at once;
-    /// more from it are answered 503 and closed, so one client (or one
-    /// attacker) cannot take every slot. Default: a quarter of
-    /// `max_connections`.
-    pub max_connections_per_address: usize,
+    /// A hard cap on the connections one address (an IPv6 host by its /64)
+    /// may hold at once; more from it are answered 503 and closed. Absent:
+    /// none, an address shares every free slot, and near the limit the
+    /// heaviest address gives way first (`crate::connections::budget`).
+    pub max_connections_per_address: Option<usize>,
     /// A connection must send a whole request head within this long (of
     /// its opening, or of the previous answer on a kept-alive connection),
     /// else it is closed: idle and slow connections give their slots back.
@@ -102,7 +102,7 @@ impl Default for HttpConfig {
                 tokens: Vec::new(),
                 max_body_bytes: 65_536,
                 max_connections: 128,
-                max_connections_per_address: 32,
+                max_connections_per_address: None,
                 header_timeout: Duration::from_millis(5000),
                 idle_timeout: Duration::from_secs(120),
                 read_timeout: Duration::from_secs(30),
@@ -132,7 +132,7 @@ pub struct RawHttpConfig {
     max_body_bytes: i64,
     #[serde(deserialize_with = "max_connections")]
     max_connections: i64,
-    /// Absent: a quarter of `max_connections`.
+    /// Absent: no hard cap (fair shares).
     #[serde(deserialize_with = "max_connections_per_address")]
     max_connections_per_address: Option<i64>,
     #[serde(deserialize_with = "header_timeout_ms")]
@@ -277,15 +277,16 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
         let max_body_bytes = as_usize("max_body_bytes", raw.max_body_bytes, 256, 16 << 20)?;
         let max_connections = as_usize("max_connections", raw.max_connections, 1, 65_536)?;
         let max_connections_per_address = match raw.max_connections_per_address {
-            // A quarter: four clients (or one attacker) cannot take them all.
-            None => (max_connections / 4).max(1),
-            Some(v) => as_usize(
-                "max_connections_per_address",
-                v,
-                1,
-                i64::try_from(max_connections).unwrap_or(i64::MAX),
-            )
-            .map_err(|e| format!("{e} (at most max_connections)"))?,
+            None => None,
+            Some(v) => Some(
+                as_usize(
+                    "max_connections_per_address",
+                    v,
+                    1,
+                    i64::try_from(max_connections).unwrap_or(i64::MAX),
+                )
+                .map_err(|e| format!("{e} (at most max_connections)"))?,
+            ),
         };
         let header_timeout_ms = in_range("header_timeout_ms", raw.header_timeout_ms, 100, 600_000)?;
         let idle_timeout_s = in_range("idle_timeout_s", raw.idle_timeout_s, 1, 86_400)?;
@@ -526,10 +527,11 @@ mod tests {
         );
         let e = parse("[http]\nheader_timeout_ms = 10\n").unwrap_err();
         assert!(e.contains("valid 100 to 600000"), "{e}");
+        // No hard cap unless one is set: addresses share the free slots.
         let c = parse("[http]\nmax_connections = 10\n").unwrap();
-        assert_eq!(c.max_connections_per_address, 2);
-        let c = parse("[http]\nmax_connections = 2\n").unwrap();
-        assert_eq!(c.max_connections_per_address, 1);
+        assert_eq!(c.max_connections_per_address, None);
+        let c = parse("[http]\nmax_connections = 10\nmax_connections_per_address = 3\n").unwrap();
+        assert_eq!(c.max_connections_per_address, Some(3));
         let c = parse("[http]\nlease_default_ms = 500\nsend_buffer_bytes = 0\n").unwrap();
         assert_eq!(c.lease_default, Some(Duration::from_millis(500)));
         assert_eq!(c.send_buffer_bytes, 0);

@@ -36,9 +36,10 @@ pub fn refused_by_face(face: &str, who: &str, bus: &str, unit: u8, write: &Write
 
 /// Logs a sign-in refused on `face` from `client` (its address), with why
 /// (a wrong or paused secret, a password sent in clear, a certificate
-/// without trust or role): never the secret itself.
+/// without trust or role): never the secret itself. Like every audit line
+/// it names who: nobody, since the sign-in failed.
 pub fn sign_in_refused(face: &str, client: &str, why: &str) {
-    tracing::warn!(target: "drivegate::audit", face, client, why, "sign-in refused");
+    tracing::warn!(target: "drivegate::audit", face, who = "not signed in", client, why, "sign-in refused");
 }
 
 /// Logs a message a face dropped unread because it is larger than its

@@ -16,6 +16,8 @@
 //!   the safety journal, the alarms),
 //! - `history`: the memory the trends take,
 //! - `utilisation`: the sampler behind `drivegate_bus_utilisation_ratio`,
+//! - `connections`: the listeners' connections, limits and refusals,
+//!   per address within bounds, and the file-descriptor reserve,
 //! - `process`: build information and the process's own resources,
 //! - `family`: the plumbing that turns those values into families.
 //!
@@ -23,6 +25,7 @@
 //! so a scrape never puts a frame on the wire nor waits for one.
 
 mod buses;
+mod connections;
 mod control_core;
 mod drives;
 mod face_health;
@@ -40,6 +43,7 @@ use std::sync::{Arc, Weak};
 
 use prometheus::{Encoder, Registry, TextEncoder};
 
+pub use connections::Listeners;
 pub use face_health::{Down as FaceDown, FaceHealth, FaceState};
 pub use faces::{FaceMetrics, WsClientGuard};
 pub use mqtt::{LinkState as MqttLink, MqttMetrics};
@@ -58,6 +62,7 @@ pub struct Metrics {
     security: SecurityMetrics,
     mqtt: MqttMetrics,
     opcua: OpcUaMetrics,
+    listeners: Arc<Listeners>,
     plant: Arc<Plant>,
     utilisation: Arc<Utilisation>,
 }
@@ -85,6 +90,12 @@ impl Metrics {
             }
         }
         process::register(&registry);
+        let listeners = Arc::new(Listeners::new(crate::connections::Book::process()));
+        if let Err(e) = registry.register(Box::new(connections::ListenersCollector::new(
+            listeners.clone(),
+        ))) {
+            tracing::warn!("the listeners' metrics are not exported: {e}");
+        }
         let metrics = Arc::new(Self {
             registry,
             faces,
@@ -92,6 +103,7 @@ impl Metrics {
             security,
             mqtt,
             opcua,
+            listeners,
             plant,
             utilisation,
         });
@@ -148,6 +160,12 @@ impl Metrics {
     /// The OPC UA face's counters and state.
     pub fn opcua(&self) -> &OpcUaMetrics {
         &self.opcua
+    }
+
+    /// The listeners' connections: each listener takes its place in the
+    /// process's book here, and is exported while it lives.
+    pub fn listeners(&self) -> &Arc<Listeners> {
+        &self.listeners
     }
 
     /// The share of the last [`UTILISATION_WINDOW`] the wire of the bus in

@@ -18,6 +18,7 @@ mod freshness;
 mod harness;
 mod https;
 mod layout;
+mod listeners;
 mod plain;
 mod replace;
 mod trends;

@@ -176,6 +176,7 @@ fn table_rule(title: &str) -> Option<(&'static [&'static str], &'static [&'stati
                 "drivegate_history_",
             ],
         ),
+        "Connections" => (&[], &["drivegate_connections"]),
         "MQTT" => (&[], &["drivegate_mqtt_"]),
         "OPC UA" => (&[], &["drivegate_opcua_"]),
         _ => return None,

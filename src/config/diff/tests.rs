@@ -601,7 +601,7 @@ fn tls_and_mqtt_changes_restart_only_their_face() {
     assert_eq!(diff(&new, &old).faces_restarted, vec![Face::ModbusTls]);
     // The plain listener's limits are the secure one's too.
     let mut limits = new.clone();
-    limits.modbus_tcp.max_connections += 1;
+    limits.modbus_tcp.max_connections = Some(crate::config::modbus_tcp::ConnectionCount(100));
     assert_eq!(
         diff(&new, &limits).faces_restarted,
         vec![Face::ModbusTcp, Face::ModbusTls]

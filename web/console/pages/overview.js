@@ -78,9 +78,14 @@ function mount(main, _params, { store }) {
     h('caption', { class: 'sr-only' }, 'Drives, live'),
     h('thead', {}, h('tr', {}, COLUMNS.map(([label, , cls]) => h('th', { scope: 'col', class: cls }, label)))),
     tbody);
-  // The faces that are not this page's own, from /readyz: the MQTT link
+  // The faces that are not this page's own, from /readyz: the Modbus TCP
+  // listener with its connections and the addresses it refused or closed
+  // lately, in the daemon's words (docs/modbus-tcp.md); the MQTT link
   // (docs/mqtt.md), shown only with [mqtt]; the OPC UA server
   // (docs/opcua.md), shown only with [opcua].
+  const modbus = h('p', { class: 'summary modbus', role: 'status' });
+  modbus.hidden = true;
+  const refusals = h('div', { class: 'modbus-refusals' });
   const mqtt = h('p', { class: 'summary mqtt', role: 'status' });
   mqtt.hidden = true;
   const opcua = h('p', { class: 'summary opcua', role: 'status' });
@@ -90,7 +95,7 @@ function mount(main, _params, { store }) {
   const crashed = h('p', { class: 'summary faces', role: 'status' });
   crashed.hidden = true;
   main.append(
-    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, mqtt, opcua, crashed),
+    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, modbus, refusals, mqtt, opcua, crashed),
     h('section', { class: 'panel', 'aria-labelledby': 'drives-h' }, h('h1', { id: 'drives-h' }, 'Drives'), summary,
       h('div', { class: 'scroll' }, table)));
 
@@ -234,6 +239,19 @@ function mount(main, _params, { store }) {
     }
   }
 
+  function showModbus(m) {
+    modbus.hidden = !m;
+    const lines = m ? m.turned_away.map((t) => t.text) : [];
+    if (refusals.dataset.lines !== lines.join('\n')) {
+      refusals.dataset.lines = lines.join('\n');
+      refusals.replaceChildren(...lines.map((text) => h('p', { class: 'summary bad modbus-refused' }, text)));
+    }
+    if (!m) return;
+    const connections = `${m.connections} connection${m.connections === 1 ? '' : 's'}`;
+    const text = `Modbus TCP: serving on ${m.listen} (${connections})`;
+    if (modbus.textContent !== text) modbus.textContent = text;
+    modbus.className = 'summary modbus good';
+  }
   function showMqtt(m) {
     mqtt.hidden = !m;
     if (!m) return;
@@ -269,6 +287,7 @@ function mount(main, _params, { store }) {
     try {
       const r = await fetch('/readyz', { cache: 'no-store', headers: { Accept: 'application/json' } });
       const ready = await r.json();
+      showModbus(ready.modbus_tcp);
       showMqtt(ready.mqtt);
       showOpcUa(ready.opcua);
       showFaces(ready.faces);
