@@ -30,7 +30,9 @@ pub mod body_schemas;
 pub mod buses;
 pub mod caller;
 pub mod config;
+pub mod config_check;
 pub mod config_commands;
+pub mod config_file;
 pub mod document;
 pub mod drives;
 pub mod extract;
@@ -58,6 +60,7 @@ pub mod stream;
 pub mod stream_commands;
 pub mod stream_messages;
 pub mod throttle;
+pub mod tokens;
 pub mod whoami;
 
 use crate::faces_shared::start::FaceStart;

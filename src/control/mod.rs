@@ -36,6 +36,7 @@
 pub mod alarms;
 pub mod audit;
 pub mod caller;
+pub mod config_edits;
 pub mod drift;
 pub mod events;
 pub mod freshness;
@@ -117,6 +118,8 @@ struct Inner {
     alarms: Arc<alarms::Alarms>,
     /// Reloads of the configuration.
     reloads: reload::Reloads,
+    /// The last changes written into the configuration file.
+    edits: config_edits::EditLog,
     /// What the journal held at start-up, until it is replayed.
     recovered: std::sync::Mutex<Option<Recovered>>,
     on_unknown_state: StopAction,
@@ -159,6 +162,7 @@ impl Control {
             parts: parts.clone(),
             alarms,
             reloads: reload::Reloads::default(),
+            edits: config_edits::EditLog::default(),
             recovered: std::sync::Mutex::new(Some(opened.recovered)),
             on_unknown_state: safety.on_unknown_state,
             journal_news: opened.news,
@@ -251,9 +255,23 @@ impl Control {
     }
 
     /// Reloads the configuration for `caller` (an admin), optionally
-    /// writing `write` into the file first; audited either way.
+    /// writing `write` into the file first; audited either way, with the
+    /// change's lines when it writes.
     pub async fn reload(&self, caller: &Caller, write: Option<NewText>) -> ReloadResult {
-        reload::reload(&self.0.reloads, caller, write).await
+        let edit = write
+            .as_ref()
+            .map(|w| config_edits::ConfigEdit::of(caller, w));
+        let result = reload::reload(&self.0.reloads, caller, write).await;
+        if let (Ok(_), Some(edit)) = (&result, edit) {
+            self.0.edits.record(edit);
+        }
+        result
+    }
+
+    /// The last changes written into the configuration file through the
+    /// core, oldest first (who made the file as it is).
+    pub fn config_edits(&self) -> Vec<config_edits::ConfigEdit> {
+        self.0.edits.all()
     }
 
     /// Asks the reloader, for a caller the daemon vouches for (SIGHUP).

@@ -192,25 +192,7 @@ const MQTT_STOP_LIMIT: Duration = Duration::from_secs(5);
 /// listener (and the MQTT face's CA and client certificate), as a start would (for `check-config`): an error names the
 /// file and what is wrong with it.
 pub fn check_tls(config: &Config) -> Result<(), String> {
-    if let Some(files) = &config.http.tls {
-        crate::tls::server_config(files, crate::tls::ClientAuth::IfConfigured, &[])
-            .map_err(|e| format!("[http.tls]: {e}"))?;
-    }
-    if let Some(section) = &config.modbus_tcp.tls {
-        crate::tls::server_config(&section.files(), crate::tls::ClientAuth::Required, &[])
-            .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
-    }
-    if let Some(mqtt) = &config.mqtt
-        && mqtt.broker.tls
-    {
-        let identity = match (&mqtt.client_cert, &mqtt.client_key) {
-            (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
-            _ => None,
-        };
-        crate::tls::client_config(mqtt.ca.as_deref(), identity)
-            .map_err(|e| format!("[mqtt]: {e}"))?;
-    }
-    Ok(())
+    crate::api::config_check::check_tls(config)
 }
 
 /// Starts the control core, binds every configured listener (so a taken
