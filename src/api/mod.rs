@@ -29,6 +29,7 @@ pub mod auth;
 pub mod body_schemas;
 pub mod buses;
 pub mod caller;
+pub mod certificates;
 pub mod config;
 pub mod config_check;
 pub mod config_commands;

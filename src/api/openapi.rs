@@ -17,9 +17,9 @@ use super::problem_response::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream_messages::{ClientMessage, DriveSelection};
 use super::{
-    alarms, buses, config, config_commands, config_file, document, drives, health, history,
-    monitor, monitor_live, readback, replacement, scope, setpoints, settings, stream, tokens,
-    whoami,
+    alarms, buses, certificates, config, config_commands, config_file, document, drives, health,
+    history, monitor, monitor_live, readback, replacement, scope, setpoints, settings, stream,
+    tokens, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -55,6 +55,7 @@ pub const DOCS_PATH: &str = "/docs";
         (name = "scope", description = "Triggered captures of status fields at the bus's full rate"),
         (name = "alarms", description = "Faults, stalls, drives offline, buses down, communication-loss stops, stops not confirmed and refused safety writes: kept across restarts until acknowledged"),
         (name = "config", description = "The configuration file: read, check and change it (admin), its API tokens, and reloads without a restart"),
+        (name = "certificates", description = "The certificates the daemon serves and trusts (OPC UA, HTTPS, Modbus/TCP Security): trust a refused OPC UA client, remove a trusted one, renew the OPC UA server's own (admin)"),
         (name = "health", description = "Liveness, readiness and Prometheus metrics (no token needed)"),
     )
 )]
@@ -113,6 +114,10 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(config_file::post_check))
         .routes(routes!(tokens::list_tokens, tokens::post_token))
         .routes(routes!(tokens::delete_token))
+        .routes(routes!(certificates::list_certificates))
+        .routes(routes!(certificates::post_trust))
+        .routes(routes!(certificates::delete_trusted))
+        .routes(routes!(certificates::post_renew))
         .routes(routes!(stream::stream))
         .routes(routes!(monitor::get_monitor))
         .routes(routes!(monitor::get_frames))

@@ -1,6 +1,7 @@
 //! `drivegate serve`: start the plant and the faces, tell systemd, wait for
 //! a signal, stop gracefully.
 
+pub mod certificates;
 pub mod reloader;
 pub mod supervisor;
 pub(crate) mod systemd;

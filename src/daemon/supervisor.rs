@@ -245,6 +245,10 @@ pub async fn start(
         started: tokio::sync::Mutex::new(Started::default()),
         tasks: TaskTracker::new(),
     });
+    control.attach_certificates(
+        Arc::new(super::certificates::Store::new(control.clone(), &running)),
+        running.shared.shutdown.clone(),
+    );
     let config = Arc::new(config.clone());
     let mut started = Started::default();
     for face in [Face::Http, Face::ModbusTls, Face::OpcUa] {
@@ -347,6 +351,28 @@ impl Running {
             modbus_tcp: addr(&started.modbus_tcp),
             modbus_tls: addr(&started.modbus_tls),
             opcua: addr(&started.opcua),
+        }
+    }
+
+    /// Restarts `face` with the configuration it runs with, on its own
+    /// socket (its connections closed as at a stop), so that what it reads
+    /// as it starts is read again (the OPC UA server's certificate after a
+    /// renewal). What was done, in words.
+    pub async fn restart(&self, face: Face) -> Result<String, String> {
+        let mut started = self.started.lock().await;
+        let name = face.name();
+        let slot = started
+            .slot(face)
+            .ok_or_else(|| format!("{name} is not a listener"))?;
+        let old = slot
+            .take()
+            .ok_or_else(|| format!("{name} is not running"))?;
+        let config = old.config.clone();
+        let mut followed = Followed::default();
+        *slot = self.reopen(face, &config, old, &mut followed).await;
+        match followed.problems.pop() {
+            Some(problem) => Err(problem),
+            None => Ok(followed.changes.join("; ")),
         }
     }
 

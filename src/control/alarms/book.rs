@@ -48,6 +48,9 @@ listed_enum! {
         /// A write refused by a safety rule (a save or calibration while
         /// the motor turns, an address broadcast without confirmation).
         RefusedWrite,
+        /// A certificate the daemon serves or trusts expires within 30
+        /// days, or has expired (its `bus` is `certificate <thumbprint>`).
+        CertificateExpiring,
     }
 }
 
@@ -63,6 +66,7 @@ impl AlarmKind {
             AlarmKind::CommLoss => "comm-loss",
             AlarmKind::StopFailed => "stop-failed",
             AlarmKind::RefusedWrite => "refused-write",
+            AlarmKind::CertificateExpiring => "certificate-expiring",
         }
     }
 
