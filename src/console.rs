@@ -90,6 +90,7 @@ pub const ASSETS: &[Asset] = &[
     asset!("pages/monitor.js", "console/pages/monitor.js", JS),
     asset!("pages/config.js", "console/pages/config.js", JS),
     asset!("pages/tokens.js", "console/pages/tokens.js", JS),
+    asset!("pages/certificates.js", "console/pages/certificates.js", JS),
     asset!(
         "vendor/uplot/uPlot.iife.min.js",
         "vendor/uplot/uPlot.iife.min.js",

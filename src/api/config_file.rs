@@ -389,6 +389,16 @@ fn if_match(headers: &HeaderMap) -> Result<String, Problem> {
         })
 }
 
+/// `2026-11-29 00:03:02 UTC`: a time a person reads in a sentence.
+fn utc(at: std::time::SystemTime) -> String {
+    let t = rfc3339(at);
+    format!(
+        "{} {} UTC",
+        t.get(..10).unwrap_or(""),
+        t.get(11..19).unwrap_or("")
+    )
+}
+
 /// The refusal of a change made on the version `base` of a file that is
 /// `now`: who changed it meanwhile and what, as far as drivegate knows.
 fn edited(state: &ApiState, path: &std::path::Path, base: &str, now: &str) -> Problem {
@@ -396,7 +406,7 @@ fn edited(state: &ApiState, path: &std::path::Path, base: &str, now: &str) -> Pr
     let said = match between(&edits, base, &sha256_hex(now)) {
         Some(steps) if !steps.is_empty() => steps
             .iter()
-            .map(|e| format!("{} at {}: {} ({})", e.by, rfc3339(e.at), e.what, e.lines))
+            .map(|e| format!("{} at {}: {} ({})", e.by, utc(e.at), e.what, e.lines))
             .collect::<Vec<_>>()
             .join("; then "),
         _ => {

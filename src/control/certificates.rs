@@ -324,11 +324,7 @@ pub fn expiring(listing: &Listing, now: SystemTime) -> Vec<Raise> {
                     drive: None,
                     code: 0,
                 },
-                text: format!(
-                    "{} {name} ({}) {when}",
-                    h.place.words(),
-                    h.file.display()
-                ),
+                text: format!("{} {name} {when}", h.place.words()),
                 help: help.to_string(),
             }
         })
@@ -375,7 +371,7 @@ mod tests {
         assert_eq!(keys, ["certificate bb", "certificate dd"]);
         assert_eq!(
             raised[0].text,
-            "the HTTPS certificate bb (/pki/bb.der) expires on 1970-01-21, in 19 days"
+            "the HTTPS certificate bb expires on 1970-01-21, in 19 days"
         );
         assert!(
             raised[1].text.ends_with("expired on 1970-01-01"),

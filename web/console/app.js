@@ -23,8 +23,9 @@ import { page as scope } from './pages/scope.js';
 import { page as monitor } from './pages/monitor.js';
 import { page as config } from './pages/config.js';
 import { page as tokens } from './pages/tokens.js';
+import { page as certificates } from './pages/certificates.js';
 
-const PAGES = [overview, alarms, drive, settings, commissioning, replace, events, scope, monitor, config, tokens];
+const PAGES = [overview, alarms, drive, settings, commissioning, replace, events, scope, monitor, config, certificates, tokens];
 
 const stream = new Stream();
 const store = new Store(stream);
@@ -68,7 +69,7 @@ function route() {
 function buildNav() {
   const nav = document.getElementById('nav');
   nav.replaceChildren(...PAGES.filter((p) => p.nav && (!p.role || store.can(p.role)))
-    .map((p) => h('a', { href: `#${p.nav.path}`, dataset: { page: p.id }, accesskey: p.nav.key }, p.nav.label)));
+    .map((p) => h('a', { href: `#${p.nav.path}`, dataset: { page: p.id }, accesskey: p.nav.key, title: p.nav.tip || (p.nav.label === p.title ? null : p.title) }, p.nav.label)));
 }
 
 /**

@@ -16,7 +16,7 @@ export const page = {
   id: 'config',
   title: 'Configuration',
   role: 'admin',
-  nav: { path: '/config', label: 'Gateway', key: 'g' },
+  nav: { path: '/config', label: 'Gateway', key: 'g', tip: 'This gateway: its configuration, certificates and API tokens' },
   match: (path) => (path === '/config' ? {} : null),
   mount,
 };
@@ -121,7 +121,7 @@ function mount(main) {
       : `Valid, as drivegate check-config says${c.warnings.length ? `, with ${c.warnings.length} warning${c.warnings.length === 1 ? '' : 's'}` : ''}.${changed ? '' : ' No edits yet.'}`;
     remarks.replaceChildren(...c.problems.map((r) => remark(r, 'bad')), ...c.warnings.map((r) => remark(r, 'warn')));
     drawDiff(c.diff || []);
-    const plant = c.valid ? (c.changes || []) : [];
+    const plant = c.valid ? (c.changes || []).filter((t) => t !== 'no change') : [];
     changes.replaceChildren(...(plant.length ? plant.map((t) => h('li', {}, t))
       : [h('li', { class: 'hint' }, c.valid ? 'Nothing changes in the running plant.' : 'Nothing: the text does not pass the check.')]));
     drawGutter();
@@ -143,6 +143,7 @@ function mount(main) {
   textarea.addEventListener('input', () => {
     drawGutter();
     result.replaceChildren();
+    note.clear();
     clearTimeout(s.timer);
     status.textContent = 'checking…';
     status.className = 'check';
@@ -156,9 +157,12 @@ function mount(main) {
     }
   });
 
-  /** Reads the file; `keepText` keeps what is typed (after a refusal). */
-  const load = async (keepText) => {
-    note.pending('reading the configuration file…');
+  /**
+   * Reads the file; `keepText` keeps what is typed (after a refusal),
+   * `quiet` keeps the note of the last action.
+   */
+  const load = async (keepText, quiet = false) => {
+    if (!quiet) note.pending('reading the configuration file…');
     let r;
     try {
       r = await request('GET', '/api/v1/config/file');
@@ -186,7 +190,7 @@ function mount(main) {
     const gens = f.generations || [];
     kept.textContent = `${gens.length ? `Previous versions kept beside it: ${gens.map((g) => g.path.split('/').pop()).join(', ')} (newest first).` : 'No previous version kept yet.'}`
       + `${f.last_change ? ` Last change through drivegate: ${f.last_change.what}, by ${f.last_change.by} at ${when(f.last_change.at)}.` : ''}`;
-    note.clear();
+    if (!quiet) note.clear();
     s.checked = null;
     drawState();
     await check();
@@ -206,7 +210,7 @@ function mount(main) {
 
   apply.addEventListener('click', async () => {
     const c = s.checked;
-    const plant = (c && c.changes) || [];
+    const plant = ((c && c.changes) || []).filter((t) => t !== 'no change');
     const answer = await confirmDialog({
       title: 'Apply this configuration?',
       body: [
@@ -228,7 +232,7 @@ function mount(main) {
       s.running = true;
       note.ok(`written and reloaded (${reply.diff.length} place${reply.diff.length === 1 ? '' : 's'} changed)`);
       result.replaceChildren(reloadAnswer(reply.reload));
-      await load(false);
+      await load(false, true);
     } catch (e) {
       note.fail(e);
       const type = e instanceof ApiError && e.problem && e.problem.type ? e.problem.type : '';
