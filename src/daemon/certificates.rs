@@ -14,8 +14,10 @@
 //! start: the other faces, the buses and the drives run on.
 
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Weak};
+use std::sync::Arc;
 use std::time::Duration;
+
+use futures_util::future::BoxFuture;
 
 use crate::certificate;
 use crate::config::Config;
@@ -26,7 +28,9 @@ use crate::control::certificates::{
 };
 use crate::opcua::pki::Pki;
 
-use super::supervisor::Running;
+/// Restarts one face alone, on its socket (the supervisor's
+/// `Running::restart`); what was done, in words.
+pub type Restart = Arc<dyn Fn(Face) -> BoxFuture<'static, Result<String, String>> + Send + Sync>;
 
 /// How long a renewal waits for the new certificate (RSA key generation).
 const RENEWAL_LIMIT: Duration = Duration::from_secs(120);
@@ -34,19 +38,15 @@ const RENEWAL_LIMIT: Duration = Duration::from_secs(120);
 /// The certificates of the running daemon.
 pub struct Store {
     control: Control,
-    /// The faces, to restart the OPC UA server after a renewal (weak: the
-    /// core holds this store, and the faces hold the core).
-    faces: Weak<Running>,
+    /// Restarts the OPC UA server after a renewal.
+    restart: Restart,
 }
 
 impl Store {
-    /// The certificates of the configuration `control` runs with; `faces`
-    /// restarts the OPC UA face after a renewal.
-    pub fn new(control: Control, faces: &Arc<Running>) -> Self {
-        Store {
-            control,
-            faces: Arc::downgrade(faces),
-        }
+    /// The certificates of the configuration `control` runs with;
+    /// `restart` restarts the OPC UA face after a renewal.
+    pub fn new(control: Control, restart: Restart) -> Self {
+        Store { control, restart }
     }
 
     fn config(&self) -> Option<Arc<Config>> {
@@ -233,10 +233,6 @@ impl Store {
     /// and its key kept as `.old`, the face restarted to make and serve
     /// the new one.
     async fn renew(&self, pki: &Pki) -> Result<Done, CertError> {
-        let faces = self
-            .faces
-            .upgrade()
-            .ok_or_else(|| CertError::Unavailable("drivegate is stopping".to_string()))?;
         let old = held(Place::OpcUaServer, &pki.cert_path());
         let aside = |p: PathBuf| {
             let mut to = p.clone().into_os_string();
@@ -251,8 +247,7 @@ impl Store {
                     pki.root().display()
                 ))
             })?;
-        let restarted = faces
-            .restart(Face::OpcUa)
+        let restarted = (self.restart)(Face::OpcUa)
             .await
             .map_err(CertError::Failed)?;
         // The face makes its certificate as it starts (RSA key generation).

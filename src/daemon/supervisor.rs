@@ -245,8 +245,19 @@ pub async fn start(
         started: tokio::sync::Mutex::new(Started::default()),
         tasks: TaskTracker::new(),
     });
+    // Weak: the core holds the store, and the faces hold the core.
+    let faces = Arc::downgrade(&running);
+    let restart: super::certificates::Restart = Arc::new(move |face| {
+        let faces = faces.clone();
+        Box::pin(async move {
+            match faces.upgrade() {
+                Some(running) => running.restart(face).await,
+                None => Err("drivegate is stopping".to_string()),
+            }
+        })
+    });
     control.attach_certificates(
-        Arc::new(super::certificates::Store::new(control.clone(), &running)),
+        Arc::new(super::certificates::Store::new(control.clone(), restart)),
         running.shared.shutdown.clone(),
     );
     let config = Arc::new(config.clone());
