@@ -145,10 +145,10 @@ pub fn remove_token(text: &str, name: &str) -> Result<String, String> {
         .position(|t| t.get("name").and_then(Item::as_str) == Some(name))
         .ok_or_else(|| format!("the configuration file has no token named \"{name}\""))?;
     list.remove(at);
-    if list.is_empty() {
-        if let Some(http) = doc.get_mut("http").and_then(Item::as_table_mut) {
-            http.remove("token");
-        }
+    if list.is_empty()
+        && let Some(http) = doc.get_mut("http").and_then(Item::as_table_mut)
+    {
+        http.remove("token");
     }
     Ok(doc.to_string())
 }

@@ -146,10 +146,11 @@ fn shift_generations(path: &Path, keep: usize) {
     }
     let first = generation_path(path, 1);
     let _ = std::fs::remove_file(&first);
-    if std::fs::hard_link(path, &first).is_err() && std::fs::copy(path, &first).is_ok() {
-        if let (Ok(meta), Ok(copy)) = (std::fs::metadata(path), std::fs::File::open(&first)) {
-            keep_owner(&copy, &meta);
-        }
+    if std::fs::hard_link(path, &first).is_err()
+        && std::fs::copy(path, &first).is_ok()
+        && let (Ok(meta), Ok(copy)) = (std::fs::metadata(path), std::fs::File::open(&first))
+    {
+        keep_owner(&copy, &meta);
     }
 }
 

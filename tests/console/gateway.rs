@@ -243,8 +243,14 @@ async fn a_first_day_of_configuration_certificates_and_tokens_from_the_console()
             d.plant.now().drives().any(|x| x.name == "gw_stamp").then_some(())
         })
         .await;
-        let after = checked(&page, "good").await;
-        assert!(after.ends_with("No edits yet."), "{after}");
+        // The file read again after the reload: nothing left to apply.
+        page.wait_for(
+            "(() => { const s = document.querySelector('[data-check=status]'); \
+             return s.classList.contains('good') && s.textContent.endsWith('No edits yet.'); })()",
+            LONG,
+            "the file read again",
+        )
+        .await;
         let note = text(&page, ".config-page > .note").await;
         assert!(note.starts_with("written and reloaded"), "{note}");
         page.eval("window.scrollTo(0, 0)").await;
