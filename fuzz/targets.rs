@@ -140,7 +140,7 @@ pub fn http_body(data: &[u8]) {
         InertiaBody, PositionRampBody, ProtectionBody, Rs485Body, SpeedRampBody,
     };
     use drivegate::api::stream::ClientMessage;
-    use drivegate::drive::{DriveRequest, units};
+    use drivegate::drive::{ConfigCommand, DriveRequest, units};
 
     fn sent(request: DriveRequest) {
         let pdu = request.pdu().expect("a checked request encodes");
@@ -240,8 +240,10 @@ pub fn http_body(data: &[u8]) {
             }
         }
         6 => {
-            if let Ok(body) = serde_json::from_slice::<ModeBody>(json) {
-                sent(DriveRequest::Config(body.mode.command()));
+            if let Ok(body) = serde_json::from_slice::<ModeBody>(json)
+                && let Some(mode) = ConfigCommand::mode_named(&body.mode)
+            {
+                sent(DriveRequest::Config(mode));
             }
             let _ = serde_json::from_slice::<Option<RenewBody>>(json);
             if let Ok(body) = serde_json::from_slice::<Rs485Body>(json) {

@@ -12,6 +12,7 @@ use super::problem_response::WriteProblems;
 use super::state::ApiState;
 use crate::control::Caller;
 use crate::drive::ConfigCommand;
+use crate::faces_shared::command_messages::set_mode;
 pub use crate::faces_shared::command_messages::{
     CommandReply, ModeBody, ModeChoice, parse_command,
 };
@@ -93,7 +94,8 @@ pub async fn put_mode(
     PathParams(key): PathParams<String>,
     JsonBody(body): JsonBody<ModeBody>,
 ) -> Result<Json<CommandReply>, Problem> {
-    run(&state, &caller, &key, body.mode.command(), false)
+    let target = state.target(&key)?;
+    set_mode(&state.control, &caller, &target, &body)
         .await
         .map(Json)
 }

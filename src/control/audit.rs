@@ -30,7 +30,7 @@ pub fn refused_by_face(face: &str, who: &str, bus: &str, unit: u8, write: &Write
         bus,
         unit,
         &write.describe(),
-        &WriteEnd::Answered(why.to_string()),
+        &WriteEnd::Invalid(why.to_string()),
     );
 }
 

@@ -33,9 +33,10 @@ pub enum WriteEnd {
     Failed(Failure),
     /// Its caller went away before the drive answered (why, in words).
     CallerGone(String),
-    /// A face answered it with an exception before it reached the core
-    /// (why, in words).
-    Answered(String),
+    /// Refused before it became a request the core could decide on: a
+    /// value out of the drive's range, a mode it does not have, a request
+    /// of the wrong shape (why, in words). Nothing was sent.
+    Invalid(String),
 }
 
 impl WriteEnd {
@@ -70,7 +71,7 @@ impl std::fmt::Display for WriteEnd {
             WriteEnd::Confirmed => f.write_str("confirmed by the drive"),
             WriteEnd::Broadcast => f.write_str("sent as a broadcast (drives do not reply)"),
             WriteEnd::Failed(failure) => write!(f, "{failure}"),
-            WriteEnd::CallerGone(why) | WriteEnd::Answered(why) => f.write_str(why),
+            WriteEnd::CallerGone(why) | WriteEnd::Invalid(why) => f.write_str(why),
         }
     }
 }

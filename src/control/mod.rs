@@ -200,6 +200,14 @@ impl Control {
         write::write(&self.0.parts, caller, target, request).await
     }
 
+    /// Audits a write its face could not make into a request (`what` the
+    /// caller asked for, `why` it cannot be made: a value out of the
+    /// drive's range naming the range, a mode the drive does not have), as
+    /// every refusal is: nothing is sent, and the stream hears of it.
+    pub fn refused(&self, caller: &Caller, target: Target, what: String, why: String) {
+        write::refused_unmade(&self.0.parts, caller, target, what, why);
+    }
+
     /// Reads the drive's status now (not from the poll cache), with the
     /// caller's turn on the bus.
     pub async fn read_status(&self, caller: &Caller, target: Target) -> Result<Status, BusError> {

@@ -410,12 +410,66 @@ async fn read(bus: &BusHandle, caller: &Caller, unit: u8) -> Result<Status, BusE
     }
 }
 
+/// Settles a write its face could not make into a request (a value out
+/// of the drive's range, a mode the drive does not have, a request of the
+/// wrong shape): nothing is sent, and it is audited and published like
+/// every refusal, with what the caller asked for in `what`.
+pub(super) fn refused_unmade(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    what: String,
+    why: String,
+) {
+    let bus = bus_name(parts, target);
+    record(parts, caller, target, bus, what, WriteEnd::Invalid(why));
+}
+
+/// The name of `target`'s bus, for the audit.
+fn bus_name(parts: &Arc<Parts>, target: Target) -> Arc<str> {
+    parts
+        .plant()
+        .now()
+        .bus_at(target.bus)
+        .map_or_else(|| "?".into(), |b| b.handle.name_arc())
+}
+
+/// Writes a settled write to the audit log and publishes it as an event.
+fn record(
+    parts: &Arc<Parts>,
+    caller: &Caller,
+    target: Target,
+    bus: Arc<str>,
+    what: String,
+    words: WriteEnd,
+) {
+    audit::write(
+        caller.face.name(),
+        &caller.who,
+        &bus,
+        target.unit,
+        &what,
+        &words,
+    );
+    let event = ControlEvent::Write(WriteEvent {
+        at: SystemTime::now(),
+        face: caller.face,
+        who: caller.who.clone(),
+        bus,
+        unit: target.unit,
+        drive: target.drive,
+        what,
+        result: words,
+    });
+    parts.events().publish(event.into(), None);
+}
+
 /// Everything needed to settle a write once its result is known.
 struct Settle {
     parts: Arc<Parts>,
     caller: Caller,
     target: Target,
-    bus: std::sync::Arc<str>,
+    bus: Arc<str>,
     write: Write,
     what: String,
     tickets: Vec<Ticket>,
@@ -423,16 +477,11 @@ struct Settle {
 
 impl Settle {
     fn new(parts: &Arc<Parts>, caller: &Caller, target: Target, write: &Write) -> Self {
-        let bus = parts
-            .plant()
-            .now()
-            .bus_at(target.bus)
-            .map_or_else(|| "?".into(), |b| b.handle.name_arc());
         Settle {
             parts: parts.clone(),
             caller: caller.clone(),
             target,
-            bus,
+            bus: bus_name(parts, target),
             write: write.clone(),
             what: write.describe(),
             tickets: Vec::new(),
@@ -470,25 +519,14 @@ impl Settle {
             Some(why) => WriteEnd::CallerGone(why.to_string()),
             None => WriteEnd::of(result),
         };
-        audit::write(
-            self.caller.face.name(),
-            &self.caller.who,
-            &self.bus,
-            self.target.unit,
-            &self.what,
-            &words,
+        record(
+            &self.parts,
+            &self.caller,
+            self.target,
+            self.bus,
+            self.what,
+            words,
         );
-        let event = ControlEvent::Write(WriteEvent {
-            at: SystemTime::now(),
-            face: self.caller.face,
-            who: self.caller.who.clone(),
-            bus: self.bus.clone(),
-            unit: self.target.unit,
-            drive: self.target.drive,
-            what: self.what,
-            result: words,
-        });
-        self.parts.events().publish(event.into(), None);
     }
 
     /// What the bus's result means for this write.

@@ -79,6 +79,41 @@ impl ConfigCommand {
     pub fn from_name(name: &str) -> Option<Self> {
         Self::ALL.iter().copied().find(|c| c.name() == name)
     }
+
+    /// The closed-loop modes a client names (`speed`, `position`,
+    /// `torque`), in the manual's order (0xA, 0xB, 0xC).
+    pub const MODES: [(&'static str, ConfigCommand); 3] = [
+        ("speed", ConfigCommand::SpeedMode),
+        ("position", ConfigCommand::PositionMode),
+        ("torque", ConfigCommand::TorqueMode),
+    ];
+
+    /// The mode command a client names by its mode (`speed`), the name
+    /// every face takes.
+    pub fn mode_named(mode: &str) -> Option<Self> {
+        Self::MODES
+            .iter()
+            .find(|(name, _)| *name == mode)
+            .map(|(_, c)| *c)
+    }
+
+    /// The mode this command puts the drive in (`speed`), if it is one.
+    pub fn mode_name(self) -> Option<&'static str> {
+        Self::MODES
+            .iter()
+            .find(|(_, c)| *c == self)
+            .map(|(name, _)| *name)
+    }
+
+    /// The modes, in words: "speed, position or torque".
+    pub fn modes_in_words() -> String {
+        let names: Vec<&str> = Self::MODES.iter().map(|(n, _)| *n).collect();
+        format!(
+            "{} or {}",
+            names[..names.len() - 1].join(", "),
+            names[names.len() - 1]
+        )
+    }
 }
 
 #[cfg(test)]
@@ -93,5 +128,16 @@ mod tests {
         }
         assert_eq!(ConfigCommand::from_code(0x9), None);
         assert_eq!(ConfigCommand::from_code(0xD), None);
+    }
+
+    #[test]
+    fn modes_are_named_as_clients_name_them() {
+        for (name, c) in ConfigCommand::MODES {
+            assert_eq!(ConfigCommand::mode_named(name), Some(c));
+            assert_eq!(c.mode_name(), Some(name));
+        }
+        assert_eq!(ConfigCommand::mode_named("fast"), None);
+        assert_eq!(ConfigCommand::Activate.mode_name(), None);
+        assert_eq!(ConfigCommand::modes_in_words(), "speed, position or torque");
     }
 }

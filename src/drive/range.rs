@@ -62,6 +62,15 @@ impl RangeError {
     }
 }
 
+impl RangeError {
+    /// What was asked for, in words ("speed setpoint 3000 rpm"): the
+    /// audit's account of a refused write.
+    pub fn attempted(&self) -> String {
+        let sep = if self.unit.is_empty() { "" } else { " " };
+        format!("{} {}{sep}{}", self.quantity, Num(self.value), self.unit)
+    }
+}
+
 impl fmt::Display for RangeError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let sep = if self.unit.is_empty() { "" } else { " " };
@@ -116,6 +125,9 @@ mod tests {
         );
         let err = RangeError::check_int("save flag", 2, 0, 1, "").unwrap_err();
         assert_eq!(err.to_string(), "save flag 2 is out of range: valid 0 to 1");
+        assert_eq!(err.attempted(), "save flag 2");
+        let err = RangeError::check("torque", 20.5, -16.0, 15.9921875, "A").unwrap_err();
+        assert_eq!(err.attempted(), "torque 20.5 A");
     }
 
     #[test]

@@ -129,19 +129,37 @@ pub enum ModeChoice {
 #[derive(Debug, Clone, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ModeBody {
+    // Read as a string, so that a mode the drive does not have is refused
+    // by `set_mode`, audited like any refused write.
     /// The mode.
-    pub mode: ModeChoice,
+    #[schema(value_type = ModeChoice)]
+    pub mode: String,
 }
 
-impl ModeChoice {
-    /// The config command that selects it.
-    pub fn command(self) -> ConfigCommand {
-        match self {
-            ModeChoice::Speed => ConfigCommand::SpeedMode,
-            ModeChoice::Position => ConfigCommand::PositionMode,
-            ModeChoice::Torque => ConfigCommand::TorqueMode,
-        }
-    }
+/// Puts `target` in the mode `body` names, for `caller`. A mode the
+/// drive does not have is refused naming the modes, and audited.
+pub(crate) async fn set_mode(
+    control: &Control,
+    caller: &Caller,
+    target: &Target,
+    body: &ModeBody,
+) -> Result<CommandReply, Problem> {
+    let Some(command) = ConfigCommand::mode_named(&body.mode) else {
+        let why = format!(
+            "\"{}\" is not a mode of the drive: the mode is {}",
+            body.mode,
+            ConfigCommand::modes_in_words()
+        );
+        writes::refused(
+            control,
+            caller,
+            target,
+            format!("mode \"{}\"", body.mode),
+            &why,
+        );
+        return Err(Problem::invalid(why));
+    };
+    run(control, caller, target, command, false).await
 }
 
 /// A lease as clients see it.
@@ -204,6 +222,27 @@ pub struct SetpointBody {
 }
 
 impl SetpointBody {
+    /// What the body asks for, in words ("speed setpoint 5000 rpm"): the
+    /// audit's account of a refused setpoint.
+    pub fn attempted(&self) -> String {
+        let asked: Vec<String> = [
+            self.speed_rpm.map(|v| format!("speed setpoint {v} rpm")),
+            self.position_deg
+                .map(|v| format!("position setpoint {v} deg")),
+            self.torque_a.map(|v| format!("torque setpoint {v} A")),
+            self.torque_counts
+                .map(|v| format!("torque setpoint {v} counts")),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        if asked.is_empty() {
+            "a setpoint without a value".to_string()
+        } else {
+            asked.join(" and ")
+        }
+    }
+
     /// The drive request, with values checked against the manual's ranges.
     pub fn request(&self) -> Result<DriveRequest, Problem> {
         let given: Vec<&str> = [
@@ -279,7 +318,9 @@ pub(crate) async fn apply(
     body: &SetpointBody,
     lease_default: Option<Duration>,
 ) -> Result<SetpointReply, Problem> {
-    let request = body.request()?;
+    let request = body.request().inspect_err(|p| {
+        writes::refused(control, caller, target, body.attempted(), &p.detail);
+    })?;
     let lease = body.lease_ms.map(lease_length).or(lease_default);
     let sent = writes::send(
         control,
@@ -403,7 +444,7 @@ pub(crate) async fn run_drive_op(
     match op {
         "mode" => {
             let b: ModeBody = body_as(op, body)?;
-            json(run(control, caller, &target()?, b.mode.command(), false).await?)
+            json(set_mode(control, caller, &target()?, &b).await?)
         }
         "setpoint" => {
             let b: SetpointBody = body_as(op, body)?;

@@ -46,6 +46,19 @@ pub(crate) async fn send(
     }
 }
 
+/// Audits, through the core, a write `caller` asked of `target` that its
+/// face refused before it became a request: `what` was asked, `why` it
+/// cannot be (a value out of the drive's range, a mode it does not have).
+pub(crate) fn refused(
+    control: &Control,
+    caller: &Caller,
+    target: &Target,
+    what: String,
+    why: &str,
+) {
+    control.refused(caller, target.control(), what, format!("refused: {why}"));
+}
+
 /// The 403 for `caller`, whose role is not `needed`: what it has, in the
 /// terms of its face (a token's name, or MQTT's `[mqtt] commands`).
 pub(crate) fn forbidden(caller: &Caller, needed: Role) -> Problem {

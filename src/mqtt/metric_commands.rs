@@ -19,9 +19,18 @@ pub struct Command {
     pub request: DriveRequest,
 }
 
-/// Why a DCMD metric is not a command, in words for `command/last_result`.
+/// Why a DCMD metric is not a command, in words for `command/last_result`
+/// (`.0`), and, when it named a write whose value the drive cannot take
+/// (out of range, a mode it does not have), that write in words (`.1`):
+/// the core audits it as a refused write.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Malformed(pub String);
+pub struct Malformed(pub String, pub Option<String>);
+
+impl Malformed {
+    fn shape(words: String) -> Self {
+        Malformed(words, None)
+    }
+}
 
 /// What a DCMD metric asks for; `Ok(None)`: nothing (a command metric
 /// written false).
@@ -29,7 +38,7 @@ pub fn parse(m: &Metric) -> Result<Option<Command>, Malformed> {
     let name = m.name.as_deref().unwrap_or("");
     let Some(writable) = Writable::from_name(name) else {
         let names: Vec<&str> = Writable::ALL.iter().map(|w| w.name()).collect();
-        return Err(Malformed(format!(
+        return Err(Malformed::shape(format!(
             "\"{name}\" is not a writable metric: write one of {}",
             names.join(", ")
         )));
@@ -37,7 +46,7 @@ pub fn parse(m: &Metric) -> Result<Option<Command>, Malformed> {
     let request = match writable {
         Writable::Activate | Writable::Deactivate | Writable::Brake | Writable::FaultReset => {
             let Some(on) = metric::as_bool(m) else {
-                return Err(Malformed(format!(
+                return Err(Malformed::shape(format!(
                     "{name} takes a Boolean: true runs the command"
                 )));
             };
@@ -51,22 +60,25 @@ pub fn parse(m: &Metric) -> Result<Option<Command>, Malformed> {
                 _ => ConfigCommand::FaultReset,
             })
         }
-        Writable::Mode => DriveRequest::Config(match metric::as_str(m) {
-            Some("speed") => ConfigCommand::SpeedMode,
-            Some("position") => ConfigCommand::PositionMode,
-            Some("torque") => ConfigCommand::TorqueMode,
-            other => {
-                return Err(Malformed(format!(
-                    "mode takes the String speed, position or torque (got {})",
-                    other.map_or_else(|| "no string".to_string(), |s| format!("\"{s}\""))
-                )));
-            }
-        }),
+        Writable::Mode => {
+            let modes = ConfigCommand::modes_in_words();
+            let Some(mode) = metric::as_str(m) else {
+                return Err(Malformed::shape(format!("{name} takes a String: {modes}")));
+            };
+            DriveRequest::Config(ConfigCommand::mode_named(mode).ok_or_else(|| {
+                Malformed(
+                    format!("{name}: \"{mode}\" is not a mode of the drive: the mode is {modes}"),
+                    Some(format!("mode \"{mode}\"")),
+                )
+            })?)
+        }
         Writable::SpeedRpm | Writable::PositionDeg | Writable::TorqueA => {
             let Some(v) = metric::as_f64(m) else {
-                return Err(Malformed(format!("{name} takes a number")));
+                return Err(Malformed::shape(format!("{name} takes a number")));
             };
-            let range = |e: crate::drive::RangeError| Malformed(format!("{name}: {e}"));
+            let range = |e: crate::drive::RangeError| {
+                Malformed(format!("{name}: {e}"), Some(e.attempted()))
+            };
             match writable {
                 Writable::SpeedRpm => DriveRequest::Speed {
                     rpm: units::speed_setpoint(v).map_err(range)?,
@@ -142,6 +154,7 @@ mod tests {
         let m = make("setpoint/speed_rpm", DataType::Int32, Value::Int(-3000), 0);
         let e = parse(&m).unwrap_err();
         assert!(e.0.contains("-2048"), "{}", e.0);
+        assert_eq!(e.1.as_deref(), Some("speed setpoint -3000 rpm"));
     }
 
     #[test]
@@ -157,13 +170,12 @@ mod tests {
         let c = parse(&m).unwrap().unwrap();
         assert_eq!(confirmed_value(&c), Value::Text("torque".into()));
         let m = make("mode", DataType::String, Value::Text("fast".into()), 0);
-        assert!(
-            parse(&m)
-                .unwrap_err()
-                .0
-                .contains("speed, position or torque")
-        );
+        let e = parse(&m).unwrap_err();
+        assert!(e.0.contains("speed, position or torque"), "{}", e.0);
+        assert_eq!(e.1.as_deref(), Some("mode \"fast\""));
         let m = make("status/speed_rpm", DataType::Int32, Value::Int(1), 0);
-        assert!(parse(&m).unwrap_err().0.contains("not a writable metric"));
+        let e = parse(&m).unwrap_err();
+        assert!(e.0.contains("not a writable metric"));
+        assert_eq!(e.1, None);
     }
 }

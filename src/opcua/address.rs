@@ -11,18 +11,18 @@ use std::time::Duration;
 
 use opcua::server::SubscriptionCache;
 use opcua::server::address_space::{
-    AccessLevel, AddressSpace, EventNotifier, MethodBuilder, NodeType, ObjectBuilder,
-    ObjectTypeBuilder, ReferenceDirection, VariableBuilder,
+    AccessLevel, AddressSpace, DataTypeBuilder, EventNotifier, MethodBuilder, NodeType,
+    ObjectBuilder, ObjectTypeBuilder, ReferenceDirection, VariableBuilder,
 };
 use opcua::types::{
-    AttributeId, DataTypeId, DataValue, EUInformation, ExtensionObject, LocalizedText, NodeId,
-    ObjectId, ObjectTypeId, QualifiedName, Range, ReferenceTypeId, StatusCode, TimestampsToReturn,
-    VariableTypeId, Variant,
+    Argument, AttributeId, DataTypeDefinition, DataTypeId, DataValue, EUInformation,
+    EnumDefinition, EnumField, ExtensionObject, LocalizedText, NodeId, ObjectId, ObjectTypeId,
+    QualifiedName, Range, ReferenceTypeId, StatusCode, TimestampsToReturn, VariableTypeId, Variant,
 };
 
 use super::spec::{
-    self, BUS_TYPE, BUSES, BusVariable, DRIVE_TYPE, DRIVES, Kind, Method, SETTINGS, Source, Unit,
-    VARIABLES, Variable,
+    self, BUS_TYPE, BUSES, BusVariable, DRIVE_TYPE, DRIVES, Kind, MODE_TYPE, MODES, Method,
+    SET_MODE_ARGUMENT, SETTINGS, Source, Unit, VARIABLES, Variable, described,
 };
 use super::values::missing;
 use crate::plant::Directory;
@@ -37,15 +37,10 @@ pub struct Nodes {
     pub ns: u16,
 }
 
-fn data_type(kind: Kind) -> DataTypeId {
-    match kind {
-        Kind::Double => DataTypeId::Double,
-        Kind::Int32 => DataTypeId::Int32,
-        Kind::UInt16 => DataTypeId::UInt16,
-        Kind::UInt32 => DataTypeId::UInt32,
-        Kind::Boolean => DataTypeId::Boolean,
-        Kind::String => DataTypeId::String,
-    }
+/// A `Description` in the server's locale (none named: the text is
+/// English).
+fn text(words: &str) -> LocalizedText {
+    LocalizedText::new("", words)
 }
 
 /// Where a drive is, and how often it is polled.
@@ -62,22 +57,43 @@ impl Nodes {
         NodeId::new(self.ns, path.to_string())
     }
 
+    /// The data type of a variable of `kind`.
+    fn data_type(&self, kind: Kind) -> NodeId {
+        match kind {
+            Kind::Double => DataTypeId::Double.into(),
+            Kind::Int32 => DataTypeId::Int32.into(),
+            Kind::UInt16 => DataTypeId::UInt16.into(),
+            Kind::UInt32 => DataTypeId::UInt32.into(),
+            Kind::Boolean => DataTypeId::Boolean.into(),
+            Kind::String => DataTypeId::String.into(),
+            Kind::Mode => self.id(MODE_TYPE),
+        }
+    }
+
     /// Builds the types and the two folders.
     pub fn build_types(&self, space: &mut AddressSpace) {
+        self.mode_type(space);
         let drive_type = self.id(DRIVE_TYPE);
         ObjectTypeBuilder::new(
             &drive_type,
             QualifiedName::new(self.ns, DRIVE_TYPE),
             DRIVE_TYPE,
         )
+        .description(text(described::DRIVE_TYPE))
         .subtype_of(ObjectTypeId::BaseObjectType)
         .insert(space);
         let settings = self.id(&format!("{DRIVE_TYPE}/{SETTINGS}"));
-        self.settings_object(space, &settings, &drive_type, true);
         for v in &VARIABLES {
             let path = format!("{DRIVE_TYPE}/{}", v.path());
             let parent = match v.source {
-                Source::Setting(_) => &settings,
+                Source::Setting(_) => {
+                    // Made before its first variable: browsed after the
+                    // setpoints, in the manual's order.
+                    if space.find(&settings).is_none() {
+                        self.settings_object(space, &settings, &drive_type, true);
+                    }
+                    &settings
+                }
                 _ => &drive_type,
             };
             self.variable(space, &path, parent, v, Duration::ZERO, true);
@@ -93,26 +109,65 @@ impl Nodes {
         }
         let bus_type = self.id(BUS_TYPE);
         ObjectTypeBuilder::new(&bus_type, QualifiedName::new(self.ns, BUS_TYPE), BUS_TYPE)
+            .description(text(described::BUS_TYPE))
             .subtype_of(ObjectTypeId::BaseObjectType)
             .insert(space);
         for v in BusVariable::ALL {
             let path = format!("{BUS_TYPE}/{}", v.name());
             self.bus_variable(space, &path, &bus_type, v, true);
         }
-        for folder in [DRIVES, BUSES] {
+        for (folder, description) in [(DRIVES, described::DRIVES), (BUSES, described::BUSES)] {
             ObjectBuilder::new(
                 &self.id(folder),
                 QualifiedName::new(self.ns, folder),
                 folder,
             )
+            .description(text(description))
             .is_folder()
             .organized_by(ObjectId::ObjectsFolder)
             .insert(space);
         }
     }
 
+    /// `DriveMode`, `Mode`'s enumeration: the STATUS bits' values, each
+    /// named (`EnumStrings`, and the definition OPC UA 1.04 clients read).
+    fn mode_type(&self, space: &mut AddressSpace) {
+        let id = self.id(MODE_TYPE);
+        let fields = MODES
+            .iter()
+            .map(|(value, name, description)| EnumField {
+                value: i64::from(*value),
+                display_name: text(name),
+                description: text(description),
+                name: (*name).into(),
+            })
+            .collect();
+        DataTypeBuilder::new(&id, QualifiedName::new(self.ns, MODE_TYPE), MODE_TYPE)
+            .description(text(described::MODE_TYPE))
+            .subtype_of(DataTypeId::Enumeration)
+            .data_type_definition(DataTypeDefinition::Enum(EnumDefinition {
+                fields: Some(fields),
+            }))
+            .insert(space);
+        let strings: Vec<LocalizedText> = MODES.iter().map(|(_, name, _)| text(name)).collect();
+        VariableBuilder::new(
+            &self.id(&format!("{MODE_TYPE}/EnumStrings")),
+            "EnumStrings",
+            "EnumStrings",
+        )
+        .description(text("The names of DriveMode's values, 0 to 3."))
+        .property_of(id)
+        .has_type_definition(VariableTypeId::PropertyType)
+        .data_type(DataTypeId::LocalizedText)
+        .value_rank(1)
+        .array_dimensions(&[MODES.len() as u32])
+        .value(Variant::from(strings))
+        .insert(space);
+    }
+
     fn settings_object(&self, space: &mut AddressSpace, id: &NodeId, parent: &NodeId, decl: bool) {
         let mut b = ObjectBuilder::new(id, QualifiedName::new(self.ns, SETTINGS), SETTINGS)
+            .description(text(described::SETTINGS))
             .has_type_definition(ObjectTypeId::BaseObjectType)
             .component_of(parent.clone());
         if decl {
@@ -143,7 +198,8 @@ impl Nodes {
             access |= AccessLevel::HISTORY_READ;
         }
         let mut b = VariableBuilder::new(id, QualifiedName::new(self.ns, v.name), v.name)
-            .data_type(data_type(v.kind))
+            .description(text(v.description))
+            .data_type(self.data_type(v.kind))
             .access_level(access)
             .user_access_level(access)
             .historizing(v.history.is_some())
@@ -158,15 +214,16 @@ impl Nodes {
             b = b.has_modelling_rule(ObjectId::ModellingRule_Mandatory);
         }
         b.insert(space);
-        self.properties(space, path, v.unit, v.range);
+        self.properties(space, path, v.name, v.unit, v.range);
         set_missing(space, id);
     }
 
-    /// `EngineeringUnits` and `EURange` of the variable at `base`.
+    /// `EngineeringUnits` and `EURange` of the variable `name` at `base`.
     fn properties(
         &self,
         space: &mut AddressSpace,
         base: &str,
+        name: &str,
         unit: Option<Unit>,
         range: Option<(f64, f64)>,
     ) {
@@ -183,6 +240,10 @@ impl Nodes {
                 "EngineeringUnits",
                 "EngineeringUnits",
             )
+            .description(text(&format!(
+                "The unit of {name}: {} ({}, UNECE code {}).",
+                unit.name, unit.symbol, unit.code
+            )))
             .property_of(id.clone())
             .has_type_definition(VariableTypeId::PropertyType)
             .data_type(DataTypeId::EUInformation)
@@ -191,6 +252,9 @@ impl Nodes {
         }
         if let Some((low, high)) = range {
             VariableBuilder::new(&self.id(&format!("{base}/EURange")), "EURange", "EURange")
+                .description(text(&format!(
+                    "The range of {name} the drive's register holds, in its unit."
+                )))
                 .property_of(id.clone())
                 .has_type_definition(VariableTypeId::PropertyType)
                 .data_type(DataTypeId::Range)
@@ -205,14 +269,23 @@ impl Nodes {
     fn method(&self, space: &mut AddressSpace, path: &str, parent: &NodeId, m: Method, decl: bool) {
         let id = &self.id(path);
         let mut b = MethodBuilder::new(id, QualifiedName::new(self.ns, m.name()), m.name())
+            .description(text(m.description()))
             .component_of(parent.clone())
             .executable(true)
             .user_executable(true);
+        let arguments = self.id(&format!("{path}/InputArguments"));
         if m == Method::SetMode {
+            let (name, description) = SET_MODE_ARGUMENT;
             b = b.input_args(
                 space,
-                &self.id(&format!("{path}/InputArguments")),
-                &[("Mode", DataTypeId::String).into()],
+                &arguments,
+                &[Argument {
+                    name: name.into(),
+                    data_type: DataTypeId::String.into(),
+                    value_rank: -1,
+                    array_dimensions: None,
+                    description: text(description),
+                }],
             );
         }
         if decl {
@@ -223,6 +296,10 @@ impl Nodes {
             );
         }
         b.insert(space);
+        if let Some(node) = space.find_mut(&arguments) {
+            node.as_mut_node()
+                .set_description(text(&format!("What {} takes.", m.name())));
+        }
     }
 
     fn bus_variable(
@@ -235,7 +312,8 @@ impl Nodes {
     ) {
         let id = &self.id(path);
         let mut b = VariableBuilder::new(id, QualifiedName::new(self.ns, v.name()), v.name())
-            .data_type(data_type(v.kind()))
+            .description(text(v.description()))
+            .data_type(self.data_type(v.kind()))
             .access_level(AccessLevel::CURRENT_READ)
             .user_access_level(AccessLevel::CURRENT_READ)
             .component_of(parent.clone())
@@ -249,7 +327,7 @@ impl Nodes {
         }
         b.insert(space);
         let range = (v == BusVariable::Utilisation).then_some((0.0, 100.0));
-        self.properties(space, path, v.unit(), range);
+        self.properties(space, path, v.name(), v.unit(), range);
         set_missing(space, id);
     }
 
@@ -257,16 +335,24 @@ impl Nodes {
     pub fn add_drive(&self, space: &mut AddressSpace, drive: &DriveNodes<'_>) {
         let id = self.id(&spec::drive_path(drive.name));
         ObjectBuilder::new(&id, QualifiedName::new(self.ns, drive.name), drive.name)
+            .description(text(&format!(
+                "The drive named {} in the configuration (a DriveType).",
+                drive.name
+            )))
             .has_type_definition(self.id(DRIVE_TYPE))
             .event_notifier(EventNotifier::SUBSCRIBE_TO_EVENTS)
             .organized_by(self.id(DRIVES))
             .insert(space);
         let settings = self.id(&format!("{}/{SETTINGS}", spec::drive_path(drive.name)));
-        self.settings_object(space, &settings, &id, false);
         for v in &VARIABLES {
             let path = spec::variable_path(drive.name, v);
             let parent = match v.source {
-                Source::Setting(_) => &settings,
+                Source::Setting(_) => {
+                    if space.find(&settings).is_none() {
+                        self.settings_object(space, &settings, &id, false);
+                    }
+                    &settings
+                }
                 _ => &id,
             };
             self.variable(space, &path, parent, v, drive.period, false);
@@ -282,6 +368,9 @@ impl Nodes {
     pub fn add_bus(&self, space: &mut AddressSpace, bus: &str) {
         let id = self.id(&spec::bus_path(bus));
         ObjectBuilder::new(&id, QualifiedName::new(self.ns, bus), bus)
+            .description(text(&format!(
+                "The bus named {bus} in the configuration (a BusType)."
+            )))
             .has_type_definition(self.id(BUS_TYPE))
             .organized_by(self.id(BUSES))
             .insert(space);

@@ -194,14 +194,16 @@ impl Drives {
         let target = self.target(drive)?;
         match variable.source {
             Source::Setpoint(setpoint) => {
-                let request = setpoint_request(setpoint, variable, &written)?;
+                let request = setpoint_request(setpoint, variable, &written)
+                    .map_err(|u| self.unmade(&caller, target, u))?;
                 self.control
                     .write(&caller, target, ControlRequest::drive(request))
                     .await
                     .map_err(|f| outcome::failure(&f))?;
             }
             Source::Setting(setting) => {
-                let document = document(setting, variable, &written)?;
+                let document = document(setting, variable, &written)
+                    .map_err(|u| self.unmade(&caller, target, u))?;
                 self.apply(&caller, target, &document).await?;
             }
             Source::Status(_) | Source::Online => unreachable!("not writable"),
@@ -216,6 +218,18 @@ impl Drives {
                 super::values::data_value(v, StatusCode::Good, now),
             )
         }))
+    }
+
+    /// The answer to a write that could not be made into a request, once
+    /// the core audited it as refused.
+    fn unmade(&self, caller: &Caller, target: Target, unmade: Unmade) -> Answer {
+        self.control.refused(
+            caller,
+            target,
+            unmade.what,
+            format!("refused: {}", unmade.answer.text),
+        );
+        unmade.answer
     }
 
     /// `Settings.Save()`: what the drive holds, written again with its
@@ -289,19 +303,18 @@ impl Drives {
                 ),
             ));
         }
+        let caller = self.caller(context)?;
+        let target = self.target(drive)?;
         let command = match method {
             Method::Activate => ConfigCommand::Activate,
             Method::Deactivate => ConfigCommand::Deactivate,
             Method::Brake => ConfigCommand::EmergencyBrake,
             Method::FaultReset => ConfigCommand::FaultReset,
-            Method::SetMode => mode(call.arguments())?,
-            Method::Save => {
-                let caller = self.caller(context)?;
-                return self.save(&caller, self.target(drive)?).await;
+            Method::SetMode => {
+                mode(call.arguments()).map_err(|u| self.unmade(&caller, target, u))?
             }
+            Method::Save => return self.save(&caller, target).await,
         };
-        let caller = self.caller(context)?;
-        let target = self.target(drive)?;
         self.control
             .write(
                 &caller,
@@ -314,23 +327,54 @@ impl Drives {
     }
 }
 
-/// `SetMode`'s mode.
-fn mode(arguments: &[Variant]) -> Result<ConfigCommand, Answer> {
+/// A write or call refused before it became a request: the answer, and
+/// what was asked for in words, for the audit.
+struct Unmade {
+    answer: Answer,
+    what: String,
+}
+
+impl Unmade {
+    fn new(answer: Answer, what: String) -> Self {
+        Unmade { answer, what }
+    }
+
+    /// A value outside the drive's range.
+    fn range(e: &crate::drive::RangeError) -> Self {
+        Unmade::new(outcome::out_of_range(e), e.attempted())
+    }
+}
+
+/// `SetMode`'s mode: one String, a mode the drive has.
+fn mode(arguments: &[Variant]) -> Result<ConfigCommand, Unmade> {
+    let modes = ConfigCommand::modes_in_words();
     match arguments {
-        [Variant::String(s)] => match s.as_ref() {
-            "speed" => Ok(ConfigCommand::SpeedMode),
-            "position" => Ok(ConfigCommand::PositionMode),
-            "torque" => Ok(ConfigCommand::TorqueMode),
-            other => Err(Answer::new(
+        [Variant::String(s)] => {
+            let s = s.as_ref();
+            ConfigCommand::mode_named(s).ok_or_else(|| {
+                Unmade::new(
+                    Answer::new(
+                        StatusCode::BadInvalidArgument,
+                        format!("SetMode(\"{s}\"): \"{s}\" is not a mode of the drive: the mode is {modes}"),
+                    ),
+                    format!("mode \"{s}\""),
+                )
+            })
+        }
+        other => Err(Unmade::new(
+            Answer::new(
                 StatusCode::BadInvalidArgument,
-                format!("SetMode(\"{other}\"): the mode is speed, position or torque"),
-            )),
-        },
-        _ => Err(Answer::new(
-            StatusCode::BadInvalidArgument,
-            "SetMode takes one String: speed, position or torque",
+                format!("SetMode takes one String: {modes}"),
+            ),
+            format!("SetMode with {}", show(other)),
         )),
     }
+}
+
+/// Arguments or a value as the audit shows them.
+fn show(values: &[Variant]) -> String {
+    let shown: Vec<String> = values.iter().map(|v| format!("{v:?}")).collect();
+    format!("({})", shown.join(", "))
 }
 
 /// A written value as a number, whatever numeric type the client sent.
@@ -350,14 +394,17 @@ fn as_f64(value: &Variant) -> Option<f64> {
     }
 }
 
-fn type_mismatch(variable: &Variable, value: &Variant) -> Answer {
-    Answer::new(
-        StatusCode::BadTypeMismatch,
-        format!(
-            "{} takes a number (Double), not {:?}",
-            variable.name,
-            value.type_id()
+fn type_mismatch(variable: &Variable, value: &Variant) -> Unmade {
+    Unmade::new(
+        Answer::new(
+            StatusCode::BadTypeMismatch,
+            format!(
+                "{} takes a number (Double), not {:?}",
+                variable.name,
+                value.type_id()
+            ),
         ),
+        format!("{} = {}", variable.name, show(std::slice::from_ref(value))),
     )
 }
 
@@ -367,9 +414,9 @@ fn setpoint_request(
     setpoint: Setpoint,
     variable: &Variable,
     value: &Variant,
-) -> Result<DriveRequest, Answer> {
+) -> Result<DriveRequest, Unmade> {
     let v = as_f64(value).ok_or_else(|| type_mismatch(variable, value))?;
-    let range = |e: crate::drive::RangeError| outcome::out_of_range(&e);
+    let range = |e: crate::drive::RangeError| Unmade::range(&e);
     Ok(match setpoint {
         Setpoint::Speed => DriveRequest::Speed {
             rpm: units::speed_setpoint(v).map_err(range)?,
@@ -384,13 +431,14 @@ fn setpoint_request(
 }
 
 /// The settings document of one setting's write.
-fn document(setting: Setting, variable: &Variable, value: &Variant) -> Result<Document, Answer> {
+fn document(setting: Setting, variable: &Variable, value: &Variant) -> Result<Document, Unmade> {
     let mut d = Document::default();
+    let what = || format!("{} = {}", variable.name, show(std::slice::from_ref(value)));
     if setting == Setting::Rs485Control {
         let Variant::Boolean(on) = value else {
-            return Err(Answer::new(
-                StatusCode::BadTypeMismatch,
-                "Rs485Control takes a Boolean",
+            return Err(Unmade::new(
+                Answer::new(StatusCode::BadTypeMismatch, "Rs485Control takes a Boolean"),
+                what(),
             ));
         };
         d.rs485_control = Some(*on);
@@ -401,9 +449,12 @@ fn document(setting: Setting, variable: &Variable, value: &Variant) -> Result<Do
         if v.fract() == 0.0 && v.is_finite() {
             Ok(v as i64)
         } else {
-            Err(Answer::new(
-                StatusCode::BadOutOfRange,
-                format!("{} takes a whole number, not {v}", variable.name),
+            Err(Unmade::new(
+                Answer::new(
+                    StatusCode::BadOutOfRange,
+                    format!("{} takes a whole number, not {v}", variable.name),
+                ),
+                what(),
             ))
         }
     };

@@ -28,6 +28,9 @@ pub enum Kind {
     Boolean,
     /// String.
     String,
+    /// The drive's control mode: an Int32 of the `DriveMode` enumeration
+    /// ([`MODES`]).
+    Mode,
 }
 
 /// An engineering unit: its UNECE common code (OPC UA Part 8, 5.6.3) and
@@ -136,6 +139,8 @@ pub struct Variable {
     pub source: Source,
     /// Its trend in the history, for `HistoryRead`.
     pub history: Option<StatusField>,
+    /// Its `Description`: what it is, in plain words, from the manual.
+    pub description: &'static str,
 }
 
 impl Variable {
@@ -158,13 +163,14 @@ impl Variable {
     }
 }
 
+/// A variable of the status block, with its trend when `trended`.
 const fn status(
     name: &'static str,
     kind: Kind,
-    unit: Option<Unit>,
-    range: Option<(f64, f64)>,
+    (unit, range): (Option<Unit>, Option<(f64, f64)>),
     field: StatusField,
-    history: Option<StatusField>,
+    trended: bool,
+    description: &'static str,
 ) -> Variable {
     Variable {
         name,
@@ -172,7 +178,8 @@ const fn status(
         unit,
         range,
         source: Source::Status(field),
-        history,
+        history: if trended { Some(field) } else { None },
+        description,
     }
 }
 
@@ -182,77 +189,112 @@ const AMPS: (f64, f64) = (
     TORQUE_COUNTS.1 as f64 / COUNTS_PER_AMP,
 );
 const RPMS: (f64, f64) = (SPEED_RPM.0 as f64, SPEED_RPM.1 as f64);
+const DEGREES: (f64, f64) = (-180.0, 180.0);
+const PLAIN: (Option<Unit>, Option<(f64, f64)>) = (None, None);
 
 /// The name of a drive's settings object.
 pub const SETTINGS: &str = "Settings";
 
-/// The variables of `DriveType`, in the order they are browsed: the
-/// status, `Online`, the setpoints; then the `Settings` object's.
+/// The variables of `DriveType`, in the order they are browsed, which is
+/// the manual's: the status block's registers (1.7, CYCLE_NUM to TEMP),
+/// then its STATUS flags from bit 7 down, `Online`, the setpoints (1.4 to
+/// 1.6); then the `Settings` object's (1.8 to 1.12).
 pub const VARIABLES: [Variable; 22] = [
     status(
-        "Speed",
-        Kind::Double,
-        Some(RPM),
-        Some(RPMS),
-        StatusField::SpeedRpm,
-        Some(StatusField::SpeedRpm),
+        "Turns",
+        Kind::Int32,
+        PLAIN,
+        StatusField::Turns,
+        false,
+        "Whole turns of the output counted by the drive (status register CYCLE_NUM, manual 1.7); with Angle, the position.",
     ),
     status(
         "Angle",
         Kind::Double,
-        Some(DEGREE),
-        Some((-180.0, 180.0)),
+        (Some(DEGREE), Some(DEGREES)),
         StatusField::AngleDeg,
-        Some(StatusField::AngleDeg),
+        true,
+        "The angle within the turn at the gearbox output, -180 to 180 degrees (status register ANGLE, in 0.01 degree, manual 1.7).",
     ),
-    status("Turns", Kind::Int32, None, None, StatusField::Turns, None),
+    status(
+        "Speed",
+        Kind::Double,
+        (Some(RPM), Some(RPMS)),
+        StatusField::SpeedRpm,
+        true,
+        "The speed at the gearbox output, r/min (status register SPEED, manual 1.7).",
+    ),
     status(
         "Current",
         Kind::Double,
-        Some(AMPERE),
-        Some(AMPS),
+        (Some(AMPERE), Some(AMPS)),
         StatusField::CurrentA,
-        Some(StatusField::CurrentA),
+        true,
+        "The motor current, which makes its torque, A (status register IQ, 128 counts to the ampere, manual 1.7).",
     ),
     status(
         "Voltage",
         Kind::Double,
-        Some(VOLT),
-        Some((0.0, 255.0)),
+        (Some(VOLT), Some((0.0, 255.0))),
         StatusField::VoltageV,
-        Some(StatusField::VoltageV),
+        true,
+        "The drive's supply voltage, V (status register VOLT, manual 1.7).",
     ),
     status(
         "Temperature",
         Kind::Double,
-        Some(CELSIUS),
-        Some((-128.0, 127.0)),
+        (Some(CELSIUS), Some((-128.0, 127.0))),
         StatusField::TemperatureC,
-        Some(StatusField::TemperatureC),
+        true,
+        "The drive's temperature, degrees Celsius (status register TEMP, manual 1.7).",
     ),
     status(
         "Active",
         Kind::Boolean,
-        None,
-        None,
+        PLAIN,
         StatusField::Active,
-        None,
-    ),
-    status(
-        "Stalled",
-        Kind::Boolean,
-        None,
-        None,
-        StatusField::Stalled,
-        None,
+        false,
+        "True while the drive is activated and takes setpoints (STATUS bit 7, manual 1.7): set by Activate, cleared by Deactivate; kept over power loss.",
     ),
     status(
         "Calibrated",
         Kind::Boolean,
-        None,
-        None,
+        PLAIN,
         StatusField::Calibrated,
-        None,
+        false,
+        "True once the encoder angle has been calibrated (STATUS bit 6, manual 1.7).",
+    ),
+    status(
+        "Stalled",
+        Kind::Boolean,
+        PLAIN,
+        StatusField::Stalled,
+        false,
+        "True when the stall protection stopped the motor (STATUS bit 5, manual 1.7): the current stayed above CurrentLimit for StallTime. FaultReset clears it.",
+    ),
+    status(
+        "Mode",
+        Kind::Mode,
+        PLAIN,
+        StatusField::Mode,
+        false,
+        "The control mode (STATUS bits 4..3, manual 1.7), a DriveMode: 0 OpenLoop (open-loop voltage control, the mode at power-on), 1 Speed, 2 Position, 3 Torque closed loop. SetMode changes it.",
+    ),
+    status(
+        "Fault",
+        Kind::String,
+        PLAIN,
+        StatusField::Fault,
+        false,
+        "The drive's fault in words (STATUS bits 2..0, manual 1.7): none, or what failed.",
+    ),
+    status(
+        "FaultCode",
+        Kind::UInt16,
+        PLAIN,
+        StatusField::FaultCode,
+        false,
+        "The drive's fault code (STATUS bits 2..0, manual 1.7): 0 none, 1 current-sense fault, 2 encoder fault, 3 power stage fault, 4 drive over-temperature, 5 supply under-voltage, 6 supply over-voltage.",
     ),
     Variable {
         name: "Online",
@@ -261,88 +303,80 @@ pub const VARIABLES: [Variable; 22] = [
         range: None,
         source: Source::Online,
         history: None,
+        description: "True while the drive's data is live: it answers its polls. While false, the other values are the last ones read, with an Uncertain or Bad status saying why.",
     },
-    status("Mode", Kind::String, None, None, StatusField::Mode, None),
-    status("Fault", Kind::String, None, None, StatusField::Fault, None),
-    status(
-        "FaultCode",
-        Kind::UInt16,
-        None,
-        None,
-        StatusField::FaultCode,
-        None,
-    ),
     held(
         "SpeedSetpoint",
         Kind::Double,
-        Some(RPM),
-        Some(RPMS),
+        (Some(RPM), Some(RPMS)),
         Source::Setpoint(Setpoint::Speed),
+        "The speed setpoint at the gearbox output, r/min (SPEED_REF, manual 1.4). Written by an operator; the drive must be active and in speed mode. The session holds a lease: when it ends, the motor stops.",
     ),
     held(
         "PositionSetpoint",
         Kind::Double,
-        Some(DEGREE),
-        Some((-180.0, 180.0)),
+        (Some(DEGREE), Some(DEGREES)),
         Source::Setpoint(Setpoint::Position),
+        "The position setpoint at the gearbox output, degrees (POSITION_REF, in 0.01 degree, manual 1.5). Written by an operator; the drive must be active and in position mode.",
     ),
     held(
         "TorqueSetpoint",
         Kind::Double,
-        Some(AMPERE),
-        Some(AMPS),
+        (Some(AMPERE), Some(AMPS)),
         Source::Setpoint(Setpoint::Torque),
+        "The torque setpoint as the motor current, A (IQ_REF, 128 counts to the ampere, manual 1.6). Written by an operator; the drive must be active and in torque mode.",
     ),
     held(
         "CurrentLimit",
         Kind::Double,
-        Some(AMPERE),
-        Some((0.0, 2047.0 / COUNTS_PER_AMP)),
+        (Some(AMPERE), Some((0.0, 2047.0 / COUNTS_PER_AMP))),
         Source::Setting(Setting::CurrentLimit),
+        "The stall protection's current limit, A (STALLED_CURR, manual 1.8): above it for StallTime, the drive stops the motor and reports Stalled. Written by an admin.",
     ),
     held(
         "StallTime",
         Kind::UInt32,
-        Some(MILLISECOND),
-        Some((0.0, 60_000.0)),
+        (Some(MILLISECOND), Some((0.0, 60_000.0))),
         Source::Setting(Setting::StallTime),
+        "How long the current may stay above CurrentLimit before the stall protection stops the motor, ms (STALLED_DURATION_MS, manual 1.8). Written by an admin.",
     ),
     held(
         "SpeedRampAlpha",
         Kind::UInt32,
-        None,
-        None,
+        PLAIN,
         Source::Setting(Setting::SpeedRamp),
+        "The speed ramp's alpha (SPEED_TD_R, manual 1.9): 0 turns the ramp off, larger is faster; from standstill the ramp takes t = 2 sqrt(r n / (9.55 alpha)) s for n r/min through a gearbox of ratio r. Written by an admin.",
     ),
     held(
         "PositionRampAlpha",
         Kind::UInt32,
-        None,
-        None,
+        PLAIN,
         Source::Setting(Setting::PositionRamp),
+        "The position ramp's alpha (POSITION_TD_R, manual 1.10): 0 turns the ramp off, larger is faster; a move of theta degrees takes t = 2 sqrt(pi theta / (180 alpha)) s. Written by an admin.",
     ),
     held(
         "InertiaRatio",
         Kind::UInt32,
-        None,
-        Some((1.0, 65_535.0)),
+        (None, Some((1.0, 65_535.0))),
         Source::Setting(Setting::InertiaRatio),
+        "The load's inertia as a multiple of the rotor's (INERTIA_RATIO, manual 1.11). Written by an admin.",
     ),
     held(
         "Rs485Control",
         Kind::Boolean,
-        None,
-        None,
+        PLAIN,
         Source::Setting(Setting::Rs485Control),
+        "True: the drive takes its commands from RS-485 and ignores CAN; false: CAN controls it (USE_485_CONTROL, manual 1.12). Written by an admin.",
     ),
 ];
 
+/// A variable the drive holds (a setpoint or a setting).
 const fn held(
     name: &'static str,
     kind: Kind,
-    unit: Option<Unit>,
-    range: Option<(f64, f64)>,
+    (unit, range): (Option<Unit>, Option<(f64, f64)>),
     source: Source,
+    description: &'static str,
 ) -> Variable {
     Variable {
         name,
@@ -351,8 +385,34 @@ const fn held(
         range,
         source,
         history: None,
+        description,
     }
 }
+
+/// The drive's control modes, as `Mode`'s enumeration (`DriveMode`):
+/// each the value of STATUS bits 4..3 (manual 1.7), its name, and what it
+/// is.
+pub const MODES: [(i32, &str, &str); 4] = [
+    (
+        0,
+        "OpenLoop",
+        "Open-loop voltage control: the mode at power-on, before a mode command.",
+    ),
+    (1, "Speed", "Speed closed loop: follows SpeedSetpoint."),
+    (
+        2,
+        "Position",
+        "Position closed loop: follows PositionSetpoint.",
+    ),
+    (
+        3,
+        "Torque",
+        "Torque (current) closed loop: follows TorqueSetpoint.",
+    ),
+];
+
+/// The node id path of `Mode`'s enumeration data type.
+pub const MODE_TYPE: &str = "DriveMode";
 
 /// A method of a drive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -402,7 +462,37 @@ impl Method {
             _ => self.name().to_string(),
         }
     }
+
+    /// Its `Description`, from the manual.
+    pub fn description(self) -> &'static str {
+        match self {
+            Method::Activate => {
+                "Activates the drive (CONFIG 0x0, manual 1.3): it then takes setpoints. Kept over power loss. Operator."
+            }
+            Method::Deactivate => {
+                "Deactivates the drive (CONFIG 0x1, manual 1.3): it no longer takes setpoints, and any lease on it ends. Kept over power loss. Operator."
+            }
+            Method::Brake => {
+                "The emergency brake (CONFIG 0x5, manual 1.3), sent ahead of everything else on the bus: the motor is held and any lease on it ends; a setpoint or a mode command releases it. Operator."
+            }
+            Method::FaultReset => {
+                "Clears a stall or a fault (CONFIG 0x8, manual 1.3); a fault whose cause remains comes back. Operator."
+            }
+            Method::SetMode => {
+                "Sets the control mode (CONFIG 0xA, 0xB or 0xC, manual 1.3). Its argument Mode is the String speed, position or torque. Operator."
+            }
+            Method::Save => {
+                "Writes what the drive holds (current limit, stall time, ramps, inertia ratio) to its flash, so that it is kept over power loss. Only while the motor stands still, as the manual requires. Admin."
+            }
+        }
+    }
 }
+
+/// `SetMode`'s input argument: its name and what it takes.
+pub const SET_MODE_ARGUMENT: (&str, &str) = (
+    "Mode",
+    "The mode, as a String: speed, position or torque (the drive's closed-loop modes).",
+);
 
 /// A variable of a bus object.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -469,6 +559,51 @@ impl BusVariable {
     pub fn unit(self) -> Option<Unit> {
         (self == BusVariable::Utilisation).then_some(PERCENT)
     }
+
+    /// Its `Description`.
+    pub fn description(self) -> &'static str {
+        match self {
+            BusVariable::State => {
+                "The port's state: opening, up (carrying transactions) or down (see Reason)."
+            }
+            BusVariable::Reason => "Why the port is down, in words; empty while it is up.",
+            BusVariable::Utilisation => {
+                "The share of the last 10 s the wire was busy with frames and the silences between them, percent."
+            }
+            BusVariable::Timeouts => {
+                "Transactions whose reply did not come in time, since the daemon started."
+            }
+            BusVariable::CrcErrors => "Replies with a bad CRC, since the daemon started.",
+            BusVariable::BadReplies => {
+                "Replies that did not answer their request (another unit, function or register), since the daemon started."
+            }
+            BusVariable::Retries => {
+                "Requests sent again after a failed attempt, since the daemon started."
+            }
+            BusVariable::Reopens => {
+                "Times the port was opened again after it failed, since the daemon started."
+            }
+            BusVariable::DrivesOnline => "Drives on this bus whose data is live.",
+        }
+    }
+}
+
+/// The `Description` of the object types, the folders, a drive's settings
+/// object, and `Mode`'s data type.
+pub mod described {
+    /// `DriveType`.
+    pub const DRIVE_TYPE: &str = "A servo drive on an RS-485 bus: its status, polled by the gateway, its setpoints, settings and commands (the maker's manual, sections 1.3 to 1.12).";
+    /// `BusType`.
+    pub const BUS_TYPE: &str =
+        "An RS-485 bus (a serial adapter, or a serial device server) and its wire's counters.";
+    /// `Objects/Drives`.
+    pub const DRIVES: &str = "The configured drives, by name.";
+    /// `Objects/Buses`.
+    pub const BUSES: &str = "The configured buses, by name.";
+    /// A drive's `Settings`.
+    pub const SETTINGS: &str = "The drive's settings (manual 1.8 to 1.12), written by an admin; Save puts them in the drive's flash.";
+    /// `DriveMode`.
+    pub const MODE_TYPE: &str = "The drive's control modes (STATUS bits 4..3, manual 1.7).";
 }
 
 /// The node id path of the drives' folder.

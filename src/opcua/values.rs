@@ -64,7 +64,7 @@ pub fn online(verdict: &Verdict) -> bool {
 pub fn number(kind: Kind, value: f64) -> Variant {
     match kind {
         Kind::Double => Variant::Double(value),
-        Kind::Int32 => Variant::Int32(value as i32),
+        Kind::Int32 | Kind::Mode => Variant::Int32(value as i32),
         Kind::UInt16 => Variant::UInt16(value as u16),
         Kind::UInt32 => Variant::UInt32(value as u32),
         Kind::Boolean => Variant::Boolean(value != 0.0),
@@ -84,7 +84,8 @@ pub fn status_value(field: StatusField, status: &Status) -> Variant {
         StatusField::Active => Variant::Boolean(status.active()),
         StatusField::Stalled => Variant::Boolean(status.stalled()),
         StatusField::Calibrated => Variant::Boolean(status.calibrated()),
-        StatusField::Mode => Variant::from(status.mode().name()),
+        // The STATUS bits are DriveMode's values (spec::MODES).
+        StatusField::Mode => Variant::Int32(i32::from(status.mode().bits())),
         StatusField::Fault => Variant::from(status.fault().name()),
         StatusField::FaultCode => Variant::UInt16(status.fault().code()),
     }
@@ -282,7 +283,7 @@ mod tests {
         assert_eq!(value("Voltage"), Variant::Double(48.0));
         assert_eq!(value("Temperature"), Variant::Double(41.0));
         assert_eq!(value("Active"), Variant::Boolean(true));
-        assert_eq!(value("Mode"), Variant::from("speed"));
+        assert_eq!(value("Mode"), Variant::Int32(1));
         assert_eq!(value("Fault"), Variant::from("over_temperature"));
         assert_eq!(value("FaultCode"), Variant::UInt16(4));
     }

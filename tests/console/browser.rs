@@ -192,6 +192,15 @@ async fn activate_in_speed_mode(page: &Page) {
     .await;
 }
 
+/// A position as the console writes it: "12.25 turns".
+fn is_position(text: &serde_json::Value) -> bool {
+    text.as_str()
+        .and_then(|t| t.strip_suffix(" turns"))
+        .is_some_and(|n| {
+            n.parse::<f64>().is_ok() && n.split_once('.').is_some_and(|(_, d)| d.len() == 2)
+        })
+}
+
 /// Every page, live values, and the overview's line of the OPC UA face:
 /// where it serves, and its sessions as a client (asyncua) comes and goes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -253,6 +262,15 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
         )
         .await;
     assert!(shown.as_str().unwrap().parse::<i32>().unwrap() > 30);
+    // A position is written one way on every page: output turns, to a
+    // hundredth (the overview's cell here, the drive page's below).
+    let position = page
+        .eval("document.querySelector('tr[data-drive=lift] td:nth-of-type(5)').textContent")
+        .await;
+    assert!(
+        is_position(&position),
+        "the overview's position: {position}"
+    );
     let before = page
         .eval("drivegate.store.stats.statusReceived")
         .await
@@ -262,6 +280,39 @@ async fn every_page_loads_clean_from_loopback_and_values_update_live() {
         &format!("drivegate.store.stats.statusReceived > {before} + 20"),
         LONG,
         "statuses keep coming",
+    )
+    .await;
+
+    // The drive page writes the position as the overview does, and its
+    // buttons show the states the drive is in: Activate pressed for the
+    // active lift, nothing pressed for the inactive conveyor (Deactivate
+    // is an action, not a state).
+    page.eval("location.hash = '#/drive/lift'").await;
+    page.wait_for(
+        "(document.querySelector('[data-command=activate]') || {}).getAttribute && document.querySelector('[data-command=activate]').getAttribute('aria-pressed') === 'true'",
+        LONG,
+        "Activate pressed for the active lift",
+    )
+    .await;
+    let position = page
+        .eval("document.querySelector('[data-value=position]').textContent")
+        .await;
+    assert!(
+        is_position(&position),
+        "the drive page's position: {position}"
+    );
+    assert_eq!(
+        page.eval(
+            "document.querySelector('[data-command=deactivate]').getAttribute('aria-pressed')"
+        )
+        .await,
+        "false"
+    );
+    page.eval("location.hash = '#/drive/conveyor'").await;
+    page.wait_for(
+        "(() => { const b = document.querySelectorAll('[data-command]'); return drivegate.store.drives.get('conveyor').status && b.length === 3 && [...b].every((x) => x.getAttribute('aria-pressed') === 'false'); })()",
+        LONG,
+        "no activation button pressed for the inactive conveyor",
     )
     .await;
 

@@ -1,6 +1,8 @@
 //! One audit log for every face: a write refused by the control core (a
 //! role, a still-check) is logged as a failed write with the face and who
-//! sent it, whether it came over Modbus TCP or HTTP; an override is logged;
+//! sent it, whether it came over Modbus TCP or HTTP; so is one refused
+//! before it became a request (a value out of range, a mode the drive does
+//! not have), over HTTP and the stream; an override is logged;
 //! and after a PLC's brake ended an HTTP lease, no lease-expiry write is.
 
 // `common` is shared by several test crates: its `pub` items are for them.
@@ -10,7 +12,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use crate::support::alone;
-use crate::support::api::Api;
+use crate::support::api::{Api, connect, ws_command};
 use crate::support::modbus_tcp::{Raw, four_drives_with, write};
 use crate::support::{TestDaemon, eventually};
 use serde_json::json;
@@ -92,6 +94,48 @@ async fn refusals_and_overrides_are_audited_alike_for_every_face() {
             line.contains("refused: this needs the admin role"),
             "{line}"
         );
+
+        // Values refused before they became a request, over HTTP and the
+        // stream: out of the drive's range, a mode it does not have.
+        api.put("/api/v1/drives/feeder/setpoint", json!({"speed_rpm": 5000}))
+            .await
+            .expect_problem(422, "out-of-range");
+        let line = log
+            .line_with(&[
+                "write failed",
+                "face=\"http\"",
+                "unit=4",
+                "what=\"speed setpoint 5000 rpm\"",
+            ])
+            .await;
+        assert!(line.contains("valid -2048 to 2047 rpm"), "{line}");
+        api.put("/api/v1/drives/feeder/mode", json!({"mode": "fast"}))
+            .await
+            .expect(400);
+        log.line_with(&[
+            "write failed",
+            "face=\"http\"",
+            "mode \\\"fast\\\"",
+            "speed, position or torque",
+        ])
+        .await;
+        let mut ws = connect(d.http, "", None).await;
+        let reply = ws_command(
+            &mut ws,
+            1,
+            "setpoint",
+            "feeder",
+            json!({"position_deg": 720}),
+        )
+        .await;
+        assert_eq!(reply["ok"], false, "{reply}");
+        log.line_with(&[
+            "write failed",
+            "face=\"websocket\"",
+            "position setpoint 720 deg",
+            "valid -180 to 180 deg",
+        ])
+        .await;
 
         // A still-check refusal over HTTP and an override, both audited.
         api.activate_in("conveyor", "speed").await;

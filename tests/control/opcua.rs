@@ -38,29 +38,32 @@ const STEP: Duration = Duration::from_secs(60);
 const USER: &str = "scada";
 
 /// What `DriveType` has: its variables, methods and settings object.
+/// A drive's children in browse order: the manual's (the status block's
+/// registers, its flags, `Online`, the setpoints, the settings, the config
+/// commands).
 const DRIVE_CHILDREN: [&str; 22] = [
-    "Speed",
-    "Angle",
     "Turns",
+    "Angle",
+    "Speed",
     "Current",
     "Voltage",
     "Temperature",
     "Active",
-    "Stalled",
     "Calibrated",
-    "Online",
+    "Stalled",
     "Mode",
     "Fault",
     "FaultCode",
+    "Online",
     "SpeedSetpoint",
     "PositionSetpoint",
     "TorqueSetpoint",
+    "Settings",
     "Activate",
     "Deactivate",
     "Brake",
     "FaultReset",
     "SetMode",
-    "Settings",
 ];
 
 /// A daemon with `[opcua]` on loopback (a `none` endpoint beside
@@ -338,11 +341,17 @@ async fn both_clients_browse_read_with_units_and_read_history() {
         let (all, node) = tokio::join!(
             Client::asyncua(
                 &ua.url,
-                "endpoints,browse,read,anonymous-write,history",
+                "endpoints,browse,read,described,anonymous-write,history",
                 &["--drive".into(), "lift".into()],
             )
             .steps(),
-            Client::node(&ua.url, "endpoints,browse,read,history", &pki, &[]).steps(),
+            Client::node(
+                &ua.url,
+                "endpoints,browse,read,described,history",
+                &pki,
+                &[]
+            )
+            .steps(),
         );
         let endpoints = step(&all, "endpoints")["endpoints"]
             .as_array()
@@ -414,6 +423,33 @@ async fn both_clients_browse_read_with_units_and_read_history() {
         // The poll's period is the fastest sampling.
         assert!(read["min_sampling_ms"].as_f64().unwrap() > 0.0, "{read}");
 
+        // Every node under a drive says what it is; the drive's children
+        // come in the manual's order; Mode is a DriveMode, an enumeration
+        // with its names; SetMode's argument says what it takes.
+        let described = step(&all, "described");
+        assert_eq!(
+            described["order"],
+            serde_json::json!(DRIVE_CHILDREN),
+            "{described}"
+        );
+        assert_eq!(described["missing"], serde_json::json!([]), "{described}");
+        assert!(described["nodes"].as_u64().unwrap() > 40, "{described}");
+        assert_eq!(described["mode_type"], "DriveMode");
+        assert_eq!(
+            described["enum_strings"],
+            serde_json::json!(["OpenLoop", "Speed", "Position", "Torque"])
+        );
+        assert!(described["mode_value"].is_i64(), "{described}");
+        assert_eq!(described["argument"]["name"], "Mode");
+        assert!(
+            described["argument"]["description"]
+                .as_str()
+                .unwrap()
+                .contains("speed, position or torque"),
+            "{described}"
+        );
+        assert_eq!(read["values"]["Mode"]["type"], "Int32", "{read}");
+
         let refused = step(&all, "anonymous-write");
         assert_eq!(refused["status"], "BadUserAccessDenied", "{refused}");
         // Its UserAccessLevel shows no write (CurrentRead only).
@@ -440,6 +476,18 @@ fn node_sees_the_same(node: &[Value], endpoints: usize, drives: &Value) {
         endpoints
     );
     assert_eq!(step(node, "browse")["drives"], *drives);
+    let described = step(node, "described");
+    assert_eq!(
+        described["order"],
+        serde_json::json!(DRIVE_CHILDREN),
+        "{described}"
+    );
+    assert_eq!(described["missing"], serde_json::json!([]), "{described}");
+    assert_eq!(described["mode_type"], "DriveMode");
+    assert_eq!(
+        described["enum_strings"],
+        serde_json::json!(["OpenLoop", "Speed", "Position", "Torque"])
+    );
     let speed = &step(node, "read")["values"]["Speed"];
     assert_eq!(
         (speed["status"].as_str(), speed["unit_id"].as_u64()),
@@ -454,7 +502,8 @@ fn node_sees_the_same(node: &[Value], endpoints: usize, drives: &Value) {
 /// the mode, activates and writes SpeedSetpoint; the motor turns, the
 /// subscription is notified at the poll rate (and through absolute and
 /// percent deadbands as wide as they say), an out-of-range setpoint is
-/// refused with the range in the diagnostics. The operator's write and an
+/// refused with the range in the diagnostics, and so is a mode the drive
+/// does not have. The operator's writes, its refused ones included, and an
 /// anonymous session's refused one are audited by user and the client's
 /// address, `<user> (127.0.0.1:<port>)` (face `opcua`). node-opcua does the
 /// same on another drive at the same time.
@@ -558,6 +607,36 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
             "{audit}"
         );
         assert_eq!(audit["ok"], true, "{audit}");
+        // Refused before it became a request, and audited all the same:
+        // the value out of range, the mode the drive does not have.
+        assert_eq!(
+            step(&all, "set-mode-wrong")["status"],
+            "BadInvalidArgument",
+            "{all:?}"
+        );
+        for (what, why) in [
+            ("speed setpoint 99999 rpm", "valid -2048 to 2047 rpm"),
+            ("mode \"fast\"", "speed, position or torque"),
+        ] {
+            let audit = wait_for(&mut ws, STEP, what, |m| {
+                m["type"] == "write"
+                    && m["drive"] == "conveyor"
+                    && m["what"].as_str().is_some_and(|w| w.contains(what))
+            })
+            .await;
+            assert_eq!(audit["ok"], false, "{audit}");
+            assert_eq!(
+                audit["who"].as_str(),
+                Some(client_named(USER, step(&all, "connected")).as_str()),
+                "{audit}"
+            );
+            assert!(
+                audit["answer"]
+                    .as_str()
+                    .is_some_and(|a| a.starts_with("refused: ") && a.contains(why)),
+                "{audit}"
+            );
+        }
 
         // node-opcua, on the feeder.
         assert_eq!(

@@ -470,3 +470,102 @@ fn the_readme_shows_both_quick_start_commands_in_command_blocks() {
         );
     }
 }
+
+/// A heading's anchor as GitHub makes it: lower case, punctuation dropped
+/// (but `-` and `_`), spaces as `-`.
+fn anchor_of(heading: &str) -> String {
+    heading
+        .trim()
+        .to_lowercase()
+        .chars()
+        .filter(|c| c.is_alphanumeric() || matches!(c, ' ' | '-' | '_'))
+        .map(|c| if c == ' ' { '-' } else { c })
+        .collect()
+}
+
+/// The anchors of a Markdown file's headings (outside code blocks).
+fn anchors(text: &str) -> BTreeSet<String> {
+    let mut block = false;
+    let mut out = BTreeSet::new();
+    for line in text.lines() {
+        if line.starts_with("```") {
+            block = !block;
+        } else if !block && line.starts_with('#') {
+            out.insert(anchor_of(line.trim_start_matches('#')));
+        }
+    }
+    out
+}
+
+/// Every link from one document to another (README, docs/, tests/,
+/// vendor/) leads to a file that exists and, when it names a heading, to
+/// a heading that exists: a reader sent to "the benchmark" finds it.
+#[test]
+fn every_link_between_the_docs_leads_to_a_file_and_a_heading_that_exist() {
+    let mut files: Vec<String> = vec![
+        "README.md".into(),
+        "tests/README.md".into(),
+        "vendor/README.md".into(),
+    ];
+    files.extend(
+        user_texts()
+            .into_iter()
+            .map(|(f, _)| f)
+            .filter(|f| f.starts_with("docs/")),
+    );
+    let mut checked = 0;
+    let mut broken = Vec::new();
+    for file in &files {
+        let text = read(file);
+        let dir = Path::new(file).parent().unwrap_or(Path::new(""));
+        let mut block = false;
+        for line in text.lines() {
+            if line.starts_with("```") {
+                block = !block;
+                continue;
+            }
+            if block {
+                continue;
+            }
+            let mut rest = line;
+            while let Some(at) = rest.find("](") {
+                let after = &rest[at + 2..];
+                let Some(end) = after.find(')') else { break };
+                let target = &after[..end];
+                rest = &after[end..];
+                if target.contains("://") || target.starts_with("mailto:") {
+                    continue;
+                }
+                let (path, anchor) = target.split_once('#').unwrap_or((target, ""));
+                let linked = if path.is_empty() {
+                    file.clone()
+                } else {
+                    dir.join(path).to_string_lossy().into_owned()
+                };
+                checked += 1;
+                let full = Path::new(ROOT).join(&linked);
+                if !full.exists() {
+                    broken.push(format!("{file}: {target} (no file {linked})"));
+                    continue;
+                }
+                if !anchor.is_empty()
+                    && linked.ends_with(".md")
+                    && !anchors(&read(&linked)).contains(anchor)
+                {
+                    broken.push(format!(
+                        "{file}: {target} (no heading #{anchor} in {linked})"
+                    ));
+                }
+            }
+        }
+    }
+    assert!(
+        checked > 20,
+        "only {checked} links found: the reader is wrong"
+    );
+    assert!(
+        broken.is_empty(),
+        "links that lead nowhere:\n{}",
+        broken.join("\n")
+    );
+}

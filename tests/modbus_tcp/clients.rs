@@ -44,6 +44,26 @@ async fn status_block_read_with_pymodbus_and_mbpoll() {
         // mbpoll numbers the registers one by one: the fifth (VOLT) shows as 196.
         let volt_line = format!("[196]: \t{}", truth.voltage_v);
         assert!(text.contains(&volt_line), "no {volt_line:?} in {text}");
+        // The trap the README warns of: ANGLE alone is 194 (0x00C2), and
+        // 193, the label mbpoll gave the block's second word, is no
+        // register (exception 0x02).
+        let (ok, text) = mbpoll(
+            addr,
+            &["-a", "2", "-0", "-r", "194", "-c", "1", "-t", "4"],
+            &[],
+        )
+        .await;
+        assert!(ok && text.contains("[194]: \t"), "ANGLE at 194: {text}");
+        let (_, text) = mbpoll(
+            addr,
+            &["-a", "2", "-0", "-r", "193", "-c", "1", "-t", "4"],
+            &[],
+        )
+        .await;
+        assert!(
+            text.to_lowercase().contains("illegal data address"),
+            "193 is no register: {text}"
+        );
         d.stop().await;
     })
     .await;

@@ -131,11 +131,35 @@ async fn a_dcmd_setpoint_runs_the_drive_and_is_confirmed() {
     .await;
 }
 
+/// Waits for the audit's line of a refused write of `what` from the MQTT
+/// face, naming the valid range.
+pub(crate) async fn audited(what: &str) {
+    crate::support::eventually(
+        Duration::from_secs(10),
+        &format!("the audit of {what}"),
+        || {
+            crate::support::logs::log_text()
+                .lines()
+                .any(|l| {
+                    l.contains("drivegate::audit")
+                        && l.contains("write failed")
+                        && l.contains("face=\"mqtt\"")
+                        && l.contains(what)
+                        && l.contains("refused: ")
+                        && l.contains("valid -2048 to 2047")
+                })
+                .then_some(())
+        },
+    )
+    .await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn refused_commands_say_why() {
     bounded(Duration::from_secs(60), async {
         let broker = Mosquitto::start();
         let mut host = Host::connect(broker.port, "refusal-host", None).await;
+        crate::support::logs::capture_logs();
         let d = TestDaemon::start(&config(
             &broker.url(),
             "commands = \"operator\"\nunauthenticated_commands = true",
@@ -147,7 +171,7 @@ async fn refused_commands_say_why() {
             GROUP,
             NODE,
             "conveyor",
-            vec![double_metric("setpoint/speed_rpm", 5000.0)],
+            vec![double_metric("setpoint/speed_rpm", 5001.0)],
         )
         .await;
         let words = last_result(&mut host, "conveyor").await;
@@ -157,6 +181,8 @@ async fn refused_commands_say_why() {
                 && words.contains("2047"),
             "{words}"
         );
+        // Refused before it became a request, and audited all the same.
+        audited("speed setpoint 5001 rpm").await;
         // An inactive drive: the core refuses as it would over HTTP.
         host.dcmd(
             GROUP,

@@ -158,6 +158,7 @@ async fn retained_state_and_status_and_a_command_that_turns_a_drive() {
 async fn refusals_and_malformed_messages_are_replied_in_the_apis_words() {
     bounded(Duration::from_secs(90), async {
         let broker = Mosquitto::start();
+        crate::support::logs::capture_logs();
         let d = daemon(
             &broker,
             "commands = \"operator\"\nunauthenticated_commands = true",
@@ -169,7 +170,7 @@ async fn refusals_and_malformed_messages_are_replied_in_the_apis_words() {
         command(&broker, json!(2), "mode", json!({"mode": "speed"})).await;
         reply(&mut sub, json!(2)).await;
         // Out of range: refused naming the range, as the API does.
-        command(&broker, json!(3), "setpoint", json!({"speed_rpm": 5000})).await;
+        command(&broker, json!(3), "setpoint", json!({"speed_rpm": 5002})).await;
         let v = reply(&mut sub, json!(3)).await;
         let p = problem(&v);
         assert_eq!(p["type"], "urn:drivegate:problem:out-of-range", "{v}");
@@ -182,6 +183,8 @@ async fn refusals_and_malformed_messages_are_replied_in_the_apis_words() {
             p["detail"].as_str().unwrap().contains("-2048"),
             "the range in words: {v}"
         );
+        // Refused before it became a request, and audited all the same.
+        super::commands::audited("speed setpoint 5002 rpm").await;
         // An operation MQTT does not take, and an unknown command.
         command(&broker, json!(4), "scan", json!({})).await;
         let v = reply(&mut sub, json!(4)).await;

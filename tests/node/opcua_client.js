@@ -83,6 +83,30 @@ const scenarios = {
         await close(c);
     },
 
+    async described() {
+        const c = await connect();
+        const children = await c.session.browse(c.id(drive));
+        const order = children.references.filter((r) => r.isForward && r.nodeClass !== 0)
+            .filter((r) => r.referenceTypeId.toString() !== "ns=0;i=40")
+            .map((x) => x.browseName.name);
+        const missing = [];
+        for (const r of children.references) {
+            const d = await c.session.read({ nodeId: r.nodeId, attributeId: AttributeIds.Description });
+            if (d.statusCode.name !== "Good" || !d.value.value || !d.value.value.text) {
+                missing.push(`${r.browseName.name}: ${d.statusCode.name}`);
+            }
+        }
+        const dt = (await c.session.read({ nodeId: c.id(`${drive}/Mode`), attributeId: AttributeIds.DataType })).value.value;
+        const dtName = (await c.session.read({ nodeId: dt, attributeId: AttributeIds.BrowseName })).value.value.name;
+        const props = await c.session.browse(dt);
+        const strings = props.references.find((r) => r.browseName.name === "EnumStrings");
+        const values = strings
+            ? (await c.session.read({ nodeId: strings.nodeId, attributeId: AttributeIds.Value })).value.value.map((t) => t.text)
+            : null;
+        say("described", { order, missing, mode_type: dtName, enum_strings: values });
+        await close(c);
+    },
+
     async read() {
         const c = await connect();
         const values = {};

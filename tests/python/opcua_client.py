@@ -154,6 +154,42 @@ async def read(args):
         say("read", values=out, min_sampling_ms=msi.Value.Value, buses=buses)
 
 
+async def described(args):
+    """Every node under the drive (its variables, methods, Settings and the
+    properties of each, recursively) with its Description, the drive's
+    children in browse order, Mode's data type with its EnumStrings, and
+    SetMode's argument."""
+    async with await client(args) as c:
+        d = await node(c, args.drive)
+        order = [(await n.read_browse_name()).Name for n in await d.get_children()]
+        missing, seen = [], 0
+        stack = [(args.drive, d)]
+        while stack:
+            path, n = stack.pop()
+            for child in await n.get_children(refs=ua.ObjectIds.HierarchicalReferences):
+                name = f"{path}/{(await child.read_browse_name()).Name}"
+                seen += 1
+                try:
+                    text = (await child.read_description()).Text
+                except ua.UaStatusCodeError as e:
+                    text = None
+                    missing.append(f"{name}: {status_name(e)}")
+                if text is not None and not text:
+                    missing.append(f"{name}: empty")
+                stack.append((name, child))
+        mode = await node(c, f"{args.drive}/Mode")
+        data_type = c.get_node(await mode.read_data_type())
+        dt_name = (await data_type.read_browse_name()).Name
+        dt_description = (await data_type.read_description()).Text
+        strings = [t.Text for t in await (await data_type.get_child("0:EnumStrings")).read_value()]
+        value = await mode.read_value()
+        set_mode = await node(c, f"{args.drive}/SetMode")
+        arg = (await (await set_mode.get_child("0:InputArguments")).read_value())[0]
+        say("described", order=order, nodes=seen, missing=missing, mode_type=dt_name,
+            mode_type_description=dt_description, enum_strings=strings, mode_value=value,
+            argument={"name": arg.Name, "description": arg.Description.Text})
+
+
 class Handler:
     def __init__(self, quiet=False):
         self.values = []
@@ -192,7 +228,8 @@ async def operate(args):
     subscription to Speed that sees the motor turn; the Angle's
     notifications over 2 s at its minimum sampling interval, beside the
     polls of /metrics (--metrics), and through deadband filters; then
-    an out-of-range setpoint with its diagnostics, and Brake(). Each
+    an out-of-range setpoint with its diagnostics, SetMode("fast"), and
+    Brake(). Each
     session says its client's address."""
     async with Client(args.url, timeout=20) as anonymous:
         got = await write(anonymous, args.drive, "SpeedSetpoint", 100.0)
@@ -264,6 +301,12 @@ async def operate(args):
         r = struct_from_binary(ua.WriteResponse, await c.uaclient.session._send_request(req))
         diag = r.DiagnosticInfos[0].AdditionalInfo if r.DiagnosticInfos else None
         say("out-of-range", status=r.Results[0].name, diagnostics=diag)
+        # A mode the drive does not have.
+        try:
+            await call(c, args.drive, "SetMode", ua.Variant("fast", ua.VariantType.String))
+            say("set-mode-wrong", status="Good")
+        except ua.UaStatusCodeError as e:
+            say("set-mode-wrong", status=status_name(e))
         await call(c, args.drive, "Brake")
         say("called", method="Brake")
 
@@ -420,7 +463,7 @@ async def table(args):
             await c.disconnect()
 
 
-SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table]}
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, described, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table]}
 
 
 def scenarios(text):

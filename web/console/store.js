@@ -409,3 +409,8 @@ export function positionTurns(s) {
   const turns = s.turns >= 32768 ? s.turns - 65536 : s.turns;
   return turns + s.angle_deg / 360;
 }
+
+/** The position as every page writes it: output turns, to a hundredth. */
+export function positionText(s) {
+  return s ? `${positionTurns(s).toFixed(2)} turns` : '–';
+}

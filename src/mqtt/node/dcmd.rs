@@ -33,6 +33,9 @@ impl Node {
             );
             return;
         };
+        let role = self.config.commands().role();
+        let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
+            .in_session(Face::Mqtt, self.session.id());
         let mut run: Vec<Command> = Vec::new();
         for m in &p.metrics {
             match metric_commands::parse(m) {
@@ -40,6 +43,16 @@ impl Node {
                 Ok(None) => {}
                 Err(malformed) => {
                     self.metrics.mqtt().command("malformed");
+                    if let Some(what) = malformed.1 {
+                        // A write the drive cannot take is audited like
+                        // every refused write.
+                        self.control.refused(
+                            &caller,
+                            target,
+                            what,
+                            format!("refused: {}", malformed.0),
+                        );
+                    }
                     self.last_result(Some(c), &device, malformed.0);
                 }
             }
@@ -47,9 +60,6 @@ impl Node {
         if run.is_empty() {
             return;
         }
-        let role = self.config.commands().role();
-        let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
-            .in_session(Face::Mqtt, self.session.id());
         self.session.active();
         let control = self.control.clone();
         let results = self.results_tx.clone();

@@ -1,6 +1,10 @@
 use std::hash::Hasher;
 
-use hashbrown::{Equivalent, HashMap, HashSet};
+use hashbrown::{Equivalent, HashMap};
+// A node's references are kept in the order they were added, so that a
+// browse lists them the same way from one start to the next (a HashSet's
+// order changes with its random hasher).
+use indexmap::IndexSet;
 use opcua_types::{
     node_id::{IdentifierRef, IntoNodeIdRef, NodeIdRef},
     BrowseDirection, Identifier, NodeId,
@@ -73,9 +77,9 @@ pub struct ReferenceRef<'a> {
 /// Structure for storing and accessing OPC-UA references.
 pub struct References {
     /// References by source node ID.
-    by_source: HashMap<NodeId, HashSet<Reference>>,
+    by_source: HashMap<NodeId, IndexSet<Reference>>,
     /// References by target node ID.
-    by_target: HashMap<NodeId, HashSet<Reference>>,
+    by_target: HashMap<NodeId, IndexSet<Reference>>,
 }
 
 impl References {
@@ -205,7 +209,7 @@ impl References {
         found |= self
             .by_source
             .get_mut(&source_node)
-            .map(|f| f.remove(&rf))
+            .map(|f| f.shift_remove(&rf))
             .unwrap_or_default();
 
         let rf = ReferenceKey {
@@ -216,7 +220,7 @@ impl References {
         found |= self
             .by_target
             .get_mut(&target_node)
-            .map(|f| f.remove(&rf))
+            .map(|f| f.shift_remove(&rf))
             .unwrap_or_default();
 
         found
@@ -238,7 +242,7 @@ impl References {
         if delete_target_references {
             for rf in source.into_iter().flatten() {
                 if let Some(rec) = self.by_target.get_mut(&rf.target_node) {
-                    rec.remove(&ReferenceKey {
+                    rec.shift_remove(&ReferenceKey {
                         reference_type: (&rf.reference_type).into_node_id_ref(),
                         target_node: source_node,
                     });
@@ -252,7 +256,7 @@ impl References {
         if delete_target_references {
             for rf in target.into_iter().flatten() {
                 if let Some(rec) = self.by_source.get_mut(&rf.target_node) {
-                    rec.remove(&ReferenceKey {
+                    rec.shift_remove(&ReferenceKey {
                         reference_type: (&rf.reference_type).into_node_id_ref(),
                         target_node: source_node,
                     });
@@ -305,8 +309,8 @@ impl References {
 struct ReferenceIterator<'a, 'b> {
     filter: Option<(NodeId, bool)>,
     type_tree: &'b dyn TypeTree,
-    iter_s: Option<hashbrown::hash_set::Iter<'a, Reference>>,
-    iter_t: Option<hashbrown::hash_set::Iter<'a, Reference>>,
+    iter_s: Option<indexmap::set::Iter<'a, Reference>>,
+    iter_t: Option<indexmap::set::Iter<'a, Reference>>,
 }
 
 impl<'a> Iterator for ReferenceIterator<'a, '_> {

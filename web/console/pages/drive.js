@@ -3,7 +3,7 @@
 // holds (read from it), and its events.
 
 import { download, drivePath, get, post, put } from '../api.js';
-import { History, positionTurns, driftWords, freshnessOf } from '../store.js';
+import { History, positionText, driftWords, freshnessOf } from '../store.js';
 import { Jog, DEFAULT_LEASE_MS } from '../jog.js';
 import { SpeedSetpoint } from '../setpoint.js';
 import { activeAlarmsOf } from '../alarms.js';
@@ -179,7 +179,7 @@ function mount(main, { name }, ctx) {
     set('state', s ? `${s.active ? 'active' : 'inactive'}${s.fault !== 'none' ? `, fault ${words(s.fault)}` : ''}${s.stalled ? ', stalled' : ''}` : f.short || '–');
     set('mode', s ? words(s.mode) : '–');
     set('speed', s ? `${fmt(s.speed_rpm)} rpm` : '–');
-    set('position', s ? `${fmt(positionTurns(s), 2)} turns` : '–');
+    set('position', positionText(s));
     set('current', s ? `${fmt(s.current_a, 2)} A` : '–');
     set('voltage', s ? `${fmt(s.voltage_v)} V` : '–');
     set('temperature', s ? `${fmt(s.temperature_c)} °C` : '–');
@@ -384,12 +384,16 @@ function buildControls(name, d, { store, stream, brakeDrive }) {
     h('p', { class: 'hint' }, 'Applied while held, with the same lease as the jog: an unloaded motor in torque mode speeds up until something stops it.'),
     h('div', { class: 'row' }, amps.wrap, tMinus, tPlus), torqueState, torqueNote.el));
 
-  /** Marks the drive's current mode and activation on the buttons. */
+  /**
+   * Marks the drive's current mode and activation on the buttons: a
+   * pressed button is a state the drive is in (Activate while it is
+   * active, its mode), never the absence of one.
+   */
   const show = (st) => {
     for (const b of modeButtons) b.setAttribute('aria-pressed', String(!!st && st.mode === b.dataset.mode));
     for (const b of activation.children) {
-      const on = st && ((b.dataset.command === 'activate' && st.active) || (b.dataset.command === 'deactivate' && !st.active));
-      b.setAttribute('aria-pressed', String(!!on));
+      const on = !!st && b.dataset.command === 'activate' && st.active;
+      b.setAttribute('aria-pressed', String(on));
     }
   };
   return { section, jog, torqueJog, brake, show, speed };

@@ -8,7 +8,7 @@
 // browser little.
 
 import { h, fmt, age, ago, words } from '../ui.js';
-import { positionTurns, freshnessOf } from '../store.js';
+import { positionText, freshnessOf } from '../store.js';
 
 export const page = {
   id: 'overview',
@@ -138,7 +138,7 @@ function mount(main, _params, { store }) {
     if (r.cells.state.title !== (why || r.text.state)) r.cells.state.title = why || r.text.state;
     set(r, 'mode', s ? words(s.mode) : '–');
     set(r, 'speed', s ? fmt(s.speed_rpm) : '–');
-    set(r, 'position', s ? `${fmt(Math.trunc(positionTurns(s)))} t ${fmt(s.angle_deg, 1)}°` : '–');
+    set(r, 'position', positionText(s));
     set(r, 'current', s ? fmt(s.current_a, 2) : '–');
     set(r, 'voltage', s ? fmt(s.voltage_v) : '–');
     set(r, 'temp', s ? fmt(s.temperature_c) : '–');
