@@ -1,8 +1,9 @@
 //! The gateway's own pages in a real browser, one daemon and one page
 //! walking through a first day's work: a typo in the configuration caught
 //! at its line as it is typed; a drive renamed and applied while a drive
-//! of the other bus turns on (and keeps turning); a second admin's change
-//! meanwhile refused with the first one's named; an API token made,
+//! of the other bus turns on (and keeps turning); the page's next change
+//! refused after another admin changed the file, naming that change; an
+//! API token made,
 //! copied, used and revoked; a refused OPC UA client (asyncua) trusted
 //! from the Certificates page and then connecting, and its certificate,
 //! which expires within 30 days, an alarm. The time it took is printed.
