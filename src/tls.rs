@@ -317,6 +317,16 @@ pub struct PeerIdentity {
     pub common_name: Option<String>,
     /// The value of the extension asked for, if present.
     pub extension: Option<Result<String, String>>,
+    /// The subject's attributes, by their short names (`CN`, `O`, ...) or
+    /// dotted OIDs, in the certificate's order.
+    pub subject: Vec<(String, String)>,
+}
+
+/// The SHA-1 fingerprint of a certificate (DER): what OPC UA calls its
+/// thumbprint, and `openssl x509 -fingerprint` prints.
+pub fn sha1_fingerprint(der: &[u8]) -> [u8; 20] {
+    use sha1::Digest;
+    sha1::Sha1::digest(der).into()
 }
 
 /// Reads the subject CN of `cert` and the UTF8String in its extension
@@ -336,9 +346,23 @@ pub fn peer_identity(cert: &CertificateDer<'_>, oid: &str) -> Result<PeerIdentit
         .iter()
         .find(|e| e.oid.to_id_string() == oid)
         .map(|e| utf8_string(e.value));
+    let subject = parsed
+        .subject()
+        .iter_attributes()
+        .map(|a| {
+            let name = x509_parser::objects::oid2abbrev(
+                a.attr_type(),
+                x509_parser::objects::oid_registry(),
+            )
+            .map(str::to_string)
+            .unwrap_or_else(|_| a.attr_type().to_id_string());
+            (name, a.as_str().unwrap_or_default().to_string())
+        })
+        .collect();
     Ok(PeerIdentity {
         common_name,
         extension,
+        subject,
     })
 }
 

@@ -1,7 +1,8 @@
 //! Who a request comes from: the token it presents checked against the
 //! configured ones ([`super::auth`]), an address that guesses paused
 //! ([`super::throttle`]), and the request turned into a [`Caller`]: who
-//! (for the audit log) and with which [`Role`]. Without tokens every local
+//! (for the audit log) and with which [`Role`], the core's answer
+//! ([`crate::control::identity`]). Without tokens every local
 //! client is admin (the API then listens on loopback only).
 //!
 //! Whether that role may do what is not a write (a scan, a capture, a
@@ -18,6 +19,7 @@ use super::listener::ClientAddr;
 use super::problem_response::{Kind, Problem};
 use super::state::ApiState;
 use super::throttle::Failure;
+use crate::control::identity::{self, Credential};
 use crate::control::{Caller, Face, Operation, Role, Rule};
 use crate::faces_shared::writes::forbidden;
 
@@ -33,12 +35,13 @@ fn identify(parts: &Parts, state: &ApiState, websocket: bool) -> Result<Caller, 
         // Loopback only (see `listener::bind`): every local client is admin.
         let who: Arc<str> = peer.map_or_else(|| "local".into(), |a| a.to_string().into());
         let key = peer.map_or_else(|| "local".to_string(), |a| a.ip().to_string());
-        return Ok(Caller::new(
-            Face::Http,
-            who,
-            Role::Admin,
-            state.source_for(&key),
-        ));
+        let role = role_of(state, Credential::Loopback(&who), Role::Admin).map_err(|_| {
+            Problem::new(
+                Kind::Unauthorized,
+                "send an API token in the header Authorization: Bearer <token>",
+            )
+        })?;
+        return Ok(Caller::new(Face::Http, who, role, state.source_for(&key)));
     }
     let ip = peer.map(|a| a.ip());
     if let Some(ip) = ip
@@ -62,8 +65,12 @@ fn identify(parts: &Parts, state: &ApiState, websocket: bool) -> Result<Caller, 
             },
         ));
     };
-    match state.tokens.check(&presented) {
-        Some((name, role)) => Ok(Caller::new(
+    match state
+        .tokens
+        .check(&presented)
+        .and_then(|(name, role)| Some((role_of(state, Credential::Token(&name), role).ok()?, name)))
+    {
+        Some((role, name)) => Ok(Caller::new(
             Face::Http,
             name.clone(),
             role,
@@ -90,6 +97,17 @@ fn identify(parts: &Parts, state: &ApiState, websocket: bool) -> Result<Caller, 
                 "the API token is not valid",
             ))
         }
+    }
+}
+
+/// The role the core gives `credential` under the running configuration
+/// ([`crate::control::identity`]); `resolved`, the role the tokens were
+/// resolved with from the same file, only before the core has published a
+/// configuration.
+fn role_of(state: &ApiState, credential: Credential<'_>, resolved: Role) -> Result<Role, String> {
+    match state.control.follow_config().borrow().as_deref() {
+        Some(config) => identity::identify(config, Face::Http, credential).map(|i| i.role),
+        None => Ok(resolved),
     }
 }
 

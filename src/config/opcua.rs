@@ -47,6 +47,147 @@ pub struct OpcUaConfig {
     /// Sessions at once; more are refused.
     #[serde(deserialize_with = "int_in::<_, _, 1, 1000>")]
     pub max_sessions: usize,
+    /// A CA (PEM, one or more certificates) that vouches for users: a user
+    /// certificate it signed is trusted, and its role extension
+    /// ([`super::ROLE_EXTENSION`]) is its role, as for Modbus/TCP Security.
+    pub user_ca: Option<PathBuf>,
+    /// User certificates' roles by thumbprint or subject (a certificate
+    /// trusted as a user: in `users/trusted/certs`, or signed by `user_ca`).
+    #[serde(rename = "user_certificate")]
+    pub user_certificates: Vec<UserCertificate>,
+    /// Subscriptions of one session.
+    #[serde(deserialize_with = "int_in::<_, _, 1, 100>")]
+    pub max_subscriptions_per_session: usize,
+    /// Monitored items of one session.
+    #[serde(deserialize_with = "int_in::<_, _, 1, 100_000>")]
+    pub max_monitored_items_per_session: usize,
+    /// Monitored items of all sessions.
+    #[serde(deserialize_with = "int_in::<_, _, 1, 1_000_000>")]
+    pub max_monitored_items: usize,
+    /// The queue of a monitored item of a value, at most (the stack's
+    /// default, 10).
+    #[serde(deserialize_with = "int_in::<_, _, 1, 10_000>")]
+    pub max_queue_size: usize,
+    /// The queue of a monitored item of events, at most: a
+    /// `ConditionRefresh` sends every retained alarm at once.
+    #[serde(deserialize_with = "int_in::<_, _, 1, 10_000>")]
+    pub max_event_queue_size: usize,
+    /// The queues of every monitored item added together, at most: the
+    /// notifications that can wait for clients' Publish requests at once.
+    #[serde(deserialize_with = "int_in::<_, _, 100, 10_000_000>")]
+    pub max_queued_values: usize,
+}
+
+/// A role given to a user certificate (`[[opcua.user_certificate]]`): by
+/// its thumbprint, or by its subject.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(try_from = "UserCertificateKeys")]
+pub struct UserCertificate {
+    /// The certificate's SHA-1 or SHA-256 fingerprint in hex (colons
+    /// allowed), as `openssl x509 -fingerprint` prints it.
+    #[serde(default, deserialize_with = "thumbprint")]
+    pub thumbprint: Option<Vec<u8>>,
+    /// Its subject, `CN=olivia, O=plant`: every attribute named must be
+    /// the certificate's, in any order.
+    pub subject: Option<Vec<(String, String)>>,
+    /// The role.
+    pub role: super::Role,
+}
+
+/// `[[opcua.user_certificate]]` as written, before the check that it names
+/// a certificate one way.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct UserCertificateKeys {
+    #[serde(default, deserialize_with = "thumbprint")]
+    thumbprint: Option<Vec<u8>>,
+    #[serde(default, deserialize_with = "subject")]
+    subject: Option<Vec<(String, String)>>,
+    role: super::Role,
+}
+
+impl TryFrom<UserCertificateKeys> for UserCertificate {
+    type Error = String;
+
+    fn try_from(k: UserCertificateKeys) -> Result<Self, String> {
+        if k.thumbprint.is_some() == k.subject.is_some() {
+            return Err(
+                "[[opcua.user_certificate]]: give either thumbprint or subject (not both, not \
+                 neither), with a role"
+                    .to_string(),
+            );
+        }
+        Ok(UserCertificate {
+            thumbprint: k.thumbprint,
+            subject: k.subject,
+            role: k.role,
+        })
+    }
+}
+
+impl UserCertificate {
+    /// Whether this entry names the certificate with `sha1` and `sha256`
+    /// fingerprints and `subject` (its attributes, short names).
+    pub fn names(&self, sha1: &[u8], sha256: &[u8], subject: &[(String, String)]) -> bool {
+        if let Some(t) = &self.thumbprint {
+            return t == sha1 || t == sha256;
+        }
+        self.subject.as_ref().is_some_and(|wanted| {
+            wanted.iter().all(|w| {
+                subject
+                    .iter()
+                    .any(|s| s.0.eq_ignore_ascii_case(&w.0) && s.1 == w.1)
+            })
+        })
+    }
+}
+
+/// A fingerprint in hex, colons allowed: 20 bytes (SHA-1) or 32 (SHA-256).
+fn thumbprint<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Vec<u8>>, D::Error> {
+    let text = String::deserialize(d)?;
+    let hex: String = text
+        .trim()
+        .trim_start_matches("SHA1 Fingerprint=")
+        .trim_start_matches("sha256 Fingerprint=")
+        .chars()
+        .filter(|c| *c != ':')
+        .collect();
+    let bytes = (0..hex.len())
+        .step_by(2)
+        .map(|i| {
+            hex.get(i..i + 2)
+                .and_then(|b| u8::from_str_radix(b, 16).ok())
+        })
+        .collect::<Option<Vec<u8>>>();
+    match bytes {
+        Some(b) if hex.len().is_multiple_of(2) && (b.len() == 20 || b.len() == 32) => Ok(Some(b)),
+        _ => Err(de::Error::custom(format!(
+            "thumbprint \"{text}\": expected the certificate's SHA-1 or SHA-256 fingerprint in \
+             hex (40 or 64 digits, colons allowed), as `openssl x509 -noout -fingerprint -sha1 \
+             -in cert.pem` prints it"
+        ))),
+    }
+}
+
+/// A subject, `CN=olivia, O=plant`: attribute=value pairs.
+fn subject<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Vec<(String, String)>>, D::Error> {
+    let text = String::deserialize(d)?;
+    let pairs = text
+        .split([',', '/'])
+        .map(str::trim)
+        .filter(|p| !p.is_empty())
+        .map(|p| {
+            let (k, v) = p.split_once('=')?;
+            let (k, v) = (k.trim(), v.trim());
+            (!k.is_empty() && !v.is_empty()).then(|| (k.to_string(), v.to_string()))
+        })
+        .collect::<Option<Vec<_>>>();
+    match pairs {
+        Some(p) if !p.is_empty() => Ok(Some(p)),
+        _ => Err(de::Error::custom(format!(
+            "subject \"{text}\": expected attribute=value pairs, e.g. \"CN=olivia, O=plant\""
+        ))),
+    }
 }
 
 impl Default for OpcUaConfig {
@@ -66,6 +207,14 @@ impl Default for OpcUaConfig {
             session_timeout_max_ms: 30_000,
             comm_loss_action: StopAction::ZeroSpeed,
             max_sessions: 20,
+            user_ca: None,
+            user_certificates: Vec::new(),
+            max_subscriptions_per_session: 10,
+            max_monitored_items_per_session: 1000,
+            max_monitored_items: 10_000,
+            max_queue_size: 10,
+            max_event_queue_size: 1000,
+            max_queued_values: 100_000,
         }
     }
 }
@@ -276,5 +425,100 @@ mod tests {
         assert!(e.contains("valid 1000 to 60000"), "{e}");
         let e = parse("comm_loss_action = \"stop\"").unwrap_err();
         assert!(e.contains("test.toml:2:"), "{e}");
+    }
+
+    #[test]
+    fn the_caps_have_the_stacks_defaults_and_their_ranges() {
+        let c = parse("").unwrap().opcua.unwrap();
+        assert_eq!(
+            (
+                c.max_subscriptions_per_session,
+                c.max_monitored_items_per_session,
+                c.max_monitored_items,
+                c.max_queue_size,
+                c.max_event_queue_size,
+                c.max_queued_values
+            ),
+            (10, 1000, 10_000, 10, 1000, 100_000)
+        );
+        for (key, bad, range) in [
+            ("max_subscriptions_per_session", "0", "valid 1 to 100"),
+            (
+                "max_monitored_items_per_session",
+                "100001",
+                "valid 1 to 100000",
+            ),
+            ("max_monitored_items", "0", "valid 1 to 1000000"),
+            ("max_queue_size", "0", "valid 1 to 10000"),
+            ("max_event_queue_size", "10001", "valid 1 to 10000"),
+            ("max_queued_values", "99", "valid 100 to 10000000"),
+        ] {
+            let e = parse(&format!("{key} = {bad}")).unwrap_err();
+            assert!(
+                e.contains(range) && e.contains("test.toml:2:"),
+                "{key}: {e}"
+            );
+        }
+        assert_eq!(
+            parse("max_queue_size = 100")
+                .unwrap()
+                .opcua
+                .unwrap()
+                .max_queue_size,
+            100
+        );
+    }
+
+    #[test]
+    fn user_certificates_are_named_by_thumbprint_or_subject() {
+        let toml = |entry: &str| {
+            Config::parse(
+                &format!(
+                    "[opcua]\nuser_ca = \"/etc/ca.pem\"\n[[opcua.user_certificate]]\n{entry}\n"
+                ),
+                "test.toml",
+            )
+            .map_err(|e| e.to_string())
+        };
+        let c = toml("thumbprint = \"SHA1 Fingerprint=3A:7F:00:11:22:33:44:55:66:77:88:99:AA:BB:CC:DD:EE:FF:01:C2\"\nrole = \"operator\"")
+            .unwrap()
+            .opcua
+            .unwrap();
+        let u = &c.user_certificates[0];
+        assert_eq!(u.role, crate::config::Role::Operator);
+        let sha1 = u.thumbprint.clone().unwrap();
+        assert_eq!((sha1.len(), sha1[0], sha1[19]), (20, 0x3a, 0xc2));
+        assert!(u.names(&sha1, &[0; 32], &[]));
+        let c = toml("subject = \"O=plant, CN=vera\"\nrole = \"viewer\"")
+            .unwrap()
+            .opcua
+            .unwrap();
+        let u = &c.user_certificates[0];
+        let subject = |pairs: &[(&str, &str)]| -> Vec<(String, String)> {
+            pairs
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect()
+        };
+        assert!(u.names(
+            &[0; 20],
+            &[0; 32],
+            &subject(&[("CN", "vera"), ("O", "plant"), ("C", "FR")])
+        ));
+        assert!(!u.names(&[0; 20], &[0; 32], &subject(&[("CN", "vera")])));
+        assert!(!u.names(
+            &[0; 20],
+            &[0; 32],
+            &subject(&[("CN", "vera2"), ("O", "plant")])
+        ));
+        let e = toml("thumbprint = \"3A:7F\"\nrole = \"admin\"").unwrap_err();
+        assert!(
+            e.contains("40 or 64 digits") && e.contains("test.toml:4:"),
+            "{e}"
+        );
+        let e = toml("role = \"admin\"").unwrap_err();
+        assert!(e.contains("either thumbprint or subject"), "{e}");
+        let e = toml("subject = \"vera\"\nrole = \"admin\"").unwrap_err();
+        assert!(e.contains("attribute=value"), "{e}");
     }
 }

@@ -10,13 +10,14 @@
 
 /// Tables that are lists, written `[[name]]` once per entry, each with
 /// what one entry is; every other table is a single section (`[name]`).
-pub(super) const LISTS: [(&str, &str); 6] = [
+pub(super) const LISTS: [(&str, &str); 7] = [
     ("bus", "bus (serial adapter)"),
     ("bus.drive", "drive of the bus"),
     ("http.token", "token"),
     ("modbus_tcp.clients", "client network"),
     ("modbus_tcp.unit_map", "range of units"),
     ("modbus_tcp.polled_copy", "bus"),
+    ("opcua.user_certificate", "user certificate's role"),
 ];
 
 /// `raw`, the parser's message for the error at byte `offset` of `text`,

@@ -34,6 +34,13 @@ pub fn refused_by_face(face: &str, who: &str, bus: &str, unit: u8, write: &Write
     );
 }
 
+/// Logs a sign-in refused on `face` from `client` (its address), with why
+/// (a wrong or paused secret, a password sent in clear, a certificate
+/// without trust or role): never the secret itself.
+pub fn sign_in_refused(face: &str, client: &str, why: &str) {
+    tracing::warn!(target: "drivegate::audit", face, client, why, "sign-in refused");
+}
+
 /// Logs a write sent while the motor turns, as its caller's override
 /// allowed.
 pub fn forced(face: &str, who: &str, drive: &str, what: &str, speed_rpm: i16) {

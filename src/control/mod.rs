@@ -41,6 +41,7 @@ pub mod config_edits;
 pub mod drift;
 pub mod events;
 pub mod freshness;
+pub mod identity;
 pub mod journal;
 pub mod lease_book;
 pub mod leases;
@@ -56,6 +57,7 @@ pub mod rules;
 pub mod settings;
 pub mod shutdown;
 pub mod stop_action;
+pub mod throttle;
 pub mod write;
 pub mod written;
 

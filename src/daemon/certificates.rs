@@ -158,11 +158,7 @@ impl CertificateStore for Store {
                     from_file(&mut listing, Place::OpcUaServer, &pki.cert_path(), true);
                     from_dir(&mut listing, Place::OpcUaTrusted, &pki.trusted());
                     from_dir(&mut listing, Place::OpcUaRejected, &pki.rejected());
-                    from_dir(
-                        &mut listing,
-                        Place::OpcUaUser,
-                        &pki.root().join("users/trusted/certs"),
-                    );
+                    from_dir(&mut listing, Place::OpcUaUser, &pki.users_trusted());
                     from_dir(&mut listing, Place::OpcUaIssuer, &pki.issuers());
                 }
                 Err(e) => listing.notes.push(e.to_string()),

@@ -6,12 +6,21 @@
 use std::sync::Mutex;
 use std::time::SystemTime;
 
-use prometheus::{IntCounter, IntCounterVec, IntGauge, Opts, Registry};
+use prometheus::{IntCounter, IntCounterVec, IntGauge, IntGaugeVec, Opts, Registry};
 
 /// How a session signed in.
 pub const SIGN_IN_KINDS: &[&str] = &["anonymous", "user", "certificate"];
 /// What became of a sign-in.
 const SIGN_IN_RESULTS: &[&str] = &["accepted", "refused"];
+/// The caps on what sessions hold (`[opcua]`'s `max_<limit>`).
+const LIMITS: &[&str] = &[
+    "subscriptions_per_session",
+    "monitored_items_per_session",
+    "monitored_items",
+    "queue_size",
+    "event_queue_size",
+    "queued_values",
+];
 
 /// The face's state, as `/readyz` and the console show it.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -37,6 +46,7 @@ pub struct OpcUaMetrics {
     events: IntCounter,
     rejected_certificates: IntCounter,
     sign_ins: IntCounterVec,
+    limits: IntGaugeVec,
     state: Mutex<FaceState>,
 }
 
@@ -72,6 +82,20 @@ impl OpcUaMetrics {
             for result in SIGN_IN_RESULTS {
                 sign_ins.with_label_values(&[kind, result]);
             }
+        }
+        let limits = IntGaugeVec::new(
+            Opts::new(
+                "drivegate_opcua_limit",
+                "The OPC UA server's caps, as [opcua] sets them (max_<limit>): subscriptions and \
+                 monitored items per session, monitored items in all, the queues of value and \
+                 event items, and all queues added together; 0 without [opcua].",
+            ),
+            &["limit"],
+        )
+        .unwrap_or_else(|e| panic!("invalid metric definition drivegate_opcua_limit: {e}"));
+        let _ = registry.register(Box::new(limits.clone()));
+        for limit in LIMITS {
+            limits.with_label_values(&[limit]);
         }
         OpcUaMetrics {
             up: gauge(
@@ -117,7 +141,17 @@ impl OpcUaMetrics {
                  (at most once a second per certificate).",
             ),
             sign_ins,
+            limits,
             state: Mutex::new(FaceState::default()),
+        }
+    }
+
+    /// The server's caps, by name (`subscriptions_per_session`, ...).
+    pub fn limits(&self, caps: &[(&str, usize)]) {
+        for (name, value) in caps {
+            self.limits
+                .with_label_values(&[name])
+                .set(i64::try_from(*value).unwrap_or(i64::MAX));
         }
     }
 
@@ -143,6 +177,9 @@ impl OpcUaMetrics {
         state.serving = false;
         if !configured {
             *state = FaceState::default();
+            for limit in LIMITS {
+                self.limits.with_label_values(&[limit]).set(0);
+            }
         }
     }
 

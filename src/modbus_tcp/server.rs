@@ -206,31 +206,32 @@ pub struct TlsSettings {
 /// The role extension of Modbus/TCP Security certificates.
 pub const ROLE_OID: &str = crate::config::ROLE_EXTENSION;
 
-/// The rights and name of a client from its certificate, or why it is
-/// refused.
+/// The rights and name of a client from its certificate (signed by
+/// `client_ca`: the handshake checked it), or why it is refused: its role
+/// from the core ([`crate::control::identity`]), under the running
+/// configuration.
 fn identify(
     certs: Option<&[rustls::pki_types::CertificateDer<'static>]>,
     tls: &TlsSettings,
+    config: Option<&crate::config::Config>,
 ) -> Result<(Rights, Option<Arc<String>>), String> {
+    use crate::control::identity::{Credential, Vouched};
     let leaf = certs
         .and_then(|c| c.first())
         .ok_or("no client certificate")?;
-    let identity = crate::tls::peer_identity(leaf, ROLE_OID)?;
-    let role = match &identity.extension {
-        None => tls.section.default_role,
-        Some(Ok(text)) => crate::config::ModbusTlsConfig::role_named(text).ok_or_else(|| {
-            format!("the certificate's role \"{text}\" is none of viewer, operator, admin")
-        })?,
-        Some(Err(why)) => return Err(format!("the certificate's role extension: {why}")),
-    };
-    let role = if tls.read_only {
-        crate::control::Role::Viewer
-    } else {
-        role
-    };
+    let config = config.ok_or("no configuration")?;
+    let identity = crate::control::identity::identify(
+        config,
+        crate::control::Face::ModbusTcp,
+        Credential::Certificate {
+            der: leaf,
+            vouched: Vouched::RoleCa,
+        },
+    )?;
+    let name = crate::tls::peer_identity(leaf, ROLE_OID)?.common_name;
     Ok((
         Rights {
-            role,
+            role: identity.role,
             allow_saves_while_moving: tls.section.allow_saves_while_moving,
             comm_loss: tls.section.comm_loss().map(|l| crate::control::CommLoss {
                 after: l.after,
@@ -238,7 +239,7 @@ fn identify(
                 face: crate::control::Face::ModbusTcp,
             }),
         },
-        identity.common_name.map(Arc::new),
+        name.map(Arc::new),
     ))
 }
 
@@ -309,7 +310,12 @@ pub async fn run_tls(
                     return;
                 }
             };
-            let (rights, name) = match identify(stream.get_ref().1.peer_certificates(), &tls) {
+            let config = gateway.control().follow_config().borrow().clone();
+            let (rights, name) = match identify(
+                stream.get_ref().1.peer_certificates(),
+                &tls,
+                config.as_deref(),
+            ) {
                 Ok(found) => found,
                 Err(why) => {
                     metrics.security().tls_client_refused("role");

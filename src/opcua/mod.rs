@@ -8,7 +8,7 @@
 //! - [`values`] (a drive's values as data values, with the poll's source
 //!   timestamp and the freshness's status code), [`outcome`] (the core's
 //!   refusals as status codes), both pure; [`pki`] (the Part 12 layout,
-//!   the server's certificate, trust without a restart), [`user_cert`];
+//!   the server's certificate, trust without a restart);
 //! - [`users`] (user names and tokens, user certificates, anonymous),
 //!   [`sessions`] (each OPC UA session a session of the core, its leases
 //!   ended when it closes or times out), [`address`] (the nodes),
@@ -38,7 +38,6 @@ pub mod render;
 pub mod server;
 pub mod sessions;
 pub mod spec;
-pub mod user_cert;
 pub mod users;
 pub mod values;
 
@@ -97,6 +96,18 @@ pub(crate) fn start(
         );
     }
     metrics.opcua().started(bound.to_string());
+    let caps = server::caps(&section);
+    metrics.opcua().limits(&[
+        ("subscriptions_per_session", caps.subscriptions_per_session),
+        (
+            "monitored_items_per_session",
+            caps.monitored_items_per_session,
+        ),
+        ("monitored_items", caps.monitored_items),
+        ("queue_size", caps.queue_size),
+        ("event_queue_size", caps.event_queue_size),
+        ("queued_values", caps.queued_values),
+    ]);
     let face = Face {
         section,
         bound,
@@ -193,12 +204,10 @@ impl Face {
         host: String,
         stop: &CancellationToken,
     ) -> Result<(), String> {
-        let stash = Arc::new(user_cert::Stash::default());
         let users = Arc::new(users::Users::new(
             self.control.follow_config(),
-            self.section.anonymous,
+            &self.section,
             self.pki.clone(),
-            stash.clone(),
             self.metrics.clone(),
         ));
         let sessions = Arc::new(sessions::Sessions::new(
@@ -218,7 +227,6 @@ impl Face {
             sessions: sessions.clone(),
             stop: stop.clone(),
         })?;
-        user_cert::install(&built.handle, stash);
         let manager = built
             .handle
             .node_managers()

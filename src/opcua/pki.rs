@@ -5,7 +5,8 @@
 //! <pki_dir>/private/private.pem   its key (0600, in a 0700 directory)
 //! <pki_dir>/trusted/certs/        client certificates trusted (DER or PEM, any name)
 //! <pki_dir>/rejected/certs/       client certificates refused, for an admin to move
-//! <pki_dir>/issuers/certs/        CAs whose user certificates are trusted
+//! <pki_dir>/issuers/certs/        CAs of application certificates (Part 12's; not checked)
+//! <pki_dir>/users/trusted/certs/  user certificates trusted one by one (X.509 identity tokens)
 //! ```
 //!
 //! async-opcua's own store knows only `trusted/*.der` under its own file
@@ -14,9 +15,9 @@
 //! its store is kept apart, in `<pki_dir>/.stack`, and [`Pki::sync`]
 //! (every second, and before the server starts) mirrors `trusted/certs`
 //! into `.stack/trusted` under the crate's names and moves what the crate
-//! rejected into `rejected/certs`: a certificate moved or copied into
-//! `trusted/certs` is trusted at the client's next connection, without a
-//! restart.
+//! rejected into `rejected/certs` (as `<application name>-<thumbprint>.der`):
+//! a certificate moved or copied into `trusted/certs`, under any file name,
+//! is trusted at the client's next connection, without a restart.
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -75,9 +76,15 @@ impl Pki {
         self.root.join("rejected/certs")
     }
 
-    /// The CAs of user certificates.
+    /// CAs of application certificates (Part 12's; not checked yet).
     pub fn issuers(&self) -> PathBuf {
         self.root.join("issuers/certs")
+    }
+
+    /// User certificates trusted one by one (X.509 identity tokens): their
+    /// role comes from `[[opcua.user_certificate]]`.
+    pub fn users_trusted(&self) -> PathBuf {
+        self.root.join("users/trusted/certs")
     }
 
     /// Makes the directories (blocking: call it off the runtime).
@@ -90,6 +97,7 @@ impl Pki {
             "rejected/certs",
             "issuers/certs",
             "issuers/crl",
+            "users/trusted/certs",
             ".stack/trusted",
             ".stack/rejected",
         ] {
@@ -148,9 +156,13 @@ impl Pki {
     }
 
     /// One pass of the mirror (blocking): `trusted/certs` into
-    /// `.stack/trusted` under the crate's names (and nothing else there),
-    /// what the crate rejected moved to `rejected/certs`. Returns the
-    /// names of the certificates rejected since the last pass.
+    /// `.stack/trusted` under the crate's names (and nothing else there);
+    /// a trusted certificate taken out of `.stack/rejected` (the crate
+    /// refuses what is there before it looks at its trust: trust is by
+    /// content, whatever was rejected before); what the crate rejected
+    /// moved to `rejected/certs` under a name that needs no quoting
+    /// ([`rejected_name`]). Returns the names of the certificates rejected
+    /// since the last pass.
     pub fn sync(&self) -> Vec<String> {
         let stack_trusted = self.root.join(".stack/trusted");
         let mut wanted = HashSet::new();
@@ -181,12 +193,60 @@ impl Pki {
             .flatten()
             .flatten()
         {
-            let to = self.rejected().join(entry.file_name());
-            if std::fs::rename(entry.path(), &to).is_ok() {
-                rejected.push(entry.file_name().to_string_lossy().to_string());
+            if wanted.contains(&entry.file_name().to_string_lossy().to_string()) {
+                let _ = std::fs::remove_file(entry.path());
+                continue;
+            }
+            let der = std::fs::read(entry.path()).unwrap_or_default();
+            let name = rejected_name(&der, &entry.file_name().to_string_lossy());
+            if std::fs::rename(entry.path(), self.rejected().join(&name)).is_ok() {
+                rejected.push(name);
             }
         }
         rejected
+    }
+}
+
+/// The name a rejected certificate is saved under in `rejected/certs`:
+/// `<application name>-<SHA-1 thumbprint>.der`, with only letters, digits,
+/// `.`, `_` and `-` (no space, no bracket: the docs' `mv` line works as
+/// written). `fallback` (the crate's file name) when `der` is no
+/// certificate.
+pub fn rejected_name(der: &[u8], fallback: &str) -> String {
+    let clean = |text: &str| -> String {
+        let mut out = String::new();
+        for c in text.chars() {
+            let c = if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') {
+                c
+            } else {
+                '_'
+            };
+            if !(c == '_' && out.ends_with('_')) {
+                out.push(c);
+            }
+        }
+        out.trim_matches(['_', '.', '-']).to_string()
+    };
+    let Ok(facts) = crate::tls::peer_identity(&der.to_vec().into(), "") else {
+        let stem = clean(fallback.trim_end_matches(".der"));
+        return format!(
+            "{}.der",
+            if stem.is_empty() {
+                "certificate"
+            } else {
+                &stem
+            }
+        );
+    };
+    let thumbprint: String = crate::tls::sha1_fingerprint(der)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    let name = facts.common_name.map(|cn| clean(&cn)).unwrap_or_default();
+    if name.is_empty() {
+        format!("{thumbprint}.der")
+    } else {
+        format!("{name}-{thumbprint}.der")
     }
 }
 
@@ -255,8 +315,8 @@ mod tests {
         let pki = Pki::new(root.clone());
         pki.prepare().unwrap();
         std::fs::write(root.join(".stack/rejected/client [ab].der"), b"x").unwrap();
-        assert_eq!(pki.sync(), vec!["client [ab].der".to_string()]);
-        assert!(root.join("rejected/certs/client [ab].der").is_file());
+        assert_eq!(pki.sync(), vec!["client_ab.der".to_string()]);
+        assert!(root.join("rejected/certs/client_ab.der").is_file());
         assert!(pki.sync().is_empty());
         // Something that is no certificate in trusted/certs is not mirrored.
         std::fs::write(root.join("trusted/certs/notes.txt"), b"hello").unwrap();

@@ -245,11 +245,7 @@ pub fn build(parts: Parts) -> Result<Built, String> {
         builder = builder.add_endpoint(security.name(), endpoint(security));
     }
     let mut builder = Timing::of(fastest_poll(&parts.control)).apply(builder);
-    // Event items: a ConditionRefresh sends every retained alarm at once.
-    builder
-        .limits_mut()
-        .subscriptions
-        .max_monitored_item_queue_size = 1000;
+    caps(section).apply(&mut builder.limits_mut().subscriptions);
     let (server, handle) = builder.build()?;
     let events = events
         .get()
@@ -260,6 +256,52 @@ pub fn build(parts: Parts) -> Result<Built, String> {
         handle,
         events,
     })
+}
+
+/// The caps on what sessions may hold, from `[opcua]`: subscriptions per
+/// session, monitored items per session and in all, the queues of value
+/// and event items, and the queues added together (what can wait for a
+/// Publish request at once). Queues were once raised to 1000 for every
+/// item so that a `ConditionRefresh` (every retained alarm at once) fits
+/// an event item's queue; value items now keep the stack's 10 unless
+/// configured, and event items have their own cap.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Caps {
+    /// Subscriptions of one session.
+    pub subscriptions_per_session: usize,
+    /// Monitored items of one session.
+    pub monitored_items_per_session: usize,
+    /// Monitored items of all sessions.
+    pub monitored_items: usize,
+    /// A value item's queue.
+    pub queue_size: usize,
+    /// An event item's queue.
+    pub event_queue_size: usize,
+    /// The queues of all items added together.
+    pub queued_values: usize,
+}
+
+/// The caps of `section`.
+pub fn caps(section: &OpcUaConfig) -> Caps {
+    Caps {
+        subscriptions_per_session: section.max_subscriptions_per_session,
+        monitored_items_per_session: section.max_monitored_items_per_session,
+        monitored_items: section.max_monitored_items,
+        queue_size: section.max_queue_size,
+        event_queue_size: section.max_event_queue_size,
+        queued_values: section.max_queued_values,
+    }
+}
+
+impl Caps {
+    fn apply(self, limits: &mut opcua::server::SubscriptionLimits) {
+        limits.max_subscriptions_per_session = self.subscriptions_per_session;
+        limits.max_monitored_items_per_session = self.monitored_items_per_session;
+        limits.max_monitored_items = self.monitored_items;
+        limits.max_monitored_item_queue_size = self.queue_size;
+        limits.max_event_queue_size = self.event_queue_size;
+        limits.max_queued_values = self.queued_values;
+    }
 }
 
 #[cfg(test)]

@@ -1,21 +1,34 @@
-//! Who a session is: the face's `AuthManager`.
+//! Who a session is: the face's `AuthManager`. It checks what only the
+//! face can (a password against its token's digest, a user certificate's
+//! trust) and asks the core for the role ([`crate::control::identity`]):
 //!
 //! - **User name and password**: the name of an `[[http.token]]` and that
 //!   token (one credential store for every face), checked against the
 //!   running configuration at each activation, in constant time; its role
 //!   is read again at each request, so a reload that changes or removes
-//!   the token applies from the next one.
-//! - **X.509 user certificate**: trusted when it is in `trusted/certs`, or
-//!   signed by a CA in `issuers/certs`; its role is the extension
-//!   1.3.6.1.4.1.50316.802.1, as for Modbus/TCP Security.
+//!   the token applies from the next one. The password must not cross the
+//!   network in clear: on an endpoint without security it is accepted only
+//!   encrypted with the server's key (the user token policy says so); a
+//!   clear one is refused and audited.
+//! - **X.509 user certificate**: trusted when it is in
+//!   `users/trusted/certs` (its role then from `[[opcua.user_certificate]]`
+//!   only) or signed by `[opcua] user_ca` (its role from
+//!   `[[opcua.user_certificate]]`, else its role extension). An
+//!   application certificate trusted in `trusted/certs` opens a secure
+//!   channel and makes no user.
 //! - **Anonymous**: a viewer, or refused (`[opcua] anonymous`).
 //!
-//! A name that gets wrong passwords `[http] token_guesses` times within a
-//! minute is refused until the minute is over, as the API pauses an
-//! address. The crate hands a client only `BadIdentityTokenRejected`; the
-//! reason is logged, and counted.
+//! Failed sign-ins are counted per client address and per address and user
+//! name ([`crate::control::throttle`]): a name that gets `[http]
+//! token_guesses` wrong passwords within a minute from one address is
+//! refused from that address until the minute is over, and the address
+//! after three times as many, whatever the names; the same name still signs
+//! in from another address. The crate hands a client only
+//! `BadIdentityTokenRejected`; the reason is logged, and counted.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::HashMap;
+use std::net::{IpAddr, Ipv4Addr};
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -24,7 +37,7 @@ use opcua::crypto::{SecurityPolicy, Thumbprint};
 use opcua::server::ServerEndpoint;
 use opcua::server::address_space::AccessLevel;
 use opcua::server::authenticator::{
-    AuthManager, CoreServerPermissions, Password, UserToken, user_pass_security_policy_id,
+    AuthManager, CoreServerPermissions, Password, SignIn, UserToken, user_pass_security_policy_id,
 };
 use opcua::types::{Error, NodeId, StatusCode, UAString, UserTokenPolicy, UserTokenType};
 use sha2::{Digest, Sha256};
@@ -32,11 +45,13 @@ use tokio::sync::watch;
 
 use super::pki::{Pki, read_certs};
 use super::spec::{Source, path_of, split_drive_path, variable_at};
-use super::user_cert::Stash;
 use crate::config::http::{TokenConfig, TokenSource};
 use crate::config::opcua::Anonymous;
-use crate::config::{Config, ROLE_EXTENSION, Role};
+use crate::config::{Config, OpcUaConfig, Role};
+use crate::control::Face;
+use crate::control::identity::{Credential, Vouched, hex, identify};
 use crate::control::policy::{Operation, for_settings};
+use crate::control::throttle::{Policy, Throttle};
 use crate::metrics::Metrics;
 
 /// Who a session is, as the core needs it.
@@ -53,11 +68,43 @@ pub struct Users {
     config: watch::Receiver<Option<Arc<Config>>>,
     anonymous: Anonymous,
     pki: Pki,
-    stash: Arc<Stash>,
-    /// Certificate users by token: CN and role from the certificate.
+    /// `[opcua] user_ca`.
+    user_ca: Option<PathBuf>,
+    /// Certificate users by token: who and role, decided at sign-in.
     certificates: Mutex<HashMap<String, (Arc<str>, Role)>>,
     guesses: Mutex<Guesses>,
     metrics: Arc<Metrics>,
+}
+
+/// Failed sign-ins by address, and by address and user name.
+struct Guesses {
+    by_address: Throttle<IpAddr>,
+    by_name: Throttle<(IpAddr, String)>,
+}
+
+impl Guesses {
+    /// A name is paused from an address after `allowed` failures within a
+    /// minute, the address after three times as many.
+    fn new(allowed: u32) -> Self {
+        let policy = |burst| Policy {
+            burst,
+            ..Policy::default()
+        };
+        Guesses {
+            by_address: Throttle::new(policy(allowed.saturating_mul(3))),
+            by_name: Throttle::new(policy(allowed)),
+        }
+    }
+
+    fn check(&self, ip: IpAddr, name: &str, now: Instant) -> Result<(), Duration> {
+        self.by_address.check(ip, now)?;
+        self.by_name.check((ip, name.to_string()), now)
+    }
+
+    fn failed(&mut self, ip: IpAddr, name: &str, now: Instant) {
+        self.by_address.failure(ip, now);
+        self.by_name.failure((ip, name.to_string()), now);
+    }
 }
 
 /// The prefix of a user-name session's token.
@@ -65,33 +112,61 @@ const USER: &str = "user:";
 /// The prefix of a certificate session's token.
 const CERTIFICATE: &str = "x509:";
 
+/// The client's address of `sign_in` (unspecified when the crate did not
+/// know it).
+fn address(sign_in: &SignIn) -> IpAddr {
+    sign_in
+        .peer_address
+        .map_or(IpAddr::V4(Ipv4Addr::UNSPECIFIED), |a| a.ip())
+}
+
+/// The client of `sign_in` in words, for the log.
+fn client(sign_in: &SignIn) -> String {
+    sign_in
+        .peer_address
+        .map_or_else(|| "an unknown address".to_string(), |a| a.to_string())
+}
+
 impl Users {
-    /// The authenticator of a face started with `anonymous`, reading the
-    /// tokens from `config` (the running configuration) and the trust of
-    /// user certificates from `pki`.
+    /// The authenticator of a face started with `section`, reading the
+    /// tokens and roles from `config` (the running configuration) and the
+    /// trust of user certificates from `pki`.
     pub fn new(
         config: watch::Receiver<Option<Arc<Config>>>,
-        anonymous: Anonymous,
+        section: &OpcUaConfig,
         pki: Pki,
-        stash: Arc<Stash>,
         metrics: Arc<Metrics>,
     ) -> Self {
+        let allowed = config
+            .borrow()
+            .as_ref()
+            .map_or(10, |c| c.http.token_guesses);
+        if section.user_ca.is_none() && !read_certs(&pki.issuers()).is_empty() {
+            tracing::warn!(
+                target: "drivegate::opcua",
+                dir = %pki.issuers().display(),
+                "OPC UA: the CAs in issuers/certs no longer make users: name the CA of user certificates in [opcua] user_ca"
+            );
+        }
         Users {
             config,
-            anonymous,
+            anonymous: section.anonymous,
             pki,
-            stash,
+            user_ca: section.user_ca.clone(),
             certificates: Mutex::new(HashMap::new()),
-            guesses: Mutex::new(Guesses::default()),
+            guesses: Mutex::new(Guesses::new(allowed)),
             metrics,
         }
     }
 
-    fn tokens(&self) -> (Vec<TokenConfig>, u32) {
-        match self.config.borrow().as_ref() {
-            Some(c) => (c.http.tokens.clone(), c.http.token_guesses),
-            None => (Vec::new(), 10),
-        }
+    fn config(&self) -> Option<Arc<Config>> {
+        self.config.borrow().clone()
+    }
+
+    fn tokens(&self) -> Vec<TokenConfig> {
+        self.config()
+            .map(|c| c.http.tokens.clone())
+            .unwrap_or_default()
     }
 
     /// Who the session with `token` is, now.
@@ -104,11 +179,9 @@ impl Users {
         }
         if let Some(name) = token.0.strip_prefix(USER) {
             let role = self
-                .tokens()
-                .0
-                .iter()
-                .find(|t| t.name == name)
-                .map(|t| t.role);
+                .config()
+                .and_then(|c| identify(&c, Face::OpcUa, Credential::Token(name)).ok())
+                .map(|i| i.role);
             return Identity {
                 user: name.into(),
                 role,
@@ -127,31 +200,40 @@ impl Users {
         }
     }
 
-    fn check_password(&self, user: &str, password: &str) -> Result<(), String> {
-        let (tokens, guesses) = self.tokens();
-        let now = Instant::now();
-        if self
-            .guesses
+    /// Refuses while `name` (or the whole address) is paused for guessing.
+    fn not_paused(&self, sign_in: &SignIn, name: &str) -> Result<(), String> {
+        let guesses = self.guesses.lock().unwrap_or_else(|p| p.into_inner());
+        guesses
+            .check(address(sign_in), name, Instant::now())
+            .map_err(|wait| {
+                format!(
+                    "\"{name}\" from {}: too many failed sign-ins from this address within a \
+                     minute; refused for {} s more (other addresses are not concerned)",
+                    client(sign_in),
+                    wait.as_secs().max(1)
+                )
+            })
+    }
+
+    fn failed(&self, sign_in: &SignIn, name: &str) {
+        self.guesses
             .lock()
             .unwrap_or_else(|p| p.into_inner())
-            .paused(user, guesses, now)
-        {
-            return Err(format!(
-                "user \"{user}\": {guesses} wrong tokens within a minute; refused until the minute is over"
-            ));
-        }
+            .failed(address(sign_in), name, Instant::now());
+    }
+
+    fn check_password(&self, user: &str, password: &str, sign_in: &SignIn) -> Result<(), String> {
+        self.not_paused(sign_in, user)?;
         let presented: [u8; 32] = Sha256::digest(password.as_bytes()).into();
-        let found = tokens
+        let found = self
+            .tokens()
             .iter()
             .find(|t| t.name == user)
             .map(|t| digest_of(t).is_some_and(|d| constant_time_eq(&d, &presented)));
         match found {
             Some(true) => Ok(()),
             found => {
-                self.guesses
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .failed(user, now);
+                self.failed(sign_in, user);
                 Err(match found {
                     None => format!("user \"{user}\": no [[http.token]] has this name"),
                     _ => format!("user \"{user}\": wrong token"),
@@ -160,49 +242,51 @@ impl Users {
         }
     }
 
-    fn check_certificate(&self, thumbprint: &Thumbprint) -> Result<(Arc<str>, Role), String> {
-        let der = self
-            .stash
-            .take(thumbprint)
-            .ok_or("the user certificate was not seen with its token")?;
-        self.trusted(&der)?;
-        let identity = crate::tls::peer_identity(&der.clone().into(), ROLE_EXTENSION)?;
-        let cn: Arc<str> = identity
-            .common_name
-            .unwrap_or_else(|| thumbprint.as_hex_string())
-            .into();
-        let role = match identity.extension {
-            None => {
-                return Err(format!(
-                    "the user certificate of {cn} has no role extension {ROLE_EXTENSION}"
-                ));
-            }
-            Some(Err(e)) => return Err(format!("the user certificate of {cn}: {e}")),
-            Some(Ok(name)) => Role::from_name(&name).ok_or_else(|| {
-                format!(
-                    "the user certificate of {cn} names the role \"{name}\": expected viewer, operator or admin"
-                )
-            })?,
-        };
-        Ok((cn, role))
+    /// The identity of the certificate of `sign_in`: trusted as a user
+    /// (see [`Users::vouched`]), its role from the core.
+    fn check_certificate(&self, sign_in: &SignIn) -> Result<(Arc<str>, Role), String> {
+        let data = sign_in
+            .certificate
+            .as_ref()
+            .and_then(|c| c.value.as_deref())
+            .ok_or("the user token carries no certificate")?;
+        let der = leaf(data)?;
+        let name = hex(&crate::tls::sha1_fingerprint(der));
+        self.not_paused(sign_in, &name)?;
+        let vouched = self
+            .vouched(der)
+            .inspect_err(|_| self.failed(sign_in, &name))?;
+        let config = self.config().ok_or("no configuration")?;
+        let identity = identify(
+            &config,
+            Face::OpcUa,
+            Credential::Certificate { der, vouched },
+        )?;
+        Ok((identity.who, identity.role))
     }
 
-    /// Trusted: listed in `trusted/certs`, or signed by a CA of
-    /// `issuers/certs` (checked as the TLS listeners check a client's).
-    fn trusted(&self, der: &[u8]) -> Result<(), String> {
-        if read_certs(&self.pki.trusted()).iter().any(|c| c == der) {
-            return Ok(());
+    /// What vouches for a user certificate: listed in
+    /// `users/trusted/certs` (compared by content, whatever the file's
+    /// name), or signed by `user_ca` (checked as the TLS listeners check a
+    /// client's). An application certificate in `trusted/certs` is no
+    /// user.
+    fn vouched(&self, der: &[u8]) -> Result<Vouched, String> {
+        if read_certs(&self.pki.users_trusted())
+            .iter()
+            .any(|c| c == der)
+        {
+            return Ok(Vouched::TrustList);
         }
-        let mut roots = rustls::RootCertStore::empty();
-        for ca in read_certs(&self.pki.issuers()) {
-            let _ = roots.add(rustls::pki_types::CertificateDer::from(ca));
-        }
-        if roots.is_empty() {
+        let Some(ca) = &self.user_ca else {
             return Err(format!(
-                "the user certificate is not in {} and {} holds no CA",
-                self.pki.trusted().display(),
-                self.pki.issuers().display()
+                "the user certificate (SHA-1 {}) is not in {} and [opcua] user_ca is not set",
+                hex(&crate::tls::sha1_fingerprint(der)),
+                self.pki.users_trusted().display(),
             ));
+        };
+        let mut roots = rustls::RootCertStore::empty();
+        for c in crate::tls::load_certificates(ca, "[opcua] user_ca").map_err(|e| e.to_string())? {
+            let _ = roots.add(c);
         }
         let provider = Arc::new(rustls::crypto::ring::default_provider());
         let verifier =
@@ -215,15 +299,29 @@ impl Users {
                 &[],
                 rustls::pki_types::UnixTime::now(),
             )
-            .map(|_| ())
-            .map_err(|e| format!("the user certificate is not trusted: {e}"))
+            .map(|_| Vouched::RoleCa)
+            .map_err(|e| {
+                format!(
+                    "the user certificate (SHA-1 {}) is not in {} nor signed by user_ca: {e}",
+                    hex(&crate::tls::sha1_fingerprint(der)),
+                    self.pki.users_trusted().display(),
+                )
+            })
     }
 
-    fn refused(&self, kind: &'static str, why: &str) -> Error {
+    fn refused(&self, kind: &'static str, sign_in: &SignIn, why: &str) -> Error {
         self.metrics.opcua().signed_in(kind, false);
-        tracing::warn!(target: "drivegate::opcua", "OPC UA sign-in refused: {why}");
+        crate::control::audit::sign_in_refused("opcua", &client(sign_in), why);
         Error::new(StatusCode::BadIdentityTokenRejected, why.to_string())
     }
+}
+
+/// The first certificate of an X.509 token's data (a client may send its
+/// chain after it).
+fn leaf(data: &[u8]) -> Result<&[u8], String> {
+    let (rest, _) = x509_parser::parse_x509_certificate(data)
+        .map_err(|e| format!("the user certificate is not valid X.509: {e}"))?;
+    Ok(&data[..data.len() - rest.len()])
 }
 
 /// The digest of a token's secret: kept in the file, or read now from its
@@ -247,51 +345,6 @@ fn constant_time_eq(a: &[u8; 32], b: &[u8; 32]) -> bool {
     std::hint::black_box(diff) == 0
 }
 
-/// Wrong passwords per user name over the last minute. Pure, time passed
-/// in; at most [`Guesses::NAMES`] names are followed (the oldest go).
-#[derive(Debug, Default)]
-struct Guesses {
-    failures: HashMap<String, VecDeque<Instant>>,
-}
-
-impl Guesses {
-    const WINDOW: Duration = Duration::from_secs(60);
-    const NAMES: usize = 1024;
-
-    fn recent(&mut self, user: &str, now: Instant) -> usize {
-        let Some(times) = self.failures.get_mut(user) else {
-            return 0;
-        };
-        while times
-            .front()
-            .is_some_and(|t| now.duration_since(*t) >= Self::WINDOW)
-        {
-            times.pop_front();
-        }
-        times.len()
-    }
-
-    fn paused(&mut self, user: &str, allowed: u32, now: Instant) -> bool {
-        self.recent(user, now) >= usize::try_from(allowed).unwrap_or(usize::MAX)
-    }
-
-    fn failed(&mut self, user: &str, now: Instant) {
-        if self.failures.len() >= Self::NAMES && !self.failures.contains_key(user) {
-            self.failures.retain(|_, t| {
-                t.back()
-                    .is_some_and(|last| now.duration_since(*last) < Self::WINDOW)
-            });
-            if self.failures.len() >= Self::NAMES {
-                return;
-            }
-        }
-        self.failures
-            .entry(user.to_string())
-            .or_default()
-            .push_back(now);
-    }
-}
-
 fn policy(
     id: impl Into<UAString>,
     token_type: UserTokenType,
@@ -308,7 +361,11 @@ fn policy(
 
 #[async_trait]
 impl AuthManager for Users {
-    async fn authenticate_anonymous_token(&self, _endpoint: &ServerEndpoint) -> Result<(), Error> {
+    async fn authenticate_anonymous_token_from(
+        &self,
+        _endpoint: &ServerEndpoint,
+        sign_in: &SignIn,
+    ) -> Result<(), Error> {
         match self.anonymous {
             Anonymous::Viewer => {
                 self.metrics.opcua().signed_in("anonymous", true);
@@ -316,37 +373,52 @@ impl AuthManager for Users {
             }
             Anonymous::None => Err(self.refused(
                 "anonymous",
+                sign_in,
                 "an anonymous session ([opcua] anonymous = \"none\")",
             )),
         }
     }
 
-    async fn authenticate_username_identity_token(
+    async fn authenticate_username_identity_token_from(
         &self,
         _endpoint: &ServerEndpoint,
         username: &str,
         password: &Password,
+        sign_in: &SignIn,
     ) -> Result<UserToken, Error> {
-        match self.check_password(username, password.get()) {
+        if !sign_in.secret_protected() {
+            return Err(self.refused(
+                "user",
+                sign_in,
+                &format!(
+                    "user \"{username}\": its password came in clear (a channel without \
+                     encryption, the token not encrypted with the server's key); refused unread: \
+                     the client must follow the endpoint's user token policy, or use an \
+                     encrypted endpoint"
+                ),
+            ));
+        }
+        match self.check_password(username, password.get(), sign_in) {
             Ok(()) => {
                 self.metrics.opcua().signed_in("user", true);
-                tracing::info!(target: "drivegate::opcua", user = username, "OPC UA sign-in");
+                tracing::info!(target: "drivegate::opcua", user = username, client = %client(sign_in), "OPC UA sign-in");
                 Ok(UserToken(format!("{USER}{username}")))
             }
-            Err(why) => Err(self.refused("user", &why)),
+            Err(why) => Err(self.refused("user", sign_in, &why)),
         }
     }
 
-    async fn authenticate_x509_identity_token(
+    async fn authenticate_x509_identity_token_from(
         &self,
         _endpoint: &ServerEndpoint,
         signing_thumbprint: &Thumbprint,
+        sign_in: &SignIn,
     ) -> Result<UserToken, Error> {
-        match self.check_certificate(signing_thumbprint) {
+        match self.check_certificate(sign_in) {
             Ok((cn, role)) => {
                 let token = format!("{CERTIFICATE}{}", signing_thumbprint.as_hex_string());
                 self.metrics.opcua().signed_in("certificate", true);
-                tracing::info!(target: "drivegate::opcua", user = %cn, role = role.name(), "OPC UA sign-in with a user certificate");
+                tracing::info!(target: "drivegate::opcua", user = %cn, role = role.name(), client = %client(sign_in), "OPC UA sign-in with a user certificate");
                 let mut certificates = self.certificates.lock().unwrap_or_else(|p| p.into_inner());
                 if certificates.len() >= 1024 {
                     certificates.clear();
@@ -354,7 +426,7 @@ impl AuthManager for Users {
                 certificates.insert(token.clone(), (cn, role));
                 Ok(UserToken(token))
             }
-            Err(why) => Err(self.refused("certificate", &why)),
+            Err(why) => Err(self.refused("certificate", sign_in, &why)),
         }
     }
 
@@ -422,16 +494,23 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_name_is_paused_after_its_guesses_for_a_minute() {
-        let mut g = Guesses::default();
+    fn a_name_is_paused_from_its_address_and_the_address_after_three_times_as_many() {
+        let mut g = Guesses::new(3);
         let t0 = Instant::now();
+        let (a, b): (IpAddr, IpAddr) = ("10.0.0.66".parse().unwrap(), "10.0.0.5".parse().unwrap());
         for i in 0..3 {
-            assert!(!g.paused("alice", 3, t0), "after {i}");
-            g.failed("alice", t0 + Duration::from_secs(i));
+            assert!(g.check(a, "panel", t0).is_ok(), "after {i}");
+            g.failed(a, "panel", t0 + Duration::from_secs(i));
         }
-        assert!(g.paused("alice", 3, t0 + Duration::from_secs(10)));
-        assert!(!g.paused("bob", 3, t0 + Duration::from_secs(10)));
-        assert!(!g.paused("alice", 3, t0 + Duration::from_secs(61)));
+        assert!(g.check(a, "panel", t0 + Duration::from_secs(10)).is_err());
+        assert!(g.check(b, "panel", t0 + Duration::from_secs(10)).is_ok());
+        assert!(g.check(a, "scada", t0 + Duration::from_secs(10)).is_ok());
+        for name in ["a", "b", "c", "d", "e", "f"] {
+            g.failed(a, name, t0 + Duration::from_secs(11));
+        }
+        assert!(g.check(a, "scada", t0 + Duration::from_secs(12)).is_err());
+        assert!(g.check(b, "scada", t0 + Duration::from_secs(12)).is_ok());
+        assert!(g.check(a, "panel", t0 + Duration::from_secs(75)).is_ok());
     }
 
     #[test]

@@ -12,5 +12,6 @@ mod audit;
 mod brake;
 mod every_face;
 mod opcua;
+mod opcua_attacks;
 mod roles;
 mod rules;

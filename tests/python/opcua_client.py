@@ -4,6 +4,7 @@ tests (tests/control/opcua.rs): one scenario per run, or several
 
     python3 opcua_client.py URL SCENARIO[,SCENARIO...] [--drive D] [--user U --password P]
         [--policy none|basic256sha256|aes128|aes256 --cert C.der --key K.pem]
+        [--user-cert C.der --user-key K.pem] [--source 127.0.0.2]
 
 Prints one JSON object per line (`{"step": ..., ...}`) for the test to
 check, and `{"step": "error", ...}` with exit status 1 when the server
@@ -48,7 +49,23 @@ def fail(what, **fields):
     sys.exit(1)
 
 
+def from_source(source):
+    """Connections made from now on leave from `source` (a loopback
+    address of its own: the server sees another client address)."""
+    loop = asyncio.get_running_loop()
+    plain = getattr(loop, "_plain_create_connection", None) or loop.create_connection
+    loop._plain_create_connection = plain
+
+    async def create_connection(*a, **kw):
+        if source:
+            kw.setdefault("local_addr", (source, 0))
+        return await plain(*a, **kw)
+
+    loop.create_connection = create_connection
+
+
 async def client(args, timeout_ms=None):
+    from_source(args.source)
     c = Client(args.url, timeout=20)
     if timeout_ms:
         c.session_timeout = timeout_ms
@@ -463,7 +480,133 @@ async def table(args):
             await c.disconnect()
 
 
-SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, described, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table]}
+def clear_user_auth(self, params, username, password):
+    """asyncua's `_add_user_auth` made to misbehave: the password in clear
+    (no EncryptionAlgorithm) whatever the server's user token policy says."""
+    params.UserIdentityToken = ua.UserNameIdentityToken()
+    params.UserIdentityToken.UserName = username
+    params.UserIdentityToken.Password = password.encode("utf8")
+    params.UserIdentityToken.EncryptionAlgorithm = None
+    params.UserIdentityToken.PolicyId = self.server_policy(ua.UserTokenType.UserName).PolicyId
+
+
+async def sign_in_and_brake(args, user, password, clear=False):
+    """Signs in as `user` (None: anonymous) and calls Brake() on --drive:
+    the status of the sign-in or of the call, and the time it took."""
+    args.user, args.password = user, password
+    t0 = time.monotonic()
+    try:
+        c = await client(args)
+        if clear:
+            c._add_user_auth = clear_user_auth.__get__(c)
+        async with c:
+            try:
+                await call(c, args.drive, "Brake")
+                status = "Good"
+            except ua.UaStatusCodeError as e:
+                status = status_name(e)
+            address = local_address(c)
+    except ua.UaStatusCodeError as e:
+        status, address = status_name(e), None
+    except Exception as e:  # a refused activation surfaces as other errors too
+        status, address = f"refused: {type(e).__name__}: {e}", None
+    return {"status": status, "seconds": round(time.monotonic() - t0, 3), "address": address}
+
+
+async def sign_in(args):
+    """Signs in as given and calls Brake() on --drive, timed from the
+    connection's start to the answer."""
+    say("sign-in", **await sign_in_and_brake(args, args.user, args.password))
+
+
+async def clear_password(args):
+    """The operator's password sent in clear on the endpoint without
+    security (refused), then encrypted as the user token policy says
+    (accepted)."""
+    user, password = args.user, args.password
+    say("clear-password", **await sign_in_and_brake(args, user, password, clear=True))
+    say("encrypted-password", **await sign_in_and_brake(args, user, password))
+
+
+async def guess(args):
+    """--guesses wrong passwords for --user from --source, then the right one
+    from there (refused while paused), then the right one from the default
+    address (signed in), timed."""
+    user, password, source = args.user, args.password, args.source
+    statuses = []
+    for i in range(args.guesses):
+        statuses.append((await sign_in_and_brake(args, user, f"wrong-{i}"))["status"])
+    say("guessed", statuses=statuses)
+    say("paused", **await sign_in_and_brake(args, user, password))
+    args.source = None
+    say("elsewhere", **await sign_in_and_brake(args, user, password))
+    args.source = source
+
+
+async def claim(args):
+    """Signed in as given (a user certificate, with --cert as the
+    application's): writes SpeedSetpoint and Settings/CurrentLimit."""
+    try:
+        async with await client(args) as c:
+            out = {}
+            for name, value in [("SpeedSetpoint", 100.0), ("Settings/CurrentLimit", 3.0)]:
+                out[name] = await write(c, args.drive, name, value)
+            say("claim", session="Good", **out)
+    except Exception as e:  # the refusal of the session is what the run is for
+        say("claim", session=f"{type(e).__name__}: {e}")
+
+
+async def flood(args):
+    """--sessions anonymous sessions (from --source), each with
+    --subscriptions subscriptions of --items monitored items on --drive's
+    Angle with queues of --queue, and never a Publish request (the requests
+    are sent raw, so asyncua starts no publish loop). Says what each
+    CreateMonitoredItems got, then holds the sessions until stdin closes."""
+    from asyncua.ua.ua_binary import struct_from_binary
+    sessions, results = [], {}
+    for s in range(args.sessions):
+        c = await client(args)
+        await c.connect()
+        sessions.append(c)
+        angle = (await node(c, f"{args.drive}/Angle")).nodeid
+        for _ in range(args.subscriptions):
+            req = ua.CreateSubscriptionRequest()
+            req.Parameters = ua.CreateSubscriptionParameters(
+                RequestedPublishingInterval=1000, RequestedLifetimeCount=3000,
+                RequestedMaxKeepAliveCount=1000, MaxNotificationsPerPublish=0,
+                PublishingEnabled=True, Priority=0)
+            r = struct_from_binary(ua.CreateSubscriptionResponse, await c.uaclient.session._send_request(req))
+            sub = r.Parameters.SubscriptionId
+            for first in range(0, args.items, 1000):
+                req = ua.CreateMonitoredItemsRequest()
+                req.Parameters.SubscriptionId = sub
+                req.Parameters.TimestampsToReturn = ua.TimestampsToReturn.Both
+                req.Parameters.ItemsToCreate = [
+                    ua.MonitoredItemCreateRequest(
+                        ItemToMonitor=ua.ReadValueId(NodeId=angle, AttributeId=ua.AttributeIds.Value),
+                        MonitoringMode=ua.MonitoringMode.Reporting,
+                        RequestedParameters=ua.MonitoringParameters(
+                            ClientHandle=first + i, SamplingInterval=0, QueueSize=args.queue, DiscardOldest=True))
+                    for i in range(min(1000, args.items - first))]
+                data = await c.uaclient.session._send_request(req)
+                r = struct_from_binary(ua.CreateMonitoredItemsResponse, data)
+                for res in r.Results:
+                    key = f"session{s} {res.StatusCode.name} queue {res.RevisedQueueSize}"
+                    results[key] = results.get(key, 0) + 1
+    say("flooded", results=results)
+    loop = asyncio.get_running_loop()
+    reader = asyncio.StreamReader()
+    await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), sys.stdin)
+    await reader.read()
+    for c in sessions:
+        try:
+            await c.disconnect()
+        except Exception:
+            pass
+    say("closed")
+
+
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, described, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table, sign_in, clear_password, guess, claim, flood]}
 
 
 def scenarios(text):
@@ -493,6 +636,12 @@ async def main():
     p.add_argument("--seconds", type=float, default=20)
     p.add_argument("--timeout-ms", type=int, default=3000)
     p.add_argument("--metrics", help="the daemon's /metrics URL")
+    p.add_argument("--source", help="the client's own address (a loopback address of its own)")
+    p.add_argument("--guesses", type=int, default=10)
+    p.add_argument("--sessions", type=int, default=2)
+    p.add_argument("--subscriptions", type=int, default=10)
+    p.add_argument("--items", type=int, default=1000)
+    p.add_argument("--queue", type=int, default=1000)
     args = p.parse_args()
     for name in args.scenario:
         await SCENARIOS[name](args)

@@ -19,7 +19,33 @@ use crate::identity_token::{
 use super::{
     address_space::AccessLevel, config::ANONYMOUS_USER_TOKEN_ID, ServerEndpoint, ServerUserToken,
 };
-use std::{collections::BTreeMap, fmt::Debug};
+use std::{collections::BTreeMap, fmt::Debug, net::SocketAddr};
+
+/// What the server knows of a sign-in beyond its token: where the client
+/// connects from, how its channel is secured, whether the secret of a user
+/// name token came encrypted, and the certificate of an X.509 token. The
+/// `*_from` methods of [AuthManager] receive it.
+#[derive(Debug, Clone)]
+pub struct SignIn {
+    /// The address of the client's connection, if known.
+    pub peer_address: Option<SocketAddr>,
+    /// The security mode of the secure channel the session is activated on.
+    pub security_mode: MessageSecurityMode,
+    /// A user name token: its password was encrypted with the server's key
+    /// (its `EncryptionAlgorithm` was set and it was decrypted).
+    pub secret_encrypted: bool,
+    /// An X.509 token: its certificate data as sent (the DER certificate,
+    /// possibly followed by its chain), its signature already verified.
+    pub certificate: Option<ByteString>,
+}
+
+impl SignIn {
+    /// `true` when the secret crossed the network encrypted: with the
+    /// server's key, or inside an encrypted channel.
+    pub fn secret_protected(&self) -> bool {
+        self.secret_encrypted || self.security_mode == MessageSecurityMode::SignAndEncrypt
+    }
+}
 
 /// Debug-safe wrapper around a password.
 #[derive(Clone, PartialEq, Eq)]
@@ -140,6 +166,45 @@ pub trait AuthManager: Send + Sync + 'static {
             StatusCode::BadIdentityTokenRejected,
             "Issued identity token unsupported",
         ))
+    }
+
+    /// [Self::authenticate_anonymous_token] with what is known of the
+    /// sign-in (the client's address, the channel). The server calls this
+    /// one; by default it calls the former.
+    async fn authenticate_anonymous_token_from(
+        &self,
+        endpoint: &ServerEndpoint,
+        sign_in: &SignIn,
+    ) -> Result<(), Error> {
+        self.authenticate_anonymous_token(endpoint).await
+    }
+
+    /// [Self::authenticate_username_identity_token] with what is known of
+    /// the sign-in (the client's address, whether the password came
+    /// encrypted). The server calls this one; by default it calls the
+    /// former.
+    async fn authenticate_username_identity_token_from(
+        &self,
+        endpoint: &ServerEndpoint,
+        username: &str,
+        password: &Password,
+        sign_in: &SignIn,
+    ) -> Result<UserToken, Error> {
+        self.authenticate_username_identity_token(endpoint, username, password)
+            .await
+    }
+
+    /// [Self::authenticate_x509_identity_token] with what is known of the
+    /// sign-in (the client's address, the certificate itself). The server
+    /// calls this one; by default it calls the former.
+    async fn authenticate_x509_identity_token_from(
+        &self,
+        endpoint: &ServerEndpoint,
+        signing_thumbprint: &Thumbprint,
+        sign_in: &SignIn,
+    ) -> Result<UserToken, Error> {
+        self.authenticate_x509_identity_token(endpoint, signing_thumbprint)
+            .await
     }
 
     /// Return the effective user access level for the given node ID

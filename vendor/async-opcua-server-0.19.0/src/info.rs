@@ -4,6 +4,7 @@
 
 //! Provides server state information, such as status, configuration, running servers and so on.
 
+use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU16, AtomicU8, Ordering};
 use std::sync::Arc;
 
@@ -11,7 +12,7 @@ use arc_swap::ArcSwap;
 use opcua_nodes::DefaultTypeTree;
 use tracing::{debug, error, warn};
 
-use crate::authenticator::{user_pass_security_policy_id, Password};
+use crate::authenticator::{user_pass_security_policy_id, Password, SignIn};
 use crate::diagnostics::{ServerDiagnostics, ServerDiagnosticsSummary};
 use crate::node_manager::TypeTreeForUser;
 use opcua_core::comms::url::{hostname_from_url, url_matches_except_host};
@@ -332,7 +333,14 @@ impl ServerInfo {
         security_mode: MessageSecurityMode,
         user_identity_token: ExtensionObject,
         server_nonce: &ByteString,
+        peer_address: Option<SocketAddr>,
     ) -> Result<UserToken, Error> {
+        let mut sign_in = SignIn {
+            peer_address,
+            security_mode,
+            secret_encrypted: false,
+            certificate: None,
+        };
         // Get security from endpoint url
         if let Some(endpoint) = self.config.find_endpoint(
             endpoint_url,
@@ -350,24 +358,29 @@ impl ServerInfo {
                     ))
                 }
                 IdentityToken::Anonymous(token) => {
-                    self.authenticate_anonymous_token(endpoint, &token).await
+                    self.authenticate_anonymous_token(endpoint, &token, &sign_in)
+                        .await
                 }
                 IdentityToken::UserName(token) => {
+                    sign_in.secret_encrypted = !token.encryption_algorithm.is_empty();
                     self.authenticate_username_identity_token(
                         endpoint,
                         &token,
                         &self.server_pkey,
                         server_nonce,
+                        &sign_in,
                     )
                     .await
                 }
                 IdentityToken::X509(token) => {
+                    sign_in.certificate = Some(token.certificate_data.clone());
                     self.authenticate_x509_identity_token(
                         endpoint,
                         &token,
                         &request.user_token_signature,
                         &self.server_certificate,
                         server_nonce,
+                        &sign_in,
                     )
                     .await
                 }
@@ -405,6 +418,7 @@ impl ServerInfo {
         &self,
         endpoint: &ServerEndpoint,
         token: &AnonymousIdentityToken,
+        sign_in: &SignIn,
     ) -> Result<UserToken, Error> {
         if token.policy_id.as_ref() != POLICY_ID_ANONYMOUS {
             return Err(Error::new(
@@ -417,7 +431,7 @@ impl ServerInfo {
             ));
         }
         self.authenticator
-            .authenticate_anonymous_token(endpoint)
+            .authenticate_anonymous_token_from(endpoint, sign_in)
             .await?;
 
         Ok(UserToken(ANONYMOUS_USER_TOKEN_ID.to_string()))
@@ -431,6 +445,7 @@ impl ServerInfo {
         token: &UserNameIdentityToken,
         server_key: &Option<PrivateKey>,
         server_nonce: &ByteString,
+        sign_in: &SignIn,
     ) -> Result<UserToken, Error> {
         if !self.authenticator.supports_user_pass(endpoint) {
             Err(Error::new(
@@ -475,10 +490,11 @@ impl ServerInfo {
             };
 
             self.authenticator
-                .authenticate_username_identity_token(
+                .authenticate_username_identity_token_from(
                     endpoint,
                     token.user_name.as_ref(),
                     &Password::new(token_password),
+                    sign_in,
                 )
                 .await
         }
@@ -493,6 +509,7 @@ impl ServerInfo {
         user_token_signature: &SignatureData,
         server_certificate: &Option<X509>,
         server_nonce: &ByteString,
+        sign_in: &SignIn,
     ) -> Result<UserToken, Error> {
         if !self.authenticator.supports_x509(endpoint) {
             error!("Endpoint doesn't support x509 tokens");
@@ -546,7 +563,7 @@ impl ServerInfo {
             let signing_thumbprint = signing_cert.thumbprint();
 
             self.authenticator
-                .authenticate_x509_identity_token(endpoint, &signing_thumbprint)
+                .authenticate_x509_identity_token_from(endpoint, &signing_thumbprint, sign_in)
                 .await
         }
     }

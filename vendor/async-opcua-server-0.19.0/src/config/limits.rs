@@ -104,6 +104,22 @@ pub struct SubscriptionLimits {
     /// Maximum number of queued notifications per subscription. 0 for unlimited.
     #[serde(default = "defaults::max_queued_notifications")]
     pub max_queued_notifications: usize,
+    /// Maximum number of events in an event monitored item's queue; 0: the
+    /// same as `max_monitored_item_queue_size`.
+    #[serde(default)]
+    pub max_event_queue_size: usize,
+    /// Maximum number of monitored items of one session, 0 for no limit.
+    #[serde(default)]
+    pub max_monitored_items_per_session: usize,
+    /// Maximum number of monitored items of all sessions, 0 for no limit.
+    #[serde(default)]
+    pub max_monitored_items: usize,
+    /// Maximum of the queue sizes of all monitored items added together:
+    /// the notifications that can wait for a Publish request at once. An
+    /// item whose queue does not fit gets a smaller one, and none when none
+    /// is left. 0 for no limit.
+    #[serde(default)]
+    pub max_queued_values: usize,
 }
 
 impl Default for SubscriptionLimits {
@@ -122,6 +138,10 @@ impl Default for SubscriptionLimits {
             max_lifetime_count: defaults::max_lifetime_count(),
             max_notifications_per_publish: defaults::max_notifications_per_publish(),
             max_queued_notifications: defaults::max_queued_notifications(),
+            max_event_queue_size: 0,
+            max_monitored_items_per_session: 0,
+            max_monitored_items: 0,
+            max_queued_values: 0,
         }
     }
 }

@@ -355,6 +355,7 @@ pub(crate) async fn activate_session(
             security_mode,
             request.user_identity_token.clone(),
             &session_nonce,
+            peer_address,
         )
         .await?;
 

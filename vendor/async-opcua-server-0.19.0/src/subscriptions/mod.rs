@@ -89,6 +89,35 @@ struct SubscriptionCacheInner {
     subscription_to_session: HashMap<u32, u32>,
     /// Map from notifier node ID to monitored item handles.
     monitored_items: HashMap<MonitoredItemKey, HashMap<MonitoredItemHandle, MonitoredItemEntry>>,
+    /// Monitored items granted by the limits and not inserted yet.
+    reserved: Reserved,
+}
+
+/// Monitored items between the check of the limits and their insertion:
+/// counted as if they were in, so that concurrent requests cannot pass the
+/// limits together.
+#[derive(Default)]
+struct Reserved {
+    items: usize,
+    values: usize,
+    by_session: HashMap<u32, usize>,
+}
+
+/// What a CreateMonitoredItems request was granted of the limits, released
+/// ([SubscriptionCache::release_monitored_items]) once its items are in.
+pub(crate) struct Reservation {
+    session_id: u32,
+    items: usize,
+    values: usize,
+}
+
+/// What is left of `max` when `used` is taken; no limit when `max` is 0.
+fn room(used: usize, max: usize) -> usize {
+    if max == 0 {
+        usize::MAX
+    } else {
+        max.saturating_sub(used)
+    }
 }
 
 /// Structure storing all subscriptions and monitored items on the server.
@@ -110,6 +139,7 @@ impl SubscriptionCache {
                 session_subscriptions: HashMap::new(),
                 subscription_to_session: HashMap::new(),
                 monitored_items: HashMap::new(),
+                reserved: Reserved::default(),
             }),
             limits,
         }
@@ -401,6 +431,80 @@ impl SubscriptionCache {
         }
     }
 
+    /// The monitored items of all sessions and of `session_id` (reserved
+    /// ones included), and all their queue sizes added together.
+    fn monitored_item_usage(inner: &SubscriptionCacheInner, session_id: u32) -> (usize, usize, usize) {
+        let mut total = inner.reserved.items;
+        let mut values = inner.reserved.values;
+        let mut session = inner.reserved.by_session.get(&session_id).copied().unwrap_or(0);
+        for (id, subs) in inner.session_subscriptions.iter() {
+            let (n, v) = subs.lock().monitored_item_usage();
+            total += n;
+            values += v;
+            if *id == session_id {
+                session += n;
+            }
+        }
+        (total, session, values)
+    }
+
+    /// Checks the items of a CreateMonitoredItems request of `session_id`
+    /// that are still to be decided against the limits: those beyond
+    /// `max_monitored_items_per_session` or `max_monitored_items` are
+    /// refused (`BadTooManyMonitoredItems`), and each queue is revised to
+    /// what is left of `max_queued_values` (refused when nothing is). What
+    /// is granted counts until [Self::release_monitored_items].
+    pub(crate) fn reserve_monitored_items(
+        &self,
+        session_id: u32,
+        requests: &mut [CreateMonitoredItem],
+    ) -> Reservation {
+        let mut lck = trace_write_lock!(self.inner);
+        let (total, session, values) = Self::monitored_item_usage(&lck, session_id);
+        let limits = &self.limits;
+        let mut items_room = room(total, limits.max_monitored_items)
+            .min(room(session, limits.max_monitored_items_per_session));
+        let mut values_room = room(values, limits.max_queued_values);
+        let mut granted = Reservation {
+            session_id,
+            items: 0,
+            values: 0,
+        };
+        for request in requests.iter_mut() {
+            if request.status_code() != StatusCode::BadNodeIdUnknown {
+                continue;
+            }
+            if items_room == 0 || values_room == 0 {
+                request.set_status(StatusCode::BadTooManyMonitoredItems);
+                continue;
+            }
+            request.revise_queue_size(values_room);
+            let queue = request.queue_size().min(values_room);
+            items_room -= 1;
+            values_room -= queue;
+            granted.items += 1;
+            granted.values += queue;
+        }
+        lck.reserved.items += granted.items;
+        lck.reserved.values += granted.values;
+        *lck.reserved.by_session.entry(session_id).or_default() += granted.items;
+        granted
+    }
+
+    /// Ends `reservation`: its items are in (or failed).
+    pub(crate) fn release_monitored_items(&self, reservation: Reservation) {
+        let mut lck = trace_write_lock!(self.inner);
+        let reserved = &mut lck.reserved;
+        reserved.items = reserved.items.saturating_sub(reservation.items);
+        reserved.values = reserved.values.saturating_sub(reservation.values);
+        if let Some(n) = reserved.by_session.get_mut(&reservation.session_id) {
+            *n = n.saturating_sub(reservation.items);
+            if *n == 0 {
+                reserved.by_session.remove(&reservation.session_id);
+            }
+        }
+    }
+
     pub(crate) fn create_monitored_items(
         &self,
         session_id: u32,
@@ -448,12 +552,14 @@ impl SubscriptionCache {
         requests: Vec<MonitoredItemModifyRequest>,
         type_tree: &dyn TypeTree,
     ) -> Result<Vec<MonitoredItemUpdateRef>, StatusCode> {
-        let Some(cache) = ({
-            let lck = trace_read_lock!(self.inner);
-            lck.session_subscriptions.get(&session_id).cloned()
-        }) else {
+        // Exclusive, so that the queues' growth is checked against the
+        // limit and made at once.
+        let lck = trace_write_lock!(self.inner);
+        let Some(cache) = lck.session_subscriptions.get(&session_id).cloned() else {
             return Err(StatusCode::BadNoSubscription);
         };
+        let (_, _, values) = Self::monitored_item_usage(&lck, session_id);
+        let allowance = room(values, self.limits.max_queued_values);
 
         let mut cache_lck = cache.lock();
         cache_lck.modify_monitored_items(
@@ -462,6 +568,7 @@ impl SubscriptionCache {
             timestamps_to_return,
             requests,
             type_tree,
+            allowance,
         )
     }
 

@@ -7,7 +7,7 @@ use tracing::{error, warn};
 use super::MonitoredItemHandle;
 use crate::{info::ServerInfo, node_manager::ParsedReadValueId};
 use opcua_types::{
-    match_extension_object_owned, DataChangeFilter, DataValue, DateTime, EventFieldList,
+    match_extension_object_owned, AttributeId, DataChangeFilter, DataValue, DateTime, EventFieldList,
     EventFilter, EventFilterResult, ExtensionObject, MonitoredItemCreateRequest,
     MonitoredItemModifyRequest, MonitoredItemNotification, MonitoringMode, NumericRange,
     ParsedDataChangeFilter, StatusCode, TimestampsToReturn, Variant,
@@ -130,8 +130,13 @@ fn sanitize_sampling_interval(info: &ServerInfo, requested_sampling_interval: f6
     }
 }
 
-/// Takes the requested queue size and ensures it is within the range supported by the server
-fn sanitize_queue_size(info: &ServerInfo, requested_queue_size: usize) -> usize {
+/// Takes the requested queue size and ensures it is within the range supported by the server:
+/// an event item's within `max_event_queue_size` when that is set.
+fn sanitize_queue_size(info: &ServerInfo, requested_queue_size: usize, events: bool) -> usize {
+    let limits = &info.config.limits.subscriptions;
+    if events && limits.max_event_queue_size > 0 {
+        return requested_queue_size.clamp(1, limits.max_event_queue_size);
+    }
     if requested_queue_size == 0 || requested_queue_size == 1 {
         // For data monitored items 0 -> 1
         // Future - for event monitored items, queue size should be the default queue size for event notifications
@@ -169,7 +174,12 @@ impl CreateMonitoredItem {
             FilterType::from_filter(req.requested_parameters.filter, eu_range, type_tree);
         let sampling_interval =
             sanitize_sampling_interval(info, req.requested_parameters.sampling_interval);
-        let queue_size = sanitize_queue_size(info, req.requested_parameters.queue_size as usize);
+        let events = req.item_to_monitor.attribute_id == AttributeId::EventNotifier as u32;
+        let queue_size = sanitize_queue_size(
+            info,
+            req.requested_parameters.queue_size as usize,
+            events,
+        );
 
         let (filter, mut status) = match filter {
             Ok(s) => (s, StatusCode::BadNodeIdUnknown),
@@ -356,13 +366,15 @@ impl MonitoredItem {
     }
 
     /// Modifies the existing item with the values of the modify request. On success, the result
-    /// holds the filter result.
+    /// holds the filter result. Its queue grows by `allowance` at most (what is left of
+    /// `max_queued_values`).
     pub(super) fn modify(
         &mut self,
         info: &ServerInfo,
         timestamps_to_return: TimestampsToReturn,
         request: &MonitoredItemModifyRequest,
         type_tree: &dyn TypeTree,
+        allowance: usize,
     ) -> (Option<EventFilterResult>, StatusCode) {
         self.timestamps_to_return = timestamps_to_return;
         let (filter_res, filter) = FilterType::from_filter(
@@ -377,8 +389,12 @@ impl MonitoredItem {
         let parsed_sampling_interval =
             sanitize_sampling_interval(info, request.requested_parameters.sampling_interval);
         self.sampling_interval = parse_sampling_interval(parsed_sampling_interval);
-        self.queue_size =
-            sanitize_queue_size(info, request.requested_parameters.queue_size as usize);
+        self.queue_size = sanitize_queue_size(
+            info,
+            request.requested_parameters.queue_size as usize,
+            self.item_to_monitor.attribute_id == AttributeId::EventNotifier,
+        )
+        .min(self.queue_size.max(1).saturating_add(allowance));
         self.client_handle = request.requested_parameters.client_handle;
         self.discard_oldest = request.requested_parameters.discard_oldest;
 

@@ -288,6 +288,17 @@ impl SessionSubscriptions {
         Ok(results)
     }
 
+    /// The monitored items of this session, and their queue sizes added
+    /// together.
+    pub(super) fn monitored_item_usage(&self) -> (usize, usize) {
+        self.subscriptions
+            .values()
+            .flat_map(|s| s.items())
+            .fold((0, 0), |(n, values), item| (n + 1, values + item.queue_size()))
+    }
+
+    /// Modifies the items of `requests`; their queues grow by `allowance` in
+    /// all at most (what is left of `max_queued_values`).
     pub(super) fn modify_monitored_items(
         &mut self,
         subscription_id: u32,
@@ -295,6 +306,7 @@ impl SessionSubscriptions {
         timestamps_to_return: TimestampsToReturn,
         requests: Vec<MonitoredItemModifyRequest>,
         type_tree: &dyn TypeTree,
+        mut allowance: usize,
     ) -> Result<Vec<MonitoredItemUpdateRef>, StatusCode> {
         let Some(sub) = self.subscriptions.get_mut(&subscription_id) else {
             return Err(StatusCode::BadSubscriptionIdInvalid);
@@ -302,8 +314,10 @@ impl SessionSubscriptions {
         let mut results = Vec::with_capacity(requests.len());
         for request in requests {
             if let Some(item) = sub.get_mut(&request.monitored_item_id) {
+                let before = item.queue_size();
                 let (filter_result, status) =
-                    item.modify(info, timestamps_to_return, &request, type_tree);
+                    item.modify(info, timestamps_to_return, &request, type_tree, allowance);
+                allowance = allowance.saturating_sub(item.queue_size().saturating_sub(before));
                 let filter_result = filter_result
                     .map(ExtensionObject::from_message)
                     .unwrap_or_else(ExtensionObject::null);

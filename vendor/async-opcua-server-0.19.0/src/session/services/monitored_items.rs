@@ -209,6 +209,12 @@ pub(crate) async fn create_monitored_items(
             .collect()
     };
 
+    // The session's and the server's limits: items beyond them are refused
+    // before any node manager sees them.
+    let reservation = request
+        .subscriptions
+        .reserve_monitored_items(request.session_id, &mut items);
+
     struct CreateMonitoredItemsServiceCb;
 
     impl ServiceCb<CreateMonitoredItem> for CreateMonitoredItemsServiceCb {
@@ -244,11 +250,13 @@ pub(crate) async fn create_monitored_items(
     )
     .await;
 
-    let res = match request.subscriptions.create_monitored_items(
+    let created = request.subscriptions.create_monitored_items(
         request.session_id,
         request.request.subscription_id,
         &items,
-    ) {
+    );
+    request.subscriptions.release_monitored_items(reservation);
+    let res = match created {
         Ok(r) => r,
         // Shouldn't happen, would be due to a race condition. If it does happen we're fine with failing.
         Err(e) => {
