@@ -43,6 +43,7 @@
 pub mod api;
 pub mod bench;
 pub mod bus;
+pub mod certificate;
 pub mod clock;
 pub mod config;
 pub mod connections;

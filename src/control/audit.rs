@@ -245,6 +245,63 @@ pub fn reload(by: &str, result: &ReloadResult) {
         ),
     }
 }
+/// Logs a change of the configuration file asked for by `by` (the
+/// console's editor, a token made or revoked): `what` in words, `diff` the
+/// file's lines as a unified diff, and what came of it (written and
+/// reloaded, or refused and nothing written).
+pub fn config_written(by: &str, what: &str, diff: &str, result: &ReloadResult) {
+    match result {
+        Ok(applied) => tracing::info!(
+            target: "drivegate::audit",
+            who = by,
+            what,
+            diff,
+            changes = %applied.changes.join("; "),
+            "configuration file changed"
+        ),
+        Err(refused) => tracing::warn!(
+            target: "drivegate::audit",
+            who = by,
+            what,
+            diff,
+            why = %refused,
+            "configuration file change refused; nothing was written"
+        ),
+    }
+}
+
+/// Logs a certificate trusted, removed or renewed by `by` (or the
+/// refusal): `action` in words, the certificate by its subject and
+/// SHA-1 thumbprint, and `result`.
+pub fn certificate(
+    by: &str,
+    action: &str,
+    subject: &str,
+    thumbprint: &str,
+    result: Result<&str, &str>,
+) {
+    match result {
+        Ok(done) => tracing::info!(
+            target: "drivegate::audit",
+            who = by,
+            action,
+            subject,
+            thumbprint,
+            done,
+            "certificate {action}"
+        ),
+        Err(why) => tracing::warn!(
+            target: "drivegate::audit",
+            who = by,
+            action,
+            subject,
+            thumbprint,
+            why,
+            "certificate not {action}"
+        ),
+    }
+}
+
 /// Logs a settings document refused whole: nothing was written.
 pub fn settings_refused(face: &str, who: &str, drive: &str, error: &SettingsError) {
     let why = match error {

@@ -36,6 +36,8 @@
 pub mod alarms;
 pub mod audit;
 pub mod caller;
+pub mod certificates;
+pub mod config_edits;
 pub mod drift;
 pub mod events;
 pub mod freshness;
@@ -120,6 +122,10 @@ struct Inner {
     alarms: Arc<alarms::Alarms>,
     /// Reloads of the configuration.
     reloads: reload::Reloads,
+    /// The last changes written into the configuration file.
+    edits: config_edits::EditLog,
+    /// The certificates' store, once the daemon attached it.
+    certificates: certificates::Certificates,
     /// What the journal held at start-up, until it is replayed.
     recovered: std::sync::Mutex<Option<Recovered>>,
     on_unknown_state: StopAction,
@@ -165,6 +171,8 @@ impl Control {
             parts: parts.clone(),
             alarms,
             reloads: reload::Reloads::default(),
+            edits: config_edits::EditLog::default(),
+            certificates: certificates::Certificates::default(),
             recovered: std::sync::Mutex::new(Some(opened.recovered)),
             on_unknown_state: safety.on_unknown_state,
             journal_news: opened.news,
@@ -265,9 +273,23 @@ impl Control {
     }
 
     /// Reloads the configuration for `caller` (an admin), optionally
-    /// writing `write` into the file first; audited either way.
+    /// writing `write` into the file first; audited either way, with the
+    /// change's lines when it writes.
     pub async fn reload(&self, caller: &Caller, write: Option<NewText>) -> ReloadResult {
-        reload::reload(&self.0.reloads, caller, write).await
+        let edit = write
+            .as_ref()
+            .map(|w| config_edits::ConfigEdit::of(caller, w));
+        let result = reload::reload(&self.0.reloads, caller, write).await;
+        if let (Ok(_), Some(edit)) = (&result, edit) {
+            self.0.edits.record(edit);
+        }
+        result
+    }
+
+    /// The last changes written into the configuration file through the
+    /// core, oldest first (who made the file as it is).
+    pub fn config_edits(&self) -> Vec<config_edits::ConfigEdit> {
+        self.0.edits.all()
     }
 
     /// Asks the reloader, for a caller the daemon vouches for (SIGHUP).
@@ -337,6 +359,42 @@ impl Control {
         detail: &str,
     ) -> Result<(), Refusal> {
         replacement::note_replacement(&self.0.parts, caller, drive, event, detail)
+    }
+
+    /// The daemon's certificates are in `store` from now on; their expiry
+    /// is looked at now and every hour until `stop` (an alarm for each
+    /// that expires within 30 days).
+    pub fn attach_certificates(
+        &self,
+        store: Arc<dyn certificates::CertificateStore>,
+        stop: CancellationToken,
+    ) {
+        self.0
+            .certificates
+            .attach(store, self.0.alarms.clone(), stop);
+    }
+
+    /// Every certificate the daemon serves, trusts or refused, for
+    /// `caller` (an admin).
+    pub async fn certificates(
+        &self,
+        caller: &Caller,
+    ) -> Result<certificates::Listing, certificates::CertError> {
+        self.0.certificates.list(caller).await
+    }
+
+    /// Trusts a refused OPC UA client, removes a trusted one or renews the
+    /// server's own certificate, for `caller` (an admin); audited either
+    /// way. Applies without a restart of the daemon.
+    pub async fn certificate_action(
+        &self,
+        caller: &Caller,
+        action: certificates::Action,
+    ) -> Result<certificates::Done, certificates::CertError> {
+        self.0
+            .certificates
+            .act(caller, action, &self.0.alarms)
+            .await
     }
 
     /// Drives compared with their declared settings.

@@ -373,6 +373,9 @@ pub enum ReloadRefused {
     Invalid(String),
     /// The file changed on disk since the text to write was made from it.
     Changed(String),
+    /// The daemon may not write its file (a read-only file system, a
+    /// directory the service may not write): nothing changed.
+    NotWritten(String),
     /// No reloader: started without a configuration file.
     Unavailable(String),
     /// The caller may not.
@@ -384,6 +387,7 @@ impl std::fmt::Display for ReloadRefused {
         match self {
             ReloadRefused::Invalid(why)
             | ReloadRefused::Changed(why)
+            | ReloadRefused::NotWritten(why)
             | ReloadRefused::Unavailable(why) => f.write_str(why),
             ReloadRefused::Refused(r) => f.write_str(&r.detail),
         }

@@ -22,6 +22,8 @@ use super::policy::Operation;
 use super::{audit, rules};
 use crate::bus::{BusHandle, Origin};
 use crate::config::Config;
+use crate::config::edit::sha256_hex;
+use crate::config::text_diff::{self, Hunk};
 use crate::control::stop_action::{self, StopAction, StopOutcome};
 use crate::drive::{Mode, Status};
 use crate::plant::{Directory, Drive};
@@ -44,6 +46,23 @@ pub struct NewText {
     pub text: String,
     /// SHA-256 (hex) of the file as it was read to make `text`.
     pub base_sha256: String,
+    /// What the change is, in words, for the audit log ("configuration
+    /// edited", "API token \"scada\" made (operator)").
+    pub what: String,
+    /// Its lines: what differs from the text it was made from.
+    pub hunks: Vec<Hunk>,
+}
+
+impl NewText {
+    /// `text`, made from `base` (the file as read), described as `what`.
+    pub fn new(base: &str, text: String, what: impl Into<String>) -> Self {
+        NewText {
+            base_sha256: sha256_hex(base),
+            hunks: text_diff::diff(base, &text),
+            text,
+            what: what.into(),
+        }
+    }
 }
 
 /// What became of reloads since start-up.
@@ -213,13 +232,20 @@ pub(super) async fn reload(
     write: Option<NewText>,
 ) -> ReloadResult {
     let by = format!("{} {}", caller.face.name(), caller.who);
+    let change = write
+        .as_ref()
+        .map(|w| (w.what.clone(), text_diff::unified(&w.hunks)));
+    let audit = |result: &ReloadResult| match &change {
+        Some((what, diff)) => audit::config_written(&by, what, diff, result),
+        None => audit::reload(&by, result),
+    };
     if let Err(refusal) = rules::role(caller, Operation::Reload.needs()) {
-        let refused = Refused::Refused(refusal);
-        audit::reload(&by, &Err(refused.clone()));
-        return Err(refused);
+        let refused = Err(Refused::Refused(refusal));
+        audit(&refused);
+        return refused;
     }
     let result = reloads.ask(by.clone(), write).await;
-    audit::reload(&by, &result);
+    audit(&result);
     result
 }
 

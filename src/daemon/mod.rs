@@ -1,6 +1,7 @@
 //! `drivegate serve`: start the plant and the faces, tell systemd, wait for
 //! a signal, stop gracefully.
 
+pub mod certificates;
 mod face_watch;
 mod listen;
 pub mod reloader;

@@ -31,6 +31,7 @@ use tracing::{info, warn};
 use crate::config::Config;
 use crate::config::diff::{Changes, diff};
 use crate::config::edit::sha256_hex;
+use crate::config::file::GENERATIONS;
 use crate::control::Control;
 use crate::control::reload::{Applied, NewText, Refused, ReloadRequest, ReloadResult};
 use crate::daemon::supervisor::Running;
@@ -125,8 +126,14 @@ impl Reloader {
                 )));
             }
             check(&write.text, &origin)?;
-            write_file(&self.path, &write.text)
-                .map_err(|e| Refused::Invalid(not_written(&origin, &e)))?;
+            crate::config::file::replace(&self.path, &write.text, GENERATIONS).map_err(|e| {
+                let why = not_written(&origin, &e);
+                if read_only(&e) {
+                    Refused::NotWritten(why)
+                } else {
+                    Refused::Invalid(why)
+                }
+            })?;
             info!(by, "configuration file {origin} rewritten");
             text = write.text;
         }
@@ -289,22 +296,13 @@ fn first_token(old: &Config, new: &Config) -> Option<String> {
 /// The checks of `drivegate check-config`: the file parses and holds
 /// together, its certificates load and its tokens resolve.
 fn check(text: &str, origin: &str) -> Result<Config, Refused> {
-    let config = Config::parse(text, origin).map_err(|e| Refused::Invalid(e.to_string()))?;
-    crate::daemon::supervisor::check_tls(&config)
-        .map_err(|e| Refused::Invalid(format!("{origin}: {e}")))?;
-    crate::api::auth::Tokens::resolve(&config.http.tokens, config.http.token_guesses)
-        .map_err(|e| Refused::Invalid(format!("{origin}: [http]: {e}")))?;
-    Ok(config)
+    crate::api::config_check::check(text, origin).map_err(Refused::Invalid)
 }
 
 /// Why the file was not written, in words: a file the service may not
 /// write is named as such, with what to do instead.
 fn not_written(origin: &str, e: &std::io::Error) -> String {
-    use std::io::ErrorKind;
-    if matches!(
-        e.kind(),
-        ErrorKind::PermissionDenied | ErrorKind::ReadOnlyFilesystem
-    ) {
+    if read_only(e) {
         format!(
             "cannot write {origin}: {e}: drivegate may not write its configuration file \
              (its unit or the file's permissions keep it read-only: docs/operations.md, \
@@ -316,26 +314,14 @@ fn not_written(origin: &str, e: &std::io::Error) -> String {
     }
 }
 
-/// Writes `text` into `path` whole or not at all: a new file beside it,
-/// synced, renamed over it, keeping its permissions.
-fn write_file(path: &Path, text: &str) -> std::io::Result<()> {
-    use std::io::Write;
-    let dir = path.parent().unwrap_or_else(|| Path::new("."));
-    let name = path.file_name().map_or_else(
-        || "drivegate.toml".into(),
-        |n| n.to_string_lossy().into_owned(),
-    );
-    let temporary = dir.join(format!(".{name}.new"));
-    let permissions = std::fs::metadata(path)?.permissions();
-    let mut file = std::fs::File::create(&temporary)?;
-    file.write_all(text.as_bytes())?;
-    file.sync_all()?;
-    std::fs::set_permissions(&temporary, permissions)?;
-    std::fs::rename(&temporary, path)?;
-    if let Ok(dir) = std::fs::File::open(dir) {
-        let _ = dir.sync_all();
-    }
-    Ok(())
+/// True when `e` says the service may not write there (the file's or
+/// its directory's permissions, a read-only file system).
+fn read_only(e: &std::io::Error) -> bool {
+    use std::io::ErrorKind;
+    matches!(
+        e.kind(),
+        ErrorKind::PermissionDenied | ErrorKind::ReadOnlyFilesystem
+    )
 }
 
 #[cfg(test)]

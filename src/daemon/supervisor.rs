@@ -223,25 +223,7 @@ const MQTT_STOP_LIMIT: Duration = Duration::from_secs(5);
 /// listener (and the MQTT face's CA and client certificate), as a start would (for `check-config`): an error names the
 /// file and what is wrong with it.
 pub fn check_tls(config: &Config) -> Result<(), String> {
-    if let Some(files) = &config.http.tls {
-        crate::tls::server_config(files, crate::tls::ClientAuth::IfConfigured, &[])
-            .map_err(|e| format!("[http.tls]: {e}"))?;
-    }
-    if let Some(section) = &config.modbus_tcp.tls {
-        crate::tls::server_config(&section.files(), crate::tls::ClientAuth::Required, &[])
-            .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
-    }
-    if let Some(mqtt) = &config.mqtt
-        && mqtt.broker.tls
-    {
-        let identity = match (&mqtt.client_cert, &mqtt.client_key) {
-            (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
-            _ => None,
-        };
-        crate::tls::client_config(mqtt.ca.as_deref(), identity)
-            .map_err(|e| format!("[mqtt]: {e}"))?;
-    }
-    Ok(())
+    crate::api::config_check::check_tls(config)
 }
 
 /// Starts the control core, binds every configured listener (so a taken
@@ -297,6 +279,21 @@ pub async fn start(
         started_count: AtomicU64::new(0),
         restarts: std::sync::Mutex::new(RestartBook::default()),
     });
+    // Weak: the core holds the store, and the faces hold the core.
+    let faces = Arc::downgrade(&running);
+    let restart: super::certificates::Restart = Arc::new(move |face| {
+        let faces = faces.clone();
+        Box::pin(async move {
+            match faces.upgrade() {
+                Some(running) => running.restart(face).await,
+                None => Err("drivegate is stopping".to_string()),
+            }
+        })
+    });
+    control.attach_certificates(
+        Arc::new(super::certificates::Store::new(control.clone(), restart)),
+        running.shared.shutdown.clone(),
+    );
     let config = Arc::new(config.clone());
     let mut started = Started::default();
     for face in [Face::Http, Face::ModbusTls, Face::OpcUa] {
@@ -346,6 +343,28 @@ impl Running {
             modbus_tcp: addr(&started.modbus_tcp),
             modbus_tls: addr(&started.modbus_tls),
             opcua: addr(&started.opcua),
+        }
+    }
+
+    /// Restarts `face` with the configuration it runs with, on its own
+    /// socket (its connections closed as at a stop), so that what it reads
+    /// as it starts is read again (the OPC UA server's certificate after a
+    /// renewal). What was done, in words.
+    pub async fn restart(&self, face: Face) -> Result<String, String> {
+        let mut started = self.started.lock().await;
+        let name = face.name();
+        let slot = started
+            .slot(face)
+            .ok_or_else(|| format!("{name} is not a listener"))?;
+        let old = slot
+            .take()
+            .ok_or_else(|| format!("{name} is not running"))?;
+        let config = old.config.clone();
+        let mut followed = Followed::default();
+        *slot = self.reopen(face, &config, old, &mut followed).await;
+        match followed.problems.pop() {
+            Some(problem) => Err(problem),
+            None => Ok(followed.changes.join("; ")),
         }
     }
 
@@ -650,7 +669,7 @@ impl Running {
                 () = tokio::time::sleep(wait) => {}
                 () = self.shared.shutdown.cancelled() => return health.serving(face),
             }
-            match self.restart(face, generation).await {
+            match self.restart_crashed(face, generation).await {
                 Restart::Done => {
                     health.restarted(face);
                     tracing::warn!(face = face.key(), "the {} serves again", face.name());
@@ -664,7 +683,7 @@ impl Running {
 
     /// Starts the crashed face `generation` of `face` again with what it
     /// ran with (a listener on its socket), unless it was replaced.
-    async fn restart(&self, face: Face, generation: u64) -> Restart {
+    async fn restart_crashed(&self, face: Face, generation: u64) -> Restart {
         let mut started = self.started.lock().await;
         let Some(slot) = started.slot(face) else {
             let Some(old) = started.mqtt.take_if(|c| c.generation == generation) else {

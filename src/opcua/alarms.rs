@@ -127,7 +127,7 @@ pub fn severity(kind: AlarmKind) -> u16 {
         AlarmKind::Fault => 800,
         AlarmKind::Stall | AlarmKind::CommLoss => 700,
         AlarmKind::Offline | AlarmKind::NeverAnswered => 600,
-        AlarmKind::RefusedWrite => 400,
+        AlarmKind::RefusedWrite | AlarmKind::CertificateExpiring => 400,
     }
 }
 

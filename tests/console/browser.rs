@@ -597,7 +597,7 @@ async fn a_viewer_token_sees_no_control() {
     }
     let nav = text(&page, "#nav").await;
     assert!(
-        !nav.contains("Commissioning") && !nav.contains("Settings"),
+        !nav.contains("Commissioning") && !nav.contains("Settings") && !nav.contains("Gateway"),
         "{nav}"
     );
     assert_clean(&page, &daemon.url(""));

@@ -15,6 +15,7 @@ mod browser;
 mod comm_loss;
 mod diagnostics;
 mod freshness;
+mod gateway;
 mod harness;
 mod https;
 mod layout;

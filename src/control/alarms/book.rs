@@ -53,6 +53,9 @@ listed_enum! {
         /// found moving (it was unreadable, empty, only its header, or
         /// missing): `[safety] on_unknown_state` was applied to it.
         UnknownState,
+        /// A certificate the daemon serves or trusts expires within 30
+        /// days, or has expired (its `bus` is `certificate <thumbprint>`).
+        CertificateExpiring,
     }
 }
 
@@ -69,6 +72,7 @@ impl AlarmKind {
             AlarmKind::StopFailed => "stop-failed",
             AlarmKind::RefusedWrite => "refused-write",
             AlarmKind::UnknownState => "unknown-state",
+            AlarmKind::CertificateExpiring => "certificate-expiring",
         }
     }
 

@@ -285,10 +285,31 @@ impl Alarms {
                         .drive
                         .as_ref()
                         .is_some_and(|name| !directory.drives().any(|d| &d.name == name));
-                    bus.is_none() || drive_gone || a.kind == AlarmKind::StopFailed
+                    // A certificate's alarm is the certificate check's to
+                    // clear (it names no bus).
+                    let gone = bus.is_none() && a.kind != AlarmKind::CertificateExpiring;
+                    gone || drive_gone || a.kind == AlarmKind::StopFailed
                 },
                 now,
             )
+        });
+    }
+
+    /// Raises an alarm for each certificate in `expiring` (once while it
+    /// lasts) and clears those of certificates that no longer expire soon
+    /// (renewed, replaced, removed).
+    pub(crate) fn certificates_expiring(&self, expiring: Vec<Raise>) {
+        let keep: std::collections::HashSet<AlarmKey> =
+            expiring.iter().map(|r| r.key.clone()).collect();
+        self.apply(|book, now| {
+            let mut changes = book.clear_where(
+                |a| a.kind == AlarmKind::CertificateExpiring && !keep.contains(&a.key()),
+                now,
+            );
+            for raise in expiring {
+                changes.extend(book.raise(raise, now));
+            }
+            changes
         });
     }
 
