@@ -74,6 +74,7 @@ pub const ASSETS: &[Asset] = &[
     asset!("alarms.js", "console/alarms.js", JS),
     asset!("trends.js", "console/trends.js", JS),
     asset!("scan.js", "console/scan.js", JS),
+    asset!("gateway.js", "console/gateway.js", JS),
     asset!("pages/overview.js", "console/pages/overview.js", JS),
     asset!("pages/drive.js", "console/pages/drive.js", JS),
     asset!("pages/settings.js", "console/pages/settings.js", JS),
@@ -87,6 +88,9 @@ pub const ASSETS: &[Asset] = &[
     asset!("pages/alarms.js", "console/pages/alarms.js", JS),
     asset!("pages/scope.js", "console/pages/scope.js", JS),
     asset!("pages/monitor.js", "console/pages/monitor.js", JS),
+    asset!("pages/config.js", "console/pages/config.js", JS),
+    asset!("pages/tokens.js", "console/pages/tokens.js", JS),
+    asset!("pages/certificates.js", "console/pages/certificates.js", JS),
     asset!(
         "vendor/uplot/uPlot.iife.min.js",
         "vendor/uplot/uPlot.iife.min.js",

@@ -43,8 +43,10 @@
 pub mod api;
 pub mod bench;
 pub mod bus;
+pub mod certificate;
 pub mod clock;
 pub mod config;
+pub mod connections;
 pub mod console;
 pub mod control;
 pub mod daemon;

@@ -1,7 +1,24 @@
 //! The plant: every configured bus (with its simulator, if simulated) and
 //! the directory of drives by name. The faces resolve a drive here and then
 //! talk to its bus through the bus's handle.
+//!
+//! A reload changes the plant bus by bus, touching only what changed
+//! ([`Plant::apply`]): a bus whose port, baud rate or transport changed is
+//! stopped and started again; any other change of a bus (timing, poll
+//! rates, drives added, removed or renamed) is handed to its running
+//! scheduler, which takes it between two transactions without closing the
+//! port. A drive is the motor at a unit of a bus: it keeps its slot (its
+//! lease, its subscriptions, its status, its trends, its alarms) through a
+//! rename, and loses it only when it leaves, or when its bus moves to
+//! another port (other motors are behind it).
+//!
+//! The built-in simulator's drives belong to the simulated plant, not to a
+//! port: the plant keeps each simulated bus's [`SimDrives`] by bus name
+//! for as long as the bus is configured, so a bus reopened finds them as
+//! real drives would be (turning, in their mode, at their position); they
+//! go when the bus is removed, or stops being simulated.
 
+use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -14,38 +31,58 @@ use crate::bus::{BusHandle, Observers};
 use crate::config::{BusConfig, Config, Declared};
 use crate::monitor::BusMonitor;
 use crate::scope::Scope;
-use crate::sim::{SimHandle, Simulator};
+use crate::sim::{SimDrives, SimHandle, Simulator};
 
-/// One running bus.
+#[cfg(test)]
+mod served;
+#[cfg(test)]
+pub(crate) use served::served;
+
+/// How long a running bus may take to reach a transaction boundary and
+/// take its new settings before the reload goes on without it (they are
+/// taken when the transaction under way ends).
+const RETUNE_LIMIT: Duration = Duration::from_secs(15);
+
+/// One running bus, as configured now. A reload that changes the bus in
+/// place makes a new `Bus` with the new section around the same running
+/// parts (handle, thread, simulator, monitor, scope): compare running
+/// buses with [`Bus::is`], not by address.
 pub struct Bus {
     /// Its configuration.
     pub config: BusConfig,
     /// Its handle.
     pub handle: BusHandle,
     /// The built-in simulator behind it, for `port = "sim"` (it stops when
-    /// the last holder of a bus a reload removed lets it go).
-    pub sim: Option<SimHandle>,
+    /// the last holder of a bus a reload removed lets it go; its drives
+    /// are the plant's).
+    pub sim: Option<Arc<SimHandle>>,
     monitor: Arc<BusMonitor>,
     scope: Arc<Scope>,
-    thread: Mutex<Option<JoinHandle<()>>>,
+    thread: Arc<Mutex<Option<JoinHandle<()>>>>,
 }
 
 impl Bus {
-    /// Starts the bus of `bus_config` (and its simulator), with its monitor
-    /// and scope sized by `config`.
-    fn start(config: &Config, bus_config: &BusConfig) -> Result<Bus, PlantError> {
+    /// Starts the bus of `bus_config` (and its simulator, serving `drives`),
+    /// with its monitor and scope sized by `config`.
+    fn start(
+        config: &Config,
+        bus_config: &BusConfig,
+        drives: Option<&SimDrives>,
+    ) -> Result<Bus, PlantError> {
         let name = bus_config.name().to_string();
-        let sim = if bus_config.is_simulated() {
-            let sim = Simulator::start(bus_config.sim_config()).map_err(|source| {
-                PlantError::Simulator {
-                    bus: name.clone(),
-                    source,
-                }
-            })?;
-            info!(bus = %name, pty = %sim.port_path().display(), "built-in simulator running");
-            Some(sim)
-        } else {
-            None
+        let sim = match drives {
+            Some(drives) if bus_config.is_simulated() => {
+                let sim =
+                    Simulator::start_on(bus_config.sim_config(), drives).map_err(|source| {
+                        PlantError::Simulator {
+                            bus: name.clone(),
+                            source,
+                        }
+                    })?;
+                info!(bus = %name, pty = %sim.port_path().display(), "built-in simulator running");
+                Some(Arc::new(sim))
+            }
+            _ => None,
         };
         let port = match &sim {
             Some(sim) => sim.port_path().display().to_string(),
@@ -75,8 +112,42 @@ impl Bus {
             sim,
             monitor,
             scope,
-            thread: Mutex::new(Some(thread)),
+            thread: Arc::new(Mutex::new(Some(thread))),
         })
+    }
+
+    /// True when `self` and `other` are the same running bus (the same
+    /// thread and port), whatever section each was configured with.
+    pub fn is(&self, other: &Bus) -> bool {
+        self.handle.is(&other.handle)
+    }
+
+    /// The same running bus, configured with `config` (its changes taken
+    /// in place).
+    fn configured(&self, config: BusConfig) -> Bus {
+        Bus {
+            config,
+            handle: self.handle.clone(),
+            sim: self.sim.clone(),
+            monitor: self.monitor.clone(),
+            scope: self.scope.clone(),
+            thread: self.thread.clone(),
+        }
+    }
+
+    /// The scheduler's settings for `bus_config`, on this bus's port (its
+    /// simulator's pty for a simulated bus), watched by its observers.
+    fn settings(&self, bus_config: &BusConfig) -> crate::bus::scheduler::BusSettings {
+        let port = match &self.sim {
+            Some(sim) => sim.port_path().display().to_string(),
+            None => bus_config.port.get_ref().clone(),
+        };
+        let mut settings = bus_config.settings(&port);
+        settings.observers = Observers {
+            wire: vec![self.monitor.clone(), self.scope.clone()],
+            steering: Some(self.scope.clone()),
+        };
+        settings
     }
 
     /// Waits (at most 5 s) for the bus's thread after a stop.
@@ -104,14 +175,15 @@ impl Bus {
     }
 }
 
-/// A bus's simulator, held with its bus: a reload may take the bus out of
-/// the plant, and the simulator stops only when the last holder lets go.
-pub struct SimRef(Arc<Bus>);
+/// A bus's simulator, held: a reload may take the bus out of the plant,
+/// and the simulator stops only when the last holder lets go. Its drives
+/// are the plant's: a reopened bus's new simulator serves the same ones.
+pub struct SimRef(Arc<SimHandle>);
 
 impl SimRef {
     /// The simulator of `bus`, if it is simulated.
     pub fn of(bus: Arc<Bus>) -> Option<SimRef> {
-        bus.sim.is_some().then_some(SimRef(bus))
+        bus.sim.clone().map(SimRef)
     }
 }
 
@@ -119,11 +191,7 @@ impl std::ops::Deref for SimRef {
     type Target = SimHandle;
 
     fn deref(&self) -> &SimHandle {
-        match &self.0.sim {
-            Some(sim) => sim,
-            // `of` makes a SimRef only of a simulated bus.
-            None => unreachable!("a SimRef of a bus without a simulator"),
-        }
+        &self.0
     }
 }
 
@@ -320,17 +388,25 @@ pub struct Plant {
     directory: watch::Sender<Arc<Directory>>,
     /// One change at a time.
     changing: tokio::sync::Mutex<()>,
+    /// The drives of each simulated bus, by bus name: the simulated plant,
+    /// kept while the bus is configured, whatever becomes of its port.
+    sims: Mutex<BTreeMap<String, SimDrives>>,
 }
 
-/// A bus a part follows: its slot, the bus (not kept alive for it), the
-/// token that ends what was started for it.
-type Running = (usize, std::sync::Weak<Bus>, CancellationToken);
+/// A bus a part follows: its slot, the running bus (its handle), the token
+/// that ends what was started for it.
+type Running = (usize, BusHandle, CancellationToken);
 
-/// What a reload asks of the plant, bus by bus.
+/// What a reload asks of the plant, bus by bus; every other bus whose
+/// section changed takes it in place.
 #[derive(Debug, Default)]
 pub struct Rebuild {
     /// Buses to stop and start again with their new section, by name.
     pub reopen: Vec<String>,
+    /// Of those, buses moved to another port: other motors are behind it,
+    /// so their drives take new slots (they were stopped before, as
+    /// drives removed are).
+    pub moved: Vec<String>,
 }
 
 impl Plant {
@@ -338,8 +414,18 @@ impl Plant {
     pub fn start(config: &Config) -> Result<Plant, PlantError> {
         let mut buses = Vec::new();
         let mut drives = Vec::new();
+        let mut sims = BTreeMap::new();
         for (index, bus_config) in config.buses.iter().enumerate() {
-            buses.push(Some(Arc::new(Bus::start(config, bus_config)?)));
+            let sim = bus_config.is_simulated().then(|| {
+                let drives = SimDrives::new(&bus_config.sim_config());
+                sims.insert(bus_config.name().to_string(), drives.clone());
+                drives
+            });
+            buses.push(Some(Arc::new(Bus::start(
+                config,
+                bus_config,
+                sim.as_ref(),
+            )?)));
             for d in &bus_config.drives {
                 drives.push(Some(Drive {
                     name: d.name().to_string(),
@@ -358,6 +444,7 @@ impl Plant {
         Ok(Plant {
             directory,
             changing: tokio::sync::Mutex::new(()),
+            sims: Mutex::new(sims),
         })
     }
 
@@ -400,10 +487,8 @@ impl Plant {
         let shutdown = shutdown.clone();
         let mut running: Vec<Running> = Vec::new();
         let step = move |now: &Directory, running: &mut Vec<Running>| {
-            running.retain(|(i, bus, stop)| {
-                let same = now
-                    .bus_at(*i)
-                    .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()));
+            running.retain(|(i, handle, stop)| {
+                let same = now.bus_at(*i).is_some_and(|b| b.handle.is(handle));
                 if !same {
                     stop.cancel();
                 }
@@ -414,7 +499,7 @@ impl Plant {
                     continue;
                 }
                 let stop = shutdown.child_token();
-                running.push((index, Arc::downgrade(bus), stop.clone()));
+                running.push((index, bus.handle.clone(), stop.clone()));
                 start(index, bus, stop);
             }
         };
@@ -459,12 +544,16 @@ impl Plant {
     }
 
     /// Applies `config` to the running plant: buses gone are stopped,
-    /// buses in `rebuild.reopen` stopped and started again, new buses
-    /// started; drives keep their slot while their name, bus and unit stay
-    /// the same. Every drive that leaves must have been stopped before
-    /// (the control core's `retire`). Buses that do not change are not
-    /// touched. Returns the problems of buses that did not start (their
-    /// slot stays empty, their drives unconfigured until the next reload).
+    /// buses in `rebuild.reopen` stopped and started again (a simulated
+    /// one on the same simulated drives), new buses started; every other
+    /// bus whose section changed takes it in place, its port kept open
+    /// (its simulated drives follow it: one added is wired in). A drive keeps its
+    /// slot while its bus and its unit stay the same, whatever its name,
+    /// unless its bus is in `rebuild.moved`. Every drive that leaves must
+    /// have been stopped before (the control core's `retire`). Buses that
+    /// do not change are not touched. Returns the problems: buses that did
+    /// not start (their slot stays empty, their drives unconfigured until
+    /// the next reload), new settings a bus did not take in time.
     pub async fn apply(&self, config: &Config, rebuild: &Rebuild) -> Vec<String> {
         let _one = self.changing.lock().await;
         let old = self.now();
@@ -487,17 +576,41 @@ impl Plant {
         for bus in stopping {
             bus.join().await;
         }
-        // Start what is new or reopens, each in its slot.
+        // The simulated plant follows the file: a bus removed, or no
+        // longer simulated, takes its drives with it.
+        lock(&self.sims).retain(|name, _| {
+            config
+                .buses
+                .iter()
+                .any(|b| b.name() == name && b.is_simulated())
+        });
+        // Change in place what stays, start what is new or reopens, each
+        // in its slot.
         for bus_config in &config.buses {
             let name = bus_config.name();
             let slot = old
                 .buses
                 .iter()
                 .position(|b| b.as_ref().is_some_and(|b| b.handle.name() == name));
-            if slot.is_some_and(|s| buses[s].is_some()) {
+            if let Some(s) = slot
+                && let Some(running) = buses[s].clone()
+            {
+                if running.config != *bus_config {
+                    if let Err(problem) = self.retune(&running, bus_config).await {
+                        warn!("{problem}");
+                        failed.push(problem);
+                    }
+                    buses[s] = Some(Arc::new(running.configured(bus_config.clone())));
+                }
                 continue;
             }
-            let bus = match Bus::start(config, bus_config) {
+            let sim = bus_config.is_simulated().then(|| {
+                lock(&self.sims)
+                    .entry(name.to_string())
+                    .or_insert_with(|| SimDrives::new(&bus_config.sim_config()))
+                    .clone()
+            });
+            let bus = match Bus::start(config, bus_config, sim.as_ref()) {
                 Ok(bus) => Some(Arc::new(bus)),
                 Err(e) => {
                     warn!("{e}");
@@ -510,36 +623,7 @@ impl Plant {
                 None => buses.push(bus),
             }
         }
-        // Drives: the same name, bus and unit keep their slot.
-        let slot_of_bus = |name: &str| {
-            buses
-                .iter()
-                .position(|b| b.as_ref().is_some_and(|b| b.handle.name() == name))
-        };
-        let mut drives: Vec<Option<Drive>> = vec![None; old.drives.len()];
-        for bus_config in &config.buses {
-            let Some(bus) = slot_of_bus(bus_config.name()) else {
-                continue;
-            };
-            for d in &bus_config.drives {
-                let drive = Drive {
-                    name: d.name().to_string(),
-                    bus,
-                    unit: d.unit(),
-                    gear_ratio: d.gear_ratio,
-                    declared: d.declared(),
-                };
-                let kept = old.drives.iter().position(|o| {
-                    o.as_ref().is_some_and(|o| {
-                        o.name == drive.name && o.bus == bus && o.unit == drive.unit
-                    })
-                });
-                match kept {
-                    Some(i) => drives[i] = Some(drive),
-                    None => drives.push(Some(drive)),
-                }
-            }
-        }
+        let drives = slots(&old, &buses, config, rebuild);
         let version = old.version + 1;
         self.directory.send_replace(Arc::new(Directory {
             buses,
@@ -547,6 +631,33 @@ impl Plant {
             version,
         }));
         failed
+    }
+
+    /// Hands `new` to the running `bus` and waits until its scheduler took
+    /// it (at its next transaction boundary); a simulated bus's drives
+    /// follow it first, so that a drive added is on the line for its first
+    /// poll.
+    async fn retune(&self, bus: &Bus, new: &BusConfig) -> Result<(), String> {
+        let name = new.name();
+        if bus.sim.is_some()
+            && let Some(sim) = lock(&self.sims).get(name)
+        {
+            sim.follow(&new.sim_config());
+        }
+        let units: Vec<u8> = new.drives.iter().map(|d| d.unit()).collect();
+        bus.monitor.set_units(units.clone());
+        bus.scope.set_units(units);
+        let taken = bus.handle.retune(bus.settings(new));
+        match tokio::time::timeout(RETUNE_LIMIT, taken).await {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(_)) => Err(format!(
+                "bus {name}: its new settings were not taken: the bus has stopped"
+            )),
+            Err(_) => Err(format!(
+                "bus {name}: its new settings wait for the transaction under way, longer than {} s",
+                RETUNE_LIMIT.as_secs()
+            )),
+        }
     }
 
     /// Takes no new work on any bus (the first step of the shutdown stop,
@@ -571,47 +682,55 @@ impl Plant {
     }
 }
 
-/// A plant of `config`'s drives whose buses have no port, simulator or
-/// scheduler: each bus's handle is given, its jobs taken off its queue and
-/// answered by the test (the model of the control core, `control/model/`).
-#[cfg(test)]
-pub(crate) fn served(config: &Config, handles: Vec<BusHandle>) -> Plant {
-    let mut buses = Vec::new();
-    let mut drives = Vec::new();
-    for (index, (bus_config, handle)) in config.buses.iter().zip(handles).enumerate() {
-        let units: Vec<u8> = bus_config.drives.iter().map(|d| d.unit()).collect();
-        let line = handle.line();
-        buses.push(Some(Arc::new(Bus {
-            config: bus_config.clone(),
-            handle,
-            sim: None,
-            monitor: Arc::new(BusMonitor::new(
-                config.monitor.settings(),
-                line,
-                units.clone(),
-            )),
-            scope: Arc::new(Scope::new(config.scope.settings(), line, units)),
-            thread: Mutex::new(None),
-        })));
+/// The drive slots of `config` on `buses` after a reload from `old`: a
+/// drive keeps its slot while its bus (by name) and its unit stay the same,
+/// whatever its name, unless its bus moved to another port
+/// (`rebuild.moved`); a drive new to the plant takes a new slot; a slot
+/// left is never reused.
+fn slots(
+    old: &Directory,
+    buses: &[Option<Arc<Bus>>],
+    config: &Config,
+    rebuild: &Rebuild,
+) -> Vec<Option<Drive>> {
+    let slot_of_bus = |name: &str| {
+        buses
+            .iter()
+            .position(|b| b.as_ref().is_some_and(|b| b.handle.name() == name))
+    };
+    let mut drives: Vec<Option<Drive>> = vec![None; old.drives.len()];
+    for bus_config in &config.buses {
+        let Some(bus) = slot_of_bus(bus_config.name()) else {
+            continue;
+        };
+        let moved = rebuild.moved.iter().any(|m| m == bus_config.name());
         for d in &bus_config.drives {
-            drives.push(Some(Drive {
+            let drive = Drive {
                 name: d.name().to_string(),
-                bus: index,
+                bus,
                 unit: d.unit(),
                 gear_ratio: d.gear_ratio,
                 declared: d.declared(),
-            }));
+            };
+            let kept = old
+                .drives
+                .iter()
+                .position(|o| {
+                    o.as_ref()
+                        .is_some_and(|o| o.bus == bus && o.unit == drive.unit)
+                })
+                .filter(|_| !moved);
+            match kept {
+                Some(i) => drives[i] = Some(drive),
+                None => drives.push(Some(drive)),
+            }
         }
     }
-    let (directory, _) = watch::channel(Arc::new(Directory {
-        buses,
-        drives,
-        version: 0,
-    }));
-    Plant {
-        directory,
-        changing: tokio::sync::Mutex::new(()),
-    }
+    drives
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 #[cfg(test)]

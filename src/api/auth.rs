@@ -49,6 +49,9 @@ pub struct Tokens {
     /// reload changes it.
     follower: Option<Arc<crate::control::reload::ConfigFollower>>,
     throttle: Arc<Mutex<Throttle>>,
+    /// When each token (by digest, so a token made again under the same
+    /// name starts afresh) was last presented, since the listener started.
+    used: Arc<Mutex<std::collections::HashMap<[u8; 32], std::time::SystemTime>>>,
 }
 
 impl std::fmt::Debug for Tokens {
@@ -131,6 +134,7 @@ impl Tokens {
                 burst: guesses,
                 ..Policy::default()
             }))),
+            used: Arc::default(),
         })
     }
 
@@ -202,7 +206,23 @@ impl Tokens {
                 found = Some((entry.name.clone(), entry.role));
             }
         }
+        if found.is_some() {
+            self.used
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .insert(digest, std::time::SystemTime::now());
+        }
         found
+    }
+
+    /// When each token in use was last presented (by name), since this
+    /// listener started; a token not presented since is absent.
+    pub fn last_used(&self) -> std::collections::HashMap<String, std::time::SystemTime> {
+        let used = self.used.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        self.entries()
+            .iter()
+            .filter_map(|e| used.get(&e.digest).map(|at| (e.name.to_string(), *at)))
+            .collect()
     }
 }
 

@@ -28,8 +28,15 @@ pub struct ReloadReply {
     /// sections applied, what applies only at the next start; `no change`
     /// when the file is the running one.
     pub changes: Vec<String>,
-    /// Drives that were removed while moving, and what stopped them.
+    /// Every drive whose motion the reload changed, and why: drives that
+    /// were removed while moving (or whose bus moved to another port) and
+    /// what stopped them, and drives that report another motion after
+    /// their bus reopened than before it.
     pub stopped: Vec<String>,
+    /// Drives whose polling paused while their bus reopened (its port,
+    /// baud rate or transport changed), and for how long; a change applied
+    /// in place pauses nothing.
+    pub paused: Vec<String>,
     /// What could not be done: a bus whose port did not open stays out of
     /// the plant until the next reload.
     pub problems: Vec<String>,
@@ -40,6 +47,7 @@ impl From<Applied> for ReloadReply {
         ReloadReply {
             changes: a.changes,
             stopped: a.stopped,
+            paused: a.paused,
             problems: a.problems,
         }
     }
@@ -58,7 +66,9 @@ pub enum ReloadProblems {
     #[response(status = 403, content_type = "application/problem+json")]
     Forbidden(ProblemDetails),
     /// `config-changed`: the file changed on disk since it was read;
-    /// `no-config-file`: drivegate was started without `--config`.
+    /// `no-config-file`: drivegate was started without `--config`;
+    /// `config-read-only`: drivegate may not write its file (nothing was
+    /// written).
     #[response(status = 409, content_type = "application/problem+json")]
     Conflict(ProblemDetails),
     /// `config-invalid`: the file does not pass `drivegate check-config`
@@ -100,6 +110,7 @@ pub fn render(caller: &Caller, result: ReloadResult) -> Result<Json<ReloadReply>
             format!("the configuration was not reloaded, the running one stays: {why}"),
         )),
         Err(Refused::Changed(why)) => Err(Problem::new(Kind::ConfigChanged, why)),
+        Err(Refused::NotWritten(why)) => Err(Problem::new(Kind::ConfigReadOnly, why)),
         Err(Refused::Unavailable(why)) => Err(Problem::new(Kind::NoConfigFile, why)),
         Err(Refused::Refused(refusal)) => Err(match refusal.rule {
             Rule::Role { needed, .. } => forbidden(caller, needed),
@@ -220,10 +231,15 @@ pub async fn post_drives(
             "base_sha256 is needed to write: send the sha256 a dry run answered",
         ));
     };
-    let write = NewText {
-        text: new,
-        base_sha256: base,
-    };
+    let names: Vec<&str> = drives.iter().map(|d| d.name.as_str()).collect();
+    let mut write = NewText::new(
+        &text,
+        new,
+        format!("drives added to bus {}: {}", body.bus, names.join(", ")),
+    );
+    // The text was made from the file read now; the client's dry run read
+    // the one it answered, which the reloader compares with the disk.
+    write.base_sha256 = base;
     let Json(reloaded) = render(&caller, state.control.reload(&caller, Some(write)).await)?;
     reply.reload = Some(reloaded);
     Ok(Json(reply))

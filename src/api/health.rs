@@ -75,6 +75,69 @@ pub struct Readiness {
     /// drivegate unready: the drives work without it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub opcua: Option<OpcUaReadiness>,
+    /// The faces whose task crashed since start-up (a panic, or an end
+    /// nobody asked for): down and waiting to be started again, or
+    /// serving again. Empty while none did. A face down does not make
+    /// drivegate unready: the drives and the other faces work on.
+    pub faces: Vec<FaceReadiness>,
+    /// The Modbus TCP listener, when it runs: its connections and what it
+    /// refused lately. It does not make drivegate unready.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub modbus_tcp: Option<super::listeners::ListenerReadiness>,
+    /// The Modbus/TCP Security listener, when it runs, likewise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub modbus_tls: Option<super::listeners::ListenerReadiness>,
+}
+
+/// A face that crashed, in `/readyz`.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+pub struct FaceReadiness {
+    /// `http`, `modbus_tcp`, `modbus_tls`, `mqtt` or `opcua`.
+    pub face: String,
+    /// Its name in words ("MQTT face").
+    pub name: String,
+    /// Serving now; false while down, waiting to be started again.
+    pub serving: bool,
+    /// Why it is down, in words ("it panicked: ..."); absent while it
+    /// serves.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub down_why: Option<String>,
+    /// Since when it is down (RFC 3339).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub down_since: Option<String>,
+    /// When it is started again (RFC 3339).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub restart_at: Option<String>,
+    /// Times it was started again after a crash.
+    pub restarts: u64,
+    /// The last crash, in words.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_crash: Option<String>,
+    /// When that was (RFC 3339).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_crash_at: Option<String>,
+}
+
+/// The faces that crashed, as `/readyz` and the console show them.
+pub fn faces_readiness(state: &ApiState) -> Vec<FaceReadiness> {
+    let rfc = crate::timestamp::rfc3339;
+    state
+        .metrics
+        .face_health()
+        .states()
+        .into_iter()
+        .map(|s| FaceReadiness {
+            face: s.face.key().to_string(),
+            name: s.face.name().to_string(),
+            serving: s.down.is_none(),
+            down_why: s.down.as_ref().map(|d| d.why.clone()),
+            down_since: s.down.as_ref().map(|d| rfc(d.since)),
+            restart_at: s.down.as_ref().map(|d| rfc(d.restart_at)),
+            restarts: s.restarts,
+            last_crash_at: s.last_crash.as_ref().map(|(at, _)| rfc(*at)),
+            last_crash: s.last_crash.map(|(_, why)| why),
+        })
+        .collect()
 }
 
 /// The OPC UA server in `/readyz`.
@@ -238,6 +301,15 @@ pub fn readiness(state: &ApiState) -> Readiness {
         },
         mqtt: mqtt_readiness(state),
         opcua: opcua_readiness(state),
+        faces: faces_readiness(state),
+        modbus_tcp: super::listeners::readiness(
+            &state.metrics,
+            crate::connections::words::MODBUS_TCP,
+        ),
+        modbus_tls: super::listeners::readiness(
+            &state.metrics,
+            crate::connections::words::MODBUS_TLS,
+        ),
     }
 }
 

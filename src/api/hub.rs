@@ -7,7 +7,6 @@
 //! dashboards cheap; a broadcast send never waits, so clients can never
 //! slow the bus.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 
 use axum::extract::ws::Utf8Bytes;
@@ -172,21 +171,17 @@ async fn forward_control(
 }
 
 /// Forwards the events of every bus, following the plant: a bus a reload
-/// adds or reopens gets its forwarder (with the units of its drives), one
-/// it removes or reopens loses its own.
+/// adds or reopens gets its forwarder, one it removes or reopens loses its
+/// own. Each event's drive is looked up when it comes: a bus changed in
+/// place keeps its forwarder, with its drives as they are now (added,
+/// removed, renamed).
 fn follow_buses(hub: &Arc<Hub>, plant: &Arc<Plant>, shutdown: &CancellationToken) {
     let (hub, forwarded) = (hub.clone(), plant.clone());
     plant.for_each_bus(shutdown, move |bus_index, bus, stop| {
-        let units: HashMap<u8, usize> = forwarded
-            .now()
-            .indexed_drives()
-            .filter(|(_, d)| d.bus == bus_index)
-            .map(|(i, d)| (d.unit, i))
-            .collect();
         tokio::spawn(forward(
             hub.clone(),
             forwarded.clone(),
-            units,
+            bus_index,
             bus.handle.subscribe(),
             stop,
         ));
@@ -196,15 +191,17 @@ fn follow_buses(hub: &Arc<Hub>, plant: &Arc<Plant>, shutdown: &CancellationToken
 async fn forward(
     hub: Arc<Hub>,
     plant: Arc<Plant>,
-    units: HashMap<u8, usize>,
+    bus_index: usize,
     mut rx: broadcast::Receiver<BusEvent>,
     shutdown: CancellationToken,
 ) {
-    let name = |i: usize| {
-        plant
-            .now()
-            .drive_at(i)
-            .map_or_else(String::new, |d| d.name.clone())
+    // The slot and the name of the drive at `unit` now (a scan reads units
+    // that are not configured: not news).
+    let drive_at = |unit: u8| {
+        let now = plant.now();
+        now.indexed_drives()
+            .find(|(_, d)| d.bus == bus_index && d.unit == unit)
+            .map(|(i, d)| (i, d.name.clone()))
     };
     loop {
         let event = tokio::select! {
@@ -218,10 +215,16 @@ async fn forward(
                 status,
                 at,
             }) => {
-                // A scan reads units that are not configured: not news.
-                let Some(&i) = units.get(&unit) else { continue };
+                // A scan reads units that are not configured: not news. And
+                // a status nobody's stream is open for is not written out.
+                if hub.tx.receiver_count() == 0 {
+                    continue;
+                }
+                let Some((i, drive)) = drive_at(unit) else {
+                    continue;
+                };
                 let message = StreamMessage::Status {
-                    drive: name(i),
+                    drive,
                     bus: bus.to_string(),
                     unit,
                     seen_at: rfc3339(at),
@@ -230,18 +233,22 @@ async fn forward(
                 (Some(i), message.into())
             }
             Ok(BusEvent::Online { bus, unit }) => {
-                let Some(&i) = units.get(&unit) else { continue };
+                let Some((i, drive)) = drive_at(unit) else {
+                    continue;
+                };
                 let message = DriveMessage::Online {
-                    drive: name(i),
+                    drive,
                     bus: bus.to_string(),
                     unit,
                 };
                 (Some(i), message.into())
             }
             Ok(BusEvent::Offline { bus, unit, reason }) => {
-                let Some(&i) = units.get(&unit) else { continue };
+                let Some((i, drive)) = drive_at(unit) else {
+                    continue;
+                };
                 let message = DriveMessage::Offline {
-                    drive: name(i),
+                    drive,
                     bus: bus.to_string(),
                     unit,
                     reason,

@@ -2,15 +2,18 @@
 //! many connections it serves at once, and from one address, and the
 //! socket options of each.
 //!
-//! The connection limit is a semaphore: a connection holds a permit for as
-//! long as it lives, WebSocket or keep-alive included. Over the limit a
-//! client gets a short `503 too-many-connections` and the socket is closed,
-//! so a flood of clients cannot exhaust the small box's file descriptors or
-//! memory while the clients already connected keep working. One address
-//! (an IPv6 host by its /64) holds at most `max_connections_per_address`
-//! of them, so one client, or one attacker's host, cannot take every slot
-//! and lock the others (the admin included) out; its refusals are logged
-//! once per burst.
+//! A connection holds its place in the listener's budget
+//! (`crate::connections`) for as long as it lives, WebSocket or keep-alive
+//! included. Addresses share every free slot; near `max_connections`, or
+//! near the process's file limit, the heaviest address gives way first
+//! (an IPv6 host counts by its /64): its new connections get a short `503
+//! too-many-connections` and are closed, and once the listener is full a
+//! quiet connection of it is closed for a client of a lighter address, so
+//! one client, or one attacker's host, cannot lock the others (the admin
+//! included) out, and a flood cannot exhaust the small box's file
+//! descriptors or memory. `max_connections_per_address`, when set, is a
+//! hard cap. Refusals are counted per address and logged once per address
+//! and second at most; accept errors back off.
 //!
 //! Permits must come back, so connections cannot live forever unattended:
 //! one that has not sent a whole request head within `[http]
@@ -19,13 +22,12 @@
 //! finds peers that vanished without a word (power cut, cable pulled), and
 //! `TCP_USER_TIMEOUT` drops a peer that stops acknowledging data.
 
-use std::collections::HashMap;
 use std::future::Future;
 use std::io;
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::pin::Pin;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::Duration;
 
@@ -34,9 +36,11 @@ use tokio::time::{Instant, Sleep};
 use axum::serve::Listener;
 use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tokio::sync::Semaphore;
 
 use super::problem_response::{Kind, Problem};
+use crate::connections::accept::AcceptErrors;
+use crate::connections::{Guarded, Listener as Budget, Refused};
 use crate::metrics::{Metrics, OpenConnection};
 
 /// Where to bind: `listen`, or with no tokens the loopback address of the
@@ -67,8 +71,9 @@ const USER_TIMEOUT: Duration = Duration::from_secs(60);
 pub struct Limits {
     /// Connections at once.
     pub max: usize,
-    /// Connections at once from one address (an IPv6 host by its /64).
-    pub per_address: usize,
+    /// A hard cap on the connections of one address (an IPv6 host by its
+    /// /64), when configured.
+    pub per_address: Option<usize>,
     /// Kernel send buffer per connection, bytes (0: the system's).
     pub send_buffer: usize,
     /// A connection that moves no byte for this long is closed.
@@ -87,28 +92,35 @@ impl Limits {
     }
 }
 
-/// A TCP listener that serves at most `max` connections at once, and
-/// `per_address` from one address.
+/// A TCP listener whose connections each hold a place in its budget.
 pub struct LimitedListener {
     inner: TcpListener,
     limits: Limits,
-    permits: Arc<Semaphore>,
-    addresses: Arc<Addresses>,
+    budget: Arc<Budget>,
     refusals: Arc<Semaphore>,
-    bursts: Bursts,
+    errors: AcceptErrors,
     metrics: Arc<Metrics>,
 }
 
 impl LimitedListener {
     /// Wraps `inner` with `limits`, counting in `metrics`.
     pub fn new(inner: TcpListener, limits: Limits, metrics: Arc<Metrics>) -> Self {
+        let budget = metrics.listeners().listener(
+            crate::connections::words::HTTP,
+            crate::connections::Limits {
+                max: limits.max,
+                per_address: limits.per_address,
+            },
+        );
+        if let Ok(bound) = inner.local_addr() {
+            budget.set_bound(bound);
+        }
         Self {
             inner,
             limits,
-            permits: Arc::new(Semaphore::new(limits.max)),
-            addresses: Arc::default(),
+            budget,
             refusals: Arc::new(Semaphore::new(REFUSALS_IN_FLIGHT)),
-            bursts: Bursts::default(),
+            errors: AcceptErrors::new(crate::connections::words::HTTP),
             metrics,
         }
     }
@@ -128,33 +140,12 @@ impl LimitedListener {
         let _ = socket.set_tcp_user_timeout(Some(USER_TIMEOUT));
     }
 
-    /// Refuses `stream` from `addr` for `why`: counted, logged once per
-    /// burst, answered 503 while few refusals are in flight (a flood is
-    /// closed unanswered).
-    fn refuse(&mut self, stream: TcpStream, addr: SocketAddr, why: Refusal) {
-        let (reason, key) = match why {
-            Refusal::Limit => ("limit", None),
-            Refusal::PerAddress => ("per_address", Some(super::throttle::key(addr.ip()))),
-        };
-        self.metrics.security().http_refused(reason);
-        if self.bursts.begins(key, std::time::Instant::now()) {
-            match why {
-                Refusal::Limit => tracing::warn!(
-                    listener = %self.inner.local_addr().map_or_else(|e| e.to_string(), |a| a.to_string()),
-                    "HTTP connections refused: {} are open ([http] max_connections); new ones are answered 503 until some close (logged once per burst, counted in drivegate_http_connections_refused_total)",
-                    self.limits.max
-                ),
-                Refusal::PerAddress => tracing::warn!(
-                    client = %addr.ip(),
-                    listener = %self.inner.local_addr().map_or_else(|e| e.to_string(), |a| a.to_string()),
-                    "HTTP connections from {} refused: it holds {} already ([http] max_connections_per_address); its new ones are answered 503 until some close (logged once per burst, counted in drivegate_http_connections_refused_total)",
-                    addr.ip(),
-                    self.limits.per_address
-                ),
-            }
-        } else {
-            tracing::debug!(client = %addr, "HTTP connection refused ({reason})");
-        }
+    /// Refuses `stream` for `why` (counted and logged by the budget):
+    /// answered 503 while few refusals are in flight (a flood is closed
+    /// unanswered).
+    fn refuse(&self, stream: TcpStream, addr: SocketAddr, why: Refused) {
+        self.metrics.security().http_refused(why.label());
+        tracing::debug!(client = %addr, "HTTP connection refused ({})", why.label());
         if let Ok(slot) = self.refusals.clone().try_acquire_owned() {
             tokio::spawn(async move {
                 refuse(stream, why).await;
@@ -164,23 +155,17 @@ impl LimitedListener {
     }
 }
 
-/// Why a connection was refused.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Refusal {
-    /// `max_connections` are open.
-    Limit,
-    /// Its address holds `max_connections_per_address`.
-    PerAddress,
-}
-
 /// The answer to a connection refused for `why`, sent before closing it.
-fn over_limit_response(why: Refusal) -> Vec<u8> {
+fn over_limit_response(why: Refused) -> Vec<u8> {
     let detail = match why {
-        Refusal::Limit => {
-            "drivegate serves a limited number of connections at once ([http] max_connections); close idle ones or retry shortly"
+        Refused::Limit | Refused::Heaviest => {
+            "drivegate serves a limited number of connections at once ([http] max_connections), and yours is the address holding the most; close idle ones or retry shortly"
         }
-        Refusal::PerAddress => {
+        Refused::PerAddress => {
             "your address holds as many connections as one address may ([http] max_connections_per_address); close idle ones or retry shortly"
+        }
+        Refused::Files => {
+            "drivegate is near its limit of open files, and yours is the address holding the most connections; close idle ones or retry shortly"
         }
     };
     let problem = Problem::new(Kind::TooManyConnections, detail).retry_after(1);
@@ -204,7 +189,7 @@ const REFUSAL_WAIT: Duration = Duration::from_millis(500);
 /// [`REFUSAL_WAIT`]), then reads what the client sent until it closes (or
 /// 1 s), so the answer is not lost to a reset. An HTTP client takes an
 /// answer that comes before its request for a broken server, not a refusal.
-async fn refuse(mut stream: TcpStream, why: Refusal) {
+async fn refuse(mut stream: TcpStream, why: Refused) {
     let mut sink = [0u8; 1024];
     let _ = tokio::time::timeout(
         REFUSAL_WAIT,
@@ -229,36 +214,26 @@ impl Listener for LimitedListener {
             let (stream, addr) = match self.inner.accept().await {
                 Ok(pair) => pair,
                 Err(e) => {
-                    // Out of descriptors or similar: wait instead of spinning.
-                    if !matches!(
-                        e.kind(),
-                        io::ErrorKind::ConnectionAborted | io::ErrorKind::ConnectionReset
-                    ) {
-                        tracing::warn!("accepting an HTTP connection failed: {e}");
-                        tokio::time::sleep(Duration::from_millis(100)).await;
-                    }
+                    // Out of descriptors or similar: back off, not spin.
+                    let pause = self.errors.failed(&e);
+                    tokio::time::sleep(pause).await;
                     continue;
                 }
             };
-            // The address's share first: a full one must not take a
-            // permit another address could use.
-            let Some(address) = self.addresses.take(addr.ip(), self.limits.per_address) else {
-                self.refuse(stream, addr, Refusal::PerAddress);
-                continue;
-            };
-            let Ok(permit) = self.permits.clone().try_acquire_owned() else {
-                drop(address);
-                self.refuse(stream, addr, Refusal::Limit);
-                continue;
+            self.errors.accepted();
+            let ticket = match self.budget.admit(addr.ip()) {
+                Ok(ticket) => ticket,
+                Err(why) => {
+                    self.refuse(stream, addr, why);
+                    continue;
+                }
             };
             self.configure(&stream);
             let held = Held {
-                _permit: permit,
-                _address: address,
                 _open: self.metrics.security().http_connection(),
             };
             return (
-                LimitedStream::new(stream, held, self.limits.idle_timeout),
+                LimitedStream::new(Guarded::new(stream, ticket), held, self.limits.idle_timeout),
                 addr,
             );
         }
@@ -269,72 +244,10 @@ impl Listener for LimitedListener {
     }
 }
 
-/// What a connection holds until it closes: its permit, its address's
-/// share, its place in the open-connections gauge.
+/// What a connection holds until it closes besides its place in the
+/// budget: its place in the open-connections gauge.
 struct Held {
-    _permit: OwnedSemaphorePermit,
-    _address: AddressSlot,
     _open: OpenConnection,
-}
-
-/// How many connections each address holds (IPv6 hosts by their /64).
-#[derive(Debug, Default)]
-struct Addresses(Mutex<HashMap<IpAddr, usize>>);
-
-impl Addresses {
-    /// One more connection from `ip`, unless it holds `max` already.
-    fn take(self: &Arc<Self>, ip: IpAddr, max: usize) -> Option<AddressSlot> {
-        let key = super::throttle::key(ip);
-        let mut held = self.0.lock().unwrap_or_else(|p| p.into_inner());
-        let n = held.entry(key).or_insert(0);
-        if *n >= max {
-            return None;
-        }
-        *n += 1;
-        Some(AddressSlot {
-            table: self.clone(),
-            key,
-        })
-    }
-}
-
-/// One connection's share of its address; given back when dropped.
-#[derive(Debug)]
-struct AddressSlot {
-    table: Arc<Addresses>,
-    key: IpAddr,
-}
-
-impl Drop for AddressSlot {
-    fn drop(&mut self) {
-        let mut held = self.table.0.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(n) = held.get_mut(&self.key) {
-            *n = n.saturating_sub(1);
-            if *n == 0 {
-                held.remove(&self.key);
-            }
-        }
-    }
-}
-
-/// A refusal burst ends after this long without a refusal (of that
-/// address, or of the limit): the next one is logged again.
-const BURST_GAP: std::time::Duration = std::time::Duration::from_secs(10);
-
-/// When each address (`None`: the whole listener's limit) was last
-/// refused, so a burst of refusals is logged once.
-#[derive(Debug, Default)]
-struct Bursts(HashMap<Option<IpAddr>, std::time::Instant>);
-
-impl Bursts {
-    /// Notes a refusal of `key` at `now`; true when it begins a burst.
-    fn begins(&mut self, key: Option<IpAddr>, now: std::time::Instant) -> bool {
-        if self.0.len() > 4096 {
-            self.0.retain(|_, at| now.duration_since(*at) < BURST_GAP);
-        }
-        let last = self.0.insert(key, now);
-        last.is_none_or(|at| now.duration_since(at) >= BURST_GAP)
-    }
 }
 
 /// What the server tells of a connection's requests, and the stream of
@@ -362,7 +275,7 @@ impl Activity {
 
 /// A connection holding its permit until it closes, closed when idle.
 pub struct LimitedStream {
-    stream: TcpStream,
+    stream: Guarded<TcpStream>,
     _held: Held,
     activity: Arc<Activity>,
     idle_timeout: Duration,
@@ -373,7 +286,7 @@ pub struct LimitedStream {
 impl LimitedStream {
     /// The address the connection arrived at.
     pub fn local_addr(&self) -> io::Result<SocketAddr> {
-        self.stream.local_addr()
+        self.stream.get_ref().local_addr()
     }
 
     /// What is known of its requests.
@@ -381,7 +294,7 @@ impl LimitedStream {
         self.activity.clone()
     }
 
-    fn new(stream: TcpStream, held: Held, idle_timeout: Duration) -> Self {
+    fn new(stream: Guarded<TcpStream>, held: Held, idle_timeout: Duration) -> Self {
         let now = Instant::now();
         LimitedStream {
             stream,
@@ -509,7 +422,7 @@ mod tests {
 
     #[test]
     fn over_limit_answer_is_a_problem() {
-        for why in [Refusal::Limit, Refusal::PerAddress] {
+        for why in Refused::ALL {
             let text = String::from_utf8(over_limit_response(why)).unwrap();
             assert!(text.starts_with("HTTP/1.1 503"));
             let body = text.split("\r\n\r\n").nth(1).unwrap();
@@ -517,37 +430,9 @@ mod tests {
             assert_eq!(p.kind(), Kind::TooManyConnections);
         }
         assert!(
-            String::from_utf8(over_limit_response(Refusal::PerAddress))
+            String::from_utf8(over_limit_response(Refused::PerAddress))
                 .unwrap()
                 .contains("max_connections_per_address")
         );
-    }
-
-    #[test]
-    fn an_address_holds_its_share_and_gets_it_back() {
-        let table = Arc::new(Addresses::default());
-        let a: IpAddr = "127.0.0.1".parse().unwrap();
-        let held: Vec<_> = (0..3).map(|_| table.take(a, 3).unwrap()).collect();
-        assert!(table.take(a, 3).is_none());
-        // Another address is not concerned; an IPv6 host counts by its /64.
-        assert!(table.take("127.0.0.2".parse().unwrap(), 3).is_some());
-        let v6 = table.take("2001:db8::1".parse().unwrap(), 1).unwrap();
-        assert!(table.take("2001:db8::ffff".parse().unwrap(), 1).is_none());
-        drop(v6);
-        drop(held);
-        assert!(table.0.lock().unwrap().is_empty());
-        assert!(table.take(a, 3).is_some());
-    }
-
-    #[test]
-    fn a_burst_of_refusals_is_logged_once() {
-        let mut bursts = Bursts::default();
-        let t = std::time::Instant::now();
-        let a = Some("127.0.0.1".parse().unwrap());
-        assert!(bursts.begins(a, t));
-        assert!(!bursts.begins(a, t + std::time::Duration::from_secs(9)));
-        assert!(!bursts.begins(a, t + std::time::Duration::from_secs(18)));
-        assert!(bursts.begins(None, t));
-        assert!(bursts.begins(a, t + std::time::Duration::from_secs(30)));
     }
 }

@@ -218,7 +218,7 @@ pub async fn get_monitor(
     let monitor = bus.monitor();
     let units = monitor
         .counters()
-        .snapshot(monitor.units())
+        .snapshot(&monitor.units())
         .into_iter()
         .map(|(unit, c)| UnitCounters {
             unit,

@@ -17,8 +17,9 @@ use super::problem_response::{ProblemDetails, ValidRange};
 use super::state::ApiState;
 use super::stream_messages::{ClientMessage, DriveSelection};
 use super::{
-    alarms, buses, config, config_commands, document, drives, health, history, monitor,
-    monitor_live, readback, replacement, scope, setpoints, settings, stream, whoami,
+    alarms, buses, certificates, config, config_commands, config_file, document, drives, health,
+    history, monitor, monitor_live, readback, replacement, scope, setpoints, settings, stream,
+    tokens, whoami,
 };
 use crate::control::LeaseBounds;
 use crate::control::Role;
@@ -53,7 +54,8 @@ pub const DOCS_PATH: &str = "/docs";
         (name = "monitor", description = "Every frame on the wire of a bus: decoded, with its outcome and who caused it; live, and as CSV or PCAP"),
         (name = "scope", description = "Triggered captures of status fields at the bus's full rate"),
         (name = "alarms", description = "Faults, stalls, drives offline, buses down, communication-loss stops, stops not confirmed and refused safety writes: kept across restarts until acknowledged"),
-        (name = "config", description = "The configuration file: reload it without a restart"),
+        (name = "config", description = "The configuration file: read, check and change it (admin), its API tokens, and reloads without a restart"),
+        (name = "certificates", description = "The certificates the daemon serves and trusts (OPC UA, HTTPS, Modbus/TCP Security): trust a refused OPC UA client, remove a trusted one, renew the OPC UA server's own (admin)"),
         (name = "health", description = "Liveness, readiness and Prometheus metrics (no token needed)"),
     )
 )]
@@ -108,6 +110,14 @@ pub fn router() -> OpenApiRouter<ApiState> {
         .routes(routes!(buses::post_address))
         .routes(routes!(config::post_reload))
         .routes(routes!(config::post_drives))
+        .routes(routes!(config_file::get_file, config_file::put_file))
+        .routes(routes!(config_file::post_check))
+        .routes(routes!(tokens::list_tokens, tokens::post_token))
+        .routes(routes!(tokens::delete_token))
+        .routes(routes!(certificates::list_certificates))
+        .routes(routes!(certificates::post_trust))
+        .routes(routes!(certificates::delete_trusted))
+        .routes(routes!(certificates::post_renew))
         .routes(routes!(stream::stream))
         .routes(routes!(monitor::get_monitor))
         .routes(routes!(monitor::get_frames))

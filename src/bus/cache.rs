@@ -5,6 +5,7 @@
 //! scrape never costs bus time.
 
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Instant, SystemTime};
 
@@ -132,9 +133,13 @@ pub struct StatusCache {
     bus: Arc<str>,
     drives: Mutex<BTreeMap<u8, Entry>>,
     events: broadcast::Sender<BusEvent>,
-    offline_after: u32,
+    /// The events but statuses: a subscriber that only follows the links
+    /// is not woken at every poll (each wake-up of a task costs more than
+    /// most of them do with an event).
+    links: broadcast::Sender<BusEvent>,
+    offline_after: AtomicU32,
     /// How often each drive is polled, for its freshness.
-    expected: BTreeMap<u8, Expected>,
+    expected: Mutex<BTreeMap<u8, Expected>>,
 }
 
 impl StatusCache {
@@ -142,26 +147,53 @@ impl StatusCache {
     /// after `offline_after` failed polls in a row.
     pub fn new(bus: Arc<str>, units: impl IntoIterator<Item = u8>, offline_after: u32) -> Self {
         let (events, _) = broadcast::channel(EVENT_CAPACITY);
+        let (links, _) = broadcast::channel(EVENT_CAPACITY);
         Self {
             bus,
             drives: Mutex::new(units.into_iter().map(|u| (u, Entry::new(u))).collect()),
             events,
-            offline_after: offline_after.max(1),
-            expected: BTreeMap::new(),
+            links,
+            offline_after: AtomicU32::new(offline_after.max(1)),
+            expected: Mutex::new(BTreeMap::new()),
         }
     }
 
     /// The same cache, told how often each drive is polled (what its
     /// data's age is measured against); a drive not named here is
     /// expected at the full rate.
-    pub fn expecting(mut self, expected: impl IntoIterator<Item = (u8, Expected)>) -> Self {
-        self.expected = expected.into_iter().collect();
+    pub fn expecting(self, expected: impl IntoIterator<Item = (u8, Expected)>) -> Self {
+        *self.expected.lock().unwrap_or_else(|p| p.into_inner()) = expected.into_iter().collect();
         self
+    }
+
+    /// The bus's drives are now `units`, polled as `expected`, offline
+    /// after `offline_after` failed polls (a reload, applied in place): a
+    /// drive kept keeps its status, its age and its link; one added is
+    /// unknown until its first poll; one removed is forgotten (its last
+    /// status must not pass for a drive's that is no longer there).
+    pub fn retune(
+        &self,
+        units: impl IntoIterator<Item = u8>,
+        offline_after: u32,
+        expected: impl IntoIterator<Item = (u8, Expected)>,
+    ) {
+        let units: Vec<u8> = units.into_iter().collect();
+        {
+            let mut drives = self.lock();
+            drives.retain(|unit, _| units.contains(unit));
+            for &unit in &units {
+                drives.entry(unit).or_insert_with(|| Entry::new(unit));
+            }
+        }
+        self.offline_after
+            .store(offline_after.max(1), Ordering::Relaxed);
+        *self.expected.lock().unwrap_or_else(|p| p.into_inner()) = expected.into_iter().collect();
     }
 
     /// How often `unit` is polled, as its freshness measures it.
     pub fn expected(&self, unit: u8) -> Expected {
-        self.expected.get(&unit).copied().unwrap_or(Expected {
+        let expected = self.expected.lock().unwrap_or_else(|p| p.into_inner());
+        expected.get(&unit).copied().unwrap_or(Expected {
             period: std::time::Duration::ZERO,
             poll: std::time::Duration::ZERO,
             slack: super::freshness::GRACE,
@@ -174,6 +206,9 @@ impl StatusCache {
 
     fn publish(&self, event: BusEvent) {
         // No subscriber is not an error.
+        if !matches!(event, BusEvent::Status { .. }) {
+            let _ = self.links.send(event.clone());
+        }
         let _ = self.events.send(event);
     }
 
@@ -216,8 +251,8 @@ impl StatusCache {
             entry.last_failure = Some(reason.to_string());
             let snap = &mut entry.snapshot;
             snap.consecutive_failures = snap.consecutive_failures.saturating_add(1);
-            let offline =
-                snap.consecutive_failures >= self.offline_after && snap.link != Link::Offline;
+            let offline = snap.consecutive_failures >= self.offline_after.load(Ordering::Relaxed)
+                && snap.link != Link::Offline;
             if offline {
                 snap.link = Link::Offline;
                 entry.offline_since = Some(SystemTime::now());
@@ -287,6 +322,11 @@ impl StatusCache {
     pub fn subscribe(&self) -> broadcast::Receiver<BusEvent> {
         self.events.subscribe()
     }
+
+    /// A receiver of every future event but the statuses.
+    pub fn subscribe_links(&self) -> broadcast::Receiver<BusEvent> {
+        self.links.subscribe()
+    }
 }
 
 #[cfg(test)]
@@ -297,6 +337,7 @@ mod tests {
     fn online_offline_transitions_are_published_once() {
         let cache = StatusCache::new("line1".into(), [1, 2], 3);
         let mut rx = cache.subscribe();
+        let mut links = cache.subscribe_links();
         cache.record_status(1, Status::default());
         assert!(matches!(
             rx.try_recv(),
@@ -320,10 +361,43 @@ mod tests {
             Ok(BusEvent::Offline { unit: 1, .. })
         ));
         assert!(rx.try_recv().is_err());
+        // The links' subscriber saw the same, without the statuses.
+        assert!(matches!(
+            links.try_recv(),
+            Ok(BusEvent::Online { unit: 1, .. })
+        ));
+        assert!(matches!(
+            links.try_recv(),
+            Ok(BusEvent::Offline { unit: 1, .. })
+        ));
+        assert!(links.try_recv().is_err());
         assert!(cache.is_offline(1));
         assert_eq!(cache.get(2).map(|d| d.link), Some(Link::Unknown));
         // Its last good status is kept, with its age.
         assert!(cache.get(1).unwrap().status.is_some());
+    }
+
+    #[test]
+    fn a_retune_keeps_the_drives_kept_and_forgets_the_removed() {
+        let cache = StatusCache::new("line1".into(), [1, 2], 3);
+        cache.record_status(1, Status::default());
+        cache.record_status(2, Status::default());
+        let seen = cache.get(1).unwrap().seen_instant;
+        let expected = |ms| Expected {
+            period: std::time::Duration::from_millis(ms),
+            poll: std::time::Duration::from_millis(ms),
+            slack: super::super::freshness::GRACE,
+        };
+        cache.retune([1, 3], 1, [(1, expected(100)), (3, expected(100))]);
+        // Unit 1 kept as it was, with its new period.
+        let one = cache.get(1).unwrap();
+        assert_eq!((one.link, one.seen_instant), (Link::Online, seen));
+        assert_eq!(cache.expected(1), expected(100));
+        // Unit 2 gone, unit 3 unknown until it is polled.
+        assert_eq!(cache.get(2), None);
+        assert_eq!(cache.get(3).map(|d| d.link), Some(Link::Unknown));
+        // Offline after one failure now.
+        assert!(cache.record_failure(3, "no reply within 50 ms"));
     }
 
     #[test]

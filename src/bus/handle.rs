@@ -4,7 +4,7 @@
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
-use tokio::sync::{broadcast, oneshot};
+use tokio::sync::{Notify, broadcast, oneshot};
 use tokio_util::sync::CancellationToken;
 
 use super::cache::{BusEvent, DriveSnapshot, StatusCache};
@@ -14,6 +14,7 @@ use super::job::{Exchange, Job, Priority, SourceId};
 pub use super::link::PortState;
 use super::origin::Origin;
 use super::queue::{JobQueue, Refused};
+use super::settings::BusSettings;
 use super::stats::{BusStats, BusStatsSnapshot, Outcome};
 use crate::drive::{ConfigCommand, DriveReply, DriveRequest};
 use crate::modbus::timing::LineTiming;
@@ -71,8 +72,12 @@ pub(crate) struct Shared {
     pub(crate) stats: BusStats,
     pub(crate) state: Mutex<PortState>,
     pub(crate) line: LineTiming,
-    pub(crate) response_timeout: Duration,
-    pub(crate) queue_timeout: Duration,
+    /// The timeouts the handles read, as last retuned.
+    pub(crate) tuned: Mutex<Tuned>,
+    /// New settings the scheduler takes at its next transaction boundary.
+    pub(crate) retune: Mutex<Option<Retune>>,
+    /// Wakes the scheduler for them, whatever it waits for.
+    pub(crate) retuning: Notify,
     pub(crate) stop: CancellationToken,
     /// Set once the bus has stopped for good (shut down, or never started):
     /// the answer to every later submission.
@@ -82,7 +87,24 @@ pub(crate) struct Shared {
     pub(crate) stopped: OnceLock<(PortState, Instant)>,
 }
 
+/// What of a bus's settings its handles read.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Tuned {
+    pub(crate) response_timeout: Duration,
+    pub(crate) queue_timeout: Duration,
+}
+
+/// New settings for a running bus, and who waits until they are taken.
+pub(crate) struct Retune {
+    pub(crate) settings: BusSettings,
+    pub(crate) taken: oneshot::Sender<()>,
+}
+
 impl Shared {
+    pub(crate) fn tuned(&self) -> Tuned {
+        *self.tuned.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
     pub(crate) fn set_state(&self, state: PortState) {
         *self.state.lock().unwrap_or_else(|p| p.into_inner()) = state;
     }
@@ -119,6 +141,12 @@ impl BusHandle {
         &self.shared.name
     }
 
+    /// True when both are handles of the same running bus (a bus reopened
+    /// is another; one changed in place is the same).
+    pub fn is(&self, other: &BusHandle) -> bool {
+        Arc::ptr_eq(&self.shared, &other.shared)
+    }
+
     /// The bus's name, shared.
     pub fn name_arc(&self) -> Arc<str> {
         self.shared.name.clone()
@@ -131,7 +159,27 @@ impl BusHandle {
 
     /// The bus's response timeout.
     pub fn response_timeout(&self) -> Duration {
-        self.shared.response_timeout
+        self.shared.tuned().response_timeout
+    }
+
+    /// Hands `settings` to the running bus, which takes them between two
+    /// transactions without closing its port (`settings.reach` must be
+    /// [`Reach::InPlace`](super::settings::Reach) from what it runs: the
+    /// caller reopens the bus otherwise). The receiver answers once they
+    /// are in force; it fails if the bus stopped first. Settings handed
+    /// over before and not taken yet are replaced.
+    pub fn retune(&self, settings: BusSettings) -> oneshot::Receiver<()> {
+        let (taken, rx) = oneshot::channel();
+        *self.shared.retune.lock().unwrap_or_else(|p| p.into_inner()) =
+            Some(Retune { settings, taken });
+        self.shared.retuning.notify_one();
+        rx
+    }
+
+    /// How long a job may wait in the queue before it is dropped unsent
+    /// (`queue_timeout_ms`), unless its submission says less.
+    pub fn queue_timeout(&self) -> Duration {
+        self.shared.tuned().queue_timeout
     }
 
     /// Queues a raw request PDU for `unit`; the receiver yields the result.
@@ -163,7 +211,11 @@ impl BusHandle {
             pdu,
             priority: options.priority,
             source: options.source,
-            deadline: Some(now + options.queue_timeout.unwrap_or(self.shared.queue_timeout)),
+            deadline: Some(
+                now + options
+                    .queue_timeout
+                    .unwrap_or(self.shared.tuned().queue_timeout),
+            ),
             max_attempts: options.max_attempts,
             origin: options.origin,
             submitted: now,
@@ -296,6 +348,12 @@ impl BusHandle {
     /// Every future status, online/offline and bus event of this bus.
     pub fn subscribe(&self) -> broadcast::Receiver<BusEvent> {
         self.shared.cache.subscribe()
+    }
+
+    /// The future online/offline and bus events of this bus, without the
+    /// statuses: for whoever follows the links, not every poll.
+    pub fn subscribe_links(&self) -> broadcast::Receiver<BusEvent> {
+        self.shared.cache.subscribe_links()
     }
 
     /// The bus's counters.

@@ -41,6 +41,7 @@
 //!   reply is read; bytes arriving during the turnaround do not shorten it.
 
 mod line;
+mod retune;
 
 use std::io;
 use std::time::{Duration, Instant};
@@ -52,7 +53,7 @@ use super::reply_timeout::{Bounds, ReplyTimeout};
 use super::stats::Outcome;
 use super::tap::WireTap;
 use super::transport::Transport;
-use crate::clock::{PreciseTimer, SPIN};
+use crate::clock::PreciseTimer;
 use crate::modbus::function::EXCEPTION_BIT;
 use crate::modbus::reply::{self, Mismatch};
 use crate::modbus::rtu_frame;
@@ -66,8 +67,9 @@ pub const DELIVERY_ALLOWANCE: Duration = Duration::from_millis(20);
 
 /// How long before the line is free the scheduler picks the next job: the
 /// choice and the frame are ready when the silence ends, and the master
-/// spins through the rest of it instead of risking a late wake-up. An
-/// emergency that arrives in this last stretch goes on the next turn.
+/// sleeps the rest of it on a timer armed its learned wake-up latency early
+/// ([`PreciseTimer`]). An emergency that arrives in this last stretch goes
+/// on the next turn.
 pub const PICK_AHEAD: Duration = Duration::from_micros(100);
 
 /// The default least learned reply timeout (`reply_timeout_floor_ms`): a
@@ -470,7 +472,7 @@ impl RtuMaster {
                     trial: false,
                 },
             };
-            self.wait_for_silence(silence.gap, Duration::ZERO, PICK_AHEAD + PICK_AHEAD)
+            self.wait_for_silence(silence.gap, Duration::ZERO, true)
                 .await?;
             let quiet_since = self.quiet_since;
             let sent_at = self.send(&frame, sent).await?;
@@ -724,7 +726,7 @@ impl RtuMaster {
     /// then waits out the rest. Returns the stray bytes discarded meanwhile.
     pub async fn settle(&mut self) -> io::Result<usize> {
         self.stray = 0;
-        self.wait_for_silence(self.gaps.least(), PICK_AHEAD, SPIN)
+        self.wait_for_silence(self.gaps.least(), PICK_AHEAD, false)
             .await?;
         Ok(std::mem::take(&mut self.stray))
     }

@@ -304,6 +304,38 @@ impl PollPlan {
         }
     }
 
+    /// The plan for new `(unit, interval)` pairs and backoffs, from `now`
+    /// (a reload, applied in place): a drive kept at its interval keeps its
+    /// phase, its next poll and its backoff; one whose interval changed
+    /// takes its place among the drives of its new interval, due no later
+    /// than it was (a faster rate applies at once), backed off as it was;
+    /// one added is due at once, as at start; one removed is dropped.
+    pub fn retune(
+        &mut self,
+        drives: impl IntoIterator<Item = (u8, Duration)>,
+        backoff_min: Duration,
+        backoff_max: Duration,
+        now: Instant,
+    ) {
+        let mut new = PollPlan::new(drives, backoff_min, backoff_max, now);
+        for d in &mut new.drives {
+            let Some(old) = self.drives.iter().find(|o| o.unit == d.unit) else {
+                continue;
+            };
+            if old.interval == d.interval {
+                *d = old.clone();
+            } else {
+                d.next_due = old.next_due.min(d.in_phase_from(now));
+                d.backoff = old
+                    .backoff
+                    .map(|b| b.clamp(new.backoff_min, new.backoff_max));
+                d.probed_at = old.probed_at;
+                d.heard = old.heard;
+            }
+        }
+        *self = new;
+    }
+
     /// Units in the plan.
     pub fn units(&self) -> impl Iterator<Item = u8> + '_ {
         self.drives.iter().map(|d| d.unit)
@@ -687,5 +719,37 @@ mod tests {
         assert_eq!(plan.due_at(1), Some(t0 + 600 * MS));
         plan.polled(1, t0 + 900 * MS, OFFLINE);
         assert_eq!(plan.due_at(1), Some(t0 + 1000 * MS));
+    }
+
+    #[test]
+    fn a_retune_keeps_the_phase_of_what_stayed_and_polls_the_new_at_once() {
+        let t0 = Instant::now();
+        let mut plan = plan(&[(1, SECOND), (2, SECOND), (3, Duration::ZERO)], t0);
+        plan.polled(1, t0 + 10 * MS, PollResult::Answered);
+        plan.polled(2, t0 + 20 * MS, PollResult::Answered);
+        plan.polled(3, t0 + 30 * MS, OFFLINE);
+        assert_eq!(plan.due_at(2), Some(t0 + 500 * MS));
+        let backed_off = plan.due_at(3);
+        // Unit 2 faster, unit 3 kept, unit 4 added, the backoff longer.
+        let now = t0 + 100 * MS;
+        plan.retune(
+            [(1, SECOND), (2, 200 * MS), (3, Duration::ZERO), (4, SECOND)],
+            SECOND,
+            60 * SECOND,
+            now,
+        );
+        // Unit 1 keeps its next poll, unit 3 its backoff.
+        assert_eq!(plan.due_at(1), Some(t0 + SECOND));
+        assert_eq!(plan.due_at(3), backed_off);
+        assert!(plan.backing_off(3));
+        // Unit 2's faster rate applies at once; unit 4 is due now.
+        assert_eq!(plan.due_at(2), Some(now));
+        assert_eq!(plan.due_at(4), Some(now));
+        plan.polled(2, now + MS, PollResult::Answered);
+        assert_eq!(plan.due_at(2), Some(now + 200 * MS));
+        // Removed: no longer polled.
+        plan.retune([(1, SECOND)], SECOND, 60 * SECOND, now);
+        assert_eq!(plan.units().collect::<Vec<_>>(), vec![1]);
+        assert_eq!(plan.due_at(1), Some(t0 + SECOND));
     }
 }

@@ -149,12 +149,13 @@ struct Inner {
     closed: bool,
     /// Everything refused: the scheduler has taken its last job.
     stopped: bool,
+    /// Its capacities now (a reload may change them).
+    limits: QueueLimits,
 }
 
 /// The queue shared by the handles (producers) and the scheduler (consumer).
 pub struct JobQueue {
     inner: Mutex<Inner>,
-    limits: QueueLimits,
     notify: Notify,
 }
 
@@ -166,8 +167,8 @@ impl JobQueue {
                 classes: Default::default(),
                 closed: false,
                 stopped: false,
+                limits,
             }),
-            limits,
             notify: Notify::new(),
         }
     }
@@ -188,19 +189,27 @@ impl JobQueue {
         if inner.closed && job.priority != Priority::Emergency {
             return Err(Refused::Closed(job));
         }
+        let limits = inner.limits;
         let class = &mut inner.classes[job.priority.index()];
         if !is_safe_stop(&job) {
-            if class.counted_len(job.priority) >= self.limits.per_class {
-                return Err(Refused::Full(job, self.limits.per_class));
+            if class.counted_len(job.priority) >= limits.per_class {
+                return Err(Refused::Full(job, limits.per_class));
             }
-            if class.source_len(job.source) >= self.limits.per_source {
-                return Err(Refused::Full(job, self.limits.per_source));
+            if class.source_len(job.source) >= limits.per_source {
+                return Err(Refused::Full(job, limits.per_source));
             }
         }
         class.push(job);
         drop(inner);
         self.notify.notify_one();
         Ok(())
+    }
+
+    /// New capacities, from the next submission on; what waits already
+    /// stays (a class over its new capacity takes nothing more until it
+    /// drains below it).
+    pub fn set_limits(&self, limits: QueueLimits) {
+        self.lock().limits = limits;
     }
 
     /// Takes the next job of `priority`, if any.

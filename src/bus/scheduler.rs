@@ -15,7 +15,7 @@ use tracing::{debug, info, warn};
 use super::cache::StatusCache;
 use super::error::BusError;
 use super::error::PortCause;
-use super::handle::{BusHandle, PortState, Shared};
+use super::handle::{BusHandle, PortState, Shared, Tuned};
 use super::interframe::Use;
 use super::job::{Exchange, Job, Priority};
 use super::master::{Fault, PortFailure, Report, RtuMaster};
@@ -29,6 +29,8 @@ use super::tcp_port;
 use super::transport;
 use crate::clock;
 use crate::drive::{DriveReply, DriveRequest};
+
+mod retune;
 
 /// Starts the bus's thread; returns its handle and the thread to join.
 pub fn spawn(settings: BusSettings) -> io::Result<(BusHandle, thread::JoinHandle<()>)> {
@@ -70,8 +72,12 @@ pub(crate) fn new_shared(settings: &BusSettings) -> Arc<Shared> {
         stats: BusStats::new(),
         state: Mutex::new(PortState::Opening),
         line: settings.master.line,
-        response_timeout: settings.master.response_timeout,
-        queue_timeout: settings.queue_timeout,
+        tuned: Mutex::new(Tuned {
+            response_timeout: settings.master.response_timeout,
+            queue_timeout: settings.queue_timeout,
+        }),
+        retune: Mutex::new(None),
+        retuning: tokio::sync::Notify::new(),
         stop: CancellationToken::new(),
         ended: OnceLock::new(),
         stopped: OnceLock::new(),
@@ -157,6 +163,14 @@ impl ReopenBackoff {
         self.proven = true;
     }
 
+    /// New first and longest delays (a reload): the next wait starts from
+    /// the first.
+    fn retune(&mut self, (first, longest): (Duration, Duration)) {
+        self.first = first;
+        self.longest = longest.max(first);
+        self.next = first;
+    }
+
     /// The port failed (or could not be opened) at `now`: how long to wait
     /// before the next attempt.
     fn failed(&mut self, now: Instant) -> Duration {
@@ -215,6 +229,9 @@ impl Scheduler {
                 self.finish(master.as_mut()).await;
                 break;
             }
+            // Between two transactions: new settings (a reload) are taken
+            // here, on the open port.
+            self.take_retune(master.as_mut());
             let Some(m) = master.as_mut() else {
                 let opened = tokio::select! {
                     opened = transport::open(
@@ -313,6 +330,7 @@ impl Scheduler {
         };
         tokio::select! {
             () = self.shared.queue.notified() => {}
+            () = self.shared.retuning.notified() => {}
             () = sleep => {}
             () = self.shared.stop.cancelled() => {}
         }
@@ -329,10 +347,16 @@ impl Scheduler {
 
     /// Waits `delay` before the next attempt to open the port, or until the
     /// bus is stopped.
-    async fn pause(&self, delay: Duration) {
-        tokio::select! {
-            () = tokio::time::sleep(delay) => {}
-            () = self.shared.stop.cancelled() => {}
+    /// New settings that come meanwhile are taken at once (the port is
+    /// closed: nothing is on the wire).
+    async fn pause(&mut self, delay: Duration) {
+        let until = tokio::time::Instant::now() + delay;
+        loop {
+            tokio::select! {
+                () = tokio::time::sleep_until(until) => return,
+                () = self.shared.stop.cancelled() => return,
+                () = self.shared.retuning.notified() => self.take_retune(None),
+            }
         }
     }
 

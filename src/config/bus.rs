@@ -111,7 +111,7 @@ pub struct BusConfig {
     )]
     pub poll_share: u32,
     /// RS-485 direction control.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "rs485")]
     pub rs485: Rs485Settings,
     /// Simulator options (only with `port = "sim"`).
     #[serde(default)]
@@ -147,7 +147,7 @@ pub struct SimSection {
     /// How reply bytes reach the daemon: `[bus.sim.delivery] chunk_bytes`,
     /// `jitter_us` model a USB adapter's late chunks (default: a UART's
     /// exact timing).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "delivery")]
     pub delivery: Delivery,
     /// The silence after which the simulated drives part frames, µs: a
     /// request that follows the last frame sooner is garbled to them and
@@ -325,6 +325,58 @@ fn sim_frame_gap(section: &SimSection, unit: u8, baud: u32) -> Option<Duration> 
 const INTERFRAME_US: (u64, u64) = (100, 100_000);
 
 /// `interframe`: `"spec"`, `"auto"` or a number of microseconds.
+/// `[bus.rs485]` as written: the delays within what the kernel's RS-485
+/// mode takes (it caps them at 100 ms).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawRs485 {
+    #[serde(default)]
+    direction: crate::bus::port::Direction,
+    #[serde(default = "yes")]
+    rts_active_high: bool,
+    #[serde(default, deserialize_with = "values::int_in::<_, _, 0, 100_000>")]
+    delay_before_send_us: u32,
+    #[serde(default, deserialize_with = "values::int_in::<_, _, 0, 100_000>")]
+    delay_after_send_us: u32,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn rs485<'de, D: Deserializer<'de>>(d: D) -> Result<Rs485Settings, D::Error> {
+    let raw = RawRs485::deserialize(d)?;
+    Ok(Rs485Settings {
+        direction: raw.direction,
+        rts_active_high: raw.rts_active_high,
+        delay_before_send_us: raw.delay_before_send_us,
+        delay_after_send_us: raw.delay_after_send_us,
+    })
+}
+
+/// `[bus.sim.delivery]` as written: chunks of 1 byte (a UART) to 256,
+/// each up to 100 ms late (the simulator's own bounds).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawDelivery {
+    #[serde(default = "one", deserialize_with = "values::int_in::<_, _, 1, 256>")]
+    chunk_bytes: u16,
+    #[serde(default, deserialize_with = "values::int_in::<_, _, 0, 100_000>")]
+    jitter_us: u32,
+}
+
+fn one() -> u16 {
+    1
+}
+
+fn delivery<'de, D: Deserializer<'de>>(d: D) -> Result<Delivery, D::Error> {
+    let raw = RawDelivery::deserialize(d)?;
+    Ok(Delivery {
+        chunk_bytes: raw.chunk_bytes,
+        jitter_us: raw.jitter_us,
+    })
+}
+
 fn interframe<'de, D: Deserializer<'de>>(d: D) -> Result<Interframe, D::Error> {
     struct Visitor;
     impl serde::de::Visitor<'_> for Visitor {

@@ -2,13 +2,19 @@
 //! comparison of two checked [`Config`]s, which the daemon then applies
 //! (`crate::daemon::reloader`). Nothing here opens a port or touches a drive.
 //!
-//! The bus is the unit a change is applied to: a bus whose settings or
-//! drive list changed is reopened (its thread and port, its simulator
-//! with `port = "sim"`), the others keep running untouched. A drive keeps
-//! its identity (and with it its lease and its stream subscriptions) as
-//! long as its name, its bus and its unit stay the same; a drive renamed,
-//! moved to another bus or given another unit is one drive removed and
-//! one added, so a lease never follows a name to another motor.
+//! The bus is the unit a change is applied to, and a change touches only
+//! what it changes ([`bus_change`]): the keys of a bus's open port (its
+//! `port`, its `baud`, `[bus.rs485]`, and `[bus.sim]`, the simulated
+//! adapter) reopen it; everything else (timing, retries, `interframe`,
+//! poll rates, offline detection, the queue, the drives: added, removed,
+//! renamed, given other settings) is applied to the running bus between
+//! two transactions, its port kept open. The other buses are untouched.
+//! A drive is the motor at a unit of a bus: it keeps its identity (its
+//! lease, its stream subscriptions, its cache, its trends and its alarms)
+//! as long as its bus and its unit stay the same, whatever its name (a
+//! rename, [`Changes::drives_renamed`]); a drive moved to another bus or
+//! given another unit is one drive removed and one added, so a lease
+//! never follows a name to another motor.
 //!
 //! A face is restarted on its own when its section changes ([`Face`]): a
 //! listener at its new address or with its new limits, the MQTT face with
@@ -49,6 +55,17 @@ impl Face {
             Face::ModbusTls => "Modbus/TCP Security listener",
             Face::Mqtt => "MQTT face",
             Face::OpcUa => "OPC UA listener",
+        }
+    }
+
+    /// Its key in metrics' labels and `/readyz`.
+    pub fn key(self) -> &'static str {
+        match self {
+            Face::Http => "http",
+            Face::ModbusTcp => "modbus_tcp",
+            Face::ModbusTls => "modbus_tls",
+            Face::Mqtt => "mqtt",
+            Face::OpcUa => "opcua",
         }
     }
 
@@ -133,13 +150,18 @@ pub struct Changes {
     /// Buses gone from the file.
     pub buses_removed: Vec<String>,
     /// Buses kept whose port is reopened, each with why ("port",
-    /// "baud", "drives", ...).
+    /// "baud", ... and what else changed with it).
     pub buses_reopened: Vec<(String, Vec<String>)>,
+    /// Buses kept whose changes are applied in place, the port kept open,
+    /// each with what changed ("poll rates", "drives", ...).
+    pub buses_retuned: Vec<(String, Vec<String>)>,
     /// Drives new in the file, by name.
     pub drives_added: Vec<String>,
     /// Drives gone from the file (or moved to another bus or unit: those
     /// are added again under the same name).
     pub drives_removed: Vec<String>,
+    /// Drives kept (the same bus and unit) under a new name: old, new.
+    pub drives_renamed: Vec<(String, String)>,
     /// Drives kept whose settings (poll interval, gear ratio) changed.
     pub drives_changed: Vec<String>,
     /// Tokens added, removed or changed (role or secret).
@@ -169,11 +191,23 @@ impl Changes {
         };
         list("drives added", &self.drives_added);
         list("drives removed", &self.drives_removed);
+        let renamed: Vec<String> = self
+            .drives_renamed
+            .iter()
+            .map(|(old, new)| format!("{old} to {new}"))
+            .collect();
+        list("drives renamed", &renamed);
         list("drives changed", &self.drives_changed);
         list("buses added", &self.buses_added);
         list("buses removed", &self.buses_removed);
         for (bus, why) in &self.buses_reopened {
             out.push(format!("bus {bus} reopened ({} changed)", why.join(", ")));
+        }
+        for (bus, what) in &self.buses_retuned {
+            out.push(format!(
+                "bus {bus} changed in place ({}), its port kept open",
+                what.join(", ")
+            ));
         }
         if self.tokens_changed > 0 {
             out.push(format!("tokens changed: {}", self.tokens_changed));
@@ -306,20 +340,28 @@ fn safety(old: &SafetyConfig, new: &SafetyConfig, changes: &mut Changes) {
     }
 }
 
-/// Buses added, removed, and reopened with why. A change of `[scope]` or
-/// `[monitor]` reopens every bus: their settings size what each bus keeps.
+/// Buses added, removed, reopened with why, and changed in place with
+/// what. A change of `[scope]` or `[monitor]` reopens every bus: their
+/// settings size what each bus keeps, from its start.
 fn buses(old: &Config, new: &Config, changes: &mut Changes) {
     let observers_changed = old.scope != new.scope || old.monitor != new.monitor;
     for bus in &new.buses {
         match old.buses.iter().find(|b| b.name() == bus.name()) {
             None => changes.buses_added.push(bus.name().to_string()),
             Some(before) => {
-                let mut why = bus_differences(before, bus);
+                let BusChange {
+                    mut reopen,
+                    in_place,
+                } = bus_change(before, bus);
                 if observers_changed {
-                    why.push("[scope] or [monitor]".to_string());
+                    reopen.push("[scope] or [monitor]".to_string());
                 }
-                if !why.is_empty() {
-                    changes.buses_reopened.push((bus.name().to_string(), why));
+                let name = bus.name().to_string();
+                if !reopen.is_empty() {
+                    reopen.extend(in_place);
+                    changes.buses_reopened.push((name, reopen));
+                } else if !in_place.is_empty() {
+                    changes.buses_retuned.push((name, in_place));
                 }
             }
         }
@@ -331,16 +373,34 @@ fn buses(old: &Config, new: &Config, changes: &mut Changes) {
     }
 }
 
-/// The keys of a bus that differ, by name.
-fn bus_differences(a: &BusConfig, b: &BusConfig) -> Vec<String> {
-    let mut why = Vec::new();
-    let mut key = |name: &str, differ: bool| {
+/// What a change of one bus's section asks of the running bus, key by key.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct BusChange {
+    /// Keys of its open port (`port`, `baud`, `[bus.rs485]`, and
+    /// `[bus.sim]`, the simulated adapter): the port is reopened.
+    pub reopen: Vec<String>,
+    /// The rest: applied between two transactions, the port kept open.
+    pub in_place: Vec<String>,
+}
+
+/// What changed from bus section `a` to `b` (the same bus), and what each
+/// change asks of the running bus. Pure.
+pub fn bus_change(a: &BusConfig, b: &BusConfig) -> BusChange {
+    let mut change = BusChange::default();
+    let mut reopen = |name: &str, differ: bool| {
         if differ {
-            why.push(name.to_string());
+            change.reopen.push(name.to_string());
         }
     };
-    key("port", a.port != b.port);
-    key("baud", a.baud != b.baud);
+    reopen("port", a.port != b.port);
+    reopen("baud", a.baud != b.baud);
+    reopen("rs485", a.rs485 != b.rs485);
+    reopen("sim", a.sim != b.sim);
+    let mut key = |name: &str, differ: bool| {
+        if differ {
+            change.in_place.push(name.to_string());
+        }
+    };
     key(
         "timing",
         (
@@ -387,15 +447,13 @@ fn bus_differences(a: &BusConfig, b: &BusConfig) -> Vec<String> {
             b.poll_share,
         ),
     );
-    key("rs485", a.rs485 != b.rs485);
-    key("sim", a.sim != b.sim);
     key("drives", a.drives != b.drives);
-    why
+    change
 }
 
-/// A drive's identity: the same name on the same bus at the same unit.
-fn identity<'a>(bus: &'a BusConfig, d: &'a DriveConfig) -> (&'a str, &'a str, u8) {
-    (d.name(), bus.name(), d.unit())
+/// A drive's identity: the motor at a unit of a bus, whatever its name.
+fn identity<'a>(bus: &'a BusConfig, d: &'a DriveConfig) -> (&'a str, u8) {
+    (bus.name(), d.unit())
 }
 
 fn all_drives(config: &Config) -> Vec<(&BusConfig, &DriveConfig)> {
@@ -410,13 +468,23 @@ fn drives(old: &Config, new: &Config, changes: &mut Changes) {
     let before = all_drives(old);
     let after = all_drives(new);
     for &(bus, d) in &after {
-        match before
+        let Some((_, o)) = before
             .iter()
             .find(|(b, o)| identity(b, o) == identity(bus, d))
-        {
-            None => changes.drives_added.push(d.name().to_string()),
-            Some((_, o)) if *o != d => changes.drives_changed.push(d.name().to_string()),
-            Some(_) => {}
+        else {
+            changes.drives_added.push(d.name().to_string());
+            continue;
+        };
+        if o.name() != d.name() {
+            changes
+                .drives_renamed
+                .push((o.name().to_string(), d.name().to_string()));
+        }
+        // What else changed with it, under its new name.
+        let mut renamed = (*o).clone();
+        renamed.name = d.name.clone();
+        if renamed != *d {
+            changes.drives_changed.push(d.name().to_string());
         }
     }
     for &(bus, d) in &before {

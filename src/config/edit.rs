@@ -1,7 +1,8 @@
 //! Changes written into the configuration file itself, keeping its
 //! comments, order and layout (`toml_edit`): the console's "add to
-//! configuration" after a scan. Pure: text in, text out; the daemon's
-//! reloader writes and reloads it (`crate::daemon::reloader`).
+//! configuration" after a scan, an API token made or revoked. Pure: text
+//! in, text out; the daemon's reloader writes and reloads it
+//! (`crate::daemon::reloader`).
 
 use toml_edit::{ArrayOfTables, DocumentMut, Item, Table, value};
 
@@ -81,6 +82,109 @@ pub fn add_drives(text: &str, bus: &str, drives: &[NewDrive]) -> Result<String, 
         list.push(entry);
     }
     Ok(doc.to_string())
+}
+
+/// `text` with a `[[http.token]]` for `name` with `role` and the SHA-256
+/// (hex) of its secret, after the file's other tokens (or at its end).
+/// Refused, in words, when the text is not TOML or a token of that name
+/// is there already (the check of the whole file comes after).
+pub fn add_token(text: &str, name: &str, role: &str, sha256: &str) -> Result<String, String> {
+    let mut doc: DocumentMut = text
+        .parse()
+        .map_err(|e| format!("the configuration file is not valid TOML: {e}"))?;
+    if !doc.contains_key("http") {
+        let mut http = Table::new();
+        http.set_implicit(true);
+        doc.insert("http", Item::Table(http));
+    }
+    let http = doc
+        .get_mut("http")
+        .and_then(Item::as_table_mut)
+        .ok_or("the configuration file's http is not a [http] table")?;
+    if !http.contains_key("token") {
+        http.insert("token", Item::ArrayOfTables(ArrayOfTables::new()));
+    }
+    let list = http
+        .get_mut("token")
+        .and_then(Item::as_array_of_tables_mut)
+        .ok_or("the configuration file's http.token is not a list of [[http.token]] tables")?;
+    if list
+        .iter()
+        .any(|t| t.get("name").and_then(Item::as_str) == Some(name))
+    {
+        return Err(format!(
+            "the configuration file has a token named \"{name}\" already: choose another name, or revoke that one first"
+        ));
+    }
+    let mut entry = Table::new();
+    entry.insert("name", value(name));
+    entry.insert("role", value(role));
+    entry.insert("sha256", value(sha256));
+    list.push(entry);
+    Ok(doc.to_string())
+}
+
+/// `text` without the `[[http.token]]` named `name`, every other line as
+/// it was (the comments inside that table go with it).
+pub fn remove_token(text: &str, name: &str) -> Result<String, String> {
+    let mut doc: DocumentMut = text
+        .parse()
+        .map_err(|e| format!("the configuration file is not valid TOML: {e}"))?;
+    let list = doc
+        .get_mut("http")
+        .and_then(Item::as_table_mut)
+        .and_then(|h| h.get_mut("token"))
+        .and_then(Item::as_array_of_tables_mut);
+    let Some(list) = list else {
+        return Err(format!(
+            "the configuration file has no token named \"{name}\""
+        ));
+    };
+    let at = list
+        .iter()
+        .position(|t| t.get("name").and_then(Item::as_str) == Some(name))
+        .ok_or_else(|| format!("the configuration file has no token named \"{name}\""))?;
+    list.remove(at);
+    if list.is_empty()
+        && let Some(http) = doc.get_mut("http").and_then(Item::as_table_mut)
+    {
+        http.remove("token");
+    }
+    Ok(doc.to_string())
+}
+
+/// The line of each `[[http.token]]`'s `name` in `text`, by name (where
+/// the tokens page says a token is defined). Empty when the text is not
+/// TOML.
+pub fn token_lines(text: &str) -> Vec<(String, usize)> {
+    #[derive(serde::Deserialize)]
+    struct File {
+        http: Option<Http>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Http {
+        #[serde(default)]
+        token: Vec<Token>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Token {
+        name: toml::Spanned<String>,
+    }
+    let Ok(file) = toml::from_str::<File>(text) else {
+        return Vec::new();
+    };
+    file.http
+        .map(|h| h.token)
+        .unwrap_or_default()
+        .into_iter()
+        .map(|t| {
+            let line = text[..t.name.span().start.min(text.len())]
+                .matches('\n')
+                .count()
+                + 1;
+            (t.name.into_inner(), line)
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -169,5 +273,51 @@ on_shutdown = "zero-speed"
             shown,
             "[[bus.drive]]\nunit = 4\nname = \"feeder\"\n\n[[bus.drive]]\nunit = 5\nname = 'odd \"name\"'\n"
         );
+    }
+
+    #[test]
+    fn tokens_are_added_after_the_others_and_removed_alone() {
+        let digest = "ab".repeat(32);
+        let out = add_token(FILE, "scada", "operator", &digest).unwrap();
+        let config = Config::parse(&out, "edited").unwrap();
+        assert_eq!(config.http.tokens.len(), 1);
+        assert_eq!(config.http.tokens[0].name, "scada");
+        for line in FILE.lines() {
+            assert!(out.contains(line), "lost {line:?} in\n{out}");
+        }
+        let two = add_token(&out, "ops", "admin", &"cd".repeat(32)).unwrap();
+        let names: Vec<(String, usize)> = token_lines(&two);
+        assert_eq!(names.len(), 2);
+        assert_eq!((names[0].0.as_str(), names[1].0.as_str()), ("scada", "ops"));
+        assert!(names[0].1 < names[1].1);
+        assert_eq!(
+            add_token(&two, "ops", "viewer", &digest).unwrap_err(),
+            "the configuration file has a token named \"ops\" already: choose another name, or revoke that one first"
+        );
+        let one = remove_token(&two, "scada").unwrap();
+        let config = Config::parse(&one, "edited").unwrap();
+        let left: Vec<&str> = config.http.tokens.iter().map(|t| t.name.as_str()).collect();
+        assert_eq!(left, ["ops"]);
+        // The last one removed: the file is as it was.
+        let none = remove_token(&one, "ops").unwrap();
+        assert_eq!(Config::parse(&none, "edited").unwrap().http.tokens.len(), 0);
+        assert!(remove_token(&none, "ops").is_err());
+        for line in FILE.lines() {
+            assert!(none.contains(line), "lost {line:?} in\n{none}");
+        }
+    }
+
+    #[test]
+    fn a_file_without_http_gets_its_first_token() {
+        let out = add_token(
+            "[[bus]]\nname = \"a\"\nport = \"sim\"\n",
+            "x",
+            "viewer",
+            &"00".repeat(32),
+        )
+        .unwrap();
+        let config = Config::parse(&out, "edited").unwrap();
+        assert_eq!(config.http.tokens[0].name, "x");
+        assert_eq!(config.buses.len(), 1);
     }
 }

@@ -13,7 +13,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use serde::Deserialize;
+use serde::{Deserialize, Deserializer};
 
 use super::role::Role;
 
@@ -54,11 +54,11 @@ pub struct HttpConfig {
     pub max_body_bytes: usize,
     /// Connections served at once; more are answered 503 and closed.
     pub max_connections: usize,
-    /// Connections one address (an IPv6 host by its /64) may hold at once;
-    /// more from it are answered 503 and closed, so one client (or one
-    /// attacker) cannot take every slot. Default: a quarter of
-    /// `max_connections`.
-    pub max_connections_per_address: usize,
+    /// A hard cap on the connections one address (an IPv6 host by its /64)
+    /// may hold at once; more from it are answered 503 and closed. Absent:
+    /// none, an address shares every free slot, and near the limit the
+    /// heaviest address gives way first (`crate::connections::budget`).
+    pub max_connections_per_address: Option<usize>,
     /// A connection must send a whole request head within this long (of
     /// its opening, or of the previous answer on a kept-alive connection),
     /// else it is closed: idle and slow connections give their slots back.
@@ -102,7 +102,7 @@ impl Default for HttpConfig {
                 tokens: Vec::new(),
                 max_body_bytes: 65_536,
                 max_connections: 128,
-                max_connections_per_address: 32,
+                max_connections_per_address: None,
                 header_timeout: Duration::from_millis(5000),
                 idle_timeout: Duration::from_secs(120),
                 read_timeout: Duration::from_secs(30),
@@ -128,24 +128,92 @@ fn default_listen() -> SocketAddr {
 pub struct RawHttpConfig {
     listen: SocketAddr,
     token: Vec<RawToken>,
+    #[serde(deserialize_with = "max_body_bytes")]
     max_body_bytes: i64,
+    #[serde(deserialize_with = "max_connections")]
     max_connections: i64,
-    /// Absent: a quarter of `max_connections`.
+    /// Absent: no hard cap (fair shares).
+    #[serde(deserialize_with = "max_connections_per_address")]
     max_connections_per_address: Option<i64>,
+    #[serde(deserialize_with = "header_timeout_ms")]
     header_timeout_ms: i64,
+    #[serde(deserialize_with = "idle_timeout_s")]
     idle_timeout_s: i64,
+    #[serde(deserialize_with = "read_timeout_s")]
     read_timeout_s: i64,
+    #[serde(deserialize_with = "send_buffer_bytes")]
     send_buffer_bytes: i64,
+    #[serde(deserialize_with = "stream_buffer")]
     stream_buffer: i64,
     /// Moved to `[safety]`: refused here with where it went.
     lease_min_ms: Option<i64>,
     /// Moved to `[safety]`: refused here with where it went.
     lease_max_ms: Option<i64>,
+    #[serde(deserialize_with = "lease_default_ms")]
     lease_default_ms: i64,
     allowed_hosts: Vec<String>,
     allowed_origins: Vec<String>,
+    #[serde(deserialize_with = "token_guesses")]
     token_guesses: i64,
     tls: Option<crate::tls::TlsFiles>,
+}
+
+/// `[http] key` in `min..=max` (or 0, with `or_zero` saying what 0 is),
+/// refused at its value's line with the range.
+fn field<'de, D: Deserializer<'de>>(
+    d: D,
+    key: &str,
+    (min, max): (i64, i64),
+    or_zero: &str,
+) -> Result<i64, D::Error> {
+    let v = i64::deserialize(d)?;
+    if (!or_zero.is_empty() && v == 0) || (min..=max).contains(&v) {
+        return Ok(v);
+    }
+    Err(serde::de::Error::custom(format!(
+        "[http] {key} = {v} is out of range: valid {min} to {max}{or_zero}"
+    )))
+}
+
+fn max_body_bytes<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "max_body_bytes", (256, 16 << 20), "")
+}
+fn max_connections<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "max_connections", (1, 65_536), "")
+}
+fn max_connections_per_address<'de, D: Deserializer<'de>>(d: D) -> Result<Option<i64>, D::Error> {
+    field(d, "max_connections_per_address", (1, 65_536), "").map(Some)
+}
+fn header_timeout_ms<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "header_timeout_ms", (100, 600_000), "")
+}
+fn idle_timeout_s<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "idle_timeout_s", (1, 86_400), "")
+}
+fn read_timeout_s<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "read_timeout_s", (1, 3_600), "")
+}
+fn send_buffer_bytes<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(
+        d,
+        "send_buffer_bytes",
+        (4096, 16 << 20),
+        " (or 0 for the system's autotuning)",
+    )
+}
+fn stream_buffer<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "stream_buffer", (1, 65_536), "")
+}
+fn lease_default_ms<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(
+        d,
+        "lease_default_ms",
+        (10, 86_400_000),
+        " (or 0 for no default lease)",
+    )
+}
+fn token_guesses<'de, D: Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    field(d, "token_guesses", (1, 1_000_000), "")
 }
 
 impl Default for RawHttpConfig {
@@ -209,15 +277,16 @@ impl TryFrom<RawHttpConfig> for HttpConfig {
         let max_body_bytes = as_usize("max_body_bytes", raw.max_body_bytes, 256, 16 << 20)?;
         let max_connections = as_usize("max_connections", raw.max_connections, 1, 65_536)?;
         let max_connections_per_address = match raw.max_connections_per_address {
-            // A quarter: four clients (or one attacker) cannot take them all.
-            None => (max_connections / 4).max(1),
-            Some(v) => as_usize(
-                "max_connections_per_address",
-                v,
-                1,
-                i64::try_from(max_connections).unwrap_or(i64::MAX),
-            )
-            .map_err(|e| format!("{e} (at most max_connections)"))?,
+            None => None,
+            Some(v) => Some(
+                as_usize(
+                    "max_connections_per_address",
+                    v,
+                    1,
+                    i64::try_from(max_connections).unwrap_or(i64::MAX),
+                )
+                .map_err(|e| format!("{e} (at most max_connections)"))?,
+            ),
         };
         let header_timeout_ms = in_range("header_timeout_ms", raw.header_timeout_ms, 100, 600_000)?;
         let idle_timeout_s = in_range("idle_timeout_s", raw.idle_timeout_s, 1, 86_400)?;
@@ -458,10 +527,11 @@ mod tests {
         );
         let e = parse("[http]\nheader_timeout_ms = 10\n").unwrap_err();
         assert!(e.contains("valid 100 to 600000"), "{e}");
+        // No hard cap unless one is set: addresses share the free slots.
         let c = parse("[http]\nmax_connections = 10\n").unwrap();
-        assert_eq!(c.max_connections_per_address, 2);
-        let c = parse("[http]\nmax_connections = 2\n").unwrap();
-        assert_eq!(c.max_connections_per_address, 1);
+        assert_eq!(c.max_connections_per_address, None);
+        let c = parse("[http]\nmax_connections = 10\nmax_connections_per_address = 3\n").unwrap();
+        assert_eq!(c.max_connections_per_address, Some(3));
         let c = parse("[http]\nlease_default_ms = 500\nsend_buffer_bytes = 0\n").unwrap();
         assert_eq!(c.lease_default, Some(Duration::from_millis(500)));
         assert_eq!(c.send_buffer_bytes, 0);

@@ -13,6 +13,7 @@ mod diagnostics;
 pub mod diff;
 pub mod edit;
 mod error;
+pub mod file;
 mod history;
 pub mod http;
 pub mod modbus_tcp;
@@ -22,6 +23,7 @@ pub mod opcua;
 pub mod origins;
 mod role;
 mod safety;
+pub mod text_diff;
 pub(crate) mod values;
 pub mod warnings;
 mod wording;
@@ -191,7 +193,7 @@ impl Config {
                 ));
             }
         }
-        self.check_leases(origin)?;
+        self.check_leases(origin, text)?;
         self.modbus_tcp
             .validate(self)
             .map_err(|(span, message)| at(span, message))?;
@@ -208,32 +210,40 @@ impl Config {
     }
 
     /// The lease bounds of `[safety]` hold together, and the console's jog
-    /// lease and `[http]`'s default lease are within them.
-    fn check_leases(&self, origin: &str) -> Result<(), ConfigError> {
-        let invalid = |message: String| ConfigError::Invalid {
-            origin: origin.to_string(),
-            line: 1,
-            column: 1,
-            message,
+    /// lease and `[http]`'s default lease are within them; a refusal
+    /// points at the key it names.
+    fn check_leases(&self, origin: &str, text: &str) -> Result<(), ConfigError> {
+        let at = LeaseKeys::find(text);
+        let invalid = |span: Option<std::ops::Range<usize>>, message: String| {
+            ConfigError::invalid(origin, text, span.unwrap_or(0..0), message)
         };
         let (min, max) = (self.safety.lease_min_ms, self.safety.lease_max_ms);
         if max < min {
-            return Err(invalid(format!(
-                "[safety] lease_max_ms = {max} is out of range: valid {min} (lease_min_ms) to 86400000"
-            )));
+            return Err(invalid(
+                at.safety(|s| &s.lease_max_ms),
+                format!(
+                    "[safety] lease_max_ms = {max} is out of range: valid {min} to 86400000 (at least lease_min_ms)"
+                ),
+            ));
         }
         let jog = self.safety.jog_lease_ms;
         if !(min..=max).contains(&jog) {
-            return Err(invalid(format!(
-                "[safety] jog_lease_ms = {jog} is out of range: valid {min} to {max} (lease_min_ms to lease_max_ms): the console's jog asks for this lease"
-            )));
+            return Err(invalid(
+                at.safety(|s| &s.jog_lease_ms),
+                format!(
+                    "[safety] jog_lease_ms = {jog} is out of range: valid {min} to {max} (lease_min_ms to lease_max_ms): the console's jog asks for this lease"
+                ),
+            ));
         }
         if let Some(default) = self.http.lease_default {
             let ms = u64::try_from(default.as_millis()).unwrap_or(u64::MAX);
             if !(min..=max).contains(&ms) {
-                return Err(invalid(format!(
-                    "[http] lease_default_ms = {ms} is out of range: valid {min} to {max} ([safety] lease_min_ms to lease_max_ms), or 0 for no default lease"
-                )));
+                return Err(invalid(
+                    at.http.and_then(|h| h.lease_default_ms).map(|k| k.span()),
+                    format!(
+                        "[http] lease_default_ms = {ms} is out of range: valid {min} to {max} ([safety] lease_min_ms to lease_max_ms), or 0 for no default lease"
+                    ),
+                ));
             }
         }
         Ok(())
@@ -242,6 +252,42 @@ impl Config {
     /// Number of drives over all buses.
     pub fn drive_count(&self) -> usize {
         self.buses.iter().map(|b| b.drives.len()).sum()
+    }
+}
+
+/// Where the file sets the keys of the lease bounds, for an error that
+/// points at them (the sections themselves keep only their values).
+#[derive(Deserialize, Default)]
+struct LeaseKeys {
+    safety: Option<SafetyLeaseKeys>,
+    http: Option<HttpLeaseKeys>,
+}
+
+#[derive(Deserialize)]
+struct SafetyLeaseKeys {
+    lease_max_ms: Option<toml::Spanned<toml::Value>>,
+    jog_lease_ms: Option<toml::Spanned<toml::Value>>,
+}
+
+#[derive(Deserialize)]
+struct HttpLeaseKeys {
+    lease_default_ms: Option<toml::Spanned<toml::Value>>,
+}
+
+impl LeaseKeys {
+    fn find(text: &str) -> Self {
+        toml::from_str(text).unwrap_or_default()
+    }
+
+    /// The span of a `[safety]` key, if the file sets it.
+    fn safety(
+        &self,
+        key: impl Fn(&SafetyLeaseKeys) -> &Option<toml::Spanned<toml::Value>>,
+    ) -> Option<std::ops::Range<usize>> {
+        self.safety
+            .as_ref()
+            .and_then(|s| key(s).as_ref())
+            .map(|k| k.span())
     }
 }
 

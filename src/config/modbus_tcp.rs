@@ -26,12 +26,15 @@ pub struct ModbusTcpConfig {
     pub enabled: bool,
     /// Address and port to listen on (502 in deployment).
     pub listen: SocketAddr,
-    /// Connections served at once; more are closed as they arrive.
-    #[serde(deserialize_with = "int_in::<_, _, 1, 4096>")]
-    pub max_connections: usize,
-    /// Connections one client address (an IPv6 client by its /64) may
-    /// hold at once, so that one host cannot take every slot; absent: a
-    /// quarter of `max_connections` ([`Self::per_address_limit`]).
+    /// Connections served at once (each listener, plain and Security);
+    /// absent: twice the configured drives plus 32, at least 64
+    /// ([`Self::connection_limit`]), so a SCADA with a connection per
+    /// drive fits beside the PLCs and HMIs.
+    pub max_connections: Option<ConnectionCount>,
+    /// A hard cap on the connections one client address (an IPv6 client
+    /// by its /64) may hold at once; absent: none, an address shares every
+    /// free slot, and near the limit the heaviest address gives way first
+    /// (`crate::connections::budget`).
     pub max_connections_per_address: Option<Spanned<ConnectionCount>>,
     /// A connection with nothing pending that sends no complete request for
     /// this long is closed, so dead peers do not hold connection slots.
@@ -341,6 +344,14 @@ impl<'de> Deserialize<'de> for UnitRange {
     }
 }
 
+/// The connection limit of a listener without `max_connections`, with
+/// `drives` configured: a connection per drive for a SCADA that models
+/// each drive as a device (as Ignition and Kepware do), as many again for
+/// a second one or its standby, and 32 for PLCs and HMIs; at least 64.
+pub fn default_connection_limit(drives: usize) -> usize {
+    drives.saturating_mul(2).saturating_add(32).clamp(64, 4096)
+}
+
 /// The networks allowed without `allowed_networks`: loopback only, the
 /// gateway's own processes. A plant network is opened with a role of its
 /// own (`[[modbus_tcp.clients]]`): plain Modbus TCP has no authentication,
@@ -367,7 +378,7 @@ impl Default for ModbusTcpConfig {
         Self {
             enabled: true,
             listen: SocketAddr::from(([127, 0, 0, 1], 5020)),
-            max_connections: 64,
+            max_connections: None,
             max_connections_per_address: None,
             idle_timeout_ms: 60_000,
             max_pipelined: 16,
@@ -396,12 +407,18 @@ impl ModbusTcpConfig {
             .unwrap_or_else(default_allowed_networks)
     }
 
-    /// Connections one address may hold: `max_connections_per_address`,
-    /// or a quarter of `max_connections` (at least one).
-    pub fn per_address_limit(&self) -> usize {
+    /// Connections served at once with `drives` configured:
+    /// `max_connections`, or twice the drives plus 32, at least 64.
+    pub fn connection_limit(&self, drives: usize) -> usize {
+        self.max_connections
+            .map_or_else(|| default_connection_limit(drives), |n| n.0)
+    }
+
+    /// The hard cap per address, when configured.
+    pub fn per_address_limit(&self) -> Option<usize> {
         self.max_connections_per_address
             .as_ref()
-            .map_or((self.max_connections / 4).max(1), |n| n.get_ref().0)
+            .map(|n| n.get_ref().0)
     }
 
     /// What `check-config` and the listener's start say about this section
@@ -464,14 +481,15 @@ impl ModbusTcpConfig {
         self.check_polled_copy(&bus_names)?;
         self.check_comm_loss()?;
         if let Some(per) = &self.max_connections_per_address
-            && per.get_ref().0 > self.max_connections
+            && let Some(max) = self.max_connections
+            && per.get_ref().0 > max.0
         {
             return Err((
                 per.span(),
                 format!(
                     "[modbus_tcp] max_connections_per_address = {} is out of range: valid 1 to {} (max_connections)",
                     per.get_ref().0,
-                    self.max_connections
+                    max.0
                 ),
             ));
         }

@@ -71,12 +71,22 @@ pub struct MqttConfig {
     #[serde(default)]
     pub client_key: Option<PathBuf>,
     /// MQTT keepalive, seconds: a connection cut without a close is
-    /// noticed within one and a half of it.
+    /// noticed within one and a half of it. At least 5 with the JSON
+    /// format (the MQTT 5 client's own floor); read it with
+    /// [`MqttConfig::keepalive`].
+    #[serde(default = "default_keepalive", deserialize_with = "keepalive")]
+    keepalive_s: KeepaliveKey,
+    /// The largest message the node takes from the broker, bytes (the
+    /// whole MQTT packet: topic, headers and payload). A larger one costs
+    /// the message, not the connection: dropped, counted and audited. The
+    /// default holds the largest command either format takes with room
+    /// to spare (the WebSocket stream's messages are bounded by
+    /// `[http] max_body_bytes`, 64 KiB by default).
     #[serde(
-        default = "default_keepalive",
-        deserialize_with = "int_in::<_, _, 2, 3600>"
+        default = "default_max_message_bytes",
+        deserialize_with = "int_in::<_, _, 1024, 16_777_216>"
     )]
-    pub keepalive_s: u64,
+    pub max_message_bytes: u32,
     /// A setpoint or mode command from MQTT takes a lease held by the MQTT
     /// session; the broker connection lost for this long ends it, ms.
     #[serde(
@@ -277,6 +287,23 @@ impl fmt::Debug for CommandsKey {
     }
 }
 
+/// `keepalive_s` with where the file says it (for the JSON format's
+/// floor, checked across keys); compared and shown by its value only.
+#[derive(Clone)]
+struct KeepaliveKey(Spanned<u64>);
+
+impl PartialEq for KeepaliveKey {
+    fn eq(&self, other: &Self) -> bool {
+        self.0.get_ref() == other.0.get_ref()
+    }
+}
+
+impl fmt::Debug for KeepaliveKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.0.get_ref().fmt(f)
+    }
+}
+
 /// How drivegate logs in to the broker: what the broker knows of the
 /// connection its commands arrive on.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -352,6 +379,16 @@ impl MqttConfig {
         if self.client_key.is_some() && self.client_cert.is_none() {
             return Err((0..0, "[mqtt] client_key needs client_cert".to_string()));
         }
+        let keepalive = &self.keepalive_s.0;
+        if self.format == Format::Json && *keepalive.get_ref() < JSON_KEEPALIVE_MIN_S {
+            return Err((
+                keepalive.span(),
+                format!(
+                    "[mqtt] keepalive_s = {} is out of range: valid {JSON_KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} with format = \"json\" (the MQTT 5 client's floor; Sparkplug takes {KEEPALIVE_MIN_S})",
+                    keepalive.get_ref()
+                ),
+            ));
+        }
         if self.takes_unauthenticated_commands() && !self.unauthenticated_commands {
             return Err((self.commands.0.span(), self.unauthenticated_refusal()));
         }
@@ -391,7 +428,7 @@ impl MqttConfig {
 
     /// The keepalive interval.
     pub fn keepalive(&self) -> Duration {
-        Duration::from_secs(self.keepalive_s)
+        Duration::from_secs(*self.keepalive_s.0.get_ref())
     }
 
     /// The largest the store may grow, bytes.
@@ -404,8 +441,34 @@ fn default_group() -> String {
     "drivegate".to_string()
 }
 
-fn default_keepalive() -> u64 {
-    10
+/// The keepalive's range, seconds (rumqttc's MQTT 3.1.1 client takes
+/// any whole second; a keepalive is a 16-bit field).
+const KEEPALIVE_MIN_S: u64 = 2;
+const KEEPALIVE_MAX_S: u64 = 3600;
+/// rumqttc's MQTT 5 client refuses less (it panics: "Keep alives should
+/// be >= 5 secs").
+const JSON_KEEPALIVE_MIN_S: u64 = 5;
+
+fn default_keepalive() -> KeepaliveKey {
+    KeepaliveKey(Spanned::new(0..0, 10))
+}
+
+fn keepalive<'de, D: Deserializer<'de>>(d: D) -> Result<KeepaliveKey, D::Error> {
+    let v = Spanned::<i64>::deserialize(d)?;
+    let span = v.span();
+    let v = *v.get_ref();
+    match u64::try_from(v) {
+        Ok(s) if (KEEPALIVE_MIN_S..=KEEPALIVE_MAX_S).contains(&s) => {
+            Ok(KeepaliveKey(Spanned::new(span, s)))
+        }
+        _ => Err(de::Error::custom(format!(
+            "{v} is out of range: valid {KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} ({JSON_KEEPALIVE_MIN_S} to {KEEPALIVE_MAX_S} with format = \"json\")"
+        ))),
+    }
+}
+
+fn default_max_message_bytes() -> u32 {
+    65_536
 }
 
 fn default_comm_loss() -> u64 {
@@ -571,6 +634,25 @@ mod tests {
         assert!(open.takes_unauthenticated_commands());
         // Without commands nothing is asked.
         assert_eq!(parse(plain).unwrap().commands(), Commands::None);
+    }
+
+    #[test]
+    fn the_keepalive_and_the_largest_message_are_within_the_clients_limits() {
+        let broker = "broker = \"mqtt://127.0.0.1\"";
+        // rumqttc's MQTT 5 client panics below 5 s: refused at the line.
+        let e = parse(&format!("{broker}\nformat = \"json\"\nkeepalive_s = 4")).unwrap_err();
+        assert!(e.starts_with("drivegate.toml:4:"), "{e}");
+        assert!(e.contains("valid 5 to 3600"), "{e}");
+        assert!(parse(&format!("{broker}\nformat = \"json\"\nkeepalive_s = 5")).is_ok());
+        // Sparkplug's MQTT 3.1.1 client takes 2.
+        let c = parse(&format!("{broker}\nkeepalive_s = 2")).unwrap();
+        assert_eq!(c.keepalive(), Duration::from_secs(2));
+        let e = parse(&format!("{broker}\nkeepalive_s = 1")).unwrap_err();
+        assert!(e.starts_with("drivegate.toml:3:"), "{e}");
+        assert!(e.contains("valid 2 to 3600"), "{e}");
+        assert_eq!(parse(broker).unwrap().max_message_bytes, 65_536);
+        let e = parse(&format!("{broker}\nmax_message_bytes = 1023")).unwrap_err();
+        assert!(e.contains("valid 1024 to 16777216"), "{e}");
     }
 
     #[test]

@@ -44,9 +44,20 @@ pub struct OpcUaConfig {
     /// What the end of such a lease sends: `zero-speed` (the default),
     /// `brake`, or `none` (the end is shown and audited, nothing is sent).
     pub comm_loss_action: StopAction,
-    /// Sessions at once; more are refused.
+    /// Sessions at once. An address shares every free one; near the limit
+    /// the heaviest address is refused, and once full a quiet session of
+    /// the heaviest is closed for a client of a lighter address
+    /// (`crate::connections::budget`).
     #[serde(deserialize_with = "int_in::<_, _, 1, 1000>")]
     pub max_sessions: usize,
+    /// A hard cap on the sessions of one client address; absent: none.
+    pub max_sessions_per_address: Option<super::modbus_tcp::ConnectionCount>,
+    /// Connections (each a secure channel) at once, shared like the
+    /// sessions.
+    #[serde(deserialize_with = "int_in::<_, _, 1, 4096>")]
+    pub max_connections: usize,
+    /// A hard cap on the connections of one client address; absent: none.
+    pub max_connections_per_address: Option<super::modbus_tcp::ConnectionCount>,
     /// A CA (PEM, one or more certificates) that vouches for users: a user
     /// certificate it signed is trusted, and its role extension
     /// ([`super::ROLE_EXTENSION`]) is its role, as for Modbus/TCP Security.
@@ -207,6 +218,9 @@ impl Default for OpcUaConfig {
             session_timeout_max_ms: 30_000,
             comm_loss_action: StopAction::ZeroSpeed,
             max_sessions: 20,
+            max_sessions_per_address: None,
+            max_connections: 64,
+            max_connections_per_address: None,
             user_ca: None,
             user_certificates: Vec::new(),
             max_subscriptions_per_session: 10,

@@ -36,9 +36,49 @@ pub fn refused_by_face(face: &str, who: &str, bus: &str, unit: u8, write: &Write
 
 /// Logs a sign-in refused on `face` from `client` (its address), with why
 /// (a wrong or paused secret, a password sent in clear, a certificate
-/// without trust or role): never the secret itself.
+/// without trust or role): never the secret itself. Like every audit line
+/// it names who: nobody, since the sign-in failed.
 pub fn sign_in_refused(face: &str, client: &str, why: &str) {
-    tracing::warn!(target: "drivegate::audit", face, client, why, "sign-in refused");
+    tracing::warn!(target: "drivegate::audit", face, who = "not signed in", client, why, "sign-in refused");
+}
+
+/// Logs a message a face dropped unread because it is larger than its
+/// configuration takes (`limit` bytes): who sent it is known only as far
+/// as the face knows (MQTT: the broker's login), its topic says what it
+/// was for.
+pub fn message_too_large(
+    face: &str,
+    who: &str,
+    topic: &str,
+    bytes: u64,
+    limit: u64,
+    retained: bool,
+) {
+    tracing::warn!(
+        target: "drivegate::audit",
+        face,
+        who,
+        topic,
+        bytes,
+        limit,
+        retained,
+        "message dropped: larger than the face takes"
+    )
+}
+
+/// Logs a command refused because it did not come live from its sender
+/// (`what` in words, for `subject`, a drive or the node): "a retained
+/// command was ignored", with who sent it and why.
+pub fn not_live(face: &str, who: &str, subject: &str, what: &str, ignored: &str, why: &str) {
+    tracing::warn!(
+        target: "drivegate::audit",
+        face,
+        who,
+        drive = subject,
+        what,
+        why,
+        "{ignored}"
+    );
 }
 
 /// Logs a write sent while the motor turns, as its caller's override
@@ -205,6 +245,63 @@ pub fn reload(by: &str, result: &ReloadResult) {
         ),
     }
 }
+/// Logs a change of the configuration file asked for by `by` (the
+/// console's editor, a token made or revoked): `what` in words, `diff` the
+/// file's lines as a unified diff, and what came of it (written and
+/// reloaded, or refused and nothing written).
+pub fn config_written(by: &str, what: &str, diff: &str, result: &ReloadResult) {
+    match result {
+        Ok(applied) => tracing::info!(
+            target: "drivegate::audit",
+            who = by,
+            what,
+            diff,
+            changes = %applied.changes.join("; "),
+            "configuration file changed"
+        ),
+        Err(refused) => tracing::warn!(
+            target: "drivegate::audit",
+            who = by,
+            what,
+            diff,
+            why = %refused,
+            "configuration file change refused; nothing was written"
+        ),
+    }
+}
+
+/// Logs a certificate trusted, removed or renewed by `by` (or the
+/// refusal): `action` in words, the certificate by its subject and
+/// SHA-1 thumbprint, and `result`.
+pub fn certificate(
+    by: &str,
+    action: &str,
+    subject: &str,
+    thumbprint: &str,
+    result: Result<&str, &str>,
+) {
+    match result {
+        Ok(done) => tracing::info!(
+            target: "drivegate::audit",
+            who = by,
+            action,
+            subject,
+            thumbprint,
+            done,
+            "certificate {action}"
+        ),
+        Err(why) => tracing::warn!(
+            target: "drivegate::audit",
+            who = by,
+            action,
+            subject,
+            thumbprint,
+            why,
+            "certificate not {action}"
+        ),
+    }
+}
+
 /// Logs a settings document refused whole: nothing was written.
 pub fn settings_refused(face: &str, who: &str, drive: &str, error: &SettingsError) {
     let why = match error {

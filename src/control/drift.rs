@@ -73,6 +73,15 @@ impl DriftBook {
         lock(&self.views).get(name).cloned()
     }
 
+    /// Drive `old` is named `new` now (the same motor, renamed by a
+    /// reload): its latest comparison is its under the new name.
+    pub(super) fn rename(&self, old: &str, new: &str) {
+        let mut views = lock(&self.views);
+        if let Some(view) = views.remove(old) {
+            views.insert(new.to_string(), view);
+        }
+    }
+
     /// Records drive `drive`'s new state and tells the stream and the log.
     fn set(&self, parts: &Arc<Parts>, drive: usize, view: DriftView) {
         let Some(name) = parts.plant().now().drive_at(drive).map(|d| d.name.clone()) else {
@@ -330,7 +339,7 @@ pub(super) fn start(book: &Arc<DriftBook>, parts: &Arc<Parts>, shutdown: &Cancel
                 watcher_book.clone(),
                 watcher_parts.clone(),
                 index,
-                bus.handle.subscribe(),
+                bus.handle.subscribe_links(),
                 stop,
             );
         });

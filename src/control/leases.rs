@@ -182,6 +182,19 @@ impl Leases {
         })
     }
 
+    /// Drive `old` is named `new` now (renamed by a reload, the same slot):
+    /// what the journal owes it is owed under the new name, so a restart
+    /// finds it.
+    pub fn renamed(&self, old: &str, new: &str) {
+        let mut journal = self.journal.lock().unwrap_or_else(|p| p.into_inner());
+        if let Err(why) = journal.rename(old, new) {
+            tracing::warn!(
+                drive = new,
+                "the renamed drive's lease is not kept across a restart: {why}"
+            );
+        }
+    }
+
     /// The safety journal.
     pub fn journal<R>(&self, f: impl FnOnce(&Journal) -> R) -> R {
         f(&self.journal.lock().unwrap_or_else(|p| p.into_inner()))
@@ -424,18 +437,19 @@ impl Leases {
     /// reopens, until shutdown.
     async fn follow_buses(self: Arc<Self>) {
         let mut plant = self.plant.follow();
-        // The buses watched, by slot: a bus reopened is another `Bus`.
-        let mut watched: Vec<(usize, Arc<crate::plant::Bus>)> = Vec::new();
+        // The buses watched, by slot: a bus reopened is another running
+        // bus (one changed in place is the same).
+        let mut watched: Vec<(usize, crate::bus::BusHandle)> = Vec::new();
         loop {
             let now = plant.borrow_and_update().clone();
-            watched.retain(|(i, b)| now.bus_at(*i).is_some_and(|n| Arc::ptr_eq(n, b)));
+            watched.retain(|(i, b)| now.bus_at(*i).is_some_and(|n| n.handle.is(b)));
             for (index, bus) in now.indexed_buses() {
                 if watched.iter().any(|(i, _)| *i == index) {
                     continue;
                 }
-                watched.push((index, bus.clone()));
+                watched.push((index, bus.handle.clone()));
                 let watcher = self.clone();
-                let rx = bus.handle.subscribe();
+                let rx = bus.handle.subscribe_links();
                 self.tasks
                     .spawn(async move { watcher.watch_links(index, rx).await });
             }

@@ -36,6 +36,8 @@
 pub mod alarms;
 pub mod audit;
 pub mod caller;
+pub mod certificates;
+pub mod config_edits;
 pub mod drift;
 pub mod events;
 pub mod freshness;
@@ -43,6 +45,7 @@ pub mod identity;
 pub mod journal;
 pub mod lease_book;
 pub mod leases;
+pub mod live;
 pub mod news;
 pub mod outcome;
 mod parts;
@@ -123,6 +126,10 @@ struct Inner {
     alarms: Arc<alarms::Alarms>,
     /// Reloads of the configuration.
     reloads: reload::Reloads,
+    /// The last changes written into the configuration file.
+    edits: config_edits::EditLog,
+    /// The certificates' store, once the daemon attached it.
+    certificates: certificates::Certificates,
     /// What the journal held at start-up, until it is replayed.
     recovered: std::sync::Mutex<Option<Recovered>>,
     on_unknown_state: StopAction,
@@ -152,11 +159,14 @@ impl Control {
     ) -> Self {
         let events = Arc::new(Events::default());
         let state_dir = safety.state_dir();
+        // The journal first: what the state directory held before this
+        // start (the alarm file among it) tells a lost journal from a
+        // first start.
+        let opened = Journal::open(state_dir.as_deref(), plant.now().drive_count());
         let alarms = alarms::Alarms::open(state_dir.as_deref(), safety.alarms_kept, events.clone());
         alarms.reconcile(&plant);
         alarms.watch(&plant, events.subscribe(), &shutdown);
         freshness::watch(&plant, events.clone(), &shutdown);
-        let opened = Journal::open(state_dir.as_deref(), plant.now().drive_count());
         for news in &opened.news {
             match opened.journal.health() {
                 journal::Health::Off(_) => tracing::info!("{news}"),
@@ -176,6 +186,8 @@ impl Control {
             parts: parts.clone(),
             alarms,
             reloads: reload::Reloads::default(),
+            edits: config_edits::EditLog::default(),
+            certificates: certificates::Certificates::default(),
             recovered: std::sync::Mutex::new(Some(opened.recovered)),
             on_unknown_state: safety.on_unknown_state,
             journal_news: opened.news,
@@ -276,9 +288,23 @@ impl Control {
     }
 
     /// Reloads the configuration for `caller` (an admin), optionally
-    /// writing `write` into the file first; audited either way.
+    /// writing `write` into the file first; audited either way, with the
+    /// change's lines when it writes.
     pub async fn reload(&self, caller: &Caller, write: Option<NewText>) -> ReloadResult {
-        reload::reload(&self.0.reloads, caller, write).await
+        let edit = write
+            .as_ref()
+            .map(|w| config_edits::ConfigEdit::of(caller, w));
+        let result = reload::reload(&self.0.reloads, caller, write).await;
+        if let (Ok(_), Some(edit)) = (&result, edit) {
+            self.0.edits.record(edit);
+        }
+        result
+    }
+
+    /// The last changes written into the configuration file through the
+    /// core, oldest first (who made the file as it is).
+    pub fn config_edits(&self) -> Vec<config_edits::ConfigEdit> {
+        self.0.edits.all()
     }
 
     /// Asks the reloader, for a caller the daemon vouches for (SIGHUP).
@@ -324,6 +350,18 @@ impl Control {
         reload::retire(&self.0.parts, drives, on_shutdown).await
     }
 
+    /// Drive `old` of bus `bus` is named `new` now: a reload renamed it,
+    /// the same motor at the same unit, which keeps its slot (its lease,
+    /// its subscriptions). What the core keeps by name follows it: what
+    /// the safety journal owes it, its alarms and its settings' latest
+    /// comparison.
+    pub fn renamed(&self, bus: &str, old: &str, new: &str) {
+        self.0.parts.leases().renamed(old, new);
+        self.alarms().rename(bus, old, new);
+        self.0.drift.rename(old, new);
+        tracing::info!(bus, drive = new, "drive {old} is named {new} now");
+    }
+
     /// Notes in the audit log that `caller` started, finished or abandoned
     /// the replacement of drive `drive` (an index in the plant), with
     /// `detail` in the caller's words (where its settings came from, the
@@ -336,6 +374,42 @@ impl Control {
         detail: &str,
     ) -> Result<(), Refusal> {
         replacement::note_replacement(&self.0.parts, caller, drive, event, detail)
+    }
+
+    /// The daemon's certificates are in `store` from now on; their expiry
+    /// is looked at now and every hour until `stop` (an alarm for each
+    /// that expires within 30 days).
+    pub fn attach_certificates(
+        &self,
+        store: Arc<dyn certificates::CertificateStore>,
+        stop: CancellationToken,
+    ) {
+        self.0
+            .certificates
+            .attach(store, self.0.alarms.clone(), stop);
+    }
+
+    /// Every certificate the daemon serves, trusts or refused, for
+    /// `caller` (an admin).
+    pub async fn certificates(
+        &self,
+        caller: &Caller,
+    ) -> Result<certificates::Listing, certificates::CertError> {
+        self.0.certificates.list(caller).await
+    }
+
+    /// Trusts a refused OPC UA client, removes a trusted one or renews the
+    /// server's own certificate, for `caller` (an admin); audited either
+    /// way. Applies without a restart of the daemon.
+    pub async fn certificate_action(
+        &self,
+        caller: &Caller,
+        action: certificates::Action,
+    ) -> Result<certificates::Done, certificates::CertError> {
+        self.0
+            .certificates
+            .act(caller, action, &self.0.alarms)
+            .await
     }
 
     /// Drives compared with their declared settings.
@@ -365,6 +439,11 @@ impl Control {
         let mut counts = self.0.replayed.lock().unwrap_or_else(|p| p.into_inner());
         for d in &decisions {
             *counts.entry(restart::kind(&d.what)).or_default() += 1;
+            if let Some(text) = restart::unknown_state_alarm(d) {
+                self.0
+                    .alarms
+                    .unknown_state(self.0.parts.plant(), &d.drive, text);
+            }
         }
         let at = std::time::SystemTime::now();
         *self
@@ -487,6 +566,37 @@ impl Control {
     /// `unit` on bus `bus` (0: a broadcast), configured or not.
     pub fn unit_target(&self, bus: usize, unit: u8) -> Target {
         self.0.parts.unit_target(bus, unit)
+    }
+
+    /// Refuses a command of `caller` unless it came live from its sender
+    /// (`delivery`, as its face received it; [`live::judge`]): a refused
+    /// one is audited ("a retained command was ignored"), with `what` it
+    /// asked of `subject` (a drive, or the node), and nothing of it may be
+    /// carried out. Every command a face cannot vouch for as live passes
+    /// here before anything else.
+    pub fn check_live(
+        &self,
+        caller: &Caller,
+        subject: &str,
+        what: &str,
+        delivery: live::Delivery,
+    ) -> Result<(), Refusal> {
+        live::judge(delivery).inspect_err(|refusal| {
+            let why = refusal
+                .detail
+                .strip_prefix(delivery.ignored())
+                .map_or(refusal.detail.as_str(), |rest| {
+                    rest.trim_start_matches(": ")
+                });
+            audit::not_live(
+                caller.face.name(),
+                &caller.who,
+                subject,
+                what,
+                delivery.ignored(),
+                why,
+            );
+        })
     }
 
     /// Refuses `caller` unless its role allows `operation` (what is not

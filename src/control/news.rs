@@ -290,8 +290,16 @@ crate::listed::listed_enum! {
         StopUnfinished,
         /// A brake sent but not confirmed, sent again.
         BrakeAgain,
-        /// `on_unknown_state` on a moving drive: the journal was unreadable.
+        /// `on_unknown_state` on a moving drive: the journal was unreadable,
+        /// or read in part and silent about the drive.
         StopUnknownState,
+        /// `on_unknown_state` on a moving drive: the journal was lost
+        /// (empty, only its header, or missing where an earlier run kept
+        /// one).
+        StopJournalLost,
+        /// A drive found moving while the journal could not say who owned
+        /// it, left moving: `on_unknown_state = "none"` (an alarm says so).
+        UnknownStateLeft,
         /// An HTTP lease kept to its deadline.
         LeaseKept,
         /// No releasing stop: the drive's last confirmed command was a brake.
@@ -310,6 +318,8 @@ impl DecisionKind {
             DecisionKind::StopUnfinished => "stop-unfinished",
             DecisionKind::BrakeAgain => "brake-again",
             DecisionKind::StopUnknownState => "stop-unknown-state",
+            DecisionKind::StopJournalLost => "stop-journal-lost",
+            DecisionKind::UnknownStateLeft => "unknown-state-left",
             DecisionKind::LeaseKept => "lease-kept",
             DecisionKind::BrakeHolds => "brake-holds",
             DecisionKind::NotConfigured => "not-configured",
@@ -346,8 +356,14 @@ pub struct ReloadApplied {
     /// could not move (it stays where it was, with its previous settings,
     /// until the next reload). A reload with problems was applied in part.
     pub problems: Vec<String>,
-    /// Drives that were moving when removed, and what stopped them.
+    /// Every drive whose motion the reload changed, and why: drives that
+    /// were moving when removed (or when their bus moved to another port)
+    /// and what stopped them, and drives that report another motion after
+    /// their bus reopened than before it.
     pub stopped: Vec<String>,
+    /// Drives whose polling paused while their bus reopened, and for how
+    /// long (their motion is unchanged unless `stopped` says otherwise).
+    pub paused: Vec<String>,
 }
 
 /// A reload that left the running configuration as it was.
@@ -357,6 +373,9 @@ pub enum ReloadRefused {
     Invalid(String),
     /// The file changed on disk since the text to write was made from it.
     Changed(String),
+    /// The daemon may not write its file (a read-only file system, a
+    /// directory the service may not write): nothing changed.
+    NotWritten(String),
     /// No reloader: started without a configuration file.
     Unavailable(String),
     /// The caller may not.
@@ -368,6 +387,7 @@ impl std::fmt::Display for ReloadRefused {
         match self {
             ReloadRefused::Invalid(why)
             | ReloadRefused::Changed(why)
+            | ReloadRefused::NotWritten(why)
             | ReloadRefused::Unavailable(why) => f.write_str(why),
             ReloadRefused::Refused(r) => f.write_str(&r.detail),
         }

@@ -71,6 +71,10 @@ pub enum Rule {
     /// every role, unless the face lets an admin send the function code
     /// unchecked (never as a broadcast).
     NotDecoded,
+    /// A command that did not come live from its sender (an MQTT retained
+    /// message, one queued for an earlier session): nothing of it is
+    /// carried out ([`super::live`]).
+    NotLive,
 }
 
 impl Rule {
@@ -83,6 +87,7 @@ impl Rule {
             Rule::NotActive => "not-active",
             Rule::LeaseLength { .. } => "lease-length",
             Rule::NotDecoded => "not-decoded",
+            Rule::NotLive => "not-live",
         }
     }
 }

@@ -40,6 +40,13 @@ pub enum Operation {
     /// Reloading the configuration file (drives and buses added or
     /// removed, tokens, roles of networks): commissioning work.
     Reload,
+    /// Reading, checking and changing the configuration file itself, its
+    /// API tokens included: it names every token's source and every
+    /// role, and what it says the daemon becomes.
+    Configure,
+    /// Trusting, removing and renewing certificates (OPC UA clients, the
+    /// server's own): who may connect with a certificate, and as whom.
+    Certificates,
 }
 
 impl Operation {
@@ -53,6 +60,8 @@ impl Operation {
             Operation::Replacement => Role::Admin,
             Operation::AcknowledgeAlarm => Role::Operator,
             Operation::Reload => Role::Admin,
+            Operation::Configure => Role::Admin,
+            Operation::Certificates => Role::Admin,
         }
     }
 }

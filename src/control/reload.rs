@@ -22,7 +22,10 @@ use super::policy::Operation;
 use super::{audit, rules};
 use crate::bus::{BusHandle, Origin};
 use crate::config::Config;
+use crate::config::edit::sha256_hex;
+use crate::config::text_diff::{self, Hunk};
 use crate::control::stop_action::{self, StopAction, StopOutcome};
+use crate::drive::{Mode, Status};
 use crate::plant::{Directory, Drive};
 
 /// A reload asked for, with where its answer goes.
@@ -43,6 +46,23 @@ pub struct NewText {
     pub text: String,
     /// SHA-256 (hex) of the file as it was read to make `text`.
     pub base_sha256: String,
+    /// What the change is, in words, for the audit log ("configuration
+    /// edited", "API token \"scada\" made (operator)").
+    pub what: String,
+    /// Its lines: what differs from the text it was made from.
+    pub hunks: Vec<Hunk>,
+}
+
+impl NewText {
+    /// `text`, made from `base` (the file as read), described as `what`.
+    pub fn new(base: &str, text: String, what: impl Into<String>) -> Self {
+        NewText {
+            base_sha256: sha256_hex(base),
+            hunks: text_diff::diff(base, &text),
+            text,
+            what: what.into(),
+        }
+    }
 }
 
 /// What became of reloads since start-up.
@@ -212,14 +232,56 @@ pub(super) async fn reload(
     write: Option<NewText>,
 ) -> ReloadResult {
     let by = format!("{} {}", caller.face.name(), caller.who);
+    let change = write
+        .as_ref()
+        .map(|w| (w.what.clone(), text_diff::unified(&w.hunks)));
+    let audit = |result: &ReloadResult| match &change {
+        Some((what, diff)) => audit::config_written(&by, what, diff, result),
+        None => audit::reload(&by, result),
+    };
     if let Err(refusal) = rules::role(caller, Operation::Reload.needs()) {
-        let refused = Refused::Refused(refusal);
-        audit::reload(&by, &Err(refused.clone()));
-        return Err(refused);
+        let refused = Err(Refused::Refused(refusal));
+        audit(&refused);
+        return refused;
     }
     let result = reloads.ask(by.clone(), write).await;
-    audit::reload(&by, &result);
+    audit(&result);
     result
+}
+
+/// A drive's motion, as its status says it.
+fn motion(s: &Status) -> String {
+    let mode = match s.mode() {
+        Mode::OpenLoop => "open loop",
+        Mode::Speed => "speed mode",
+        Mode::Position => "position mode",
+        Mode::Torque => "torque mode",
+    };
+    match (s.active(), s.speed_rpm) {
+        (false, 0) => "inactive, at standstill".to_string(),
+        (false, rpm) => format!("inactive, turning at {rpm} rpm"),
+        (true, 0) => format!("active in {mode}, at standstill"),
+        (true, rpm) => format!("active in {mode}, turning at {rpm} rpm"),
+    }
+}
+
+/// What a reload's `why` (e.g. "bus line1 reopened") did to drive
+/// `name`'s motion, from the drive's own statuses before and after it:
+/// `None` while it is as active, in the same mode, as much turning or at
+/// standstill as it was (a speed that settles, or a position that moves on,
+/// is the drive's own doing). Pure.
+pub fn motion_changed(name: &str, why: &str, before: &Status, after: &Status) -> Option<String> {
+    let still = |s: &Status| s.speed_rpm == 0;
+    let same = before.active() == after.active()
+        && before.mode() == after.mode()
+        && still(before) == still(after);
+    (!same).then(|| {
+        format!(
+            "drive {name} was {} before {why}, and is {} after it (as the drive reports)",
+            motion(before),
+            motion(after)
+        )
+    })
 }
 
 /// Stops the drives (slot indices) a reload removes, while their bus
@@ -341,4 +403,50 @@ async fn lease_stops(
         }
     }
     words
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A status of a drive `active` in `mode` at `rpm`.
+    fn status(active: bool, mode: Mode, rpm: i16) -> Status {
+        let mut flags = mode.bits() << 3;
+        if active {
+            flags |= 1 << 7;
+        }
+        Status {
+            speed_rpm: rpm,
+            flags,
+            ..Status::default()
+        }
+    }
+
+    #[test]
+    fn a_motion_is_changed_only_when_the_drive_says_so() {
+        let turning = status(true, Mode::Speed, 100);
+        assert!(
+            turning.active() && turning.mode() == Mode::Speed,
+            "{turning:?}"
+        );
+        let why = "bus line1 reopened";
+        // The same, a speed settling, a position moving on: unchanged.
+        assert_eq!(motion_changed("conveyor", why, &turning, &turning), None);
+        let settled = status(true, Mode::Speed, 99);
+        assert_eq!(motion_changed("conveyor", why, &turning, &settled), None);
+        let still = status(true, Mode::Position, 0);
+        assert_eq!(motion_changed("lift", why, &still, &still), None);
+        // A drive restarted: inactive, in open loop.
+        let reset = status(false, Mode::OpenLoop, 0);
+        assert_eq!(
+            motion_changed("conveyor", why, &turning, &reset).as_deref(),
+            Some(
+                "drive conveyor was active in speed mode, turning at 100 rpm before bus line1 \
+                 reopened, and is inactive, at standstill after it (as the drive reports)"
+            )
+        );
+        // Stopped in its mode, or set in motion.
+        assert!(motion_changed("conveyor", why, &turning, &status(true, Mode::Speed, 0)).is_some());
+        assert!(motion_changed("lift", why, &still, &status(true, Mode::Position, 30)).is_some());
+    }
 }

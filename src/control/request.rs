@@ -3,7 +3,7 @@
 //! what the register table makes of it (passthrough faces); with the
 //! lease, override and confirmation that come with it.
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use super::policy::{self, Meaning, StillReason};
 use super::written::{describe, describe_pdu};
@@ -125,6 +125,11 @@ pub struct ControlRequest {
     /// The caller's own reason for the write to need standstill, beside
     /// what the write means (drivegate applying declared settings).
     pub still: Option<StillReason>,
+    /// When its face received it from its client, if it may have waited
+    /// before reaching the core (behind the connection's earlier
+    /// requests): that wait counts against the bus's `queue_timeout_ms`
+    /// ([`super::live::queue_wait`]).
+    pub received: Option<Instant>,
 }
 
 impl ControlRequest {
@@ -138,7 +143,15 @@ impl ControlRequest {
             single_drive: false,
             unchecked: false,
             still: None,
+            received: None,
         }
+    }
+
+    /// Received by its face at `at`: its wait for the bus counts from
+    /// then.
+    pub fn received(mut self, at: Instant) -> Self {
+        self.received = Some(at);
+        self
     }
 
     /// What the write means, with the caller's own need for standstill.

@@ -10,7 +10,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
 use super::journal::format::Action;
-use super::journal::replay::{self, Decision, DriveAtStart, Recovered, Replayed, StopWhy};
+use super::journal::replay::{
+    self, Decision, DriveAtStart, Recovered, Replayed, StopWhy, Unknown, Unsaid,
+};
 use super::leases::{self, Leases};
 pub use super::news::{DecisionKind, RestartNote};
 use crate::bus::cache::Link;
@@ -32,11 +34,15 @@ pub fn kind(what: &Replayed) -> DecisionKind {
             StopWhy::RanOut => DecisionKind::StopRanOut,
             StopWhy::Unfinished => DecisionKind::StopUnfinished,
             StopWhy::BrakeUnconfirmed => DecisionKind::BrakeAgain,
-            StopWhy::UnknownState => DecisionKind::StopUnknownState,
+            StopWhy::UnknownState(Unsaid::Journal(
+                Unknown::Empty | Unknown::HeaderOnly | Unknown::Missing(_),
+            )) => DecisionKind::StopJournalLost,
+            StopWhy::UnknownState(_) => DecisionKind::StopUnknownState,
         },
         Replayed::Keep { .. } => DecisionKind::LeaseKept,
         Replayed::BrakeHolds { .. } => DecisionKind::BrakeHolds,
         Replayed::NotConfigured => DecisionKind::NotConfigured,
+        Replayed::LeftMoving { .. } => DecisionKind::UnknownStateLeft,
     }
 }
 
@@ -53,10 +59,7 @@ pub async fn run(
         plant
             .now()
             .drives()
-            .map(|d| DriveAtStart {
-                name: d.name.clone(),
-                moving: None,
-            })
+            .map(|d| DriveAtStart::unread(&d.name))
             .collect()
     };
     let on_unknown = match on_unknown {
@@ -102,21 +105,28 @@ pub async fn run(
                     now,
                 ),
                 Replayed::BrakeHolds { .. } => book.restore_brake(drive),
-                Replayed::NotConfigured => {}
+                Replayed::NotConfigured | Replayed::LeftMoving { .. } => {}
             }
         }
         ((), book.tick(now))
     });
     // A drive that did not answer, whose journal said nothing to trust:
     // decided at its first answer.
-    if on_unknown != Action::None {
+    let unsaid = match recovered {
+        Recovered::Read(_) => None,
+        Recovered::Tail(_) => Some(Unsaid::Partial),
+        Recovered::Unknown(unknown) => Some(Unsaid::Journal(unknown.clone())),
+    };
+    if on_unknown != Action::None
+        && let Some(unsaid) = unsaid
+    {
         let vouched = |name: &str| match recovered {
             Recovered::Tail(state) => state.drives.contains_key(name),
-            Recovered::Read(_) | Recovered::Unreadable => false,
+            Recovered::Read(_) | Recovered::Unknown(_) => false,
         };
-        let why: Arc<str> = StopWhy::UnknownState.words().into();
+        let why: Arc<str> = StopWhy::UnknownState(unsaid).words().into();
         for s in statuses.iter().filter(|s| s.moving.is_none()) {
-            if let Some(drive) = index(&s.name).filter(|_| recovered.has_unknowns())
+            if let Some(drive) = index(&s.name)
                 && !vouched(&s.name)
             {
                 leases.stop_at_first_answer(drive, leases::stop_action(on_unknown), why.clone());
@@ -137,12 +147,11 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
             .map(|d| {
                 let state = now.handle_of(d).and_then(|h| h.drive(d.unit));
                 let known = state.as_ref().is_some_and(|s| s.link != Link::Unknown);
-                DriveAtStart {
-                    name: d.name.clone(),
-                    moving: state
-                        .and_then(|s| s.status)
-                        .filter(|_| known)
-                        .map(|s| stop_action::is_moving(&s)),
+                match state.and_then(|s| s.status).filter(|_| known) {
+                    Some(s) => {
+                        DriveAtStart::polled(&d.name, stop_action::is_moving(&s), s.speed_rpm)
+                    }
+                    None => DriveAtStart::unread(&d.name),
                 }
             })
             .collect();
@@ -157,6 +166,32 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
         // The poller's first round: a status per drive, each a few ms.
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
+}
+
+/// The alarm's words for a drive found moving while the journal could not
+/// say who owned it (`None` for every other decision): the journal's
+/// state, the drive, how it moved and what was done. "the safety journal
+/// was empty at start: belt was turning at 150 rpm and was stopped
+/// (on_unknown_state = zero-speed)".
+pub fn unknown_state_alarm(d: &Decision) -> Option<String> {
+    let unsaid = d.unsaid()?;
+    let how = match d.speed_rpm {
+        Some(rpm) if rpm != 0 => format!("was turning at {rpm} rpm"),
+        _ => "was holding torque at standstill".to_string(),
+    };
+    let done = match &d.what {
+        Replayed::Stop { action, .. } => {
+            let action = leases::stop_action(*action);
+            let verb = if action == StopAction::Brake {
+                "was braked"
+            } else {
+                "was stopped"
+            };
+            format!("{verb} (on_unknown_state = {})", action.name())
+        }
+        _ => "was left moving (on_unknown_state = none)".to_string(),
+    };
+    Some(format!("{}: {} {how} and {done}", unsaid.words(), d.drive))
 }
 
 /// `d` in words, decided at `at`.
@@ -189,6 +224,13 @@ pub fn note(d: &Decision, at: SystemTime) -> RestartNote {
             "the safety journal names a drive that is not configured any more; nothing is sent"
                 .to_string(),
         ),
+        Replayed::LeftMoving { why } => (
+            None,
+            format!(
+                "{}, so who owned the motor is unknown, and the drive was moving; nothing is sent ([safety] on_unknown_state = none)",
+                why.words()
+            ),
+        ),
     };
     RestartNote {
         drive: d.drive.clone(),
@@ -196,5 +238,93 @@ pub fn note(d: &Decision, at: SystemTime) -> RestartNote {
         who,
         text,
         at,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::control::journal::format::ModeName;
+
+    fn moving(what: Replayed, rpm: i16) -> Decision {
+        Decision {
+            drive: "belt".into(),
+            what,
+            speed_rpm: Some(rpm),
+        }
+    }
+
+    #[test]
+    fn a_drive_found_moving_with_the_journal_lost_is_an_alarm_in_words() {
+        let why = Unsaid::Journal(Unknown::Empty);
+        let stopped = moving(
+            Replayed::Stop {
+                owner: None,
+                action: Action::ZeroSpeed,
+                mode: ModeName::Speed,
+                why: StopWhy::UnknownState(why.clone()),
+            },
+            150,
+        );
+        assert_eq!(
+            unknown_state_alarm(&stopped).as_deref(),
+            Some(
+                "the safety journal was empty at start: belt was turning at 150 rpm and was stopped (on_unknown_state = zero-speed)"
+            )
+        );
+        assert_eq!(kind(&stopped.what), DecisionKind::StopJournalLost);
+        let braked = moving(
+            Replayed::Stop {
+                owner: None,
+                action: Action::Brake,
+                mode: ModeName::Speed,
+                why: StopWhy::UnknownState(Unsaid::Journal(Unknown::Unreadable("x".into()))),
+            },
+            0,
+        );
+        let text = unknown_state_alarm(&braked).unwrap();
+        assert!(
+            text.ends_with(
+                "belt was holding torque at standstill and was braked (on_unknown_state = brake)"
+            ),
+            "{text}"
+        );
+        assert_eq!(kind(&braked.what), DecisionKind::StopUnknownState);
+        let left = moving(Replayed::LeftMoving { why }, -80);
+        assert_eq!(
+            unknown_state_alarm(&left).as_deref(),
+            Some(
+                "the safety journal was empty at start: belt was turning at -80 rpm and was left moving (on_unknown_state = none)"
+            )
+        );
+        assert_eq!(kind(&left.what), DecisionKind::UnknownStateLeft);
+        // Every other decision is no such alarm.
+        let kept = moving(Replayed::NotConfigured, 150);
+        assert_eq!(unknown_state_alarm(&kept), None);
+    }
+
+    #[test]
+    fn a_lost_journal_has_its_own_decision_label() {
+        for unknown in [
+            Unknown::Empty,
+            Unknown::HeaderOnly,
+            Unknown::Missing("x".into()),
+        ] {
+            let what = Replayed::Stop {
+                owner: None,
+                action: Action::ZeroSpeed,
+                mode: ModeName::Speed,
+                why: StopWhy::UnknownState(Unsaid::Journal(unknown)),
+            };
+            assert_eq!(kind(&what).name(), "stop-journal-lost");
+        }
+        let partial = Replayed::Stop {
+            owner: None,
+            action: Action::ZeroSpeed,
+            mode: ModeName::Speed,
+            why: StopWhy::UnknownState(Unsaid::Partial),
+        };
+        assert_eq!(kind(&partial).name(), "stop-unknown-state");
     }
 }

@@ -19,6 +19,7 @@ use super::audit;
 use super::caller::Caller;
 use super::events::{ControlEvent, WriteEnd, WriteEvent};
 use super::lease_book::{Grant, Holder, LeaseAsk, Ticket, WriteKind};
+use super::live;
 use super::outcome::{Applied, Failure, Outcome, WriteResult, applied};
 use super::parts::Parts;
 use super::policy::{Meaning, Stopper};
@@ -58,6 +59,18 @@ pub(super) async fn submit(
         Ok(bus) => bus,
         Err(e) => return Err(settle.failed(Failure::NotSent(e))),
     };
+    // Its wait for the bus counts from when its face received it: one
+    // that waited as long as the bus lets a job wait is not sent. A brake
+    // or a deactivation goes whenever it comes: it moves nothing.
+    let received = request.received.filter(|_| !meaning.survives_caller());
+    let queue_timeout = match live::queue_wait(received, Instant::now(), bus.queue_timeout()) {
+        Ok(left) => left,
+        Err(late) => {
+            return Err(settle.failed(Failure::NotSent(BusError::Expired {
+                waited: late.waited,
+            })));
+        }
+    };
     // The lease is in place, and the brake guard knows of the write,
     // before it can reach the wire.
     settle.tickets = tickets(parts, caller, target, &request, &meaning);
@@ -68,7 +81,7 @@ pub(super) async fn submit(
             Priority::Command
         },
         source: caller.source,
-        queue_timeout: None,
+        queue_timeout: Some(queue_timeout),
         max_attempts: None,
         origin: caller.origin.clone(),
     };

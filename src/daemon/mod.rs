@@ -1,6 +1,9 @@
 //! `drivegate serve`: start the plant and the faces, tell systemd, wait for
 //! a signal, stop gracefully.
 
+pub mod certificates;
+mod face_watch;
+mod listen;
 pub mod reloader;
 pub mod supervisor;
 pub(crate) mod systemd;

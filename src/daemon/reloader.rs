@@ -7,8 +7,15 @@
 //! file that does not pass leaves everything as it was, and says why with
 //! `file:line:column`), compares it with the running configuration
 //! (`config::diff`, pure), stops the drives it removes while their bus
-//! still runs (`Control::retire`), has the plant reopen only the buses that
-//! changed (`Plant::apply`), publishes the new configuration, which the
+//! still runs (`Control::retire`; and the drives of a bus moved to another
+//! port: other motors are behind it), has the plant apply each bus's
+//! changes (`Plant::apply`: in place between two transactions, the port
+//! kept open, unless the port, the baud rate or the transport changed,
+//! which reopen that bus alone), tells what the drives of a reopened bus
+//! did meanwhile, from their own statuses (`pause`: how long their
+//! polling paused, and any whose motion changed, in `stopped`), has the
+//! core follow renamed drives (`Control::renamed`), publishes the new
+//! configuration, which the
 //! faces follow for their own sections (tokens, Modbus TCP clients and
 //! units) and the core for `[safety]`, and restarts only the faces whose
 //! listener or client section changed (`faces::Running::follow`: a
@@ -24,10 +31,13 @@ use tracing::{info, warn};
 use crate::config::Config;
 use crate::config::diff::{Changes, diff};
 use crate::config::edit::sha256_hex;
+use crate::config::file::GENERATIONS;
 use crate::control::Control;
 use crate::control::reload::{Applied, NewText, Refused, ReloadRequest, ReloadResult};
 use crate::daemon::supervisor::Running;
-use crate::plant::{Plant, Rebuild};
+use crate::plant::{Directory, Plant, Rebuild};
+
+mod pause;
 
 /// Reloads waiting for the reloader.
 const QUEUE: usize = 8;
@@ -116,8 +126,14 @@ impl Reloader {
                 )));
             }
             check(&write.text, &origin)?;
-            write_file(&self.path, &write.text)
-                .map_err(|e| Refused::Invalid(not_written(&origin, &e)))?;
+            crate::config::file::replace(&self.path, &write.text, GENERATIONS).map_err(|e| {
+                let why = not_written(&origin, &e);
+                if read_only(&e) {
+                    Refused::NotWritten(why)
+                } else {
+                    Refused::Invalid(why)
+                }
+            })?;
             info!(by, "configuration file {origin} rewritten");
             text = write.text;
         }
@@ -136,43 +152,65 @@ impl Reloader {
         // The faces say themselves what they did (compared with what each
         // runs with: one that could not follow the last reload tries again).
         changes.faces_restarted.clear();
-        // Drives that leave (or move): stopped while their bus still runs.
         let now = self.plant.now();
-        let leaving: Vec<usize> = now
-            .indexed_drives()
-            .filter(|(_, d)| {
-                let Some(bus) = now.bus_at(d.bus) else {
-                    return true;
-                };
-                !new.buses.iter().any(|b| {
-                    b.name() == bus.handle.name()
-                        && b.drives
-                            .iter()
-                            .any(|n| n.name() == d.name && n.unit() == d.unit)
-                })
-            })
-            .map(|(i, _)| i)
+        // A bus moved to another port has other motors behind it.
+        let moved: Vec<String> = changes
+            .buses_reopened
+            .iter()
+            .filter(|(_, why)| why.iter().any(|w| w == "port"))
+            .map(|(name, _)| name.clone())
             .collect();
-        let stopped = if leaving.is_empty() {
-            Vec::new()
-        } else {
-            self.control.retire(&leaving, new.safety.on_shutdown).await
-        };
+        let reopened: Vec<String> = changes
+            .buses_reopened
+            .iter()
+            .map(|(name, _)| name.clone())
+            .filter(|name| !moved.contains(name))
+            .collect();
+        // Drives that leave, or whose bus moves: stopped while their bus
+        // still runs (on its old port).
+        let (leaving, moving) = leaving(&now, &new, &moved);
+        let on_shutdown = new.safety.on_shutdown;
+        let mut stopped = Vec::new();
+        if !leaving.is_empty() {
+            stopped.extend(self.control.retire(&leaving, on_shutdown).await);
+        }
+        if !moving.is_empty() {
+            let done = self.control.retire(&moving, on_shutdown).await;
+            stopped.extend(
+                done.into_iter()
+                    .map(|line| format!("{line} (its bus moved to another port)")),
+            );
+        }
+        // What the drives of the buses that reopen on their wire do now.
+        let before = pause::Before::take(&now, &reopened);
         let rebuild = Rebuild {
             reopen: changes
                 .buses_reopened
                 .iter()
                 .map(|(name, _)| name.clone())
                 .collect(),
+            moved,
         };
         let problems = self.plant.apply(&new, &rebuild).await;
-        // A drive whose declared settings changed is compared with them again.
         let after = self.plant.now();
         for (i, d) in after.indexed_drives() {
-            if d.declared.is_some() && now.drive_at(i).map(|o| o.declared) != Some(d.declared) {
+            let Some(old) = now.drive_at(i) else { continue };
+            // The same motor under a new name: what the core keeps by name
+            // follows it.
+            if old.name != d.name
+                && let Some(bus) = after.bus_at(d.bus)
+            {
+                self.control.renamed(bus.handle.name(), &old.name, &d.name);
+            }
+            // A drive whose declared settings changed is compared with them again.
+            if d.declared.is_some() && old.declared != d.declared {
                 self.control.drift().recheck(i);
             }
         }
+        // Polled again after the reopen: how long the polling paused, and
+        // whether any drive moves otherwise than before (said by the drive).
+        let told = before.after(&after).await;
+        stopped.extend(told.stopped);
         let new = Arc::new(new);
         self.control.set_config(new.clone());
         // After the configuration is published: a face started now reads
@@ -193,8 +231,34 @@ impl Reloader {
             changes: lines,
             problems,
             stopped,
+            paused: told.paused,
         }
     }
+}
+
+/// The drives (slots of `now`) that leave the plant with `new`: those whose
+/// bus and unit are no longer configured, and (apart) those on a bus in
+/// `moved`, whose port changed.
+fn leaving(now: &Directory, new: &Config, moved: &[String]) -> (Vec<usize>, Vec<usize>) {
+    let mut leaving = Vec::new();
+    let mut moving = Vec::new();
+    for (i, d) in now.indexed_drives() {
+        let Some(bus) = now.bus_at(d.bus) else {
+            leaving.push(i);
+            continue;
+        };
+        let name = bus.handle.name();
+        let kept = new
+            .buses
+            .iter()
+            .any(|b| b.name() == name && b.drives.iter().any(|n| n.unit() == d.unit));
+        if !kept {
+            leaving.push(i);
+        } else if moved.iter().any(|m| m == name) {
+            moving.push(i);
+        }
+    }
+    (leaving, moving)
 }
 
 /// What the first API token changes, when `new` brings it: every client
@@ -232,22 +296,13 @@ fn first_token(old: &Config, new: &Config) -> Option<String> {
 /// The checks of `drivegate check-config`: the file parses and holds
 /// together, its certificates load and its tokens resolve.
 fn check(text: &str, origin: &str) -> Result<Config, Refused> {
-    let config = Config::parse(text, origin).map_err(|e| Refused::Invalid(e.to_string()))?;
-    crate::daemon::supervisor::check_tls(&config)
-        .map_err(|e| Refused::Invalid(format!("{origin}: {e}")))?;
-    crate::api::auth::Tokens::resolve(&config.http.tokens, config.http.token_guesses)
-        .map_err(|e| Refused::Invalid(format!("{origin}: [http]: {e}")))?;
-    Ok(config)
+    crate::api::config_check::check(text, origin).map_err(Refused::Invalid)
 }
 
 /// Why the file was not written, in words: a file the service may not
 /// write is named as such, with what to do instead.
 fn not_written(origin: &str, e: &std::io::Error) -> String {
-    use std::io::ErrorKind;
-    if matches!(
-        e.kind(),
-        ErrorKind::PermissionDenied | ErrorKind::ReadOnlyFilesystem
-    ) {
+    if read_only(e) {
         format!(
             "cannot write {origin}: {e}: drivegate may not write its configuration file \
              (its unit or the file's permissions keep it read-only: docs/operations.md, \
@@ -259,26 +314,14 @@ fn not_written(origin: &str, e: &std::io::Error) -> String {
     }
 }
 
-/// Writes `text` into `path` whole or not at all: a new file beside it,
-/// synced, renamed over it, keeping its permissions.
-fn write_file(path: &Path, text: &str) -> std::io::Result<()> {
-    use std::io::Write;
-    let dir = path.parent().unwrap_or_else(|| Path::new("."));
-    let name = path.file_name().map_or_else(
-        || "drivegate.toml".into(),
-        |n| n.to_string_lossy().into_owned(),
-    );
-    let temporary = dir.join(format!(".{name}.new"));
-    let permissions = std::fs::metadata(path)?.permissions();
-    let mut file = std::fs::File::create(&temporary)?;
-    file.write_all(text.as_bytes())?;
-    file.sync_all()?;
-    std::fs::set_permissions(&temporary, permissions)?;
-    std::fs::rename(&temporary, path)?;
-    if let Ok(dir) = std::fs::File::open(dir) {
-        let _ = dir.sync_all();
-    }
-    Ok(())
+/// True when `e` says the service may not write there (the file's or
+/// its directory's permissions, a read-only file system).
+fn read_only(e: &std::io::Error) -> bool {
+    use std::io::ErrorKind;
+    matches!(
+        e.kind(),
+        ErrorKind::PermissionDenied | ErrorKind::ReadOnlyFilesystem
+    )
 }
 
 #[cfg(test)]

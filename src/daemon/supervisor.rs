@@ -24,16 +24,26 @@
 //!   (a Modbus TCP client's communication-loss function, a WebSocket's
 //!   jog) end with their stop, audited; HTTP requests in progress finish
 //!   and get their answers first (the reload's own included).
+//!
+//! A face whose task crashes (a panic, or an end nobody asked for) is
+//! started again alone on its socket (`face_watch`), after a wait that
+//! grows while it keeps crashing; meanwhile `/readyz`, the console and the
+//! log say it is down and why, and the other faces serve on. A panic while
+//! a face starts is its start's error.
 
 use std::net::SocketAddr;
-use std::sync::Arc;
-use std::time::Duration;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Weak};
+use std::time::{Duration, SystemTime};
 
+use futures_util::FutureExt;
 use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
+use super::face_watch::{self, RestartBook};
+use super::listen::{bind, bind_address, overlaps, protocol};
 use crate::config::Config;
 use crate::config::diff::Face;
 use crate::control::Control;
@@ -103,6 +113,13 @@ pub struct Running {
     /// Every listener's task, the ones a reload closed included: a stop
     /// waits for their connections too.
     tasks: TaskTracker,
+    /// Itself, for the watch of each face's task.
+    me: Weak<Running>,
+    /// The last face started's number: a crashed face is restarted only
+    /// while it is the one in its slot (not one a reload started since).
+    started_count: AtomicU64,
+    /// Each face's waits before a restart after a crash.
+    restarts: std::sync::Mutex<RestartBook>,
 }
 
 /// What every face is started with.
@@ -163,6 +180,8 @@ struct Listening {
     /// (its accept loop notices its stop a moment later).
     socket: std::net::TcpListener,
     stop: CancellationToken,
+    /// Which start of the face this is.
+    generation: u64,
 }
 
 impl Listening {
@@ -182,6 +201,18 @@ struct Client {
     config: Arc<Config>,
     stop: CancellationToken,
     task: JoinHandle<()>,
+    /// Which start of the face this is.
+    generation: u64,
+}
+
+/// What became of a crashed face's restart.
+enum Restart {
+    /// It serves again.
+    Done,
+    /// A reload or the shutdown stopped or replaced it meanwhile.
+    Replaced,
+    /// It could not be started, in words.
+    Failed(String),
 }
 
 /// How long the MQTT face may take to say goodbye to its broker (its
@@ -192,25 +223,7 @@ const MQTT_STOP_LIMIT: Duration = Duration::from_secs(5);
 /// listener (and the MQTT face's CA and client certificate), as a start would (for `check-config`): an error names the
 /// file and what is wrong with it.
 pub fn check_tls(config: &Config) -> Result<(), String> {
-    if let Some(files) = &config.http.tls {
-        crate::tls::server_config(files, crate::tls::ClientAuth::IfConfigured, &[])
-            .map_err(|e| format!("[http.tls]: {e}"))?;
-    }
-    if let Some(section) = &config.modbus_tcp.tls {
-        crate::tls::server_config(&section.files(), crate::tls::ClientAuth::Required, &[])
-            .map_err(|e| format!("[modbus_tcp.tls]: {e}"))?;
-    }
-    if let Some(mqtt) = &config.mqtt
-        && mqtt.broker.tls
-    {
-        let identity = match (&mqtt.client_cert, &mqtt.client_key) {
-            (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
-            _ => None,
-        };
-        crate::tls::client_config(mqtt.ca.as_deref(), identity)
-            .map_err(|e| format!("[mqtt]: {e}"))?;
-    }
-    Ok(())
+    crate::api::config_check::check_tls(config)
 }
 
 /// Starts the control core, binds every configured listener (so a taken
@@ -252,7 +265,7 @@ pub async fn start(
     metrics.watch_history(&history);
     // What the last process owed the motors, before any client is taken.
     control.replay().await;
-    let running = Arc::new(Running {
+    let running = Arc::new_cyclic(|me| Running {
         shared: Shared {
             plant,
             metrics,
@@ -262,7 +275,25 @@ pub async fn start(
         },
         started: tokio::sync::Mutex::new(Started::default()),
         tasks: TaskTracker::new(),
+        me: me.clone(),
+        started_count: AtomicU64::new(0),
+        restarts: std::sync::Mutex::new(RestartBook::default()),
     });
+    // Weak: the core holds the store, and the faces hold the core.
+    let faces = Arc::downgrade(&running);
+    let restart: super::certificates::Restart = Arc::new(move |face| {
+        let faces = faces.clone();
+        Box::pin(async move {
+            match faces.upgrade() {
+                Some(running) => running.restart(face).await,
+                None => Err("drivegate is stopping".to_string()),
+            }
+        })
+    });
+    control.attach_certificates(
+        Arc::new(super::certificates::Store::new(control.clone(), restart)),
+        running.shared.shutdown.clone(),
+    );
     let config = Arc::new(config.clone());
     let mut started = Started::default();
     for face in [Face::Http, Face::ModbusTls, Face::OpcUa] {
@@ -302,59 +333,6 @@ pub async fn start(
     })
 }
 
-/// Where `face` is to listen with `config`, if at all. Without a token the
-/// API listens on the loopback address of the same port, whatever `listen`
-/// says (`api::listener::bind_address`).
-fn bind_address(face: Face, config: &Config) -> Option<SocketAddr> {
-    match face {
-        Face::Http => Some(crate::api::listener::bind_address(
-            config.http.listen,
-            !config.http.tokens.is_empty(),
-        )),
-        Face::ModbusTcp => config
-            .modbus_tcp
-            .enabled
-            .then_some(config.modbus_tcp.listen),
-        Face::ModbusTls => config.modbus_tcp.tls.as_ref().map(|t| t.listen),
-        Face::OpcUa => config.opcua.as_ref().map(|o| o.listen),
-        Face::Mqtt => None,
-    }
-}
-
-/// Binds `address` for `face`; the error says where and why.
-async fn bind(face: Face, address: SocketAddr) -> Result<TcpListener, String> {
-    TcpListener::bind(address).await.map_err(|e| {
-        let hint = if address.port() < 1024 && e.kind() == std::io::ErrorKind::PermissionDenied {
-            " (ports below 1024 need CAP_NET_BIND_SERVICE: see docs/modbus-tcp.md)"
-        } else {
-            ""
-        };
-        format!(
-            "cannot listen for {} on {address}: {e}{hint}",
-            protocol(face)
-        )
-    })
-}
-
-/// What `face` serves, in the log's words ("HTTP API listening").
-fn protocol(face: Face) -> &'static str {
-    match face {
-        Face::Http => "HTTP API",
-        Face::ModbusTcp => "Modbus TCP",
-        Face::ModbusTls => "Modbus/TCP Security",
-        Face::OpcUa => "OPC UA",
-        Face::Mqtt => "MQTT",
-    }
-}
-
-/// True when a socket listening on `a` keeps another from listening on
-/// `b` (the same port, and the same or a wildcard address).
-fn overlaps(a: SocketAddr, b: SocketAddr) -> bool {
-    a.port() == b.port()
-        && a.port() != 0
-        && (a.ip() == b.ip() || a.ip().is_unspecified() || b.ip().is_unspecified())
-}
-
 impl Running {
     /// Where the listeners are now.
     pub async fn addresses(&self) -> Addresses {
@@ -365,6 +343,28 @@ impl Running {
             modbus_tcp: addr(&started.modbus_tcp),
             modbus_tls: addr(&started.modbus_tls),
             opcua: addr(&started.opcua),
+        }
+    }
+
+    /// Restarts `face` with the configuration it runs with, on its own
+    /// socket (its connections closed as at a stop), so that what it reads
+    /// as it starts is read again (the OPC UA server's certificate after a
+    /// renewal). What was done, in words.
+    pub async fn restart(&self, face: Face) -> Result<String, String> {
+        let mut started = self.started.lock().await;
+        let name = face.name();
+        let slot = started
+            .slot(face)
+            .ok_or_else(|| format!("{name} is not a listener"))?;
+        let old = slot
+            .take()
+            .ok_or_else(|| format!("{name} is not running"))?;
+        let config = old.config.clone();
+        let mut followed = Followed::default();
+        *slot = self.reopen(face, &config, old, &mut followed).await;
+        match followed.problems.pop() {
+            Some(problem) => Err(problem),
+            None => Ok(followed.changes.join("; ")),
         }
     }
 
@@ -589,38 +589,165 @@ impl Running {
         let listener = TcpListener::from_std(std).map_err(|e| e.to_string())?;
         let stop = self.shared.shutdown.child_token();
         let start = self.shared.face_start(config, &stop);
-        let (addr, task) = match face {
-            Face::Http => crate::api::start(start, listener, crate::console::router()).await?,
-            Face::ModbusTcp => crate::modbus_tcp::start(start, listener)?,
-            Face::OpcUa => crate::opcua::start(start, listener)?,
-            Face::ModbusTls | Face::Mqtt => crate::modbus_tcp::start_tls(start, listener)?,
-        };
+        let (addr, task) = std::panic::AssertUnwindSafe(async move {
+            match face {
+                Face::Http => crate::api::start(start, listener, crate::console::router()).await,
+                Face::ModbusTcp => crate::modbus_tcp::start(start, listener),
+                Face::OpcUa => crate::opcua::start(start, listener),
+                Face::ModbusTls | Face::Mqtt => crate::modbus_tcp::start_tls(start, listener),
+            }
+        })
+        .catch_unwind()
+        .await
+        .map_err(|panic| {
+            format!(
+                "it panicked while starting: {}",
+                face_watch::panic_words(&*panic)
+            )
+        })??;
         tracing::info!(addr = %addr, "{} listening", protocol(face));
-        self.tasks.spawn(async move {
-            let _ = task.await;
-        });
+        let generation = self.face_started(face);
+        self.tasks
+            .spawn(self.supervised(face, generation, stop.clone(), task));
         Ok(Listening {
             config: config.clone(),
             bind,
             addr,
             socket,
             stop,
+            generation,
         })
+    }
+
+    /// A face started now: its number, and its waits measured from now.
+    fn face_started(&self, face: Face) -> u64 {
+        if let Ok(mut restarts) = self.restarts.lock() {
+            restarts.started(face, tokio::time::Instant::now());
+        }
+        self.shared.metrics.face_health().serving(face);
+        self.started_count.fetch_add(1, Ordering::Relaxed) + 1
+    }
+
+    /// `task`, the face's, watched: a crash (not a stop) has the face
+    /// started again, alone, after a wait.
+    fn supervised(
+        &self,
+        face: Face,
+        generation: u64,
+        stop: CancellationToken,
+        task: JoinHandle<()>,
+    ) -> impl std::future::Future<Output = ()> + Send + 'static {
+        let me = self.me.clone();
+        async move {
+            if let Some(why) = face_watch::watched(task, &stop).await
+                && let Some(running) = me.upgrade()
+            {
+                let recovering = running.clone();
+                running
+                    .tasks
+                    .spawn(async move { recovering.recover(face, generation, why).await });
+            }
+        }
+    }
+
+    /// A face crashed (`why`): said, waited for, started again; again
+    /// while its start fails.
+    async fn recover(&self, face: Face, generation: u64, mut why: String) {
+        let health = self.shared.metrics.face_health();
+        loop {
+            let wait = self.restarts.lock().map_or(face_watch::WAIT_MIN, |mut r| {
+                r.crashed(face, tokio::time::Instant::now())
+            });
+            tracing::error!(
+                face = face.key(),
+                "the {} is down: {why}; it is started again in {} s, the other faces serve on",
+                face.name(),
+                wait.as_secs()
+            );
+            health.down(face, why.clone(), SystemTime::now() + wait);
+            tokio::select! {
+                () = tokio::time::sleep(wait) => {}
+                () = self.shared.shutdown.cancelled() => return health.serving(face),
+            }
+            match self.restart_crashed(face, generation).await {
+                Restart::Done => {
+                    health.restarted(face);
+                    tracing::warn!(face = face.key(), "the {} serves again", face.name());
+                    return;
+                }
+                Restart::Replaced => return,
+                Restart::Failed(again) => why = again,
+            }
+        }
+    }
+
+    /// Starts the crashed face `generation` of `face` again with what it
+    /// ran with (a listener on its socket), unless it was replaced.
+    async fn restart_crashed(&self, face: Face, generation: u64) -> Restart {
+        let mut started = self.started.lock().await;
+        let Some(slot) = started.slot(face) else {
+            let Some(old) = started.mqtt.take_if(|c| c.generation == generation) else {
+                return Restart::Replaced;
+            };
+            old.stop.cancel();
+            let config = old.config.clone();
+            return match self.start_mqtt(&config, &mut started) {
+                Ok(()) => Restart::Done,
+                Err(why) => {
+                    started.mqtt = Some(old);
+                    Restart::Failed(why)
+                }
+            };
+        };
+        let Some(old) = slot.take_if(|l| l.generation == generation) else {
+            return Restart::Replaced;
+        };
+        let listener = match old.socket.try_clone().and_then(TcpListener::from_std) {
+            Ok(listener) => listener,
+            Err(e) => {
+                *slot = Some(old);
+                return Restart::Failed(format!("cannot take over its socket: {e}"));
+            }
+        };
+        let config = old.config.clone();
+        match self.serve(face, &config, old.bind, listener).await {
+            Ok(new) => {
+                old.close(false);
+                *slot = Some(new);
+                Restart::Done
+            }
+            Err(why) => {
+                *slot = Some(old);
+                Restart::Failed(why)
+            }
+        }
     }
 
     /// Starts the MQTT face of `config`, if it has one.
     fn start_mqtt(&self, config: &Arc<Config>, started: &mut Started) -> Result<(), String> {
         let s = &self.shared;
         let stop = s.shutdown.child_token();
-        if let Some(task) = crate::mqtt::start(
-            s.face_start(config, &stop),
-            crate::mqtt::store::outbox::for_config(config, &s.metrics),
-        )? {
+        let face = s.face_start(config, &stop);
+        let started_task = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            crate::mqtt::start(
+                face,
+                crate::mqtt::store::outbox::for_config(config, &s.metrics),
+            )
+        }))
+        .map_err(|panic| {
+            format!(
+                "it panicked while starting: {}",
+                face_watch::panic_words(&*panic)
+            )
+        })??;
+        if let Some(task) = started_task {
             tracing::info!("MQTT face started");
+            let generation = self.face_started(Face::Mqtt);
             started.mqtt = Some(Client {
                 config: config.clone(),
+                task: tokio::spawn(self.supervised(Face::Mqtt, generation, stop.clone(), task)),
                 stop,
-                task,
+                generation,
             });
         }
         Ok(())
@@ -678,21 +805,5 @@ impl Running {
         if let Some(mqtt) = mqtt {
             let _ = mqtt.task.await;
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::overlaps;
-
-    #[test]
-    fn the_wildcard_overlaps_every_address_of_its_port() {
-        let a = |s: &str| s.parse().unwrap_or_else(|e| panic!("{s}: {e}"));
-        assert!(overlaps(a("0.0.0.0:502"), a("192.168.1.5:502")));
-        assert!(overlaps(a("192.168.1.5:502"), a("[::]:502")));
-        assert!(overlaps(a("127.0.0.1:502"), a("127.0.0.1:502")));
-        assert!(!overlaps(a("127.0.0.1:502"), a("192.168.1.5:502")));
-        assert!(!overlaps(a("0.0.0.0:502"), a("0.0.0.0:5020")));
-        assert!(!overlaps(a("0.0.0.0:0"), a("127.0.0.1:0")));
     }
 }

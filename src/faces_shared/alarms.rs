@@ -16,8 +16,9 @@ pub struct AlarmView {
     pub id: u64,
     /// What it is about: `fault`, `stall`, `offline`, `never-answered`
     /// (not answered once since its bus opened), `bus-down`, `comm-loss` (a Modbus TCP client's communication-loss stop),
-    /// `stop-failed` (a lease's stop not confirmed) or `refused-write` (a
-    /// write refused by a safety rule).
+    /// `stop-failed` (a lease's stop not confirmed), `refused-write` (a
+    /// write refused by a safety rule) or `unknown-state` (a drive found
+    /// moving at start while the safety journal could not say who owned it).
     pub kind: String,
     /// The bus.
     pub bus: String,
@@ -34,7 +35,7 @@ pub struct AlarmView {
     pub raised_at: String,
     /// True while its condition lasts (a fault, a stall, an offline drive,
     /// a drive never heard, a bus down, a stop not confirmed). An event (`comm-loss`,
-    /// `refused-write`) is never active: it is over when it is raised.
+    /// `refused-write`, `unknown-state`) is never active: it is over when it is raised.
     pub active: bool,
     /// When its condition ended (for an event: when it was raised);
     /// `null` while active.

@@ -26,6 +26,7 @@
 //! | `drive-busy` | 409 | the drive is calibrating or fine-tuning |
 //! | `no-lease` | 409 | renewing a lease that is not there (it expired) |
 //! | `confirmation-required` | 409 | address setting without `only_drive_on_bus` |
+//! | `not-live` | 409 | a command that did not come live from its sender (MQTT: retained, or queued for an earlier session): nothing of it was carried out |
 //! | `scope-busy` | 409 | a capture is running on the bus: one at a time |
 //! | `capture-not-running` | 409 | trigger or cancel a capture that is over |
 //! | `no-capture` | 404 | no capture was armed on the bus since start-up |
@@ -36,6 +37,10 @@
 //! | `drive-refused`, `drive-unconfirmed`, `drive-bad-reply` | 502 | the drive answered with an exception, with something else, or garbage |
 //! | `config-invalid` | 422 | a reload's file does not pass the check (`file:line:column`) |
 //! | `config-changed`, `no-config-file` | 409 | the file changed since it was read; no file to reload |
+//! | `config-edited` | 412 | the file changed since the version `If-Match` names (the detail names the change) |
+//! | `if-match-required` | 428 | a change of the file without `If-Match` |
+//! | `config-read-only` | 409 | drivegate may not write its configuration file (the new text is not lost: download it) |
+//! | `unknown-token`, `unknown-certificate` | 404 | no such token in the file, no certificate with that thumbprint |
 //! | `internal` | 500 | a fault of drivegate itself |
 
 use axum::http::StatusCode;
@@ -98,6 +103,8 @@ listed_enum! {
         NoLease,
         /// 409: a dangerous request lacks its confirmation.
         ConfirmationRequired,
+        /// 409: a command that did not come live from its sender.
+        NotLive,
         /// 409: a capture is running on the bus.
         ScopeBusy,
         /// 409: the capture is over (or not triggered yet, for some operations).
@@ -112,6 +119,16 @@ listed_enum! {
         ConfigChanged,
         /// 409: there is no configuration file to reload.
         NoConfigFile,
+        /// 412: the configuration file changed since the `If-Match` version.
+        ConfigEdited,
+        /// 428: a change of the configuration file needs `If-Match`.
+        IfMatchRequired,
+        /// 409: the daemon may not write its configuration file.
+        ConfigReadOnly,
+        /// 404: no API token by that name in the file.
+        UnknownToken,
+        /// 404: no certificate with that thumbprint.
+        UnknownCertificate,
         /// 429: bus queue full.
         BusBusy,
         /// 503: drive offline.
@@ -161,6 +178,7 @@ impl Kind {
             Kind::DriveBusy => "drive-busy",
             Kind::NoLease => "no-lease",
             Kind::ConfirmationRequired => "confirmation-required",
+            Kind::NotLive => "not-live",
             Kind::ScopeBusy => "scope-busy",
             Kind::CaptureNotRunning => "capture-not-running",
             Kind::NoCapture => "no-capture",
@@ -168,6 +186,11 @@ impl Kind {
             Kind::ConfigInvalid => "config-invalid",
             Kind::ConfigChanged => "config-changed",
             Kind::NoConfigFile => "no-config-file",
+            Kind::ConfigEdited => "config-edited",
+            Kind::IfMatchRequired => "if-match-required",
+            Kind::ConfigReadOnly => "config-read-only",
+            Kind::UnknownToken => "unknown-token",
+            Kind::UnknownCertificate => "unknown-certificate",
             Kind::BusBusy => "bus-busy",
             Kind::DriveOffline => "drive-offline",
             Kind::BusDown => "bus-down",
@@ -199,7 +222,9 @@ impl Kind {
             | Kind::UnknownBus
             | Kind::UnknownCommand
             | Kind::NotFound
-            | Kind::NoCapture => StatusCode::NOT_FOUND,
+            | Kind::NoCapture
+            | Kind::UnknownToken
+            | Kind::UnknownCertificate => StatusCode::NOT_FOUND,
             Kind::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             Kind::RequestTimeout => StatusCode::REQUEST_TIMEOUT,
             Kind::PayloadTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
@@ -210,11 +235,15 @@ impl Kind {
             | Kind::DriveBusy
             | Kind::NoLease
             | Kind::ConfirmationRequired
+            | Kind::NotLive
             | Kind::ScopeBusy
             | Kind::CaptureNotRunning
             | Kind::MonitorOff
             | Kind::ConfigChanged
+            | Kind::ConfigReadOnly
             | Kind::NoConfigFile => StatusCode::CONFLICT,
+            Kind::ConfigEdited => StatusCode::PRECONDITION_FAILED,
+            Kind::IfMatchRequired => StatusCode::PRECONDITION_REQUIRED,
             Kind::ConfigInvalid => StatusCode::UNPROCESSABLE_ENTITY,
             Kind::BusBusy => StatusCode::TOO_MANY_REQUESTS,
             Kind::DriveOffline
@@ -253,6 +282,7 @@ impl Kind {
             Kind::DriveBusy => "The drive is busy with a procedure",
             Kind::NoLease => "There is no lease",
             Kind::ConfirmationRequired => "A confirmation is required",
+            Kind::NotLive => "The command did not come live from its sender",
             Kind::ScopeBusy => "A capture is running on this bus",
             Kind::CaptureNotRunning => "The capture is not running",
             Kind::NoCapture => "No capture yet",
@@ -260,6 +290,11 @@ impl Kind {
             Kind::ConfigInvalid => "The configuration file does not pass the check",
             Kind::ConfigChanged => "The configuration file changed since it was read",
             Kind::NoConfigFile => "There is no configuration file to reload",
+            Kind::ConfigEdited => "The configuration file was changed by someone else",
+            Kind::IfMatchRequired => "Say which version of the file the change is made on",
+            Kind::ConfigReadOnly => "drivegate may not write its configuration file",
+            Kind::UnknownToken => "No such API token",
+            Kind::UnknownCertificate => "No such certificate",
             Kind::BusBusy => "The bus is busy",
             Kind::DriveOffline => "The drive is offline",
             Kind::BusDown => "The bus is down",

@@ -95,6 +95,7 @@ pub(crate) fn problem(caller: &Caller, failure: &Failure, ctx: BusContext<'_>) -
             Rule::LeaseLength { .. } => lease_problem(refusal),
             // Only a passthrough face sends what the core cannot decode.
             Rule::NotDecoded => Problem::new(Kind::InvalidRequest, refusal.detail.clone()),
+            Rule::NotLive => Problem::new(Kind::NotLive, refusal.detail.clone()),
         },
         other => match other.bus_error() {
             Some(e) => Problem::bus(&e, ctx),

@@ -43,8 +43,9 @@ static MQTT_COMM_LOSS: Spec = Spec {
 static REPLAYED: Spec = Spec {
     name: "drivegate_restart_decisions_total",
     help: "Decisions of the start-up replay of the safety journal, by decision: stops owed \
-           (holder gone, ran out, unfinished, brake again, unknown state), HTTP leases kept, \
-           stops not sent because a confirmed brake holds, drives no longer configured.",
+           (holder gone, ran out, unfinished, brake again, unknown state, journal lost), HTTP \
+           leases kept, stops not sent because a confirmed brake holds, drives no longer \
+           configured, moving drives left moving with on_unknown_state = none.",
     kind: Kind::Counter,
     labels: &["decision"],
 };
@@ -59,8 +60,9 @@ static JOURNAL_OK: Spec = Spec {
 
 static JOURNAL_EVENTS: Spec = Spec {
     name: "drivegate_safety_journal_events_total",
-    help: "The safety journal's life: records appended, write errors, compactions, and \
-           journals found unreadable at start-up (set aside, renamed, when they could be).",
+    help: "The safety journal's life: records appended, write errors, compactions, journals \
+           found unreadable at start-up (set aside, renamed, when they could be), and journals \
+           found lost at start-up (empty, only a header, or missing after an earlier run).",
     kind: Kind::Counter,
     labels: &["event"],
 };
@@ -112,8 +114,8 @@ static DRIFT: Spec = Spec {
 static ALARMS_ACTIVE: Spec = Spec {
     name: "drivegate_alarms_active",
     help: "Active alarms by kind: fault, stall, offline, never-answered, bus-down, stop-failed \
-           (conditions that last), comm-loss and refused-write (events: never active, see \
-           drivegate_alarms_unacknowledged).",
+           (conditions that last), comm-loss, refused-write and unknown-state (events: never \
+           active, see drivegate_alarms_unacknowledged).",
     kind: Kind::Gauge,
     labels: &["kind"],
 };
@@ -225,6 +227,7 @@ impl Collector for ControlCollector {
         events.set(&["write-error"], c.write_errors as f64);
         events.set(&["compaction"], c.compactions as f64);
         events.set(&["unreadable"], c.unreadable as f64);
+        events.set(&["lost"], c.lost as f64);
         let mut bytes = JOURNAL_BYTES.family();
         bytes.set(&[], c.bytes as f64);
         let mut journal_skipped = JOURNAL_SKIPPED.family();

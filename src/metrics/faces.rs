@@ -99,7 +99,7 @@ impl FaceMetrics {
             tcp_rejected: counter_vec(
                 registry,
                 "drivegate_modbus_tcp_connections_rejected_total",
-                "Modbus TCP connections refused, by reason (not_allowed, per_address, limit).",
+                "Modbus TCP and Modbus/TCP Security connections refused, by reason (not_allowed; per_address, heaviest, limit, files: see drivegate_connections_refused_total).",
                 &["reason"],
             ),
             tcp_requests: counter_vec(

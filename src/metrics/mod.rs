@@ -1,6 +1,8 @@
 //! Prometheus metrics (`GET /metrics`).
 //!
 //! - [`faces`]: counters the HTTP, WebSocket and Modbus TCP faces update,
+//! - `face_health`: each face serving, or down after a crash, and its
+//!   restarts,
 //! - `security`: the browser-origin guards, token failures and TLS,
 //! - `mqtt`: the MQTT face's messages, commands and broker link,
 //! - `opcua`: the OPC UA face's sessions, subscriptions, monitored items,
@@ -14,6 +16,8 @@
 //!   the safety journal, the alarms),
 //! - `history`: the memory the trends take,
 //! - `utilisation`: the sampler behind `drivegate_bus_utilisation_ratio`,
+//! - `connections`: the listeners' connections, limits and refusals,
+//!   per address within bounds, and the file-descriptor reserve,
 //! - `process`: build information and the process's own resources,
 //! - `family`: the plumbing that turns those values into families.
 //!
@@ -21,8 +25,10 @@
 //! so a scrape never puts a frame on the wire nor waits for one.
 
 mod buses;
+mod connections;
 mod control_core;
 mod drives;
+mod face_health;
 mod faces;
 mod family;
 mod history;
@@ -37,6 +43,8 @@ use std::sync::{Arc, Weak};
 
 use prometheus::{Encoder, Registry, TextEncoder};
 
+pub use connections::Listeners;
+pub use face_health::{Down as FaceDown, FaceHealth, FaceState};
 pub use faces::{FaceMetrics, WsClientGuard};
 pub use mqtt::{LinkState as MqttLink, MqttMetrics};
 pub use opcua::{FaceState as OpcUaState, OpcUaMetrics, SIGN_IN_KINDS, ServerCounts};
@@ -50,9 +58,11 @@ use utilisation::Utilisation;
 pub struct Metrics {
     registry: Registry,
     faces: FaceMetrics,
+    face_health: FaceHealth,
     security: SecurityMetrics,
     mqtt: MqttMetrics,
     opcua: OpcUaMetrics,
+    listeners: Arc<Listeners>,
     plant: Arc<Plant>,
     utilisation: Arc<Utilisation>,
 }
@@ -64,6 +74,7 @@ impl Metrics {
     pub fn new(plant: Arc<Plant>) -> Arc<Self> {
         let registry = Registry::new();
         let faces = FaceMetrics::register(&registry);
+        let face_health = FaceHealth::register(&registry);
         let security = SecurityMetrics::register(&registry);
         let mqtt = MqttMetrics::register(&registry);
         let opcua = OpcUaMetrics::register(&registry);
@@ -79,12 +90,20 @@ impl Metrics {
             }
         }
         process::register(&registry);
+        let listeners = Arc::new(Listeners::new(crate::connections::Book::process()));
+        if let Err(e) = registry.register(Box::new(connections::ListenersCollector::new(
+            listeners.clone(),
+        ))) {
+            tracing::warn!("the listeners' metrics are not exported: {e}");
+        }
         let metrics = Arc::new(Self {
             registry,
             faces,
+            face_health,
             security,
             mqtt,
             opcua,
+            listeners,
             plant,
             utilisation,
         });
@@ -117,6 +136,12 @@ impl Metrics {
         }
     }
 
+    /// Each face serving, or down after a crash, for the supervisor to say
+    /// and `/readyz` to show.
+    pub fn face_health(&self) -> &FaceHealth {
+        &self.face_health
+    }
+
     /// The faces' counters, for the HTTP and Modbus TCP code to update.
     pub fn faces(&self) -> &FaceMetrics {
         &self.faces
@@ -135,6 +160,12 @@ impl Metrics {
     /// The OPC UA face's counters and state.
     pub fn opcua(&self) -> &OpcUaMetrics {
         &self.opcua
+    }
+
+    /// The listeners' connections: each listener takes its place in the
+    /// process's book here, and is exported while it lives.
+    pub fn listeners(&self) -> &Arc<Listeners> {
+        &self.listeners
     }
 
     /// The share of the last [`UTILISATION_WINDOW`] the wire of the bus in

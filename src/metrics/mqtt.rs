@@ -48,6 +48,7 @@ pub struct MqttMetrics {
     store_dropped: IntCounter,
     store_skipped: IntGauge,
     replay_dropped: IntCounter,
+    too_large: IntCounter,
     link: Mutex<LinkState>,
 }
 
@@ -134,8 +135,17 @@ impl MqttMetrics {
                 "drivegate_mqtt_replay_dropped_total",
                 "Stored messages dropped at replay because their drive is no longer configured (it will never be born again).",
             ),
+            too_large: counter(
+                "drivegate_mqtt_messages_too_large_total",
+                "MQTT messages from the broker larger than [mqtt] max_message_bytes, dropped unread (each audited once); the connection stays.",
+            ),
             link: Mutex::new(LinkState::default()),
         }
+    }
+
+    /// A message above `max_message_bytes` was dropped.
+    pub fn too_large(&self) {
+        self.too_large.inc();
     }
 
     /// The face started towards `broker`.

@@ -24,7 +24,7 @@ pub struct SecurityMetrics {
 
 /// Why the HTTP listener refused a connection (the label of
 /// `drivegate_http_connections_refused_total`).
-const HTTP_REFUSALS: [&str; 2] = ["limit", "per_address"];
+const HTTP_REFUSALS: [&str; 4] = ["limit", "per_address", "heaviest", "files"];
 
 fn counter_vec(registry: &Registry, name: &str, help: &str, labels: &[&str]) -> IntCounterVec {
     let c = IntCounterVec::new(Opts::new(name, help), labels)
@@ -91,8 +91,9 @@ impl SecurityMetrics {
                 registry,
                 "drivegate_http_connections_refused_total",
                 "HTTP connections answered 503 and closed, by reason: limit ([http] max_connections \
-                 reached) or per_address (the client's address held \
-                 [http] max_connections_per_address).",
+                 reached), heaviest (near it, from the address holding the most), files (near the \
+                 process's file limit, from the heaviest address) or per_address (the client's \
+                 address held [http] max_connections_per_address).",
                 &["reason"],
             ),
             http_header_timeouts: counter(

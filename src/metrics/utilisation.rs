@@ -64,8 +64,8 @@ pub(crate) struct Utilisation {
     windows: Mutex<std::collections::HashMap<usize, Measured>>,
 }
 
-/// A bus (not kept alive for it) and its window.
-type Measured = (std::sync::Weak<crate::plant::Bus>, Arc<BusyWindow>);
+/// A running bus (its handle) and its window.
+type Measured = (crate::bus::BusHandle, Arc<BusyWindow>);
 
 impl Utilisation {
     /// Windows for the buses of `plant`.
@@ -80,15 +80,11 @@ impl Utilisation {
         let now = Instant::now();
         let directory = plant.now();
         let mut windows = self.windows.lock().unwrap_or_else(|p| p.into_inner());
-        windows.retain(|i, (bus, _)| {
-            directory
-                .bus_at(*i)
-                .is_some_and(|b| std::ptr::eq(Arc::as_ptr(b), bus.as_ptr()))
-        });
+        windows.retain(|i, (bus, _)| directory.bus_at(*i).is_some_and(|b| b.handle.is(bus)));
         for (index, bus) in directory.indexed_buses() {
             let (_, window) = windows
                 .entry(index)
-                .or_insert_with(|| (Arc::downgrade(bus), Arc::new(BusyWindow::default())));
+                .or_insert_with(|| (bus.handle.clone(), Arc::new(BusyWindow::default())));
             window.record(now, bus.handle.stats().busy_seconds);
         }
     }

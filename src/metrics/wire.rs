@@ -97,7 +97,7 @@ impl Collector for WireCollector {
         for bus in self.plant.now().buses() {
             let name = bus.handle.name();
             let monitor = bus.monitor();
-            for (unit, c) in monitor.counters().snapshot(monitor.units()) {
+            for (unit, c) in monitor.counters().snapshot(&monitor.units()) {
                 let unit = unit.to_string();
                 attempts.set(&[name, &unit], c.attempts as f64);
                 for event in WireEvent::ALL.into_iter().filter(|e| e.is_error()) {

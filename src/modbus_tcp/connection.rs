@@ -3,7 +3,9 @@
 //! Requests are read and queued on the bus as soon as they arrive (up to
 //! `max_pipelined` at once), so a pipelining client's requests wait in the
 //! bus queue, where they take turns with every other client, rather than in
-//! the socket. Replies are written in the order the requests came, whatever
+//! the socket. A write waits at most the bus's `queue_timeout_ms` from the
+//! moment its last byte was read ([`super::arrivals`]), its wait for room
+//! in the pipeline included: one its client gave up on is not sent. Replies are written in the order the requests came, whatever
 //! order the buses finish them in: Modbus TCP clients may match replies by
 //! transaction id, but many PLCs expect them in order.
 //!
@@ -36,6 +38,7 @@ use tokio::time::{Instant, Sleep};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
+use super::arrivals::Arrivals;
 use super::gateway::{Answer, Client, Gateway, Pending};
 use super::mbap::{self, MAX_FRAME};
 use crate::control::SessionGuard;
@@ -87,6 +90,8 @@ struct Pipeline {
     queue: VecDeque<InFlight>,
     /// A malformed frame came: nothing after it is parsed.
     malformed: bool,
+    /// When the bytes still in the read buffer arrived.
+    arrivals: Arrivals,
 }
 
 impl Pipeline {
@@ -106,9 +111,13 @@ impl Pipeline {
             match mbap::parse(buf) {
                 Ok(Some((frame, used))) => {
                     buf.advance(used);
+                    let received = self
+                        .arrivals
+                        .take(used)
+                        .unwrap_or_else(std::time::Instant::now);
                     idle.as_mut().reset(Instant::now() + idle_timeout);
                     let reply = match gateway
-                        .handle(client, frame.transaction, frame.unit, frame.pdu)
+                        .handle(client, (frame.transaction, frame.unit), frame.pdu, received)
                         .await
                     {
                         Answer::Now(pdu) => Reply::Ready(pdu),
@@ -127,6 +136,7 @@ impl Pipeline {
                     warn!(client = %client.peer, "malformed Modbus TCP frame: {e}; closing the connection after answering the {} request(s) before it", self.queue.len());
                     self.malformed = true;
                     buf.clear();
+                    self.arrivals.clear();
                 }
             }
         }
@@ -264,8 +274,12 @@ pub async fn serve<S: AsyncRead + AsyncWrite + Send + 'static>(
                 // to notice the client leaving.
                 Ok(_) if pipeline.malformed => buf.clear(),
                 // The client is alive, even while its requests wait for
-                // room in the pipeline behind a slow bus.
-                Ok(_) => session.active(),
+                // room in the pipeline behind a slow bus (a wait that
+                // counts against the bus's queue timeout, from now).
+                Ok(n) => {
+                    pipeline.arrivals.read(n, std::time::Instant::now());
+                    session.active();
+                }
                 Err(e) => break End::Failed(e),
             },
             () = &mut idle, if pipeline.queue.is_empty() => break End::Idle,

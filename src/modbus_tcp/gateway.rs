@@ -14,7 +14,7 @@
 
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use tracing::{debug, warn};
 
@@ -235,23 +235,25 @@ impl Gateway {
     }
 
     /// Decides what to do with `pdu` sent by `client` to `unit` in MBAP
-    /// transaction `transaction`. Requests that go to the bus are queued
-    /// before this returns (writes that need the drive's state read first,
-    /// after that read), so pipelined requests keep their order and wait in
-    /// the bus queue, not in the socket.
+    /// transaction `transaction`, received at `received`. Requests that go
+    /// to the bus are queued before this returns (writes that need the
+    /// drive's state read first, after that read), so pipelined requests
+    /// keep their order and wait in the bus queue, not in the socket. A
+    /// write waits for the bus at most `queue_timeout_ms` from
+    /// `received`, its wait behind a full pipeline included.
     pub async fn handle(
         &self,
         client: &Client,
-        transaction: u16,
-        unit: u8,
+        (transaction, unit): (u16, u8),
         pdu: Vec<u8>,
+        received: Instant,
     ) -> Answer {
         if pdu.is_empty() {
             // The MBAP codec never yields one; answer rather than panic.
             return Answer::Now(exception_pdu(0, ExceptionCode::ILLEGAL_FUNCTION));
         }
         if unit == 0 {
-            return self.broadcast(client, transaction, pdu).await;
+            return self.broadcast(client, transaction, pdu, received).await;
         }
         let tables = self.tables();
         let Some(route) = tables.routes.route(unit) else {
@@ -294,7 +296,7 @@ impl Gateway {
             let target = self.control.unit_target(route.bus, route.unit);
             let unchecked = tables.raw_functions.contains(&function);
             return self
-                .write(client, &caller, target, bus, pdu, unchecked)
+                .write(client, &caller, (target, bus), pdu, (unchecked, received))
                 .await;
         }
         // The copy only while the drive's data is live (judged after the
@@ -322,10 +324,9 @@ impl Gateway {
         &self,
         client: &Client,
         caller: &Caller,
-        target: Target,
-        bus: &BusHandle,
+        (target, bus): (Target, &BusHandle),
         pdu: Vec<u8>,
-        unchecked: bool,
+        (unchecked, received): (bool, Instant),
     ) -> Answer {
         let function = pdu[0];
         let (write, then_read) = if target.drive.is_some() {
@@ -335,7 +336,8 @@ impl Gateway {
         };
         let request = ControlRequest::new(write)
             .forced(client.allow_saves_while_moving)
-            .unchecked(unchecked);
+            .unchecked(unchecked)
+            .received(received);
         let failure = match self.control.submit(caller, target, request).await {
             Ok(pending) => {
                 let Some(read) = then_read else {
@@ -358,7 +360,13 @@ impl Gateway {
     }
 
     /// Unit 0: every bus the listener reaches, no reply waited for.
-    async fn broadcast(&self, client: &Client, transaction: u16, pdu: Vec<u8>) -> Answer {
+    async fn broadcast(
+        &self,
+        client: &Client,
+        transaction: u16,
+        pdu: Vec<u8>,
+        received: Instant,
+    ) -> Answer {
         let function = pdu[0];
         let tables = self.tables();
         let refusal = if !request::broadcastable(&pdu) {
@@ -392,7 +400,8 @@ impl Gateway {
             let target = self.control.unit_target(bus, 0);
             let request = ControlRequest::new(Write::pdu(pdu.clone()))
                 .forced(client.allow_saves_while_moving)
-                .unchecked(tables.raw_functions.contains(&function));
+                .unchecked(tables.raw_functions.contains(&function))
+                .received(received);
             match self.control.submit(&caller, target, request).await {
                 Ok(pending) => writes.push(pending),
                 Err(failure) => {
@@ -541,7 +550,9 @@ mod tests {
     async fn an_empty_pdu_is_an_illegal_function_not_a_panic() {
         let g = gateway(false);
         assert_eq!(
-            now(g.handle(&client(Role::Admin), 1, 1, Vec::new()).await),
+            now(g
+                .handle(&client(Role::Admin), (1, 1), Vec::new(), Instant::now())
+                .await),
             [0x80, 0x01]
         );
     }
@@ -552,13 +563,17 @@ mod tests {
         // A read of the status block, and a write, to unit 7.
         let read = vec![0x03, 0x00, 0xC0, 0x00, 0x07];
         assert_eq!(
-            now(g.handle(&client(Role::Viewer), 1, 7, read).await),
+            now(g
+                .handle(&client(Role::Viewer), (1, 7), read, Instant::now())
+                .await),
             [0x83, 0x0A]
         );
         assert!(counted(&g, "0x03", "path_unavailable"));
         let write = vec![0x06, 0x00, 0x02, 0x00, 0x05];
         assert_eq!(
-            now(g.handle(&client(Role::Admin), 2, 7, write).await),
+            now(g
+                .handle(&client(Role::Admin), (2, 7), write, Instant::now())
+                .await),
             [0x86, 0x0A]
         );
         assert!(counted(&g, "0x06", "path_unavailable"));
@@ -571,25 +586,31 @@ mod tests {
         let silent = gateway(false);
         assert!(matches!(
             silent
-                .handle(&client(Role::Admin), 1, 0, read.clone())
+                .handle(&client(Role::Admin), (1, 0), read.clone(), Instant::now())
                 .await,
             Answer::Silent
         ));
         assert!(counted(&silent, "0x03", "refused"));
         let answering = gateway(true);
         assert_eq!(
-            now(answering.handle(&client(Role::Admin), 1, 0, read).await),
+            now(answering
+                .handle(&client(Role::Admin), (1, 0), read, Instant::now())
+                .await),
             [0x83, 0x01]
         );
         // A write of the wrong length, and a write with no bus to go to.
         let short = vec![0x10, 0x00, 0x24, 0x00, 0x02, 0x04, 0x00];
         assert_eq!(
-            now(answering.handle(&client(Role::Admin), 2, 0, short).await),
+            now(answering
+                .handle(&client(Role::Admin), (2, 0), short, Instant::now())
+                .await),
             [0x90, 0x03]
         );
         let brake = vec![0x06, 0x00, 0x02, 0x00, 0x05];
         assert_eq!(
-            now(answering.handle(&client(Role::Admin), 3, 0, brake).await),
+            now(answering
+                .handle(&client(Role::Admin), (3, 0), brake, Instant::now())
+                .await),
             [0x86, 0x0A]
         );
     }

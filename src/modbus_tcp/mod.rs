@@ -15,14 +15,15 @@
 //!   did into the reply,
 //! - [`connection`] serves one client in order, [`server`] accepts them,
 //!   [`access`] checks where they come from and gives them their role,
-//!   [`addresses`] caps the connections of one address, [`refusals`]
-//!   says when a refusal is logged (once per address and burst).
+//!   [`refusals`] says when a stranger's refusal is logged; how many
+//!   connections each address may hold is the budget's
+//!   ([`crate::connections`]), as on every listener.
 //!
 //! `docs/modbus-tcp.md` says why the MBAP framing is the daemon's own
 //! rather than tokio-modbus's server.
 
 pub mod access;
-pub mod addresses;
+pub mod arrivals;
 pub mod connection;
 pub mod gateway;
 pub mod mbap;
@@ -75,7 +76,7 @@ pub(crate) fn start(
     let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
     let settings = ServerSettings {
         access: SharedAccess::new(Access::from_config(tcp), &control),
-        max_connections: tcp.max_connections,
+        max_connections: tcp.max_connections.map(|n| n.0),
         max_connections_per_address: tcp.per_address_limit(),
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),
@@ -122,7 +123,7 @@ pub(crate) fn start_tls(
     let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
     let settings = ServerSettings {
         access: SharedAccess::new(Access::from_config(tcp), &control),
-        max_connections: tcp.max_connections,
+        max_connections: tcp.max_connections.map(|n| n.0),
         max_connections_per_address: tcp.per_address_limit(),
         connection: ConnectionSettings {
             idle_timeout: tcp.idle_timeout(),

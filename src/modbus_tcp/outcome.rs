@@ -128,6 +128,9 @@ pub fn failure_reply(function: u8, failure: &Failure) -> (Vec<u8>, Outcome) {
                 // What the drive itself answers.
                 Rule::NotActive => (ExceptionCode::SERVER_DEVICE_FAILURE, Outcome::Exception),
                 Rule::NotDecoded => (ExceptionCode::ILLEGAL_FUNCTION, Outcome::NotDecoded),
+                // A request on a connection is live (its lateness is the
+                // bus's queue timeout, 0x06).
+                Rule::NotLive => (ExceptionCode::SERVER_DEVICE_BUSY, Outcome::Refused),
             };
             (exception_pdu(function, code), outcome)
         }

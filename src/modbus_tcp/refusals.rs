@@ -1,238 +1,94 @@
-//! Connections refused at accept, and when to say so in the log: once per
-//! address and burst, so that a scanner or a flood of 500 connections
-//! writes one warning, not hundreds, while the metric counts every one.
-//!
-//! A burst is the refusals of one address (an IPv6 client by its /64) for
-//! one reason, each less than [`QUIET`] after the one before. Its first
-//! refusal is logged, with the key to set; the next burst's first line says
-//! how many the last one held. The book is bounded: once it holds
-//! [`CAPACITY`] live bursts (a flood from many addresses), the refusals of
-//! further addresses share one burst per reason. Pure: time is passed in.
+//! Clients of networks that are not let in, refused at accept, and when to
+//! say so in the log: once per address and second at most, less often as a
+//! burst goes on (`crate::connections::repeats`, the one mechanism of every
+//! listener's repeated warnings), so that a scanner or a flood writes a
+//! handful of lines while `drivegate_modbus_tcp_connections_rejected_total
+//! {reason="not_allowed"}` counts every one. Refusals for want of room are
+//! the budget's (`crate::connections`), said in its words.
 
-use std::collections::HashMap;
-use std::net::{IpAddr, Ipv6Addr};
-use std::time::{Duration, Instant};
+use std::net::{IpAddr, SocketAddr};
+use std::time::Instant;
 
-use crate::listed::listed_enum;
+use tracing::warn;
 
-/// Silence that ends an address's burst of refusals.
-pub const QUIET: Duration = Duration::from_secs(60);
+use crate::connections::repeats::{CAPACITY, Repeats, Say, folded_words};
+use crate::connections::{Face, host_key};
 
-/// Addresses whose bursts are kept apart; more share one.
-pub const CAPACITY: usize = 1024;
+/// Why a connection was refused for want of room: the budget's reasons
+/// (`not_allowed` is this face's own).
+pub use crate::connections::Refused;
 
-listed_enum! {
-    /// Why a connection was refused at accept.
-    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-    pub enum Refused {
-        /// Its address is in none of the allowed networks.
-        NotAllowed,
-        /// Its address holds `max_connections_per_address` already.
-        PerAddress,
-        /// `max_connections` are open.
-        Limit,
-    }
-}
-
-impl Refused {
-    /// Stable label for `drivegate_modbus_tcp_connections_rejected_total`.
-    pub fn label(self) -> &'static str {
-        match self {
-            Refused::NotAllowed => "not_allowed",
-            Refused::PerAddress => "per_address",
-            Refused::Limit => "limit",
-        }
-    }
-}
-
-/// The address a client is counted and logged by: an IPv4 address (also
-/// when it reaches an IPv6 socket as `::ffff:a.b.c.d`), or an IPv6 client's
-/// /64, which one host may fill with addresses of its own.
-pub fn host_key(ip: IpAddr) -> IpAddr {
-    match ip.to_canonical() {
-        IpAddr::V6(v6) => {
-            let mut segments = v6.segments();
-            segments[4..].fill(0);
-            IpAddr::V6(Ipv6Addr::from(segments))
-        }
-        v4 => v4,
-    }
-}
-
-/// Whether to log a refusal.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Report {
-    /// Log it: the first of a burst of its address. `before`: how many the
-    /// address's last burst for this reason refused (0: none known).
-    Log {
-        /// The last burst's refusals.
-        before: u64,
-    },
-    /// Log it: the first refusal of an address beyond [`CAPACITY`] in a
-    /// flood from many addresses; further ones share its burst.
-    LogMany,
-    /// Counted, not logged: a later refusal of a burst already logged.
-    Quiet,
-}
-
-#[derive(Debug, Clone, Copy)]
-struct Burst {
-    last: Instant,
-    count: u64,
-}
-
-/// The bursts of refusals, per address and reason.
+/// The refusals of strangers, per address (an IPv6 client by its /64).
 #[derive(Debug, Default)]
-pub struct RefusalLog {
-    bursts: HashMap<(IpAddr, Refused), Burst>,
-    /// The shared burst of the addresses beyond the capacity, per reason.
-    many: HashMap<Refused, Burst>,
+pub struct NotAllowedLog {
+    log: Repeats<IpAddr>,
 }
 
-impl RefusalLog {
-    /// A connection from `ip` was refused for `reason` at `now`: whether
-    /// to log it.
-    pub fn refused(&mut self, ip: IpAddr, reason: Refused, now: Instant) -> Report {
-        let key = (host_key(ip), reason);
-        if !self.bursts.contains_key(&key) && self.bursts.len() >= CAPACITY {
-            self.bursts
-                .retain(|_, b| now.saturating_duration_since(b.last) < QUIET);
-            if self.bursts.len() >= CAPACITY {
-                return match self.many.get_mut(&reason) {
-                    Some(b) if now.saturating_duration_since(b.last) < QUIET => {
-                        b.last = now;
-                        b.count += 1;
-                        Report::Quiet
-                    }
-                    _ => {
-                        self.many.insert(
-                            reason,
-                            Burst {
-                                last: now,
-                                count: 1,
-                            },
-                        );
-                        Report::LogMany
-                    }
-                };
-            }
-        }
-        match self.bursts.get_mut(&key) {
-            Some(b) if now.saturating_duration_since(b.last) < QUIET => {
-                b.last = now;
-                b.count += 1;
-                Report::Quiet
-            }
-            Some(b) => {
-                let before = b.count;
-                *b = Burst {
-                    last: now,
-                    count: 1,
-                };
-                Report::Log { before }
-            }
-            None => {
-                self.bursts.insert(
-                    key,
-                    Burst {
-                        last: now,
-                        count: 1,
-                    },
-                );
-                Report::Log { before: 0 }
-            }
+impl NotAllowedLog {
+    /// A client at `peer` was refused at `now` for its network: logs it
+    /// if a line is due.
+    pub fn refused(&mut self, face: Face, peer: SocketAddr, now: Instant) {
+        if let Some(line) = self.line(face, peer, now) {
+            warn!(client = %peer, "{line}");
         }
     }
 
-    /// Addresses whose bursts are kept now.
+    /// The line for a refusal of `peer` at `now`, if one is due.
+    pub fn line(&mut self, face: Face, peer: SocketAddr, now: Instant) -> Option<String> {
+        match self.log.note(host_key(peer.ip()), now) {
+            Say::Quiet => None,
+            Say::Many { folded } => Some(format!(
+                "{} connections refused from more than {CAPACITY} addresses at once (not_allowed); further refusals of addresses not yet logged are counted in drivegate_modbus_tcp_connections_rejected_total, not logged{}",
+                face.name,
+                folded_words(folded, false)
+            )),
+            Say::Line { folded, first } => Some(format!(
+                "{} connection refused: the address is in none of the networks of [modbus_tcp] allowed_networks (not set: loopback only) and [[modbus_tcp.clients]]; to let it in, add a [[modbus_tcp.clients]] entry with its network and a role. Counted in drivegate_modbus_tcp_connections_rejected_total{{reason=\"not_allowed\"}}; logged once per address and second at most{}",
+                face.name,
+                folded_words(folded, first)
+            )),
+        }
+    }
+
+    /// Addresses kept now.
     pub fn len(&self) -> usize {
-        self.bursts.len()
+        self.log.len()
     }
 
-    /// True when no burst is kept.
+    /// True when none is kept.
     pub fn is_empty(&self) -> bool {
-        self.bursts.is_empty()
+        self.log.is_empty()
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use std::time::Duration;
+
     use super::*;
-
-    fn ip(s: &str) -> IpAddr {
-        s.parse().unwrap()
-    }
+    use crate::connections::words::MODBUS_TCP;
 
     #[test]
-    fn a_burst_is_logged_once_and_the_next_says_how_many_it_held() {
-        let mut log = RefusalLog::default();
-        let t0 = Instant::now();
-        let a = ip("10.1.2.3");
-        assert_eq!(
-            log.refused(a, Refused::PerAddress, t0),
-            Report::Log { before: 0 }
-        );
-        // 499 more, each 10 ms after the last: one burst, kept quiet.
-        let mut t = t0;
-        for _ in 0..499 {
-            t += Duration::from_millis(10);
-            assert_eq!(log.refused(a, Refused::PerAddress, t), Report::Quiet);
-        }
-        // Another reason, another address: their own bursts.
-        assert_eq!(log.refused(a, Refused::Limit, t), Report::Log { before: 0 });
-        assert_eq!(
-            log.refused(ip("10.1.2.4"), Refused::PerAddress, t),
-            Report::Log { before: 0 }
-        );
-        // A minute of silence ends the burst; the next one says the count.
-        t += QUIET;
-        assert_eq!(
-            log.refused(a, Refused::PerAddress, t),
-            Report::Log { before: 500 }
-        );
-        assert_eq!(log.len(), 3);
-    }
-
-    #[test]
-    fn an_ipv6_host_is_one_address_whatever_its_interface_id() {
-        let mut log = RefusalLog::default();
+    fn a_scan_writes_a_line_per_address_not_per_connection() {
+        let mut log = NotAllowedLog::default();
         let t = Instant::now();
-        assert_eq!(
-            log.refused(ip("2001:db8:1:2::1"), Refused::NotAllowed, t),
-            Report::Log { before: 0 }
-        );
-        assert_eq!(
-            log.refused(ip("2001:db8:1:2:ffff::7"), Refused::NotAllowed, t),
-            Report::Quiet
-        );
-        assert_eq!(
-            log.refused(ip("2001:db8:1:3::1"), Refused::NotAllowed, t),
-            Report::Log { before: 0 }
-        );
-        assert_eq!(host_key(ip("::ffff:10.0.0.1")), ip("10.0.0.1"));
-        assert_eq!(host_key(ip("10.0.0.1")), ip("10.0.0.1"));
-    }
-
-    #[test]
-    fn a_flood_from_many_addresses_is_bounded() {
-        let mut log = RefusalLog::default();
-        let t = Instant::now();
-        let mut logged = 0;
-        for i in 0..(CAPACITY as u32 + 5000) {
-            let a = IpAddr::from((0x0A00_0000u32 + i).to_be_bytes());
-            if log.refused(a, Refused::NotAllowed, t) != Report::Quiet {
-                logged += 1;
-            }
+        let peer: SocketAddr = "10.1.2.3:40000".parse().unwrap();
+        let first = log.line(MODBUS_TCP, peer, t).expect("the first is said");
+        assert!(first.contains("[[modbus_tcp.clients]]"), "{first}");
+        for i in 1..500 {
+            let at = t + Duration::from_millis(i);
+            assert_eq!(log.line(MODBUS_TCP, peer, at), None);
         }
-        // One line per kept address, one for all the others.
-        assert_eq!(logged, CAPACITY + 1);
-        assert_eq!(log.len(), CAPACITY);
-        // Once the kept bursts are over, new addresses get their own again.
-        let later = t + QUIET;
-        assert_eq!(
-            log.refused(ip("192.168.9.9"), Refused::NotAllowed, later),
-            Report::Log { before: 0 }
-        );
-        assert_eq!(log.len(), 1);
+        // A second later, one line for the 499.
+        let again = log
+            .line(MODBUS_TCP, peer, t + Duration::from_millis(1500))
+            .expect("a line a second later");
+        assert!(again.contains("499 more"), "{again}");
+        // Another address of the same IPv6 /64 is the same address.
+        let a: SocketAddr = "[2001:db8:1:2::1]:1".parse().unwrap();
+        let b: SocketAddr = "[2001:db8:1:2:ffff::7]:1".parse().unwrap();
+        assert!(log.line(MODBUS_TCP, a, t).is_some());
+        assert!(log.line(MODBUS_TCP, b, t).is_none());
+        assert_eq!(log.len(), 2);
     }
 }

@@ -1,31 +1,36 @@
-//! The accept loop: checks each new client's network, the per-address cap
-//! and the connection limit, then gives it a task of its own.
+//! The accept loop: checks each new client's network, then asks the
+//! listener's budget (`crate::connections`) for a place, then gives it a
+//! task of its own.
 //!
-//! The limit is a semaphore of `max_connections` permits, each connection
-//! task holding one: a client beyond the limit is closed at once rather than
-//! left waiting in the backlog, so a SCADA system retrying sees the refusal
-//! and the gateway never holds more sockets than it was sized for. One
-//! address holds at most `max_connections_per_address` of them
-//! ([`Addresses`]), so idle sockets from one host cannot lock the others
-//! out. Refusals are counted, and logged once per address and burst
-//! ([`RefusalLog`]). Connection tasks are tracked, so a stop waits for every
-//! one of them to close (each watches the same shutdown token).
+//! The budget shares every free slot while there is room (a SCADA with a
+//! connection per drive takes as many as it needs); near `max_connections`
+//! or the process's file limit the heaviest address gives way first: its
+//! new connections are refused, and once the listener is full a quiet one
+//! of its connections is closed for a client of a lighter address, so
+//! idle sockets from one host never lock the PLCs out.
+//! `max_connections_per_address`, when set, is a hard cap. A client
+//! refused is closed at once rather than left waiting in the backlog, so a
+//! SCADA retrying sees the refusal. Refusals are counted per address and
+//! logged once per address and second at most. Accept errors (out of file
+//! descriptors) back off. Connection tasks are tracked, so a stop waits for
+//! every one of them to close (each watches the same shutdown token).
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
-use tokio::net::TcpListener;
-use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tokio::net::{TcpListener, TcpStream};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
 use super::access::{Rights, SharedAccess};
-use super::addresses::{AddressSlot, Addresses};
 use super::connection::{self, ConnectionSettings};
 use super::gateway::{Client, Gateway};
-use super::refusals::{QUIET, RefusalLog, Refused, Report};
+use super::refusals::NotAllowedLog;
+use crate::connections::accept::AcceptErrors;
+use crate::connections::repeats::Shared;
+use crate::connections::{Face, Guarded, Limits, Listener, Ticket, host_key};
 use crate::metrics::Metrics;
 
 /// What the accept loop enforces.
@@ -33,100 +38,121 @@ use crate::metrics::Metrics;
 pub struct ServerSettings {
     /// Allowed client networks, with their rights.
     pub access: SharedAccess,
-    /// Connections served at once.
-    pub max_connections: usize,
-    /// Connections one address may hold at once.
-    pub max_connections_per_address: usize,
+    /// Connections served at once; `None`: twice the drives plus 32, at
+    /// least 64, as the plant is now.
+    pub max_connections: Option<usize>,
+    /// A hard cap per address, when configured.
+    pub max_connections_per_address: Option<usize>,
     /// Limits of each connection.
     pub connection: ConnectionSettings,
 }
 
-/// A connection's places: one of the listener's, one of its address's.
-struct Admitted {
-    _slot: OwnedSemaphorePermit,
-    _address: AddressSlot,
+impl ServerSettings {
+    /// The limits now, with the plant's drives now.
+    fn limits(&self, metrics: &Metrics) -> Limits {
+        Limits {
+            max: self.max_connections.unwrap_or_else(|| {
+                crate::config::modbus_tcp::default_connection_limit(
+                    metrics.plant().now().drives().count(),
+                )
+            }),
+            per_address: self.max_connections_per_address,
+        }
+    }
 }
 
-/// The limits of one listener, and the log of what they refused.
+/// One listener's place in the budget, and the log of what it refused.
 struct Admission {
-    /// "Modbus TCP" or "Modbus/TCP Security", for the log.
-    face: &'static str,
-    slots: Arc<Semaphore>,
-    max_connections: usize,
-    addresses: Arc<Addresses>,
-    log: RefusalLog,
+    settings: ServerSettings,
+    listener: Arc<Listener>,
+    errors: AcceptErrors,
+    strangers: NotAllowedLog,
     metrics: Arc<Metrics>,
 }
 
 impl Admission {
-    fn new(face: &'static str, settings: &ServerSettings, metrics: Arc<Metrics>) -> Self {
+    fn new(
+        face: Face,
+        bound: Option<SocketAddr>,
+        settings: ServerSettings,
+        metrics: Arc<Metrics>,
+    ) -> Self {
+        let listener = metrics
+            .listeners()
+            .listener(face, settings.limits(&metrics));
+        if let Some(bound) = bound {
+            listener.set_bound(bound);
+        }
         Admission {
-            face,
-            slots: Arc::new(Semaphore::new(settings.max_connections)),
-            max_connections: settings.max_connections,
-            addresses: Addresses::new(settings.max_connections_per_address),
-            log: RefusalLog::default(),
+            settings,
+            listener,
+            errors: AcceptErrors::new(face),
+            strangers: NotAllowedLog::default(),
             metrics,
         }
     }
 
-    /// Places for a client at `peer`: its address's first, so that one
-    /// host's surplus is refused as such, then the listener's.
-    fn admit(&mut self, peer: SocketAddr) -> Option<Admitted> {
-        let Some(address) = self.addresses.take(peer.ip()) else {
-            self.refuse(peer, Refused::PerAddress);
-            return None;
-        };
-        let Ok(slot) = self.slots.clone().try_acquire_owned() else {
-            self.refuse(peer, Refused::Limit);
-            return None;
-        };
-        Some(Admitted {
-            _slot: slot,
-            _address: address,
-        })
+    /// The next connection `listener` accepts, with its place (refused
+    /// ones closed, counted and logged), or `None` once `shutdown` fires.
+    async fn next(
+        &mut self,
+        listener: &TcpListener,
+        shutdown: &CancellationToken,
+        allowed: bool,
+    ) -> Option<(Guarded<TcpStream>, SocketAddr, Option<Rights>)> {
+        loop {
+            let accepted = tokio::select! {
+                // A closed listener's socket fails its accepts: the stop first.
+                biased;
+                () = shutdown.cancelled() => return None,
+                accepted = listener.accept() => accepted,
+            };
+            let (stream, peer) = match accepted {
+                Ok(a) => a,
+                Err(e) => {
+                    let pause = self.errors.failed(&e);
+                    tokio::select! {
+                        () = tokio::time::sleep(pause) => continue,
+                        () = shutdown.cancelled() => return None,
+                    }
+                }
+            };
+            self.errors.accepted();
+            let rights = if allowed {
+                None
+            } else {
+                match self.settings.access.rights(peer.ip()) {
+                    Some(r) => Some(r),
+                    None => {
+                        self.metrics.faces().tcp_rejected("not_allowed");
+                        self.strangers
+                            .refused(self.listener.face(), peer, Instant::now());
+                        continue;
+                    }
+                }
+            };
+            let Some(ticket) = self.place(peer) else {
+                continue;
+            };
+            // Replies are small and latency matters more than packet count.
+            if let Err(e) = stream.set_nodelay(true) {
+                debug!(client = %peer, "cannot set TCP_NODELAY: {e}");
+            }
+            return Some((Guarded::new(stream, ticket), peer, rights));
+        }
     }
 
-    /// Counts a refusal, and logs it if it is the first of its address's
-    /// burst.
-    fn refuse(&mut self, peer: SocketAddr, reason: Refused) {
-        self.metrics.faces().tcp_rejected(reason.label());
-        let before = match self.log.refused(peer.ip(), reason, Instant::now()) {
-            Report::Quiet => return,
-            Report::Log { before } => before,
-            Report::LogMany => {
-                warn!(
-                    "{} connections refused from more than {} addresses at once ({}); further refusals of addresses not yet logged are counted in drivegate_modbus_tcp_connections_rejected_total, not logged",
-                    self.face,
-                    super::refusals::CAPACITY,
-                    reason.label()
-                );
-                return;
+    /// A place for a client at `peer`, or `None` (counted and logged).
+    fn place(&self, peer: SocketAddr) -> Option<Ticket> {
+        self.listener
+            .set_limits(self.settings.limits(&self.metrics));
+        match self.listener.admit(peer.ip()) {
+            Ok(ticket) => Some(ticket),
+            Err(reason) => {
+                self.metrics.faces().tcp_rejected(reason.label());
+                None
             }
-        };
-        let why = match reason {
-            Refused::NotAllowed => "the address is in none of the networks of [modbus_tcp] allowed_networks (not set: loopback only) and [[modbus_tcp.clients]]; to let it in, add a [[modbus_tcp.clients]] entry with its network and a role".to_string(),
-            Refused::PerAddress => format!(
-                "the address holds {} connections already, the most one address may ([modbus_tcp] max_connections_per_address)",
-                self.addresses.limit()
-            ),
-            Refused::Limit => format!(
-                "{} connections are open ([modbus_tcp] max_connections)",
-                self.max_connections
-            ),
-        };
-        let last = if before > 1 {
-            format!(" Its last burst: {before} refused.")
-        } else {
-            String::new()
-        };
-        warn!(
-            client = %peer,
-            "{} connection refused: {why}. Further refusals of this address are counted (drivegate_modbus_tcp_connections_rejected_total{{reason=\"{}\"}}), not logged, until it has been quiet for {} s.{last}",
-            self.face,
-            reason.label(),
-            QUIET.as_secs()
-        );
+        }
     }
 }
 
@@ -139,42 +165,20 @@ pub async fn run(
     shutdown: CancellationToken,
 ) {
     let metrics = gateway.metrics().clone();
-    let mut admission = Admission::new("Modbus TCP", &settings, metrics.clone());
+    let connection = settings.connection;
+    let mut admission = Admission::new(
+        crate::connections::words::MODBUS_TCP,
+        listener.local_addr().ok(),
+        settings,
+        metrics.clone(),
+    );
     let tracker = TaskTracker::new();
-    loop {
-        let accepted = tokio::select! {
-            // A closed listener's socket fails its accepts: the stop first.
-            biased;
-            () = shutdown.cancelled() => break,
-            accepted = listener.accept() => accepted,
-        };
-        let (stream, peer) = match accepted {
-            Ok(a) => a,
-            Err(e) => {
-                // Out of file descriptors, usually: let connections close
-                // rather than spin on the error.
-                warn!("Modbus TCP accept failed: {e}; pausing accepts for 100 ms");
-                tokio::select! {
-                    () = tokio::time::sleep(Duration::from_millis(100)) => continue,
-                    () = shutdown.cancelled() => break,
-                }
-            }
-        };
-        let Some(rights) = settings.access.rights(peer.ip()) else {
-            admission.refuse(peer, Refused::NotAllowed);
+    while let Some((stream, peer, rights)) = admission.next(&listener, &shutdown, false).await {
+        let Some(rights) = rights else {
             continue;
         };
-        let Some(permit) = admission.admit(peer) else {
-            continue;
-        };
-        // Replies are small and latency matters more than packet count.
-        if let Err(e) = stream.set_nodelay(true) {
-            debug!(client = %peer, "cannot set TCP_NODELAY: {e}");
-        }
         let (gateway, metrics, shutdown) = (gateway.clone(), metrics.clone(), shutdown.clone());
-        let connection = settings.connection;
         tracker.spawn(async move {
-            let _slot = permit;
             let _open = metrics.faces().tcp_connection();
             debug!(client = %peer, role = rights.role.name(), "Modbus TCP client connected");
             // The connection is a session of the core: the leases of its
@@ -257,41 +261,29 @@ pub async fn run_tls(
     shutdown: CancellationToken,
 ) {
     let metrics = gateway.metrics().clone();
-    let mut admission = Admission::new("Modbus/TCP Security", &settings, metrics.clone());
+    let connection = settings.connection;
+    let mut admission = Admission::new(
+        crate::connections::words::MODBUS_TLS,
+        listener.local_addr().ok(),
+        settings,
+        metrics.clone(),
+    );
     let tracker = TaskTracker::new();
     let tls = Arc::new(tls);
-    loop {
-        let accepted = tokio::select! {
-            // A closed listener's socket fails its accepts: the stop first.
-            biased;
-            () = shutdown.cancelled() => break,
-            accepted = listener.accept() => accepted,
-        };
-        let (stream, peer) = match accepted {
-            Ok(a) => a,
-            Err(e) => {
-                warn!("Modbus/TCP Security accept failed: {e}; pausing accepts for 100 ms");
-                tokio::select! {
-                    () = tokio::time::sleep(Duration::from_millis(100)) => continue,
-                    () = shutdown.cancelled() => break,
-                }
-            }
-        };
-        let Some(permit) = admission.admit(peer) else {
-            continue;
-        };
-        if let Err(e) = stream.set_nodelay(true) {
-            debug!(client = %peer, "cannot set TCP_NODELAY: {e}");
-        }
-        let (gateway, metrics, shutdown, tls) = (
+    // Handshakes and identities that fail, said once per address, cause
+    // and second at most: a scanner or a plain-text client in a loop
+    // writes a few lines, not one per connection.
+    let noisy: Arc<Shared<(IpAddr, &'static str)>> = Arc::default();
+    while let Some((stream, peer, _)) = admission.next(&listener, &shutdown, true).await {
+        let (gateway, metrics, shutdown, tls, noisy) = (
             gateway.clone(),
             metrics.clone(),
             shutdown.clone(),
             tls.clone(),
+            noisy.clone(),
         );
-        let connection = settings.connection;
+        let from = host_key(peer.ip());
         tracker.spawn(async move {
-            let _slot = permit;
             let acceptor = tokio_rustls::TlsAcceptor::from(tls.config.current());
             let handshake = tokio::select! {
                 h = tokio::time::timeout(connection.idle_timeout, acceptor.accept(stream)) => h,
@@ -301,7 +293,9 @@ pub async fn run_tls(
                 Ok(Ok(stream)) => stream,
                 Ok(Err(e)) => {
                     metrics.security().tls_handshake_failed("modbus_tcp");
-                    warn!(client = %peer, "Modbus/TCP Security handshake failed: {e}");
+                    if let Some(more) = noisy.due((from, "handshake")) {
+                        warn!(client = %peer, "Modbus/TCP Security handshake failed: {e}. Counted in drivegate_tls_handshake_failures_total{{face=\"modbus_tcp\"}}; logged once per address and second at most{more}");
+                    }
                     return;
                 }
                 Err(_) => {
@@ -319,7 +313,9 @@ pub async fn run_tls(
                 Ok(found) => found,
                 Err(why) => {
                     metrics.security().tls_client_refused("role");
-                    warn!(client = %peer, "Modbus/TCP Security client refused: {why}");
+                    if let Some(more) = noisy.due((from, "role")) {
+                        warn!(client = %peer, "Modbus/TCP Security client refused: {why}{more}");
+                    }
                     return;
                 }
             };

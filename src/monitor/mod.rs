@@ -63,7 +63,7 @@ pub struct BusMonitor {
     line: LineTiming,
     epoch: Instant,
     clock: WallClock,
-    units: Vec<u8>,
+    units: std::sync::Mutex<Vec<u8>>,
     clients: AtomicUsize,
     lost: AtomicU64,
 }
@@ -83,7 +83,7 @@ impl BusMonitor {
                 epoch: SystemTime::now(),
                 char_ns: u64::try_from(line.char_time().as_nanos()).unwrap_or(u64::MAX),
             },
-            units,
+            units: std::sync::Mutex::new(units),
             clients: AtomicUsize::new(0),
             lost: AtomicU64::new(0),
         }
@@ -105,8 +105,14 @@ impl BusMonitor {
     }
 
     /// The configured units.
-    pub fn units(&self) -> &[u8] {
-        &self.units
+    pub fn units(&self) -> Vec<u8> {
+        self.units.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// The configured units are now `units` (a reload added or removed
+    /// drives on the running bus).
+    pub fn set_units(&self, units: Vec<u8>) {
+        *self.units.lock().unwrap_or_else(|p| p.into_inner()) = units;
     }
 
     /// Time a frame of `bytes` takes on this monitor's line.

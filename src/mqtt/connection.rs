@@ -1,17 +1,22 @@
 //! One connection to the broker: rumqttc's client with options built from
-//! `[mqtt]` (keepalive, credentials, TLS, the will), and its event loop
-//! polled in a task of its own, whose events (or its error, in words) come
-//! to the node over a channel. The event loop is never asked to reconnect:
-//! each connection has its own will (its bdSeq), so the node opens a new
-//! one instead.
+//! `[mqtt]` (keepalive, credentials, TLS, the will, the largest message
+//! taken), and its event loop polled in a task of its own, whose events
+//! (or its error, in words) come to the node over a channel. The event
+//! loop is never asked to reconnect: each connection has its own will (its
+//! bdSeq), so the node opens a new one instead. The Sparkplug connection
+//! reaches the broker through [`relay`](super::relay), which cuts messages
+//! above `max_message_bytes` (the JSON format's MQTT 5 tells the broker).
 
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use rumqttc::{AsyncClient, Event, LastWill, MqttOptions, Transport};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
+use tokio_util::sync::DropGuard;
 
+use super::relay::{self, TooLarge};
 use crate::config::MqttConfig;
 
 /// How many requests (publishes, subscriptions) may wait in the client
@@ -26,6 +31,8 @@ pub(in crate::mqtt) struct Link<C, E> {
     /// The event loop's events; an error ends them.
     pub(in crate::mqtt) events: mpsc::Receiver<Result<E, String>>,
     poller: JoinHandle<()>,
+    /// The relay's life, ended with the connection's.
+    relay: Option<DropGuard>,
     /// The broker accepted it (CONNACK).
     pub(in crate::mqtt) accepted: bool,
 }
@@ -45,10 +52,24 @@ pub(in crate::mqtt) trait EventLoop: Send + 'static {
     fn next(&mut self) -> impl std::future::Future<Output = Result<Self::Event, String>> + Send;
 }
 
-impl EventLoop for rumqttc::EventLoop {
+/// The Sparkplug client's event loop, whose broker is the relay's: an
+/// error is the relay's, if it had one (the client only saw its socket
+/// close).
+struct Relayed {
+    eventloop: rumqttc::EventLoop,
+    error: Arc<Mutex<Option<String>>>,
+}
+
+impl EventLoop for Relayed {
     type Event = Event;
     async fn next(&mut self) -> Result<Event, String> {
-        self.poll().await.map_err(|e| describe(&e))
+        self.eventloop.poll().await.map_err(|e| {
+            self.error
+                .lock()
+                .ok()
+                .and_then(|mut relayed| relayed.take())
+                .unwrap_or_else(|| describe(&e))
+        })
     }
 }
 
@@ -69,6 +90,7 @@ impl<C, E: Send + 'static> Link<C, E> {
             client,
             events,
             poller,
+            relay: None,
             accepted: false,
         }
     }
@@ -87,14 +109,21 @@ pub(in crate::mqtt) async fn next_event<C, E>(
 /// The first wait before reconnecting; it doubles up to [`BACKOFF_MAX`].
 const BACKOFF_MIN: Duration = Duration::from_millis(250);
 const BACKOFF_MAX: Duration = Duration::from_secs(15);
+/// A connection the broker accepted that lasted this long was a working
+/// one: the wait starts over after it.
+const STABLE: Duration = Duration::from_secs(10);
 
 /// When to connect again: at once at first; after a failure, after a wait
 /// that doubles from [`BACKOFF_MIN`] to [`BACKOFF_MAX`] while connections
-/// keep failing, and starts over once the broker accepted one.
+/// keep failing, and starts over once one lasted [`STABLE`]. A connection
+/// the broker accepts and then loses at once (a message it cannot take, a
+/// client taking its client id) counts as failed: it never loops faster.
 #[derive(Debug)]
 pub(in crate::mqtt) struct Backoff {
     at: Instant,
     wait: Duration,
+    /// When the broker accepted the current connection.
+    since: Option<Instant>,
 }
 
 impl Backoff {
@@ -103,6 +132,7 @@ impl Backoff {
         Backoff {
             at: Instant::now(),
             wait: BACKOFF_MIN,
+            since: None,
         }
     }
 
@@ -112,15 +142,24 @@ impl Backoff {
     }
 
     /// A connection failed (or could not be opened): the next one after
-    /// the wait, which doubles.
+    /// the wait, which doubles (and starts over after a stable one).
     pub(in crate::mqtt) fn failed(&mut self) {
-        self.at = Instant::now() + self.wait;
+        let now = Instant::now();
+        if self
+            .since
+            .take()
+            .is_some_and(|since| now.duration_since(since) >= STABLE)
+        {
+            self.wait = BACKOFF_MIN;
+        }
+        self.at = now + self.wait;
         self.wait = (self.wait * 2).min(BACKOFF_MAX);
     }
 
-    /// The broker accepted a connection: the wait starts over.
+    /// The broker accepted the connection (said again at each of its
+    /// events: the first time counts).
     pub(in crate::mqtt) fn accepted(&mut self) {
-        self.wait = BACKOFF_MIN;
+        self.since.get_or_insert_with(Instant::now);
     }
 
     /// The next connection at once (the wait unchanged).
@@ -133,31 +172,48 @@ impl Backoff {
 pub(super) type Connection = Link<AsyncClient, Event>;
 
 impl Connection {
-    /// Starts connecting to `config`'s broker as `client_id` with `will`.
-    /// Fails only on what is wrong before any network traffic (the
-    /// password file, the TLS files).
+    /// Starts connecting to `config`'s broker as `client_id` with `will`,
+    /// through a relay that cuts messages above `max_message_bytes` (and
+    /// tells `too_large`). Fails only on what is wrong before any network
+    /// traffic (the password file, the TLS files, the relay's socket).
     pub(super) fn open(
         config: &MqttConfig,
         client_id: &str,
         will: LastWill,
+        too_large: &Arc<TooLarge>,
     ) -> Result<Connection, String> {
-        let mut options =
-            MqttOptions::new(client_id, config.broker.host.clone(), config.broker.port);
+        let tls = match config.broker.tls {
+            true => Some(tls_config(config)?),
+            false => None,
+        };
+        let relay = relay::open(config, tls, too_large.clone())?;
+        let mut options = MqttOptions::new(client_id, relay.path.display().to_string(), 0);
+        options.set_transport(Transport::Unix);
         options.set_keep_alive(config.keepalive());
         // Sparkplug: a clean session each time, nothing left from before.
         options.set_clean_session(true);
-        options.set_max_packet_size(256 * 1024, 256 * 1024);
+        // What is larger is cut by the relay before it gets here.
+        options.set_max_packet_size(config.max_message_bytes as usize, MAX_OUTGOING);
         options.set_last_will(will);
         if let Some((user, password)) = credentials(config)? {
             options.set_credentials(user, password);
         }
-        if let Some(tls) = tls_transport(config)? {
-            options.set_transport(tls);
-        }
         let (client, eventloop) = AsyncClient::new(options, REQUEST_CAPACITY);
-        Ok(Link::new(client, eventloop))
+        let mut link = Link::new(
+            client,
+            Relayed {
+                eventloop,
+                error: relay.error,
+            },
+        );
+        link.relay = Some(relay.guard);
+        Ok(link)
     }
 }
+
+/// The largest packet the node sends (a DBIRTH of every metric of a drive
+/// is a few kilobytes).
+const MAX_OUTGOING: usize = 256 * 1024;
 
 /// `[mqtt] username` and the first line of its `password_file`, if a user
 /// is configured (both the Sparkplug and the JSON connection use them).
@@ -178,15 +234,19 @@ pub(super) fn tls_transport(config: &MqttConfig) -> Result<Option<Transport>, St
     if !config.broker.tls {
         return Ok(None);
     }
+    Ok(Some(Transport::tls_with_config(
+        rumqttc::TlsConfiguration::Rustls(tls_config(config)?),
+    )))
+}
+
+/// The rustls configuration for an `mqtts://` broker.
+fn tls_config(config: &MqttConfig) -> Result<Arc<rustls::ClientConfig>, String> {
     let identity = match (&config.client_cert, &config.client_key) {
         (Some(cert), Some(key)) => Some((cert.get_ref().as_path(), key.as_path())),
         _ => None,
     };
-    let tls = crate::tls::client_config(config.ca.as_deref(), identity)
-        .map_err(|e| format!("[mqtt] TLS: {e}"))?;
-    Ok(Some(Transport::tls_with_config(
-        rumqttc::TlsConfiguration::Rustls(tls),
-    )))
+    crate::tls::client_config(config.ca.as_deref(), identity)
+        .map_err(|e| format!("[mqtt] TLS: {e}"))
 }
 
 fn read_password(path: &std::path::Path) -> Result<String, String> {
@@ -195,14 +255,24 @@ fn read_password(path: &std::path::Path) -> Result<String, String> {
         .map_err(|e| format!("[mqtt] password_file {}: {e}", path.display()))
 }
 
+/// A message above `max_message_bytes` that reached the client: the
+/// connection ends (rumqttc cannot skip it).
+pub(super) fn too_large_words(bytes: usize) -> String {
+    format!(
+        "the broker sent a message of {bytes} bytes, above [mqtt] max_message_bytes: the client \
+         cannot skip it and drops the connection. Limit the broker's messages \
+         (mosquitto: max_packet_size; docs/mqtt.md) or raise max_message_bytes"
+    )
+}
+
 /// A connection error in words a plant engineer can act on.
 fn describe(e: &rumqttc::ConnectionError) -> String {
     use rumqttc::ConnectionError as E;
     match e {
-        E::Io(io) if io.kind() == std::io::ErrorKind::ConnectionRefused => {
-            "the broker refused the TCP connection (is it running, on this port?)".to_string()
-        }
-        E::Io(io) => format!("connection to the broker: {io}"),
+        E::Io(io) => relay::io_words(io),
+        E::MqttState(rumqttc::StateError::Deserialization(
+            rumqttc::Error::PayloadSizeLimitExceeded(bytes),
+        )) => too_large_words(*bytes),
         E::ConnectionRefused(code) => format!("the broker refused the connection: {code:?}"),
         E::Tls(tls) => format!("TLS with the broker: {tls}"),
         E::NetworkTimeout => "the broker did not answer in time".to_string(),

@@ -8,9 +8,15 @@
 //! - [`exception`] decides what of a new status is published (deadbands,
 //!   pure), [`host`] follows the primary host's `STATE` (pure),
 //! - [`commands`] turns DCMD metrics into requests for the control core,
+//! - `arrival` tells a live command from a retained or queued one, for
+//!   both formats (pure; the core refuses what is not live),
 //! - `node` is the edge node's task: births and deaths, data, commands and
 //!   the session's motor-safety lease, over a `connection` (rumqttc) with
 //!   its `bd_seq` (kept across restarts in `[safety] state_dir`),
+//! - `relay` carries the Sparkplug connection's bytes to the broker and
+//!   `too_large` cuts the messages above `[mqtt] max_message_bytes` from
+//!   what comes back (pure), so a large message costs itself, not the
+//!   connection,
 //! - [`store`] keeps on disk what cannot be published (store and forward:
 //!   the node's [`Outbox`] when there is a state directory); [`replay`]
 //!   holds what comes back out until its drive's DBIRTH is out (pure).
@@ -24,6 +30,7 @@
 //! by what is known of their sender ([`identity`]: the broker's login, the
 //! primary host claimed). See `docs/mqtt.md` and `docs/security.md`.
 
+mod arrival;
 mod bd_seq;
 mod connection;
 pub mod exception;
@@ -34,10 +41,12 @@ pub mod metric;
 pub mod metric_commands;
 mod node;
 mod outbox;
+mod relay;
 pub mod replay;
 pub mod store;
 #[rustfmt::skip]
 pub mod sparkplug_b;
+mod too_large;
 pub mod topic;
 
 use crate::faces_shared::start::FaceStart;

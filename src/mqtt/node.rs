@@ -24,7 +24,9 @@
 //!   go to the [`Outbox`](super::Outbox).
 //! - **Commands** go to the control core in a task per DCMD (its metrics in
 //!   order), with a caller in the MQTT session; the result comes back here
-//!   and is published.
+//!   and is published. Only live ones: a retained DCMD or NCMD, or one
+//!   queued for an earlier session, is refused by the core (audited) and
+//!   answered in `command/last_result` ([`super::arrival`]).
 //! - **The session's lease.** While connected (and the primary host is
 //!   online), the session is renewed a few times per `comm_loss_ms`; once
 //!   the connection is lost, its leases end after `comm_loss_ms` with
@@ -59,6 +61,7 @@ use super::exception::Reported;
 use super::host::Host;
 use super::metric::Setpoints;
 use super::outbox::Outbox;
+use super::relay::TooLarge;
 use super::replay::{self, Held};
 use super::topic::{Kind, NodeTopics};
 use crate::bus::SourceId;
@@ -121,6 +124,11 @@ struct Node {
     followed: Option<u64>,
     /// The commands on their way through the core, in the current session.
     commands: tokio::task::JoinSet<()>,
+    /// Messages cut for their size, for all connections.
+    too_large: Arc<TooLarge>,
+    /// What is known of the current connection, to tell a live command
+    /// from a retained or queued one.
+    connected: super::arrival::Connected,
 }
 
 /// Starts the edge node's task; it ends after `shutdown` fired.
@@ -141,7 +149,7 @@ pub(super) fn spawn(
     let session = open_session(&control, &config);
     let node = Node {
         topics,
-        who,
+        who: who.clone(),
         source: SourceId::new_unique(),
         outbox,
         held: Held::default(),
@@ -157,6 +165,8 @@ pub(super) fn spawn(
         forwarders: Vec::new(),
         followed: None,
         commands: tokio::task::JoinSet::new(),
+        too_large: TooLarge::new(metrics.clone(), who.clone(), &config),
+        connected: super::arrival::Connected::default(),
         config,
         control,
         metrics,
@@ -329,6 +339,7 @@ impl Node {
                 QoS::AtLeastOnce,
                 false,
             ),
+            &self.too_large,
         )?;
         self.born = false;
         self.metrics.mqtt().born(false);

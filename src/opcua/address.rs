@@ -380,6 +380,18 @@ impl Nodes {
         }
     }
 
+    /// Drive `drive` is polled every `period` now (a reload changed its
+    /// poll rate in place): its variables say so, keeping their nodes and
+    /// the clients' monitored items on them.
+    pub fn set_period(&self, space: &mut AddressSpace, drive: &str, period: Duration) {
+        for v in &VARIABLES {
+            let id = self.id(&spec::variable_path(drive, v));
+            if let Some(NodeType::Variable(node)) = space.find_mut(&id) {
+                node.set_minimum_sampling_interval(period.as_secs_f64() * 1000.0);
+            }
+        }
+    }
+
     /// Removes drive `drive` and every node under it.
     pub fn remove_drive(&self, space: &mut AddressSpace, drive: &str) {
         let path = spec::drive_path(drive);

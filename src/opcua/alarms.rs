@@ -123,11 +123,11 @@ fn two_state(id: bool, yes: &str, no: &str) -> TwoStateVariableType {
 /// How severe an alarm of `kind` is (1 to 1000).
 pub fn severity(kind: AlarmKind) -> u16 {
     match kind {
-        AlarmKind::BusDown | AlarmKind::StopFailed => 900,
+        AlarmKind::BusDown | AlarmKind::StopFailed | AlarmKind::UnknownState => 900,
         AlarmKind::Fault => 800,
         AlarmKind::Stall | AlarmKind::CommLoss => 700,
         AlarmKind::Offline | AlarmKind::NeverAnswered => 600,
-        AlarmKind::RefusedWrite => 400,
+        AlarmKind::RefusedWrite | AlarmKind::CertificateExpiring => 400,
     }
 }
 

@@ -18,7 +18,8 @@
 //!   `AlarmConditionType` events), [`conditions`] (acknowledgement and
 //!   `ConditionRefresh`);
 //! - [`render`] (the plant in the address space, at every poll),
-//!   [`server`] (the server built from `[opcua]`);
+//!   [`server`] (the server built from `[opcua]`, its connections and
+//!   sessions shared out by [`gate`], as every listener's are);
 //! - here, [`start`]: on the socket `faces.rs` bound, with a stop token of
 //!   its own, as every face.
 //!
@@ -30,6 +31,7 @@
 pub mod address;
 pub mod alarms;
 pub mod conditions;
+pub mod gate;
 pub mod history;
 pub mod nodes;
 pub mod outcome;

@@ -61,6 +61,7 @@ pub fn failure(failure: &Failure) -> Answer {
             }
             Rule::LeaseLength { .. } => StatusCode::BadOutOfRange,
             Rule::NotDecoded => StatusCode::BadNotSupported,
+            Rule::NotLive => StatusCode::BadRequestTimeout,
         },
         Failure::CheckFailed(e) | Failure::NotSent(e) => bus_status(e),
         Failure::DriveRefused { .. } => StatusCode::BadDeviceFailure,

@@ -118,16 +118,29 @@ impl Render {
         }
     }
 
-    /// Adds what `directory` has that is not shown, removes what it lost.
+    /// Adds what `directory` has that is not shown, removes what it lost,
+    /// and gives a drive whose poll rate changed its new sampling interval.
     fn follow_plant(&self, directory: &Directory, shown: &mut Shown) {
         let (drives, buses) = plant_of(directory);
         if drives == shown.drives && buses == shown.buses {
             return;
         }
         let mut space = self.space.write();
-        for (name, period) in shown.drives.difference(&drives) {
-            let _ = period;
-            self.nodes.remove_drive(&mut space, name);
+        // A drive shown under the same name at another poll rate keeps its
+        // nodes (and the monitored items on them).
+        let named = |set: &BTreeSet<(String, u64)>, name: &str| {
+            set.iter().find(|(n, _)| n == name).map(|(_, p)| *p)
+        };
+        for (name, period) in drives.difference(&shown.drives) {
+            if named(&shown.drives, name).is_some() {
+                let period = Duration::from_micros(*period);
+                self.nodes.set_period(&mut space, name, period);
+            }
+        }
+        for (name, _) in shown.drives.difference(&drives) {
+            if named(&drives, name).is_none() {
+                self.nodes.remove_drive(&mut space, name);
+            }
         }
         for bus in shown.buses.difference(&buses) {
             self.nodes.remove_bus(&mut space, bus);
@@ -136,6 +149,9 @@ impl Render {
             self.nodes.add_bus(&mut space, bus);
         }
         for (name, period) in drives.difference(&shown.drives) {
+            if named(&shown.drives, name).is_some() {
+                continue;
+            }
             let drive = DriveNodes {
                 name,
                 period: Duration::from_micros(*period),

@@ -220,6 +220,7 @@ pub fn build(parts: Parts) -> Result<Built, String> {
         })
     };
     let section = &parts.section;
+    let gate = Arc::new(super::gate::Gate::new(section, parts.bound, &parts.metrics));
     let mut builder = ServerBuilder::new()
         .without_node_managers()
         .with_node_manager(core)
@@ -239,6 +240,7 @@ pub fn build(parts: Parts) -> Result<Built, String> {
         .with_authenticator(parts.users.clone())
         .max_session_timeout_ms(section.session_timeout_max_ms)
         .max_sessions(section.max_sessions)
+        .connection_gate(gate.clone())
         .diagnostics_enabled(true)
         .token(parts.stop.clone());
     for security in section.endpoints() {
@@ -247,6 +249,7 @@ pub fn build(parts: Parts) -> Result<Built, String> {
     let mut builder = Timing::of(fastest_poll(&parts.control)).apply(builder);
     caps(section).apply(&mut builder.limits_mut().subscriptions);
     let (server, handle) = builder.build()?;
+    gate.follow(handle.clone(), parts.stop.clone());
     let events = events
         .get()
         .cloned()

@@ -99,7 +99,7 @@ struct Inner {
 pub struct Scope {
     settings: ScopeSettings,
     line: LineTiming,
-    units: Vec<u8>,
+    units: Mutex<Vec<u8>>,
     /// A capture is armed or triggered: the bus thread looks at nothing
     /// else while this is false.
     running: AtomicBool,
@@ -123,7 +123,7 @@ impl Scope {
         Self {
             settings,
             line,
-            units,
+            units: Mutex::new(units),
             running: AtomicBool::new(false),
             inner: Mutex::new(Inner::default()),
             next_id: AtomicU64::new(1),
@@ -158,8 +158,14 @@ impl Scope {
     }
 
     /// The configured units of the bus.
-    pub fn units(&self) -> &[u8] {
-        &self.units
+    pub fn units(&self) -> Vec<u8> {
+        self.units.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// The bus's drives are now `units` (a reload added or removed drives
+    /// on the running bus): from the next capture armed.
+    pub fn set_units(&self, units: Vec<u8>) {
+        *self.units.lock().unwrap_or_else(|p| p.into_inner()) = units;
     }
 
     /// True while a capture is armed or triggered.
@@ -174,7 +180,8 @@ impl Scope {
 
     /// Arms a capture of `spec` at `now`; refused while one runs.
     pub fn arm(&self, spec: CaptureSpec, now: Instant) -> Result<u64, ScopeError> {
-        if let Some(&unknown) = spec.units.iter().find(|u| !self.units.contains(u)) {
+        let units = self.units();
+        if let Some(&unknown) = spec.units.iter().find(|u| !units.contains(u)) {
             return Err(ScopeError::Invalid(SpecError::Invalid(format!(
                 "unit {unknown} is not a configured drive of this bus"
             ))));
@@ -189,7 +196,7 @@ impl Scope {
         }
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         let floor = Duration::from_secs_f64(1.0 / self.settings.floor_rate_hz.max(0.001));
-        inner.steer = Some(PollSteer::new(&spec.units, &self.units, floor));
+        inner.steer = Some(PollSteer::new(&spec.units, &units, floor));
         // Drop the previous capture before allocating the next one.
         inner.capture = None;
         inner.capture = Some(Capture::arm(

@@ -20,6 +20,9 @@ use crate::modbus::rtu_frame;
 /// A drive and the time its model was last advanced to.
 #[derive(Debug)]
 struct Slot {
+    /// Its unit in the configuration (its address at power-on: a write
+    /// may have given it another since).
+    unit: u8,
     model: DriveModel,
     clock: Instant,
     /// See [`SimDriveConfig::frame_gap`](super::config::SimDriveConfig).
@@ -70,6 +73,9 @@ pub struct Bus {
     /// Units that go silent once they have carried out this many more
     /// writes (a drive that stops answering part-way through a sequence).
     silent_after_writes: Vec<(u8, u32)>,
+    /// The fault rates and seed last configured: a reload that keeps them
+    /// keeps the rates set at runtime too.
+    configured_faults: (FaultRates, u64),
 }
 
 impl Bus {
@@ -81,6 +87,7 @@ impl Bus {
                 .drives
                 .iter()
                 .map(|d| Slot {
+                    unit: d.unit,
                     model: DriveModel::new(d.unit, d.gear_ratio, config.calibrated, reboot),
                     clock: now,
                     frame_gap: d.frame_gap,
@@ -97,6 +104,44 @@ impl Bus {
             pdu: Vec::with_capacity(256),
             scratch: Vec::with_capacity(256),
             silent_after_writes: Vec::new(),
+            configured_faults: (config.faults.clone(), config.seed),
+        }
+    }
+
+    /// Follows `config` at `now` (a reload): the drives on the line stay
+    /// as they are (turning, in their mode, at their position: a reload
+    /// is no power cut), taking its frame separation; those it adds join
+    /// the line as a technician wires them in, fresh from the factory;
+    /// those it no longer names stay wired as they are (a drive taken out
+    /// of the configuration is not taken off the line: it is found as it
+    /// was if it comes back). The devices follow alike, and new fault
+    /// rates or a new seed apply from the next request.
+    pub fn follow(&mut self, config: &SimConfig, now: Instant) {
+        let reboot = config.reboot_ms / 1000.0;
+        for d in &config.drives {
+            match self.slots.iter_mut().find(|s| s.unit == d.unit) {
+                Some(slot) => slot.frame_gap = d.frame_gap,
+                None => self.slots.push(Slot {
+                    unit: d.unit,
+                    model: DriveModel::new(d.unit, d.gear_ratio, config.calibrated, reboot),
+                    clock: now,
+                    frame_gap: d.frame_gap,
+                }),
+            }
+        }
+        for &unit in &config.devices {
+            if self.device(unit).is_none() {
+                self.devices.push(RegisterDevice::new(unit));
+            }
+        }
+        let faults = (config.faults.clone(), config.seed);
+        if faults != self.configured_faults {
+            if faults.1 == self.configured_faults.1 {
+                self.faults.set_rates(faults.0.clone());
+            } else {
+                self.faults = FaultInjector::new(faults.0.clone(), faults.1);
+            }
+            self.configured_faults = faults;
         }
     }
 
@@ -503,5 +548,46 @@ mod tests {
         }
         let later = now + Duration::from_millis(500);
         assert_eq!(bus.drive(1, later).unwrap().status().speed_rpm, 100);
+    }
+
+    #[test]
+    fn a_reload_keeps_the_drives_on_the_line_as_they_are() {
+        let (mut bus, now) = bus(&[1, 2]);
+        for req in [
+            DriveRequest::Config(ConfigCommand::Activate),
+            DriveRequest::Config(ConfigCommand::SpeedMode),
+            DriveRequest::Speed { rpm: 100 },
+        ] {
+            send(&mut bus, 1, req, now).unwrap();
+        }
+        bus.set_silent(2, true);
+        // Units 1 and 2 out of the configuration, unit 3 in: unit 1 turns
+        // on, still wired.
+        let later = now + Duration::from_millis(500);
+        let mut config = SimConfig::for_units([3]);
+        config.devices = vec![100];
+        bus.follow(&config, later);
+        let one = bus
+            .drive(1, later + Duration::from_millis(100))
+            .unwrap()
+            .view();
+        assert!(
+            one.active && one.mode == crate::drive::Mode::Speed,
+            "{one:?}"
+        );
+        assert_eq!(one.status.speed_rpm, 100);
+        let three = bus.drive(3, later).unwrap().view();
+        assert!(!three.active, "a drive wired in is fresh from the factory");
+        assert!(bus.device(100).is_some());
+        // Back in the configuration, unit 1 is found as it was.
+        bus.follow(&SimConfig::for_units([1, 3]), later);
+        assert_eq!(bus.views(later).len(), 3);
+        assert!(bus.drive(1, later).unwrap().view().active);
+        // The same fault rates: the silent unit set at runtime stays so.
+        assert!(bus.fault_rates().is_silent(2));
+        config.faults.drop_rate = 1.0;
+        bus.follow(&config, later);
+        assert!(!bus.fault_rates().is_silent(2));
+        assert_eq!(send(&mut bus, 1, DriveRequest::ReadStatus, later), None);
     }
 }

@@ -62,8 +62,8 @@ pub struct SimArgs {
     /// drives, e.g. "100": 65536 holding registers each, for long reads.
     #[arg(long)]
     pub devices: Option<UnitList>,
-    /// Reply bytes handed over together, as a USB adapter does (1: each byte
-    /// on time, as a UART does).
+    /// Reply bytes handed over together, as a USB adapter does (1: on time,
+    /// as a UART does: the first and the last byte as they arrive).
     #[arg(long, default_value_t = 1)]
     pub chunk_bytes: u16,
     /// Largest extra delay of each chunk, in microseconds.

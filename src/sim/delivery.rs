@@ -1,8 +1,18 @@
 //! How the reply's bytes reach the master: the moment each byte is handed
 //! over, given when its last bit left the drive. Pure code.
 //!
-//! A UART on the master's board hands every byte over as it arrives. A USB
-//! adapter does not: it collects what the line carried and sends it to the
+//! A UART on the master's board hands bytes over as they arrive, through
+//! its receive FIFO and the kernel, a few at a time. What a master needs of
+//! that timing is when a reply starts (the drive's turnaround) and when it
+//! ends (the silence before the next request is counted from there); so the
+//! simulated UART hands the first byte over as it arrives and the last as
+//! it arrives, and the bytes between with the last, or, for a frame a
+//! master can only end by silence, in pieces no further apart than t3.5
+//! less t1.5 (never a silence that would end it). Each piece is a wake-up
+//! of both the simulator and the master: a byte at a time would cost 19 of
+//! each for a status reply.
+//!
+//! A USB adapter does not: it collects what the line carried and sends it to the
 //! host in packets, a little after the bytes were on the wire, and the host's
 //! USB stack adds its own jitter. A master that counts the 3.5-character
 //! silence from the last byte it *received* then leaves the line idle longer
@@ -22,7 +32,7 @@ use crate::modbus::timing::LineTiming;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Delivery {
-    /// Bytes handed over together (1: each byte as it arrives, like a UART).
+    /// Bytes handed over together (1: a UART, see the module's doc).
     pub chunk_bytes: u16,
     /// Largest extra delay of each chunk after its last byte was on the
     /// wire, in microseconds; each chunk draws its delay uniformly from 0 to
@@ -31,7 +41,7 @@ pub struct Delivery {
 }
 
 impl Default for Delivery {
-    /// Byte by byte, on time: a UART.
+    /// A UART: on time, the first and last bytes as they arrive.
     fn default() -> Self {
         Self {
             chunk_bytes: 1,
@@ -48,7 +58,7 @@ impl Delivery {
         jitter_us: 500,
     };
 
-    /// True for a UART's delivery (every byte on time).
+    /// True for a UART's delivery (on time).
     pub fn is_exact(&self) -> bool {
         self.chunk_bytes <= 1 && self.jitter_us == 0
     }
@@ -74,16 +84,22 @@ impl Delivery {
 
     /// When each of `len` bytes is handed over, for a frame whose first bit
     /// leaves the drive at `start`: `out[i]` is byte `i`'s moment. Never
-    /// before the byte was on the wire, never out of order.
+    /// before the byte was on the wire, never out of order. `by_length`
+    /// says a master can tell the frame's length from its first bytes (a
+    /// reply to a function it knows); else it ends the frame by silence.
     pub fn schedule(
         &self,
         line: &LineTiming,
         start: Instant,
         len: usize,
+        by_length: bool,
         rng: &mut impl Rng,
         out: &mut Vec<Instant>,
     ) {
         out.clear();
+        if self.is_exact() {
+            return uart(line, start, len, by_length, out);
+        }
         let chunk = usize::from(self.chunk_bytes.max(1));
         let mut previous = start;
         let mut first = 0;
@@ -103,6 +119,34 @@ impl Delivery {
     }
 }
 
+/// A UART's schedule (see the module's doc): byte 0 as it arrives; the
+/// others with the last, or, for a frame ended by silence, with the piece
+/// they end, pieces being cut back from the last byte at most t3.5 - t1.5
+/// apart.
+fn uart(line: &LineTiming, start: Instant, len: usize, by_length: bool, out: &mut Vec<Instant>) {
+    if len == 0 {
+        return;
+    }
+    let piece = if by_length {
+        len
+    } else {
+        // The most characters whose wire time is shorter than t3.5 - t1.5
+        // (11 at 115200 baud, 1 at 19200 baud and below).
+        let apart = line.t3_5().saturating_sub(line.t1_5());
+        (1..len)
+            .take_while(|&k| line.wire_time(k + 1) < apart)
+            .last()
+            .map_or(1, |k| k + 1)
+    };
+    out.push(start + line.wire_time(1));
+    // The pieces after the first byte, cut back from the last: byte i goes
+    // with the piece that ends at the first cut at or after it.
+    for i in 1..len {
+        let from_end = (len - 1 - i) / piece * piece;
+        out.push(start + line.wire_time(len - from_end));
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -110,17 +154,51 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     #[test]
-    fn a_uart_hands_each_byte_over_as_its_last_bit_arrives() {
+    fn a_uart_hands_the_first_and_the_last_byte_over_as_they_arrive() {
         let line = LineTiming::new_8n1(115_200);
         let start = Instant::now();
         let mut out = Vec::new();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        Delivery::default().schedule(&line, start, 3, &mut rng, &mut out);
-        assert_eq!(
-            out,
-            [1, 2, 3].map(|i| start + line.wire_time(i)).to_vec(),
-            "one character time apart"
-        );
+        // A status reply (19 bytes), framed by its length: the first byte
+        // alone, the other 18 with the last.
+        Delivery::default().schedule(&line, start, 19, true, &mut rng, &mut out);
+        assert_eq!(out.len(), 19);
+        assert_eq!(out[0], start + line.wire_time(1));
+        assert!(out[1..].iter().all(|&t| t == start + line.wire_time(19)));
+        // One byte: as it arrives.
+        Delivery::default().schedule(&line, start, 1, true, &mut rng, &mut out);
+        assert_eq!(out, [start + line.wire_time(1)]);
+    }
+
+    #[test]
+    fn a_frame_ended_by_silence_comes_in_pieces_closer_than_t3_5_less_t1_5() {
+        for baud in [9600, 19_200, 115_200] {
+            let line = LineTiming::new_8n1(baud);
+            let start = Instant::now();
+            let mut out = Vec::new();
+            let mut rng = ChaCha8Rng::seed_from_u64(1);
+            Delivery::default().schedule(&line, start, 40, false, &mut rng, &mut out);
+            assert_eq!(out.len(), 40);
+            assert_eq!(out[0], start + line.wire_time(1), "{baud}");
+            assert_eq!(out[39], start + line.wire_time(40), "{baud}");
+            for (i, &at) in out.iter().enumerate() {
+                // Never before the byte was on the wire, in order.
+                assert!(at >= start + line.wire_time(i + 1), "{baud}: byte {i}");
+                assert!(i == 0 || at >= out[i - 1]);
+            }
+            // No pause a master would end the frame at.
+            let most = line.t3_5() - line.t1_5();
+            assert!(out.windows(2).all(|w| w[1] - w[0] < most), "{baud}");
+            // As few pieces as that allows: the first byte, then pieces of
+            // as many characters as fit in it.
+            let per_piece = (1..40)
+                .take_while(|&k| line.wire_time(k) < most)
+                .count()
+                .max(1);
+            let mut pieces = out.clone();
+            pieces.dedup();
+            assert_eq!(pieces.len(), 1 + 39usize.div_ceil(per_piece), "{baud}");
+        }
     }
 
     #[test]
@@ -134,7 +212,7 @@ mod tests {
             jitter_us: 500,
         };
         for _ in 0..200 {
-            usb.schedule(&line, start, 19, &mut rng, &mut out);
+            usb.schedule(&line, start, 19, true, &mut rng, &mut out);
             assert_eq!(out.len(), 19);
             // Chunks of 8, 8 and 3 bytes: bytes of a chunk arrive together.
             assert!(out[..8].iter().all(|&t| t == out[0]));

@@ -30,6 +30,14 @@
 //! runtime, so its timing does not depend on the load of the caller's
 //! runtime; the handle and the thread share the bus behind a mutex that is
 //! never held across an await.
+//!
+//! The drives belong to the simulated plant, not to the port they are
+//! reached through: [`SimDrives`] holds them, and a simulator started on
+//! it ([`Simulator::start_on`]) serves them on a new pty. The daemon keeps
+//! one `SimDrives` per simulated bus for as long as the bus is configured
+//! (`crate::plant`), so a bus reopened (another baud rate, new `[bus.sim]`
+//! settings) finds its drives as real ones would be: turning, in their
+//! mode, at their position.
 
 pub mod bus;
 pub mod cli;
@@ -70,6 +78,39 @@ use bus::Bus;
 use tcp::Disconnects;
 use wire::Wire;
 
+/// The drives (and devices) of one simulated line, apart from any port:
+/// what a simulator started on them serves, kept while its port is closed
+/// and opened again. Cheap to clone: the clones share the drives.
+#[derive(Clone)]
+pub struct SimDrives(Arc<Mutex<Bus>>);
+
+impl SimDrives {
+    /// The drives of `config`, powered on now.
+    pub fn new(config: &SimConfig) -> Self {
+        SimDrives(Arc::new(Mutex::new(Bus::new(config, Instant::now()))))
+    }
+
+    /// Follows `config` (a reload): the drives on the line stay as they
+    /// are, those it adds are wired in fresh from the factory, those it
+    /// no longer names stay wired (not polled, as a real drive taken out
+    /// of the configuration); a simulator serving them sees the change
+    /// from its next request.
+    pub fn follow(&self, config: &SimConfig) {
+        bus::lock(&self.0).follow(config, Instant::now());
+    }
+
+    /// Snapshots of every drive, in configuration order.
+    pub fn views(&self) -> Vec<SimDriveView> {
+        bus::lock(&self.0).views(Instant::now())
+    }
+}
+
+impl std::fmt::Debug for SimDrives {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("SimDrives").finish_non_exhaustive()
+    }
+}
+
 /// Starts simulated buses.
 pub struct Simulator;
 
@@ -80,7 +121,19 @@ impl Simulator {
         config
             .validate()
             .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
-        let bus = Arc::new(Mutex::new(Bus::new(&config, Instant::now())));
+        let drives = SimDrives::new(&config);
+        Self::start_on(config, &drives)
+    }
+
+    /// Starts a simulator serving `drives` (made to follow `config` first)
+    /// on a new pty (or listening on `config.listen`): the line reopened,
+    /// its drives as they were. Returns once masters can open it.
+    pub fn start_on(config: SimConfig, drives: &SimDrives) -> io::Result<SimHandle> {
+        config
+            .validate()
+            .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
+        drives.follow(&config);
+        let bus = Arc::clone(&drives.0);
         let cancel = CancellationToken::new();
         let (ready_tx, ready_rx) = mpsc::sync_channel(1);
         let thread = std::thread::Builder::new().name("sim-bus".into()).spawn({

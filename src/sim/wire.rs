@@ -11,10 +11,12 @@
 //!   the length, else by 3.5 characters of silence; a partial frame followed
 //!   by that silence is dropped.
 //! - The reply starts no earlier than the end of the request's wire time +
-//!   t3.5 + the drive's turnaround (+ injected lateness), and its byte `i` is
-//!   written at `reply_start + wire_time(i + 1)`, computed from that schedule,
-//!   writing together all bytes already due when a wakeup comes late. With a
-//!   USB adapter's [`Delivery`], bytes are handed over in chunks, late; the
+//!   t3.5 + the drive's turnaround (+ injected lateness); its byte `i` is on
+//!   the wire at `reply_start + wire_time(i + 1)` and is handed over as the
+//!   [`Delivery`] says: a UART's, the first and the last byte as they arrive
+//!   (the bytes between with the last, or in pieces a master framing by
+//!   silence still takes for one frame), a USB adapter's in late chunks.
+//!   Bytes already due when a wakeup comes late are written together; the
 //!   wire's own timing (and so the silence the master owes) does not change.
 //! - A request that is not answered ends the activity at the later of its
 //!   own end (from its first byte's arrival) and the previous activity's: a
@@ -44,7 +46,9 @@ use super::delivery::Delivery;
 use super::pty::Pty;
 use super::tcp::{Disconnects, TcpLine};
 use crate::clock::PreciseTimer;
-use crate::modbus::rtu_frame::{FrameLength, MAX_FRAME, MIN_FRAME, request_length};
+use crate::modbus::rtu_frame::{
+    FrameLength, MAX_FRAME, MIN_FRAME, request_length, response_length,
+};
 use crate::modbus::timing::LineTiming;
 
 /// Bytes kept waiting to be framed; beyond this the line is garbage.
@@ -344,8 +348,17 @@ impl Wire {
     /// wire, or why nothing was sent (`give_up`).
     async fn send_paced(&mut self, start: Instant, give_up: GiveUp) -> io::Result<Paced> {
         let len = self.tx.len();
-        self.delivery
-            .schedule(&self.line, start, len, &mut self.rng, &mut self.release);
+        // A master reads a reply it knows the length of to that length; only
+        // one it cannot (noise included) needs its bytes without a silence.
+        let by_length = matches!(response_length(&self.tx), FrameLength::Known(n) if n == len);
+        self.delivery.schedule(
+            &self.line,
+            start,
+            len,
+            by_length,
+            &mut self.rng,
+            &mut self.release,
+        );
         let last = self.release.last().copied().unwrap_or(start);
         let mut sent = 0;
         while sent < len {

@@ -12,6 +12,7 @@ mod alarms;
 mod auth;
 mod buses;
 mod commands;
+mod config_file;
 mod drives;
 mod errors;
 mod freshness;

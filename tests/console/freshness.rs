@@ -53,8 +53,8 @@ async fn open(browser: &Browser, base: &str, hash: &str) -> Page {
 async fn summary(page: &Page, want: &str) {
     page.wait_for(
         &format!(
-            "document.querySelector('.summary:not(.mqtt):not(.opcua)') \
-             && document.querySelector('.summary:not(.mqtt):not(.opcua)').textContent === {}",
+            "document.querySelector('.summary.drives') \
+             && document.querySelector('.summary.drives').textContent === {}",
             serde_json::to_string(want).unwrap()
         ),
         LONG,

@@ -30,6 +30,11 @@ pub const ADMIN: &str = "admin-c40e7b29f8a1d653";
 /// commissioning: admin) if `tokens`, `rest` (whole tables) appended, and
 /// the jog lease of [`JOG_LEASE_MS`].
 pub fn config(tokens: bool, rest: &str) -> String {
+    config_with_jog_lease(tokens, rest, JOG_LEASE_MS)
+}
+
+/// [`config`] with a jog lease of `jog_lease_ms`.
+pub fn config_with_jog_lease(tokens: bool, rest: &str, jog_lease_ms: u64) -> String {
     let builder = ConfigBuilder::four_drives();
     let builder = if tokens {
         builder
@@ -40,7 +45,7 @@ pub fn config(tokens: bool, rest: &str) -> String {
         builder
     };
     builder
-        .section("safety", &format!("jog_lease_ms = {JOG_LEASE_MS}"))
+        .section("safety", &format!("jog_lease_ms = {jog_lease_ms}"))
         .tables(rest)
         .toml()
 }

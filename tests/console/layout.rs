@@ -75,7 +75,7 @@ async fn the_overview_of_a_plant_fits_one_header_row_at_1280_px_and_a_tablet() {
     // The admin sees every page in the navigation, and BRAKE ALL.
     let page = open(&browser, &daemon.url(""), "/", Some(ADMIN)).await;
     page.wait_for(
-        "!document.getElementById('brake-all').hidden && document.querySelectorAll('#nav a').length === 8 \
+        "!document.getElementById('brake-all').hidden && document.querySelectorAll('#nav a').length === 9 \
          && document.querySelectorAll('tr.fault').length === 1 && document.querySelectorAll('tr.offline').length === 1",
         LONG,
         "the admin's header over the plant's overview",

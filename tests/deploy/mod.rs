@@ -9,7 +9,9 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
 mod cli;
+mod config_ranges;
 mod docs;
+mod face_crash;
 mod graceful_stop;
 mod grafana;
 mod logs;
@@ -21,6 +23,7 @@ mod package;
 mod prometheus;
 mod reference;
 mod reload;
+mod reload_in_place;
 mod reload_listeners;
 mod restart;
 mod systemd;

@@ -286,6 +286,39 @@ impl Daemon {
             .collect()
     }
 
+    /// How long after this process's first log line the zero speed of
+    /// `unit` that the start owed was confirmed by the drive (its audit
+    /// line), by the daemon's own timestamps.
+    fn stop_confirmed_after_start(&self, unit: u8) -> Duration {
+        let log = self.log.lock().unwrap();
+        // "2026-11-29T00:04:24.597223Z": the seconds of its day.
+        let at = |v: &Value| -> Option<f64> {
+            let time = v["timestamp"].as_str()?.split('T').nth(1)?;
+            let mut hms = time.trim_end_matches('Z').split(':');
+            let (h, m, s) = (hms.next()?, hms.next()?, hms.next()?);
+            Some(
+                h.parse::<f64>().ok()? * 3600.0
+                    + m.parse::<f64>().ok()? * 60.0
+                    + s.parse::<f64>().ok()?,
+            )
+        };
+        let first = log.iter().find_map(at).expect("a timestamped log line");
+        let stopped = log
+            .iter()
+            .find(|v| {
+                v["message"] == "write confirmed"
+                    && v["face"] == "internal"
+                    && v["unit"] == unit
+                    && v["what"]
+                        .as_str()
+                        .is_some_and(|w| w.starts_with("speed setpoint 0 rpm"))
+            })
+            .and_then(at)
+            .unwrap_or_else(|| panic!("no stop of unit {unit} confirmed: {log:#?}"));
+        // A start just before midnight.
+        Duration::from_secs_f64((stopped - first).rem_euclid(86_400.0))
+    }
+
     fn decision(&self, drive: &str) -> Option<String> {
         self.replayed()
             .iter()
@@ -723,6 +756,103 @@ async fn an_opcua_sessions_lease_stops_at_start_up_with_its_comm_loss_action() {
                 .await,
             1.0
         );
+        d.kill9().await;
+    })
+    .await
+    .expect("test finished in time");
+}
+
+/// A case of a journal's loss: its name, the words its alarm begins with,
+/// and what is done to the file.
+type Damage = (&'static str, &'static str, fn(&Path));
+
+/// A journal that lost what it held (what a power cut leaves on a disk
+/// that did not keep what it was told to, or a hand emptying or deleting
+/// it) says nothing of who owned a turning motor: the next start stops it
+/// with `on_unknown_state`, within 2 s of the start, and an alarm names the
+/// journal's state and what was done. One simulator and state directory
+/// serve the three cases, a motor turning under a 60 s HTTP lease (which
+/// a whole journal would keep) before each `kill -9`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_empty_header_only_or_deleted_journal_stops_a_turning_leased_motor() {
+    tokio::time::timeout(LIMIT, async {
+        let bench = Bench::new().await;
+        let cases: [Damage; 3] = [
+            ("empty", "the safety journal was empty at start", |j| {
+                std::fs::write(j, b"").unwrap()
+            }),
+            (
+                "header-only",
+                "the safety journal held only its header at start",
+                |j| {
+                    let bytes = std::fs::read(j).unwrap();
+                    std::fs::write(j, &bytes[..12]).unwrap();
+                },
+            ),
+            (
+                "deleted",
+                "the safety journal was missing at start",
+                |j| std::fs::remove_file(j).unwrap(),
+            ),
+        ];
+        let mut d = bench.serve().await;
+        for (case, words, damage) in cases {
+            d.turning("conveyor", 150, Some(60_000)).await;
+            d.kill9().await;
+            damage(&bench.journal());
+
+            let started = Instant::now();
+            d = bench.serve().await;
+            assert_eq!(
+                d.decision("conveyor").as_deref(),
+                Some("stop-journal-lost"),
+                "{case}: {:#?}",
+                d.replayed()
+            );
+            d.until_speed("conveyor", "stop", |s| s.abs() <= 2).await;
+            let stopped = started.elapsed();
+            // The stop itself, by the daemon's own clock: from its first
+            // log line to its zero speed confirmed.
+            let confirmed = d.stop_confirmed_after_start(1);
+            eprintln!("{case}: stop confirmed {confirmed:?} after the start; motor at rest {stopped:?} after the spawn");
+            assert!(
+                confirmed < Duration::from_secs(2),
+                "{case}: the stop was confirmed {confirmed:?} after the start"
+            );
+            // The alarm names the journal's state and what was done.
+            let alarms = d.api.get("/api/v1/alarms").await.expect(200);
+            let alarm = alarms["alarms"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|a| a["kind"] == "unknown-state")
+                .cloned()
+                .unwrap_or_else(|| panic!("{case}: no unknown-state alarm: {alarms:#}"));
+            let text = alarm["text"].as_str().unwrap_or_default();
+            assert!(
+                text.starts_with(words)
+                    && text.contains("conveyor was turning at")
+                    && text.ends_with("and was stopped (on_unknown_state = zero-speed)"),
+                "{case}: {alarm:#}"
+            );
+            assert_eq!(alarm["drive"], "conveyor", "{alarm:#}");
+            // Said where an operator looks, and counted.
+            let ready = d.api.get("/readyz").await.body;
+            assert!(
+                ready["safety_journal"].to_string().contains(words),
+                "{case}: {ready:#}"
+            );
+            assert_eq!(
+                d.metric("drivegate_restart_decisions_total{decision=\"stop-journal-lost\"}")
+                    .await,
+                1.0
+            );
+            assert_eq!(
+                d.metric("drivegate_safety_journal_events_total{event=\"lost\"}")
+                    .await,
+                1.0
+            );
+        }
         d.kill9().await;
     })
     .await

@@ -12,5 +12,7 @@ mod buses;
 mod clients;
 mod comm_loss;
 mod connections;
+mod fair_shares;
 mod functions;
+mod late;
 mod networks;

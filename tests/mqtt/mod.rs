@@ -16,6 +16,8 @@ mod commands;
 mod convergence;
 mod death;
 mod json;
+mod live;
+mod oversized;
 mod python;
 mod reload;
 mod safety;

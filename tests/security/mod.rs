@@ -13,6 +13,7 @@ mod https;
 mod limits;
 mod modbus_tcp;
 mod modbus_tls;
+mod opcua_budget;
 mod origin;
 mod routes;
 mod state_files;

@@ -78,6 +78,8 @@ pub struct TestDaemon {
     faces: Option<Faces>,
     /// The configuration file a reload reads ([`TestDaemon::reloadable`]).
     file: Option<tempfile::NamedTempFile>,
+    /// Or the test's own ([`TestDaemon::reloadable_at`]).
+    file_at: Option<std::path::PathBuf>,
 }
 
 impl TestDaemon {
@@ -93,7 +95,12 @@ impl TestDaemon {
 
     /// Starts the daemon without waiting for the drives.
     pub async fn start_no_wait(toml: &str) -> TestDaemon {
-        let config = Config::parse(toml, "test config").expect("test config");
+        Self::start_config(Config::parse(toml, "test config").expect("test config")).await
+    }
+
+    /// Starts the daemon with `config` as it is, checked or not (a test of
+    /// what the checks would have refused), without waiting for the drives.
+    pub async fn start_config(config: Config) -> TestDaemon {
         let plant = Arc::new(Plant::start(&config).expect("plant starts"));
         let metrics = Metrics::new(plant.clone());
         let shutdown = CancellationToken::new();
@@ -110,6 +117,7 @@ impl TestDaemon {
             shutdown,
             faces: Some(faces),
             file: None,
+            file_at: None,
         }
     }
 
@@ -123,21 +131,40 @@ impl TestDaemon {
             .expect("a configuration file");
         std::fs::write(file.path(), toml).expect("the configuration written");
         let mut daemon = Self::start(toml).await;
-        drivegate::daemon::reloader::Reloader::start(
-            file.path(),
-            Arc::new(daemon.config.clone()),
-            daemon.plant.clone(),
-            daemon.control().clone(),
-            daemon.faces.as_ref().expect("running").running(),
-            daemon.shutdown.clone(),
-        );
+        daemon.reload_from(file.path());
         daemon.file = Some(file);
         daemon
     }
 
+    /// As [`reloadable`](Self::reloadable), from the file at `path`, which
+    /// the test makes in a directory of its own (a change through the API
+    /// keeps the previous versions beside it).
+    pub async fn reloadable_at(path: &std::path::Path, toml: &str) -> TestDaemon {
+        std::fs::write(path, toml).expect("the configuration written");
+        let mut daemon = Self::start(toml).await;
+        daemon.reload_from(path);
+        daemon.file_at = Some(path.to_path_buf());
+        daemon
+    }
+
+    fn reload_from(&self, path: &std::path::Path) {
+        drivegate::daemon::reloader::Reloader::start(
+            path,
+            Arc::new(self.config.clone()),
+            self.plant.clone(),
+            self.control().clone(),
+            self.faces.as_ref().expect("running").running(),
+            self.shutdown.clone(),
+        );
+    }
+
     /// The configuration file of a [`reloadable`](Self::reloadable) daemon.
     pub fn config_path(&self) -> &std::path::Path {
-        self.file.as_ref().expect("a reloadable daemon").path()
+        match (&self.file, &self.file_at) {
+            (Some(f), _) => f.path(),
+            (None, Some(p)) => p,
+            (None, None) => panic!("not a reloadable daemon"),
+        }
     }
 
     /// Writes `toml` into the configuration file (not reloaded yet).

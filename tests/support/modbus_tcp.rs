@@ -331,3 +331,74 @@ pub fn writes_handled(bus: &drivegate::bus::BusHandle) -> u64 {
         .map(|(_, n)| n)
         .sum()
 }
+
+/// A SCADA that models each drive as a device with a connection of its
+/// own: the pymodbus client of `tests/python/scada_client.py` in a process
+/// of its own, every connection from one loopback address.
+pub(crate) struct Scada {
+    _child: tokio::process::Child,
+    stdin: tokio::process::ChildStdin,
+    lines: tokio::io::Lines<tokio::io::BufReader<tokio::process::ChildStdout>>,
+}
+
+impl Scada {
+    /// Opens `units` connections to `addr` from `source` (units 1 to
+    /// `units`); what the client said of them.
+    pub(crate) async fn connect(
+        addr: SocketAddr,
+        source: &str,
+        units: u8,
+    ) -> (Scada, serde_json::Value) {
+        use tokio::io::AsyncBufReadExt;
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/scada_client.py");
+        let mut child = tokio::process::Command::new("python3")
+            .arg(script)
+            .arg(addr.ip().to_string())
+            .arg(addr.port().to_string())
+            .arg(source)
+            .arg(units.to_string())
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .kill_on_drop(true)
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!(
+                    "cannot run python3 ({e}): {}",
+                    crate::support::tools::how_to_get("pymodbus")
+                )
+            });
+        let stdin = child.stdin.take().expect("stdin");
+        let stdout = child.stdout.take().expect("stdout");
+        let mut scada = Scada {
+            _child: child,
+            stdin,
+            lines: tokio::io::BufReader::new(stdout).lines(),
+        };
+        let hello = scada.answer().await;
+        (scada, hello)
+    }
+
+    async fn answer(&mut self) -> serde_json::Value {
+        let line = tokio::time::timeout(Duration::from_secs(30), self.lines.next_line())
+            .await
+            .expect("the SCADA client answers in time")
+            .expect("the SCADA client's output")
+            .unwrap_or_else(|| {
+                panic!(
+                    "the SCADA client ended without a word (pymodbus missing? {})",
+                    crate::support::tools::how_to_get("pymodbus")
+                )
+            });
+        serde_json::from_str(&line).unwrap_or_else(|e| panic!("not JSON ({e}): {line:?}"))
+    }
+
+    /// Every connection reads its drive's status block at once; the
+    /// client's account (`answered`, `failed`, `slowest_ms`).
+    pub(crate) async fn round(&mut self) -> serde_json::Value {
+        self.stdin
+            .write_all(b"round\n")
+            .await
+            .expect("the SCADA client reads its commands");
+        self.answer().await
+    }
+}

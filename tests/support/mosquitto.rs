@@ -46,7 +46,21 @@ impl Mosquitto {
         Self::with(None, Some((users, acl)))
     }
 
+    /// [`Mosquitto::start_with_users`], with `conf`'s lines added to its
+    /// configuration (a block of `docs/security.md`).
+    pub fn start_with_users_and(users: &[(&str, &str)], acl: &str, conf: &str) -> Mosquitto {
+        Self::configured(None, Some((users, acl)), conf)
+    }
+
     fn with(pki: Option<&Pki>, auth: Option<(&[(&str, &str)], &str)>) -> Mosquitto {
+        Self::configured(pki, auth, "")
+    }
+
+    fn configured(
+        pki: Option<&Pki>,
+        auth: Option<(&[(&str, &str)], &str)>,
+        extra: &str,
+    ) -> Mosquitto {
         let dir = tempfile::tempdir().unwrap();
         let port = super::ports::free_port();
         let tls_port = pki.map(|_| super::ports::free_port());
@@ -93,6 +107,8 @@ impl Mosquitto {
                 ));
             }
         }
+        conf.push_str(extra);
+        conf.push('\n');
         if let (Some(pki), Some(tls_port)) = (pki, tls_port) {
             conf.push_str(&format!(
                 "listener {tls_port} 127.0.0.1\ncafile {}\ncertfile {}\nkeyfile {}\n",
@@ -304,6 +320,25 @@ impl Sub {
 /// "c"]` pairs for `-D publish`); waits until it is delivered to the
 /// broker.
 pub async fn publish(port: u16, topic: &str, payload: &str, properties: &[(&str, &str)]) {
+    mosquitto_pub(port, topic, payload.as_bytes(), properties, false).await;
+}
+
+/// [`publish`] with the retain flag: the broker keeps it and hands it to
+/// every later subscriber (with its properties).
+pub async fn publish_retained(port: u16, topic: &str, payload: &[u8], properties: &[(&str, &str)]) {
+    mosquitto_pub(port, topic, payload, properties, true).await;
+}
+
+async fn mosquitto_pub(
+    port: u16,
+    topic: &str,
+    payload: &[u8],
+    properties: &[(&str, &str)],
+    retain: bool,
+) {
+    // Any bytes (a Sparkplug payload), from a file.
+    let file = tempfile::NamedTempFile::new().unwrap();
+    std::fs::write(file.path(), payload).unwrap();
     let mut cmd = tokio::process::Command::new("mosquitto_pub");
     cmd.args([
         "-h",
@@ -315,7 +350,12 @@ pub async fn publish(port: u16, topic: &str, payload: &str, properties: &[(&str,
         "-q",
         "1",
     ])
-    .args(["-t", topic, "-m", payload]);
+    .args(["-t", topic])
+    .arg("-f")
+    .arg(file.path());
+    if retain {
+        cmd.arg("-r");
+    }
     for (name, value) in properties {
         cmd.args(["-D", "publish", name, value]);
     }

@@ -15,8 +15,14 @@ use super::certs::openssl;
 use super::tools;
 
 /// A self-signed application certificate `name.der` / `name-key.pem` in
-/// `dir`, for application URI `uri`.
+/// `dir`, for application URI `uri`, valid 30 days.
 pub fn application_cert(dir: &Path, name: &str, uri: &str) {
+    application_cert_for(dir, name, uri, 30);
+}
+
+/// The same, valid `days` days.
+pub fn application_cert_for(dir: &Path, name: &str, uri: &str, days: u32) {
+    let days = days.to_string();
     openssl(
         dir,
         &[
@@ -30,7 +36,7 @@ pub fn application_cert(dir: &Path, name: &str, uri: &str) {
             "-out",
             &format!("{name}.pem"),
             "-days",
-            "30",
+            &days,
             "-subj",
             &format!("/CN={name}"),
             "-addext",

@@ -96,6 +96,7 @@ export async function activeAlarmsOf(drive) {
 
 /** What an alarm is about, as its list and banner name it. */
 export function subjectOf(a) {
+  if (a.kind === 'certificate-expiring') return 'gateway';
   return a.drive || `bus ${a.bus}`;
 }
 
@@ -112,5 +113,6 @@ export function kindWords(kind) {
   return {
     fault: 'fault', stall: 'stall', offline: 'offline', 'never-answered': 'never answered', 'bus-down': 'bus down',
     'comm-loss': 'communication lost', 'stop-failed': 'stop not confirmed', 'refused-write': 'write refused',
+    'certificate-expiring': 'certificate expiring',
   }[kind] || String(kind || '').replaceAll('-', ' ');
 }

@@ -38,7 +38,15 @@ export function setToken(value) {
 
 /** Sends one request; resolves with the JSON body, rejects with ApiError. */
 export async function api(method, path, body) {
-  const headers = { Accept: 'application/json' };
+  return (await request(method, path, { body })).json;
+}
+
+/**
+ * Sends one request with extra headers (`If-Match`); resolves with
+ * {json, etag}, rejects with ApiError.
+ */
+export async function request(method, path, { body, headers: extra = {} } = {}) {
+  const headers = { Accept: 'application/json', ...extra };
   const t = token();
   if (t) headers.Authorization = `Bearer ${t}`;
   const init = { method, headers, cache: 'no-store' };
@@ -59,7 +67,8 @@ export async function api(method, path, body) {
   let json = null;
   try { json = text ? JSON.parse(text) : null; } catch { json = null; }
   if (!res.ok) throw refusal(res, json, text);
-  return json;
+  const etag = (res.headers.get('ETag') || '').replace(/^W\//, '').replaceAll('"', '');
+  return { json, etag };
 }
 
 /** The ApiError of a refused answer: its problem+json, or its words. */
@@ -115,6 +124,7 @@ export const busPath = (name, rest = '') => `/api/v1/buses/${encodeURIComponent(
 export const get = (path) => api('GET', path);
 export const post = (path, body) => api('POST', path, body);
 export const put = (path, body) => api('PUT', path, body);
+export const del = (path) => api('DELETE', path);
 
 /** `/api/v1/drives/<name>` with the name escaped. */
 export const drivePath = (name, rest = '') => `/api/v1/drives/${encodeURIComponent(name)}${rest}`;

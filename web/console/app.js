@@ -3,8 +3,9 @@
 // the navigation between pages, the emergency brake on every page and the
 // keyboard shortcuts. A page is one module in pages/ with
 //   export const page = { id, title, nav, role, match(path), mount(main, params, ctx) }
-// where mount returns a function that unmounts it. Adding a page is adding
-// a file and an entry in PAGES.
+// where mount returns a function that unmounts it (a page without a `nav`
+// of its own may name the entry it is under: `navAs`). Adding a page is
+// adding a file and an entry in PAGES.
 
 import { ApiError, drivePath, get, post, setToken, token } from './api.js';
 import { Stream } from './stream.js';
@@ -20,8 +21,11 @@ import { page as events } from './pages/events.js';
 import { page as alarms } from './pages/alarms.js';
 import { page as scope } from './pages/scope.js';
 import { page as monitor } from './pages/monitor.js';
+import { page as config } from './pages/config.js';
+import { page as tokens } from './pages/tokens.js';
+import { page as certificates } from './pages/certificates.js';
 
-const PAGES = [overview, alarms, drive, settings, commissioning, replace, events, scope, monitor];
+const PAGES = [overview, alarms, drive, settings, commissioning, replace, events, scope, monitor, config, certificates, tokens];
 
 const stream = new Stream();
 const store = new Store(stream);
@@ -55,16 +59,17 @@ function route() {
     unmount = found.mount(main, params, ctx) || null;
   }
   document.title = `${found.title} — drivegate`;
+  const current = found.navAs || found.id;
   for (const a of document.querySelectorAll('#nav a')) {
-    a.toggleAttribute('aria-current', a.dataset.page === found.id);
-    if (a.dataset.page === found.id) a.setAttribute('aria-current', 'page');
+    a.toggleAttribute('aria-current', a.dataset.page === current);
+    if (a.dataset.page === current) a.setAttribute('aria-current', 'page');
   }
 }
 
 function buildNav() {
   const nav = document.getElementById('nav');
   nav.replaceChildren(...PAGES.filter((p) => p.nav && (!p.role || store.can(p.role)))
-    .map((p) => h('a', { href: `#${p.nav.path}`, dataset: { page: p.id }, accesskey: p.nav.key }, p.nav.label)));
+    .map((p) => h('a', { href: `#${p.nav.path}`, dataset: { page: p.id }, accesskey: p.nav.key, title: p.nav.tip || (p.nav.label === p.title ? null : p.title) }, p.nav.label)));
 }
 
 /**
@@ -221,7 +226,7 @@ function shortcuts(e) {
     return;
   }
   if (document.querySelector('dialog[open]')) return;
-  const keys = { o: '/', a: '/alarms', e: '/events', c: '/commissioning', r: '/replace', s: '/settings', p: '/scope', m: '/monitor' };
+  const keys = { o: '/', a: '/alarms', e: '/events', c: '/commissioning', r: '/replace', s: '/settings', p: '/scope', m: '/monitor', g: '/config' };
   if (keys[e.key] && !e.shiftKey) {
     e.preventDefault();
     navigate(keys[e.key]);

@@ -11,12 +11,14 @@ use crate::modbus::rtu_frame::{self, FrameLength};
 impl RtuMaster {
     /// Waits until the line has been silent for `gap` (less `early`),
     /// discarding (and counting) whatever arrives meanwhile; every byte
-    /// restarts the silence. The last `spin` of the wait is spun.
+    /// restarts the silence. `precise`: never before that moment (the frame
+    /// goes out then); else about then, as the timer wakes (the job is
+    /// picked then, just before the silence ends).
     pub(super) async fn wait_for_silence(
         &mut self,
         gap: Duration,
         early: Duration,
-        spin: Duration,
+        precise: bool,
     ) -> io::Result<()> {
         // A line that never goes quiet (a babbling device) must not stall the
         // bus forever: after this long we send anyway, and the reply check
@@ -27,17 +29,19 @@ impl RtuMaster {
                 .settings
                 .response_timeout
                 .max(Duration::from_millis(50));
+        let mut woke = false;
         loop {
             let deadline = self.quiet_since + gap.saturating_sub(early);
             let now = Instant::now();
-            if now >= deadline {
+            if now >= deadline || woke {
                 // Bytes that arrived but were not read yet (while we were
-                // busy elsewhere, or spinning) are stray too, and the
-                // silence starts again after them.
+                // busy elsewhere, or as the timer woke us) are stray too,
+                // and the silence starts again after them.
                 if self.drain_input()? == 0 || now >= give_up {
                     break;
                 }
                 self.quiet_since = self.quiet_since.max(Instant::now());
+                woke = false;
                 continue;
             }
             tokio::select! {
@@ -55,9 +59,16 @@ impl RtuMaster {
                         break;
                     }
                 }
-                // Spinning through the last stretch (the job is picked by
-                // then): no wake-up can come late.
-                slept = self.timer.sleep_until_spinning(deadline, spin) => slept?,
+                slept = async {
+                    if precise {
+                        self.timer.sleep_until(deadline).await
+                    } else {
+                        self.timer.sleep_until_near(deadline).await
+                    }
+                } => {
+                    slept?;
+                    woke = true;
+                }
             }
         }
         Ok(())
@@ -106,7 +117,9 @@ impl RtuMaster {
                 }
             }
         }
-        self.port.flush().await?;
+        // No flush: nothing is buffered above the port, and a serial port's
+        // flush is tcdrain(3), which would hold this thread until the UART
+        // has sent the frame (and a tick of the kernel's clock after it).
         if rs485.direction == Direction::Rts {
             // The bus thread is ours: blocking until the UART is empty is the
             // exact moment to release the line.
@@ -242,7 +255,7 @@ impl RtuMaster {
         tokio::select! {
             biased;
             read = self.port.read(&mut self.buf[len..]) => Ok(Some(self.got(read)?)),
-            slept = self.timer.sleep_until(last_byte + t35) => slept.map(|()| None),
+            slept = self.timer.sleep_until_relaxed(last_byte + t35) => slept.map(|()| None),
         }
     }
 

@@ -56,22 +56,26 @@ fn comments_and_moved_lines_change_nothing() {
 }
 
 #[test]
-fn a_drive_added_reopens_only_its_bus() {
+fn a_drive_added_changes_only_its_bus_in_place() {
     let c = changed(
         "name = \"press\"\n",
         "name = \"press\"\n[[bus.drive]]\nunit = 2\nname = \"saw\"\n",
     );
     assert_eq!(c.drives_added, vec!["saw"]);
     assert!(c.drives_removed.is_empty() && c.drives_changed.is_empty());
+    assert!(c.buses_reopened.is_empty(), "{c:?}");
     assert_eq!(
-        c.buses_reopened,
+        c.buses_retuned,
         vec![("line2".to_string(), vec!["drives".to_string()])]
     );
     assert!(c.buses_added.is_empty() && c.buses_removed.is_empty());
     assert!(c.faces_restarted.is_empty() && c.sections.is_empty());
     assert_eq!(
         c.lines(),
-        vec!["drives added: saw", "bus line2 reopened (drives changed)"]
+        vec![
+            "drives added: saw",
+            "bus line2 changed in place (drives), its port kept open"
+        ]
     );
 }
 
@@ -79,7 +83,88 @@ fn a_drive_added_reopens_only_its_bus() {
 fn a_drive_removed() {
     let c = changed("[[bus.drive]]\nunit = 2\nname = \"mixer\"\n", "");
     assert_eq!(c.drives_removed, vec!["mixer"]);
-    assert_eq!(c.buses_reopened[0].0, "line1");
+    assert_eq!(c.buses_retuned[0].0, "line1");
+    assert!(c.buses_reopened.is_empty());
+}
+
+#[test]
+fn a_drive_renamed_is_the_same_drive_under_a_new_name() {
+    let c = changed("unit = 2\nname = \"mixer\"", "unit = 2\nname = \"blender\"");
+    assert_eq!(
+        c.drives_renamed,
+        vec![("mixer".to_string(), "blender".to_string())]
+    );
+    assert!(c.drives_added.is_empty() && c.drives_removed.is_empty());
+    assert!(c.drives_changed.is_empty(), "{c:?}");
+    assert_eq!(
+        c.lines(),
+        vec![
+            "drives renamed: mixer to blender",
+            "bus line1 changed in place (drives), its port kept open"
+        ]
+    );
+    // Renamed and given another gear ratio: both said.
+    let c = changed(
+        "unit = 2\nname = \"mixer\"",
+        "unit = 2\nname = \"blender\"\ngear_ratio = 5.0",
+    );
+    assert_eq!(c.drives_renamed.len(), 1);
+    assert_eq!(c.drives_changed, vec!["blender"]);
+    // Two drives swapping names: each motor keeps its unit, renamed.
+    let swapped = BASE
+        .replace("name = \"conveyor\"", "name = \"x\"")
+        .replace("name = \"mixer\"", "name = \"conveyor\"")
+        .replace("name = \"x\"", "name = \"mixer\"");
+    let c = diff(&parse(BASE), &parse(&swapped));
+    assert_eq!(c.drives_renamed.len(), 2, "{c:?}");
+    assert!(c.drives_added.is_empty() && c.drives_removed.is_empty());
+}
+
+#[test]
+fn which_changes_of_a_bus_reopen_it_and_which_apply_in_place() {
+    let bus = |port: &str, keys: &str, drive: &str| {
+        let text = format!(
+            "[[bus]]\nname = \"line1\"\nport = \"{port}\"\n{keys}\n[[bus.drive]]\nunit = 1\nname = \"{drive}\"\n"
+        );
+        parse(&text).buses.remove(0)
+    };
+    let base = bus("/dev/ttyUSB0", "", "conveyor");
+    let of = |keys: &str| bus_change(&base, &bus("/dev/ttyUSB0", keys, "conveyor"));
+    assert_eq!(of(""), BusChange::default());
+    for (keys, why) in [
+        ("poll_interval_ms = 20", "poll rates"),
+        ("response_timeout_ms = 200", "timing"),
+        ("retries = 3", "timing"),
+        ("guard_ms = 40", "timing"),
+        ("broadcast_delay_ms = 40", "timing"),
+        ("interframe = \"auto\"", "interframe"),
+        ("reply_timeout_floor_ms = 9", "reply timeout floor"),
+        ("offline_after = 5", "offline detection"),
+        ("queue_capacity = 16", "queue"),
+        ("poll_share = 2", "queue"),
+    ] {
+        let c = of(keys);
+        assert!(c.reopen.is_empty(), "{keys}: {c:?}");
+        assert_eq!(c.in_place, vec![why.to_string()], "{keys}");
+    }
+    let c = bus_change(&base, &bus("/dev/ttyUSB0", "", "belt"));
+    assert_eq!(
+        (c.reopen.len(), c.in_place),
+        (0, vec!["drives".to_string()])
+    );
+    for (keys, why) in [
+        ("baud = 57600", "baud"),
+        ("[bus.rs485]\ndelay_after_send_us = 40", "rs485"),
+    ] {
+        assert_eq!(of(keys).reopen, vec![why.to_string()], "{keys}");
+    }
+    for port in ["/dev/ttyUSB1", "tcp://10.0.0.7:4001"] {
+        let c = bus_change(&base, &bus(port, "", "conveyor"));
+        assert_eq!(c.reopen, vec!["port".to_string()], "{port}");
+    }
+    let sim = bus("sim", "", "conveyor");
+    let c = bus_change(&sim, &bus("sim", "[bus.sim]\nseed = 3", "conveyor"));
+    assert_eq!(c.reopen, vec!["sim".to_string()]);
 }
 
 #[test]
@@ -107,8 +192,8 @@ fn a_drive_moved_to_another_bus_is_removed_and_added() {
     assert_eq!(c.drives_removed, vec!["mixer"]);
     assert_eq!(c2.drives_removed, vec!["mixer"]);
     assert_eq!(c2.drives_added, vec!["mixer"]);
-    let reopened: Vec<&str> = c2.buses_reopened.iter().map(|(b, _)| b.as_str()).collect();
-    assert_eq!(reopened, vec!["line1", "line2"]);
+    let retuned: Vec<&str> = c2.buses_retuned.iter().map(|(b, _)| b.as_str()).collect();
+    assert_eq!(retuned, vec!["line1", "line2"]);
 }
 
 #[test]
@@ -122,7 +207,7 @@ fn a_drive_poll_rate_is_a_change_of_the_drive() {
 }
 
 #[test]
-fn a_bus_port_or_baud_reopens_that_bus_only() {
+fn a_bus_port_or_baud_reopens_that_bus_only_with_what_else_changed() {
     let c = changed(
         "name = \"line2\"\nport = \"sim\"",
         "name = \"line2\"\nport = \"sim\"\nbaud = 57600\npoll_interval_ms = 20",
@@ -138,24 +223,25 @@ fn a_bus_port_or_baud_reopens_that_bus_only() {
 }
 
 #[test]
-fn the_silence_before_requests_reopens_that_bus() {
+fn the_silence_before_requests_changes_that_bus_in_place() {
     let c = changed(
         "name = \"line2\"\nport = \"sim\"",
         "name = \"line2\"\nport = \"sim\"\ninterframe = \"auto\"",
     );
     assert_eq!(
-        c.buses_reopened,
+        c.buses_retuned,
         vec![("line2".to_string(), vec!["interframe".to_string()])]
     );
+    assert!(c.buses_reopened.is_empty());
     let c = diff(
         &parse(&BASE.replace("port = \"sim\"", "port = \"sim\"\ninterframe = 400")),
         &parse(&BASE.replace("port = \"sim\"", "port = \"sim\"\ninterframe = 500")),
     );
-    assert_eq!(c.buses_reopened.len(), 2, "{c:?}");
+    assert_eq!(c.buses_retuned.len(), 2, "{c:?}");
     // The default, written or not, is no change.
     assert!(
         changed("port = \"sim\"", "port = \"sim\"\ninterframe = \"spec\"")
-            .buses_reopened
+            .buses_retuned
             .is_empty()
     );
 }
@@ -515,7 +601,7 @@ fn tls_and_mqtt_changes_restart_only_their_face() {
     assert_eq!(diff(&new, &old).faces_restarted, vec![Face::ModbusTls]);
     // The plain listener's limits are the secure one's too.
     let mut limits = new.clone();
-    limits.modbus_tcp.max_connections += 1;
+    limits.modbus_tcp.max_connections = Some(crate::config::modbus_tcp::ConnectionCount(100));
     assert_eq!(
         diff(&new, &limits).faces_restarted,
         vec![Face::ModbusTcp, Face::ModbusTls]

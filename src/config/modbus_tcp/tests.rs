@@ -66,7 +66,12 @@ fn the_reference_config_documents_working_examples() {
 #[test]
 fn defaults() {
     let c = ModbusTcpConfig::default();
-    assert_eq!(c.max_connections, 64);
+    assert_eq!(c.max_connections, None);
+    // Twice the drives plus 32, at least 64.
+    assert_eq!(c.connection_limit(0), 64);
+    assert_eq!(c.connection_limit(16), 64);
+    assert_eq!(c.connection_limit(32), 96);
+    assert_eq!(c.connection_limit(247), 526);
     assert_eq!(c.idle_timeout(), Duration::from_secs(60));
     assert!(!c.read_only && !c.broadcast_reply);
     assert!(c.unit_map.is_empty() && c.polled_copy.is_empty() && c.clients.is_empty());
@@ -79,16 +84,24 @@ fn defaults() {
         ["127.0.0.0/8", "::1/128"],
         "loopback only"
     );
-    assert_eq!(c.per_address_limit(), 16, "a quarter of max_connections");
+    assert_eq!(c.per_address_limit(), None, "no hard cap: fair shares");
     assert!(c.raw_functions.is_empty());
 }
 
 #[test]
 fn the_per_address_cap_is_within_max_connections() {
     let c = parse("max_connections = 6").unwrap();
-    assert_eq!(c.modbus_tcp.per_address_limit(), 1);
+    assert_eq!(c.modbus_tcp.per_address_limit(), None);
+    assert_eq!(
+        c.modbus_tcp.connection_limit(100),
+        6,
+        "as set, whatever the drives"
+    );
     let c = parse("max_connections = 2\nmax_connections_per_address = 2").unwrap();
-    assert_eq!(c.modbus_tcp.per_address_limit(), 2);
+    assert_eq!(c.modbus_tcp.per_address_limit(), Some(2));
+    // Without max_connections, a cap within the range is taken as it is.
+    let c = parse("max_connections_per_address = 300").unwrap();
+    assert_eq!(c.modbus_tcp.per_address_limit(), Some(300));
     let e = parse("max_connections = 8\nmax_connections_per_address = 9").unwrap_err();
     assert!(
         e.starts_with("t.toml:3:31:")

@@ -6,7 +6,8 @@
 //! - a *condition* (a fault, a stall, an offline drive, a drive that never
 //!   answered, a bus down, a stop not confirmed) is active while it lasts: raising it again while it is
 //!   active changes nothing; it clears when the condition ends;
-//! - an *event* (a communication-loss stop, a refused safety write) is
+//! - an *event* (a communication-loss stop, a refused safety write, a
+//!   drive found moving at start when the safety journal was lost) is
 //!   over when it happens: it is raised cleared, and the same event again
 //!   while its alarm waits for an acknowledgement counts up on that alarm
 //!   instead of adding one (a PLC retrying a refused write every 100 ms
@@ -48,6 +49,13 @@ listed_enum! {
         /// A write refused by a safety rule (a save or calibration while
         /// the motor turns, an address broadcast without confirmation).
         RefusedWrite,
+        /// At start, the safety journal could not say who owned a drive
+        /// found moving (it was unreadable, empty, only its header, or
+        /// missing): `[safety] on_unknown_state` was applied to it.
+        UnknownState,
+        /// A certificate the daemon serves or trusts expires within 30
+        /// days, or has expired (its `bus` is `certificate <thumbprint>`).
+        CertificateExpiring,
     }
 }
 
@@ -63,12 +71,17 @@ impl AlarmKind {
             AlarmKind::CommLoss => "comm-loss",
             AlarmKind::StopFailed => "stop-failed",
             AlarmKind::RefusedWrite => "refused-write",
+            AlarmKind::UnknownState => "unknown-state",
+            AlarmKind::CertificateExpiring => "certificate-expiring",
         }
     }
 
     /// True for a condition (active while it lasts), false for an event.
     pub fn is_condition(self) -> bool {
-        !matches!(self, AlarmKind::CommLoss | AlarmKind::RefusedWrite)
+        !matches!(
+            self,
+            AlarmKind::CommLoss | AlarmKind::RefusedWrite | AlarmKind::UnknownState
+        )
     }
 }
 
@@ -374,6 +387,22 @@ impl AlarmBook {
         }
     }
 
+    /// Drive `old` of `bus` is named `new` now (a reload renamed it: the
+    /// same motor): its alarms, open or not, are its under the new name;
+    /// their words stay what was said at the time. The renamed alarms, for
+    /// the file.
+    pub fn rename(&mut self, bus: &str, old: &str, new: &str) -> Vec<Alarm> {
+        let mut renamed = Vec::new();
+        for a in self.alarms.values_mut() {
+            if a.bus == bus && a.drive.as_deref() == Some(old) {
+                a.drive = Some(new.to_string());
+                renamed.push(a.clone());
+            }
+        }
+        self.reindex();
+        renamed
+    }
+
     /// Every alarm, oldest first.
     pub fn alarms(&self) -> impl DoubleEndedIterator<Item = &Alarm> {
         self.alarms.values()
@@ -569,5 +598,20 @@ mod tests {
         let (small, changes) = AlarmBook::restore(1, restored.alarms().cloned());
         assert_eq!(small.len(), 1);
         assert_eq!(changes.len(), 2);
+    }
+
+    #[test]
+    fn a_renamed_drive_keeps_its_alarms_under_its_new_name() {
+        let mut book = AlarmBook::new(10);
+        book.raise(raise(AlarmKind::Offline, "conveyor", 0), 1);
+        book.raise(raise(AlarmKind::Offline, "lift", 0), 1);
+        let renamed = book.rename("line1", "conveyor", "belt");
+        assert_eq!(renamed.len(), 1);
+        assert_eq!(renamed[0].drive.as_deref(), Some("belt"));
+        assert!(book.has_open_for("line1", "belt"));
+        assert!(!book.has_open_for("line1", "conveyor"));
+        // Its condition ends under the new name.
+        assert_eq!(book.clear(&key(AlarmKind::Offline, "belt", 0), 2).len(), 1);
+        assert!(book.has_open_for("line1", "lift"));
     }
 }

@@ -44,6 +44,7 @@ const READ_PER_ALARM: u64 = 4 * 1024;
 pub const ALARM_FILE: Kind = Kind {
     magic: b"DRVGALRM",
     version: 1,
+    oldest: 1,
     what: "alarm file",
 };
 

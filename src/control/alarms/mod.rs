@@ -201,6 +201,27 @@ impl Alarms {
         Ok(alarm)
     }
 
+    /// Drive `old` of `bus` is named `new` now (the same motor, renamed by
+    /// a reload): its alarms follow it, in the book and in the file.
+    pub(crate) fn rename(&self, bus: &str, old: &str, new: &str) {
+        let mut book = self.lock();
+        let records: Vec<AlarmRecord> = book
+            .rename(bus, old, new)
+            .into_iter()
+            .map(AlarmRecord::Alarm)
+            .collect();
+        if records.is_empty() {
+            return;
+        }
+        let writer = self.writer.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(tx) = writer.as_ref() {
+            let _ = tx.send(Batch {
+                records,
+                done: None,
+            });
+        }
+    }
+
     /// Every alarm, oldest first.
     pub fn list(&self) -> Vec<Alarm> {
         self.lock().alarms().cloned().collect()
@@ -264,10 +285,31 @@ impl Alarms {
                         .drive
                         .as_ref()
                         .is_some_and(|name| !directory.drives().any(|d| &d.name == name));
-                    bus.is_none() || drive_gone || a.kind == AlarmKind::StopFailed
+                    // A certificate's alarm is the certificate check's to
+                    // clear (it names no bus).
+                    let gone = bus.is_none() && a.kind != AlarmKind::CertificateExpiring;
+                    gone || drive_gone || a.kind == AlarmKind::StopFailed
                 },
                 now,
             )
+        });
+    }
+
+    /// Raises an alarm for each certificate in `expiring` (once while it
+    /// lasts) and clears those of certificates that no longer expire soon
+    /// (renewed, replaced, removed).
+    pub(crate) fn certificates_expiring(&self, expiring: Vec<Raise>) {
+        let keep: std::collections::HashSet<AlarmKey> =
+            expiring.iter().map(|r| r.key.clone()).collect();
+        self.apply(|book, now| {
+            let mut changes = book.clear_where(
+                |a| a.kind == AlarmKind::CertificateExpiring && !keep.contains(&a.key()),
+                now,
+            );
+            for raise in expiring {
+                changes.extend(book.raise(raise, now));
+            }
+            changes
         });
     }
 
@@ -590,6 +632,31 @@ impl Alarms {
         }
     }
 
+    /// Raises the alarm of a drive found moving at start while the safety
+    /// journal could not say who owned it: `text` names the journal's state
+    /// and what was done.
+    pub(crate) fn unknown_state(&self, plant: &Plant, drive: &str, text: String) {
+        let now = plant.now();
+        let Some(bus) = now
+            .drives()
+            .find(|d| d.name == drive)
+            .and_then(|d| now.handle_of(d))
+            .map(|h| h.name().to_string())
+        else {
+            return;
+        };
+        self.apply(|book, now| {
+            book.raise(
+                Raise {
+                    key: drive_key(AlarmKind::UnknownState, &bus, drive, 0),
+                    text,
+                    help: UNKNOWN_STATE_HELP.to_string(),
+                },
+                now,
+            )
+        });
+    }
+
     /// Raises an alarm for a write refused by a safety rule (a motor that
     /// turns, a shared bus address).
     fn refused_write(&self, plant: &Plant, w: &WriteEvent) {
@@ -694,6 +761,15 @@ const MOVING_HELP: &str = "A write that the manual allows only with the motor st
      new address (1.2) or a calibration (CONFIG 0x2 and 0x3, 1.3). Stop the motor, check that it \
      reads 0 rpm, and send it again; a client that sends it while the line runs needs its \
      sequence fixed.";
+
+const UNKNOWN_STATE_HELP: &str = "At start, drivegate found this drive moving and its safety \
+     journal ([safety] state_dir/safety.journal) could not say who had set it moving: the file \
+     could not be read, was empty, held only its header, or was missing although an earlier run \
+     kept one. A lease it held may have been lost, so drivegate applied [safety] \
+     on_unknown_state to the drive (or left it moving, with none). Check the machine, then the \
+     state directory's disk: a power cut on a disk that does not keep what it is told to keep \
+     (a write cache without power-loss protection), a full or failing disk, or someone emptying \
+     or deleting the file. The owner of the motor sends its command again.";
 
 const SHARED_BUS_HELP: &str = "An address broadcast (manual 1.2: sent to address 0, every drive \
      that hears it takes the new address, and only one drive may be on the bus) was refused \

@@ -1,9 +1,17 @@
 //! The safety journal's file format, pure: no I/O here.
 //!
 //! ```text
-//! header:  "DRVGJRNL" (8 bytes)  version: u32 LE (1)
+//! header:  "DRVGJRNL" (8 bytes)  version: u32 LE (2; 1 is read too)
 //! record:  length: u32 LE  crc32(payload): u32 LE  payload (JSON, `length` bytes)
 //! ```
+//!
+//! Every time the file is written whole (at its creation, at each start,
+//! at a compaction) its first record is a [`Record::Snapshot`]: a journal
+//! this drivegate wrote is never shorter than its header and that record.
+//! So an empty file, or one that ends at its header, is no empty journal
+//! but one whose contents were lost (a power cut on a disk that did not
+//! keep what it was told to keep, a hand that emptied it): what it held
+//! is unknown, and the reader says so rather than "nothing is owed".
 //!
 //! Why this shape: the file is only ever appended to, and a power cut can
 //! leave the last append half written. Each record says how long it is and
@@ -27,14 +35,16 @@ use serde::{Deserialize, Serialize};
 /// The first 8 bytes of a journal.
 pub const MAGIC: &[u8; 8] = b"DRVGJRNL";
 
-/// A kind of framed file: its magic, its format version, and its name in
+/// A kind of framed file: its magic, its format versions, and its name in
 /// words (for the errors).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Kind {
     /// The first 8 bytes.
     pub magic: &'static [u8; 8],
-    /// The format version this drivegate writes and reads.
+    /// The format version this drivegate writes (and reads).
     pub version: u32,
+    /// The oldest format version it reads.
+    pub oldest: u32,
     /// What it is, as in "it is not a drivegate ...".
     pub what: &'static str,
 }
@@ -43,10 +53,13 @@ pub struct Kind {
 pub const SAFETY_JOURNAL: Kind = Kind {
     magic: MAGIC,
     version: VERSION,
+    oldest: 1,
     what: "safety journal",
 };
-/// The format this drivegate writes and reads.
-pub const VERSION: u32 = 1;
+/// The format this drivegate writes: 2, whose files begin with a
+/// [`Record::Snapshot`]. Version 1 (the same records, without that one)
+/// is read too.
+pub const VERSION: u32 = 2;
 /// Header length: the magic and the version.
 pub const HEADER_LEN: usize = 12;
 /// A record's frame: its length and its CRC.
@@ -179,6 +192,14 @@ pub enum Record {
     /// drivegate stopped cleanly: its safe stop covered every drive, and
     /// nothing before this record is owed.
     Shutdown,
+    /// The file was written whole at `at_ms` (Unix ms): the first record
+    /// of every journal this drivegate writes, so a file without any
+    /// record is known to have lost what it held. It says nothing of the
+    /// drives: the records after it do.
+    Snapshot {
+        /// When, Unix ms.
+        at_ms: u64,
+    },
 }
 
 /// Milliseconds since the Unix epoch (0 before it).
@@ -228,12 +249,14 @@ pub enum Unreadable {
     #[error("it is not a drivegate {} (its first bytes are not \"{}\")", .0.what, String::from_utf8_lossy(.0.magic))]
     NotAJournal(Kind),
     /// Another version of the format.
-    #[error("it is in format version {found}; this drivegate reads version {reads}")]
+    #[error("it is in format version {found}; this drivegate reads {}", versions(*.oldest, *.newest))]
     Version {
         /// The file's.
         found: u32,
-        /// This drivegate's.
-        reads: u32,
+        /// The oldest this drivegate reads.
+        oldest: u32,
+        /// The newest this drivegate reads (the one it writes).
+        newest: u32,
     },
     /// A bad record with more after it: not a torn append.
     #[error("the record at byte {offset} is damaged ({why}) and more follows it")]
@@ -246,6 +269,15 @@ pub enum Unreadable {
     /// The file could not be read at all.
     #[error("it could not be read: {0}")]
     Io(String),
+}
+
+/// "version 2", or "versions 1 to 2".
+fn versions(oldest: u32, newest: u32) -> String {
+    if oldest == newest {
+        format!("version {newest}")
+    } else {
+        format!("versions {oldest} to {newest}")
+    }
 }
 
 /// A journal read back.
@@ -295,10 +327,11 @@ pub fn check_header(kind: Kind, head: &[u8]) -> Result<Header, Unreadable> {
         return Err(Unreadable::NotAJournal(kind));
     }
     let version = u32::from_le_bytes([head[8], head[9], head[10], head[11]]);
-    if version != kind.version {
+    if !(kind.oldest..=kind.version).contains(&version) {
         return Err(Unreadable::Version {
             found: version,
-            reads: kind.version,
+            oldest: kind.oldest,
+            newest: kind.version,
         });
     }
     Ok(Header::Whole)
@@ -485,6 +518,7 @@ mod tests {
                 state: BrakeState::Confirmed,
             },
             Record::Shutdown,
+            Record::Snapshot { at_ms: 17 },
         ];
         let bytes = journal(&records);
         let d = decode(&bytes).unwrap();
@@ -527,9 +561,25 @@ mod tests {
             not.unwrap_err().to_string(),
             "it is not a drivegate safety journal (its first bytes are not \"DRVGJRNL\")"
         );
-        let mut v2 = journal(&[]);
-        v2[8] = 2;
-        assert_eq!(decode(&v2), Err(Unreadable::Version { found: 2, reads: 1 }));
+        let mut v3 = journal(&[]);
+        v3[8] = 3;
+        let newer = decode(&v3);
+        assert_eq!(
+            newer,
+            Err(Unreadable::Version {
+                found: 3,
+                oldest: 1,
+                newest: 2
+            })
+        );
+        assert_eq!(
+            newer.unwrap_err().to_string(),
+            "it is in format version 3; this drivegate reads versions 1 to 2"
+        );
+        // Version 1, the same records without the snapshot, is read.
+        let mut v1 = journal(&[lease("conveyor")]);
+        v1[8] = 1;
+        assert_eq!(decode(&v1).unwrap().records, vec![lease("conveyor")]);
         // An impossible length.
         let mut long = journal(&[]);
         long.extend_from_slice(&u32::MAX.to_le_bytes());

@@ -10,7 +10,16 @@
 //! function, what is owed. A journal that cannot be read is set aside
 //! (renamed) and never keeps the daemon from starting; a disk that cannot
 //! be written leaves the leases working in memory, with a warning on each
-//! write the journal misses.
+//! write the journal misses, and the file cut back to its header so that
+//! the next start knows it does not know (below).
+//!
+//! What a start cannot know is treated as unknown ([`replay::Unknown`]):
+//! a journal that cannot be read, one that is empty or ends at its header
+//! (every file this daemon writes begins with a snapshot record, so such a
+//! file lost what it held), and one that is missing where the state
+//! directory shows an earlier run (its marker, [`MARKER`], written with the
+//! first journal, or the alarm file, or a journal set aside). Then every
+//! drive found moving gets `[safety] on_unknown_state`.
 //!
 //! The journal is read from its end ([`tail`]) back to its last clean stop
 //! (nothing before one is owed), its start, or a budget of bytes: a
@@ -27,15 +36,24 @@ pub mod tail;
 
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, Write};
+use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
 use format::{Record, Unreadable};
-use replay::{JournalState, Recovered};
+use replay::{JournalState, Recovered, Unknown};
 use tail::Wanted;
 
 /// The journal's file name in the state directory.
 pub const FILE: &str = "safety.journal";
+/// The file that says a journal was kept in the state directory: written
+/// (and synced, with the directory) before the first journal, never
+/// removed by drivegate. A start that finds it but no journal knows the
+/// journal was lost.
+pub const MARKER: &str = "safety.journal.marker";
+/// Other files of the state directory that only an earlier run leaves:
+/// the alarm file (written at every start) and journals set aside.
+const EARLIER_RUN: &[&str] = &[crate::control::alarms::file::FILE];
 /// Compacted once it is this long (and twice its last snapshot).
 pub const COMPACT_AT: u64 = 64 * 1024;
 /// At most this much of the journal of a plant of `drives` drives is read
@@ -98,6 +116,9 @@ pub struct Counts {
     pub compactions: u64,
     /// Journals found unreadable at start-up (set aside when they could be).
     pub unreadable: u64,
+    /// Journals found lost at start-up: empty, ending at their header, or
+    /// missing where the state directory shows an earlier run.
+    pub lost: u64,
     /// Bytes of the file.
     pub bytes: u64,
     /// Bytes of older records skipped unread at start-up.
@@ -142,12 +163,24 @@ struct ReadBack {
     news: Vec<String>,
 }
 
+/// What the state directory held of the journal at start-up.
+enum Found {
+    /// No journal file.
+    NoFile,
+    /// A file without a single whole record: empty, or its header alone.
+    Nothing(Unknown),
+    /// Records.
+    Records(ReadBack),
+}
+
 /// Reads the journal at `path` from its end back to its last clean stop,
 /// its start, or `budget` bytes.
-fn read(path: &Path, budget: u64) -> Result<ReadBack, Unreadable> {
+fn read(path: &Path, budget: u64) -> Result<Found, Unreadable> {
     let mut newest_first: Vec<Record> = Vec::new();
     let mut clean = false;
+    let mut any = false;
     let read = tail::read_from_end(path, format::SAFETY_JOURNAL, budget, |records| {
+        any |= !records.is_empty();
         for r in records.into_iter().rev() {
             if matches!(r, Record::Shutdown) {
                 clean = true;
@@ -158,13 +191,16 @@ fn read(path: &Path, budget: u64) -> Result<ReadBack, Unreadable> {
         Wanted::More
     })?;
     let Some(read) = read else {
-        return Ok(ReadBack {
-            state: JournalState::default(),
-            whole: true,
-            skipped: 0,
-            news: Vec::new(),
-        });
+        return Ok(Found::NoFile);
     };
+    if !any {
+        // A file this daemon wrote begins with its snapshot record.
+        return Ok(Found::Nothing(if read.len < format::HEADER_LEN as u64 {
+            Unknown::Empty
+        } else {
+            Unknown::HeaderOnly
+        }));
+    }
     newest_first.reverse();
     let mut news = Vec::new();
     if read.torn > 0 {
@@ -193,12 +229,29 @@ fn read(path: &Path, budget: u64) -> Result<ReadBack, Unreadable> {
             )
         });
     }
-    Ok(ReadBack {
+    Ok(Found::Records(ReadBack {
         state: JournalState::of(&newest_first),
         whole,
         skipped: read.skipped,
         news,
-    })
+    }))
+}
+
+/// What in `dir` shows that drivegate ran there before, in words (`None`:
+/// nothing, a first start).
+pub fn earlier_run(dir: &Path) -> Option<String> {
+    if dir.join(MARKER).exists() {
+        return Some(format!("its marker {MARKER} is there"));
+    }
+    if let Some(file) = EARLIER_RUN.iter().find(|f| dir.join(f).exists()) {
+        return Some(format!("{file} is there"));
+    }
+    let aside = fs::read_dir(dir).ok()?.find_map(|e| {
+        let name = e.ok()?.file_name().to_string_lossy().into_owned();
+        name.starts_with(&format!("{FILE}.unreadable-"))
+            .then_some(name)
+    })?;
+    Some(format!("{aside} is there"))
 }
 
 impl Journal {
@@ -217,7 +270,7 @@ impl Journal {
         let mut news = Vec::new();
         let mut journal = Journal::new(Some(dir.to_path_buf()), Health::Ok);
         let recovered = match read(&path, read_budget(drives)) {
-            Ok(read) => {
+            Ok(Found::Records(read)) => {
                 news.extend(read.news);
                 journal.counts.skipped_bytes = read.skipped;
                 journal.state = read.state;
@@ -227,6 +280,11 @@ impl Journal {
                     Recovered::Tail(journal.state.clone())
                 }
             }
+            Ok(Found::NoFile) => match earlier_run(dir) {
+                None => Recovered::Read(JournalState::default()),
+                Some(evidence) => lost(&mut journal, &mut news, &path, Unknown::Missing(evidence)),
+            },
+            Ok(Found::Nothing(unknown)) => lost(&mut journal, &mut news, &path, unknown),
             Err(why) => {
                 journal.counts.unreadable += 1;
                 let aside = dir.join(format!(
@@ -237,14 +295,24 @@ impl Journal {
                     Ok(()) => format!("it was set aside as {}", aside.display()),
                     Err(e) => format!("it could not be set aside ({e})"),
                 };
+                let unknown = Unknown::Unreadable(format!("{why}; {moved}"));
                 news.push(format!(
-                    "the safety journal {} could not be read: {why}; {moved}. What the last process promised about the motors is unknown: [safety] on_unknown_state is applied to every drive found moving",
-                    path.display()
+                    "{} ({}). What the last process promised about the motors is unknown: [safety] on_unknown_state is applied to every drive found moving",
+                    unknown.words(),
+                    path.display(),
                 ));
-                Recovered::Unreadable
+                Recovered::Unknown(unknown)
             }
         };
-        // Start from a clean snapshot: no torn tail, nothing ended.
+        // The marker first, so that from now on a journal that goes
+        // missing is known to be lost; then a clean snapshot (no torn
+        // tail, nothing ended), whose directory sync covers both.
+        if let Err(e) = write_marker(dir) {
+            tracing::warn!(
+                "the safety journal's marker {} could not be written: {e}",
+                dir.join(MARKER).display()
+            );
+        }
         journal.rewrite = true;
         if let Err(e) = journal.compact() {
             journal.fail(format!(
@@ -291,6 +359,16 @@ impl Journal {
         &self.state
     }
 
+    /// What is owed to drive `old` is owed to `new` from now on (the same
+    /// motor, renamed by a reload): appended and synced like any record.
+    pub fn rename(&mut self, old: &str, new: &str) -> Result<(), String> {
+        let records = self.state.renamed(old, new);
+        if records.is_empty() {
+            return Ok(());
+        }
+        self.append(&records)
+    }
+
     /// Appends `records` and syncs them to the disk (one sync for all).
     /// The state is kept in memory even when the disk fails, so the
     /// journal is whole again once the disk takes writes.
@@ -304,7 +382,17 @@ impl Journal {
         let result = if self.rewrite {
             self.compact()
         } else {
-            self.write(records)
+            self.write(records).and_then(|kept| {
+                if kept {
+                    return Ok(());
+                }
+                // Written to a file nobody can open any more: the journal
+                // is written again, whole, where the next start looks.
+                tracing::warn!(
+                    "the safety journal was deleted while drivegate ran: it is written again"
+                );
+                self.compact()
+            })
         };
         match result {
             Ok(()) => {
@@ -324,8 +412,36 @@ impl Journal {
                 self.counts.write_errors += 1;
                 self.rewrite = true;
                 let why = format!("the safety journal could not be written: {e}");
+                self.forget();
                 self.fail(why.clone());
                 Err(why)
+            }
+        }
+    }
+
+    /// The disk did not take a record: the file is cut back to its header
+    /// (which needs no space), so that a start after a crash finds a
+    /// journal that says it lost what it held, not an older one that would
+    /// pass for the truth. Rewritten whole once the disk takes writes.
+    fn forget(&mut self) {
+        let Some(dir) = &self.dir else { return };
+        let cut = OpenOptions::new()
+            .write(true)
+            .open(dir.join(FILE))
+            .and_then(|f| {
+                f.set_len(format::HEADER_LEN as u64)?;
+                f.sync_all()
+            });
+        match cut {
+            Ok(()) => {}
+            // Nothing on the disk to pass for the truth.
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::NotFound | io::ErrorKind::NotADirectory
+                ) => {}
+            Err(e) => {
+                tracing::warn!("the safety journal could not be cut back to its header: {e}");
             }
         }
     }
@@ -336,7 +452,9 @@ impl Journal {
         self.rewrite = true;
     }
 
-    fn write(&mut self, records: &[Record]) -> io::Result<()> {
+    /// Appends `records` and syncs them; `false`: the file has been
+    /// deleted (they went to a file no start will find).
+    fn write(&mut self, records: &[Record]) -> io::Result<bool> {
         let Some(file) = self.file.as_mut() else {
             return Err(io::Error::other("the journal is not open"));
         };
@@ -347,7 +465,7 @@ impl Journal {
         file.write_all(&bytes)?;
         file.sync_data()?;
         self.counts.bytes += bytes.len() as u64;
-        Ok(())
+        Ok(file.metadata()?.nlink() > 0)
     }
 
     /// Rewrites the journal as a snapshot of its state: a temporary file,
@@ -357,10 +475,13 @@ impl Journal {
         let Some(dir) = self.dir.clone() else {
             return Ok(());
         };
-        fs::create_dir_all(&dir)?;
+        create_dir(&dir)?;
         let tmp = dir.join(format!("{FILE}.tmp"));
         let path = dir.join(FILE);
         let mut bytes = format::header();
+        bytes.extend(format::encode(&Record::Snapshot {
+            at_ms: format::unix_ms(SystemTime::now()),
+        }));
         for r in self.state.snapshot() {
             bytes.extend(format::encode(&r));
         }
@@ -384,148 +505,47 @@ impl Journal {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    #![allow(clippy::unwrap_used)]
-    use super::format::{Action, HolderKind, ModeName};
-    use super::*;
-
-    fn lease(deadline_ms: u64) -> Record {
-        Record::Lease {
-            drive: "conveyor".into(),
-            owner: "scada".into(),
-            holder: HolderKind::Http,
-            deadline_ms,
-            length_ms: 1000,
-            action: Action::ZeroSpeed,
-            mode: ModeName::Speed,
-        }
-    }
-
-    #[test]
-    fn what_is_appended_is_read_back_by_the_next_process() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path()), 4).journal;
-        assert_eq!(j.health(), &Health::Ok);
-        j.append(&[lease(5)]).unwrap();
-        let state = j.state().clone();
-        drop(j);
-        let opened = Journal::open(Some(dir.path()), 4);
-        assert_eq!(opened.recovered, Recovered::Read(state));
-        assert!(opened.news.is_empty(), "{:?}", opened.news);
-    }
-
-    #[test]
-    fn a_growing_journal_is_compacted_to_what_it_holds() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path()), 4).journal;
-        // 5000 records, ten to a sync.
-        for i in 0..500 {
-            let batch: Vec<Record> = (0..10).map(|k| lease(i * 10 + k)).collect();
-            j.append(&batch).unwrap();
-        }
-        let c = j.counts();
-        assert!(c.compactions >= 3, "{c:?}");
-        assert!(c.bytes <= COMPACT_AT + 200, "{c:?}");
-        let on_disk = fs::metadata(dir.path().join(FILE)).unwrap().len();
-        assert_eq!(on_disk, c.bytes);
-        let read = Journal::open(Some(dir.path()), 4).recovered;
-        assert_eq!(read, Recovered::Read(JournalState::of(&[lease(4_999)])));
-        assert!(!dir.path().join(format!("{FILE}.tmp")).exists());
-    }
-
-    #[test]
-    fn a_torn_tail_is_said_and_dropped_and_garbage_is_set_aside() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut j = Journal::open(Some(dir.path()), 4).journal;
-        j.append(&[lease(7)]).unwrap();
-        drop(j);
-        let path = dir.path().join(FILE);
-        let mut bytes = fs::read(&path).unwrap();
-        bytes.extend_from_slice(&[40, 0, 0, 0, 1, 2]);
-        fs::write(&path, &bytes).unwrap();
-        let opened = Journal::open(Some(dir.path()), 4);
-        assert_eq!(
-            opened.recovered,
-            Recovered::Read(JournalState::of(&[lease(7)]))
-        );
-        assert!(opened.news[0].contains("cut short"), "{:?}", opened.news);
-        drop(opened);
-        // Rewritten without the tail.
-        assert!(Journal::open(Some(dir.path()), 4).news.is_empty());
-
-        fs::write(&path, b"garbage").unwrap();
-        let opened = Journal::open(Some(dir.path()), 4);
-        assert_eq!(opened.recovered, Recovered::Unreadable);
-        assert_eq!(opened.journal.counts().unreadable, 1);
-        assert!(opened.news[0].contains("set aside"), "{:?}", opened.news);
-        let aside = fs::read_dir(dir.path())
-            .unwrap()
-            .filter(|e| {
-                e.as_ref()
-                    .is_ok_and(|e| e.file_name().to_string_lossy().contains("unreadable"))
-            })
-            .count();
-        assert_eq!(aside, 1);
-    }
-
-    #[test]
-    fn a_journal_beyond_its_bound_is_read_from_its_end() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join(FILE);
-        // Renewals without a clean stop, longer than the read budget.
-        let mut bytes = format::header();
-        let mut deadline = 0;
-        while (bytes.len() as u64) < 3 * tail::CHUNK + read_budget(4) {
-            deadline += 1;
-            bytes.extend(format::encode(&lease(deadline)));
-        }
-        fs::write(&path, &bytes).unwrap();
-        let opened = Journal::open(Some(dir.path()), 4);
-        // The newest record read is the last word; older ones are unknown.
-        assert_eq!(
-            opened.recovered,
-            Recovered::Tail(JournalState::of(&[lease(deadline)]))
-        );
-        let skipped = opened.journal.counts().skipped_bytes;
-        assert!(skipped >= tail::CHUNK, "{skipped}");
-        assert!(
-            opened.news.iter().any(|n| n.contains("on_unknown_state")),
-            "{:?}",
-            opened.news
-        );
-        // Compacted: the next start reads it whole.
-        drop(opened);
-        assert!(fs::metadata(&path).unwrap().len() < 1024);
-        assert!(matches!(
-            Journal::open(Some(dir.path()), 4).recovered,
-            Recovered::Read(_)
-        ));
-
-        // With a clean stop near its end, all that is owed is after it.
-        bytes.extend(format::encode(&Record::Shutdown));
-        bytes.extend(format::encode(&lease(7)));
-        fs::write(&path, &bytes).unwrap();
-        let opened = Journal::open(Some(dir.path()), 4);
-        assert_eq!(
-            opened.recovered,
-            Recovered::Read(JournalState::of(&[lease(7)]))
-        );
-        assert!(opened.journal.counts().skipped_bytes > 0);
-    }
-
-    #[test]
-    fn a_directory_that_cannot_be_written_keeps_the_state_in_memory() {
-        let dir = tempfile::tempdir().unwrap();
-        let blocked = dir.path().join("a-file");
-        fs::write(&blocked, b"x").unwrap();
-        let mut opened = Journal::open(Some(&blocked), 4);
-        assert_eq!(opened.recovered, Recovered::Unreadable);
-        assert!(matches!(opened.journal.health(), Health::Failing(_)));
-        assert!(opened.journal.append(&[lease(9)]).is_err());
-        assert_eq!(opened.journal.counts().write_errors, 1);
-        assert_eq!(opened.journal.state(), &JournalState::of(&[lease(9)]));
-        assert!(check_writable(&blocked).is_err());
-        assert!(check_writable(&dir.path().join("state")).is_ok());
-    }
+/// A journal found lost (`unknown`): counted, said, and unknown.
+fn lost(journal: &mut Journal, news: &mut Vec<String>, path: &Path, unknown: Unknown) -> Recovered {
+    journal.counts.lost += 1;
+    news.push(format!(
+        "{} ({}): a journal drivegate writes always holds its first record, so what the last process promised about the motors was lost (a power cut on a disk that did not keep what it was told to keep, or the file emptied or deleted by hand). [safety] on_unknown_state is applied to every drive found moving",
+        unknown.words(),
+        path.display(),
+    ));
+    Recovered::Unknown(unknown)
 }
+
+/// Writes the marker in `dir` (created if missing), unless it is there.
+/// The directory is synced by the journal's snapshot written next.
+fn write_marker(dir: &Path) -> io::Result<()> {
+    let marker = dir.join(MARKER);
+    if marker.exists() {
+        return Ok(());
+    }
+    create_dir(dir)?;
+    let mut f = File::create(&marker)?;
+    f.write_all(
+        format!(
+            "drivegate keeps its safety journal ({FILE}) in this directory. A start that finds this file but no {FILE} knows the journal was lost, and applies [safety] on_unknown_state to every drive found moving. Do not remove it without the journal.\n"
+        )
+        .as_bytes(),
+    )?;
+    f.sync_all()
+}
+
+/// Creates `dir` if it is missing, and syncs its parent, so that the
+/// directory itself survives a power cut.
+fn create_dir(dir: &Path) -> io::Result<()> {
+    if dir.is_dir() {
+        return Ok(());
+    }
+    fs::create_dir_all(dir)?;
+    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
+        File::open(parent)?.sync_all()?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests;

@@ -13,9 +13,6 @@ use rumqttc::v5::{AsyncClient, Event, MqttOptions};
 /// How many requests (publishes, subscriptions) may wait in the client.
 const REQUEST_CAPACITY: usize = 4096;
 
-/// The largest packet either way.
-const MAX_PACKET: u32 = 256 * 1024;
-
 /// One MQTT 5 connection to the broker.
 pub(super) type Connection = Link<AsyncClient, Event>;
 
@@ -38,8 +35,17 @@ impl Connection {
         let mut options =
             MqttOptions::new(client_id, config.broker.host.clone(), config.broker.port);
         options.set_keep_alive(config.keepalive());
+        // A clean session that ends with the connection: the broker keeps
+        // nothing for drivegate while it is away, so no command queued
+        // then is delivered later (one that came anyway is refused,
+        // `super::super::arrival`).
         options.set_clean_start(true);
-        options.set_max_packet_size(Some(MAX_PACKET));
+        // MQTT 5's Maximum Packet Size, in CONNECT: the broker sends
+        // nothing larger (mosquitto drops it and logs "Dropping too large
+        // outgoing PUBLISH"), so a large message costs itself, not the
+        // connection.
+        options.set_max_packet_size(Some(config.max_message_bytes));
+        options.set_session_expiry_interval(Some(0));
         options.set_last_will(LastWill::new(
             will_topic,
             "offline",
@@ -62,10 +68,10 @@ impl Connection {
 fn describe(e: &rumqttc::v5::ConnectionError) -> String {
     use rumqttc::v5::ConnectionError as E;
     match e {
-        E::Io(io) if io.kind() == std::io::ErrorKind::ConnectionRefused => {
-            "the broker refused the TCP connection (is it running, on this port?)".to_string()
-        }
-        E::Io(io) => format!("connection to the broker: {io}"),
+        E::Io(io) => crate::mqtt::relay::io_words(io),
+        E::MqttState(rumqttc::v5::StateError::Deserialization(
+            rumqttc::v5::mqttbytes::Error::PayloadSizeLimitExceeded { pkt_size, .. },
+        )) => crate::mqtt::connection::too_large_words(*pkt_size),
         E::ConnectionRefused(code) => format!("the broker refused the connection: {code:?}"),
         E::Tls(tls) => format!("TLS with the broker: {tls}"),
         other => other.to_string(),

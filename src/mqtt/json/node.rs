@@ -16,7 +16,9 @@
 //!   messages; each runs through the control core (face `mqtt`, the role of
 //!   `[mqtt] commands`) in a task of its own and its reply (the result, or
 //!   the problem in the API's words) goes to the MQTT 5 response topic with
-//!   the correlation data, or to `<prefix>/<drive>/reply`.
+//!   the correlation data, or to `<prefix>/<drive>/reply`. Only live ones:
+//!   a retained command, or one queued for an earlier session, is refused
+//!   by the core (audited) and answered with a `not-live` problem.
 //! - **The session's lease**, as for Sparkplug's commands: renewed a few
 //!   times per `comm_loss_ms` while connected, so losing the broker for
 //!   longer ends the leases of MQTT's setpoints with `comm_loss_action`.
@@ -40,13 +42,18 @@ use super::topics::JsonTopics;
 use crate::bus::SourceId;
 use crate::bus::cache::BusEvent;
 use crate::config::MqttConfig;
-use crate::control::{Caller, CommLoss, Control, ControlEvent, Face, Published, SessionGuard};
+use crate::control::live::Delivery;
+use crate::control::{
+    Caller, CommLoss, Control, ControlEvent, Face, Failure, Published, SessionGuard,
+};
 use crate::faces_shared::command_messages::{self, CommandMessage, DRIVE_OPS};
 use crate::faces_shared::messages::{self, DriveMessage};
-use crate::faces_shared::problem::Problem;
+use crate::faces_shared::problem::{BusContext, Problem};
 use crate::faces_shared::status::{self, StatusSource};
 use crate::faces_shared::target::Target;
+use crate::faces_shared::writes;
 use crate::metrics::Metrics;
+use crate::mqtt::arrival::Connected;
 use crate::mqtt::connection::{Backoff, next_event};
 
 /// How the session's closing reads in lease news and the audit log.
@@ -79,6 +86,9 @@ struct JsonNode {
     /// removed from the configuration.
     published: BTreeSet<String>,
     commands: tokio::task::JoinSet<()>,
+    /// What is known of the current connection, to tell a live command
+    /// from a retained or queued one.
+    connected: Connected,
 }
 
 /// Starts the JSON format's task; it ends after `shutdown` fired.
@@ -110,6 +120,7 @@ pub(in crate::mqtt) fn spawn(
         followed: None,
         published: BTreeSet::new(),
         commands: tokio::task::JoinSet::new(),
+        connected: Connected::default(),
         config,
         control,
         metrics,
@@ -243,6 +254,13 @@ impl JsonNode {
                     return Err(format!("the broker refused the connection: {:?}", ack.code));
                 }
                 c.accepted = true;
+                self.connected = Connected::accepted(now_ms(), ack.session_present);
+                if ack.session_present {
+                    tracing::warn!(
+                        broker = %self.config.broker,
+                        "MQTT: the broker kept a session for drivegate although it asked for a clean one: commands it queued are refused"
+                    );
+                }
                 self.metrics.mqtt().connected(self.connections == 0);
                 self.connections += 1;
                 tracing::info!(broker = %self.config.broker, prefix = self.topics.prefix(), "MQTT connected (JSON)");
@@ -256,6 +274,7 @@ impl JsonNode {
                 self.metrics.mqtt().born(true);
                 self.all_statuses(&c.client);
             }
+            Event::Incoming(Packet::SubAck(_)) => self.connected.subscribed(),
             Event::Incoming(Packet::Publish(p)) => {
                 let topic = String::from_utf8_lossy(&p.topic).into_owned();
                 let Some(drive) = self.topics.command_drive(&topic).map(str::to_string) else {
@@ -263,18 +282,26 @@ impl JsonNode {
                     return Ok(());
                 };
                 self.metrics.mqtt().received("command");
-                self.on_command(drive, &p.payload, p.properties.as_ref());
+                let delivery = self.connected.delivery(p.retain, None);
+                self.on_command(drive, &p.payload, p.properties.as_ref(), delivery);
             }
             _ => {}
         }
         Ok(())
     }
 
-    /// A command message for `drive`: refused at once when it is none the
-    /// face takes, else run through the core (which refuses what the role
-    /// of `[mqtt] commands` may not do) in a task of its own; either way a
-    /// reply follows.
-    fn on_command(&mut self, drive: String, payload: &[u8], props: Option<&PublishProperties>) {
+    /// A command message for `drive`, delivered as `delivery`: refused at
+    /// once when it is none the face takes or the core finds it not live,
+    /// else run through the core (which refuses what the role of `[mqtt]
+    /// commands` may not do) in a task of its own; either way a reply
+    /// follows.
+    fn on_command(
+        &mut self,
+        drive: String,
+        payload: &[u8],
+        props: Option<&PublishProperties>,
+        delivery: Delivery,
+    ) {
         let topic = props
             .and_then(|p| p.response_topic.clone())
             .unwrap_or_else(|| self.topics.reply(&drive));
@@ -284,7 +311,33 @@ impl JsonNode {
             correlation: correlation.clone(),
             message,
         };
-        let (id, op, body) = match parse(payload, &drive) {
+        let parsed = parse(payload, &drive);
+        let role = self.config.commands().role();
+        let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
+            .in_session(Face::Mqtt, self.session.id());
+        let what = match &parsed {
+            Ok((_, op, Some(body))) => format!("command \"{op}\" {body}"),
+            Ok((_, op, None)) => format!("command \"{op}\""),
+            Err(_) => "a command message that could not be read".to_string(),
+        };
+        if let Err(refusal) = self.control.check_live(&caller, &drive, &what, delivery) {
+            self.metrics.mqtt().command("refused");
+            let id = match &parsed {
+                Ok((id, ..)) | Err((id, _)) => id.clone(),
+            };
+            let problem = writes::problem(
+                &caller,
+                &Failure::Refused(refusal),
+                BusContext {
+                    drive: Some(&drive),
+                    offline: false,
+                    setpoint: false,
+                },
+            );
+            self.send_now(reply(DriveMessage::reply(id, Err(problem))));
+            return;
+        }
+        let (id, op, body) = match parsed {
             Ok(parsed) => parsed,
             Err((id, problem)) => {
                 self.metrics.mqtt().command("malformed");
@@ -302,9 +355,6 @@ impl JsonNode {
         }
         // The core decides, as for Sparkplug's commands: `[mqtt] commands`
         // is the caller's role, and "none" a viewer's.
-        let role = self.config.commands().role();
-        let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
-            .in_session(Face::Mqtt, self.session.id());
         self.session.active();
         let control = self.control.clone();
         let metrics = self.metrics.clone();
@@ -584,6 +634,10 @@ fn parse(payload: &[u8], drive: &str) -> Result<(Value, String, Option<Value>), 
         ));
     }
     Ok((id, op, body))
+}
+
+fn now_ms() -> u64 {
+    crate::control::journal::format::unix_ms(SystemTime::now())
 }
 
 fn open_session(control: &Control, config: &MqttConfig) -> SessionGuard {

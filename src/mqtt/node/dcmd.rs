@@ -1,21 +1,29 @@
 //! Commands from hosts (DCMD): a DCMD's metrics in order, through the
 //! control core with a caller in the MQTT session, in a task of their own;
 //! each result comes back to the node and is published as the metric's
-//! confirmed value or `command/last_result` with the words.
+//! confirmed value or `command/last_result` with the words. A DCMD that
+//! is not live (retained, or queued for an earlier session) is refused by
+//! the core whole, before any of its metrics, and answered the same way.
 
 use prost::Message;
 
 use super::command_result::CommandResult;
 use super::{Connection, Node, now_ms};
-use crate::control::{Caller, Face};
+use crate::control::Failure;
 use crate::mqtt::metric::{self, LAST_RESULT, Value, Writable};
 use crate::mqtt::metric_commands::{self, Command};
 use crate::mqtt::sparkplug_b::{DataType, Payload};
 
 impl Node {
-    /// A DCMD for `device`: its metrics in order, through the core, in a
-    /// task of their own.
-    pub(super) fn on_dcmd(&mut self, c: &Connection, device: String, payload: &[u8]) {
+    /// A DCMD for `device` (`retained`: its retain flag on delivery): its
+    /// metrics in order, through the core, in a task of their own.
+    pub(super) fn on_dcmd(
+        &mut self,
+        c: &Connection,
+        device: String,
+        payload: &[u8],
+        retained: bool,
+    ) {
         let Ok(target) = self.control.target(&device) else {
             self.metrics.mqtt().command("malformed");
             tracing::warn!(
@@ -33,9 +41,18 @@ impl Node {
             );
             return;
         };
-        let role = self.config.commands().role();
-        let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
-            .in_session(Face::Mqtt, self.session.id());
+        let caller = self.caller();
+        let delivery = self.connected.delivery(retained, p.timestamp);
+        if let Err(refusal) =
+            self.control
+                .check_live(&caller, &device, &metrics_in_words(&p), delivery)
+        {
+            self.metrics.mqtt().command("refused");
+            let names = metric_names(&p);
+            let words = format!("{names}: {}", Failure::Refused(refusal));
+            self.last_result(Some(c), &device, words);
+            return;
+        }
         let mut run: Vec<Command> = Vec::new();
         for m in &p.metrics {
             match metric_commands::parse(m) {
@@ -153,5 +170,40 @@ impl Node {
                 now,
             )],
         );
+    }
+}
+
+/// The metrics of a DCMD and their values, for the audit log:
+/// `command/activate = true, setpoint/speed_rpm = 123`.
+fn metrics_in_words(p: &Payload) -> String {
+    let words: Vec<String> = p
+        .metrics
+        .iter()
+        .map(|m| {
+            let value = match metric::value_of(m) {
+                Value::Bool(b) => b.to_string(),
+                Value::Double(v) => v.to_string(),
+                Value::Int(v) => v.to_string(),
+                Value::UInt(v) => v.to_string(),
+                Value::Text(t) => t,
+                Value::Null => "null".to_string(),
+            };
+            format!("DCMD {} = {value}", m.name.as_deref().unwrap_or("?"))
+        })
+        .collect();
+    if words.is_empty() {
+        "a DCMD without metrics".to_string()
+    } else {
+        words.join(", ")
+    }
+}
+
+/// The names of a DCMD's metrics, as `command/last_result` begins.
+fn metric_names(p: &Payload) -> String {
+    let names: Vec<&str> = p.metrics.iter().filter_map(|m| m.name.as_deref()).collect();
+    if names.is_empty() {
+        "DCMD".to_string()
+    } else {
+        names.join(", ")
     }
 }

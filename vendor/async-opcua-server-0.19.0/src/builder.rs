@@ -24,6 +24,7 @@ pub struct ServerBuilder {
     pub(crate) type_loaders: TypeLoaderCollection,
     pub(crate) token: CancellationToken,
     pub(crate) build_info: BuildInfo,
+    pub(crate) gate: Option<Arc<dyn crate::gate::ConnectionGate>>,
 }
 
 impl Default for ServerBuilder {
@@ -36,6 +37,7 @@ impl Default for ServerBuilder {
             type_tree_getter: None,
             build_info: BuildInfo::default(),
             type_loaders: TypeLoaderCollection::new(),
+            gate: None,
         };
         #[cfg(feature = "generated-address-space")]
         {
@@ -262,6 +264,15 @@ impl ServerBuilder {
     /// If you remove the core node manager you must implement the core namespace yourself.
     pub fn without_node_managers(mut self) -> Self {
         self.node_managers.clear();
+        self
+    }
+
+    /// Set a gate that admits connections and sessions and paces accepts
+    /// after failures (see [`crate::gate`]). Without one, every
+    /// connection is served, sessions are limited by `max_sessions` and a
+    /// failed accept is retried after 100 ms.
+    pub fn connection_gate(mut self, gate: Arc<dyn crate::gate::ConnectionGate>) -> Self {
+        self.gate = Some(gate);
         self
     }
 

@@ -92,6 +92,8 @@ pub struct ServerInfo {
     pub type_loaders: RwLock<TypeLoaderCollection>,
     /// Current server diagnostics.
     pub diagnostics: ServerDiagnostics,
+    /// The gate admitting connections and sessions, if the application set one.
+    pub gate: Option<Arc<dyn crate::gate::ConnectionGate>>,
 }
 
 impl ServerInfo {

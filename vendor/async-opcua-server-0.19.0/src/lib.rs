@@ -17,6 +17,7 @@ mod config;
 pub mod diagnostics;
 #[cfg(feature = "discovery-server-registration")]
 mod discovery;
+pub mod gate;
 mod identity_token;
 mod info;
 pub mod node_manager;

@@ -35,7 +35,7 @@ use crate::{
     },
     ServerStatusWrapper,
 };
-use opcua_types::{DateTime, LocalizedText, ServerState, UAString};
+use opcua_types::{DateTime, LocalizedText, ServerState, StatusCode, UAString};
 
 use super::{
     authenticator::DefaultAuthenticator,
@@ -48,6 +48,21 @@ use super::{
     subscriptions::SubscriptionCache,
     ServerCapabilities,
 };
+
+/// Tells a client whose connection the gate refused that the server is
+/// too busy (an ERR message, which it reads as the answer to its HEL),
+/// without waiting: a client that has not read it loses nothing else.
+fn too_busy(socket: tokio::net::TcpStream) {
+    let reason = b"Too many connections from this address, or the server is near its limits";
+    let size = (16 + reason.len()) as u32;
+    let mut frame = Vec::with_capacity(size as usize);
+    frame.extend_from_slice(b"ERRF");
+    frame.extend_from_slice(&size.to_le_bytes());
+    frame.extend_from_slice(&StatusCode::BadTcpServerTooBusy.bits().to_le_bytes());
+    frame.extend_from_slice(&(reason.len() as i32).to_le_bytes());
+    frame.extend_from_slice(reason);
+    let _ = socket.try_write(&frame);
+}
 
 struct ConnectionInfo {
     command_send: tokio::sync::mpsc::Sender<ControllerCommand>,
@@ -183,6 +198,7 @@ impl Server {
                 enabled: config.diagnostics,
                 ..Default::default()
             },
+            gate: builder.gate.clone(),
         };
 
         let certificate_store = Arc::new(RwLock::new(certificate_store));
@@ -347,6 +363,11 @@ impl Server {
             Self::run_session_expiry(&self.session_manager, &self.session_notify);
         pin!(session_expiry_fut);
 
+        // Accepts paused until then, after a failure (out of file
+        // descriptors: the listener stays readable and would fail again at
+        // once).
+        let mut accept_paused: Option<tokio::time::Instant> = None;
+
         loop {
             let conn_fut = if self.connections.is_empty() {
                 if self.token.is_cancelled() {
@@ -370,10 +391,27 @@ impl Server {
                 _ = &mut subscription_fut => {}
                 _ = &mut discovery_fut => {}
                 _ = &mut session_expiry_fut => {}
-                rs = listener.accept() => {
+                _ = tokio::time::sleep_until(accept_paused.unwrap_or_else(tokio::time::Instant::now)), if accept_paused.is_some() => {
+                    accept_paused = None;
+                }
+                rs = listener.accept(), if accept_paused.is_none() => {
                     match rs {
                         Ok((socket, addr)) => {
+                            let pass = match &self.info.gate {
+                                Some(gate) => {
+                                    gate.accepted();
+                                    match gate.admit(addr) {
+                                        Some(pass) => Some(pass),
+                                        None => {
+                                            too_busy(socket);
+                                            continue;
+                                        }
+                                    }
+                                }
+                                None => None,
+                            };
                             info!("Accept new connection from {addr} ({connection_counter})");
+                            let closing = pass.as_ref().map(|p| p.closing());
                             let conn = SessionStarter::new(
                                 TcpConnector::new(socket, TransportConfig {
                                     send_buffer_size: self.info.config.limits.send_buffer_size,
@@ -387,15 +425,25 @@ impl Server {
                                 self.certificate_store.clone(),
                                 self.node_managers.clone(),
                                 self.subscriptions.clone()
-                            ).peer_address(addr);
+                            ).peer_address(addr).pass(pass);
 
                             let (send, recv) = tokio::sync::mpsc::channel(5);
+                            let closer = send.clone();
                             let handle = tokio::spawn(async move {
-                                if let Err(payload) =
-                                    std::panic::AssertUnwindSafe(conn.run(recv, |_| {}))
-                                        .catch_unwind()
-                                        .await
-                                {
+                                let run = std::panic::AssertUnwindSafe(conn.run(recv, |_| {}))
+                                    .catch_unwind();
+                                pin!(run);
+                                let ran = match closing {
+                                    Some(closing) => tokio::select! {
+                                        r = &mut run => r,
+                                        _ = closing.cancelled() => {
+                                            let _ = closer.send(ControllerCommand::Shed).await;
+                                            run.await
+                                        }
+                                    },
+                                    None => run.await,
+                                };
+                                if let Err(payload) = ran {
                                     log_connection_panic(connection_counter, payload);
                                 }
                                 connection_counter
@@ -407,7 +455,16 @@ impl Server {
                             connection_counter += 1;
                         }
                         Err(e) => {
-                            error!("Failed to accept client connection: {:?}", e);
+                            let pause = match &self.info.gate {
+                                Some(gate) => gate.accept_failed(&e),
+                                None => {
+                                    error!("Failed to accept client connection: {:?}", e);
+                                    Duration::from_millis(100)
+                                }
+                            };
+                            if !pause.is_zero() {
+                                accept_paused = Some(tokio::time::Instant::now() + pause);
+                            }
                         }
                     }
                 }

@@ -7,7 +7,7 @@
 // drawing every frame), so a hundred drives at the bus's full rate cost the
 // browser little.
 
-import { h, fmt, age, ago, words } from '../ui.js';
+import { h, fmt, age, ago, words, clock } from '../ui.js';
 import { positionText, freshnessOf } from '../store.js';
 
 export const page = {
@@ -71,22 +71,31 @@ const COLUMNS = [
 ];
 
 function mount(main, _params, { store }) {
-  const summary = h('p', { class: 'summary', role: 'status' });
+  const summary = h('p', { class: 'summary drives', role: 'status' });
   const buses = h('div', { class: 'buses' });
   const tbody = h('tbody');
   const table = h('table', { class: 'drives' },
     h('caption', { class: 'sr-only' }, 'Drives, live'),
     h('thead', {}, h('tr', {}, COLUMNS.map(([label, , cls]) => h('th', { scope: 'col', class: cls }, label)))),
     tbody);
-  // The faces that are not this page's own, from /readyz: the MQTT link
+  // The faces that are not this page's own, from /readyz: the Modbus TCP
+  // listener with its connections and the addresses it refused or closed
+  // lately, in the daemon's words (docs/modbus-tcp.md); the MQTT link
   // (docs/mqtt.md), shown only with [mqtt]; the OPC UA server
   // (docs/opcua.md), shown only with [opcua].
+  const modbus = h('p', { class: 'summary modbus', role: 'status' });
+  modbus.hidden = true;
+  const refusals = h('div', { class: 'modbus-refusals' });
   const mqtt = h('p', { class: 'summary mqtt', role: 'status' });
   mqtt.hidden = true;
   const opcua = h('p', { class: 'summary opcua', role: 'status' });
   opcua.hidden = true;
+  // A face whose task crashed (docs/operations.md): down and when it is
+  // started again, or serving again and how often it was; shown only then.
+  const crashed = h('p', { class: 'summary faces', role: 'status' });
+  crashed.hidden = true;
   main.append(
-    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, mqtt, opcua),
+    h('section', { class: 'panel', 'aria-labelledby': 'buses-h' }, h('h1', { id: 'buses-h' }, 'Buses'), buses, modbus, refusals, mqtt, opcua, crashed),
     h('section', { class: 'panel', 'aria-labelledby': 'drives-h' }, h('h1', { id: 'drives-h' }, 'Drives'), summary,
       h('div', { class: 'scroll' }, table)));
 
@@ -226,10 +235,23 @@ function mount(main, _params, { store }) {
     const text = summaryText(store);
     if (summary.textContent !== text.text) {
       summary.textContent = text.text;
-      summary.className = `summary ${text.bad ? 'bad' : 'good'}`;
+      summary.className = `summary drives ${text.bad ? 'bad' : 'good'}`;
     }
   }
 
+  function showModbus(m) {
+    modbus.hidden = !m;
+    const lines = m ? m.turned_away.map((t) => t.text) : [];
+    if (refusals.dataset.lines !== lines.join('\n')) {
+      refusals.dataset.lines = lines.join('\n');
+      refusals.replaceChildren(...lines.map((text) => h('p', { class: 'summary bad modbus-refused' }, text)));
+    }
+    if (!m) return;
+    const connections = `${m.connections} connection${m.connections === 1 ? '' : 's'}`;
+    const text = `Modbus TCP: serving on ${m.listen} (${connections})`;
+    if (modbus.textContent !== text) modbus.textContent = text;
+    modbus.className = 'summary modbus good';
+  }
   function showMqtt(m) {
     mqtt.hidden = !m;
     if (!m) return;
@@ -251,12 +273,24 @@ function mount(main, _params, { store }) {
     if (opcua.textContent !== text) opcua.textContent = text;
     opcua.className = `summary opcua ${o.serving ? 'good' : 'bad'}`;
   }
+  function showFaces(faces) {
+    const list = faces || [];
+    crashed.hidden = list.length === 0;
+    if (!list.length) return;
+    const text = list.map((f) => (f.serving
+      ? `${f.name}: serving again, restarted ${f.restarts} time${f.restarts === 1 ? '' : 's'} (last: ${f.last_crash})`
+      : `${f.name}: down since ${clock(new Date(f.down_since))} (${f.down_why}); started again at ${clock(new Date(f.restart_at))}`)).join('. ');
+    if (crashed.textContent !== text) crashed.textContent = text;
+    crashed.className = `summary faces ${list.some((f) => !f.serving) ? 'bad' : 'good'}`;
+  }
   async function pollMqtt() {
     try {
       const r = await fetch('/readyz', { cache: 'no-store', headers: { Accept: 'application/json' } });
       const ready = await r.json();
+      showModbus(ready.modbus_tcp);
       showMqtt(ready.mqtt);
       showOpcUa(ready.opcua);
+      showFaces(ready.faces);
     } catch {
       // The stream's state already says when drivegate cannot be reached.
     }

@@ -26,7 +26,7 @@ export const page = {
   id: 'replace',
   title: 'Replace a drive',
   role: 'admin',
-  nav: { path: '/replace', label: 'Replace a drive', key: 'r' },
+  nav: { path: '/replace', label: 'Replace', key: 'r' },
   match: (path) => {
     if (path === '/replace') return { name: null };
     const m = /^\/replace\/([^/]+)$/.exec(path);

@@ -67,6 +67,8 @@ impl Response {
 
 pub(crate) enum ControllerCommand {
     Close,
+    /// Closed by the gate to make room for other clients.
+    Shed,
 }
 
 type PendingMessageResponse = dyn Future<Output = Result<Response, String>> + Send + Sync + 'static;
@@ -83,6 +85,7 @@ pub(crate) struct SessionController {
     info: Arc<ServerInfo>,
     deadline: Instant,
     peer_address: Option<SocketAddr>,
+    pass: Option<Box<dyn crate::gate::ConnectionPass>>,
 }
 
 enum RequestProcessResult {
@@ -98,6 +101,7 @@ pub(crate) struct SessionStarter<T> {
     node_managers: NodeManagers,
     subscriptions: Arc<SubscriptionCache>,
     peer_address: Option<SocketAddr>,
+    pass: Option<Box<dyn crate::gate::ConnectionPass>>,
 }
 
 impl<T: Connector> SessionStarter<T> {
@@ -117,7 +121,15 @@ impl<T: Connector> SessionStarter<T> {
             node_managers,
             subscriptions,
             peer_address: None,
+            pass: None,
         }
+    }
+
+    /// The gate's pass of the connection, held until it ends, told of
+    /// every message it receives.
+    pub(crate) fn pass(mut self, pass: Option<Box<dyn crate::gate::ConnectionPass>>) -> Self {
+        self.pass = pass;
+        self
     }
 
     /// The address of the peer at the other end of the connection: the
@@ -142,7 +154,7 @@ impl<T: Connector> SessionStarter<T> {
         let transport = tokio::select! {
             cmd = command.recv() => {
                 match cmd {
-                    Some(ControllerCommand::Close) | None => {
+                    Some(ControllerCommand::Close | ControllerCommand::Shed) | None => {
                         token.cancel();
                         let _ = fut.await;
                         return;
@@ -171,6 +183,7 @@ impl<T: Connector> SessionStarter<T> {
             self.node_managers,
             self.subscriptions,
             self.peer_address,
+            self.pass,
         );
         controller.run(command).await
     }
@@ -185,6 +198,7 @@ impl SessionController {
         node_managers: NodeManagers,
         subscriptions: Arc<SubscriptionCache>,
         peer_address: Option<SocketAddr>,
+        pass: Option<Box<dyn crate::gate::ConnectionPass>>,
     ) -> Self {
         let channel = SecureChannel::new(
             certificate_store.clone(),
@@ -204,6 +218,7 @@ impl SessionController {
             info,
             pending_messages: FuturesUnordered::new(),
             peer_address,
+            pass,
         }
     }
 
@@ -224,6 +239,12 @@ impl SessionController {
                     match cmd {
                         Some(ControllerCommand::Close) | None => {
                             self.fatal_error(StatusCode::BadServerHalted, "Server stopped");
+                        }
+                        Some(ControllerCommand::Shed) => {
+                            self.fatal_error(
+                                StatusCode::BadTcpServerTooBusy,
+                                "Closed to make room for other clients",
+                            );
                         }
                     }
                 }
@@ -252,6 +273,9 @@ impl SessionController {
                 res = self.transport.poll(&mut self.channel) => {
                     match res {
                         TransportPollResult::IncomingMessage(req) => {
+                            if let Some(pass) = &self.pass {
+                                pass.touch();
+                            }
                             if matches!(self.process_request(req).await, RequestProcessResult::Close) {
                                 self.transport.set_closing();
                             }
@@ -350,7 +374,12 @@ impl SessionController {
             RequestMessage::CreateSession(request) => {
                 let _h = span.enter();
                 let mut mgr = trace_write_lock!(self.session_manager);
-                let res = mgr.create_session(&mut self.channel, &self.certificate_store, &request);
+                let res = mgr.create_session(
+                    &mut self.channel,
+                    &self.certificate_store,
+                    &request,
+                    self.peer_address,
+                );
                 drop(mgr);
                 self.process_service_result(res, request.request_header.request_handle, id)
             }
@@ -501,10 +530,12 @@ impl SessionController {
                 let deadline = {
                     let timeout = message.request_header().timeout_hint;
                     let max_timeout = self.info.config.max_timeout_ms;
-                    let timeout = if max_timeout == 0 {
-                        timeout
-                    } else {
-                        max_timeout.max(timeout)
+                    // The client's timeout hint, capped by max_timeout_ms,
+                    // which also applies to a hint of 0 (no timeout).
+                    let timeout = match (timeout, max_timeout) {
+                        (0, max) => max,
+                        (hint, 0) => hint,
+                        (hint, max) => hint.min(max),
                     };
                     if timeout == 0 {
                         // Just set some huge value. A request taking a day can probably

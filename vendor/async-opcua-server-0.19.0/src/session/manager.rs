@@ -14,7 +14,11 @@ use parking_lot::RwLock;
 use tokio::sync::Notify;
 use tracing::{error, info};
 
-use crate::{identity_token::IdentityToken, info::ServerInfo};
+use crate::{
+    gate::{SessionAdmission, SessionSeat},
+    identity_token::IdentityToken,
+    info::ServerInfo,
+};
 use opcua_types::{
     ActivateSessionRequest, ActivateSessionResponse, CloseSessionRequest, CloseSessionResponse,
     CreateSessionRequest, CreateSessionResponse, Error, NodeId, ResponseHeader, SignatureData,
@@ -67,8 +71,33 @@ impl SessionManager {
         channel: &mut SecureChannel,
         certificate_store: &RwLock<CertificateStore>,
         request: &CreateSessionRequest,
+        peer: Option<SocketAddr>,
     ) -> Result<CreateSessionResponse, StatusCode> {
-        if self.sessions.len() >= self.info.config.limits.max_sessions {
+        if let Some(gate) = &self.info.gate {
+            // The gate shares the sessions between clients.
+            let ids: Vec<NodeId> = self.sessions.keys().cloned().collect();
+            let seats: Vec<SessionSeat> = ids
+                .iter()
+                .filter_map(|id| self.sessions.get(id))
+                .map(|s| {
+                    let s = s.read();
+                    SessionSeat {
+                        peer: s.peer_address(),
+                        activated: s.is_activated(),
+                        deadline: s.deadline(),
+                    }
+                })
+                .collect();
+            match gate.admit_session(peer, &seats) {
+                SessionAdmission::Admit => {}
+                SessionAdmission::Refuse => return Err(StatusCode::BadTooManySessions),
+                SessionAdmission::AdmitClosing(i) => {
+                    if let Some(id) = ids.get(i) {
+                        self.shed_session(id);
+                    }
+                }
+            }
+        } else if self.sessions.len() >= self.info.config.limits.max_sessions {
             return Err(StatusCode::BadTooManySessions);
         }
 
@@ -214,6 +243,25 @@ impl SessionManager {
                 "Client signature verification failed, session has no client certificate",
             ))
         }
+    }
+
+    /// The address of each session's client, when known (for the gate's
+    /// accounts).
+    pub fn peer_addresses(&self) -> Vec<Option<SocketAddr>> {
+        self.sessions.values().map(|s| s.read().peer_address()).collect()
+    }
+
+    /// Closes a session the gate chose to make room for another client's.
+    fn shed_session(&mut self, id: &NodeId) {
+        let Some(session) = self.sessions.remove(id) else {
+            return;
+        };
+        self.info
+            .diagnostics
+            .set_current_session_count(self.sessions.len() as u32);
+        info!("Session {id} closed to make room for another client's");
+        let mut session = trace_write_lock!(session);
+        session.close();
     }
 
     pub(crate) fn expire_session(&mut self, id: &NodeId) {
