@@ -94,6 +94,9 @@ pub(super) struct Served {
     /// The drive's motor before and after.
     pub(super) before: Motion,
     pub(super) after: Motion,
+    /// The journal's length when the bus last sent something, as of this
+    /// job (what a torn journal keeps at least).
+    pub(super) floor: u64,
 }
 
 /// A drive's trouble now.
@@ -431,6 +434,7 @@ impl Bench {
             outcome,
             before,
             after,
+            floor: self.journal_floor,
         });
     }
 }

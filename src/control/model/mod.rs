@@ -17,8 +17,7 @@
 //!
 //! `DRIVEGATE_MODEL_CASES` sets the number of cases (default
 //! [`CASES`]); a failure prints the seed, and `DRIVEGATE_MODEL_SEED`
-//! replays it; `DRIVEGATE_MODEL_LOST_JOURNALS=1` adds journals emptied, cut
-//! to their header or deleted (see [`LOST_JOURNALS`]).
+//! replays it.
 
 mod bench;
 mod examples;
@@ -35,19 +34,6 @@ use world::World;
 
 /// Cases in the default run.
 const CASES: u32 = 1000;
-
-/// Whether restarts may find the journal emptied, cut to its header or
-/// deleted. The start-up must then treat the plant's state as unknown
-/// (`on_unknown_state` on every drive found moving); until it does, such
-/// cases are left out unless `DRIVEGATE_MODEL_LOST_JOURNALS=1`.
-const LOST_JOURNALS: bool = false;
-
-fn lost_journals() -> bool {
-    match std::env::var("DRIVEGATE_MODEL_LOST_JOURNALS") {
-        Ok(v) => v == "1",
-        Err(_) => LOST_JOURNALS,
-    }
-}
 
 /// Runs one case: the plant of `setup`, then `steps`; the first invariant
 /// broken, with the step that broke it.
@@ -115,7 +101,7 @@ fn run_model() -> Result<(), String> {
     let mut runner =
         TestRunner::new_with_rng(config, TestRng::from_seed(RngAlgorithm::ChaCha, &seed));
     let started = Instant::now();
-    let result = runner.run(&steps::case(lost_journals()), |(setup, steps)| {
+    let result = runner.run(&steps::case(), |(setup, steps)| {
         run_case(setup, &steps).map_err(TestCaseError::fail)
     });
     match result {

@@ -223,6 +223,13 @@ pub(super) struct Oracle {
     /// face's write reaches it first).
     unknown: [bool; DRIVES],
     kill: Option<(Instant, [AtKill; DRIVES])>,
+    /// The journal's floor (its length when the bus last sent something)
+    /// as last seen.
+    floor: u64,
+    /// The latest end each drive's lease had since the floor last moved:
+    /// a journal torn after the floor may give a lease back with any of
+    /// them (a shortening renewal, the settling of its write lost).
+    torn_end: [Option<Instant>; DRIVES],
 }
 
 impl Oracle {
@@ -244,6 +251,8 @@ impl Oracle {
             stop_began: [None; DRIVES],
             unknown: [false; DRIVES],
             kill: None,
+            floor: 0,
+            torn_end: [None; DRIVES],
         }
     }
 
@@ -264,6 +273,15 @@ impl Oracle {
             action,
             comm_loss: true,
         })
+    }
+
+    /// Keeps the latest end of each drive's lease since the floor moved.
+    pub(super) fn note_ends(&mut self) {
+        for (lease, torn) in self.leases.iter().zip(self.torn_end.iter_mut()) {
+            if let Some(lease) = lease {
+                *torn = Some(torn.map_or(lease.end, |t| t.max(lease.end)));
+            }
+        }
     }
 
     /// `who`'s session opens: its generation.
@@ -471,6 +489,11 @@ impl Oracle {
     /// brake's rule, if anything.
     pub(super) fn served(&mut self, s: &Served) -> Option<String> {
         let d = s.drive;
+        if s.floor != self.floor {
+            self.floor = s.floor;
+            self.torn_end = [None; DRIVES];
+            self.note_ends();
+        }
         let req = self.match_request(s);
         if s.source == SourceId::INTERNAL
             && s.request == Some(crate::drive::DriveRequest::ReadStatus)

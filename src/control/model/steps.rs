@@ -311,32 +311,23 @@ fn trouble() -> impl Strategy<Value = Trouble> {
     ]
 }
 
-fn damage(lost_journals: bool) -> BoxedStrategy<Damage> {
-    let kept = prop_oneof![
-        6 => Just(Damage::Intact),
-        3 => (0u16..=1000).prop_map(Damage::Torn),
-        1 => Just(Damage::Garbled),
-    ];
-    if lost_journals {
-        prop_oneof![
-            8 => kept,
-            1 => Just(Damage::Emptied),
-            1 => Just(Damage::HeaderOnly),
-            1 => Just(Damage::Deleted),
-        ]
-        .boxed()
-    } else {
-        kept.boxed()
-    }
+fn damage() -> impl Strategy<Value = Damage> {
+    prop_oneof![
+        12 => Just(Damage::Intact),
+        6 => (0u16..=1000).prop_map(Damage::Torn),
+        2 => Just(Damage::Garbled),
+        1 => Just(Damage::Emptied),
+        1 => Just(Damage::HeaderOnly),
+        2 => Just(Damage::Deleted),
+    ]
 }
 
 fn drive() -> impl Strategy<Value = usize> {
     0..DRIVES
 }
 
-/// One step; with `lost_journals`, restarts may also find the journal
-/// emptied, cut to its header or deleted.
-pub(super) fn step(lost_journals: bool) -> impl Strategy<Value = Step> {
+/// One step.
+pub(super) fn step() -> impl Strategy<Value = Step> {
     prop_oneof![
         14 => (who(), drive(), cmd(), lease_ms()).prop_map(|(who, drive, cmd, lease_ms)| {
             Step::Write { who, drive, cmd, lease_ms: lease_ms.filter(|_| who.asks_leases()) }
@@ -355,12 +346,12 @@ pub(super) fn step(lost_journals: bool) -> impl Strategy<Value = Step> {
         2 => (50u32..=2000).prop_map(|ms| Step::Hold { ms }),
         3 => (drive(), trouble()).prop_map(|(drive, trouble)| Step::Fault { drive, trouble }),
         1 => (50u32..=6000).prop_map(|ms| Step::BusDown { ms }),
-        2 => (any::<bool>(), damage(lost_journals), prop_oneof![Just(0u32), 1u32..=20000])
+        2 => (any::<bool>(), damage(), prop_oneof![Just(0u32), 1u32..=20000])
             .prop_map(|(wire, damage, down_ms)| Step::Restart { wire, damage, down_ms }),
     ]
 }
 
 /// A case: its plant and its steps.
-pub(super) fn case(lost_journals: bool) -> impl Strategy<Value = (Setup, Vec<Step>)> {
-    (setup(), prop::collection::vec(step(lost_journals), 1..=40))
+pub(super) fn case() -> impl Strategy<Value = (Setup, Vec<Step>)> {
+    (setup(), prop::collection::vec(step(), 1..=40))
 }

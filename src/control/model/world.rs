@@ -378,6 +378,7 @@ impl World {
             let _ = p.control.renew(&caller, drive, length);
         }
         self.oracle.renewed(who, caller.role, drive, length, now);
+        self.oracle.note_ends();
     }
 
     fn release(&mut self, who: Who, drive: usize) {
@@ -398,6 +399,7 @@ impl World {
         if let Some((guard, _)) = &p.sessions[who.index()] {
             guard.active();
             self.oracle.active(who, now);
+            self.oracle.note_ends();
         }
     }
 
@@ -484,6 +486,7 @@ impl World {
                     }
                 }
             }
+            self.oracle.note_ends();
         }
         Ok(())
     }
@@ -656,7 +659,6 @@ fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
 /// Leaves the journal among `files` as `damage` says; `floor` is its
 /// length when the bus last sent something.
 fn harm(files: &mut Vec<(String, Vec<u8>)>, damage: Damage, floor: u64) {
-    const HEADER: usize = 12;
     let journal = crate::control::journal::FILE;
     if damage == Damage::Deleted {
         files.retain(|(name, _)| name != journal);
@@ -679,6 +681,6 @@ fn harm(files: &mut Vec<(String, Vec<u8>)>, damage: Damage, floor: u64) {
             }
         }
         Damage::Emptied => bytes.clear(),
-        Damage::HeaderOnly => bytes.truncate(HEADER),
+        Damage::HeaderOnly => bytes.truncate(crate::control::journal::format::HEADER_LEN),
     }
 }

@@ -38,6 +38,11 @@ impl Oracle {
                 req.stage = Stage::Settled;
                 req.abandoned = true;
             }
+            // What waited in the queue died with the process: a job of
+            // the next one is not it.
+            if req.sent.is_some() && req.served.is_none() {
+                req.served = Some(Outcome::Dropped);
+            }
         }
         for who in Who::ALL {
             self.sessions[who.index()] = None;
@@ -99,14 +104,20 @@ impl Oracle {
                 .as_ref()
                 .filter(|v| v.owner == lease.owner)
                 .map(|v| killed_at.checked_add(v.expires_in));
+            // A torn journal may give it back as it stood at any record
+            // since the floor.
+            let end = match (damage, self.torn_end[d]) {
+                (Damage::Torn(_), Some(torn)) => lease.end.max(torn),
+                _ => lease.end,
+            };
             if let Some(back) = back
-                && look.now + back.expires_in > lease.end + SLACK
+                && look.now + back.expires_in > end + SLACK
             {
                 return Err(format!(
                     "drive {d}: {}'s lease came back with {:?} left, more than promised ({:?})",
                     lease.owner,
                     back.expires_in,
-                    lease.end.saturating_duration_since(look.now)
+                    end.saturating_duration_since(look.now)
                 ));
             }
             let Some(Some(promised)) = promised else {
@@ -162,6 +173,8 @@ impl Oracle {
     /// longer the kill's concern.
     pub(crate) fn restarted(&mut self) {
         self.kill = None;
+        self.torn_end = [None; DRIVES];
+        self.note_ends();
     }
 
     /// A start forgets what an earlier start could not decide: a drive
