@@ -38,12 +38,14 @@ const CASES: u32 = 1000;
 /// Runs one case: the plant of `setup`, then `steps`; the first invariant
 /// broken, with the step that broke it.
 fn run_case(setup: Setup, steps: &[Step]) -> Result<(), String> {
+    // The directory outlives the runtime: nothing of a case writes to it
+    // once it is removed.
+    let root = world::scratch()?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_time()
         .build()
         .map_err(|e| format!("no runtime: {e}"))?;
-    let root = world::scratch()?;
-    runtime.block_on(async {
+    let result = runtime.block_on(async {
         let mut world = World::new(setup, root.path())?;
         world.settle_start().await?;
         for (i, step) in steps.iter().enumerate() {
@@ -54,7 +56,9 @@ fn run_case(setup: Setup, steps: &[Step]) -> Result<(), String> {
         }
         world.finish();
         Ok(())
-    })
+    });
+    drop(runtime);
+    result
 }
 
 /// The seed of this run: `DRIVEGATE_MODEL_SEED` (64 hex digits), or a new

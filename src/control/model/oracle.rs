@@ -548,7 +548,9 @@ impl Oracle {
                 Cmd::Torque(_) => current_mode == Some(Mode::Torque),
                 _ => false,
             };
-            if sets || s.before.setpoint != s.after.setpoint {
+            // A write that set it turning again (a brake released onto
+            // the setpoint it held) owns its motion too.
+            if sets || s.before.setpoint != s.after.setpoint || !s.before.driven {
                 self.authority[d] = match (req.terms, req.released) {
                     (Some(_), Some(role)) => Authority::Released(role),
                     (Some(_), None) => Authority::Leased,

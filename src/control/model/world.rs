@@ -78,6 +78,8 @@ pub(super) struct World {
     runs: u32,
     callers: Vec<Caller>,
     process: Option<Process>,
+    /// Print what happens (`DRIVEGATE_MODEL_TRACE=1`).
+    trace: bool,
 }
 
 /// The configuration every case runs with, but for `[safety]`'s actions.
@@ -187,6 +189,7 @@ impl World {
             runs: 0,
             callers: Who::ALL.iter().map(|w| caller(*w)).collect(),
             process: None,
+            trace: std::env::var("DRIVEGATE_MODEL_TRACE").is_ok_and(|v| v == "1"),
         };
         world.start(Vec::new())?;
         Ok(world)
@@ -241,6 +244,9 @@ impl World {
 
     /// Runs one step, then checks the invariants.
     pub(super) async fn step(&mut self, step: &Step) -> Result<(), String> {
+        if self.trace {
+            eprintln!("{:?} {step:?}", self.now());
+        }
         self.oracle.expire(self.now());
         match *step {
             Step::Write {
@@ -475,6 +481,9 @@ impl World {
     fn drain(&mut self) -> Result<(), String> {
         let events = std::mem::take(&mut *self.log.lock().unwrap_or_else(|p| p.into_inner()));
         for event in events {
+            if self.trace {
+                eprintln!("    {event:?}");
+            }
             match event {
                 Event::Queued(id, at, sent) => self.oracle.queued(id, at, sent),
                 Event::Refused(id) => self.oracle.refused(id),
