@@ -82,6 +82,9 @@ pub(super) struct Req {
     released: Option<Role>,
     /// When it was put on the queue, in the bus's order.
     sent: Option<Instant>,
+    /// It did not come live (an MQTT command retained, queued or older
+    /// than the connection): nothing of it may reach a drive.
+    pub(super) stale: bool,
 }
 
 impl Req {
@@ -114,6 +117,7 @@ impl Req {
             abandoned: false,
             released: None,
             sent: None,
+            stale: false,
         }
     }
 
@@ -501,6 +505,12 @@ impl Oracle {
             self.stop_began[d] = Some(s.submitted);
         }
         if let Some(id) = req {
+            if self.reqs[id].stale {
+                return Some(format!(
+                    "drive {d}: an MQTT command that did not come live ({:?}) was sent to the drive",
+                    self.reqs[id].cmd
+                ));
+            }
             if s.outcome.landed() {
                 self.unknown[d] = false;
             }

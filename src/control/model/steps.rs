@@ -118,6 +118,14 @@ impl Damage {
     }
 }
 
+/// How a command that is not live reached the MQTT face.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Stale {
+    Retained,
+    Queued,
+    Older,
+}
+
 /// One step of a case.
 #[derive(Clone, PartialEq, Eq)]
 pub(super) enum Step {
@@ -128,6 +136,14 @@ pub(super) enum Step {
         drive: usize,
         cmd: Cmd,
         lease_ms: Option<u32>,
+    },
+    /// The MQTT session hands the core a command for `drive` that did not
+    /// come live: retained by the broker, queued for an earlier session,
+    /// or older than the connection. Refused: nothing of it is sent.
+    Stale {
+        drive: usize,
+        cmd: Cmd,
+        delivery: Stale,
     },
     /// `who` renews the lease on `drive` (with a new length, if given).
     Renew {
@@ -177,6 +193,11 @@ impl fmt::Debug for Step {
                     None => Ok(()),
                 }
             }
+            Step::Stale {
+                drive,
+                cmd,
+                delivery,
+            } => write!(f, "Scada's {delivery:?} command {cmd:?} to drive {drive}"),
             Step::Renew {
                 who,
                 drive,
@@ -337,6 +358,8 @@ pub(super) fn step() -> impl Strategy<Value = Step> {
             2 => 400u32..=3000,
             1 => 3000u32..=12000,
         ].prop_map(|ms| Step::Advance { ms }),
+        1 => (drive(), cmd(), prop_oneof![Just(Stale::Retained), Just(Stale::Queued), Just(Stale::Older)])
+            .prop_map(|(drive, cmd, delivery)| Step::Stale { drive, cmd, delivery }),
         3 => (leasing(), drive(), prop::option::weighted(0.2, 100u32..=3000))
             .prop_map(|(who, drive, length_ms)| Step::Renew { who, drive, length_ms }),
         1 => (leasing(), drive()).prop_map(|(who, drive)| Step::Release { who, drive }),
@@ -351,7 +374,14 @@ pub(super) fn step() -> impl Strategy<Value = Step> {
     ]
 }
 
+/// The most steps of a case (`DRIVEGATE_MODEL_STEPS` sets another).
+pub(super) const STEPS: usize = 20;
+
 /// A case: its plant and its steps.
 pub(super) fn case() -> impl Strategy<Value = (Setup, Vec<Step>)> {
-    (setup(), prop::collection::vec(step(), 1..=40))
+    let most = std::env::var("DRIVEGATE_MODEL_STEPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(STEPS);
+    (setup(), prop::collection::vec(step(), 1..=most))
 }

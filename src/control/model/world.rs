@@ -18,6 +18,7 @@ use tokio_util::sync::CancellationToken;
 use crate::bus::{BusHandle, SourceId};
 use crate::config::Config;
 use crate::control::lease_book::CommLoss;
+use crate::control::live::Delivery;
 use crate::control::outcome::{Applied, Failure, applied};
 use crate::control::policy::Role;
 use crate::control::time::Clock;
@@ -27,7 +28,7 @@ use crate::drive::{ConfigCommand, DriveRequest};
 
 use super::bench::{self, Bench, Motion, Served, unit};
 use super::oracle::{CoreDrive, Look, Oracle, Req};
-use super::steps::{Cmd, DRIVES, Damage, Setup, Step, Who};
+use super::steps::{Cmd, DRIVES, Damage, Setup, Stale, Step, Who};
 
 /// The bus's queue timeout, ms (a held bus is held for less).
 const QUEUE_TIMEOUT_MS: u64 = 2000;
@@ -254,7 +255,12 @@ impl World {
                 drive,
                 cmd,
                 lease_ms,
-            } => self.write(who, drive, cmd, lease_ms),
+            } => self.write(who, drive, cmd, lease_ms, None),
+            Step::Stale {
+                drive,
+                cmd,
+                delivery,
+            } => self.write(Who::Scada, drive, cmd, None, Some(delivery)),
             Step::Renew {
                 who,
                 drive,
@@ -317,11 +323,20 @@ impl World {
         Some(base.in_session(base.face, guard.id()))
     }
 
-    fn write(&mut self, who: Who, drive: usize, cmd: Cmd, lease_ms: Option<u32>) {
+    /// `who` sends `cmd` to `drive`; `stale`: a command that did not come
+    /// live, which the core must refuse before anything else.
+    fn write(
+        &mut self,
+        who: Who,
+        drive: usize,
+        cmd: Cmd,
+        lease_ms: Option<u32>,
+        stale: Option<Stale>,
+    ) {
         let Some(caller) = self.session_caller(who) else {
             return;
         };
-        if who.comm_loss() {
+        if who.comm_loss() && stale.is_none() {
             self.activity(who);
         }
         let drive_request = request(cmd);
@@ -346,13 +361,30 @@ impl World {
             self.oracle.session(who),
             caller.owner(),
         ));
+        self.oracle.reqs[id].stale = stale.is_some();
         let Some(p) = self.process.as_mut() else {
             return;
         };
         let control = p.control.clone();
         let log = self.log.clone();
         let clock = self.clock.clone();
+        let delivery = stale.map(|s| match s {
+            Stale::Retained => Delivery::Retained,
+            Stale::Queued => Delivery::Queued,
+            Stale::Older => Delivery::Older {
+                sent_ms: 1_799_999_000_000,
+                connected_ms: 1_800_000_000_000,
+            },
+        });
         let task = tokio::spawn(async move {
+            if let Some(delivery) = delivery
+                && control
+                    .check_live(&caller, "drive", "a command", delivery)
+                    .is_err()
+            {
+                push(&log, Event::Refused(id));
+                return;
+            }
             match control
                 .submit(&caller, target(drive), control_request)
                 .await
