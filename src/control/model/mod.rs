@@ -5,19 +5,21 @@
 //!
 //! A case is a plant (`steps::Setup`: the stop actions, each session's
 //! communication-loss time and action, which drives are active) and up to
-//! 40 steps (`steps::Step`): writes from every face's client, renewals,
-//! releases, sessions' requests and ends, time passing, the bus held or its
-//! port down, drives that fall silent or whose requests or replies are
-//! lost, and `kill -9` with the journal left whole, torn, garbled, emptied
+//! [`steps::STEPS`] steps (`steps::Step`): writes from every face's client,
+//! MQTT commands that did not come live, renewals, releases, sessions'
+//! requests and ends, time passing, the bus held or its port down, drives
+//! that fall silent or whose requests or replies are lost, and `kill -9`
+//! with the journal left whole, torn, garbled, emptied, cut to its header
 //! or deleted, then a start. `world` runs the real core (`Control`, its
 //! write path, lease book and driver, brake guard, journal and restart)
 //! with its clock turned by hand, on drives and a bus the `bench` serves;
 //! the `oracle` keeps what the rules promise and checks the invariants
 //! after every step.
 //!
-//! `DRIVEGATE_MODEL_CASES` sets the number of cases (default
-//! [`CASES`]); a failure prints the seed, and `DRIVEGATE_MODEL_SEED`
-//! replays it.
+//! `DRIVEGATE_MODEL_CASES` sets the number of cases (default [`CASES`]),
+//! `DRIVEGATE_MODEL_STEPS` the most steps of one; a failure prints the
+//! seed, and `DRIVEGATE_MODEL_SEED` replays it (`DRIVEGATE_MODEL_TRACE=1`
+//! prints what happens).
 
 mod bench;
 mod examples;
