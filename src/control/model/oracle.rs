@@ -234,6 +234,12 @@ pub(super) struct Oracle {
     /// a journal torn after the floor may give a lease back with any of
     /// them (a shortening renewal, the settling of its write lost).
     torn_end: [Option<Instant>; DRIVES],
+    /// Each drive's leases since the floor last moved, by owner, with the
+    /// latest end each had.
+    since_floor: [Vec<(Arc<str>, Instant)>; DRIVES],
+    /// What a torn journal may give back after the last restart: those
+    /// leases, each until its latest end.
+    revivable: [Vec<(Arc<str>, Instant)>; DRIVES],
 }
 
 impl Oracle {
@@ -257,6 +263,8 @@ impl Oracle {
             kill: None,
             floor: 0,
             torn_end: [None; DRIVES],
+            since_floor: Default::default(),
+            revivable: Default::default(),
         }
     }
 
@@ -281,9 +289,16 @@ impl Oracle {
 
     /// Keeps the latest end of each drive's lease since the floor moved.
     pub(super) fn note_ends(&mut self) {
-        for (lease, torn) in self.leases.iter().zip(self.torn_end.iter_mut()) {
-            if let Some(lease) = lease {
-                *torn = Some(torn.map_or(lease.end, |t| t.max(lease.end)));
+        for d in 0..DRIVES {
+            let Some(lease) = &self.leases[d] else {
+                continue;
+            };
+            let torn = &mut self.torn_end[d];
+            *torn = Some(torn.map_or(lease.end, |t| t.max(lease.end)));
+            let seen = &mut self.since_floor[d];
+            match seen.iter_mut().find(|(owner, _)| *owner == lease.owner) {
+                Some((_, end)) => *end = (*end).max(lease.end),
+                None => seen.push((lease.owner.clone(), lease.end)),
             }
         }
     }
@@ -496,6 +511,7 @@ impl Oracle {
         if s.floor != self.floor {
             self.floor = s.floor;
             self.torn_end = [None; DRIVES];
+            self.since_floor = Default::default();
             self.note_ends();
         }
         let req = self.match_request(s);
@@ -660,6 +676,15 @@ impl Oracle {
                 }
                 _ => false,
             };
+            // A lease a torn journal gave back as it stood since the floor.
+            let revived = core.lease.as_ref().is_some_and(|shown| {
+                self.revivable[d].iter().any(|(owner, end)| {
+                    *owner == shown.owner
+                        && *end > look.now
+                        && look.now + shown.expires_in <= *end + SLACK
+                })
+            });
+            let covered = covered || revived;
             let allowed = match self.authority[d] {
                 Authority::Unleased(role) | Authority::Released(role) => {
                     role.allows(Role::Operator)

@@ -22,6 +22,9 @@ impl Oracle {
             for d in 0..DRIVES {
                 self.torn(d);
             }
+            self.revivable = self.since_floor.clone();
+        } else {
+            self.revivable = Default::default();
         }
         let at = std::array::from_fn(|d| AtKill {
             lease: self.leases[d].clone(),
@@ -174,6 +177,7 @@ impl Oracle {
     pub(crate) fn restarted(&mut self) {
         self.kill = None;
         self.torn_end = [None; DRIVES];
+        self.since_floor = Default::default();
         self.note_ends();
     }
 
