@@ -30,7 +30,7 @@ use crate::bus::cache::Link;
 use crate::bus::handle::JobOptions;
 use crate::bus::job::JobResult;
 use crate::bus::{BusError, BusHandle, Priority};
-use crate::drive::{DriveReply, DriveRequest, Mode, ReplyError, Status};
+use crate::drive::{DriveReply, DriveRequest, ReplyError, Status};
 use crate::modbus::ExceptionCode;
 use crate::modbus::function::EXCEPTION_BIT;
 
@@ -300,7 +300,6 @@ fn tickets(
     // others refuse it, and would refuse the stop of a lease too.
     // Read before the book is locked: the poll cache has its own lock.
     let active = active_drives(parts, target, &drives);
-    let modes = drive_modes(parts, &drives);
     let leases = parts.leases();
     leases.with(|book, now| {
         // The lease asked for (a setpoint's over HTTP or the stream),
@@ -347,17 +346,7 @@ fn tickets(
                     }
                     _ => None,
                 };
-                // A setpoint of another mode than the drive's, without a
-                // lease, sets no motion: it releases a brake, and takes
-                // over no stop still being tried (the motor would go on
-                // at what an ended lease set).
-                let other_mode = meaning
-                    .setpoint
-                    .is_some_and(|m| modes.iter().any(|&(d, current)| d == drive && current != m));
                 let kind = match kind {
-                    WriteKind::Setpoint { .. } if grant.is_none() && other_mode => {
-                        WriteKind::ReleasesBrake { lease: None }
-                    }
                     WriteKind::Setpoint { .. } => WriteKind::Setpoint { lease: grant },
                     WriteKind::ReleasesBrake { .. } => WriteKind::ReleasesBrake { lease: grant },
                     other => other,
@@ -393,21 +382,6 @@ fn active_drives(parts: &Arc<Parts>, target: Target, drives: &[usize]) -> Vec<us
                 .and_then(|d| now.handle_of(d)?.drive(d.unit))
                 .and_then(|s| s.status)
                 .is_some_and(|s| s.active())
-        })
-        .collect()
-}
-
-/// The mode each of `drives` was in at its last poll, where known.
-fn drive_modes(parts: &Arc<Parts>, drives: &[usize]) -> Vec<(usize, Mode)> {
-    let now = parts.plant().now();
-    drives
-        .iter()
-        .filter_map(|&drive| {
-            let status = now
-                .drive_at(drive)
-                .and_then(|d| now.handle_of(d)?.drive(d.unit))
-                .and_then(|s| s.status)?;
-            Some((drive, status.mode()))
         })
         .collect()
 }

@@ -170,27 +170,3 @@ fn a_setpoint_confirmed_after_a_deactivation_ended_its_lease_is_stopped() {
         Ok(())
     );
 }
-
-/// A lease ends, and its brake fails on the line; an operator then writes
-/// a torque setpoint without a lease while the drive is in speed mode. It
-/// sets no motion, yet it ended the stop still being tried: the motor
-/// went on at the ended lease's speed with nobody owning it.
-#[test]
-fn a_setpoint_of_another_mode_does_not_take_over_a_failing_stop() {
-    let setup = Setup {
-        on_lease_expiry: StopAction::Brake,
-        ..plant([true, false], StopAction::ZeroSpeed)
-    };
-    let steps = [
-        write(Who::Panel, 0, Cmd::Speed(150), Some(100)),
-        Step::Fault {
-            drive: 0,
-            trouble: Trouble::LostRequests(3),
-        },
-        Step::Hold { ms: 566 },
-        Step::Advance { ms: 1316 },
-        write(Who::Panel, 0, Cmd::Torque(200), None),
-        Step::Advance { ms: 6000 },
-    ];
-    assert_eq!(run_case(setup, &steps), Ok(()));
-}
