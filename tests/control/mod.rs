@@ -13,5 +13,6 @@ mod brake;
 mod every_face;
 mod opcua;
 mod opcua_attacks;
+mod opcua_late;
 mod roles;
 mod rules;
