@@ -15,6 +15,7 @@ mod opcua;
 mod opcua_attacks;
 mod opcua_browse;
 mod opcua_certificates;
+mod opcua_late;
 mod opcua_operate;
 mod opcua_wire;
 mod roles;
