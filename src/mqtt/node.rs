@@ -134,6 +134,7 @@ struct Node {
 }
 
 /// Starts the edge node's task; it ends after `shutdown` fired.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn spawn(
     config: Arc<MqttConfig>,
     identity: crate::control::identity::Identity,
