@@ -9,6 +9,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::cache::{BusEvent, DriveSnapshot, StatusCache};
 use super::error::BusError;
+use super::feed::BusFollower;
 use super::freshness::{self, Verdict};
 use super::job::{Exchange, Job, Priority, SourceId};
 pub use super::link::PortState;
@@ -348,6 +349,13 @@ impl BusHandle {
     /// Every future status, online/offline and bus event of this bus.
     pub fn subscribe(&self) -> broadcast::Receiver<BusEvent> {
         self.shared.cache.subscribe()
+    }
+
+    /// Hands every future event of this bus to `follower` until `stop`, in
+    /// one task with the bus's other followers: a poll wakes one task, not
+    /// one per follower (see [`feed`](super::feed)).
+    pub fn follow(&self, follower: Arc<dyn BusFollower>, stop: CancellationToken) {
+        self.shared.cache.follow(follower, stop);
     }
 
     /// The future online/offline and bus events of this bus, without the
