@@ -157,7 +157,8 @@ impl PreciseTimer {
             };
             if deadline - now <= lead {
                 // Closer to the deadline than a wake-up would come.
-                return Ok(self.rest(deadline, wake));
+                self.rest(deadline, wake);
+                return Ok(());
             }
             let fire = deadline - lead;
             // A zero expiration would disarm the timer; `fire - now` is
@@ -175,7 +176,7 @@ impl PreciseTimer {
                 let woke = Instant::now();
                 self.latency.observe(fire, woke);
                 if woke < deadline {
-                    return Ok(self.rest(deadline, wake));
+                    self.rest(deadline, wake);
                 }
                 return Ok(());
             }

@@ -10,9 +10,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Instant, SystemTime};
 
 use tokio::sync::broadcast;
-use tokio_util::sync::CancellationToken;
 
-use super::feed::{BusFollower, Feed};
 use super::freshness::{Expected, Facts};
 pub use super::link::Link;
 use crate::drive::Status;
@@ -139,8 +137,6 @@ pub struct StatusCache {
     /// is not woken at every poll (each wake-up of a task costs more than
     /// most of them do with an event).
     links: broadcast::Sender<BusEvent>,
-    /// Whoever follows every event, called in one task.
-    feed: Arc<Feed>,
     offline_after: AtomicU32,
     /// How often each drive is polled, for its freshness.
     expected: Mutex<BTreeMap<u8, Expected>>,
@@ -157,7 +153,6 @@ impl StatusCache {
             drives: Mutex::new(units.into_iter().map(|u| (u, Entry::new(u))).collect()),
             events,
             links,
-            feed: Arc::default(),
             offline_after: AtomicU32::new(offline_after.max(1)),
             expected: Mutex::new(BTreeMap::new()),
         }
@@ -326,12 +321,6 @@ impl StatusCache {
     /// A receiver of every future event.
     pub fn subscribe(&self) -> broadcast::Receiver<BusEvent> {
         self.events.subscribe()
-    }
-
-    /// Hands every future event to `follower` until `stop`, in the one
-    /// task all the bus's followers share.
-    pub fn follow(&self, follower: Arc<dyn BusFollower>, stop: CancellationToken) {
-        self.feed.follow(follower, stop, || self.events.subscribe());
     }
 
     /// A receiver of every future event but the statuses.

@@ -1,24 +1,17 @@
 //! The alarm list as a bus's follower: a drive's fault, a drive that
 //! stops answering, a port that fails, raised and cleared from the bus's
-//! events in the task every follower of the bus shares.
+//! events in the task every follower of the bus shares. It is handed what
+//! to do with each event (the alarm list's `bus_event`), so it stands
+//! below the list and names nothing of it.
 
-use std::sync::Arc;
-
-use super::Alarms;
 use crate::bus::{BusEvent, BusFollower};
-use crate::plant::Plant;
 
-/// The alarm list as a bus's follower: each event raises or clears what it
-/// says, in the task every follower of the bus shares.
-pub(super) struct Follower {
-    pub(super) alarms: Arc<Alarms>,
-    pub(super) plant: Arc<Plant>,
-    pub(super) index: usize,
-}
+/// Calls its function at each event of the bus.
+pub(super) struct Follower<F>(pub(super) F);
 
-impl BusFollower for Follower {
+impl<F: Fn(&BusEvent) + Send + Sync> BusFollower for Follower<F> {
     fn event(&self, event: &BusEvent) {
-        self.alarms.bus_event(&self.plant, self.index, event);
+        (self.0)(event);
     }
 
     fn lagged(&self, missed: u64) {

@@ -331,12 +331,9 @@ impl Alarms {
             let (alarms, plant) = (following.0.clone(), following.1.clone());
             // What happened before this subscription (a port that failed
             // to open at start) is read from the bus's state, after it.
-            let follower = Arc::new(Follower {
-                alarms: alarms.clone(),
-                plant: plant.clone(),
-                index,
-            });
-            bus.handle.follow(follower, shutdown);
+            let (raise, on) = (alarms.clone(), plant.clone());
+            let follower = Follower(move |e: &BusEvent| raise.bus_event(&on, index, e));
+            bus.handle.follow(Arc::new(follower), shutdown);
             alarms.seed(&plant, index);
         });
         let (alarms, plant, shutdown) = (self.clone(), plant.clone(), shutdown.clone());
