@@ -133,6 +133,7 @@ def main():
     env = dict(os.environ, CARGO_MANIFEST_DIR=str(ROOT), RUST_TEST_THREADS="1")
     running = {}
     finished = []
+    cpu = {}
     started = time.monotonic()
     say(f"running {len(waiting)} test processes from {len(binaries)} binaries, "
         f"{jobs_at_once} at a time")
@@ -145,7 +146,7 @@ def main():
                 argv, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT
             )
             running[process.pid] = (key, process, log, time.monotonic())
-        pid, status = os.waitpid(-1, os.WNOHANG)
+        pid, status, usage = os.wait4(-1, os.WNOHANG)
         if pid == 0:
             # Every test bounds its own time; this is for one that does not.
             now = time.monotonic()
@@ -162,6 +163,9 @@ def main():
         log.close()
         seconds = time.monotonic() - began
         ok = process.returncode == 0
+        # CPU of the test and of what it started and waited for (daemons,
+        # clients, the browser): what the machine's cores paid for it.
+        cpu[key] = usage.ru_utime + usage.ru_stime
         finished.append((key, ok, seconds))
         text = Path(log.name).read_text(errors="replace")
         if not ok:
@@ -182,13 +186,18 @@ def main():
     per_area = {}
     for key, ok, seconds in finished:
         area = key.split("/")[0]
-        count, busy = per_area.get(area, (0, 0.0))
-        per_area[area] = (count + 1, busy + seconds)
-    for area, (count, busy) in sorted(per_area.items()):
+        count, busy, used = per_area.get(area, (0, 0.0, 0.0))
+        per_area[area] = (count + 1, busy + seconds, used + cpu.get(key, 0.0))
+    for area, (count, busy, used) in sorted(per_area.items()):
         if count > 1:
-            say(f"{area}: {count} tests, {busy:.0f} s of test time")
+            say(f"{area}: {count} tests, {busy:.0f} s of test time, {used:.0f} s of CPU")
     slowest = sorted(finished, key=lambda f: -f[2])[:3]
     say("slowest: " + ", ".join(f"{k} {s:.1f} s" for k, _, s in slowest))
+    costliest = sorted(cpu.items(), key=lambda kv: -kv[1])[:5]
+    say("most CPU: " + ", ".join(f"{k} {s:.1f} s" for k, s in costliest))
+    (LOGS / "cpu.tsv").write_text(
+        "".join(f"{k}\t{s:.2f}\n" for k, s in sorted(cpu.items()))
+    )
     if failed:
         say(f"FAILED {len(failed)} of {len(finished)}: {', '.join(failed)} ({total:.0f} s); "
             f"logs in {LOGS}")

@@ -19,7 +19,7 @@ use axum::http::header::{AUTHORIZATION, SEC_WEBSOCKET_PROTOCOL};
 use axum::http::request::Parts;
 use sha2::{Digest, Sha256};
 
-use super::throttle::{Policy, Throttle};
+use super::throttle::SignIns;
 use crate::config::http::{TokenConfig, TokenSource};
 use crate::control::Role;
 
@@ -48,7 +48,7 @@ pub struct Tokens {
     /// The running configuration, whose tokens replace these when a
     /// reload changes it.
     follower: Option<Arc<crate::control::reload::ConfigFollower>>,
-    throttle: Arc<Mutex<Throttle>>,
+    throttle: Arc<Mutex<SignIns>>,
     /// When each token (by digest, so a token made again under the same
     /// name starts afresh) was last presented, since the listener started.
     used: Arc<Mutex<std::collections::HashMap<[u8; 32], std::time::SystemTime>>>,
@@ -130,10 +130,7 @@ impl Tokens {
         Ok(Tokens {
             entries: Arc::new(std::sync::RwLock::new(Arc::new(entries))),
             follower: None,
-            throttle: Arc::new(Mutex::new(Throttle::new(Policy {
-                burst: guesses,
-                ..Policy::default()
-            }))),
+            throttle: Arc::new(Mutex::new(SignIns::new(guesses))),
             used: Arc::default(),
         })
     }
@@ -183,7 +180,7 @@ impl Tokens {
     }
 
     /// The failures of each address that presented unknown tokens.
-    pub fn throttle(&self) -> std::sync::MutexGuard<'_, Throttle> {
+    pub fn throttle(&self) -> std::sync::MutexGuard<'_, SignIns> {
         self.throttle.lock().unwrap_or_else(|p| p.into_inner())
     }
 

@@ -45,7 +45,7 @@ fn identify(parts: &Parts, state: &ApiState, websocket: bool) -> Result<Caller, 
     }
     let ip = peer.map(|a| a.ip());
     if let Some(ip) = ip
-        && let Err(wait) = state.tokens.throttle().check(ip, Instant::now())
+        && let Err(wait) = state.tokens.throttle().check(ip, None, Instant::now())
     {
         state.metrics.security().auth_throttled();
         let seconds = wait.as_secs().max(1);
@@ -79,7 +79,7 @@ fn identify(parts: &Parts, state: &ApiState, websocket: bool) -> Result<Caller, 
         None => {
             state.metrics.security().auth_failure();
             let client = peer.map_or_else(|| "unknown".to_string(), |a| a.to_string());
-            match ip.map(|ip| state.tokens.throttle().failure(ip, Instant::now())) {
+            match ip.map(|ip| state.tokens.throttle().failed(ip, None, Instant::now())) {
                 Some(Failure::First) | None => tracing::warn!(
                     client,
                     "refused a request with an unknown API token (more from this address are counted, and logged if they pause it)"

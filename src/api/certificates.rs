@@ -231,6 +231,7 @@ pub async fn delete_trusted(
 #[utoipa::path(
     post,
     path = "/api/v1/certificates/opcua-server/renew",
+    operation_id = "post_certificate_renew",
     tag = "certificates",
     security(("bearer" = ["admin"])),
     responses(

@@ -314,8 +314,10 @@ pub async fn put_file(
     JsonBody(body): JsonBody<TextBody>,
 ) -> Result<Response, Problem> {
     authorize(&state, &caller, Operation::Configure)?;
-    let path = path_of(&state)?;
+    // A change made on no version is refused as such first, whatever the
+    // daemon runs with.
     let base = if_match(&headers)?;
+    let path = path_of(&state)?;
     let on_disk = read(&path).await?;
     if sha256_hex(&on_disk) != base {
         return Err(edited(&state, &path, &base, &on_disk));

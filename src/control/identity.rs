@@ -20,14 +20,20 @@
 //!   extension, else `default_role`; viewer when `read_only`;
 //! - OPC UA user certificates: `[[opcua.user_certificate]]`, else the role
 //!   extension of a certificate signed by `user_ca`;
-//! - OPC UA anonymous sessions: viewer, or refused (`[opcua] anonymous`).
+//! - OPC UA anonymous sessions: viewer, or refused (`[opcua] anonymous`);
+//! - plain Modbus TCP, whose clients prove nothing but their address: the
+//!   most specific of `allowed_networks` (admin) and `[[modbus_tcp.clients]]`
+//!   (its role) that holds the address ([`super::networks`]); viewer when
+//!   `read_only` (`Credential::Network`);
+//! - MQTT, whose messages carry no publisher: `[mqtt] commands`, for every
+//!   command arriving on drivegate's own broker login, named by that login
+//!   and the primary host claimed (`Credential::Broker`).
 //!
-//! The API (`api/caller.rs`), Modbus/TCP Security (`modbus_tcp/server.rs`)
-//! and OPC UA (`opcua/users.rs`) ask here. Plain Modbus TCP clients, which
-//! prove nothing but their address, get theirs from their network's entry
-//! of the same configuration (`modbus_tcp/access.rs`); MQTT commands from
-//! `[mqtt] commands`.
+//! The API (`api/caller.rs`), Modbus TCP (`modbus_tcp/access.rs`),
+//! Modbus/TCP Security (`modbus_tcp/server.rs`), MQTT (`mqtt/mod.rs`) and
+//! OPC UA (`opcua/users.rs`) ask here.
 
+use std::net::IpAddr;
 use std::sync::Arc;
 
 use sha2::{Digest, Sha256};
@@ -54,6 +60,17 @@ pub enum Credential<'a> {
     },
     /// Nothing: an anonymous OPC UA session.
     Anonymous,
+    /// Only the address a plain Modbus TCP client connects from.
+    Network(IpAddr),
+    /// A command from the MQTT broker: all drivegate knows is how it
+    /// logged in itself (`login`, as the broker knows the connection) and,
+    /// with Sparkplug, the primary host that claims to be in charge.
+    Broker {
+        /// The broker user, certificate or unauthenticated broker.
+        login: &'a str,
+        /// The primary host claimed, if any.
+        primary_host: Option<&'a str>,
+    },
 }
 
 /// What vouched for a certificate.
@@ -111,7 +128,52 @@ pub fn identify(
             _ => Err("an anonymous session ([opcua] anonymous = \"none\")".to_string()),
         },
         Credential::Certificate { der, vouched } => certificate(config, face, der, vouched),
+        Credential::Network(ip) => network(config, face, ip),
+        Credential::Broker {
+            login,
+            primary_host,
+        } => broker(config, face, login, primary_host),
     }
+}
+
+/// A plain Modbus TCP client's identity: its address, and the role of the
+/// most specific network that holds it.
+fn network(config: &Config, face: Face, ip: IpAddr) -> Result<Identity, String> {
+    if face != Face::ModbusTcp {
+        return Err(format!("an address gives no role {}", face.words()));
+    }
+    let ip = ip.to_canonical();
+    let rights = super::networks::Networks::from_config(&config.modbus_tcp)
+        .rights(ip)
+        .ok_or_else(|| {
+            format!("{ip} is in none of [modbus_tcp] allowed_networks and [[modbus_tcp.clients]]")
+        })?;
+    Ok(Identity {
+        who: ip.to_string().into(),
+        role: rights.role,
+    })
+}
+
+/// The identity of commands from the MQTT broker: drivegate's own login
+/// and the primary host claimed, with the role of `[mqtt] commands`.
+fn broker(
+    config: &Config,
+    face: Face,
+    login: &str,
+    primary_host: Option<&str>,
+) -> Result<Identity, String> {
+    if face != Face::Mqtt {
+        return Err(format!("a broker login gives no role {}", face.words()));
+    }
+    let mqtt = config.mqtt.as_ref().ok_or("MQTT is not configured")?;
+    let who = match primary_host {
+        Some(host) => format!("{login}; primary host \"{host}\" claimed"),
+        None => login.to_string(),
+    };
+    Ok(Identity {
+        who: who.into(),
+        role: mqtt.commands().role(),
+    })
 }
 
 /// A certificate's identity: see [`identify`].
@@ -234,6 +296,80 @@ mod tests {
         let off = config("[opcua]\nanonymous = \"none\"\n");
         assert!(identify(&off, Face::OpcUa, Credential::Anonymous).is_err());
         assert!(identify(&config(""), Face::OpcUa, Credential::Anonymous).is_err());
+    }
+
+    #[test]
+    fn a_plain_modbus_client_has_the_role_of_its_most_specific_network() {
+        let c = config(
+            "[modbus_tcp]\nallowed_networks = [\"10.0.0.0/8\"]\n\
+             [[modbus_tcp.clients]]\nnetwork = \"10.1.0.0/16\"\nrole = \"operator\"\n",
+        );
+        let of = |ip: &str| {
+            identify(
+                &c,
+                Face::ModbusTcp,
+                Credential::Network(ip.parse().unwrap()),
+            )
+        };
+        let plc = of("::ffff:10.1.2.3").unwrap();
+        assert_eq!((&*plc.who, plc.role), ("10.1.2.3", Role::Operator));
+        assert_eq!(of("10.9.9.9").unwrap().role, Role::Admin);
+        let stranger = of("192.168.1.1").unwrap_err();
+        assert!(stranger.contains("192.168.1.1 is in none of"), "{stranger}");
+        // An address is a role over plain Modbus TCP only.
+        let ip = "10.1.2.3".parse().unwrap();
+        assert!(identify(&c, Face::Http, Credential::Network(ip)).is_err());
+        assert!(identify(&c, Face::OpcUa, Credential::Network(ip)).is_err());
+        // read_only makes every network a viewer's.
+        let ro = config("[modbus_tcp]\nread_only = true\n");
+        let local = identify(
+            &ro,
+            Face::ModbusTcp,
+            Credential::Network(ip_of("127.0.0.1")),
+        );
+        assert_eq!(local.unwrap().role, Role::Viewer);
+    }
+
+    fn ip_of(s: &str) -> IpAddr {
+        s.parse().unwrap()
+    }
+
+    #[test]
+    fn mqtt_commands_have_the_configured_role_and_name_the_login() {
+        let c = config(
+            "[mqtt]\nbroker = \"mqtt://127.0.0.1:1883\"\ncommands = \"operator\"\n\
+             username = \"gw1\"\npassword_file = \"/x\"\n",
+        );
+        let broker = |face, host| {
+            identify(
+                &c,
+                face,
+                Credential::Broker {
+                    login: "broker user gw1",
+                    primary_host: host,
+                },
+            )
+        };
+        let claimed = broker(Face::Mqtt, Some("scada")).unwrap();
+        assert_eq!(
+            (&*claimed.who, claimed.role),
+            (
+                "broker user gw1; primary host \"scada\" claimed",
+                Role::Operator
+            )
+        );
+        assert_eq!(&*broker(Face::Mqtt, None).unwrap().who, "broker user gw1");
+        // A broker login is a role over MQTT only, and only with [mqtt].
+        assert!(broker(Face::ModbusTcp, None).is_err());
+        let none = identify(
+            &config(""),
+            Face::Mqtt,
+            Credential::Broker {
+                login: "x",
+                primary_host: None,
+            },
+        );
+        assert!(none.is_err());
     }
 
     #[test]

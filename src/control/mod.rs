@@ -46,6 +46,7 @@ pub mod journal;
 pub mod lease_book;
 pub mod leases;
 pub mod live;
+pub mod networks;
 pub mod news;
 pub mod outcome;
 mod parts;

@@ -6,6 +6,12 @@
 //! (OPC UA): a name locked from one address still signs in from another,
 //! so a stranger cannot lock an operator out.
 //!
+//! [`SignIns`] is that rule, which every face with sign-ins holds: a name
+//! (or, for a sign-in that names nobody, as a bearer token, the address's
+//! nameless sign-ins) is paused from an address after `[http]
+//! token_guesses` failures within a minute, the whole address after three
+//! times as many.
+//!
 //! A pure state machine with the time passed in. Addresses are tracked by
 //! IPv4 address or IPv6 /64 (one host usually owns a whole /64), and the
 //! table is bounded, so a flood from many addresses cannot grow it.
@@ -29,6 +35,12 @@ impl Key for IpAddr {
 }
 
 impl Key for (IpAddr, String) {
+    fn normal(self) -> Self {
+        (key(self.0), self.1)
+    }
+}
+
+impl Key for (IpAddr, Option<String>) {
     fn normal(self) -> Self {
         (key(self.0), self.1)
     }
@@ -182,6 +194,65 @@ impl<K: Key> Throttle<K> {
     }
 }
 
+/// Failed sign-ins of one face, by address and by address and user name:
+/// the one rule of every face with sign-ins (module doc).
+#[derive(Debug)]
+pub struct SignIns {
+    by_address: Throttle<IpAddr>,
+    by_name: Throttle<(IpAddr, Option<String>)>,
+}
+
+impl Default for SignIns {
+    /// `[http] token_guesses`' default.
+    fn default() -> Self {
+        SignIns::new(Policy::default().burst)
+    }
+}
+
+impl SignIns {
+    /// A name (or the nameless sign-ins) is paused from an address after
+    /// `allowed` failures within a minute, the address after three times
+    /// as many.
+    pub fn new(allowed: u32) -> Self {
+        let policy = |burst| Policy {
+            burst,
+            ..Policy::default()
+        };
+        SignIns {
+            by_address: Throttle::new(policy(allowed.saturating_mul(3))),
+            by_name: Throttle::new(policy(allowed)),
+        }
+    }
+
+    /// `Err(wait)` while the address, or `name` from it, is paused.
+    pub fn check(&self, ip: IpAddr, name: Option<&str>, now: Instant) -> Result<(), Duration> {
+        self.by_address.check(ip, now)?;
+        self.by_name.check((ip, name.map(str::to_string)), now)
+    }
+
+    /// Notes a failed sign-in of `name` (`None`: one that names nobody)
+    /// from `ip`; what it did, for the log (a pause it started, of the
+    /// address or of the name).
+    pub fn failed(&mut self, ip: IpAddr, name: Option<&str>, now: Instant) -> Failure {
+        let address = self.by_address.failure(ip, now);
+        let named = self.by_name.failure((ip, name.map(str::to_string)), now);
+        match (address, named) {
+            (paused @ Failure::Paused { .. }, _) => paused,
+            (_, named) => named,
+        }
+    }
+
+    /// Names and addresses tracked now.
+    pub fn len(&self) -> usize {
+        self.by_address.len() + self.by_name.len()
+    }
+
+    /// True when nothing is tracked.
+    pub fn is_empty(&self) -> bool {
+        self.by_address.is_empty() && self.by_name.is_empty()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -292,5 +363,47 @@ mod tests {
         // Stale entries make room.
         assert_eq!(t.failure(ip("10.0.2.1"), t0 + 11 * S), Failure::First);
         assert_eq!(t.len(), 1);
+    }
+
+    #[test]
+    fn a_name_is_paused_from_its_address_and_the_address_after_three_times_as_many() {
+        let mut g = SignIns::new(3);
+        let t0 = Instant::now();
+        let (a, b) = (ip("10.0.0.66"), ip("10.0.0.5"));
+        let panel = Some("panel");
+        for i in 0..3 {
+            assert!(g.check(a, panel, t0).is_ok(), "after {i}");
+            g.failed(a, panel, t0 + Duration::from_secs(i));
+        }
+        assert!(g.check(a, panel, t0 + 10 * S).is_err());
+        assert!(g.check(b, panel, t0 + 10 * S).is_ok());
+        assert!(g.check(a, Some("scada"), t0 + 10 * S).is_ok());
+        for name in ["a", "b", "c", "d", "e", "f"] {
+            g.failed(a, Some(name), t0 + 11 * S);
+        }
+        assert!(g.check(a, Some("scada"), t0 + 12 * S).is_err());
+        assert!(g.check(b, Some("scada"), t0 + 12 * S).is_ok());
+        assert!(g.check(a, panel, t0 + 75 * S).is_ok());
+    }
+
+    #[test]
+    fn nameless_sign_ins_pause_their_address_at_the_names_count() {
+        // A bearer token names nobody: its failures are the address's
+        // nameless ones, paused after `allowed`, as a name would be; the
+        // same address's named sign-ins and other addresses go on.
+        let mut g = SignIns::new(3);
+        let t0 = Instant::now();
+        let (a, b) = (ip("10.0.0.66"), ip("10.0.0.5"));
+        assert_eq!(g.failed(a, None, t0), Failure::First);
+        assert_eq!(g.failed(a, None, t0), Failure::Again);
+        assert!(matches!(
+            g.failed(a, None, t0 + S),
+            Failure::Paused { failures: 3, .. }
+        ));
+        assert!(g.check(a, None, t0 + 2 * S).is_err());
+        assert!(g.check(b, None, t0 + 2 * S).is_ok());
+        assert!(g.check(a, Some("panel"), t0 + 2 * S).is_ok());
+        assert!(g.check(a, None, t0 + 62 * S).is_ok());
+        assert!(!g.is_empty());
     }
 }

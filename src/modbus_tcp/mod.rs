@@ -41,7 +41,7 @@ use std::sync::Arc;
 
 use tokio::task::JoinHandle;
 
-use access::{Access, SharedAccess};
+use access::SharedAccess;
 use connection::ConnectionSettings;
 use gateway::Gateway;
 use server::ServerSettings;
@@ -61,6 +61,7 @@ pub(crate) fn start(
         stop: shutdown,
         ..
     } = start;
+    let running = config.clone();
     let config = &*config;
     let tcp = &config.modbus_tcp;
     let addr = listener.local_addr().map_err(|e| e.to_string())?;
@@ -75,7 +76,7 @@ pub(crate) fn start(
     }
     let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
     let settings = ServerSettings {
-        access: SharedAccess::new(Access::from_config(tcp), &control),
+        access: SharedAccess::new(running, &control),
         max_connections: tcp.max_connections.map(|n| n.0),
         max_connections_per_address: tcp.per_address_limit(),
         connection: ConnectionSettings {
@@ -102,6 +103,7 @@ pub(crate) fn start_tls(
         stop: shutdown,
         ..
     } = start;
+    let running = config.clone();
     let config = &*config;
     let tcp = &config.modbus_tcp;
     let Some(section) = tcp.tls.clone() else {
@@ -122,7 +124,7 @@ pub(crate) fn start_tls(
     .map_err(|e| format!("cannot watch for SIGHUP (certificate reloads): {e}"))?;
     let gateway = Arc::new(Gateway::new(tcp, plant, control.clone(), metrics));
     let settings = ServerSettings {
-        access: SharedAccess::new(Access::from_config(tcp), &control),
+        access: SharedAccess::new(running, &control),
         max_connections: tcp.max_connections.map(|n| n.0),
         max_connections_per_address: tcp.per_address_limit(),
         connection: ConnectionSettings {

@@ -8,26 +8,23 @@
 //! *claims* to be in charge (its `STATE`, which any client allowed to
 //! publish there could send). The audit log, the leases and the bus
 //! monitor say exactly that, and nothing more:
-//! `broker user gw1; primary host "scada" claimed`.
+//! `broker user gw1; primary host "scada" claimed`. This module says the
+//! login; the core ([`crate::control::identity`], `Credential::Broker`)
+//! adds the host claimed and gives the role (`[mqtt] commands`).
 
 use crate::config::MqttConfig;
 use crate::config::mqtt::Login;
 
-/// The `who` of the MQTT face's commands (audit log, lease owner, bus
-/// monitor): how the broker knows drivegate's connection, and the
-/// primary host claimed, if any (Sparkplug only: `primary_host`).
-pub fn who(config: &MqttConfig, primary_host: Option<&str>) -> String {
-    let login = match config.login() {
+/// How the broker knows drivegate's connection, the first part of the
+/// `who` of the MQTT face's commands (audit log, lease owner, bus monitor).
+pub fn login(config: &MqttConfig) -> String {
+    match config.login() {
         Login::User(user) => format!("broker user {user}"),
         Login::Certificate => match certificate_name(config) {
             Some(cn) => format!("broker certificate \"{cn}\""),
             None => "broker certificate".to_string(),
         },
         Login::Anonymous => config.anonymous_name(),
-    };
-    match primary_host {
-        Some(host) => format!("{login}; primary host \"{host}\" claimed"),
-        None => login,
     }
 }
 
@@ -45,25 +42,54 @@ fn certificate_name(config: &MqttConfig) -> Option<String> {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::config::Config;
+    use crate::config::{Config, Role};
+    use crate::control::Face;
+    use crate::control::identity::{Credential, identify};
 
-    fn mqtt(keys: &str) -> MqttConfig {
+    fn config(keys: &str) -> Config {
         let toml = format!("[mqtt]\nbroker = \"mqtt://10.0.0.5:1883\"\n{keys}\n");
-        Config::parse(&toml, "test").unwrap().mqtt.unwrap()
+        Config::parse(&toml, "test").unwrap()
+    }
+
+    /// The who and role of commands, as the face asks the core for them.
+    fn who(config: &Config, primary_host: Option<&str>) -> (String, Role) {
+        let login = login(config.mqtt.as_ref().unwrap());
+        let credential = Credential::Broker {
+            login: &login,
+            primary_host,
+        };
+        let identity = identify(config, Face::Mqtt, credential).unwrap();
+        (identity.who.to_string(), identity.role)
     }
 
     #[test]
     fn says_only_what_is_known() {
-        let c = mqtt("commands = \"operator\"\nusername = \"gw1\"\npassword_file = \"/x\"");
+        let c = config("commands = \"operator\"\nusername = \"gw1\"\npassword_file = \"/x\"");
         assert_eq!(
             who(&c, Some("scada")),
-            "broker user gw1; primary host \"scada\" claimed"
+            (
+                "broker user gw1; primary host \"scada\" claimed".to_string(),
+                Role::Operator
+            )
         );
-        assert_eq!(who(&c, None), "broker user gw1");
-        let c = mqtt("commands = \"operator\"\nunauthenticated_commands = true");
-        assert_eq!(who(&c, None), "unauthenticated broker 10.0.0.5:1883");
-        // A user without a password is no login.
-        let c = mqtt("username = \"gw1\"");
-        assert_eq!(who(&c, None), "unauthenticated broker 10.0.0.5:1883");
+        assert_eq!(who(&c, None).0, "broker user gw1");
+        let c = config("commands = \"admin\"\nunauthenticated_commands = true");
+        assert_eq!(
+            who(&c, None),
+            (
+                "unauthenticated broker 10.0.0.5:1883".to_string(),
+                Role::Admin
+            )
+        );
+        // A user without a password is no login; no commands, a viewer's
+        // role (the core refuses every write in its own words).
+        let c = config("username = \"gw1\"");
+        assert_eq!(
+            who(&c, None),
+            (
+                "unauthenticated broker 10.0.0.5:1883".to_string(),
+                Role::Viewer
+            )
+        );
     }
 }

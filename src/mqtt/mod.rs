@@ -103,6 +103,20 @@ pub(crate) fn start(
         return Ok(None);
     };
     let node_id = node_id(&section);
+    // Who commands come from, as far as known, and their role: the core's.
+    let login = identity::login(&section);
+    let primary_host = match section.format {
+        Format::Json => None,
+        _ => section.primary_host_id.as_deref(),
+    };
+    let identity = crate::control::identity::identify(
+        config,
+        crate::control::Face::Mqtt,
+        crate::control::identity::Credential::Broker {
+            login: &login,
+            primary_host,
+        },
+    )?;
     if section.format == Format::Json {
         if section.primary_host_id.is_some() {
             tracing::warn!(
@@ -111,6 +125,7 @@ pub(crate) fn start(
         }
         return Ok(Some(json::node::spawn(
             Arc::new(section),
+            identity,
             node_id,
             control,
             metrics,
@@ -119,6 +134,7 @@ pub(crate) fn start(
     }
     Ok(Some(node::spawn(
         Arc::new(section),
+        identity,
         node_id,
         control,
         metrics,

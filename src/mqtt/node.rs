@@ -105,6 +105,8 @@ struct Node {
     topics: NodeTopics,
     /// Who commands come from, for the audit log and lease owners.
     who: Arc<str>,
+    /// Their role, from the core ([`crate::control::identity`]).
+    role: crate::control::Role,
     source: SourceId,
     outbox: Box<dyn Outbox>,
     /// Kept data taken from the outbox, waiting for its drive's birth.
@@ -132,8 +134,10 @@ struct Node {
 }
 
 /// Starts the edge node's task; it ends after `shutdown` fired.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn spawn(
     config: Arc<MqttConfig>,
+    identity: crate::control::identity::Identity,
     node_id: String,
     control: Control,
     metrics: Arc<Metrics>,
@@ -145,11 +149,12 @@ pub(super) fn spawn(
     let (bus_tx, bus_rx) = mpsc::channel(4096);
     let topics = NodeTopics::new(&config.group_id, &node_id);
     // What is known of who commands: the broker's login, the host claimed.
-    let who: Arc<str> = super::identity::who(&config, config.primary_host_id.as_deref()).into();
+    let who = identity.who;
     let session = open_session(&control, &config);
     let node = Node {
         topics,
         who: who.clone(),
+        role: identity.role,
         source: SourceId::new_unique(),
         outbox,
         held: Held::default(),

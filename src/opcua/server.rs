@@ -296,8 +296,16 @@ pub fn caps(section: &OpcUaConfig) -> Caps {
     }
 }
 
+/// Notifications in one publish message, at most. A sent message is kept
+/// for `Republish` until its client acknowledges it, up to twice the
+/// session's pending Publish requests (20): without this bound one message
+/// could carry every queued value, and a client that publishes without
+/// acknowledging would hold 40 times `max_queued_values`.
+pub const NOTIFICATIONS_PER_PUBLISH: u64 = 1000;
+
 impl Caps {
     fn apply(self, limits: &mut opcua::server::SubscriptionLimits) {
+        limits.max_notifications_per_publish = NOTIFICATIONS_PER_PUBLISH;
         limits.max_subscriptions_per_session = self.subscriptions_per_session;
         limits.max_monitored_items_per_session = self.monitored_items_per_session;
         limits.max_monitored_items = self.monitored_items;
@@ -310,6 +318,19 @@ impl Caps {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_caps_bound_every_queue_and_each_publish_message() {
+        let section = OpcUaConfig::default();
+        let mut limits = opcua::server::SubscriptionLimits::default();
+        caps(&section).apply(&mut limits);
+        assert_eq!(limits.max_queued_values, 100_000);
+        assert_eq!(limits.max_monitored_item_queue_size, 10);
+        // The stack's default is 0, no bound: a message could carry every
+        // queued value, and 40 of them wait for acknowledgements.
+        assert_eq!(limits.max_notifications_per_publish, 1000);
+        assert_eq!(limits.max_pending_publish_requests, 20);
+    }
 
     #[test]
     fn subscriptions_sample_and_publish_at_the_fastest_poll_and_tick_twice_as_often() {

@@ -30,7 +30,7 @@ use std::collections::HashMap;
 use std::net::{IpAddr, Ipv4Addr};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use async_trait::async_trait;
 use opcua::crypto::{SecurityPolicy, Thumbprint};
@@ -51,7 +51,7 @@ use crate::config::{Config, OpcUaConfig, Role};
 use crate::control::Face;
 use crate::control::identity::{Credential, Vouched, hex, identify};
 use crate::control::policy::{Operation, for_settings};
-use crate::control::throttle::{Policy, Throttle};
+use crate::control::throttle::SignIns;
 use crate::metrics::Metrics;
 
 /// Who a session is, as the core needs it.
@@ -72,39 +72,8 @@ pub struct Users {
     user_ca: Option<PathBuf>,
     /// Certificate users by token: who and role, decided at sign-in.
     certificates: Mutex<HashMap<String, (Arc<str>, Role)>>,
-    guesses: Mutex<Guesses>,
+    guesses: Mutex<SignIns>,
     metrics: Arc<Metrics>,
-}
-
-/// Failed sign-ins by address, and by address and user name.
-struct Guesses {
-    by_address: Throttle<IpAddr>,
-    by_name: Throttle<(IpAddr, String)>,
-}
-
-impl Guesses {
-    /// A name is paused from an address after `allowed` failures within a
-    /// minute, the address after three times as many.
-    fn new(allowed: u32) -> Self {
-        let policy = |burst| Policy {
-            burst,
-            ..Policy::default()
-        };
-        Guesses {
-            by_address: Throttle::new(policy(allowed.saturating_mul(3))),
-            by_name: Throttle::new(policy(allowed)),
-        }
-    }
-
-    fn check(&self, ip: IpAddr, name: &str, now: Instant) -> Result<(), Duration> {
-        self.by_address.check(ip, now)?;
-        self.by_name.check((ip, name.to_string()), now)
-    }
-
-    fn failed(&mut self, ip: IpAddr, name: &str, now: Instant) {
-        self.by_address.failure(ip, now);
-        self.by_name.failure((ip, name.to_string()), now);
-    }
 }
 
 /// The prefix of a user-name session's token.
@@ -154,7 +123,7 @@ impl Users {
             pki,
             user_ca: section.user_ca.clone(),
             certificates: Mutex::new(HashMap::new()),
-            guesses: Mutex::new(Guesses::new(allowed)),
+            guesses: Mutex::new(SignIns::new(allowed)),
             metrics,
         }
     }
@@ -204,7 +173,7 @@ impl Users {
     fn not_paused(&self, sign_in: &SignIn, name: &str) -> Result<(), String> {
         let guesses = self.guesses.lock().unwrap_or_else(|p| p.into_inner());
         guesses
-            .check(address(sign_in), name, Instant::now())
+            .check(address(sign_in), Some(name), Instant::now())
             .map_err(|wait| {
                 format!(
                     "\"{name}\" from {}: too many failed sign-ins from this address within a \
@@ -219,7 +188,7 @@ impl Users {
         self.guesses
             .lock()
             .unwrap_or_else(|p| p.into_inner())
-            .failed(address(sign_in), name, Instant::now());
+            .failed(address(sign_in), Some(name), Instant::now());
     }
 
     fn check_password(&self, user: &str, password: &str, sign_in: &SignIn) -> Result<(), String> {
@@ -492,26 +461,6 @@ impl AuthManager for Users {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_name_is_paused_from_its_address_and_the_address_after_three_times_as_many() {
-        let mut g = Guesses::new(3);
-        let t0 = Instant::now();
-        let (a, b): (IpAddr, IpAddr) = ("10.0.0.66".parse().unwrap(), "10.0.0.5".parse().unwrap());
-        for i in 0..3 {
-            assert!(g.check(a, "panel", t0).is_ok(), "after {i}");
-            g.failed(a, "panel", t0 + Duration::from_secs(i));
-        }
-        assert!(g.check(a, "panel", t0 + Duration::from_secs(10)).is_err());
-        assert!(g.check(b, "panel", t0 + Duration::from_secs(10)).is_ok());
-        assert!(g.check(a, "scada", t0 + Duration::from_secs(10)).is_ok());
-        for name in ["a", "b", "c", "d", "e", "f"] {
-            g.failed(a, name, t0 + Duration::from_secs(11));
-        }
-        assert!(g.check(a, "scada", t0 + Duration::from_secs(12)).is_err());
-        assert!(g.check(b, "scada", t0 + Duration::from_secs(12)).is_ok());
-        assert!(g.check(a, "panel", t0 + Duration::from_secs(75)).is_ok());
-    }
 
     #[test]
     fn digests_of_hashes_files_and_variables() {

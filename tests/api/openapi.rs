@@ -74,6 +74,18 @@ fn document_covers_every_route_and_declares_version_and_licence() {
     ] {
         assert!(schemas.contains_key(schema), "schema {schema} missing");
     }
+    // Every operation has an id of its own (clients generated from the
+    // document name their methods by it).
+    let mut ids = std::collections::BTreeMap::new();
+    for (path, item) in paths {
+        for (method, op) in item.as_object().unwrap() {
+            if let Some(id) = op.get("operationId").and_then(|i| i.as_str()) {
+                if let Some(other) = ids.insert(id.to_string(), format!("{method} {path}")) {
+                    panic!("operationId {id} names both {other} and {method} {path}");
+                }
+            }
+        }
+    }
     // Errors are documented as problem+json.
     let setpoint = &paths["/api/v1/drives/{drive}/setpoint"]["put"]["responses"];
     assert!(setpoint["422"]["content"]["application/problem+json"].is_object());

@@ -7,9 +7,6 @@
 //! copied, used and revoked; a refused OPC UA client (asyncua) trusted
 //! from the Certificates page and then connecting, and its certificate,
 //! which expires within 30 days, an alarm. The time it took is printed.
-//!
-//! The renamed drive is on a bus where nothing turns: a rename reopens
-//! its bus, and the built-in simulator's drives stop with it.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

@@ -8,6 +8,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, unreachable_pub)]
 
+mod attack_matrix;
 mod cli;
 mod config_ranges;
 mod docs;

@@ -6,7 +6,8 @@
 //! (Maximum Packet Size) and answers the next command. Malformed payloads
 //! cost nothing else either. And the broker configuration of
 //! `docs/security.md` pins a client id to its user: a stranger connecting
-//! with the node's client id does not knock it off (without it, it does).
+//! with the node's client id does not knock it off, in either format
+//! (without it, it does).
 
 use std::process::Stdio;
 use std::time::Duration;
@@ -18,7 +19,7 @@ use drivegate::mqtt::metric::Value;
 use super::commands::{born, run};
 use super::{GROUP, NODE, config};
 use crate::support::metrics::counter;
-use crate::support::mosquitto::{Mosquitto, Sub, publish};
+use crate::support::mosquitto::{Mosquitto, Sub, publish, publish_as};
 use crate::support::sparkplug::{Host, number};
 use crate::support::tools;
 use crate::support::{TestDaemon, bounded, eventually};
@@ -192,6 +193,7 @@ async fn a_large_retained_command_costs_the_message_not_the_json_connection() {
 const GW1: (&str, &str) = ("gw1", "gw1-secret");
 const SCADA: (&str, &str) = ("scada", "scada-secret");
 const HMI: (&str, &str) = ("hmi", "hmi-secret");
+const HISTORIAN: (&str, &str) = ("historian", "historian-secret");
 
 /// The block of `docs/security.md` that starts with `first`, as the page
 /// shows it.
@@ -292,6 +294,77 @@ async fn a_stranger_cannot_take_the_nodes_client_id_on_the_documented_broker() {
             (counter(&d, "drivegate_mqtt_reconnects_total") >= 1.0).then_some(())
         })
         .await;
+        d.stop().await;
+    })
+    .await;
+}
+
+/// The JSON format's node on the same broker configuration: another
+/// broker user connecting with its client id (`drivegate-json-gw1`) does
+/// not knock it off, and a command the SCADA user publishes after it is
+/// answered on the node's first connection.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stranger_cannot_take_the_json_nodes_client_id_on_the_documented_broker() {
+    bounded(Duration::from_secs(60), async {
+        let broker = Mosquitto::start_with_users_and(
+            &[GW1, SCADA, HMI, HISTORIAN],
+            &block_of_the_docs("# mosquitto acl_file, JSON format"),
+            &block_of_the_docs("# mosquitto.conf, drivegate's broker"),
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let password = dir.path().join("mqtt-password");
+        std::fs::write(&password, format!("{}\n", GW1.1)).unwrap();
+        let d = TestDaemon::start(&config(
+            &broker.url(),
+            &format!(
+                "format = \"json\"\ncommands = \"operator\"\nusername = \"{}\"\npassword_file = \"{}\"",
+                GW1.0,
+                password.display()
+            ),
+        ))
+        .await;
+        let prefix = format!("drivegate/{NODE}");
+        let state = format!("{prefix}/state");
+        let replies = format!("{prefix}/+/reply");
+        // Every user reads; a client id is its user's name, so the reader
+        // is a user of its own, apart from the SCADA user who commands.
+        let mut sub = Sub::start_as(broker.port, Some(HISTORIAN), &[&state, &replies]);
+        sub.next(WAIT, "the state online", |m| {
+            m.topic == state && m.payload == "online"
+        })
+        .await;
+        let mut hmi = stranger(broker.port, Some(HMI), &format!("drivegate-json-{NODE}"));
+        eventually(WAIT, "the stranger connected", || {
+            broker.log().contains("u'hmi'").then_some(())
+        })
+        .await;
+        let status = json!({"type": "command", "id": "after", "op": "status"});
+        publish_as(
+            broker.port,
+            SCADA,
+            "scada-client",
+            &format!("{prefix}/conveyor/command"),
+            status.to_string().as_bytes(),
+        )
+        .await;
+        let reply = sub
+            .next(WAIT, "the reply after the stranger came", |m| {
+                m.topic.ends_with("/reply")
+            })
+            .await;
+        assert_eq!(
+            (&reply.json()["id"], &reply.json()["ok"]),
+            (&json!("after"), &json!(true)),
+            "{reply:?}"
+        );
+        assert_eq!(counter(&d, "drivegate_mqtt_reconnects_total"), 0.0);
+        assert!(
+            !broker.log().contains("already connected, closing old connection"),
+            "{}",
+            broker.log()
+        );
+        let _ = hmi.kill().await;
+        sub.stop().await;
         d.stop().await;
     })
     .await;

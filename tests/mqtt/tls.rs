@@ -1,10 +1,11 @@
-//! The broker over TLS, trusted by its CA (certificates made by openssl).
+//! The broker over TLS, trusted by its CA (certificates made by openssl),
+//! in both formats.
 
 use std::time::Duration;
 
 use super::config;
 use crate::support::certs::Pki;
-use crate::support::mosquitto::Mosquitto;
+use crate::support::mosquitto::{Mosquitto, Sub};
 use crate::support::sparkplug::Host;
 use crate::support::{TestDaemon, bounded, eventually};
 
@@ -24,6 +25,32 @@ async fn births_over_tls_with_the_brokers_ca() {
         ))
         .await;
         host.next(WAIT, "NBIRTH", |m| m.is("NBIRTH", None)).await;
+        d.stop().await;
+    })
+    .await;
+}
+
+/// The JSON format's MQTT 5 connection over TLS: its retained state
+/// `online` reaches a client of the plain listener.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_json_format_over_tls_with_the_brokers_ca() {
+    bounded(Duration::from_secs(60), async {
+        let pki = Pki::new();
+        let broker = Mosquitto::start_tls(&pki);
+        let state = format!("drivegate/{}/state", super::NODE);
+        let mut sub = Sub::start(broker.port, &[&state]);
+        let ca = pki.path("ca.pem");
+        let d = TestDaemon::start(&config(
+            &broker.tls_url(),
+            &format!("format = \"json\"\nca = \"{}\"", ca.display()),
+        ))
+        .await;
+        sub.next(WAIT, "the state online over TLS", |m| {
+            m.topic == state && m.payload == "online"
+        })
+        .await;
+        assert!(d.metrics.mqtt().link().connected);
+        sub.stop().await;
         d.stop().await;
     })
     .await;

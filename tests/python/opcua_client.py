@@ -14,6 +14,7 @@ answered otherwise than the scenario needs; the test decides what is right.
 import argparse
 import asyncio
 import json
+import os
 import sys
 import time
 import urllib.request
@@ -328,6 +329,32 @@ async def operate(args):
         say("called", method="Brake")
 
 
+async def late(args):
+    """As --user: SetMode("speed") and Activate(), then "ready"; once the
+    file --go exists, SpeedSetpoint = --value with a request timeout, and
+    so a TimeoutHint, of --hint-ms: "written" says what came back (the
+    client's own timeout, or the server's status) and after how long; the
+    session is closed once --go.end exists."""
+    async with await client(args) as c:
+        for method, inputs in [("SetMode", [ua.Variant("speed", ua.VariantType.String)]), ("Activate", [])]:
+            await call(c, args.drive, method, *inputs)
+        say("ready")
+        while not os.path.exists(args.go):
+            await asyncio.sleep(0.01)
+        c.uaclient.protocol.timeout = args.hint_ms / 1000
+        t0 = time.monotonic()
+        try:
+            got = await write(c, args.drive, "SpeedSetpoint", args.value)
+        except asyncio.TimeoutError:
+            got = "timeout"
+        say("written", status=got, seconds=round(time.monotonic() - t0, 3))
+        c.uaclient.protocol.timeout = 20
+        # The session stays open (its end would stop the drive) until the
+        # file --go.end exists.
+        while not os.path.exists(args.go + ".end"):
+            await asyncio.sleep(0.01)
+
+
 async def lease(args):
     """Takes a lease (SetMode, Activate, a setpoint) and waits to be killed."""
     c = await client(args, timeout_ms=args.timeout_ms)
@@ -606,7 +633,7 @@ async def flood(args):
     say("closed")
 
 
-SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, described, anonymous_write, operate, lease, hold, brake, secure, quality, events, history, table, sign_in, clear_password, guess, claim, flood]}
+SCENARIOS = {f.__name__.replace("_", "-"): f for f in [endpoints, browse, read, described, anonymous_write, operate, late, lease, hold, brake, secure, quality, events, history, table, sign_in, clear_password, guess, claim, flood]}
 
 
 def scenarios(text):
@@ -635,6 +662,8 @@ async def main():
     p.add_argument("--value", type=float, default=600.0)
     p.add_argument("--seconds", type=float, default=20)
     p.add_argument("--timeout-ms", type=int, default=3000)
+    p.add_argument("--hint-ms", type=int, default=1000, help="the late scenario's request timeout")
+    p.add_argument("--go", help="the late scenario's signal: a file that appears")
     p.add_argument("--metrics", help="the daemon's /metrics URL")
     p.add_argument("--source", help="the client's own address (a loopback address of its own)")
     p.add_argument("--guesses", type=int, default=10)

@@ -14,6 +14,7 @@ mod limits;
 mod modbus_tcp;
 mod modbus_tls;
 mod opcua_budget;
+mod opcua_input;
 mod origin;
 mod routes;
 mod state_files;

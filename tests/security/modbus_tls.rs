@@ -4,7 +4,9 @@
 //! applies it as for a network's role (an operator sets a speed but cannot
 //! save; a viewer reads but cannot write), the communication-loss function
 //! holds for TLS clients, the audit log and the bus monitor name the CN,
-//! and a foreign CA, no certificate or an unknown role are not served.
+//! and a foreign CA, no certificate or an unknown role are not served; a
+//! flood of handshakes that never come, or of plain bytes, from one
+//! address leaves a certified client of another served.
 
 use std::path::Path;
 use std::time::Duration;
@@ -135,6 +137,112 @@ async fn roles_come_from_client_certificates() {
         assert!(log_text().contains("the certificate's role \"boss\" is none of viewer, operator, admin"));
         let metrics = d.metrics.render();
         assert!(metrics.contains("drivegate_modbus_tcp_tls_refused_total{reason=\"role\"} 1"), "{metrics}");
+        d.stop().await;
+    })
+    .await
+    .expect("in time");
+}
+
+/// A connection to `addr` from the loopback address `source`.
+async fn connect_from(
+    source: &str,
+    addr: std::net::SocketAddr,
+) -> std::io::Result<tokio::net::TcpStream> {
+    let socket = tokio::net::TcpSocket::new_v4()?;
+    socket.bind(format!("{source}:0").parse().unwrap())?;
+    socket.connect(addr).await
+}
+
+/// 100 connections from 127.0.0.2 that never start their handshake, and
+/// 20 that send plain Modbus TCP, HTTP or a record of no known handshake
+/// message instead of a ClientHello: the garbage costs its own
+/// connections (closed at once, counted, logged a few times, not once
+/// each), the silent ones hold no more than their share of the budget
+/// until the idle timeout closes them, and a client with its certificate
+/// from 127.0.0.1 is served meanwhile.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_handshakes_from_one_address_leaves_a_certified_client_served() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    tokio::time::timeout(LIMIT, async {
+        capture_logs();
+        let pki = Pki::new();
+        pki.client("line-3-plc", "ca", Some("ASN1:UTF8String:operator"));
+        let section = format!(
+            "[modbus_tcp.tls]\nlisten = \"127.0.0.1:0\"\ncert = \"{}\"\nkey = \"{}\"\nclient_ca = \"{}\"\n",
+            pki.path("server.pem").display(),
+            pki.path("server.key").display(),
+            pki.path("ca.pem").display()
+        );
+        // Handshakes that never start are closed after the idle timeout.
+        let toml = FOUR_DRIVES
+            .replacen("[modbus_tcp]\n", "[modbus_tcp]\nidle_timeout_ms = 3000\n", 1)
+            .replacen("[[bus]]\n", &format!("{section}[[bus]]\n"), 1);
+        let d = TestDaemon::start(&toml).await;
+        let addr = d.modbus_tls.expect("the Modbus/TCP Security listener");
+        let handshakes_failed = || {
+            crate::support::metrics::metric(
+                &d.metrics.render(),
+                "drivegate_tls_handshake_failures_total{face=\"modbus_tcp\"}",
+            )
+        };
+        let logged = || {
+            log_text()
+                .lines()
+                .filter(|l| l.contains("Modbus/TCP Security handshake failed") && l.contains("127.0.0.2:"))
+                .count()
+        };
+        let mut garbage = Vec::new();
+        for i in 0..20 {
+            let Ok(mut s) = connect_from("127.0.0.2", addr).await else {
+                continue;
+            };
+            let bytes: &[u8] = match i % 3 {
+                // Read holding registers, plain MBAP: waits for a record.
+                0 => &[0, 1, 0, 0, 0, 6, 3, 3, 0, 0xC0, 0, 7],
+                // HTTP: a record header announcing 8 kB that never come.
+                1 => b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",
+                // A whole handshake record of no known message: refused.
+                _ => &[0x16, 3, 1, 0, 4, 0xFF, 0, 0, 0],
+            };
+            let _ = s.write_all(bytes).await;
+            garbage.push(s);
+        }
+        // Each garbage connection is closed by the daemon.
+        for s in &mut garbage {
+            let mut buf = [0u8; 512];
+            let closed = loop {
+                match tokio::time::timeout(Duration::from_secs(20), s.read(&mut buf)).await {
+                    Ok(Ok(0) | Err(_)) => break true,
+                    Ok(Ok(_)) => continue,
+                    Err(_) => break false,
+                }
+            };
+            assert!(closed, "a connection that sent garbage is still open");
+        }
+        let mut silent = Vec::new();
+        for _ in 0..100 {
+            if let Ok(s) = connect_from("127.0.0.2", addr).await {
+                silent.push(s);
+            }
+        }
+        let out = client(addr, &pki, Some("line-3-plc"), &["read:3:0xC0:7"]).await;
+        assert_eq!(out["connected"], true, "{out}");
+        assert_eq!(
+            out["results"][0]["registers"].as_array().map(Vec::len),
+            Some(7),
+            "{out}"
+        );
+        eventually(LIMIT, "the failed handshakes counted", || {
+            (handshakes_failed() >= 20.0).then_some(())
+        })
+        .await;
+        let lines = logged();
+        assert!(
+            (1..=10).contains(&lines),
+            "{lines} log lines for 20 failed handshakes of one address: {}",
+            log_text().lines().filter(|l| l.contains("Security")).collect::<Vec<_>>().join("\n")
+        );
+        drop(silent);
         d.stop().await;
     })
     .await

@@ -105,7 +105,7 @@ async fn twenty_anonymous_sessions_from_one_address_leave_one_for_an_operator_fr
 }
 
 /// The OPC UA TCP message of type `kind` ("HEL", "OPN") with `body`.
-fn message(kind: &[u8; 3], body: &[u8]) -> Vec<u8> {
+pub(super) fn message(kind: &[u8; 3], body: &[u8]) -> Vec<u8> {
     let mut m = kind.to_vec();
     m.push(b'F');
     m.extend_from_slice(&u32::try_from(8 + body.len()).unwrap().to_le_bytes());
@@ -113,13 +113,13 @@ fn message(kind: &[u8; 3], body: &[u8]) -> Vec<u8> {
     m
 }
 
-fn string(out: &mut Vec<u8>, s: &str) {
+pub(super) fn string(out: &mut Vec<u8>, s: &str) {
     out.extend_from_slice(&i32::try_from(s.len()).unwrap().to_le_bytes());
     out.extend_from_slice(s.as_bytes());
 }
 
 /// Hello: protocol 0, 64 KiB buffers, no message or chunk limit.
-fn hello(url: &str) -> Vec<u8> {
+pub(super) fn hello(url: &str) -> Vec<u8> {
     let mut b = Vec::new();
     for v in [0u32, 65_536, 65_536, 0, 0] {
         b.extend_from_slice(&v.to_le_bytes());
@@ -129,7 +129,7 @@ fn hello(url: &str) -> Vec<u8> {
 }
 
 /// OpenSecureChannel, policy None, mode None, asking for an hour.
-fn open() -> Vec<u8> {
+pub(super) fn open() -> Vec<u8> {
     let mut b = Vec::new();
     b.extend_from_slice(&0u32.to_le_bytes()); // secure channel id
     string(&mut b, "http://opcfoundation.org/UA/SecurityPolicy#None");
@@ -154,7 +154,7 @@ fn open() -> Vec<u8> {
 }
 
 /// The type of the next message on `s` ("ACK", "ERR", "OPN"), or why none.
-async fn next_type(s: &mut TcpStream) -> Result<String, String> {
+pub(super) async fn next_type(s: &mut TcpStream) -> Result<String, String> {
     let mut head = [0u8; 8];
     tokio::time::timeout(Duration::from_secs(20), s.read_exact(&mut head))
         .await
@@ -170,7 +170,7 @@ async fn next_type(s: &mut TcpStream) -> Result<String, String> {
 }
 
 /// A connection to `addr` from `source`.
-async fn connect_from(source: &str, addr: SocketAddr) -> std::io::Result<TcpStream> {
+pub(super) async fn connect_from(source: &str, addr: SocketAddr) -> std::io::Result<TcpStream> {
     let socket = tokio::net::TcpSocket::new_v4()?;
     socket.bind(format!("{source}:0").parse().unwrap())?;
     socket.connect(addr).await
@@ -178,7 +178,7 @@ async fn connect_from(source: &str, addr: SocketAddr) -> std::io::Result<TcpStre
 
 /// A secure channel from `source`: the open socket once its OPN was
 /// answered, or how it was turned away.
-async fn channel(source: &str, addr: SocketAddr) -> Result<TcpStream, String> {
+pub(super) async fn channel(source: &str, addr: SocketAddr) -> Result<TcpStream, String> {
     let mut s = connect_from(source, addr)
         .await
         .map_err(|e| e.to_string())?;

@@ -1,7 +1,9 @@
 //! How the HTTP face takes tokens: the stream's token in a WebSocket
 //! subprotocol (answered with the non-secret one only), `?access_token=`
 //! still served but never logged, and an address that guesses tokens
-//! paused with 429 and `Retry-After`, counted, and logged once per burst.
+//! paused with 429 and `Retry-After`, counted, and logged once per burst,
+//! whether it guesses in a header or in the stream's subprotocol, and that
+//! address only.
 
 use std::time::Duration;
 
@@ -162,6 +164,71 @@ async fn token_guessing_is_paused_counted_and_logged_once() {
         assert_eq!(pauses_logged(), logged);
         let log = log_text();
         assert!(!log.contains("guess-3"), "a token reached the log");
+        d.stop().await;
+    })
+    .await
+    .expect("in time");
+}
+
+/// The status of a WebSocket upgrade offering `protocols`, sent from the
+/// loopback address `source`.
+async fn upgrade_from(source: &str, addr: std::net::SocketAddr, protocols: &str) -> u16 {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let exchange = async {
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.bind(format!("{source}:0").parse().unwrap()).unwrap();
+        let mut s = socket.connect(addr).await.unwrap();
+        s.write_all(&request_with_protocol(addr, protocols))
+            .await
+            .unwrap();
+        // The head only: a 101 keeps the connection open.
+        let mut head = Vec::new();
+        let mut byte = [0u8; 1];
+        while !head.ends_with(b"\r\n\r\n") {
+            if s.read(&mut byte).await.unwrap() == 0 {
+                break;
+            }
+            head.push(byte[0]);
+        }
+        let head = String::from_utf8_lossy(&head).into_owned();
+        head.split(' ')
+            .nth(1)
+            .and_then(|c| c.parse().ok())
+            .unwrap_or_else(|| panic!("no status in {head:?}"))
+    };
+    tokio::time::timeout(Duration::from_secs(10), exchange)
+        .await
+        .expect("an answer within 10 s")
+}
+
+/// Ten wrong tokens offered as the stream's subprotocol from 127.0.0.2
+/// pause that address (429, the right token included): the stream's
+/// sign-in is the API's, under the core's rule; the operator at 127.0.0.1
+/// still opens the stream with its token.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stranger_guessing_the_streams_token_pauses_only_its_own_address() {
+    tokio::time::timeout(LIMIT, async {
+        let d = TestDaemon::start(&config("", "", true, "")).await;
+        let bearer = |token: &str| {
+            format!(
+                "drivegate, drivegate.bearer.{}",
+                base64url(token.as_bytes())
+            )
+        };
+        let mut statuses = Vec::new();
+        for i in 0..11 {
+            statuses.push(upgrade_from("127.0.0.2", d.http, &bearer(&format!("guess-{i}"))).await);
+        }
+        assert_eq!(statuses[..10], [401; 10], "{statuses:?}");
+        assert_eq!(statuses[10], 429, "{statuses:?}");
+        assert_eq!(
+            upgrade_from("127.0.0.2", d.http, &bearer(VIEWER)).await,
+            429
+        );
+        assert_eq!(
+            upgrade_from("127.0.0.1", d.http, &bearer(VIEWER)).await,
+            101
+        );
         d.stop().await;
     })
     .await

@@ -75,6 +75,8 @@ struct JsonNode {
     client_id: String,
     /// Who commands come from, for the audit log and lease owners.
     who: Arc<str>,
+    /// Their role, from the core ([`crate::control::identity`]).
+    role: crate::control::Role,
     source: SourceId,
     session: SessionGuard,
     connections: u64,
@@ -94,6 +96,7 @@ struct JsonNode {
 /// Starts the JSON format's task; it ends after `shutdown` fired.
 pub(in crate::mqtt) fn spawn(
     config: Arc<MqttConfig>,
+    identity: crate::control::identity::Identity,
     node_id: String,
     control: Control,
     metrics: Arc<Metrics>,
@@ -105,12 +108,12 @@ pub(in crate::mqtt) fn spawn(
         .unwrap_or_else(|| JsonTopics::default_prefix(&node_id));
     let (replies_tx, replies_rx) = mpsc::unbounded_channel();
     let (bus_tx, bus_rx) = mpsc::channel(4096);
-    let who: Arc<str> = crate::mqtt::identity::who(&config, None).into();
     let session = open_session(&control, &config);
     let node = JsonNode {
         topics: JsonTopics::new(&prefix),
         client_id: format!("drivegate-json-{node_id}"),
-        who,
+        who: identity.who,
+        role: identity.role,
         source: SourceId::new_unique(),
         session,
         connections: 0,
@@ -312,7 +315,7 @@ impl JsonNode {
             message,
         };
         let parsed = parse(payload, &drive);
-        let role = self.config.commands().role();
+        let role = self.role;
         let caller = Caller::new(Face::Mqtt, self.who.clone(), role, self.source)
             .in_session(Face::Mqtt, self.session.id());
         let what = match &parsed {

@@ -161,14 +161,10 @@ impl Node {
 
 impl Node {
     /// The caller of a command from the broker: face `mqtt`, who sent it
-    /// as far as known, the role of `[mqtt] commands`, in the session.
+    /// as far as known, the role the core gave `[mqtt] commands`, in the
+    /// session.
     pub(super) fn caller(&self) -> Caller {
-        Caller::new(
-            Face::Mqtt,
-            self.who.clone(),
-            self.config.commands().role(),
-            self.source,
-        )
-        .in_session(Face::Mqtt, self.session.id())
+        Caller::new(Face::Mqtt, self.who.clone(), self.role, self.source)
+            .in_session(Face::Mqtt, self.session.id())
     }
 }
