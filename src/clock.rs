@@ -177,6 +177,7 @@ impl PreciseTimer {
                 self.latency.observe(fire, woke);
                 if woke < deadline {
                     self.rest(deadline, wake);
+                    return Ok(());
                 }
                 return Ok(());
             }

@@ -79,10 +79,10 @@ fn document_covers_every_route_and_declares_version_and_licence() {
     let mut ids = std::collections::BTreeMap::new();
     for (path, item) in paths {
         for (method, op) in item.as_object().unwrap() {
-            if let Some(id) = op.get("operationId").and_then(|i| i.as_str()) {
-                if let Some(other) = ids.insert(id.to_string(), format!("{method} {path}")) {
-                    panic!("operationId {id} names both {other} and {method} {path}");
-                }
+            if let Some(id) = op.get("operationId").and_then(|i| i.as_str())
+                && let Some(other) = ids.insert(id.to_string(), format!("{method} {path}"))
+            {
+                panic!("operationId {id} names both {other} and {method} {path}");
             }
         }
     }

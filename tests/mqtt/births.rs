@@ -25,17 +25,25 @@ async fn births(host: &mut Host) -> (i64, Vec<Msg>) {
     let Some(Value::Int(bd_seq)) = nbirth.value("bdSeq") else {
         panic!("NBIRTH without an Int64 bdSeq: {:?}", nbirth.names());
     };
-    assert_eq!(
-        nbirth.value("buses/sim/state"),
-        Some(Value::Text("up".into()))
-    );
+    // The bus's state as it is: on a loaded machine the node may be born
+    // before the port has opened, and an NDATA says "up" once it has.
+    let up = Some(Value::Text("up".into()));
+    let mut bus_up = nbirth.value("buses/sim/state") == up;
     let mut dbirths = Vec::new();
     let mut seq = 0;
-    while dbirths.len() < DRIVES.len() {
-        let m = host.next(WAIT, "DBIRTH", |m| m.kind == "DBIRTH").await;
+    while dbirths.len() < DRIVES.len() || !bus_up {
+        let m = host
+            .next(WAIT, "DBIRTH, or NDATA with the bus up", |m| {
+                m.kind == "DBIRTH" || m.kind == "NDATA"
+            })
+            .await;
         seq += 1;
         assert_eq!(m.seq(), Some(seq), "seq counts on from the NBIRTH");
-        dbirths.push(m);
+        if m.kind == "NDATA" {
+            bus_up |= m.value("buses/sim/state") == up;
+        } else {
+            dbirths.push(m);
+        }
     }
     let mut devices: Vec<String> = dbirths.iter().filter_map(|m| m.device.clone()).collect();
     devices.sort();
