@@ -1,7 +1,7 @@
-//! The stream's fan-out: one task per bus turns its events (polled statuses,
-//! online/offline, port up/down) into JSON once, one task does the same for
-//! the control core's lease news, and both publish on one broadcast channel
-//! every WebSocket session reads.
+//! The stream's fan-out: one of each bus's followers turns its events
+//! (polled statuses, online/offline, port up/down) into JSON once, one
+//! task does the same for the control core's lease news, and both publish
+//! on one broadcast channel every WebSocket session reads.
 //!
 //! Serialising once per event rather than once per client keeps a hundred
 //! dashboards cheap; a broadcast send never waits, so clients can never
@@ -15,7 +15,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::settings_diff::{DeclaredState, SettingsDiff};
 use super::stream_messages::{ServerMessage, StreamMessage};
-use crate::bus::BusEvent;
+use crate::bus::{BusEvent, BusFollower};
 use crate::control::{Control, ControlEvent, Published, SessionId};
 use crate::faces_shared::messages::{self, DriveMessage};
 use crate::faces_shared::status::StatusView;
@@ -45,7 +45,7 @@ pub struct Hub {
 }
 
 impl Hub {
-    /// Starts one forwarding task per bus of `plant` and one for the
+    /// Follows every bus of `plant` and starts one task for the
     /// control core's news; they end with `shutdown`.
     pub fn start(plant: &Arc<Plant>, control: &Control, shutdown: &CancellationToken) -> Arc<Hub> {
         let (tx, _) = broadcast::channel(CAPACITY);
@@ -171,105 +171,103 @@ async fn forward_control(
 }
 
 /// Forwards the events of every bus, following the plant: a bus a reload
-/// adds or reopens gets its forwarder, one it removes or reopens loses its
+/// adds or reopens gets its follower, one it removes or reopens loses its
 /// own. Each event's drive is looked up when it comes: a bus changed in
-/// place keeps its forwarder, with its drives as they are now (added,
+/// place keeps its follower, with its drives as they are now (added,
 /// removed, renamed).
 fn follow_buses(hub: &Arc<Hub>, plant: &Arc<Plant>, shutdown: &CancellationToken) {
     let (hub, forwarded) = (hub.clone(), plant.clone());
     plant.for_each_bus(shutdown, move |bus_index, bus, stop| {
-        tokio::spawn(forward(
-            hub.clone(),
-            forwarded.clone(),
+        let follower = Forward {
+            hub: hub.clone(),
+            plant: forwarded.clone(),
             bus_index,
-            bus.handle.subscribe(),
-            stop,
-        ));
+        };
+        bus.handle.follow(Arc::new(follower), stop);
     });
 }
 
-async fn forward(
+/// The stream as a bus's follower: each event written out once, in the
+/// task every follower of the bus shares.
+struct Forward {
     hub: Arc<Hub>,
     plant: Arc<Plant>,
     bus_index: usize,
-    mut rx: broadcast::Receiver<BusEvent>,
-    shutdown: CancellationToken,
-) {
-    // The slot and the name of the drive at `unit` now (a scan reads units
-    // that are not configured: not news).
-    let drive_at = |unit: u8| {
-        let now = plant.now();
+}
+
+impl Forward {
+    /// The slot and the name of the drive at `unit` now (a scan reads
+    /// units that are not configured: not news).
+    fn drive_at(&self, unit: u8) -> Option<(usize, String)> {
+        let now = self.plant.now();
         now.indexed_drives()
-            .find(|(_, d)| d.bus == bus_index && d.unit == unit)
+            .find(|(_, d)| d.bus == self.bus_index && d.unit == unit)
             .map(|(i, d)| (i, d.name.clone()))
-    };
-    loop {
-        let event = tokio::select! {
-            () = shutdown.cancelled() => return,
-            event = rx.recv() => event,
-        };
-        let (drive, message): (_, ServerMessage) = match event {
-            Ok(BusEvent::Status {
+    }
+
+    fn message(&self, event: &BusEvent) -> Option<(Option<usize>, ServerMessage)> {
+        Some(match event {
+            BusEvent::Status {
                 bus,
                 unit,
                 status,
                 at,
-            }) => {
-                // A scan reads units that are not configured: not news. And
-                // a status nobody's stream is open for is not written out.
-                if hub.tx.receiver_count() == 0 {
-                    continue;
+            } => {
+                // A status nobody's stream is open for is not written out.
+                if self.hub.tx.receiver_count() == 0 {
+                    return None;
                 }
-                let Some((i, drive)) = drive_at(unit) else {
-                    continue;
-                };
+                let (i, drive) = self.drive_at(*unit)?;
                 let message = StreamMessage::Status {
                     drive,
                     bus: bus.to_string(),
-                    unit,
-                    seen_at: rfc3339(at),
-                    status: StatusView::from(&status),
+                    unit: *unit,
+                    seen_at: rfc3339(*at),
+                    status: StatusView::from(status),
                 };
                 (Some(i), message.into())
             }
-            Ok(BusEvent::Online { bus, unit }) => {
-                let Some((i, drive)) = drive_at(unit) else {
-                    continue;
-                };
+            BusEvent::Online { bus, unit } => {
+                let (i, drive) = self.drive_at(*unit)?;
                 let message = DriveMessage::Online {
                     drive,
                     bus: bus.to_string(),
-                    unit,
+                    unit: *unit,
                 };
                 (Some(i), message.into())
             }
-            Ok(BusEvent::Offline { bus, unit, reason }) => {
-                let Some((i, drive)) = drive_at(unit) else {
-                    continue;
-                };
+            BusEvent::Offline { bus, unit, reason } => {
+                let (i, drive) = self.drive_at(*unit)?;
                 let message = DriveMessage::Offline {
                     drive,
                     bus: bus.to_string(),
-                    unit,
-                    reason,
+                    unit: *unit,
+                    reason: reason.clone(),
                 };
                 (Some(i), message.into())
             }
-            Ok(BusEvent::BusUp { bus }) => {
+            BusEvent::BusUp { bus } => {
                 let bus = bus.to_string();
                 (None, StreamMessage::BusUp { bus }.into())
             }
-            Ok(BusEvent::BusDown { bus, reason }) => {
-                let bus = bus.to_string();
+            BusEvent::BusDown { bus, reason } => {
+                let (bus, reason) = (bus.to_string(), reason.clone());
                 (None, StreamMessage::BusDown { bus, reason }.into())
             }
-            Err(broadcast::error::RecvError::Lagged(n)) => {
-                // Only if this task was starved of CPU: tell every client.
-                tracing::warn!("the stream fell {n} bus events behind");
-                (None, StreamMessage::Lagged { missed: n }.into())
-            }
-            Err(broadcast::error::RecvError::Closed) => return,
-        };
-        hub.publish(drive, message);
+        })
+    }
+}
+
+impl BusFollower for Forward {
+    fn event(&self, event: &BusEvent) {
+        if let Some((drive, message)) = self.message(event) {
+            self.hub.publish(drive, message);
+        }
+    }
+
+    fn lagged(&self, missed: u64) {
+        // Only if the followers' task was starved of CPU: tell every client.
+        tracing::warn!("the stream fell {missed} bus events behind");
+        self.hub.publish(None, StreamMessage::Lagged { missed });
     }
 }

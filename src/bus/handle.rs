@@ -9,6 +9,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::cache::{BusEvent, DriveSnapshot, StatusCache};
 use super::error::BusError;
+use super::feed::{BusFollower, Feed};
 use super::freshness::{self, Verdict};
 use super::job::{Exchange, Job, Priority, SourceId};
 pub use super::link::PortState;
@@ -69,6 +70,8 @@ pub(crate) struct Shared {
     pub(crate) name: Arc<str>,
     pub(crate) queue: JobQueue,
     pub(crate) cache: StatusCache,
+    /// Whoever follows the cache's events, called in one task.
+    pub(crate) feed: Arc<Feed>,
     pub(crate) stats: BusStats,
     pub(crate) state: Mutex<PortState>,
     pub(crate) line: LineTiming,
@@ -348,6 +351,16 @@ impl BusHandle {
     /// Every future status, online/offline and bus event of this bus.
     pub fn subscribe(&self) -> broadcast::Receiver<BusEvent> {
         self.shared.cache.subscribe()
+    }
+
+    /// Hands every future event of this bus to `follower` until `stop`, in
+    /// one task with the bus's other followers: a poll wakes one task, not
+    /// one per follower (see [`feed`](super::feed)).
+    pub fn follow(&self, follower: Arc<dyn BusFollower>, stop: CancellationToken) {
+        let cache = &self.shared.cache;
+        self.shared
+            .feed
+            .follow(follower, stop, || cache.subscribe());
     }
 
     /// The future online/offline and bus events of this bus, without the

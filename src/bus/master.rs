@@ -66,11 +66,13 @@ use crate::modbus::timing::LineTiming;
 pub const DELIVERY_ALLOWANCE: Duration = Duration::from_millis(20);
 
 /// How long before the line is free the scheduler picks the next job: the
-/// choice and the frame are ready when the silence ends, and the master
-/// sleeps the rest of it on a timer armed its learned wake-up latency early
-/// ([`PreciseTimer`]). An emergency that arrives in this last stretch goes
-/// on the next turn.
-pub const PICK_AHEAD: Duration = Duration::from_micros(100);
+/// choice and the frame are ready when the silence ends. The scheduler's
+/// timer ([`PreciseTimer`], armed its learned wake-up latency early) wakes
+/// the bus thread this long before the end, and the rest, shorter than a
+/// wake-up would come, is waited out awake: one wake-up a transaction,
+/// not a second timer for the last stretch. An emergency that arrives in
+/// this last stretch goes on the next turn.
+pub const PICK_AHEAD: Duration = Duration::from_micros(25);
 
 /// The default least learned reply timeout (`reply_timeout_floor_ms`): a
 /// drive answering in 0.5 ms at 115200 baud is waited for at least this
@@ -726,7 +728,7 @@ impl RtuMaster {
     /// then waits out the rest. Returns the stray bytes discarded meanwhile.
     pub async fn settle(&mut self) -> io::Result<usize> {
         self.stray = 0;
-        self.wait_for_silence(self.gaps.least(), PICK_AHEAD, false)
+        self.wait_for_silence(self.gaps.least(), PICK_AHEAD, true)
             .await?;
         Ok(std::mem::take(&mut self.stray))
     }

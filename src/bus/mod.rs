@@ -30,6 +30,7 @@
 pub mod cache;
 pub mod error;
 pub mod fault;
+pub mod feed;
 pub mod freshness;
 pub mod handle;
 pub mod interframe;
@@ -53,6 +54,7 @@ pub mod transport;
 
 pub use cache::{BusEvent, DriveSnapshot};
 pub use error::BusError;
+pub use feed::BusFollower;
 pub use handle::BusHandle;
 pub use job::{Exchange, Priority, SourceId};
 pub use observers::Observers;

@@ -69,6 +69,7 @@ pub(crate) fn new_shared(settings: &BusSettings) -> Arc<Shared> {
             settings.offline_after,
         )
         .expecting(settings.expected()),
+        feed: Default::default(),
         stats: BusStats::new(),
         state: Mutex::new(PortState::Opening),
         line: settings.master.line,

@@ -3,21 +3,22 @@
 //! births and deaths and its retained statuses follow these, never a rule
 //! of their own. What a state is, the bus decides
 //! ([`crate::bus::freshness`]); here it is only watched: at every event of
-//! a bus (a status, a drive offline, the port down or up) and at the
+//! a bus that may change it (a status of a drive not live, a drive
+//! offline, the port down or up; as one of the bus's followers) and at the
 //! moment a live value would turn stale if nothing new came, since no
 //! event announces a poll that does not happen.
 
 use std::collections::BTreeMap;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use tokio::sync::broadcast::error::RecvError;
+use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
 use super::events::{ControlEvent, Events};
 pub use super::news::FreshnessNews;
-use crate::bus::BusHandle;
 use crate::bus::freshness::{Cause, Freshness, Verdict};
+use crate::bus::{BusEvent, BusFollower, BusHandle};
 use crate::plant::Plant;
 
 /// Watches every bus of `plant` (and those a reload adds) until
@@ -25,13 +26,14 @@ use crate::plant::Plant;
 pub(super) fn watch(plant: &Arc<Plant>, events: Arc<Events>, shutdown: &CancellationToken) {
     let watched = plant.clone();
     plant.for_each_bus(shutdown, move |slot, bus, stop| {
-        tokio::spawn(follow(
+        let watcher = Arc::new(Watcher::new(
             watched.clone(),
             slot,
             bus.handle.clone(),
             events.clone(),
-            stop,
         ));
+        bus.handle.follow(watcher.clone(), stop.clone());
+        tokio::spawn(watcher.until_stale(stop));
     });
 }
 
@@ -62,52 +64,116 @@ fn changes(
     (changed, next)
 }
 
-async fn follow(
+/// One bus's drives as last judged: what the bus's events and the
+/// moment a value turns stale are compared with.
+struct Watcher {
     plant: Arc<Plant>,
     slot: usize,
     handle: BusHandle,
     events: Arc<Events>,
-    stop: CancellationToken,
-) {
-    let mut rx = handle.subscribe();
-    let mut known = BTreeMap::new();
-    let (_, mut next) = changes(&mut known, handle.freshness_all(Instant::now()));
-    loop {
-        // Just after the moment: at it, the value is still live.
-        let wake = next.map(|t| tokio::time::Instant::from_std(t + Duration::from_millis(1)));
-        tokio::select! {
-            () = stop.cancelled() => return,
-            event = rx.recv() => if let Err(RecvError::Closed) = event { return },
-            () = async {
-                match wake {
-                    Some(at) => tokio::time::sleep_until(at).await,
-                    None => std::future::pending().await,
-                }
-            } => {}
+    /// The verdicts known, and the earliest moment a live value turns
+    /// stale.
+    known: Mutex<(BTreeMap<u8, Known>, Option<Instant>)>,
+    /// Wakes [`until_stale`](Self::until_stale) for a moment sooner than
+    /// the one it sleeps for.
+    sooner: Notify,
+}
+
+impl Watcher {
+    fn new(plant: Arc<Plant>, slot: usize, handle: BusHandle, events: Arc<Events>) -> Self {
+        let mut known = BTreeMap::new();
+        let (_, next) = changes(&mut known, handle.freshness_all(Instant::now()));
+        Watcher {
+            plant,
+            slot,
+            handle,
+            events,
+            known: Mutex::new((known, next)),
+            sooner: Notify::new(),
         }
-        let (changed, soonest) = changes(&mut known, handle.freshness_all(Instant::now()));
-        next = soonest;
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, (BTreeMap<u8, Known>, Option<Instant>)> {
+        self.known.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Judges every drive now and publishes what changed.
+    fn look(&self) {
+        let (changed, sooner) = {
+            let mut known = self.lock();
+            let (changed, next) = changes(&mut known.0, self.handle.freshness_all(Instant::now()));
+            let sooner = next.is_some_and(|n| known.1.is_none_or(|k| n < k));
+            known.1 = next;
+            (changed, sooner)
+        };
+        if sooner {
+            self.sooner.notify_one();
+        }
         if changed.is_empty() {
-            continue;
+            return;
         }
-        let directory = plant.now();
+        let directory = self.plant.now();
         for (unit, was, verdict) in changed {
             let Some(drive) = directory
                 .indexed_drives()
-                .find(|(_, d)| d.bus == slot && d.unit == unit)
+                .find(|(_, d)| d.bus == self.slot && d.unit == unit)
                 .map(|(i, _)| i)
             else {
                 continue;
             };
             let news = FreshnessNews {
                 drive,
-                bus: handle.name_arc(),
+                bus: self.handle.name_arc(),
                 unit,
                 was,
                 verdict,
             };
-            events.publish(Arc::new(ControlEvent::Freshness(news)), None);
+            self.events
+                .publish(Arc::new(ControlEvent::Freshness(news)), None);
         }
+    }
+
+    /// Looks again just after each moment a live value would turn stale
+    /// (no event announces a poll that does not happen), until `stop`.
+    async fn until_stale(self: Arc<Self>, stop: CancellationToken) {
+        loop {
+            let next = self.lock().1;
+            // Just after the moment: at it, the value is still live.
+            let wake = next.map(|t| tokio::time::Instant::from_std(t + Duration::from_millis(1)));
+            tokio::select! {
+                () = stop.cancelled() => return,
+                () = self.sooner.notified() => continue,
+                () = async {
+                    match wake {
+                        Some(at) => tokio::time::sleep_until(at).await,
+                        None => std::future::pending().await,
+                    }
+                } => {}
+            }
+            self.look();
+        }
+    }
+}
+
+impl BusFollower for Watcher {
+    fn event(&self, event: &BusEvent) {
+        // A status of a drive already live changes nothing now: it only
+        // moves the moment it would turn stale later, which the timer
+        // finds when it comes.
+        if let BusEvent::Status { unit, .. } = event
+            && self
+                .lock()
+                .0
+                .get(unit)
+                .is_some_and(|(f, _)| *f == Freshness::Live)
+        {
+            return;
+        }
+        self.look();
+    }
+
+    fn lagged(&self, _missed: u64) {
+        self.look();
     }
 }
 

@@ -1,7 +1,7 @@
 //! Trends: each drive's polled status over the last `[history] minutes`,
 //! the recent part at full rate, the rest in one-second buckets
 //! ([`store`], pure). An observer of the buses like the monitor and the
-//! scope: it follows a bus's status events and imports nothing above the
+//! scope: it follows a bus's status events (one of the bus's followers) and imports nothing above the
 //! bus; who starts it says which units are drives (a scan's reads of
 //! other units are not kept), asked at each event, so drives added to the
 //! configuration later are followed too.
@@ -17,10 +17,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use tokio::sync::broadcast;
 use tokio_util::sync::CancellationToken;
 
-use crate::bus::{BusEvent, BusHandle};
+use crate::bus::{BusEvent, BusFollower, BusHandle};
 use crate::drive::Status;
 use store::{DriveHistory, Limits, Point};
 
@@ -131,35 +130,43 @@ impl History {
     }
 
     /// Follows `bus`'s status events until `shutdown` fires, keeping those
-    /// of the units `is_drive` says are drives.
+    /// of the units `is_drive` says are drives (in the task every follower
+    /// of the bus shares: a sample is a lock and a copy).
     pub fn follow(
         self: &Arc<Self>,
         bus: &BusHandle,
-        is_drive: impl Fn(u8) -> bool + Send + 'static,
+        is_drive: impl Fn(u8) -> bool + Send + Sync + 'static,
         shutdown: CancellationToken,
     ) {
-        let mut rx = bus.subscribe();
-        let history = self.clone();
-        tokio::spawn(async move {
-            loop {
-                let event = tokio::select! {
-                    () = shutdown.cancelled() => return,
-                    e = rx.recv() => e,
-                };
-                match event {
-                    Ok(BusEvent::Status {
-                        bus,
-                        unit,
-                        status,
-                        at,
-                    }) if is_drive(unit) => history.record(&bus, unit, at, status),
-                    Ok(_) => {}
-                    Err(broadcast::error::RecvError::Lagged(n)) => {
-                        history.lagged.fetch_add(n, Ordering::Relaxed);
-                    }
-                    Err(broadcast::error::RecvError::Closed) => return,
-                }
-            }
-        });
+        let follower = Follower {
+            history: self.clone(),
+            is_drive,
+        };
+        bus.follow(Arc::new(follower), shutdown);
+    }
+}
+
+/// The history as a bus's follower.
+struct Follower<F> {
+    history: Arc<History>,
+    is_drive: F,
+}
+
+impl<F: Fn(u8) -> bool + Send + Sync> BusFollower for Follower<F> {
+    fn event(&self, event: &BusEvent) {
+        if let BusEvent::Status {
+            bus,
+            unit,
+            status,
+            at,
+        } = event
+            && (self.is_drive)(*unit)
+        {
+            self.history.record(bus, *unit, *at, *status);
+        }
+    }
+
+    fn lagged(&self, missed: u64) {
+        self.history.lagged.fetch_add(missed, Ordering::Relaxed);
     }
 }

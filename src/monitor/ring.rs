@@ -1,21 +1,34 @@
 //! The ring of the last N frames of one bus.
 //!
-//! The bus thread is its only writer and must never wait for a reader, nor
-//! allocate: the ring is allocated once, each slot has its own lock, and a
-//! reader holds a slot's lock only while it copies that one record. So the
-//! writer can at worst find the one slot it writes being copied, for the
-//! time of a ~350-byte copy, and a reader that is slow, stuck or gone
-//! costs the writer nothing: it simply finds, when it reads again, that
-//! the frames it had not read yet were overwritten, and counts them lost.
+//! The bus thread is its only writer and must never wait for a reader: each
+//! slot has its own lock, and a reader holds a slot's lock only while it
+//! copies that one record. So the writer can at worst find the one slot it
+//! writes being copied, for the time of a ~350-byte copy, and a reader
+//! that is slow, stuck or gone costs the writer nothing: it simply finds,
+//! when it reads again, that the frames it had not read yet were
+//! overwritten, and counts them lost.
+//!
+//! The slots come in chunks of [`CHUNK`], each allocated when the writer
+//! first reaches it: a ring of 10,000 frames (3.5 MB) takes the memory of
+//! the frames a bus has carried so far, not all of it at start (a quiet
+//! bus, or a daemon restarted, never fills most of it). The writer
+//! allocates during its first lap only, once every [`CHUNK`] frames; after
+//! that, never.
 
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, OnceLock};
 
 use super::record::FrameRecord;
 
+/// Slots allocated at a time.
+pub const CHUNK: usize = 128;
+
+type Chunk = Box<[Mutex<FrameRecord>]>;
+
 /// A fixed ring of frame records with a running sequence number.
 pub struct Ring {
-    slots: Box<[Mutex<FrameRecord>]>,
+    chunks: Box<[OnceLock<Chunk>]>,
+    capacity: usize,
     /// Sequence number of the next frame written (= frames written so far).
     head: AtomicU64,
 }
@@ -30,20 +43,22 @@ pub struct ReadReport {
 }
 
 impl Ring {
-    /// A ring of `capacity` frames (at least 1), allocated now.
+    /// A ring of `capacity` frames (at least 1), its slots allocated as
+    /// the writer reaches them.
     pub fn new(capacity: usize) -> Self {
         let capacity = capacity.max(1);
         Self {
-            slots: (0..capacity)
-                .map(|_| Mutex::new(FrameRecord::default()))
+            chunks: (0..capacity.div_ceil(CHUNK))
+                .map(|_| OnceLock::new())
                 .collect(),
+            capacity,
             head: AtomicU64::new(0),
         }
     }
 
     /// Frames it holds when full.
     pub fn capacity(&self) -> usize {
-        self.slots.len()
+        self.capacity
     }
 
     /// Frames written since it started; the next frame's sequence number.
@@ -56,16 +71,37 @@ impl Ring {
         self.head().saturating_sub(self.capacity() as u64)
     }
 
-    /// Memory the ring takes, in bytes.
+    /// Memory the ring takes when full, in bytes.
     pub fn memory_bytes(&self) -> usize {
         self.capacity() * std::mem::size_of::<Mutex<FrameRecord>>()
     }
 
+    /// Memory the ring takes now (its chunks allocated so far), in bytes.
+    pub fn allocated_bytes(&self) -> usize {
+        let slots: usize = self
+            .chunks
+            .iter()
+            .filter_map(OnceLock::get)
+            .map(|c| c.len())
+            .sum();
+        slots * std::mem::size_of::<Mutex<FrameRecord>>()
+    }
+
+    /// The slot of `seq`, its chunk allocated first if it was not yet
+    /// (only the writer reaches a slot whose chunk is not there: a reader
+    /// reads below the head).
     fn slot(&self, seq: u64) -> std::sync::MutexGuard<'_, FrameRecord> {
-        let index = (seq % self.slots.len() as u64) as usize;
+        let index = (seq % self.capacity as u64) as usize;
+        let (chunk, at) = (index / CHUNK, index % CHUNK);
+        let len = CHUNK.min(self.capacity - chunk * CHUNK);
+        let slots = self.chunks[chunk].get_or_init(|| {
+            (0..len)
+                .map(|_| Mutex::new(FrameRecord::default()))
+                .collect()
+        });
         // A panic while a slot was held cannot leave a record half valid in
         // a way that matters (it is display data): go on with it.
-        self.slots[index].lock().unwrap_or_else(|p| p.into_inner())
+        slots[at].lock().unwrap_or_else(|p| p.into_inner())
     }
 
     /// Writes the next frame: `fill` sets its fields in place (the slot's
@@ -152,6 +188,30 @@ mod tests {
         // Nothing new: nothing read, nothing lost.
         out.clear();
         assert_eq!(ring.read(&mut cursor, 10, &mut out), ReadReport::default());
+    }
+
+    #[test]
+    fn its_memory_is_taken_as_it_fills() {
+        let ring = Ring::new(CHUNK * 3 + 5);
+        assert_eq!(ring.allocated_bytes(), 0);
+        let slot = std::mem::size_of::<Mutex<FrameRecord>>();
+        push_unit(&ring, 1);
+        assert_eq!(ring.allocated_bytes(), CHUNK * slot);
+        for u in 0..CHUNK * 3 {
+            push_unit(&ring, u as u8);
+        }
+        // The last chunk, reached by the last frame, holds the five left
+        // over.
+        assert_eq!(ring.allocated_bytes(), ring.memory_bytes());
+        assert_eq!(ring.memory_bytes(), (CHUNK * 3 + 5) * slot);
+        for u in 0..10 {
+            push_unit(&ring, u);
+        }
+        // The writer wrapped over the short chunk; reading never allocates.
+        let last = ring.last(CHUNK * 4);
+        assert_eq!(last.len(), CHUNK * 3 + 5);
+        assert_eq!(last.last().map(|r| r.unit), Some(9));
+        assert_eq!(last.first().map(|r| r.seq), Some(6));
     }
 
     #[test]

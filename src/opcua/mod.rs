@@ -243,7 +243,7 @@ impl Face {
             metrics: self.metrics.clone(),
         };
         let shown = render.begin();
-        tokio::spawn(render.run(shown, aux.clone()));
+        tokio::spawn(Arc::new(render).run(shown, aux.clone()));
         tokio::spawn(sessions.run(aux.clone()));
         tokio::spawn(alarms::run(
             built.events,

@@ -1,9 +1,9 @@
 //! The plant in the address space: one task that adds and removes the
-//! drives and buses a reload adds and removes, and puts in each drive's
-//! values at every poll (its status event, with the poll's source
-//! timestamp), at every change of its freshness (the core's news: a value
-//! that turns stale is not announced by any poll) and, every second, each
-//! bus's state and counters. Subscriptions are told at once; they sample
+//! drives and buses a reload adds and removes; each drive's values put in
+//! at every poll (its status event, with the poll's source timestamp, as
+//! one of the bus's followers), at every change of its freshness (the
+//! core's news: a value that turns stale is not announced by any poll)
+//! and, every second, each bus's state and counters. Subscriptions are told at once; they sample
 //! at the poll rate.
 
 use std::collections::BTreeSet;
@@ -13,16 +13,15 @@ use std::time::{Duration, SystemTime};
 use opcua::server::SubscriptionCache;
 use opcua::types::{DataValue, NodeId, StatusCode, Variant};
 use tokio::sync::broadcast::error::RecvError;
-use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
 use super::address::{DriveNodes, Nodes, Space, plant_of, set_values};
 use super::spec::{self, BusVariable, Source, VARIABLES};
 use super::values::{data_value, drive_value};
-use crate::bus::BusEvent;
 use crate::bus::freshness::Freshness;
 use crate::bus::handle::PortState;
 use crate::bus::stats::Outcome;
+use crate::bus::{BusEvent, BusFollower};
 use crate::control::{Control, ControlEvent};
 use crate::metrics::Metrics;
 use crate::plant::Directory;
@@ -61,33 +60,18 @@ impl Render {
 
     /// Follows the plant from what [`begin`](Self::begin) showed, until
     /// `stop`.
-    pub async fn run(self, mut shown: Shown, stop: CancellationToken) {
+    pub async fn run(self: Arc<Self>, mut shown: Shown, stop: CancellationToken) {
         let plant = self.control.plant().clone();
         let mut follow = plant.follow();
         let directory = follow.borrow_and_update().clone();
         self.follow_plant(&directory, &mut shown);
-        let (tx, mut bus_events) = mpsc::channel::<(usize, BusEvent)>(1024);
+        let me = self.clone();
         plant.for_each_bus(&stop, move |slot, bus, bus_stop| {
-            let mut rx = bus.handle.subscribe();
-            let tx = tx.clone();
-            tokio::spawn(async move {
-                loop {
-                    let event = tokio::select! {
-                        e = rx.recv() => e,
-                        () = bus_stop.cancelled() => return,
-                    };
-                    match event {
-                        Ok(e) => {
-                            if tx.send((slot, e)).await.is_err() {
-                                return;
-                            }
-                        }
-                        // The next status makes up for a lost one.
-                        Err(RecvError::Lagged(_)) => {}
-                        Err(RecvError::Closed) => return,
-                    }
-                }
-            });
+            let follower = Follower {
+                render: me.clone(),
+                slot,
+            };
+            bus.handle.follow(Arc::new(follower), bus_stop);
         });
         let mut news = self.control.subscribe();
         let mut tick = tokio::time::interval(Duration::from_secs(1));
@@ -103,7 +87,6 @@ impl Render {
                     self.follow_plant(&directory, &mut shown);
                     self.all_values(&directory);
                 }
-                Some((slot, event)) = bus_events.recv() => self.bus_event(slot, &event),
                 n = news.recv() => match n {
                     Ok(p) => {
                         if let ControlEvent::Freshness(news) = &*p.event {
@@ -277,4 +260,20 @@ impl Render {
         }
         self.push(values);
     }
+}
+
+/// The address space as a bus's follower: a drive's values put in at each
+/// of its statuses and links, the bus's at its port's changes, in the task
+/// every follower of the bus shares.
+struct Follower {
+    render: Arc<Render>,
+    slot: usize,
+}
+
+impl BusFollower for Follower {
+    fn event(&self, event: &BusEvent) {
+        self.render.bus_event(self.slot, event);
+    }
+
+    // A lost status is made up for by the next one.
 }

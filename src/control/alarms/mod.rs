@@ -15,6 +15,7 @@
 
 pub mod book;
 pub mod file;
+mod follower;
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -26,6 +27,7 @@ use tokio_util::sync::CancellationToken;
 
 pub use book::{Ack, AckError, Alarm, AlarmBook, AlarmKey, AlarmKind, Change, Raise};
 use file::{AlarmFile, AlarmRecord, FileState};
+use follower::Follower;
 
 use super::events::{ControlEvent, Events, Published, WriteEnd, WriteEvent};
 use super::journal::format::unix_ms;
@@ -327,25 +329,12 @@ impl Alarms {
         let following = (self.clone(), plant.clone());
         plant.for_each_bus(shutdown, move |index, bus, shutdown| {
             let (alarms, plant) = (following.0.clone(), following.1.clone());
-            let mut rx = bus.handle.subscribe();
             // What happened before this subscription (a port that failed
             // to open at start) is read from the bus's state, after it.
+            let (raise, on) = (alarms.clone(), plant.clone());
+            let follower = Follower(move |e: &BusEvent| raise.bus_event(&on, index, e));
+            bus.handle.follow(Arc::new(follower), shutdown);
             alarms.seed(&plant, index);
-            tokio::spawn(async move {
-                loop {
-                    let event = tokio::select! {
-                        () = shutdown.cancelled() => return,
-                        e = rx.recv() => e,
-                    };
-                    match event {
-                        Ok(e) => alarms.bus_event(&plant, index, &e),
-                        Err(broadcast::error::RecvError::Lagged(n)) => {
-                            tracing::warn!("the alarm list fell {n} bus events behind");
-                        }
-                        Err(broadcast::error::RecvError::Closed) => return,
-                    }
-                }
-            });
         });
         let (alarms, plant, shutdown) = (self.clone(), plant.clone(), shutdown.clone());
         let mut rx = events;
