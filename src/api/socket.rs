@@ -57,17 +57,36 @@ where
 /// connection slot and leases, for ever.
 pub async fn send(state: &ApiState, sink: &mut Sink, message: Message) -> bool {
     let limit = state.config.idle_timeout;
+    let deadline = tokio::time::Instant::now() + limit;
+    let sending = sink.send(message);
+    tokio::pin!(sending);
+    // Most sends complete at once: no timer for them.
     tokio::select! {
-        sent = tokio::time::timeout(limit, sink.send(message)) => match sent {
-            Ok(sent) => sent.is_ok(),
-            Err(_) => {
+        biased;
+        sent = &mut sending => return sent.is_ok(),
+        () = std::future::ready(()) => {}
+    }
+    // Blocked on a full socket. The reader half of the same socket may wait
+    // for it to turn writable too (a read flushes what is pending and
+    // answers pings), and a socket wakes only the last task that waited on
+    // it: the send looks again every 50 ms, so a wake-up the reader took
+    // cannot leave the client without messages for good.
+    let mut again = tokio::time::interval(LOOK_AGAIN);
+    loop {
+        tokio::select! {
+            sent = &mut sending => return sent.is_ok(),
+            () = tokio::time::sleep_until(deadline) => {
                 tracing::debug!("WebSocket client took no message for {limit:?}: closing");
-                false
+                return false;
             }
-        },
-        () = state.shutdown.cancelled() => false,
+            () = state.shutdown.cancelled() => return false,
+            _ = again.tick() => {}
+        }
     }
 }
+
+/// How often a send blocked on a full socket looks whether it can go on.
+const LOOK_AGAIN: Duration = Duration::from_millis(50);
 
 /// A ping every quarter of the idle timeout (at least every 100 ms apart),
 /// the first one period from now: a healthy client's pongs keep even a

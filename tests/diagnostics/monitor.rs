@@ -16,7 +16,7 @@ use crate::support::csv::csv_fields;
 use crate::support::modbus_tcp::Raw;
 use crate::support::{FOUR_DRIVES, TestDaemon, eventually};
 use drivegate::sim::FaultRates;
-use futures_util::{SinkExt, StreamExt};
+use futures_util::StreamExt;
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
@@ -476,18 +476,15 @@ async fn a_live_client_that_never_reads_loses_frames_not_the_bus_its_pace() {
             "{with_clients:.1} polls/s with a stuck client, {alone:.1} without"
         );
 
-        // When it reads again, it is told how many it lost. Its socket was
-        // full for as long as the ring took to go round (longer on a loaded
-        // machine), and meanwhile the daemon's kernel probes the closed
-        // window at intervals that double (0.2 s, 0.4 s ... up to 2 min):
-        // a client that only reads may wait that long for its next byte.
-        // Any segment from the client carries its open window: a ping, as a
-        // real client's pong or command would.
-        stuck.send(Message::Ping(Default::default())).await.unwrap();
-        let deadline = Instant::now() + Duration::from_secs(30);
+        // When it reads again, it is told how many it lost. Its socket
+        // was full for as long as the ring took to go round (longer on a
+        // loaded machine), and the daemon's kernel probes a closed window
+        // at intervals that double meanwhile (0.2 s, 0.4 s ... ): the
+        // first bytes may take that long once the client reads again.
+        let deadline = Instant::now() + Duration::from_secs(60);
         let lost = loop {
             assert!(Instant::now() < deadline, "never told what it lost");
-            let m = tokio::time::timeout(Duration::from_secs(10), stuck.next())
+            let m = tokio::time::timeout(Duration::from_secs(30), stuck.next())
                 .await
                 .expect("a message")
                 .unwrap()
