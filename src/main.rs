@@ -80,7 +80,7 @@ fn check_config(file: &std::path::Path) -> ExitCode {
     let loaded = Config::load_with_warnings(file)
         .map_err(|e| e.to_string())
         .and_then(|(c, warnings)| {
-            drivegate::daemon::supervisor::check_tls(&c)
+            drivegate::api::config_check::check_tls(&c)
                 .map_err(|e| format!("{}: {e}", file.display()))?;
             Ok((c, warnings))
         });

@@ -106,6 +106,16 @@ pub(super) fn panic_words(payload: &(dyn Any + Send)) -> String {
     }
 }
 
+/// What became of a crashed face's restart.
+pub(super) enum Restart {
+    /// It serves again.
+    Done,
+    /// A reload or the shutdown stopped or replaced it meanwhile.
+    Replaced,
+    /// It could not be started, in words.
+    Failed(String),
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -205,26 +205,9 @@ struct Client {
     generation: u64,
 }
 
-/// What became of a crashed face's restart.
-enum Restart {
-    /// It serves again.
-    Done,
-    /// A reload or the shutdown stopped or replaced it meanwhile.
-    Replaced,
-    /// It could not be started, in words.
-    Failed(String),
-}
-
 /// How long the MQTT face may take to say goodbye to its broker (its
 /// NDEATH) before a restart starts the new one anyway.
 const MQTT_STOP_LIMIT: Duration = Duration::from_secs(5);
-
-/// Loads the certificates, keys and client CAs of every configured TLS
-/// listener (and the MQTT face's CA and client certificate), as a start would (for `check-config`): an error names the
-/// file and what is wrong with it.
-pub fn check_tls(config: &Config) -> Result<(), String> {
-    crate::api::config_check::check_tls(config)
-}
 
 /// Starts the control core, binds every configured listener (so a taken
 /// port fails the start) and serves them until `shutdown` fires.
@@ -670,43 +653,43 @@ impl Running {
                 () = self.shared.shutdown.cancelled() => return health.serving(face),
             }
             match self.restart_crashed(face, generation).await {
-                Restart::Done => {
+                face_watch::Restart::Done => {
                     health.restarted(face);
                     tracing::warn!(face = face.key(), "the {} serves again", face.name());
                     return;
                 }
-                Restart::Replaced => return,
-                Restart::Failed(again) => why = again,
+                face_watch::Restart::Replaced => return,
+                face_watch::Restart::Failed(again) => why = again,
             }
         }
     }
 
     /// Starts the crashed face `generation` of `face` again with what it
     /// ran with (a listener on its socket), unless it was replaced.
-    async fn restart_crashed(&self, face: Face, generation: u64) -> Restart {
+    async fn restart_crashed(&self, face: Face, generation: u64) -> face_watch::Restart {
         let mut started = self.started.lock().await;
         let Some(slot) = started.slot(face) else {
             let Some(old) = started.mqtt.take_if(|c| c.generation == generation) else {
-                return Restart::Replaced;
+                return face_watch::Restart::Replaced;
             };
             old.stop.cancel();
             let config = old.config.clone();
             return match self.start_mqtt(&config, &mut started) {
-                Ok(()) => Restart::Done,
+                Ok(()) => face_watch::Restart::Done,
                 Err(why) => {
                     started.mqtt = Some(old);
-                    Restart::Failed(why)
+                    face_watch::Restart::Failed(why)
                 }
             };
         };
         let Some(old) = slot.take_if(|l| l.generation == generation) else {
-            return Restart::Replaced;
+            return face_watch::Restart::Replaced;
         };
         let listener = match old.socket.try_clone().and_then(TcpListener::from_std) {
             Ok(listener) => listener,
             Err(e) => {
                 *slot = Some(old);
-                return Restart::Failed(format!("cannot take over its socket: {e}"));
+                return face_watch::Restart::Failed(format!("cannot take over its socket: {e}"));
             }
         };
         let config = old.config.clone();
@@ -714,11 +697,11 @@ impl Running {
             Ok(new) => {
                 old.close(false);
                 *slot = Some(new);
-                Restart::Done
+                face_watch::Restart::Done
             }
             Err(why) => {
                 *slot = Some(old);
-                Restart::Failed(why)
+                face_watch::Restart::Failed(why)
             }
         }
     }

@@ -341,7 +341,7 @@ fn parsed(doc: &Table) -> Result<Config, String> {
 /// What check-config says of `doc`, its TLS files loaded too.
 fn check(doc: &Table) -> Result<Config, String> {
     let config = parsed(doc)?;
-    drivegate::daemon::supervisor::check_tls(&config)?;
+    drivegate::api::config_check::check_tls(&config)?;
     Ok(config)
 }
 
