@@ -10,6 +10,7 @@ use std::sync::atomic::AtomicI64;
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
+use opcua::core::config::Config as _;
 use opcua::server::address_space::AddressSpace;
 use opcua::server::diagnostics::DiagnosticsNodeManagerBuilder;
 use opcua::server::node_manager::memory::{CoreNodeManagerBuilder, InMemoryNodeManagerBuilder};
@@ -54,6 +55,9 @@ pub struct Parts {
     pub sessions: Arc<Sessions>,
     /// The server's stop.
     pub stop: CancellationToken,
+    /// Its connections and sessions, shared out as every listener's are
+    /// (made at the face's start: the listener is in the book from then).
+    pub gate: Arc<super::gate::Gate>,
 }
 
 /// The server, its handle, and the alarms' events (whose namespace the
@@ -167,8 +171,24 @@ impl Timing {
     }
 }
 
+/// The server of `parts`, checked but not built: its configuration is
+/// valid (so a bad section fails at start), its node managers are not made
+/// yet (the core namespace alone is about 10 MB).
+pub struct Prepared {
+    builder: ServerBuilder,
+    gate: Arc<super::gate::Gate>,
+    events: Arc<OnceLock<Arc<AlarmEvents>>>,
+    stop: CancellationToken,
+}
+
 /// Builds the server of `parts`.
 pub fn build(parts: Parts) -> Result<Built, String> {
+    prepare(parts)?.build()
+}
+
+/// The server of `parts`, its configuration checked; [`Prepared::build`]
+/// makes it.
+pub fn prepare(parts: Parts) -> Result<Prepared, String> {
     let monitored = Arc::new(AtomicI64::new(0));
     let events: Arc<OnceLock<Arc<AlarmEvents>>> = Arc::new(OnceLock::new());
     let core = {
@@ -220,7 +240,7 @@ pub fn build(parts: Parts) -> Result<Built, String> {
         })
     };
     let section = &parts.section;
-    let gate = Arc::new(super::gate::Gate::new(section, parts.bound, &parts.metrics));
+    let gate = parts.gate;
     let mut builder = ServerBuilder::new()
         .without_node_managers()
         .with_node_manager(core)
@@ -248,17 +268,34 @@ pub fn build(parts: Parts) -> Result<Built, String> {
     }
     let mut builder = Timing::of(fastest_poll(&parts.control)).apply(builder);
     caps(section).apply(&mut builder.limits_mut().subscriptions);
-    let (server, handle) = builder.build()?;
-    gate.follow(handle.clone(), parts.stop.clone());
-    let events = events
-        .get()
-        .cloned()
-        .ok_or("the server built no namespace for the drives")?;
-    Ok(Built {
-        server,
-        handle,
+    builder
+        .config()
+        .validate()
+        .map_err(|e| format!("Builder configuration is invalid: {}", e.join(", ")))?;
+    Ok(Prepared {
+        builder,
+        gate,
         events,
+        stop: parts.stop,
     })
+}
+
+impl Prepared {
+    /// Makes the server: its node managers, the address space.
+    pub fn build(self) -> Result<Built, String> {
+        let (server, handle) = self.builder.build()?;
+        self.gate.follow(handle.clone(), self.stop);
+        let events = self
+            .events
+            .get()
+            .cloned()
+            .ok_or("the server built no namespace for the drives")?;
+        Ok(Built {
+            server,
+            handle,
+            events,
+        })
+    }
 }
 
 /// The caps on what sessions may hold, from `[opcua]`: subscriptions per

@@ -351,12 +351,26 @@ async fn a_reload_restarts_the_server_with_the_new_section() {
         let d = TestDaemon::reloadable(&with("")).await;
         let url = |addr: SocketAddr| format!("opc.tcp://{addr}/");
         let addr = d.faces_addresses().await.opcua.expect("OPC UA listens");
+        // The drives are polled, and nobody has connected: the server and
+        // its address space are not built yet, so no poll's values went in.
+        let published = || {
+            metric_sum(
+                &d.metrics.render(),
+                "drivegate_opcua_values_published_total",
+            )
+        };
+        while metric_sum(&d.metrics.render(), "drivegate_bus_polls_total") < 8.0 {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        assert_eq!(published(), 0.0);
         let all = Client::asyncua(&url(addr), "brake", &[]).steps().await;
         assert_eq!(
             step(&all, "brake")["status"],
             "BadUserAccessDenied",
             "{all:?}"
         );
+        // Built at the first client: each poll's values go in since.
+        assert!(published() > 0.0);
 
         d.rewrite(&with("anonymous = \"none\""));
         let reply = Api::new(d.http, Some(crate::support::input::ADMIN))
@@ -380,4 +394,15 @@ async fn a_reload_restarts_the_server_with_the_new_section() {
         assert_eq!(step(&all, "brake")["status"], "Good", "{all:?}");
     })
     .await;
+}
+
+/// The sum of the samples of `name` (every label set) in `text`.
+fn metric_sum(text: &str, name: &str) -> f64 {
+    text.lines()
+        .filter_map(|l| {
+            let (head, value) = l.rsplit_once(' ')?;
+            let metric = head.split('{').next()?;
+            (metric == name).then(|| value.parse::<f64>().ok())?
+        })
+        .sum()
 }
