@@ -18,7 +18,8 @@ pub struct MonitorConfig {
     /// Keep the frames (the per-attempt counters of `/metrics` run anyway).
     #[serde(default = "default_enabled")]
     pub enabled: bool,
-    /// Frames kept per bus (each takes 352 bytes).
+    /// Frames kept per bus (each takes about 160 bytes, and 256 more in a
+    /// slot that once held a frame longer than 32).
     #[serde(
         default = "default_ring_frames",
         deserialize_with = "values::int_in::<_, _, 16, 1000000>"

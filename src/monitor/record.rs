@@ -1,5 +1,9 @@
 //! One frame seen on the wire, as the bus thread hands it to the monitor:
-//! fixed size (the bytes inline), so the ring never allocates per frame.
+//! a short frame's bytes inline (a status poll's request and reply, a
+//! write of a few registers), a longer one's in a buffer of the slot that
+//! stays when the slot is overwritten, so the ring allocates at most once
+//! per slot, for its first long frame, and a record takes about 160 bytes,
+//! not the 350 a whole 256-byte frame inline took.
 
 use crate::bus::Origin;
 use crate::modbus::rtu_frame::MAX_FRAME;
@@ -88,6 +92,10 @@ impl FrameOutcome {
     }
 }
 
+/// Bytes of a frame kept in its record itself; a longer frame's go to the
+/// record's buffer.
+pub const INLINE: usize = 32;
+
 /// One frame.
 #[derive(Debug, Clone)]
 pub struct FrameRecord {
@@ -125,8 +133,11 @@ pub struct FrameRecord {
     pub request_whole: bool,
     /// Bytes seen (may exceed what `bytes` keeps, for long noise).
     pub len: u16,
-    /// The frame's first bytes, up to [`MAX_FRAME`].
-    pub bytes: [u8; MAX_FRAME],
+    /// A frame of at most [`INLINE`] bytes.
+    pub(super) inline: [u8; INLINE],
+    /// A longer frame's first bytes, up to [`MAX_FRAME`]; empty (its room
+    /// kept) when the frame is inline.
+    pub(super) long: Vec<u8>,
 }
 
 impl Default for FrameRecord {
@@ -146,7 +157,8 @@ impl Default for FrameRecord {
             request_len: 0,
             request_whole: false,
             len: 0,
-            bytes: [0; MAX_FRAME],
+            inline: [0; INLINE],
+            long: Vec::new(),
         }
     }
 }
@@ -154,7 +166,11 @@ impl Default for FrameRecord {
 impl FrameRecord {
     /// The bytes kept.
     pub fn bytes(&self) -> &[u8] {
-        &self.bytes[..usize::from(self.len).min(MAX_FRAME)]
+        if self.long.is_empty() {
+            &self.inline[..usize::from(self.len).min(INLINE)]
+        } else {
+            &self.long
+        }
     }
 
     /// The request head kept with a reply (empty for others).
@@ -162,10 +178,18 @@ impl FrameRecord {
         &self.request[..usize::from(self.request_len).min(REQUEST_HEAD)]
     }
 
-    /// Sets the frame's bytes (the first [`MAX_FRAME`] are kept).
+    /// Sets the frame's bytes (the first [`MAX_FRAME`] are kept). A long
+    /// frame's buffer is made room for a whole frame the first time, so
+    /// the slot never allocates again.
     pub fn set_bytes(&mut self, bytes: &[u8]) {
-        let kept = bytes.len().min(MAX_FRAME);
-        self.bytes[..kept].copy_from_slice(&bytes[..kept]);
+        let kept = &bytes[..bytes.len().min(MAX_FRAME)];
+        self.long.clear();
+        if kept.len() <= INLINE {
+            self.inline[..kept.len()].copy_from_slice(kept);
+        } else {
+            self.long.reserve_exact(MAX_FRAME);
+            self.long.extend_from_slice(kept);
+        }
         self.len = u16::try_from(bytes.len()).unwrap_or(u16::MAX);
     }
 
@@ -232,6 +256,22 @@ mod tests {
         // Long noise keeps the first 256 bytes and says how many there were.
         r.set_bytes(&[0x55; 300]);
         assert_eq!((r.len, r.bytes().len()), (300, 256));
+        // A short frame after it in the same slot is its own, and the
+        // buffer's room stays for the next long one.
+        r.set_bytes(&[1, 3, 14]);
+        assert_eq!(r.bytes(), &[1, 3, 14]);
+        let room = r.long.capacity();
+        assert!(room >= MAX_FRAME);
+        let long: Vec<u8> = (0..=40).collect();
+        r.set_bytes(&long);
+        assert_eq!(r.bytes(), &long[..]);
+        assert_eq!(r.long.capacity(), room);
+        // A frame of exactly INLINE bytes stays inline.
+        r.set_bytes(&[7; INLINE]);
+        assert_eq!(r.bytes(), &[7; INLINE]);
+        assert!(r.long.is_empty());
+        // The record is small: the ring's slots are most of its memory.
+        assert!(FrameRecord::SIZE <= 160, "{}", FrameRecord::SIZE);
     }
 
     #[test]

@@ -3,13 +3,13 @@
 //! The bus thread is its only writer and must never wait for a reader: each
 //! slot has its own lock, and a reader holds a slot's lock only while it
 //! copies that one record. So the writer can at worst find the one slot it
-//! writes being copied, for the time of a ~350-byte copy, and a reader
+//! writes being copied, for the time of a ~160-byte copy, and a reader
 //! that is slow, stuck or gone costs the writer nothing: it simply finds,
 //! when it reads again, that the frames it had not read yet were
 //! overwritten, and counts them lost.
 //!
 //! The slots come in chunks of [`CHUNK`], each allocated when the writer
-//! first reaches it: a ring of 10,000 frames (3.5 MB) takes the memory of
+//! first reaches it: a ring of 10,000 frames (1.6 MB) takes the memory of
 //! the frames a bus has carried so far, not all of it at start (a quiet
 //! bus, or a daemon restarted, never fills most of it). The writer
 //! allocates during its first lap only, once every [`CHUNK`] frames; after
