@@ -141,15 +141,18 @@ fn sleeps_since(
         .collect()
 }
 
-/// Resident memory of `pid`, MiB.
-fn rss_mib(pid: u32) -> f64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .unwrap_or_default()
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.split_whitespace().next())
-        .and_then(|kb| kb.parse::<f64>().ok())
-        .map_or(0.0, |kb| kb / 1024.0)
+/// Resident memory of `pid`, MiB: all of it (`VmRSS`), its anonymous part
+/// (the heap, stacks) and its file part (the binary's and libraries' pages).
+fn rss_mib(pid: u32) -> [f64; 3] {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    ["VmRSS:", "RssAnon:", "RssFile:"].map(|key| {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(key))
+            .and_then(|v| v.split_whitespace().next())
+            .and_then(|kb| kb.parse::<f64>().ok())
+            .map_or(0.0, |kb| kb / 1024.0)
+    })
 }
 
 /// The sum of the samples of `name` whose labels contain every `labels`
@@ -443,7 +446,7 @@ struct Window {
     cpu_s: f64,
     run_s: f64,
     sleeps: Vec<(String, u64)>,
-    rss_mib: f64,
+    rss_mib: [f64; 3],
     transactions: f64,
     answered: f64,
     idle_p50_ms: f64,
@@ -465,7 +468,7 @@ impl Window {
 
     fn print(&self, name: &str, sim: &str) {
         println!(
-            "{name}: {:.1} s, load {} -> {}; CPU {:.2} s = {:.2} % of a core (run time {:.2} %), {:.0} wake-ups/s, RSS {:.1} MiB",
+            "{name}: {:.1} s, load {} -> {}; CPU {:.2} s = {:.2} % of a core (run time {:.2} %), {:.0} wake-ups/s, RSS {:.1} MiB (anonymous {:.1}, file {:.1})",
             self.secs,
             self.load_before,
             self.load_after,
@@ -473,7 +476,9 @@ impl Window {
             self.share(),
             100.0 * self.run_s / self.secs,
             self.wake_ups() as f64 / self.secs,
-            self.rss_mib
+            self.rss_mib[0],
+            self.rss_mib[1],
+            self.rss_mib[2],
         );
         if self.transactions > 0.0 {
             println!(
