@@ -170,3 +170,50 @@ fn a_setpoint_confirmed_after_a_deactivation_ended_its_lease_is_stopped() {
         Ok(())
     );
 }
+
+/// A lease ends, and its brake fails on the line; an operator then writes
+/// a torque setpoint without a lease while the drive is in speed mode. It
+/// sets no motion, yet it ended the stop still being tried: the motor
+/// went on at the ended lease's speed with nobody owning it.
+#[test]
+fn a_setpoint_of_another_mode_does_not_take_over_a_failing_stop() {
+    let setup = Setup {
+        on_lease_expiry: StopAction::Brake,
+        ..plant([true, false], StopAction::ZeroSpeed)
+    };
+    let steps = [
+        write(Who::Panel, 0, Cmd::Speed(150), Some(100)),
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostRequests(3),
+        },
+        Step::Hold { ms: 566 },
+        Step::Advance { ms: 1316 },
+        write(Who::Panel, 0, Cmd::Torque(200), None),
+        Step::Advance { ms: 6000 },
+    ];
+    assert_eq!(run_case(setup, &steps), Ok(()));
+}
+
+/// The same with a zero-speed stop and a torque setpoint of zero over
+/// the stream: three tries of the stop (its read, both setpoints zeroed)
+/// are lost, and the setpoint, which leaves the drive in speed mode at
+/// the ended lease's speed, ended its tries.
+#[test]
+fn a_zero_torque_setpoint_does_not_take_over_a_failing_zero_speed_stop() {
+    let steps = [
+        write(Who::Panel, 0, Cmd::Speed(150), Some(100)),
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostRequests(9),
+        },
+        Step::Hold { ms: 566 },
+        Step::Advance { ms: 1500 },
+        write(Who::Hmi, 0, Cmd::Torque(0), None),
+        Step::Advance { ms: 6000 },
+    ];
+    assert_eq!(
+        run_case(plant([true, false], StopAction::ZeroSpeed), &steps),
+        Ok(())
+    );
+}
