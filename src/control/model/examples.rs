@@ -1,9 +1,10 @@
 //! Plain example tests: each bug the model found, as the shrunk case that
 //! showed it, replayed through the same world.
 
-use super::run_case;
 use super::steps::{Cmd, Damage, Trouble, Who};
 use super::steps::{Setup, Step};
+use super::world::World;
+use super::{run_case, run_case_then};
 use crate::control::stop_action::StopAction;
 
 fn plant(active: [bool; 2], comm_loss: StopAction) -> Setup {
@@ -109,7 +110,8 @@ fn a_stop_that_cannot_read_the_mode_zeroes_both_setpoints() {
 }
 
 /// The journal garbled and the port down at the start: the turning drive
-/// did not answer then, and nothing stopped it once it did.
+/// did not answer then, and nothing stopped it once it did; then it was
+/// stopped, and no alarm said so.
 #[test]
 fn a_drive_silent_at_a_start_with_the_journal_unknown_is_stopped_when_it_answers() {
     let steps = [
@@ -122,9 +124,25 @@ fn a_drive_silent_at_a_start_with_the_journal_unknown_is_stopped_when_it_answers
         },
         Step::Advance { ms: 100 },
     ];
-    assert_eq!(
-        run_case(plant([false, true], StopAction::ZeroSpeed), &steps),
-        Ok(())
+    let alarms = run_case_then(
+        plant([false, true], StopAction::ZeroSpeed),
+        &steps,
+        World::unknown_state_alarms,
+    );
+    let alarms = match alarms {
+        Ok(alarms) => alarms,
+        Err(broken) => panic!("{broken}"),
+    };
+    assert_eq!(alarms.len(), 1, "{alarms:?}");
+    assert!(
+        alarms[0].starts_with("the safety journal could not be read at start"),
+        "{alarms:?}"
+    );
+    assert!(
+        alarms[0].ends_with(
+            ": lift did not answer at the start; at its first answer it was turning at 150 rpm and was stopped (on_unknown_state = zero-speed)"
+        ),
+        "{alarms:?}"
     );
 }
 

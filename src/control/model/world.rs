@@ -674,6 +674,19 @@ impl World {
     }
 
     /// Ends the case: drivegate stops.
+    /// The texts of the `unknown-state` alarms the running process raised.
+    pub(super) fn unknown_state_alarms(&self) -> Vec<String> {
+        self.process.as_ref().map_or_else(Vec::new, |p| {
+            p.control
+                .alarms()
+                .list()
+                .into_iter()
+                .filter(|a| a.kind == crate::control::alarms::AlarmKind::UnknownState)
+                .map(|a| a.text)
+                .collect()
+        })
+    }
+
     pub(super) fn finish(mut self) {
         if let Some(p) = self.process.take() {
             Bench::abandon(&p.handle);
