@@ -62,12 +62,12 @@ fn run_case_then<R>(
         world.settle_start().await?;
         for (i, step) in steps.iter().enumerate() {
             if let Err(broken) = world.step(step).await {
-                world.finish();
+                world.finish().await;
                 return Err(format!("step {i} ({step:?}): {broken}"));
             }
         }
         let seen = look(&world);
-        world.finish();
+        world.finish().await;
         Ok(seen)
     });
     drop(runtime);
