@@ -101,15 +101,32 @@ pub async fn run(
                     why.words().into(),
                     now,
                 ),
-                Replayed::Keep { lease, left } => book.restore_lease(
-                    drive,
-                    lease.owner.as_str().into(),
-                    lease.length,
-                    *left,
-                    leases::stop_action(lease.action),
-                    leases::mode(lease.mode),
-                    now,
-                ),
+                Replayed::Keep {
+                    lease,
+                    left,
+                    behind,
+                } => {
+                    book.restore_lease(
+                        drive,
+                        lease.owner.as_str().into(),
+                        lease.length,
+                        *left,
+                        leases::stop_action(lease.action),
+                        leases::mode(lease.mode),
+                        now,
+                    );
+                    // Held while the lease is on the drive, as before.
+                    if let Some(stop) = behind {
+                        book.restart_stop(
+                            drive,
+                            stop.owner.as_deref().map(Arc::from),
+                            leases::stop_action(stop.action),
+                            leases::mode(stop.mode),
+                            StopWhy::Unfinished.words().into(),
+                            now,
+                        );
+                    }
+                }
                 Replayed::BrakeHolds { .. } => book.restore_brake(drive),
                 Replayed::NotConfigured | Replayed::LeftMoving { .. } => {}
             }
@@ -239,11 +256,19 @@ pub fn note(d: &Decision, at: SystemTime) -> RestartNote {
                 why.words()
             ),
         ),
-        Replayed::Keep { lease, left } => (
+        Replayed::Keep {
+            lease,
+            left,
+            behind,
+        } => (
             Some(lease.owner.to_string()),
             format!(
-                "the HTTP lease goes on until its deadline ({} ms left); its client may renew it",
-                left.as_millis()
+                "the HTTP lease goes on until its deadline ({} ms left); its client may renew it{}",
+                left.as_millis(),
+                behind.as_ref().map_or_else(String::new, |s| format!(
+                    "; the stop ({}) owed before it was taken is sent when it ends, unless something newer takes over the drive",
+                    leases::stop_action(s.action).name()
+                ))
             ),
         ),
         Replayed::BrakeHolds { owner } => (

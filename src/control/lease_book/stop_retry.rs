@@ -126,9 +126,11 @@ impl LeaseBook {
         now: Instant,
     ) {
         let id = StopId(self.next());
-        let ends_lease = lease.is_some();
         let shut_down = self.shut_down;
         let slot = self.slot(drive);
+        // A stop begun beside a lease (one owed before a lease put back
+        // at a restart) waits for it, and ends none.
+        let ends_lease = lease.is_some() && slot.lease.is_none();
         let mut action = action;
         let mut lease = lease;
         let mut reason = reason;

@@ -235,3 +235,42 @@ fn a_zero_torque_setpoint_does_not_take_over_a_failing_zero_speed_stop() {
         Ok(())
     );
 }
+
+/// A lease ends and its stop fails; a new lease's setpoint may have
+/// landed (its reply was lost): the stop waits behind the new lease, and
+/// the journal holds both. After a `kill -9` the start carried out the
+/// stop and dropped the lease, which still had most of its time: now it
+/// puts the lease back, the stop behind it.
+#[test]
+fn a_lease_taken_over_a_failing_stop_is_back_after_a_restart() {
+    let steps = [
+        write(Who::Panel, 0, Cmd::Speed(150), Some(100)),
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostRequests(3),
+        },
+        Step::Advance { ms: 150 },
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostReplies(1),
+        },
+        write(Who::Panel, 0, Cmd::Speed(120), Some(250)),
+        Step::Restart {
+            wire: false,
+            damage: Damage::Intact,
+            down_ms: 0,
+        },
+        // The journal of the new process holds both too.
+        Step::Restart {
+            wire: false,
+            damage: Damage::Intact,
+            down_ms: 0,
+        },
+        // The lease runs out: its stop is sent.
+        Step::Advance { ms: 600 },
+    ];
+    assert_eq!(
+        run_case(plant([true, false], StopAction::ZeroSpeed), &steps),
+        Ok(())
+    );
+}
