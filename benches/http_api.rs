@@ -342,7 +342,10 @@ fn soak(dir: &std::path::Path) {
     let (grant, _) = book.grant(1, ask, t0);
     let ticket = book.begin_write(
         1,
-        WriteKind::Setpoint { lease: Some(grant) },
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: drivegate::drive::Mode::Speed,
+        },
         "bench".into(),
     );
     book.end_write(&ticket, Applied::Yes, t0);

@@ -386,11 +386,18 @@ impl Leases {
     /// At start-up, a drive that did not answer while what the last
     /// process promised about it is unknown (its journal unreadable, or
     /// read only in part): once it answers, if it moves, it gets `action`
-    /// (`[safety] on_unknown_state`), as the drives found moving at the
-    /// start did, unless a face's write to it was settled first (someone
+    /// (`[safety] on_unknown_state`; none sends nothing), as the drives
+    /// found moving at the start did, and `decided` is told its speed (for
+    /// the alarm), unless a face's write to it was settled first (someone
     /// owns it again). A drive silent at the start (a cable, the port
     /// down) still turns at whatever it was told before.
-    pub fn stop_at_first_answer(self: &Arc<Self>, drive: usize, action: StopAction, why: Arc<str>) {
+    pub fn stop_at_first_answer(
+        self: &Arc<Self>,
+        drive: usize,
+        action: StopAction,
+        why: Arc<str>,
+        decided: Box<dyn FnOnce(i16) + Send>,
+    ) {
         let now = self.plant.now();
         let Some((handle, unit)) = now
             .drive_at(drive)
@@ -426,10 +433,13 @@ impl Leases {
             if !stop_action::is_moving(&status) {
                 return;
             }
-            leases.with(|book, now| {
-                book.restart_stop(drive, None, action, Mode::Speed, why, now);
-                ((), book.tick(now))
-            });
+            if action != StopAction::None {
+                leases.with(|book, now| {
+                    book.restart_stop(drive, None, action, Mode::Speed, why, now);
+                    ((), book.tick(now))
+                });
+            }
+            decided(status.speed_rpm);
         });
     }
 

@@ -430,11 +430,16 @@ impl Control {
         let Some(recovered) = recovered else {
             return;
         };
+        let (alarms, plant) = (self.0.alarms.clone(), self.0.parts.plant().clone());
+        let alarm: restart::Alarm = Arc::new(move |drive: &str, text: String| {
+            alarms.unknown_state(&plant, drive, text);
+        });
         let decisions = restart::run(
             self.0.parts.plant(),
             self.0.parts.leases(),
             &recovered,
             self.0.on_unknown_state,
+            alarm,
         )
         .await;
         let mut counts = self.0.replayed.lock().unwrap_or_else(|p| p.into_inner());

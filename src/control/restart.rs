@@ -46,12 +46,18 @@ pub fn kind(what: &Replayed) -> DecisionKind {
     }
 }
 
+/// Raises the `unknown-state` alarm of a drive (its name) with its text.
+pub type Alarm = Arc<dyn Fn(&str, String) + Send + Sync>;
+
 /// Replays `recovered` into the lease book; returns the decisions made.
+/// A drive silent at the start whose state is unknown is decided at its
+/// first answer, and `alarm` says what was done then.
 pub async fn run(
     plant: &Arc<Plant>,
     leases: &Arc<Leases>,
     recovered: &Recovered,
     on_unknown: StopAction,
+    alarm: Alarm,
 ) -> Vec<Decision> {
     let statuses = if recovered.has_unknowns() {
         first_statuses(plant).await
@@ -95,15 +101,32 @@ pub async fn run(
                     why.words().into(),
                     now,
                 ),
-                Replayed::Keep { lease, left } => book.restore_lease(
-                    drive,
-                    lease.owner.as_str().into(),
-                    lease.length,
-                    *left,
-                    leases::stop_action(lease.action),
-                    leases::mode(lease.mode),
-                    now,
-                ),
+                Replayed::Keep {
+                    lease,
+                    left,
+                    behind,
+                } => {
+                    book.restore_lease(
+                        drive,
+                        lease.owner.as_str().into(),
+                        lease.length,
+                        *left,
+                        leases::stop_action(lease.action),
+                        leases::mode(lease.mode),
+                        now,
+                    );
+                    // Held while the lease is on the drive, as before.
+                    if let Some(stop) = behind {
+                        book.restart_stop(
+                            drive,
+                            stop.owner.as_deref().map(Arc::from),
+                            leases::stop_action(stop.action),
+                            leases::mode(stop.mode),
+                            StopWhy::Unfinished.words().into(),
+                            now,
+                        );
+                    }
+                }
                 Replayed::BrakeHolds { .. } => book.restore_brake(drive),
                 Replayed::NotConfigured | Replayed::LeftMoving { .. } => {}
             }
@@ -117,19 +140,22 @@ pub async fn run(
         Recovered::Tail(_) => Some(Unsaid::Partial),
         Recovered::Unknown(unknown) => Some(Unsaid::Journal(unknown.clone())),
     };
-    if on_unknown != Action::None
-        && let Some(unsaid) = unsaid
-    {
+    if let Some(unsaid) = unsaid {
         let vouched = |name: &str| match recovered {
             Recovered::Tail(state) => state.drives.contains_key(name),
             Recovered::Read(_) | Recovered::Unknown(_) => false,
         };
-        let why: Arc<str> = StopWhy::UnknownState(unsaid).words().into();
+        let why: Arc<str> = StopWhy::UnknownState(unsaid.clone()).words().into();
+        let action = leases::stop_action(on_unknown);
         for s in statuses.iter().filter(|s| s.moving.is_none()) {
             if let Some(drive) = index(&s.name)
                 && !vouched(&s.name)
             {
-                leases.stop_at_first_answer(drive, leases::stop_action(on_unknown), why.clone());
+                let (alarm, unsaid, name) = (alarm.clone(), unsaid.clone(), s.name.clone());
+                let decided = Box::new(move |rpm: i16| {
+                    alarm(&name, first_answer_alarm(&unsaid, &name, rpm, action));
+                });
+                leases.stop_at_first_answer(drive, action, why.clone(), decided);
             }
         }
     }
@@ -175,23 +201,46 @@ async fn first_statuses(plant: &Plant) -> Vec<DriveAtStart> {
 /// (on_unknown_state = zero-speed)".
 pub fn unknown_state_alarm(d: &Decision) -> Option<String> {
     let unsaid = d.unsaid()?;
-    let how = match d.speed_rpm {
+    let done = match &d.what {
+        Replayed::Stop { action, .. } => leases::stop_action(*action),
+        _ => StopAction::None,
+    };
+    Some(format!(
+        "{}: {} {} and {}",
+        unsaid.words(),
+        d.drive,
+        how_moving(d.speed_rpm),
+        what_was_done(done)
+    ))
+}
+
+/// The alarm's words for a drive that did not answer at the start while
+/// the journal could not say who owned it, found moving at its first
+/// answer (at `rpm`) and given `action` then.
+pub fn first_answer_alarm(unsaid: &Unsaid, drive: &str, rpm: i16, action: StopAction) -> String {
+    format!(
+        "{}: {drive} did not answer at the start; at its first answer it {} and {}",
+        unsaid.words(),
+        how_moving(Some(rpm)),
+        what_was_done(action)
+    )
+}
+
+/// How a drive found moving moved, after its name.
+fn how_moving(rpm: Option<i16>) -> String {
+    match rpm {
         Some(rpm) if rpm != 0 => format!("was turning at {rpm} rpm"),
         _ => "was holding torque at standstill".to_string(),
-    };
-    let done = match &d.what {
-        Replayed::Stop { action, .. } => {
-            let action = leases::stop_action(*action);
-            let verb = if action == StopAction::Brake {
-                "was braked"
-            } else {
-                "was stopped"
-            };
-            format!("{verb} (on_unknown_state = {})", action.name())
-        }
-        _ => "was left moving (on_unknown_state = none)".to_string(),
-    };
-    Some(format!("{}: {} {how} and {done}", unsaid.words(), d.drive))
+    }
+}
+
+/// What `on_unknown_state` (`action`) did to a drive found moving.
+fn what_was_done(action: StopAction) -> String {
+    match action {
+        StopAction::Brake => "was braked (on_unknown_state = brake)".to_string(),
+        StopAction::None => "was left moving (on_unknown_state = none)".to_string(),
+        StopAction::ZeroSpeed => format!("was stopped (on_unknown_state = {})", action.name()),
+    }
 }
 
 /// `d` in words, decided at `at`.
@@ -207,11 +256,19 @@ pub fn note(d: &Decision, at: SystemTime) -> RestartNote {
                 why.words()
             ),
         ),
-        Replayed::Keep { lease, left } => (
+        Replayed::Keep {
+            lease,
+            left,
+            behind,
+        } => (
             Some(lease.owner.to_string()),
             format!(
-                "the HTTP lease goes on until its deadline ({} ms left); its client may renew it",
-                left.as_millis()
+                "the HTTP lease goes on until its deadline ({} ms left); its client may renew it{}",
+                left.as_millis(),
+                behind.as_ref().map_or_else(String::new, |s| format!(
+                    "; the stop ({}) owed before it was taken is sent when it ends, unless something newer takes over the drive",
+                    leases::stop_action(s.action).name()
+                ))
             ),
         ),
         Replayed::BrakeHolds { owner } => (
@@ -302,6 +359,29 @@ mod tests {
         // Every other decision is no such alarm.
         let kept = moving(Replayed::NotConfigured, 150);
         assert_eq!(unknown_state_alarm(&kept), None);
+    }
+
+    #[test]
+    fn a_drive_silent_at_the_start_and_moving_at_its_first_answer_is_an_alarm_in_words() {
+        let why = Unsaid::Journal(Unknown::Missing("its marker is there".into()));
+        let text = first_answer_alarm(&why, "belt", 150, StopAction::ZeroSpeed);
+        assert!(
+            text.starts_with("the safety journal was missing at start"),
+            "{text}"
+        );
+        assert!(
+            text.ends_with(
+                ": belt did not answer at the start; at its first answer it was turning at 150 rpm and was stopped (on_unknown_state = zero-speed)"
+            ),
+            "{text}"
+        );
+        assert_eq!(
+            first_answer_alarm(&Unsaid::Partial, "belt", 0, StopAction::None),
+            format!(
+                "{}: belt did not answer at the start; at its first answer it was holding torque at standstill and was left moving (on_unknown_state = none)",
+                Unsaid::Partial.words()
+            )
+        );
     }
 
     #[test]

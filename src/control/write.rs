@@ -321,7 +321,7 @@ fn tickets(
                 // under communication loss; a broadcast takes one per
                 // active drive, only for communication loss.
                 let mode = match kind {
-                    WriteKind::Setpoint { .. } => meaning.setpoint,
+                    WriteKind::Setpoint { mode, .. } => Some(mode),
                     WriteKind::ReleasesBrake { .. } if terms.is_some_and(|t| t.comm_loss) => {
                         meaning.mode
                     }
@@ -347,7 +347,7 @@ fn tickets(
                     _ => None,
                 };
                 let kind = match kind {
-                    WriteKind::Setpoint { .. } => WriteKind::Setpoint { lease: grant },
+                    WriteKind::Setpoint { mode, .. } => WriteKind::Setpoint { lease: grant, mode },
                     WriteKind::ReleasesBrake { .. } => WriteKind::ReleasesBrake { lease: grant },
                     other => other,
                 };
@@ -363,7 +363,7 @@ fn write_kind(meaning: &Meaning) -> Option<WriteKind> {
     match (meaning.stops, meaning.setpoint) {
         (Some(Stopper::Brake), _) => Some(WriteKind::Brake),
         (Some(Stopper::Deactivate), _) => Some(WriteKind::Deactivate),
-        (None, Some(_)) => Some(WriteKind::Setpoint { lease: None }),
+        (None, Some(mode)) => Some(WriteKind::Setpoint { lease: None, mode }),
         (None, None) if meaning.releases_brake => Some(WriteKind::ReleasesBrake { lease: None }),
         (None, None) => None,
     }

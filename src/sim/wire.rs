@@ -102,8 +102,11 @@ enum GiveUp {
 /// What became of a paced reply.
 #[derive(Debug, Clone, Copy)]
 enum Paced {
-    /// Sent; the scheduled end of its last byte on the wire.
-    Sent(Instant),
+    /// Sent; the scheduled end of its last byte on the wire, and whether its
+    /// first byte went out more than t1.5 after its time (the machine kept
+    /// this thread from running): the master may have given up on it and
+    /// spoken over it, so its end says nothing of the master's silence.
+    Sent { end: Instant, behind: bool },
     /// Not sent: the simulator fell too far behind.
     Late,
     /// Not sent: the master had begun another frame.
@@ -315,8 +318,8 @@ impl Wire {
             Some(max_lag) => GiveUp::Late(max_lag),
             None => GiveUp::Never,
         };
-        let reply_end = match self.send_paced(reply_start, give_up).await? {
-            Paced::Sent(end) => end,
+        let (reply_end, behind) = match self.send_paced(reply_start, give_up).await? {
+            Paced::Sent { end, behind } => (end, behind),
             unsent => {
                 let mut bus = lock(&self.bus);
                 let stats = bus.stats_mut();
@@ -333,7 +336,9 @@ impl Wire {
                 return Ok(());
             }
         };
-        self.quiet_from = Some(reply_end);
+        // A reply sent late leaves the master's next silence unjudged: its
+        // wait for the reply may have ended before the reply came.
+        self.quiet_from = (!behind).then_some(reply_end);
         if let Some(noise) = outcome.noise {
             // Noise is not a frame: it does not move the end of activity.
             self.tx.clear();
@@ -361,6 +366,7 @@ impl Wire {
         );
         let last = self.release.last().copied().unwrap_or(start);
         let mut sent = 0;
+        let mut behind = false;
         while sent < len {
             let now = Instant::now();
             if sent == 0 {
@@ -384,6 +390,9 @@ impl Wire {
             }
             let due = sent + self.release[sent..].partition_point(|&t| t <= now);
             if due > sent {
+                if sent == 0 {
+                    behind = now > self.release[0] + self.line.t1_5();
+                }
                 self.line_io.write_all(&self.tx[sent..due]).await?;
                 sent = due;
             } else {
@@ -393,7 +402,10 @@ impl Wire {
                 self.read_until(Some(next), next == last).await?;
             }
         }
-        Ok(Paced::Sent(start + self.line.wire_time(len)))
+        Ok(Paced::Sent {
+            end: start + self.line.wire_time(len),
+            behind,
+        })
     }
 
     /// True when the master has sent bytes since the request being answered

@@ -11,7 +11,7 @@ use super::harness::{ADMIN, OPERATOR, VIEWER, Watcher, config};
 use crate::support::modbus_tcp::{Raw, write};
 use crate::support::{FOUR_DRIVES, TestDaemon};
 
-const LONG: Duration = Duration::from_secs(20);
+const LONG: Duration = Duration::from_secs(60);
 
 async fn call(
     d: &TestDaemon,

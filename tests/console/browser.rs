@@ -21,7 +21,7 @@ use crate::support::opcua::{Held, server_pki};
 const LEASE: Duration = Duration::from_millis(super::harness::JOG_LEASE_MS);
 /// Room for a loaded machine's scheduling beside the lease itself.
 const SLACK: Duration = Duration::from_millis(1500);
-pub(crate) const LONG: Duration = Duration::from_secs(30);
+pub(crate) const LONG: Duration = Duration::from_secs(60);
 
 /// Opens the console at `base` + `#hash`, enters `token` in the token
 /// dialog if asked, and waits until the page is live with every drive.

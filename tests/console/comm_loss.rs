@@ -11,7 +11,7 @@ use crate::support::TestDaemon;
 use crate::support::api::Api;
 use crate::support::modbus_tcp::{Raw, write};
 
-const LONG: Duration = Duration::from_secs(30);
+const LONG: Duration = Duration::from_secs(60);
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_event_log_says_why_a_plcs_motor_was_stopped() {

@@ -399,6 +399,10 @@ pub enum Replayed {
         lease: JournaledLease,
         /// Time left.
         left: Duration,
+        /// A stop owed before the lease was taken (an older lease's, still
+        /// failing when the lease's setpoint was sent), which waits for its
+        /// end, as it did in the last process.
+        behind: Option<JournaledStop>,
     },
     /// A stop that could release a confirmed brake is not sent.
     BrakeHolds {
@@ -490,14 +494,33 @@ pub fn replay(
             out.push(decision(Replayed::NotConfigured));
             continue;
         }
-        // What is owed: a stop under way, else the lease's.
+        // What is owed: a stop under way, else the lease's. A stop beside
+        // a lease is an older one, which waited for that lease (the
+        // records of a stop that ends a lease end it): an HTTP lease with
+        // time left comes back with the stop behind it; else the stop is
+        // owed now, a brake if either's action was.
+        let stop_now = |stop: &JournaledStop, lease: Option<&JournaledLease>| Replayed::Stop {
+            owner: stop.owner.clone(),
+            action: if lease.is_some_and(|l| l.action == Action::Brake) {
+                Action::Brake
+            } else {
+                stop.action
+            },
+            mode: stop.mode,
+            why: StopWhy::Unfinished,
+        };
         let owed = match (&record.stop, &record.lease) {
-            (Some(stop), _) => Some(Replayed::Stop {
-                owner: stop.owner.clone(),
-                action: stop.action,
-                mode: stop.mode,
-                why: StopWhy::Unfinished,
-            }),
+            (Some(stop), Some(lease)) if lease.holder == HolderKind::Http => {
+                match lease.deadline.duration_since(now) {
+                    Ok(left) if !left.is_zero() => Some(Replayed::Keep {
+                        lease: lease.clone(),
+                        left,
+                        behind: Some(stop.clone()),
+                    }),
+                    _ => Some(stop_now(stop, Some(lease))),
+                }
+            }
+            (Some(stop), lease) => Some(stop_now(stop, lease.as_ref())),
             (None, Some(lease)) if lease.holder != HolderKind::Http => Some(Replayed::Stop {
                 owner: Some(lease.owner.clone()),
                 action: lease.action,
@@ -508,6 +531,7 @@ pub fn replay(
                 Ok(left) if !left.is_zero() => Some(Replayed::Keep {
                     lease: lease.clone(),
                     left,
+                    behind: None,
                 }),
                 _ => Some(Replayed::Stop {
                     owner: Some(lease.owner.clone()),

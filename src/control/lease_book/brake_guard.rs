@@ -46,8 +46,8 @@ impl LeaseBook {
         let by = ticket.by.clone();
         let mut effects = Vec::new();
         match ticket.kind {
-            WriteKind::Setpoint { lease } => {
-                self.settle_setpoint(drive, lease, applied, &by, true, now, &mut effects);
+            WriteKind::Setpoint { lease, mode } => {
+                self.settle_setpoint(drive, lease, applied, &by, Some(mode), now, &mut effects);
                 if applied != Applied::No {
                     self.released(drive, ticket.seen, &by, now);
                 }
@@ -56,7 +56,7 @@ impl LeaseBook {
                 if lease.is_some() {
                     // A mode command sets no speed: it never takes over a
                     // stop still being tried.
-                    self.settle_setpoint(drive, lease, applied, &by, false, now, &mut effects);
+                    self.settle_setpoint(drive, lease, applied, &by, None, now, &mut effects);
                 }
                 if applied != Applied::No {
                     self.released(drive, ticket.seen, &by, now);
@@ -212,6 +212,7 @@ impl LeaseBook {
                 id: lease.id,
                 owner: lease.owner,
                 holder: lease.holder,
+                mode: lease.mode,
                 at: now,
                 how: How::EndedBy(by.clone(), deactivation.then_some(lease.action)),
             });
@@ -234,6 +235,7 @@ impl LeaseBook {
             id: ended,
             owner,
             holder,
+            mode,
             how: How::EndedBy(what, Some(action)),
             ..
         }) = slot.last.as_ref()
@@ -244,18 +246,20 @@ impl LeaseBook {
             return;
         }
         let lease = (id, owner.clone(), *holder);
+        let mode = *mode;
         let (reason, action) = (StopReason::LandedAfter(what.clone()), *action);
         slot.last = Some(Ended {
             id,
             owner: lease.1.clone(),
             holder: lease.2,
+            mode,
             at: now,
             how: How::Stopping {
                 reason: reason.clone(),
                 stop: StopId(0),
             },
         });
-        self.begin_stop(drive, Some(lease), reason, action, Mode::Speed, now);
+        self.begin_stop(drive, Some(lease), reason, action, mode, now);
     }
 
     /// True while a brake is being applied to `drive` (a stop's).

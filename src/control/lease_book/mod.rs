@@ -80,6 +80,8 @@ struct Ended {
     id: LeaseId,
     owner: Arc<str>,
     holder: Holder,
+    /// The mode of its setpoint: the motion its stop ends.
+    mode: Mode,
     at: Instant,
     how: How,
 }
@@ -286,6 +288,7 @@ impl LeaseBook {
                     id: old.id,
                     owner: old.owner,
                     holder: old.holder,
+                    mode: old.mode,
                     at: now,
                     how: How::Replaced(ask.owner),
                 });
@@ -295,8 +298,13 @@ impl LeaseBook {
         (Grant { id, replaced }, effects)
     }
 
-    /// Settles the lease of a setpoint (or mode command) and, when
-    /// `takes_over`, ends a stop still being tried on the drive.
+    /// Settles the lease of a setpoint of mode `sets` (or of a mode
+    /// command, `None`) and, when it took over, ends a stop still being
+    /// tried on the drive. A mode command sets no motion: it takes over
+    /// nothing. A confirmed leased setpoint does: its lease covers the
+    /// motor. One without a lease does only when it sets the motion the
+    /// stop ends, the setpoint of that stop's mode: another mode's leaves
+    /// the motor at what the ended lease set, with nobody owning it.
     #[allow(clippy::too_many_arguments)]
     fn settle_setpoint(
         &mut self,
@@ -304,12 +312,12 @@ impl LeaseBook {
         grant: Option<Grant>,
         applied: Applied,
         by: &Arc<str>,
-        takes_over: bool,
+        sets: Option<Mode>,
         now: Instant,
         effects: &mut Vec<Effect>,
     ) {
         let Some(grant) = grant else {
-            if applied == Applied::Yes {
+            if applied == Applied::Yes && sets.is_some_and(|m| self.stop_of_mode(drive, m)) {
                 self.supersede(drive, by, effects);
             }
             return;
@@ -361,10 +369,22 @@ impl LeaseBook {
         lease.deadline = now + lease.length;
         let owner = lease.owner.clone();
         self.note_lease(drive);
-        if applied == Applied::Yes && takes_over {
+        if applied == Applied::Yes && sets.is_some() {
             let by: Arc<str> = format!("a leased setpoint from {owner}").into();
             self.supersede(drive, &by, effects);
         }
+    }
+
+    /// True when a setpoint of `mode` sets the motion of the stop being
+    /// tried on `drive`: the motion of the mode of the lease it ends (not
+    /// the last poll's, which a drive silent since the lease's mode command
+    /// never showed). A brake applied again for no lease ends any motion;
+    /// without a stop, there is nothing to take over.
+    fn stop_of_mode(&self, drive: usize, mode: Mode) -> bool {
+        self.slots
+            .get(&drive)
+            .and_then(|s| s.stop.as_ref())
+            .is_none_or(|s| s.lease.is_none() || s.mode == mode)
     }
 
     /// Pushes the deadline of `drive`'s lease ahead by its length (or a new
@@ -419,6 +439,7 @@ impl LeaseBook {
                 id: lease.id,
                 owner: lease.owner,
                 holder: lease.holder,
+                mode: lease.mode,
                 at: now,
                 how: How::Released(by.clone()),
             });

@@ -185,6 +185,7 @@ impl LeaseBook {
                 id,
                 owner: owner.clone(),
                 holder: Holder::Request,
+                mode,
                 at: now,
                 how: How::Stopping {
                     reason: reason.clone(),

@@ -100,6 +100,7 @@ impl LeaseBook {
                     id: lease.id,
                     owner: lease.owner,
                     holder: lease.holder,
+                    mode: lease.mode,
                     at: now,
                     how: How::Stopping {
                         reason: reason.clone(),
@@ -125,12 +126,15 @@ impl LeaseBook {
         now: Instant,
     ) {
         let id = StopId(self.next());
-        let ends_lease = lease.is_some();
         let shut_down = self.shut_down;
         let slot = self.slot(drive);
+        // A stop begun beside a lease (one owed before a lease put back
+        // at a restart) waits for it, and ends none.
+        let ends_lease = lease.is_some() && slot.lease.is_none();
         let mut action = action;
         let mut lease = lease;
         let mut reason = reason;
+        let mut mode = mode;
         if let Some(old) = slot.stop.take() {
             if old.state == StopState::InFlight {
                 slot.orphans.push((old.id, old.seen, old.brake));
@@ -139,8 +143,11 @@ impl LeaseBook {
                 action = StopAction::Brake;
             }
             if lease.is_none() {
+                // A brake applied again still ends the lease of the stop
+                // it joins, and the motion of that lease's mode.
                 lease = old.lease;
                 reason = old.reason;
+                mode = old.mode;
             }
         }
         if let Some(Ended {
@@ -219,6 +226,7 @@ impl LeaseBook {
             id: ended,
             owner,
             holder,
+            mode,
             how:
                 How::Stopped {
                     reason,
@@ -237,18 +245,20 @@ impl LeaseBook {
             return;
         }
         let lease = (*ended, owner.clone(), *holder);
+        let mode = *mode;
         let (reason, action) = (reason.clone(), *action);
         slot.last = Some(Ended {
             id: lease.0,
             owner: lease.1.clone(),
             holder: lease.2,
+            mode,
             at: now,
             how: How::Stopping {
                 reason: reason.clone(),
                 stop: StopId(0),
             },
         });
-        self.begin_stop(drive, Some(lease), reason, action, Mode::Speed, now);
+        self.begin_stop(drive, Some(lease), reason, action, mode, now);
         if let Some(stop) = self.slot(drive).stop.as_mut() {
             // Its end was published with the first stop.
             stop.announced = true;

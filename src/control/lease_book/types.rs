@@ -123,6 +123,9 @@ pub enum WriteKind {
     Setpoint {
         /// Its lease, if it came with one.
         lease: Option<Grant>,
+        /// The mode whose setpoint it writes: without a lease, it takes
+        /// over a failing stop only if that stop's motion is of this mode.
+        mode: Mode,
     },
     /// The emergency brake.
     Brake,

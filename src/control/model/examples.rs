@@ -1,9 +1,10 @@
 //! Plain example tests: each bug the model found, as the shrunk case that
 //! showed it, replayed through the same world.
 
-use super::run_case;
 use super::steps::{Cmd, Damage, Trouble, Who};
 use super::steps::{Setup, Step};
+use super::world::World;
+use super::{run_case, run_case_then};
 use crate::control::stop_action::StopAction;
 
 fn plant(active: [bool; 2], comm_loss: StopAction) -> Setup {
@@ -109,7 +110,8 @@ fn a_stop_that_cannot_read_the_mode_zeroes_both_setpoints() {
 }
 
 /// The journal garbled and the port down at the start: the turning drive
-/// did not answer then, and nothing stopped it once it did.
+/// did not answer then, and nothing stopped it once it did; then it was
+/// stopped, and no alarm said so.
 #[test]
 fn a_drive_silent_at_a_start_with_the_journal_unknown_is_stopped_when_it_answers() {
     let steps = [
@@ -122,9 +124,25 @@ fn a_drive_silent_at_a_start_with_the_journal_unknown_is_stopped_when_it_answers
         },
         Step::Advance { ms: 100 },
     ];
-    assert_eq!(
-        run_case(plant([false, true], StopAction::ZeroSpeed), &steps),
-        Ok(())
+    let alarms = run_case_then(
+        plant([false, true], StopAction::ZeroSpeed),
+        &steps,
+        World::unknown_state_alarms,
+    );
+    let alarms = match alarms {
+        Ok(alarms) => alarms,
+        Err(broken) => panic!("{broken}"),
+    };
+    assert_eq!(alarms.len(), 1, "{alarms:?}");
+    assert!(
+        alarms[0].starts_with("the safety journal could not be read at start"),
+        "{alarms:?}"
+    );
+    assert!(
+        alarms[0].ends_with(
+            ": lift did not answer at the start; at its first answer it was turning at 150 rpm and was stopped (on_unknown_state = zero-speed)"
+        ),
+        "{alarms:?}"
     );
 }
 
@@ -167,6 +185,92 @@ fn a_setpoint_confirmed_after_a_deactivation_ended_its_lease_is_stopped() {
     ];
     assert_eq!(
         run_case(plant([false, true], StopAction::ZeroSpeed), &steps),
+        Ok(())
+    );
+}
+
+/// A lease ends, and its brake fails on the line; an operator then writes
+/// a torque setpoint without a lease while the drive is in speed mode. It
+/// sets no motion, yet it ended the stop still being tried: the motor
+/// went on at the ended lease's speed with nobody owning it.
+#[test]
+fn a_setpoint_of_another_mode_does_not_take_over_a_failing_stop() {
+    let setup = Setup {
+        on_lease_expiry: StopAction::Brake,
+        ..plant([true, false], StopAction::ZeroSpeed)
+    };
+    let steps = [
+        write(Who::Panel, 0, Cmd::Speed(150), Some(100)),
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostRequests(3),
+        },
+        Step::Hold { ms: 566 },
+        Step::Advance { ms: 1316 },
+        write(Who::Panel, 0, Cmd::Torque(200), None),
+        Step::Advance { ms: 6000 },
+    ];
+    assert_eq!(run_case(setup, &steps), Ok(()));
+}
+
+/// The same with a zero-speed stop and a torque setpoint of zero over
+/// the stream: three tries of the stop (its read, both setpoints zeroed)
+/// are lost, and the setpoint, which leaves the drive in speed mode at
+/// the ended lease's speed, ended its tries.
+#[test]
+fn a_zero_torque_setpoint_does_not_take_over_a_failing_zero_speed_stop() {
+    let steps = [
+        write(Who::Panel, 0, Cmd::Speed(150), Some(100)),
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostRequests(9),
+        },
+        Step::Hold { ms: 566 },
+        Step::Advance { ms: 1500 },
+        write(Who::Hmi, 0, Cmd::Torque(0), None),
+        Step::Advance { ms: 6000 },
+    ];
+    assert_eq!(
+        run_case(plant([true, false], StopAction::ZeroSpeed), &steps),
+        Ok(())
+    );
+}
+
+/// A lease ends and its stop fails; a new lease's setpoint may have
+/// landed (its reply was lost): the stop waits behind the new lease, and
+/// the journal holds both. After a `kill -9` the start carried out the
+/// stop and dropped the lease, which still had most of its time: now it
+/// puts the lease back, the stop behind it.
+#[test]
+fn a_lease_taken_over_a_failing_stop_is_back_after_a_restart() {
+    let steps = [
+        write(Who::Panel, 0, Cmd::Speed(150), Some(100)),
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostRequests(3),
+        },
+        Step::Advance { ms: 150 },
+        Step::Fault {
+            drive: 0,
+            trouble: Trouble::LostReplies(1),
+        },
+        write(Who::Panel, 0, Cmd::Speed(120), Some(250)),
+        Step::Restart {
+            wire: false,
+            damage: Damage::Intact,
+            down_ms: 0,
+        },
+        // The journal of the new process holds both too.
+        Step::Restart {
+            wire: false,
+            damage: Damage::Intact,
+            down_ms: 0,
+        },
+        // The lease runs out: its stop is sent.
+        Step::Advance { ms: 600 },
+    ];
+    assert_eq!(
+        run_case(plant([true, false], StopAction::ZeroSpeed), &steps),
         Ok(())
     );
 }

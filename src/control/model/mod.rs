@@ -41,6 +41,15 @@ const CASES: u32 = 2000;
 /// Runs one case: the plant of `setup`, then `steps`; the first invariant
 /// broken, with the step that broke it.
 fn run_case(setup: Setup, steps: &[Step]) -> Result<(), String> {
+    run_case_then(setup, steps, |_| ())
+}
+
+/// [`run_case`], then `look` at the world as the steps left it.
+fn run_case_then<R>(
+    setup: Setup,
+    steps: &[Step],
+    look: impl FnOnce(&World) -> R,
+) -> Result<R, String> {
     // The directory outlives the runtime: nothing of a case writes to it
     // once it is removed.
     let root = world::scratch()?;
@@ -53,12 +62,13 @@ fn run_case(setup: Setup, steps: &[Step]) -> Result<(), String> {
         world.settle_start().await?;
         for (i, step) in steps.iter().enumerate() {
             if let Err(broken) = world.step(step).await {
-                world.finish();
+                world.finish().await;
                 return Err(format!("step {i} ({step:?}): {broken}"));
             }
         }
-        world.finish();
-        Ok(())
+        let seen = look(&world);
+        world.finish().await;
+        Ok(seen)
     });
     drop(runtime);
     result

@@ -575,14 +575,11 @@ impl Oracle {
                 _ => false,
             };
             // A write that set it turning again (a brake released onto
-            // the setpoint it held) owns its motion too.
-            // A setpoint without a lease that the drive confirmed takes the
-            // drive over, of whichever mode (docs/safety.md, "What takes
-            // over a failing stop"): the motor is its caller's.
-            let takes_over = req.terms.is_none()
-                && matches!(req.cmd, Cmd::Speed(_) | Cmd::Torque(_))
-                && s.outcome == Outcome::Answered { refused: false };
-            if sets || takes_over || s.before.setpoint != s.after.setpoint || !s.before.driven {
+            // the setpoint it held) owns its motion too. A setpoint of
+            // another mode than the drive's sets no motion: the motor is
+            // not its caller's (docs/safety.md, "What takes over a failing
+            // stop").
+            if sets || s.before.setpoint != s.after.setpoint || !s.before.driven {
                 self.authority[d] = match (req.terms, req.released) {
                     (Some(_), Some(role)) => Authority::Released(role),
                     (Some(_), None) => Authority::Leased,

@@ -673,11 +673,29 @@ impl World {
         self.oracle.check(&look)
     }
 
-    /// Ends the case: drivegate stops.
-    pub(super) fn finish(mut self) {
+    /// The texts of the `unknown-state` alarms the running process raised.
+    pub(super) fn unknown_state_alarms(&self) -> Vec<String> {
+        self.process.as_ref().map_or_else(Vec::new, |p| {
+            p.control
+                .alarms()
+                .list()
+                .into_iter()
+                .filter(|a| a.kind == crate::control::alarms::AlarmKind::UnknownState)
+                .map(|a| a.text)
+                .collect()
+        })
+    }
+
+    /// Ends the case: drivegate stops. Its tasks see the shutdown before
+    /// the runtime goes: a bus's followers (the alarm list's, holding the
+    /// plant that holds the bus) leave its feed only then, and a case
+    /// would otherwise keep its whole process, the alarm file's writer
+    /// thread with it.
+    pub(super) async fn finish(mut self) {
         if let Some(p) = self.process.take() {
             Bench::abandon(&p.handle);
             p.shutdown.cancel();
+            self.yield_a_while().await;
         }
     }
 }

@@ -395,3 +395,51 @@ fn a_renamed_drive_is_owed_its_lease_under_its_new_name() {
     assert_eq!(moved.len(), 2, "{moved:?}");
     assert!(state.renamed("press", "saw").is_empty());
 }
+
+#[test]
+fn a_stop_owed_before_an_http_lease_waits_behind_it() {
+    // An older lease's stop was failing when the HTTP lease was taken; it
+    // waited for that lease, which comes back with it behind.
+    let older = Record::Stop {
+        drive: "conveyor".into(),
+        owner: Some("panel".into()),
+        action: Action::ZeroSpeed,
+        mode: ModeName::Speed,
+        ends_lease: true,
+    };
+    let records = [
+        older.clone(),
+        lease("conveyor", HolderKind::Http, at() + 5 * S),
+    ];
+    let d = run(&records, at() + 2 * S);
+    let behind = JournaledStop {
+        owner: Some("panel".into()),
+        action: Action::ZeroSpeed,
+        mode: ModeName::Speed,
+    };
+    assert!(
+        matches!(&d[..], [Decision { what: Replayed::Keep { left, behind: Some(b), .. }, .. }]
+            if *left == 3 * S && *b == behind),
+        "{d:?}"
+    );
+    // Run out: the stop is owed now.
+    assert_eq!(
+        run(&records, at() + 6 * S)[0].what,
+        stop(Some("panel"), Action::ZeroSpeed, StopWhy::Unfinished)
+    );
+    // Beside a session's lease (ended with the old process), the stop is
+    // owed now, a brake if the lease's action was.
+    let braking = Record::Lease {
+        drive: "conveyor".into(),
+        owner: "scada".into(),
+        holder: HolderKind::CommLoss,
+        deadline_ms: unix_ms(at() + 5 * S),
+        length_ms: 1000,
+        action: Action::Brake,
+        mode: ModeName::Speed,
+    };
+    assert_eq!(
+        run(&[older, braking], at())[0].what,
+        stop(Some("panel"), Action::Brake, StopWhy::Unfinished)
+    );
+}

@@ -177,7 +177,10 @@ fn a_write_sent_before_a_brake_and_landing_after_it_has_the_brake_applied_again(
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
     let setpoint = book.begin_write(
         LIFT,
-        WriteKind::Setpoint { lease: None },
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
         "a setpoint without a lease from panel".into(),
     );
     let mode = book.begin_write(
@@ -244,7 +247,14 @@ fn a_write_sent_before_a_brake_and_landing_after_it_has_the_brake_applied_again(
     );
     assert!(!book.stopping(LIFT));
     // A write sent after the brake releases it as asked: nothing follows.
-    let after = book.begin_write(LIFT, WriteKind::Setpoint { lease: None }, "x".into());
+    let after = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     assert!(stops(&book.end_write(&after, Applied::Yes, t0 + 4 * MS)).is_empty());
     // One that surely did not land neither.
     let before = book.begin_write(
@@ -267,7 +277,14 @@ fn a_write_sent_before_a_brake_and_landing_after_it_has_the_brake_applied_again(
 fn a_newer_setpoint_takes_over_a_brake_being_applied_again() {
     let t0 = Instant::now();
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
-    let old = book.begin_write(LIFT, WriteKind::Setpoint { lease: None }, "x".into());
+    let old = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     stopping_write(
         &mut book,
         LIFT,
@@ -278,7 +295,14 @@ fn a_newer_setpoint_takes_over_a_brake_being_applied_again() {
     );
     // A leased setpoint sent after the brake is on its way ...
     let (grant, _) = book.grant(LIFT, ask("panel", Holder::Request, Mode::Speed, SECOND), t0);
-    let newer = book.begin_write(LIFT, WriteKind::Setpoint { lease: Some(grant) }, "x".into());
+    let newer = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     // ... when the old one lands: the brake again waits for the newer lease.
     let effects = book.end_write(&old, Applied::Yes, t0 + MS);
     assert!(stops(&effects).is_empty(), "held by the newer lease");
@@ -296,7 +320,14 @@ fn the_brake_is_applied_again_whichever_result_comes_back_first() {
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
     // A setpoint, then a brake that overtakes it on the bus; the setpoint's
     // result is settled first, the brake's after.
-    let setpoint = book.begin_write(LIFT, WriteKind::Setpoint { lease: None }, "x".into());
+    let setpoint = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     let brake = book.begin_write(LIFT, WriteKind::Brake, "the brake from plc".into());
     assert!(stops(&book.end_write(&setpoint, Applied::Yes, t0)).is_empty());
     let effects = book.end_write(&brake, Applied::Yes, t0 + MS);
@@ -305,7 +336,14 @@ fn the_brake_is_applied_again_whichever_result_comes_back_first() {
     assert_eq!(again[0].action, StopAction::Brake);
 
     // The same with a brake that was never sent: nothing to apply again.
-    let setpoint = book.begin_write(CONVEYOR, WriteKind::Setpoint { lease: None }, "x".into());
+    let setpoint = book.begin_write(
+        CONVEYOR,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     let brake = book.begin_write(CONVEYOR, WriteKind::Brake, "the brake from plc".into());
     book.end_write(&setpoint, Applied::Yes, t0);
     assert!(stops(&book.end_write(&brake, Applied::No, t0)).is_empty());
@@ -313,7 +351,14 @@ fn the_brake_is_applied_again_whichever_result_comes_back_first() {
 
     // A setpoint sent after the brake, settled before it: no brake again.
     let brake = book.begin_write(CONVEYOR, WriteKind::Brake, "the brake from plc".into());
-    let after = book.begin_write(CONVEYOR, WriteKind::Setpoint { lease: None }, "x".into());
+    let after = book.begin_write(
+        CONVEYOR,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     book.end_write(&after, Applied::Yes, t0);
     assert!(stops(&book.end_write(&brake, Applied::Yes, t0)).is_empty());
 }
@@ -365,7 +410,10 @@ fn a_write_sent_before_a_stop_brake_and_landing_after_it_has_the_brake_again() {
     leased(&mut book, LIFT, "plc", SECOND, t0);
     let setpoint = book.begin_write(
         LIFT,
-        WriteKind::Setpoint { lease: None },
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
         "a setpoint without a lease from panel".into(),
     );
     // The lease ends with a brake, which overtakes the setpoint on the
@@ -395,7 +443,10 @@ fn a_write_sent_before_a_stop_brake_and_landing_after_it_has_the_brake_again() {
     leased(&mut book, LIFT, "plc", SECOND, t0);
     let setpoint = book.begin_write(
         LIFT,
-        WriteKind::Setpoint { lease: None },
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
         "a setpoint without a lease from panel".into(),
     );
     let order = stops(&book.tick(t0 + SECOND))[0].clone();

@@ -28,7 +28,14 @@ fn ask(owner: &str, holder: Holder, mode: Mode, length: Duration) -> LeaseAsk {
 fn leased_write(book: &mut LeaseBook, drive: usize, ask: LeaseAsk, at: Instant) -> (Grant, Ticket) {
     let by = format!("a leased setpoint from {}", ask.owner);
     let (grant, _) = book.grant(drive, ask, at);
-    let ticket = book.begin_write(drive, WriteKind::Setpoint { lease: Some(grant) }, by.into());
+    let ticket = book.begin_write(
+        drive,
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: Mode::Speed,
+        },
+        by.into(),
+    );
     (grant, ticket)
 }
 
@@ -118,7 +125,10 @@ fn a_grant_allows_for_the_queue_until_its_setpoint_is_settled() {
     // Settled: its own deadline from then on.
     let ticket = book.begin_write(
         CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: Mode::Speed,
+        },
         "x".into(),
     );
     book.end_write(&ticket, Applied::Yes, t0 + 2 * SECOND);
@@ -146,7 +156,10 @@ fn renewals_push_the_deadline_and_never_cut_a_pending_allowance() {
     assert!(view.expires_in > SECOND, "{view:?}");
     let ticket = book.begin_write(
         CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: Mode::Speed,
+        },
         "x".into(),
     );
     book.end_write(&ticket, Applied::Yes, t0 + 200 * MS);
@@ -227,6 +240,7 @@ fn a_new_lease_takes_over_and_covers_the_motor_even_if_its_setpoint_fails() {
         CONVEYOR,
         WriteKind::Setpoint {
             lease: Some(second),
+            mode: Mode::Speed,
         },
         "x".into(),
     );
@@ -255,7 +269,14 @@ fn at_shutdown_nothing_more_is_sent() {
     assert!(stops(&effects).is_empty());
     let said = book.no_lease(LIFT, t0 + SECOND).0;
     assert!(said.contains("left to the safe stop"), "{said}");
-    let ticket = book.begin_write(CONVEYOR, WriteKind::Setpoint { lease: None }, "x".into());
+    let ticket = book.begin_write(
+        CONVEYOR,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     stopping_write(
         &mut book,
         CONVEYOR,
@@ -279,7 +300,10 @@ fn a_lease_may_carry_its_own_stop_action() {
     let (grant, _) = book.grant(CONVEYOR, ask, t0);
     let ticket = book.begin_write(
         CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: Mode::Speed,
+        },
         "x".into(),
     );
     book.end_write(&ticket, Applied::Yes, t0);

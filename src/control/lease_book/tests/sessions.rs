@@ -126,7 +126,10 @@ fn plc_write(
         grant
     });
     let kind = if setpoint {
-        WriteKind::Setpoint { lease: grant }
+        WriteKind::Setpoint {
+            lease: grant,
+            mode: Mode::Speed,
+        }
     } else {
         WriteKind::ReleasesBrake { lease: grant }
     };
@@ -417,7 +420,10 @@ fn a_broadcast_setpoint_settled_after_the_close_ends_its_lease_and_counts() {
     );
     let ticket = book.begin_write(
         CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: Mode::Speed,
+        },
         "x".into(),
     );
     // Closed while the setpoint waits: the lease ends with its stop then.
@@ -469,7 +475,10 @@ fn a_comm_loss_end_names_the_face_of_the_session_that_held_the_lease() {
     );
     let ticket = book.begin_write(
         LIFT,
-        WriteKind::Setpoint { lease: Some(grant) },
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: Mode::Speed,
+        },
         "a write from MQTT".into(),
     );
     book.end_write(&ticket, Applied::Yes, t0);

@@ -152,7 +152,10 @@ fn a_setpoint_without_a_lease_takes_over_a_stop_still_being_tried() {
     // A PLC writes a speed without a lease; the drive confirms it.
     let ticket = book.begin_write(
         CONVEYOR,
-        WriteKind::Setpoint { lease: None },
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
         "a setpoint without a lease from 10.0.0.5:4000 over Modbus TCP".into(),
     );
     let effects = book.end_write(&ticket, Applied::Yes, t1 + 10 * MS);
@@ -170,14 +173,99 @@ fn a_setpoint_without_a_lease_takes_over_a_stop_still_being_tried() {
     leased(&mut book, LIFT, "scada", SECOND, t0);
     let order = stops(&book.tick(t1))[0].clone();
     book.stop_tried(LIFT, order.id, failed(), t1);
-    let ticket = book.begin_write(LIFT, WriteKind::Setpoint { lease: None }, "x".into());
+    let ticket = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     book.end_write(&ticket, Applied::Maybe, t1);
     assert!(book.stopping(LIFT));
     // A setpoint without a lease leaves a lease in place.
     leased(&mut book, CONVEYOR, "scada", SECOND, t1);
-    let ticket = book.begin_write(CONVEYOR, WriteKind::Setpoint { lease: None }, "x".into());
+    let ticket = book.begin_write(
+        CONVEYOR,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
     book.end_write(&ticket, Applied::Yes, t1);
     assert!(book.lease(CONVEYOR, t1).is_some());
+}
+
+#[test]
+fn a_setpoint_without_a_lease_of_another_mode_takes_over_no_stop() {
+    let t0 = Instant::now();
+    let mut book = LeaseBook::new(StopAction::ZeroSpeed);
+    // A lease in speed mode ends; its stop fails.
+    leased(&mut book, CONVEYOR, "scada", SECOND, t0);
+    let t1 = t0 + SECOND;
+    let order = stops(&book.tick(t1))[0].clone();
+    assert_eq!(order.mode, Mode::Speed);
+    book.stop_tried(CONVEYOR, order.id, failed(), t1);
+    // A torque setpoint without a lease, confirmed: the drive still turns
+    // at the ended lease's speed, and the stop goes on.
+    let ticket = book.begin_write(
+        CONVEYOR,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Torque,
+        },
+        "a setpoint without a lease from panel over HTTP".into(),
+    );
+    let effects = book.end_write(&ticket, Applied::Yes, t1 + 10 * MS);
+    assert!(events(&effects).is_empty(), "{effects:?}");
+    assert!(book.stopping(CONVEYOR));
+    let again = book.tick(t1 + 10 * SECOND);
+    assert_eq!(stops(&again)[0].attempt, 2);
+    assert_eq!(stops(&again)[0].mode, Mode::Speed);
+    // A mode command (which releases a brake) takes nothing over either.
+    let again = stops(&again)[0].clone();
+    book.stop_tried(CONVEYOR, again.id, failed(), t1 + 10 * SECOND);
+    let ticket = book.begin_write(
+        CONVEYOR,
+        WriteKind::ReleasesBrake { lease: None },
+        "x".into(),
+    );
+    book.end_write(&ticket, Applied::Yes, t1 + 10 * SECOND);
+    assert!(book.stopping(CONVEYOR));
+    // A speed setpoint sets the motion the stop ends: it takes over.
+    let ticket = book.begin_write(
+        CONVEYOR,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
+    book.end_write(&ticket, Applied::Yes, t1 + 10 * SECOND);
+    assert!(!book.stopping(CONVEYOR));
+    // A lease in torque mode: a speed setpoint takes its stop over no more.
+    let t2 = t1 + 20 * SECOND;
+    let (_, ticket) = leased_write(
+        &mut book,
+        LIFT,
+        ask("panel", Holder::Request, Mode::Torque, SECOND),
+        t2,
+    );
+    book.end_write(&ticket, Applied::Yes, t2);
+    let order = stops(&book.tick(t2 + SECOND))[0].clone();
+    assert_eq!(order.mode, Mode::Torque);
+    book.stop_tried(LIFT, order.id, failed(), t2 + SECOND);
+    let ticket = book.begin_write(
+        LIFT,
+        WriteKind::Setpoint {
+            lease: None,
+            mode: Mode::Speed,
+        },
+        "x".into(),
+    );
+    book.end_write(&ticket, Applied::Yes, t2 + SECOND);
+    assert!(book.stopping(LIFT));
 }
 
 #[test]
@@ -200,7 +288,10 @@ fn a_stop_due_waits_while_a_newer_lease_is_on_its_way() {
     // Withdrawn (its setpoint surely did not land): the stop goes on.
     let ticket = book.begin_write(
         CONVEYOR,
-        WriteKind::Setpoint { lease: Some(grant) },
+        WriteKind::Setpoint {
+            lease: Some(grant),
+            mode: Mode::Speed,
+        },
         "x".into(),
     );
     let effects = book.end_write(&ticket, Applied::No, t1 + SECOND);
