@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 use super::opcua::{Client, LIMIT, STEP, USER, Ua, client_named, operator, step};
-use crate::support::api::{connect, wait_for};
+use crate::support::api::{connect, next_json};
 use crate::support::input::VIEWER;
 use crate::support::metrics::metric;
 use crate::support::wait::{bounded, eventually};
@@ -88,14 +88,19 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
         // address, as the client itself sees its end of the connection.
         let anonymous = step(&all, "anonymous-write");
         assert_eq!(anonymous["status"], "BadUserAccessDenied", "{anonymous}");
-        let audit = wait_for(&mut ws, STEP, "the refusal's audit line", |m| {
-            m["type"] == "write"
-                && m["drive"] == "conveyor"
-                && m["what"]
-                    .as_str()
-                    .is_some_and(|w| w.contains("speed setpoint 100 rpm"))
-        })
+        // The audit lines of the conveyor's writes, in whatever order the
+        // two sessions' writes reached the core.
+        let audits = audit_lines(
+            &mut ws,
+            &[
+                "speed setpoint 100 rpm",
+                "speed setpoint 600 rpm",
+                "speed setpoint 99999 rpm",
+                "mode \"fast\"",
+            ],
+        )
         .await;
+        let audit = &audits["speed setpoint 100 rpm"];
         assert_eq!(audit["ok"], false, "{audit}");
         assert_eq!(
             audit["who"].as_str(),
@@ -108,14 +113,7 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
                 .is_some_and(|a| a.contains("operator")),
             "{audit}"
         );
-        let audit = wait_for(&mut ws, STEP, "the setpoint's audit line", |m| {
-            m["type"] == "write"
-                && m["drive"] == "conveyor"
-                && m["what"]
-                    .as_str()
-                    .is_some_and(|w| w.contains("speed setpoint 600 rpm"))
-        })
-        .await;
+        let audit = &audits["speed setpoint 600 rpm"];
         assert_eq!(
             audit["who"].as_str(),
             Some(client_named(USER, step(&all, "connected")).as_str()),
@@ -133,12 +131,7 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
             ("speed setpoint 99999 rpm", "valid -2048 to 2047 rpm"),
             ("mode \"fast\"", "speed, position or torque"),
         ] {
-            let audit = wait_for(&mut ws, STEP, what, |m| {
-                m["type"] == "write"
-                    && m["drive"] == "conveyor"
-                    && m["what"].as_str().is_some_and(|w| w.contains(what))
-            })
-            .await;
+            let audit = &audits[what];
             assert_eq!(audit["ok"], false, "{audit}");
             assert_eq!(
                 audit["who"].as_str(),
@@ -168,6 +161,33 @@ async fn an_operator_sets_the_mode_activates_and_writes_the_speed_setpoint() {
         );
     })
     .await;
+}
+
+/// The first audit line of a write to the conveyor naming each of `wanted`,
+/// read from the stream `ws` in the order they come.
+async fn audit_lines(
+    ws: &mut crate::support::api::Ws,
+    wanted: &[&'static str],
+) -> std::collections::HashMap<&'static str, Value> {
+    let mut found = std::collections::HashMap::new();
+    let deadline = Instant::now() + STEP;
+    while found.len() < wanted.len() {
+        let left = deadline.saturating_duration_since(Instant::now());
+        assert!(
+            !left.is_zero(),
+            "audit lines within {STEP:?}: only {:?} of {wanted:?}",
+            found.keys()
+        );
+        let m = next_json(ws, left).await;
+        if m["type"] != "write" || m["drive"] != "conveyor" {
+            continue;
+        }
+        let what = m["what"].as_str().unwrap_or_default().to_string();
+        for w in wanted.iter().filter(|w| what.contains(**w)) {
+            found.entry(*w).or_insert_with(|| m.clone());
+        }
+    }
+    found
 }
 
 /// The Angle's monitored item of `angle` (the `operate` scenario's step):

@@ -209,10 +209,13 @@ async fn a_plant_network_peer_is_refused_by_default_and_let_in_with_its_role() {
         );
 
         // The peer's pymodbus read: refused at connect, nothing answered.
+        let burst = std::time::Instant::now();
         let out = peer.pymodbus(port, &["read", "1", "0xC0", "7"]).await;
         assert!(out.get("error").is_some(), "{out}");
-        // A burst of 40 more connections: each closed, one line in the log.
+        // A burst of 40 more connections: each closed, one line in the log
+        // for each second the burst lasted (one on a quiet machine).
         assert_eq!(peer.connections(port, 40).await, 40);
+        let seconds = burst.elapsed().as_secs() as usize;
         let text = d.metrics.render();
         let refused = "drivegate_modbus_tcp_connections_rejected_total{reason=\"not_allowed\"}";
         assert!(metric(&text, refused) >= 41.0, "{text}");
@@ -221,7 +224,10 @@ async fn a_plant_network_peer_is_refused_by_default_and_let_in_with_its_role() {
             0.0
         );
         let lines = refusals_of(&peer.peer);
-        assert_eq!(lines.len(), 1, "one line for the burst: {lines:#?}");
+        assert!(
+            !lines.is_empty() && lines.len() <= 1 + seconds,
+            "one line a second for a burst of {seconds} s: {lines:#?}"
+        );
         assert!(
             lines[0].contains("allowed_networks") && lines[0].contains("[[modbus_tcp.clients]]"),
             "{}",
