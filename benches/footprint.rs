@@ -439,6 +439,36 @@ async fn clients(addr: SocketAddr, deadline: Instant) -> (Vec<Duration>, usize) 
     (latencies, errors)
 }
 
+/// What a thread spends being woken on this machine, in us of CPU a
+/// wake-up: 2000 sleeps of 1.75 ms (a t3.5 at 115200 baud) to absolute
+/// deadlines, in a thread that does nothing else, its own CPU clock read
+/// before and after. On a virtual machine an idle core woken by a timer
+/// costs far more than on bare metal, and a transaction's wake-ups cost at
+/// least that many times this, whatever the daemon does when awake.
+fn wake_cost_us() -> f64 {
+    const SLEEPS: u32 = 2000;
+    let thread = std::thread::spawn(|| {
+        use nix::time::{ClockId, clock_gettime};
+        let cpu = || {
+            clock_gettime(ClockId::CLOCK_THREAD_CPUTIME_ID)
+                .map(|t| Duration::from(t).as_secs_f64())
+                .unwrap_or(0.0)
+        };
+        let step = Duration::from_micros(1750);
+        let before = cpu();
+        let mut deadline = Instant::now();
+        for _ in 0..SLEEPS {
+            deadline += step;
+            std::thread::sleep(deadline.saturating_duration_since(Instant::now()));
+        }
+        1e6 * (cpu() - before) / f64::from(SLEEPS)
+    });
+    thread.join().unwrap_or(0.0)
+}
+
+/// This machine's cost of a wake-up ([`wake_cost_us`]), once measured.
+static WAKE_COST_US: std::sync::OnceLock<f64> = std::sync::OnceLock::new();
+
 /// What one window measured.
 #[derive(Default)]
 struct Window {
@@ -500,6 +530,12 @@ impl Window {
                 .map(|(name, n)| format!("{name} {:.1}", *n as f64 / self.transactions))
                 .collect();
             println!("  wake-ups per transaction: {}", threads.join(", "));
+            if let Some(cost) = WAKE_COST_US.get() {
+                println!(
+                    "  those wake-ups at this machine's {cost:.0} us each: {:.0} us a transaction",
+                    cost * self.wake_ups() as f64 / self.transactions
+                );
+            }
         }
         if !self.latencies.is_empty() || self.errors > 0 {
             println!(
@@ -700,6 +736,11 @@ async fn main() {
     println!(
         "footprint: {secs} s windows; the wire's limit {:.1} status reads/s ({DRIVES} drives, {BAUD} baud, turnaround {TURNAROUND_MS} ms)",
         limit_per_s()
+    );
+    let cost = WAKE_COST_US.get_or_init(wake_cost_us);
+    println!(
+        "this machine: a thread woken from a 1.75 ms sleep spends {cost:.0} us of CPU a wake-up (2000 sleeps, load {})",
+        load()
     );
     if wanted("full") {
         on_external_sim("full", secs, true).await;
