@@ -247,14 +247,7 @@ fn a_write_sent_before_a_brake_and_landing_after_it_has_the_brake_applied_again(
     );
     assert!(!book.stopping(LIFT));
     // A write sent after the brake releases it as asked: nothing follows.
-    let after = book.begin_write(
-        LIFT,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let after = unleased(&mut book, LIFT, Mode::Speed);
     assert!(stops(&book.end_write(&after, Applied::Yes, t0 + 4 * MS)).is_empty());
     // One that surely did not land neither.
     let before = book.begin_write(
@@ -277,14 +270,7 @@ fn a_write_sent_before_a_brake_and_landing_after_it_has_the_brake_applied_again(
 fn a_newer_setpoint_takes_over_a_brake_being_applied_again() {
     let t0 = Instant::now();
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
-    let old = book.begin_write(
-        LIFT,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let old = unleased(&mut book, LIFT, Mode::Speed);
     stopping_write(
         &mut book,
         LIFT,
@@ -320,14 +306,7 @@ fn the_brake_is_applied_again_whichever_result_comes_back_first() {
     let mut book = LeaseBook::new(StopAction::ZeroSpeed);
     // A setpoint, then a brake that overtakes it on the bus; the setpoint's
     // result is settled first, the brake's after.
-    let setpoint = book.begin_write(
-        LIFT,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let setpoint = unleased(&mut book, LIFT, Mode::Speed);
     let brake = book.begin_write(LIFT, WriteKind::Brake, "the brake from plc".into());
     assert!(stops(&book.end_write(&setpoint, Applied::Yes, t0)).is_empty());
     let effects = book.end_write(&brake, Applied::Yes, t0 + MS);
@@ -336,14 +315,7 @@ fn the_brake_is_applied_again_whichever_result_comes_back_first() {
     assert_eq!(again[0].action, StopAction::Brake);
 
     // The same with a brake that was never sent: nothing to apply again.
-    let setpoint = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let setpoint = unleased(&mut book, CONVEYOR, Mode::Speed);
     let brake = book.begin_write(CONVEYOR, WriteKind::Brake, "the brake from plc".into());
     book.end_write(&setpoint, Applied::Yes, t0);
     assert!(stops(&book.end_write(&brake, Applied::No, t0)).is_empty());
@@ -351,14 +323,7 @@ fn the_brake_is_applied_again_whichever_result_comes_back_first() {
 
     // A setpoint sent after the brake, settled before it: no brake again.
     let brake = book.begin_write(CONVEYOR, WriteKind::Brake, "the brake from plc".into());
-    let after = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let after = unleased(&mut book, CONVEYOR, Mode::Speed);
     book.end_write(&after, Applied::Yes, t0);
     assert!(stops(&book.end_write(&brake, Applied::Yes, t0)).is_empty());
 }

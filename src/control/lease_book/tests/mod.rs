@@ -91,6 +91,11 @@ fn failed() -> StopReport {
     }
 }
 
+/// A setpoint of `mode` without a lease begun on `drive`.
+fn unleased(book: &mut LeaseBook, drive: usize, mode: Mode) -> Ticket {
+    book.begin_write(drive, WriteKind::Setpoint { lease: None, mode }, "x".into())
+}
+
 /// A brake (or deactivation) from `by`, settled as `applied` at `at`.
 fn stopping_write(
     book: &mut LeaseBook,
@@ -269,14 +274,7 @@ fn at_shutdown_nothing_more_is_sent() {
     assert!(stops(&effects).is_empty());
     let said = book.no_lease(LIFT, t0 + SECOND).0;
     assert!(said.contains("left to the safe stop"), "{said}");
-    let ticket = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let ticket = unleased(&mut book, CONVEYOR, Mode::Speed);
     stopping_write(
         &mut book,
         CONVEYOR,

@@ -173,26 +173,12 @@ fn a_setpoint_without_a_lease_takes_over_a_stop_still_being_tried() {
     leased(&mut book, LIFT, "scada", SECOND, t0);
     let order = stops(&book.tick(t1))[0].clone();
     book.stop_tried(LIFT, order.id, failed(), t1);
-    let ticket = book.begin_write(
-        LIFT,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let ticket = unleased(&mut book, LIFT, Mode::Speed);
     book.end_write(&ticket, Applied::Maybe, t1);
     assert!(book.stopping(LIFT));
     // A setpoint without a lease leaves a lease in place.
     leased(&mut book, CONVEYOR, "scada", SECOND, t1);
-    let ticket = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let ticket = unleased(&mut book, CONVEYOR, Mode::Speed);
     book.end_write(&ticket, Applied::Yes, t1);
     assert!(book.lease(CONVEYOR, t1).is_some());
 }
@@ -234,14 +220,7 @@ fn a_setpoint_without_a_lease_of_another_mode_takes_over_no_stop() {
     book.end_write(&ticket, Applied::Yes, t1 + 10 * SECOND);
     assert!(book.stopping(CONVEYOR));
     // A speed setpoint sets the motion the stop ends: it takes over.
-    let ticket = book.begin_write(
-        CONVEYOR,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let ticket = unleased(&mut book, CONVEYOR, Mode::Speed);
     book.end_write(&ticket, Applied::Yes, t1 + 10 * SECOND);
     assert!(!book.stopping(CONVEYOR));
     // A lease in torque mode: a speed setpoint takes its stop over no more.
@@ -256,14 +235,7 @@ fn a_setpoint_without_a_lease_of_another_mode_takes_over_no_stop() {
     let order = stops(&book.tick(t2 + SECOND))[0].clone();
     assert_eq!(order.mode, Mode::Torque);
     book.stop_tried(LIFT, order.id, failed(), t2 + SECOND);
-    let ticket = book.begin_write(
-        LIFT,
-        WriteKind::Setpoint {
-            lease: None,
-            mode: Mode::Speed,
-        },
-        "x".into(),
-    );
+    let ticket = unleased(&mut book, LIFT, Mode::Speed);
     book.end_write(&ticket, Applied::Yes, t2 + SECOND);
     assert!(book.stopping(LIFT));
 }
