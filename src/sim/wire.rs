@@ -336,9 +336,10 @@ impl Wire {
                 return Ok(());
             }
         };
-        // A reply sent late leaves the master's next silence unjudged: its
-        // wait for the reply may have ended before the reply came.
-        self.quiet_from = (!behind).then_some(reply_end);
+        // A reply sent late: the master's wait for it may have ended before
+        // it came, so the master's next silence is judged from the end of
+        // its own request only, which it surely heard.
+        self.quiet_from = Some(if behind { wire_end } else { reply_end });
         if let Some(noise) = outcome.noise {
             // Noise is not a frame: it does not move the end of activity.
             self.tx.clear();
