@@ -246,20 +246,8 @@ impl LeaseBook {
             return;
         }
         let lease = (id, owner.clone(), *holder);
-        let mode = *mode;
-        let (reason, action) = (StopReason::LandedAfter(what.clone()), *action);
-        slot.last = Some(Ended {
-            id,
-            owner: lease.1.clone(),
-            holder: lease.2,
-            mode,
-            at: now,
-            how: How::Stopping {
-                reason: reason.clone(),
-                stop: StopId(0),
-            },
-        });
-        self.begin_stop(drive, Some(lease), reason, action, mode, now);
+        let (reason, action, mode) = (StopReason::LandedAfter(what.clone()), *action, *mode);
+        self.stop_ended_lease(drive, lease, reason, action, mode, now);
     }
 
     /// True while a brake is being applied to `drive` (a stop's).

@@ -114,6 +114,31 @@ impl LeaseBook {
         self.begin_stop(drive, ended, reason, action, mode, now);
     }
 
+    /// Records `lease` as ended and stopping for `reason` (its stop not
+    /// numbered yet), and begins that stop.
+    pub(super) fn stop_ended_lease(
+        &mut self,
+        drive: usize,
+        lease: (LeaseId, Arc<str>, Holder),
+        reason: StopReason,
+        action: StopAction,
+        mode: Mode,
+        now: Instant,
+    ) {
+        self.slot(drive).last = Some(Ended {
+            id: lease.0,
+            owner: lease.1.clone(),
+            holder: lease.2,
+            mode,
+            at: now,
+            how: How::Stopping {
+                reason: reason.clone(),
+                stop: StopId(0),
+            },
+        });
+        self.begin_stop(drive, Some(lease), reason, action, mode, now);
+    }
+
     /// Begins a stop of `drive`. A stop still pending there is merged into
     /// it: the stronger action (the brake) wins.
     pub(super) fn begin_stop(
@@ -245,20 +270,8 @@ impl LeaseBook {
             return;
         }
         let lease = (*ended, owner.clone(), *holder);
-        let mode = *mode;
-        let (reason, action) = (reason.clone(), *action);
-        slot.last = Some(Ended {
-            id: lease.0,
-            owner: lease.1.clone(),
-            holder: lease.2,
-            mode,
-            at: now,
-            how: How::Stopping {
-                reason: reason.clone(),
-                stop: StopId(0),
-            },
-        });
-        self.begin_stop(drive, Some(lease), reason, action, mode, now);
+        let (reason, action, mode) = (reason.clone(), *action, *mode);
+        self.stop_ended_lease(drive, lease, reason, action, mode, now);
         if let Some(stop) = self.slot(drive).stop.as_mut() {
             // Its end was published with the first stop.
             stop.announced = true;
