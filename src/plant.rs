@@ -28,7 +28,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::bus::{BusHandle, Observers};
-use crate::config::{BusConfig, Config, Declared};
+use crate::config::{BusConfig, Config, Declared, DriveConfig};
 use crate::monitor::BusMonitor;
 use crate::scope::Scope;
 use crate::sim::{SimDrives, SimHandle, Simulator};
@@ -208,6 +208,19 @@ pub struct Drive {
     pub gear_ratio: f64,
     /// The settings it must hold (`[bus.drive.settings]`), if declared.
     pub declared: Option<Declared>,
+}
+
+impl Drive {
+    /// The drive `d` configures on the bus at `bus` in the directory.
+    fn configured(bus: usize, d: &DriveConfig) -> Self {
+        Self {
+            name: d.name().to_string(),
+            bus,
+            unit: d.unit(),
+            gear_ratio: d.gear_ratio,
+            declared: d.declared(),
+        }
+    }
 }
 
 /// Why the plant could not start.
@@ -426,15 +439,12 @@ impl Plant {
                 bus_config,
                 sim.as_ref(),
             )?)));
-            for d in &bus_config.drives {
-                drives.push(Some(Drive {
-                    name: d.name().to_string(),
-                    bus: index,
-                    unit: d.unit(),
-                    gear_ratio: d.gear_ratio,
-                    declared: d.declared(),
-                }));
-            }
+            drives.extend(
+                bus_config
+                    .drives
+                    .iter()
+                    .map(|d| Some(Drive::configured(index, d))),
+            );
         }
         let (directory, _) = watch::channel(Arc::new(Directory {
             buses,
@@ -705,13 +715,7 @@ fn slots(
         };
         let moved = rebuild.moved.iter().any(|m| m == bus_config.name());
         for d in &bus_config.drives {
-            let drive = Drive {
-                name: d.name().to_string(),
-                bus,
-                unit: d.unit(),
-                gear_ratio: d.gear_ratio,
-                declared: d.declared(),
-            };
+            let drive = Drive::configured(bus, d);
             let kept = old
                 .drives
                 .iter()

@@ -29,15 +29,12 @@ pub(crate) fn served(config: &Config, handles: Vec<BusHandle>) -> Plant {
             scope: Arc::new(Scope::new(config.scope.settings(), line, units)),
             thread: Arc::new(Mutex::new(None)),
         })));
-        for d in &bus_config.drives {
-            drives.push(Some(Drive {
-                name: d.name().to_string(),
-                bus: index,
-                unit: d.unit(),
-                gear_ratio: d.gear_ratio,
-                declared: d.declared(),
-            }));
-        }
+        drives.extend(
+            bus_config
+                .drives
+                .iter()
+                .map(|d| Some(Drive::configured(index, d))),
+        );
     }
     let (directory, _) = watch::channel(Arc::new(Directory {
         buses,
