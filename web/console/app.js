@@ -89,9 +89,10 @@ function drawLink() {
   let plantWords = '';
   if (state === 'open') {
     const p = plantLiveness(store);
-    const plant = p.drives === 0 ? 'no drive configured'
+    const down = p.busesDown.length ? `; down: bus ${p.busesDown.join(', bus ')}` : '';
+    const plant = (p.drives === 0 ? 'no drive configured'
       : p.notLive === 0 ? `the data of all ${p.drives} drives is live`
-        : `${p.live} of ${p.drives} drives live${p.busesDown.length ? `; down: bus ${p.busesDown.join(', bus ')}` : ''}`;
+        : `${p.live} of ${p.drives} drives live`) + down;
     text = 'connected';
     if (p.busesDown.length === 1) { cls = 'open down'; plantWords = 'bus down'; }
     else if (p.busesDown.length > 1) { cls = 'open down'; plantWords = `${p.busesDown.length} buses down`; }

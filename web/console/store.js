@@ -346,16 +346,17 @@ export function freshnessOf(d, now, bus = null) {
  */
 export function plantLiveness(store) {
   const now = performance.now();
-  let live = 0;
   const down = [];
-  for (const d of store.drives.values()) {
-    const f = freshnessOf(d, now).freshness;
-    if (f === 'live') live += 1;
-    else if (f === 'bus-down' && d.bus && !down.includes(d.bus)) down.push(d.bus);
-  }
   for (const b of store.buses.values()) {
-    if (b.state === 'down' && !down.includes(b.name)) down.push(b.name);
+    if (b.state === 'down') down.push(b.name);
   }
+  const freshness = [...store.drives.values()].map((d) => [d, freshnessOf(d, now).freshness]);
+  for (const [d, f] of freshness) {
+    if (f === 'bus-down' && d.bus && !down.includes(d.bus)) down.push(d.bus);
+  }
+  // A drive on a bus known down is not live, even while its last status
+  // is still young: the bus's news can come before the drive's.
+  const live = freshness.filter(([d, f]) => f === 'live' && !down.includes(d.bus)).length;
   return { drives: store.drives.size, live, notLive: store.drives.size - live, busesDown: down };
 }
 
