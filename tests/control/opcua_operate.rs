@@ -205,12 +205,30 @@ fn subscribed_at_the_poll_rate(angle: &Value) {
     let window = angle["window_s"].as_f64().unwrap_or_default();
     let notified = angle["notifications"].as_f64().unwrap_or_default() / window;
     let polled = angle["polls"].as_f64().unwrap_or_default() / 4.0 / window;
+    // A gap between notifications far longer than a poll (on a loaded
+    // machine, the client's publish requests or the server's publishing
+    // kept from the CPU) brings, with a queue of one, one notification for
+    // all the polls in it: the rate is judged on the polls outside such
+    // gaps, which the load, not the subscription, took.
+    let period_ms = 1000.0 / polled;
+    let missed_by_client: f64 = angle["gaps_ms"]
+        .as_array()
+        .map(|gaps| {
+            gaps.iter()
+                .filter_map(Value::as_f64)
+                .filter(|g| *g > 2.0 * period_ms)
+                .map(|g| g / period_ms - 1.0)
+                .sum()
+        })
+        .unwrap_or_default();
+    let deliverable = polled - missed_by_client / window;
     // However fast a loaded machine lets the bus poll: as often as that
     // (so more than 10 a second whenever the drive is polled more than
     // 12.5 times a second, as it is on an idle machine, about 37).
     assert!(
-        notified >= 0.8 * polled && notified <= 1.1 * polled + 1.0,
-        "{notified:.1} notifications a second for {polled:.1} polls a second: {angle}"
+        notified >= 0.8 * deliverable && notified <= 1.1 * polled + 1.0,
+        "{notified:.1} notifications a second for {polled:.1} polls a second \
+         ({deliverable:.1} once the client's late gaps are left out): {angle}"
     );
 }
 
