@@ -16,11 +16,16 @@ use serde_json::{Value, json};
 use tokio::sync::{Notify, mpsc, oneshot};
 use tokio_tungstenite::tungstenite::Message;
 
-/// The flags every start uses: headless, and nothing that reaches for the
+/// The flags every start uses: headless, nothing that reaches for the
 /// network on its own (the machine has none; without them chromium tries
-/// to reach its maker's services).
+/// to reach its maker's services), and no tab's timers or renderer slowed
+/// for being in the background or occluded, as a test's tab may be (the
+/// console draws on timers and animation frames).
 pub const FLAGS: &[&str] = &[
     "--headless",
+    "--disable-background-timer-throttling",
+    "--disable-backgrounding-occluded-windows",
+    "--disable-renderer-backgrounding",
     "--no-sandbox",
     "--disable-gpu",
     "--no-first-run",
