@@ -202,12 +202,13 @@ pub async fn next_json(ws: &mut Ws, limit: Duration) -> Value {
     }
 }
 
-/// Reads messages until one satisfies `want`, within `limit`.
+/// Reads messages until one satisfies `want`, within `limit` (`want` sees
+/// every message, so it may keep what it needs of the others).
 pub async fn wait_for(
     ws: &mut Ws,
     limit: Duration,
     what: &str,
-    want: impl Fn(&Value) -> bool,
+    mut want: impl FnMut(&Value) -> bool,
 ) -> Value {
     let deadline = Instant::now() + limit;
     loop {
